@@ -1,0 +1,3 @@
+from visionpos.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,84 @@
+"""Small frozen messages passed between pipeline stages.
+
+Units are SI; times are int64 nanoseconds on the server's monotonic clock.
+Quaternions are scalar-last (x, y, z, w), as scipy's Rotation uses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# BlobFrame.flags bits
+FLAG_TRUNCATED = 1 << 0  # detector hit its blob cap (sunlight, reflections): blobs were dropped
+FLAG_SATURATED = 1 << 1  # many pixels at full scale: exposure too long
+FLAG_RESYNC = 1 << 2  # station's clock offset jumped since the previous frame
+
+BLOB_COLUMNS = ("x", "y", "area", "peak")
+
+
+@dataclass(frozen=True, slots=True)
+class BlobFrame:
+    """One camera frame's detections, exactly what a station sends.
+
+    blobs: (N, 4) float32, columns x_px, y_px (distorted image coordinates,
+    pixel centres at integer values), area_px, peak (0..255 scale).
+    capture_ns: capture time on the server clock (station converted it).
+    """
+
+    camera_id: int
+    seq: int
+    capture_ns: int
+    blobs: np.ndarray
+    station_id: int = 0
+    flags: int = 0
+    recv_ns: int = 0
+
+    @property
+    def xy(self) -> np.ndarray:
+        """(N, 2) pixel centroids."""
+        return self.blobs[:, :2]
+
+
+@dataclass(frozen=True, slots=True)
+class BodyState:
+    """Filtered pose of one rigid body at one output tick.
+
+    position: (3,) m, world frame (z up). quaternion: (4,) x, y, z, w, the
+    rotation body->world (body x forward, y left, z up).
+    velocity: (3,) m/s world. angular_velocity: (3,) rad/s, body frame.
+    covariance: (6, 6) over [x, y, z, rx, ry, rz] (m^2, rad^2); the rotation
+    part is of a small world-frame rotation vector error.
+    velocity_covariance: (3, 3) m^2/s^2.
+    time_ns: the instant the state is valid for (predicted to send time).
+    capture_ns: capture time of the newest camera frame that contributed.
+    """
+
+    name: str
+    body_id: int
+    time_ns: int
+    capture_ns: int
+    position: np.ndarray
+    quaternion: np.ndarray
+    velocity: np.ndarray
+    angular_velocity: np.ndarray
+    covariance: np.ndarray
+    velocity_covariance: np.ndarray
+    tracked: bool
+    n_markers: int = 0
+    n_cameras: int = 0
+    residual_mm: float = float("nan")
+    reset_counter: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class LoosePoints:
+    """Triangulated markers that belong to no rigid body at one fusion step.
+
+    points: (N, 3) m world; residual_px: (N,) RMS reprojection error.
+    """
+
+    time_ns: int
+    points: np.ndarray
+    residual_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
