@@ -1,0 +1,484 @@
+"""The station <-> server wire protocol (UDP, binary, little-endian, versioned).
+
+docs/protocol.md specifies every byte; this module is the reference
+implementation used by stations, the fusion server, the simulator and replay.
+
+Every packet is one UDP datagram:
+
+    common header (16 bytes) | body (body_len bytes) | optional HMAC tag (16 bytes)
+
+Frames decode to `visionpos.messages.BlobFrame`; the other messages decode to
+the small frozen dataclasses below. `decode` raises `ProtocolError` with a
+message naming what was wrong, so a server can count and drop bad packets.
+
+Server-side helpers (pure, no I/O): `make_hello_ack`, `make_sync_reply`,
+`seq_delta`, `server_time_from_realtime`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+from visionpos.messages import BlobFrame
+
+PROTOCOL_VERSION = 1
+MAGIC = b"VPOS"
+DEFAULT_PORT = 5600
+
+# Largest UDP payload that crosses a 1500-byte Ethernet MTU unfragmented
+# (1500 - 20 IPv4 - 8 UDP). Every packet of this protocol fits in it.
+MAX_PACKET_BYTES = 1472
+HEADER_BYTES = 16
+FRAME_FIXED_BYTES = 16  # seq, flags, count, capture_ns
+BLOB_BYTES = 16  # x, y, area, peak: 4 x float32
+TAG_BYTES = 16  # HMAC-SHA256 truncated to its first 16 bytes
+# 32 + 88 * 16 + 16 = 1456 <= 1472: a signed full frame still fits one datagram.
+MAX_BLOBS_PER_PACKET = 88
+
+# message types (header byte 5)
+MSG_FRAME = 1
+MSG_HELLO = 2
+MSG_HELLO_ACK = 3
+MSG_HEARTBEAT = 4
+MSG_SYNC_REQUEST = 5
+MSG_SYNC_REPLY = 6
+MSG_BYE = 7
+
+# header flags (header byte 6)
+HF_SIGNED = 0x01  # a 16-byte HMAC tag follows the body
+
+# HelloAck.status
+ACK_OK = 0
+ACK_UNKNOWN_SESSION = 1  # server does not know this station/session (it restarted): send Hello again
+ACK_REJECTED = 2  # camera id not configured on the server, or resolution mismatch: fix config
+ACK_STATUS_NAMES = {ACK_OK: "ok", ACK_UNKNOWN_SESSION: "unknown session", ACK_REJECTED: "rejected"}
+
+# Hello.timebase: which clock Frame.capture_ns is on
+TIMEBASE_SERVER = 0  # converted to the server clock with the built-in sync exchange
+TIMEBASE_REALTIME = 1  # station CLOCK_REALTIME, disciplined by PTP/chrony (server converts)
+
+CAMERA_KINDS = ("unknown", "pinhole", "fisheye")
+
+# Heartbeat.status bits
+HB_CAMERA_OK = 0x01  # the last capture attempt produced a frame
+HB_CLOCK_SYNCED = 0x02  # clock offset estimate is valid (or the clock is external)
+HB_CLOCK_EXTERNAL = 0x04  # built-in sync is off: host clock disciplined by PTP/chrony
+HB_STREAMING = 0x08  # trigger time reached, frames are being sent
+
+TEMPERATURE_UNKNOWN = -32768  # Heartbeat temperature field value for "no sensor"
+UNCERTAINTY_UNKNOWN = -1
+
+_HEADER = struct.Struct("<4sBBBBHHHH")
+_FRAME_HEAD = struct.Struct("<4sBBBBHHHHIHHq")  # header + fixed frame part, 32 bytes
+_HELLO = struct.Struct("<IHHfBBBB32s16s")  # 64 bytes
+_HELLO_ACK = struct.Struct("<IB3xqqq")  # 32 bytes
+_HEARTBEAT = struct.Struct("<IHhIIIiqqqI4x")  # 56 bytes
+_SYNC_REQUEST = struct.Struct("<qI4x")  # 16 bytes
+_SYNC_REPLY = struct.Struct("<qqqI4x")  # 32 bytes
+_BYE = struct.Struct("<I4x")  # 8 bytes
+_BLOB_DTYPE = np.dtype("<f4")
+
+assert _HEADER.size == HEADER_BYTES and _FRAME_HEAD.size == HEADER_BYTES + FRAME_FIXED_BYTES
+assert HEADER_BYTES + FRAME_FIXED_BYTES + MAX_BLOBS_PER_PACKET * BLOB_BYTES + TAG_BYTES <= MAX_PACKET_BYTES
+
+_U16 = 0xFFFF
+_U32 = 0xFFFFFFFF
+_I64_MIN, _I64_MAX = -(1 << 63), (1 << 63) - 1
+
+
+class ProtocolError(ValueError):
+    """A packet that cannot be encoded or decoded; the message says why and what to do."""
+
+
+@dataclass(frozen=True, slots=True)
+class Hello:
+    """Station registration, sent until a HelloAck with the same session arrives.
+
+    session: random non-zero u32 chosen at agent start; it tells the server
+    that a station restarted (new session) and echoes back in HelloAck.
+    fps: nominal frame rate. camera_kind: one of CAMERA_KINDS.
+    """
+
+    station_id: int
+    camera_id: int
+    session: int
+    width: int
+    height: int
+    fps: float
+    camera_kind: str = "unknown"
+    camera_name: str = ""
+    software: str = ""
+    timebase: int = TIMEBASE_SERVER
+
+
+@dataclass(frozen=True, slots=True)
+class HelloAck:
+    """Server answer to Hello and to each Heartbeat.
+
+    start_ns: capture start (trigger) time on the server clock; stations send
+    no frames captured before it. server_ns: server clock when sent.
+    duration_ns: recording length after start_ns, 0 = until stopped.
+    status: ACK_OK / ACK_UNKNOWN_SESSION / ACK_REJECTED.
+    """
+
+    station_id: int
+    camera_id: int
+    session: int
+    start_ns: int
+    server_ns: int
+    status: int = ACK_OK
+    duration_ns: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class Heartbeat:
+    """Station health, about once a second. Counters are since agent start (mod 2^32).
+
+    clock_offset_ns: server clock - station clock estimate; clock_uncertainty_ns
+    its 1-sigma uncertainty (-1 = unknown). drift_ppb: station clock rate
+    error (server - station) in parts per billion. temperature_c: None = no sensor.
+    station_ns: station local clock when sent.
+    """
+
+    station_id: int
+    camera_id: int
+    seq: int
+    session: int = 0
+    status: int = 0
+    frames_captured: int = 0
+    frames_dropped: int = 0
+    send_errors: int = 0
+    clock_offset_ns: int = 0
+    clock_uncertainty_ns: int = UNCERTAINTY_UNKNOWN
+    drift_ppb: int = 0
+    temperature_c: float | None = None
+    station_ns: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class SyncRequest:
+    """Clock-sync request: t1_ns = station clock at send."""
+
+    station_id: int
+    camera_id: int
+    t1_ns: int
+    seq: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class SyncReply:
+    """Clock-sync reply: t1 echoed, t2 = server clock at receive, t3 = server clock at send."""
+
+    station_id: int
+    camera_id: int
+    t1_ns: int
+    t2_ns: int
+    t3_ns: int
+    seq: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class Bye:
+    """Station shutting down cleanly; the server may mark it offline at once."""
+
+    station_id: int
+    camera_id: int
+    session: int = 0
+
+
+Message = BlobFrame | Hello | HelloAck | Heartbeat | SyncRequest | SyncReply | Bye
+
+
+# ---------------------------------------------------------------- helpers
+
+
+def _check_range(name: str, v: int, lo: int, hi: int) -> int:
+    v = int(v)
+    if not lo <= v <= hi:
+        raise ProtocolError(f"{name}={v} out of range [{lo}, {hi}] for the wire format")
+    return v
+
+
+def _tag(key: bytes, data: bytes | memoryview) -> bytes:
+    return hmac.new(key, data, hashlib.sha256).digest()[:TAG_BYTES]
+
+
+def _finish(mtype: int, station_id: int, camera_id: int, body: bytes, key: bytes | None) -> bytes:
+    """Prefix the common header and append the tag when a key is given."""
+    sid = _check_range("station_id", station_id, 0, _U16)
+    cid = _check_range("camera_id", camera_id, 0, _U16)
+    flags = HF_SIGNED if key is not None else 0
+    packet = _HEADER.pack(MAGIC, PROTOCOL_VERSION, mtype, flags, 0, sid, cid, len(body), 0) + body
+    if key is not None:
+        packet += _tag(key, packet)
+    return packet
+
+
+def _text(name: str, s: str, size: int) -> bytes:
+    b = s.encode("utf-8")
+    if len(b) > size:
+        raise ProtocolError(f"{name} {s!r} is {len(b)} bytes UTF-8; the wire field holds {size}")
+    return b
+
+
+def _untext(b: bytes) -> str:
+    return b.rstrip(b"\0").decode("utf-8", errors="replace")
+
+
+# ---------------------------------------------------------------- encode
+
+
+def encode_frame(frame: BlobFrame, key: bytes | None = None) -> bytes:
+    """BlobFrame -> one datagram. recv_ns is not sent.
+
+    frame.blobs: (N, 4) x, y, area, peak; N <= MAX_BLOBS_PER_PACKET (the
+    station caps and sets FLAG_TRUNCATED before encoding).
+    """
+    blobs = np.asarray(frame.blobs)
+    if blobs.ndim != 2 or blobs.shape[1] != 4:
+        if blobs.size == 0:
+            blobs = np.zeros((0, 4), _BLOB_DTYPE)
+        else:
+            raise ProtocolError(f"frame blobs must have shape (N, 4), got {blobs.shape}")
+    n = blobs.shape[0]
+    if n > MAX_BLOBS_PER_PACKET:
+        raise ProtocolError(
+            f"frame has {n} blobs; at most {MAX_BLOBS_PER_PACKET} fit one packet "
+            "(cap them and set FLAG_TRUNCATED)"
+        )
+    sid = _check_range("station_id", frame.station_id, 0, _U16)
+    cid = _check_range("camera_id", frame.camera_id, 0, _U16)
+    seq = _check_range("seq", frame.seq, 0, _U32)
+    flags = _check_range("flags", frame.flags, 0, _U16)
+    cap = _check_range("capture_ns", frame.capture_ns, _I64_MIN, _I64_MAX)
+    hflags = HF_SIGNED if key is not None else 0
+    body_len = FRAME_FIXED_BYTES + n * BLOB_BYTES
+    packet = _FRAME_HEAD.pack(
+        MAGIC, PROTOCOL_VERSION, MSG_FRAME, hflags, 0, sid, cid, body_len, 0, seq, flags, n, cap
+    ) + np.ascontiguousarray(blobs, dtype=_BLOB_DTYPE).tobytes()
+    if key is not None:
+        packet += _tag(key, packet)
+    return packet
+
+
+def encode(msg: Message, key: bytes | None = None) -> bytes:
+    """Any protocol message -> one datagram (signed with HMAC-SHA256 when key is given)."""
+    if isinstance(msg, BlobFrame):
+        return encode_frame(msg, key)
+    if isinstance(msg, Hello):
+        if msg.camera_kind not in CAMERA_KINDS:
+            raise ProtocolError(f"camera_kind {msg.camera_kind!r} is not one of {CAMERA_KINDS}")
+        body = _HELLO.pack(
+            _check_range("session", msg.session, 0, _U32),
+            _check_range("width", msg.width, 0, _U16),
+            _check_range("height", msg.height, 0, _U16),
+            float(msg.fps),
+            CAMERA_KINDS.index(msg.camera_kind),
+            _check_range("timebase", msg.timebase, 0, 255),
+            0,
+            0,
+            _text("camera_name", msg.camera_name, 32),
+            _text("software", msg.software, 16),
+        )
+        return _finish(MSG_HELLO, msg.station_id, msg.camera_id, body, key)
+    if isinstance(msg, HelloAck):
+        body = _HELLO_ACK.pack(
+            _check_range("session", msg.session, 0, _U32),
+            _check_range("status", msg.status, 0, 255),
+            _check_range("start_ns", msg.start_ns, _I64_MIN, _I64_MAX),
+            _check_range("server_ns", msg.server_ns, _I64_MIN, _I64_MAX),
+            _check_range("duration_ns", msg.duration_ns, 0, _I64_MAX),
+        )
+        return _finish(MSG_HELLO_ACK, msg.station_id, msg.camera_id, body, key)
+    if isinstance(msg, Heartbeat):
+        if msg.temperature_c is None:
+            temp = TEMPERATURE_UNKNOWN
+        else:
+            temp = int(np.clip(round(msg.temperature_c * 100.0), -32767, 32767))
+        body = _HEARTBEAT.pack(
+            _check_range("seq", msg.seq, 0, _U32),
+            _check_range("status", msg.status, 0, _U16),
+            temp,
+            int(msg.frames_captured) & _U32,
+            int(msg.frames_dropped) & _U32,
+            int(msg.send_errors) & _U32,
+            int(np.clip(msg.drift_ppb, -(1 << 31), (1 << 31) - 1)),
+            _check_range("clock_offset_ns", msg.clock_offset_ns, _I64_MIN, _I64_MAX),
+            _check_range("clock_uncertainty_ns", msg.clock_uncertainty_ns, -1, _I64_MAX),
+            _check_range("station_ns", msg.station_ns, _I64_MIN, _I64_MAX),
+            _check_range("session", msg.session, 0, _U32),
+        )
+        return _finish(MSG_HEARTBEAT, msg.station_id, msg.camera_id, body, key)
+    if isinstance(msg, SyncRequest):
+        body = _SYNC_REQUEST.pack(
+            _check_range("t1_ns", msg.t1_ns, _I64_MIN, _I64_MAX), _check_range("seq", msg.seq, 0, _U32)
+        )
+        return _finish(MSG_SYNC_REQUEST, msg.station_id, msg.camera_id, body, key)
+    if isinstance(msg, SyncReply):
+        body = _SYNC_REPLY.pack(
+            _check_range("t1_ns", msg.t1_ns, _I64_MIN, _I64_MAX),
+            _check_range("t2_ns", msg.t2_ns, _I64_MIN, _I64_MAX),
+            _check_range("t3_ns", msg.t3_ns, _I64_MIN, _I64_MAX),
+            _check_range("seq", msg.seq, 0, _U32),
+        )
+        return _finish(MSG_SYNC_REPLY, msg.station_id, msg.camera_id, body, key)
+    if isinstance(msg, Bye):
+        body = _BYE.pack(_check_range("session", msg.session, 0, _U32))
+        return _finish(MSG_BYE, msg.station_id, msg.camera_id, body, key)
+    raise ProtocolError(f"cannot encode {type(msg).__name__}: not a protocol message")
+
+
+# ---------------------------------------------------------------- decode
+
+
+_BODY_SIZES = {
+    MSG_HELLO: _HELLO.size,
+    MSG_HELLO_ACK: _HELLO_ACK.size,
+    MSG_HEARTBEAT: _HEARTBEAT.size,
+    MSG_SYNC_REQUEST: _SYNC_REQUEST.size,
+    MSG_SYNC_REPLY: _SYNC_REPLY.size,
+    MSG_BYE: _BYE.size,
+}
+_TYPE_NAMES = {
+    MSG_FRAME: "frame",
+    MSG_HELLO: "hello",
+    MSG_HELLO_ACK: "hello-ack",
+    MSG_HEARTBEAT: "heartbeat",
+    MSG_SYNC_REQUEST: "sync-request",
+    MSG_SYNC_REPLY: "sync-reply",
+    MSG_BYE: "bye",
+}
+
+
+def decode(data: bytes, key: bytes | None = None, recv_ns: int = 0) -> Message:
+    """One datagram -> message. Raises ProtocolError naming the problem.
+
+    With `key` set, packets without a tag or with a wrong tag are rejected.
+    Without a key, a tag that is present is skipped unchecked.
+    recv_ns is stored on decoded BlobFrames (it is not on the wire).
+    Decoded frame blobs are a read-only (N, 4) float32 view of the packet.
+    """
+    if type(data) is not bytes:
+        data = bytes(data)  # own the memory: blobs view into it
+    n = len(data)
+    if n > MAX_PACKET_BYTES:
+        raise ProtocolError(f"oversize packet: {n} bytes > {MAX_PACKET_BYTES}")
+    if n < HEADER_BYTES:
+        raise ProtocolError(f"truncated packet: {n} bytes, the header alone is {HEADER_BYTES}")
+    magic, version, mtype, hflags, _r0, sid, cid, body_len, _r1 = _HEADER.unpack_from(data)
+    if magic != MAGIC:
+        raise ProtocolError(f"bad magic {magic!r} (expected {MAGIC!r}): not a visionpos packet")
+    if version != PROTOCOL_VERSION:
+        if version > PROTOCOL_VERSION:
+            hint = "the sender is newer; upgrade visionpos on this side (server or station)"
+        else:
+            hint = "the sender is older; upgrade the sender"
+        raise ProtocolError(
+            f"protocol version {version} unsupported (this build speaks {PROTOCOL_VERSION}): {hint}"
+        )
+    end = HEADER_BYTES + body_len
+    signed = hflags & HF_SIGNED
+    expected = end + TAG_BYTES if signed else end
+    if n != expected:
+        what = "truncated" if n < expected else "trailing bytes in"
+        raise ProtocolError(
+            f"{what} packet: {n} bytes, header says {expected} "
+            f"(body {body_len}{' + tag ' + str(TAG_BYTES) if signed else ''})"
+        )
+    if key is not None:
+        if not signed:
+            raise ProtocolError("unsigned packet rejected: this side requires HMAC (give the sender the shared key)")
+        if not hmac.compare_digest(_tag(key, memoryview(data)[:end]), data[end:]):
+            raise ProtocolError("bad signature: HMAC tag mismatch (check the shared key on both sides)")
+
+    if mtype == MSG_FRAME:
+        if body_len < FRAME_FIXED_BYTES:
+            raise ProtocolError(f"truncated frame: body {body_len} bytes < {FRAME_FIXED_BYTES}")
+        seq, flags, count, capture_ns = _FRAME_HEAD.unpack_from(data)[9:]
+        if body_len != FRAME_FIXED_BYTES + count * BLOB_BYTES:
+            raise ProtocolError(
+                f"frame blob count {count} does not match body length {body_len} "
+                f"(expected {FRAME_FIXED_BYTES + count * BLOB_BYTES})"
+            )
+        blobs = np.frombuffer(data, _BLOB_DTYPE, count * 4, HEADER_BYTES + FRAME_FIXED_BYTES).reshape(count, 4)
+        return BlobFrame(cid, seq, capture_ns, blobs, sid, flags, recv_ns)
+
+    size = _BODY_SIZES.get(mtype)
+    if size is None:
+        raise ProtocolError(f"unknown message type {mtype} (station and server versions differ?)")
+    if body_len != size:
+        raise ProtocolError(f"{_TYPE_NAMES[mtype]} body is {body_len} bytes, expected {size}")
+    if mtype == MSG_HELLO:
+        session, w, h, fps, kind, timebase, _a, _b, name, sw = _HELLO.unpack_from(data, HEADER_BYTES)
+        if kind >= len(CAMERA_KINDS):
+            raise ProtocolError(f"hello camera kind {kind} unknown (expected 0..{len(CAMERA_KINDS) - 1})")
+        return Hello(sid, cid, session, w, h, fps, CAMERA_KINDS[kind], _untext(name), _untext(sw), timebase)
+    if mtype == MSG_HELLO_ACK:
+        session, status, start, server, dur = _HELLO_ACK.unpack_from(data, HEADER_BYTES)
+        return HelloAck(sid, cid, session, start, server, status, dur)
+    if mtype == MSG_HEARTBEAT:
+        (seq, status, temp, cap, drop, err, drift, off, unc, st_ns, session) = _HEARTBEAT.unpack_from(
+            data, HEADER_BYTES
+        )
+        temp_c = None if temp == TEMPERATURE_UNKNOWN else temp / 100.0
+        return Heartbeat(sid, cid, seq, session, status, cap, drop, err, off, unc, drift, temp_c, st_ns)
+    if mtype == MSG_SYNC_REQUEST:
+        t1, seq = _SYNC_REQUEST.unpack_from(data, HEADER_BYTES)
+        return SyncRequest(sid, cid, t1, seq)
+    if mtype == MSG_SYNC_REPLY:
+        t1, t2, t3, seq = _SYNC_REPLY.unpack_from(data, HEADER_BYTES)
+        return SyncReply(sid, cid, t1, t2, t3, seq)
+    (session,) = _BYE.unpack_from(data, HEADER_BYTES)
+    return Bye(sid, cid, session)
+
+
+# ---------------------------------------------------------------- server-side helpers
+
+
+def make_sync_reply(req: SyncRequest, t2_ns: int, t3_ns: int) -> SyncReply:
+    """Server answer to a SyncRequest. t2_ns: server clock when the request
+    was received (take it as early as possible, e.g. the datagram's receive
+    time); t3_ns: server clock just before sending the reply."""
+    return SyncReply(req.station_id, req.camera_id, req.t1_ns, int(t2_ns), int(t3_ns), req.seq)
+
+
+def make_hello_ack(
+    hello: Hello | Heartbeat,
+    start_ns: int,
+    server_ns: int,
+    status: int = ACK_OK,
+    duration_ns: int = 0,
+) -> HelloAck:
+    """Server answer to a Hello (registration) or a Heartbeat (keep-alive).
+
+    start_ns: the capture start (trigger) time on the server clock, the same
+    for every station of a session; server_ns: server clock now. Answer a
+    Heartbeat whose session the server does not know with
+    status=ACK_UNKNOWN_SESSION so the station registers again at once.
+    """
+    return HelloAck(hello.station_id, hello.camera_id, hello.session, int(start_ns), int(server_ns), status, duration_ns)
+
+
+def seq_delta(new: int, old: int) -> int:
+    """Signed difference new - old of two u32 sequence numbers, wrap-around aware.
+
+    > 0: new is later (1 = next frame, k = k - 1 frames lost);
+    <= 0: duplicate or replayed/reordered packet (drop it).
+    """
+    d = (int(new) - int(old)) & _U32
+    return d - (1 << 32) if d >= (1 << 31) else d
+
+
+def server_time_from_realtime(capture_realtime_ns: int, server_realtime_ns: int, server_clock_ns: int) -> int:
+    """Convert a TIMEBASE_REALTIME capture stamp to the server clock.
+
+    server_realtime_ns / server_clock_ns: the server's CLOCK_REALTIME and its
+    own (monotonic) clock read back to back; valid when both hosts'
+    realtime clocks are disciplined to the same reference (PTP/chrony).
+    """
+    return int(capture_realtime_ns) - (int(server_realtime_ns) - int(server_clock_ns))
