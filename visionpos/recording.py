@@ -1,0 +1,590 @@
+"""MCAP recordings: raw station packets with receive time, the arena config, outputs, truth.
+
+One file holds everything needed to re-run the pipeline offline (`visionpos replay`)
+or to calibrate: every received station packet exactly as it arrived (raw bytes,
+log_time = receive time on the server's monotonic clock, the sender's address in
+the channel metadata), the arena config as YAML, the fused BodyStates, simulator
+ground truth and any JSON side channel (events, stats, camera truth).
+
+Layout (MCAP profile "visionpos"):
+    metadata "visionpos.config"   {"yaml": arena config}
+    metadata "visionpos.meta"     {"json": free-form meta: start times, host, version, ...}
+    /station/packets   message_encoding "visionpos.station", no schema, one channel per sender
+                       (channel metadata: host, port); data = the UDP payload, untouched
+    /fusion/states     json, schema visionpos.BodyState
+    /sim/truth         json, schema visionpos.Truth
+    any other topic    json, no schema (write_json)
+
+Crash safety: the file is written *unchunked* (every record goes straight to the data
+section) and a background thread moves what was written to the OS every
+FLUSH_INTERVAL_S. A SIGKILLed writer therefore leaves a file that is valid up to
+its last flush, missing only the summary and footer; the reader accepts that,
+warns, and returns everything before the damage. The writer's calling thread
+never touches the disk: records are appended to an in-memory spool under a lock.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import socket
+import struct
+import threading
+import time
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+import yaml
+from mcap.exceptions import McapError
+from mcap.records import Channel, Header, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, IndexType, Writer
+
+from visionpos import __version__
+from visionpos.messages import BodyState
+
+log = logging.getLogger(__name__)
+
+PROFILE = "visionpos"
+FORMAT_VERSION = 1
+TOPIC_PACKETS = "/station/packets"
+TOPIC_STATES = "/fusion/states"
+TOPIC_TRUTH = "/sim/truth"
+PACKET_ENCODING = "visionpos.station"
+FLUSH_INTERVAL_S = 0.25
+_MAX_RECORD = 64 * 2**20  # a corrupted length field must not make the reader allocate GiB
+
+_STATE_SCHEMA = {
+    "title": "visionpos.BodyState",
+    "type": "object",
+    "description": "Filtered rigid-body pose (SI units, world z up, quaternion x,y,z,w body->world).",
+    "properties": {
+        "name": {"type": "string"},
+        "body_id": {"type": "integer"},
+        "time_ns": {"type": "integer"},
+        "capture_ns": {"type": "integer"},
+        "position": {"type": "array", "items": {"type": "number"}},
+        "quaternion": {"type": "array", "items": {"type": "number"}},
+        "velocity": {"type": "array", "items": {"type": "number"}},
+        "angular_velocity": {"type": "array", "items": {"type": "number"}},
+        "covariance": {"type": "array", "items": {"type": "number"}, "description": "6x6 row-major"},
+        "velocity_covariance": {"type": "array", "items": {"type": "number"}, "description": "3x3 row-major"},
+        "tracked": {"type": "boolean"},
+        "n_markers": {"type": "integer"},
+        "n_cameras": {"type": "integer"},
+        "residual_mm": {"type": ["number", "null"]},
+        "reset_counter": {"type": "integer"},
+    },
+}
+_TRUTH_SCHEMA = {
+    "title": "visionpos.Truth",
+    "type": "object",
+    "description": "Simulator ground truth of one body (m, quaternion x,y,z,w body->world).",
+    "properties": {
+        "name": {"type": "string"},
+        "position": {"type": "array", "items": {"type": "number"}},
+        "quaternion": {"type": "array", "items": {"type": "number"}},
+    },
+}
+
+
+class RecordingError(ValueError):
+    """A recording that cannot be read. str() names the file and what is wrong."""
+
+
+class RecordingDamagedWarning(UserWarning):
+    """The recording ends early (writer killed, disk full) or is corrupt part-way; data before it was read."""
+
+
+# ---------------------------------------------------------------- encoding helpers
+
+
+def _plain(obj: Any) -> Any:
+    """numpy scalars/arrays -> plain Python, so YAML/JSON can hold them."""
+    if isinstance(obj, dict):
+        return {k: _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _plain(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def _num(x: float) -> float | None:
+    return None if not math.isfinite(x) else x
+
+
+def state_to_dict(s: BodyState) -> dict[str, Any]:
+    """BodyState -> JSON-able dict (arrays flattened row-major; NaN residual -> null)."""
+    return {
+        "name": s.name,
+        "body_id": int(s.body_id),
+        "time_ns": int(s.time_ns),
+        "capture_ns": int(s.capture_ns),
+        "position": np.asarray(s.position, dtype=float).ravel().tolist(),
+        "quaternion": np.asarray(s.quaternion, dtype=float).ravel().tolist(),
+        "velocity": np.asarray(s.velocity, dtype=float).ravel().tolist(),
+        "angular_velocity": np.asarray(s.angular_velocity, dtype=float).ravel().tolist(),
+        "covariance": np.asarray(s.covariance, dtype=float).ravel().tolist(),
+        "velocity_covariance": np.asarray(s.velocity_covariance, dtype=float).ravel().tolist(),
+        "tracked": bool(s.tracked),
+        "n_markers": int(s.n_markers),
+        "n_cameras": int(s.n_cameras),
+        "residual_mm": _num(float(s.residual_mm)),
+        "reset_counter": int(s.reset_counter),
+    }
+
+
+def state_from_dict(d: dict[str, Any]) -> BodyState:
+    """Inverse of state_to_dict. Raises KeyError/ValueError on a malformed dict."""
+
+    def arr(key: str, shape: tuple[int, ...]) -> np.ndarray:
+        return np.asarray(d[key], dtype=np.float64).reshape(shape)
+
+    res = d.get("residual_mm")
+    return BodyState(
+        name=str(d["name"]),
+        body_id=int(d["body_id"]),
+        time_ns=int(d["time_ns"]),
+        capture_ns=int(d["capture_ns"]),
+        position=arr("position", (3,)),
+        quaternion=arr("quaternion", (4,)),
+        velocity=arr("velocity", (3,)),
+        angular_velocity=arr("angular_velocity", (3,)),
+        covariance=arr("covariance", (6, 6)),
+        velocity_covariance=arr("velocity_covariance", (3, 3)),
+        tracked=bool(d["tracked"]),
+        n_markers=int(d.get("n_markers", 0)),
+        n_cameras=int(d.get("n_cameras", 0)),
+        residual_mm=float("nan") if res is None else float(res),
+        reset_counter=int(d.get("reset_counter", 0)),
+    )
+
+
+def _dumps(obj: Any) -> bytes:
+    # allow_nan=False: a NaN would make the file unreadable for strict JSON tools (Foxglove)
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
+
+
+# ---------------------------------------------------------------- writer
+
+
+class _Spool:
+    """File-like sink for mcap.Writer: appends to memory; a flusher thread moves it to disk.
+
+    Only tell() and write() are needed by the writer (unchunked mode).
+    """
+
+    def __init__(self) -> None:
+        self.parts: list[bytes] = []
+        self.pos = 0
+
+    def write(self, b: bytes) -> int:
+        self.parts.append(b)
+        self.pos += len(b)
+        return len(b)
+
+    def tell(self) -> int:
+        return self.pos
+
+    def flush(self) -> None:  # the flusher thread owns disk writes
+        pass
+
+
+class RecordingWriter:
+    """Write a visionpos MCAP recording. Cheap to call from an event loop; crash-safe.
+
+    config: the arena config mapping (ArenaConfig.raw; an object with `.raw` is accepted).
+    meta: free-form JSON-able facts (scenario, seed, command line ...). The writer adds
+    version, host, wall-clock and monotonic start times.
+
+    All write_* methods are thread-safe; none does disk I/O on the caller's thread.
+    """
+
+    def __init__(self, path: str | Path, config: dict[str, Any] | Any, meta: dict[str, Any] | None = None,
+                 flush_interval_s: float = FLUSH_INTERVAL_S):
+        self.path = Path(path)
+        raw = getattr(config, "raw", config)
+        if not isinstance(raw, dict):
+            raise TypeError(f"RecordingWriter: config must be a mapping (arena YAML), got {type(raw).__name__}")
+        try:
+            self._file: IO[bytes] = open(self.path, "wb")
+        except OSError as e:
+            raise RecordingError(f"{self.path}: cannot create recording: {e.strerror or e}") from None
+        self._lock = threading.Lock()
+        self._spool = _Spool()
+        self._closed = False
+        self._flush_interval = float(flush_interval_s)
+        self._write_error: BaseException | None = None
+        self.counts: dict[str, int] = {}
+        self.bytes_written = 0
+        self._w = Writer(
+            self._spool,
+            compression=CompressionType.NONE,
+            use_chunking=False,
+            index_types=IndexType.METADATA,
+            enable_crcs=True,
+        )
+        self._w.start(profile=PROFILE, library=f"visionpos {__version__}")
+        full_meta = {
+            "format_version": FORMAT_VERSION,
+            "visionpos_version": __version__,
+            "host": socket.gethostname(),
+            "wall_start_unix_ns": time.time_ns(),
+            "monotonic_start_ns": time.monotonic_ns(),
+            **_plain(meta or {}),
+        }
+        self._w.add_metadata("visionpos.config", {"yaml": yaml.safe_dump(_plain(raw), sort_keys=False)})
+        self._w.add_metadata("visionpos.meta", {"json": json.dumps(full_meta)})
+        self._state_schema = self._w.register_schema("visionpos.BodyState", "jsonschema", _dumps(_STATE_SCHEMA))
+        self._truth_schema = self._w.register_schema("visionpos.Truth", "jsonschema", _dumps(_TRUTH_SCHEMA))
+        self._packet_channels: dict[tuple[str, int] | None, int] = {}
+        self._topic_channels: dict[str, int] = {}
+        self._seq = 0
+        self._flush_to_disk()  # header + config on disk before any data arrives
+        self._stop = threading.Event()
+        self._flusher = threading.Thread(target=self._flush_loop, name=f"mcap-flush:{self.path.name}", daemon=True)
+        self._flusher.start()
+
+    # -- context manager
+    def __enter__(self) -> "RecordingWriter":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # -- writes
+    def _channel_for(self, topic: str, encoding: str, schema_id: int) -> int:
+        ch = self._topic_channels.get(topic)
+        if ch is None:
+            ch = self._w.register_channel(topic, encoding, schema_id)
+            self._topic_channels[topic] = ch
+        return ch
+
+    def _add(self, channel: int, log_ns: int, data: bytes, topic: str) -> None:
+        if self._closed:
+            raise RuntimeError(f"{self.path}: recording is closed")
+        self._seq += 1
+        self._w.add_message(channel, log_ns, data, log_ns, self._seq & 0xFFFFFFFF)
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def write_packet(self, recv_ns: int, data: bytes, source: tuple[str, int] | None = None) -> None:
+        """One received UDP payload, untouched, stamped with its receive time (server monotonic ns)."""
+        with self._lock:
+            ch = self._packet_channels.get(source)
+            if ch is None:
+                md = {} if source is None else {"host": str(source[0]), "port": str(int(source[1]))}
+                ch = self._w.register_channel(TOPIC_PACKETS, PACKET_ENCODING, 0, md)
+                self._packet_channels[source] = ch
+            self._add(ch, int(recv_ns), bytes(data), TOPIC_PACKETS)
+
+    def write_state(self, state: BodyState) -> None:
+        """One fused BodyState, logged at its time_ns."""
+        data = _dumps(state_to_dict(state))
+        with self._lock:
+            ch = self._channel_for(TOPIC_STATES, "json", self._state_schema)
+            self._add(ch, int(state.time_ns), data, TOPIC_STATES)
+
+    def write_states(self, states: list[BodyState]) -> None:
+        for s in states:
+            self.write_state(s)
+
+    def publish(self, states: list[BodyState]) -> None:
+        """Sink interface (server output tick): record the outputs."""
+        self.write_states(states)
+
+    def write_truth(self, time_ns: int, name: str, position: np.ndarray, quaternion: np.ndarray) -> None:
+        """Simulator ground truth of body `name`: position (3,) m, quaternion (4,) xyzw."""
+        p = np.asarray(position, dtype=float).ravel()
+        q = np.asarray(quaternion, dtype=float).ravel()
+        if p.shape != (3,) or q.shape != (4,):
+            raise ValueError(f"write_truth: position must be (3,) and quaternion (4,), got {p.shape}, {q.shape}")
+        data = _dumps({"name": str(name), "position": p.tolist(), "quaternion": q.tolist()})
+        with self._lock:
+            ch = self._channel_for(TOPIC_TRUTH, "json", self._truth_schema)
+            self._add(ch, int(time_ns), data, TOPIC_TRUTH)
+
+    def write_json(self, topic: str, time_ns: int, obj: dict[str, Any]) -> None:
+        """Any JSON-able mapping on its own topic (events, camera truth, stats)."""
+        if topic in (TOPIC_PACKETS, TOPIC_STATES, TOPIC_TRUTH):
+            raise ValueError(f"write_json: topic {topic!r} is reserved; use write_packet/write_state/write_truth")
+        data = _dumps(_plain(obj))
+        with self._lock:
+            ch = self._channel_for(topic, "json", 0)
+            self._add(ch, int(time_ns), data, topic)
+
+    # -- disk
+    def _flush_to_disk(self) -> None:
+        with self._lock:
+            parts, self._spool.parts = self._spool.parts, []
+        if not parts:
+            return
+        data = b"".join(parts)
+        try:
+            self._file.write(data)
+            self._file.flush()  # into the OS page cache: survives the process being killed
+            self.bytes_written += len(data)
+        except OSError as e:  # disk full etc.: keep the server running, report once
+            if self._write_error is None:
+                log.error("%s: writing the recording failed: %s; later data is lost", self.path, e)
+            self._write_error = e
+
+    def _flush_loop(self) -> None:
+        while not self._stop.wait(self._flush_interval):
+            self._flush_to_disk()
+
+    def flush(self) -> None:
+        """Move everything written so far to the OS now."""
+        self._flush_to_disk()
+
+    def close(self) -> None:
+        """Write the summary and footer and close. Idempotent; nothing already written is lost."""
+        if self._closed:
+            return
+        self._stop.set()
+        self._flusher.join()
+        with self._lock:
+            self._closed = True
+            self._w.finish()
+        self._flush_to_disk()
+        try:
+            self._file.flush()
+            os.fsync(self._file.fileno())
+        except OSError:
+            pass
+        self._file.close()
+
+    def stats(self) -> dict[str, Any]:
+        return {"path": str(self.path), "messages": dict(self.counts), "bytes": self.bytes_written,
+                "error": None if self._write_error is None else str(self._write_error)}
+
+
+# ---------------------------------------------------------------- reader
+
+
+class RecordingReader:
+    """Read a visionpos recording, tolerating a missing footer and a truncated last record.
+
+    .config -> dict, .meta -> dict; packets()/states()/truth()/json(topic)/messages() stream
+    from the file each time they are called. A damaged tail emits one RecordingDamagedWarning
+    per reader and `.damage` names it; everything before it is returned.
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise RecordingError(f"{self.path}: no such recording file")
+        with open(self.path, "rb") as f:
+            magic = f.read(8)
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            f.seek(max(0, size - 8))
+            tail = f.read(8)
+        if magic != b"\x89MCAP0\r\n":
+            raise RecordingError(
+                f"{self.path}: not an MCAP file (starts with {magic[:8]!r}); "
+                "expected a recording written by `visionpos serve --record` or `visionpos record`"
+            )
+        self.damage: str | None = None
+        self._warned = False
+        # a cleanly closed file ends with footer + magic; a killed writer's file does not
+        self.complete = size > 16 and tail == magic
+        config = meta = None
+        header_seen = False
+        for rec in self._records(stop_at_message=True):
+            if isinstance(rec, Header):
+                header_seen = True
+                if rec.profile != PROFILE:
+                    raise RecordingError(
+                        f"{self.path}: MCAP profile is {rec.profile!r}, not {PROFILE!r}: "
+                        "this is not a visionpos recording"
+                    )
+            elif isinstance(rec, Metadata) and rec.name == "visionpos.config":
+                config = self._parse_config(rec.metadata.get("yaml", ""))
+            elif isinstance(rec, Metadata) and rec.name == "visionpos.meta":
+                try:
+                    meta = json.loads(rec.metadata.get("json", "{}"))
+                except json.JSONDecodeError as e:
+                    raise RecordingError(f"{self.path}: metadata 'visionpos.meta' is not valid JSON: {e}") from None
+            if config is not None and meta is not None:
+                break
+        if not header_seen:
+            raise RecordingError(f"{self.path}: MCAP file has no header record (truncated right after the magic?)")
+        if config is None:
+            raise RecordingError(f"{self.path}: no 'visionpos.config' metadata: not a visionpos recording, "
+                                 "or it was cut off before the config was written")
+        self.config: dict[str, Any] = config
+        self.meta: dict[str, Any] = meta or {}
+        if int(self.meta.get("format_version", FORMAT_VERSION)) > FORMAT_VERSION:
+            raise RecordingError(f"{self.path}: recording format {self.meta['format_version']} is newer than this "
+                                 f"visionpos ({FORMAT_VERSION}); upgrade visionpos")
+
+    def _parse_config(self, text: str) -> dict[str, Any]:
+        try:
+            cfg = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise RecordingError(f"{self.path}: recorded config is not valid YAML: {e}") from None
+        if not isinstance(cfg, dict):
+            raise RecordingError(f"{self.path}: recorded config is not a mapping")
+        return cfg
+
+    def _damaged(self, what: str) -> None:
+        self.damage = what
+        if not self._warned:
+            self._warned = True
+            warnings.warn(RecordingDamagedWarning(f"{self.path}: {what}; using everything before it"), stacklevel=3)
+
+    def _records(self, stop_at_message: bool = False) -> Iterator[Any]:
+        with open(self.path, "rb") as f:
+            reader = StreamReader(f, record_size_limit=_MAX_RECORD)
+            it = iter(reader.records)
+            n = 0
+            while True:
+                try:
+                    rec = next(it)
+                except StopIteration:
+                    return
+                except (McapError, struct.error, EOFError, UnicodeDecodeError, ValueError, MemoryError) as e:
+                    end = f.tell()
+                    kind = "ends" if type(e).__name__ == "EndOfFile" or isinstance(e, struct.error) else "is corrupt"
+                    self._damaged(f"recording {kind} after {n} records (near byte {end}, "
+                                  f"{type(e).__name__}: {e or 'truncated'}); the writer was probably killed")
+                    return
+                n += 1
+                if stop_at_message and isinstance(rec, Message):
+                    return
+                yield rec
+
+    def messages(self, topics: set[str] | None = None) -> Iterator[tuple[str, int, bytes, Channel]]:
+        """(topic, log_time_ns, data, channel) for every message in file order."""
+        channels: dict[int, Channel] = {}
+        schemas: dict[int, Schema] = {}
+        for rec in self._records():
+            if isinstance(rec, Schema):
+                schemas[rec.id] = rec
+            elif isinstance(rec, Channel):
+                self._check_channel(rec, schemas)
+                channels[rec.id] = rec
+            elif isinstance(rec, Message):
+                ch = channels.get(rec.channel_id)
+                if ch is None:
+                    self._damaged(f"message on unknown channel {rec.channel_id}")
+                    continue
+                if topics is None or ch.topic in topics:
+                    yield ch.topic, rec.log_time, rec.data, ch
+
+    def _check_channel(self, ch: Channel, schemas: dict[int, Schema]) -> None:
+        if ch.topic == TOPIC_PACKETS and ch.message_encoding != PACKET_ENCODING:
+            raise RecordingError(f"{self.path}: channel {ch.topic} has message encoding {ch.message_encoding!r}, "
+                                 f"expected {PACKET_ENCODING!r}")
+        expect = {TOPIC_STATES: "visionpos.BodyState", TOPIC_TRUTH: "visionpos.Truth"}.get(ch.topic)
+        if expect is not None:
+            sc = schemas.get(ch.schema_id)
+            if ch.message_encoding != "json" or sc is None or sc.name != expect:
+                got = sc.name if sc is not None else f"schema id {ch.schema_id}"
+                raise RecordingError(f"{self.path}: channel {ch.topic} has encoding {ch.message_encoding!r} "
+                                     f"and schema {got!r}, expected json with schema {expect!r}")
+
+    def packets(self) -> Iterator[tuple[int, bytes]]:
+        """(recv_ns, raw packet bytes) in log order."""
+        for _, t, data, _ in self.messages({TOPIC_PACKETS}):
+            yield t, data
+
+    def packets_with_source(self) -> Iterator[tuple[int, bytes, tuple[str, int] | None]]:
+        """(recv_ns, raw bytes, (host, port) or None) in log order."""
+        for _, t, data, ch in self.messages({TOPIC_PACKETS}):
+            md = ch.metadata
+            src = (md["host"], int(md["port"])) if "host" in md and "port" in md else None
+            yield t, data, src
+
+    def _json(self, topic: str) -> Iterator[tuple[int, dict[str, Any]]]:
+        for _, t, data, _ in self.messages({topic}):
+            try:
+                obj = json.loads(data)
+            except (json.JSONDecodeError, UnicodeDecodeError) as e:
+                self._damaged(f"message on {topic} at {t} ns is not valid JSON ({e})")
+                continue
+            yield t, obj
+
+    def states(self) -> Iterator[BodyState]:
+        """Recorded BodyStates in log order."""
+        for t, d in self._json(TOPIC_STATES):
+            try:
+                yield state_from_dict(d)
+            except (KeyError, ValueError, TypeError) as e:
+                self._damaged(f"BodyState at {t} ns is malformed ({type(e).__name__}: {e})")
+
+    def truth(self) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """name -> (times_ns (T,) int64, positions (T, 3), quaternions (T, 4) xyzw), time-sorted."""
+        acc: dict[str, tuple[list[int], list[list[float]], list[list[float]]]] = {}
+        for t, d in self._json(TOPIC_TRUTH):
+            ts, ps, qs = acc.setdefault(str(d.get("name")), ([], [], []))
+            ts.append(t)
+            ps.append(d["position"])
+            qs.append(d["quaternion"])
+        out = {}
+        for name, (ts, ps, qs) in acc.items():
+            t = np.asarray(ts, dtype=np.int64)
+            order = np.argsort(t, kind="stable")
+            out[name] = (t[order], np.asarray(ps, dtype=float)[order].reshape(-1, 3),
+                         np.asarray(qs, dtype=float)[order].reshape(-1, 4))
+        return out
+
+    def json(self, topic: str) -> Iterator[tuple[int, dict[str, Any]]]:
+        """(log_time_ns, object) for a write_json topic, in log order."""
+        return self._json(topic)
+
+    def topics(self) -> dict[str, int]:
+        """topic -> message count (reads the whole file)."""
+        counts: dict[str, int] = {}
+        for topic, _, _, _ in self.messages():
+            counts[topic] = counts.get(topic, 0) + 1
+        return counts
+
+
+# ---------------------------------------------------------------- `visionpos record`
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("output", help="MCAP file to write")
+    p.add_argument("--config", required=True, help="arena YAML (path or built-in name: thesis, arena8)")
+    p.add_argument("--port", type=int, default=None, help="UDP port (default: server.port from the config, 9870)")
+    p.add_argument("--host", default="0.0.0.0", help="address to listen on (default all interfaces)")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: until Ctrl-C)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Record live station traffic: answer registration/sync/heartbeats, log every packet, no fusion."""
+    import asyncio
+
+    from visionpos.server import load_config_with_overrides, run_until_signal
+    from visionpos.ingest import Ingest, IngestSettings
+
+    arena = load_config_with_overrides(args.config, args.set)
+    settings = IngestSettings.from_arena(arena)
+    if args.port is not None:
+        settings = settings.with_port(args.port)
+
+    async def main() -> int:
+        with RecordingWriter(args.output, arena.raw, {"command": "record"}) as rec:
+            ingest = Ingest(arena, settings, pipeline=None, recorder=rec)
+            await ingest.start(args.host, settings.port)
+            log.warning("recording station traffic on udp %s:%d to %s", args.host, ingest.port, args.output)
+            try:
+                await run_until_signal(args.duration, status=lambda: log.warning("%s", ingest.status_line()),
+                                       status_period_s=settings.status_period_s)
+            finally:
+                ingest.close()
+            log.warning("recorded %s", rec.counts)
+        return 0
+
+    return asyncio.run(main())
