@@ -66,8 +66,12 @@ class CameraModel:
             dist = np.concatenate([dist, np.zeros(4 - dist.size)])
         if not (self.width > 0 and self.height > 0):
             raise CameraModelError(f"image size {self.width}x{self.height} must be positive")
-        if not (self.fx > 0 and self.fy > 0):
-            raise CameraModelError(f"focal lengths fx={self.fx}, fy={self.fy} must be positive")
+        if not (np.isfinite(self.fx) and np.isfinite(self.fy) and self.fx > 0 and self.fy > 0):
+            raise CameraModelError(f"focal lengths fx={self.fx}, fy={self.fy} must be positive finite numbers")
+        if not (np.isfinite(self.cx) and np.isfinite(self.cy)):
+            raise CameraModelError(f"principal point cx={self.cx}, cy={self.cy} must be finite numbers")
+        if not np.all(np.isfinite(dist)):
+            raise CameraModelError(f"distortion coefficients {dist.tolist()} must be finite numbers")
         object.__setattr__(self, "dist", dist)
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
@@ -125,12 +129,25 @@ class CameraModel:
         return self.project_camera(p)
 
     def undistort(self, pixels: np.ndarray, iterations: int = 20) -> np.ndarray:
-        """Pixels (N, 2) -> normalised image coordinates (N, 2) (x/z, y/z)."""
+        """Pixels (N, 2) -> normalised image coordinates (N, 2) (x/z, y/z).
+
+        Pixels the model cannot map back (beyond the radius where the distortion
+        folds over, i.e. outside the lens's calibrated field of view) give NaN rather
+        than a wrong ray: the result is checked by distorting it again.
+        """
         uv = _as_points(pixels, 2)
         xd = np.column_stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy])
         if self.kind == PINHOLE:
-            return _pinhole_undistort(xd, self.dist, iterations)
-        return _fisheye_undistort(xd, self.dist, iterations)
+            xn = _pinhole_undistort(xd, self.dist, iterations)
+            back = _pinhole_distort(xn, self.dist)
+        else:
+            xn = _fisheye_undistort(xd, self.dist, iterations)
+            back = _fisheye_distort(xn, self.dist)
+        with np.errstate(invalid="ignore"):
+            # 1e-9 normalised ~ 1e-6 px: far looser than convergence, far tighter than a fold
+            bad = ~(np.abs(back - xd).max(axis=1) <= 1e-9 * (1.0 + np.abs(xd).max(axis=1)))
+        xn[bad] = np.nan
+        return xn
 
     def rays(self, pixels: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) -> unit ray directions in the camera frame (N, 3)."""
