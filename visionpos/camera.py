@@ -10,6 +10,7 @@ Everything here is vectorised over N points; shapes are in the docstrings.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -76,6 +77,17 @@ class CameraModel:
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
 
+    # dataclass equality would compare the dist arrays element-wise (ambiguous truth
+    # value) and hashing would fail on them: compare and hash by value instead
+    def _key(self) -> tuple:
+        return (self.kind, self.width, self.height, self.fx, self.fy, self.cx, self.cy, self.dist.tobytes())
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, CameraModel) and self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
     # ----------------------------------------------------------------- basics
     @property
     def K(self) -> np.ndarray:
@@ -87,12 +99,13 @@ class CameraModel:
         """Distortion vector in the layout cv2 (or cv2.fisheye) expects."""
         return self.dist.copy()
 
-    @property
+    @cached_property
     def max_theta(self) -> float:
         """Largest ray angle from the optical axis (rad) the model maps one-to-one.
 
-        Fisheye: where r(theta) stops increasing. Pinhole: where the radial
-        factor stops increasing on the image diagonal (or just below 90 deg).
+        Fisheye: where r(theta) stops increasing. Pinhole: where the distortion's
+        Jacobian determinant first reaches zero in any direction (the image folds
+        over there), or just below 90 deg.
         """
         return _max_theta(self)
 
@@ -273,6 +286,15 @@ class Camera:
         object.__setattr__(self, "R", np.asarray(self.R, dtype=np.float64).reshape(3, 3))
         object.__setattr__(self, "t", np.asarray(self.t, dtype=np.float64).reshape(3))
 
+    def _key(self) -> tuple:
+        return (self.id, self.name, self.model, self.R.tobytes(), self.t.tobytes(), self.fps)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Camera) and self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
     @property
     def center(self) -> np.ndarray:
         """(3,) camera centre in world coordinates."""
@@ -443,9 +465,17 @@ def _max_theta(m: CameraModel) -> float:
     theta = np.linspace(1e-4, np.pi / 2 - 1e-3, 4000)
     if m.kind == FISHEYE:
         _, dr = _kb_poly(theta, m.dist)
+        bad = np.nonzero(dr <= 0)[0]
     else:
-        r = np.tan(theta)
-        rad = _pinhole_distort(np.column_stack([r, np.zeros_like(r)]), m.dist)[:, 0]
-        dr = np.gradient(rad, theta)
-    bad = np.nonzero(dr <= 0)[0]
-    return float(theta[bad[0] - 1]) if bad.size else float(np.pi / 2 - 1e-3)
+        # tangential terms make the fold direction-dependent: check 36 azimuths
+        phi = np.linspace(-np.pi, np.pi, 36, endpoint=False)
+        r = np.tan(theta)[:, None]
+        xn = np.stack([r * np.cos(phi), r * np.sin(phi)], axis=-1).reshape(-1, 2)
+        J = _pinhole_distort_jac(xn, m.dist)
+        det = (J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]).reshape(len(theta), len(phi))
+        # also require the radial image distance to keep growing along each ray
+        xd = _pinhole_distort(xn, m.dist).reshape(len(theta), len(phi), 2)
+        rd = np.linalg.norm(xd, axis=-1)
+        grow = np.diff(rd, axis=0, prepend=0.0) > 0
+        bad = np.nonzero(((det <= 0) | ~grow).any(axis=1))[0]
+    return float(theta[max(bad[0] - 1, 0)]) if bad.size else float(np.pi / 2 - 1e-3)
