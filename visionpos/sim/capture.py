@@ -1,0 +1,433 @@
+"""Per-camera capture simulation: what stations send, with ground truth.
+
+`simulate(scenario)` returns every BlobFrame of a scenario (sorted by
+capture_ns) plus the truth behind each one; `iter_frames(scenario)` streams
+the same frames in capture (or receive) order for live use, chunk by chunk,
+with exactly the same content.
+
+Model per camera frame k (see scenario.py for the parameters):
+  true exposure   start + phase + k * period + jitter_k   (server clock = true time)
+  capture_ns      true + station sync residual(true) + stamp noise (what the station reports)
+  recv_ns         true + latency (gamma, clipped)
+  blobs           markers in the field of view, facing the camera and not behind any
+                  body's occluder disc, projected through the camera model, with
+                  Gaussian centroid noise; overlapping images merge; plus static floor
+                  reflections and random glints; shuffled, unlabeled; float32 (N, 4)
+                  [x, y, area, peak]; area and peak from the marker's projected
+                  diameter and range. Dropped frames are not emitted (seq skips).
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from visionpos.camera import Camera
+from visionpos.messages import FLAG_TRUNCATED, BlobFrame
+from visionpos.sim.scenario import TAG_FRAMES, TAG_STATIC, CameraTiming, Scenario, rng_for
+from visionpos.sim.trajectories import Motion
+
+CHUNK_S = 0.5  # frames are generated in windows of nominal exposure time this long
+SPURIOUS_STATIC = -1  # FrameTruth.marker for a fixed floor reflection (body is -1)
+SPURIOUS_RANDOM = -2  # FrameTruth.marker for a one-frame glint (body is -1)
+
+
+@dataclass(frozen=True, slots=True)
+class FrameTruth:
+    """Ground truth of one emitted frame, row-aligned with its blobs.
+
+    body (N,) int: index into scenario.bodies, -1 for a spurious blob.
+    marker (N,) int: marker index in that body; for spurious blobs
+      SPURIOUS_STATIC (-1) or SPURIOUS_RANDOM (-2).
+    true_xy (N, 2): noise-free pixel (for merged blobs the weighted mean of
+      the true pixels of the parts). merged (N,) bool.
+    true_ns: exact exposure time; station_ns: the station's raw clock then.
+    """
+
+    camera_id: int
+    seq: int
+    true_ns: int
+    station_ns: int
+    body: np.ndarray
+    marker: np.ndarray
+    true_xy: np.ndarray
+    merged: np.ndarray
+
+
+@dataclass
+class SimResult:
+    """Frames as stations send them plus ground truth.
+
+    frames: BlobFrames sorted by (capture_ns, camera_id); frame_truth aligned.
+    truth_times_ns (T,) int64 at scenario.truth_rate_hz; truth: body name -> Motion at those times.
+    dropped: camera id -> seq numbers (int64 array) of frames lost before sending.
+    """
+
+    scenario: Scenario
+    frames: list[BlobFrame]
+    frame_truth: list[FrameTruth]
+    truth_times_ns: np.ndarray
+    truth: dict[str, Motion]
+    dropped: dict[int, np.ndarray] = field(default_factory=dict)
+
+    def truth_at(self, body_name: str, times_ns) -> tuple[np.ndarray, np.ndarray]:
+        """True positions (T, 3) and quaternions xyzw (T, 4) at any times (T,) int64 ns."""
+        return self.scenario.truth_at(body_name, times_ns)
+
+    def frames_by_camera(self) -> dict[int, list[BlobFrame]]:
+        out: dict[int, list[BlobFrame]] = {t.camera_id: [] for t in self.scenario.timings}
+        for f in self.frames:
+            out[f.camera_id].append(f)
+        return out
+
+    def frames_by_recv(self) -> list[BlobFrame]:
+        """The frames in the order a server would receive them."""
+        return sorted(self.frames, key=lambda f: (f.recv_ns, f.camera_id))
+
+    def summary(self) -> dict:
+        """Counts per camera: frames, dropped, blobs, marker blobs, spurious blobs."""
+        cams = {}
+        for t in self.scenario.timings:
+            cams[t.camera_id] = {"fps": t.fps, "frames": 0, "dropped": int(len(self.dropped.get(t.camera_id, ()))), "blobs": 0, "marker_blobs": 0, "spurious_blobs": 0}
+        for f, tr in zip(self.frames, self.frame_truth):
+            c = cams[f.camera_id]
+            c["frames"] += 1
+            c["blobs"] += len(f.blobs)
+            n_sp = int(np.count_nonzero(tr.body < 0))
+            c["spurious_blobs"] += n_sp
+            c["marker_blobs"] += len(f.blobs) - n_sp
+        return {
+            "session": self.scenario.session,
+            "duration_s": self.scenario.duration_s,
+            "bodies": [b.name for b in self.scenario.bodies],
+            "frames": len(self.frames),
+            "blobs": int(sum(len(f.blobs) for f in self.frames)),
+            "cameras": cams,
+        }
+
+
+# --------------------------------------------------------------------- public
+def simulate(scenario: Scenario) -> SimResult:
+    """Run the whole scenario: every frame (capture order) and its truth."""
+    frames, truths = [], []
+    dropped: dict[int, list[int]] = {t.camera_id: [] for t in scenario.timings}
+    for frame, truth in _ordered(scenario, scenario.duration_s, "capture", dropped):
+        frames.append(frame)
+        truths.append(truth)
+    step = int(round(1e9 / scenario.truth_rate_hz))
+    times = np.arange(scenario.start_ns, scenario.end_ns + 1, step, dtype=np.int64)
+    truth = {b.name: scenario.motion_at(b.name, times) for b in scenario.bodies}
+    return SimResult(
+        scenario, frames, truths, times, truth, {k: np.asarray(v, np.int64) for k, v in dropped.items()}
+    )
+
+
+def iter_frames(
+    scenario: Scenario, order: str = "capture", with_truth: bool = False, duration_s: float | None = None
+) -> Iterator[BlobFrame] | Iterator[tuple[BlobFrame, FrameTruth]]:
+    """Stream frames in `order` 'capture' (capture_ns) or 'recv' (recv_ns).
+
+    duration_s: overrides the scenario's (float('inf') streams until closed).
+    Yields BlobFrame, or (BlobFrame, FrameTruth) with with_truth. Content is
+    identical to simulate() for the same scenario.
+    """
+    if order not in ("capture", "recv"):
+        raise ValueError(f"order must be 'capture' or 'recv', got {order!r}")
+    dur = scenario.duration_s if duration_s is None else float(duration_s)
+    for frame, truth in _ordered(scenario, dur, order, None):
+        yield (frame, truth) if with_truth else frame
+
+
+# ------------------------------------------------------------------ internals
+def _ordered(scenario: Scenario, duration_s: float, order: str, dropped: dict[int, list[int]] | None):
+    """Merge the per-chunk frames of all cameras into one exactly ordered stream.
+
+    A frame of a later chunk has nominal exposure >= the chunk start, so its
+    capture stamp is >= start - bound and its receive time >= start - jitter
+    bound: frames keyed below that can be released.
+    """
+    bound = max(_time_bound(scenario, t) for t in scenario.timings)
+    end_rel_ns = duration_s * 1e9
+    heap: list = []
+    counter = 0
+    c = 0
+    while True:
+        t0, t1 = c * CHUNK_S * 1e9, (c + 1) * CHUNK_S * 1e9
+        last = t1 >= end_rel_ns
+        for timing, cam in zip(scenario.timings, scenario.cameras):
+            for frame, truth in _camera_chunk(scenario, cam, timing, c, t0, min(t1, end_rel_ns), dropped):
+                key = frame.capture_ns if order == "capture" else frame.recv_ns
+                heapq.heappush(heap, (key, frame.camera_id, counter, frame, truth))
+                counter += 1
+        release = np.inf if last else scenario.start_ns + t1 - bound
+        while heap and heap[0][0] < release:
+            item = heapq.heappop(heap)
+            yield item[3], item[4]
+        if last:
+            return
+        c += 1
+
+
+def _time_bound(s: Scenario, t: CameraTiming) -> float:
+    """Largest |reported or true time - nominal exposure| (ns) a frame can have."""
+    return 4 * t.jitter_ns + 4 * t.stamp_noise_ns + s.clocks[t.station_id].residual_bound_ns + 2.0
+
+
+def _frame_range(t: CameraTiming, t0: float, t1: float) -> np.ndarray:
+    """Frame indices k whose nominal exposure phase + k period lies in [t0, t1) ns."""
+    k0 = max(0, int(np.ceil((t0 - t.phase_ns) / t.period_ns)))
+    k1 = int(np.ceil((t1 - t.phase_ns) / t.period_ns))
+    # guard the float edges so each k lands in exactly one chunk
+    while k0 > 0 and t.phase_ns + (k0 - 1) * t.period_ns >= t0:
+        k0 -= 1
+    while t.phase_ns + k0 * t.period_ns < t0:
+        k0 += 1
+    while k1 > k0 and t.phase_ns + (k1 - 1) * t.period_ns >= t1:
+        k1 -= 1
+    while t.phase_ns + k1 * t.period_ns < t1:
+        k1 += 1
+    return np.arange(k0, max(k0, k1), dtype=np.int64)
+
+
+def marker_geometry(camera: Camera, points_world: np.ndarray, diameter: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel centre (N, 2), projected diameter (N,) px and range (N,) m of spheres.
+
+    points_world (N, 3); diameter (N,) m. The diameter is the geometric mean of
+    the image extents along two directions perpendicular to the line of sight
+    (fisheye images shrink spheres radially more than tangentially).
+    """
+    pc = camera.to_camera(points_world)
+    uv = camera.model.project_camera(pc)
+    rng_m = np.linalg.norm(pc, axis=1)
+    ray = pc / np.maximum(rng_m, 1e-12)[:, None]
+    ref = np.where(np.abs(ray[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    e1 = np.cross(ray, ref)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(ray, e1)
+    r = (np.asarray(diameter, float) / 2)[:, None]
+    d1 = np.linalg.norm(camera.model.project_camera(pc + r * e1) - camera.model.project_camera(pc - r * e1), axis=1)
+    d2 = np.linalg.norm(camera.model.project_camera(pc + r * e2) - camera.model.project_camera(pc - r * e2), axis=1)
+    return uv, np.sqrt(d1 * d2), rng_m
+
+
+def blob_photometry(s: Scenario, diameter_px: np.ndarray, range_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Area (N,) px and peak (N,) 0..255 of marker blobs.
+
+    Retro-reflected IR falls with range^2 (the ring lights the marker, the
+    marker returns a narrow cone); blobs under ~2 px lose peak to the optics'
+    blur. Area is the disc area (>= 1 px).
+    """
+    area = np.maximum(np.pi / 4 * diameter_px**2, 1.0)
+    peak = s.peak_at_1m / np.maximum(range_m, 1e-3) ** 2 * np.minimum(1.0, diameter_px / 2.0)
+    return area, np.clip(peak, s.min_peak, 255.0)
+
+
+def _static_spurious(s: Scenario, cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fixed floor reflections of a camera: pixels (S, 2), area (S,), peak (S,).
+
+    Spots sit where the floor (z = 0) is in view, as glossy-floor reflections of
+    IR rings do; seeded per camera so they never move.
+    """
+    n = s.static_spurious_per_camera
+    if n == 0:
+        return np.zeros((0, 2)), np.zeros(0), np.zeros(0)
+    rng = rng_for(s.seed, TAG_STATIC, cam.id)
+    pts = np.column_stack([rng.uniform(-6, 6, 400), rng.uniform(-6, 6, 400), np.zeros(400)])
+    ok = cam.visible(pts, margin=10)
+    uv = cam.project(pts[ok])[:n]
+    if len(uv) < n:  # the floor is out of view: anywhere on the sensor
+        m = n - len(uv)
+        uv = np.vstack([uv, np.column_stack([rng.uniform(10, cam.model.width - 11, m), rng.uniform(10, cam.model.height - 11, m)])])
+    return uv, rng.uniform(6.0, 40.0, n), rng.uniform(120.0, 255.0, n)
+
+
+def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: float, t1: float, dropped):
+    """Frames of one camera with nominal exposure in [t0, t1) ns after start: [(BlobFrame, FrameTruth)]."""
+    k = _frame_range(t, t0, t1)
+    K = len(k)
+    if K == 0:
+        return []
+    rng = rng_for(s.seed, TAG_FRAMES, cam.id, chunk)
+    clock = s.clocks[t.station_id]
+    jit = np.clip(rng.standard_normal(K), -4, 4) * t.jitter_ns
+    true_ns = s.start_ns + np.round(t.phase_ns + k * t.period_ns + jit).astype(np.int64)
+    drop = rng.random(K) < t.drop_probability
+    stamp = np.clip(rng.standard_normal(K), -4, 4) * t.stamp_noise_ns
+    capture_ns = true_ns + np.round(clock.residual_ns(true_ns) + stamp).astype(np.int64)
+    if s.latency_std_ns > 0 and s.latency_mean_ns > 0:
+        shape = (s.latency_mean_ns / s.latency_std_ns) ** 2
+        lat = rng.gamma(shape, s.latency_mean_ns / shape, K)
+    else:
+        lat = np.full(K, s.latency_mean_ns)
+    recv_ns = true_ns + np.round(np.clip(lat, 0, s.latency_max_ns)).astype(np.int64)
+    station_ns = clock.raw_ns(true_ns)
+
+    # ---- markers of every body at every exposure: (K, Mtot, ...)
+    C = cam.center
+    world, normals, diam, b_idx, m_idx, cutoff = [], [], [], [], [], []
+    discs = []
+    for bi, b in enumerate(s.bodies):
+        mo = b.trajectory.sample_ns(true_ns, s.start_ns)
+        R = mo.rotations.as_matrix()  # (K, 3, 3)
+        world.append(np.einsum("kij,mj->kmi", R, b.markers) + mo.positions[:, None, :])
+        normals.append(np.einsum("kij,mj->kmi", R, b.normals))
+        M = len(b.markers)
+        diam.append(np.full(M, b.marker_diameter))
+        b_idx.append(np.full(M, bi))
+        m_idx.append(np.arange(M))
+        cutoff.append(np.full(M, b.normal_cutoff_cos))
+        if s.occlusion and b.disc_radius > 0:
+            discs.append((mo.positions, R[:, :, 2], b.disc_radius))
+    if world:
+        W = np.concatenate(world, axis=1)
+        N = np.concatenate(normals, axis=1)
+        diam_m = np.concatenate(diam)
+        b_idx_a, m_idx_a, cut = np.concatenate(b_idx), np.concatenate(m_idx), np.concatenate(cutoff)
+    else:
+        W = np.zeros((K, 0, 3))
+        N = W.copy()
+        diam_m = np.zeros(0)
+        b_idx_a = m_idx_a = np.zeros(0, int)
+        cut = np.zeros(0)
+    Mt = W.shape[1]
+    flatW = W.reshape(-1, 3)
+    vis = cam.visible(flatW).reshape(K, Mt)
+    if s.occlusion and Mt:
+        to_cam = C[None, None, :] - W
+        dist = np.linalg.norm(to_cam, axis=2)
+        facing = np.einsum("kmi,kmi->km", N, to_cam) / np.maximum(dist, 1e-12)
+        vis &= facing >= cut[None, :] - 1e-12
+        for pos, nz, radius in discs:
+            denom = np.einsum("kmi,ki->km", to_cam, nz)
+            num = np.einsum("kmi,ki->km", pos[:, None, :] - W, nz)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                sc = num / denom
+            hit = (sc > 1e-6) & (sc < 1.0)
+            x = W + sc[..., None] * to_cam
+            inside = np.linalg.norm(x - pos[:, None, :], axis=2) < radius
+            vis &= ~(hit & inside)
+    vis &= ~drop[:, None]
+
+    fi, mi = np.nonzero(vis)  # frame index, marker column
+    uv, dpx, rng_m = marker_geometry(cam, W[fi, mi], diam_m[mi])
+    area, peak = blob_photometry(s, dpx, rng_m)
+    true_xy = uv
+    xy = uv + rng.normal(0.0, s.centroid_noise_px, uv.shape) if s.centroid_noise_px > 0 else uv.copy()
+    body_col, marker_col = b_idx_a[mi], m_idx_a[mi]
+
+    # ---- spurious blobs: static reflections in every frame, Poisson glints
+    keep = np.nonzero(~drop)[0]
+    suv, sarea, speak = _static_spurious(s, cam)
+    S = len(suv)
+    if S:
+        sf = np.repeat(keep, S)
+        s_true = np.tile(suv, (len(keep), 1))
+        s_xy = s_true + (rng.normal(0.0, s.centroid_noise_px, s_true.shape) if s.centroid_noise_px > 0 else 0.0)
+        fi = np.concatenate([fi, sf])
+        true_xy = np.vstack([true_xy, s_true])
+        xy = np.vstack([xy, s_xy])
+        area = np.concatenate([area, np.tile(sarea, len(keep))])
+        peak = np.concatenate([peak, np.tile(speak, len(keep))])
+        dpx = np.concatenate([dpx, np.tile(2 * np.sqrt(sarea / np.pi), len(keep))])
+        body_col = np.concatenate([body_col, np.full(len(sf), -1)])
+        marker_col = np.concatenate([marker_col, np.full(len(sf), SPURIOUS_STATIC)])
+    n_rand = rng.poisson(s.random_spurious_per_frame, K) * (~drop)
+    if n_rand.sum():
+        rf = np.repeat(np.arange(K), n_rand)
+        nr = len(rf)
+        r_xy = np.column_stack([rng.uniform(0, cam.model.width - 1, nr), rng.uniform(0, cam.model.height - 1, nr)])
+        r_area = rng.uniform(1.0, 12.0, nr)
+        fi = np.concatenate([fi, rf])
+        true_xy = np.vstack([true_xy, r_xy])
+        xy = np.vstack([xy, r_xy])
+        area = np.concatenate([area, r_area])
+        peak = np.concatenate([peak, rng.uniform(40.0, 255.0, nr)])
+        dpx = np.concatenate([dpx, 2 * np.sqrt(r_area / np.pi)])
+        body_col = np.concatenate([body_col, np.full(nr, -1)])
+        marker_col = np.concatenate([marker_col, np.full(nr, SPURIOUS_RANDOM)])
+
+    # a noisy centroid pushed off the sensor is not detected
+    inside = cam.model.in_image(xy)
+    sel = np.nonzero(inside)[0]
+    # shuffle within each frame: random key, then stable sort by frame
+    order = sel[np.lexsort((rng.random(len(sel)), fi[sel]))]
+    fi, xy, true_xy, area, peak, dpx = fi[order], xy[order], true_xy[order], area[order], peak[order], dpx[order]
+    body_col, marker_col = body_col[order], marker_col[order]
+    bounds = np.searchsorted(fi, np.arange(K + 1))
+
+    out = []
+    for j in range(K):
+        if drop[j]:
+            if dropped is not None:
+                dropped[cam.id].append(int(k[j]))
+            continue
+        a, b = bounds[j], bounds[j + 1]
+        fxy, ftrue, farea, fpeak = xy[a:b], true_xy[a:b], area[a:b], peak[a:b]
+        fbody, fmark, fd = body_col[a:b], marker_col[a:b], dpx[a:b]
+        merged = np.zeros(b - a, bool)
+        if s.merge_blobs and b - a > 1:
+            fxy, ftrue, farea, fpeak, fbody, fmark, merged = _merge(fxy, ftrue, farea, fpeak, fbody, fmark, fd)
+        flags = 0
+        if len(fxy) > s.max_blobs:
+            # detectors scan in raster order and stop at their cap
+            ras = np.lexsort((fxy[:, 0], np.floor(fxy[:, 1])))[: s.max_blobs]
+            ras.sort()
+            fxy, ftrue, farea, fpeak, fbody, fmark, merged = (v[ras] for v in (fxy, ftrue, farea, fpeak, fbody, fmark, merged))
+            flags |= FLAG_TRUNCATED
+        blobs = np.empty((len(fxy), 4), np.float32)
+        blobs[:, 0:2] = fxy
+        blobs[:, 2] = farea
+        blobs[:, 3] = fpeak
+        frame = BlobFrame(
+            camera_id=cam.id,
+            seq=int(k[j]),
+            capture_ns=int(capture_ns[j]),
+            blobs=blobs,
+            station_id=t.station_id,
+            flags=flags,
+            recv_ns=int(recv_ns[j]),
+        )
+        truth = FrameTruth(
+            cam.id, int(k[j]), int(true_ns[j]), int(station_ns[j]),
+            fbody.astype(np.int64), fmark.astype(np.int64), np.asarray(ftrue, np.float64), merged,
+        )  # fmt: skip
+        out.append((frame, truth))
+    return out
+
+
+def _merge(xy, true_xy, area, peak, body, marker, dpx):
+    """Merge blobs whose discs overlap (centre distance < sum of radii) into one.
+
+    Centroid and true pixel are the area*peak weighted means; area adds, peak
+    is the max; the label is the heaviest part's. Returns the reduced arrays
+    and a merged flag (N',)."""
+    n = len(xy)
+    d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
+    touch = d < (dpx[:, None] + dpx[None]) / 2
+    np.fill_diagonal(touch, False)
+    if not touch.any():
+        return xy, true_xy, area, peak, body, marker, np.zeros(n, bool)
+    # connected groups by label propagation (n is small)
+    group = np.arange(n)
+    for _ in range(n):
+        new = np.array([group[touch[i] | (np.arange(n) == i)].min() for i in range(n)])
+        if np.array_equal(new, group):
+            break
+        group = new
+    reps = np.unique(group)
+    w = area * peak
+    out = [np.empty((len(reps), 2)), np.empty((len(reps), 2)), np.empty(len(reps)), np.empty(len(reps))]
+    ob, om, omg = np.empty(len(reps), int), np.empty(len(reps), int), np.zeros(len(reps), bool)
+    for r, g in enumerate(reps):
+        idx = np.nonzero(group == g)[0]
+        ww = w[idx] / w[idx].sum()
+        out[0][r] = ww @ xy[idx]
+        out[1][r] = ww @ true_xy[idx]
+        out[2][r] = area[idx].sum()
+        out[3][r] = peak[idx].max()
+        h = idx[np.argmax(w[idx])]
+        ob[r], om[r], omg[r] = body[h], marker[h], len(idx) > 1
+    return out[0], out[1], out[2], out[3], ob, om, omg
