@@ -556,7 +556,7 @@ class RecordingReader:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("output", help="MCAP file to write")
     p.add_argument("--config", required=True, help="arena YAML (path or built-in name: thesis, arena8)")
-    p.add_argument("--port", type=int, default=None, help="UDP port (default: server.port from the config, 9870)")
+    p.add_argument("--port", type=int, default=None, help="UDP port (default: server.port from the config, 5600)")
     p.add_argument("--host", default="0.0.0.0", help="address to listen on (default all interfaces)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: until Ctrl-C)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
@@ -566,11 +566,11 @@ def run(args: argparse.Namespace) -> int:
     """Record live station traffic: answer registration/sync/heartbeats, log every packet, no fusion."""
     import asyncio
 
+    from visionpos.ingest import Ingest, ServerSettings
     from visionpos.server import load_config_with_overrides, run_until_signal
-    from visionpos.ingest import Ingest, IngestSettings
 
     arena = load_config_with_overrides(args.config, args.set)
-    settings = IngestSettings.from_arena(arena)
+    settings = ServerSettings.from_arena(arena)
     if args.port is not None:
         settings = settings.with_port(args.port)
 
@@ -578,13 +578,19 @@ def run(args: argparse.Namespace) -> int:
         with RecordingWriter(args.output, arena.raw, {"command": "record"}) as rec:
             ingest = Ingest(arena, settings, pipeline=None, recorder=rec)
             await ingest.start(args.host, settings.port)
-            log.warning("recording station traffic on udp %s:%d to %s", args.host, ingest.port, args.output)
+            print(f"visionpos record: listening on udp {args.host}:{ingest.port}, recording to {args.output}; "
+                  "Ctrl-C to stop", flush=True)
+
+            def status() -> None:
+                ingest.check_vanished(time.monotonic_ns())
+                log.warning("%s", ingest.status_line())
+
             try:
-                await run_until_signal(args.duration, status=lambda: log.warning("%s", ingest.status_line()),
-                                       status_period_s=settings.status_period_s)
+                await run_until_signal(args.duration, status=status, status_period_s=settings.status_period_s)
             finally:
                 ingest.close()
-            log.warning("recorded %s", rec.counts)
+                rec.write_json("/server/health", time.monotonic_ns(), ingest.health())
+            print(f"visionpos record: {rec.counts.get(TOPIC_PACKETS, 0)} packets written to {args.output}", flush=True)
         return 0
 
     return asyncio.run(main())
