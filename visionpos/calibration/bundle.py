@@ -1,0 +1,503 @@
+"""Extrinsics from wand observations: pairwise init, chaining, bundle adjustment.
+
+1. Every camera pair with enough shared wand frames gets an essential matrix
+   (RANSAC, normalised 8-point), the cheirality-checked relative pose and the
+   metric scale from the known wand lengths (thesis Eq. 2.18).
+2. A maximum spanning tree over the pair graph (edge weight = inlier frames)
+   chains all cameras into the frame of the reference camera.
+3. A global bundle adjustment (scipy least_squares, trf, analytic sparse
+   Jacobian, robust loss) refines all camera poses (optionally fx, fy, cx, cy)
+   and one wand pose per frame. The wand is parametrised as its A position plus
+   a direction, so B = A + AB u and C = A + AC u hold exactly: the wand lengths
+   fix the scale and the wand's straightness is enforced.
+
+Pose convention: x_cam = R x_world + t; the world is the reference camera's frame
+until the ground-plane step moves it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from visionpos.calibration.wand import CalibrationError, WandData, WandSpec
+from visionpos.camera import Camera
+from visionpos.geometry import CameraRig, decompose_essential, essential_from_points, skew, triangulate_normalized
+
+log = logging.getLogger(__name__)
+
+ProgressFn = Callable[[str, int, int], None]
+
+
+def _no_progress(stage: str, done: int, total: int) -> None:
+    return None
+
+
+# --------------------------------------------------------------------- pairs
+@dataclass
+class PairPose:
+    """Relative pose of camera j w.r.t. camera i: x_j = R x_i + t (t in metres)."""
+
+    i: int
+    j: int
+    R: np.ndarray
+    t: np.ndarray
+    shared: int
+    inliers: int
+    scale: float
+    flatness: float  # smallest / largest spread of the triangulated markers
+
+
+def wand_scale(points: np.ndarray, spec: WandSpec) -> np.ndarray:
+    """Per-frame scale estimates of thesis Eq. 2.18.
+
+    points: (n, 3, 3) triangulated A, B, C in an arbitrary-scale frame.
+    Returns (n,) the mean of L_AC/|A-C|, L_AB/|A-B|, L_BC/|B-C| per frame;
+    Eq. 2.18's lambda is their mean over frames.
+    """
+    A, B, C = points[:, 0], points[:, 1], points[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (
+            spec.ac / np.linalg.norm(A - C, axis=1)
+            + spec.ab / np.linalg.norm(A - B, axis=1)
+            + spec.bc / np.linalg.norm(B - C, axis=1)
+        ) / 3.0
+
+
+def pair_pose(
+    xn_i: np.ndarray, xn_j: np.ndarray, spec: WandSpec, threshold: float, max_frames: int = 600, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """Metric relative pose from the wand seen by two cameras.
+
+    xn_i, xn_j: (n, 3, 2) undistorted normalised A, B, C in both cameras (same frames).
+    threshold: RANSAC Sampson threshold (normalised units).
+    Returns R (3,3), t (3,) metres with x_j = R x_i + t, inlier frames (n,) bool,
+    the scale lambda (Eq. 2.18 over inlier frames) and the flatness of the marker cloud.
+    """
+    n = len(xn_i)
+    rng = np.random.default_rng(seed)
+    sel = np.sort(rng.choice(n, max_frames, replace=False)) if n > max_frames else np.arange(n)
+    p1 = xn_i[sel].reshape(-1, 2)
+    p2 = xn_j[sel].reshape(-1, 2)
+    E, inl = essential_from_points(p1, p2, threshold=threshold, rng=seed)
+    R, t_unit, front = decompose_essential(E, p1[inl], p2[inl])
+    # triangulate every shared frame with the unit baseline
+    Rs = np.stack([np.eye(3), R])
+    ts = np.stack([np.zeros(3), t_unit])
+    xn = np.stack([xn_i.reshape(-1, 2), xn_j.reshape(-1, 2)], axis=1)
+    tri = triangulate_normalized(xn, Rs, ts, refine=False)
+    pts = tri.points.reshape(n, 3, 3)
+    res = tri.residuals.reshape(n, 3, 2)
+    s = wand_scale(pts, spec)
+    z1 = pts[..., 2]
+    z2 = (pts @ R.T + t_unit)[..., 2]
+    good = np.isfinite(s) & (s > 0) & (z1 > 0).all(axis=1) & (z2 > 0).all(axis=1)
+    good &= (np.nan_to_num(res, nan=np.inf) < 3 * threshold).all(axis=(1, 2))
+    if good.sum() < 8:
+        raise CalibrationError("pair: too few consistent wand frames after the essential matrix")
+    med = np.median(s[good])
+    good &= np.abs(s / med - 1) < 0.05  # thesis phase 3 dropped frames whose L_AC was off by > 1 %
+    lam = float(np.mean(s[good]))  # Eq. 2.18
+    cloud = pts[good].reshape(-1, 3)
+    ev = np.sqrt(np.maximum(np.linalg.eigvalsh(np.cov(cloud.T)), 0))
+    flat = float(ev[0] / ev[2]) if ev[2] > 0 else 0.0
+    return R, lam * t_unit, good, lam, flat
+
+
+def chain_cameras(
+    pairs: list[PairPose], V: int, ref: int, names: list[str]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Maximum spanning tree (weight = inlier frames) from camera `ref`.
+
+    Returns R (V,3,3), t (V,3) world (= ref camera) -> camera. Raises CalibrationError
+    naming cameras the tree cannot reach.
+    """
+    R = np.full((V, 3, 3), np.nan)
+    t = np.full((V, 3), np.nan)
+    R[ref] = np.eye(3)
+    t[ref] = 0.0
+    done = {ref}
+    edges = {}
+    for p in pairs:
+        edges[(p.i, p.j)] = (p.inliers, p.R, p.t)
+        edges[(p.j, p.i)] = (p.inliers, p.R.T, -p.R.T @ p.t)
+    while len(done) < V:
+        best = None
+        for (a, b), (w, Rab, tab) in edges.items():
+            if a in done and b not in done and (best is None or w > best[0]):
+                best = (w, a, b, Rab, tab)
+        if best is None:
+            missing = [names[v] for v in range(V) if v not in done]
+            raise CalibrationError(
+                f"camera(s) {', '.join(missing)} share too few wand frames with the cameras "
+                f"{', '.join(names[v] for v in sorted(done))}: wave the wand where each of them and at least "
+                "one already-connected camera see it at the same time"
+            )
+        _, a, b, Rab, tab = best
+        R[b] = Rab @ R[a]
+        t[b] = Rab @ t[a] + tab
+        done.add(b)
+    return R, t
+
+
+def undistort_wand(data: WandData) -> np.ndarray:
+    """(F, V, 3, 2) pixels -> normalised coordinates (NaN stays NaN)."""
+    rig = CameraRig(data.cameras)
+    F, V = data.pixels.shape[:2]
+    px = data.pixels.transpose(0, 2, 1, 3).reshape(F * 3, V, 2)
+    xn = rig.undistort(px)
+    return xn.reshape(F, 3, V, 2).transpose(0, 2, 1, 3)
+
+
+def initial_poses(
+    data: WandData, spec: WandSpec, ref: int = 0, min_shared: int = 40, progress: ProgressFn = _no_progress
+) -> tuple[np.ndarray, np.ndarray, list[PairPose]]:
+    """Pairwise essential matrices + Eq. 2.18 scale, chained by a spanning tree.
+
+    Returns R (V,3,3), t (V,3) (world = camera `ref`) and the pair results.
+    """
+    xn = undistort_wand(data)
+    seen = data.seen
+    V = len(data.cameras)
+    names = [c.name for c in data.cameras]
+    f_mean = np.mean([0.5 * (c.model.fx + c.model.fy) for c in data.cameras])
+    threshold = 2.0 / f_mean
+    pairs: list[PairPose] = []
+    todo = [(i, j) for i in range(V) for j in range(i + 1, V) if (seen[:, i] & seen[:, j]).sum() >= min_shared]
+    for k, (i, j) in enumerate(todo):
+        both = seen[:, i] & seen[:, j]
+        try:
+            R, tt, good, lam, flat = pair_pose(xn[both, i], xn[both, j], spec, threshold)
+        except (CalibrationError, ValueError) as e:
+            log.info("pair %s-%s skipped: %s", names[i], names[j], e)
+            progress("pairs", k + 1, len(todo))
+            continue
+        pairs.append(PairPose(i, j, R, tt, int(both.sum()), int(good.sum()), lam, flat))
+        progress("pairs", k + 1, len(todo))
+    if pairs and max(p.flatness for p in pairs) < 0.03:
+        raise CalibrationError(
+            "degenerate wand motion: every camera pair saw the wand markers in (nearly) one plane; "
+            "wave the wand through the whole volume, up and down as well as sideways, tilting it"
+        )
+    R, t = chain_cameras(pairs, V, ref, names)
+    return R, t, pairs
+
+
+def initial_wand(
+    xn: np.ndarray, R: np.ndarray, t: np.ndarray, spec: WandSpec
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Wand pose per frame by triangulation.
+
+    xn: (F, V, 3, 2) normalised; R (V,3,3), t (V,3).
+    Returns A (F,3), u (F,3) unit direction A->C, ok (F,) (triangulated and lengths within 10 %).
+    """
+    F, V = xn.shape[:2]
+    tri = triangulate_normalized(xn.transpose(0, 2, 1, 3).reshape(F * 3, V, 2), R, t)
+    P = tri.points.reshape(F, 3, 3)
+    A = P[:, 0]
+    d = P[:, 2] - P[:, 0]
+    L = np.linalg.norm(d, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = d / L[:, None]
+        ok = np.isfinite(P).all(axis=(1, 2)) & (np.abs(L / spec.ac - 1) < 0.1)
+        # line fit through all three: A is the point on the line at offset 0
+        c = P.mean(axis=1)
+        A = np.where(ok[:, None], c - spec.offsets.mean() * u, A)
+    return A, u, ok
+
+
+def check_motion(A: np.ndarray, u: np.ndarray, spec: WandSpec) -> list[str]:
+    """Degenerate wand motion checks on metric wand poses A (F,3), u (F,3).
+
+    Raises CalibrationError for a too small or flat volume; returns warnings
+    (e.g. the wand kept in nearly one orientation).
+    """
+    pts = (A[:, None, :] + spec.offsets[None, :, None] * u[:, None, :]).reshape(-1, 3)
+    ev = np.sqrt(np.maximum(np.linalg.eigvalsh(np.cov(pts.T)), 0))
+    if ev[2] < 0.15:
+        raise CalibrationError(
+            f"degenerate wand motion: the wand covered too small a volume (spread {ev[2] * 100:.0f} cm along its "
+            "longest axis); wave it through the whole tracking volume"
+        )
+    if ev[0] < 0.05 or ev[0] / ev[2] < 0.04:
+        raise CalibrationError(
+            f"degenerate wand motion: the wand stayed in one plane (spread {ev[0] * 100:.1f} cm across it); "
+            "wave it up and down as well as sideways"
+        )
+    warnings = []
+    M = np.einsum("fi,fj->ij", u, u) / len(u)
+    w = np.linalg.eigvalsh(M)
+    if w[1] < 0.03:
+        warnings.append(
+            "the wand was held in nearly one orientation; turn it while waving for a better-conditioned calibration"
+        )
+    return warnings
+
+
+# ------------------------------------------------------------ bundle adjustment
+def _left_jacobian(r: np.ndarray) -> np.ndarray:
+    """SO(3) left Jacobian for rotation vectors r (V,3) -> (V,3,3)."""
+    th = np.linalg.norm(r, axis=1)
+    K = skew(r)
+    K2 = K @ K
+    small = th < 1e-6
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 0.5 - th**2 / 24, (1 - np.cos(ths)) / ths**2)
+    b = np.where(small, 1.0 / 6 - th**2 / 120, (ths - np.sin(ths)) / ths**3)
+    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * K2
+
+
+def _complement(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (F,3) orthogonal to u (F,3) and to each other."""
+    helper = np.where(np.abs(u[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+    e1 = np.cross(u, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(u, e1)
+    return e1, e2
+
+
+@dataclass
+class BundleResult:
+    """Refined cameras and wand, with per-observation residuals (px)."""
+
+    cameras: list[Camera]
+    A: np.ndarray  # (F, 3)
+    u: np.ndarray  # (F, 3)
+    frames: np.ndarray  # (F,) indices into the WandData grid
+    obs_frame: np.ndarray  # (M,) frame index (into A/u)
+    obs_view: np.ndarray  # (M,)
+    obs_marker: np.ndarray  # (M,)
+    residuals: np.ndarray  # (M, 2) px
+    nfev: int = 0
+    seconds: float = 0.0
+    cost: float = 0.0
+    message: str = ""
+    warnings: list[str] = field(default_factory=list)
+
+
+class _Problem:
+    """Residuals and the analytic sparse Jacobian of the wand bundle adjustment."""
+
+    def __init__(
+        self,
+        pixels: np.ndarray,
+        cameras: list[Camera],
+        R0: np.ndarray,
+        t0: np.ndarray,
+        A0: np.ndarray,
+        u0: np.ndarray,
+        spec: WandSpec,
+        ref: int,
+        refine_intrinsics: bool,
+    ):
+        F, V = pixels.shape[:2]
+        self.F, self.V, self.ref = F, V, ref
+        ok = np.isfinite(pixels).all(axis=3)  # (F, V, 3)
+        f_o, v_o, k_o = np.nonzero(ok)
+        self.f_o, self.v_o, self.k_o = f_o, v_o, k_o
+        self.uv = pixels[f_o, v_o, k_o]
+        self.M = len(f_o)
+        self.L = spec.offsets[k_o]
+        self.R0 = R0.copy()
+        self.u0 = u0.copy()
+        self.e1, self.e2 = _complement(u0)
+        # distortion with unit focal length and zero centre: xd and d xd / d xn
+        self.unit_rig = CameraRig(
+            [
+                replace(c, model=replace(c.model, fx=1.0, fy=1.0, cx=0.0, cy=0.0), R=np.eye(3), t=np.zeros(3))
+                for c in cameras
+            ]
+        )
+        self.f_cam = np.array([[c.model.fx, c.model.fy] for c in cameras])
+        self.c_cam = np.array([[c.model.cx, c.model.cy] for c in cameras])
+        self.refine_intrinsics = refine_intrinsics
+        # parameter layout: [cams except ref: rotvec(3) t(3)] [intrinsics: fx fy cx cy] [frames: A(3) a b]
+        self.cam_index = np.full(V, -1)
+        others = [v for v in range(V) if v != ref]
+        self.cam_index[others] = np.arange(len(others))
+        self.n_cam = 6 * len(others)
+        self.n_intr = 4 * V if refine_intrinsics else 0
+        self.off_frames = self.n_cam + self.n_intr
+        self.n = self.off_frames + 5 * F
+        self.x0 = np.zeros(self.n)
+        ci = self.cam_index >= 0
+        self.x0[: self.n_cam] = np.column_stack([np.zeros((len(others), 3)), t0[ci]]).ravel()
+        if refine_intrinsics:
+            self.x0[self.n_cam : self.off_frames] = np.column_stack([self.f_cam, self.c_cam]).ravel()
+        self.t_ref = t0[ref].copy()
+        fr = np.zeros((F, 5))
+        fr[:, :3] = A0
+        self.x0[self.off_frames :] = fr.ravel()
+        self._build_pattern()
+        self._cache_x: np.ndarray | None = None
+
+    def _build_pattern(self) -> None:
+        M = self.M
+        rows2 = np.arange(2 * M).reshape(M, 2)
+        # frame block: 5 columns for every observation
+        fcols = self.off_frames + 5 * self.f_o[:, None] + np.arange(5)
+        blocks_r = [np.repeat(rows2[:, :, None], 5, axis=2)]
+        blocks_c = [np.broadcast_to(fcols[:, None, :], (M, 2, 5))]
+        self.has_cam = self.cam_index[self.v_o] >= 0
+        idx = np.flatnonzero(self.has_cam)
+        ccols = 6 * self.cam_index[self.v_o[idx]][:, None] + np.arange(6)
+        blocks_r.append(np.repeat(rows2[idx][:, :, None], 6, axis=2))
+        blocks_c.append(np.broadcast_to(ccols[:, None, :], (len(idx), 2, 6)))
+        if self.refine_intrinsics:
+            icols = self.n_cam + 4 * self.v_o[:, None] + np.arange(4)
+            blocks_r.append(np.repeat(rows2[:, :, None], 4, axis=2))
+            blocks_c.append(np.broadcast_to(icols[:, None, :], (M, 2, 4)))
+        self.cam_obs = idx
+        self.jrows = np.concatenate([b.ravel() for b in blocks_r])
+        self.jcols = np.concatenate([np.asarray(b).ravel() for b in blocks_c])
+
+    def sparsity(self) -> sp.csr_matrix:
+        return sp.csr_matrix(
+            (np.ones(len(self.jrows)), (self.jrows, self.jcols)), shape=(2 * self.M, self.n)
+        )
+
+    # -- unpacking
+    def cameras_from(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """R (V,3,3), t (V,3), rotvec (V,3), f (V,2), c (V,2)."""
+        V = self.V
+        cam = x[: self.n_cam].reshape(-1, 6)
+        rv = np.zeros((V, 3))
+        t = np.zeros((V, 3))
+        ci = self.cam_index >= 0
+        rv[ci] = cam[:, :3]
+        t[ci] = cam[:, 3:]
+        t[self.ref] = self.t_ref
+        R = Rotation.from_rotvec(rv).as_matrix() @ self.R0
+        if self.refine_intrinsics:
+            intr = x[self.n_cam : self.off_frames].reshape(V, 4)
+            f, c = intr[:, :2], intr[:, 2:]
+        else:
+            f, c = self.f_cam, self.c_cam
+        return R, t, rv, f, c
+
+    def wand_from(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A (F,3), u (F,3), n (F,3) un-normalised direction."""
+        fr = x[self.off_frames :].reshape(self.F, 5)
+        n = self.u0 + fr[:, 3:4] * self.e1 + fr[:, 4:5] * self.e2
+        u = n / np.linalg.norm(n, axis=1, keepdims=True)
+        return fr[:, :3], u, n
+
+    def _evaluate(self, x: np.ndarray) -> None:
+        if self._cache_x is not None and np.array_equal(x, self._cache_x):
+            return
+        R, t, rv, f, c = self.cameras_from(x)
+        A, u, n = self.wand_from(x)
+        fo, vo = self.f_o, self.v_o
+        X = A[fo] + self.L[:, None] * u[fo]
+        Rv = R[vo]
+        Z = np.einsum("mij,mj->mi", Rv, X)
+        Xc = Z + t[vo]
+        z = Xc[:, 2]
+        z = np.where(np.abs(z) < 1e-9, 1e-9, z)
+        xn = Xc[:, :2] / z[:, None]
+        # distortion through the unit-focal rig, in the dense (F*3, V) layout it expects
+        dense = np.zeros((self.F * 3, self.V, 2))
+        slot = fo * 3 + self.k_o
+        dense[slot, vo] = xn
+        xd_d, Jd_d = self.unit_rig.distort(dense, with_jac=True)
+        xd = xd_d[slot, vo]
+        Jd = Jd_d[slot, vo]  # (M, 2, 2)
+        fv = f[vo]
+        self.res = xd * fv + c[vo] - self.uv
+        # d xn / d Xc
+        Pz = np.zeros((self.M, 2, 3))
+        Pz[:, 0, 0] = 1 / z
+        Pz[:, 1, 1] = 1 / z
+        Pz[:, 0, 2] = -xn[:, 0] / z
+        Pz[:, 1, 2] = -xn[:, 1] / z
+        G = np.einsum("mij,mjk->mik", fv[:, :, None] * Jd, Pz)  # (M,2,3) d uv / d Xc
+        GR = np.einsum("mij,mjk->mik", G, Rv)  # d uv / d X world
+        # direction: d u / d(a, b) = (I - u u^T) / |n| [e1 e2]
+        nn = np.linalg.norm(n, axis=1)
+        P_perp = (np.eye(3)[None] - u[:, :, None] * u[:, None, :]) / nn[:, None, None]
+        Du = np.einsum("fij,fjk->fik", P_perp, np.stack([self.e1, self.e2], axis=2))  # (F,3,2)
+        Jab = np.einsum("mij,mjk->mik", GR, Du[fo]) * self.L[:, None, None]
+        parts = [np.concatenate([GR, Jab], axis=2)]  # (M,2,5)
+        ci = self.cam_obs
+        if len(ci):
+            Jl = _left_jacobian(rv)  # (V,3,3)
+            dZ = -np.einsum("mij,mjk->mik", skew(Z[ci]), Jl[vo[ci]])  # d Xc / d rotvec
+            Jr = np.einsum("mij,mjk->mik", G[ci], dZ)
+            parts.append(np.concatenate([Jr, G[ci]], axis=2))  # (Mc,2,6)
+        if self.refine_intrinsics:
+            Ji = np.zeros((self.M, 2, 4))
+            Ji[:, 0, 0] = xd[:, 0]
+            Ji[:, 1, 1] = xd[:, 1]
+            Ji[:, 0, 2] = 1.0
+            Ji[:, 1, 3] = 1.0
+            parts.append(Ji)
+        self.jdata = np.concatenate([p.ravel() for p in parts])
+        self._cache_x = x.copy()
+
+    def fun(self, x: np.ndarray) -> np.ndarray:
+        self._evaluate(x)
+        return self.res.ravel()
+
+    def jac(self, x: np.ndarray) -> sp.csr_matrix:
+        self._evaluate(x)
+        return sp.csr_matrix((self.jdata, (self.jrows, self.jcols)), shape=(2 * self.M, self.n))
+
+
+def bundle_adjust(
+    pixels: np.ndarray,
+    cameras: list[Camera],
+    R: np.ndarray,
+    t: np.ndarray,
+    A: np.ndarray,
+    u: np.ndarray,
+    spec: WandSpec,
+    ref: int = 0,
+    refine_intrinsics: bool = False,
+    loss: str = "soft_l1",
+    f_scale: float = 1.0,
+    max_nfev: int = 50,
+) -> tuple[list[Camera], np.ndarray, np.ndarray, np.ndarray, dict]:
+    """One least-squares solve over all cameras and wand poses.
+
+    pixels: (F, V, 3, 2) observations (NaN = missing); R (V,3,3), t (V,3) initial
+    poses; A (F,3), u (F,3) initial wand. Camera `ref` keeps its pose (gauge);
+    the wand lengths fix the scale.
+    Returns refined cameras, A, u, residuals (F, V, 3, 2) px (NaN where unobserved)
+    and solver info.
+    """
+    prob = _Problem(pixels, cameras, R, t, A, u, spec, ref, refine_intrinsics)
+    sol = least_squares(
+        prob.fun,
+        prob.x0,
+        jac=prob.jac,
+        method="trf",
+        loss=loss,
+        f_scale=f_scale,
+        x_scale="jac",
+        tr_solver="lsmr",
+        max_nfev=max_nfev,
+        xtol=1e-8,
+        ftol=1e-6,
+        gtol=1e-8,
+    )
+    Rn, tn, _, f, c = prob.cameras_from(sol.x)
+    A2, u2, _ = prob.wand_from(sol.x)
+    prob._evaluate(sol.x)
+    res = np.full(pixels.shape, np.nan)
+    res[prob.f_o, prob.v_o, prob.k_o] = prob.res
+    out = []
+    for v, cam in enumerate(cameras):
+        model = cam.model
+        if refine_intrinsics:
+            model = replace(model, fx=float(f[v, 0]), fy=float(f[v, 1]), cx=float(c[v, 0]), cy=float(c[v, 1]))
+        out.append(replace(cam, model=model, R=Rn[v], t=tn[v]))
+    info = {"nfev": int(sol.nfev), "cost": float(sol.cost), "message": str(sol.message), "n_params": prob.n,
+            "n_residuals": 2 * prob.M}
+    return out, A2, u2, res, info
