@@ -1,0 +1,518 @@
+"""Fusion pipeline: camera frames in, one filtered pose per body out. Pure, no I/O.
+
+    pipe = FusionPipeline(arena, settings)
+    pipe.push(frame)            # every BlobFrame, in arrival order
+    states = pipe.tick(now_ns)  # one BodyState per configured body, predicted to now_ns
+
+Deterministic: the same frames in the same order and the same tick times
+give identical outputs (replay depends on it). Only frame.capture_ns is
+used as time; tick() never changes the filter state.
+
+Per frame: undistort its blobs, associate them with the markers of tracked
+bodies (prediction at the frame's capture time, see matching.py), then fuse
+the newest frame of every camera in the time-alignment group (timealign.py)
+at the reference time: motion-compensated triangulation of every tracked
+marker, a weighted Kabsch pose per body, a gated Kalman update
+(tracking.py). Leftover blobs go to acquisition: cross-view matching,
+identification of lost bodies by marker geometry (rigidbody.py) and the
+loose points.
+
+Measurement reuse: in motion-compensated mode one camera frame takes part
+in about as many fusions as there are cameras in the group (its own and one
+per other camera until it is replaced). The filter is told so: each fused
+pose's measurement covariance is multiplied by the group size, which splits
+each frame's information over the fusions that reuse it instead of counting
+it several times (an overconfident filter would smooth too little and gate
+wrongly).
+
+The `fusion:` section of the arena YAML (every key optional):
+
+fusion:
+  time_alignment: motion_compensated  # or naive (nearest-timestamp grouping on a fixed grid, the baseline)
+  window_ms: 0            # frames of other cameras captured within this of the newest are fused with it;
+                          #   0 = 1.2 x the slowest camera's frame period
+  naive_grid_hz: 0        # naive grouping grid; 0 = the fastest camera's rate
+  max_clock_lead_ms: 30   # a frame stamped this far ahead of all other cameras is a clock jump: dropped
+  match_gate_px: 12       # predicted marker -> blob association radius
+  max_residual_px: 2.0    # a triangulated marker with a larger RMS reprojection residual is dropped
+  acquire_ray_distance_m: 0.01  # acquisition: two rays closer than this may see the same marker
+  identify_tolerance_m: 0.008   # identification: marker distances and Kabsch RMS within this
+  min_markers: 3          # fewest markers for a pose (tracking) and for identification
+  loose_points: true      # triangulate blobs that belong to no body and report them
+  kalman:
+    accel_psd: 30.0            # m^2/s^3, white-acceleration spectral density (position process noise)
+    angular_accel_psd: 300.0   # rad^2/s^3, white angular-acceleration spectral density
+    position_sigma_m: 0.0005   # std of one fused position (one view-set; scaled by marker count and reuse)
+    rotation_sigma_deg: 0.25   # std of one fused orientation
+    gate_chi2: 30.0            # Mahalanobis^2 gate on the 6-dof innovation (chi2, 6 dof; 30 ~ p=4e-5)
+    reset_after_ms: 60         # measurements gated out for this long: the filter restarts at the measurement
+    max_prediction_ms: 100     # tick() predicts at most this far past the last update, else tracked=False
+    lost_timeout_ms: 150       # no accepted measurement for this long: the body is lost and re-identified
+The output rate is the server's (tick() is called by it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from visionpos.config import ArenaConfig, Section
+from visionpos.matching import associate, match_unlabeled, triangulate, undistort_points
+from visionpos.messages import BlobFrame, BodyState, LoosePoints
+from visionpos.rigidbody import BodyModel, identify, kabsch_batch
+from visionpos.timealign import MODES, MOTION_COMPENSATED, Group, TimeAligner
+from visionpos.tracking import BodyFilter, KalmanSettings, pose_covariance
+
+
+@dataclass(frozen=True)
+class FusionSettings:
+    """Validated `fusion:` section (SI units; see the module docstring)."""
+
+    time_alignment: str = MOTION_COMPENSATED
+    window_ns: int = 0
+    grid_ns: int = 0
+    max_clock_lead_ns: int = 30_000_000
+    match_gate_px: float = 12.0
+    max_residual_px: float = 2.0
+    acquire_ray_distance: float = 0.01
+    identify_tolerance: float = 0.008
+    min_markers: int = 3
+    loose_points: bool = True
+    kalman: KalmanSettings = field(default_factory=KalmanSettings)
+    reset_after_ns: int = 60_000_000
+    max_prediction_ns: int = 100_000_000
+    lost_timeout_ns: int = 150_000_000
+
+
+def _expand_dotted(d: dict[str, Any]) -> dict[str, Any]:
+    """{'kalman.gate_chi2': 20} -> {'kalman': {'gate_chi2': 20}} (nested dicts pass through)."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        parts = str(k).split(".")
+        node = out
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        if isinstance(v, dict):
+            v = _expand_dotted(v)
+            if isinstance(node.get(parts[-1]), dict):
+                node[parts[-1]] = _merge(node[parts[-1]], v)
+                continue
+        node[parts[-1]] = v
+    return out
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = None) -> FusionSettings:
+    """Read `fusion:` from the arena, overridden by `settings` (nested, dotted or {'fusion': {...}})."""
+    base = arena.raw.get("fusion") or {}
+    if not isinstance(base, dict):
+        arena.section("fusion")  # raises a ConfigError naming the key
+    data = _expand_dotted(dict(base))
+    source = arena.source
+    if settings:
+        over = _expand_dotted(dict(settings))
+        if set(over) == {"fusion"} and isinstance(over["fusion"], dict):
+            over = over["fusion"]
+        data = _merge(data, over)
+        source = f"{arena.source} (+ overrides)"
+    s = Section(data, source, "fusion")
+    known = {
+        "time_alignment", "window_ms", "naive_grid_hz", "max_clock_lead_ms", "match_gate_px", "max_residual_px",
+        "acquire_ray_distance_m", "identify_tolerance_m", "min_markers", "loose_points", "kalman",
+    }  # fmt: skip
+    for k in data:
+        if k not in known:
+            raise s.error(str(k), f"unknown setting; known keys are {sorted(known)}")
+    k = s.sub("kalman")
+    kknown = {
+        "accel_psd", "angular_accel_psd", "position_sigma_m", "rotation_sigma_deg", "gate_chi2", "reset_after_ms",
+        "max_prediction_ms", "lost_timeout_ms",
+    }  # fmt: skip
+    for key in k.data:
+        if key not in kknown:
+            raise k.error(str(key), f"unknown setting; known keys are {sorted(kknown)}")
+    fps = [c.fps for c in arena.cameras] or [100.0]
+    window_ms = s.number("window_ms", 0.0, min=0.0, max=1000.0)
+    if window_ms == 0.0:
+        window_ms = 1.2e3 / min(fps)
+    grid_hz = s.number("naive_grid_hz", 0.0, min=0.0, max=10000.0)
+    if grid_hz == 0.0:
+        grid_hz = max(fps)
+    ks = KalmanSettings(
+        accel_psd=k.number("accel_psd", 30.0, min=1e-9),
+        angular_accel_psd=k.number("angular_accel_psd", 300.0, min=1e-9),
+        position_sigma=k.number("position_sigma_m", 0.0005, min=1e-7),
+        rotation_sigma=np.radians(k.number("rotation_sigma_deg", 0.25, min=1e-5)),
+        gate_chi2=k.number("gate_chi2", 30.0, min=1.0),
+    )
+    lost = k.number("lost_timeout_ms", 150.0, min=1.0)
+    return FusionSettings(
+        time_alignment=s.string("time_alignment", MOTION_COMPENSATED, choices=MODES),
+        window_ns=int(window_ms * 1e6),
+        grid_ns=int(1e9 / grid_hz),
+        max_clock_lead_ns=int(s.number("max_clock_lead_ms", 30.0, min=0.1) * 1e6),
+        match_gate_px=s.number("match_gate_px", 12.0, min=0.1),
+        max_residual_px=s.number("max_residual_px", 2.0, min=0.01),
+        acquire_ray_distance=s.number("acquire_ray_distance_m", 0.01, min=1e-5),
+        identify_tolerance=s.number("identify_tolerance_m", 0.008, min=1e-5),
+        min_markers=s.integer("min_markers", 3, min=3),
+        loose_points=s.boolean("loose_points", True),
+        kalman=ks,
+        reset_after_ns=int(k.number("reset_after_ms", 60.0, min=0.0) * 1e6),
+        max_prediction_ns=int(k.number("max_prediction_ms", 100.0, min=0.0) * 1e6),
+        lost_timeout_ns=int(lost * 1e6),
+    )
+
+
+@dataclass
+class _Obs:
+    """Newest frame of one camera after association.
+
+    xn: (N, 2) normalised coordinates; label: (N,) global marker index or -1;
+    marker_xn: (P, 2) observation of every configured marker (NaN = none).
+    """
+
+    capture_ns: int
+    xn: np.ndarray
+    label: np.ndarray
+    marker_xn: np.ndarray
+
+
+@dataclass
+class _Track:
+    """Per-body tracking state."""
+
+    filter: BodyFilter
+    tracked: bool = False
+    last_update_ns: int = 0
+    last_capture_ns: int = 0
+    first_reject_ns: int | None = None
+    n_markers: int = 0
+    n_cameras: int = 0
+    residual_mm: float = float("nan")
+    reset_counter: int = 0
+
+
+class FusionPipeline:
+    """Asynchronous multi-camera fusion into filtered rigid-body poses (see module docstring)."""
+
+    def __init__(self, arena: ArenaConfig, settings: dict[str, Any] | None = None):
+        self.arena = arena
+        self.settings = parse_fusion_settings(arena, settings)
+        st = self.settings
+        self.models = [BodyModel(b.name, b.id, np.asarray(b.markers, float)) for b in arena.bodies]
+        sizes = [len(m.markers) for m in self.models]
+        self._off = np.concatenate([[0], np.cumsum(sizes)]).astype(int)  # body b: markers off[b]:off[b+1]
+        self.P = int(self._off[-1])
+        self._marker_body = np.repeat(np.arange(len(self.models)), sizes)
+        self._marker_local = np.concatenate([m.markers for m in self.models]) if self.models else np.zeros((0, 3))
+        self._mmax = max(sizes) if sizes else 0
+        # cameras: stacked poses for vectorised fusion
+        self.cameras = {c.id: c for c in arena.cameras}
+        self._cam_index = {c.id: i for i, c in enumerate(arena.cameras)}
+        self._R = np.array([c.R for c in arena.cameras]).reshape(-1, 3, 3)
+        self._t = np.array([c.t for c in arena.cameras]).reshape(-1, 3)
+        self._f = np.array([np.sqrt(c.model.fx * c.model.fy) for c in arena.cameras])
+        self.aligner = TimeAligner(st.time_alignment, st.window_ns, st.grid_ns, st.max_clock_lead_ns)
+        self.obs: dict[int, _Obs] = {}
+        self.tracks = [_Track(BodyFilter(st.kalman)) for _ in self.models]
+        self.loose_points: LoosePoints | None = None
+        self.last_raw: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # body -> (ref_ns, position, R) of the last Kabsch pose
+        self._stats: dict[str, int] = {
+            "frames": 0,
+            "fusions": 0,
+            "measurements": 0,
+            "rejected_gate": 0,
+            "rejected_residual": 0,
+            "rejected_fit": 0,
+            "unknown_camera": 0,
+            "malformed": 0,
+            "clock_jump": 0,
+            "late": 0,
+            "reordered": 0,
+            "removed_camera": 0,
+            "acquisitions": 0,
+            "lost": 0,
+            "filter_resets": 0,
+        }
+        self._per_camera: dict[int, int] = {}
+
+    # ------------------------------------------------------------------ input
+    def push(self, frame: BlobFrame) -> None:
+        """Take one camera frame (arrival order) and do the fusion work it enables."""
+        self._stats["frames"] += 1
+        cam = int(frame.camera_id)
+        if cam not in self.cameras:
+            self._stats["unknown_camera"] += 1
+            return
+        self._per_camera[cam] = self._per_camera.get(cam, 0) + 1
+        blobs = np.asarray(frame.blobs)
+        if blobs.ndim != 2 or (blobs.shape[0] and blobs.shape[1] < 2):
+            self._stats["malformed"] += 1
+            return
+        px = blobs[:, :2].astype(np.float64)
+        px = px[np.isfinite(px).all(axis=1)]
+        t = int(frame.capture_ns)
+        why = self.aligner.admit(cam, t)
+        if why is not None:
+            self._stats[why] += 1
+            return
+        before, after = self.aligner.add(cam, t)
+        for g in before:
+            self._fuse(g)
+        self.obs[cam] = self._observe(cam, t, px)
+        for g in after:
+            self._fuse(g)
+
+    def remove_camera(self, camera_id: int) -> None:
+        """A station vanished: stop using and waiting for its frames."""
+        if camera_id in self.obs or camera_id in self.aligner.latest:
+            self._stats["removed_camera"] += 1
+        self.obs.pop(camera_id, None)
+        self.aligner.remove(camera_id)
+
+    # ------------------------------------------------------------ association
+    def _predicted_markers(self, bodies: list[int], t_ns: int) -> np.ndarray:
+        """World positions (sum M_b, 3) of the markers of `bodies` predicted to t_ns."""
+        out = []
+        for b in bodies:
+            p, R, _, _ = self.tracks[b].filter.pose_at(t_ns)
+            out.append(self.models[b].markers @ R.T + p)
+        return np.concatenate(out) if out else np.zeros((0, 3))
+
+    def _observe(self, cam: int, t_ns: int, px: np.ndarray) -> _Obs:
+        camera = self.cameras[cam]
+        xn = undistort_points(camera.model, px)
+        label = np.full(len(px), -1, dtype=np.int64)
+        marker_xn = np.full((self.P, 2), np.nan)
+        tracked = [b for b, tr in enumerate(self.tracks) if tr.tracked]
+        if tracked and len(px):
+            rows = np.concatenate([np.arange(self._off[b], self._off[b + 1]) for b in tracked])
+            Xw = self._predicted_markers(tracked, t_ns)
+            pc = camera.to_camera(Xw)
+            pred = camera.model.project_camera(pc)
+            pred[~camera.model.in_image(pred, -self.settings.match_gate_px)] = np.nan
+            a = associate(pred, px, self.settings.match_gate_px)
+            hit = a >= 0
+            label[a[hit]] = rows[hit]
+            marker_xn[rows[hit]] = xn[a[hit]]
+        return _Obs(t_ns, xn, label, marker_xn)
+
+    # ----------------------------------------------------------------- fusion
+    def _fuse(self, g: Group) -> None:
+        cams = [c for c in g.cameras if c in self.obs]
+        if not cams:
+            return
+        self._stats["fusions"] += 1
+        st = self.settings
+        ref = g.ref_ns
+        vi = np.array([self._cam_index[c] for c in cams])
+        R, t, f = self._R[vi], self._t[vi], self._f[vi]
+        obs = [self.obs[c] for c in cams]
+        tracked = [b for b, tr in enumerate(self.tracks) if tr.tracked]
+        if tracked:
+            self._update_tracked(tracked, obs, cams, R, t, f, ref, g.compensate)
+        self._acquire(obs, R, t, f, ref)
+        # lost-track bookkeeping on the capture clock
+        for b, tr in enumerate(self.tracks):
+            if tr.tracked and ref - tr.last_update_ns > st.lost_timeout_ns:
+                tr.tracked = False
+                self._stats["lost"] += 1
+
+    def _update_tracked(self, tracked, obs, cams, R, t, f, ref, compensate) -> None:
+        st = self.settings
+        rows = np.concatenate([np.arange(self._off[b], self._off[b + 1]) for b in tracked])
+        xn = np.stack([o.marker_xn[rows] for o in obs], axis=1)  # (P, V, 2)
+        offsets = None
+        if compensate:
+            dt = np.array([(o.capture_ns - ref) * 1e-9 for o in obs])  # (V,)
+            if np.any(dt != 0.0):
+                vel, w, r = [], [], []
+                for b in tracked:
+                    p, Rb, v, wb = self.tracks[b].filter.pose_at(ref)
+                    m = self.models[b].markers
+                    vel.append(np.broadcast_to(v, (len(m), 3)))
+                    w.append(np.broadcast_to(wb, (len(m), 3)))
+                    r.append(m @ Rb.T)
+                vel, w, r = np.concatenate(vel), np.concatenate(w), np.concatenate(r)
+                wxr = np.cross(w, r)
+                wxwxr = np.cross(w, wxr)
+                # marker displacement from ref to each view's capture time (2nd order in w dt)
+                offsets = (vel + wxr)[:, None, :] * dt[None, :, None] + 0.5 * wxwxr[:, None, :] * (dt * dt)[None, :, None]
+        X, rms, nv = triangulate(xn, R, t, f, offsets)
+        good = (nv >= 2) & (rms < st.max_residual_px)
+        self._stats["rejected_residual"] += int(((nv >= 2) & ~good).sum())
+        # pad bodies for one batched Kabsch
+        B = len(tracked)
+        src = np.zeros((B, self._mmax, 3))
+        dst = np.zeros((B, self._mmax, 3))
+        wts = np.zeros((B, self._mmax))
+        k = 0
+        counts = []
+        for i, b in enumerate(tracked):
+            M = self._off[b + 1] - self._off[b]
+            sl = slice(k, k + M)
+            src[i, :M] = self.models[b].markers
+            gd = good[sl]
+            dst[i, :M][gd] = X[sl][gd]
+            # weight by views: more rays, better-conditioned point
+            wts[i, :M] = np.where(gd, nv[sl], 0)
+            counts.append(int(gd.sum()))
+            k += M
+        Rk, tk = kabsch_batch(src, dst, wts)
+        used_views = (np.isfinite(xn).all(-1)).any(0)  # (V,) view contributed to a tracked body
+        for i, b in enumerate(tracked):
+            tr = self.tracks[b]
+            n = counts[i]
+            if n < st.min_markers:
+                continue
+            M = self._off[b + 1] - self._off[b]
+            sel = wts[i, :M] > 0
+            res = dst[i, :M][sel] - (src[i, :M][sel] @ Rk[i].T + tk[i])
+            fit = float(np.sqrt((res**2).sum(1).mean()))
+            if fit > st.identify_tolerance:
+                self._stats["rejected_fit"] += 1
+                continue
+            self.last_raw[b] = (ref, tk[i].copy(), Rk[i].copy())
+            # covariance: fewer markers -> larger; reused frames -> split information
+            scale = (M / n) * (len(obs) if compensate else 1)
+            accepted, _ = tr.filter.update(ref, tk[i], Rk[i], scale=scale)
+            if not accepted:
+                self._stats["rejected_gate"] += 1
+                if tr.first_reject_ns is None:
+                    tr.first_reject_ns = ref
+                if ref - tr.first_reject_ns < st.reset_after_ns:
+                    continue
+                # persistently inconsistent: believe the measurements, restart the filter there
+                tr.filter.initialize(ref, tk[i], Rk[i])
+                tr.reset_counter += 1
+                self._stats["filter_resets"] += 1
+            tr.first_reject_ns = None
+            tr.last_update_ns = ref
+            tr.last_capture_ns = max(o.capture_ns for o in obs)
+            tr.n_markers = n
+            tr.n_cameras = int(used_views.sum())
+            tr.residual_mm = fit * 1e3
+            self._stats["measurements"] += 1
+
+    def _acquire(self, obs: list[_Obs], R, t, f, ref: int) -> None:
+        """Match leftover blobs across views; identify lost bodies; report loose points."""
+        st = self.settings
+        lost = [b for b, tr in enumerate(self.tracks) if not tr.tracked]
+        if not lost and not st.loose_points:
+            return
+        tracked_mask = np.array([tr.tracked for tr in self.tracks] + [False])  # label -1 -> False
+        free = []
+        for o in obs:
+            lb = o.label
+            owner = np.where(lb >= 0, self._marker_body[np.maximum(lb, 0)] if self.P else -1, -1)
+            free.append(np.nonzero(~tracked_mask[owner])[0])
+        if sum(len(fr) > 0 for fr in free) < 2:
+            self.loose_points = LoosePoints(ref, np.zeros((0, 3)), np.zeros(0))
+            return
+        xs = [o.xn[fr] for o, fr in zip(obs, free)]
+        pts, idx, rms = match_unlabeled(xs, R, t, f, st.acquire_ray_distance, st.max_residual_px)
+        left = np.ones(len(pts), dtype=bool)
+        if lost and len(pts) >= 3:
+            for ident in identify(pts, self.models, st.identify_tolerance, st.min_markers, only=lost):
+                b = ident.body
+                tr = self.tracks[b]
+                tr.filter.initialize(ref, ident.t, ident.R)
+                tr.tracked = True
+                tr.first_reject_ns = None
+                tr.last_update_ns = ref
+                tr.last_capture_ns = max(o.capture_ns for o in obs)
+                tr.n_markers = ident.n_markers
+                tr.residual_mm = ident.rms * 1e3
+                self._stats["acquisitions"] += 1
+                # label the blobs that made the body in the stored frames, so the
+                # next fusions see it in every camera at once
+                for m, q in enumerate(ident.point_index):
+                    if q < 0:
+                        continue
+                    left[q] = False
+                    for v, o in enumerate(obs):
+                        j = idx[q, v]
+                        if j >= 0:
+                            blob = free[v][j]
+                            o.label[blob] = self._off[b] + m
+                            o.marker_xn[self._off[b] + m] = o.xn[blob]
+                tr.n_cameras = int(sum((o.label >= self._off[b]).any() and (o.label < self._off[b + 1]).any() for o in obs))
+        self.loose_points = LoosePoints(ref, pts[left], rms[left])
+
+    # ----------------------------------------------------------------- output
+    def tick(self, now_ns: int) -> list[BodyState]:
+        """One BodyState per configured body, predicted to now_ns; does not change the filters.
+
+        A body not updated within max_prediction (or lost) is reported with
+        tracked=False and NaN pose: a stale pose is never re-sent.
+        """
+        st = self.settings
+        out = []
+        for b, (model, tr) in enumerate(zip(self.models, self.tracks)):
+            age = now_ns - tr.last_update_ns
+            if tr.tracked and age <= st.max_prediction_ns and age <= st.lost_timeout_ns:
+                p, R, v, w, P = tr.filter.state_at(now_ns)
+                out.append(
+                    BodyState(
+                        name=model.name,
+                        body_id=model.id,
+                        time_ns=int(now_ns),
+                        capture_ns=int(tr.last_capture_ns),
+                        position=p,
+                        quaternion=Rotation.from_matrix(R).as_quat(),
+                        velocity=v,
+                        angular_velocity=R.T @ w,
+                        covariance=pose_covariance(P),
+                        velocity_covariance=P[3:6, 3:6].copy(),
+                        tracked=True,
+                        n_markers=tr.n_markers,
+                        n_cameras=tr.n_cameras,
+                        residual_mm=tr.residual_mm,
+                        reset_counter=tr.reset_counter,
+                    )
+                )
+            else:
+                nan3 = np.full(3, np.nan)
+                out.append(
+                    BodyState(
+                        name=model.name,
+                        body_id=model.id,
+                        time_ns=int(now_ns),
+                        capture_ns=int(tr.last_capture_ns),
+                        position=nan3,
+                        quaternion=np.full(4, np.nan),
+                        velocity=nan3.copy(),
+                        angular_velocity=nan3.copy(),
+                        covariance=np.full((6, 6), np.nan),
+                        velocity_covariance=np.full((3, 3), np.nan),
+                        tracked=False,
+                        n_markers=0,
+                        n_cameras=0,
+                        reset_counter=tr.reset_counter,
+                    )
+                )
+        return out
+
+    def stats(self) -> dict[str, Any]:
+        """Counters: frames, fusions, measurements, rejections by reason, per-camera frames, per-body state."""
+        d: dict[str, Any] = dict(self._stats)
+        d["per_camera_frames"] = dict(sorted(self._per_camera.items()))
+        d["bodies"] = {
+            m.name: {"tracked": tr.tracked, "reset_counter": tr.reset_counter, "n_markers": tr.n_markers}
+            for m, tr in zip(self.models, self.tracks)
+        }
+        d["time_alignment"] = self.settings.time_alignment
+        return d

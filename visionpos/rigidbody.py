@@ -1,0 +1,216 @@
+"""Rigid bodies: identification from unlabeled 3D points and 6-DoF pose.
+
+Identification uses only geometry: a body's markers have fixed pairwise
+distances. For a body we take each marker triangle (a, b, c) as a seed,
+find point triples whose three pairwise distances match within a
+tolerance, fit the pose of the triple (Kabsch), predict the remaining
+markers and collect points within tolerance. Hypotheses are scored by the
+number of markers explained, then by the Kabsch RMS. Several bodies are
+identified at once by greedy acceptance over all bodies' best hypotheses
+with disjoint point sets; a 3-point hypothesis that fits more than one
+body equally well is ambiguous and refused (tracking, not identification,
+is what continues with 3 of 4 markers).
+
+Poses of tracked bodies come from `kabsch_batch`, a weighted Kabsch over
+several bodies at once (padded marker sets, weight 0 = missing).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import permutations
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class BodyModel:
+    """markers: (M, 3) body-frame marker positions (m)."""
+
+    name: str
+    id: int
+    markers: np.ndarray
+
+    @property
+    def distances(self) -> np.ndarray:
+        """(M, M) pairwise marker distances."""
+        m = self.markers
+        return np.linalg.norm(m[:, None] - m[None], axis=-1)
+
+
+@dataclass(frozen=True)
+class Identification:
+    """A body found among points.
+
+    body: index into the model list; point_index: (M,) index of the point
+    that is marker m, -1 when the marker was not found; R (3, 3), t (3,)
+    body->world pose; rms: Kabsch residual (m).
+    """
+
+    body: int
+    point_index: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    rms: float
+
+    @property
+    def n_markers(self) -> int:
+        return int((self.point_index >= 0).sum())
+
+
+def kabsch_batch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted Kabsch for B problems at once: dst ~ R src + t.
+
+    src, dst: (B, M, 3); weights: (B, M) >= 0 (0 = unused; NaN rows must
+    carry weight 0). Returns R (B, 3, 3) proper rotations, t (B, 3).
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    src = np.where(w[..., None] > 0, src, 0.0)
+    dst = np.where(w[..., None] > 0, dst, 0.0)
+    ws = w.sum(axis=1, keepdims=True)
+    ws = np.where(ws > 0, ws, 1.0)
+    cs = (w[..., None] * src).sum(axis=1) / ws
+    cd = (w[..., None] * dst).sum(axis=1) / ws
+    H = np.einsum("bm,bmi,bmj->bij", w, src - cs[:, None], dst - cd[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.einsum("bij,bjk->bik", U, Vt).transpose(0, 2, 1)))
+    d = np.where(d == 0, 1.0, d)
+    D = np.ones((len(w), 3))
+    D[:, 2] = d
+    R = np.einsum("bji,bj,bkj->bik", Vt, D, U)
+    t = cd - np.einsum("bij,bj->bi", R, cs)
+    return R, t
+
+
+def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Single weighted Kabsch: src, dst (M, 3) -> R (3, 3), t (3,) with dst ~ R src + t."""
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, float)
+    R, t = kabsch_batch(np.asarray(src, float)[None], np.asarray(dst, float)[None], w[None])
+    return R[0], t[0]
+
+
+def _hypotheses(points: np.ndarray, D: np.ndarray, model: BodyModel, tol: float) -> list[tuple[int, float, np.ndarray, np.ndarray, np.ndarray]]:
+    """All consistent placements of one body among points.
+
+    Returns (n_markers, rms, point_index (M,), R, t) tuples.
+    """
+    mk = model.markers
+    M = len(mk)
+    Dm = model.distances
+    K = len(points)
+    out = []
+    seen: set[tuple[int, ...]] = set()
+    # seed triangles: every ordered marker triple would repeat work; the
+    # unordered triple with point permutations covers all assignments
+    for a in range(M):
+        for b in range(a + 1, M):
+            for c in range(b + 1, M):
+                pij = np.argwhere(np.abs(D - Dm[a, b]) < tol)
+                for i, j in pij:
+                    if i == j:
+                        continue
+                    ks = np.nonzero((np.abs(D[i] - Dm[a, c]) < tol) & (np.abs(D[j] - Dm[b, c]) < tol))[0]
+                    for k in ks:
+                        if k == i or k == j:
+                            continue
+                        R, t = kabsch(mk[[a, b, c]], points[[i, j, k]])
+                        pred = mk @ R.T + t
+                        dist = np.linalg.norm(pred[:, None] - points[None], axis=-1)  # (M, K)
+                        idx = np.full(M, -1)
+                        idx[[a, b, c]] = [i, j, k]
+                        used = {i, j, k}
+                        for m in range(M):
+                            if idx[m] >= 0:
+                                continue
+                            order = np.argsort(dist[m])
+                            for q in order:
+                                if dist[m, q] >= tol:
+                                    break
+                                if q not in used:
+                                    idx[m] = q
+                                    used.add(int(q))
+                                    break
+                        key = tuple(int(v) for v in idx)
+                        if key in seen:
+                            continue
+                        seen.add(key)
+                        sel = idx >= 0
+                        R, t = kabsch(mk[sel], points[idx[sel]])
+                        res = points[idx[sel]] - (mk[sel] @ R.T + t)
+                        rms = float(np.sqrt((res**2).sum(axis=1).mean()))
+                        if rms < tol:
+                            out.append((int(sel.sum()), rms, idx, R, t))
+    del K
+    return out
+
+
+def identify(
+    points: np.ndarray,
+    models: list[BodyModel],
+    tolerance: float = 0.008,
+    min_markers: int = 3,
+    only: list[int] | None = None,
+) -> list[Identification]:
+    """Find bodies among unlabeled points by their marker geometry.
+
+    points: (K, 3) world points (m). models: the bodies. tolerance: max
+    distance mismatch and Kabsch RMS (m). min_markers: fewest markers for a
+    detection (>= 3). only: indices of the models to look for (default all).
+    Returns at most one Identification per body, with disjoint points.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) < 3:
+        return []
+    D = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    wanted = list(range(len(models))) if only is None else list(only)
+    cands = []
+    for bi in wanted:
+        for n, rms, idx, R, t in _hypotheses(points, D, models[bi], tolerance):
+            if n >= max(3, min_markers):
+                cands.append((n, rms, bi, idx, R, t))
+    # more markers first, then smaller residual; deterministic tie-break by body index
+    cands.sort(key=lambda c: (-c[0], c[1], c[2]))
+    taken: set[int] = set()
+    found: dict[int, Identification] = {}
+    for n, rms, bi, idx, R, t in cands:
+        if bi in found:
+            continue
+        pts = set(int(v) for v in idx[idx >= 0])
+        if pts & taken:
+            continue
+        # a minimal (3-point) fit that another body explains as well is ambiguous
+        if n == 3:
+            rivals = [c for c in cands if c[2] != bi and c[0] >= 3 and set(int(v) for v in c[3][c[3] >= 0]) == pts]
+            if rivals:
+                continue
+        found[bi] = Identification(bi, idx, R, t, rms)
+        taken |= pts
+    return [found[b] for b in sorted(found)]
+
+
+def layout_ambiguities(models: list[BodyModel], tolerance: float) -> list[str]:
+    """Describe marker layouts the identification cannot tell apart (config check).
+
+    Reports bodies whose full layouts match each other and bodies with a
+    non-trivial self-symmetry (a marker permutation that is a rigid motion),
+    both within `tolerance` (m).
+    """
+    problems = []
+    for i, a in enumerate(models):
+        M = len(a.markers)
+        if M <= 6:
+            for perm in permutations(range(M)):
+                if list(perm) == list(range(M)):
+                    continue
+                R, t = kabsch(a.markers, a.markers[list(perm)])
+                res = a.markers[list(perm)] - (a.markers @ R.T + t)
+                if np.sqrt((res**2).sum(axis=1).mean()) < tolerance:
+                    problems.append(f"body '{a.name}' is symmetric: its orientation is ambiguous")
+                    break
+        for b in models[i + 1 :]:
+            if len(b.markers) != M:
+                continue
+            D = np.linalg.norm(b.markers[:, None] - b.markers[None], axis=-1)
+            if _hypotheses(b.markers, D, a, tolerance) and any(h[0] == M for h in _hypotheses(b.markers, D, a, tolerance)):
+                problems.append(f"bodies '{a.name}' and '{b.name}' have the same marker layout: they can be swapped")
+    return problems
