@@ -27,8 +27,6 @@ from visionpos import metrics as M
 from visionpos.config import ArenaConfig, ConfigError, apply_overrides, load_yaml, parse_arena, resolve_config_path
 from visionpos.messages import BlobFrame, BodyState
 
-DEFAULT_RATE_HZ = 100.0
-
 
 # ---------------------------------------------------------------- results
 
@@ -139,40 +137,51 @@ def load_settings(
     return parse_arena(data, source)
 
 
-def output_rate_hz(arena: ArenaConfig) -> float:
-    """Output tick rate: the server section's output_rate_hz (what `serve` uses)."""
-    return arena.section("server").number("output_rate_hz", DEFAULT_RATE_HZ, min=1.0, max=2000.0)
-
-
 def run_pipeline(
     arena: ArenaConfig,
-    packets: Iterable[tuple[int, bytes]],
+    packets: Iterable[tuple[int, bytes] | tuple[int, bytes, Any]],
     rate_hz: float | None = None,
     speed: float | None = None,
-    key: bytes | None = None,
 ) -> ReplayResult:
-    """Decode packets (recv_ns, datagram) in order, push frames, tick on a fixed grid.
+    """Feed recorded datagrams through the server's own ingest into a fresh pipeline.
 
-    Ticks: t0 + k * period for k >= 1, with t0 the first receive time; every
-    tick at or before a packet's receive time runs before that packet is
-    pushed, and ticks continue to the last receive time. speed: None = as
-    fast as possible, else sleep so recording time runs at speed x wall time.
+    packets: (recv_ns, datagram) or (recv_ns, datagram, (host, port)) in
+    receive order. The server's Ingest does what it does live (registration,
+    sequence and clock checks, HMAC when the arena has a key, cameras that
+    vanish), on a clock that is the recording's receive time, so the only
+    input is the log. Ticks: t0 + k * period for k >= 1, t0 the first receive
+    time; every tick at or before a packet's receive time runs before that
+    packet (and the vanish check runs every 20 ms of recording time before a
+    tick, as in the server), ticks continue to the last receive time.
+    speed: None = as fast as possible, else sleep so recording time runs at
+    speed x wall time.
     """
+    from visionpos.ingest import Ingest, ServerSettings
     from visionpos.pipeline import FusionPipeline
-    from visionpos.protocol import ProtocolError, decode
+    from visionpos.server import VANISH_CHECK_S
 
-    rate = float(rate_hz or output_rate_hz(arena))
+    settings = ServerSettings.from_arena(arena)
+    rate = float(rate_hz or settings.output_rate_hz)
     period = int(round(1e9 / rate))
+    check_ns = int(VANISH_CHECK_S * 1e9)
     pipe = FusionPipeline(arena, arena.raw.get("fusion"))
+    now = [0]
+    ingest = Ingest(arena, settings, pipe, None, clock=lambda: now[0])
+    # the recording holds only what stations sent after their trigger: accept all of it
+    ingest.set_start(-(1 << 62))
     names: list[str] = [b.name for b in arena.bodies]
     per_body: dict[str, tuple[list[int], list[BodyState]]] = {}
     ticks: list[int] = []
-    n_packets = n_frames = n_bad = 0
-    reasons: dict[str, int] = {}
     t0 = next_tick = last = None
+    next_check = 0
     wall0 = time.perf_counter()
 
     def do_tick(t: int) -> None:
+        nonlocal next_check
+        now[0] = t
+        if t >= next_check:
+            next_check = t + check_ns
+            ingest.check_vanished(t)
         ticks.append(t)
         for s in pipe.tick(t):
             tk, st = per_body.setdefault(s.name, ([], []))
@@ -185,9 +194,9 @@ def run_pipeline(
             if ahead > 0:
                 time.sleep(ahead)
 
-    for recv_ns, data in packets:
-        recv_ns = int(recv_ns)
-        n_packets += 1
+    for item in packets:
+        recv_ns, data = int(item[0]), item[1]
+        addr = item[2] if len(item) > 2 and item[2] is not None else ("replay", 0)
         if t0 is None:
             t0 = recv_ns
             next_tick = t0 + period
@@ -196,34 +205,30 @@ def run_pipeline(
             do_tick(next_tick)
             next_tick += period
         last = recv_ns
-        try:
-            msg = decode(data, key=key, recv_ns=recv_ns)
-        except ProtocolError as e:
-            n_bad += 1
-            reason = str(e).split(":")[0]
-            reasons[reason] = reasons.get(reason, 0) + 1
-            continue
-        if isinstance(msg, BlobFrame):
-            n_frames += 1
-            pipe.push(msg)
+        now[0] = recv_ns
+        ingest.handle(data, addr, recv_ns)
     wall = time.perf_counter() - wall0
     if t0 is None:
         raise ValueError("the recording holds no station packets; record with stations streaming")
-    # the last tick at or before the final packet already ran inside the loop
     order = names + sorted(set(per_body) - set(names))
     bodies = {n: BodyTrack.from_states(n, *per_body[n]) for n in order if n in per_body}
     try:
         stats = dict(pipe.stats())
     except Exception as e:  # stats are informative only; never fail a replay on them
         stats = {"error": str(e)}
+    c = ingest.counters
+    reasons = dict(c.malformed_reasons)
+    for k in ("auth_failed", "unknown", "pipeline_errors"):
+        if getattr(c, k):
+            reasons[k] = getattr(c, k)
     return ReplayResult(
         arena=arena,
         ticks_ns=np.asarray(ticks, dtype=np.int64),
         bodies=bodies,
         truth={},
-        n_packets=n_packets,
-        n_frames=n_frames,
-        n_bad=n_bad,
+        n_packets=c.packets,
+        n_frames=c.frames_accepted,
+        n_bad=c.malformed + c.auth_failed,
         bad_reasons=reasons,
         span_ns=int(last - t0),
         wall_s=wall,
@@ -237,7 +242,6 @@ def replay_log(
     overrides: Iterable[str] = (),
     speed: float | None = None,
     rate_hz: float | None = None,
-    key: bytes | None = None,
 ) -> ReplayResult:
     """Replay a recording file with optional config replacement and overrides."""
     from visionpos.recording import RecordingReader
@@ -247,7 +251,7 @@ def replay_log(
         raise ConfigError(str(p), "(file)", "no such recording; make one with `visionpos sim --out` or `visionpos record`")
     reader = RecordingReader(p)
     arena = load_settings(reader.config, config, overrides)
-    res = run_pipeline(arena, reader.packets(), rate_hz=rate_hz, speed=speed, key=key)
+    res = run_pipeline(arena, reader.packets_with_source(), rate_hz=rate_hz, speed=speed)
     res.truth = dict(reader.truth() or {})
     return res
 

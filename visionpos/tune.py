@@ -126,11 +126,11 @@ def rank(trials: list[TrialResult]) -> list[TrialResult]:
 class Progress:
     """A one-line text progress bar on a stream (no dependency)."""
 
-    def __init__(self, total: int, stream: TextIO = sys.stderr, width: int = 30):
-        self.total, self.stream, self.width = total, stream, width
+    def __init__(self, total: int, stream: TextIO | None = None, width: int = 30):
+        self.total, self.stream, self.width = total, stream or sys.stderr, width
         self.done = 0
         self.t0 = time.perf_counter()
-        self.tty = stream.isatty()
+        self.tty = self.stream.isatty()
         self.draw("")
 
     def draw(self, label: str) -> None:
