@@ -69,12 +69,13 @@ _STATE_SCHEMA = {
         "body_id": {"type": "integer"},
         "time_ns": {"type": "integer"},
         "capture_ns": {"type": "integer"},
-        "position": {"type": "array", "items": {"type": "number"}},
-        "quaternion": {"type": "array", "items": {"type": "number"}},
-        "velocity": {"type": "array", "items": {"type": "number"}},
-        "angular_velocity": {"type": "array", "items": {"type": "number"}},
-        "covariance": {"type": "array", "items": {"type": "number"}, "description": "6x6 row-major"},
-        "velocity_covariance": {"type": "array", "items": {"type": "number"}, "description": "3x3 row-major"},
+        "position": {"type": "array", "items": {"type": ["number", "null"]}},
+        "quaternion": {"type": "array", "items": {"type": ["number", "null"]}},
+        "velocity": {"type": "array", "items": {"type": ["number", "null"]}},
+        "angular_velocity": {"type": "array", "items": {"type": ["number", "null"]}},
+        "covariance": {"type": "array", "items": {"type": ["number", "null"]}, "description": "6x6 row-major"},
+        "velocity_covariance": {"type": "array", "items": {"type": ["number", "null"]},
+                                "description": "3x3 row-major"},
         "tracked": {"type": "boolean"},
         "n_markers": {"type": "integer"},
         "n_cameras": {"type": "integer"},
@@ -122,19 +123,27 @@ def _num(x: float) -> float | None:
     return None if not math.isfinite(x) else x
 
 
+def _list(a: Any) -> list[float | None]:
+    """Flat list of floats; NaN/inf -> null (an untracked state's pose is NaN by design)."""
+    v = np.asarray(a, dtype=np.float64).ravel()
+    if np.isfinite(v).all():
+        return v.tolist()
+    return [x if math.isfinite(x) else None for x in v.tolist()]
+
+
 def state_to_dict(s: BodyState) -> dict[str, Any]:
-    """BodyState -> JSON-able dict (arrays flattened row-major; NaN residual -> null)."""
+    """BodyState -> JSON-able dict (arrays flattened row-major; NaN -> null)."""
     return {
         "name": s.name,
         "body_id": int(s.body_id),
         "time_ns": int(s.time_ns),
         "capture_ns": int(s.capture_ns),
-        "position": np.asarray(s.position, dtype=float).ravel().tolist(),
-        "quaternion": np.asarray(s.quaternion, dtype=float).ravel().tolist(),
-        "velocity": np.asarray(s.velocity, dtype=float).ravel().tolist(),
-        "angular_velocity": np.asarray(s.angular_velocity, dtype=float).ravel().tolist(),
-        "covariance": np.asarray(s.covariance, dtype=float).ravel().tolist(),
-        "velocity_covariance": np.asarray(s.velocity_covariance, dtype=float).ravel().tolist(),
+        "position": _list(s.position),
+        "quaternion": _list(s.quaternion),
+        "velocity": _list(s.velocity),
+        "angular_velocity": _list(s.angular_velocity),
+        "covariance": _list(s.covariance),
+        "velocity_covariance": _list(s.velocity_covariance),
         "tracked": bool(s.tracked),
         "n_markers": int(s.n_markers),
         "n_cameras": int(s.n_cameras),
@@ -147,7 +156,7 @@ def state_from_dict(d: dict[str, Any]) -> BodyState:
     """Inverse of state_to_dict. Raises KeyError/ValueError on a malformed dict."""
 
     def arr(key: str, shape: tuple[int, ...]) -> np.ndarray:
-        return np.asarray(d[key], dtype=np.float64).reshape(shape)
+        return np.asarray(d[key], dtype=np.float64).reshape(shape)  # null -> NaN
 
     res = d.get("residual_mm")
     return BodyState(
