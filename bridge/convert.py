@@ -1,0 +1,175 @@
+"""Pure conversions from a BodyState to MAVLink fields (no I/O).
+
+World is z-up (x, y, z), body is FLU; MAVLink wants NED / FRD. The turn is
+visionpos.geometry's (N = x, E = -y, D = -z; body likewise), followed by a
+yaw about the down axis (yaw_offset: compass heading of world +x).
+Covariances are rotated with the same Jacobians; the attitude block is
+converted from the small world-frame rotation-vector error of BodyState to
+roll/pitch/yaw (ZYX Euler) through the Euler-rate matrix.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from visionpos.geometry import FLU_FRD, flu_to_frd, quat_world_body_to_ned_frd, world_to_ned
+from visionpos.messages import BodyState
+
+UT6 = np.triu_indices(6)  # MAVLink's upper-triangle, row-major order: (0,0) (0,1) .. (0,5) (1,1) ..
+UT3 = np.triu_indices(3)
+
+
+def yaw_matrix_ned(yaw_offset_rad: float) -> np.ndarray:
+    """(3, 3) rotation about NED down by yaw_offset (clockwise seen from above)."""
+    c, s = np.cos(yaw_offset_rad), np.sin(yaw_offset_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(3,) -> (3, 3) cross-product matrix."""
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def back_propagate(position: np.ndarray, quaternion: np.ndarray, velocity: np.ndarray,
+                   angular_velocity: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Move a state valid at t back by dt_s seconds with constant velocities.
+
+    position, velocity: (3,) world; quaternion: (4,) xyzw body->world;
+    angular_velocity: (3,) rad/s body. Returns (position (3,), quaternion (4,)) at t - dt_s.
+    """
+    p = np.asarray(position, float) - np.asarray(velocity, float) * dt_s
+    r = Rotation.from_quat(quaternion) * Rotation.from_rotvec(-np.asarray(angular_velocity, float) * dt_s)
+    return p, r.as_quat()
+
+
+def euler_rate_matrix(euler: np.ndarray) -> np.ndarray:
+    """(3,) roll, pitch, yaw (ZYX) -> (3, 3) E with spatial angular rate w = E @ d(roll, pitch, yaw)/dt.
+
+    R = Rz(yaw) Ry(pitch) Rx(roll): w = yaw' z + pitch' Rz y + roll' Rz Ry x.
+    """
+    roll, pitch, yaw = euler
+    cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
+    col_roll = np.array([cy * cp, sy * cp, -sp])
+    col_pitch = np.array([-sy, cy, 0.0])
+    col_yaw = np.array([0.0, 0.0, 1.0])
+    return np.stack([col_roll, col_pitch, col_yaw], axis=1)
+
+
+def mavlink_upper_triangle(m: np.ndarray) -> np.ndarray:
+    """(6, 6) -> (21,) row-major upper triangle; (3, 3) -> (6,)."""
+    m = np.asarray(m, float)
+    return m[UT6] if m.shape == (6, 6) else m[UT3]
+
+
+def nan_covariance(n: int) -> list[float]:
+    """MAVLink's 'unknown covariance': NaN in the first element."""
+    return [float("nan")] + [0.0] * (n - 1)
+
+
+def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: float) -> dict:
+    """BodyState -> NED / FRD quantities at the state's capture time.
+
+    The state is valid at time_ns; usec carries capture_ns, so the pose is
+    moved back to capture_ns with the state's velocities first, then shifted
+    to the vehicle reference point (pivot_offset (3,) m, body FLU) and turned
+    into NED / FRD.
+
+    Returns dict: position_ned (3,), quaternion_ned_frd (4,) xyzw, euler (3,)
+    roll pitch yaw rad, velocity_ned (3,), velocity_frd (3,) (body),
+    angular_velocity_frd (3,), pose_cov (6, 6) [x y z roll pitch yaw] or None,
+    velocity_cov_ned (3, 3) or None, velocity_cov_frd (3, 3) or None.
+    """
+    dt = (state.time_ns - state.capture_ns) * 1e-9
+    w_body = np.asarray(state.angular_velocity, float)
+    p_w, q_w = back_propagate(state.position, state.quaternion, state.velocity, w_body, dt)
+    R_wb = Rotation.from_quat(q_w).as_matrix()
+    o = np.asarray(pivot_offset, float)
+    lever = R_wb @ o  # world-frame lever arm body origin -> reference point
+    p_ref = p_w + lever
+    v_ref = np.asarray(state.velocity, float) + R_wb @ np.cross(w_body, o)
+
+    Y = yaw_matrix_ned(yaw_offset_rad)
+    J = Y @ FLU_FRD  # world z-up -> offset NED, for vectors and small rotations
+    p_ned = Y @ world_to_ned(p_ref)
+    v_ned = Y @ world_to_ned(v_ref)
+    q_nf = (Rotation.from_matrix(Y) * Rotation.from_quat(quat_world_body_to_ned_frd(q_w))).as_quat()
+    if q_nf[3] < 0:
+        q_nf = -q_nf
+    R_nf = Rotation.from_quat(q_nf).as_matrix()
+    ypr = Rotation.from_quat(q_nf).as_euler("ZYX")
+    euler = ypr[::-1].copy()
+    v_frd = R_nf.T @ v_ned
+
+    pose_cov = None
+    C = np.asarray(state.covariance, float)
+    if C.shape == (6, 6) and np.isfinite(C).all():
+        # reference point error: dp_ref = dp + dtheta x lever = dp - [lever]x dtheta
+        T = np.eye(6)
+        T[:3, 3:] = -skew(lever)
+        Einv = np.linalg.pinv(euler_rate_matrix(euler))
+        A = np.zeros((6, 6))
+        A[:3, :3] = J
+        A[3:, 3:] = Einv @ J
+        pose_cov = A @ T @ C @ T.T @ A.T
+    vcov_ned = vcov_frd = None
+    Cv = np.asarray(state.velocity_covariance, float)
+    if Cv.shape == (3, 3) and np.isfinite(Cv).all():
+        vcov_ned = J @ Cv @ J.T
+        vcov_frd = R_nf.T @ vcov_ned @ R_nf
+    return {
+        "position_ned": p_ned,
+        "quaternion_ned_frd": q_nf,
+        "euler": euler,
+        "velocity_ned": v_ned,
+        "velocity_frd": v_frd,
+        "angular_velocity_frd": flu_to_frd(w_body),
+        "pose_cov": pose_cov,
+        "velocity_cov_ned": vcov_ned,
+        "velocity_cov_frd": vcov_frd,
+    }
+
+
+def vision_position_fields(c: dict, usec: int, reset_counter: int) -> dict:
+    """Fields of VISION_POSITION_ESTIMATE from convert_state output."""
+    cov = nan_covariance(21) if c["pose_cov"] is None else mavlink_upper_triangle(c["pose_cov"]).tolist()
+    x, y, z = (float(a) for a in c["position_ned"])
+    roll, pitch, yaw = (float(a) for a in c["euler"])
+    return dict(usec=usec, x=x, y=y, z=z, roll=roll, pitch=pitch, yaw=yaw, covariance=cov, reset_counter=reset_counter)
+
+
+def vision_speed_fields(c: dict, usec: int, reset_counter: int) -> dict:
+    """Fields of VISION_SPEED_ESTIMATE (NED velocity, full 3x3 row-major covariance)."""
+    cov = nan_covariance(9) if c["velocity_cov_ned"] is None else c["velocity_cov_ned"].ravel().tolist()
+    x, y, z = (float(a) for a in c["velocity_ned"])
+    return dict(usec=usec, x=x, y=y, z=z, covariance=cov, reset_counter=reset_counter)
+
+
+MAV_FRAME_LOCAL_FRD = 20
+MAV_FRAME_BODY_FRD = 12
+MAV_ESTIMATOR_TYPE_VISION = 2
+
+
+def odometry_fields(c: dict, usec: int, reset_counter: int, quality: int) -> dict:
+    """Fields of ODOMETRY: pose in LOCAL_FRD (our NED), velocities in BODY_FRD, q w-first."""
+    pose_cov = nan_covariance(21) if c["pose_cov"] is None else mavlink_upper_triangle(c["pose_cov"]).tolist()
+    if c["velocity_cov_frd"] is None:
+        vel_cov = nan_covariance(21)
+    else:
+        # angular-rate variances are not estimated: NaN there, linear block known
+        V = np.full((6, 6), np.nan)
+        V[:3, :3] = c["velocity_cov_frd"]
+        V[:3, 3:] = np.nan
+        vel_cov = mavlink_upper_triangle(V).tolist()
+    qx, qy, qz, qw = (float(a) for a in c["quaternion_ned_frd"])
+    x, y, z = (float(a) for a in c["position_ned"])
+    vx, vy, vz = (float(a) for a in c["velocity_frd"])
+    wr, wp, wy = (float(a) for a in c["angular_velocity_frd"])
+    return dict(
+        time_usec=usec, frame_id=MAV_FRAME_LOCAL_FRD, child_frame_id=MAV_FRAME_BODY_FRD,
+        x=x, y=y, z=z, q=[qw, qx, qy, qz], vx=vx, vy=vy, vz=vz,
+        rollspeed=wr, pitchspeed=wp, yawspeed=wy,
+        pose_covariance=pose_cov, velocity_covariance=vel_cov,
+        reset_counter=reset_counter, estimator_type=MAV_ESTIMATOR_TYPE_VISION, quality=quality,
+    )

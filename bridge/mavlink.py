@@ -1,0 +1,509 @@
+"""MAVLink to each vehicle: one endpoint, one sysid, one sender thread per vehicle.
+
+The server calls Bridge.publish(states) on its asyncio loop at every output
+tick. publish only drops the newest state into each vehicle's single-slot
+mailbox and pokes the vehicle's thread through a pipe: it never waits on a
+socket. The thread owns the link (reads, writes, reconnects), rate-limits on
+capture time, drops stale or frozen poses, answers TIMESYNC and sends the
+HEARTBEAT, origin and home.
+
+MAVLink2 is forced: each link has its own pymavlink v2 MAVLink object (never
+mavutil's process-wide dialect, which switches v1 -> v2 on the first v2
+packet and loses a signing setup in the switch); signing is set up on that
+object.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import selectors
+import sys
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink2
+
+from bridge.config import VehicleConfig, parse_pose_stream, parse_vehicles, pivot_array
+from bridge.convert import convert_state, odometry_fields, vision_position_fields, vision_speed_fields
+from bridge.transport import Link, LinkDown, make_link
+from visionpos.config import ArenaConfig
+from visionpos.messages import BodyState
+
+log = logging.getLogger("visionpos.bridge")
+
+MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197
+SIGNING_EPOCH_S = 1420070400  # MAVLink2 signing timestamps count 10 us units from 2015-01-01
+LATENCY_SAMPLES = 4096
+
+COUNTERS = (
+    "sent",  # pose messages (VISION_POSITION_ESTIMATE or ODOMETRY) handed to the link
+    "sent_speed",  # VISION_SPEED_ESTIMATE
+    "heartbeats",
+    "origin_sent",
+    "superseded",  # a newer state replaced one the sender had not taken yet
+    "rate_limited",  # capture less than 1/rate_hz after the last sent one
+    "frozen",  # capture_ns not newer than the last sent: never resent
+    "not_tracked",
+    "dropped_stale",  # older than max_age_ms when the sender took it
+    "no_link",  # link down or (udpin) no autopilot heard yet
+    "tx_dropped",  # stream buffer full (slow serial)
+    "link_errors",
+    "reconnects",
+    "timesync_answered",
+    "rx_packets",
+    "rx_bad",  # CRC / framing errors, bad signatures
+    "rx_foreign",  # from another sysid: ignored, not answered, not learned as peer
+)
+
+
+def _percentile_ms(samples: np.ndarray, q: float) -> float:
+    return float(np.percentile(samples, q)) * 1e-6 if len(samples) else float("nan")
+
+
+class _LatencyRing:
+    """Last LATENCY_SAMPLES latencies (ns) for percentiles."""
+
+    def __init__(self):
+        self.buf = np.zeros(LATENCY_SAMPLES, dtype=np.int64)
+        self.n = 0
+
+    def add(self, ns: int) -> None:
+        self.buf[self.n % LATENCY_SAMPLES] = ns
+        self.n += 1
+
+    def values(self) -> np.ndarray:
+        return self.buf[: min(self.n, LATENCY_SAMPLES)].copy()
+
+
+class VehicleLink:
+    """One vehicle's endpoint and sender thread.
+
+    offer(state) is the only call made from the server's loop; everything
+    else runs on the vehicle's thread. clock_ns is the server's monotonic
+    clock (the one BodyState times are on).
+    """
+
+    def __init__(self, cfg: VehicleConfig, clock_ns: Callable[[], int] = time.monotonic_ns):
+        self.cfg = cfg
+        self.clock_ns = clock_ns
+        # usec and TIMESYNC tc1 share one time base: the server clock, or the
+        # server clock shifted to the Unix epoch (time_base: epoch)
+        self.base_offset_ns = (time.time_ns() - clock_ns()) if cfg.time_base == "epoch" else 0
+        self.mav = mavlink2.MAVLink(self, srcSystem=cfg.sysid, srcComponent=MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY)
+        self.mav.robust_parsing = True
+        if cfg.signing_key is not None:
+            s = self.mav.signing
+            s.secret_key = cfg.signing_key
+            s.sign_outgoing = True
+            s.link_id = cfg.signing_link_id
+            s.allow_unsigned_callback = None  # incoming must be signed with our key
+            s.timestamp = int((max(time.time(), SIGNING_EPOCH_S) - SIGNING_EPOCH_S) * 1e5)
+        self.pivot = pivot_array(cfg)
+        self.yaw_offset_rad = math.radians(cfg.yaw_offset_deg)
+        self.counters = dict.fromkeys(COUNTERS, 0)
+        self.lat_capture = _LatencyRing()
+        self.lat_bridge = _LatencyRing()
+        self.link: Link | None = None
+        self.last_error = ""
+        self.last_rx_ns = 0  # last packet from the vehicle's sysid
+        self.local_resets = 0
+        self._lock = threading.Lock()
+        self._slot: BodyState | None = None
+        self._slot_ns = 0
+        self._busy = False
+        self._last_capture: int | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
+        self._next_hb = 0
+        self._next_origin = 0
+        self._origin_done = False
+        self._last_write_ok = False
+
+    # ---------------------------------------------------------------- server side
+    def offer(self, state: BodyState) -> None:
+        """Put the newest state in the mailbox (O(1), never blocks)."""
+        now = self.clock_ns()
+        with self._lock:
+            if self._slot is not None:
+                self.counters["superseded"] += 1
+            self._slot = state
+            self._slot_ns = now
+        try:
+            os.write(self._wake_w, b"\0")
+        except (BlockingIOError, OSError):
+            pass  # pipe full: the thread is awake anyway
+
+    def pending(self) -> bool:
+        """True while the mailbox holds a state or the thread is handling one."""
+        with self._lock:
+            return self._slot is not None or self._busy
+
+    def reset(self) -> None:
+        """Count a discontinuity the bridge makes itself (origin or alignment change)."""
+        self.local_resets += 1
+
+    # ---------------------------------------------------------------- lifecycle
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name=f"mavlink-{self.cfg.name}", daemon=True)
+        self._thread.start()
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        self._stop.set()
+        try:
+            os.write(self._wake_w, b"\0")
+        except OSError:
+            pass
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            self._thread = None
+        fds = (self._wake_r, self._wake_w)
+        self._wake_r = self._wake_w = -1  # before closing, so a late offer() cannot hit a reused fd
+        for fd in fds:
+            if fd >= 0:
+                os.close(fd)
+
+    # ---------------------------------------------------------------- thread
+    def _run(self) -> None:
+        sel = selectors.DefaultSelector()
+        sel.register(self._wake_r, selectors.EVENT_READ, "wake")
+        backoff = self.cfg.reconnect_min_s
+        next_open = 0
+        registered_mask = 0
+        try:
+            while not self._stop.is_set():
+                now = self.clock_ns()
+                if self.link is None and now >= next_open:
+                    link = make_link(self.cfg.endpoint)
+                    try:
+                        link.open()
+                    except LinkDown as e:
+                        if str(e) != self.last_error:
+                            log.warning("vehicle %s: %s; retrying every %.1f-%.1f s", self.cfg.name, e,
+                                        self.cfg.reconnect_min_s, self.cfg.reconnect_max_s)
+                        self.last_error = str(e)
+                        self.counters["link_errors"] += 1
+                        next_open = now + int(backoff * 1e9)
+                        backoff = min(backoff * 2, self.cfg.reconnect_max_s)
+                    else:
+                        self.link = link
+                        backoff = self.cfg.reconnect_min_s
+                        registered_mask = selectors.EVENT_READ
+                        sel.register(link.fileno(), registered_mask, "link")
+                        self._on_link_up()
+                deadlines = [self._next_hb]
+                if self.link is None:
+                    deadlines.append(next_open)
+                if self.cfg.origin is not None and not self._origin_done:
+                    deadlines.append(self._next_origin)
+                timeout = min(max(0.0, (min(deadlines) - now) * 1e-9), 0.5)
+                if self.link is not None:
+                    want = selectors.EVENT_READ | (selectors.EVENT_WRITE if self.link.wants_write() else 0)
+                    if want != registered_mask:
+                        sel.modify(self.link.fileno(), want, "link")
+                        registered_mask = want
+                for key, mask in sel.select(timeout):
+                    if key.data == "wake":
+                        try:
+                            while os.read(self._wake_r, 4096):
+                                pass
+                        except BlockingIOError:
+                            pass
+                    elif self.link is not None:
+                        try:
+                            if mask & selectors.EVENT_READ:
+                                self._on_readable()
+                            if mask & selectors.EVENT_WRITE and self.link is not None:
+                                self.link.flush()
+                        except LinkDown as e:
+                            self._link_down(sel, e)
+                            next_open = self.clock_ns() + int(backoff * 1e9)
+                try:
+                    self._service()
+                except LinkDown as e:
+                    self._link_down(sel, e)
+                    next_open = self.clock_ns() + int(backoff * 1e9)
+        finally:
+            if self.link is not None:
+                self.link.close()
+                self.link = None
+            sel.close()
+
+    def _link_down(self, sel: selectors.BaseSelector, e: LinkDown) -> None:
+        log.warning("vehicle %s: link lost: %s; reconnecting", self.cfg.name, e)
+        self.last_error = str(e)
+        self.counters["link_errors"] += 1
+        self.counters["reconnects"] += 1
+        try:
+            sel.unregister(self.link.fileno())
+        except (KeyError, ValueError, OSError):
+            pass
+        self.link.close()
+        self.link = None
+
+    def _on_link_up(self) -> None:
+        log.info("vehicle %s: link %s open", self.cfg.name, self.cfg.endpoint)
+        self.last_error = ""
+        self._next_hb = self.clock_ns()
+        self._origin_done = False
+        self._next_origin = self.clock_ns()
+
+    def _peer_known(self) -> bool:
+        return self.link is not None and self.link.peer is not None
+
+    def _on_readable(self) -> None:
+        for data, addr in self.link.read():
+            msgs = self.mav.parse_buffer(data) or []
+            from_vehicle = False
+            for m in msgs:
+                if m.get_type() == "BAD_DATA":
+                    self.counters["rx_bad"] += 1
+                    continue
+                self.counters["rx_packets"] += 1
+                if m.get_srcSystem() != self.cfg.sysid:
+                    self.counters["rx_foreign"] += 1
+                    continue
+                from_vehicle = True
+                self.last_rx_ns = self.clock_ns()
+                if m.get_type() == "TIMESYNC" and m.tc1 == 0 and self.cfg.timesync:
+                    if self.link.kind == "udpin" and addr != self.link.peer:
+                        self._learn_peer(addr)
+                    self.mav.send(self.mav.timesync_encode(self.now_base_ns(), m.ts1))
+                    self.counters["timesync_answered"] += 1
+            if from_vehicle and self.link.kind == "udpin" and addr != self.link.peer:
+                self._learn_peer(addr)
+
+    def _learn_peer(self, addr: tuple) -> None:
+        old = self.link.peer
+        self.link.peer = addr
+        if old is not None:
+            self.counters["reconnects"] += 1
+            log.warning("vehicle %s: autopilot now answers from %s:%d (was %s:%d)", self.cfg.name, *addr, *old)
+        else:
+            log.info("vehicle %s: autopilot heard from %s:%d", self.cfg.name, *addr)
+        self._next_hb = self.clock_ns()
+        self._origin_done = False
+        self._next_origin = self.clock_ns()
+
+    def now_base_ns(self) -> int:
+        return self.clock_ns() + self.base_offset_ns
+
+    def _service(self) -> None:
+        now = self.clock_ns()
+        if self._peer_known():
+            if now >= self._next_hb:
+                self._send_heartbeat()
+                self._next_hb = now + int(1e9 / self.cfg.heartbeat_hz)
+            if self.cfg.origin is not None and not self._origin_done and now >= self._next_origin:
+                self._send_origin()
+                if self.cfg.origin_interval_s > 0:
+                    self._next_origin = now + int(self.cfg.origin_interval_s * 1e9)
+                else:
+                    self._origin_done = True
+        else:
+            self._next_hb = max(self._next_hb, now + int(1e9 / self.cfg.heartbeat_hz))
+        with self._lock:
+            st, offered = self._slot, self._slot_ns
+            self._slot = None
+            self._busy = st is not None
+        if st is None:
+            return
+        try:
+            self._handle_state(st, offered, now)
+        finally:
+            with self._lock:
+                self._busy = False
+
+    def _handle_state(self, st: BodyState, offered_ns: int, now: int) -> None:
+        c = self.counters
+        if not st.tracked:
+            c["not_tracked"] += 1
+            return
+        last = self._last_capture
+        if last is not None and st.capture_ns <= last:
+            c["frozen"] += 1
+            return
+        if last is not None and st.capture_ns - last < self.cfg.min_interval_ns:
+            c["rate_limited"] += 1
+            return
+        if now - st.capture_ns > self.cfg.max_age_ms * 1e6:
+            c["dropped_stale"] += 1
+            return
+        if not self._peer_known():
+            c["no_link"] += 1
+            return
+        conv = convert_state(st, self.pivot, self.yaw_offset_rad)
+        usec = (st.capture_ns + self.base_offset_ns) // 1000
+        reset = (int(st.reset_counter) + self.local_resets) % 256
+        if self.cfg.message == "odometry":
+            ok = self._send(self.mav.odometry_encode(**odometry_fields(conv, usec, reset, self.cfg.quality)))
+        else:
+            ok = self._send(self.mav.vision_position_estimate_encode(**vision_position_fields(conv, usec, reset)))
+            if ok and self.cfg.vision_speed:
+                if self._send(self.mav.vision_speed_estimate_encode(**vision_speed_fields(conv, usec, reset))):
+                    c["sent_speed"] += 1
+        if ok:
+            self._last_capture = st.capture_ns
+            c["sent"] += 1
+            t = self.clock_ns()
+            self.lat_capture.add(t - st.capture_ns)
+            self.lat_bridge.add(t - offered_ns)
+
+    def _send(self, msg) -> bool:
+        self._last_write_ok = False
+        self.mav.send(msg)
+        return self._last_write_ok
+
+    # mav.send() writes here
+    def write(self, buf: bytes) -> None:
+        ok = self.link is not None and self.link.write(buf)
+        if not ok:
+            self.counters["tx_dropped" if self.link is not None and self.link.peer is not None else "no_link"] += 1
+        self._last_write_ok = bool(ok)
+
+    def _send_heartbeat(self) -> None:
+        tracked_recently = self._last_capture is not None and self.clock_ns() - self._last_capture < 1e9
+        status = mavlink2.MAV_STATE_ACTIVE if tracked_recently else mavlink2.MAV_STATE_STANDBY
+        if self._send(self.mav.heartbeat_encode(
+            mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, status
+        )):
+            self.counters["heartbeats"] += 1
+
+    def _send_origin(self) -> None:
+        o = self.cfg.origin
+        lat, lon, alt = int(round(o.lat * 1e7)), int(round(o.lon * 1e7)), int(round(o.alt * 1000))
+        t_usec = self.now_base_ns() // 1000
+        ok = self._send(self.mav.set_gps_global_origin_encode(self.cfg.sysid, lat, lon, alt, t_usec))
+        if self.cfg.set_home:
+            ok = self._send(self.mav.set_home_position_encode(
+                self.cfg.sysid, lat, lon, alt, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, t_usec
+            )) and ok
+        if ok:
+            self.counters["origin_sent"] += 1
+
+    # ---------------------------------------------------------------- reporting
+    def stats(self) -> dict:
+        out: dict = dict(self.counters)
+        lc, lb = self.lat_capture.values(), self.lat_bridge.values()
+        out.update(
+            sysid=self.cfg.sysid,
+            body=self.cfg.body,
+            endpoint=str(self.cfg.endpoint),
+            message=self.cfg.message,
+            rate_hz=self.cfg.rate_hz,
+            link_up=self._peer_known(),
+            peer=(":".join(str(x) for x in self.link.peer) if self._peer_known() else None),
+            last_error=self.last_error,
+            autopilot_heard_s_ago=((self.clock_ns() - self.last_rx_ns) * 1e-9 if self.last_rx_ns else None),
+            latency_capture_ms_p50=_percentile_ms(lc, 50),
+            latency_capture_ms_p99=_percentile_ms(lc, 99),
+            latency_bridge_ms_p50=_percentile_ms(lb, 50),
+            latency_bridge_ms_p99=_percentile_ms(lb, 99),
+            latency_samples=len(lc),
+        )
+        return out
+
+
+def delay_advice(stats: dict) -> str:
+    """One line per vehicle: measured capture->send latency and the autopilot delay to set."""
+    p50, p99 = stats["latency_capture_ms_p50"], stats["latency_capture_ms_p99"]
+    if not np.isfinite(p50):
+        return f"{stats['body']} (sysid {stats['sysid']}): no pose sent yet"
+    d = int(round(p50))
+    return (
+        f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms "
+        f"(bridge adds p50 {stats['latency_bridge_ms_p50']:.2f} ms) -> ArduPilot VISO_DELAY_MS={d} "
+        f"(+ link latency); PX4 EKF2_EV_DELAY={d} without TIMESYNC, ~0 with TIMESYNC converged"
+    )
+
+
+class Bridge:
+    """Every configured vehicle's MAVLink link plus the optional UDP pose stream.
+
+    settings (runtime, not YAML): clock_ns (callable -> int ns; default
+    time.monotonic_ns, the server clock), pose_stream (bool, default True:
+    run the arena's pose_stream section if present), report_interval_s
+    (float, default 30; 0 = never: how often to print the latency advice),
+    report (callable(str), default print to stderr).
+    """
+
+    def __init__(self, arena: ArenaConfig, settings: dict | None = None):
+        settings = dict(settings or {})
+        self.clock_ns: Callable[[], int] = settings.get("clock_ns", time.monotonic_ns)
+        self.vehicles: list[VehicleLink] = [VehicleLink(v, self.clock_ns) for v in parse_vehicles(arena)]
+        self._by_body: dict[str, VehicleLink] = {v.cfg.body: v for v in self.vehicles}
+        self.pose_stream = None
+        ps_cfg = parse_pose_stream(arena)
+        if ps_cfg is not None and settings.get("pose_stream", True):
+            from bridge.pose_stream import PoseStream
+
+            self.pose_stream = PoseStream(ps_cfg, clock_ns=self.clock_ns)
+        self.report_interval_ns = int(float(settings.get("report_interval_s", 30.0)) * 1e9)
+        self._report: Callable[[str], None] = settings.get("report", lambda s: print(s, file=sys.stderr))
+        self._next_report = 0
+        self._started = False
+
+    def vehicle(self, name: str) -> VehicleLink:
+        for v in self.vehicles:
+            if v.cfg.name == name or v.cfg.body == name:
+                return v
+        raise KeyError(f"no vehicle or body named {name!r}; have {[v.cfg.name for v in self.vehicles]}")
+
+    def start(self) -> None:
+        for v in self.vehicles:
+            v.start()
+        if self.pose_stream is not None:
+            self.pose_stream.start()
+        self._next_report = self.clock_ns() + self.report_interval_ns
+        self._started = True
+
+    def publish(self, states: list[BodyState]) -> None:
+        """Hand each state to its vehicle's mailbox and the pose stream. Never blocks."""
+        by_body = self._by_body
+        for st in states:
+            v = by_body.get(st.name)
+            if v is not None:
+                v.offer(st)
+        if self.pose_stream is not None:
+            self.pose_stream.publish(states)
+        if self.report_interval_ns > 0 and self.vehicles:
+            now = self.clock_ns()
+            if now >= self._next_report:
+                self._next_report = now + self.report_interval_ns
+                self._report(self.latency_report())
+
+    def flush(self, timeout_s: float = 1.0) -> bool:
+        """Wait until every vehicle has handled what is in its mailbox (tests, shutdown)."""
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            if not any(v.pending() for v in self.vehicles):
+                return True
+            time.sleep(0.0005)
+        return not any(v.pending() for v in self.vehicles)
+
+    def latency_report(self) -> str:
+        return "\n".join("bridge: " + delay_advice(v.stats()) for v in self.vehicles)
+
+    def stats(self) -> dict:
+        out = {"vehicles": {v.cfg.name: v.stats() for v in self.vehicles}}
+        if self.pose_stream is not None:
+            out["pose_stream"] = self.pose_stream.stats()
+        return out
+
+    def close(self) -> None:
+        for v in self.vehicles:
+            v.close()
+        if self.pose_stream is not None:
+            self.pose_stream.close()
+        if self._started and self.vehicles and self.report_interval_ns > 0:
+            self._report(self.latency_report())
+        self._started = False

@@ -1,0 +1,239 @@
+"""UDP pose stream: every body's state at the output rate, JSON lines or binary.
+
+Format (docs/pose-stream.md is the reference):
+- json: each datagram holds one or more lines, one JSON object per body,
+  each ending in '\\n'. Lines are never split across datagrams.
+- binary: little-endian; a 24-byte header then one 208-byte record per body
+  (HEADER_DTYPE, RECORD_DTYPE below; numpy reads it in one call).
+
+publish() runs on the server's loop: it encodes and calls sendto() on a
+non-blocking socket; a full socket buffer drops the datagram (counted).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import socket
+import time
+from typing import Callable
+
+import numpy as np
+
+from bridge.config import PoseStreamConfig, is_multicast
+from visionpos.messages import BodyState
+
+log = logging.getLogger("visionpos.bridge.pose_stream")
+
+MAGIC = b"VPS1"
+VERSION = 1
+MAX_DATAGRAM = 8192  # JSON: lines are packed up to this size (fits any LAN's reassembly comfortably)
+
+HEADER_DTYPE = np.dtype([
+    ("magic", "S4"),  # b"VPS1"
+    ("version", "<u1"),  # 1
+    ("n_bodies", "<u1"),
+    ("record_size", "<u2"),  # 208: lets a client skip records of a newer, longer layout
+    ("seq", "<u4"),  # datagram counter, wraps
+    ("reserved", "<u4"),
+    ("sent_ns", "<i8"),  # server monotonic clock at send
+])
+RECORD_DTYPE = np.dtype([
+    ("body_id", "<u2"),
+    ("flags", "<u1"),  # bit 0: tracked
+    ("n_markers", "<u1"),
+    ("n_cameras", "<u1"),
+    ("reset_counter", "<u1"),
+    ("reserved", "<u2"),
+    ("time_ns", "<i8"),  # instant the state is valid for (server monotonic ns)
+    ("capture_ns", "<i8"),  # capture time of the newest contributing frame
+    ("position", "<f8", (3,)),  # m, world z-up
+    ("quaternion", "<f4", (4,)),  # x y z w, body FLU -> world
+    ("velocity", "<f4", (3,)),  # m/s world
+    ("angular_velocity", "<f4", (3,)),  # rad/s body
+    ("residual_mm", "<f4"),
+    ("covariance", "<f4", (21,)),  # pose 6x6 [x y z rx ry rz] upper triangle, row-major
+    ("velocity_covariance", "<f4", (6,)),  # 3x3 upper triangle, row-major
+    ("reserved2", "<u8"),
+])
+assert HEADER_DTYPE.itemsize == 24 and RECORD_DTYPE.itemsize == 208
+
+_UT6 = np.triu_indices(6)
+_UT3 = np.triu_indices(3)
+
+
+def _num(x: float) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None  # JSON has no NaN: null
+
+
+def _round(a: np.ndarray, nd: int) -> list:
+    return [_num(round(float(x), nd)) for x in np.asarray(a, float).ravel()]
+
+
+def state_to_json(st: BodyState, sent_ns: int) -> dict:
+    """One body as a JSON-ready dict (names and units in docs/pose-stream.md)."""
+    return {
+        "name": st.name,
+        "id": int(st.body_id),
+        "tracked": bool(st.tracked),
+        "time_ns": int(st.time_ns),
+        "capture_ns": int(st.capture_ns),
+        "sent_ns": int(sent_ns),
+        "position": _round(st.position, 6),
+        "quaternion": _round(st.quaternion, 7),
+        "velocity": _round(st.velocity, 5),
+        "angular_velocity": _round(st.angular_velocity, 5),
+        "covariance": [_num(float(f"{x:.6g}")) for x in np.asarray(st.covariance, float)[_UT6]],
+        "velocity_covariance": [_num(float(f"{x:.6g}")) for x in np.asarray(st.velocity_covariance, float)[_UT3]],
+        "n_markers": int(st.n_markers),
+        "n_cameras": int(st.n_cameras),
+        "residual_mm": _num(round(float(st.residual_mm), 4)),
+        "reset_counter": int(st.reset_counter),
+    }
+
+
+def encode_json(states: list[BodyState], sent_ns: int) -> list[bytes]:
+    """States -> datagrams of JSON lines (each <= MAX_DATAGRAM unless one line is larger)."""
+    out: list[bytes] = []
+    cur = bytearray()
+    for st in states:
+        line = json.dumps(state_to_json(st, sent_ns), separators=(",", ":")).encode() + b"\n"
+        if cur and len(cur) + len(line) > MAX_DATAGRAM:
+            out.append(bytes(cur))
+            cur = bytearray()
+        cur += line
+    if cur:
+        out.append(bytes(cur))
+    return out
+
+
+def encode_binary(states: list[BodyState], sent_ns: int, seq: int) -> list[bytes]:
+    """States -> binary datagrams (at most 255 bodies each)."""
+    out = []
+    for i in range(0, max(len(states), 1), 255):
+        chunk = states[i:i + 255]
+        h = np.zeros(1, HEADER_DTYPE)
+        h["magic"], h["version"], h["n_bodies"] = MAGIC, VERSION, len(chunk)
+        h["record_size"], h["seq"], h["sent_ns"] = RECORD_DTYPE.itemsize, seq & 0xFFFFFFFF, sent_ns
+        r = np.zeros(len(chunk), RECORD_DTYPE)
+        if chunk:
+            r["body_id"] = [s.body_id for s in chunk]
+            r["flags"] = [1 if s.tracked else 0 for s in chunk]
+            r["n_markers"] = np.clip([s.n_markers for s in chunk], 0, 255)
+            r["n_cameras"] = np.clip([s.n_cameras for s in chunk], 0, 255)
+            r["reset_counter"] = [s.reset_counter % 256 for s in chunk]
+            r["time_ns"] = [s.time_ns for s in chunk]
+            r["capture_ns"] = [s.capture_ns for s in chunk]
+            r["position"] = np.stack([s.position for s in chunk])
+            r["quaternion"] = np.stack([s.quaternion for s in chunk])
+            r["velocity"] = np.stack([s.velocity for s in chunk])
+            r["angular_velocity"] = np.stack([s.angular_velocity for s in chunk])
+            r["residual_mm"] = [s.residual_mm for s in chunk]
+            r["covariance"] = np.stack([s.covariance for s in chunk])[:, _UT6[0], _UT6[1]]
+            r["velocity_covariance"] = np.stack([s.velocity_covariance for s in chunk])[:, _UT3[0], _UT3[1]]
+        out.append(h.tobytes() + r.tobytes())
+    return out
+
+
+def decode_binary(buf: bytes) -> tuple[np.void, np.ndarray]:
+    """Binary datagram -> (header record, (n,) RECORD_DTYPE array). ValueError on a bad datagram."""
+    if len(buf) < HEADER_DTYPE.itemsize:
+        raise ValueError(f"pose stream datagram too short ({len(buf)} bytes)")
+    h = np.frombuffer(buf, HEADER_DTYPE, count=1)[0]
+    if bytes(h["magic"]) != MAGIC:
+        raise ValueError(f"not a visionpos pose stream datagram (magic {bytes(h['magic'])!r})")
+    n, size = int(h["n_bodies"]), int(h["record_size"])
+    if size < RECORD_DTYPE.itemsize or len(buf) < HEADER_DTYPE.itemsize + n * size:
+        raise ValueError(f"pose stream datagram truncated: {n} records of {size} bytes need more than {len(buf)} bytes")
+    body = np.frombuffer(buf, np.uint8, count=n * size, offset=HEADER_DTYPE.itemsize).reshape(n, size)
+    recs = body[:, : RECORD_DTYPE.itemsize].copy().view(RECORD_DTYPE).reshape(n)
+    return h, recs
+
+
+def upper_to_full(ut: np.ndarray, n: int) -> np.ndarray:
+    """(..., n(n+1)/2) upper triangle, row-major -> (..., n, n) symmetric."""
+    ut = np.asarray(ut, float)
+    iu = np.triu_indices(n)
+    m = np.zeros(ut.shape[:-1] + (n, n))
+    m[..., iu[0], iu[1]] = ut
+    m[..., iu[1], iu[0]] = ut
+    return m
+
+
+class PoseStream:
+    """Sends every body's state to the configured destinations.
+
+    PoseStream(cfg) with a PoseStreamConfig, or PoseStream.to("127.0.0.1:5005", format="json").
+    start() opens the socket; publish(states) sends (rate-limited to
+    cfg.rate_hz when set); close(); stats().
+    """
+
+    def __init__(self, cfg: PoseStreamConfig, clock_ns: Callable[[], int] = time.monotonic_ns):
+        self.cfg = cfg
+        self.clock_ns = clock_ns
+        self.sock: socket.socket | None = None
+        self.seq = 0
+        self.counters = {"ticks": 0, "datagrams": 0, "bytes": 0, "send_errors": 0, "skipped_rate": 0}
+        self._next_ns = 0
+        self._period_ns = int(1e9 / cfg.rate_hz) if cfg.rate_hz > 0 else 0
+
+    @classmethod
+    def to(cls, *destinations: str, format: str = "json", rate_hz: float = 0.0, **kw) -> "PoseStream":
+        """Standalone use: PoseStream.to('127.0.0.1:5005')."""
+        dests = []
+        for d in destinations:
+            host, _, port = d.rpartition(":")
+            dests.append((host, int(port)))
+        clock = kw.pop("clock_ns", time.monotonic_ns)
+        return cls(PoseStreamConfig(tuple(dests), format=format, rate_hz=rate_hz, **kw), clock_ns=clock)
+
+    def start(self) -> None:
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        if any(is_multicast(h) for h, _ in self.cfg.destinations):
+            s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, self.cfg.multicast_ttl)
+            s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1 if self.cfg.multicast_loopback else 0)
+            if self.cfg.multicast_interface:
+                s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(self.cfg.multicast_interface))
+        s.setblocking(False)
+        self._dests = [(socket.gethostbyname(h), p) for h, p in self.cfg.destinations]
+        self.sock = s
+
+    def publish(self, states: list[BodyState]) -> None:
+        if self.sock is None:
+            return
+        now = self.clock_ns()
+        if self._period_ns:
+            if now < self._next_ns:
+                self.counters["skipped_rate"] += 1
+                return
+            # keep the grid, but do not burst after a pause
+            self._next_ns = max(self._next_ns + self._period_ns, now - self._period_ns // 2)
+        if not self.cfg.include_untracked:
+            states = [s for s in states if s.tracked]
+        if not states:
+            return
+        self.counters["ticks"] += 1
+        self.seq += 1
+        if self.cfg.format == "binary":
+            grams = encode_binary(states, now, self.seq)
+        else:
+            grams = encode_json(states, now)
+        for g in grams:
+            for d in self._dests:
+                try:
+                    self.sock.sendto(g, d)
+                    self.counters["datagrams"] += 1
+                    self.counters["bytes"] += len(g)
+                except OSError:  # buffer full, no route, ICMP refused: drop, never block
+                    self.counters["send_errors"] += 1
+
+    def stats(self) -> dict:
+        return dict(self.counters, destinations=[f"{h}:{p}" for h, p in self.cfg.destinations], format=self.cfg.format)
+
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+
