@@ -1,0 +1,363 @@
+"""Station agent: capture -> detect -> stamp -> send, plus registration,
+heartbeats and clock sync with the fusion server (docs/protocol.md).
+
+One thread. The network never blocks capture: the UDP socket is
+non-blocking, incoming packets are drained between frames, and a send that
+would block is counted and the frame dropped (never queued). A failing camera
+is closed and reopened with exponential back-off while the agent keeps
+talking to the server (heartbeats say camera not OK).
+"""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import select
+import socket
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from stations.clocksync import ClockSync
+from stations.config import StationConfig, build_mask, load_background
+from stations.detector import Detector
+from stations.sources import EndOfStream, FrameSource, SourceError, make_source
+from visionpos import protocol as P
+from visionpos.messages import FLAG_RESYNC, FLAG_TRUNCATED, BlobFrame
+
+log = logging.getLogger("visionpos.station")
+
+try:
+    from importlib.metadata import version as _pkg_version
+
+    SOFTWARE = f"visionpos {_pkg_version('visionpos')}"[:16]
+except Exception:  # running from a source tree without installed metadata
+    SOFTWARE = "visionpos"
+
+HELLO_FIRST_S = 0.5
+HELLO_MAX_S = 5.0
+THERMAL = Path("/sys/class/thermal/thermal_zone0/temp")
+
+
+@dataclass
+class AgentStats:
+    frames_captured: int = 0
+    frames_sent: int = 0
+    frames_dropped: int = 0  # captured, not sent: not registered / not synced / send failed
+    frames_before_start: int = 0
+    send_errors: int = 0
+    truncated_frames: int = 0
+    camera_failures: int = 0
+    registrations: int = 0
+    bad_packets: int = 0
+
+
+def read_temperature() -> float | None:
+    """CPU temperature in deg C from the Linux thermal zone, None if absent."""
+    try:
+        return int(THERMAL.read_text().strip()) / 1000.0
+    except (OSError, ValueError):
+        return None
+
+
+class StationAgent:
+    """Runs one camera. `source` and `clock` may be injected (tests, sim).
+
+    clock: station clock in ns; default time.monotonic_ns with the built-in
+    sync, time.time_ns (CLOCK_REALTIME, PTP/chrony-disciplined) without.
+    """
+
+    def __init__(
+        self,
+        cfg: StationConfig,
+        source: FrameSource | None = None,
+        clock: Callable[[], int] | None = None,
+        sleep: Callable[[float], None] = time.sleep,
+    ):
+        self.cfg = cfg
+        self.clock = clock or (time.monotonic_ns if cfg.clock_sync else time.time_ns)
+        self.source = source or make_source(cfg.source, self.clock, cfg.camera_id)
+        self.timebase = P.TIMEBASE_SERVER if cfg.clock_sync else P.TIMEBASE_REALTIME
+        self.session = secrets.randbits(32) or 1
+        self.stats = AgentStats()
+        self.sync = ClockSync(cfg.station_id, cfg.camera_id) if cfg.clock_sync else None
+        self.detector: Detector | None = None
+        self.registered = False
+        self.rejected = False
+        self.start_ns: int | None = None
+        self.duration_ns = 0
+        self.camera_ok = False
+        self._stop = threading.Event()
+        self._sleep = sleep
+        self._seq = 0
+        self._hb_seq = 0
+        self._hello_gap_s = HELLO_FIRST_S
+        self._next_hello = 0
+        self._next_hb = 0
+        self._last_heard: int | None = None
+        self._estimate_seen = None
+        self._size: tuple[int, int] | None = None
+        self._addr = (cfg.server_host, cfg.server_port)
+        self.sock = self._open_socket()
+
+    # ------------------------------------------------------------ network
+
+    def _open_socket(self) -> socket.socket:
+        info = socket.getaddrinfo(self.cfg.server_host, self.cfg.server_port, type=socket.SOCK_DGRAM)
+        family, _, _, _, addr = info[0]
+        self._addr = addr
+        s = socket.socket(family, socket.SOCK_DGRAM)
+        s.setblocking(False)
+        return s
+
+    def _send(self, data: bytes) -> bool:
+        try:
+            self.sock.sendto(data, self._addr)
+            return True
+        except (BlockingIOError, InterruptedError):
+            self.stats.send_errors += 1
+        except OSError as e:  # ECONNREFUSED from an earlier ICMP, ENETUNREACH, ...
+            self.stats.send_errors += 1
+            log.debug("send to %s failed: %s", self._addr, e)
+        return False
+
+    def _drain(self) -> None:
+        """Handle every pending datagram; never blocks."""
+        while True:
+            try:
+                data, _ = self.sock.recvfrom(2048)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:  # ICMP port unreachable surfaces here on Linux: server is down
+                continue
+            t4 = self.clock()
+            try:
+                msg = P.decode(data, self.cfg.key)
+            except P.ProtocolError as e:
+                self.stats.bad_packets += 1
+                log.warning("dropping packet from the server: %s", e)
+                continue
+            if getattr(msg, "station_id", None) != self.cfg.station_id or msg.camera_id != self.cfg.camera_id:
+                continue
+            if isinstance(msg, P.HelloAck):
+                self._on_ack(msg, t4)
+            elif isinstance(msg, P.SyncReply) and self.sync is not None:
+                if self.sync.reply(msg, t4):
+                    self._last_heard = t4
+
+    def _on_ack(self, ack: P.HelloAck, now: int) -> None:
+        if ack.status == P.ACK_UNKNOWN_SESSION and ack.session in (self.session, 0):
+            if self.registered:
+                log.warning("server does not know this station any more (restarted, or asked for a resync): "
+                            "registering again")
+            self._lost(now)
+            self._next_hello = now  # at once
+            return
+        if ack.session != self.session:
+            return
+        self._last_heard = now
+        if ack.status == P.ACK_REJECTED:
+            if not self.rejected:
+                log.error("server %s:%d rejected camera %d of station %d: the camera id is not in its arena config "
+                          "or the resolution differs; fix the configs (retrying every %.0f s)",
+                          self.cfg.server_host, self.cfg.server_port, self.cfg.camera_id, self.cfg.station_id,
+                          HELLO_MAX_S)
+            self.rejected = True
+            self.registered = False
+            self._hello_gap_s = HELLO_MAX_S
+            return
+        if ack.status != P.ACK_OK:
+            log.warning("server answered with unknown status %d; ignoring", ack.status)
+            return
+        if not self.registered:
+            self.stats.registrations += 1
+            log.info("registered with %s:%d (session %08x); capture start at server time %d",
+                     self.cfg.server_host, self.cfg.server_port, self.session, ack.start_ns)
+            self._next_hb = now
+        self.registered = True
+        self.rejected = False
+        self.start_ns, self.duration_ns = ack.start_ns, ack.duration_ns
+        self._hello_gap_s = HELLO_FIRST_S
+
+    def _lost(self, now: int) -> None:
+        """Back to registration; the server may be a new one, so its clock too."""
+        self.registered = False
+        self._hello_gap_s = HELLO_FIRST_S
+        self._last_heard = None
+        if self.sync is not None:
+            self.sync.reset()
+            self._estimate_seen = None
+
+    def service(self) -> None:
+        """Drain replies and send whatever is due (hello, heartbeat, sync)."""
+        self._drain()
+        now = self.clock()
+        if self.registered and self._last_heard is not None and now - self._last_heard > self.cfg.link_timeout_s * 1e9:
+            log.warning("no answer from server %s:%d for %.1f s: registering again",
+                        self.cfg.server_host, self.cfg.server_port, self.cfg.link_timeout_s)
+            self._lost(now)
+            self._next_hello = now
+        if not self.registered:
+            if now >= self._next_hello:
+                self._send(P.encode(self._hello(), self.cfg.key))
+                self._next_hello = now + int(self._hello_gap_s * 1e9)
+                self._hello_gap_s = min(self._hello_gap_s * 2, HELLO_MAX_S)
+            return
+        if now >= self._next_hb:
+            self._send(P.encode(self._heartbeat(now), self.cfg.key))
+            self._next_hb = now + int(self.cfg.heartbeat_s * 1e9)
+        if self.sync is not None and self.sync.due(now):
+            self._send(P.encode(self.sync.request(self.clock()), self.cfg.key))
+
+    def _hello(self) -> P.Hello:
+        src = self.source
+        name = (self.cfg.camera_name or src.name).encode()[:32].decode(errors="ignore")
+        return P.Hello(self.cfg.station_id, self.cfg.camera_id, self.session, int(src.width or 0),
+                       int(src.height or 0), float(src.fps or 0.0), self.cfg.camera_kind, name, SOFTWARE,
+                       self.timebase)
+
+    def _heartbeat(self, now: int) -> P.Heartbeat:
+        self._hb_seq = (self._hb_seq + 1) & 0xFFFFFFFF
+        status = (P.HB_CAMERA_OK if self.camera_ok else 0) | (P.HB_STREAMING if self.streaming(now) else 0)
+        off, unc, drift = 0, P.UNCERTAINTY_UNKNOWN, 0
+        if self.sync is None:
+            status |= P.HB_CLOCK_EXTERNAL | P.HB_CLOCK_SYNCED
+        elif self.sync.estimator.estimate is not None:
+            est = self.sync.estimator.estimate
+            status |= P.HB_CLOCK_SYNCED
+            off, unc, drift = est.offset_at(now), int(round(est.uncertainty_ns)), int(round(est.drift_ppm * 1000))
+        s = self.stats
+        return P.Heartbeat(self.cfg.station_id, self.cfg.camera_id, self._hb_seq, self.session, status,
+                           s.frames_captured, s.frames_dropped, s.send_errors, off, unc, drift,
+                           read_temperature(), now)
+
+    def to_server(self, t_local: int) -> int | None:
+        """Station-clock capture time -> server clock; None while unsynced."""
+        if self.sync is None:
+            return t_local
+        est = self.sync.estimator.estimate
+        return None if est is None else est.to_server(t_local)
+
+    def streaming(self, now_local: int) -> bool:
+        t = self.to_server(now_local)
+        return self.registered and t is not None and self.start_ns is not None and t >= self.start_ns
+
+    # ------------------------------------------------------------ capture
+
+    def _open_camera(self) -> None:
+        self.source.open()
+        if self.detector is None or self._size != (self.source.width, self.source.height):
+            w, h = int(self.source.width), int(self.source.height)
+            self.detector = Detector(self.cfg.detector, build_mask(self.cfg, w, h), load_background(self.cfg, w, h))
+            self._size = (w, h)
+            if self.cfg.background_frames > 0 and not self.cfg.background_path:
+                frames = [self.source.read()[0] for _ in range(self.cfg.background_frames)]
+                self.detector.set_background(Detector.learn_background(frames))
+                log.info("learned a static background from %d frames", len(frames))
+        log.info("camera open: %s, %dx%d at %.1f fps", self.source.name, self.source.width, self.source.height,
+                 self.source.fps or 0.0)
+
+    def _wait(self, seconds: float) -> None:
+        """Sleep while still serving the network (used during camera back-off)."""
+        end = time.monotonic() + seconds
+        while not self._stop.is_set():
+            left = end - time.monotonic()
+            if left <= 0:
+                return
+            try:
+                select.select([self.sock], [], [], min(left, 0.05))
+            except (OSError, ValueError):
+                self._sleep(min(left, 0.05))
+            self.service()
+
+    def process(self, image: np.ndarray, t_local: int) -> BlobFrame | None:
+        """Detect, stamp and send one captured frame; returns what was sent."""
+        self.stats.frames_captured += 1
+        seq = self._seq
+        self._seq = (self._seq + 1) & 0xFFFFFFFF
+        blobs, flags = self.detector.detect(image)
+        if flags & FLAG_TRUNCATED:
+            self.stats.truncated_frames += 1
+        if len(blobs) > P.MAX_BLOBS_PER_PACKET:  # detector cap is validated <= this; defensive
+            blobs, flags = blobs[: P.MAX_BLOBS_PER_PACKET], flags | FLAG_TRUNCATED
+        t_server = self.to_server(t_local)
+        if not self.registered or t_server is None or self.start_ns is None:
+            self.stats.frames_dropped += 1
+            return None
+        if t_server < self.start_ns:
+            self.stats.frames_before_start += 1
+            return None
+        if self.duration_ns and t_server >= self.start_ns + self.duration_ns:
+            self.stats.frames_before_start += 1
+            return None
+        if self.sync is not None:
+            est = self.sync.estimator.estimate
+            if est is not self._estimate_seen:
+                if self._estimate_seen is not None and abs(est.offset_at(t_local) - self._estimate_seen.offset_at(t_local)) > self.sync.jump_ns:
+                    flags |= FLAG_RESYNC
+                self._estimate_seen = est
+        frame = BlobFrame(self.cfg.camera_id, seq, t_server, blobs, self.cfg.station_id, flags)
+        if self._send(P.encode_frame(frame, self.cfg.key)):
+            self.stats.frames_sent += 1
+            return frame
+        self.stats.frames_dropped += 1
+        return None
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def run(self, max_frames: int | None = None) -> int:
+        """Capture until stop() (or max_frames, or a non-looping file ends).
+        Returns 0; camera failures are retried, never fatal."""
+        backoff = 1.0
+        opened = False
+        try:
+            while not self._stop.is_set():
+                self.service()
+                if not opened:
+                    try:
+                        self._open_camera()
+                        opened = True
+                    except SourceError as e:
+                        self._camera_failed(e, backoff)
+                        backoff = min(backoff * 2, self.cfg.retry_max_s)
+                        continue
+                try:
+                    image, t = self.source.read()
+                except EndOfStream:
+                    log.info("end of %s", self.source.name)
+                    break
+                except SourceError as e:
+                    self.source.close()
+                    opened = False
+                    self._camera_failed(e, backoff)
+                    backoff = min(backoff * 2, self.cfg.retry_max_s)
+                    continue
+                try:
+                    self.process(image, t)
+                except ValueError as e:  # frame of the wrong size/type mid-stream: treat as a camera fault
+                    self.source.close()
+                    opened = False
+                    self._camera_failed(SourceError(str(e)), backoff)
+                    backoff = min(backoff * 2, self.cfg.retry_max_s)
+                    continue
+                self.camera_ok = True
+                backoff = 1.0
+                if max_frames is not None and self.stats.frames_captured >= max_frames:
+                    break
+        finally:
+            self.source.close()
+            if self.registered:
+                self._send(P.encode(P.Bye(self.cfg.station_id, self.cfg.camera_id, self.session), self.cfg.key))
+            self.sock.close()
+        return 0
+
+    def _camera_failed(self, e: Exception, backoff: float) -> None:
+        self.camera_ok = False
+        self.stats.camera_failures += 1
+        log.warning("camera %d (%s): %s; retrying in %.0f s", self.cfg.camera_id, self.cfg.source.kind, e, backoff)
+        self._wait(backoff)

@@ -1,0 +1,73 @@
+"""`visionpos-station --config station.yaml`: run one camera station."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+
+from visionpos.config import ConfigError
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="visionpos-station",
+        description="Capture IR frames, detect marker blobs and stream them to the visionpos server "
+        "(protocol: docs/protocol.md, set-up: docs/stations.md).",
+    )
+    p.add_argument("--config", "-c", required=True, help="station YAML file")
+    p.add_argument("--check", action="store_true", help="validate the config and open the camera once, then exit")
+    p.add_argument("--frames", type=int, default=None, help="stop after this many captured frames")
+    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    log = logging.getLogger("visionpos.station")
+    from stations.agent import StationAgent
+    from stations.config import load_station
+    from stations.sources import SourceError
+
+    try:
+        cfg = load_station(args.config)
+    except ConfigError as e:
+        print(f"visionpos-station: config error: {e}", file=sys.stderr)
+        return 2
+    try:
+        agent = StationAgent(cfg)
+    except OSError as e:
+        print(f"visionpos-station: cannot reach server {cfg.server_host}:{cfg.server_port}: {e}", file=sys.stderr)
+        return 2
+    if args.check:
+        try:
+            agent.source.open()
+            img, _ = agent.source.read()
+            agent.source.close()
+        except (SourceError, ConfigError) as e:
+            print(f"visionpos-station: camera check failed: {e}", file=sys.stderr)
+            return 1
+        print(f"config OK: station {cfg.station_id} camera {cfg.camera_id} -> {cfg.server_host}:{cfg.server_port}, "
+              f"source {agent.source.name} {img.shape[1]}x{img.shape[0]}")
+        return 0
+
+    def _stop(signum, _frame):
+        log.info("signal %d: stopping", signum)
+        agent.stop()
+
+    signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGINT, _stop)
+    log.info("station %d camera %d -> %s:%d (%s clock%s)", cfg.station_id, cfg.camera_id, cfg.server_host,
+             cfg.server_port, "built-in sync" if cfg.clock_sync else "external PTP/chrony",
+             ", HMAC" if cfg.key else "")
+    try:
+        return agent.run(max_frames=args.frames)
+    except ConfigError as e:
+        print(f"visionpos-station: config error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
