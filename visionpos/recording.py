@@ -576,8 +576,10 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
 
     from visionpos.ingest import Ingest, ServerSettings
-    from visionpos.server import load_config_with_overrides, run_until_signal
+    from visionpos.server import load_config_with_overrides, run_until_signal, status_log
 
+    if status_log.level == logging.NOTSET:
+        status_log.setLevel(logging.INFO)
     arena = load_config_with_overrides(args.config, args.set)
     settings = ServerSettings.from_arena(arena)
     if args.port is not None:
@@ -585,14 +587,16 @@ def run(args: argparse.Namespace) -> int:
 
     async def main() -> int:
         with RecordingWriter(args.output, arena.raw, {"command": "record"}) as rec:
-            ingest = Ingest(arena, settings, pipeline=None, recorder=rec)
+            ingest = Ingest(arena, settings, pipeline=None, recorder=rec,
+                            events=lambda kind, info: rec.write_json("/server/events", time.monotonic_ns(),
+                                                                     {"kind": kind, **info}))
             await ingest.start(args.host, settings.port)
             print(f"visionpos record: listening on udp {args.host}:{ingest.port}, recording to {args.output}; "
                   "Ctrl-C to stop", flush=True)
 
             def status() -> None:
                 ingest.check_vanished(time.monotonic_ns())
-                log.warning("%s", ingest.status_line())
+                status_log.info("%s | recorded %d packets", ingest.status_line(), rec.counts.get(TOPIC_PACKETS, 0))
 
             try:
                 await run_until_signal(args.duration, status=status, status_period_s=settings.status_period_s)

@@ -34,6 +34,8 @@ from visionpos.ingest import Ingest, ServerSettings
 from visionpos.messages import BodyState
 
 log = logging.getLogger(__name__)
+# the periodic status line: INFO, but `serve` and `record` turn this logger on by default
+status_log = logging.getLogger("visionpos.status")
 
 VANISH_CHECK_S = 0.02
 
@@ -59,7 +61,8 @@ class FusionServer:
     arena: validated ArenaConfig. settings: ServerSettings (default: the arena's `server:`
     section). sinks: objects with publish(states). pipeline: a FusionPipeline-like object
     (default: visionpos.pipeline.FusionPipeline(arena, arena.raw.get('fusion'))).
-    recorder: a RecordingWriter; it gets every packet, and is added to the sinks.
+    recorder: a RecordingWriter; it gets every packet, events and health snapshots, is added to the
+    sinks, and is closed by stop() (the server owns it from then on).
     port: None = settings.port; 0 = any free port (see .port after start()).
     """
 
@@ -106,6 +109,7 @@ class FusionServer:
                 await _maybe_await(s.start())
         await self.ingest.start(self.host, self._port_req)
         self._running = True
+        self._status_prev_ns = self.clock()
         loop = asyncio.get_running_loop()
         self._tasks = [loop.create_task(self._tick_loop(), name="visionpos-tick")]
         if self.settings.status_period_s > 0:
@@ -207,7 +211,12 @@ class FusionServer:
     async def _status_loop(self) -> None:
         while self._running:
             await asyncio.sleep(self.settings.status_period_s)
-            log.warning("%s", self.status_line())
+            status_log.info("%s", self.status_line())
+            if self.recorder is not None:  # health history in the log, for post-mortems
+                try:
+                    self.recorder.write_json("/server/health", self.clock(), self.health())
+                except Exception:
+                    log.exception("could not record health")
 
     def status_line(self) -> str:
         now = self.clock()
@@ -290,6 +299,8 @@ async def run_until_signal(duration_s: float | None = None, status: Callable[[],
             try:
                 await asyncio.wait_for(stop.wait(), timeout)
             except asyncio.TimeoutError:
+                if t_end is not None and loop.time() >= t_end:
+                    break
                 if status is not None and status_period_s > 0 and not stop.is_set():
                     status()
     finally:
@@ -311,6 +322,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if status_log.level == logging.NOTSET:
+        status_log.setLevel(logging.INFO)
     arena = load_config_with_overrides(args.config, args.set)
     settings = ServerSettings.from_arena(arena)
     if args.port is not None:
