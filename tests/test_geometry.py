@@ -155,6 +155,21 @@ def test_noiseless_triangulation_is_exact(seed, n_cams):
     assert np.abs(resn.points[okn] - X[okn]).max() < 1e-9
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_camera_rig_projection_and_undistortion_match_opencv(seed):
+    rng = np.random.default_rng(seed)
+    cams = random_rig(rng, 6)  # mixed pinhole / fisheye
+    rig = CameraRig(cams)
+    X = rng.uniform([-1.0, -1.0, 0.1], [1.0, 1.0, 1.8], (50, 3))
+    ref = observe(cams, X)
+    ok = np.isfinite(ref)
+    np.testing.assert_allclose(rig.project(X)[ok], ref[ok], atol=1e-6)
+    xt = np.stack([(X @ c.R.T + c.t) for c in cams], axis=1)
+    xt = xt[..., :2] / xt[..., 2:]
+    xn = rig.undistort(ref)
+    assert np.abs(xn[ok] - xt[ok]).max() < 1e-10
+
+
 def test_rig_and_camera_list_give_the_same_result_and_linear_start_is_close():
     rng = np.random.default_rng(11)
     cams = thesis_rig()

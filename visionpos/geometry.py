@@ -94,6 +94,8 @@ class CameraRig:
                 self.kp[i] = c.model.dist
             else:
                 self.kf[i] = c.model.dist
+        self.fisheye_idx = np.flatnonzero(self.fisheye)
+        self.pinhole_idx = np.flatnonzero(~self.fisheye)
         self.any_fisheye = bool(self.fisheye.any())
         self.any_pinhole = bool((~self.fisheye).any())
         # pinhole with zero distortion needs no polynomial at all
@@ -109,18 +111,23 @@ class CameraRig:
             J[..., 0, 0] = self.f[:, 0]
             J[..., 1, 1] = self.f[:, 1]
             return uv, J
-        if self.any_pinhole:
-            xd_p, J_p = _pinhole_distort_b(xn, self.kp, with_jac)
-        if self.any_fisheye:
-            xd_f, J_f = _fisheye_distort_b(xn, self.kf, with_jac)
         if self.any_pinhole and self.any_fisheye:
-            m = self.fisheye[:, None]
-            xd = np.where(m, xd_f, xd_p)
-            J = np.where(m[..., None], J_f, J_p) if with_jac else None
+            # mixed rig: run each model on its own views only
+            fi, pi = self.fisheye_idx, self.pinhole_idx
+            xd = np.empty_like(xn)
+            xd_f, J_f = _fisheye_distort_b(xn[..., fi, :], self.kf[fi], with_jac)
+            xd_p, J_p = _pinhole_distort_b(xn[..., pi, :], self.kp[pi], with_jac)
+            xd[..., fi, :] = xd_f
+            xd[..., pi, :] = xd_p
+            J = None
+            if with_jac:
+                J = np.empty(xn.shape + (2,))
+                J[..., fi, :, :] = J_f
+                J[..., pi, :, :] = J_p
         elif self.any_fisheye:
-            xd, J = xd_f, J_f
+            xd, J = _fisheye_distort_b(xn, self.kf, with_jac)
         else:
-            xd, J = xd_p, J_p
+            xd, J = _pinhole_distort_b(xn, self.kp, with_jac)
         uv = xd * self.f + self.c
         if with_jac:
             J = J * self.f[:, :, None]
@@ -132,18 +139,15 @@ class CameraRig:
         xd = (np.asarray(pixels, dtype=np.float64) - self.c) / self.f
         if self.pinhole_plain:
             return xd
-        out = np.empty_like(xd)
-        if self.any_fisheye:
-            out_f = _fisheye_undistort_b(xd, self.kf, iterations, tol)
-        if self.any_pinhole:
-            out_p = _pinhole_undistort_b(xd, self.kp, iterations, tol)
         if self.any_pinhole and self.any_fisheye:
-            out = np.where(self.fisheye[:, None], out_f, out_p)
-        elif self.any_fisheye:
-            out = out_f
-        else:
-            out = out_p
-        return out
+            fi, pi = self.fisheye_idx, self.pinhole_idx
+            out = np.empty_like(xd)
+            out[..., fi, :] = _fisheye_undistort_b(xd[..., fi, :], self.kf[fi], iterations, tol)
+            out[..., pi, :] = _pinhole_undistort_b(xd[..., pi, :], self.kp[pi], iterations, tol)
+            return out
+        if self.any_fisheye:
+            return _fisheye_undistort_b(xd, self.kf, iterations, tol)
+        return _pinhole_undistort_b(xd, self.kp, iterations, tol)
 
     def project(self, points: np.ndarray, offsets: np.ndarray | None = None) -> np.ndarray:
         """World points (P, 3) -> pixels (P, V, 2); NaN behind a camera. offsets (P, V, 3)
@@ -159,8 +163,24 @@ class CameraRig:
         return uv
 
 
+_RIG_CACHE: dict[tuple[int, ...], tuple[tuple[Camera, ...], CameraRig]] = {}
+
+
 def _as_rig(cameras: Sequence[Camera] | CameraRig) -> CameraRig:
-    return cameras if isinstance(cameras, CameraRig) else CameraRig(cameras)
+    """The CameraRig for these cameras; rigs for recently used camera lists are reused
+    (keyed by object identity, so a changed calibration -- a new Camera -- gets a new rig)."""
+    if isinstance(cameras, CameraRig):
+        return cameras
+    cams = tuple(cameras)
+    key = tuple(map(id, cams))
+    hit = _RIG_CACHE.get(key)
+    if hit is not None and all(a is b for a, b in zip(hit[0], cams)):
+        return hit[1]
+    rig = CameraRig(cams)
+    if len(_RIG_CACHE) >= 16:
+        _RIG_CACHE.pop(next(iter(_RIG_CACHE)))
+    _RIG_CACHE[key] = (cams, rig)
+    return rig
 
 
 def _pinhole_distort_b(xn: np.ndarray, kp: np.ndarray, with_jac: bool):
@@ -212,7 +232,11 @@ def _fisheye_distort_b(xn: np.ndarray, kf: np.ndarray, with_jac: bool):
 def _pinhole_undistort_b(xd: np.ndarray, kp: np.ndarray, iterations: int, tol: float = 1e-15) -> np.ndarray:
     if not np.any(kp):
         return xd.copy()
-    x = xd.copy()
+    # seed: one fixed-point step x = xd / radial(xd) (radial part only), ~2 Newton steps saved
+    k1, k2, _, _, k3, k4, k5, k6 = kp.T
+    r2 = (xd * xd).sum(axis=-1)
+    rad = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    x = xd / np.maximum(rad, 0.25)[..., None]
     for _ in range(iterations):
         f, J = _pinhole_distort_b(x, kp, True)
         r = f - xd
@@ -221,7 +245,7 @@ def _pinhole_undistort_b(xd: np.ndarray, kp: np.ndarray, iterations: int, tol: f
         dy = (-J[..., 1, 0] * r[..., 0] + J[..., 0, 0] * r[..., 1]) / det
         x[..., 0] -= dx
         x[..., 1] -= dy
-        if not ((np.abs(dx) > tol).any() or (np.abs(dy) > tol).any()):  # NaN compares False
+        if not (np.abs(dx) + np.abs(dy) > tol).any():  # NaN compares False
             break
     return x
 
@@ -272,8 +296,16 @@ def _dlt(xn: np.ndarray, mask: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.n
 
 
 def _solve3(H: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """Batched symmetric 3x3 solve H x = g by the adjugate (H (P,3,3), g (P,3)); much cheaper
-    than np.linalg.solve for the few-point case. Singular systems give inf/NaN."""
+    """Batched symmetric 3x3 solve H x = g (H (P,3,3), g (P,3)). Singular or non-finite
+    systems give inf/NaN rows instead of raising for the whole batch."""
+    try:
+        return np.linalg.solve(H, g[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return _solve3_adjugate(H, g)
+
+
+def _solve3_adjugate(H: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """_solve3 by the adjugate, row by row independent (inf/NaN where singular)."""
     a, b, c = H[:, 0, 0], H[:, 0, 1], H[:, 0, 2]
     d, e, f = H[:, 1, 1], H[:, 1, 2], H[:, 2, 2]
     A00 = d * f - e * e
@@ -366,6 +398,11 @@ def _lm_refine(
         dx = _solve3(H, g)
         ok = active & np.isfinite(dx).all(axis=1)
         dx[~ok] = 0.0
+        step = np.abs(dx).sum(axis=1)
+        if ok.all() and (step <= tol * (1.0 + np.abs(X).sum(axis=1))).all():
+            # every step is negligible: take it without another evaluation; the
+            # linearised residual is exact to second order in a sub-micron step
+            return X - dx, r - np.einsum("pvia,pa->pvi", J, dx)
         Xn = X - dx
         rn, Jn, behind_n = _residual_jac(Xn, R, t, obs, mask, distort)
         cost_n = np.where(behind_n, np.inf, (rn * rn).sum(axis=(1, 2)))
@@ -378,7 +415,6 @@ def _lm_refine(
             J = np.where(better[:, None, None, None], Jn, J)
         # converged: negligible step (accepted or not: at the optimum rounding can make the
         # cost tie or rise by an ulp), or an accepted step that no longer lowers the cost
-        step = np.abs(dx).sum(axis=1)
         conv = (step <= tol * (1.0 + np.abs(X).sum(axis=1))) | (better & (cost - cost_n <= 1e-14 * cost))
         cost = np.where(better, cost_n, cost)
         lam = np.where(better, np.maximum(lam * 0.1, 1e-12), lam * 10.0)
