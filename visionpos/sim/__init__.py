@@ -9,6 +9,7 @@ Everything is deterministic from the scenario's seed.
 """
 
 from visionpos.sim.capture import (
+    SPURIOUS_MIRROR,
     SPURIOUS_RANDOM,
     SPURIOUS_STATIC,
     FrameTruth,
@@ -32,6 +33,7 @@ __all__ = [
     "CameraTiming",
     "FrameTruth",
     "Motion",
+    "SPURIOUS_MIRROR",
     "SPURIOUS_RANDOM",
     "SPURIOUS_STATIC",
     "Scenario",

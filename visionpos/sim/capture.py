@@ -12,7 +12,8 @@ Model per camera frame k (see scenario.py for the parameters):
   blobs           markers in the field of view, facing the camera and not behind any
                   body's occluder disc, projected through the camera model, with
                   Gaussian centroid noise; overlapping images merge; plus static floor
-                  reflections and random glints; shuffled, unlabeled; float32 (N, 4)
+                  reflections, random glints and (glossy floor) mirror images of the
+                  markers; shuffled, unlabeled; float32 (N, 4)
                   [x, y, area, peak]; area and peak from the marker's projected
                   diameter and range. Dropped frames are not emitted (seq skips).
 """
@@ -33,6 +34,7 @@ from visionpos.sim.trajectories import Motion
 CHUNK_S = 0.5  # frames are generated in windows of nominal exposure time this long
 SPURIOUS_STATIC = -1  # FrameTruth.marker for a fixed floor reflection (body is -1)
 SPURIOUS_RANDOM = -2  # FrameTruth.marker for a one-frame glint (body is -1)
+SPURIOUS_MIRROR = -3  # FrameTruth.marker for a marker's mirror image in a glossy floor (body is -1)
 
 
 @dataclass(frozen=True, slots=True)
@@ -41,7 +43,7 @@ class FrameTruth:
 
     body (N,) int: index into scenario.bodies, -1 for a spurious blob.
     marker (N,) int: marker index in that body; for spurious blobs
-      SPURIOUS_STATIC (-1) or SPURIOUS_RANDOM (-2).
+      SPURIOUS_STATIC (-1), SPURIOUS_RANDOM (-2) or SPURIOUS_MIRROR (-3).
     true_xy (N, 2): noise-free pixel (for merged blobs the weighted mean of
       the true pixels of the parts). merged (N,) bool.
     true_ns: exact exposure time; station_ns: the station's raw clock then.
@@ -270,9 +272,9 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
     world, normals, diam, b_idx, m_idx, cutoff = [], [], [], [], [], []
     discs = []
     for bi, b in enumerate(s.bodies):
-        mo = b.trajectory.sample_ns(true_ns, s.start_ns)
-        R = mo.rotations.as_matrix()  # (K, 3, 3)
-        world.append(np.einsum("kij,mj->kmi", R, b.markers) + mo.positions[:, None, :])
+        pos, rot = b.trajectory.pose((true_ns - s.start_ns).astype(np.float64) * 1e-9)
+        R = rot.as_matrix()  # (K, 3, 3)
+        world.append(np.einsum("kij,mj->kmi", R, b.markers) + pos[:, None, :])
         normals.append(np.einsum("kij,mj->kmi", R, b.normals))
         M = len(b.markers)
         diam.append(np.full(M, b.marker_diameter))
@@ -280,7 +282,7 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
         m_idx.append(np.arange(M))
         cutoff.append(np.full(M, b.normal_cutoff_cos))
         if s.occlusion and b.disc_radius > 0:
-            discs.append((mo.positions, R[:, :, 2], b.disc_radius))
+            discs.append((pos, R[:, :, 2], b.disc_radius))
     if world:
         W = np.concatenate(world, axis=1)
         N = np.concatenate(normals, axis=1)
@@ -317,6 +319,24 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
     true_xy = uv
     xy = uv + rng.normal(0.0, s.centroid_noise_px, uv.shape) if s.centroid_noise_px > 0 else uv.copy()
     body_col, marker_col = b_idx_a[mi], m_idx_a[mi]
+
+    # ---- glossy floor: every marker above it also shows as a dimmer mirror image
+    if s.floor_mirror > 0 and Mt:
+        Wm = W * np.array([1.0, 1.0, -1.0])
+        vis_m = cam.visible(Wm.reshape(-1, 3)).reshape(K, Mt) & (W[:, :, 2] > 0) & ~drop[:, None]
+        fm, mm = np.nonzero(vis_m)
+        if len(fm):
+            uv_m, d_m, r_m = marker_geometry(cam, Wm[fm, mm], diam_m[mm])
+            a_m, p_m = blob_photometry(s, d_m, r_m)
+            noise_m = rng.normal(0.0, s.centroid_noise_px, uv_m.shape) if s.centroid_noise_px > 0 else 0.0
+            fi = np.concatenate([fi, fm])
+            true_xy = np.vstack([true_xy, uv_m])
+            xy = np.vstack([xy, uv_m + noise_m])
+            area = np.concatenate([area, a_m])
+            peak = np.concatenate([peak, np.maximum(p_m * s.floor_mirror, 1.0)])
+            dpx = np.concatenate([dpx, d_m])
+            body_col = np.concatenate([body_col, np.full(len(fm), -1)])
+            marker_col = np.concatenate([marker_col, np.full(len(fm), SPURIOUS_MIRROR)])
 
     # ---- spurious blobs: static reflections in every frame, Poisson glints
     keep = np.nonzero(~drop)[0]
@@ -357,6 +377,7 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
     fi, xy, true_xy, area, peak, dpx = fi[order], xy[order], true_xy[order], area[order], peak[order], dpx[order]
     body_col, marker_col = body_col[order], marker_col[order]
     bounds = np.searchsorted(fi, np.arange(K + 1))
+    needs_merge = _touching_frames(xy, dpx, bounds) if s.merge_blobs else np.zeros(K, bool)
 
     out = []
     for j in range(K):
@@ -368,7 +389,7 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
         fxy, ftrue, farea, fpeak = xy[a:b], true_xy[a:b], area[a:b], peak[a:b]
         fbody, fmark, fd = body_col[a:b], marker_col[a:b], dpx[a:b]
         merged = np.zeros(b - a, bool)
-        if s.merge_blobs and b - a > 1:
+        if needs_merge[j]:
             fxy, ftrue, farea, fpeak, fbody, fmark, merged = _merge(fxy, ftrue, farea, fpeak, fbody, fmark, fd)
         flags = 0
         if len(fxy) > s.max_blobs:
@@ -396,6 +417,27 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
         )  # fmt: skip
         out.append((frame, truth))
     return out
+
+
+def _touching_frames(xy: np.ndarray, dpx: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """(K,) bool: frame has two blobs whose discs overlap. xy (N, 2) and dpx (N,)
+    sorted by frame; frame j owns rows bounds[j]:bounds[j+1]."""
+    counts = np.diff(bounds)
+    K = len(counts)
+    if K == 0 or counts.max(initial=0) < 2:
+        return np.zeros(K, bool)
+    nmax = int(counts.max())
+    pos = np.arange(len(xy)) - np.repeat(bounds[:-1], counts)
+    frame = np.repeat(np.arange(K), counts)
+    P = np.full((K, nmax, 2), np.nan)
+    D = np.zeros((K, nmax))
+    P[frame, pos] = xy
+    D[frame, pos] = dpx
+    d = np.linalg.norm(P[:, :, None] - P[:, None], axis=3)
+    with np.errstate(invalid="ignore"):
+        touch = d < (D[:, :, None] + D[:, None]) / 2
+    touch[:, np.arange(nmax), np.arange(nmax)] = False
+    return touch.any(axis=(1, 2))
 
 
 def _merge(xy, true_xy, area, peak, body, marker, dpx):

@@ -29,7 +29,9 @@ The `sim` section (all keys optional; defaults in brackets):
   latency_ms: {mean [4], std [0.5], max [15]}: exposure -> server receive,
       gamma distributed, clipped at max
   spurious: {static_per_camera [2]: fixed floor reflections of the IR ring
-      seen every frame, random_per_frame [0.02]: mean one-frame glints}
+      seen every frame, random_per_frame [0.02]: mean one-frame glints,
+      floor_mirror [0]: brightness ratio of the markers' mirror images in a
+      glossy floor (0 = matte floor; 0.3 = polished concrete)}
   occlusion: {enabled [true], disc_radius [0.05] m: a disc in the body's
       x-y plane at its origin (hub, battery) that hides markers of any body
       behind it, normal_cutoff_deg [105]: a marker is seen only from
@@ -39,7 +41,8 @@ The `sim` section (all keys optional; defaults in brackets):
   brightness: {peak_at_1m [1000]: blob peak (0-255 scale, clipped) of a
       marker 1 m away, falling with range^2, min_peak [20]}
   merge_blobs: markers whose images overlap become one blob [true]
-  max_blobs: a station sends at most this many blobs (FLAG_TRUNCATED) [64]
+  max_blobs: a station sends at most this many blobs (FLAG_TRUNCATED) [64];
+      at most visionpos.protocol.MAX_BLOBS_PER_PACKET (one datagram)
   cameras: {camera_id: {fps, phase_ms, drop_probability, enabled}}
       per-camera overrides
 """
@@ -53,6 +56,7 @@ from typing import Any
 import numpy as np
 
 from visionpos.camera import Camera
+from visionpos.protocol import MAX_BLOBS_PER_PACKET
 from visionpos.config import (
     ArenaConfig,
     BodyConfig,
@@ -167,6 +171,7 @@ class Scenario:
     latency_max_ns: float
     static_spurious_per_camera: int
     random_spurious_per_frame: float
+    floor_mirror: float
     occlusion: bool
     peak_at_1m: float
     min_peak: float
@@ -381,7 +386,7 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
     lat = sim.sub("latency_ms")
     spur = sim.sub("spurious")
     bright = sim.sub("brightness")
-    for sec, keys in ((lat, {"mean", "std", "max"}), (spur, {"static_per_camera", "random_per_frame"}), (bright, {"peak_at_1m", "min_peak"})):
+    for sec, keys in ((lat, {"mean", "std", "max"}), (spur, {"static_per_camera", "random_per_frame", "floor_mirror"}), (bright, {"peak_at_1m", "min_peak"})):
         extra = sorted(set(sec.data) - keys)
         if extra:
             raise sec.error(extra[0], f"unknown key; known keys: {sorted(keys)}")
@@ -404,11 +409,12 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
         latency_max_ns=lat_max * 1e6,
         static_spurious_per_camera=spur.integer("static_per_camera", 2, min=0, max=1000),
         random_spurious_per_frame=spur.number("random_per_frame", 0.02, min=0.0, max=1000.0),
+        floor_mirror=spur.number("floor_mirror", 0.0, min=0.0, max=1.0),
         occlusion=occ_enabled,
         peak_at_1m=bright.number("peak_at_1m", 1000.0, min=1.0),
         min_peak=bright.number("min_peak", 20.0, min=0.0, max=255.0),
         merge_blobs=sim.boolean("merge_blobs", True),
-        max_blobs=sim.integer("max_blobs", 64, min=1, max=100000),
+        max_blobs=sim.integer("max_blobs", 64, min=1, max=MAX_BLOBS_PER_PACKET),
         raw=raw_sim,
     )
 

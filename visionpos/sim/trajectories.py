@@ -81,6 +81,11 @@ class Trajectory:
         omega = (r_minus.inv() * r_plus).as_rotvec() / (2 * h)
         return Motion(p, rot.as_quat(), v, omega)
 
+    def pose(self, t: Any) -> tuple[np.ndarray, Rotation]:
+        """Positions (T, 3) and body->world rotations (T,) only (cheaper than __call__)."""
+        t = _as_times(t)
+        return self.kinematics(t)[0], self.attitude(t)
+
     def sample_ns(self, times_ns: Any, start_ns: int) -> Motion:
         """Sample at int64 times (T,) ns on the server clock given the scenario start."""
         t = (np.asarray(times_ns, dtype=np.int64) - np.int64(start_ns)).astype(np.float64) * 1e-9
