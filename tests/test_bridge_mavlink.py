@@ -1,0 +1,393 @@
+"""The MAVLink bridge on 127.0.0.1 against the pymavlink fake autopilot.
+
+Expected values are hand-computed from the frame conventions (world z-up,
+body FLU -> NED / FRD), never taken from the bridge's own conversion code.
+"""
+
+import math
+import os
+import socket
+import time
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import common as mavlink2
+
+from bridge import Bridge
+from bridge.fake_autopilot import FakeAutopilot, decode_pose
+from bridge.testing import arena_with_vehicles, body_state, free_port
+
+S45 = math.sqrt(0.5)
+YAW_LEFT_90 = (0.0, 0.0, S45, S45)
+VPE, ODO, VSE = "VISION_POSITION_ESTIMATE", "ODOMETRY", "VISION_SPEED_ESTIMATE"
+
+
+def start_pair(tmp_path=None, ap_kw=None, **vehicle):
+    """A started Bridge with one vehicle on udpin and a fake autopilot pointed at it (heard by the bridge)."""
+    port = free_port()
+    v = {"body": "body1", "sysid": 1, "endpoint": f"udpin:127.0.0.1:{port}", "max_age_ms": 10000}
+    v.update(vehicle)
+    bridge = Bridge(arena_with_vehicles([v]), {"report_interval_s": 0})
+    bridge.start()
+    ap = FakeAutopilot(f"udpout:127.0.0.1:{port}", sysid=v["sysid"], **(ap_kw or {})).start()
+    assert ap.wait_for("HEARTBEAT", 1, 5.0), "bridge never answered the autopilot's heartbeat"
+    return bridge, ap
+
+
+def feed(bridge, states):
+    for st in states:
+        bridge.publish([st])
+        assert bridge.flush(2.0)
+
+
+def test_vision_position_estimate_fields():
+    bridge, ap = start_pair()
+    try:
+        C = np.diag([1e-4, 2e-4, 3e-4, 4e-4, 5e-4, 6e-4])
+        C[0, 1] = C[1, 0] = 0.5e-4
+        st = body_state(position=(1, 2, 3), quaternion=YAW_LEFT_90, covariance=C, reset_counter=3)
+        feed(bridge, [st])
+        assert ap.wait_for(VPE, 1)
+        m = ap.messages(VPE)[0]
+        f = m.fields
+        assert (m.src_system, m.src_component) == (1, 197)
+        assert f["usec"] == st.capture_ns // 1000  # boot time base: server monotonic clock in us
+        assert (f["x"], f["y"], f["z"]) == pytest.approx((1, -2, -3), abs=1e-6)
+        assert (f["roll"], f["pitch"], f["yaw"]) == pytest.approx((0, 0, -math.pi / 2), abs=1e-6)
+        assert f["covariance"][0] == pytest.approx(1e-4) and f["covariance"][1] == pytest.approx(-0.5e-4)
+        assert f["covariance"][6] == pytest.approx(2e-4) and f["covariance"][20] == pytest.approx(6e-4)
+        assert f["reset_counter"] == 3
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_odometry_fields():
+    bridge, ap = start_pair(message="odometry")
+    try:
+        st = body_state(position=(1, 2, 3), quaternion=YAW_LEFT_90, velocity=(0, 2, 0), angular_velocity=(0, 0, 0.5))
+        feed(bridge, [st])
+        assert ap.wait_for(ODO, 1)
+        f = ap.messages(ODO)[0].fields
+        assert (f["frame_id"], f["child_frame_id"], f["estimator_type"]) == (20, 12, 2)
+        assert f["time_usec"] == st.capture_ns // 1000
+        assert (f["x"], f["y"], f["z"]) == pytest.approx((1, -2, -3), abs=1e-6)
+        assert list(f["q"]) == pytest.approx([S45, 0, 0, -S45], abs=1e-6)  # w, x, y, z: yaw -90 deg
+        # moving along world +y while facing +y: straight forward in FRD
+        assert (f["vx"], f["vy"], f["vz"]) == pytest.approx((2, 0, 0), abs=1e-6)
+        assert (f["rollspeed"], f["pitchspeed"], f["yawspeed"]) == pytest.approx((0, 0, -0.5), abs=1e-6)
+        assert f["velocity_covariance"][0] == pytest.approx(1e-4)
+        assert f["pose_covariance"][0] == pytest.approx(1e-6)
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_vision_speed_estimate_option():
+    bridge, ap = start_pair(vision_speed=True)
+    try:
+        feed(bridge, [body_state(velocity=(1, 2, 3))])
+        assert ap.wait_for(VSE, 1)
+        f = ap.messages(VSE)[0].fields
+        assert (f["x"], f["y"], f["z"]) == pytest.approx((1, -2, -3), abs=1e-6)
+        assert f["usec"] == ap.messages(VPE)[0].fields["usec"]
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_rate_limit_50hz_from_100hz():
+    bridge, ap = start_pair()
+    try:
+        t0 = time.monotonic_ns()
+        states = [body_state(capture_ns=t0 + i * 10_000_000, position=(i * 0.01, 0, 1)) for i in range(100)]
+        feed(bridge, states)
+        assert ap.wait_for(VPE, 50, 5.0)
+        time.sleep(0.1)
+        got = [m.fields["usec"] for m in ap.messages(VPE)]
+        assert got == [(t0 + i * 10_000_000) // 1000 for i in range(0, 100, 2)]
+        s = bridge.stats()["vehicles"]["body1"]
+        assert (s["sent"], s["rate_limited"]) == (50, 50)
+        assert ap.report()["stamps_closer_than_20ms"] == 0
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_stop_on_loss_and_no_frozen_resend():
+    bridge, ap = start_pair()
+    try:
+        t0 = time.monotonic_ns()
+        feed(bridge, [body_state(capture_ns=t0)])
+        feed(bridge, [body_state(capture_ns=t0)] * 3)  # frozen: same capture
+        feed(bridge, [body_state(capture_ns=t0 + i * 30_000_000, tracked=False) for i in range(1, 5)])
+        feed(bridge, [body_state(capture_ns=t0 + 200_000_000)])
+        assert ap.wait_for(VPE, 2)
+        time.sleep(0.1)
+        assert [m.fields["usec"] for m in ap.messages(VPE)] == [t0 // 1000, (t0 + 200_000_000) // 1000]
+        s = bridge.stats()["vehicles"]["body1"]
+        assert (s["frozen"], s["not_tracked"], s["sent"]) == (3, 4, 2)
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_stale_state_dropped():
+    bridge, ap = start_pair(max_age_ms=100)
+    try:
+        feed(bridge, [body_state(capture_ns=time.monotonic_ns() - 2_000_000_000)])
+        feed(bridge, [body_state()])
+        assert ap.wait_for(VPE, 1)
+        time.sleep(0.05)
+        assert len(ap.messages(VPE)) == 1
+        assert bridge.stats()["vehicles"]["body1"]["dropped_stale"] == 1
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_reset_counter_only_on_discontinuity():
+    bridge, ap = start_pair()
+    try:
+        t0 = time.monotonic_ns()
+        ms = 1_000_000
+        feed(bridge, [body_state(capture_ns=t0, reset_counter=0)])
+        feed(bridge, [body_state(capture_ns=t0 + 30 * ms, tracked=False)])  # dropout
+        feed(bridge, [body_state(capture_ns=t0 + 60 * ms, reset_counter=0)])  # back: same counter
+        feed(bridge, [body_state(capture_ns=t0 + 90 * ms, reset_counter=1)])  # server re-based: +1
+        bridge.vehicle("body1").reset()  # origin / alignment changed in the bridge: +1
+        feed(bridge, [body_state(capture_ns=t0 + 120 * ms, reset_counter=1)])
+        feed(bridge, [body_state(capture_ns=t0 + 150 * ms, reset_counter=255)])  # wraps modulo 256
+        assert ap.wait_for(VPE, 5)
+        assert [m.fields["reset_counter"] for m in ap.messages(VPE)] == [0, 0, 1, 2, 0]
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_heartbeat_identity_and_timesync():
+    bridge, ap = start_pair(sysid=7, ap_kw={"timesync_hz": 20})
+    try:
+        assert ap.wait_for("TIMESYNC", 3, 5.0)
+        hb = ap.messages("HEARTBEAT")[0]
+        assert (hb.src_system, hb.src_component) == (7, 197)
+        assert hb.fields["type"] == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER
+        assert hb.fields["autopilot"] == mavlink2.MAV_AUTOPILOT_INVALID
+        r = ap.report()
+        assert r["timesync_replies"] >= 3
+        # the bridge's tc1 is the server monotonic clock in ns: same clock as ours, offset within the round trip
+        rtt, offset = np.array(ap.timesync_samples[-1], dtype=float)
+        assert abs(offset) <= rtt
+        assert bridge.stats()["vehicles"]["body1"]["timesync_answered"] >= 3
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_epoch_time_base_consistent_with_timesync():
+    bridge, ap = start_pair(time_base="epoch", ap_kw={"timesync_hz": 20})
+    try:
+        st = body_state()
+        feed(bridge, [st])
+        assert ap.wait_for(VPE, 1) and ap.wait_for("TIMESYNC", 1)
+        shift_ns = time.time_ns() - time.monotonic_ns()
+        assert abs(ap.messages(VPE)[0].fields["usec"] - (st.capture_ns + shift_ns) // 1000) < 50_000
+        rtt, offset = ap.timesync_samples[-1]
+        assert abs(offset - shift_ns) < 50_000_000  # tc1 on the same epoch base as usec
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_two_vehicles_no_cross_talk():
+    pa, pb = free_port(), free_port()
+    arena = arena_with_vehicles([
+        {"body": "body1", "sysid": 1, "endpoint": f"udpin:127.0.0.1:{pa}"},
+        {"body": "body2", "sysid": 2, "endpoint": f"udpin:127.0.0.1:{pb}", "message": "odometry"},
+    ])
+    bridge = Bridge(arena, {"report_interval_s": 0})
+    bridge.start()
+    aps = [FakeAutopilot(f"udpout:127.0.0.1:{p}", sysid=s).start() for p, s in ((pa, 1), (pb, 2))]
+    # a third system sending to body1's port with another sysid must not be answered
+    intruder = FakeAutopilot(f"udpout:127.0.0.1:{pa}", sysid=9, heartbeat_hz=20).start()
+    try:
+        assert aps[0].wait_for("HEARTBEAT", 1) and aps[1].wait_for("HEARTBEAT", 1)
+        assert intruder.wait_for("HEARTBEAT", 1, 0.3) is False
+        t0 = time.monotonic_ns()
+        for i in range(10):
+            c = t0 + i * 20_000_000
+            bridge.publish([body_state("body1", 1, capture_ns=c, position=(1, 0, 0)),
+                            body_state("body2", 2, capture_ns=c, position=(0, 5, 0))])
+            assert bridge.flush(2.0)
+        assert aps[0].wait_for(VPE, 10) and aps[1].wait_for(ODO, 10)
+        time.sleep(0.1)
+        a, b = aps[0].received, aps[1].received
+        assert {r.src_system for r in a} == {1} and {r.src_system for r in b} == {2}
+        assert not aps[0].messages(ODO) and not aps[1].messages(VPE)
+        assert all(decode_pose(r)["position_ned"].tolist() == [1, 0, 0] for r in aps[0].messages(VPE))
+        assert all(decode_pose(r)["position_ned"].tolist() == [0, -5, 0] for r in aps[1].messages(ODO))
+        assert intruder.received == []
+        assert bridge.stats()["vehicles"]["body1"]["rx_foreign"] > 0
+    finally:
+        bridge.close()
+        for ap in aps + [intruder]:
+            ap.close()
+
+
+def _write_key(tmp_path, name, text):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_signing_accepted_and_rejected(tmp_path):
+    import hashlib
+
+    key_file = _write_key(tmp_path, "fleet.key", "correct horse battery staple\n")
+    key = hashlib.sha256(b"correct horse battery staple").digest()  # MAVProxy's passphrase -> key rule
+    # udpout: the bridge sends whether or not it can verify the autopilot, so a wrong key shows up at the receiver
+    good, bad = (FakeAutopilot("udpin:127.0.0.1:0", sysid=s, signing_key=k, timesync_hz=0).start()
+                 for s, k in ((1, key), (2, hashlib.sha256(b"another fleet").digest())))
+    arena = arena_with_vehicles([
+        {"body": "body1", "sysid": 1, "endpoint": f"udpout:127.0.0.1:{good.port}", "signing": {"key_file": str(key_file)}},
+        {"body": "body2", "sysid": 2, "endpoint": f"udpout:127.0.0.1:{bad.port}", "signing": {"key_file": str(key_file)}},
+    ])
+    bridge = Bridge(arena, {"report_interval_s": 0})
+    bridge.start()
+    try:
+        t0 = time.monotonic_ns()
+        for i in range(5):
+            c = t0 + i * 20_000_000
+            bridge.publish([body_state("body1", 1, capture_ns=c), body_state("body2", 2, capture_ns=c)])
+            assert bridge.flush(2.0)
+        assert good.wait_for(VPE, 5)
+        assert all(r.signed for r in good.received)
+        deadline = time.monotonic() + 2.0
+        while bad.rejected_signature < 6 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert bad.rejected_signature >= 6 and bad.received == []  # 5 poses + heartbeat, all refused
+        # the bridge verifies what the autopilot signs: good's heartbeats are accepted, none rejected
+        assert bridge.stats()["vehicles"]["body1"]["rx_bad"] == 0
+    finally:
+        bridge.close()
+        good.close()
+        bad.close()
+
+
+def test_signing_key_file_forms(tmp_path):
+    from bridge.config import load_signing_key
+
+    raw = bytes(range(32))
+    (tmp_path / "raw").write_bytes(raw)
+    (tmp_path / "hex").write_text(raw.hex() + "\n")
+    assert load_signing_key(tmp_path / "raw") == raw
+    assert load_signing_key(tmp_path / "hex") == raw
+
+
+def test_origin_and_home_target_the_vehicle():
+    bridge, ap = start_pair(sysid=3, origin={"lat": 47.397742, "lon": 8.545594, "alt": 488.0})
+    try:
+        assert ap.wait_for("SET_GPS_GLOBAL_ORIGIN", 1) and ap.wait_for("SET_HOME_POSITION", 1)
+        o = ap.messages("SET_GPS_GLOBAL_ORIGIN")[0].fields
+        h = ap.messages("SET_HOME_POSITION")[0].fields
+        assert (o["target_system"], o["latitude"], o["longitude"], o["altitude"]) == (3, 473977420, 85455940, 488000)
+        assert (h["target_system"], h["latitude"], h["longitude"], h["altitude"]) == (3, 473977420, 85455940, 488000)
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_tcp_reconnects_with_backoff():
+    port = free_port(socket.SOCK_STREAM)
+    arena = arena_with_vehicles([{"body": "body1", "sysid": 1, "endpoint": f"tcp:127.0.0.1:{port}",
+                                  "reconnect_min_s": 0.05, "reconnect_max_s": 0.2}])
+    bridge = Bridge(arena, {"report_interval_s": 0})
+    bridge.start()
+    aps = []
+    try:
+        deadline = time.monotonic() + 3
+        while bridge.stats()["vehicles"]["body1"]["link_errors"] < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert bridge.stats()["vehicles"]["body1"]["link_errors"] >= 2  # nobody listening yet
+        for round_ in range(2):
+            ap = FakeAutopilot(f"tcpin:127.0.0.1:{port}", sysid=1, timesync_hz=0).start()
+            aps.append(ap)
+            deadline = time.monotonic() + 5
+            while not ap.messages(VPE) and time.monotonic() < deadline:
+                bridge.publish([body_state()])
+                time.sleep(0.025)
+            assert ap.messages(VPE), f"no pose over tcp in round {round_}"
+            assert decode_pose(ap.messages(VPE)[0])["position_ned"].tolist() == [0, 0, 0]
+            ap.close()  # the autopilot goes away; the bridge must come back to the next one
+        assert bridge.stats()["vehicles"]["body1"]["reconnects"] >= 1
+    finally:
+        bridge.close()
+        for ap in aps:
+            ap.close()
+
+
+def test_serial_link_over_pty():
+    pytest.importorskip("serial")
+    master, slave = os.openpty()
+    try:
+        arena = arena_with_vehicles([{"body": "body1", "sysid": 4, "endpoint": f"serial:{os.ttyname(slave)}:115200"}])
+        bridge = Bridge(arena, {"report_interval_s": 0})
+        bridge.start()
+        parser = mavlink2.MAVLink(None)
+        os.set_blocking(master, False)
+        got = []
+        try:
+            deadline = time.monotonic() + 5
+            while not any(m.get_type() == VPE for m in got) and time.monotonic() < deadline:
+                bridge.publish([body_state(position=(0, 1, 0))])
+                time.sleep(0.025)
+                try:
+                    got += parser.parse_buffer(os.read(master, 4096)) or []
+                except BlockingIOError:
+                    pass
+        finally:
+            bridge.close()
+        poses = [m for m in got if m.get_type() == VPE]
+        assert poses and (poses[0].get_srcSystem(), poses[0].get_srcComponent()) == (4, 197)
+        assert (poses[0].x, poses[0].y, poses[0].z) == pytest.approx((0, -1, 0))
+        assert any(m.get_type() == "HEARTBEAT" for m in got)
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def test_publish_never_blocks_on_a_dead_link():
+    # nobody ever answers on udpin: publish keeps only the newest state, nothing is sent
+    bridge = Bridge(arena_with_vehicles([{"body": "body1", "endpoint": f"udpin:127.0.0.1:{free_port()}"}]),
+                    {"report_interval_s": 0})
+    bridge.start()
+    try:
+        t0 = time.monotonic_ns()
+        for i in range(200):
+            bridge.publish([body_state(capture_ns=t0 + i * 10_000_000)])
+        assert bridge.flush(2.0)
+        s = bridge.stats()["vehicles"]["body1"]
+        assert s["sent"] == 0 and s["link_up"] is False
+        # every state is either superseded in the mailbox or counted as having no link
+        assert s["superseded"] + s["no_link"] + s["rate_limited"] == 200
+    finally:
+        bridge.close()
+
+
+def test_latency_advice_printed():
+    lines = []
+    port = free_port()
+    arena = arena_with_vehicles([{"body": "body1", "endpoint": f"udpin:127.0.0.1:{port}"}])
+    bridge = Bridge(arena, {"report_interval_s": 3600, "report": lines.append})
+    bridge.start()
+    ap = FakeAutopilot(f"udpout:127.0.0.1:{port}", sysid=1).start()
+    try:
+        assert ap.wait_for("HEARTBEAT", 1)
+        feed(bridge, [body_state(capture_ns=time.monotonic_ns() - 15_000_000)])
+        assert ap.wait_for(VPE, 1)
+    finally:
+        bridge.close()
+        ap.close()
+    assert lines and "VISO_DELAY_MS=" in lines[-1] and "EKF2_EV_DELAY" in lines[-1]
+    lat = bridge.stats()["vehicles"]["body1"]["latency_capture_ms_p50"]
+    assert lat >= 15.0  # the state was captured 15 ms before it was published
