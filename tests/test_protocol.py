@@ -1,0 +1,196 @@
+"""Station protocol: byte layout against docs/protocol.md, round trips, rejections."""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from visionpos import protocol as P
+from visionpos.messages import FLAG_TRUNCATED, BlobFrame
+
+KEY = b"0123456789abcdef-shared"
+
+
+def _frame(n=3, seq=7, cap=123456789012345, flags=0, sid=2, cid=3):
+    blobs = np.arange(n * 4, dtype=np.float32).reshape(n, 4) + 0.25
+    return BlobFrame(cid, seq, cap, blobs, sid, flags)
+
+
+def test_frame_bytes_match_the_documented_layout():
+    """Build the worked example of docs/protocol.md by hand with struct and compare."""
+    blobs = np.array([[320.25, 240.5, 12, 200], [100.0, 50.75, 6, 150]], np.float32)
+    f = BlobFrame(3, 1000, 1_700_000_000_123_456_789, blobs, 2, 0)
+    expect = b"VPOS" + bytes([1, 1, 0, 0]) + struct.pack("<HHHH", 2, 3, 48, 0)
+    expect += struct.pack("<IHHq", 1000, 0, 2, 1_700_000_000_123_456_789)
+    expect += struct.pack("<8f", 320.25, 240.5, 12, 200, 100.0, 50.75, 6, 150)
+    assert P.encode_frame(f) == expect
+    hexdump = (
+        "56504f53010100000200030030000000e80300000000020015cd853dfe9c9717"
+        "0020a043008070430000404100004843" "0000c84200004b420000c04000001643"
+    )
+    assert expect.hex() == hexdump  # the hex printed in docs/protocol.md
+    signed = P.encode_frame(f, b"example-key")
+    body = bytearray(expect)
+    body[6] = 1
+    tag = hmac.new(b"example-key", bytes(body), hashlib.sha256).digest()[:16]
+    assert signed == bytes(body) + tag
+    assert tag.hex() == "0bed310e233470c6e3dcbade5b4845f1"
+
+
+blob_arrays = st.integers(0, P.MAX_BLOBS_PER_PACKET).flatmap(
+    lambda n: st.lists(
+        st.floats(-1e4, 1e4, allow_nan=False, width=32), min_size=4 * n, max_size=4 * n
+    ).map(lambda v: np.array(v, np.float32).reshape(-1, 4))
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    blobs=blob_arrays,
+    seq=st.integers(0, 2**32 - 1),
+    cap=st.integers(-(2**63), 2**63 - 1),
+    flags=st.integers(0, 0xFFFF),
+    sid=st.integers(0, 0xFFFF),
+    cid=st.integers(0, 0xFFFF),
+    signed=st.booleans(),
+)
+def test_frame_round_trip(blobs, seq, cap, flags, sid, cid, signed):
+    key = KEY if signed else None
+    f = BlobFrame(cid, seq, cap, blobs, sid, flags)
+    data = P.encode(f, key)
+    assert len(data) <= P.MAX_PACKET_BYTES
+    g = P.decode(data, key, recv_ns=99)
+    assert (g.camera_id, g.seq, g.capture_ns, g.station_id, g.flags, g.recv_ns) == (cid, seq, cap, sid, flags, 99)
+    assert g.blobs.shape == (len(blobs), 4) and g.blobs.dtype == np.float32
+    np.testing.assert_array_equal(g.blobs, blobs)
+
+
+i64 = st.integers(-(2**63), 2**63 - 1)
+u32 = st.integers(0, 2**32 - 1)
+u16 = st.integers(0, 0xFFFF)
+text = st.text(alphabet=st.characters(min_codepoint=33, max_codepoint=126), max_size=16)
+
+messages = st.one_of(
+    st.builds(P.Hello, u16, u16, u32, u16, u16, st.floats(0, 1000, width=32), st.sampled_from(P.CAMERA_KINDS),
+              text, text, st.sampled_from([P.TIMEBASE_SERVER, P.TIMEBASE_REALTIME])),
+    st.builds(P.HelloAck, u16, u16, u32, i64, i64, st.sampled_from([0, 1, 2]), st.integers(0, 2**63 - 1)),
+    st.builds(P.Heartbeat, u16, u16, u32, u32, u16, u32, u32, u32, i64, st.integers(-1, 2**63 - 1),
+              st.integers(-(2**31), 2**31 - 1),
+              st.one_of(st.none(), st.integers(-30000, 30000).map(lambda c: c / 100.0)), i64),
+    st.builds(P.SyncRequest, u16, u16, i64, u32),
+    st.builds(P.SyncReply, u16, u16, i64, i64, i64, u32),
+    st.builds(P.Bye, u16, u16, u32),
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(msg=messages, signed=st.booleans())
+def test_message_round_trip(msg, signed):
+    key = KEY if signed else None
+    assert P.decode(P.encode(msg, key), key) == msg
+
+
+def test_body_sizes_as_documented():
+    sizes = {
+        P.Hello(1, 2, 3, 4, 5, 6.0): 64,
+        P.HelloAck(1, 2, 3, 4, 5): 32,
+        P.Heartbeat(1, 2, 3): 56,
+        P.SyncRequest(1, 2, 3): 16,
+        P.SyncReply(1, 2, 3, 4, 5): 32,
+        P.Bye(1, 2, 3): 8,
+    }
+    for msg, body in sizes.items():
+        data = P.encode(msg)
+        assert len(data) == 16 + body
+        assert struct.unpack_from("<H", data, 12)[0] == body
+
+
+def test_full_signed_frame_fits_one_datagram():
+    f = _frame(n=P.MAX_BLOBS_PER_PACKET)
+    assert len(P.encode(f, KEY)) <= 1472
+    with pytest.raises(P.ProtocolError, match="89 blobs; at most 88 fit"):
+        P.encode(_frame(n=P.MAX_BLOBS_PER_PACKET + 1))
+
+
+@pytest.mark.parametrize(
+    "mutate, pattern",
+    [
+        (lambda d: d[:10], "truncated packet: 10 bytes"),
+        (lambda d: d[:-4], "truncated packet"),
+        (lambda d: d + b"\0", "trailing bytes"),
+        (lambda d: d + b"\0" * 1500, "oversize packet"),
+        (lambda d: b"XPOS" + d[4:], "bad magic"),
+        (lambda d: d[:4] + b"\x02" + d[5:], "protocol version 2 unsupported.*upgrade"),
+        (lambda d: d[:4] + b"\x00" + d[5:], "protocol version 0 unsupported"),
+        (lambda d: d[:5] + b"\x09" + d[6:], "unknown message type 9"),
+        (lambda d: d[:22] + struct.pack("<H", 5) + d[24:], "blob count 5 does not match"),
+    ],
+)
+def test_malformed_packets_are_rejected_with_a_reason(mutate, pattern):
+    data = P.encode(_frame())
+    with pytest.raises(P.ProtocolError, match=pattern):
+        P.decode(mutate(data))
+
+
+def test_authentication():
+    f = _frame()
+    signed = P.encode(f, KEY)
+    assert P.decode(signed, KEY).seq == f.seq
+    assert P.decode(signed).seq == f.seq  # no key here: tag skipped
+    with pytest.raises(P.ProtocolError, match="bad signature.*shared key"):
+        P.decode(signed, b"another key, wrong one")
+    with pytest.raises(P.ProtocolError, match="unsigned packet rejected"):
+        P.decode(P.encode(f), KEY)
+    tampered = bytearray(signed)
+    tampered[24] ^= 1  # capture time
+    with pytest.raises(P.ProtocolError, match="bad signature"):
+        P.decode(bytes(tampered), KEY)
+    # clearing the SIGNED flag and dropping the tag must not pass either
+    stripped = bytearray(signed[:-16])
+    stripped[6] = 0
+    with pytest.raises(P.ProtocolError, match="unsigned"):
+        P.decode(bytes(stripped), KEY)
+
+
+def test_decoded_blobs_do_not_alias_a_reused_buffer():
+    buf = bytearray(P.encode(_frame()))
+    g = P.decode(buf)
+    before = g.blobs.copy()
+    buf[32:48] = b"\xff" * 16
+    np.testing.assert_array_equal(g.blobs, before)
+
+
+def test_encode_rejects_out_of_range_fields():
+    with pytest.raises(P.ProtocolError, match="seq=4294967296 out of range"):
+        P.encode(_frame(seq=2**32))
+    with pytest.raises(P.ProtocolError, match="camera_id"):
+        P.encode(_frame(cid=70000))
+    with pytest.raises(P.ProtocolError, match="camera_name"):
+        P.encode(P.Hello(1, 2, 3, 4, 5, 6.0, camera_name="x" * 40))
+    with pytest.raises(P.ProtocolError, match="shape"):
+        P.encode(BlobFrame(1, 1, 1, np.zeros((3, 3), np.float32)))
+
+
+def test_server_helpers():
+    req = P.SyncRequest(4, 5, 1000, 17)
+    rep = P.make_sync_reply(req, 2000, 2100)
+    assert rep == P.SyncReply(4, 5, 1000, 2000, 2100, 17)
+    hello = P.Hello(4, 5, 0xDEADBEEF, 960, 640, 100.0)
+    ack = P.make_hello_ack(hello, start_ns=10**12, server_ns=10**12 + 5)
+    assert (ack.session, ack.start_ns, ack.status) == (0xDEADBEEF, 10**12, P.ACK_OK)
+    assert P.seq_delta(5, 4) == 1
+    assert P.seq_delta(0, 2**32 - 1) == 1  # wrap-around
+    assert P.seq_delta(4, 5) == -1
+    assert P.seq_delta(7, 7) == 0
+    assert P.server_time_from_realtime(1_700_000_000_000_000_000, 1_700_000_000_500_000_000, 3_000_000_000) == 2_500_000_000
+
+
+def test_truncated_flag_survives():
+    f = _frame(flags=FLAG_TRUNCATED)
+    assert P.decode(P.encode(f)).flags & FLAG_TRUNCATED
