@@ -297,3 +297,63 @@ def test_serve_bad_config_names_the_key(tmp_path):
     proc = _serve(["serve", "--config", str(bad), "--port", "0"], tmp_path)
     _, stderr = proc.communicate(timeout=30)
     assert proc.returncode == 2 and "server.keyfile" in stderr and "unknown key" in stderr
+
+
+def test_server_stall_is_not_a_vanished_station():
+    """Frames queued in the socket while the loop was blocked count as arrived, not as silence."""
+    import threading
+
+    from visionpos.ingest import Ingest
+
+    arena = load_config_with_overrides("thesis", ["server.vanish_min_s=0.2", "server.vanish_periods=2"])
+    pushed = []
+
+    class Frames:  # what ingest hands on (no fusion involved)
+        def push(self, f):
+            pushed.append(f.camera_id)
+
+        def remove_camera(self, cid):
+            pushed.append(-cid)
+
+    async def main():
+        ing = Ingest(arena, pipeline=Frames())
+        await ing.start("127.0.0.1", 0)
+        stop_all, stop_cam1 = threading.Event(), threading.Event()
+
+        def station():
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+                seq = 0
+                while not stop_all.is_set():
+                    for cam in (1, 2):
+                        if cam == 1 and stop_cam1.is_set():
+                            continue
+                        f = BlobFrame(cam, seq, time.monotonic_ns() - 2 * MS, np.zeros((1, 4), np.float32), cam)
+                        s.sendto(P.encode_frame(f), ("127.0.0.1", ing.port))
+                    seq += 1
+                    time.sleep(0.01)
+
+        th = threading.Thread(target=station, daemon=True)
+        th.start()
+        try:
+            await asyncio.sleep(0.3)
+            time.sleep(0.6)  # the loop stalls (a slow step) while stations keep sending
+            stalled = ing.check_vanished(time.monotonic_ns())
+            await asyncio.sleep(0.1)  # drain the backlog
+            after_drain = ing.check_vanished(time.monotonic_ns())
+            stop_cam1.set()
+            gone = []
+            for _ in range(100):  # bounded: 2 s at most
+                await asyncio.sleep(0.02)
+                gone += ing.check_vanished(time.monotonic_ns())
+                if gone:
+                    break
+            return stalled, after_drain, gone, ing.health()
+        finally:
+            stop_all.set()
+            th.join(5)
+            ing.close()
+
+    stalled, after_drain, gone, health = asyncio.run(main())
+    assert stalled == [] and after_drain == []
+    assert gone == [1] and -1 in pushed and -2 not in pushed
+    assert health["cameras"][2]["online"] and health["cameras"][2]["vanished"] == 0

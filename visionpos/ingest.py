@@ -276,6 +276,7 @@ class Ingest:
         self._rt_minus_mono = 0
         self._rt_update_ns = 0
         self.sock: socket.socket | None = None
+        self._drained_ns = 0  # when the socket was last read empty
         self._loop: asyncio.AbstractEventLoop | None = None
         self.port: int | None = None
         self.set_start()
@@ -593,14 +594,19 @@ class Ingest:
         return int(max(self.settings.vanish_periods * period, self.settings.vanish_min_s) * 1e9)
 
     def check_vanished(self, now_ns: int) -> list[int]:
-        """Mark cameras silent for longer than their vanish timeout as gone; returns their ids."""
+        """Mark cameras silent for longer than their vanish timeout as gone; returns their ids.
+
+        Live, silence is judged at the last moment the socket was found empty: when the server
+        itself stalls, the frames still queued in the socket must not make every camera "vanish".
+        """
+        ref = min(now_ns, self._drained_ns) if self.sock is not None else now_ns
         gone = []
         for cam in self.cameras.values():
-            if cam.online and now_ns - cam.last_frame_ns > self.vanish_timeout_ns(cam):
+            if cam.online and ref - cam.last_frame_ns > self.vanish_timeout_ns(cam):
                 cam.online = False
                 cam.vanished += 1
                 gone.append(cam.camera_id)
-                self._remove(cam, f"no frames for {(now_ns - cam.last_frame_ns) * 1e-6:.0f} ms")
+                self._remove(cam, f"no frames for {(ref - cam.last_frame_ns) * 1e-6:.0f} ms")
         return gone
 
     def _remove(self, cam: CameraHealth, why: str) -> None:
@@ -689,6 +695,7 @@ class Ingest:
             try:
                 data, addr = sock.recvfrom(65536)
             except (BlockingIOError, InterruptedError):
+                self._drained_ns = clock()
                 return
             except OSError as e:  # ICMP errors from stations that went away surface here
                 log.debug("udp receive error: %s", e)

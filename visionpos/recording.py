@@ -26,6 +26,7 @@ never touches the disk: records are appended to an in-memory spool under a lock.
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
 import logging
 import math
@@ -262,6 +263,8 @@ class RecordingWriter:
         self._stop = threading.Event()
         self._flusher = threading.Thread(target=self._flush_loop, name=f"mcap-flush:{self.path.name}", daemon=True)
         self._flusher.start()
+        # an interpreter exiting without close() (an exception in the server) still ends the file cleanly
+        atexit.register(self.close)
 
     # -- context manager
     def __enter__(self) -> "RecordingWriter":
@@ -358,6 +361,7 @@ class RecordingWriter:
         """Write the summary and footer and close. Idempotent; nothing already written is lost."""
         if self._closed:
             return
+        atexit.unregister(self.close)
         self._stop.set()
         self._flusher.join()
         with self._lock:
