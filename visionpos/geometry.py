@@ -100,6 +100,12 @@ class CameraRig:
         self.any_pinhole = bool((~self.fisheye).any())
         # pinhole with zero distortion needs no polynomial at all
         self.pinhole_plain = not self.any_fisheye and not np.any(self.kp)
+        # coefficient-major contiguous copies (whole rig, and each model's own views) so
+        # that each coefficient broadcasts from a contiguous (V,) row
+        self._kpT = np.ascontiguousarray(self.kp.T)
+        self._kfT = np.ascontiguousarray(self.kf.T)
+        self._kpT_own = np.ascontiguousarray(self.kp[self.pinhole_idx].T)
+        self._kfT_own = np.ascontiguousarray(self.kf[self.fisheye_idx].T)
 
     def distort(self, xn: np.ndarray, with_jac: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Normalised coords (..., V, 2) -> pixels (..., V, 2) and d pixels / d xn (..., V, 2, 2)."""
@@ -115,8 +121,8 @@ class CameraRig:
             # mixed rig: run each model on its own views only
             fi, pi = self.fisheye_idx, self.pinhole_idx
             xd = np.empty_like(xn)
-            xd_f, J_f = _fisheye_distort_b(xn[..., fi, :], self.kf[fi], with_jac)
-            xd_p, J_p = _pinhole_distort_b(xn[..., pi, :], self.kp[pi], with_jac)
+            xd_f, J_f = _fisheye_distort_b(xn[..., fi, :], self._kfT_own, with_jac)
+            xd_p, J_p = _pinhole_distort_b(xn[..., pi, :], self._kpT_own, with_jac)
             xd[..., fi, :] = xd_f
             xd[..., pi, :] = xd_p
             J = None
@@ -125,9 +131,9 @@ class CameraRig:
                 J[..., fi, :, :] = J_f
                 J[..., pi, :, :] = J_p
         elif self.any_fisheye:
-            xd, J = _fisheye_distort_b(xn, self.kf, with_jac)
+            xd, J = _fisheye_distort_b(xn, self._kfT, with_jac)
         else:
-            xd, J = _pinhole_distort_b(xn, self.kp, with_jac)
+            xd, J = _pinhole_distort_b(xn, self._kpT, with_jac)
         uv = xd * self.f + self.c
         if with_jac:
             J = J * self.f[:, :, None]
@@ -142,12 +148,12 @@ class CameraRig:
         if self.any_pinhole and self.any_fisheye:
             fi, pi = self.fisheye_idx, self.pinhole_idx
             out = np.empty_like(xd)
-            out[..., fi, :] = _fisheye_undistort_b(xd[..., fi, :], self.kf[fi], iterations, tol)
-            out[..., pi, :] = _pinhole_undistort_b(xd[..., pi, :], self.kp[pi], iterations, tol)
+            out[..., fi, :] = _fisheye_undistort_b(xd[..., fi, :], self._kfT_own, iterations, tol)
+            out[..., pi, :] = _pinhole_undistort_b(xd[..., pi, :], self._kpT_own, iterations, tol)
             return out
         if self.any_fisheye:
-            return _fisheye_undistort_b(xd, self.kf, iterations, tol)
-        return _pinhole_undistort_b(xd, self.kp, iterations, tol)
+            return _fisheye_undistort_b(xd, self._kfT, iterations, tol)
+        return _pinhole_undistort_b(xd, self._kpT, iterations, tol)
 
     def project(self, points: np.ndarray, offsets: np.ndarray | None = None) -> np.ndarray:
         """World points (P, 3) -> pixels (P, V, 2); NaN behind a camera. offsets (P, V, 3)
@@ -183,9 +189,10 @@ def _as_rig(cameras: Sequence[Camera] | CameraRig) -> CameraRig:
     return rig
 
 
-def _pinhole_distort_b(xn: np.ndarray, kp: np.ndarray, with_jac: bool):
-    """OpenCV rational/tangential distortion, coefficients broadcast per view: xn (..., V, 2), kp (V, 8)."""
-    k1, k2, p1, p2, k3, k4, k5, k6 = kp.T
+def _pinhole_distort_b(xn: np.ndarray, kT: np.ndarray, with_jac: bool):
+    """OpenCV rational/tangential distortion, coefficients broadcast per view: xn (..., V, 2),
+    kT (8, V) = (k1, k2, p1, p2, k3, k4, k5, k6) rows."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = kT
     x, y = xn[..., 0], xn[..., 1]
     xx, yy, xy = x * x, y * y, x * y
     r2 = xx + yy
@@ -208,9 +215,9 @@ def _pinhole_distort_b(xn: np.ndarray, kp: np.ndarray, with_jac: bool):
     return xd, J
 
 
-def _fisheye_distort_b(xn: np.ndarray, kf: np.ndarray, with_jac: bool):
-    """Kannala-Brandt distortion, coefficients per view: xn (..., V, 2), kf (V, 4)."""
-    k1, k2, k3, k4 = kf.T
+def _fisheye_distort_b(xn: np.ndarray, kT: np.ndarray, with_jac: bool):
+    """Kannala-Brandt distortion, coefficients per view: xn (..., V, 2), kT (4, V) = (k1..k4) rows."""
+    k1, k2, k3, k4 = kT
     r2 = (xn * xn).sum(axis=-1)
     # clamp so the on-axis point needs no special case: s -> 1 there, and the
     # cancellation in dsr for tiny r is multiplied by xn xn^T ~ r^2 below
@@ -229,16 +236,17 @@ def _fisheye_distort_b(xn: np.ndarray, kf: np.ndarray, with_jac: bool):
     return xd, J
 
 
-def _pinhole_undistort_b(xd: np.ndarray, kp: np.ndarray, iterations: int, tol: float = 1e-15) -> np.ndarray:
-    if not np.any(kp):
+def _pinhole_undistort_b(xd: np.ndarray, kT: np.ndarray, iterations: int, tol: float = 1e-15) -> np.ndarray:
+    """Inverse of _pinhole_distort_b by Newton's method; kT (8, V)."""
+    if not np.any(kT):
         return xd.copy()
     # seed: one fixed-point step x = xd / radial(xd) (radial part only), ~2 Newton steps saved
-    k1, k2, _, _, k3, k4, k5, k6 = kp.T
+    k1, k2, _, _, k3, k4, k5, k6 = kT
     r2 = (xd * xd).sum(axis=-1)
     rad = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
     x = xd / np.maximum(rad, 0.25)[..., None]
     for _ in range(iterations):
-        f, J = _pinhole_distort_b(x, kp, True)
+        f, J = _pinhole_distort_b(x, kT, True)
         r = f - xd
         det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
         dx = (J[..., 1, 1] * r[..., 0] - J[..., 0, 1] * r[..., 1]) / det
@@ -250,8 +258,9 @@ def _pinhole_undistort_b(xd: np.ndarray, kp: np.ndarray, iterations: int, tol: f
     return x
 
 
-def _fisheye_undistort_b(xd: np.ndarray, kf: np.ndarray, iterations: int, tol: float = 1e-15) -> np.ndarray:
-    k1, k2, k3, k4 = kf.T
+def _fisheye_undistort_b(xd: np.ndarray, kT: np.ndarray, iterations: int, tol: float = 1e-15) -> np.ndarray:
+    """Inverse of _fisheye_distort_b by Newton's method on theta; kT (4, V)."""
+    k1, k2, k3, k4 = kT
     rd = np.sqrt(xd[..., 0] ** 2 + xd[..., 1] ** 2)
     # start from the cubic approximation r ~ theta (1 + k1 theta^2): about 3 Newton steps fewer
     th = np.minimum(rd / np.maximum(1.0 + k1 * rd * rd, 0.5), np.pi / 2 - 1e-6)
