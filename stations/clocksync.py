@@ -74,6 +74,7 @@ class ClockEstimator:
         self.min_samples = min_samples
         self.min_drift_span_ns = int(min_drift_span_s * 1e9)
         self.max_delay_ns = max_delay_ns
+        self.tau_fraction = 0.25
         self._samples: deque[tuple[int, int, int]] = deque(maxlen=window)  # (t_mid, offset, delay)
         self._estimate: ClockEstimate | None = None
         self.rejected = 0
@@ -118,7 +119,7 @@ class ClockEstimator:
         d = best[:, 2].astype(np.float64)
         dmin = float(d.min())
         # weight by closeness to the best delay: queueing adds error ~ (d - dmin) / 2
-        w = 1.0 / (1.0 + ((d - dmin) / max(dmin, 1000.0)) ** 2)
+        w = 1.0 / (1.0 + ((d - dmin) / max(self.tau_fraction * dmin, 10_000.0)) ** 2)
         span = float(t.max() - t.min())
         fit_drift = span >= self.min_drift_span_ns and k >= 6
         slope = 0.0
@@ -209,9 +210,10 @@ class ClockSync:
     def reply(self, msg: SyncReply, t4_ns: int) -> bool:
         """Feed a reply received at station time t4_ns; False if it answers no
         outstanding request (late, duplicate or forged) or is implausible."""
-        t1 = self._outstanding.pop(msg.seq, None)
+        t1 = self._outstanding.get(msg.seq)
         if t1 is None or t1 != msg.t1_ns:
             return False
+        del self._outstanding[msg.seq]
         ok = self.estimator.add(t1, msg.t2_ns, msg.t3_ns, t4_ns)
         self._accepted += ok
         return ok
