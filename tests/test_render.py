@@ -88,14 +88,15 @@ def test_out_of_view_markers_have_no_centre_and_no_light():
 
 
 def test_sensor_noise_background_gradient_and_saturation():
-    rng = np.random.default_rng(0)
-    img = render_blobs(400, 300, np.array([[200.0, 150.0]]), [20.0], [2000.0], rng,
-                       background=20.0, electrons_per_dn=4.0, read_noise_dn=1.5)  # fmt: skip
-    assert img.dtype == np.uint8 and img.shape == (300, 400)
-    bg = img[:, :100].astype(float)
-    assert bg.mean() == pytest.approx(20.0, abs=0.1)
-    assert bg.std() == pytest.approx(np.sqrt(20.0 / 4.0 + 1.5**2 + 1 / 12), rel=0.05)
-    assert (img[145:156, 195:206] == 255).all()  # a bright marker saturates flat
+    for model in ("gaussian", "poisson"):
+        rng = np.random.default_rng(0)
+        img = render_blobs(400, 300, np.array([[200.0, 150.0]]), [20.0], [2000.0], rng, noise_model=model,
+                           background=20.0, electrons_per_dn=4.0, read_noise_dn=1.5)  # fmt: skip
+        assert img.dtype == np.uint8 and img.shape == (300, 400)
+        bg = img[:, :100].astype(float)
+        assert bg.mean() == pytest.approx(20.0, abs=0.1)
+        assert bg.std() == pytest.approx(np.sqrt(20.0 / 4.0 + 1.5**2 + 1 / 12), rel=0.05)
+        assert (img[145:156, 195:206] == 255).all()  # a bright marker saturates flat
     g = render_blobs(400, 300, np.zeros((0, 2)), [], [], None, background=10.0, gradient=(40.0, 0.0), quantize=False)
     assert g[:, -1].mean() - g[:, 0].mean() == pytest.approx(40.0 * 399 / 400)
     # determinism from the generator
@@ -109,3 +110,22 @@ def test_bad_input_is_rejected():
         render_blobs(10, 10, np.array([[5.0, 5.0]]), [-1.0], [100.0])
     with pytest.raises(ValueError, match="image size"):
         render_blobs(0, 10, np.zeros((0, 2)), [], [])
+
+
+def test_sim_frame_image_has_its_blobs_where_the_truth_says():
+    from visionpos.sim import load_scenario, simulate
+    from visionpos.sim.render import render_sim_frame
+
+    sc = load_scenario("thesis", duration=0.05, centroid_noise_px=0.0)
+    res = simulate(sc)
+    f, tr = next((f, tr) for f, tr in zip(res.frames, res.frame_truth) if len(f.blobs) >= 4)
+    img = render_sim_frame(sc, f, tr, None, background=0.0, quantize=False).astype(float)
+    assert img.shape == (640, 960)
+    for j in np.nonzero(~tr.merged)[0]:
+        x, y = tr.true_xy[j]
+        r = int(np.ceil(np.sqrt(f.blobs[j, 2] / np.pi) + 4))
+        x0, y0 = int(round(x)) - r, int(round(y)) - r
+        win = img[max(y0, 0) : y0 + 2 * r + 1, max(x0, 0) : x0 + 2 * r + 1]
+        ys, xs = np.mgrid[: win.shape[0], : win.shape[1]]
+        c = np.array([(win * xs).sum(), (win * ys).sum()]) / win.sum() + [max(x0, 0), max(y0, 0)]
+        assert np.abs(c - tr.true_xy[j]).max() < 0.01
