@@ -11,7 +11,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
@@ -301,7 +301,7 @@ def _two_view(rng, n=40):
 def test_cheirality_picks_true_pose(seed):
     rng = np.random.default_rng(seed)
     x1, x2, R, t = _two_view(rng)
-    assert len(x1) >= 8 and np.linalg.norm(t) > 0.05
+    assume(len(x1) >= 8 and np.linalg.norm(t) > 0.05)  # a usable configuration (nearly always)
     tu = t / np.linalg.norm(t)
     for E in (skew(t) @ R, -3.0 * skew(t) @ R, essential_from_points(x1, x2)[0]):
         Re, te, front = decompose_essential(E, x1, x2)
