@@ -65,7 +65,7 @@ def test_round_trip(tmp_path):
             w.write_state(s)
         for k in range(10)[::-1]:  # out of order on purpose: truth() sorts by time
             w.write_truth(int(t_truth[k]), "drone", p_truth[k], q_truth[k])
-        w.write_json("/events", 5, {"kind": "station_lost", "camera": 3})
+        w.write_json("/events", 5, {"kind": "station_lost", "camera": 3, "latency": np.float64("nan")})
         with pytest.raises(ValueError):
             w.write_json(TOPIC_STATES, 1, {})
     r = RecordingReader(path)
@@ -90,7 +90,7 @@ def test_round_trip(tmp_path):
     np.testing.assert_array_equal(tr["drone"][0], t_truth)
     np.testing.assert_array_equal(tr["drone"][1], p_truth)
     np.testing.assert_array_equal(tr["drone"][2], q_truth)
-    assert list(r.json("/events")) == [(5, {"kind": "station_lost", "camera": 3})]
+    assert list(r.json("/events")) == [(5, {"kind": "station_lost", "camera": 3, "latency": None})]
 
 
 def test_readable_by_plain_mcap_reader(tmp_path):

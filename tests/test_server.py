@@ -22,7 +22,7 @@ import pytest
 from visionpos import protocol as P
 from visionpos.messages import BlobFrame
 from visionpos.recording import RecordingDamagedWarning, RecordingReader, RecordingWriter
-from visionpos.server import FusionServer, load_config_with_overrides
+from visionpos.server import FusionServer, default_sinks, load_config_with_overrides
 
 ROOT = Path(__file__).resolve().parents[1]
 MS = 1_000_000
@@ -81,13 +81,18 @@ def test_tracking_continues_after_station_vanishes():
     sim = pytest.importorskip("visionpos.sim")
     res = sim.simulate(sc)
     frames = res.frames_by_recv()
-    arena = load_config_with_overrides("thesis", SIM_SET + SERVER_SET)
+    # the vehicle output goes to a local UDP socket: the bridge is plugged in as the config asks
+    autopilot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    autopilot.bind(("127.0.0.1", 0))
+    autopilot.settimeout(0.01)
+    vehicles = [f"vehicles=[{{body: quad, endpoint: 'udpout:127.0.0.1:{autopilot.getsockname()[1]}'}}]"]
+    arena = load_config_with_overrides("thesis", SIM_SET + SERVER_SET + vehicles)
     cut_ns = sc.start_ns + 1_500 * MS  # camera 2 goes silent half-way through
 
     async def main():
         loop = asyncio.get_running_loop()
         sink = Collect()
-        server = FusionServer(arena, sinks=[sink], port=0)
+        server = FusionServer(arena, sinks=[sink, *default_sinks(arena)], port=0)
         await server.start()
         try:
             socks = await _station_sockets(loop, server.port, [1, 2, 3, 4])
@@ -106,10 +111,19 @@ def test_tracking_continues_after_station_vanishes():
             await server.stop()
 
     sink, health, offset = asyncio.run(main())
+    mav = []
+    try:
+        while True:
+            mav.append(autopilot.recv(2048))
+    except (socket.timeout, BlockingIOError):
+        pass
+    autopilot.close()
+    assert len(mav) > 10 and all(m[0] == 0xFD for m in mav)  # MAVLink 2 frames reached the "autopilot"
     cams = health["cameras"]
     assert cams[2]["vanished"] >= 1 and not cams[2]["online"]
     assert health["pipeline"]["removed_camera"] >= 1
     assert health["malformed"] == 0 and health["unknown"] == 0 and health["sink_errors"] == {}
+    assert "Bridge" in health["sinks"]
     assert all(cams[c]["frames"] > 0 for c in (1, 3, 4))
     # outputs after camera 2 went away: judged against simulator truth at the time each claims
     after = [s for tick in sink.ticks for s in tick if s.time_ns - offset > cut_ns + 700 * MS]

@@ -108,7 +108,7 @@ class RecordingDamagedWarning(UserWarning):
 
 
 def _plain(obj: Any) -> Any:
-    """numpy scalars/arrays -> plain Python, so YAML/JSON can hold them."""
+    """numpy scalars/arrays -> plain Python, NaN/inf -> None, so YAML/JSON can hold them."""
     if isinstance(obj, dict):
         return {k: _plain(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
@@ -116,7 +116,9 @@ def _plain(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         return _plain(obj.tolist())
     if isinstance(obj, np.generic):
-        return obj.item()
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None  # strict JSON (Foxglove) has no NaN/inf
     return obj
 
 
