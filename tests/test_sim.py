@@ -462,3 +462,21 @@ def test_sim_cli_writes_a_replayable_recording(tmp_path, capsys):
     truth = reader.truth()
     assert set(truth) == {"quad"} and len(truth["quad"][0]) == int(sc.truth_rate_hz) + 1
     assert reader.config["sim"]["centroid_noise_px"] == 0.1
+
+
+def test_per_camera_overrides_and_endless_stream():
+    sim = dict(QUIET, duration=1.0, cameras={2: {"fps": 50, "phase_ms": 3.0}, "4": {"enabled": False}})
+    sc = scenario_from_arena(_arena_with(sim))
+    assert [t.camera_id for t in sc.timings] == [1, 2, 3]
+    t2 = sc.timings[1]
+    assert t2.fps == 50 and t2.phase_ns == 3e6
+    res = simulate(sc)
+    n = {c: len(v) for c, v in res.frames_by_camera().items()}
+    assert n[2] == 50 and n[1] == 100
+    first2 = min(tr.true_ns for f, tr in zip(res.frames, res.frame_truth) if f.camera_id == 2)
+    assert first2 == sc.start_ns + 3_000_000
+    # live use: an endless stream keeps going past the scenario's duration, in order
+    stream = iter_frames(sc, duration_s=float("inf"))
+    frames = list(itertools.islice(stream, 1000))
+    caps = [f.capture_ns for f in frames]
+    assert caps == sorted(caps) and caps[-1] - sc.start_ns > 3.5e9
