@@ -40,6 +40,8 @@ __all__ = [
     "frd_to_flu",
     "quat_world_body_to_ned_frd",
     "quat_ned_frd_to_world_body",
+    "rotation_world_body_to_ned_frd",
+    "euler_ned_frd",
 ]
 
 
