@@ -51,19 +51,19 @@ class DetectorConfig:
 
 
 def background_level(image: np.ndarray, step: int = 8) -> tuple[float, float]:
-    """Robust background (median) and noise sigma (1.4826 MAD) of a uint8 image
-    from every step-th row and column. image: (H, W) uint8 -> (median, sigma)."""
-    sub = np.ascontiguousarray(image[::step, ::step])
-    hist = cv2.calcHist([sub], [0], None, [256], [0, 256]).ravel()
-    cdf = np.cumsum(hist)
-    half = cdf[-1] / 2.0
-    med = float(np.searchsorted(cdf, half))
-    # MAD from the histogram of |v - med|
-    dev = np.abs(np.arange(256) - med)
-    order = np.argsort(dev, kind="stable")
-    mad = float(dev[order[np.searchsorted(np.cumsum(hist[order]), half)]])
+    """Robust background (median) and pixel noise sigma of a uint8 image, from
+    every step-th row and column. The sigma comes from differences of
+    horizontally adjacent pixels (1.4826 MAD / sqrt 2), so lighting gradients
+    and vignetting do not inflate it. image: (H, W) uint8 -> (median, sigma)."""
+    sub = image[::step, ::step]
+    med = float(np.median(sub))
+    a = image[::step, 0:-1:step].astype(np.int16)
+    b = image[::step, 1::step].astype(np.int16)
+    n = min(a.shape[1], b.shape[1])
+    diff = np.abs(a[:, :n] - b[:, :n])
+    mad = float(np.median(diff))
     # integer images: MAD of 0 happens at very low noise; 0.5 DN is the quantisation floor
-    return med, 1.4826 * max(mad, 0.5)
+    return med, 1.4826 * max(mad, 0.5) / np.sqrt(2.0)
 
 
 def auto_threshold(image: np.ndarray, k: float, min_contrast: float) -> float:
@@ -114,6 +114,16 @@ class Detector:
                 raise ValueError(f"detector {name} is {ref.shape[::-1]} px but the frame is {image.shape[::-1]} px")
         return np.ascontiguousarray(image)
 
+    def _contours(self, img: np.ndarray) -> tuple:
+        if self._bin is None or self._bin.shape != img.shape:
+            self._bin = np.empty_like(img)
+        binary = self._bin
+        cv2.threshold(img, float(self.threshold), 255, cv2.THRESH_BINARY, dst=binary)
+        if self.mask is not None:
+            cv2.bitwise_and(binary, self.mask, dst=binary)
+        contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        return contours
+
     def detect(self, image: np.ndarray) -> tuple[np.ndarray, int]:
         """image: (H, W) uint8 -> (blobs (N, 4) float32 [x, y, area, peak], flags).
 
@@ -128,17 +138,16 @@ class Detector:
                 self._sub = np.empty_like(img)
             cv2.subtract(img, self.background, dst=self._sub)
             img = self._sub
+        fresh = False
         if cfg.threshold is None and (self.threshold is None or self._frames % max(cfg.auto_every, 1) == 0):
             self.threshold = auto_threshold(img, cfg.auto_k, cfg.min_contrast)
+            fresh = True
         self._frames += 1
-        thr = float(self.threshold)
-        if self._bin is None or self._bin.shape != img.shape:
-            self._bin = np.empty_like(img)
-        binary = self._bin
-        cv2.threshold(img, thr, 255, cv2.THRESH_BINARY, dst=binary)
-        if self.mask is not None:
-            cv2.bitwise_and(binary, self.mask, dst=binary)
-        contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        contours = self._contours(img)
+        if cfg.threshold is None and not fresh and len(contours) > 2 * cfg.max_blobs:
+            # the scene changed since the threshold was estimated (lights on): redo it now
+            self.threshold = auto_threshold(img, cfg.auto_k, cfg.min_contrast)
+            contours = self._contours(img)
         self.last_candidates = len(contours)
         if not contours:
             return np.zeros((0, 4), np.float32), 0
