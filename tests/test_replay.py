@@ -92,11 +92,11 @@ def test_replay_is_byte_identical_across_runs_and_processes(thesis_log, tmp_path
     from visionpos.cli import main
 
     a, b = tmp_path / "a", tmp_path / "b"
-    assert main(["replay", str(thesis_log), "--out", str(a)]) == 0
+    assert main(["replay", str(thesis_log), "--out", str(a), "--no-plots"]) == 0
     # a second run in a fresh interpreter with another hash seed: no hidden global or ordering state
     env = dict(os.environ, PYTHONHASHSEED="12345")
     proc = subprocess.run(
-        [sys.executable, "-m", "visionpos", "replay", str(thesis_log), "--out", str(b), "--speed", "max"],
+        [sys.executable, "-m", "visionpos", "replay", str(thesis_log), "--out", str(b), "--speed", "max", "--no-plots"],
         env=env, capture_output=True, text=True, timeout=120,
     )
     assert proc.returncode == 0, proc.stderr
@@ -132,8 +132,11 @@ def test_replay_writes_metrics_json_and_changes_with_settings(thesis_log, tmp_pa
 
     a, b = tmp_path / "a", tmp_path / "b"
     assert main(["replay", str(thesis_log), "--out", str(a), "--json"]) == 0
-    assert main(["replay", str(thesis_log), "--out", str(b), "--set", "server.output_rate_hz=50"]) == 0
+    assert main(["replay", str(thesis_log), "--out", str(b), "--no-plots", "--set", "server.output_rate_hz=50"]) == 0
     summ = json.loads((a / "metrics.json").read_text())
+    for png in ("trajectory.png", "errors.png", "latency.png"):
+        assert (a / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not (b / "trajectory.png").exists()
     assert summ["has_truth"] is True
     assert summ["bodies"][0]["name"] == "quad"
     # 50 Hz output: about half the rows of the 100 Hz replay

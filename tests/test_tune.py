@@ -73,3 +73,20 @@ def test_tune_ranks_motion_compensation_first_on_aggressive_flight(aggressive_lo
     assert [r[1] for r in rows] == ["motion_compensated", "naive"]
     rmse = [float(r[2]) for r in rows]
     assert rmse[0] < 0.7 * rmse[1]
+
+
+def test_tune_ranks_a_sane_residual_gate_above_one_that_rejects_real_markers(tmp_path, capsys):
+    """Centroid noise 0.5 px: a 0.05 px residual gate throws away real markers and loses the
+    body; the default 2 px gate keeps them. The known best is 2.0 whatever the fusion tuning."""
+    from visionpos.cli import main
+    from visionpos.tune import sweep
+
+    log = tmp_path / "noisy.mcap"
+    rc = main(["sim", "--scenario", "thesis", "--duration", "2", "--seed", "7", "--set", "sim.centroid_noise_px=0.5",
+               "--out", str(log)])
+    assert rc == 0
+    capsys.readouterr()
+    ranked = sweep(str(log), [("fusion.max_residual_px", [0.05, 2.0])], progress=False)
+    assert [t.point["fusion.max_residual_px"] for t in ranked] == [2.0, 0.05]
+    assert ranked[0].has_truth and ranked[0].tracked_fraction > 0.9
+    assert ranked[1].tracked_fraction < 0.9 * ranked[0].tracked_fraction

@@ -390,6 +390,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate", type=float, default=None, metavar="HZ", help="output tick rate (default: server.output_rate_hz or 100)")
     p.add_argument("--out", default="replay_out", metavar="DIR", help="output folder (default ./replay_out)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots (faster; no matplotlib needed)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -401,10 +402,11 @@ def run(args: argparse.Namespace) -> int:
     (out / "metrics.json").write_text(json.dumps(summ, indent=2, sort_keys=True) + "\n")
     written.append(out / "metrics.json")
     note = None
-    try:
-        written += write_plots(res, out)
-    except ImportError as e:
-        note = str(e)
+    if not args.no_plots:
+        try:
+            written += write_plots(res, out)
+        except ImportError as e:  # plots extra not installed: everything else is written
+            note = str(e)
     if args.json:
         print(json.dumps(summ, indent=2, sort_keys=True))
     else:

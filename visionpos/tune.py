@@ -201,7 +201,7 @@ def table(ranked: list[TrialResult]) -> str:
             jitter=t.jitter_mm,
             p50=t.latency_p50_ms,
             p99=t.latency_p99_ms,
-            note=t.error or "",
+            note="failed (see below)" if t.error else "",
         )
         rows.append(r)
     truth = any(t.has_truth for t in ranked)
@@ -240,7 +240,16 @@ def run(args: argparse.Namespace) -> int:
         ]
         print(json.dumps(out, indent=2))
     else:
-        basis = "mean position RMSE" if any(t.has_truth for t in ranked) else "jitter + latency (no ground truth in log)"
+        if any(t.has_truth for t in ranked):
+            basis = "mean position RMSE (settings that lose tracking last)"
+        else:
+            basis = "jitter + latency relative to the best (the log has no ground truth)"
         print(f"ranked by {basis}; best first")
         print(table(ranked))
+        errors: dict[str, list[str]] = {}
+        for t in ranked:
+            if t.error:
+                errors.setdefault(t.error, []).append(" ".join(f"{k}={v}" for k, v in t.point.items()))
+        for err, pts in errors.items():
+            print(f"failed ({len(pts)}x, e.g. {pts[0]}): {err}")
     return 1 if all(t.error for t in ranked) else 0
