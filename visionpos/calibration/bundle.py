@@ -111,42 +111,6 @@ def pair_pose(
     return R, lam * t_unit, good, lam, flat
 
 
-def chain_cameras(
-    pairs: list[PairPose], V: int, ref: int, names: list[str]
-) -> tuple[np.ndarray, np.ndarray]:
-    """Maximum spanning tree (weight = inlier frames) from camera `ref`.
-
-    Returns R (V,3,3), t (V,3) world (= ref camera) -> camera. Raises CalibrationError
-    naming cameras the tree cannot reach.
-    """
-    R = np.full((V, 3, 3), np.nan)
-    t = np.full((V, 3), np.nan)
-    R[ref] = np.eye(3)
-    t[ref] = 0.0
-    done = {ref}
-    edges = {}
-    for p in pairs:
-        edges[(p.i, p.j)] = (p.inliers, p.R, p.t)
-        edges[(p.j, p.i)] = (p.inliers, p.R.T, -p.R.T @ p.t)
-    while len(done) < V:
-        best = None
-        for (a, b), (w, Rab, tab) in edges.items():
-            if a in done and b not in done and (best is None or w > best[0]):
-                best = (w, a, b, Rab, tab)
-        if best is None:
-            missing = [names[v] for v in range(V) if v not in done]
-            raise CalibrationError(
-                f"camera(s) {', '.join(missing)} share too few wand frames with the cameras "
-                f"{', '.join(names[v] for v in sorted(done))}: wave the wand where each of them and at least "
-                "one already-connected camera see it at the same time"
-            )
-        _, a, b, Rab, tab = best
-        R[b] = Rab @ R[a]
-        t[b] = Rab @ t[a] + tab
-        done.add(b)
-    return R, t
-
-
 def undistort_wand(data: WandData) -> np.ndarray:
     """(F, V, 3, 2) pixels -> normalised coordinates (NaN stays NaN)."""
     rig = CameraRig(data.cameras)
@@ -161,7 +125,10 @@ def initial_poses(
 ) -> tuple[np.ndarray, np.ndarray, list[PairPose]]:
     """Pairwise essential matrices + Eq. 2.18 scale, chained by a spanning tree.
 
-    Returns R (V,3,3), t (V,3) (world = camera `ref`) and the pair results.
+    The tree is grown from camera `ref` (Prim), always over the unused pair that
+    shares the most wand frames; a pair's pose is only estimated when the tree
+    needs it, and a pair that fails is passed over for the next best one.
+    Returns R (V,3,3), t (V,3) (world = camera `ref`) and the pairs used.
     """
     xn = undistort_wand(data)
     seen = data.seen
@@ -169,25 +136,64 @@ def initial_poses(
     names = [c.name for c in data.cameras]
     f_mean = np.mean([0.5 * (c.model.fx + c.model.fy) for c in data.cameras])
     threshold = 2.0 / f_mean
-    pairs: list[PairPose] = []
-    todo = [(i, j) for i in range(V) for j in range(i + 1, V) if (seen[:, i] & seen[:, j]).sum() >= min_shared]
-    for k, (i, j) in enumerate(todo):
-        both = seen[:, i] & seen[:, j]
-        try:
-            R, tt, good, lam, flat = pair_pose(xn[both, i], xn[both, j], spec, threshold)
-        except (CalibrationError, ValueError) as e:
-            log.info("pair %s-%s skipped: %s", names[i], names[j], e)
-            progress("pairs", k + 1, len(todo))
-            continue
-        pairs.append(PairPose(i, j, R, tt, int(both.sum()), int(good.sum()), lam, flat))
-        progress("pairs", k + 1, len(todo))
-    if pairs and max(p.flatness for p in pairs) < 0.03:
-        raise CalibrationError(
-            "degenerate wand motion: every camera pair saw the wand markers in (nearly) one plane; "
-            "wave the wand through the whole volume, up and down as well as sideways, tilting it"
+    shared = np.einsum("fi,fj->ij", seen.astype(np.int64), seen.astype(np.int64))
+    tried: dict[tuple[int, int], PairPose | None] = {}
+    failures: list[str] = []
+
+    def pair(i: int, j: int) -> PairPose | None:
+        key = (min(i, j), max(i, j))
+        if key not in tried:
+            a, b = key
+            both = seen[:, a] & seen[:, b]
+            try:
+                R, tt, good, lam, flat = pair_pose(xn[both, a], xn[both, b], spec, threshold)
+                tried[key] = PairPose(a, b, R, tt, int(both.sum()), int(good.sum()), lam, flat)
+            except (CalibrationError, ValueError) as e:
+                failures.append(f"{names[a]}-{names[b]}: {e}")
+                tried[key] = None
+        return tried[key]
+
+    R = np.full((V, 3, 3), np.nan)
+    t = np.full((V, 3), np.nan)
+    R[ref], t[ref] = np.eye(3), np.zeros(3)
+    done = [ref]
+    used: list[PairPose] = []
+    while len(done) < V:
+        cand = sorted(
+            ((shared[a, b], a, b) for a in done for b in range(V) if b not in done and shared[a, b] >= min_shared),
+            reverse=True,
         )
-    R, t = chain_cameras(pairs, V, ref, names)
-    return R, t, pairs
+        attached = False
+        for _, a, b in cand:
+            p = pair(a, b)
+            if p is None:
+                continue
+            if p.flatness < 0.03:
+                raise CalibrationError(
+                    f"degenerate wand motion: cameras {names[p.i]} and {names[p.j]} saw the wand markers in (nearly) "
+                    "one plane; wave the wand through the whole volume, up and down as well as sideways, tilting it"
+                )
+            Rab, tab = (p.R, p.t) if p.i == a else (p.R.T, -p.R.T @ p.t)
+            R[b] = Rab @ R[a]
+            t[b] = Rab @ t[a] + tab
+            done.append(b)
+            used.append(p)
+            attached = True
+            progress("pairs", len(done) - 1, V - 1)
+            break
+        if not attached:
+            missing = [v for v in range(V) if v not in done]
+            detail = "".join(
+                f"\n  {names[v]}: {int(shared[v, done].max())} wand frames shared with a connected camera"
+                for v in missing
+            )
+            why = ("\n  pairs that failed: " + "; ".join(failures)) if failures else ""
+            raise CalibrationError(
+                f"camera(s) {', '.join(names[v] for v in missing)} cannot be connected to "
+                f"{', '.join(names[v] for v in sorted(done))} (need >= {min_shared} wand frames seen together):"
+                f"{detail}{why}\nwave the wand where each of them and at least one connected camera see it at the same time"
+            )
+    return R, t, used
 
 
 def initial_wand(
@@ -358,11 +364,6 @@ class _Problem:
         self.jrows = np.concatenate([b.ravel() for b in blocks_r])
         self.jcols = np.concatenate([np.asarray(b).ravel() for b in blocks_c])
 
-    def sparsity(self) -> sp.csr_matrix:
-        return sp.csr_matrix(
-            (np.ones(len(self.jrows)), (self.jrows, self.jcols)), shape=(2 * self.M, self.n)
-        )
-
     # -- unpacking
     def cameras_from(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """R (V,3,3), t (V,3), rotvec (V,3), f (V,2), c (V,2)."""
@@ -411,6 +412,16 @@ class _Problem:
         Jd = Jd_d[slot, vo]  # (M, 2, 2)
         fv = f[vo]
         self.res = xd * fv + c[vo] - self.uv
+        self._fwd = (rv, u, n, Rv, Z, z, xn, xd, Jd, fv)
+        self._cache_x = x.copy()
+        self._jac_x: np.ndarray | None = None
+
+    def _jacobian(self, x: np.ndarray) -> None:
+        self._evaluate(x)
+        if self._jac_x is not None:
+            return
+        rv, u, n, Rv, Z, z, xn, xd, Jd, fv = self._fwd
+        fo, vo = self.f_o, self.v_o
         # d xn / d Xc
         Pz = np.zeros((self.M, 2, 3))
         Pz[:, 0, 0] = 1 / z
@@ -439,14 +450,14 @@ class _Problem:
             Ji[:, 1, 3] = 1.0
             parts.append(Ji)
         self.jdata = np.concatenate([p.ravel() for p in parts])
-        self._cache_x = x.copy()
+        self._jac_x = x
 
     def fun(self, x: np.ndarray) -> np.ndarray:
         self._evaluate(x)
         return self.res.ravel()
 
     def jac(self, x: np.ndarray) -> sp.csr_matrix:
-        self._evaluate(x)
+        self._jacobian(x)
         return sp.csr_matrix((self.jdata, (self.jrows, self.jcols)), shape=(2 * self.M, self.n))
 
 
@@ -463,6 +474,7 @@ def bundle_adjust(
     loss: str = "soft_l1",
     f_scale: float = 1.0,
     max_nfev: int = 50,
+    progress: ProgressFn = _no_progress,
 ) -> tuple[list[Camera], np.ndarray, np.ndarray, np.ndarray, dict]:
     """One least-squares solve over all cameras and wand poses.
 
@@ -473,8 +485,15 @@ def bundle_adjust(
     and solver info.
     """
     prob = _Problem(pixels, cameras, R, t, A, u, spec, ref, refine_intrinsics)
+    calls = [0]
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        calls[0] += 1
+        progress("bundle adjustment", min(calls[0], max_nfev), max_nfev)
+        return prob.fun(x)
+
     sol = least_squares(
-        prob.fun,
+        fun,
         prob.x0,
         jac=prob.jac,
         method="trf",
@@ -501,3 +520,176 @@ def bundle_adjust(
     info = {"nfev": int(sol.nfev), "cost": float(sol.cost), "message": str(sol.message), "n_params": prob.n,
             "n_residuals": 2 * prob.M}
     return out, A2, u2, res, info
+
+
+# ----------------------------------------------------------------- whole step
+@dataclass
+class WandCalibration:
+    """Everything the wand step produced (world = reference camera frame).
+
+    cameras: refined cameras (same order as the input); data: the aligned observations
+    actually used (F frames); residuals: (F, V, 3, 2) px after the final solve (NaN
+    where unobserved or rejected); lengths: (F, 3) freely triangulated |AB|, |BC|,
+    |AC| (m) with the calibrated cameras, the thesis's figure of merit.
+    """
+
+    cameras: list[Camera]
+    spec: WandSpec
+    data: WandData
+    residuals: np.ndarray
+    lengths: np.ndarray
+    pairs: list[PairPose]
+    A: np.ndarray
+    u: np.ndarray
+    timings: dict[str, float] = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    rejected_views: int = 0
+
+    def camera_stats(self) -> list[dict]:
+        """Per camera: name, id, views (frames used), rms_px, max_px, centre (3,)."""
+        out = []
+        r = np.linalg.norm(self.residuals, axis=-1)  # (F, V, 3)
+        for v, c in enumerate(self.cameras):
+            rv = r[:, v]
+            ok = np.isfinite(rv)
+            out.append(
+                {
+                    "name": c.name,
+                    "id": c.id,
+                    "views": int(np.isfinite(rv).all(axis=1).sum()),
+                    "rms_px": float(np.sqrt(np.mean(rv[ok] ** 2))) if ok.any() else float("nan"),
+                    "max_px": float(rv[ok].max()) if ok.any() else float("nan"),
+                    "center": c.center,
+                }
+            )
+        return out
+
+    def length_stats(self) -> dict[str, float]:
+        """Mean error and std (m) of the triangulated AB, BC, AC lengths."""
+        true = np.array([self.spec.ab, self.spec.bc, self.spec.ac])
+        ok = np.isfinite(self.lengths).all(axis=1)
+        L = self.lengths[ok]
+        d = {}
+        for k, name in enumerate(("ab", "bc", "ac")):
+            d[f"{name}_mean_err"] = float(L[:, k].mean() - true[k]) if len(L) else float("nan")
+            d[f"{name}_std"] = float(L[:, k].std()) if len(L) else float("nan")
+        return d
+
+
+def wand_lengths(cameras: list[Camera], pixels: np.ndarray) -> np.ndarray:
+    """Freely triangulated wand lengths: pixels (F, V, 3, 2) -> (F, 3) |AB|, |BC|, |AC| (m)."""
+    from visionpos.geometry import triangulate_pixels
+
+    F, V = pixels.shape[:2]
+    tri = triangulate_pixels(cameras, pixels.transpose(0, 2, 1, 3).reshape(F * 3, V, 2))
+    P = tri.points.reshape(F, 3, 3)
+    return np.stack(
+        [
+            np.linalg.norm(P[:, 1] - P[:, 0], axis=1),
+            np.linalg.norm(P[:, 2] - P[:, 1], axis=1),
+            np.linalg.norm(P[:, 2] - P[:, 0], axis=1),
+        ],
+        axis=1,
+    )
+
+
+def calibrate_wand(
+    frames,
+    cameras: list[Camera],
+    spec: WandSpec = WandSpec(),
+    ref: int = 0,
+    rate_hz: float = 50.0,
+    refine_intrinsics: bool = False,
+    min_frames: int = 100,
+    max_frames: int | None = None,
+    progress: ProgressFn = _no_progress,
+) -> WandCalibration:
+    """Wand extrinsics from BlobFrames of a wand wave.
+
+    frames: iterable of BlobFrame (any order, any cameras; unknown camera ids are ignored).
+    cameras: the arena's cameras with their intrinsics (poses are ignored).
+    ref: index of the camera that defines the world frame until the ground step.
+    max_frames: keep at most this many grid frames (evenly spread), None = all.
+    Raises CalibrationError with what to capture when the input cannot give a calibration.
+    """
+    from visionpos.calibration.wand import collect_wand
+
+    cameras = list(cameras)
+    if len(cameras) < 2:
+        raise CalibrationError(f"wand calibration needs at least 2 cameras, the config has {len(cameras)}")
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    data = collect_wand(frames, cameras, spec, rate_hz=rate_hz, min_labelled=min_frames)
+    if max_frames is not None and len(data.times_ns) > max_frames:
+        data = data.subset(np.linspace(0, len(data.times_ns) - 1, max_frames).round().astype(int))
+    if len(data.times_ns) < min_frames:
+        raise CalibrationError(
+            f"only {len(data.times_ns)} time steps have the wand in two or more cameras at once (need {min_frames}); "
+            "wave the wand longer in the middle of the volume where the cameras' views overlap"
+        )
+    timings["label_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    R, t, pairs = initial_poses(data, spec, ref=ref, progress=progress)
+    xn = undistort_wand(data)
+    A, u, ok = initial_wand(xn, R, t, spec)
+    if ok.sum() < min_frames:
+        raise CalibrationError(
+            f"only {int(ok.sum())} wand frames triangulate consistently after the pairwise step (need {min_frames}); "
+            "check the wand lengths (--ab/--bc) and the cameras' intrinsics"
+        )
+    warnings = check_motion(A[ok], u[ok], spec)
+    data = data.subset(np.flatnonzero(ok))
+    A, u = A[ok], u[ok]
+    timings["init_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    c0 = time.process_time()
+    # round 1: robust loss from the pairwise start
+    cams, A, u, res, info = bundle_adjust(data.pixels, cameras, R, t, A, u, spec, ref=ref, progress=progress)
+    # drop whole views (all three markers of one camera at one time) with a large residual:
+    # a mislabelled or merged blob, or a bad interpolation
+    rn = np.linalg.norm(res, axis=-1)  # (F, V, 3)
+    med = float(np.nanmedian(rn))
+    thr = max(1.0, 4.5 * med)
+    bad_view = np.nanmax(np.where(np.isfinite(rn), rn, 0.0), axis=2) > thr
+    n_bad = int(bad_view.sum())
+    pixels = data.pixels.copy()
+    if n_bad or refine_intrinsics:
+        pixels[bad_view] = np.nan
+        keep = np.isfinite(pixels).all(axis=(2, 3)).sum(axis=1) >= 2
+        data = WandData(data.cameras, data.times_ns[keep], pixels[keep], data.stats)
+        Rk = np.stack([c.R for c in cams])
+        tk = np.stack([c.t for c in cams])
+        cams, A, u, res, info = bundle_adjust(
+            data.pixels, cams, Rk, tk, A[keep], u[keep], spec, ref=ref,
+            refine_intrinsics=refine_intrinsics, progress=progress,
+        )
+    timings["bundle_s"] = time.perf_counter() - t0
+    timings["bundle_cpu_s"] = time.process_time() - c0  # one core: the solver is single-threaded
+    lengths = wand_lengths(cams, data.pixels)
+    info["frames"] = len(data.times_ns)
+    info["threshold_px"] = thr
+    return WandCalibration(cams, spec, data, res, lengths, pairs, A, u, timings, info, warnings, n_bad)
+
+
+def compare_cameras(
+    estimated: list[Camera], truth: list[Camera], similarity: bool = True
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Pose errors against known cameras.
+
+    With similarity, the estimated centres are first mapped onto the true ones by
+    the best similarity (Umeyama); orientations are compared after the same rotation.
+    Returns centre errors (V,) m, orientation errors (V,) deg and the scale applied.
+    """
+    from visionpos.geometry import umeyama
+
+    Ce = np.array([c.center for c in estimated])
+    Ct = np.array([c.center for c in truth])
+    if similarity:
+        s, Ra, ta = umeyama(Ce, Ct)
+    else:
+        s, Ra, ta = 1.0, np.eye(3), np.zeros(3)
+    cerr = np.linalg.norm(s * Ce @ Ra.T + ta - Ct, axis=1)
+    # camera rotation in the aligned world: R_e Ra^T
+    rerr = np.array([np.degrees(Rotation.from_matrix(t.R @ (e.R @ Ra.T).T).magnitude()) for e, t in zip(estimated, truth)])
+    return cerr, rerr, float(s)

@@ -1,0 +1,284 @@
+"""`visionpos calibrate intrinsics|wand|ground`.
+
+    visionpos calibrate intrinsics --images DIR --board chessboard --cols 10 --rows 7 --square 0.025 \
+        --model pinhole --out cam.yaml [--plot cov.png] [--rescale 640x480]
+    visionpos calibrate wand session.mcap --config arena.yaml --out arena_calibrated.yaml [--report wand.png]
+    visionpos calibrate wand --sim thesis --out arena_calibrated.yaml
+    visionpos calibrate ground ground.mcap --config arena_calibrated.yaml --out arena_final.yaml
+    visionpos calibrate ground --sim thesis --config arena_calibrated.yaml --out arena_final.yaml
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from visionpos.calibration.wand import CalibrationError, WandSpec
+from visionpos.config import ConfigError, dump_yaml, load_arena, parse_arena
+from visionpos.messages import BlobFrame
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="step", metavar="STEP", required=True)
+
+    p = sub.add_parser("intrinsics", help="camera intrinsics from chessboard/ChArUco images")
+    p.add_argument("--images", required=True, help="folder of board images of one camera in one capture mode")
+    p.add_argument("--board", choices=("chessboard", "charuco"), default="chessboard")
+    p.add_argument("--cols", type=int, required=True, help="board squares across")
+    p.add_argument("--rows", type=int, required=True, help="board squares down")
+    p.add_argument("--square", type=float, required=True, help="square side (m)")
+    p.add_argument("--marker", type=float, default=None, help="ChArUco marker side (m)")
+    p.add_argument("--dict", default="DICT_4X4_50", help="ChArUco ArUco dictionary (cv2.aruco name)")
+    p.add_argument("--model", choices=("pinhole", "fisheye"), default="pinhole")
+    p.add_argument("--max-views", type=int, default=40, help="most views kept after dropping near-duplicates")
+    p.add_argument("--free-k3", action="store_true", help="estimate the pinhole k3 too (strong distortion)")
+    p.add_argument("--rescale", action="append", default=[], metavar="WxH[+UxV]",
+                   help="also write the intrinsics for another capture mode (crop U x V pixels after resizing)")
+    p.add_argument("--out", required=True, help="output YAML (intrinsics keys of an arena camera entry)")
+    p.add_argument("--plot", default=None, help="coverage and residual PNG")
+
+    for name, text in (("wand", "camera poses from a waved 3-marker wand"),
+                       ("ground", "world frame from a static L-frame/triangle on the floor")):
+        q = sub.add_parser(name, help=text)
+        q.add_argument("recording", nargs="?", default=None, help="MCAP recording of the capture")
+        q.add_argument("--sim", default=None, metavar="SCENARIO",
+                       help="simulate the capture instead ('thesis', 'arena8' or an arena YAML)")
+        q.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                       help="override a scenario key for --sim (e.g. sim.duration=30)")
+        q.add_argument("--config", default=None,
+                       help="arena YAML with the cameras' intrinsics" + (" and wand poses" if name == "ground" else "")
+                       + " (default: the recording's or the scenario's)")
+        q.add_argument("--out", required=True, help="output arena YAML")
+        q.add_argument("--no-progress", action="store_true", help="no progress bars")
+    w = sub.choices["wand"]
+    w.add_argument("--ab", type=float, default=None, help="wand A-B distance (m) [0.054 or calibration.wand.ab]")
+    w.add_argument("--bc", type=float, default=None, help="wand B-C distance (m) [0.103 or calibration.wand.bc]")
+    w.add_argument("--rate", type=float, default=50.0, help="common time grid (Hz) the cameras are interpolated to")
+    w.add_argument("--ref", type=int, default=None, help="id of the camera that defines the frame [first]")
+    w.add_argument("--refine-intrinsics", action="store_true", help="also refine fx, fy, cx, cy per camera")
+    w.add_argument("--max-frames", type=int, default=None, help="use at most this many time steps")
+    w.add_argument("--report", default=None, help="PNG report (camera poses, residuals, wand lengths)")
+    g = sub.choices["ground"]
+    g.add_argument("--frame", default=None,
+                   help="name of the ground frame in the config's bodies or sim.props [lframe/ground/triangle]")
+    g.add_argument("--markers", default=None, metavar="X,Y,Z;X,Y,Z;...",
+                   help="ground frame marker layout (m, frame x-y plane on the floor) instead of --frame")
+    g.add_argument("--origin", type=int, default=0, help="marker index at the world origin")
+    g.add_argument("--x-marker", type=int, default=None, help="marker index the world x axis points to [1]")
+    g.add_argument("--marker-height", type=float, default=None,
+                   help="height of the marker centres above the floor (m) [marker_diameter/2]")
+
+
+# ------------------------------------------------------------------- inputs
+def read_recording(path: str) -> tuple[list[BlobFrame], dict[str, Any]]:
+    """BlobFrames and the arena config stored in a recording."""
+    from visionpos.protocol import ProtocolError, decode
+    from visionpos.recording import RecordingReader
+
+    reader = RecordingReader(path)
+    frames: list[BlobFrame] = []
+    bad = 0
+    for recv_ns, data in reader.packets():
+        try:
+            msg = decode(data, recv_ns=recv_ns)
+        except ProtocolError:
+            bad += 1
+            continue
+        if isinstance(msg, BlobFrame):
+            frames.append(msg)
+    if not frames:
+        raise CalibrationError(f"{path}: the recording holds no camera frames ({bad} undecodable packets)")
+    return frames, reader.config
+
+
+def _frames_and_arena(args, session: str):
+    """(frames, arena config used for intrinsics, true cameras or None)."""
+    if (args.recording is None) == (args.sim is None):
+        raise CalibrationError("give either a RECORDING or --sim SCENARIO")
+    truth = None
+    if args.sim is not None:
+        from visionpos.sim import load_scenario, simulate
+
+        sc = load_scenario(args.sim, list(args.set), session=session)
+        res = simulate(sc)
+        frames = res.frames
+        arena = sc.arena
+        truth = list(sc.cameras)
+    else:
+        frames, cfg = read_recording(args.recording)
+        arena = parse_arena(cfg, f"{args.recording} (embedded config)")
+    if args.config is not None:
+        arena = load_arena(args.config)
+    return frames, arena, truth
+
+
+def _wand_spec(args, arena) -> WandSpec:
+    sec = arena.section("calibration").sub("wand")
+    ab = args.ab if args.ab is not None else sec.number("ab", 0.054, min=0.005)
+    bc = args.bc if args.bc is not None else sec.number("bc", 0.103, min=0.005)
+    return WandSpec(ab, bc)
+
+
+def _write_arena(arena, cameras, out: str, extra: dict[str, Any]) -> None:
+    raw = copy.deepcopy(arena.raw)
+    raw["cameras"] = [c.to_dict() for c in cameras]
+    cal = raw.get("calibration") if isinstance(raw.get("calibration"), dict) else {}
+    cal.update(extra)
+    raw["calibration"] = cal
+    dump_yaml(raw, out)
+
+
+# -------------------------------------------------------------------- steps
+def _run_intrinsics(args) -> int:
+    from visionpos.calibration.intrinsics import BoardSpec, calibrate_images, load_images
+    from visionpos.calibration.report import intrinsics_report, plot_intrinsics, progress_printer
+
+    if args.board == "charuco" and args.marker is None:
+        raise CalibrationError("--board charuco needs --marker (the ArUco marker side in m)")
+    board = BoardSpec(args.board, args.cols, args.rows, args.square, args.marker or 0.0, args.dict)
+    images = load_images(args.images)
+    res = calibrate_images(images, board, args.model, args.max_views, progress_printer(True), fix_k3=not args.free_k3)
+    print(intrinsics_report(res))
+    d = res.model.to_dict()
+    d["rms_px"] = round(res.rms_px, 4)
+    d["views"] = len(res.views)
+    modes = []
+    for spec in args.rescale:
+        modes.append(_rescaled(res.model, spec))
+    if modes:
+        d["modes"] = modes
+    Path(args.out).write_text(yaml.safe_dump(d, sort_keys=False))
+    print(f"wrote {args.out}")
+    if args.plot:
+        plot_intrinsics(res, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _rescaled(model, spec: str) -> dict[str, Any]:
+    try:
+        size, _, crop = spec.partition("+")
+        w, h = (int(v) for v in size.lower().split("x"))
+        U, V = (float(v) for v in crop.lower().split("x")) if crop else (0.0, 0.0)
+    except ValueError:
+        raise CalibrationError(f"--rescale '{spec}': expected WxH or WxH+UxV, e.g. 640x480 or 640x480+0x60") from None
+    return model.rescale(w, h, (U, V)).to_dict()
+
+
+def _run_wand(args) -> int:
+    from visionpos.calibration.bundle import calibrate_wand, compare_cameras
+    from visionpos.calibration.report import plot_wand, progress_printer, wand_report
+
+    frames, arena, truth = _frames_and_arena(args, "wand")
+    spec = _wand_spec(args, arena)
+    cams = list(arena.cameras)
+    ref = 0
+    if args.ref is not None:
+        ids = [c.id for c in cams]
+        if args.ref not in ids:
+            raise CalibrationError(f"--ref {args.ref}: no such camera id (cameras: {ids})")
+        ref = ids.index(args.ref)
+    cal = calibrate_wand(
+        frames, cams, spec, ref=ref, rate_hz=args.rate, refine_intrinsics=args.refine_intrinsics,
+        max_frames=args.max_frames, progress=progress_printer(not args.no_progress),
+    )
+    print(wand_report(cal))
+    if truth is not None:
+        ce, re, s = compare_cameras(cal.cameras, truth)
+        print(f"\nagainst the simulator's cameras (after a similarity alignment, scale {s:.5f}): "
+              f"centre error max {ce.max() * 1000:.2f} mm, orientation error max {re.max():.4f} deg")
+    L = cal.length_stats()
+    stats = cal.camera_stats()
+    _write_arena(arena, cal.cameras, args.out, {
+        "wand": {"ab": spec.ab, "bc": spec.bc},
+        "extrinsics": {
+            "frame": f"camera {cal.cameras[ref].name}",
+            "time_steps": len(cal.data.times_ns),
+            "rms_px": {s["name"]: round(s["rms_px"], 4) for s in stats},
+            "wand_ac_std_mm": round(L["ac_std"] * 1000, 4),
+            "wand_ac_mean_err_mm": round(L["ac_mean_err"] * 1000, 4),
+        },
+    })
+    print(f"wrote {args.out} (world = camera {cal.cameras[ref].name}; run `visionpos calibrate ground` next)")
+    if args.report:
+        plot_wand(cal, args.report)
+        print(f"wrote {args.report}")
+    return 0
+
+
+def _ground_layout(args, arena) -> tuple[np.ndarray, float]:
+    """(layout (M,3), marker height)."""
+    if args.markers:
+        try:
+            layout = np.array([[float(v) for v in p.split(",")] for p in args.markers.split(";") if p.strip()])
+        except ValueError:
+            raise CalibrationError(f"--markers '{args.markers}': expected X,Y,Z;X,Y,Z;... in metres") from None
+        if layout.ndim != 2 or layout.shape[1] != 3:
+            raise CalibrationError(f"--markers '{args.markers}': every marker needs 3 numbers")
+        return layout, 0.007 if args.marker_height is None else args.marker_height
+    candidates = [args.frame] if args.frame else ["lframe", "ground", "triangle", "ground_frame"]
+    entries: list[dict] = []
+    for b in arena.raw.get("bodies") or []:
+        if isinstance(b, dict):
+            entries.append(b)
+    sim = arena.raw.get("sim") if isinstance(arena.raw.get("sim"), dict) else {}
+    for b in sim.get("props") or []:
+        if isinstance(b, dict):
+            entries.append(b)
+    for name in candidates:
+        for e in entries:
+            if e.get("name") == name:
+                layout = np.asarray(e.get("markers"), float)
+                h = args.marker_height
+                if h is None:
+                    h = float(e.get("marker_diameter", 0.014)) / 2
+                return layout, h
+    raise CalibrationError(
+        f"{arena.source}: no ground frame named {' or '.join(candidates)} in bodies or sim.props; "
+        "give --frame NAME or --markers X,Y,Z;..."
+    )
+
+
+def _run_ground(args) -> int:
+    from visionpos.calibration.bundle import compare_cameras
+    from visionpos.calibration.ground import calibrate_ground
+
+    if args.config is None:
+        raise CalibrationError("ground needs --config: the arena YAML written by `visionpos calibrate wand`")
+    frames, arena, truth = _frames_and_arena(args, "ground")
+    layout, height = _ground_layout(args, arena)
+    x_marker = args.x_marker if args.x_marker is not None else 1
+    g = calibrate_ground(frames, list(arena.cameras), layout, args.origin, x_marker, height)
+    print(f"ground frame: {len(layout)} markers found among {g.n_static} static points, layout fit RMS "
+          f"{g.fit_rms * 1000:.2f} mm")
+    for c in g.cameras:
+        C = c.center
+        print(f"  {c.name:>10}: position {C[0]:+.4f} {C[1]:+.4f} {C[2]:+.4f} m")
+    if truth is not None:
+        ce, re, _ = compare_cameras(g.cameras, truth, similarity=False)
+        print(f"against the simulator's cameras (no alignment): centre error max {ce.max() * 1000:.2f} mm, "
+              f"orientation error max {re.max():.4f} deg")
+    _write_arena(arena, g.cameras, args.out, {
+        "ground": {"origin_marker": args.origin, "x_marker": x_marker, "marker_height": height,
+                   "fit_rms_mm": round(g.fit_rms * 1000, 4)},
+    })
+    print(f"wrote {args.out}")
+    return 0
+
+
+def run(args) -> int:
+    try:
+        if args.step == "intrinsics":
+            return _run_intrinsics(args)
+        if args.step == "wand":
+            return _run_wand(args)
+        return _run_ground(args)
+    except (CalibrationError, ConfigError) as e:
+        print(f"visionpos calibrate {args.step}: error: {e}", file=sys.stderr)
+        return 2
