@@ -14,6 +14,8 @@ import logging
 import secrets
 import select
 import socket
+import struct
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -38,6 +40,8 @@ try:
 except Exception:  # running from a source tree without installed metadata
     SOFTWARE = "visionpos"
 
+SO_TIMESTAMPNS = 35  # Linux <asm-generic/socket.h>; payload is a native struct timespec
+_TIMESPEC = struct.Struct("@ll")
 HELLO_FIRST_S = 0.5
 HELLO_MAX_S = 5.0
 THERMAL = Path("/sys/class/thermal/thermal_zone0/temp")
@@ -112,7 +116,30 @@ class StationAgent:
         self._addr = addr
         s = socket.socket(family, socket.SOCK_DGRAM)
         s.setblocking(False)
+        # Kernel receive timestamps: the agent reads the socket only between
+        # frames, so a user-space t4 would be late by up to a frame period and
+        # bias the clock offset by half of that.
+        self._rx_stamps = False
+        if sys.platform.startswith("linux"):
+            try:
+                s.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+                self._rx_stamps = True
+            except OSError:
+                pass
         return s
+
+    def _recv(self) -> tuple[bytes, int]:
+        """One datagram and its receive time on the station clock."""
+        if not self._rx_stamps:
+            data, _ = self.sock.recvfrom(2048)
+            return data, self.clock()
+        data, anc, _, _ = self.sock.recvmsg(2048, socket.CMSG_SPACE(16))
+        for level, kind, payload in anc:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(payload) >= _TIMESPEC.size:
+                sec, nsec = _TIMESPEC.unpack_from(payload)
+                # kernel stamp is CLOCK_REALTIME: move it onto the station clock
+                return data, sec * 1_000_000_000 + nsec - (time.time_ns() - self.clock())
+        return data, self.clock()
 
     def _send(self, data: bytes) -> bool:
         try:
@@ -129,12 +156,11 @@ class StationAgent:
         """Handle every pending datagram; never blocks."""
         while True:
             try:
-                data, _ = self.sock.recvfrom(2048)
+                data, t4 = self._recv()
             except (BlockingIOError, InterruptedError):
                 return
             except OSError:  # ICMP port unreachable surfaces here on Linux: server is down
                 continue
-            t4 = self.clock()
             try:
                 msg = P.decode(data, self.cfg.key)
             except P.ProtocolError as e:
@@ -313,7 +339,8 @@ class StationAgent:
     def run(self, max_frames: int | None = None) -> int:
         """Capture until stop() (or max_frames, or a non-looping file ends).
         Returns 0; camera failures are retried, never fatal."""
-        backoff = 1.0
+        first_backoff = min(1.0, self.cfg.retry_max_s)
+        backoff = first_backoff
         opened = False
         try:
             while not self._stop.is_set():
@@ -346,7 +373,7 @@ class StationAgent:
                     backoff = min(backoff * 2, self.cfg.retry_max_s)
                     continue
                 self.camera_ok = True
-                backoff = 1.0
+                backoff = first_backoff
                 if max_frames is not None and self.stats.frames_captured >= max_frames:
                     break
         finally:
