@@ -150,3 +150,28 @@ def test_replay_missing_file_is_a_clear_error(tmp_path, capsys):
 
     assert main(["replay", str(tmp_path / "nope.mcap"), "--out", str(tmp_path / "o")]) == 2
     assert "no such recording" in capsys.readouterr().err
+
+
+def test_replay_without_matplotlib_writes_everything_else(thesis_log, tmp_path, monkeypatch, capsys):
+    import sys
+
+    from visionpos.cli import main
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    monkeypatch.setitem(sys.modules, "matplotlib.pyplot", None)
+    out = tmp_path / "o"
+    assert main(["replay", str(thesis_log), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "matplotlib is not installed" in err and "visionpos[plots]" in err
+    assert (out / "trajectories.csv").exists() and (out / "metrics.json").exists()
+    assert not list(out.glob("*.png"))
+
+
+def test_parse_speed():
+    from visionpos.replay import parse_speed
+
+    assert parse_speed("max") is None
+    assert parse_speed("1") == 1.0
+    for bad in ("fast", "0", "-2"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse_speed(bad)
