@@ -220,10 +220,10 @@ def _pinhole_distort_b(xn: np.ndarray, kT: np.ndarray, with_jac: bool):
 def _fisheye_distort_b(xn: np.ndarray, kT: np.ndarray, with_jac: bool):
     """Kannala-Brandt distortion, coefficients per view: xn (..., V, 2), kT (4, V) = (k1..k4) rows."""
     k1, k2, k3, k4 = kT
-    r2 = (xn * xn).sum(axis=-1)
     # clamp so the on-axis point needs no special case: s -> 1 there, and the
     # cancellation in dsr for tiny r is multiplied by xn xn^T ~ r^2 below
-    r = np.sqrt(np.maximum(r2, 1e-300))
+    rr = np.maximum((xn * xn).sum(axis=-1), 1e-300)
+    r = np.sqrt(rr)
     th = np.arctan(r)
     t2 = th * th
     s = th * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) / r  # rd / r
@@ -231,7 +231,7 @@ def _fisheye_distort_b(xn: np.ndarray, kT: np.ndarray, with_jac: bool):
     if not with_jac:
         return xd, None
     drd = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
-    dsr = (drd / (1 + r2) - s) / (r * r)  # (ds/dr) / r
+    dsr = (drd / (1 + rr) - s) / rr  # (ds/dr) / r
     J = xn[..., :, None] * (xn * dsr[..., None])[..., None, :]
     J[..., 0, 0] += s
     J[..., 1, 1] += s
