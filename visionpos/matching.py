@@ -20,7 +20,9 @@ weights f/z (focal length over depth) its cost is exactly the reprojection
 error in pixels, so after 2-3 re-weightings it reaches the maximum-likelihood
 point for isotropic pixel noise (up to lens-distortion scale changes). It
 accepts per-view offsets (view v observed X + offsets[p, v]) for motion
-compensation. geometry.triangulate_* does the same job with a Gauss-Newton
+compensation. Two passes suffice: the first (unit weights) fixes the depths
+to ~1e-3 relative, so the second pass's weights are exact for practical
+purposes. geometry.triangulate_* does the same job with a Gauss-Newton
 refinement for offline work; this one is here because it runs several
 thousand times a second and has to stay a handful of numpy calls.
 """
@@ -92,7 +94,7 @@ def triangulate(
     t: np.ndarray,
     f: np.ndarray,
     offsets: np.ndarray | None = None,
-    iterations: int = 3,
+    iterations: int = 2,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Iteratively re-weighted linear N-view triangulation.
 
@@ -103,33 +105,40 @@ def triangulate(
     Returns points (P, 3) (NaN with fewer than 2 views), rms residual (P,)
     px, n_views (P,).
     """
-    valid = np.isfinite(xn).all(-1)  # (P, V)
+    P, V = xn.shape[:2]
+    valid = ~np.isnan(xn[..., 0])  # (P, V)
     n_views = valid.sum(1)
     x = np.where(valid[..., None], xn, 0.0)
-    # rows: (R0 - u R2) . X = -(t0 - u t2), same for v
-    A = R[None, :, :2, :] - x[..., None] * R[None, :, 2:3, :]  # (P, V, 2, 3)
-    b = -(t[None, :, :2] - x * t[None, :, 2:3])  # (P, V, 2)
+    # rows: (R0 - u R2) . X = -(t0 - u t2), same for v; A (P, V, 2, 3), b (P, V, 2)
+    A = R[None, :, :2, :] - x[..., None] * R[None, :, 2:3, :]
+    b = x * t[None, :, 2:3] - t[None, :, :2]
     if offsets is not None:
-        b = b - np.einsum("pvki,pvi->pvk", A, offsets)
+        b = b - (A * offsets[:, :, None, :]).sum(-1)
+    A2 = A.reshape(P, 2 * V, 3)
+    b2 = b.reshape(P, 2 * V)
+    R2 = R[:, 2, :]  # (V, 3)
     w = valid * f[None, :]  # weight f / z, z = 1 to start
-    for it in range(iterations):
-        w2 = w * w
-        N = np.einsum("pv,pvki,pvkj->pij", w2, A, A)
-        rhs = np.einsum("pv,pvki,pvk->pi", w2, A, b)
-        N[n_views < 2] = np.eye(3)
-        X = np.linalg.solve(N, rhs[..., None])[..., 0]
-        Xv = X[:, None, :] if offsets is None else X[:, None, :] + offsets
-        z = np.einsum("vi,pvi->pv", R[:, 2, :], Xv) + t[None, :, 2]
-        zs = np.where(z > 1e-6, z, 1e-6)
-        w = valid * f[None, :] / zs
-    r = np.einsum("pvki,pi->pvk", A, X) - b  # z * (u_proj - u)
-    r = r * w[..., None]  # pixels
-    ss = (r * r).sum((1, 2))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rms = np.sqrt(ss / np.maximum(n_views, 1))
-    bad = n_views < 2
-    X[bad] = np.nan
-    rms[bad] = np.nan
+    few = n_views < 2
+    for _ in range(iterations):
+        ww = np.repeat(w, 2, axis=1)  # (P, 2V)
+        Aw = A2 * ww[..., None]
+        AwT = Aw.transpose(0, 2, 1)
+        N = AwT @ Aw
+        rhs = AwT @ (b2 * ww)[..., None]
+        if few.any():
+            N[few] = np.eye(3)
+        X = np.linalg.solve(N, rhs)[..., 0]
+        z = X @ R2.T + t[None, :, 2]  # (P, V)
+        if offsets is not None:
+            z = z + (offsets * R2[None]).sum(-1)
+        w = valid * f[None, :] / np.maximum(z, 1e-6)
+    r = (A2 @ X[..., None])[..., 0] - b2  # z * (u_proj - u), (P, 2V)
+    r = r * np.repeat(w, 2, axis=1)  # pixels
+    ss = (r * r).sum(1)
+    rms = np.sqrt(ss / np.maximum(n_views, 1))
+    if few.any():
+        X[few] = np.nan
+        rms[few] = np.nan
     return X, rms, n_views
 
 
@@ -217,34 +226,48 @@ def match_unlabeled(
         sel = idx[:, v] >= 0
         obs[sel, v] = xn[v][idx[sel, v]]
     X, rms, nv = triangulate(obs, R, t, f)
-    # drop the worst view of points that fail the gate but have views to spare
-    bad = ~(rms < max_residual_px) & (nv > 2)
+    # a view whose own residual is over the gate was grown onto a wrong blob: drop the worst such view
+    r = _view_residuals_all(X, obs, R, t, f)  # (S, V)
+    worst = np.argmax(np.where(np.isnan(r), -1.0, r), axis=1)
+    bad = (r[np.arange(S), worst] > max_residual_px) & (nv > 2)
     if bad.any():
-        for k in np.nonzero(bad)[0]:
-            r = _view_residuals(X[k], obs[k], R, t, f)
-            worst = int(np.nanargmax(r))
-            obs[k, worst] = np.nan
-            idx[k, worst] = -1
-        X2, rms2, nv2 = triangulate(obs[bad], R, t, f)
-        X[bad], rms[bad], nv[bad] = X2, rms2, nv2
-    # 3. greedy acceptance, each blob once
+        obs[bad, worst[bad]] = np.nan
+        idx[bad, worst[bad]] = -1
+        X[bad], rms[bad], nv[bad] = triangulate(obs[bad], R, t, f)
+    # 3. greedy acceptance, each blob once; a candidate that shares blobs with an
+    # accepted point keeps its other views if at least two remain
     good = np.nonzero(rms < max_residual_px)[0]
     order = sorted(good.tolist(), key=lambda k: (-int(nv[k]), float(rms[k]), k))
     used = [set() for _ in range(V)]
-    keep = []
+    keep_X, keep_idx, keep_rms = [], [], []
     for k in order:
-        if any(idx[k, v] >= 0 and int(idx[k, v]) in used[v] for v in range(V)):
-            continue
-        keep.append(k)
+        views = [v for v in range(V) if idx[k, v] >= 0]
+        clash = [v for v in views if int(idx[k, v]) in used[v]]
+        Xk, rk, ik = X[k], float(rms[k]), idx[k].copy()
+        if clash:
+            if len(views) - len(clash) < 2:
+                continue
+            ok = obs[k].copy()
+            ok[clash] = np.nan
+            ik[clash] = -1
+            Xs, rs, _ = triangulate(ok[None], R, t, f)
+            if not rs[0] < max_residual_px:
+                continue
+            Xk, rk = Xs[0], float(rs[0])
+        keep_X.append(Xk)
+        keep_idx.append(ik)
+        keep_rms.append(rk)
         for v in range(V):
-            if idx[k, v] >= 0:
-                used[v].add(int(idx[k, v]))
-    keep_a = np.array(keep, dtype=np.int64)
-    return X[keep_a].reshape(-1, 3), idx[keep_a].reshape(-1, V), rms[keep_a]
+            if ik[v] >= 0:
+                used[v].add(int(ik[v]))
+    if not keep_X:
+        return np.zeros((0, 3)), np.zeros((0, V), dtype=np.int64), np.zeros(0)
+    return np.array(keep_X), np.array(keep_idx, dtype=np.int64), np.array(keep_rms)
 
 
-def _view_residuals(X: np.ndarray, obs: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Per-view reprojection error (V,) px of point X (3,) against obs (V, 2) (NaN = missing)."""
-    pc = np.einsum("vij,j->vi", R, X) + t
-    proj = pc[:, :2] / pc[:, 2:3]
-    return np.linalg.norm(proj - obs, axis=1) * f
+def _view_residuals_all(X: np.ndarray, obs: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Per-view reprojection errors (S, V) px of points X (S, 3) against obs (S, V, 2); NaN = missing."""
+    pc = np.einsum("vij,sj->svi", R, X) + t[None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        proj = pc[..., :2] / pc[..., 2:3]
+    return np.linalg.norm(proj - obs, axis=-1) * f[None, :]

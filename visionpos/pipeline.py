@@ -17,6 +17,14 @@ marker, a weighted Kabsch pose per body, a gated Kalman update
 identification of lost bodies by marker geometry (rigidbody.py) and the
 loose points.
 
+Measurement covariance: from the rigid-body fit itself. The Kabsch residual
+gives the per-marker noise (sigma^2 = sum |r|^2 / (3n - 6), averaged per body
+over recent fusions, floored by `marker_sigma_m`); with the marker layout it
+gives the pose covariance (rotation: sigma^2 (sum |r_i|^2 I - r_i r_i^T)^-1,
+position: sigma^2 / n plus the lever arm of the body origin). So the filter
+weighs measurements by what they are actually worth in this arena, with
+these cameras, at this noise level, without per-arena tuning.
+
 Measurement reuse: in motion-compensated mode one camera frame takes part
 in about as many fusions as there are cameras in the group (its own and one
 per other camera until it is replaced). The filter is told so: each fused
@@ -39,14 +47,18 @@ fusion:
   identify_tolerance_m: 0.008   # identification: marker distances and Kabsch RMS within this
   min_markers: 3          # fewest markers for a pose (tracking) and for identification
   loose_points: true      # triangulate blobs that belong to no body and report them
+  acquire_interval_ms: 10 # acquisition / loose-point matching runs at most this often (capture clock)
+  min_fusion_interval_ms: 1.0  # motion-compensated fusions at most this often; with many fast cameras a
+                          #   frame arriving sooner joins the next fusion (bounds CPU, costs < 1 ms)
   kalman:
-    accel_psd: 30.0            # m^2/s^3, white-acceleration spectral density (position process noise)
-    angular_accel_psd: 300.0   # rad^2/s^3, white angular-acceleration spectral density
-    position_sigma_m: 0.0005   # std of one fused position (one view-set; scaled by marker count and reuse)
-    rotation_sigma_deg: 0.25   # std of one fused orientation
-    gate_chi2: 30.0            # Mahalanobis^2 gate on the 6-dof innovation (chi2, 6 dof; 30 ~ p=4e-5)
+    jerk_psd: 0.1              # m^2/s^5, floor of the white-jerk density (constant-acceleration model)
+    angular_accel_psd: 1.0     # rad^2/s^3, floor of the white angular-acceleration density
+    max_noise_scale: 10000     # the innovation-driven (NIS) adaptation may raise both by up to this factor
+    nis_time_constant_ms: 30   # averaging time of the NIS that drives the adaptation
+    marker_sigma_m: 0.0001     # floor of the per-marker 3D noise used for the measurement covariance
+    gate_chi2: 40.0            # Mahalanobis^2 gate on the 6-dof innovation (chi2 with 6 dof)
     reset_after_ms: 60         # measurements gated out for this long: the filter restarts at the measurement
-    max_prediction_ms: 100     # tick() predicts at most this far past the last update, else tracked=False
+    max_prediction_ms: 50      # tick() predicts at most this far past the last update, else tracked=False
     lost_timeout_ms: 150       # no accepted measurement for this long: the body is lost and re-identified
 The output rate is the server's (tick() is called by it).
 """
@@ -64,7 +76,18 @@ from visionpos.matching import associate, match_unlabeled, triangulate, undistor
 from visionpos.messages import BlobFrame, BodyState, LoosePoints
 from visionpos.rigidbody import BodyModel, identify, kabsch_batch
 from visionpos.timealign import MODES, MOTION_COMPENSATED, Group, TimeAligner
-from visionpos.tracking import BodyFilter, KalmanSettings, pose_covariance
+from visionpos.tracking import BodyFilter, KalmanSettings, pose_covariance, velocity_covariance
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (N, 3) arrays (np.cross is slow on small arrays)."""
+    return np.column_stack(
+        [a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2], a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]]
+    )
+
+
+# motion compensation starts once the filter's velocity std is below this (m/s)
+_COMPENSATE_MAX_VEL_STD = 0.1
 
 
 @dataclass(frozen=True)
@@ -81,9 +104,12 @@ class FusionSettings:
     identify_tolerance: float = 0.008
     min_markers: int = 3
     loose_points: bool = True
+    acquire_interval_ns: int = 10_000_000
+    min_fusion_interval_ns: int = 1_000_000
+    marker_sigma: float = 0.0001
     kalman: KalmanSettings = field(default_factory=KalmanSettings)
     reset_after_ns: int = 60_000_000
-    max_prediction_ns: int = 100_000_000
+    max_prediction_ns: int = 50_000_000
     lost_timeout_ns: int = 150_000_000
 
 
@@ -130,15 +156,16 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
     s = Section(data, source, "fusion")
     known = {
         "time_alignment", "window_ms", "naive_grid_hz", "max_clock_lead_ms", "match_gate_px", "max_residual_px",
-        "acquire_ray_distance_m", "identify_tolerance_m", "min_markers", "loose_points", "kalman",
+        "acquire_ray_distance_m", "identify_tolerance_m", "min_markers", "loose_points", "acquire_interval_ms", "min_fusion_interval_ms",
+        "kalman",
     }  # fmt: skip
     for k in data:
         if k not in known:
             raise s.error(str(k), f"unknown setting; known keys are {sorted(known)}")
     k = s.sub("kalman")
     kknown = {
-        "accel_psd", "angular_accel_psd", "position_sigma_m", "rotation_sigma_deg", "gate_chi2", "reset_after_ms",
-        "max_prediction_ms", "lost_timeout_ms",
+        "jerk_psd", "angular_accel_psd", "max_noise_scale", "nis_time_constant_ms", "marker_sigma_m", "gate_chi2",
+        "reset_after_ms", "max_prediction_ms", "lost_timeout_ms",
     }  # fmt: skip
     for key in k.data:
         if key not in kknown:
@@ -151,11 +178,11 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
     if grid_hz == 0.0:
         grid_hz = max(fps)
     ks = KalmanSettings(
-        accel_psd=k.number("accel_psd", 30.0, min=1e-9),
-        angular_accel_psd=k.number("angular_accel_psd", 300.0, min=1e-9),
-        position_sigma=k.number("position_sigma_m", 0.0005, min=1e-7),
-        rotation_sigma=np.radians(k.number("rotation_sigma_deg", 0.25, min=1e-5)),
-        gate_chi2=k.number("gate_chi2", 30.0, min=1.0),
+        jerk_psd=k.number("jerk_psd", 0.1, min=1e-12),
+        angular_accel_psd=k.number("angular_accel_psd", 1.0, min=1e-12),
+        max_noise_scale=k.number("max_noise_scale", 1e4, min=1.0),
+        nis_time_constant=k.number("nis_time_constant_ms", 30.0, min=0.1) * 1e-3,
+        gate_chi2=k.number("gate_chi2", 40.0, min=1.0),
     )
     lost = k.number("lost_timeout_ms", 150.0, min=1.0)
     return FusionSettings(
@@ -169,9 +196,12 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
         identify_tolerance=s.number("identify_tolerance_m", 0.008, min=1e-5),
         min_markers=s.integer("min_markers", 3, min=3),
         loose_points=s.boolean("loose_points", True),
+        acquire_interval_ns=int(s.number("acquire_interval_ms", 10.0, min=0.0) * 1e6),
+        min_fusion_interval_ns=int(s.number("min_fusion_interval_ms", 1.0, min=0.0) * 1e6),
+        marker_sigma=k.number("marker_sigma_m", 0.0001, min=1e-7),
         kalman=ks,
         reset_after_ns=int(k.number("reset_after_ms", 60.0, min=0.0) * 1e6),
-        max_prediction_ns=int(k.number("max_prediction_ms", 100.0, min=0.0) * 1e6),
+        max_prediction_ns=int(k.number("max_prediction_ms", 50.0, min=0.0) * 1e6),
         lost_timeout_ns=int(lost * 1e6),
     )
 
@@ -203,6 +233,28 @@ class _Track:
     n_cameras: int = 0
     residual_mm: float = float("nan")
     reset_counter: int = 0
+    marker_var: float = 0.0  # running per-marker 3D noise variance (m^2) from fit residuals
+
+
+def pose_measurement_cov(markers_world: np.ndarray, origin: np.ndarray, var: float) -> np.ndarray:
+    """Covariance (6, 6) over [p, world rotation vector] of a Kabsch pose.
+
+    markers_world: (n, 3) fitted marker positions; origin: (3,) body origin;
+    var: per-marker, per-axis noise variance (m^2). Small-error, equal weights.
+    """
+    c = markers_world.mean(axis=0)
+    r = markers_world - c
+    n = len(r)
+    J = (r * r).sum() * np.eye(3) - r.T @ r  # inertia-like sum (|r|^2 I - r r^T)
+    Crot = var * np.linalg.inv(J)
+    o = origin - c
+    ox = np.array([[0.0, -o[2], o[1]], [o[2], 0.0, -o[0]], [-o[1], o[0], 0.0]])
+    C = np.empty((6, 6))
+    C[0:3, 0:3] = var / n * np.eye(3) + ox @ Crot @ ox.T
+    C[0:3, 3:6] = -ox @ Crot
+    C[3:6, 0:3] = C[0:3, 3:6].T
+    C[3:6, 3:6] = Crot
+    return C
 
 
 class FusionPipeline:
@@ -229,10 +281,15 @@ class FusionPipeline:
         self.obs: dict[int, _Obs] = {}
         self.tracks = [_Track(BodyFilter(st.kalman)) for _ in self.models]
         self.loose_points: LoosePoints | None = None
+        self._last_acquire_ns = -(1 << 62)
+        self._last_fusion_ns = -(1 << 62)
+        # a frame takes part in about (frame period / fusion spacing) fusions at most
+        self._max_reuse = max(1.0, (st.window_ns / 1.2) / max(st.min_fusion_interval_ns, 1))
         self.last_raw: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # body -> (ref_ns, position, R) of the last Kabsch pose
         self._stats: dict[str, int] = {
             "frames": 0,
             "fusions": 0,
+            "deferred": 0,
             "measurements": 0,
             "rejected_gate": 0,
             "rejected_residual": 0,
@@ -315,16 +372,23 @@ class FusionPipeline:
         cams = [c for c in g.cameras if c in self.obs]
         if not cams:
             return
-        self._stats["fusions"] += 1
         st = self.settings
         ref = g.ref_ns
+        if g.compensate and 0 <= ref - self._last_fusion_ns < st.min_fusion_interval_ns:
+            # many fast cameras: the next fusion (a frame or so later) includes this frame
+            self._stats["deferred"] += 1
+            return
+        self._last_fusion_ns = ref
+        self._stats["fusions"] += 1
         vi = np.array([self._cam_index[c] for c in cams])
         R, t, f = self._R[vi], self._t[vi], self._f[vi]
         obs = [self.obs[c] for c in cams]
         tracked = [b for b, tr in enumerate(self.tracks) if tr.tracked]
         if tracked:
             self._update_tracked(tracked, obs, cams, R, t, f, ref, g.compensate)
-        self._acquire(obs, R, t, f, ref)
+        if ref - self._last_acquire_ns >= st.acquire_interval_ns or ref < self._last_acquire_ns:
+            self._last_acquire_ns = ref
+            self._acquire(obs, R, t, f, ref)
         # lost-track bookkeeping on the capture clock
         for b, tr in enumerate(self.tracks):
             if tr.tracked and ref - tr.last_update_ns > st.lost_timeout_ns:
@@ -335,24 +399,50 @@ class FusionPipeline:
         st = self.settings
         rows = np.concatenate([np.arange(self._off[b], self._off[b + 1]) for b in tracked])
         xn = np.stack([o.marker_xn[rows] for o in obs], axis=1)  # (P, V, 2)
+        dt = np.array([(o.capture_ns - ref) * 1e-9 for o in obs])  # (V,) view time - reference time
+        dt2_mean = float((dt * dt).mean())
+        dt_max = float(np.abs(dt).max())
+        centre = -np.einsum("vji,vj->i", R, t) / len(obs)  # mean camera centre: for a px-per-metre scale
+        f_mean = float(f.mean())
+        nb = len(tracked)
+        vel, acc, w, r = [], [], [], []
+        var_p, var_r, gate = np.zeros(nb), np.zeros(nb), np.zeros(nb)
+        for i, b in enumerate(tracked):
+            fl = self.tracks[b].filter
+            p, Rb, v, wb = fl.pose_at(ref)
+            a = fl.kf.x[6:9, 0]
+            P = fl.kf.P
+            sv2 = (P[3, 3] + P[4, 4] + P[5, 5]) / 3.0
+            sw2 = (P[12, 12] + P[13, 13] + P[14, 14]) / 3.0
+            m = self.models[b].markers
+            comp = compensate and sv2 < _COMPENSATE_MAX_VEL_STD**2
+            if comp:
+                var_p[i], var_r[i] = dt2_mean * sv2, dt2_mean * sw2
+                spread = 2.0 * np.sqrt(sv2)
+            else:
+                # velocity not known well enough (or naive mode): compensating with a wrong one
+                # would bias the measurement towards it (a feedback loop); the views are treated
+                # as simultaneous and the motion between them counts as measurement noise
+                vv, ww = float(v @ v), float(wb @ wb)
+                var_p[i], var_r[i] = dt2_mean * (vv + sv2), dt2_mean * (ww + sw2)
+                spread = np.sqrt(vv) + 2.0 * np.sqrt(sv2)
+                v, a, wb = np.zeros(3), np.zeros(3), np.zeros(3)
+            # residual gate widened by the motion the views may disagree by
+            gate[i] = st.max_residual_px + f_mean * spread * dt_max / max(float(np.linalg.norm(p - centre)), 0.5)
+            vel.append(np.broadcast_to(v, (len(m), 3)))
+            acc.append(np.broadcast_to(a, (len(m), 3)))
+            w.append(np.broadcast_to(wb, (len(m), 3)))
+            r.append(m @ Rb.T)
         offsets = None
-        if compensate:
-            dt = np.array([(o.capture_ns - ref) * 1e-9 for o in obs])  # (V,)
-            if np.any(dt != 0.0):
-                vel, w, r = [], [], []
-                for b in tracked:
-                    p, Rb, v, wb = self.tracks[b].filter.pose_at(ref)
-                    m = self.models[b].markers
-                    vel.append(np.broadcast_to(v, (len(m), 3)))
-                    w.append(np.broadcast_to(wb, (len(m), 3)))
-                    r.append(m @ Rb.T)
-                vel, w, r = np.concatenate(vel), np.concatenate(w), np.concatenate(r)
-                wxr = np.cross(w, r)
-                wxwxr = np.cross(w, wxr)
-                # marker displacement from ref to each view's capture time (2nd order in w dt)
-                offsets = (vel + wxr)[:, None, :] * dt[None, :, None] + 0.5 * wxwxr[:, None, :] * (dt * dt)[None, :, None]
+        if compensate and dt_max > 0.0:
+            vel, acc, w, r = np.concatenate(vel), np.concatenate(acc), np.concatenate(w), np.concatenate(r)
+            wxr = _cross(w, r)
+            wxwxr = _cross(w, wxr)
+            # marker displacement from ref to each view's capture time (2nd order in dt)
+            offsets = (vel + wxr)[:, None, :] * dt[None, :, None] + 0.5 * (acc + wxwxr)[:, None, :] * (dt * dt)[None, :, None]
         X, rms, nv = triangulate(xn, R, t, f, offsets)
-        good = (nv >= 2) & (rms < st.max_residual_px)
+        gate_rows = np.repeat(gate, [self._off[b + 1] - self._off[b] for b in tracked])
+        good = (nv >= 2) & (rms < gate_rows)
         self._stats["rejected_residual"] += int(((nv >= 2) & ~good).sum())
         # pad bodies for one batched Kabsch
         B = len(tracked)
@@ -386,9 +476,16 @@ class FusionPipeline:
                 self._stats["rejected_fit"] += 1
                 continue
             self.last_raw[b] = (ref, tk[i].copy(), Rk[i].copy())
-            # covariance: fewer markers -> larger; reused frames -> split information
-            scale = (M / n) * (len(obs) if compensate else 1)
-            accepted, _ = tr.filter.update(ref, tk[i], Rk[i], scale=scale)
+            # per-marker noise from the fit residual (3n - 6 degrees of freedom), averaged per body
+            s2 = float((res**2).sum()) / (3 * n - 6)
+            tr.marker_var += 0.05 * (s2 - tr.marker_var)
+            var = max(tr.marker_var, st.marker_sigma**2)
+            # reused frames: split their information over the fusions that share them
+            reuse = min(len(obs), self._max_reuse) if compensate else 1
+            cov = pose_measurement_cov(dst[i, :M][sel], tk[i], var * reuse)
+            cov[0:3, 0:3] += np.eye(3) * var_p[i]
+            cov[3:6, 3:6] += np.eye(3) * var_r[i]
+            accepted, _ = tr.filter.update(ref, tk[i], Rk[i], cov)
             if not accepted:
                 self._stats["rejected_gate"] += 1
                 if tr.first_reject_ns is None:
@@ -396,7 +493,7 @@ class FusionPipeline:
                 if ref - tr.first_reject_ns < st.reset_after_ns:
                     continue
                 # persistently inconsistent: believe the measurements, restart the filter there
-                tr.filter.initialize(ref, tk[i], Rk[i])
+                tr.filter.initialize(ref, tk[i], Rk[i], cov)
                 tr.reset_counter += 1
                 self._stats["filter_resets"] += 1
             tr.first_reject_ns = None
@@ -429,7 +526,10 @@ class FusionPipeline:
             for ident in identify(pts, self.models, st.identify_tolerance, st.min_markers, only=lost):
                 b = ident.body
                 tr = self.tracks[b]
-                tr.filter.initialize(ref, ident.t, ident.R)
+                matched = ident.point_index >= 0
+                n_id = int(matched.sum())
+                tr.marker_var = max(ident.rms**2 * n_id / max(n_id - 2, 1), st.marker_sigma**2)
+                tr.filter.initialize(ref, ident.t, ident.R, pose_measurement_cov(pts[ident.point_index[matched]], ident.t, tr.marker_var))
                 tr.tracked = True
                 tr.first_reject_ns = None
                 tr.last_update_ns = ref
@@ -476,7 +576,7 @@ class FusionPipeline:
                         velocity=v,
                         angular_velocity=R.T @ w,
                         covariance=pose_covariance(P),
-                        velocity_covariance=P[3:6, 3:6].copy(),
+                        velocity_covariance=velocity_covariance(P),
                         tracked=True,
                         n_markers=tr.n_markers,
                         n_cameras=tr.n_cameras,
