@@ -116,6 +116,7 @@ class VehicleConfig:
     message: str = "vision_position_estimate"
     vision_speed: bool = False
     rate_hz: float = 50.0
+    rate_tolerance_ms: float = 0.1
     max_age_ms: float = 200.0
     yaw_offset_deg: float = 0.0
     pivot_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -134,8 +135,9 @@ class VehicleConfig:
 
     @property
     def min_interval_ns(self) -> int:
-        """Smallest capture-time spacing between two sent poses."""
-        return int(round(1e9 / self.rate_hz))
+        """Smallest capture-time spacing between two sent poses: 1/rate_hz less the tolerance
+        (camera capture times jitter by microseconds around an exact 2-frame spacing)."""
+        return int(round(1e9 / self.rate_hz - self.rate_tolerance_ms * 1e6))
 
 
 @dataclass(frozen=True)
@@ -214,6 +216,7 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                 message=v.string("message", "vision_position_estimate", choices=MESSAGES),
                 vision_speed=v.boolean("vision_speed", False),
                 rate_hz=rate,
+                rate_tolerance_ms=v.number("rate_tolerance_ms", 0.1, min=0.0, max=0.5 * 1000.0 / rate),
                 max_age_ms=v.number("max_age_ms", 200.0, min=1.0),
                 yaw_offset_deg=v.number("yaw_offset_deg", 0.0, min=-360, max=360),
                 pivot_offset=tuple(float(x) for x in v.array("pivot_offset", (3,), [0.0, 0.0, 0.0])),

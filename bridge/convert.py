@@ -11,8 +11,6 @@ roll/pitch/yaw (ZYX Euler) through the Euler-rate matrix.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
-
 from visionpos.geometry import FLU_FRD, flu_to_frd, quat_world_body_to_ned_frd, world_to_ned
 from visionpos.messages import BodyState
 
@@ -32,6 +30,43 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(4,) xyzw Hamilton product a * b (apply b, then a)."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.array([
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    ])
+
+
+def quat_from_rotvec(v: np.ndarray) -> np.ndarray:
+    """(3,) rotation vector (rad) -> (4,) xyzw."""
+    angle = float(np.sqrt(v @ v))
+    if angle < 1e-12:
+        return np.array([0.5 * v[0], 0.5 * v[1], 0.5 * v[2], 1.0])
+    s = np.sin(0.5 * angle) / angle
+    return np.array([v[0] * s, v[1] * s, v[2] * s, np.cos(0.5 * angle)])
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """(4,) xyzw (any norm) -> (3, 3) rotation matrix."""
+    x, y, z, w = q / np.sqrt(q @ q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def euler_zyx(R: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation -> (3,) roll, pitch, yaw (rad) with R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    pitch = -np.arcsin(np.clip(R[2, 0], -1.0, 1.0))
+    return np.array([np.arctan2(R[2, 1], R[2, 2]), pitch, np.arctan2(R[1, 0], R[0, 0])])
+
+
 def back_propagate(position: np.ndarray, quaternion: np.ndarray, velocity: np.ndarray,
                    angular_velocity: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Move a state valid at t back by dt_s seconds with constant velocities.
@@ -40,8 +75,8 @@ def back_propagate(position: np.ndarray, quaternion: np.ndarray, velocity: np.nd
     angular_velocity: (3,) rad/s body. Returns (position (3,), quaternion (4,)) at t - dt_s.
     """
     p = np.asarray(position, float) - np.asarray(velocity, float) * dt_s
-    r = Rotation.from_quat(quaternion) * Rotation.from_rotvec(-np.asarray(angular_velocity, float) * dt_s)
-    return p, r.as_quat()
+    q = quat_multiply(np.asarray(quaternion, float), quat_from_rotvec(-np.asarray(angular_velocity, float) * dt_s))
+    return p, q / np.sqrt(q @ q)
 
 
 def euler_rate_matrix(euler: np.ndarray) -> np.ndarray:
@@ -55,6 +90,15 @@ def euler_rate_matrix(euler: np.ndarray) -> np.ndarray:
     col_pitch = np.array([-sy, cy, 0.0])
     col_yaw = np.array([0.0, 0.0, 1.0])
     return np.stack([col_roll, col_pitch, col_yaw], axis=1)
+
+
+def euler_rate_matrix_inverse(euler: np.ndarray) -> np.ndarray:
+    """(3,) roll, pitch, yaw -> (3, 3) inverse of euler_rate_matrix (closed form; pitch kept off +-90 deg)."""
+    _, pitch, yaw = euler
+    cy, sy, sp = np.cos(yaw), np.sin(yaw), np.sin(pitch)
+    cp = np.cos(pitch)
+    cp = np.copysign(max(abs(cp), 1e-9), cp)
+    return np.array([[cy / cp, sy / cp, 0.0], [-sy, cy, 0.0], [sp * cy / cp, sp * sy / cp, 1.0]])
 
 
 def mavlink_upper_triangle(m: np.ndarray) -> np.ndarray:
@@ -84,7 +128,7 @@ def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: fl
     dt = (state.time_ns - state.capture_ns) * 1e-9
     w_body = np.asarray(state.angular_velocity, float)
     p_w, q_w = back_propagate(state.position, state.quaternion, state.velocity, w_body, dt)
-    R_wb = Rotation.from_quat(q_w).as_matrix()
+    R_wb = quat_to_matrix(q_w)
     o = np.asarray(pivot_offset, float)
     lever = R_wb @ o  # world-frame lever arm body origin -> reference point
     p_ref = p_w + lever
@@ -94,12 +138,12 @@ def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: fl
     J = Y @ FLU_FRD  # world z-up -> offset NED, for vectors and small rotations
     p_ned = Y @ world_to_ned(p_ref)
     v_ned = Y @ world_to_ned(v_ref)
-    q_nf = (Rotation.from_matrix(Y) * Rotation.from_quat(quat_world_body_to_ned_frd(q_w))).as_quat()
+    q_yaw = np.array([0.0, 0.0, np.sin(0.5 * yaw_offset_rad), np.cos(0.5 * yaw_offset_rad)])
+    q_nf = quat_multiply(q_yaw, quat_world_body_to_ned_frd(q_w))
     if q_nf[3] < 0:
         q_nf = -q_nf
-    R_nf = Rotation.from_quat(q_nf).as_matrix()
-    ypr = Rotation.from_quat(q_nf).as_euler("ZYX")
-    euler = ypr[::-1].copy()
+    R_nf = quat_to_matrix(q_nf)
+    euler = euler_zyx(R_nf)
     v_frd = R_nf.T @ v_ned
 
     pose_cov = None
@@ -108,7 +152,7 @@ def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: fl
         # reference point error: dp_ref = dp + dtheta x lever = dp - [lever]x dtheta
         T = np.eye(6)
         T[:3, 3:] = -skew(lever)
-        Einv = np.linalg.pinv(euler_rate_matrix(euler))
+        Einv = euler_rate_matrix_inverse(euler)
         A = np.zeros((6, 6))
         A[:3, :3] = J
         A[3:, 3:] = Einv @ J

@@ -31,7 +31,7 @@ def test_defaults():
     (v,) = vehicles({"body": "body2", "endpoint": "udpin:0.0.0.0:14561"})
     assert (v.name, v.sysid, v.message, v.rate_hz, v.time_base, v.timesync) == (
         "body2", 2, "vision_position_estimate", 50.0, "boot", True)
-    assert v.min_interval_ns == 20_000_000 and v.signing_key is None and v.origin is None
+    assert v.min_interval_ns == 19_900_000 and v.signing_key is None and v.origin is None
 
 
 @pytest.mark.parametrize("vehicle, key, text", [
