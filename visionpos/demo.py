@@ -422,6 +422,7 @@ def _summary(arena, sc, shift, t_start, t_stop, collector: Collector, bridge, au
         "stations": stations_out,
         "server": {k: health.get(k) for k in ("packets", "frames_accepted", "malformed", "unknown", "pipeline_errors",
                                               "tick_cost_max_ms")},
+        "pipeline": {k: v for k, v in (health.get("pipeline") or {}).items() if isinstance(v, (int, float, str))},
     })
 
 
