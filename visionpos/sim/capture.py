@@ -6,7 +6,8 @@ the same frames in capture (or receive) order for live use, chunk by chunk,
 with exactly the same content.
 
 Model per camera frame k (see scenario.py for the parameters):
-  true exposure   start + phase + k * period + jitter_k   (server clock = true time)
+  true exposure   start + phase + k * period + jitter_k   (server clock = true time);
+                  with a rolling shutter, row y is exposed (y + 0.5) / height x readout later
   capture_ns      true + station sync residual(true) + stamp noise (what the station reports)
   recv_ns         true + latency (gamma, clipped)
   blobs           markers in the field of view, facing the camera and not behind any
@@ -46,7 +47,11 @@ class FrameTruth:
       SPURIOUS_STATIC (-1), SPURIOUS_RANDOM (-2) or SPURIOUS_MIRROR (-3).
     true_xy (N, 2): noise-free pixel (for merged blobs the weighted mean of
       the true pixels of the parts). merged (N,) bool.
-    true_ns: exact exposure time; station_ns: the station's raw clock then.
+    true_ns: exact exposure time (of the first row with a rolling shutter);
+    station_ns: the station's raw clock then.
+    exposure_ns (N,) int64: exact exposure time of each blob: true_ns, plus
+      its row's readout delay with a rolling shutter ((row + 0.5) / height x
+      readout), which is when its marker was where the blob shows it.
     """
 
     camera_id: int
@@ -57,6 +62,7 @@ class FrameTruth:
     marker: np.ndarray
     true_xy: np.ndarray
     merged: np.ndarray
+    exposure_ns: np.ndarray
 
 
 @dataclass
@@ -194,6 +200,35 @@ def _frame_range(t: CameraTiming, t0: float, t1: float) -> np.ndarray:
     return np.arange(k0, max(k0, k1), dtype=np.int64)
 
 
+def _body_markers_at(s: Scenario, times_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """All bodies' markers at per-marker times (K, Mtot) int64 -> world points and normals (K, Mtot, 3)."""
+    W, N = np.empty((*times_ns.shape, 3)), np.empty((*times_ns.shape, 3))
+    col = 0
+    for b in s.bodies:
+        M = len(b.markers)
+        tt = times_ns[:, col : col + M].ravel()
+        pos, rot = b.trajectory.pose((tt - s.start_ns).astype(np.float64) * 1e-9)
+        mk = np.tile(b.markers, (times_ns.shape[0], 1))
+        W[:, col : col + M] = (rot.apply(mk) + pos).reshape(-1, M, 3)
+        N[:, col : col + M] = rot.apply(np.tile(b.normals, (times_ns.shape[0], 1))).reshape(-1, M, 3)
+        col += M
+    return W, N
+
+
+def _rolling_shutter(s: Scenario, cam: Camera, readout_ns: float, true_ns: np.ndarray, W: np.ndarray, N: np.ndarray):
+    """Re-place markers for a rolling shutter: row y is exposed (y + 0.5) / height x
+    readout after the first. Fixed-point iteration on the row the marker lands in
+    (3 rounds: motion during one readout moves the row by far less than a pixel).
+    Returns W, N (K, Mtot, 3) and the per-marker delays (K, Mtot) ns."""
+    H = cam.model.height
+    dt = np.zeros(W.shape[:2])
+    for _ in range(3):
+        v = cam.project(W.reshape(-1, 3))[:, 1].reshape(W.shape[:2])
+        dt = np.clip((np.nan_to_num(v, nan=0.0) + 0.5) / H, 0.0, 1.0) * readout_ns
+        W, N = _body_markers_at(s, true_ns[:, None] + np.round(dt).astype(np.int64))
+    return W, N, dt
+
+
 def marker_geometry(camera: Camera, points_world: np.ndarray, diameter: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixel centre (N, 2), projected diameter (N,) px and range (N,) m of spheres.
 
@@ -295,6 +330,9 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
         b_idx_a = m_idx_a = np.zeros(0, int)
         cut = np.zeros(0)
     Mt = W.shape[1]
+    row_dt = np.zeros((K, Mt))
+    if t.readout_ns > 0 and Mt:
+        W, N, row_dt = _rolling_shutter(s, cam, t.readout_ns, true_ns, W, N)
     flatW = W.reshape(-1, 3)
     vis = cam.visible(flatW).reshape(K, Mt)
     if s.occlusion and Mt:
@@ -319,6 +357,7 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
     true_xy = uv
     xy = uv + rng.normal(0.0, s.centroid_noise_px, uv.shape) if s.centroid_noise_px > 0 else uv.copy()
     body_col, marker_col = b_idx_a[mi], m_idx_a[mi]
+    dt_col = row_dt[fi, mi]
 
     # ---- glossy floor: every marker above it also shows as a dimmer mirror image
     if s.floor_mirror > 0 and Mt:
@@ -330,6 +369,7 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
             a_m, p_m = blob_photometry(s, d_m, r_m)
             noise_m = rng.normal(0.0, s.centroid_noise_px, uv_m.shape) if s.centroid_noise_px > 0 else 0.0
             fi = np.concatenate([fi, fm])
+            dt_col = np.concatenate([dt_col, row_dt[fm, mm]])
             true_xy = np.vstack([true_xy, uv_m])
             xy = np.vstack([xy, uv_m + noise_m])
             area = np.concatenate([area, a_m])
@@ -347,6 +387,7 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
         s_true = np.tile(suv, (len(keep), 1))
         s_xy = s_true + (rng.normal(0.0, s.centroid_noise_px, s_true.shape) if s.centroid_noise_px > 0 else 0.0)
         fi = np.concatenate([fi, sf])
+        dt_col = np.concatenate([dt_col, np.zeros(len(sf))])
         true_xy = np.vstack([true_xy, s_true])
         xy = np.vstack([xy, s_xy])
         area = np.concatenate([area, np.tile(sarea, len(keep))])
@@ -361,6 +402,7 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
         r_xy = np.column_stack([rng.uniform(0, cam.model.width - 1, nr), rng.uniform(0, cam.model.height - 1, nr)])
         r_area = rng.uniform(1.0, 12.0, nr)
         fi = np.concatenate([fi, rf])
+        dt_col = np.concatenate([dt_col, np.zeros(nr)])
         true_xy = np.vstack([true_xy, r_xy])
         xy = np.vstack([xy, r_xy])
         area = np.concatenate([area, r_area])
@@ -375,7 +417,7 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
     # shuffle within each frame: random key, then stable sort by frame
     order = sel[np.lexsort((rng.random(len(sel)), fi[sel]))]
     fi, xy, true_xy, area, peak, dpx = fi[order], xy[order], true_xy[order], area[order], peak[order], dpx[order]
-    body_col, marker_col = body_col[order], marker_col[order]
+    body_col, marker_col, dt_col = body_col[order], marker_col[order], np.round(dt_col[order]).astype(np.int64)
     bounds = np.searchsorted(fi, np.arange(K + 1))
     needs_merge = _touching_frames(xy, dpx, bounds) if s.merge_blobs else np.zeros(K, bool)
 
@@ -387,16 +429,18 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
             continue
         a, b = bounds[j], bounds[j + 1]
         fxy, ftrue, farea, fpeak = xy[a:b], true_xy[a:b], area[a:b], peak[a:b]
-        fbody, fmark, fd = body_col[a:b], marker_col[a:b], dpx[a:b]
+        fbody, fmark, fd, fdt = body_col[a:b], marker_col[a:b], dpx[a:b], dt_col[a:b]
         merged = np.zeros(b - a, bool)
         if needs_merge[j]:
-            fxy, ftrue, farea, fpeak, fbody, fmark, merged = _merge(fxy, ftrue, farea, fpeak, fbody, fmark, fd)
+            fxy, ftrue, farea, fpeak, fbody, fmark, merged, fdt = _merge(fxy, ftrue, farea, fpeak, fbody, fmark, fd, fdt)
         flags = 0
         if len(fxy) > s.max_blobs:
             # detectors scan in raster order and stop at their cap
             ras = np.lexsort((fxy[:, 0], np.floor(fxy[:, 1])))[: s.max_blobs]
             ras.sort()
-            fxy, ftrue, farea, fpeak, fbody, fmark, merged = (v[ras] for v in (fxy, ftrue, farea, fpeak, fbody, fmark, merged))
+            fxy, ftrue, farea, fpeak, fbody, fmark, merged, fdt = (
+                v[ras] for v in (fxy, ftrue, farea, fpeak, fbody, fmark, merged, fdt)
+            )
             flags |= FLAG_TRUNCATED
         blobs = np.empty((len(fxy), 4), np.float32)
         blobs[:, 0:2] = fxy
@@ -414,6 +458,7 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
         truth = FrameTruth(
             cam.id, int(k[j]), int(true_ns[j]), int(station_ns[j]),
             fbody.astype(np.int64), fmark.astype(np.int64), np.asarray(ftrue, np.float64), merged,
+            int(true_ns[j]) + np.asarray(fdt, np.int64),
         )  # fmt: skip
         out.append((frame, truth))
     return out
@@ -440,18 +485,18 @@ def _touching_frames(xy: np.ndarray, dpx: np.ndarray, bounds: np.ndarray) -> np.
     return touch.any(axis=(1, 2))
 
 
-def _merge(xy, true_xy, area, peak, body, marker, dpx):
+def _merge(xy, true_xy, area, peak, body, marker, dpx, dt):
     """Merge blobs whose discs overlap (centre distance < sum of radii) into one.
 
     Centroid and true pixel are the area*peak weighted means; area adds, peak
-    is the max; the label is the heaviest part's. Returns the reduced arrays
-    and a merged flag (N',)."""
+    is the max; the label and row time offset dt are the heaviest part's.
+    Returns the reduced arrays and a merged flag (N',)."""
     n = len(xy)
     d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
     touch = d < (dpx[:, None] + dpx[None]) / 2
     np.fill_diagonal(touch, False)
     if not touch.any():
-        return xy, true_xy, area, peak, body, marker, np.zeros(n, bool)
+        return xy, true_xy, area, peak, body, marker, np.zeros(n, bool), dt
     # connected groups by label propagation (n is small)
     group = np.arange(n)
     for _ in range(n):
@@ -463,6 +508,7 @@ def _merge(xy, true_xy, area, peak, body, marker, dpx):
     w = area * peak
     out = [np.empty((len(reps), 2)), np.empty((len(reps), 2)), np.empty(len(reps)), np.empty(len(reps))]
     ob, om, omg = np.empty(len(reps), int), np.empty(len(reps), int), np.zeros(len(reps), bool)
+    odt = np.empty(len(reps), np.int64)
     for r, g in enumerate(reps):
         idx = np.nonzero(group == g)[0]
         ww = w[idx] / w[idx].sum()
@@ -471,5 +517,5 @@ def _merge(xy, true_xy, area, peak, body, marker, dpx):
         out[2][r] = area[idx].sum()
         out[3][r] = peak[idx].max()
         h = idx[np.argmax(w[idx])]
-        ob[r], om[r], omg[r] = body[h], marker[h], len(idx) > 1
-    return out[0], out[1], out[2], out[3], ob, om, omg
+        ob[r], om[r], omg[r], odt[r] = body[h], marker[h], len(idx) > 1, dt[h]
+    return out[0], out[1], out[2], out[3], ob, om, omg, odt

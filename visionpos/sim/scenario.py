@@ -43,8 +43,11 @@ The `sim` section (all keys optional; defaults in brackets):
   merge_blobs: markers whose images overlap become one blob [true]
   max_blobs: a station sends at most this many blobs (FLAG_TRUNCATED) [64];
       at most visionpos.protocol.MAX_BLOBS_PER_PACKET (one datagram)
-  cameras: {camera_id: {fps, phase_ms, drop_probability, enabled}}
-      per-camera overrides
+  rolling_shutter_ms: readout time from the first to the last row; 0 is a
+      global shutter [0]. Pi camera modules are rolling-shutter (~10-30 ms
+      full-frame readout); capture_ns then stamps the first row
+  cameras: {camera_id: {fps, phase_ms, drop_probability, rolling_shutter_ms,
+      enabled}} per-camera overrides
 """
 
 from __future__ import annotations
@@ -73,7 +76,7 @@ _SIM_KEYS = {
     "duration", "seed", "start_time", "session", "sessions", "props", "truth_rate", "phase",
     "timing_jitter_us", "stamp_noise_us", "clock_offset_ms", "clock_drift_ppm", "sync_residual_us",
     "centroid_noise_px", "drop_probability", "latency_ms", "spurious", "occlusion", "brightness",
-    "merge_blobs", "max_blobs", "cameras",
+    "merge_blobs", "max_blobs", "cameras", "rolling_shutter_ms",
 }  # fmt: skip
 
 # stream tags for per-purpose random generators: rng([seed, TAG, ...])
@@ -132,6 +135,7 @@ class CameraTiming:
     jitter_ns: float
     stamp_noise_ns: float
     drop_probability: float
+    readout_ns: float = 0.0  # rolling-shutter readout time, first row to last (0 = global shutter)
 
 
 @dataclass(frozen=True)
@@ -340,6 +344,7 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
     drift_std = sim.number("clock_drift_ppm", 20.0, min=0.0, max=1000.0)
     resid_std = sim.number("sync_residual_us", 50.0, min=0.0) * 1e3
     drop = sim.number("drop_probability", 0.002, min=0.0, max=1.0)
+    readout_ms = sim.number("rolling_shutter_ms", 0.0, min=0.0, max=1000.0)
     cameras, timings = [], []
     clocks: dict[int, StationClock] = {}
     for cam in arena.cameras:
@@ -378,6 +383,7 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
                 jitter_ns=jitter_ns,
                 stamp_noise_ns=stamp_ns,
                 drop_probability=co.number("drop_probability", drop, min=0.0, max=1.0),
+                readout_ns=co.number("rolling_shutter_ms", readout_ms, min=0.0, max=1e3 / fps) * 1e6,
             )
         )
     if not cameras:

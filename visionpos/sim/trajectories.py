@@ -237,9 +237,10 @@ class Figure8(Trajectory):
 @dataclass(frozen=True)
 class Aggressive(Trajectory):
     """Circle of `radius` around `center` with a vertical wave of +-`height_amp`
-    at twice the lap rate; the lap rate is chosen so the speed peaks at
-    exactly `peak_speed` (|v|^2 = w^2 (R^2 + 4 h^2 cos^2 2wt)); the body spins
-    in yaw at `yaw_rate` rad/s independently of the path."""
+    at the lap rate w, chosen so the speed peaks at exactly `peak_speed`
+    (|v|^2 = w^2 (R^2 + h^2 cos^2 wt)); the body spins in yaw at `yaw_rate`
+    rad/s independently of the path. The thrust axis tilts up to
+    `max_tilt_deg` into the turn (from_config refuses settings above 70 deg)."""
 
     center: np.ndarray
     radius: float = 1.0
@@ -249,15 +250,21 @@ class Aggressive(Trajectory):
 
     @property
     def omega(self) -> float:
-        return self.peak_speed / np.hypot(self.radius, 2 * self.height_amp)
+        return self.peak_speed / np.hypot(self.radius, self.height_amp)
+
+    @property
+    def max_tilt_deg(self) -> float:
+        """Largest angle between body z and world z: centripetal R w^2 against g - h w^2."""
+        w2 = self.omega**2
+        lift = GRAVITY - self.height_amp * w2
+        return float(np.degrees(np.arctan2(self.radius * w2, lift)))
 
     def kinematics(self, t):
         w, r, h = self.omega, self.radius, self.height_amp
         c, s = np.cos(w * t), np.sin(w * t)
-        c2, s2 = np.cos(2 * w * t), np.sin(2 * w * t)
-        p = np.column_stack([r * c, r * s, h * s2]) + self.center
-        v = np.column_stack([-r * w * s, r * w * c, 2 * h * w * c2])
-        acc = np.column_stack([-r * w * w * c, -r * w * w * s, -4 * h * w * w * s2])
+        p = np.column_stack([r * c, r * s, h * s]) + self.center
+        v = np.column_stack([-r * w * s, r * w * c, h * w * c])
+        acc = np.column_stack([-r * w * w * c, -r * w * w * s, -h * w * w * s])
         return p, v, acc
 
     def attitude(self, t):
@@ -369,6 +376,14 @@ def from_config(s: Section, rng: np.random.Generator) -> Trajectory:
             s.number("height_amp", 0.3, min=0.0),
             s.number("yaw_rate", 3.0),
         )
+        if out.max_tilt_deg > 70.0:
+            # past ~70 deg a quadrotor cannot hold height, and the flat attitude
+            # map becomes singular at 90 deg
+            raise s.error(
+                "peak_speed",
+                f"{out.peak_speed} m/s on a {out.radius} m circle (height_amp {out.height_amp} m) would tilt "
+                f"the drone {out.max_tilt_deg:.0f} deg; lower peak_speed or height_amp, or raise radius",
+            )
     elif kind == "wand_wave":
         known |= {"extent", "max_angle_deg"}
         ext = s.array("extent", (3,), [1.4, 1.4, 0.7])
