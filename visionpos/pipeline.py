@@ -149,8 +149,9 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
     source = arena.source
     if settings:
         over = _expand_dotted(dict(settings))
-        if set(over) == {"fusion"} and isinstance(over["fusion"], dict):
-            over = over["fusion"]
+        if isinstance(over.get("fusion"), dict):  # `--set fusion.x=y` style keys
+            inner = over.pop("fusion")
+            over = _merge(over, inner)
         data = _merge(data, over)
         source = f"{arena.source} (+ overrides)"
     s = Section(data, source, "fusion")

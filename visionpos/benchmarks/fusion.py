@@ -77,6 +77,8 @@ def replay(
                 pos[s.name][k] = s.position
                 quat[s.name][k] = s.quaternion
                 trk[s.name][k] = True
+    for f in fr[i:]:  # frames after the last tick
+        pipe.push(f)
     return Replay(ticks, pos, quat, trk, pipe)
 
 
