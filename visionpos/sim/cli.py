@@ -101,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
                         "marker": truth.marker.tolist(),
                         "true_xy": np.round(truth.true_xy, 6).tolist(),
                         "merged": truth.merged.tolist(),
+                        "exposure_ns": truth.exposure_ns.tolist(),
                     },
                 )
         step = int(round(1e9 / sc.truth_rate_hz))
@@ -145,6 +146,7 @@ def _sim_info(sc) -> dict:
                 "period_ns": t.period_ns,
                 "jitter_ns": t.jitter_ns,
                 "drop_probability": t.drop_probability,
+                "rolling_shutter_ns": t.readout_ns,
             }
             for t in sc.timings
         ],
