@@ -391,3 +391,26 @@ def test_latency_advice_printed():
     assert lines and "VISO_DELAY_MS=" in lines[-1] and "EKF2_EV_DELAY" in lines[-1]
     lat = bridge.stats()["vehicles"]["body1"]["latency_capture_ms_p50"]
     assert lat >= 15.0  # the state was captured 15 ms before it was published
+
+
+def test_udpin_relearns_the_autopilot_address():
+    bridge, ap1 = start_pair(ap_kw={"timesync_hz": 0})
+    port = bridge.vehicles[0].cfg.endpoint.port
+    ap2 = None
+    try:
+        feed(bridge, [body_state(position=(1, 0, 0))])
+        assert ap1.wait_for(VPE, 1)
+        ap1.close()  # the companion restarts and comes back from another source port
+        ap2 = FakeAutopilot(f"udpout:127.0.0.1:{port}", sysid=1, timesync_hz=0).start()
+        assert ap2.wait_for("HEARTBEAT", 1)
+        feed(bridge, [body_state(position=(2, 0, 0))])
+        assert ap2.wait_for(VPE, 1)
+        assert decode_pose(ap2.messages(VPE)[0])["position_ned"].tolist() == [2, 0, 0]
+        assert len(ap1.messages(VPE)) == 1
+        s = bridge.stats()["vehicles"]["body1"]
+        assert s["reconnects"] == 1 and s["peer"].endswith(str(ap2._sock.getsockname()[1]))
+    finally:
+        bridge.close()
+        ap1.close()
+        if ap2 is not None:
+            ap2.close()
