@@ -133,9 +133,9 @@ def test_stop_on_loss_and_no_frozen_resend():
 
 
 def test_stale_state_dropped():
-    bridge, ap = start_pair(max_age_ms=100)
+    bridge, ap = start_pair(max_age_ms=1000)
     try:
-        feed(bridge, [body_state(capture_ns=time.monotonic_ns() - 2_000_000_000)])
+        feed(bridge, [body_state(capture_ns=time.monotonic_ns() - 5_000_000_000)])
         feed(bridge, [body_state()])
         assert ap.wait_for(VPE, 1)
         time.sleep(0.05)
