@@ -175,3 +175,37 @@ def test_parse_speed():
     for bad in ("fast", "0", "-2"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_speed(bad)
+
+
+def test_replay_of_realtime_stamped_stations_uses_the_recording_hosts_clocks(thesis_log, tmp_path):
+    """Stations stamping CLOCK_REALTIME (PTP/chrony hosts): the server converts with its
+    realtime - monotonic difference. A replay, on another host and day, must use the one the
+    recording host had, so it reproduces the server-timebase replay exactly."""
+    from visionpos import protocol as P
+    from visionpos.messages import BlobFrame
+    from visionpos.recording import RecordingReader, RecordingWriter
+    from visionpos.replay import replay_log, write_trajectories_csv
+
+    rt_minus_mono = 1_700_000_000_000_000_000 - 1_000_000_000_000  # a 2023 wall clock vs a 1000 s uptime
+    src = RecordingReader(thesis_log)
+    rt_log = tmp_path / "realtime.mcap"
+    meta = {"wall_start_unix_ns": rt_minus_mono + 5_000_000_000, "monotonic_start_ns": 5_000_000_000}
+    with RecordingWriter(rt_log, src.config, meta) as w:
+        for recv_ns, data, source in src.packets_with_source():
+            msg = P.decode(data)
+            if isinstance(msg, P.Hello):
+                data = P.encode(dataclass_replace(msg, timebase=P.TIMEBASE_REALTIME))
+            elif isinstance(msg, BlobFrame):
+                data = P.encode_frame(dataclass_replace(msg, capture_ns=msg.capture_ns + rt_minus_mono))
+            w.write_packet(recv_ns, data, source)
+    a = write_trajectories_csv(replay_log(thesis_log), tmp_path / "a.csv").read_bytes()
+    res = replay_log(rt_log)
+    b = write_trajectories_csv(res, tmp_path / "b.csv").read_bytes()
+    assert res.n_frames > 1000
+    assert a == b
+
+
+def dataclass_replace(obj, **changes):
+    import dataclasses
+
+    return dataclasses.replace(obj, **changes)

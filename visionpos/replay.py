@@ -142,6 +142,7 @@ def run_pipeline(
     packets: Iterable[tuple[int, bytes] | tuple[int, bytes, Any]],
     rate_hz: float | None = None,
     speed: float | None = None,
+    realtime_minus_monotonic_ns: int | None = None,
 ) -> ReplayResult:
     """Feed recorded datagrams through the server's own ingest into a fresh pipeline.
 
@@ -154,7 +155,9 @@ def run_pipeline(
     packet (and the vanish check runs every 20 ms of recording time before a
     tick, as in the server), ticks continue to the last receive time.
     speed: None = as fast as possible, else sleep so recording time runs at
-    speed x wall time.
+    speed x wall time. realtime_minus_monotonic_ns: the recording host's
+    CLOCK_REALTIME - monotonic difference (from the recording's meta), used
+    for stations that stamp in TIMEBASE_REALTIME instead of this host's clocks.
     """
     from visionpos.ingest import Ingest, ServerSettings
     from visionpos.pipeline import FusionPipeline
@@ -169,6 +172,11 @@ def run_pipeline(
     ingest = Ingest(arena, settings, pipe, None, clock=lambda: now[0])
     # the recording holds only what stations sent after their trigger: accept all of it
     ingest.set_start(-(1 << 62))
+    if realtime_minus_monotonic_ns is not None:
+        # Ingest converts realtime-stamped frames with the *live* host's clock difference, refreshed
+        # each second; in a replay that must be the recording host's, fixed (no public hook yet)
+        ingest._rt_minus_mono = int(realtime_minus_monotonic_ns)
+        ingest._rt_update_ns = 1 << 62
     names: list[str] = [b.name for b in arena.bodies]
     per_body: dict[str, tuple[list[int], list[BodyState]]] = {}
     ticks: list[int] = []
@@ -251,7 +259,12 @@ def replay_log(
         raise ConfigError(str(p), "(file)", "no such recording; make one with `visionpos sim --out` or `visionpos record`")
     reader = RecordingReader(p)
     arena = load_settings(reader.config, config, overrides)
-    res = run_pipeline(arena, reader.packets_with_source(), rate_hz=rate_hz, speed=speed)
+    meta = reader.meta or {}
+    rt = None
+    if isinstance(meta.get("wall_start_unix_ns"), int) and isinstance(meta.get("monotonic_start_ns"), int):
+        rt = meta["wall_start_unix_ns"] - meta["monotonic_start_ns"]
+    res = run_pipeline(arena, reader.packets_with_source(), rate_hz=rate_hz, speed=speed,
+                       realtime_minus_monotonic_ns=rt)
     res.truth = dict(reader.truth() or {})
     return res
 
