@@ -160,3 +160,21 @@ def test_bad_images_fail_clearly():
         det.detect(np.zeros((H, W), np.float32))
     with pytest.raises(ValueError, match="mask is"):
         Detector(mask=np.ones((10, 10), np.uint8)).detect(np.zeros((H, W), np.uint8))
+
+
+def test_close_markers_do_not_pull_each_other():
+    """Two 4 px markers 7 px apart (a drone's markers seen from afar)."""
+    rng = np.random.default_rng(8)
+    pull = []
+    for _ in range(30):
+        a = rng.uniform(40, 200, 2)
+        ang = rng.uniform(0, 2 * np.pi)
+        u = np.array([np.cos(ang), np.sin(ang)])
+        c = np.array([a, a + 7.0 * u])
+        blobs, _ = Detector().detect(render_blobs(W, H, c, [4.0, 4.0], [200.0, 200.0], rng))
+        assert len(blobs) == 2
+        d = np.linalg.norm(blobs[:, None, :2] - c[None], axis=2)
+        e = blobs[d.argmin(axis=0), :2] - c
+        pull += [e[0] @ u, -(e[1] @ u)]  # error component towards the other marker
+    assert abs(np.mean(pull)) < 0.04
+    assert np.sqrt(np.mean(np.square(pull))) < 0.06
