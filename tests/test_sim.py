@@ -210,6 +210,10 @@ def test_bodies_are_distinguishable(name):
         assert np.diff(d).min() >= 0.01  # no near-duplicate internal distances
     for d1, d2 in itertools.combinations(ds, 2):
         assert len(d1) != len(d2) or np.abs(d1 - d2).max() >= 0.01
+    # with one marker hidden: every marker triangle differs from every other by >= 1 cm in a side
+    tris = [_sorted_distances(b.markers[list(c)]) for b in a.bodies for c in itertools.combinations(range(len(b.markers)), 3)]
+    for t1, t2 in itertools.combinations(tris, 2):
+        assert np.abs(t1 - t2).max() >= 0.01
 
 
 def test_arena8_cameras_and_flight_in_view():
