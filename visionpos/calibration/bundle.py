@@ -28,7 +28,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from visionpos.calibration.wand import CalibrationError, WandData, WandSpec
-from visionpos.camera import Camera
+from visionpos.camera import Camera, CameraModel
 from visionpos.geometry import CameraRig, decompose_essential, essential_from_points, skew, triangulate_normalized
 
 log = logging.getLogger(__name__)
@@ -71,6 +71,41 @@ def wand_scale(points: np.ndarray, spec: WandSpec) -> np.ndarray:
         ) / 3.0
 
 
+def _sampson_distance(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """First-order geometric error (N,) of correspondences x1, x2 (N, 2) under E (3, 3), normalised units."""
+    h1 = np.column_stack([x1, np.ones(len(x1))])
+    h2 = np.column_stack([x2, np.ones(len(x2))])
+    Ex1 = h1 @ E.T
+    Etx2 = h2 @ E
+    num = np.sum(h2 * Ex1, axis=1)
+    den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.abs(num) / np.sqrt(den)
+
+
+class DegenerateMotion(CalibrationError):
+    """The wand points seen by a camera pair do not span 3D (one plane, or too small a volume)."""
+
+
+def _check_not_planar(x1: np.ndarray, x2: np.ndarray, threshold: float) -> None:
+    """Raise DegenerateMotion when one homography explains nearly all correspondences
+    (N, 2): the points lie in one plane (or the volume is too small), and the essential
+    matrix is then not determined."""
+    import cv2
+
+    spread = min(float(np.sqrt(np.trace(np.cov(x.T)))) for x in (x1, x2))
+    if spread < 0.03:
+        raise DegenerateMotion(
+            f"the wand points span only {np.degrees(spread):.1f} deg of the view: the wand covered too small a volume"
+        )
+    H, mask = cv2.findHomography(x1, x2, cv2.RANSAC, threshold, maxIters=500, confidence=0.99)
+    if H is not None and mask is not None and mask.mean() > 0.9:
+        raise DegenerateMotion(
+            f"{mask.mean() * 100:.0f} % of the wand points fit one homography: the wand stayed in (nearly) one plane "
+            "or a small volume"
+        )
+
+
 def pair_pose(
     xn_i: np.ndarray, xn_j: np.ndarray, spec: WandSpec, threshold: float, max_frames: int = 600, seed: int = 0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
@@ -86,7 +121,14 @@ def pair_pose(
     sel = np.sort(rng.choice(n, max_frames, replace=False)) if n > max_frames else np.arange(n)
     p1 = xn_i[sel].reshape(-1, 2)
     p2 = xn_j[sel].reshape(-1, 2)
+    _check_not_planar(p1, p2, threshold)
     E, inl = essential_from_points(p1, p2, threshold=threshold, rng=seed)
+    # RANSAC over minimal 8-point samples can settle on a poor model when the wand cloud is
+    # compact (near bas-relief ambiguity); the linear fit on all points is then often better
+    E_all, _ = essential_from_points(p1, p2)
+    inl_all = _sampson_distance(E_all, p1, p2) < threshold
+    if inl_all.sum() > inl.sum():
+        E, inl = essential_from_points(p1[inl_all], p2[inl_all])[0], inl_all
     R, t_unit, front = decompose_essential(E, p1[inl], p2[inl])
     # triangulate every shared frame with the unit baseline
     Rs = np.stack([np.eye(3), R])
@@ -108,7 +150,25 @@ def pair_pose(
     cloud = pts[good].reshape(-1, 3)
     ev = np.sqrt(np.maximum(np.linalg.eigvalsh(np.cov(cloud.T)), 0))
     flat = float(ev[0] / ev[2]) if ev[2] > 0 else 0.0
-    return R, lam * t_unit, good, lam, flat
+    if flat < 0.03:  # degenerate: a refinement would only polish an arbitrary solution
+        return R, lam * t_unit, good, lam, flat
+    # the linear 8-point estimate is biased by noise: a two-view wand bundle adjustment
+    # (normalised coordinates, so unit intrinsics) brings the pair to the noise level
+    idx = np.flatnonzero(good)
+    if len(idx) > 300:  # an initial value only: a few hundred frames are plenty
+        idx = np.sort(rng.choice(idx, 300, replace=False))
+    P = pts[idx] * lam
+    d = P[:, 2] - P[:, 0]
+    u0 = d / np.linalg.norm(d, axis=1, keepdims=True)
+    A0 = P.mean(axis=1) - spec.offsets.mean() * u0
+    unit = CameraModel("pinhole", 1, 1, 1.0, 1.0, 0.0, 0.0)
+    cams = [Camera(0, "i", unit, np.eye(3), np.zeros(3)), Camera(1, "j", unit, R, lam * t_unit)]
+    obs = np.stack([xn_i[idx], xn_j[idx]], axis=1)  # (n, 2, 3, 2)
+    out, _, _, _, _ = bundle_adjust(
+        obs, cams, np.stack([np.eye(3), R]), np.stack([np.zeros(3), lam * t_unit]), A0, u0, spec,
+        f_scale=threshold, max_nfev=30,
+    )
+    return out[1].R, out[1].t, good, lam, flat
 
 
 def undistort_wand(data: WandData) -> np.ndarray:
@@ -139,6 +199,7 @@ def initial_poses(
     shared = np.einsum("fi,fj->ij", seen.astype(np.int64), seen.astype(np.int64))
     tried: dict[tuple[int, int], PairPose | None] = {}
     failures: list[str] = []
+    degenerate: list[str] = []
 
     def pair(i: int, j: int) -> PairPose | None:
         key = (min(i, j), max(i, j))
@@ -148,6 +209,9 @@ def initial_poses(
             try:
                 R, tt, good, lam, flat = pair_pose(xn[both, a], xn[both, b], spec, threshold)
                 tried[key] = PairPose(a, b, R, tt, int(both.sum()), int(good.sum()), lam, flat)
+            except DegenerateMotion as e:
+                degenerate.append(f"{names[a]}-{names[b]}: {e}")
+                tried[key] = None
             except (CalibrationError, ValueError) as e:
                 failures.append(f"{names[a]}-{names[b]}: {e}")
                 tried[key] = None
@@ -183,6 +247,11 @@ def initial_poses(
             break
         if not attached:
             missing = [v for v in range(V) if v not in done]
+            if degenerate:
+                raise CalibrationError(
+                    "degenerate wand motion: " + "; ".join(degenerate) + ". Wave the wand through the whole "
+                    "tracking volume, up and down as well as sideways, tilting and turning it"
+                )
             detail = "".join(
                 f"\n  {names[v]}: {int(shared[v, done].max())} wand frames shared with a connected camera"
                 for v in missing
