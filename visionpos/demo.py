@@ -307,11 +307,17 @@ async def _status_loop(server, bridge, collector: Collector, stations: list[SimS
                        t_start: int, out: TextIO | None) -> None:
     if out is None:
         return
+    prev: dict[int, int] = {}
+    prev_t = time.monotonic_ns()
     while True:
         await asyncio.sleep(1.0)
         now = time.monotonic_ns()
         h = server.ingest.health(now)
-        fps = " ".join(f"{cid}:{c['fps']:.0f}" for cid, c in h["cameras"].items())
+        # frames the server accepted per camera since the last line
+        dt = (now - prev_t) * 1e-9
+        fps = " ".join(f"{cid}:{(c['frames'] - prev.get(cid, 0)) / dt:.0f}" for cid, c in h["cameras"].items())
+        prev = {cid: c["frames"] for cid, c in h["cameras"].items()}
+        prev_t = now
         parts = []
         for b in sc.bodies:
             s = collector.last.get(b.name)
