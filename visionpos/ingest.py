@@ -289,9 +289,8 @@ class Ingest:
 
     def _once(self, key: tuple, level: int, msg: str, *args: Any) -> None:
         """Log a problem once per key (e.g. per sender and kind): no log floods from bad traffic."""
-        if key not in self._logged:
-            if len(self._logged) < 10_000:
-                self._logged.add(key)
+        if key not in self._logged and len(self._logged) < 10_000:  # capped: spoofed senders cannot flood
+            self._logged.add(key)
             log.log(level, msg, *args)
 
     def _event(self, kind: str, **info: Any) -> None:

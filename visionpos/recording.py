@@ -353,7 +353,10 @@ class RecordingWriter:
 
     def _flush_loop(self) -> None:
         while not self._stop.wait(self._flush_interval):
-            self._flush_to_disk()
+            try:
+                self._flush_to_disk()
+            except Exception:  # keep flushing: a dead flusher would let the spool grow without bound
+                log.exception("%s: flushing the recording failed", self.path)
 
     def flush(self) -> None:
         """Move everything written so far to the OS now."""
