@@ -162,6 +162,12 @@ def test_sim_section_errors_name_the_key():
     with pytest.raises(ConfigError) as e:
         load_scenario("thesis", ["sim.cameras.9.fps=50"])
     assert e.value.key == "sim.cameras.9"
+    with pytest.raises(ConfigError, match="closer than 10 mm") as e:
+        load_scenario("thesis", ["sim.props.0.markers=[[0, 0, 0], [0.005, 0, 0], [0.1, 0, 0]]"])
+    assert e.value.key == "sim.props[0].markers"
+    with pytest.raises(ConfigError) as e:
+        load_scenario("thesis", ["sim.props.1.name=quad"])
+    assert e.value.key == "sim.props[1].name"
 
 
 # ---------------------------------------------------------------- configs

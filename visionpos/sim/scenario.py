@@ -234,15 +234,25 @@ def _occlusion_params(s: Section, default: tuple[float, float]) -> tuple[float, 
 
 
 def _props(sim: Section, arena: ArenaConfig) -> list[tuple[BodyConfig, Section]]:
+    """Validate sim.props: simulated-only bodies {name, markers, marker_diameter, occlusion}."""
     out = []
     names = {b.name for b in arena.bodies}
     for p in sim.items("props"):
-        sub = parse_arena({"bodies": [{k: v for k, v in p.data.items() if k != "occlusion"}]}, p.source)
-        b = sub.bodies[0]
-        if b.name in names:
-            raise p.error("name", f"'{b.name}' is already a body or prop name; props need their own names")
-        names.add(b.name)
-        out.append((b, p.sub("occlusion")))
+        extra = sorted(set(p.data) - {"name", "markers", "marker_diameter", "occlusion"})
+        if extra:
+            raise p.error(extra[0], "unknown prop key; use name, markers, marker_diameter, occlusion")
+        name = p.string("name")
+        if name in names:
+            raise p.error("name", f"'{name}' is already a body or prop name; props need their own names")
+        names.add(name)
+        markers = p.array("markers", (None, 3))
+        if len(markers) < 2:
+            raise p.error("markers", f"a prop needs at least 2 markers, got {len(markers)}")
+        d = np.linalg.norm(markers[:, None] - markers[None], axis=-1) + np.eye(len(markers)) * 1e9
+        if d.min() < 0.01:
+            raise p.error("markers", "two markers are closer than 10 mm; cameras cannot separate them")
+        body = BodyConfig(name, 0, markers, p.number("marker_diameter", 0.014, min=0.001), p.data)
+        out.append((body, p.sub("occlusion")))
     return out
 
 
