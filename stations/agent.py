@@ -242,8 +242,11 @@ class StationAgent:
     def _hello(self) -> P.Hello:
         src = self.source
         name = (self.cfg.camera_name or src.name).encode()[:32].decode(errors="ignore")
+        kind = self.cfg.camera_kind
+        if kind == "unknown" and getattr(src, "camera_kind", "unknown") in P.CAMERA_KINDS:
+            kind = src.camera_kind
         return P.Hello(self.cfg.station_id, self.cfg.camera_id, self.session, int(src.width or 0),
-                       int(src.height or 0), float(src.fps or 0.0), self.cfg.camera_kind, name, SOFTWARE,
+                       int(src.height or 0), float(src.fps or 0.0), kind, name, SOFTWARE,
                        self.timebase)
 
     def _heartbeat(self, now: int) -> P.Heartbeat:

@@ -79,6 +79,7 @@ class FrameSource:
         self.clock = clock
         self.width, self.height, self.fps = cfg.width, cfg.height, cfg.fps
         self.name = cfg.kind
+        self.camera_kind = "unknown"  # lens model, when the source knows it (sim)
         self._offset_ns = int(cfg.timestamp_offset_ms * 1e6)
 
     def open(self) -> None:
@@ -359,6 +360,7 @@ class SimSource(FrameSource):
             raise SourceError(f"simulated arena '{self.cfg.scenario}' has no camera {self.camera_id} "
                               f"(cameras: {sorted(cams)}); set camera_id")
         self.scenario, self.camera = sc, cams[self.camera_id]
+        self.camera_kind = self.camera.model.kind
         self.width, self.height = self.camera.model.width, self.camera.model.height
         self.fps = self.cfg.fps or float(self.camera.fps or 30.0)
         self.pacer = _Pacer(self.fps if self.cfg.realtime else 0.0)

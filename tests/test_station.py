@@ -43,6 +43,7 @@ class LoopbackServer:
         self.hellos: list[P.Hello] = []
         self.heartbeats: list[P.Heartbeat] = []
         self.syncs = 0
+        self.unregistered_frames = 0
         self.errors: list[str] = []
         self._stop = threading.Event()
         self.thread = threading.Thread(target=self._loop, daemon=True)
@@ -66,7 +67,13 @@ class LoopbackServer:
                 continue
             out = None
             if isinstance(msg, BlobFrame):
-                self.frames.append(msg)
+                if (msg.station_id, msg.camera_id) in self.sessions:
+                    self.frames.append(msg)
+                else:  # unregistered (we restarted): ask the station to register, once per burst
+                    self.unregistered_frames += 1
+                    if self.unregistered_frames % 20 == 1:
+                        out = P.HelloAck(msg.station_id, msg.camera_id, 0, self.start_ns, self.clock(),
+                                         P.ACK_UNKNOWN_SESSION)
             elif isinstance(msg, P.Hello):
                 self.hellos.append(msg)
                 self.sessions[(msg.station_id, msg.camera_id)] = msg.session
