@@ -333,7 +333,7 @@ async def _status_loop(server, bridge, collector: Collector, stations: list[SimS
             try:
                 vs = bridge.vehicle(b.name).stats()
                 lat = vs["latency_capture_ms_p50"]
-                state += f" lat {lat:4.1f} ms sent {vs['sent']}" if np.isfinite(lat) else " lat -"
+                state += f" | capture->MAVLink p50 {lat:4.1f} ms, {vs['sent']} sent" if np.isfinite(lat) else " | nothing sent yet"
             except KeyError:
                 pass
             parts.append(f"{b.name}: {state}")

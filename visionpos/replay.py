@@ -25,7 +25,7 @@ import numpy as np
 
 from visionpos import metrics as M
 from visionpos.config import ArenaConfig, ConfigError, apply_overrides, load_yaml, parse_arena, resolve_config_path
-from visionpos.messages import BlobFrame, BodyState
+from visionpos.messages import BodyState
 
 
 # ---------------------------------------------------------------- results
