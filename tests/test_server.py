@@ -394,3 +394,13 @@ def test_server_stall_is_not_a_vanished_station():
     assert stalled == [] and after_drain == []
     assert gone == [1] and -1 in pushed and -2 not in pushed
     assert health["cameras"][2]["online"] and health["cameras"][2]["vanished"] == 0
+
+
+def test_port_in_use_is_a_message(tmp_path):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        proc = _serve(["serve", "--config", "thesis", "--host", "127.0.0.1", "--port", str(port)], tmp_path)
+        _, stderr = proc.communicate(timeout=30)
+    assert proc.returncode == 2 and f"127.0.0.1:{port}" in stderr and "--port" in stderr
+    assert "Traceback" not in stderr

@@ -33,6 +33,7 @@ import math
 import os
 import socket
 import struct
+import sys
 import threading
 import time
 import warnings
@@ -599,7 +600,11 @@ def run(args: argparse.Namespace) -> int:
             ingest = Ingest(arena, settings, pipeline=None, recorder=rec,
                             events=lambda kind, info: rec.write_json("/server/events", time.monotonic_ns(),
                                                                      {"kind": kind, **info}))
-            await ingest.start(args.host, settings.port)
+            try:
+                await ingest.start(args.host, settings.port)
+            except OSError as e:  # port in use, bad address: a message, not a traceback
+                print(f"visionpos record: error: {e.strerror or e}", file=sys.stderr)
+                return 2
             print(f"visionpos record: listening on udp {args.host}:{ingest.port}, recording to {args.output}; "
                   "Ctrl-C to stop", flush=True)
 

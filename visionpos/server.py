@@ -24,6 +24,7 @@ import asyncio
 import inspect
 import logging
 import signal
+import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -339,6 +340,11 @@ def run(args: argparse.Namespace) -> int:
         server = FusionServer(arena, settings, sinks, host=args.host, port=settings.port, recorder=recorder)
         try:
             await server.start()
+        except OSError as e:  # port in use, bad address: a message, not a traceback
+            if recorder is not None:
+                recorder.close()
+            print(f"visionpos serve: error: {e.strerror or e}", file=sys.stderr)
+            return 2
         except BaseException:
             if recorder is not None:
                 recorder.close()
