@@ -521,3 +521,25 @@ def test_rolling_shutter_rows_expose_later():
     # without a rolling shutter every blob is exposed at the frame time
     res = simulate(scenario_from_arena(_arena_with(dict(sim, rolling_shutter_ms=0.0))))
     assert all((tr.exposure_ns == tr.true_ns).all() for tr in res.frame_truth)
+
+
+def test_overlapping_markers_merge_into_one_blob():
+    # two markers 12 mm apart look like one blob from 3-4 m; the third is far away
+    bodies = [{"name": "pair", "id": 1, "marker_diameter": 0.014,
+               "markers": [[0.0, 0.0, 0.0], [0.012, 0.0, 0.0], [0.3, 0.0, 0.0]]}]  # fmt: skip
+    sim = dict(QUIET, duration=0.05, merge_blobs=True, occlusion={"enabled": False})
+    sim["sessions"] = {"s": {"pair": {"trajectory": "static", "position": [0.0, 0.0, 1.0]}}}
+    res = simulate(scenario_from_arena(_arena_with(sim, bodies)))
+    assert res.frames
+    for f, tr in zip(res.frames, res.frame_truth):
+        cam = res.scenario.arena.camera_by_id()[f.camera_id]
+        uv = _cv2_project(cam, np.array([[0.0, 0.0, 1.0], [0.012, 0.0, 1.0], [0.3, 0.0, 1.0]]))
+        assert len(f.blobs) == 2 and tr.merged.sum() == 1
+        j = int(np.nonzero(tr.merged)[0][0])
+        # the merged blob lies between the two projections, at their brightness-weighted mean
+        a, b = uv[0], uv[1]
+        t = np.dot(f.blobs[j, :2] - a, b - a) / np.dot(b - a, b - a)
+        assert 0.3 < t < 0.7 and np.linalg.norm(a + t * (b - a) - f.blobs[j, :2]) < 1e-3
+        assert np.abs(tr.true_xy[j] - f.blobs[j, :2]).max() < 2e-4
+        k = 1 - j
+        assert tr.marker[k] == 2 and np.abs(f.blobs[k, :2] - uv[2]).max() < 2e-4

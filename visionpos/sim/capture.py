@@ -498,25 +498,21 @@ def _merge(xy, true_xy, area, peak, body, marker, dpx, dt):
     np.fill_diagonal(touch, False)
     if not touch.any():
         return xy, true_xy, area, peak, body, marker, np.zeros(n, bool), dt
-    # connected groups by label propagation (n is small)
-    group = np.arange(n)
-    for _ in range(n):
-        new = np.array([group[touch[i] | (np.arange(n) == i)].min() for i in range(n)])
-        if np.array_equal(new, group):
+    # connected groups: transitive closure by repeated squaring of the adjacency
+    reach = (touch | np.eye(n, dtype=bool)).astype(np.int32)
+    while True:
+        nxt = ((reach @ reach) > 0).astype(np.int32)
+        if np.array_equal(nxt, reach):
             break
-        group = new
-    reps = np.unique(group)
+        reach = nxt
+    _, inv = np.unique(reach.argmax(axis=1), return_inverse=True)  # group = its lowest member
+    g = int(inv.max()) + 1
     w = area * peak
-    out = [np.empty((len(reps), 2)), np.empty((len(reps), 2)), np.empty(len(reps)), np.empty(len(reps))]
-    ob, om, omg = np.empty(len(reps), int), np.empty(len(reps), int), np.zeros(len(reps), bool)
-    odt = np.empty(len(reps), np.int64)
-    for r, g in enumerate(reps):
-        idx = np.nonzero(group == g)[0]
-        ww = w[idx] / w[idx].sum()
-        out[0][r] = ww @ xy[idx]
-        out[1][r] = ww @ true_xy[idx]
-        out[2][r] = area[idx].sum()
-        out[3][r] = peak[idx].max()
-        h = idx[np.argmax(w[idx])]
-        ob[r], om[r], omg[r], odt[r] = body[h], marker[h], len(idx) > 1, dt[h]
-    return out[0], out[1], out[2], out[3], ob, om, omg, odt
+    wsum = np.bincount(inv, w, g)
+    mean = lambda v: np.column_stack([np.bincount(inv, w * v[:, k], g) / wsum for k in range(2)])  # noqa: E731
+    pk = np.zeros(g)
+    np.maximum.at(pk, inv, peak)
+    order = np.lexsort((w, inv))  # within each group, heaviest last
+    heavy = order[np.searchsorted(inv[order], np.arange(g), side="right") - 1]
+    merged = np.bincount(inv, minlength=g) > 1
+    return mean(xy), mean(true_xy), np.bincount(inv, area, g), pk, body[heavy], marker[heavy], merged, dt[heavy]
