@@ -105,15 +105,39 @@ class StationAgent:
         self._last_heard: int | None = None
         self._estimate_seen = None
         self._size: tuple[int, int] | None = None
-        self._addr = (cfg.server_host, cfg.server_port)
-        self.sock = self._open_socket()
+        self._logged: set[str] = set()
+        self._addr: tuple | None = None
+        self._next_resolve = 0.0
+        self.sock: socket.socket | None = None
+        if not self._resolve():
+            self.sock = self._make_socket(socket.AF_INET)
 
     # ------------------------------------------------------------ network
 
-    def _open_socket(self) -> socket.socket:
-        info = socket.getaddrinfo(self.cfg.server_host, self.cfg.server_port, type=socket.SOCK_DGRAM)
-        family, _, _, _, addr = info[0]
+    def _resolve(self) -> bool:
+        """Resolve the server address (retried every 5 s: DNS may come up
+        after the station at boot); makes a socket of the right family."""
+        if self._addr is not None:
+            return True
+        now = time.monotonic()
+        if now < self._next_resolve:
+            return False
+        self._next_resolve = now + 5.0
+        try:
+            family, _, _, _, addr = socket.getaddrinfo(self.cfg.server_host, self.cfg.server_port,
+                                                       type=socket.SOCK_DGRAM)[0]
+        except OSError as e:
+            self._log_once(f"resolve {e}", logging.WARNING, "cannot resolve server %s: %s; retrying every 5 s",
+                           self.cfg.server_host, e)
+            return False
+        if self.sock is None or self.sock.family != family:
+            if self.sock is not None:
+                self.sock.close()
+            self.sock = self._make_socket(family)
         self._addr = addr
+        return True
+
+    def _make_socket(self, family: int) -> socket.socket:
         s = socket.socket(family, socket.SOCK_DGRAM)
         s.setblocking(False)
         # Kernel receive timestamps: the agent reads the socket only between
@@ -127,6 +151,13 @@ class StationAgent:
             except OSError:
                 pass
         return s
+
+    def _log_once(self, key: str, level: int, msg: str, *args: object) -> None:
+        """One log line per distinct problem (a misconfigured peer must not flood the journal)."""
+        if key not in self._logged:
+            if len(self._logged) < 1000:
+                self._logged.add(key)
+            log.log(level, msg, *args)
 
     def _recv(self) -> tuple[bytes, int]:
         """One datagram and its receive time on the station clock."""
@@ -142,6 +173,9 @@ class StationAgent:
         return data, self.clock()
 
     def _send(self, data: bytes) -> bool:
+        if not self._resolve():
+            self.stats.send_errors += 1
+            return False
         try:
             self.sock.sendto(data, self._addr)
             return True
@@ -165,7 +199,7 @@ class StationAgent:
                 msg = P.decode(data, self.cfg.key)
             except P.ProtocolError as e:
                 self.stats.bad_packets += 1
-                log.warning("dropping packet from the server: %s", e)
+                self._log_once(f"bad {str(e)[:24]}", logging.WARNING, "dropping packets from the server: %s", e)
                 continue
             if getattr(msg, "station_id", None) != self.cfg.station_id or msg.camera_id != self.cfg.camera_id:
                 continue

@@ -289,3 +289,12 @@ def test_config_errors_name_file_and_key(tmp_path: Path):
         station_cfg(1, detector={"thresold": 40})
     with pytest.raises(Exception, match=r"test.yaml: key_file: cannot read key file"):
         station_cfg(1, key_file=str(tmp_path / "missing"))
+
+
+def test_unresolvable_server_name_is_retried_not_fatal(caplog):
+    cfg = station_cfg(5600, server={"host": "no-such-host.invalid", "port": 5600})
+    agent = StationAgent(cfg, source=FakeCamera(fps=500))
+    assert agent.run(max_frames=30) == 0
+    assert agent.stats.frames_captured == 30 and agent.stats.frames_sent == 0
+    assert agent.stats.send_errors > 0
+    assert caplog.text.count("cannot resolve server no-such-host.invalid") == 1
