@@ -158,7 +158,8 @@ class FusionServer:
     # ---------------------------------------------------------------- loops
 
     def tick(self, now_ns: int) -> list[BodyState]:
-        """One output tick: vanish check is separate; pipeline.tick -> every sink's publish."""
+        """One output tick: pipeline.tick(now_ns) -> every sink's publish. Errors are counted in
+        health()['sink_errors'] (under 'pipeline.tick' or the sink's class name), never raised."""
         t0 = time.perf_counter_ns()
         try:
             states = self.pipeline.tick(now_ns)
@@ -187,7 +188,6 @@ class FusionServer:
         return states
 
     async def _tick_loop(self) -> None:
-        loop = asyncio.get_running_loop()
         period = self.period_ns
         next_t = self.clock() + period
         next_check = 0
@@ -207,7 +207,6 @@ class FusionServer:
             if now - next_t > 2 * period:  # far behind (loop stalled): skip, never burst
                 self.late_ticks += 1
                 next_t = now + period
-        del loop
 
     async def _status_loop(self) -> None:
         while self._running:
