@@ -18,7 +18,6 @@ receive time. report() says what an EKF would see.
 
 from __future__ import annotations
 
-import logging
 import selectors
 import socket
 import threading
@@ -29,7 +28,6 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 from scipy.spatial.transform import Rotation
 
-log = logging.getLogger("visionpos.bridge.fake_autopilot")
 
 POSE_TYPES = ("VISION_POSITION_ESTIMATE", "ODOMETRY")
 RECORDED = POSE_TYPES + ("VISION_SPEED_ESTIMATE", "HEARTBEAT", "TIMESYNC", "SET_GPS_GLOBAL_ORIGIN", "SET_HOME_POSITION")

@@ -277,8 +277,8 @@ class VehicleLink:
                 if m.get_type() == "TIMESYNC" and m.tc1 == 0 and self.cfg.timesync:
                     if self.link.kind == "udpin" and addr != self.link.peer:
                         self._learn_peer(addr)
+                    self.counters["timesync_answered"] += 1  # before sending: the reply can arrive before we return
                     self.mav.send(self.mav.timesync_encode(self.now_base_ns(), m.ts1))
-                    self.counters["timesync_answered"] += 1
             if from_vehicle and self.link.kind == "udpin" and addr != self.link.peer:
                 self._learn_peer(addr)
 

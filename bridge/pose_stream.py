@@ -13,7 +13,6 @@ non-blocking socket; a full socket buffer drops the datagram (counted).
 from __future__ import annotations
 
 import json
-import logging
 import math
 import socket
 import time
@@ -24,7 +23,6 @@ import numpy as np
 from bridge.config import PoseStreamConfig, is_multicast
 from visionpos.messages import BodyState
 
-log = logging.getLogger("visionpos.bridge.pose_stream")
 
 MAGIC = b"VPS1"
 VERSION = 1
