@@ -298,3 +298,38 @@ def test_unresolvable_server_name_is_retried_not_fatal(caplog):
     assert agent.stats.frames_captured == 30 and agent.stats.frames_sent == 0
     assert agent.stats.send_errors > 0
     assert caplog.text.count("cannot resolve server no-such-host.invalid") == 1
+
+
+def test_sources_fail_clearly_and_files_play(tmp_path: Path):
+    from stations.sources import EndOfStream, ImageFolderSource, OpenCVSource, Picamera2Source, VideoFileSource, to_grey
+
+    with pytest.raises(SourceError, match="cannot open camera '/dev/video99'"):
+        OpenCVSource(SourceConfig(kind="opencv", device="/dev/video99")).open()
+    try:
+        import picamera2  # noqa: F401
+    except ImportError:
+        with pytest.raises(SourceError, match="Picamera2 is not installed.*apt install python3-picamera2"):
+            Picamera2Source(SourceConfig(kind="picamera2")).open()
+    with pytest.raises(SourceError, match="holds no images"):
+        ImageFolderSource(SourceConfig(kind="images", path=str(tmp_path))).open()
+    with pytest.raises(SourceError, match="shape"):
+        to_grey(np.zeros((4, 4, 2), np.uint8), "cam")
+    assert to_grey(np.full((4, 4), 40000, np.uint16), "cam").max() == 40000 >> 8
+
+    # a short video plays its frames in order, colour converted to grey, then ends
+    path = str(tmp_path / "clip.avi")
+    vw = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (W, H))
+    frames = [render_blobs(W, H, TRUE + i, [5.0] * 3, [200.0] * 3, None) for i in range(4)]
+    for f in frames:
+        vw.write(cv2.cvtColor(f, cv2.COLOR_GRAY2BGR))
+    vw.release()
+    src = VideoFileSource(SourceConfig(kind="video", path=path, loop=False, realtime=False))
+    src.open()
+    assert (src.width, src.height) == (W, H)
+    for i in range(4):
+        img, t = src.read()
+        assert img.shape == (H, W) and img.dtype == np.uint8
+        assert np.abs(img.astype(int) - frames[i]).mean() < 2.0  # JPEG-compressed copy of frame i
+    with pytest.raises(EndOfStream):
+        src.read()
+    src.close()
