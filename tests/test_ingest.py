@@ -243,6 +243,10 @@ def test_realtime_timebase_converted():
     (f,) = pipe.frames
     assert abs((mono - f.capture_ns) - 4 * MS) < 2 * MS  # only the two clock reads apart
     assert f.recv_ns == mono
+    # replay: the offset comes from the recording, not from today's clocks
+    ing.realtime_minus_monotonic_ns = 1_700_000_000 * 10**9
+    ing.handle(P.encode(_frame(1, 1, 1_700_000_000 * 10**9 + T0 + 20 * MS)), ADDR, T0 + 25 * MS)
+    assert pipe.frames[-1].capture_ns == T0 + 20 * MS
 
 
 def test_vanish_and_return_and_bye():

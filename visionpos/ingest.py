@@ -275,6 +275,9 @@ class Ingest:
         self.unknown_sources: dict[tuple[int, int], int] = {}
         self._rt_minus_mono = 0
         self._rt_update_ns = 0
+        # CLOCK_REALTIME - server clock for TIMEBASE_REALTIME stations; None = read the host clocks
+        # (live). A replay sets it from the recording's meta (wall_start_unix_ns - monotonic_start_ns).
+        self.realtime_minus_monotonic_ns: int | None = None
         self.sock: socket.socket | None = None
         self._drained_ns = 0  # when the socket was last read empty
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -530,10 +533,14 @@ class Ingest:
         # time: capture must be on the server clock, a little before receive, and move forward
         capture = f.capture_ns
         if cam.timebase == P.TIMEBASE_REALTIME:
-            if recv_ns - self._rt_update_ns > 1_000_000_000:
-                self._rt_minus_mono = time.time_ns() - time.monotonic_ns()
-                self._rt_update_ns = recv_ns
-            capture = capture - self._rt_minus_mono
+            if self.realtime_minus_monotonic_ns is not None:  # replay: the recording's offset
+                rt = self.realtime_minus_monotonic_ns
+            else:
+                if recv_ns - self._rt_update_ns > 1_000_000_000:
+                    self._rt_minus_mono = time.time_ns() - time.monotonic_ns()
+                    self._rt_update_ns = recv_ns
+                rt = self._rt_minus_mono
+            capture = capture - rt
             f = BlobFrame(f.camera_id, f.seq, capture, f.blobs, f.station_id, f.flags, recv_ns)
         lat = recv_ns - capture
         if lat < -self._future_ns:
