@@ -245,6 +245,7 @@ def test_realtime_timebase_converted():
     assert f.recv_ns == mono
     # replay: the offset comes from the recording, not from today's clocks
     ing.realtime_minus_monotonic_ns = 1_700_000_000 * 10**9
+    _send(ing, _hello(1, session=8, timebase=P.TIMEBASE_REALTIME), T0)  # a new run on another clock
     ing.handle(P.encode(_frame(1, 1, 1_700_000_000 * 10**9 + T0 + 20 * MS)), ADDR, T0 + 25 * MS)
     assert pipe.frames[-1].capture_ns == T0 + 20 * MS
 
