@@ -8,10 +8,11 @@ import pytest
 
 
 @pytest.mark.slow
-def test_demo_json_summary_is_sane(capsys):
+def test_demo_json_summary_is_sane_and_its_recording_replays(capsys, tmp_path):
     from visionpos.cli import main
 
-    rc = main(["demo", "--duration", "3", "--json", "--seed", "3"])
+    rec = tmp_path / "demo.mcap"
+    rc = main(["demo", "--duration", "3", "--json", "--seed", "3", "--record", str(rec)])
     out = capsys.readouterr()
     assert rc == 0, out.err
     s = json.loads(out.out)  # stdout is only the JSON; live status went to stderr
@@ -40,3 +41,11 @@ def test_demo_json_summary_is_sane(capsys):
         # the station's clock was offset by the scenario's raw offset; the server saw the sync result
         assert st["clock_offset_reported_ms"] == pytest.approx(st["clock_offset_true_ms"], abs=0.5)
     assert s["server"]["malformed"] == 0
+
+    # the live session, recorded by the server with the simulator's truth, replays offline
+    from visionpos.replay import replay_log
+
+    res = replay_log(rec)
+    assert res.n_frames == s["server"]["frames_accepted"]
+    m = res.metrics()[0]
+    assert m.name == "quad" and m.tracked_fraction > 0.8 and m.position_rmse_mm < 10.0

@@ -232,8 +232,14 @@ class Collector:
 # ---------------------------------------------------------------- the run
 
 
-async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | None) -> dict[str, Any]:
-    """Run everything for duration_s seconds of streaming; returns the summary dict."""
+async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | None,
+                   record: str | None = None) -> dict[str, Any]:
+    """Run everything for duration_s seconds of streaming; returns the summary dict.
+
+    record: MCAP path; the server records every station packet and output, and the
+    simulator's truth (on the server clock) is added, so `visionpos replay` and
+    `visionpos tune` work on the demo's session.
+    """
     from bridge import Bridge
     from bridge.fake_autopilot import FakeAutopilot, decode_pose
     from visionpos.ingest import ServerSettings
@@ -250,7 +256,13 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     settings = dataclasses.replace(ServerSettings.from_arena(arena), status_period_s=0.0)
     bridge = Bridge(arena, {"pose_stream": False, "report_interval_s": 0})
     collector = Collector(names)
-    server = FusionServer(arena, settings, sinks=[bridge, collector], host="127.0.0.1", port=0)
+    recorder = None
+    if record is not None:
+        from visionpos.recording import RecordingWriter
+
+        recorder = RecordingWriter(record, arena.raw, {"command": "demo", "scenario": arena.source,
+                                                       "session": sc.session, "seed": sc.seed})
+    server = FusionServer(arena, settings, sinks=[bridge, collector], host="127.0.0.1", port=0, recorder=recorder)
     await server.start()
     autopilots = {}
     stations: list[SimStation] = []
@@ -294,6 +306,8 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     finally:
         for s in stations:
             s.close()
+        if recorder is not None and "shift" in locals():
+            _record_truth(recorder, sc, shift)
         await server.stop()
         for ap, _ in autopilots.values():
             ap.close()
@@ -301,6 +315,16 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
 
     return _summary(arena, sc, shift, t_start, t_stop, collector, bridge, autopilots, stations, health,
                     tracked_names, wall, sim_s, decode_pose)
+
+
+def _record_truth(recorder, sc, shift: int) -> None:
+    """The simulator's truth at its truth rate, on the server clock (as `visionpos sim` records it)."""
+    step = int(round(1e9 / sc.truth_rate_hz))
+    times = np.arange(sc.start_ns, sc.end_ns + 1, step, dtype=np.int64)
+    for b in sc.bodies:
+        pos, quat = sc.truth_at(b.name, times)
+        for ti, p, q in zip(times, pos, quat):
+            recorder.write_truth(int(ti + shift), b.name, p, q)
 
 
 async def _status_loop(server, bridge, collector: Collector, stations: list[SimStation], sc, shift: int,
@@ -490,6 +514,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key (repeatable)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout (live status goes to stderr)")
     p.add_argument("--quiet", action="store_true", help="no live status")
+    p.add_argument("--record", metavar="FILE", help="also record the session (packets, outputs, truth) to an MCAP file for replay/tune")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -501,11 +526,15 @@ def run(args: argparse.Namespace) -> int:
         status_out.write(f"visionpos demo: {len(arena.cameras)} simulated stations, {len(arena.bodies)} bodies, "
                          f"{args.duration:g} s on 127.0.0.1 ...\n")
         status_out.flush()
-    summary = asyncio.run(run_demo(arena, args.duration, status_out))
+    summary = asyncio.run(run_demo(arena, args.duration, status_out, args.record))
+    if args.record:
+        summary["recording"] = args.record
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
         print(format_summary(summary))
+        if args.record:
+            print(f"recorded to {args.record}; try: visionpos replay {args.record}")
     ok = all(b["tracked_fraction"] and b["tracked_fraction"] > 0 for b in summary["bodies"])
     if not ok:
         print("visionpos demo: a body was never tracked; see the log above", file=sys.stderr)

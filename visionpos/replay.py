@@ -91,6 +91,7 @@ class ReplayResult:
     n_bad: int = 0
     bad_reasons: dict[str, int] = field(default_factory=dict)
     span_ns: int = 0
+    first_frame_ns: int | None = None
     wall_s: float = 0.0
     cpu_s: float = 0.0
     pipeline_stats: dict[str, Any] = field(default_factory=dict)
@@ -106,7 +107,15 @@ class ReplayResult:
         return self.span_ns * 1e-9 / self.cpu_s if self.cpu_s > 0 else float("inf")
 
     def metrics(self) -> list[M.BodyMetrics]:
-        """Per-body metrics; error columns are nan for bodies without truth."""
+        """Per-body metrics; error columns are nan for bodies without truth.
+
+        tracked_fraction and rate_hz count the ticks from the first accepted
+        frame on (registration and clock sync before it are not tracking time).
+        """
+        first = self.first_frame_ns if self.first_frame_ns is not None else (
+            int(self.ticks_ns[0]) if len(self.ticks_ns) else 0)
+        n_ticks = int(np.count_nonzero(self.ticks_ns >= first))
+        span = int(self.ticks_ns[-1] - first) if len(self.ticks_ns) and self.ticks_ns[-1] > first else self.span_ns
         out = []
         for name, b in self.bodies.items():
             out.append(
@@ -118,8 +127,8 @@ class ReplayResult:
                     b.quaternion,
                     latencies_ns=b.latency_ns,
                     truth=self.truth.get(name),
-                    n_ticks=len(self.ticks_ns),
-                    span_ns=self.span_ns,
+                    n_ticks=n_ticks,
+                    span_ns=span,
                 )
             )
         return out
@@ -186,7 +195,7 @@ def run_pipeline(
     names: list[str] = [b.name for b in arena.bodies]
     per_body: dict[str, tuple[list[int], list[BodyState]]] = {}
     ticks: list[int] = []
-    t0 = next_tick = last = None
+    t0 = next_tick = last = first_frame = None
     next_check = 0
     wall0 = time.perf_counter()
     cpu0 = time.process_time()
@@ -222,6 +231,8 @@ def run_pipeline(
         last = recv_ns
         now[0] = recv_ns
         ingest.handle(data, addr, recv_ns)
+        if first_frame is None and ingest.counters.frames_accepted:
+            first_frame = recv_ns
     wall = time.perf_counter() - wall0
     cpu = time.process_time() - cpu0
     if t0 is None:
@@ -247,6 +258,7 @@ def run_pipeline(
         n_bad=c.malformed + c.auth_failed,
         bad_reasons=reasons,
         span_ns=int(last - t0),
+        first_frame_ns=first_frame,
         wall_s=wall,
         cpu_s=cpu,
         pipeline_stats=stats,
