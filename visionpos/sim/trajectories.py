@@ -22,6 +22,7 @@ Kinds (the `trajectory:` key of a session entry in the `sim` section):
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -59,16 +60,16 @@ def _as_times(t: Any) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class Trajectory:
-    """Base class: subclasses give kinematics(t) and attitude(t, acc)."""
+class Trajectory(ABC):
+    """Base class: subclasses give kinematics(t) and attitude(t)."""
 
+    @abstractmethod
     def kinematics(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """t (T,) s -> positions, velocities, accelerations, each (T, 3)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def attitude(self, t: np.ndarray) -> Rotation:
         """t (T,) s -> body->world rotations (T,)."""
-        raise NotImplementedError
 
     def __call__(self, t: Any) -> Motion:
         """Sample at t (T,) seconds since the scenario start."""
