@@ -103,3 +103,25 @@ def test_cli_reports_bad_input(tmp_path, capsys):
     rc = main(["calibrate", "wand", "--out", str(tmp_path / "x.yaml")])
     assert rc == 2
     assert "RECORDING or --sim" in capsys.readouterr().err
+
+
+def test_cli_wand_from_a_recording(tmp_path, capsys):
+    """The recording path: station packets in an MCAP file, config embedded, as the server writes them."""
+    from visionpos.cli import main
+    from visionpos.protocol import encode_frame
+    from visionpos.recording import RecordingWriter
+    from visionpos.sim import load_scenario, simulate
+
+    sc = load_scenario("thesis", ["sim.duration=6"], session="wand")
+    res = simulate(sc)
+    path = tmp_path / "wand.mcap"
+    with RecordingWriter(path, sc.arena.raw) as w:
+        for f in res.frames_by_recv():
+            w.write_packet(f.recv_ns, encode_frame(f))
+    out = tmp_path / "cal.yaml"
+    rc = main(["calibrate", "wand", str(path), "--out", str(out), "--no-progress"])
+    assert rc == 0, capsys.readouterr().err
+    from visionpos.config import load_arena
+
+    ce, re, _ = compare_cameras(list(load_arena(out).cameras), list(sc.cameras))
+    assert ce.max() < 4e-3 and re.max() < 0.08

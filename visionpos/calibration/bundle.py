@@ -338,25 +338,6 @@ def _complement(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, e2
 
 
-@dataclass
-class BundleResult:
-    """Refined cameras and wand, with per-observation residuals (px)."""
-
-    cameras: list[Camera]
-    A: np.ndarray  # (F, 3)
-    u: np.ndarray  # (F, 3)
-    frames: np.ndarray  # (F,) indices into the WandData grid
-    obs_frame: np.ndarray  # (M,) frame index (into A/u)
-    obs_view: np.ndarray  # (M,)
-    obs_marker: np.ndarray  # (M,)
-    residuals: np.ndarray  # (M, 2) px
-    nfev: int = 0
-    seconds: float = 0.0
-    cost: float = 0.0
-    message: str = ""
-    warnings: list[str] = field(default_factory=list)
-
-
 class _Problem:
     """Residuals and the analytic sparse Jacobian of the wand bundle adjustment."""
 
