@@ -54,6 +54,42 @@ def undistort_points(model: CameraModel, pixels: np.ndarray) -> np.ndarray:
     return out.reshape(-1, 2)
 
 
+class Projector:
+    """Fast world -> pixel projection for one camera through OpenCV (same model as camera.py).
+
+    camera.Camera.project is exact but built from many small numpy steps;
+    this runs per packet, so it goes through cv2.projectPoints /
+    cv2.fisheye.projectPoints (the same OpenCV/Kannala-Brandt models).
+    """
+
+    def __init__(self, camera):
+        self.camera = camera
+        self.R = camera.R
+        self.t = camera.t
+        self.rvec = cv2.Rodrigues(camera.R)[0]
+        self.tvec = camera.t.reshape(3, 1).astype(np.float64)
+        self.K = camera.model.K
+        self.fisheye = camera.model.kind == FISHEYE
+        self.dist = camera.model.dist[:4] if self.fisheye else camera.model.dist
+        self.w, self.h = camera.model.width, camera.model.height
+        # beyond this angle from the axis the lens model folds back: not visible
+        self.cos_max = float(np.cos(camera.model.max_theta))
+
+    def project(self, points_world: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """(N, 3) world points -> (N, 2) pixels; NaN when behind, outside the lens model or off the sensor (+ margin)."""
+        X = np.ascontiguousarray(points_world, dtype=np.float64).reshape(-1, 1, 3)
+        if self.fisheye:
+            uv = cv2.fisheye.projectPoints(X, self.rvec, self.tvec, self.K, self.dist)[0].reshape(-1, 2)
+        else:
+            uv = cv2.projectPoints(X, self.rvec, self.tvec, self.K, self.dist)[0].reshape(-1, 2)
+        pc = X[:, 0] @ self.R.T + self.t
+        n = np.sqrt((pc * pc).sum(1))
+        ok = (pc[:, 2] > self.cos_max * n) & (uv[:, 0] > -0.5 - margin) & (uv[:, 0] < self.w - 0.5 + margin)
+        ok &= (uv[:, 1] > -0.5 - margin) & (uv[:, 1] < self.h - 0.5 + margin)
+        uv[~ok] = np.nan
+        return uv
+
+
 def associate(predicted: np.ndarray, blobs: np.ndarray, gate: float) -> np.ndarray:
     """Assign blobs to predicted marker positions, each blob at most once.
 

@@ -47,9 +47,11 @@ fusion:
   identify_tolerance_m: 0.008   # identification: marker distances and Kabsch RMS within this
   min_markers: 3          # fewest markers for a pose (tracking) and for identification
   loose_points: true      # triangulate blobs that belong to no body and report them
-  acquire_interval_ms: 10 # acquisition / loose-point matching runs at most this often (capture clock)
-  min_fusion_interval_ms: 1.0  # motion-compensated fusions at most this often; with many fast cameras a
-                          #   frame arriving sooner joins the next fusion (bounds CPU, costs < 1 ms)
+  loose_points_interval_ms: 50  # loose points are refreshed this often while every body is tracked
+  acquire_interval_ms: 10 # while a body is lost, acquisition runs at most this often (capture clock)
+  min_fusion_interval_ms: 0  # > 0: motion-compensated fusions at most this often; a frame arriving sooner
+                          #   joins the next fusion. Bounds CPU with many fast cameras, but costs accuracy
+                          #   (views get older relative to the reference), so it is off by default
   kalman:
     jerk_psd: 0.1              # m^2/s^5, floor of the white-jerk density (constant-acceleration model)
     angular_accel_psd: 1.0     # rad^2/s^3, floor of the white angular-acceleration density
@@ -65,6 +67,7 @@ The output rate is the server's (tick() is called by it).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -72,7 +75,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from visionpos.config import ArenaConfig, Section
-from visionpos.matching import associate, match_unlabeled, triangulate, undistort_points
+from visionpos.matching import Projector, associate, match_unlabeled, triangulate, undistort_points
 from visionpos.messages import BlobFrame, BodyState, LoosePoints
 from visionpos.rigidbody import BodyModel, identify, kabsch_batch
 from visionpos.timealign import MODES, MOTION_COMPENSATED, Group, TimeAligner
@@ -85,6 +88,8 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         [a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2], a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]]
     )
 
+
+_I3 = np.eye(3)
 
 # motion compensation starts once the filter's velocity std is below this (m/s)
 _COMPENSATE_MAX_VEL_STD = 0.1
@@ -105,7 +110,8 @@ class FusionSettings:
     min_markers: int = 3
     loose_points: bool = True
     acquire_interval_ns: int = 10_000_000
-    min_fusion_interval_ns: int = 1_000_000
+    min_fusion_interval_ns: int = 0
+    loose_points_interval_ns: int = 50_000_000
     marker_sigma: float = 0.0001
     kalman: KalmanSettings = field(default_factory=KalmanSettings)
     reset_after_ns: int = 60_000_000
@@ -157,7 +163,7 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
     s = Section(data, source, "fusion")
     known = {
         "time_alignment", "window_ms", "naive_grid_hz", "max_clock_lead_ms", "match_gate_px", "max_residual_px",
-        "acquire_ray_distance_m", "identify_tolerance_m", "min_markers", "loose_points", "acquire_interval_ms", "min_fusion_interval_ms",
+        "acquire_ray_distance_m", "identify_tolerance_m", "min_markers", "loose_points", "loose_points_interval_ms", "acquire_interval_ms", "min_fusion_interval_ms",
         "kalman",
     }  # fmt: skip
     for k in data:
@@ -198,7 +204,8 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
         min_markers=s.integer("min_markers", 3, min=3),
         loose_points=s.boolean("loose_points", True),
         acquire_interval_ns=int(s.number("acquire_interval_ms", 10.0, min=0.0) * 1e6),
-        min_fusion_interval_ns=int(s.number("min_fusion_interval_ms", 1.0, min=0.0) * 1e6),
+        min_fusion_interval_ns=int(s.number("min_fusion_interval_ms", 0.0, min=0.0) * 1e6),
+        loose_points_interval_ns=int(s.number("loose_points_interval_ms", 50.0, min=0.0) * 1e6),
         marker_sigma=k.number("marker_sigma_m", 0.0001, min=1e-7),
         kalman=ks,
         reset_after_ns=int(k.number("reset_after_ms", 60.0, min=0.0) * 1e6),
@@ -278,6 +285,10 @@ class FusionPipeline:
         self._R = np.array([c.R for c in arena.cameras]).reshape(-1, 3, 3)
         self._t = np.array([c.t for c in arena.cameras]).reshape(-1, 3)
         self._f = np.array([np.sqrt(c.model.fx * c.model.fy) for c in arena.cameras])
+        self._proj = {c.id: Projector(c) for c in arena.cameras}
+        self._rows_cache: dict[tuple[int, ...], np.ndarray] = {}
+        self._pad_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._layout_cache: dict[tuple[int, bytes], tuple[np.ndarray, np.ndarray, int]] = {}
         self.aligner = TimeAligner(st.time_alignment, st.window_ns, st.grid_ns, st.max_clock_lead_ns)
         self.obs: dict[int, _Obs] = {}
         self.tracks = [_Track(BodyFilter(st.kalman)) for _ in self.models]
@@ -285,7 +296,7 @@ class FusionPipeline:
         self._last_acquire_ns = -(1 << 62)
         self._last_fusion_ns = -(1 << 62)
         # a frame takes part in about (frame period / fusion spacing) fusions at most
-        self._max_reuse = max(1.0, (st.window_ns / 1.2) / max(st.min_fusion_interval_ns, 1))
+        self._max_reuse = max(1.0, (st.window_ns / 1.2) / max(st.min_fusion_interval_ns, 1))  # no cap when 0
         self.last_raw: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # body -> (ref_ns, position, R) of the last Kabsch pose
         self._stats: dict[str, int] = {
             "frames": 0,
@@ -342,6 +353,42 @@ class FusionPipeline:
         self.aligner.remove(camera_id)
 
     # ------------------------------------------------------------ association
+    def _pose_cov(self, b: int, sel: np.ndarray, R: np.ndarray, var: float) -> np.ndarray:
+        """pose_measurement_cov for body b's markers `sel` (M,) bool at rotation R, with the
+        layout part (inverse inertia-like sum, centroid) cached per marker subset."""
+        key = (b, sel.tobytes())
+        lay = self._layout_cache.get(key)
+        if lay is None:
+            m = self.models[b].markers[sel]
+            c = m.mean(axis=0)
+            r = m - c
+            Jb = (r * r).sum() * np.eye(3) - r.T @ r
+            lay = (np.linalg.inv(Jb), -c, len(m))
+            self._layout_cache[key] = lay
+        Jinv, o_body, n = lay
+        Crot = var * (R @ Jinv @ R.T)
+        o = R @ o_body  # body origin relative to the marker centroid, world frame
+        ox = np.array([[0.0, -o[2], o[1]], [o[2], 0.0, -o[0]], [-o[1], o[0], 0.0]])
+        oxC = ox @ Crot
+        C = np.empty((6, 6))
+        C[0:3, 0:3] = oxC @ ox.T
+        C[0, 0] += var / n
+        C[1, 1] += var / n
+        C[2, 2] += var / n
+        C[0:3, 3:6] = -oxC
+        C[3:6, 0:3] = -oxC.T
+        C[3:6, 3:6] = Crot
+        return C
+
+    def _rows(self, bodies: list[int]) -> np.ndarray:
+        """Global marker rows of `bodies` (cached per body set)."""
+        key = tuple(bodies)
+        r = self._rows_cache.get(key)
+        if r is None:
+            r = np.concatenate([np.arange(self._off[b], self._off[b + 1]) for b in bodies])
+            self._rows_cache[key] = r
+        return r
+
     def _predicted_markers(self, bodies: list[int], t_ns: int) -> np.ndarray:
         """World positions (sum M_b, 3) of the markers of `bodies` predicted to t_ns."""
         out = []
@@ -357,11 +404,9 @@ class FusionPipeline:
         marker_xn = np.full((self.P, 2), np.nan)
         tracked = [b for b, tr in enumerate(self.tracks) if tr.tracked]
         if tracked and len(px):
-            rows = np.concatenate([np.arange(self._off[b], self._off[b + 1]) for b in tracked])
+            rows = self._rows(tracked)
             Xw = self._predicted_markers(tracked, t_ns)
-            pc = camera.to_camera(Xw)
-            pred = camera.model.project_camera(pc)
-            pred[~camera.model.in_image(pred, -self.settings.match_gate_px)] = np.nan
+            pred = self._proj[cam].project(Xw, self.settings.match_gate_px)
             a = associate(pred, px, self.settings.match_gate_px)
             hit = a >= 0
             label[a[hit]] = rows[hit]
@@ -387,7 +432,10 @@ class FusionPipeline:
         tracked = [b for b, tr in enumerate(self.tracks) if tr.tracked]
         if tracked:
             self._update_tracked(tracked, obs, cams, R, t, f, ref, g.compensate)
-        if ref - self._last_acquire_ns >= st.acquire_interval_ns or ref < self._last_acquire_ns:
+        # acquisition is for lost bodies; with all tracked it only refreshes the loose points
+        lost = any(not tr.tracked for tr in self.tracks)
+        interval = st.acquire_interval_ns if lost else st.loose_points_interval_ns
+        if (lost or st.loose_points) and (ref - self._last_acquire_ns >= interval or ref < self._last_acquire_ns):
             self._last_acquire_ns = ref
             self._acquire(obs, R, t, f, ref)
         # lost-track bookkeeping on the capture clock
@@ -396,96 +444,102 @@ class FusionPipeline:
                 tr.tracked = False
                 self._stats["lost"] += 1
 
+    def _layout(self, tracked: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """For a set of tracked bodies (cached): global marker rows (P,), their flat slot in a
+        (B, Mmax) padding, body-frame markers padded (B, Mmax, 3), marker counts (B,)."""
+        key = tuple(tracked)
+        lay = self._pad_cache.get(key)
+        if lay is None:
+            rows = self._rows(tracked)
+            sizes = np.array([self._off[b + 1] - self._off[b] for b in tracked])
+            slot = np.concatenate([i * self._mmax + np.arange(n) for i, n in enumerate(sizes)])
+            src = np.zeros((len(tracked) * self._mmax, 3))
+            src[slot] = self._marker_local[rows]
+            lay = (rows, slot, src.reshape(len(tracked), self._mmax, 3), sizes)
+            self._pad_cache[key] = lay
+        return lay
+
     def _update_tracked(self, tracked, obs, cams, R, t, f, ref, compensate) -> None:
         st = self.settings
-        rows = np.concatenate([np.arange(self._off[b], self._off[b + 1]) for b in tracked])
+        rows, slot, src, sizes = self._layout(tracked)
+        B, Mx = src.shape[:2]
         xn = np.stack([o.marker_xn[rows] for o in obs], axis=1)  # (P, V, 2)
         dt = np.array([(o.capture_ns - ref) * 1e-9 for o in obs])  # (V,) view time - reference time
         dt2_mean = float((dt * dt).mean())
         dt_max = float(np.abs(dt).max())
         centre = -np.einsum("vji,vj->i", R, t) / len(obs)  # mean camera centre: for a px-per-metre scale
         f_mean = float(f.mean())
-        nb = len(tracked)
-        vel, acc, w, r = [], [], [], []
-        var_p, var_r, gate = np.zeros(nb), np.zeros(nb), np.zeros(nb)
+        kin = np.zeros((B, 4, 3))  # per body: v, a, w (world), position
+        Rbs = np.empty((B, 3, 3))
+        var_p, var_r, gate = np.zeros(B), np.zeros(B), np.zeros(B)
         for i, b in enumerate(tracked):
             fl = self.tracks[b].filter
-            p, Rb, v, wb = fl.pose_at(ref)
-            a = fl.kf.x[6:9, 0]
+            p, Rbs[i], v, wb = fl.pose_at(ref)
             P = fl.kf.P
             sv2 = (P[3, 3] + P[4, 4] + P[5, 5]) / 3.0
             sw2 = (P[12, 12] + P[13, 13] + P[14, 14]) / 3.0
-            m = self.models[b].markers
-            comp = compensate and sv2 < _COMPENSATE_MAX_VEL_STD**2
-            if comp:
+            if compensate and sv2 < _COMPENSATE_MAX_VEL_STD**2:
+                kin[i, 0], kin[i, 1], kin[i, 2] = v, fl.kf.x[6:9, 0], wb
                 var_p[i], var_r[i] = dt2_mean * sv2, dt2_mean * sw2
-                spread = 2.0 * np.sqrt(sv2)
+                spread = 2.0 * math.sqrt(sv2)
             else:
                 # velocity not known well enough (or naive mode): compensating with a wrong one
                 # would bias the measurement towards it (a feedback loop); the views are treated
                 # as simultaneous and the motion between them counts as measurement noise
                 vv, ww = float(v @ v), float(wb @ wb)
                 var_p[i], var_r[i] = dt2_mean * (vv + sv2), dt2_mean * (ww + sw2)
-                spread = np.sqrt(vv) + 2.0 * np.sqrt(sv2)
-                v, a, wb = np.zeros(3), np.zeros(3), np.zeros(3)
-            # residual gate widened by the motion the views may disagree by
+                spread = math.sqrt(vv) + 2.0 * math.sqrt(sv2)
+            kin[i, 3] = p
+            # residual gate widened by the motion the views may still disagree by
             gate[i] = st.max_residual_px + f_mean * spread * dt_max / max(float(np.linalg.norm(p - centre)), 0.5)
-            vel.append(np.broadcast_to(v, (len(m), 3)))
-            acc.append(np.broadcast_to(a, (len(m), 3)))
-            w.append(np.broadcast_to(wb, (len(m), 3)))
-            r.append(m @ Rb.T)
         offsets = None
-        if compensate and dt_max > 0.0:
-            vel, acc, w, r = np.concatenate(vel), np.concatenate(acc), np.concatenate(w), np.concatenate(r)
+        if compensate and dt_max > 0.0 and kin[:, :3].any():
+            body = np.repeat(np.arange(B), sizes)
+            r = np.einsum("pij,pj->pi", Rbs[body], self._marker_local[rows])  # marker lever arms, world
+            vel, acc, w = kin[body, 0], kin[body, 1], kin[body, 2]
             wxr = _cross(w, r)
             wxwxr = _cross(w, wxr)
             # marker displacement from ref to each view's capture time (2nd order in dt)
             offsets = (vel + wxr)[:, None, :] * dt[None, :, None] + 0.5 * (acc + wxwxr)[:, None, :] * (dt * dt)[None, :, None]
         X, rms, nv = triangulate(xn, R, t, f, offsets)
-        gate_rows = np.repeat(gate, [self._off[b + 1] - self._off[b] for b in tracked])
-        good = (nv >= 2) & (rms < gate_rows)
+        good = (nv >= 2) & (rms < np.repeat(gate, sizes))
         self._stats["rejected_residual"] += int(((nv >= 2) & ~good).sum())
-        # pad bodies for one batched Kabsch
-        B = len(tracked)
-        src = np.zeros((B, self._mmax, 3))
-        dst = np.zeros((B, self._mmax, 3))
-        wts = np.zeros((B, self._mmax))
-        k = 0
-        counts = []
-        for i, b in enumerate(tracked):
-            M = self._off[b + 1] - self._off[b]
-            sl = slice(k, k + M)
-            src[i, :M] = self.models[b].markers
-            gd = good[sl]
-            dst[i, :M][gd] = X[sl][gd]
-            # weight by views: more rays, better-conditioned point
-            wts[i, :M] = np.where(gd, nv[sl], 0)
-            counts.append(int(gd.sum()))
-            k += M
+        # one batched Kabsch over all tracked bodies (padded; weight 0 = unused)
+        dst = np.zeros((B * Mx, 3))
+        dst[slot[good]] = X[good]
+        dst = dst.reshape(B, Mx, 3)
+        wts = np.zeros(B * Mx)
+        wts[slot] = np.where(good, nv, 0)  # more rays, better-conditioned point
+        wts = wts.reshape(B, Mx)
         Rk, tk = kabsch_batch(src, dst, wts)
-        used_views = (np.isfinite(xn).all(-1)).any(0)  # (V,) view contributed to a tracked body
+        use = wts > 0
+        res = np.where(use[..., None], dst - (np.einsum("bij,bmj->bmi", Rk, src) + tk[:, None]), 0.0)
+        res2 = (res * res).sum(-1).sum(-1)  # (B,)
+        counts = use.sum(1)
+        seen = np.zeros((B * Mx, len(obs)), bool)
+        seen[slot] = ~np.isnan(xn[..., 0])
+        n_cams = seen.reshape(B, Mx, -1).any(1).sum(1)
+        reuse = min(len(obs), self._max_reuse) if compensate else 1
+        cap = max(o.capture_ns for o in obs)
         for i, b in enumerate(tracked):
             tr = self.tracks[b]
-            n = counts[i]
+            n = int(counts[i])
             if n < st.min_markers:
                 continue
-            M = self._off[b + 1] - self._off[b]
-            sel = wts[i, :M] > 0
-            res = dst[i, :M][sel] - (src[i, :M][sel] @ Rk[i].T + tk[i])
-            fit = float(np.sqrt((res**2).sum(1).mean()))
+            fit = math.sqrt(res2[i] / n)
             if fit > st.identify_tolerance:
                 self._stats["rejected_fit"] += 1
                 continue
+            sel = use[i, : sizes[i]]
             self.last_raw[b] = (ref, tk[i].copy(), Rk[i].copy())
             # per-marker noise from the fit residual (3n - 6 degrees of freedom), averaged per body
-            s2 = float((res**2).sum()) / (3 * n - 6)
+            s2 = float(res2[i]) / (3 * n - 6)
             tr.marker_var += 0.05 * (s2 - tr.marker_var)
             var = max(tr.marker_var, st.marker_sigma**2)
             # reused frames: split their information over the fusions that share them
-            reuse = min(len(obs), self._max_reuse) if compensate else 1
-            cov = pose_measurement_cov(dst[i, :M][sel], tk[i], var * reuse)
-            cov[0:3, 0:3] += np.eye(3) * var_p[i]
-            cov[3:6, 3:6] += np.eye(3) * var_r[i]
+            cov = self._pose_cov(b, sel, Rk[i], var * reuse)
+            cov[0:3, 0:3] += _I3 * var_p[i]
+            cov[3:6, 3:6] += _I3 * var_r[i]
             accepted, _ = tr.filter.update(ref, tk[i], Rk[i], cov)
             if not accepted:
                 self._stats["rejected_gate"] += 1
@@ -499,9 +553,9 @@ class FusionPipeline:
                 self._stats["filter_resets"] += 1
             tr.first_reject_ns = None
             tr.last_update_ns = ref
-            tr.last_capture_ns = max(o.capture_ns for o in obs)
+            tr.last_capture_ns = cap
             tr.n_markers = n
-            tr.n_cameras = int(used_views.sum())
+            tr.n_cameras = int(n_cams[i])
             tr.residual_mm = fit * 1e3
             self._stats["measurements"] += 1
 

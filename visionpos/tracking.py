@@ -119,16 +119,41 @@ def _transition(dt: float) -> np.ndarray:
     return F
 
 
+def _q_index() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flat indices of Q's nonzero entries and which coefficient each takes."""
+    flat, coef = [], []
+    for d1 in range(3):  # p, v, a blocks (white jerk)
+        for d2 in range(3):
+            for k in range(3):
+                flat.append((d1 * 3 + k) * NX + d2 * 3 + k)
+                coef.append(d1 * 3 + d2)
+    for d1 in range(2):  # dtheta, w blocks (white angular acceleration)
+        for d2 in range(2):
+            for k in range(3):
+                flat.append((9 + d1 * 3 + k) * NX + 9 + d2 * 3 + k)
+                coef.append(9 + d1 * 2 + d2)
+    return np.array(flat), np.array(coef), np.zeros(NX * NX)
+
+
+_Q_FLAT, _Q_COEF, _Q_ZERO = _q_index()
+
+
 def _process_noise(dt: float, qj: float, qw: float) -> np.ndarray:
-    """Discrete Q for |dt|: white jerk on (p, v, a), white angular acceleration on (dtheta, w)."""
+    """Discrete Q (15, 15) for |dt|: white jerk on (p, v, a), white angular acceleration on (dtheta, w)."""
     a = abs(dt)
     a2, a3 = a * a, a * a * a
-    cj = qj * np.array([[a2 * a3 / 20.0, a2 * a2 / 8.0, a3 / 6.0], [a2 * a2 / 8.0, a3 / 3.0, a2 / 2.0], [a3 / 6.0, a2 / 2.0, a]])
-    cw = qw * np.array([[a3 / 3.0, a2 / 2.0], [a2 / 2.0, a]])
-    Q = np.zeros((NX, NX))
-    Q[:9, :9] = np.kron(cj, _I3)
-    Q[9:, 9:] = np.kron(cw, _I3)
-    return Q
+    a4, a5 = a2 * a2, a2 * a3
+    c = np.array(
+        [
+            qj * a5 / 20.0, qj * a4 / 8.0, qj * a3 / 6.0,
+            qj * a4 / 8.0, qj * a3 / 3.0, qj * a2 / 2.0,
+            qj * a3 / 6.0, qj * a2 / 2.0, qj * a,
+            qw * a3 / 3.0, qw * a2 / 2.0, qw * a2 / 2.0, qw * a,
+        ]
+    )  # fmt: skip
+    Q = _Q_ZERO.copy()
+    Q[_Q_FLAT] = c[_Q_COEF]
+    return Q.reshape(NX, NX)
 
 
 class BodyFilter:
