@@ -356,3 +356,43 @@ def test_empty_key_file_refused(tmp_path):
 def test_builtin_config_defaults():
     s = ServerSettings.from_arena(load_arena("thesis"))
     assert s.port == P.DEFAULT_PORT and s.output_rate_hz == 100.0 and s.key is None
+
+
+def test_station_vanishes_mid_flight_tracking_continues():
+    """Deterministic: simulated stations' packets through handle() on the simulation's clock,
+    the real FusionPipeline, 100 Hz ticks; camera 2 stops sending half-way."""
+    sim = pytest.importorskip("visionpos.sim")
+    from visionpos.pipeline import FusionPipeline
+
+    sc = sim.load_scenario("thesis", ["sim.duration=2.5"])
+    frames = sim.simulate(sc).frames_by_recv()
+    cut = sc.start_ns + 1_200 * MS
+    arena = sc.arena
+    pipe = FusionPipeline(arena, arena.raw.get("fusion"))
+    clock = Clock(frames[0].recv_ns)
+    ing = Ingest(arena, pipeline=pipe, clock=clock)
+    ing.set_start(sc.start_ns)
+    states, lost_at = [], None
+    tick = frames[0].recv_ns
+    for f in frames:
+        while tick <= f.recv_ns:
+            clock.t = tick
+            if ing.check_vanished(tick) == [2]:
+                lost_at = tick
+            states += pipe.tick(tick)
+            tick += 10 * MS
+        if f.camera_id == 2 and f.capture_ns >= cut:
+            continue
+        clock.t = f.recv_ns
+        ing.handle(P.encode_frame(f), ("127.0.0.1", 6000 + f.camera_id), f.recv_ns)
+    h = ing.health()
+    assert h["frames_accepted"] == len([f for f in frames if not (f.camera_id == 2 and f.capture_ns >= cut)])
+    # lost after its vanish timeout (10 frame periods = 100 ms), not before, and only camera 2
+    assert lost_at is not None and cut + 100 * MS <= lost_at <= cut + 130 * MS
+    assert [c for c, v in h["cameras"].items() if v["vanished"]] == [2]
+    assert pipe.stats()["removed_camera"] == 1
+    after = [s for s in states if s.time_ns > lost_at + 50 * MS]
+    assert len(after) > 50 and all(s.tracked and s.n_cameras == 3 for s in after)
+    truth, _ = sc.truth_at("quad", np.array([s.time_ns for s in after], dtype=np.int64))
+    err = np.linalg.norm(np.array([s.position for s in after]) - truth, axis=1)
+    assert np.median(err) < 0.002 and err.max() < 0.005  # 3 cameras still give millimetres
