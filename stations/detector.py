@@ -164,8 +164,9 @@ class Detector:
             contours = [contours[i] for i in keep]
             flags |= FLAG_TRUNCATED
         # per contour: bounding box and pixel count (Pick's theorem on the
-        # traced boundary pixel centres: area + boundary / 2 + 1)
-        st = np.array([(*cv2.boundingRect(c), cv2.contourArea(c) + 0.5 * len(c) + 1.0) for c in contours])
+        # traced boundary pixel centres: area + boundary / 2 + 1; a lone pixel is 1)
+        st = np.array([(*cv2.boundingRect(c), cv2.contourArea(c) + 0.5 * len(c) + 1.0 if len(c) > 1 else 1.0)
+                       for c in contours])
         if cfg.min_area > 1 or cfg.max_area < img.size:
             st = st[(st[:, 4] >= cfg.min_area) & (st[:, 4] <= cfg.max_area)]
             if not len(st):
