@@ -80,8 +80,11 @@ def test_cli_wand_then_ground_on_the_simulator(tmp_path, capsys):
     from visionpos.cli import main
 
     cal = tmp_path / "cal.yaml"
-    rc = main(["calibrate", "wand", "--sim", "thesis", "--set", "sim.duration=8", "--out", str(cal), "--no-progress"])
+    png = tmp_path / "wand.png"
+    rc = main(["calibrate", "wand", "--sim", "thesis", "--set", "sim.duration=8", "--out", str(cal), "--no-progress",
+               "--report", str(png)])
     assert rc == 0
+    assert png.stat().st_size > 1000
     out = capsys.readouterr().out
     assert "wand lengths" in out and "pi4" in out
     final = tmp_path / "final.yaml"

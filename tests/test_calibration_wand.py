@@ -21,6 +21,7 @@ from visionpos.calibration.wand import (
     interpolate_track,
     label_camera,
     label_triples,
+    nearest_track,
     static_blob_mask,
 )
 from visionpos.messages import BlobFrame
@@ -89,6 +90,9 @@ def test_interpolate_track_linear_motion_and_gaps():
     np.testing.assert_allclose(out[[0, 1, 2, 4], 0, 0], [5, 20, 25, 65])
     assert np.isnan(out[3]).all()  # 30 -> 60 ms gap is too long
     assert np.isnan(out[5]).all()  # after the last frame
+    near = nearest_track(times, px, grid, max_skew_ns=5_000_000)
+    np.testing.assert_allclose(near[[0, 1, 4], 0, 0], [10, 20, 70])  # ties go to the later frame
+    assert np.isnan(near[3]).all() and np.isnan(near[5]).all()
 
 
 @pytest.mark.parametrize("seed", [4, 5])

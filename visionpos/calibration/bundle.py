@@ -654,6 +654,7 @@ def calibrate_wand(
     min_frames: int = 100,
     max_frames: int | None = None,
     progress: ProgressFn = _no_progress,
+    align: str = "interpolate",
 ) -> WandCalibration:
     """Wand extrinsics from BlobFrames of a wand wave.
 
@@ -661,6 +662,7 @@ def calibrate_wand(
     cameras: the arena's cameras with their intrinsics (poses are ignored).
     ref: index of the camera that defines the world frame until the ground step.
     max_frames: keep at most this many grid frames (evenly spread), None = all.
+    align: how asynchronous cameras are brought to common times ('interpolate' or 'nearest').
     Raises CalibrationError with what to capture when the input cannot give a calibration.
     """
     from visionpos.calibration.wand import collect_wand
@@ -670,7 +672,7 @@ def calibrate_wand(
         raise CalibrationError(f"wand calibration needs at least 2 cameras, the config has {len(cameras)}")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    data = collect_wand(frames, cameras, spec, rate_hz=rate_hz, min_labelled=min_frames)
+    data = collect_wand(frames, cameras, spec, rate_hz=rate_hz, min_labelled=min_frames, align=align)
     if max_frames is not None and len(data.times_ns) > max_frames:
         data = data.subset(np.linspace(0, len(data.times_ns) - 1, max_frames).round().astype(int))
     if len(data.times_ns) < min_frames:

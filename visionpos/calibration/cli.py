@@ -60,6 +60,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     w.add_argument("--ab", type=float, default=None, help="wand A-B distance (m) [0.054 or calibration.wand.ab]")
     w.add_argument("--bc", type=float, default=None, help="wand B-C distance (m) [0.103 or calibration.wand.bc]")
     w.add_argument("--rate", type=float, default=50.0, help="common time grid (Hz) the cameras are interpolated to")
+    w.add_argument("--align", choices=("interpolate", "nearest"), default="interpolate",
+                   help="bring asynchronous cameras to common times by interpolation or nearest frame (<= 2 ms)")
     w.add_argument("--ref", type=int, default=None, help="id of the camera that defines the frame [first]")
     w.add_argument("--refine-intrinsics", action="store_true", help="also refine fx, fy, cx, cy per camera")
     w.add_argument("--max-frames", type=int, default=None, help="use at most this many time steps")
@@ -186,7 +188,7 @@ def _run_wand(args) -> int:
         ref = ids.index(args.ref)
     cal = calibrate_wand(
         frames, cams, spec, ref=ref, rate_hz=args.rate, refine_intrinsics=args.refine_intrinsics,
-        max_frames=args.max_frames, progress=progress_printer(not args.no_progress),
+        max_frames=args.max_frames, progress=progress_printer(not args.no_progress), align=args.align,
     )
     print(wand_report(cal))
     if truth is not None:

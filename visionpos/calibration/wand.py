@@ -245,12 +245,25 @@ def common_grid(track_times: Sequence[np.ndarray], rate_hz: float) -> np.ndarray
     if not ts:
         return np.zeros(0, np.int64)
     allt = np.sort(np.concatenate(ts))
-    # a time seen by several cameras (synchronised) is preferred: count near-duplicates
     step = int(round(1e9 / rate_hz))
     t0 = allt[0]
     bins = (allt - t0) // step
     _, first = np.unique(bins, return_index=True)
     return allt[first]
+
+
+def nearest_track(times: np.ndarray, pixels: np.ndarray, grid: np.ndarray, max_skew_ns: int) -> np.ndarray:
+    """The alternative to interpolation: each grid time takes the camera's nearest labelled
+    frame if it is within max_skew_ns. times (n,), pixels (n, 3, 2), grid (F,) -> (F, 3, 2)."""
+    out = np.full((len(grid), 3, 2), np.nan)
+    if len(times) == 0:
+        return out
+    r = np.clip(np.searchsorted(times, grid), 0, len(times) - 1)
+    lft = np.clip(r - 1, 0, len(times) - 1)
+    pick = np.where(np.abs(times[lft] - grid) < np.abs(times[r] - grid), lft, r)
+    ok = np.abs(times[pick] - grid) <= max_skew_ns
+    out[ok] = pixels[pick[ok]]
+    return out
 
 
 def interpolate_track(
@@ -313,11 +326,17 @@ def collect_wand(
     rate_hz: float = 50.0,
     max_gap_periods: float = 1.6,
     min_labelled: int = 100,
+    align: str = "interpolate",
+    max_skew_ns: int = 2_000_000,
 ) -> WandData:
     """BlobFrames of a wand wave -> WandData on a common time grid.
 
+    align: 'interpolate' (linear between the camera's labelled frames around each grid
+    time) or 'nearest' (the camera's closest labelled frame within max_skew_ns).
     Raises CalibrationError naming any camera that saw too few wand frames.
     """
+    if align not in ("interpolate", "nearest"):
+        raise CalibrationError(f"time alignment '{align}' is unknown; use interpolate or nearest")
     by_cam: dict[int, list[BlobFrame]] = {c.id: [] for c in cameras}
     for f in frames:
         if f.camera_id in by_cam:
@@ -345,6 +364,9 @@ def collect_wand(
     pixels = np.full((len(grid), V, 3, 2), np.nan)
     for v, (cam, (t, p)) in enumerate(zip(cameras, tracks)):
         period = stats[cam.id].frame_period_ns or int(1e9 / max(cam.fps, 1.0))
-        pixels[:, v] = interpolate_track(t, p, grid, int(max_gap_periods * period))
+        if align == "interpolate":
+            pixels[:, v] = interpolate_track(t, p, grid, int(max_gap_periods * period))
+        else:
+            pixels[:, v] = nearest_track(t, p, grid, max_skew_ns)
     keep = np.isfinite(pixels).all(axis=(2, 3)).sum(axis=1) >= 2
     return WandData(list(cameras), grid[keep], pixels[keep], stats)
