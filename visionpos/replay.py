@@ -188,10 +188,9 @@ def run_pipeline(
     # the recording holds only what stations sent after their trigger: accept all of it
     ingest.set_start(-(1 << 62))
     if realtime_minus_monotonic_ns is not None:
-        # Ingest converts realtime-stamped frames with the *live* host's clock difference, refreshed
-        # each second; in a replay that must be the recording host's, fixed (no public hook yet)
-        ingest._rt_minus_mono = int(realtime_minus_monotonic_ns)
-        ingest._rt_update_ns = 1 << 62
+        # live, Ingest converts realtime-stamped frames with this host's clocks; a replay must use
+        # the recording host's difference
+        ingest.realtime_minus_monotonic_ns = int(realtime_minus_monotonic_ns)
     names: list[str] = [b.name for b in arena.bodies]
     per_body: dict[str, tuple[list[int], list[BodyState]]] = {}
     ticks: list[int] = []
