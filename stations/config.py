@@ -102,12 +102,12 @@ def _read_key(sec: Section, key: str, base: Path) -> bytes | None:
     if not p.is_absolute():
         p = base / p
     try:
-        data = p.read_bytes().strip()
+        data = p.read_bytes()  # the exact bytes, as the server reads them: copy the same file
     except OSError as e:
         raise sec.error(key, f"cannot read key file {p}: {e.strerror or e}") from None
-    if len(data) < 16:
-        raise sec.error(key, f"key file {p} holds {len(data)} bytes; use at least 16 random bytes "
-                             "(e.g. `head -c 32 /dev/urandom | base64 > key`)")
+    if not data:
+        raise sec.error(key, f"key file {p} is empty; use 32 random bytes "
+                             "(e.g. `head -c 32 /dev/urandom > key`) and copy the same file to the server")
     return data
 
 
