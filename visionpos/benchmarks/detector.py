@@ -1,9 +1,11 @@
 """Station detector benchmark: speed on one core and centroid accuracy.
 
-Metrics: detector_fps_{640x480,960x640,1280x960} (frames/s, 4-12 blobs),
-detector_floor_us_960x640 (one cv2.threshold pass, the memory-bound floor),
-detector_floor_ratio_960x640 (detector time / floor), and the accuracy at
-good SNR. Tables: bias and RMS of the centroid against blob diameter and
+Metrics, for each of 640x480, 960x640, 1280x960: detector_fps_WxH
+(frames/s, 4-12 blobs of 2-8 px, one core), detector_floor_us_WxH (one
+cv2.threshold pass over the same frames: the memory-bound floor),
+detector_floor_ratio_WxH (detector time / floor); and
+detector_bias_px_good_snr / detector_rms_px_good_snr (worst cell of the
+accuracy table at read noise <= 3 DN). Tables: bias and RMS of the centroid against blob diameter and
 noise level, on blobs from the simulator's renderer (visionpos.sim.render:
 uniform discs blurred by a Gaussian PSF, exact sub-pixel geometry, shot and
 read noise, 8-bit quantisation).
