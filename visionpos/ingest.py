@@ -2,7 +2,15 @@
 
 `Ingest.handle(data, addr, recv_ns)` is the whole per-packet path and does no I/O
 of its own (it returns the replies to send), so tests and replays can drive it
-with chosen receive times; `Ingest.start()` puts it behind an asyncio UDP endpoint.
+with chosen receive times; `Ingest.start()` puts it on a UDP socket read by the
+running asyncio loop (every waiting datagram per wake-up, at most ~2 ms of work
+per batch so output ticks stay on time).
+
+Frames from a configured camera that has not registered (the server restarted
+under a streaming station) are used, and answered with HelloAck UNKNOWN_SESSION
+at most every 0.5 s so the station registers again. With a key, only signed
+packets count at all. A camera can be pinned to one station with `station: N`
+in its `cameras[i]` entry.
 
 Per packet: record the raw bytes (recorder.write_packet), decode (HMAC-checked
 when the arena has a key), then by type:
