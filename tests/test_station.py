@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stations.agent import StationAgent
+from stations.agent import _TIMESPEC, SO_TIMESTAMPNS, StationAgent
 from stations.config import SourceConfig, parse_station
 from stations.sources import FrameSource, SourceError
 from visionpos import protocol as P
@@ -33,6 +33,7 @@ class LoopbackServer:
     def __init__(self, port: int = 0, key: bytes | None = KEY, start_delay_s: float = 0.3):
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         self.sock.bind(("127.0.0.1", port))
         self.sock.settimeout(0.02)
         self.port = self.sock.getsockname()[1]
@@ -56,10 +57,14 @@ class LoopbackServer:
     def _loop(self) -> None:
         while not self._stop.is_set():
             try:
-                data, addr = self.sock.recvfrom(2048)
+                data, anc, _, addr = self.sock.recvmsg(2048, socket.CMSG_SPACE(16))
             except (socket.timeout, OSError):
                 continue
             recv = self.clock()
+            for level, kind, payload in anc:  # kernel receive stamp: t2 not delayed by the GIL
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                    sec, nsec = _TIMESPEC.unpack_from(payload)
+                    recv = sec * 1_000_000_000 + nsec - (time.time_ns() - self.clock())
             try:
                 msg = P.decode(data, self.key, recv)
             except P.ProtocolError as e:
