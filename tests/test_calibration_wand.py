@@ -208,3 +208,15 @@ def test_initial_poses_in_reference_frame():
     R_true = cams[0].R @ cams[1].R.T
     assert np.degrees(Rotation.from_matrix(R[0] @ R_true.T).magnitude()) < 0.3
     assert len(pairs) == 2
+
+
+def test_two_cameras():
+    cams = ring_cameras(2, radius=3.5)
+    frames = wand_frames(cams, 8.0, SPEC, seed=3)
+    cal = calibrate_wand(frames, cams, SPEC)
+    ce, re, s = compare_cameras(cal.cameras, cams)
+    assert ce.max() < 2e-3 and re.max() < 0.05
+    # the metric baseline comes from the wand alone
+    base_est = np.linalg.norm(cal.cameras[1].center - cal.cameras[0].center)
+    base_true = np.linalg.norm(cams[1].center - cams[0].center)
+    assert abs(base_est / base_true - 1) < 1e-3

@@ -730,15 +730,26 @@ def compare_cameras(
     """Pose errors against known cameras.
 
     With similarity, the estimated centres are first mapped onto the true ones by
-    the best similarity (Umeyama); orientations are compared after the same rotation.
+    the best similarity (Umeyama; for two cameras the rotation comes from their
+    orientations); orientations are compared after the same rotation.
     Returns centre errors (V,) m, orientation errors (V,) deg and the scale applied.
     """
     from visionpos.geometry import umeyama
 
     Ce = np.array([c.center for c in estimated])
     Ct = np.array([c.center for c in truth])
-    if similarity:
+    if similarity and len(Ce) >= 3:
         s, Ra, ta = umeyama(Ce, Ct)
+    elif similarity:
+        # two centres leave the turn about the baseline free: take the rotation from the
+        # orientations (R_e = R_t Ra for every camera), then scale and shift from the centres
+        from visionpos.geometry import average_rotations
+
+        Ra = average_rotations(np.stack([t.R.T @ e.R for e, t in zip(estimated, truth)]))
+        P = Ce @ Ra.T
+        dp, dt = P - P.mean(axis=0), Ct - Ct.mean(axis=0)
+        s = float((dp * dt).sum() / max((dp * dp).sum(), 1e-300))
+        ta = Ct.mean(axis=0) - s * P.mean(axis=0)
     else:
         s, Ra, ta = 1.0, np.eye(3), np.zeros(3)
     cerr = np.linalg.norm(s * Ce @ Ra.T + ta - Ct, axis=1)
