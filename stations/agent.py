@@ -249,8 +249,9 @@ class StationAgent:
         self._hello_gap_s = HELLO_FIRST_S
         self._last_heard = None
         if self.sync is not None:
+            # keep _estimate_seen: the first frame on the new estimate gets
+            # FLAG_RESYNC if the offset moved (a restarted server's new clock)
             self.sync.reset()
-            self._estimate_seen = None
 
     def service(self) -> None:
         """Drain replies and send whatever is due (hello, heartbeat, sync)."""
