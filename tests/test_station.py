@@ -30,7 +30,9 @@ TRUE = np.array([[40.3, 30.6], [100.7, 80.2], [130.1, 20.9]])
 class LoopbackServer:
     """Answers hello/heartbeat/sync like a fusion server would; records frames."""
 
-    def __init__(self, port: int = 0, key: bytes | None = KEY, start_delay_s: float = 0.3):
+    def __init__(self, port: int = 0, key: bytes | None = KEY, start_delay_s: float = 0.3,
+                 offset_ns: int = SERVER_OFFSET_NS):
+        self.offset_ns = offset_ns
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self.sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
@@ -50,9 +52,8 @@ class LoopbackServer:
         self.thread = threading.Thread(target=self._loop, daemon=True)
         self.thread.start()
 
-    @staticmethod
-    def clock() -> int:
-        return time.monotonic_ns() + SERVER_OFFSET_NS
+    def clock(self) -> int:
+        return time.monotonic_ns() + self.offset_ns
 
     def _loop(self) -> None:
         while not self._stop.is_set():
@@ -206,11 +207,16 @@ def test_station_registers_syncs_streams_and_survives_a_server_restart():
         port = server.port
         server.close()
         time.sleep(0.3)
-        server = LoopbackServer(port=port, start_delay_s=0.0)
+        # the new server process has a new clock (2 s further ahead)
+        server = LoopbackServer(port=port, start_delay_s=0.0, offset_ns=SERVER_OFFSET_NS + 2_000_000_000)
         assert wait_for(lambda: len(server.frames) >= 20, timeout=10.0), "no frames after the restart"
         assert server.hellos and server.hellos[0].session == agent.session
         assert agent.stats.registrations >= 2
         assert not server.errors
+        frames = list(server.frames)
+        err = [f.capture_ns - (cam.stamps[f.seq] + server.offset_ns) for f in frames]
+        assert np.median(np.abs(err)) < 1_500_000, err  # stamps follow the new clock after re-sync
+        assert frames[0].flags & FLAG_RESYNC  # and the jump is flagged
     finally:
         agent.stop()
         th.join(5.0)
