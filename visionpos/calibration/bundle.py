@@ -556,6 +556,7 @@ def bundle_adjust(
         ftol=1e-6,
         gtol=1e-8,
     )
+    progress("bundle adjustment", max_nfev, max_nfev)  # converged: close the bar
     Rn, tn, _, f, c = prob.cameras_from(sol.x)
     A2, u2, _ = prob.wand_from(sol.x)
     prob._evaluate(sol.x)

@@ -128,6 +128,8 @@ def plot_wand(cal: WandCalibration, path: str | Path, truth: list | None = None)
     if truth is not None:
         T = np.array([c.center for c in truth])
         ax.scatter(T[:, 0], T[:, 1], T[:, 2], marker="x", c="C3", label="truth")
+    allp = np.vstack([A[::step], np.array([c.center for c in cal.cameras])])
+    ax.set_box_aspect(tuple(np.maximum(np.ptp(allp, axis=0), 0.1)))  # metres look like metres
     ax.set_title("cameras and wand")
     ax.set_xlabel("x m")
     ax.set_ylabel("y m")
