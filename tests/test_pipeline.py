@@ -198,3 +198,74 @@ def test_settings_validated_with_key_names(hover):
         FusionPipeline(sc.arena, {"fusion": {"nonsense": 1}})
     p = FusionPipeline(sc.arena, {"fusion.kalman.lost_timeout_ms": 120, "window_ms": 8})
     assert p.settings.lost_timeout_ns == 120_000_000 and p.settings.window_ns == 8_000_000
+
+
+def test_time_aligner_rules():
+    from visionpos.timealign import CLOCK_JUMP, LATE, REORDERED, TimeAligner
+
+    MS = 1_000_000
+    al = TimeAligner("motion_compensated", window_ns=12 * MS, grid_ns=10 * MS, max_lead_ns=30 * MS)
+    assert al.admit(1, 100 * MS) is None
+    _, after = al.add(1, 100 * MS)
+    assert after[0].cameras == (1,) and after[0].ref_ns == 100 * MS
+    assert al.admit(2, 103 * MS) is None
+    _, after = al.add(2, 103 * MS)
+    assert after[0].cameras == (1, 2) and after[0].ref_ns == 103 * MS and after[0].compensate
+    assert al.admit(2, 103 * MS) == REORDERED  # duplicate
+    assert al.admit(1, 160 * MS) == CLOCK_JUMP  # 57 ms ahead of camera 2
+    assert al.admit(2, 80 * MS) == REORDERED
+    assert al.admit(3, 85 * MS) == LATE  # older than the window behind the newest
+    # a camera alone for longer than the trust span is a real gap, not a jump
+    t = 160 * MS
+    verdicts = []
+    for _ in range(30):
+        verdicts.append(al.admit(1, t))
+        t += 10 * MS
+    assert verdicts[0] == CLOCK_JUMP and verdicts[-1] is None
+
+    # naive: frames binned on the grid, a bin fused when the next one starts, at its mean time
+    nv = TimeAligner("naive", window_ns=12 * MS, grid_ns=10 * MS, max_lead_ns=30 * MS)
+    for cam, tc in ((1, 99 * MS), (2, 102 * MS)):
+        assert nv.admit(cam, tc) is None
+        before, after = nv.add(cam, tc)
+        assert before == [] and after == []
+    before, _ = nv.add(1, 109 * MS)
+    assert before[0].cameras == (1, 2) and before[0].ref_ns == 100_500_000 and not before[0].compensate
+
+    # rate limit: skip when the last fusion is recent and another camera is due soon
+    rl = TimeAligner("motion_compensated", 12 * MS, 10 * MS, 30 * MS, periods_ns={1: 10 * MS, 2: 10 * MS}, min_interval_ns=2 * MS)
+    rl.add(1, 100 * MS)
+    rl.add(2, 105 * MS)
+    _, a = rl.add(1, 110 * MS)  # 5 ms after the last fusion: fuse
+    assert a
+    _, a = rl.add(2, 110_500_000)  # 0.5 ms after, camera 1's next frame is 9.5 ms away: fuse
+    assert a
+    rl2 = TimeAligner("motion_compensated", 12 * MS, 10 * MS, 30 * MS, periods_ns={1: 10 * MS, 2: 10 * MS}, min_interval_ns=2 * MS)
+    rl2.add(2, 99 * MS)
+    rl2.add(1, 100 * MS)
+    _, a = rl2.add(2, 109 * MS)  # fused at 100 ms: 9 ms ago -> fuse
+    assert a
+    _, a = rl2.add(1, 109_200_000)  # 0.2 ms after the last fusion; camera 2 next due at 119 ms -> fuse
+    assert a
+    rl3 = TimeAligner("motion_compensated", 12 * MS, 10 * MS, 30 * MS, periods_ns={1: 10 * MS, 2: 10 * MS, 3: 10 * MS}, min_interval_ns=2 * MS)
+    for cam, tc in ((1, 100 * MS), (2, 100_500_000), (3, 101 * MS)):
+        rl3.add(cam, tc)
+    _, a = rl3.add(1, 110 * MS)  # last fusion 9 ms ago: fuse
+    assert a
+    _, a = rl3.add(2, 110_500_000)  # 0.5 ms after a fusion and camera 3 due at 111 ms: wait for it
+    assert a == []
+    _, a = rl3.add(3, 111 * MS)  # end of the burst: one fusion with all three
+    assert a and a[0].cameras == (1, 2, 3)
+
+
+def test_indistinguishable_layouts_are_refused(hover):
+    from dataclasses import replace as dreplace
+
+    sc, _ = hover
+    quad = sc.arena.bodies[0]
+    twin = dreplace(quad, name="twin", id=2)
+    with pytest.raises(ConfigError, match="same marker layout"):
+        FusionPipeline(dreplace(sc.arena, bodies=(quad, twin)))
+    square = dreplace(quad, name="square", markers=np.array([[0.1, 0, 0], [0, 0.1, 0], [-0.1, 0, 0], [0, -0.1, 0]]))
+    with pytest.raises(ConfigError, match="symmetric"):
+        FusionPipeline(dreplace(sc.arena, bodies=(square,)))

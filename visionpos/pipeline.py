@@ -49,14 +49,14 @@ fusion:
   loose_points: true      # triangulate blobs that belong to no body and report them
   loose_points_interval_ms: 50  # loose points are refreshed this often while every body is tracked
   acquire_interval_ms: 10 # while a body is lost, acquisition runs at most this often (capture clock)
-  min_fusion_interval_ms: 0  # > 0: motion-compensated fusions at most this often; a frame arriving sooner
-                          #   joins the next fusion. Bounds CPU with many fast cameras, but costs accuracy
-                          #   (views get older relative to the reference), so it is off by default
+  min_fusion_interval_ms: 1.0  # rate limit of motion-compensated fusions for many fast cameras: a fusion
+                          #   is skipped when the last one is younger than this and another camera's
+                          #   next frame is due within it (so it lands at the end of a burst); 0 = off
   kalman:
     jerk_psd: 0.1              # m^2/s^5, floor of the white-jerk density (constant-acceleration model)
     angular_accel_psd: 1.0     # rad^2/s^3, floor of the white angular-acceleration density
     max_noise_scale: 10000     # the innovation-driven (NIS) adaptation may raise both by up to this factor
-    nis_time_constant_ms: 30   # averaging time of the NIS that drives the adaptation
+    nis_time_constant_ms: 15   # averaging time of the NIS that drives the adaptation
     marker_sigma_m: 0.0001     # floor of the per-marker 3D noise used for the measurement covariance
     gate_chi2: 40.0            # Mahalanobis^2 gate on the 6-dof innovation (chi2 with 6 dof)
     reset_after_ms: 60         # measurements gated out for this long: the filter restarts at the measurement
@@ -74,10 +74,10 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from visionpos.config import ArenaConfig, Section
+from visionpos.config import ArenaConfig, ConfigError, Section
 from visionpos.matching import Projector, associate, match_unlabeled, triangulate, undistort_points
 from visionpos.messages import BlobFrame, BodyState, LoosePoints
-from visionpos.rigidbody import BodyModel, identify, kabsch_batch
+from visionpos.rigidbody import BodyModel, identify, kabsch_batch, layout_ambiguities
 from visionpos.timealign import MODES, MOTION_COMPENSATED, Group, TimeAligner
 from visionpos.tracking import BodyFilter, KalmanSettings, pose_covariance, velocity_covariance
 
@@ -110,7 +110,7 @@ class FusionSettings:
     min_markers: int = 3
     loose_points: bool = True
     acquire_interval_ns: int = 10_000_000
-    min_fusion_interval_ns: int = 0
+    min_fusion_interval_ns: int = 1_000_000
     loose_points_interval_ns: int = 50_000_000
     marker_sigma: float = 0.0001
     kalman: KalmanSettings = field(default_factory=KalmanSettings)
@@ -188,7 +188,7 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
         jerk_psd=k.number("jerk_psd", 0.1, min=1e-12),
         angular_accel_psd=k.number("angular_accel_psd", 1.0, min=1e-12),
         max_noise_scale=k.number("max_noise_scale", 1e4, min=1.0),
-        nis_time_constant=k.number("nis_time_constant_ms", 30.0, min=0.1) * 1e-3,
+        nis_time_constant=k.number("nis_time_constant_ms", 15.0, min=0.1) * 1e-3,
         gate_chi2=k.number("gate_chi2", 40.0, min=1.0),
     )
     lost = k.number("lost_timeout_ms", 150.0, min=1.0)
@@ -204,7 +204,7 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
         min_markers=s.integer("min_markers", 3, min=3),
         loose_points=s.boolean("loose_points", True),
         acquire_interval_ns=int(s.number("acquire_interval_ms", 10.0, min=0.0) * 1e6),
-        min_fusion_interval_ns=int(s.number("min_fusion_interval_ms", 0.0, min=0.0) * 1e6),
+        min_fusion_interval_ns=int(s.number("min_fusion_interval_ms", 1.0, min=0.0) * 1e6),
         loose_points_interval_ns=int(s.number("loose_points_interval_ms", 50.0, min=0.0) * 1e6),
         marker_sigma=k.number("marker_sigma_m", 0.0001, min=1e-7),
         kalman=ks,
@@ -273,6 +273,12 @@ class FusionPipeline:
         self.settings = parse_fusion_settings(arena, settings)
         st = self.settings
         self.models = [BodyModel(b.name, b.id, np.asarray(b.markers, float)) for b in arena.bodies]
+        # layouts the geometry cannot tell apart would be swapped or flipped: refuse them
+        problems = layout_ambiguities(self.models, 0.5 * st.identify_tolerance)
+        if problems:
+            raise ConfigError(
+                arena.source, "bodies", "; ".join(problems) + ". Move a marker so every body's distances differ by > 1 cm."
+            )
         sizes = [len(m.markers) for m in self.models]
         self._off = np.concatenate([[0], np.cumsum(sizes)]).astype(int)  # body b: markers off[b]:off[b+1]
         self.P = int(self._off[-1])
@@ -289,14 +295,20 @@ class FusionPipeline:
         self._rows_cache: dict[tuple[int, ...], np.ndarray] = {}
         self._pad_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self._layout_cache: dict[tuple[int, bytes], tuple[np.ndarray, np.ndarray, int]] = {}
-        self.aligner = TimeAligner(st.time_alignment, st.window_ns, st.grid_ns, st.max_clock_lead_ns)
+        self.aligner = TimeAligner(
+            st.time_alignment,
+            st.window_ns,
+            st.grid_ns,
+            st.max_clock_lead_ns,
+            periods_ns={c.id: int(1e9 / c.fps) for c in arena.cameras if c.fps > 0},
+            min_interval_ns=st.min_fusion_interval_ns,
+        )
         self.obs: dict[int, _Obs] = {}
         self.tracks = [_Track(BodyFilter(st.kalman)) for _ in self.models]
         self.loose_points: LoosePoints | None = None
         self._last_acquire_ns = -(1 << 62)
-        self._last_fusion_ns = -(1 << 62)
         # a frame takes part in about (frame period / fusion spacing) fusions at most
-        self._max_reuse = max(1.0, (st.window_ns / 1.2) / max(st.min_fusion_interval_ns, 1))  # no cap when 0
+        self._max_reuse = max(1.0, (st.window_ns / 1.2) / max(st.min_fusion_interval_ns, 1))
         self.last_raw: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # body -> (ref_ns, position, R) of the last Kabsch pose
         self._stats: dict[str, int] = {
             "frames": 0,
@@ -339,6 +351,8 @@ class FusionPipeline:
             self._stats[why] += 1
             return
         before, after = self.aligner.add(cam, t)
+        if self.aligner.mode == MOTION_COMPENSATED and not after:
+            self._stats["deferred"] += 1
         for g in before:
             self._fuse(g)
         self.obs[cam] = self._observe(cam, t, px)
@@ -420,11 +434,6 @@ class FusionPipeline:
             return
         st = self.settings
         ref = g.ref_ns
-        if g.compensate and 0 <= ref - self._last_fusion_ns < st.min_fusion_interval_ns:
-            # many fast cameras: the next fusion (a frame or so later) includes this frame
-            self._stats["deferred"] += 1
-            return
-        self._last_fusion_ns = ref
         self._stats["fusions"] += 1
         vi = np.array([self._cam_index[c] for c in cams])
         R, t, f = self._R[vi], self._t[vi], self._f[vi]

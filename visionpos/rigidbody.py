@@ -97,7 +97,6 @@ def _hypotheses(points: np.ndarray, D: np.ndarray, model: BodyModel, tol: float)
     mk = model.markers
     M = len(mk)
     Dm = model.distances
-    K = len(points)
     out = []
     seen: set[tuple[int, ...]] = set()
     # seed triangles: every ordered marker triple would repeat work; the
@@ -140,7 +139,6 @@ def _hypotheses(points: np.ndarray, D: np.ndarray, model: BodyModel, tol: float)
                         rms = float(np.sqrt((res**2).sum(axis=1).mean()))
                         if rms < tol:
                             out.append((int(sel.sum()), rms, idx, R, t))
-    del K
     return out
 
 
@@ -211,6 +209,6 @@ def layout_ambiguities(models: list[BodyModel], tolerance: float) -> list[str]:
             if len(b.markers) != M:
                 continue
             D = np.linalg.norm(b.markers[:, None] - b.markers[None], axis=-1)
-            if _hypotheses(b.markers, D, a, tolerance) and any(h[0] == M for h in _hypotheses(b.markers, D, a, tolerance)):
+            if any(h[0] == M for h in _hypotheses(b.markers, D, a, tolerance)):
                 problems.append(f"bodies '{a.name}' and '{b.name}' have the same marker layout: they can be swapped")
     return problems

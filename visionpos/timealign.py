@@ -12,6 +12,10 @@ motion_compensated (default)
     simultaneous. It never waits for later frames: the latency it adds is
     zero, and at 3 m/s a 5 ms skew (15 mm) becomes the prediction error over
     5 ms instead (well under a millimetre for a tracked body).
+    Optional rate limit (`min_interval`, for many fast cameras): a fusion is
+    skipped when the previous one is less than the interval old and another
+    camera's next frame is due within the interval (from its period), so the
+    fusion happens at the end of a burst of frames and includes all of them.
 
 naive
     Frames are binned to the nearest point of a fixed grid (period `grid`);
@@ -60,7 +64,15 @@ class Group:
 class TimeAligner:
     """Decides groups from (camera_id, capture_ns) in arrival order."""
 
-    def __init__(self, mode: str, window_ns: int, grid_ns: int, max_lead_ns: int):
+    def __init__(
+        self,
+        mode: str,
+        window_ns: int,
+        grid_ns: int,
+        max_lead_ns: int,
+        periods_ns: dict[int, int] | None = None,
+        min_interval_ns: int = 0,
+    ):
         if mode not in MODES:
             raise ValueError(f"time alignment '{mode}' is unknown; use one of {MODES}")
         self.mode = mode
@@ -71,6 +83,9 @@ class TimeAligner:
         self.newest_ns: int | None = None  # newest admitted capture time
         self._last_cam: int | None = None
         self._solo_start = 0
+        self.periods_ns = dict(periods_ns or {})
+        self.min_interval_ns = int(min_interval_ns)
+        self.last_fused_ns: int | None = None
         self._bin: int | None = None  # naive: pending grid bin
         self._pending: dict[int, int] = {}  # naive: camera -> capture_ns in the pending bin
 
@@ -110,7 +125,9 @@ class TimeAligner:
             self.newest_ns = capture_ns if self.newest_ns is None else max(self.newest_ns, capture_ns)
             members = tuple(sorted(c for c, t in self.latest.items() if abs(t - capture_ns) <= self.window_ns))
             ref = max(self.latest[c] for c in members)
-            after.append(Group(members, ref, True))
+            if not self._defer(camera_id, ref):
+                self.last_fused_ns = ref
+                after.append(Group(members, ref, True))
         else:
             b = self._bin_of(capture_ns)
             if self._bin is not None and b > self._bin and self._pending:
@@ -122,6 +139,23 @@ class TimeAligner:
             self.latest[camera_id] = capture_ns
             self.newest_ns = capture_ns if self.newest_ns is None else max(self.newest_ns, capture_ns)
         return before, after
+
+    def _defer(self, camera_id: int, ref: int) -> bool:
+        """Rate limit (min_interval_ns > 0): skip this fusion when one happened less than the
+        interval ago *and* another camera's next frame is due within the interval, so the
+        fusion lands at the end of a burst of frames and no frame waits longer than that."""
+        if self.min_interval_ns <= 0 or self.last_fused_ns is None:
+            return False
+        if ref - self.last_fused_ns >= self.min_interval_ns or ref < self.last_fused_ns:
+            return False
+        for c, t in self.latest.items():
+            period = self.periods_ns.get(c)
+            if c == camera_id or not period or ref - t > 2 * period:  # silent cameras are not waited for
+                continue
+            nxt = t + period * max(1, -(-(ref - t) // period))  # its next frame after ref
+            if nxt - ref <= self.min_interval_ns:
+                return True
+        return False
 
     def _close(self) -> Group:
         cams = tuple(sorted(self._pending))

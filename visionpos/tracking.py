@@ -102,7 +102,7 @@ class KalmanSettings:
     jerk_psd: float = 0.1
     angular_accel_psd: float = 1.0
     max_noise_scale: float = 1e4
-    nis_time_constant: float = 0.03
+    nis_time_constant: float = 0.015
     gate_chi2: float = 40.0
     init_velocity_sigma: float = 2.0
     init_acceleration_sigma: float = 10.0
