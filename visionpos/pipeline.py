@@ -49,7 +49,7 @@ fusion:
   loose_points: true      # triangulate blobs that belong to no body and report them
   loose_points_interval_ms: 50  # loose points are refreshed this often while every body is tracked
   acquire_interval_ms: 10 # while a body is lost, acquisition runs at most this often (capture clock)
-  min_fusion_interval_ms: 1.0  # rate limit of motion-compensated fusions for many fast cameras: a fusion
+  min_fusion_interval_ms: 2.0  # rate limit of motion-compensated fusions for many fast cameras: a fusion
                           #   is skipped when the last one is younger than this and another camera's
                           #   next frame is due within it (so it lands at the end of a burst); 0 = off
   kalman:
@@ -110,7 +110,7 @@ class FusionSettings:
     min_markers: int = 3
     loose_points: bool = True
     acquire_interval_ns: int = 10_000_000
-    min_fusion_interval_ns: int = 1_000_000
+    min_fusion_interval_ns: int = 2_000_000
     loose_points_interval_ns: int = 50_000_000
     marker_sigma: float = 0.0001
     kalman: KalmanSettings = field(default_factory=KalmanSettings)
@@ -204,7 +204,7 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
         min_markers=s.integer("min_markers", 3, min=3),
         loose_points=s.boolean("loose_points", True),
         acquire_interval_ns=int(s.number("acquire_interval_ms", 10.0, min=0.0) * 1e6),
-        min_fusion_interval_ns=int(s.number("min_fusion_interval_ms", 1.0, min=0.0) * 1e6),
+        min_fusion_interval_ns=int(s.number("min_fusion_interval_ms", 2.0, min=0.0) * 1e6),
         loose_points_interval_ns=int(s.number("loose_points_interval_ms", 50.0, min=0.0) * 1e6),
         marker_sigma=k.number("marker_sigma_m", 0.0001, min=1e-7),
         kalman=ks,
