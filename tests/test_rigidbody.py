@@ -82,3 +82,24 @@ def test_layout_ambiguities():
     assert any("symmetric" in s for s in msgs)
     twin = BodyModel("twin", 10, _models()[0].markers + 0.5)
     assert any("swapped" in s for s in layout_ambiguities([_models()[0], twin], 0.005))
+
+
+def test_pose_measurement_covariance_matches_monte_carlo():
+    from visionpos.pipeline import pose_measurement_cov
+
+    m = _models()[2].markers  # five markers
+    R0 = Rotation.from_euler("zyx", [30, 20, -10], degrees=True).as_matrix()
+    t0 = np.array([0.3, -0.2, 1.1])
+    mw = m @ R0.T + t0
+    sigma = 0.001
+    rng = np.random.default_rng(7)
+    N = 4000
+    dst = mw[None] + rng.normal(0, sigma, (N, len(m), 3))
+    R, t = kabsch_batch(np.broadcast_to(m, dst.shape), dst, np.ones((N, len(m))))
+    rv = Rotation.from_matrix(R @ R0.T).as_rotvec()
+    emp = np.cov(np.hstack([t - t0, rv]).T)
+    pred = pose_measurement_cov(mw, t0, sigma**2)
+    # same covariance within Monte-Carlo scatter (diagonals within 10 %, correlations within 0.1)
+    assert np.allclose(np.diag(emp), np.diag(pred), rtol=0.1)
+    d = np.sqrt(np.diag(pred))
+    assert np.abs(emp / np.outer(d, d) - pred / np.outer(d, d)).max() < 0.1

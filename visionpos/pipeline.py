@@ -27,11 +27,26 @@ these cameras, at this noise level, without per-arena tuning.
 
 Measurement reuse: in motion-compensated mode one camera frame takes part
 in about as many fusions as there are cameras in the group (its own and one
-per other camera until it is replaced). The filter is told so: each fused
-pose's measurement covariance is multiplied by the group size, which splits
-each frame's information over the fusions that reuse it instead of counting
-it several times (an overconfident filter would smooth too little and gate
-wrongly).
+per other camera until it is replaced; fewer under the rate limit). The
+filter is told so: each fused pose's measurement covariance is multiplied by
+that count, which splits each frame's information over the fusions that
+reuse it instead of counting it several times (an overconfident filter
+would smooth too little and gate wrongly).
+
+Motion compensation and its feedback loop: the offsets come from the
+filter, so a wrong velocity would bias the measurement towards itself. Until
+the filter's velocity std is below 0.1 m/s (a new or reacquired track) the
+views are fused uncompensated and the motion between them is added to the
+measurement covariance (|v|^2 + var v) * mean(dt^2), and the per-marker
+residual gate is widened by the motion the views may disagree by; once
+compensating, only the velocity's own uncertainty is added. The naive mode
+gets the same treatment, so the comparison is with a fair baseline.
+
+Outputs: tick() predicts each tracked body to now_ns (latency cancelled)
+with its covariance; a body not updated for max_prediction_ms or lost is
+tracked=False with a NaN pose (a stale pose is never sent).
+reset_counter increments only when a tracked filter is restarted at a
+measurement it kept rejecting (a jump), not on a dropout or reacquisition.
 
 The `fusion:` section of the arena YAML (every key optional):
 

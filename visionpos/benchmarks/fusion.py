@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from visionpos.benchmarks import BenchResult
 from visionpos.config import ArenaConfig
-from visionpos.messages import BlobFrame, BodyState
+from visionpos.messages import BlobFrame
 from visionpos.pipeline import FusionPipeline
 
 
@@ -373,6 +373,7 @@ def run(quick: bool = False) -> BenchResult:
     _throughput(quick, res)
     res.notes.append(
         "Fusion numbers come from the simulator (visionpos/sim) driven through FusionPipeline exactly as the server "
-        "drives it (frames in receive order, ticks at 100 Hz); timings are single-thread wall clock on the bench machine."
+        "drives it (frames in receive order, ticks at 100 Hz); timings are CPU time of the one fusion thread (time.thread_time), "
+        "so other load on the machine does not inflate them (it still slows them somewhat through shared caches)."
     )
     return res
