@@ -155,9 +155,9 @@ def test_two_bodies_crossing_are_never_swapped():
         assert ok[50:].mean() > 0.95
         p_true, q_true = sc.truth_at(name, rep.times_ns[ok])
         err = np.linalg.norm(rep.positions[name][ok] - p_true, axis=1)
-        assert err.max() < 0.02, f"{name} jumped {err.max():.3f} m: identity swap"
+        assert err.max() < 0.01, f"{name} off by {err.max():.3f} m: identity swap or lag at a corner"
         ang = (Rotation.from_quat(rep.quaternions[name][ok]) * Rotation.from_quat(q_true).inv()).magnitude()
-        assert np.degrees(ang).max() < 5.0
+        assert np.degrees(ang).max() < 4.0
     assert not rep.tracked["charlie_unused"].any()
 
 

@@ -257,6 +257,7 @@ class _Track:
     residual_mm: float = float("nan")
     reset_counter: int = 0
     marker_var: float = 0.0  # running per-marker 3D noise variance (m^2) from fit residuals
+    px_var: float = 0.25  # running per-axis pixel noise variance (px^2) from triangulation residuals
 
 
 def pose_measurement_cov(markers_world: np.ndarray, origin: np.ndarray, var: float) -> np.ndarray:
@@ -440,7 +441,31 @@ class FusionPipeline:
             hit = a >= 0
             label[a[hit]] = rows[hit]
             marker_xn[rows[hit]] = xn[a[hit]]
+            self._image_innovation(cam, t_ns, tracked, Xw, pred, px, a)
         return _Obs(t_ns, xn, label, marker_xn)
+
+    def _image_innovation(self, cam: int, t_ns: int, tracked: list[int], Xw, pred, px, a) -> None:
+        """Per tracked body, this frame's prediction residual over its expected size -> the filter's
+        manoeuvre detector. Expected: the body's pixel noise (running mean of its triangulation
+        residuals) plus the filter's position uncertainty seen from this camera."""
+        hit = a >= 0
+        if not hit.any():
+            return
+        d2 = np.full(len(a), np.nan)
+        d2[hit] = ((px[a[hit]] - pred[hit]) ** 2).sum(1)
+        z = Xw @ self._R[self._cam_index[cam], 2] + self._t[self._cam_index[cam], 2]
+        f2 = self._f[self._cam_index[cam]] ** 2
+        k = 0
+        for b in tracked:
+            M = self._off[b + 1] - self._off[b]
+            h = hit[k : k + M]
+            if h.sum() >= 2:
+                tr = self.tracks[b]
+                P = tr.filter.kf.P
+                var_pos = (P[0, 0] + P[1, 1] + P[2, 2]) / 3.0
+                exp = tr.px_var + f2 * var_pos / np.maximum(z[k : k + M][h], 0.1) ** 2
+                tr.filter.report_image_nis(t_ns, float((d2[k : k + M][h] / (2.0 * exp)).mean()))
+            k += M
 
     # ----------------------------------------------------------------- fusion
     def _fuse(self, g: Group) -> None:
@@ -545,6 +570,7 @@ class FusionPipeline:
         n_cams = seen.reshape(B, Mx, -1).any(1).sum(1)
         reuse = min(len(obs), self._max_reuse) if compensate else 1
         cap = max(o.capture_ns for o in obs)
+        k0 = np.concatenate([[0], np.cumsum(sizes)])
         for i, b in enumerate(tracked):
             tr = self.tracks[b]
             n = int(counts[i])
@@ -556,6 +582,9 @@ class FusionPipeline:
                 continue
             sel = use[i, : sizes[i]]
             self.last_raw[b] = (ref, tk[i].copy(), Rk[i].copy())
+            # pixel noise from the triangulation residuals of its markers (rms over views and axes)
+            rr = rms[k0[i] : k0[i] + sizes[i]][sel]
+            tr.px_var += 0.05 * (float((rr * rr).mean()) / 2.0 - tr.px_var)
             # per-marker noise from the fit residual (3n - 6 degrees of freedom), averaged per body
             s2 = float(res2[i]) / (3 * n - 6)
             tr.marker_var += 0.05 * (s2 - tr.marker_var)

@@ -24,7 +24,12 @@ the noise is scaled by a running average of the normalised innovation
 squared (NIS, separately for position and orientation): while the model fits
 the measurements NIS/dof ~ 1 and the floor `jerk_psd` / `angular_accel_psd`
 smooths hard; a manoeuvre makes NIS grow and the process noise follows
-within a few updates (bounded by `max_noise_scale`).
+within a few updates (bounded by `max_noise_scale`). The position scale
+also listens to an image-space detector (report_image_nis): each new
+frame's markers predicted to its capture time against the blobs found. That
+view is uncompensated, so motion compensation (which uses this filter's own
+velocity) cannot pull it towards the prediction and hide a lag the way it
+can for the fused pose.
 
 The measurement is a 6-DoF pose [p, log(R_meas R_nom^T)] with a covariance
 given by the caller (pipeline.py estimates it from the rigid-body fit).
@@ -174,6 +179,8 @@ class BodyFilter:
         self.scale_r = 1.0
         self._nis_p = 1.0
         self._nis_r = 1.0
+        self._nis_img = 1.0
+        self._img_ns = 0
         self._folds = 0
 
     # -------------------------------------------------------------- lifecycle
@@ -197,7 +204,8 @@ class BodyFilter:
         self.t_ns = int(t_ns)
         self.initialized = True
         self.scale_p = self.scale_r = 1.0
-        self._nis_p = self._nis_r = 1.0
+        self._nis_p = self._nis_r = self._nis_img = 1.0
+        self._img_ns = 0
 
     def _fold(self) -> None:
         """Move the rotation error into the nominal rotation and zero it."""
@@ -256,19 +264,35 @@ class BodyFilter:
         alpha = 1.0 - math.exp(-max(dt, 0.0) / self.s.nis_time_constant) if dt > 0 else 0.05
         self._nis_p += alpha * (min(nis_p, cap) - self._nis_p)
         self._nis_r += alpha * (min(nis_r, cap) - self._nis_r)
+        # the image-space detector (report_image_nis) sees lag the fused pose can hide
+        nis_img = self._nis_img if self.t_ns - self._img_ns < 50_000_000 else 0.0
         smax = self.s.max_noise_scale
         # NIS/dof ~ 1 says nothing about q while the measurement noise dominates the
         # innovation (a hovering body), so only a clear excess (> _NIS_HIGH) raises q:
         # innovations k x too big -> q x k^3 per averaging time (CA/CV scaling laws);
         # otherwise q decays back to its floor
         decay = math.exp(-max(dt, 0.0) / _SCALE_DECAY_S)
-        self.scale_p = self._adapt(self.scale_p, self._nis_p, alpha, decay, smax)
+        self.scale_p = self._adapt(self.scale_p, max(self._nis_p, nis_img), alpha, decay, smax)
         self.scale_r = self._adapt(self.scale_r, self._nis_r, alpha, decay, smax)
         if gate and d2 > self.s.gate_chi2:
             return False, d2
         self.kf.update(z.reshape(6, 1), R=meas_cov)
         self._fold()
         return True, d2
+
+    def report_image_nis(self, t_ns: int, nis: float) -> None:
+        """Feed the manoeuvre detector with one camera frame's prediction residual.
+
+        nis: mean squared pixel distance between the markers predicted to the
+        frame's capture time and the blobs associated with them, over its
+        expected value, per degree of freedom (~1 while the model fits). It
+        comes from a single uncompensated view, so unlike the fused pose it
+        cannot be pulled towards the prediction by motion compensation.
+        """
+        dt = max((int(t_ns) - self._img_ns) * 1e-9, 0.0)
+        alpha = 1.0 - math.exp(-dt / self.s.nis_time_constant) if self._img_ns else 1.0
+        self._nis_img += alpha * (min(nis, self.s.gate_chi2 / 3.0) - self._nis_img)
+        self._img_ns = int(t_ns)
 
     # -------------------------------------------------------------- read-outs
     def pose_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
