@@ -109,12 +109,13 @@ def associate(predicted: np.ndarray, blobs: np.ndarray, gate: float) -> np.ndarr
     ok = d2[np.arange(M), best] < g2
     cand = best[ok]
     # ambiguous: a blob wanted twice, or a prediction with a second blob inside the gate
-    ambiguous = len(np.unique(cand)) != len(cand) or ((d2 < g2).sum(axis=1) > 1).any()
+    inside = d2 < g2
+    ambiguous = bool((inside.sum(axis=1) > 1).any()) or (len(cand) > 1 and int(np.bincount(cand).max()) > 1)
     if not ambiguous:
         out[ok] = cand
         return out
-    rows = np.nonzero((d2 < g2).any(axis=1))[0]
-    cols = np.nonzero((d2 < g2).any(axis=0))[0]
+    rows = np.nonzero(inside.any(axis=1))[0]
+    cols = np.nonzero(inside.any(axis=0))[0]
     sub = d2[np.ix_(rows, cols)]
     big = g2 * 1e3
     cost = np.where(sub < g2, sub, big)

@@ -105,6 +105,8 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 _I3 = np.eye(3)
+# the image-space manoeuvre detector samples at most this often (capture clock)
+_IMAGE_NIS_INTERVAL_NS = 2_000_000
 
 # motion compensation starts once the filter's velocity std is below this (m/s)
 _COMPENSATE_MAX_VEL_STD = 0.1
@@ -309,7 +311,7 @@ class FusionPipeline:
         self._f = np.array([np.sqrt(c.model.fx * c.model.fy) for c in arena.cameras])
         self._proj = {c.id: Projector(c) for c in arena.cameras}
         self._rows_cache: dict[tuple[int, ...], np.ndarray] = {}
-        self._pad_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._pad_cache: dict[tuple[int, ...], tuple[np.ndarray, ...]] = {}
         self._layout_cache: dict[tuple[int, bytes], tuple[np.ndarray, np.ndarray, int]] = {}
         self.aligner = TimeAligner(
             st.time_alignment,
@@ -323,6 +325,7 @@ class FusionPipeline:
         self.tracks = [_Track(BodyFilter(st.kalman)) for _ in self.models]
         self.loose_points: LoosePoints | None = None
         self._last_acquire_ns = -(1 << 62)
+        self._last_img_ns = -(1 << 62)
         # a frame takes part in about (frame period / fusion spacing) fusions at most
         self._max_reuse = max(1.0, (st.window_ns / 1.2) / max(st.min_fusion_interval_ns, 1))
         self.last_raw: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # body -> (ref_ns, position, R) of the last Kabsch pose
@@ -421,11 +424,15 @@ class FusionPipeline:
 
     def _predicted_markers(self, bodies: list[int], t_ns: int) -> np.ndarray:
         """World positions (sum M_b, 3) of the markers of `bodies` predicted to t_ns."""
-        out = []
-        for b in bodies:
-            p, R, _, _ = self.tracks[b].filter.pose_at(t_ns)
-            out.append(self.models[b].markers @ R.T + p)
-        return np.concatenate(out) if out else np.zeros((0, 3))
+        _, slot, src, _, _ = self._layout(bodies)
+        B = len(bodies)
+        Rs = np.empty((B, 3, 3))
+        ps = np.empty((B, 3))
+        for i, b in enumerate(bodies):
+            ps[i], Rs[i] = self.tracks[b].filter.pose_only(t_ns)
+        # all bodies at once on the padded layout, then back to marker rows
+        X = np.einsum("bij,bmj->bmi", Rs, src) + ps[:, None, :]
+        return X.reshape(-1, 3)[slot]
 
     def _observe(self, cam: int, t_ns: int, px: np.ndarray) -> _Obs:
         camera = self.cameras[cam]
@@ -441,7 +448,9 @@ class FusionPipeline:
             hit = a >= 0
             label[a[hit]] = rows[hit]
             marker_xn[rows[hit]] = xn[a[hit]]
-            self._image_innovation(cam, t_ns, tracked, Xw, pred, px, a)
+            if abs(t_ns - self._last_img_ns) >= _IMAGE_NIS_INTERVAL_NS:  # plenty for a detector; saves CPU
+                self._last_img_ns = t_ns
+                self._image_innovation(cam, t_ns, tracked, Xw, pred, px, a)
         return _Obs(t_ns, xn, label, marker_xn)
 
     def _image_innovation(self, cam: int, t_ns: int, tracked: list[int], Xw, pred, px, a) -> None:
@@ -449,23 +458,27 @@ class FusionPipeline:
         manoeuvre detector. Expected: the body's pixel noise (running mean of its triangulation
         residuals) plus the filter's position uncertainty seen from this camera."""
         hit = a >= 0
-        if not hit.any():
+        if hit.sum() < 2:
             return
-        d2 = np.full(len(a), np.nan)
-        d2[hit] = ((px[a[hit]] - pred[hit]) ** 2).sum(1)
-        z = Xw @ self._R[self._cam_index[cam], 2] + self._t[self._cam_index[cam], 2]
-        f2 = self._f[self._cam_index[cam]] ** 2
-        k = 0
-        for b in tracked:
-            M = self._off[b + 1] - self._off[b]
-            h = hit[k : k + M]
-            if h.sum() >= 2:
-                tr = self.tracks[b]
-                P = tr.filter.kf.P
-                var_pos = (P[0, 0] + P[1, 1] + P[2, 2]) / 3.0
-                exp = tr.px_var + f2 * var_pos / np.maximum(z[k : k + M][h], 0.1) ** 2
-                tr.filter.report_image_nis(t_ns, float((d2[k : k + M][h] / (2.0 * exp)).mean()))
-            k += M
+        v = self._cam_index[cam]
+        B = len(tracked)
+        body = self._layout(tracked)[4]  # (P,) index into `tracked` of each marker row
+        exp_px = np.empty(B)
+        exp_pos = np.empty(B)
+        for i, b in enumerate(tracked):
+            tr = self.tracks[b]
+            P = tr.filter.kf.P
+            exp_px[i] = tr.px_var
+            exp_pos[i] = (P[0, 0] + P[1, 1] + P[2, 2]) / 3.0
+        bh = body[hit]
+        z = Xw[hit] @ self._R[v, 2] + self._t[v, 2]
+        d2 = ((px[a[hit]] - pred[hit]) ** 2).sum(1)
+        exp = exp_px[bh] + self._f[v] ** 2 * exp_pos[bh] / np.maximum(z, 0.1) ** 2
+        n = np.bincount(bh, minlength=B)
+        r = np.bincount(bh, d2 / (2.0 * exp), minlength=B)
+        for i, b in enumerate(tracked):
+            if n[i] >= 2:
+                self.tracks[b].filter.report_image_nis(t_ns, float(r[i] / n[i]))
 
     # ----------------------------------------------------------------- fusion
     def _fuse(self, g: Group) -> None:
@@ -493,9 +506,10 @@ class FusionPipeline:
                 tr.tracked = False
                 self._stats["lost"] += 1
 
-    def _layout(self, tracked: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _layout(self, tracked: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For a set of tracked bodies (cached): global marker rows (P,), their flat slot in a
-        (B, Mmax) padding, body-frame markers padded (B, Mmax, 3), marker counts (B,)."""
+        (B, Mmax) padding, body-frame markers padded (B, Mmax, 3), marker counts (B,), and
+        for each marker row the index of its body in `tracked` (P,)."""
         key = tuple(tracked)
         lay = self._pad_cache.get(key)
         if lay is None:
@@ -504,13 +518,14 @@ class FusionPipeline:
             slot = np.concatenate([i * self._mmax + np.arange(n) for i, n in enumerate(sizes)])
             src = np.zeros((len(tracked) * self._mmax, 3))
             src[slot] = self._marker_local[rows]
-            lay = (rows, slot, src.reshape(len(tracked), self._mmax, 3), sizes)
+            body = np.repeat(np.arange(len(tracked)), sizes)
+            lay = (rows, slot, src.reshape(len(tracked), self._mmax, 3), sizes, body)
             self._pad_cache[key] = lay
         return lay
 
     def _update_tracked(self, tracked, obs, cams, R, t, f, ref, compensate) -> None:
         st = self.settings
-        rows, slot, src, sizes = self._layout(tracked)
+        rows, slot, src, sizes, body_of_row = self._layout(tracked)
         B, Mx = src.shape[:2]
         xn = np.stack([o.marker_xn[rows] for o in obs], axis=1)  # (P, V, 2)
         dt = np.array([(o.capture_ns - ref) * 1e-9 for o in obs])  # (V,) view time - reference time
@@ -543,7 +558,7 @@ class FusionPipeline:
             gate[i] = st.max_residual_px + f_mean * spread * dt_max / max(float(np.linalg.norm(p - centre)), 0.5)
         offsets = None
         if compensate and dt_max > 0.0 and kin[:, :3].any():
-            body = np.repeat(np.arange(B), sizes)
+            body = body_of_row
             r = np.einsum("pij,pj->pi", Rbs[body], self._marker_local[rows])  # marker lever arms, world
             vel, acc, w = kin[body, 0], kin[body, 1], kin[body, 2]
             wxr = _cross(w, r)

@@ -114,14 +114,26 @@ class KalmanSettings:
     init_angular_velocity_sigma: float = 6.0
 
 
+_F_DT = tuple(np.array(ix) for ix in zip(*[(k, 3 + k) for k in range(3)] + [(3 + k, 6 + k) for k in range(3)] + [(9 + k, 12 + k) for k in range(3)]))
+_F_DT2 = tuple(np.array(ix) for ix in zip(*[(k, 6 + k) for k in range(3)]))
+
+
 def _transition(dt: float) -> np.ndarray:
+    """(15, 15) constant-acceleration / constant-rate transition over dt (s)."""
     F = np.eye(NX)
-    e = np.eye(3)
-    F[0:3, 3:6] = e * dt
-    F[0:3, 6:9] = e * (0.5 * dt * dt)
-    F[3:6, 6:9] = e * dt
-    F[9:12, 12:15] = e * dt
+    F[_F_DT] = dt
+    F[_F_DT2] = 0.5 * dt * dt
     return F
+
+
+def _quad3(S: np.ndarray, y: np.ndarray) -> float:
+    """y^T S^-1 y for a symmetric positive-definite 3x3 S (adjugate; cheaper than a LAPACK call)."""
+    (a, b, c), (_, d, e), (_, _, f) = S.tolist()
+    y0, y1, y2 = y.tolist()
+    A00, A01, A02 = d * f - e * e, c * e - b * f, b * e - c * d
+    A11, A12, A22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * A00 + b * A01 + c * A02
+    return (A00 * y0 * y0 + A11 * y1 * y1 + A22 * y2 * y2 + 2.0 * (A01 * y0 * y1 + A02 * y0 * y2 + A12 * y1 * y2)) / det
 
 
 def _q_index() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -255,11 +267,8 @@ class BodyFilter:
         d2 = float(y @ np.linalg.solve(S, y))
         # NIS per block drives the process-noise scale (gated ones too, capped,
         # so that a manoeuvre that starts outside the gate still opens it)
-        yp, yr = y[0:3], y[3:6]
-        Sb = np.stack([S[0:3, 0:3], S[3:6, 3:6]])
-        ib = np.linalg.solve(Sb, np.stack([yp, yr])[..., None])[..., 0]
-        nis_p = float(yp @ ib[0]) / 3.0
-        nis_r = float(yr @ ib[1]) / 3.0
+        nis_p = _quad3(S[0:3, 0:3], y[0:3]) / 3.0
+        nis_r = _quad3(S[3:6, 3:6], y[3:6]) / 3.0
         cap = self.s.gate_chi2 / 3.0
         alpha = 1.0 - math.exp(-max(dt, 0.0) / self.s.nis_time_constant) if dt > 0 else 0.05
         self._nis_p += alpha * (min(nis_p, cap) - self._nis_p)
@@ -302,6 +311,12 @@ class BodyFilter:
         w = x[12:15]
         p = x[0:3] + x[3:6] * dt + x[6:9] * (0.5 * dt * dt)
         return p, rotvec_to_matrix(w * dt) @ self.R_nom, x[3:6] + x[6:9] * dt, w.copy()
+
+    def pose_only(self, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """Cheapest mean prediction: position (3,), R (3, 3) at t_ns (non-mutating)."""
+        dt = (int(t_ns) - self.t_ns) * 1e-9
+        x = self.kf.x[:, 0]
+        return x[0:3] + dt * (x[3:6] + (0.5 * dt) * x[6:9]), rotvec_to_matrix(x[12:15] * dt) @ self.R_nom
 
     def state_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Non-mutating prediction with covariance.
