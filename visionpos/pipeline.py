@@ -598,8 +598,10 @@ class FusionPipeline:
             sel = use[i, : sizes[i]]
             self.last_raw[b] = (ref, tk[i].copy(), Rk[i].copy())
             # pixel noise from the triangulation residuals of its markers (rms over views and axes)
+            # (the fitted point absorbs 3 of the 2 nv residual dof: E[rms^2] = sigma^2 (2 nv - 3) / nv)
             rr = rms[k0[i] : k0[i] + sizes[i]][sel]
-            tr.px_var += 0.05 * (float((rr * rr).mean()) / 2.0 - tr.px_var)
+            nvv = nv[k0[i] : k0[i] + sizes[i]][sel]
+            tr.px_var += 0.05 * (float((rr * rr * nvv / (2.0 * nvv - 3.0)).mean()) - tr.px_var)
             # per-marker noise from the fit residual (3n - 6 degrees of freedom), averaged per body
             s2 = float(res2[i]) / (3 * n - 6)
             tr.marker_var += 0.05 * (s2 - tr.marker_var)
