@@ -3,7 +3,7 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from visionpos.tracking import BodyFilter, KalmanSettings, matrix_to_rotvec, rotvec_to_matrix
+from visionpos.tracking import BodyFilter, KalmanSettings, matrix_to_quat, matrix_to_rotvec, rotvec_to_matrix
 
 MS = 1_000_000
 
@@ -18,6 +18,12 @@ def test_rotation_helpers_match_scipy():
         assert np.allclose(rotvec_to_matrix(rv), Rotation.from_rotvec(rv).as_matrix(), atol=1e-12)
         R = Rotation.from_rotvec(rv).as_matrix()
         assert np.allclose(rotvec_to_matrix(matrix_to_rotvec(R)), R, atol=1e-9)
+        q = Rotation.from_matrix(R).as_quat()
+        q = -q if q[3] < 0 else q
+        assert np.allclose(matrix_to_quat(R), q, atol=1e-12)
+    near_pi = np.radians([[179.9, 0, 0], [0, 180.0, 0], [0, 0, 179.0], [0, 120.0, 120.0]])
+    for R in Rotation.from_rotvec(near_pi).as_matrix():  # the trace <= 0 branches
+        assert np.allclose(Rotation.from_quat(matrix_to_quat(R)).as_matrix(), R, atol=1e-12)
 
 
 def test_static_jitter_drops_well_below_raw():

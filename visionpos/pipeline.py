@@ -87,14 +87,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from visionpos.config import ArenaConfig, ConfigError, Section
 from visionpos.matching import Projector, associate, match_unlabeled, triangulate, undistort_points
 from visionpos.messages import BlobFrame, BodyState, LoosePoints
 from visionpos.rigidbody import BodyModel, identify, kabsch_batch, layout_ambiguities
 from visionpos.timealign import MODES, MOTION_COMPENSATED, Group, TimeAligner
-from visionpos.tracking import BodyFilter, KalmanSettings, pose_covariance, velocity_covariance
+from visionpos.tracking import BodyFilter, KalmanSettings, matrix_to_quat, pose_covariance, velocity_covariance
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -697,7 +696,7 @@ class FusionPipeline:
                         time_ns=int(now_ns),
                         capture_ns=int(tr.last_capture_ns),
                         position=p,
-                        quaternion=Rotation.from_matrix(R).as_quat(),
+                        quaternion=matrix_to_quat(R),
                         velocity=v,
                         angular_velocity=R.T @ w,
                         covariance=pose_covariance(P),

@@ -87,6 +87,27 @@ def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
     return w * (th / (2.0 * math.sin(th)))
 
 
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) -> quaternion (4,) x, y, z, w with w >= 0 (Shepperd's method)."""
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = R.tolist()
+    tr = m00 + m11 + m22
+    if tr > 0.0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        q = [(m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s, 0.25 * s]
+    elif m00 > m11 and m00 > m22:
+        s = 2.0 * math.sqrt(1.0 + m00 - m11 - m22)
+        q = [0.25 * s, (m01 + m10) / s, (m02 + m20) / s, (m21 - m12) / s]
+    elif m11 > m22:
+        s = 2.0 * math.sqrt(1.0 + m11 - m00 - m22)
+        q = [(m01 + m10) / s, 0.25 * s, (m12 + m21) / s, (m02 - m20) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
+        q = [(m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s]
+    out = np.array(q)
+    out /= np.linalg.norm(out)
+    return -out if out[3] < 0 else out
+
+
 def skew(v: np.ndarray) -> np.ndarray:
     """(3,) -> (3, 3) cross-product matrix."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
