@@ -269,3 +269,57 @@ def test_indistinguishable_layouts_are_refused(hover):
     square = dreplace(quad, name="square", markers=np.array([[0.1, 0, 0], [0, 0.1, 0], [-0.1, 0, 0], [0, -0.1, 0]]))
     with pytest.raises(ConfigError, match="symmetric"):
         FusionPipeline(dreplace(sc.arena, bodies=(square,)))
+
+
+def _without(sim, drop):
+    """Frames with the blobs for which drop(frame, truth) (N,) bool is True removed."""
+    out = []
+    for f, tr in zip(sim.frames, sim.frame_truth):
+        keep = ~drop(f, tr)
+        out.append(replace(f, blobs=f.blobs[keep]))
+    return out
+
+
+def test_tracking_continues_with_three_of_four_markers(hover):
+    sc, sim = hover
+    # marker 1 of the quad is covered for the whole flight
+    frames = _without(sim, lambda f, tr: (tr.body == 0) & (tr.marker == 1))
+    rep = replay(sc.arena, frames)
+    e = errors(rep, sc.truth_at, "quad")
+    assert e["tracked_fraction"] > 0.98
+    assert e["pos_rmse_mm"] < 2.0 and e["rot_rmse_deg"] < 1.0
+    (s,) = rep.pipeline.tick(int(rep.times_ns[-1]))
+    assert s.tracked and s.n_markers == 3
+
+
+def test_body_reacquired_after_occlusion(hover):
+    sc, sim = hover
+    t0 = sim.frames[0].capture_ns
+    gap = (t0 + 1_000_000_000, t0 + 1_400_000_000)  # fully hidden for 0.4 s
+    frames = _without(sim, lambda f, tr: (tr.body == 0) & (gap[0] <= f.capture_ns < gap[1]))
+    rep = replay(sc.arena, frames)
+    st = rep.pipeline.stats()
+    assert st["lost"] >= 1 and st["acquisitions"] >= 2
+    t = rep.times_ns
+    hidden = (t >= gap[0] + 200_000_000) & (t < gap[1])
+    assert not rep.tracked["quad"][hidden].any()  # no stale pose while hidden
+    back = t >= gap[1] + 100_000_000
+    assert rep.tracked["quad"][back].mean() > 0.98
+    p_true, _ = sc.truth_at("quad", t[back])
+    err = np.linalg.norm(rep.positions["quad"][back] - p_true, axis=1)
+    assert np.sqrt((err**2).mean()) < 2e-3
+
+
+def test_fast_body_reacquired_after_occlusion(fast):
+    sc, sim = fast
+    t0 = sim.frames[0].capture_ns
+    gap = (t0 + 1_000_000_000, t0 + 1_300_000_000)
+    frames = _without(sim, lambda f, tr: (tr.body == 0) & (gap[0] <= f.capture_ns < gap[1]))
+    rep = replay(sc.arena, frames)
+    t = rep.times_ns
+    back = (t >= gap[1] + 200_000_000) & (t < gap[1] + 1_000_000_000)
+    assert rep.tracked["quad"][back].mean() > 0.95
+    ok = back & rep.tracked["quad"]
+    p_true, _ = sc.truth_at("quad", t[ok])
+    err = np.linalg.norm(rep.positions["quad"][ok] - p_true, axis=1)
+    assert np.sqrt((err**2).mean()) < 5e-3

@@ -35,10 +35,11 @@ would smooth too little and gate wrongly).
 
 Motion compensation and its feedback loop: the offsets come from the
 filter, so a wrong velocity would bias the measurement towards itself. Until
-the filter's velocity std is below 0.1 m/s (a new or reacquired track) the
+the filter's velocity std is below 0.3 m/s (a new or reacquired track) the
 views are fused uncompensated and the motion between them is added to the
 measurement covariance (|v|^2 + var v) * mean(dt^2), and the per-marker
-residual gate is widened by the motion the views may disagree by; once
+residual gate and the rigid-fit tolerance are widened by the motion the
+views may disagree by (so a body reacquired at 3 m/s is not refused); once
 compensating, only the velocity's own uncertainty is added. The naive mode
 gets the same treatment, so the comparison is with a fair baseline.
 
@@ -108,7 +109,7 @@ _I3 = np.eye(3)
 _IMAGE_NIS_INTERVAL_NS = 2_000_000
 
 # motion compensation starts once the filter's velocity std is below this (m/s)
-_COMPENSATE_MAX_VEL_STD = 0.1
+_COMPENSATE_MAX_VEL_STD = 0.3
 
 
 @dataclass(frozen=True)
@@ -534,7 +535,7 @@ class FusionPipeline:
         f_mean = float(f.mean())
         kin = np.zeros((B, 4, 3))  # per body: v, a, w (world), position
         Rbs = np.empty((B, 3, 3))
-        var_p, var_r, gate = np.zeros(B), np.zeros(B), np.zeros(B)
+        var_p, var_r, gate, fit_tol = np.zeros(B), np.zeros(B), np.zeros(B), np.zeros(B)
         for i, b in enumerate(tracked):
             fl = self.tracks[b].filter
             p, Rbs[i], v, wb = fl.pose_at(ref)
@@ -555,6 +556,7 @@ class FusionPipeline:
             kin[i, 3] = p
             # residual gate widened by the motion the views may still disagree by
             gate[i] = st.max_residual_px + f_mean * spread * dt_max / max(float(np.linalg.norm(p - centre)), 0.5)
+            fit_tol[i] = st.identify_tolerance + spread * dt_max  # the rigid fit may disagree as much
         offsets = None
         if compensate and dt_max > 0.0 and kin[:, :3].any():
             body = body_of_row
@@ -591,7 +593,7 @@ class FusionPipeline:
             if n < st.min_markers:
                 continue
             fit = math.sqrt(res2[i] / n)
-            if fit > st.identify_tolerance:
+            if fit > fit_tol[i]:
                 self._stats["rejected_fit"] += 1
                 continue
             sel = use[i, : sizes[i]]
