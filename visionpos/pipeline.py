@@ -326,6 +326,8 @@ class FusionPipeline:
         self.loose_points: LoosePoints | None = None
         self._last_acquire_ns = -(1 << 62)
         self._last_img_ns = -(1 << 62)
+        self._fusion_count = 0  # filters change only in fusions: versions the prediction cache
+        self._pred_cache: tuple | None = None
         # a frame takes part in about (frame period / fusion spacing) fusions at most
         self._max_reuse = max(1.0, (st.window_ns / 1.2) / max(st.min_fusion_interval_ns, 1))
         self.last_raw: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # body -> (ref_ns, position, R) of the last Kabsch pose
@@ -423,16 +425,35 @@ class FusionPipeline:
         return r
 
     def _predicted_markers(self, bodies: list[int], t_ns: int) -> np.ndarray:
-        """World positions (sum M_b, 3) of the markers of `bodies` predicted to t_ns."""
-        _, slot, src, _, _ = self._layout(bodies)
-        B = len(bodies)
-        Rs = np.empty((B, 3, 3))
-        ps = np.empty((B, 3))
-        for i, b in enumerate(bodies):
-            ps[i], Rs[i] = self.tracks[b].filter.pose_only(t_ns)
-        # all bodies at once on the padded layout, then back to marker rows
-        X = np.einsum("bij,bmj->bmi", Rs, src) + ps[:, None, :]
-        return X.reshape(-1, 3)[slot]
+        """World positions (sum M_b, 3) of the markers of `bodies` predicted to t_ns.
+
+        Between fusions the filters do not change, so marker positions,
+        velocities and accelerations (incl. the rotation's w x r terms) are
+        expanded once per fusion and each frame only evaluates the
+        second-order polynomial (error ~ r (w dt)^3 / 6, micrometres).
+        """
+        key = tuple(bodies)
+        c = self._pred_cache
+        if c is None or c[0] != key or c[1] != self._fusion_count:
+            _, slot, src, _, _ = self._layout(bodies)
+            t_c = max(self.tracks[b].filter.t_ns for b in bodies)
+            B = len(bodies)
+            Rs = np.empty((B, 3, 3))
+            kin = np.empty((B, 4, 3))  # p, v, a, w
+            for i, b in enumerate(bodies):
+                fl = self.tracks[b].filter
+                kin[i, 0], Rs[i], kin[i, 1], kin[i, 3] = fl.pose_at(t_c)
+                kin[i, 2] = fl.kf.x[6:9, 0]
+            r = np.einsum("bij,bmj->bmi", Rs, src).reshape(-1, 3)[slot]  # lever arms, world
+            body = self._layout(bodies)[4]
+            w = kin[body, 3]
+            wxr = _cross(w, r)
+            X0 = kin[body, 0] + r
+            V = kin[body, 1] + wxr
+            A = kin[body, 2] + _cross(w, wxr)
+            c = self._pred_cache = (key, self._fusion_count, t_c, X0, V, A)
+        dt = (t_ns - c[2]) * 1e-9
+        return c[3] + dt * (c[4] + (0.5 * dt) * c[5])
 
     def _observe(self, cam: int, t_ns: int, px: np.ndarray) -> _Obs:
         camera = self.cameras[cam]
@@ -488,6 +509,7 @@ class FusionPipeline:
         st = self.settings
         ref = g.ref_ns
         self._stats["fusions"] += 1
+        self._fusion_count += 1
         vi = np.array([self._cam_index[c] for c in cams])
         R, t, f = self._R[vi], self._t[vi], self._f[vi]
         obs = [self.obs[c] for c in cams]
