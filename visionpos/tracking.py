@@ -108,11 +108,6 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     return -out if out[3] < 0 else out
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    """(3,) -> (3, 3) cross-product matrix."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 @dataclass(frozen=True)
 class KalmanSettings:
     """Noise, adaptation and gating of the body filter (SI units).
@@ -332,12 +327,6 @@ class BodyFilter:
         w = x[12:15]
         p = x[0:3] + x[3:6] * dt + x[6:9] * (0.5 * dt * dt)
         return p, rotvec_to_matrix(w * dt) @ self.R_nom, x[3:6] + x[6:9] * dt, w.copy()
-
-    def pose_only(self, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
-        """Cheapest mean prediction: position (3,), R (3, 3) at t_ns (non-mutating)."""
-        dt = (int(t_ns) - self.t_ns) * 1e-9
-        x = self.kf.x[:, 0]
-        return x[0:3] + dt * (x[3:6] + (0.5 * dt) * x[6:9]), rotvec_to_matrix(x[12:15] * dt) @ self.R_nom
 
     def state_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Non-mutating prediction with covariance.
