@@ -14,8 +14,6 @@ import logging
 import secrets
 import select
 import socket
-import struct
-import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -30,6 +28,7 @@ from stations.detector import Detector
 from stations.sources import EndOfStream, FrameSource, SourceError, make_source
 from visionpos import protocol as P
 from visionpos.messages import FLAG_RESYNC, FLAG_TRUNCATED, BlobFrame
+from visionpos.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
 
 log = logging.getLogger("visionpos.station")
 
@@ -40,8 +39,6 @@ try:
 except Exception:  # running from a source tree without installed metadata
     SOFTWARE = "visionpos"
 
-SO_TIMESTAMPNS = 35  # Linux <asm-generic/socket.h>; payload is a native struct timespec
-_TIMESPEC = struct.Struct("@ll")
 HELLO_FIRST_S = 0.5
 HELLO_MAX_S = 5.0
 THERMAL = Path("/sys/class/thermal/thermal_zone0/temp")
@@ -143,13 +140,7 @@ class StationAgent:
         # Kernel receive timestamps: the agent reads the socket only between
         # frames, so a user-space t4 would be late by up to a frame period and
         # bias the clock offset by half of that.
-        self._rx_stamps = False
-        if sys.platform.startswith("linux"):
-            try:
-                s.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-                self._rx_stamps = True
-            except OSError:
-                pass
+        self._rx_stamps = enable_kernel_stamps(s)
         return s
 
     def _log_once(self, key: str, level: int, msg: str, *args: object) -> None:
@@ -164,12 +155,10 @@ class StationAgent:
         if not self._rx_stamps:
             data, _ = self.sock.recvfrom(2048)
             return data, self.clock()
-        data, anc, _, _ = self.sock.recvmsg(2048, socket.CMSG_SPACE(16))
-        for level, kind, payload in anc:
-            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(payload) >= _TIMESPEC.size:
-                sec, nsec = _TIMESPEC.unpack_from(payload)
-                # kernel stamp is CLOCK_REALTIME: move it onto the station clock
-                return data, sec * 1_000_000_000 + nsec - (time.time_ns() - self.clock())
+        data, anc, _, _ = self.sock.recvmsg(2048, ANC_SIZE)
+        k = kernel_stamp_ns(anc)
+        if k:  # kernel stamp is CLOCK_REALTIME: move it onto the station clock
+            return data, k - (time.time_ns() - self.clock())
         return data, self.clock()
 
     def _send(self, data: bytes) -> bool:

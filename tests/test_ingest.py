@@ -197,6 +197,22 @@ def test_new_session_restarts_sequence():
     assert [f.seq for f in pipe.frames] == [500, 0]
 
 
+def test_frames_too_old_when_processed_are_shed_not_fused():
+    """Load shedding: a frame received on time but processed late (the host fell behind) is
+    counted and checked, not fused; the next fresh frame is fused again. No clock-jump verdict."""
+    ing, pipe, clock = _ingest({"shed_age_ms": 40})
+    _send(ing, _hello(1), T0)
+    for seq, (recv_ms, processed_ms) in enumerate([(10, 12), (20, 75), (30, 76), (40, 42)], start=1):
+        clock.t = T0 + processed_ms * MS  # processing time; capture 3 ms before receive
+        _send(ing, _frame(1, seq, T0 + (recv_ms - 3) * MS), T0 + recv_ms * MS)
+    assert [f.seq for f in pipe.frames] == [1, 4]
+    h = ing.health()
+    assert h["frames_shed"] == 2 and h["cameras"][1]["shed"] == 2 and h["frames_accepted"] == 4
+    assert h["cameras"][1]["clock_jumps"] == 0
+    off, _, _ = _ingest({"shed_age_ms": 0})  # 0 = off
+    assert off._shed_ns is None
+
+
 def test_clock_jumps_dropped_then_resync():
     ing, pipe, clock = _ingest({"resync_after": 5, "max_future_ms": 20, "max_age_ms": 300})
     _send(ing, _hello(1), T0)

@@ -14,7 +14,8 @@ import cv2
 import numpy as np
 import pytest
 
-from stations.agent import _TIMESPEC, SO_TIMESTAMPNS, StationAgent
+from stations.agent import StationAgent
+from visionpos.netstamps import SO_TIMESTAMPNS, TIMESPEC as _TIMESPEC
 from stations.config import SourceConfig, parse_station
 from stations.sources import FrameSource, SourceError
 from visionpos import protocol as P

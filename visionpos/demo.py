@@ -450,7 +450,7 @@ def _summary(arena, sc, shift, t_start, t_stop, collector: Collector, bridge, au
         "latency_ms": M.percentiles_ms(send, (50, 99)),
         "latency_to_autopilot_ms": M.percentiles_ms(aplat, (50, 99)),
         "stations": stations_out,
-        "server": {k: health.get(k) for k in ("packets", "frames_accepted", "malformed", "unknown", "pipeline_errors",
+        "server": {k: health.get(k) for k in ("packets", "frames_accepted", "frames_shed", "malformed", "unknown", "pipeline_errors",
                                               "tick_cost_max_ms")},
         "pipeline": {k: v for k, v in (health.get("pipeline") or {}).items() if isinstance(v, (int, float, str))},
     })
@@ -499,7 +499,8 @@ def format_summary(s: dict[str, Any]) -> str:
         f"latency capture -> MAVLink send: p50 {fmt(lat['p50'])} ms, p99 {fmt(lat['p99'])} ms "
         f"(to the autopilot: p50 {fmt(s['latency_to_autopilot_ms']['p50'])} ms); "
         f"set ArduPilot VISO_DELAY_MS / PX4 EKF2_EV_DELAY to about the p50",
-        f"server: {s['server']['frames_accepted']} frames accepted, {s['server']['malformed']} malformed, "
+        f"server: {s['server']['frames_accepted']} frames accepted ({s['server']['frames_shed']} too old to fuse: "
+        f"host overloaded), {s['server']['malformed']} malformed, "
         f"{s['late_ticks']} late ticks; wall time {s['wall_s']:.1f} s (simulation {s['simulate_s']:.1f} s)",
     ])
 

@@ -74,6 +74,12 @@ class ServerSettings:
     it a frame is a clock jump (or a replay) and is dropped. resync_after: that many
     clock-jump drops in a row make the server ask the station to register again.
     status_period_s: period of the status log line (0 = off).
+    shed_age_ms: load shedding. A frame older than this when its turn comes (processing
+    time - capture time: station and network latency plus time queued here) is checked and
+    counted but not fused. An overloaded host then fuses fresh frames at the rate it can
+    sustain instead of falling ever further behind (outputs are predicted to now, so an old
+    frame adds little). It is still recorded. 0 = off. A replay's processing time is the
+    receive time, so it sheds only what arrived that late.
     """
 
     port: int = P.DEFAULT_PORT
@@ -88,12 +94,13 @@ class ServerSettings:
     max_age_ms: float = 500.0
     resync_after: int = 10
     status_period_s: float = 5.0
+    shed_age_ms: float = 40.0
 
     @classmethod
     def from_arena(cls, arena: ArenaConfig) -> "ServerSettings":
         s = arena.section("server")
         known = {"port", "key_file", "output_rate_hz", "start_delay_s", "duration_s", "vanish_periods",
-                 "vanish_min_s", "max_future_ms", "max_age_ms", "resync_after", "status_period_s"}
+                 "vanish_min_s", "max_future_ms", "max_age_ms", "resync_after", "status_period_s", "shed_age_ms"}
         for k in s.data:
             if k not in known:
                 raise s.error(str(k), f"unknown key; the server section takes {sorted(known)}")
@@ -123,6 +130,7 @@ class ServerSettings:
             vanish_min_s=s.number("vanish_min_s", 0.1, min=0.0),
             max_future_ms=s.number("max_future_ms", 50.0, min=0.0),
             max_age_ms=s.number("max_age_ms", 500.0, min=1.0),
+            shed_age_ms=s.number("shed_age_ms", 40.0, min=0.0),
             resync_after=s.integer("resync_after", 10, min=1),
             status_period_s=s.number("status_period_s", 5.0, min=0.0),
         )
@@ -169,6 +177,7 @@ class CameraHealth:
     stale: int = 0
     backwards: int = 0
     before_start: int = 0
+    shed: int = 0  # accepted but not fused: too old when its turn came (load shedding)
     resync_requests: int = 0
     vanished: int = 0
     # latency (recv - capture) running stats, ns
@@ -220,6 +229,7 @@ class CameraHealth:
             "clock_jumps_stale": self.stale,
             "clock_jumps_backwards": self.backwards,
             "before_start": self.before_start,
+            "shed": self.shed,
             "resync_requests": self.resync_requests,
             "vanished": self.vanished,
             "latency_ms": self.latency_ewma_ns * 1e-6 if self.frames else None,
@@ -243,6 +253,7 @@ class IngestCounters:
     packets: int = 0
     bytes: int = 0
     frames_accepted: int = 0
+    frames_shed: int = 0
     malformed: int = 0
     auth_failed: int = 0
     unknown: int = 0
@@ -279,6 +290,8 @@ class Ingest:
         self.duration_ns = int(self.settings.duration_s * 1e9)
         self._future_ns = int(self.settings.max_future_ms * 1e6)
         self._max_age_ns = int(self.settings.max_age_ms * 1e6)
+        self._shed_ns = int(self.settings.shed_age_ms * 1e6) or None
+        self._last_shed_log_ns = -(1 << 62)
         self._logged: set[tuple] = set()
         self.unknown_sources: dict[tuple[int, int], int] = {}
         self._rt_minus_mono = 0
@@ -591,6 +604,18 @@ class Ingest:
                 log.warning("camera %d (%s) is back", cam.camera_id, cam.name)
                 self._event("camera_back", camera_id=cam.camera_id)
         self.counters.frames_accepted += 1
+        if self._shed_ns is not None:
+            age = self.clock() - capture
+            if age > self._shed_ns:
+                cam.shed += 1
+                self.counters.frames_shed += 1
+                if recv_ns - self._last_shed_log_ns > 5_000_000_000:
+                    self._last_shed_log_ns = recv_ns
+                    log.warning("frames are %.0f ms old when their turn comes: fusing only fresh ones (%d skipped "
+                                "so far); the stations' links are slow or this host is too slow for these cameras "
+                                "(fewer cameras, a lower frame rate, a faster host, or a higher "
+                                "fusion.min_fusion_interval_ms)", age * 1e-6, self.counters.frames_shed)
+                return replies
         if self.pipeline is not None:
             try:
                 self.pipeline.push(f)
@@ -641,6 +666,7 @@ class Ingest:
             "packets": c.packets,
             "bytes": c.bytes,
             "frames_accepted": c.frames_accepted,
+            "frames_shed": c.frames_shed,
             "malformed": c.malformed,
             "malformed_reasons": dict(c.malformed_reasons),
             "auth_failed": c.auth_failed,

@@ -25,7 +25,8 @@ naive
 
 Both check the clocks: a frame stamped more than `max_lead` after the
 newest frame of the other cameras is a clock jump and is dropped (unless
-its camera is the only one still talking, then it is a real gap), a frame
+its camera is the only one still talking, or another camera's frame agrees
+on the new time: then it is a real gap that every camera shows), a frame
 older than the window behind the newest fused time is late and dropped, and
 a frame not newer than its camera's previous frame is a duplicate or
 reordered and dropped. Times are capture_ns only (never a wall clock), so
@@ -83,6 +84,7 @@ class TimeAligner:
         self.newest_ns: int | None = None  # newest admitted capture time
         self._last_cam: int | None = None
         self._solo_start = 0
+        self._ahead: dict[int, int] = {}  # camera -> capture_ns of its last frame refused as a clock jump
         self.periods_ns = dict(periods_ns or {})
         self.min_interval_ns = int(min_interval_ns)
         self.last_fused_ns: int | None = None
@@ -102,7 +104,13 @@ class TimeAligner:
             lead = capture_ns - self.newest_ns
             others_alive = any(c != camera_id for c in self.latest)
             if lead > self.max_lead_ns and others_alive and capture_ns - self._solo_start < _SOLO_TRUST_NS:
-                return CLOCK_JUMP
+                # one camera alone ahead is a clock fault; two cameras that agree on the new time saw a
+                # real gap (every station stalled, a network or host hiccup), which must not be refused
+                # forever
+                agree = any(c != camera_id and abs(t - capture_ns) <= self.max_lead_ns for c, t in self._ahead.items())
+                self._ahead[camera_id] = capture_ns
+                if not agree:
+                    return CLOCK_JUMP
             if capture_ns < self.newest_ns - self.window_ns:
                 return LATE
             if self.mode == NAIVE and self._bin is not None and self._bin_of(capture_ns) < self._bin:
@@ -167,5 +175,6 @@ class TimeAligner:
         """Forget a camera (its station vanished)."""
         self.latest.pop(camera_id, None)
         self._pending.pop(camera_id, None)
+        self._ahead.pop(camera_id, None)
         if self._last_cam == camera_id:
             self._last_cam = None

@@ -26,3 +26,46 @@ class BenchResult:
     metrics: dict[str, float] = field(default_factory=dict)
     tables: dict[str, str] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Goal:
+    """A target from the issues: metric `op` target, where op is "<=" or ">=";
+    `versus` names another metric the target is relative to (metric <= versus)."""
+
+    metric: str
+    op: str
+    target: float | None
+    what: str
+    versus: str | None = None
+
+    def check(self, metrics: dict[str, float]) -> tuple[float | None, float | None, bool | None]:
+        """(measured, target, met) or Nones where the metric was not run."""
+        v = metrics.get(self.metric)
+        tgt = metrics.get(self.versus) if self.versus else self.target
+        if v is None or tgt is None:
+            return None, None, None
+        return float(v), float(tgt), (v <= tgt) if self.op == "<=" else (v >= tgt)
+
+
+GOALS: list[Goal] = [
+    Goal("geometry_tri_rms_over_crb_sigma0p2", "<=", 1.2, "triangulation RMS / Cramer-Rao bound, 0.2 px"),
+    Goal("detector_fps_960x640", ">=", 2000, "detector frames/s at 960x640, one core"),
+    Goal("detector_bias_px_good_snr", "<=", 0.02, "centroid bias (px), good SNR"),
+    Goal("detector_rms_px_good_snr", "<=", 0.05, "centroid RMS (px), good SNR"),
+    Goal("fusion_static_rms_over_crb", "<=", 1.2, "static body: raw pose RMS / Cramer-Rao bound"),
+    Goal("fusion_static_jitter_filtered_over_raw", "<=", 0.5, "static body: output jitter / raw jitter ('well below')"),
+    Goal("fusion_fast_pos_rmse_mm", "<=", None, "3 m/s: position RMSE (mm) vs naive grouping", "fusion_fast_pos_rmse_mm_naive"),
+    Goal("fusion_latency_p99_ms", "<=", 2.0, "processing latency per packet p99 (ms), 4 cams x 100 Hz x 2 bodies"),
+    Goal("fusion_max_packets_per_s", ">=", 3000, "sustained packets/s on one core, 3 bodies"),
+    Goal("bridge_rate_hz_min", ">=", 49.5, "MAVLink rate per vehicle (Hz), default 50"),
+    Goal("bridge_stamps_under_20ms", "<=", 0, "poses closer than 20 ms (EKF3 would drop them)"),
+    Goal("calib_thesis_center_err_mm_max", "<=", 2.0, "wand calibration, thesis: camera centre error (mm)"),
+    Goal("calib_thesis_rot_err_deg_max", "<=", 0.05, "wand calibration, thesis: orientation error (deg)"),
+    Goal("calib_thesis_wand_std_mm", "<=", 0.5, "wand calibration, thesis: wand-length std (mm)"),
+    Goal("calib_arena8_center_err_mm_max", "<=", 2.0, "wand calibration, arena8: camera centre error (mm)"),
+    Goal("calib_arena8_rot_err_deg_max", "<=", 0.05, "wand calibration, arena8: orientation error (deg)"),
+    Goal("calib_arena8_wand_std_mm", "<=", 0.5, "wand calibration, arena8: wand-length std (mm)"),
+    Goal("calib_ba_seconds_8cam_3000", "<=", 30.0, "bundle adjustment, 8 cameras x 3000 frames (CPU s)"),
+    Goal("replay_speed_x_cpu_thesis", ">=", 20.0, "replay speed, thesis arena (x real time)"),
+]

@@ -17,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-from visionpos.benchmarks import GROUPS, BenchResult
+from visionpos.benchmarks import GOALS, GROUPS, BenchResult
 
 _ONE_THREAD = {
     "OMP_NUM_THREADS": "1",
@@ -97,6 +97,19 @@ def _fmt(v: float) -> str:
     return f"{v:.3g}"
 
 
+def goal_rows(results: dict[str, tuple[BenchResult, float]]) -> list[tuple[str, float, str, float, bool]]:
+    """(description, measured, op, target, met) for every goal whose metric was run."""
+    merged: dict[str, float] = {}
+    for res, _ in results.values():
+        merged.update(res.metrics)
+    rows = []
+    for g in GOALS:
+        v, t, ok = g.check(merged)
+        if ok is not None:
+            rows.append((g.what, v, g.op, t, ok))
+    return rows
+
+
 def to_markdown(results: dict[str, tuple[BenchResult, float]], command: str, quick: bool) -> str:
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     out = [
@@ -110,6 +123,11 @@ def to_markdown(results: dict[str, tuple[BenchResult, float]], command: str, qui
         "- Each group runs in its own process with one BLAS/OpenCV thread.",
         "",
     ]
+    goals = goal_rows(results)
+    if goals:
+        out += ["## Goals from the issues", "", "| goal | measured | target | met |", "|---|---|---|---|"]
+        out += [f"| {g} | {_fmt(v)} | {op} {_fmt(t)} | {'yes' if ok else '**no**'} |" for g, v, op, t, ok in goals]
+        out.append("")
     for group, (res, elapsed) in results.items():
         out += [f"## {group}", "", f"Run time {elapsed:.1f} s.", ""]
         if res.metrics:
@@ -142,6 +160,12 @@ def run(args: argparse.Namespace) -> int:
                 print(f"\n  {title}\n" + "\n".join("  " + line for line in table.strip().splitlines()))
             for n in res.notes:
                 print(f"  note: {n}")
+    if not args.json:
+        goals = goal_rows(results)
+        if goals:
+            print("\n== goals from the issues")
+            for g, v, op, t, ok in goals:
+                print(f"  {'met ' if ok else 'MISS'}  {g}: {_fmt(v)} (target {op} {_fmt(t)})")
     if args.json:
         merged: dict[str, float] = {}
         for res, _ in results.values():
