@@ -207,6 +207,9 @@ def test_settings_validated_with_key_names(hover):
         FusionPipeline(sc.arena, {"kalman.gate_chi2": "big"})
     with pytest.raises(ConfigError, match="fusion.nonsense"):
         FusionPipeline(sc.arena, {"fusion": {"nonsense": 1}})
+    one_camera = replace(sc.arena, cameras=sc.arena.cameras[:1])
+    with pytest.raises(ConfigError, match="at least 2 cameras"):
+        FusionPipeline(one_camera)
     p = FusionPipeline(sc.arena, {"fusion.kalman.lost_timeout_ms": 120, "window_ms": 8})
     assert p.settings.lost_timeout_ns == 120_000_000 and p.settings.window_ns == 8_000_000
 

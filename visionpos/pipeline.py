@@ -288,6 +288,9 @@ class FusionPipeline:
 
     def __init__(self, arena: ArenaConfig, settings: dict[str, Any] | None = None):
         self.arena = arena
+        if len(arena.cameras) < 2:
+            raise ConfigError(arena.source, "cameras", f"fusion needs at least 2 cameras, the arena has "
+                              f"{len(arena.cameras)}; add the calibrated cameras (`visionpos calibrate wand` writes them)")
         self.settings = parse_fusion_settings(arena, settings)
         st = self.settings
         self.models = [BodyModel(b.name, b.id, np.asarray(b.markers, float)) for b in arena.bodies]
