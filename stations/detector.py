@@ -212,6 +212,18 @@ class Detector:
         return blobs, flags
 
 
+_RING: dict[int, np.ndarray] = {}
+
+
+def _ring_index(S: int) -> np.ndarray:
+    """Flat indices of the outer ring of an S x S window (cached per size)."""
+    idx = _RING.get(S)
+    if idx is None:
+        k = np.arange(S * S).reshape(S, S)
+        idx = _RING[S] = np.concatenate([k[0], k[-1], k[1:-1, 0], k[1:-1, -1]])
+    return idx
+
+
 def _centroids(img: np.ndarray, c0: np.ndarray, aperture: np.ndarray, r: int, iterations: int) -> np.ndarray:
     """Aperture centroids of M blobs gathered in windows of one size.
 
@@ -220,70 +232,71 @@ def _centroids(img: np.ndarray, c0: np.ndarray, aperture: np.ndarray, r: int, it
     background-removed weights in the aperture), peak above background,
     roundness (minor/major axis), count of pixels at 255. x is NaN where the
     aperture holds no signal.
+
+    x and y are handled together as axis 1 of (M, 2, ...) arrays: this runs per
+    frame, and numpy's per-call cost, not arithmetic, is what it spends.
     """
     H, W = img.shape
     S = 2 * r + 3  # one spare pixel each side so the aperture can move by +-1 px
     M = len(c0)
-    off = np.arange(S) - (r + 1)
-    ix = np.rint(c0[:, 0]).astype(np.int64)
-    iy = np.rint(c0[:, 1]).astype(np.int64)
-    xs = ix[:, None] + off[None, :]  # (M, S) pixel columns of each window
-    ys = iy[:, None] + off[None, :]
-    edge = bool((xs[:, 0] < 0).any() or (ys[:, 0] < 0).any() or (xs[:, -1] >= W).any() or (ys[:, -1] >= H).any())
+    I = np.rint(c0).astype(np.int64)  # (M, 2) window centres
+    XY = I[:, :, None] + np.arange(-(r + 1), r + 2)  # (M, 2, S) pixel columns / rows of each window
+    corners = (XY[:, :, 0]).tolist()  # window top-left x, y
+    edge = any(x < 0 or y < 0 or x + S > W or y + S > H for x, y in corners)
     if edge:  # rare: windows cut by the image border get a validity mask
+        xs, ys = XY[:, 0], XY[:, 1]
         vx = (xs >= 0) & (xs < W)
         vy = (ys >= 0) & (ys < H)
         valid = vy[:, :, None] & vx[:, None, :]
         win = img[np.clip(ys, 0, H - 1)[:, :, None], np.clip(xs, 0, W - 1)[:, None, :]].astype(np.float64)
         sat = ((win == 255) & valid).sum(axis=(1, 2))
-    else:  # slice copies beat fancy indexing for a handful of small windows
-        win = np.empty((M, S, S))
-        for k, (y, x) in enumerate(zip(ys[:, 0].tolist(), xs[:, 0].tolist())):
-            win[k] = img[y : y + S, x : x + S]
-        sat = (win == 255).sum(axis=(1, 2))
-    # local background: interquartile mean of the window's outer ring (robust
-    # to a neighbouring blob's tail, unbiased for symmetric noise)
-    ring = np.concatenate([win[:, 0, :], win[:, -1, :], win[:, 1:-1, 0], win[:, 1:-1, -1]], axis=1)
-    L = ring.shape[1]
-    if edge:
-        rvalid = np.concatenate([valid[:, 0, :], valid[:, -1, :], valid[:, 1:-1, 0], valid[:, 1:-1, -1]], axis=1)
-        ring = np.sort(np.where(rvalid, ring, np.inf), axis=1)
-        nv = rvalid.sum(axis=1)
-        rank = np.arange(L)[None, :]
+        # local background: interquartile mean of the window's outer ring (robust
+        # to a neighbouring blob's tail, unbiased for symmetric noise)
+        ring_i = _ring_index(S)
+        ring = np.sort(np.where(valid.reshape(M, -1)[:, ring_i], win.reshape(M, -1)[:, ring_i], np.inf), axis=1)
+        nv = valid.reshape(M, -1)[:, ring_i].sum(axis=1)
+        rank = np.arange(ring.shape[1])[None, :]
         mid = (rank >= (nv // 4)[:, None]) & (rank < np.maximum(nv - nv // 4, nv // 4 + 1)[:, None])
         bg = np.where(mid, ring, 0.0).sum(axis=1) / mid.sum(axis=1)
         wts = np.where(valid, win - bg[:, None, None], 0.0)
-    else:
+    else:  # slice copies beat fancy indexing for a handful of small windows
+        win = np.empty((M, S, S))
+        for k, (x, y) in enumerate(corners):
+            win[k] = img[y : y + S, x : x + S]
+        sat = (win == 255).sum(axis=(1, 2)) if win.max() >= 255 else np.zeros(M)
+        ring = win.reshape(M, -1)[:, _ring_index(S)]
         ring.sort(axis=1)
-        bg = ring[:, L // 4 : L - L // 4].mean(axis=1)
+        L = ring.shape[1]
+        bg = ring[:, L // 4 : L - L // 4].sum(axis=1) * (1.0 / (L - 2 * (L // 4)))
         wts = win - bg[:, None, None]
     peak = wts.max(axis=(1, 2))
-    fx = xs.astype(np.float64)
-    fy = ys.astype(np.float64)
-    cx, cy = c0[:, 0].astype(np.float64), c0[:, 1].astype(np.float64)
-    R = (np.asarray(aperture, np.float64) + 0.5)[:, None]
+    F = XY.astype(np.float64)  # (M, 2, S)
+    C = np.asarray(c0, np.float64)  # (M, 2) current estimate
+    R = (np.asarray(aperture, np.float64) + 0.5)[:, None, None]
     with np.errstate(invalid="ignore", divide="ignore"):
         for _ in range(max(iterations, 1)):
-            # pixel coverage of the aperture [c - R + 0.5, c + R - 0.5] per row/column, (M, S)
-            ax = np.minimum(np.maximum(R - np.abs(fx - cx[:, None]), 0.0), 1.0)
-            ay = np.minimum(np.maximum(R - np.abs(fy - cy[:, None]), 0.0), 1.0)
-            colw = (ay[:, None, :] @ wts)[:, 0, :] * ax  # (M, S) aperture-weighted column sums
-            roww = (wts @ ax[:, :, None])[:, :, 0] * ay  # (M, S) row sums
-            flux = colw.sum(axis=1)
-            nx = (colw * fx).sum(axis=1) / flux
-            ny = (roww * fy).sum(axis=1) / flux
+            # pixel coverage of the aperture [c - R + 0.5, c + R - 0.5] per column (x) and row (y)
+            A = np.minimum(np.maximum(R - np.abs(F - C[:, :, None]), 0.0), 1.0)  # (M, 2, S)
+            # aperture-weighted column sums (x) and row sums (y), (M, 2, S)
+            WS = np.stack([np.matmul(A[:, 1:2], wts)[:, 0], np.matmul(wts, A[:, 0, :, None])[:, :, 0]], axis=1) * A
+            flux = WS[:, 0].sum(axis=1)
+            N = (WS * F).sum(axis=2) / flux[:, None]
             # the window has one spare pixel: an estimate further than 1 px from
             # its centre means the aperture lost the blob (no real signal)
-            bad = ~(flux > 0) | ~(np.abs(nx - ix) <= 1.0) | ~(np.abs(ny - iy) <= 1.0)
-            cx = np.where(bad, np.nan, nx)
-            cy = np.where(bad, np.nan, ny)
+            bad = ~(flux > 0) | ~(np.abs(N - I).max(axis=1) <= 1.0)
+            C = np.where(bad[:, None], np.nan, N)
         # second moments over the aperture -> axis ratio (roundness)
-        dx = fx - cx[:, None]
-        dy = fy - cy[:, None]
-        mxx = (colw * dx * dx).sum(axis=1) / flux
-        myy = (roww * dy * dy).sum(axis=1) / flux
-        mxy = ((ay * dy)[:, None, :] @ wts @ (ax * dx)[:, :, None])[:, 0, 0] / flux
+        D = F - C[:, :, None]  # (M, 2, S)
+        mxx, myy = ((WS * D * D).sum(axis=2) / flux[:, None]).T
+        AD = A * D
+        mxy = (np.matmul(AD[:, 1:2], wts) * AD[:, 0:1]).sum(axis=(1, 2)) / flux
         tr, det = mxx + myy, mxx * myy - mxy * mxy
         disc = np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
         roundness = np.sqrt(np.maximum(tr / 2.0 - disc, 0.0) / (tr / 2.0 + disc))
-    return np.stack([cx, cy, flux, peak, roundness, sat], axis=1)
+    out = np.empty((M, 6))
+    out[:, 0:2] = C
+    out[:, 2] = flux
+    out[:, 3] = peak
+    out[:, 4] = roundness
+    out[:, 5] = sat
+    return out
