@@ -151,6 +151,7 @@ class PoseStreamConfig:
     multicast_loopback: bool = True
     multicast_interface: str = ""
     include_untracked: bool = True
+    markers: bool = False  # also send the loose markers (points of no body), in datagrams of their own
 
 
 def _host_port(s: Section, key: str, value: object) -> tuple[str, int]:
@@ -290,6 +291,7 @@ def parse_pose_stream(arena: ArenaConfig) -> PoseStreamConfig | None:
         multicast_loopback=s.boolean("multicast_loopback", True),
         multicast_interface=iface,
         include_untracked=s.boolean("include_untracked", True),
+        markers=s.boolean("markers", False),
     )
 
 

@@ -481,6 +481,11 @@ class Bridge:
                 self._next_report = now + self.report_interval_ns
                 self._report(self.latency_report())
 
+    def publish_markers(self, lp) -> None:
+        """Loose markers (LoosePoints) go to the pose stream only (autopilots get bodies)."""
+        if self.pose_stream is not None:
+            self.pose_stream.publish_markers(lp)
+
     def flush(self, timeout_s: float = 1.0) -> bool:
         """Wait until every vehicle has handled what is in its mailbox (tests, shutdown)."""
         end = time.monotonic() + timeout_s

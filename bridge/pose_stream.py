@@ -5,6 +5,9 @@ Format (docs/pose-stream.md is the reference):
   each ending in '\\n'. Lines are never split across datagrams.
 - binary: little-endian; a 24-byte header then one 208-byte record per body
   (HEADER_DTYPE, RECORD_DTYPE below; numpy reads it in one call).
+- loose markers (`markers: true`): datagrams of their own, never mixed with
+  bodies: one JSON object with a "markers" key, or binary magic VPM1
+  (MARKER_HEADER_DTYPE, MARKER_DTYPE).
 
 publish() runs on the server's loop: it encodes and calls sendto() on a
 non-blocking socket; a full socket buffer drops the datagram (counted).
@@ -21,7 +24,7 @@ from typing import Callable
 import numpy as np
 
 from bridge.config import PoseStreamConfig, is_multicast
-from visionpos.messages import BodyState
+from visionpos.messages import BodyState, LoosePoints
 
 
 MAGIC = b"VPS1"
@@ -56,6 +59,25 @@ RECORD_DTYPE = np.dtype([
     ("reserved2", "<u8"),
 ])
 assert HEADER_DTYPE.itemsize == 24 and RECORD_DTYPE.itemsize == 208
+
+MARKER_MAGIC = b"VPM1"
+MARKER_HEADER_DTYPE = np.dtype([
+    ("magic", "S4"),  # b"VPM1"
+    ("version", "<u1"),  # 1
+    ("reserved", "<u1"),
+    ("n_markers", "<u2"),
+    ("seq", "<u4"),  # datagram counter, wraps
+    ("reserved2", "<u4"),
+    ("time_ns", "<i8"),  # capture-clock time of the fusion that triangulated them
+    ("sent_ns", "<i8"),
+])
+MARKER_DTYPE = np.dtype([
+    ("position", "<f8", (3,)),  # m, world z-up
+    ("residual_px", "<f4"),  # RMS reprojection residual
+    ("reserved", "<u4"),
+])
+assert MARKER_HEADER_DTYPE.itemsize == 32 and MARKER_DTYPE.itemsize == 32
+MAX_MARKERS_PER_DATAGRAM = 250
 
 _UT6 = np.triu_indices(6)
 _UT3 = np.triu_indices(3)
@@ -135,6 +157,53 @@ def encode_binary(states: list[BodyState], sent_ns: int, seq: int) -> list[bytes
     return out
 
 
+def encode_markers_json(lp: LoosePoints, sent_ns: int) -> list[bytes]:
+    """Loose markers -> JSON datagrams: {"markers": [[x, y, z], ...], "residual_px": [...], "time_ns", "sent_ns"}."""
+    pts = np.asarray(lp.points, float).reshape(-1, 3)
+    res = np.asarray(lp.residual_px, float).ravel()
+    out = []
+    for i in range(0, max(len(pts), 1), MAX_MARKERS_PER_DATAGRAM):
+        sl = slice(i, i + MAX_MARKERS_PER_DATAGRAM)
+        obj = {
+            "markers": [_round(p, 6) for p in pts[sl]],
+            "residual_px": _round(res[sl], 3) if len(res) == len(pts) else [],
+            "time_ns": int(lp.time_ns),
+            "sent_ns": int(sent_ns),
+        }
+        out.append(json.dumps(obj, separators=(",", ":")).encode() + b"\n")
+    return out
+
+
+def encode_markers_binary(lp: LoosePoints, sent_ns: int, seq: int) -> list[bytes]:
+    """Loose markers -> binary datagrams (VPM1 header + 32-byte records)."""
+    pts = np.asarray(lp.points, float).reshape(-1, 3)
+    res = np.asarray(lp.residual_px, float).ravel()
+    out = []
+    for i in range(0, max(len(pts), 1), MAX_MARKERS_PER_DATAGRAM):
+        chunk = pts[i:i + MAX_MARKERS_PER_DATAGRAM]
+        h = np.zeros(1, MARKER_HEADER_DTYPE)
+        h["magic"], h["version"], h["n_markers"] = MARKER_MAGIC, VERSION, len(chunk)
+        h["seq"], h["time_ns"], h["sent_ns"] = seq & 0xFFFFFFFF, lp.time_ns, sent_ns
+        r = np.zeros(len(chunk), MARKER_DTYPE)
+        r["position"] = chunk
+        r["residual_px"] = res[i:i + len(chunk)] if len(res) == len(pts) else np.nan
+        out.append(h.tobytes() + r.tobytes())
+    return out
+
+
+def decode_markers_binary(buf: bytes) -> tuple[np.void, np.ndarray]:
+    """VPM1 datagram -> (header record, (n,) MARKER_DTYPE array). ValueError on a bad datagram."""
+    if len(buf) < MARKER_HEADER_DTYPE.itemsize:
+        raise ValueError(f"marker datagram too short ({len(buf)} bytes)")
+    h = np.frombuffer(buf, MARKER_HEADER_DTYPE, count=1)[0]
+    if bytes(h["magic"]) != MARKER_MAGIC:
+        raise ValueError(f"not a visionpos marker datagram (magic {bytes(h['magic'])!r})")
+    n = int(h["n_markers"])
+    if len(buf) < MARKER_HEADER_DTYPE.itemsize + n * MARKER_DTYPE.itemsize:
+        raise ValueError(f"marker datagram truncated: {n} markers need more than {len(buf)} bytes")
+    return h, np.frombuffer(buf, MARKER_DTYPE, count=n, offset=MARKER_HEADER_DTYPE.itemsize).copy()
+
+
 def decode_binary(buf: bytes) -> tuple[np.void, np.ndarray]:
     """Binary datagram -> (header record, (n,) RECORD_DTYPE array). ValueError on a bad datagram."""
     if len(buf) < HEADER_DTYPE.itemsize:
@@ -173,7 +242,8 @@ class PoseStream:
         self.clock_ns = clock_ns
         self.sock: socket.socket | None = None
         self.seq = 0
-        self.counters = {"ticks": 0, "datagrams": 0, "bytes": 0, "send_errors": 0, "skipped_rate": 0}
+        self.counters = {"ticks": 0, "datagrams": 0, "bytes": 0, "send_errors": 0, "skipped_rate": 0,
+                         "marker_sets": 0}
         self._next_ns = 0
         self._period_ns = int(1e9 / cfg.rate_hz) if cfg.rate_hz > 0 else 0
 
@@ -218,6 +288,21 @@ class PoseStream:
             grams = encode_binary(states, now, self.seq)
         else:
             grams = encode_json(states, now)
+        self._send(grams)
+
+    def publish_markers(self, lp: LoosePoints) -> None:
+        """Send a new set of loose markers (when `markers: true`), in datagrams of their own."""
+        if self.sock is None or not self.cfg.markers:
+            return
+        now = self.clock_ns()
+        self.counters["marker_sets"] += 1
+        self.seq += 1
+        if self.cfg.format == "binary":
+            self._send(encode_markers_binary(lp, now, self.seq))
+        else:
+            self._send(encode_markers_json(lp, now))
+
+    def _send(self, grams: list[bytes]) -> None:
         for g in grams:
             for d in self._dests:
                 try:

@@ -192,3 +192,41 @@ def test_docs_binary_decoder_runs():
     seq, sent_ns, bodies = ns["decode"](data)
     assert seq == 1 and [b[0] for b in bodies] == [1, 2] and [b[1] for b in bodies] == [True, False]
     assert bodies[0][2] == sts[0].capture_ns and bodies[0][3] == (1.25, -2.5, 0.75)
+
+
+def test_loose_markers_in_datagrams_of_their_own_json_and_binary():
+    from bridge.pose_stream import decode_markers_binary
+    from visionpos.messages import LoosePoints
+
+    pts = np.array([[0.1, -0.2, 0.05], [1.5, 2.25, 0.007], [-3.0, 0.0, 1.0]])
+    lp = LoosePoints(123_456_789, pts, np.array([0.12, 0.3, 0.05]))
+    sock, port = receiver()
+    try:
+        js = PoseStream.to(f"127.0.0.1:{port}", markers=True)
+        bn = PoseStream.to(f"127.0.0.1:{port}", format="binary", markers=True)
+        off = PoseStream.to(f"127.0.0.1:{port}")  # markers are opt-in: body clients see no new lines
+        for ps in (js, bn, off):
+            ps.start()
+            ps.publish_markers(lp)
+        first, _ = sock.recvfrom(65535)
+        second, _ = sock.recvfrom(65535)
+        sock.settimeout(0.2)
+        with pytest.raises(socket.timeout):
+            sock.recvfrom(65535)
+    finally:
+        for ps in (js, bn, off):
+            ps.close()
+        sock.close()
+    obj = json.loads(first)
+    assert first.count(b"\n") == 1 and "name" not in obj
+    assert obj["markers"] == pts.tolist() and obj["residual_px"] == [0.12, 0.3, 0.05]
+    assert obj["time_ns"] == 123_456_789 and obj["sent_ns"] > 0
+    h, recs = decode_markers_binary(second)
+    assert int(h["n_markers"]) == 3 and int(h["time_ns"]) == 123_456_789
+    assert np.array_equal(recs["position"], pts)
+    assert recs["residual_px"] == pytest.approx([0.12, 0.3, 0.05], abs=1e-6)
+    assert off.stats()["marker_sets"] == 0 and js.stats()["marker_sets"] == 1
+    with pytest.raises(ValueError, match="not a visionpos marker"):
+        decode_markers_binary(b"VPS1" + second[4:])
+    with pytest.raises(ValueError, match="truncated"):
+        decode_markers_binary(second[:-8])

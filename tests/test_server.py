@@ -404,3 +404,50 @@ def test_port_in_use_is_a_message(tmp_path):
         _, stderr = proc.communicate(timeout=30)
     assert proc.returncode == 2 and f"127.0.0.1:{port}" in stderr and "--port" in stderr
     assert "Traceback" not in stderr
+
+
+def test_loose_markers_reach_sinks_and_the_recording(tmp_path):
+    """Markers of no body (the calibration wand, not in `bodies`) are triangulated and handed to
+    every sink with publish_markers once per new set, and recorded on /fusion/markers."""
+    from scipy.spatial.transform import Rotation
+
+    from visionpos.pipeline import FusionPipeline
+    from visionpos.sim import load_scenario, simulate
+
+    sc = load_scenario("thesis", ["sim.duration=1.0", "sim.spurious.random_per_frame=0"], session="wand")
+    sim = simulate(sc)
+
+    class Markers:
+        def __init__(self):
+            self.sets = []
+
+        def publish(self, states):
+            pass
+
+        def publish_markers(self, lp):
+            self.sets.append(lp)
+
+    sink = Markers()
+    pipe = FusionPipeline(sc.arena)
+    rec = RecordingWriter(str(tmp_path / "m.mcap"), sc.arena.raw)
+    server = FusionServer(sc.arena, sinks=[sink], port=0, pipeline=pipe, recorder=rec)
+    frames = sorted(sim.frames, key=lambda f: f.recv_ns)
+    for k, f in enumerate(frames):
+        pipe.push(f)
+        if k % 4 == 3:
+            server.tick(f.recv_ns)
+    rec.close()
+    assert len(sink.sets) >= 10 and len({lp.time_ns for lp in sink.sets}) == len(sink.sets)  # each set once
+    # the wand's three markers, against the simulator's truth at the set's time
+    wand = np.asarray(next(x for x in sc.arena.raw["sim"]["props"] if x["name"] == "wand")["markers"])
+    hits = 0
+    for lp in sink.sets[2:]:
+        p, q = sc.truth_at("wand", [lp.time_ns])
+        truth = Rotation.from_quat(q[0]).apply(wand) + p[0]
+        if len(lp.points):
+            d = np.linalg.norm(lp.points[:, None] - truth[None], axis=-1).min(axis=0)
+            hits += int((d < 0.005).sum())
+    assert hits >= 2.5 * len(sink.sets[2:])
+    assert server.health()["loose_markers"] == len(sink.sets[-1].points)
+    recorded = list(RecordingReader(str(tmp_path / "m.mcap")).json("/fusion/markers"))
+    assert len(recorded) == len(sink.sets) and len(recorded[-1][1]["points"]) == len(sink.sets[-1].points)

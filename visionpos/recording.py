@@ -12,6 +12,7 @@ Layout (MCAP profile "visionpos"):
     /station/packets   message_encoding "visionpos.station", no schema, one channel per sender
                        (channel metadata: host, port); data = the UDP payload, untouched
     /fusion/states     json, schema visionpos.BodyState
+    /fusion/markers    json {"points": [[x, y, z], ...], "residual_px": [...]}: loose markers (no body)
     /sim/truth         json, schema visionpos.Truth
     any other topic    json, no schema (write_json)
 
@@ -58,6 +59,7 @@ FORMAT_VERSION = 1
 TOPIC_PACKETS = "/station/packets"
 TOPIC_STATES = "/fusion/states"
 TOPIC_TRUTH = "/sim/truth"
+TOPIC_MARKERS = "/fusion/markers"
 PACKET_ENCODING = "visionpos.station"
 FLUSH_INTERVAL_S = 0.25
 _MAX_RECORD = 64 * 2**20  # a corrupted length field must not make the reader allocate GiB
@@ -316,6 +318,13 @@ class RecordingWriter:
         """Sink interface (server output tick): record the outputs."""
         self.write_states(states)
 
+    def publish_markers(self, lp) -> None:
+        """Sink interface: a new set of loose markers (LoosePoints), logged at its time_ns."""
+        data = _dumps({"points": _plain(lp.points), "residual_px": _plain(lp.residual_px)})
+        with self._lock:
+            ch = self._channel_for(TOPIC_MARKERS, "json", 0)
+            self._add(ch, int(lp.time_ns), data, TOPIC_MARKERS)
+
     def write_truth(self, time_ns: int, name: str, position: np.ndarray, quaternion: np.ndarray) -> None:
         """Simulator ground truth of body `name`: position (3,) m, quaternion (4,) xyzw."""
         p = np.asarray(position, dtype=float).ravel()
@@ -329,7 +338,7 @@ class RecordingWriter:
 
     def write_json(self, topic: str, time_ns: int, obj: dict[str, Any]) -> None:
         """Any JSON-able mapping on its own topic (events, camera truth, stats)."""
-        if topic in (TOPIC_PACKETS, TOPIC_STATES, TOPIC_TRUTH):
+        if topic in (TOPIC_PACKETS, TOPIC_STATES, TOPIC_TRUTH, TOPIC_MARKERS):
             raise ValueError(f"write_json: topic {topic!r} is reserved; use write_packet/write_state/write_truth")
         data = _dumps(_plain(obj))
         with self._lock:

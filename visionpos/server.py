@@ -6,8 +6,9 @@
                                    sinks: publish(states)  (bridge, pose stream, recorder)
 
 Sinks are any objects with `publish(states: list[BodyState])`, called on the loop at
-every output tick. publish must not block (queue internally; the recorder only
-appends to memory). Optional `start()`, `close()` (plain or async) and `stats()`
+every output tick, and optionally `publish_markers(points: LoosePoints)`, called at a
+tick after the pipeline triangulated a new set of loose markers (points of no body).
+Neither may block (queue internally; the recorder only appends to memory). Optional `start()`, `close()` (plain or async) and `stats()`
 are used when present. A sink that raises is logged and keeps being called.
 
 Programmatic use (demo, tests):
@@ -97,6 +98,8 @@ class FusionServer:
         self._tasks: list[asyncio.Task] = []
         self._running = False
         self.last_states: list[BodyState] = []
+        self._markers_ns: int | None = None  # time of the last loose-marker set handed to sinks
+        self.loose_markers = 0  # markers in that set
 
     # ---------------------------------------------------------------- lifecycle
 
@@ -182,6 +185,21 @@ class FusionServer:
                 self.sink_errors[name] = self.sink_errors.get(name, 0) + 1
                 if self.sink_errors[name] in (1, 100, 10_000):
                     log.exception("sink %s failed in publish (%d times)", name, self.sink_errors[name])
+        lp = getattr(self.pipeline, "loose_points", None)
+        if lp is not None and lp.time_ns != self._markers_ns:
+            self._markers_ns = lp.time_ns
+            self.loose_markers = len(lp.points)
+            for sink in self.sinks:
+                pm = getattr(sink, "publish_markers", None)
+                if pm is None:
+                    continue
+                try:
+                    pm(lp)
+                except Exception:
+                    name = type(sink).__name__ + ".publish_markers"
+                    self.sink_errors[name] = self.sink_errors.get(name, 0) + 1
+                    if self.sink_errors[name] in (1, 100, 10_000):
+                        log.exception("sink %s failed (%d times)", name, self.sink_errors[name])
         cost = time.perf_counter_ns() - t0
         if cost > self.tick_cost_ns_max:
             self.tick_cost_ns_max = cost
@@ -241,6 +259,7 @@ class FusionServer:
         h["ticks"] = self.ticks
         h["late_ticks"] = self.late_ticks
         h["states_out"] = self.states_out
+        h["loose_markers"] = self.loose_markers
         h["tick_cost_max_ms"] = self.tick_cost_ns_max * 1e-6
         h["sink_errors"] = dict(self.sink_errors)
         h["bodies_tracked_ticks"] = dict(self._body_tracked)
