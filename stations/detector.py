@@ -165,12 +165,14 @@ class Detector:
             flags |= FLAG_TRUNCATED
         # per contour: bounding box and pixel count (Pick's theorem on the
         # traced boundary pixel centres: area + boundary / 2 + 1; a lone pixel is 1)
-        st = np.array([(*cv2.boundingRect(c), cv2.contourArea(c) + 0.5 * len(c) + 1.0 if len(c) > 1 else 1.0)
-                       for c in contours])
-        if cfg.min_area > 1 or cfg.max_area < img.size:
-            st = st[(st[:, 4] >= cfg.min_area) & (st[:, 4] <= cfg.max_area)]
-            if not len(st):
-                return np.zeros((0, 4), np.float32), flags
+        rows = []
+        for c in contours:
+            area = cv2.contourArea(c) + 0.5 * len(c) + 1.0 if len(c) > 1 else 1.0
+            if cfg.min_area <= area <= cfg.max_area:
+                rows.append((*cv2.boundingRect(c), area))
+        if not rows:
+            return np.zeros((0, 4), np.float32), flags
+        st = np.array(rows)
         half = np.maximum(st[:, 2], st[:, 3]) * 0.5
         c0 = st[:, :2] + (st[:, 2:4] - 1.0) * 0.5  # bounding-box centres
         # aperture half-width per blob; one gather size for all normal blobs
@@ -180,8 +182,9 @@ class Detector:
             # keep each aperture off its neighbours' thresholded pixels (close
             # markers would pull each other's centroids); shrinking stays
             # symmetric about the blob, so it costs noise, not bias
-            d = np.hypot(c0[:, None, 0] - c0[None, :, 0], c0[:, None, 1] - c0[None, :, 1])
-            np.fill_diagonal(d, np.inf)
+            diff = c0[:, None, :] - c0[None, :, :]
+            d = np.sqrt((diff * diff).sum(axis=2))
+            d.flat[:: len(st) + 1] = np.inf  # not its own neighbour
             room = (d - half[None, :]).min(axis=1) - 1.0
             aperture = np.maximum(np.minimum(aperture, room), 1.0)
         size = np.ceil(aperture).astype(np.int64)
