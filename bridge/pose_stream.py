@@ -191,13 +191,19 @@ def encode_markers_binary(lp: LoosePoints, sent_ns: int, seq: int) -> list[bytes
     return out
 
 
+def _header(buf: bytes, dtype: np.dtype, magic: bytes, what: str) -> np.void:
+    """The header record of a datagram, checked for size and magic (ValueError naming `what`)."""
+    if len(buf) < dtype.itemsize:
+        raise ValueError(f"{what} datagram too short ({len(buf)} bytes)")
+    h = np.frombuffer(buf, dtype, count=1)[0]
+    if bytes(h["magic"]) != magic:
+        raise ValueError(f"not a visionpos {what} datagram (magic {bytes(h['magic'])!r})")
+    return h
+
+
 def decode_markers_binary(buf: bytes) -> tuple[np.void, np.ndarray]:
     """VPM1 datagram -> (header record, (n,) MARKER_DTYPE array). ValueError on a bad datagram."""
-    if len(buf) < MARKER_HEADER_DTYPE.itemsize:
-        raise ValueError(f"marker datagram too short ({len(buf)} bytes)")
-    h = np.frombuffer(buf, MARKER_HEADER_DTYPE, count=1)[0]
-    if bytes(h["magic"]) != MARKER_MAGIC:
-        raise ValueError(f"not a visionpos marker datagram (magic {bytes(h['magic'])!r})")
+    h = _header(buf, MARKER_HEADER_DTYPE, MARKER_MAGIC, "marker")
     n = int(h["n_markers"])
     if len(buf) < MARKER_HEADER_DTYPE.itemsize + n * MARKER_DTYPE.itemsize:
         raise ValueError(f"marker datagram truncated: {n} markers need more than {len(buf)} bytes")
@@ -206,11 +212,7 @@ def decode_markers_binary(buf: bytes) -> tuple[np.void, np.ndarray]:
 
 def decode_binary(buf: bytes) -> tuple[np.void, np.ndarray]:
     """Binary datagram -> (header record, (n,) RECORD_DTYPE array). ValueError on a bad datagram."""
-    if len(buf) < HEADER_DTYPE.itemsize:
-        raise ValueError(f"pose stream datagram too short ({len(buf)} bytes)")
-    h = np.frombuffer(buf, HEADER_DTYPE, count=1)[0]
-    if bytes(h["magic"]) != MAGIC:
-        raise ValueError(f"not a visionpos pose stream datagram (magic {bytes(h['magic'])!r})")
+    h = _header(buf, HEADER_DTYPE, MAGIC, "pose stream")
     n, size = int(h["n_bodies"]), int(h["record_size"])
     if size < RECORD_DTYPE.itemsize or len(buf) < HEADER_DTYPE.itemsize + n * size:
         raise ValueError(f"pose stream datagram truncated: {n} records of {size} bytes need more than {len(buf)} bytes")
