@@ -197,20 +197,25 @@ def test_new_session_restarts_sequence():
     assert [f.seq for f in pipe.frames] == [500, 0]
 
 
-def test_frames_too_old_when_processed_are_shed_not_fused():
-    """Load shedding: a frame received on time but processed late (the host fell behind) is
-    counted and checked, not fused; the next fresh frame is fused again. No clock-jump verdict."""
-    ing, pipe, clock = _ingest({"shed_age_ms": 40})
+def test_frames_that_queued_too_long_are_shed_not_fused():
+    """Load shedding: a frame that waited in the server's receive queue longer than
+    shed_backlog_ms is checked and counted, not fused; fresh frames are fused. A station's
+    own steady latency (here 45 ms, longer than the shedding threshold) never sheds."""
+    ing, pipe, clock = _ingest({"shed_backlog_ms": 30})
     _send(ing, _hello(1), T0)
-    for seq, (recv_ms, processed_ms) in enumerate([(10, 12), (20, 75), (30, 76), (40, 42)], start=1):
-        clock.t = T0 + processed_ms * MS  # processing time; capture 3 ms before receive
-        _send(ing, _frame(1, seq, T0 + (recv_ms - 3) * MS), T0 + recv_ms * MS)
-    assert [f.seq for f in pipe.frames] == [1, 4]
+    for seq, backlog_ms in enumerate([0, 2, 55, 31, 29, 0], start=1):
+        t = T0 + 100 * MS + seq * 10 * MS  # captures after the trigger time
+        clock.t = t
+        frame = P.encode(_frame(1, seq, t - 45 * MS), None)
+        ing.handle(frame, ADDR, t, backlog_ms * MS)
+    assert [f.seq for f in pipe.frames] == [1, 2, 5, 6]
     h = ing.health()
-    assert h["frames_shed"] == 2 and h["cameras"][1]["shed"] == 2 and h["frames_accepted"] == 4
+    assert h["frames_shed"] == 2 and h["cameras"][1]["shed"] == 2 and h["frames_accepted"] == 6
     assert h["cameras"][1]["clock_jumps"] == 0
-    off, _, _ = _ingest({"shed_age_ms": 0})  # 0 = off
-    assert off._shed_ns is None
+    off, off_pipe, _ = _ingest({"shed_backlog_ms": 0})  # 0 = off
+    _send(off, _hello(1), T0)
+    off.handle(P.encode(_frame(1, 1, T0 + 5 * MS), None), ADDR, T0 + 10 * MS, 10_000 * MS)
+    assert len(off_pipe.frames) == 1
 
 
 def test_clock_jumps_dropped_then_resync():

@@ -451,3 +451,52 @@ def test_loose_markers_reach_sinks_and_the_recording(tmp_path):
     assert server.health()["loose_markers"] == len(sink.sets[-1].points)
     recorded = list(RecordingReader(str(tmp_path / "m.mcap")).json("/fusion/markers"))
     assert len(recorded) == len(sink.sets) and len(recorded[-1][1]["points"]) == len(sink.sets[-1].points)
+
+
+def test_backlogged_frames_are_shed_over_a_real_socket():
+    """Frames that queued in the kernel while the loop was blocked (kernel arrival stamps) are
+    counted and not fused; frames that arrive once it keeps up are fused."""
+    arena = load_config_with_overrides("thesis", ["server.status_period_s=0", "server.shed_backlog_ms=30"])
+
+    class Frames:
+        def __init__(self):
+            self.seqs = []
+
+        def push(self, frame):
+            self.seqs.append(frame.seq)
+
+        def remove_camera(self, camera_id):
+            pass
+
+        def tick(self, now_ns):
+            return []
+
+        def stats(self):
+            return {}
+
+    pipe = Frames()
+
+    async def main():
+        server = FusionServer(arena, port=0, pipeline=pipe)
+        async with server:
+            await asyncio.sleep(0.05)  # captures after the trigger time
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+                def send(seq):
+                    f = BlobFrame(1, seq, time.monotonic_ns() - 3 * MS, np.full((2, 4), 1.0, np.float32), 1)
+                    s.sendto(P.encode_frame(f), ("127.0.0.1", server.port))
+
+                for seq in range(1, 21):
+                    send(seq)
+                time.sleep(0.1)  # the loop is stuck: these 20 wait in the kernel's queue
+                await asyncio.sleep(0.05)
+                for seq in range(21, 26):
+                    send(seq)
+                    await asyncio.sleep(0.01)
+            await asyncio.sleep(0.05)
+            return server.health()
+
+    health = asyncio.run(main())
+    if not health.get("frames_shed") and sys.platform != "linux":
+        pytest.skip("no kernel receive stamps on this platform")
+    assert health["frames_accepted"] == 25
+    assert health["frames_shed"] == 20 and pipe.seqs == list(range(21, 26))

@@ -44,6 +44,7 @@ from typing import Any, Protocol
 from visionpos import protocol as P
 from visionpos.config import ArenaConfig, ConfigError
 from visionpos.messages import FLAG_RESYNC, BlobFrame
+from visionpos.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
 
 log = logging.getLogger(__name__)
 
@@ -74,12 +75,12 @@ class ServerSettings:
     it a frame is a clock jump (or a replay) and is dropped. resync_after: that many
     clock-jump drops in a row make the server ask the station to register again.
     status_period_s: period of the status log line (0 = off).
-    shed_age_ms: load shedding. A frame older than this when its turn comes (processing
-    time - capture time: station and network latency plus time queued here) is checked and
-    counted but not fused. An overloaded host then fuses fresh frames at the rate it can
-    sustain instead of falling ever further behind (outputs are predicted to now, so an old
-    frame adds little). It is still recorded. 0 = off. A replay's processing time is the
-    receive time, so it sheds only what arrived that late.
+    shed_backlog_ms: load shedding. A frame that waited longer than this in the server's
+    receive queue (from the kernel's arrival stamp to its turn) is checked, counted and
+    recorded but not fused: a host too slow for its cameras then fuses the freshest frames at
+    the rate it can sustain instead of falling ever further behind. Only the server's own
+    backlog counts, never a station's or the network's latency (a steady slow link is used).
+    0 = off. Replays have no backlog and never shed.
     """
 
     port: int = P.DEFAULT_PORT
@@ -94,13 +95,13 @@ class ServerSettings:
     max_age_ms: float = 500.0
     resync_after: int = 10
     status_period_s: float = 5.0
-    shed_age_ms: float = 40.0
+    shed_backlog_ms: float = 15.0
 
     @classmethod
     def from_arena(cls, arena: ArenaConfig) -> "ServerSettings":
         s = arena.section("server")
         known = {"port", "key_file", "output_rate_hz", "start_delay_s", "duration_s", "vanish_periods",
-                 "vanish_min_s", "max_future_ms", "max_age_ms", "resync_after", "status_period_s", "shed_age_ms"}
+                 "vanish_min_s", "max_future_ms", "max_age_ms", "resync_after", "status_period_s", "shed_backlog_ms"}
         for k in s.data:
             if k not in known:
                 raise s.error(str(k), f"unknown key; the server section takes {sorted(known)}")
@@ -130,7 +131,7 @@ class ServerSettings:
             vanish_min_s=s.number("vanish_min_s", 0.1, min=0.0),
             max_future_ms=s.number("max_future_ms", 50.0, min=0.0),
             max_age_ms=s.number("max_age_ms", 500.0, min=1.0),
-            shed_age_ms=s.number("shed_age_ms", 40.0, min=0.0),
+            shed_backlog_ms=s.number("shed_backlog_ms", 15.0, min=0.0),
             resync_after=s.integer("resync_after", 10, min=1),
             status_period_s=s.number("status_period_s", 5.0, min=0.0),
         )
@@ -177,7 +178,7 @@ class CameraHealth:
     stale: int = 0
     backwards: int = 0
     before_start: int = 0
-    shed: int = 0  # accepted but not fused: too old when its turn came (load shedding)
+    shed: int = 0  # accepted but not fused: it queued too long in the server (load shedding)
     resync_requests: int = 0
     vanished: int = 0
     # latency (recv - capture) running stats, ns
@@ -290,7 +291,7 @@ class Ingest:
         self.duration_ns = int(self.settings.duration_s * 1e9)
         self._future_ns = int(self.settings.max_future_ms * 1e6)
         self._max_age_ns = int(self.settings.max_age_ms * 1e6)
-        self._shed_ns = int(self.settings.shed_age_ms * 1e6) or None
+        self._shed_ns = int(self.settings.shed_backlog_ms * 1e6) or None
         self._last_shed_log_ns = -(1 << 62)
         self._logged: set[tuple] = set()
         self.unknown_sources: dict[tuple[int, int], int] = {}
@@ -300,6 +301,7 @@ class Ingest:
         # (live). A replay sets it from the recording's meta (wall_start_unix_ns - monotonic_start_ns).
         self.realtime_minus_monotonic_ns: int | None = None
         self.sock: socket.socket | None = None
+        self._kernel_stamps = False
         self._drained_ns = 0  # when the socket was last read empty
         self._loop: asyncio.AbstractEventLoop | None = None
         self.port: int | None = None
@@ -326,8 +328,11 @@ class Ingest:
 
     # ---------------------------------------------------------------- per packet
 
-    def handle(self, data: bytes, addr: Addr, recv_ns: int) -> list[bytes]:
-        """Process one datagram received at recv_ns (server monotonic ns); returns replies for addr."""
+    def handle(self, data: bytes, addr: Addr, recv_ns: int, backlog_ns: int = 0) -> list[bytes]:
+        """Process one datagram received at recv_ns (server monotonic ns); returns replies for addr.
+
+        backlog_ns: how long it waited in the receive queue before recv_ns (live only; a frame
+        that waited longer than server.shed_backlog_ms is not fused)."""
         c = self.counters
         c.packets += 1
         c.bytes += len(data)
@@ -357,7 +362,7 @@ class Ingest:
             return []
         if type(msg) is BlobFrame:
             c.by_type["frame"] = c.by_type.get("frame", 0) + 1
-            return self._frame(msg, addr, recv_ns)
+            return self._frame(msg, addr, recv_ns, backlog_ns)
         name = type(msg).__name__
         c.by_type[name] = c.by_type.get(name, 0) + 1
         try:
@@ -501,7 +506,7 @@ class Ingest:
             return [P.encode(ack, self.key)]
         return []
 
-    def _frame(self, f: BlobFrame, addr: Addr, recv_ns: int) -> list[bytes]:
+    def _frame(self, f: BlobFrame, addr: Addr, recv_ns: int, backlog_ns: int = 0) -> list[bytes]:
         cam = self.cameras.get(f.camera_id)
         if cam is None or (cam.required_station is not None and cam.required_station != f.station_id):
             self._camera(f.station_id, f.camera_id, addr, "frames")
@@ -604,18 +609,16 @@ class Ingest:
                 log.warning("camera %d (%s) is back", cam.camera_id, cam.name)
                 self._event("camera_back", camera_id=cam.camera_id)
         self.counters.frames_accepted += 1
-        if self._shed_ns is not None:
-            age = self.clock() - capture
-            if age > self._shed_ns:
-                cam.shed += 1
-                self.counters.frames_shed += 1
-                if recv_ns - self._last_shed_log_ns > 5_000_000_000:
-                    self._last_shed_log_ns = recv_ns
-                    log.warning("frames are %.0f ms old when their turn comes: fusing only fresh ones (%d skipped "
-                                "so far); the stations' links are slow or this host is too slow for these cameras "
-                                "(fewer cameras, a lower frame rate, a faster host, or a higher "
-                                "fusion.min_fusion_interval_ms)", age * 1e-6, self.counters.frames_shed)
-                return replies
+        if self._shed_ns is not None and backlog_ns > self._shed_ns:
+            cam.shed += 1
+            self.counters.frames_shed += 1
+            if recv_ns - self._last_shed_log_ns > 5_000_000_000:
+                self._last_shed_log_ns = recv_ns
+                log.warning("the server is %.0f ms behind its receive queue: fusing only fresh frames (%d skipped so "
+                            "far); this host is too slow for these cameras (fewer cameras, a lower frame rate, a "
+                            "faster host, or a higher fusion.min_fusion_interval_ms)", backlog_ns * 1e-6,
+                            self.counters.frames_shed)
+            return replies
         if self.pipeline is not None:
             try:
                 self.pipeline.push(f)
@@ -711,6 +714,8 @@ class Ingest:
             # a deep receive buffer rides out loop stalls (a GC pause, a slow fusion step) without loss
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 * 2**20)
             sock.bind(sockaddr)
+            # kernel arrival stamps show how long a datagram queued here (load shedding)
+            self._kernel_stamps = enable_kernel_stamps(sock)
         except OSError as e:
             sock.close()
             raise OSError(e.errno, f"cannot listen on udp {host}:{port}: {e.strerror}; "
@@ -731,9 +736,15 @@ class Ingest:
         handle = self.handle
         clock = time.monotonic_ns
         deadline = clock() + 2_000_000
+        stamps = self._kernel_stamps
+        rt_minus_mono = time.time_ns() - clock() if stamps else 0  # kernel stamps are CLOCK_REALTIME
+        backlog = 0
         for _ in range(512):  # bounded in count and time, so output ticks run on time during a flood
             try:
-                data, addr = sock.recvfrom(65536)
+                if stamps:
+                    data, anc, _, addr = sock.recvmsg(65536, ANC_SIZE)
+                else:
+                    data, addr = sock.recvfrom(65536)
             except (BlockingIOError, InterruptedError):
                 self._drained_ns = clock()
                 return
@@ -741,11 +752,14 @@ class Ingest:
                 log.debug("udp receive error: %s", e)
                 continue
             recv_ns = clock()  # first thing: this stamp is t2 of the clock sync
+            if stamps:
+                k = kernel_stamp_ns(anc)
+                backlog = recv_ns - (k - rt_minus_mono) if k else 0
             if recv_ns > deadline:
-                self._readable_again(data, addr, recv_ns)
+                self._readable_again(data, addr, recv_ns, backlog)
                 return
             try:
-                replies = handle(data, addr, recv_ns)
+                replies = handle(data, addr, recv_ns, backlog)
             except Exception:  # handle() guards itself; this is the last line of defence
                 self.counters.malformed += 1
                 log.exception("ingest failed on a packet from %s", _fmt(addr))
@@ -757,11 +771,11 @@ class Ingest:
                     self.counters.send_errors += 1
                     log.debug("udp send to %s failed: %s", _fmt(addr), e)
 
-    def _readable_again(self, data: bytes, addr: Addr, recv_ns: int) -> None:
+    def _readable_again(self, data: bytes, addr: Addr, recv_ns: int, backlog_ns: int) -> None:
         """Out of time in this wake-up: handle this datagram first thing next loop iteration."""
         def later() -> None:
             try:
-                for r in self.handle(data, addr, recv_ns):
+                for r in self.handle(data, addr, recv_ns, backlog_ns):
                     if self.sock is not None:
                         self.sock.sendto(r, addr)
             except Exception:

@@ -374,7 +374,7 @@ def run(args: argparse.Namespace) -> int:
         finally:
             await server.stop()
         h = server.health()
-        print(f"visionpos serve: stopped after {h['packets']} packets ({h['frames_accepted']} frames accepted, {h['frames_shed']} too old to fuse, "
+        print(f"visionpos serve: stopped after {h['packets']} packets ({h['frames_accepted']} frames accepted, {h['frames_shed']} shed as backlog, "
               f"{h['malformed']} malformed, {h['auth_failed']} failed auth, {h['unknown']} unknown), "
               f"{h['ticks']} output ticks", flush=True)
         return 0
