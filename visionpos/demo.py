@@ -500,7 +500,7 @@ def format_summary(s: dict[str, Any]) -> str:
         f"(to the autopilot: p50 {fmt(s['latency_to_autopilot_ms']['p50'])} ms); "
         f"set ArduPilot VISO_DELAY_MS / PX4 EKF2_EV_DELAY to about the p50",
         f"server: {s['server']['frames_accepted']} frames accepted"
-        + (f" ({s['server']['frames_shed']} shed: host overloaded)" if s['server'].get('frames_shed') else "")
+        + (f" ({s['server']['frames_shed']} not fused: queued too long)" if s['server'].get('frames_shed') else "")
         + f", {s['server']['malformed']} malformed, "
         f"{s['late_ticks']} late ticks; wall time {s['wall_s']:.1f} s (simulation {s['simulate_s']:.1f} s)",
     ])

@@ -614,10 +614,10 @@ class Ingest:
             self.counters.frames_shed += 1
             if recv_ns - self._last_shed_log_ns > 5_000_000_000:
                 self._last_shed_log_ns = recv_ns
-                log.warning("the server is %.0f ms behind its receive queue: fusing only fresh frames (%d skipped so "
-                            "far); this host is too slow for these cameras (fewer cameras, a lower frame rate, a "
-                            "faster host, or a higher fusion.min_fusion_interval_ms)", backlog_ns * 1e-6,
-                            self.counters.frames_shed)
+                log.warning("a frame queued %.0f ms before its turn: not fused (%d so far). Now and then this is a "
+                            "stall (start-up, a pause); if it keeps happening this host is too slow for these "
+                            "cameras (fewer cameras, a lower frame rate, a faster host, or a higher "
+                            "fusion.min_fusion_interval_ms)", backlog_ns * 1e-6, self.counters.frames_shed)
             return replies
         if self.pipeline is not None:
             try:
