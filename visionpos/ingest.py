@@ -755,6 +755,8 @@ class Ingest:
             if stamps:
                 k = kernel_stamp_ns(anc)
                 backlog = recv_ns - (k - rt_minus_mono) if k else 0
+                if not 0 <= backlog < 5_000_000_000:  # the realtime clock was stepped: no measure
+                    backlog = 0
             if recv_ns > deadline:
                 self._readable_again(data, addr, recv_ns, backlog)
                 return
