@@ -13,7 +13,7 @@ import struct
 import sys
 
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux <asm-generic/socket.h>
-TIMESPEC = struct.Struct("@qq")  # struct timespec on 64-bit Linux
+TIMESPEC = struct.Struct("@ll")  # native struct timespec: 16 bytes on 64-bit, 8 on 32-bit (Pi OS armhf)
 ANC_SIZE = socket.CMSG_SPACE(TIMESPEC.size) if hasattr(socket, "CMSG_SPACE") else 0
 
 

@@ -8,8 +8,8 @@
 Sinks are any objects with `publish(states: list[BodyState])`, called on the loop at
 every output tick, and optionally `publish_markers(points: LoosePoints)`, called at a
 tick after the pipeline triangulated a new set of loose markers (points of no body).
-Neither may block (queue internally; the recorder only appends to memory). Optional `start()`, `close()` (plain or async) and `stats()`
-are used when present. A sink that raises is logged and keeps being called.
+Neither may block (queue internally; the recorder only appends to memory). Optional
+`start()`, `close()` (plain or async) and `stats()` are used when present. A sink that raises is logged and keeps being called.
 
 Programmatic use (demo, tests):
 
@@ -178,32 +178,27 @@ class FusionServer:
                 self._body_tracked[s.name] = self._body_tracked.get(s.name, 0) + 1
         self.last_states = states
         for sink in self.sinks:
-            try:
-                sink.publish(states)
-            except Exception:
-                name = type(sink).__name__
-                self.sink_errors[name] = self.sink_errors.get(name, 0) + 1
-                if self.sink_errors[name] in (1, 100, 10_000):
-                    log.exception("sink %s failed in publish (%d times)", name, self.sink_errors[name])
+            self._to_sink(sink, sink.publish, states, type(sink).__name__)
         lp = getattr(self.pipeline, "loose_points", None)
         if lp is not None and lp.time_ns != self._markers_ns:
             self._markers_ns = lp.time_ns
             self.loose_markers = len(lp.points)
             for sink in self.sinks:
-                pm = getattr(sink, "publish_markers", None)
-                if pm is None:
-                    continue
-                try:
-                    pm(lp)
-                except Exception:
-                    name = type(sink).__name__ + ".publish_markers"
-                    self.sink_errors[name] = self.sink_errors.get(name, 0) + 1
-                    if self.sink_errors[name] in (1, 100, 10_000):
-                        log.exception("sink %s failed (%d times)", name, self.sink_errors[name])
+                if hasattr(sink, "publish_markers"):
+                    self._to_sink(sink, sink.publish_markers, lp, type(sink).__name__ + ".publish_markers")
         cost = time.perf_counter_ns() - t0
         if cost > self.tick_cost_ns_max:
             self.tick_cost_ns_max = cost
         return states
+
+    def _to_sink(self, sink: Any, method: Any, arg: Any, name: str) -> None:
+        """method(arg); a failure is counted under `name` and logged at the 1st, 100th, 10000th time."""
+        try:
+            method(arg)
+        except Exception:
+            self.sink_errors[name] = self.sink_errors.get(name, 0) + 1
+            if self.sink_errors[name] in (1, 100, 10_000):
+                log.exception("sink %s failed (%d times)", name, self.sink_errors[name])
 
     async def _tick_loop(self) -> None:
         period = self.period_ns
@@ -374,8 +369,8 @@ def run(args: argparse.Namespace) -> int:
         finally:
             await server.stop()
         h = server.health()
-        print(f"visionpos serve: stopped after {h['packets']} packets ({h['frames_accepted']} frames accepted, {h['frames_shed']} shed as backlog, "
-              f"{h['malformed']} malformed, {h['auth_failed']} failed auth, {h['unknown']} unknown), "
+        print(f"visionpos serve: stopped after {h['packets']} packets ({h['frames_accepted']} frames accepted, "
+              f"{h['frames_shed']} shed as backlog, {h['malformed']} malformed, {h['auth_failed']} failed auth, {h['unknown']} unknown), "
               f"{h['ticks']} output ticks", flush=True)
         return 0
 

@@ -97,11 +97,17 @@ def _fmt(v: float) -> str:
     return f"{v:.3g}"
 
 
-def goal_rows(results: dict[str, tuple[BenchResult, float]]) -> list[tuple[str, float, str, float, bool]]:
-    """(description, measured, op, target, met) for every goal whose metric was run."""
+def _merged(results: dict[str, tuple[BenchResult, float]]) -> dict[str, float]:
+    """Every group's metrics in one mapping."""
     merged: dict[str, float] = {}
     for res, _ in results.values():
         merged.update(res.metrics)
+    return merged
+
+
+def goal_rows(results: dict[str, tuple[BenchResult, float]]) -> list[tuple[str, float, str, float, bool]]:
+    """(description, measured, op, target, met) for every goal whose metric was run."""
+    merged = _merged(results)
     rows = []
     for g in GOALS:
         v, t, ok = g.check(merged)
@@ -167,10 +173,7 @@ def run(args: argparse.Namespace) -> int:
             for g, v, op, t, ok in goals:
                 print(f"  {'met ' if ok else 'MISS'}  {g}: {_fmt(v)} (target {op} {_fmt(t)})")
     if args.json:
-        merged: dict[str, float] = {}
-        for res, _ in results.values():
-            merged.update(res.metrics)
-        print(json.dumps(merged, indent=2, default=float))
+        print(json.dumps(_merged(results), indent=2, default=float))
     if args.write_docs:
         cmd = "visionpos bench" + "".join(f" --only {g}" for g in (args.only or [])) + (" --quick" if args.quick else "")
         Path(args.write_docs).write_text(to_markdown(results, cmd, args.quick))
