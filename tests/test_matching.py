@@ -5,7 +5,7 @@ import pytest
 
 from visionpos import geometry
 from visionpos.config import load_arena
-from visionpos.matching import associate, match_unlabeled, triangulate, undistort_points
+from visionpos.matching import Projector, associate, match_unlabeled, min_cost_assignment, triangulate, undistort_points
 
 
 @pytest.fixture(scope="module")
@@ -97,6 +97,50 @@ def test_associate_ambiguity_resolved_jointly():
     # one blob for two predictions: only one gets it
     a = associate(pred, blobs[:1], gate=8.0)
     assert sorted(a.tolist()) == [-1, 0]
+
+
+def test_min_cost_assignment_is_optimal():
+    """Against scipy's linear_sum_assignment (an independent solver) on random rectangular costs."""
+    from scipy.optimize import linear_sum_assignment
+
+    rng = np.random.default_rng(4)
+    for _ in range(300):
+        n = int(rng.integers(1, 7))
+        m = int(rng.integers(n, 9))
+        C = rng.uniform(0, 100, (n, m))
+        C[rng.random((n, m)) < 0.3] = 1e5  # gated-out pairs
+        col = min_cost_assignment(C)
+        assert len(set(col.tolist())) == n and (col >= 0).all()
+        r, c = linear_sum_assignment(C)
+        assert C[np.arange(n), col].sum() == pytest.approx(C[r, c].sum(), rel=1e-12)
+
+
+@pytest.mark.parametrize("kind, dist", [("pinhole", [0.1, -0.2, 0.001, -0.002, 0.05, 0.01, -0.02, 0.03]),
+                                        ("pinhole", [-0.3, 0.1, 0.0, 0.0]), ("fisheye", [0.05, -0.01, 0.002, -0.001])])
+def test_projector_matches_opencv(kind, dist):
+    """The compiled projection equals cv2.projectPoints / cv2.fisheye.projectPoints (an
+    independent implementation of the same lens models) and hides what is off the sensor."""
+    import cv2
+
+    from visionpos.camera import Camera, CameraModel, look_at_rotation
+
+    m = CameraModel(kind, 960, 640, 600.0, 602.0, 480.0, 320.0, np.array(dist))
+    c = np.array([3.0, -2.0, 2.5])
+    R = look_at_rotation(c, np.zeros(3))
+    cam = Camera(1, "c", m, R, -R @ c)
+    X = np.random.default_rng(5).normal(0, 1.5, (2000, 3))
+    uv = Projector(cam).project(X, margin=8.0)
+    rvec = cv2.Rodrigues(R)[0]
+    if kind == "fisheye":
+        ref = cv2.fisheye.projectPoints(X.reshape(-1, 1, 3), rvec, cam.t, m.K, m.dist)[0].reshape(-1, 2)
+    else:
+        ref = cv2.projectPoints(X, rvec, cam.t, m.K, m.dist)[0].reshape(-1, 2)
+    pc = X @ R.T + cam.t
+    on = (pc[:, 2] > 0.2) & (ref > -8.5).all(1) & (ref[:, 0] < 967.5) & (ref[:, 1] < 647.5)
+    on &= np.arctan2(np.linalg.norm(pc[:, :2], axis=1), pc[:, 2]) < m.max_theta
+    assert 500 < on.sum() < 2000
+    assert np.array_equal(np.isfinite(uv[:, 0]), on)
+    assert np.abs(uv[on] - ref[on]).max() < 1e-9
 
 
 def test_match_unlabeled_spurious_and_missing(rig):

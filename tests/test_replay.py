@@ -109,6 +109,32 @@ def test_replay_is_byte_identical_across_runs_and_processes(thesis_log, tmp_path
     assert all(line.startswith("quad,") for line in lines[1:])
 
 
+def test_interpreted_kernels_give_the_compiled_result(thesis_log, tmp_path):
+    """Without numba (VISIONPOS_NO_JIT, as on a platform with no wheel) the same kernels run as
+    Python: the replay must give the same trajectories, to round-off."""
+    import os
+    import subprocess
+    import sys
+
+    from visionpos.cli import main
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["replay", str(thesis_log), "--out", str(a), "--no-plots"]) == 0
+    env = dict(os.environ, VISIONPOS_NO_JIT="1")
+    code = "import visionpos.jit, sys; sys.exit(0 if not visionpos.jit.COMPILED else 3)"
+    assert subprocess.run([sys.executable, "-c", code], env=env).returncode == 0
+    proc = subprocess.run(
+        [sys.executable, "-m", "visionpos", "replay", str(thesis_log), "--out", str(b), "--no-plots"],
+        env=env, capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    ca = np.genfromtxt(a / "trajectories.csv", delimiter=",", skip_header=1)[:, 1:]
+    cb = np.genfromtxt(b / "trajectories.csv", delimiter=",", skip_header=1)[:, 1:]
+    assert ca.shape == cb.shape and ca.shape[0] > 250
+    assert np.array_equal(np.isnan(ca), np.isnan(cb))
+    assert np.nanmax(np.abs(ca - cb)) < 1e-9
+
+
 def test_replay_metrics_against_simulator_truth(thesis_log, tmp_path):
     from visionpos.replay import replay_log
     from visionpos.sim import load_scenario

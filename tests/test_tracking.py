@@ -24,6 +24,61 @@ def test_rotation_helpers_match_scipy():
     near_pi = np.radians([[179.9, 0, 0], [0, 180.0, 0], [0, 0, 179.0], [0, 120.0, 120.0]])
     for R in Rotation.from_rotvec(near_pi).as_matrix():  # the trace <= 0 branches
         assert np.allclose(Rotation.from_quat(matrix_to_quat(R)).as_matrix(), R, atol=1e-12)
+        assert np.allclose(rotvec_to_matrix(matrix_to_rotvec(R)), R, atol=1e-12)
+        assert np.linalg.norm(matrix_to_rotvec(R)) <= np.pi + 1e-12
+
+
+def test_predict_and_update_match_filterpy():
+    """The compiled predict / Joseph update equal filterpy's KalmanFilter with the textbook
+    F, continuous white-noise Q (filterpy's Q_continuous_white_noise) and H, on random states."""
+    from filterpy.common import Q_continuous_white_noise
+    from filterpy.kalman import KalmanFilter
+
+    rng = np.random.default_rng(7)
+    s = KalmanSettings(jerk_psd=0.7, angular_accel_psd=3.0)
+    H = np.zeros((6, 15))
+    H[0:3, 0:3] = np.eye(3)
+    H[3:6, 9:12] = np.eye(3)
+    for trial in range(5):
+        f = BodyFilter(s)
+        R0 = Rotation.random(random_state=trial).as_matrix()
+        f.initialize(0, rng.normal(0, 1, 3), R0, np.diag(rng.uniform(1e-6, 1e-4, 6)))
+        f.x[3:9] = rng.normal(0, 1, 6)
+        f.x[12:15] = rng.normal(0, 1, 3)
+        A = rng.normal(0, 0.1, (15, 15))
+        f.P = f.P + A @ A.T
+        f.scale_p, f.scale_r = 2.0, 5.0
+        ref = KalmanFilter(dim_x=15, dim_z=6)
+        ref.x, ref.P, ref.H = f.x.copy()[:, None], f.P.copy(), H
+        R_nom = f.R_nom.copy()
+        dt = 0.004 + 0.01 * trial
+        F = np.eye(15)
+        for k in range(3):
+            F[k, 3 + k] = F[3 + k, 6 + k] = F[9 + k, 12 + k] = dt
+            F[k, 6 + k] = 0.5 * dt * dt
+        Q = np.zeros((15, 15))
+        Q[0:9, 0:9] = Q_continuous_white_noise(3, dt, s.jerk_psd * 2.0, block_size=3, order_by_dim=False)
+        Q[9:15, 9:15] = Q_continuous_white_noise(2, dt, s.angular_accel_psd * 5.0, block_size=3, order_by_dim=False)
+        ref.predict(F=F, Q=Q)
+        t = int(round(dt * 1e9))
+        f.predict_to(t)
+        R_nom = rotvec_to_matrix(ref.x[9:12, 0]) @ R_nom  # the filter folds the rotation error
+        assert np.allclose(f.P, ref.P, rtol=1e-9, atol=1e-12)
+        assert np.allclose(f.x[[0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 13, 14]], ref.x[[0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 13, 14], 0])
+        assert np.allclose(f.R_nom, R_nom, atol=1e-12)
+        ref.x[9:12] = 0.0
+        # a measurement near the prediction
+        p_meas = f.x[0:3] + rng.normal(0, 0.01, 3)
+        dth = rng.normal(0, 0.01, 3)
+        R_meas = rotvec_to_matrix(dth) @ R_nom
+        cov = np.diag(rng.uniform(1e-6, 1e-4, 6))
+        ok, _ = f.update(t, p_meas, R_meas, cov, gate=False)
+        assert ok
+        ref.update(np.concatenate([p_meas, matrix_to_rotvec(R_meas @ R_nom.T)])[:, None], R=cov)
+        assert np.allclose(f.P, ref.P, rtol=1e-7, atol=1e-14)
+        keep = [0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 13, 14]
+        assert np.allclose(f.x[keep], ref.x[keep, 0], rtol=1e-9, atol=1e-12)
+        assert np.allclose(f.R_nom, rotvec_to_matrix(ref.x[9:12, 0]) @ R_nom, atol=1e-12)
 
 
 def test_static_jitter_drops_well_below_raw():

@@ -29,11 +29,13 @@ thousand times a second and has to stay a handful of numpy calls.
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from visionpos.camera import FISHEYE, CameraModel
+from visionpos.jit import njit
 
 _CRIT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-14)
 
@@ -55,74 +57,180 @@ def undistort_points(model: CameraModel, pixels: np.ndarray) -> np.ndarray:
 
 
 class Projector:
-    """Fast world -> pixel projection for one camera through OpenCV (same model as camera.py).
+    """Fast world -> pixel projection for one camera (same models as camera.py, compiled).
 
     camera.Camera.project is exact but built from many small numpy steps;
-    this runs per packet, so it goes through cv2.projectPoints /
-    cv2.fisheye.projectPoints (the same OpenCV/Kannala-Brandt models).
+    this runs per packet, so it is one compiled loop over the points.
     """
 
     def __init__(self, camera):
         self.camera = camera
-        self.R = camera.R
-        self.t = camera.t
-        self.rvec = cv2.Rodrigues(camera.R)[0]
-        self.tvec = camera.t.reshape(3, 1).astype(np.float64)
-        self.K = camera.model.K
-        self.fisheye = camera.model.kind == FISHEYE
-        self.dist = camera.model.dist[:4] if self.fisheye else camera.model.dist
-        self.w, self.h = camera.model.width, camera.model.height
+        m = camera.model
+        self.R = np.ascontiguousarray(camera.R, dtype=np.float64)
+        self.t = np.ascontiguousarray(camera.t, dtype=np.float64).reshape(3)
+        self.fisheye = m.kind == FISHEYE
+        self.dist = np.zeros(8)
+        d = np.asarray(m.dist, dtype=np.float64)
+        self.dist[: min(len(d), 4 if self.fisheye else 8)] = d[: 4 if self.fisheye else 8]
+        self.intrinsics = np.array([m.fx, m.fy, m.cx, m.cy, m.width, m.height], dtype=np.float64)
         # beyond this angle from the axis the lens model folds back: not visible
-        self.cos_max = float(np.cos(camera.model.max_theta))
+        self.cos_max = float(np.cos(m.max_theta))
 
     def project(self, points_world: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """(N, 3) world points -> (N, 2) pixels; NaN when behind, outside the lens model or off the sensor (+ margin)."""
-        X = np.ascontiguousarray(points_world, dtype=np.float64).reshape(-1, 1, 3)
-        if self.fisheye:
-            uv = cv2.fisheye.projectPoints(X, self.rvec, self.tvec, self.K, self.dist)[0].reshape(-1, 2)
+        X = np.ascontiguousarray(points_world, dtype=np.float64).reshape(-1, 3)
+        return project_points(X, self.R, self.t, self.intrinsics, self.dist, self.fisheye, self.cos_max, float(margin))
+
+
+@njit
+def project_points(X, R, t, intrinsics, dist, fisheye, cos_max, margin):
+    """World points X (N, 3) -> pixels (N, 2) through camera pose R (3, 3), t (3,).
+
+    intrinsics: fx, fy, cx, cy, width, height; dist (8,): OpenCV pinhole
+    k1, k2, p1, p2, k3, k4, k5, k6, or Kannala-Brandt k1..k4 when fisheye.
+    NaN where the point is behind, beyond the lens model's angle (cos_max) or
+    off the sensor by more than margin px.
+    """
+    fx, fy, cx, cy, w, h = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3], intrinsics[4], intrinsics[5]
+    k1, k2, p1, p2, k3, k4, k5, k6 = dist[0], dist[1], dist[2], dist[3], dist[4], dist[5], dist[6], dist[7]
+    N = X.shape[0]
+    uv = np.full((N, 2), np.nan)
+    for i in range(N):
+        pc0 = R[0, 0] * X[i, 0] + R[0, 1] * X[i, 1] + R[0, 2] * X[i, 2] + t[0]
+        pc1 = R[1, 0] * X[i, 0] + R[1, 1] * X[i, 1] + R[1, 2] * X[i, 2] + t[1]
+        pc2 = R[2, 0] * X[i, 0] + R[2, 1] * X[i, 1] + R[2, 2] * X[i, 2] + t[2]
+        if not pc2 > cos_max * math.sqrt(pc0 * pc0 + pc1 * pc1 + pc2 * pc2):
+            continue
+        x, y = pc0 / pc2, pc1 / pc2
+        r2 = x * x + y * y
+        if fisheye:
+            r = math.sqrt(r2)
+            th = math.atan(r)
+            t2 = th * th
+            rd = th * (1 + t2 * (dist[0] + t2 * (dist[1] + t2 * (dist[2] + t2 * dist[3]))))  # Kannala-Brandt
+            s = rd / r if r > 1e-12 else 1.0
+            xd, yd = x * s, y * s
         else:
-            uv = cv2.projectPoints(X, self.rvec, self.tvec, self.K, self.dist)[0].reshape(-1, 2)
-        pc = X[:, 0] @ self.R.T + self.t
-        n = np.sqrt((pc * pc).sum(1))
-        ok = (pc[:, 2] > self.cos_max * n) & (uv[:, 0] > -0.5 - margin) & (uv[:, 0] < self.w - 0.5 + margin)
-        ok &= (uv[:, 1] > -0.5 - margin) & (uv[:, 1] < self.h - 0.5 + margin)
-        uv[~ok] = np.nan
-        return uv
+            radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+            xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+            yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        u, v = fx * xd + cx, fy * yd + cy
+        if -0.5 - margin < u < w - 0.5 + margin and -0.5 - margin < v < h - 0.5 + margin:
+            uv[i, 0], uv[i, 1] = u, v
+    return uv
 
 
 def associate(predicted: np.ndarray, blobs: np.ndarray, gate: float) -> np.ndarray:
     """Assign blobs to predicted marker positions, each blob at most once.
 
     predicted: (M, 2) predicted pixels (NaN rows = not visible); blobs:
-    (N, 2) pixels; gate: max distance (px). Returns (M,) blob index or -1.
-    Nearest neighbour when unambiguous; Hungarian on the gated costs when
-    two predictions want the same blob.
+    (N, 2+) pixels; gate: max distance (px). Returns (M,) blob index or -1.
+    Nearest neighbour when unambiguous; minimum total squared distance
+    (Hungarian) over the gated pairs when two predictions want the same blob
+    or one prediction has two blobs inside its gate.
     """
     M = len(predicted)
-    out = np.full(M, -1, dtype=np.int64)
     if M == 0 or len(blobs) == 0:
-        return out
-    d2 = ((predicted[:, None, :] - blobs[None, :, :2]) ** 2).sum(-1)  # (M, N); NaN for invisible
-    d2 = np.where(np.isfinite(d2), d2, np.inf)
-    g2 = gate * gate
-    best = np.argmin(d2, axis=1)
-    ok = d2[np.arange(M), best] < g2
-    cand = best[ok]
-    # ambiguous: a blob wanted twice, or a prediction with a second blob inside the gate
-    inside = d2 < g2
-    ambiguous = bool((inside.sum(axis=1) > 1).any()) or (len(cand) > 1 and int(np.bincount(cand).max()) > 1)
+        return np.full(M, -1, dtype=np.int64)
+    return _associate(np.ascontiguousarray(predicted, dtype=np.float64), np.ascontiguousarray(blobs[:, :2], dtype=np.float64),
+                      float(gate) * float(gate))
+
+
+@njit
+def _associate(pred, blobs, g2):
+    M, N = pred.shape[0], blobs.shape[0]
+    d2 = np.empty((M, N))
+    for m in range(M):
+        for n in range(N):
+            dx, dy = pred[m, 0] - blobs[n, 0], pred[m, 1] - blobs[n, 1]
+            d2[m, n] = dx * dx + dy * dy  # NaN (invisible) fails every `< g2`
+    out = np.full(M, -1, dtype=np.int64)
+    taken = np.zeros(N, dtype=np.bool_)
+    ambiguous = False
+    for m in range(M):
+        inside = 0
+        for n in range(N):
+            if d2[m, n] < g2:
+                inside += 1
+                out[m] = n
+        if inside > 1 or (inside == 1 and taken[out[m]]):
+            ambiguous = True
+            break
+        if inside == 1:
+            taken[out[m]] = True
     if not ambiguous:
-        out[ok] = cand
         return out
-    rows = np.nonzero(inside.any(axis=1))[0]
-    cols = np.nonzero(inside.any(axis=0))[0]
-    sub = d2[np.ix_(rows, cols)]
-    big = g2 * 1e3
-    cost = np.where(sub < g2, sub, big)
-    r, c = linear_sum_assignment(cost)
-    keep = cost[r, c] < g2
-    out[rows[r[keep]]] = cols[c[keep]]
+    # Hungarian on the rows and columns that have a pair inside the gate
+    rows = np.array([m for m in range(M) if (d2[m] < g2).any()])
+    cols = np.array([n for n in range(N) if (d2[:, n] < g2).any()])
+    cost = np.empty((len(rows), len(cols)))
+    for i in range(len(rows)):
+        for j in range(len(cols)):
+            c = d2[rows[i], cols[j]]
+            cost[i, j] = c if c < g2 else g2 * 1e3
+    out[:] = -1
+    if len(rows) <= len(cols):
+        col_of = min_cost_assignment(cost)
+        for i in range(len(rows)):
+            if cost[i, col_of[i]] < g2:
+                out[rows[i]] = cols[col_of[i]]
+    else:
+        row_of = min_cost_assignment(cost.T.copy())
+        for j in range(len(cols)):
+            if cost[row_of[j], j] < g2:
+                out[rows[row_of[j]]] = cols[j]
     return out
+
+
+@njit
+def min_cost_assignment(C: np.ndarray) -> np.ndarray:
+    """Rectangular assignment problem, compiled: C (n, m) finite costs, n <= m.
+
+    Returns the column (n,) of each row that minimises the total cost
+    (Hungarian method with potentials, shortest augmenting paths, O(n^2 m)).
+    """
+    n, m = C.shape
+    u = np.zeros(n + 1)
+    v = np.zeros(m + 1)
+    match = np.zeros(m + 1, dtype=np.int64)  # row (1-based) assigned to column j; 0 = free
+    way = np.zeros(m + 1, dtype=np.int64)
+    for i in range(1, n + 1):
+        match[0] = i
+        j0 = 0
+        minv = np.full(m + 1, np.inf)
+        used = np.zeros(m + 1, dtype=np.bool_)
+        while True:
+            used[j0] = True
+            i0 = match[j0]
+            delta = np.inf
+            j1 = 0
+            for j in range(1, m + 1):
+                if not used[j]:
+                    cur = C[i0 - 1, j - 1] - u[i0] - v[j]
+                    if cur < minv[j]:
+                        minv[j] = cur
+                        way[j] = j0
+                    if minv[j] < delta:
+                        delta = minv[j]
+                        j1 = j
+            for j in range(m + 1):
+                if used[j]:
+                    u[match[j]] += delta
+                    v[j] -= delta
+                else:
+                    minv[j] -= delta
+            j0 = j1
+            if match[j0] == 0:
+                break
+        while j0 != 0:  # flip the augmenting path
+            j1 = way[j0]
+            match[j0] = match[j1]
+            j0 = j1
+    col_of = np.full(n, -1, dtype=np.int64)
+    for j in range(1, m + 1):
+        if match[j] != 0:
+            col_of[match[j] - 1] = j - 1
+    return col_of
 
 
 def triangulate(
@@ -142,40 +250,87 @@ def triangulate(
     Returns points (P, 3) (NaN with fewer than 2 views), rms residual (P,)
     px, n_views (P,).
     """
-    P, V = xn.shape[:2]
-    valid = ~np.isnan(xn[..., 0])  # (P, V)
-    n_views = valid.sum(1)
-    x = np.where(valid[..., None], xn, 0.0)
-    # rows: (R0 - u R2) . X = -(t0 - u t2), same for v; A (P, V, 2, 3), b (P, V, 2)
-    A = R[None, :, :2, :] - x[..., None] * R[None, :, 2:3, :]
-    b = x * t[None, :, 2:3] - t[None, :, :2]
-    if offsets is not None:
-        b = b - (A * offsets[:, :, None, :]).sum(-1)
-    A2 = A.reshape(P, 2 * V, 3)
-    b2 = b.reshape(P, 2 * V)
-    R2 = R[:, 2, :]  # (V, 3)
-    w = valid * f[None, :]  # weight f / z, z = 1 to start
-    few = n_views < 2
-    for _ in range(iterations):
-        ww = np.repeat(w, 2, axis=1)  # (P, 2V)
-        Aw = A2 * ww[..., None]
-        AwT = Aw.transpose(0, 2, 1)
-        N = AwT @ Aw
-        rhs = AwT @ (b2 * ww)[..., None]
-        if few.any():
-            N[few] = np.eye(3)
-        X = np.linalg.solve(N, rhs)[..., 0]
-        z = X @ R2.T + t[None, :, 2]  # (P, V)
-        if offsets is not None:
-            z = z + (offsets * R2[None]).sum(-1)
-        w = valid * f[None, :] / np.maximum(z, 1e-6)
-    r = (A2 @ X[..., None])[..., 0] - b2  # z * (u_proj - u), (P, 2V)
-    r = r * np.repeat(w, 2, axis=1)  # pixels
-    ss = (r * r).sum(1)
-    rms = np.sqrt(ss / np.maximum(n_views, 1))
-    if few.any():
-        X[few] = np.nan
-        rms[few] = np.nan
+    xn = np.ascontiguousarray(xn, dtype=np.float64)
+    off = _NO_OFFSETS if offsets is None else np.ascontiguousarray(offsets, dtype=np.float64)
+    return triangulate_irls(xn, np.ascontiguousarray(R, dtype=np.float64), np.ascontiguousarray(t, dtype=np.float64),
+                        np.ascontiguousarray(f, dtype=np.float64), off, offsets is not None, int(iterations))
+
+
+_NO_OFFSETS = np.zeros((0, 0, 3))
+
+
+@njit
+def triangulate_irls(xn, R, t, f, offsets, has_offsets, iterations):
+    """Compiled core of `triangulate` (same arrays; offsets (P, V, 3) read only if has_offsets)."""
+    # Each view gives two linear equations (R0 - u R2) . X = u t2 - t0 (and v), weighted
+    # by f / depth so that residuals are pixels; the depth comes from the previous
+    # solution (1 to start), which turns the algebraic error into the reprojection error.
+    P, V = xn.shape[0], xn.shape[1]
+    X = np.full((P, 3), np.nan)
+    rms = np.full(P, np.nan)
+    n_views = np.zeros(P, dtype=np.int64)
+    A = np.empty((V, 2, 3))
+    b = np.empty((V, 2))
+    w = np.empty(V)
+    seen = np.empty(V, dtype=np.bool_)
+    for p in range(P):
+        n = 0
+        for v in range(V):
+            seen[v] = not np.isnan(xn[p, v, 0])
+            if not seen[v]:
+                continue
+            n += 1
+            for j in range(2):
+                u = xn[p, v, j]
+                bj = u * t[v, 2] - t[v, j]
+                for k in range(3):
+                    A[v, j, k] = R[v, j, k] - u * R[v, 2, k]
+                    if has_offsets:
+                        bj -= A[v, j, k] * offsets[p, v, k]
+                b[v, j] = bj
+            w[v] = f[v]
+        n_views[p] = n
+        if n < 2:
+            continue
+        x0 = x1 = x2 = 0.0
+        for _ in range(iterations):
+            n00 = n01 = n02 = n11 = n12 = n22 = r0 = r1 = r2 = 0.0
+            for v in range(V):
+                if not seen[v]:
+                    continue
+                ww = w[v] * w[v]
+                for j in range(2):
+                    a0, a1, a2, bj = A[v, j, 0], A[v, j, 1], A[v, j, 2], b[v, j]
+                    n00 += ww * a0 * a0
+                    n01 += ww * a0 * a1
+                    n02 += ww * a0 * a2
+                    n11 += ww * a1 * a1
+                    n12 += ww * a1 * a2
+                    n22 += ww * a2 * a2
+                    r0 += ww * a0 * bj
+                    r1 += ww * a1 * bj
+                    r2 += ww * a2 * bj
+            # symmetric 3x3 solve by the adjugate
+            c00, c01, c02 = n11 * n22 - n12 * n12, n02 * n12 - n01 * n22, n01 * n12 - n02 * n11
+            c11, c12, c22 = n00 * n22 - n02 * n02, n01 * n02 - n00 * n12, n00 * n11 - n01 * n01
+            det = n00 * c00 + n01 * c01 + n02 * c02
+            x0 = (c00 * r0 + c01 * r1 + c02 * r2) / det
+            x1 = (c01 * r0 + c11 * r1 + c12 * r2) / det
+            x2 = (c02 * r0 + c12 * r1 + c22 * r2) / det
+            for v in range(V):
+                if seen[v]:
+                    z = R[v, 2, 0] * x0 + R[v, 2, 1] * x1 + R[v, 2, 2] * x2 + t[v, 2]
+                    if has_offsets:
+                        z += R[v, 2, 0] * offsets[p, v, 0] + R[v, 2, 1] * offsets[p, v, 1] + R[v, 2, 2] * offsets[p, v, 2]
+                    w[v] = f[v] / max(z, 1e-6)
+        ss = 0.0
+        for v in range(V):
+            if seen[v]:
+                for j in range(2):
+                    r = (A[v, j, 0] * x0 + A[v, j, 1] * x1 + A[v, j, 2] * x2 - b[v, j]) * w[v]  # pixels
+                    ss += r * r
+        X[p, 0], X[p, 1], X[p, 2] = x0, x1, x2
+        rms[p] = math.sqrt(ss / n)
     return X, rms, n_views
 
 

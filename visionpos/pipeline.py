@@ -83,25 +83,21 @@ The output rate is the server's (tick() is called by it).
 
 from __future__ import annotations
 
+import logging
 import math
+import threading
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from visionpos.config import ArenaConfig, ConfigError, Section
-from visionpos.matching import Projector, associate, match_unlabeled, triangulate, undistort_points
+from visionpos.jit import COMPILED, cross3, dot3, matmul3, matmul3_bt, matvec3, njit
+from visionpos.matching import Projector, triangulate_irls, associate, match_unlabeled, undistort_points
 from visionpos.messages import BlobFrame, BodyState, LoosePoints
-from visionpos.rigidbody import BodyModel, identify, kabsch_batch, layout_ambiguities
+from visionpos.rigidbody import BodyModel, identify, kabsch_weighted, layout_ambiguities
 from visionpos.timealign import MODES, MOTION_COMPENSATED, Group, TimeAligner
-from visionpos.tracking import BodyFilter, KalmanSettings, matrix_to_quat, pose_covariance, velocity_covariance
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of (N, 3) arrays (np.cross is slow on small arrays)."""
-    return np.column_stack(
-        [a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2], a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]]
-    )
+from visionpos.tracking import BodyFilter, KalmanSettings, rodrigues, matrix_to_quat, pose_covariance, velocity_covariance
 
 
 _I3 = np.eye(3)
@@ -262,31 +258,281 @@ class _Track:
     px_var: float = 0.25  # running per-axis pixel noise variance (px^2) from triangulation residuals
 
 
+@njit
+def _inv3(A: np.ndarray) -> np.ndarray:
+    """Inverse of a 3x3 matrix by the adjugate."""
+    C = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            i1, i2, j1, j2 = (j + 1) % 3, (j + 2) % 3, (i + 1) % 3, (i + 2) % 3
+            C[i, j] = A[i1, j1] * A[i2, j2] - A[i1, j2] * A[i2, j1]  # cofactor of A[j, i]
+    return C / (A[0, 0] * C[0, 0] + A[0, 1] * C[1, 0] + A[0, 2] * C[2, 0])
+
+
+@njit
 def pose_measurement_cov(markers_world: np.ndarray, origin: np.ndarray, var: float) -> np.ndarray:
     """Covariance (6, 6) over [p, world rotation vector] of a Kabsch pose.
 
-    markers_world: (n, 3) fitted marker positions; origin: (3,) body origin;
-    var: per-marker, per-axis noise variance (m^2). Small-error, equal weights.
+    markers_world: (n, 3) fitted marker positions, n >= 3 not collinear;
+    origin: (3,) body origin; var: per-marker, per-axis noise variance (m^2).
+    Small-error, equal weights.
     """
-    c = markers_world.mean(axis=0)
-    r = markers_world - c
-    n = len(r)
-    J = (r * r).sum() * np.eye(3) - r.T @ r  # inertia-like sum (|r|^2 I - r r^T)
-    Crot = var * np.linalg.inv(J)
+    n = markers_world.shape[0]
+    c = np.zeros(3)
+    for m in range(n):
+        c += markers_world[m]
+    c /= n
+    J = np.zeros((3, 3))  # inertia-like sum (|r|^2 I - r r^T)
+    for m in range(n):
+        r = markers_world[m] - c
+        rr = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+        for i in range(3):
+            J[i, i] += rr
+            for j in range(3):
+                J[i, j] -= r[i] * r[j]
+    Crot = var * _inv3(J)
     o = origin - c
     ox = np.array([[0.0, -o[2], o[1]], [o[2], 0.0, -o[0]], [-o[1], o[0], 0.0]])
+    oxC = matmul3(ox, Crot)
     C = np.empty((6, 6))
-    C[0:3, 0:3] = var / n * np.eye(3) + ox @ Crot @ ox.T
-    C[0:3, 3:6] = -ox @ Crot
-    C[3:6, 0:3] = C[0:3, 3:6].T
+    C[0:3, 0:3] = matmul3_bt(oxC, ox)
+    for i in range(3):
+        C[i, i] += var / n
+    C[0:3, 3:6] = -oxC
+    C[3:6, 0:3] = -oxC.T
     C[3:6, 3:6] = Crot
     return C
+
+
+@njit
+def _marker_motion(x, R_nom, state_dt, sizes, local):
+    """Marker positions, velocities and accelerations (P, 3) each, world, of B bodies.
+
+    x (B, 15), R_nom (B, 3, 3): filter states, predicted by state_dt (B,) s;
+    sizes (B,): marker counts; local (P, 3): body-frame markers, body by body.
+    Includes the rotation's w x r and w x (w x r) terms.
+    """
+    P = local.shape[0]
+    X0 = np.empty((P, 3))
+    V = np.empty((P, 3))
+    A = np.empty((P, 3))
+    q = 0
+    for b in range(sizes.shape[0]):
+        h = state_dt[b]
+        p = x[b, 0:3] + x[b, 3:6] * h + x[b, 6:9] * (0.5 * h * h)
+        v = x[b, 3:6] + x[b, 6:9] * h
+        w = x[b, 12:15]
+        Rb = matmul3(rodrigues(w * h), R_nom[b])
+        for _ in range(sizes[b]):
+            r = matvec3(Rb, local[q])  # lever arm, world
+            wxr = cross3(w, r)
+            X0[q] = p + r
+            V[q] = v + wxr
+            A[q] = x[b, 6:9] + cross3(w, wxr)
+            q += 1
+    return X0, V, A
+
+
+@njit
+def _image_nis(Xw, pred, px, a, body, exp_px, exp_pos, R2, t2, f):
+    """One frame's prediction residual per body over its expected size, per degree of freedom.
+
+    Xw (P, 3) predicted markers, pred (P, 2) their pixels, px (N, 2) blobs, a (P,)
+    associated blob or -1, body (P,) body of each row; per body (B,): pixel noise
+    variance exp_px and position variance exp_pos; R2 (3,), t2, f: the camera's
+    optical-axis row, its translation and focal length (depth -> pixels).
+    Returns mean NIS (B,) and the number of markers behind it (B,).
+    """
+    B = exp_px.shape[0]
+    nis = np.zeros(B)
+    n = np.zeros(B, dtype=np.int64)
+    for q in range(a.shape[0]):
+        j = a[q]
+        if j < 0:
+            continue
+        b = body[q]
+        z = max(Xw[q, 0] * R2[0] + Xw[q, 1] * R2[1] + Xw[q, 2] * R2[2] + t2, 0.1)
+        du, dv = px[j, 0] - pred[q, 0], px[j, 1] - pred[q, 1]
+        nis[b] += (du * du + dv * dv) / (2.0 * (exp_px[b] + f * f * exp_pos[b] / (z * z)))
+        n[b] += 1
+    for b in range(B):
+        if n[b] > 0:
+            nis[b] /= n[b]
+    return nis, n
+
+
+@njit
+def _tracked_measurements(xn, R, t, f, dt, x, R_nom, state_dt, sv2, sw2, compensate, sizes, local,
+                          max_residual_px, identify_tolerance, compensate_max_vel_var):
+    """Pose measurements of the tracked bodies from one fusion of V views (compiled).
+
+    xn (P, V, 2): normalised observation of each tracked marker row (NaN = none);
+    R (V, 3, 3), t (V, 3), f (V,): the views; dt (V,): view capture - reference (s).
+    Per body (B): filter state x (B, 15), R_nom (B, 3, 3), state_dt (B,) reference -
+    filter time (s), sv2 / sw2 (B,) velocity / rate variance; sizes (B,) marker
+    counts; local (P, 3) body-frame markers of the rows. compensate: motion
+    compensation on (velocity-gated per body).
+
+    Returns per body: R (B, 3, 3), t (B, 3), markers used (B,), fit residual sum
+    of squares (B,), cameras seeing it (B,), pixel-variance sample (B,), unit-variance
+    pose covariance (B, 6, 6), motion variance added to position / rotation (B,),
+    fit tolerance (B,); and the number of points refused by the residual gate.
+    """
+    P, V = xn.shape[0], xn.shape[1]
+    B = sizes.shape[0]
+    dt2_mean = 0.0
+    dt_max = 0.0
+    centre = np.zeros(3)
+    f_mean = 0.0
+    for v in range(V):
+        dt2_mean += dt[v] * dt[v] / V
+        dt_max = max(dt_max, abs(dt[v]))
+        f_mean += f[v] / V
+        for i in range(3):
+            for j in range(3):
+                centre[i] -= R[v, j, i] * t[v, j] / V  # mean camera centre: a px-per-metre scale
+    vel = np.zeros((B, 3))
+    acc = np.zeros((B, 3))
+    rate = np.zeros((B, 3))
+    Rb = np.empty((B, 3, 3))
+    var_p = np.empty(B)
+    var_r = np.empty(B)
+    gate = np.empty(B)
+    fit_tol = np.empty(B)
+    moving = False
+    for b in range(B):
+        h = state_dt[b]
+        p = x[b, 0:3] + x[b, 3:6] * h + x[b, 6:9] * (0.5 * h * h)
+        v = x[b, 3:6] + x[b, 6:9] * h
+        w = x[b, 12:15]
+        Rb[b] = matmul3(rodrigues(w * h), R_nom[b])
+        if compensate and sv2[b] < compensate_max_vel_var:
+            vel[b], acc[b], rate[b] = v, x[b, 6:9], w
+            moving = moving or np.any(v != 0.0) or np.any(x[b, 6:9] != 0.0) or np.any(w != 0.0)
+            var_p[b], var_r[b] = dt2_mean * sv2[b], dt2_mean * sw2[b]
+            spread = 2.0 * math.sqrt(sv2[b])
+        else:
+            # velocity not known well enough (or naive mode): compensating with a wrong one
+            # would bias the measurement towards it (a feedback loop); the views are treated
+            # as simultaneous and the motion between them counts as measurement noise
+            vv, ww = dot3(v, v), dot3(w, w)
+            var_p[b], var_r[b] = dt2_mean * (vv + sv2[b]), dt2_mean * (ww + sw2[b])
+            spread = math.sqrt(vv) + 2.0 * math.sqrt(sv2[b])
+        d = p - centre
+        # residual gate widened by the motion the views may still disagree by
+        gate[b] = max_residual_px + f_mean * spread * dt_max / max(math.sqrt(dot3(d, d)), 0.5)
+        fit_tol[b] = identify_tolerance + spread * dt_max  # the rigid fit may disagree as much
+    body = np.empty(P, dtype=np.int64)
+    k = 0
+    for b in range(B):
+        body[k : k + sizes[b]] = b
+        k += sizes[b]
+    has_offsets = compensate and dt_max > 0.0 and moving
+    offsets = np.zeros((P if has_offsets else 0, V, 3))
+    if has_offsets:
+        for q in range(P):
+            b = body[q]
+            r = matvec3(Rb[b], local[q])  # lever arm, world
+            wxr = cross3(rate[b], r)
+            u1 = vel[b] + wxr
+            u2 = 0.5 * (acc[b] + cross3(rate[b], wxr))
+            for v in range(V):  # marker displacement from ref to the view's capture time (2nd order)
+                offsets[q, v] = u1 * dt[v] + u2 * (dt[v] * dt[v])
+    X, rms, nv = triangulate_irls(xn, R, t, f, offsets, has_offsets, 2)
+    w_fit = np.zeros(P)
+    refused = 0
+    for q in range(P):
+        if nv[q] >= 2:
+            if rms[q] < gate[body[q]]:
+                w_fit[q] = nv[q]  # more rays, better-conditioned point
+            else:
+                refused += 1
+    Rk = np.empty((B, 3, 3))
+    tk = np.empty((B, 3))
+    count = np.zeros(B, dtype=np.int64)
+    res2 = np.zeros(B)
+    n_cams = np.zeros(B, dtype=np.int64)
+    px_var = np.zeros(B)
+    cov = np.full((B, 6, 6), np.nan)
+    k = 0
+    for b in range(B):
+        s = slice(k, k + sizes[b])
+        Rk[b], tk[b] = kabsch_weighted(local[s], X[s], w_fit[s])
+        for v in range(V):
+            for q in range(k, k + sizes[b]):
+                if not np.isnan(xn[q, v, 0]):
+                    n_cams[b] += 1
+                    break
+        fitted = np.empty((sizes[b], 3))
+        n = 0
+        for q in range(k, k + sizes[b]):
+            if w_fit[q] > 0:
+                fitted[n] = matvec3(Rk[b], local[q]) + tk[b]
+                e = X[q] - fitted[n]
+                res2[b] += dot3(e, e)
+                # (the fitted point absorbs 3 of the 2 nv residual dof: E[rms^2] = sigma^2 (2 nv - 3) / nv)
+                px_var[b] += rms[q] * rms[q] * nv[q] / (2.0 * nv[q] - 3.0)
+                n += 1
+        count[b] = n
+        if n >= 3:
+            px_var[b] /= n
+            cov[b] = pose_measurement_cov(fitted[:n], tk[b], 1.0)
+        k += sizes[b]
+    return Rk, tk, count, res2, n_cams, px_var, cov, var_p, var_r, fit_tol, refused
+
+
+log = logging.getLogger(__name__)
+_warm = [False]  # kernels compiled (or loaded) in this process
+
+
+def warm_up_kernels(arena: ArenaConfig, settings: dict[str, Any] | None = None) -> None:
+    """Compile every kernel of the fusion path (or load it from numba's disk cache) now.
+
+    The first compilation after an install takes tens of seconds; done lazily
+    it would stall the server on its first packets. A throwaway pipeline over
+    a synthetic hover of the first body, in front of the arena's cameras,
+    runs the real code path, so each kernel meets exactly the argument types
+    it will see. With no body visible to two cameras the rest compiles on
+    first use.
+    """
+    if not arena.bodies:
+        return
+    cams = list(arena.cameras)
+    # the point closest to every optical axis: where the cameras look
+    A = np.zeros((3, 3))
+    rhs = np.zeros(3)
+    for c in cams:
+        d = c.R[2]  # optical axis, world
+        M = np.eye(3) - np.outer(d, d)
+        A += M
+        rhs += M @ (-c.R.T @ c.t)
+    try:
+        centre = np.linalg.solve(A, rhs)
+    except np.linalg.LinAlgError:
+        return
+    markers = np.asarray(arena.bodies[0].markers, dtype=np.float64) + centre
+    pipe = FusionPipeline(arena, settings, warm_up=False)
+    notice = threading.Timer(2.0, lambda: log.warning(
+        "compiling the fusion kernels: the first run after installing takes about half a minute; "
+        "later runs load them from numba's cache"))
+    notice.daemon = True
+    notice.start()
+    try:
+        for k in range(12):
+            for i, c in enumerate(cams):
+                uv = Projector(c).project(markers)
+                uv = uv[np.isfinite(uv[:, 0])]
+                blobs = np.column_stack([uv, np.full(len(uv), 12.0), np.full(len(uv), 200.0)]).astype(np.float32)
+                pipe.push(BlobFrame(c.id, k, 1_000_000_000 + k * 10_000_000 + i * 1_000_000, blobs))
+            pipe.tick(1_000_000_000 + k * 10_000_000 + 9_000_000)
+    finally:
+        notice.cancel()
 
 
 class FusionPipeline:
     """Asynchronous multi-camera fusion into filtered rigid-body poses (see module docstring)."""
 
-    def __init__(self, arena: ArenaConfig, settings: dict[str, Any] | None = None):
+    def __init__(self, arena: ArenaConfig, settings: dict[str, Any] | None = None, warm_up: bool = True):
         self.arena = arena
         if len(arena.cameras) < 2:
             raise ConfigError(arena.source, "cameras", f"fusion needs at least 2 cameras, the arena has "
@@ -305,7 +551,6 @@ class FusionPipeline:
         self.P = int(self._off[-1])
         self._marker_body = np.repeat(np.arange(len(self.models)), sizes)
         self._marker_local = np.concatenate([m.markers for m in self.models]) if self.models else np.zeros((0, 3))
-        self._mmax = max(sizes) if sizes else 0
         # cameras: stacked poses for vectorised fusion
         self.cameras = {c.id: c for c in arena.cameras}
         self._cam_index = {c.id: i for i, c in enumerate(arena.cameras)}
@@ -314,8 +559,7 @@ class FusionPipeline:
         self._f = np.array([np.sqrt(c.model.fx * c.model.fy) for c in arena.cameras])
         self._proj = {c.id: Projector(c) for c in arena.cameras}
         self._rows_cache: dict[tuple[int, ...], np.ndarray] = {}
-        self._pad_cache: dict[tuple[int, ...], tuple[np.ndarray, ...]] = {}
-        self._layout_cache: dict[tuple[int, bytes], tuple[np.ndarray, np.ndarray, int]] = {}
+        self._layout_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.aligner = TimeAligner(
             st.time_alignment,
             st.window_ns,
@@ -353,6 +597,9 @@ class FusionPipeline:
             "filter_resets": 0,
         }
         self._per_camera: dict[int, int] = {}
+        if warm_up and COMPILED and not _warm[0]:
+            _warm[0] = True
+            warm_up_kernels(arena, settings)
 
     # ------------------------------------------------------------------ input
     def push(self, frame: BlobFrame) -> None:
@@ -391,33 +638,6 @@ class FusionPipeline:
         self.aligner.remove(camera_id)
 
     # ------------------------------------------------------------ association
-    def _pose_cov(self, b: int, sel: np.ndarray, R: np.ndarray, var: float) -> np.ndarray:
-        """pose_measurement_cov for body b's markers `sel` (M,) bool at rotation R, with the
-        layout part (inverse inertia-like sum, centroid) cached per marker subset."""
-        key = (b, sel.tobytes())
-        lay = self._layout_cache.get(key)
-        if lay is None:
-            m = self.models[b].markers[sel]
-            c = m.mean(axis=0)
-            r = m - c
-            Jb = (r * r).sum() * np.eye(3) - r.T @ r
-            lay = (np.linalg.inv(Jb), -c, len(m))
-            self._layout_cache[key] = lay
-        Jinv, o_body, n = lay
-        Crot = var * (R @ Jinv @ R.T)
-        o = R @ o_body  # body origin relative to the marker centroid, world frame
-        ox = np.array([[0.0, -o[2], o[1]], [o[2], 0.0, -o[0]], [-o[1], o[0], 0.0]])
-        oxC = ox @ Crot
-        C = np.empty((6, 6))
-        C[0:3, 0:3] = oxC @ ox.T
-        C[0, 0] += var / n
-        C[1, 1] += var / n
-        C[2, 2] += var / n
-        C[0:3, 3:6] = -oxC
-        C[3:6, 0:3] = -oxC.T
-        C[3:6, 3:6] = Crot
-        return C
-
     def _rows(self, bodies: list[int]) -> np.ndarray:
         """Global marker rows of `bodies` (cached per body set)."""
         key = tuple(bodies)
@@ -438,25 +658,25 @@ class FusionPipeline:
         key = tuple(bodies)
         c = self._pred_cache
         if c is None or c[0] != key or c[1] != self._fusion_count:
-            _, slot, src, _, _ = self._layout(bodies)
+            rows = self._rows(bodies)
             t_c = max(self.tracks[b].filter.t_ns for b in bodies)
-            B = len(bodies)
-            Rs = np.empty((B, 3, 3))
-            kin = np.empty((B, 4, 3))  # p, v, a, w
-            for i, b in enumerate(bodies):
-                fl = self.tracks[b].filter
-                kin[i, 0], Rs[i], kin[i, 1], kin[i, 3] = fl.pose_at(t_c)
-                kin[i, 2] = fl.kf.x[6:9, 0]
-            r = np.einsum("bij,bmj->bmi", Rs, src).reshape(-1, 3)[slot]  # lever arms, world
-            body = self._layout(bodies)[4]
-            w = kin[body, 3]
-            wxr = _cross(w, r)
-            X0 = kin[body, 0] + r
-            V = kin[body, 1] + wxr
-            A = kin[body, 2] + _cross(w, wxr)
+            x, R_nom, state_dt = self._filter_states(bodies, t_c)
+            X0, V, A = _marker_motion(x, R_nom, state_dt, self._layout(bodies)[1], self._marker_local[rows])
             c = self._pred_cache = (key, self._fusion_count, t_c, X0, V, A)
         dt = (t_ns - c[2]) * 1e-9
         return c[3] + dt * (c[4] + (0.5 * dt) * c[5])
+
+    def _filter_states(self, bodies: list[int], t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Filter states x (B, 15), nominal rotations (B, 3, 3) and t_ns - filter time (B,) s."""
+        B = len(bodies)
+        x = np.empty((B, 15))
+        R_nom = np.empty((B, 3, 3))
+        state_dt = np.empty(B)
+        for i, b in enumerate(bodies):
+            fl = self.tracks[b].filter
+            x[i], R_nom[i] = fl.x, fl.R_nom
+            state_dt[i] = (t_ns - fl.t_ns) * 1e-9
+        return x, R_nom, state_dt
 
     def _observe(self, cam: int, t_ns: int, px: np.ndarray) -> _Obs:
         camera = self.cameras[cam]
@@ -481,28 +701,19 @@ class FusionPipeline:
         """Per tracked body, this frame's prediction residual over its expected size -> the filter's
         manoeuvre detector. Expected: the body's pixel noise (running mean of its triangulation
         residuals) plus the filter's position uncertainty seen from this camera."""
-        hit = a >= 0
-        if hit.sum() < 2:
-            return
         v = self._cam_index[cam]
         B = len(tracked)
-        body = self._layout(tracked)[4]  # (P,) index into `tracked` of each marker row
         exp_px = np.empty(B)
         exp_pos = np.empty(B)
         for i, b in enumerate(tracked):
             tr = self.tracks[b]
-            P = tr.filter.kf.P
+            P = tr.filter.P
             exp_px[i] = tr.px_var
             exp_pos[i] = (P[0, 0] + P[1, 1] + P[2, 2]) / 3.0
-        bh = body[hit]
-        z = Xw[hit] @ self._R[v, 2] + self._t[v, 2]
-        d2 = ((px[a[hit]] - pred[hit]) ** 2).sum(1)
-        exp = exp_px[bh] + self._f[v] ** 2 * exp_pos[bh] / np.maximum(z, 0.1) ** 2
-        n = np.bincount(bh, minlength=B)
-        r = np.bincount(bh, d2 / (2.0 * exp), minlength=B)
+        nis, n = _image_nis(Xw, pred, px, a, self._layout(tracked)[2], exp_px, exp_pos, self._R[v, 2], self._t[v, 2], self._f[v])
         for i, b in enumerate(tracked):
             if n[i] >= 2:
-                self.tracks[b].filter.report_image_nis(t_ns, float(r[i] / n[i]))
+                self.tracks[b].filter.report_image_nis(t_ns, float(nis[i]))
 
     # ----------------------------------------------------------------- fusion
     def _fuse(self, g: Group) -> None:
@@ -531,87 +742,37 @@ class FusionPipeline:
                 tr.tracked = False
                 self._stats["lost"] += 1
 
-    def _layout(self, tracked: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """For a set of tracked bodies (cached): global marker rows (P,), their flat slot in a
-        (B, Mmax) padding, body-frame markers padded (B, Mmax, 3), marker counts (B,), and
-        for each marker row the index of its body in `tracked` (P,)."""
+    def _layout(self, tracked: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For a set of tracked bodies (cached): global marker rows (P,), marker counts (B,),
+        and for each marker row the index of its body in `tracked` (P,)."""
         key = tuple(tracked)
-        lay = self._pad_cache.get(key)
+        lay = self._layout_cache.get(key)
         if lay is None:
-            rows = self._rows(tracked)
-            sizes = np.array([self._off[b + 1] - self._off[b] for b in tracked])
-            slot = np.concatenate([i * self._mmax + np.arange(n) for i, n in enumerate(sizes)])
-            src = np.zeros((len(tracked) * self._mmax, 3))
-            src[slot] = self._marker_local[rows]
-            body = np.repeat(np.arange(len(tracked)), sizes)
-            lay = (rows, slot, src.reshape(len(tracked), self._mmax, 3), sizes, body)
-            self._pad_cache[key] = lay
+            sizes = np.array([self._off[b + 1] - self._off[b] for b in tracked], dtype=np.int64)
+            lay = (self._rows(tracked), sizes, np.repeat(np.arange(len(tracked)), sizes))
+            self._layout_cache[key] = lay
         return lay
 
     def _update_tracked(self, tracked, obs, cams, R, t, f, ref, compensate) -> None:
         st = self.settings
-        rows, slot, src, sizes, body_of_row = self._layout(tracked)
-        B, Mx = src.shape[:2]
+        rows, sizes, _ = self._layout(tracked)
+        B = len(tracked)
         xn = np.stack([o.marker_xn[rows] for o in obs], axis=1)  # (P, V, 2)
         dt = np.array([(o.capture_ns - ref) * 1e-9 for o in obs])  # (V,) view time - reference time
-        dt2_mean = float((dt * dt).mean())
-        dt_max = float(np.abs(dt).max())
-        centre = -np.einsum("vji,vj->i", R, t) / len(obs)  # mean camera centre: for a px-per-metre scale
-        f_mean = float(f.mean())
-        kin = np.zeros((B, 4, 3))  # per body: v, a, w (world), position
-        Rbs = np.empty((B, 3, 3))
-        var_p, var_r, gate, fit_tol = np.zeros(B), np.zeros(B), np.zeros(B), np.zeros(B)
+        x, R_nom, state_dt = self._filter_states(tracked, ref)
+        sv2 = np.empty(B)
+        sw2 = np.empty(B)
         for i, b in enumerate(tracked):
-            fl = self.tracks[b].filter
-            p, Rbs[i], v, wb = fl.pose_at(ref)
-            P = fl.kf.P
-            sv2 = (P[3, 3] + P[4, 4] + P[5, 5]) / 3.0
-            sw2 = (P[12, 12] + P[13, 13] + P[14, 14]) / 3.0
-            if compensate and sv2 < _COMPENSATE_MAX_VEL_STD**2:
-                kin[i, 0], kin[i, 1], kin[i, 2] = v, fl.kf.x[6:9, 0], wb
-                var_p[i], var_r[i] = dt2_mean * sv2, dt2_mean * sw2
-                spread = 2.0 * math.sqrt(sv2)
-            else:
-                # velocity not known well enough (or naive mode): compensating with a wrong one
-                # would bias the measurement towards it (a feedback loop); the views are treated
-                # as simultaneous and the motion between them counts as measurement noise
-                vv, ww = float(v @ v), float(wb @ wb)
-                var_p[i], var_r[i] = dt2_mean * (vv + sv2), dt2_mean * (ww + sw2)
-                spread = math.sqrt(vv) + 2.0 * math.sqrt(sv2)
-            kin[i, 3] = p
-            # residual gate widened by the motion the views may still disagree by
-            gate[i] = st.max_residual_px + f_mean * spread * dt_max / max(float(np.linalg.norm(p - centre)), 0.5)
-            fit_tol[i] = st.identify_tolerance + spread * dt_max  # the rigid fit may disagree as much
-        offsets = None
-        if compensate and dt_max > 0.0 and kin[:, :3].any():
-            body = body_of_row
-            r = np.einsum("pij,pj->pi", Rbs[body], self._marker_local[rows])  # marker lever arms, world
-            vel, acc, w = kin[body, 0], kin[body, 1], kin[body, 2]
-            wxr = _cross(w, r)
-            wxwxr = _cross(w, wxr)
-            # marker displacement from ref to each view's capture time (2nd order in dt)
-            offsets = (vel + wxr)[:, None, :] * dt[None, :, None] + 0.5 * (acc + wxwxr)[:, None, :] * (dt * dt)[None, :, None]
-        X, rms, nv = triangulate(xn, R, t, f, offsets)
-        good = (nv >= 2) & (rms < np.repeat(gate, sizes))
-        self._stats["rejected_residual"] += int(((nv >= 2) & ~good).sum())
-        # one batched Kabsch over all tracked bodies (padded; weight 0 = unused)
-        dst = np.zeros((B * Mx, 3))
-        dst[slot[good]] = X[good]
-        dst = dst.reshape(B, Mx, 3)
-        wts = np.zeros(B * Mx)
-        wts[slot] = np.where(good, nv, 0)  # more rays, better-conditioned point
-        wts = wts.reshape(B, Mx)
-        Rk, tk = kabsch_batch(src, dst, wts)
-        use = wts > 0
-        res = np.where(use[..., None], dst - (np.einsum("bij,bmj->bmi", Rk, src) + tk[:, None]), 0.0)
-        res2 = (res * res).sum(-1).sum(-1)  # (B,)
-        counts = use.sum(1)
-        seen = np.zeros((B * Mx, len(obs)), bool)
-        seen[slot] = ~np.isnan(xn[..., 0])
-        n_cams = seen.reshape(B, Mx, -1).any(1).sum(1)
+            P = self.tracks[b].filter.P
+            sv2[i] = (P[3, 3] + P[4, 4] + P[5, 5]) / 3.0
+            sw2[i] = (P[12, 12] + P[13, 13] + P[14, 14]) / 3.0
+        Rk, tk, counts, res2, n_cams, px_var, cov_unit, var_p, var_r, fit_tol, refused = _tracked_measurements(
+            xn, R, t, f, dt, x, R_nom, state_dt, sv2, sw2, bool(compensate), sizes, self._marker_local[rows],
+            st.max_residual_px, st.identify_tolerance, _COMPENSATE_MAX_VEL_STD**2,
+        )
+        self._stats["rejected_residual"] += int(refused)
         reuse = min(len(obs), self._max_reuse) if compensate else 1
         cap = max(o.capture_ns for o in obs)
-        k0 = np.concatenate([[0], np.cumsum(sizes)])
         for i, b in enumerate(tracked):
             tr = self.tracks[b]
             n = int(counts[i])
@@ -621,19 +782,14 @@ class FusionPipeline:
             if fit > fit_tol[i]:
                 self._stats["rejected_fit"] += 1
                 continue
-            sel = use[i, : sizes[i]]
-            self.last_raw[b] = (ref, tk[i].copy(), Rk[i].copy())
-            # pixel noise from the triangulation residuals of its markers (rms over views and axes)
-            # (the fitted point absorbs 3 of the 2 nv residual dof: E[rms^2] = sigma^2 (2 nv - 3) / nv)
-            rr = rms[k0[i] : k0[i] + sizes[i]][sel]
-            nvv = nv[k0[i] : k0[i] + sizes[i]][sel]
-            tr.px_var += 0.05 * (float((rr * rr * nvv / (2.0 * nvv - 3.0)).mean()) - tr.px_var)
-            # per-marker noise from the fit residual (3n - 6 degrees of freedom), averaged per body
-            s2 = float(res2[i]) / (3 * n - 6)
-            tr.marker_var += 0.05 * (s2 - tr.marker_var)
+            self.last_raw[b] = (ref, tk[i], Rk[i])
+            # pixel noise from the triangulation residuals of its markers; per-marker 3D noise
+            # from the fit residual (3n - 6 degrees of freedom); both running averages per body
+            tr.px_var += 0.05 * (float(px_var[i]) - tr.px_var)
+            tr.marker_var += 0.05 * (float(res2[i]) / (3 * n - 6) - tr.marker_var)
             var = max(tr.marker_var, st.marker_sigma**2)
             # reused frames: split their information over the fusions that share them
-            cov = self._pose_cov(b, sel, Rk[i], var * reuse)
+            cov = cov_unit[i] * (var * reuse)
             cov[0:3, 0:3] += _I3 * var_p[i]
             cov[3:6, 3:6] += _I3 * var_r[i]
             accepted, _ = tr.filter.update(ref, tk[i], Rk[i], cov)

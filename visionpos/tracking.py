@@ -1,4 +1,4 @@
-"""Kalman filter/predictor for one rigid body (filterpy), error-state in orientation.
+"""Kalman filter/predictor for one rigid body, error-state in orientation.
 
 State (15,): [p (3) m, v (3) m/s, a (3) m/s^2, dtheta (3) rad, w (3) rad/s],
 world frame. Position is a constant-acceleration model driven by white jerk;
@@ -9,10 +9,10 @@ by a constant angular rate w with white angular-acceleration noise.
 Why error-state: a rotation has 3 degrees of freedom but no global minimal
 parameterisation without singularities; keeping the nominal rotation outside
 the linear filter and estimating only a small error keeps the filter linear
-(filterpy's plain KalmanFilter does the work) and singularity-free. After
+(a plain linear Kalman filter does the work) and singularity-free. After
 every predict/update the error is folded into the nominal rotation and reset
 to zero, so dtheta always stays small. Prediction uses the same mechanism:
-filterpy's x = F x makes dtheta = w dt, which the fold turns into
+x = F x makes dtheta = w dt, which the fold turns into
 R_nom <- exp(w dt) R_nom.
 
 Why constant acceleration plus adaptive process noise: a drone's
@@ -42,49 +42,69 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
+
+from visionpos.jit import matmul3, matmul3_bt, njit
 
 NX = 15
-_POSE_IDX = np.array([0, 1, 2, 9, 10, 11])
-_H = np.zeros((6, NX))
-_H[0:3, 0:3] = np.eye(3)
-_H[3:6, 9:12] = np.eye(3)
-_POSE_IX = np.ix_(_POSE_IDX, _POSE_IDX)
-_I3 = np.eye(3)
+_POSE_IX = np.ix_([0, 1, 2, 9, 10, 11], [0, 1, 2, 9, 10, 11])
 _NIS_HIGH = 2.0  # averaged NIS/dof above this means the motion model lags
 _SCALE_DECAY_S = 0.2  # s, time constant of the process-noise scale's return to its floor
 
 
-def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
-    """Rodrigues: one rotation vector (3,) -> matrix (3, 3)."""
-    x, y, z = float(rv[0]), float(rv[1]), float(rv[2])
+@njit
+def rodrigues(rv: np.ndarray) -> np.ndarray:
+    """Compiled rotation vector (3,) float64 -> matrix (3, 3)."""
+    x, y, z = rv[0], rv[1], rv[2]
     th2 = x * x + y * y + z * z
     if th2 < 1e-16:
         a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
     else:
         th = math.sqrt(th2)
         a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
-    return np.array(
-        [
-            [1.0 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z],
-            [a * z + b * x * y, 1.0 - b * (x * x + z * z), -a * x + b * y * z],
-            [-a * y + b * x * z, a * x + b * y * z, 1.0 - b * (x * x + y * y)],
-        ]
-    )
+    R = np.empty((3, 3))
+    R[0, 0], R[0, 1], R[0, 2] = 1.0 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z
+    R[1, 0], R[1, 1], R[1, 2] = a * z + b * x * y, 1.0 - b * (x * x + z * z), -a * x + b * y * z
+    R[2, 0], R[2, 1], R[2, 2] = -a * y + b * x * z, a * x + b * y * z, 1.0 - b * (x * x + y * y)
+    return R
+
+
+@njit
+def _matrix_rotvec(R: np.ndarray) -> np.ndarray:
+    # through the unit quaternion (Shepperd): well conditioned at every angle, 180 deg included
+    m00, m01, m02 = R[0, 0], R[0, 1], R[0, 2]
+    m10, m11, m12 = R[1, 0], R[1, 1], R[1, 2]
+    m20, m21, m22 = R[2, 0], R[2, 1], R[2, 2]
+    tr = m00 + m11 + m22
+    if tr > 0.0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        qx, qy, qz, qw = (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s, 0.25 * s
+    elif m00 > m11 and m00 > m22:
+        s = 2.0 * math.sqrt(1.0 + m00 - m11 - m22)
+        qx, qy, qz, qw = 0.25 * s, (m01 + m10) / s, (m02 + m20) / s, (m21 - m12) / s
+    elif m11 > m22:
+        s = 2.0 * math.sqrt(1.0 + m11 - m00 - m22)
+        qx, qy, qz, qw = (m01 + m10) / s, 0.25 * s, (m12 + m21) / s, (m02 - m20) / s
+    else:
+        s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
+        qx, qy, qz, qw = (m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s
+    if qw < 0.0:
+        qx, qy, qz, qw = -qx, -qy, -qz, -qw
+    n = math.sqrt(qx * qx + qy * qy + qz * qz)
+    out = np.empty(3)
+    # angle / sin(angle / 2) -> 2 as the angle -> 0
+    k = 2.0 * math.atan2(n, qw) / n if n > 1e-300 else 2.0 / qw
+    out[0], out[1], out[2] = k * qx, k * qy, k * qz
+    return out
+
+
+def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
+    """Rodrigues: one rotation vector (3,) -> matrix (3, 3)."""
+    return rodrigues(np.ascontiguousarray(rv, dtype=np.float64))
 
 
 def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) -> rotation vector (3,) (angle < pi)."""
-    c = min(1.0, max(-1.0, (R[0, 0] + R[1, 1] + R[2, 2] - 1.0) * 0.5))
-    th = math.acos(c)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if th < 1e-6:
-        return 0.5 * w
-    if th > math.pi - 1e-4:  # near 180 deg the antisymmetric part vanishes; use the symmetric part
-        from scipy.spatial.transform import Rotation
-
-        return Rotation.from_matrix(R).as_rotvec()
-    return w * (th / (2.0 * math.sin(th)))
+    """Rotation matrix (3, 3) -> rotation vector (3,) (angle <= pi)."""
+    return _matrix_rotvec(np.ascontiguousarray(R, dtype=np.float64))
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
@@ -130,76 +150,190 @@ class KalmanSettings:
     init_angular_velocity_sigma: float = 6.0
 
 
-_F_DT = tuple(np.array(ix) for ix in zip(*[(k, 3 + k) for k in range(3)] + [(3 + k, 6 + k) for k in range(3)] + [(9 + k, 12 + k) for k in range(3)]))
-_F_DT2 = tuple(np.array(ix) for ix in zip(*[(k, 6 + k) for k in range(3)]))
+_POSE = (0, 1, 2, 9, 10, 11)  # the measured states: position, rotation error
 
 
-def _transition(dt: float) -> np.ndarray:
-    """(15, 15) constant-acceleration / constant-rate transition over dt (s)."""
-    F = np.eye(NX)
-    F[_F_DT] = dt
-    F[_F_DT2] = 0.5 * dt * dt
-    return F
+@njit
+def _add_process_noise(P: np.ndarray, dt: float, qj: float, qw: float) -> None:
+    """P (15, 15) += discrete Q over |dt|: white jerk on (p, v, a), white angular acceleration on (dtheta, w)."""
+    a = abs(dt)
+    a2 = a * a
+    a3, a4 = a2 * a, a2 * a2
+    a5 = a2 * a3
+    cj = np.array([[a5 / 20.0, a4 / 8.0, a3 / 6.0], [a4 / 8.0, a3 / 3.0, a2 / 2.0], [a3 / 6.0, a2 / 2.0, a]]) * qj
+    cw = np.array([[a3 / 3.0, a2 / 2.0], [a2 / 2.0, a]]) * qw
+    for k in range(3):
+        for i in range(3):
+            for j in range(3):
+                P[i * 3 + k, j * 3 + k] += cj[i, j]
+        for i in range(2):
+            for j in range(2):
+                P[9 + i * 3 + k, 9 + j * 3 + k] += cw[i, j]
 
 
+@njit
+def _predicted_cov(P: np.ndarray, dt: float, qj: float, qw: float) -> np.ndarray:
+    """F P F^T + Q (15, 15) over dt, with F's sparsity written out (a 15x15 product costs more)."""
+    h = 0.5 * dt * dt
+    FP = P.copy()
+    for k in range(3):  # rows: F P
+        for j in range(NX):
+            FP[k, j] = P[k, j] + dt * P[3 + k, j] + h * P[6 + k, j]
+            FP[3 + k, j] = P[3 + k, j] + dt * P[6 + k, j]
+            FP[9 + k, j] = P[9 + k, j] + dt * P[12 + k, j]
+    Pn = FP.copy()
+    for k in range(3):  # columns: (F P) F^T
+        for i in range(NX):
+            Pn[i, k] = FP[i, k] + dt * FP[i, 3 + k] + h * FP[i, 6 + k]
+            Pn[i, 3 + k] = FP[i, 3 + k] + dt * FP[i, 6 + k]
+            Pn[i, 9 + k] = FP[i, 9 + k] + dt * FP[i, 12 + k]
+    _add_process_noise(Pn, dt, qj, qw)
+    return Pn
+
+
+@njit
+def _fold(x: np.ndarray, R_nom: np.ndarray) -> bool:
+    """Move the rotation error x[9:12] into R_nom (in place) and zero it; False if it was zero."""
+    if x[9] == 0.0 and x[10] == 0.0 and x[11] == 0.0:
+        return False
+    R_nom[:, :] = matmul3(rodrigues(x[9:12]), R_nom)
+    x[9:12] = 0.0
+    return True
+
+
+@njit
+def _kf_predict(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: float, qw: float) -> bool:
+    """Advance state x (15,), covariance P (15, 15) and R_nom (3, 3) in place by dt; True if it folded."""
+    for k in range(3):
+        x[k] += x[3 + k] * dt + x[6 + k] * (0.5 * dt * dt)
+        x[3 + k] += x[6 + k] * dt
+        x[9 + k] += x[12 + k] * dt
+    P[:, :] = _predicted_cov(P, dt, qj, qw)
+    return _fold(x, R_nom)
+
+
+@njit
 def _quad3(S: np.ndarray, y: np.ndarray) -> float:
-    """y^T S^-1 y for a symmetric positive-definite 3x3 S (adjugate; cheaper than a LAPACK call)."""
-    (a, b, c), (_, d, e), (_, _, f) = S.tolist()
-    y0, y1, y2 = y.tolist()
+    """y^T S^-1 y for a symmetric positive-definite 3x3 S (adjugate)."""
+    a, b, c, d, e, f = S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2]
+    y0, y1, y2 = y[0], y[1], y[2]
     A00, A01, A02 = d * f - e * e, c * e - b * f, b * e - c * d
     A11, A12, A22 = a * f - c * c, b * c - a * e, a * d - b * b
     det = a * A00 + b * A01 + c * A02
     return (A00 * y0 * y0 + A11 * y1 * y1 + A22 * y2 * y2 + 2.0 * (A01 * y0 * y1 + A02 * y0 * y2 + A12 * y1 * y2)) / det
 
 
-def _q_index() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Flat indices of Q's nonzero entries and which coefficient each takes."""
-    flat, coef = [], []
-    for d1 in range(3):  # p, v, a blocks (white jerk)
-        for d2 in range(3):
-            for k in range(3):
-                flat.append((d1 * 3 + k) * NX + d2 * 3 + k)
-                coef.append(d1 * 3 + d2)
-    for d1 in range(2):  # dtheta, w blocks (white angular acceleration)
-        for d2 in range(2):
-            for k in range(3):
-                flat.append((9 + d1 * 3 + k) * NX + 9 + d2 * 3 + k)
-                coef.append(9 + d1 * 2 + d2)
-    return np.array(flat), np.array(coef), np.zeros(NX * NX)
+@njit
+def _kf_update(
+    x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, position: np.ndarray, R: np.ndarray, cov: np.ndarray, gate_chi2: float
+) -> tuple[bool, float, float, float]:
+    """Fuse a pose measurement into x (15,), P (15, 15), R_nom (3, 3) in place (Joseph form).
+
+    position (3,), R (3, 3) body->world, cov (6, 6) over [p, world rotation
+    vector]. gate_chi2 <= 0 disables the gate. Returns (accepted, squared
+    Mahalanobis distance, position NIS / 3, rotation NIS / 3).
+    """
+    z = np.empty(6)
+    z[0:3] = position
+    z[3:6] = _matrix_rotvec(matmul3_bt(R, R_nom))
+    S = np.empty((6, 6))
+    y = np.empty(6)
+    PHt = np.empty((NX, 6))  # P H^T: the measured columns
+    for j in range(6):
+        y[j] = z[j] - x[_POSE[j]]
+        for i in range(NX):
+            PHt[i, j] = P[i, _POSE[j]]
+        for i in range(6):
+            S[i, j] = P[_POSE[i], _POSE[j]] + cov[i, j]
+    Sinv = _spd_inverse(S)
+    d2 = 0.0
+    for i in range(6):
+        for j in range(6):
+            d2 += y[i] * Sinv[i, j] * y[j]
+    nis_p = _quad3(S[0:3, 0:3], y[0:3]) / 3.0
+    nis_r = _quad3(S[3:6, 3:6], y[3:6]) / 3.0
+    if gate_chi2 > 0.0 and d2 > gate_chi2:
+        return False, d2, nis_p, nis_r
+    K = np.zeros((NX, 6))  # P H^T S^-1
+    for i in range(NX):
+        for j in range(6):
+            acc = 0.0
+            for l in range(6):
+                acc += PHt[i, l] * Sinv[l, j]
+            K[i, j] = acc
+    for i in range(NX):
+        for j in range(6):
+            x[i] += K[i, j] * y[j]
+    # Joseph form (I - K H) P (I - K H)^T + K C K^T, with H selecting the _POSE states
+    AP = P.copy()
+    for i in range(NX):
+        for j in range(NX):
+            acc = 0.0
+            for l in range(6):
+                acc += K[i, l] * P[_POSE[l], j]
+            AP[i, j] -= acc
+    KC = np.zeros((NX, 6))
+    for i in range(NX):
+        for j in range(6):
+            for l in range(6):
+                KC[i, j] += K[i, l] * cov[l, j]
+    for i in range(NX):
+        for j in range(NX):
+            acc = AP[i, j]
+            for l in range(6):
+                acc += -AP[i, _POSE[l]] * K[j, l] + KC[i, l] * K[j, l]
+            P[i, j] = acc
+    _fold(x, R_nom)
+    return True, d2, nis_p, nis_r
 
 
-_Q_FLAT, _Q_COEF, _Q_ZERO = _q_index()
-
-
-def _process_noise(dt: float, qj: float, qw: float) -> np.ndarray:
-    """Discrete Q (15, 15) for |dt|: white jerk on (p, v, a), white angular acceleration on (dtheta, w)."""
-    a = abs(dt)
-    a2, a3 = a * a, a * a * a
-    a4, a5 = a2 * a2, a2 * a3
-    c = np.array(
-        [
-            qj * a5 / 20.0, qj * a4 / 8.0, qj * a3 / 6.0,
-            qj * a4 / 8.0, qj * a3 / 3.0, qj * a2 / 2.0,
-            qj * a3 / 6.0, qj * a2 / 2.0, qj * a,
-            qw * a3 / 3.0, qw * a2 / 2.0, qw * a2 / 2.0, qw * a,
-        ]
-    )  # fmt: skip
-    Q = _Q_ZERO.copy()
-    Q[_Q_FLAT] = c[_Q_COEF]
-    return Q.reshape(NX, NX)
+@njit
+def _spd_inverse(S: np.ndarray) -> np.ndarray:
+    """Inverse of a small symmetric positive-definite matrix (Cholesky, no library call)."""
+    n = S.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        d = S[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        L[j, j] = math.sqrt(d)
+        for i in range(j + 1, n):
+            v = S[i, j]
+            for k in range(j):
+                v -= L[i, k] * L[j, k]
+            L[i, j] = v / L[j, j]
+    Li = np.zeros((n, n))  # L^-1, lower triangular
+    for i in range(n):
+        Li[i, i] = 1.0 / L[i, i]
+        for j in range(i):
+            v = 0.0
+            for k in range(j, i):
+                v -= L[i, k] * Li[k, j]
+            Li[i, j] = v / L[i, i]
+    out = np.empty((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            v = 0.0
+            for k in range(i, n):
+                v += Li[k, i] * Li[k, j]
+            out[i, j] = out[j, i] = v
+    return out
 
 
 class BodyFilter:
     """Error-state Kalman filter of one body; times are int64 ns (capture clock).
 
-    Wraps filterpy.kalman.KalmanFilter (dim_x=15, dim_z=6) plus the nominal
-    rotation R_nom (3, 3) body->world and the NIS-driven noise scales.
+    State x (15,) and covariance P (15, 15) as in the module docstring, plus
+    the nominal rotation R_nom (3, 3) body->world and the NIS-driven noise
+    scales. The linear algebra is in compiled kernels (visionpos.jit); the
+    standard predict and Joseph-form update, checked against filterpy's
+    KalmanFilter in the tests.
     """
 
     def __init__(self, settings: KalmanSettings):
         self.s = settings
-        self.kf = KalmanFilter(dim_x=NX, dim_z=6)
-        self.kf.H = _H.copy()
+        self.x = np.zeros(NX)
+        self.P = np.eye(NX)
         self.R_nom = np.eye(3)
         self.t_ns = 0
         self.initialized = False
@@ -214,20 +348,20 @@ class BodyFilter:
     # -------------------------------------------------------------- lifecycle
     def initialize(self, t_ns: int, position: np.ndarray, R: np.ndarray, meas_cov: np.ndarray | None = None) -> None:
         """Start (or restart) at a measured pose; derivatives unknown (zero with a wide prior)."""
-        x = np.zeros((NX, 1))
-        x[0:3, 0] = position
-        self.kf.x = x
+        x = np.zeros(NX)
+        x[0:3] = position
+        self.x = x
         s = self.s
         P = np.zeros((NX, NX))
         if meas_cov is not None:
-            P[_POSE_IX] = meas_cov
+            P[np.ix_(_POSE, _POSE)] = meas_cov
         else:
             P[0:3, 0:3] = np.eye(3) * 1e-6
             P[9:12, 9:12] = np.eye(3) * 1e-4
         P[3:6, 3:6] = np.eye(3) * s.init_velocity_sigma**2
         P[6:9, 6:9] = np.eye(3) * s.init_acceleration_sigma**2
         P[12:15, 12:15] = np.eye(3) * s.init_angular_velocity_sigma**2
-        self.kf.P = P
+        self.P = P
         self.R_nom = np.array(R, dtype=np.float64)
         self.t_ns = int(t_ns)
         self.initialized = True
@@ -235,26 +369,18 @@ class BodyFilter:
         self._nis_p = self._nis_r = self._nis_img = 1.0
         self._img_ns = 0
 
-    def _fold(self) -> None:
-        """Move the rotation error into the nominal rotation and zero it."""
-        th = self.kf.x[9:12, 0]
-        if th.any():
-            self.R_nom = rotvec_to_matrix(th) @ self.R_nom
-            self.kf.x[9:12, 0] = 0.0
-            self._folds += 1
-            if self._folds % 256 == 0:  # keep R_nom orthonormal against round-off
-                u, _, vt = np.linalg.svd(self.R_nom)
-                self.R_nom = u @ vt
-
-    def _Q(self, dt: float) -> np.ndarray:
-        return _process_noise(dt, self.s.jerk_psd * self.scale_p, self.s.angular_accel_psd * self.scale_r)
+    def _folded(self) -> None:
+        self._folds += 1
+        if self._folds % 256 == 0:  # keep R_nom orthonormal against round-off
+            u, _, vt = np.linalg.svd(self.R_nom)
+            self.R_nom = u @ vt
 
     def predict_to(self, t_ns: int) -> None:
         """Advance the filter (mutating) to t_ns; small backward steps are allowed."""
         dt = (int(t_ns) - self.t_ns) * 1e-9
         if dt != 0.0:
-            self.kf.predict(F=_transition(dt), Q=self._Q(dt))
-            self._fold()
+            if _kf_predict(self.x, self.P, self.R_nom, dt, self.s.jerk_psd * self.scale_p, self.s.angular_accel_psd * self.scale_r):
+                self._folded()
             self.t_ns = int(t_ns)
 
     @staticmethod
@@ -275,16 +401,14 @@ class BodyFilter:
         """
         dt = (int(t_ns) - self.t_ns) * 1e-9
         self.predict_to(t_ns)
-        z = np.empty(6)
-        z[0:3] = position
-        z[3:6] = matrix_to_rotvec(np.asarray(R) @ self.R_nom.T)
-        S = self.kf.P[_POSE_IX] + meas_cov
-        y = z - self.kf.x[_POSE_IDX, 0]
-        d2 = float(y @ np.linalg.solve(S, y))
+        accepted, d2, nis_p, nis_r = _kf_update(
+            self.x, self.P, self.R_nom, np.asarray(position, dtype=np.float64), np.ascontiguousarray(R, dtype=np.float64),
+            np.ascontiguousarray(meas_cov, dtype=np.float64), self.s.gate_chi2 if gate else 0.0,
+        )
+        if accepted:
+            self._folded()
         # NIS per block drives the process-noise scale (gated ones too, capped,
         # so that a manoeuvre that starts outside the gate still opens it)
-        nis_p = _quad3(S[0:3, 0:3], y[0:3]) / 3.0
-        nis_r = _quad3(S[3:6, 3:6], y[3:6]) / 3.0
         cap = self.s.gate_chi2 / 3.0
         alpha = 1.0 - math.exp(-max(dt, 0.0) / self.s.nis_time_constant) if dt > 0 else 0.05
         self._nis_p += alpha * (min(nis_p, cap) - self._nis_p)
@@ -299,11 +423,7 @@ class BodyFilter:
         decay = math.exp(-max(dt, 0.0) / _SCALE_DECAY_S)
         self.scale_p = self._adapt(self.scale_p, max(self._nis_p, nis_img), alpha, decay, smax)
         self.scale_r = self._adapt(self.scale_r, self._nis_r, alpha, decay, smax)
-        if gate and d2 > self.s.gate_chi2:
-            return False, d2
-        self.kf.update(z.reshape(6, 1), R=meas_cov)
-        self._fold()
-        return True, d2
+        return bool(accepted), float(d2)
 
     def report_image_nis(self, t_ns: int, nis: float) -> None:
         """Feed the manoeuvre detector with one camera frame's prediction residual.
@@ -323,10 +443,10 @@ class BodyFilter:
     def pose_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Non-mutating mean prediction: position (3,), R (3, 3), velocity (3,), world angular rate (3,)."""
         dt = (int(t_ns) - self.t_ns) * 1e-9
-        x = self.kf.x[:, 0]
+        x = self.x
         w = x[12:15]
         p = x[0:3] + x[3:6] * dt + x[6:9] * (0.5 * dt * dt)
-        return p, rotvec_to_matrix(w * dt) @ self.R_nom, x[3:6] + x[6:9] * dt, w.copy()
+        return p, rodrigues(w * dt) @ self.R_nom, x[3:6] + x[6:9] * dt, w.copy()
 
     def state_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Non-mutating prediction with covariance.
@@ -335,8 +455,7 @@ class BodyFilter:
         (3,), covariance P (15, 15) of the error state at t_ns.
         """
         dt = (int(t_ns) - self.t_ns) * 1e-9
-        F = _transition(dt)
-        P = F @ self.kf.P @ F.T + self._Q(dt)
+        P = _predicted_cov(self.P, dt, self.s.jerk_psd * self.scale_p, self.s.angular_accel_psd * self.scale_r)
         p, R, v, w = self.pose_at(t_ns)
         return p, R, v, w, P
 

@@ -1,0 +1,87 @@
+"""Compiled kernels: numba's njit where numba is installed, plain Python where it is not.
+
+The fusion hot path works on arrays of 3..60 numbers, where numpy's
+per-call overhead (several microseconds for one ufunc on a 4x3 array), not
+arithmetic, sets the cost. Those steps are written as explicit loops and
+compiled by numba (cached on disk after the first run). Without numba (no
+wheel for the platform, e.g. 32-bit ARM) the same functions run as Python:
+correct, only slower; `COMPILED` says which.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Callable, TypeVar
+
+import numpy as np
+
+F = TypeVar("F", bound=Callable)
+
+try:
+    if os.environ.get("VISIONPOS_NO_JIT"):  # for testing the interpreted path
+        raise ImportError("VISIONPOS_NO_JIT is set")
+    from numba import njit as _njit
+
+    COMPILED = True
+
+    def njit(fn: F) -> F:
+        """Compile fn in nopython mode, cached on disk. No fastmath: results stay IEEE-exact.
+        numpy's error model: a division by zero gives inf / NaN as in numpy, never an exception
+        in the middle of a fusion."""
+        return _njit(cache=True, nogil=True, error_model="numpy")(fn)
+
+except ImportError:
+    COMPILED = False
+
+    def njit(fn: F) -> F:
+        return fn
+
+
+# Building blocks for the kernels. numba's `@` and np.cross go through generic
+# BLAS / broadcasting code that costs seconds to compile and microseconds per
+# call on 3-vectors; these are the loops written out.
+
+
+@njit
+def matmul3(A, B):
+    """(3, 3) @ (3, 3) -> (3, 3)."""
+    C = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            C[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+    return C
+
+
+@njit
+def matmul3_bt(A, B):
+    """(3, 3) @ (3, 3).T -> (3, 3)."""
+    C = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            C[i, j] = A[i, 0] * B[j, 0] + A[i, 1] * B[j, 1] + A[i, 2] * B[j, 2]
+    return C
+
+
+@njit
+def matvec3(A, v):
+    """(3, 3) @ (3,) -> (3,)."""
+    out = np.empty(3)
+    for i in range(3):
+        out[i] = A[i, 0] * v[0] + A[i, 1] * v[1] + A[i, 2] * v[2]
+    return out
+
+
+@njit
+def cross3(a, b):
+    """(3,) x (3,) -> (3,)."""
+    out = np.empty(3)
+    out[0] = a[1] * b[2] - a[2] * b[1]
+    out[1] = a[2] * b[0] - a[0] * b[2]
+    out[2] = a[0] * b[1] - a[1] * b[0]
+    return out
+
+
+@njit
+def dot3(a, b):
+    """(3,) . (3,) -> float."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
