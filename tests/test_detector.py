@@ -178,3 +178,30 @@ def test_close_markers_do_not_pull_each_other():
         pull += [e[0] @ u, -(e[1] @ u)]  # error component towards the other marker
     assert abs(np.mean(pull)) < 0.04
     assert np.sqrt(np.mean(np.square(pull))) < 0.06
+
+
+def test_compiled_centroids_equal_the_numpy_reference(monkeypatch):
+    """The compiled per-blob loop (used where numba is installed) gives the vectorised numpy
+    reference's blobs and flags: windows cut by the border, big blobs, close pairs, lost ones."""
+    import stations.detector as D
+    from visionpos.jit import COMPILED
+
+    if not COMPILED:
+        pytest.skip("numba is not installed: only the numpy reference runs")
+    rng = np.random.default_rng(11)
+    n_blobs = 0
+    for trial in range(120):
+        n = int(rng.integers(1, 12))
+        edge = trial % 2 == 1
+        c = rng.uniform(1.0, [W - 2.0, H - 2.0], (n, 2)) if edge else centers_grid(n, rng, sep=14.0 if trial % 3 else 28.0)
+        img = render_blobs(W, H, c, rng.uniform(1.5, 24.0, n), rng.uniform(40, 300, n), rng, read_noise_dn=3.0)
+        out = []
+        for compiled in (True, False):
+            monkeypatch.setattr(D, "COMPILED", compiled)
+            out.append(Detector(DetectorConfig()).detect(img))
+        (a, fa), (b, fb) = out
+        assert fa == fb and a.shape == b.shape
+        assert np.isfinite(a).all()
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-4)
+        n_blobs += len(a)
+    assert n_blobs > 400
