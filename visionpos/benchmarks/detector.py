@@ -68,9 +68,10 @@ def accuracy(diameter: float, read_noise: float, peak: float = 200.0, frames: in
     }
 
 
-def speed(width: int, height: int, frames_per_run: int, runs: int, seed: int = 2) -> tuple[float, float]:
+def speed(width: int, height: int, frames_per_run: int, runs: int, seed: int = 2, numpy_path: bool = False) -> tuple[float, float]:
     """(detector seconds per frame, threshold-pass seconds per frame) on
-    frames with 4..12 blobs of 2..8 px, one core.
+    frames with 4..12 blobs of 2..8 px, one core. numpy_path: time the
+    vectorised numpy centroids (what runs without numba) instead of the compiled loop.
 
     Detector and floor are timed in alternating short runs over the same 8
     frames (so both see the same cache behaviour: 8 frames exceed L2), with
@@ -78,16 +79,24 @@ def speed(width: int, height: int, frames_per_run: int, runs: int, seed: int = 2
     idle core, and not inflated while other processes hold the core), and
     each keeps its best run.
     """
-    from stations.detector import Detector
+    import stations.detector as D
     from visionpos.sim.render import render_blobs
 
+    compiled = D.COMPILED
+    D.COMPILED = compiled and not numpy_path
+    try:
+        return _speed(D.Detector(), width, height, frames_per_run, runs, seed, render_blobs)
+    finally:
+        D.COMPILED = compiled
+
+
+def _speed(det, width: int, height: int, frames_per_run: int, runs: int, seed: int, render_blobs) -> tuple[float, float]:
     rng = np.random.default_rng(seed)
     frames = []
     for i in range(8):
         n = 4 + (i % 9)
         c = random_centers(n, width, height, rng)
         frames.append(render_blobs(width, height, c, rng.uniform(2, 8, n), rng.uniform(120, 240, n), rng))
-    det = Detector()
     for f in frames:  # warm-up (threshold estimate, buffers)
         det.detect(f)
     buf = np.empty_like(frames[0])
@@ -117,6 +126,9 @@ def run(quick: bool = False) -> BenchResult:
             res.metrics[f"detector_floor_us_{w}x{h}"] = round(floor * 1e6, 2)
             res.metrics[f"detector_floor_ratio_{w}x{h}"] = round(t / floor, 2)
             rows.append(f"| {w}x{h} | {t * 1e6:.1f} | {1 / t:.0f} | {floor * 1e6:.1f} | {t / floor:.1f} |")
+        t, floor = speed(960, 640, per_run, runs, numpy_path=True)
+        res.metrics["detector_fps_960x640_numpy_path"] = round(1.0 / t, 1)
+        rows.append(f"| 960x640, numpy path (no numba) | {t * 1e6:.1f} | {1 / t:.0f} | {floor * 1e6:.1f} | {t / floor:.1f} |")
         res.tables["Detector speed (one core, 4-12 blobs of 2-8 px)"] = "\n".join(rows)
 
         diameters = (2, 3, 4, 6, 8)
