@@ -37,6 +37,18 @@ def test_undistort_points_agrees_with_camera_model():
             # back through the model's own distortion: the pixel must come back
             assert np.abs(cam.model.distort(got) - px).max() < 1e-6
             assert np.abs(got - ref).max() * cam.model.fx < 1e-6
+    # a strongly distorted lens, pixels well beyond the sensor: NaN exactly where the model's own
+    # undistortion finds no pre-image (the fold of the distortion), the same values elsewhere
+    from visionpos.camera import CameraModel
+
+    for m in (CameraModel("pinhole", 960, 640, 500.0, 500.0, 480.0, 320.0, np.array([-0.45, 0.2, 0.001, 0.0, -0.04])),
+              CameraModel("fisheye", 960, 640, 300.0, 300.0, 480.0, 320.0, np.array([0.1, -0.05, 0.01, -0.002]))):
+        px = np.random.default_rng(3).uniform([-1500, -1500], [2500, 2000], (4000, 2))
+        ref, got = m.undistort(px), undistort_points(m, px)
+        assert np.array_equal(np.isnan(ref[:, 0]), np.isnan(got[:, 0]))
+        assert 0 < np.isnan(got[:, 0]).sum() < len(px)
+        ok = ~np.isnan(got[:, 0])
+        assert np.abs(got[ok] - ref[ok]).max() * m.fx < 1e-6
 
 
 def test_triangulate_exact_missing_views_and_offsets(rig):

@@ -31,29 +31,93 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 
 from visionpos.camera import FISHEYE, CameraModel
 from visionpos.jit import njit
 
-_CRIT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-14)
 
 
 def undistort_points(model: CameraModel, pixels: np.ndarray) -> np.ndarray:
     """Pixels (N, 2) -> normalised image coordinates (N, 2), same model as camera.py.
 
-    OpenCV's iterative undistortion runs to 1e-14 here (agrees with
-    CameraModel.undistort to ~1e-12 px) at a fraction of the cost.
+    Compiled Newton iterations to round-off (agrees with CameraModel.undistort
+    to ~1e-12); NaN where the lens model cannot map the pixel back (beyond
+    the fold of its distortion), as CameraModel.undistort.
     """
-    px = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
-    if len(px) == 0:
-        return np.zeros((0, 2))
-    if model.kind == FISHEYE:
-        out = cv2.fisheye.undistortPoints(px, model.K, model.dist[:4], criteria=_CRIT)
-    else:
-        out = cv2.undistortPoints(px, model.K, model.dist, criteria=_CRIT)
-    return out.reshape(-1, 2)
+    px = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
+    intrinsics, dist, fisheye = lens_arrays(model)
+    return undistort_normalized(px, intrinsics, dist, fisheye)
+
+
+def lens_arrays(model: CameraModel) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The model as the kernels take it: intrinsics (fx, fy, cx, cy, width, height), dist (8,)
+    (OpenCV pinhole k1, k2, p1, p2, k3, k4, k5, k6, or Kannala-Brandt k1..k4), fisheye."""
+    fisheye = model.kind == FISHEYE
+    dist = np.zeros(8)
+    d = np.asarray(model.dist, dtype=np.float64)
+    n = min(len(d), 4 if fisheye else 8)
+    dist[:n] = d[:n]
+    return np.array([model.fx, model.fy, model.cx, model.cy, model.width, model.height], dtype=np.float64), dist, fisheye
+
+
+@njit
+def undistort_normalized(px, intrinsics, dist, fisheye):
+    """Compiled pixels (N, 2) -> normalised coordinates (N, 2): Newton on the distortion
+    (2D for the pinhole model, on the angle for Kannala-Brandt), then a check that the
+    result distorts back to the pixel (NaN where it does not: a fold of the model)."""
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    k1, k2, p1, p2, k3, k4, k5, k6 = dist[0], dist[1], dist[2], dist[3], dist[4], dist[5], dist[6], dist[7]
+    N = px.shape[0]
+    out = np.empty((N, 2))
+    for i in range(N):
+        xd, yd = (px[i, 0] - cx) / fx, (px[i, 1] - cy) / fy
+        if fisheye:
+            rd = math.sqrt(xd * xd + yd * yd)
+            th = min(max(rd, 0.0), math.pi / 2 - 1e-6)
+            for _ in range(20):
+                t2 = th * th
+                r = th * (1 + t2 * (k1 + t2 * (k2 + t2 * (p1 + t2 * p2))))  # k1..k4 in slots 0..3
+                dr = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * p1 + t2 * 9 * p2)))
+                step = (r - rd) / dr
+                th = min(max(th - step, 0.0), math.pi / 2 - 1e-9)
+                if abs(step) < 1e-15:
+                    break
+            s = math.tan(th) / rd if rd > 1e-12 else 1.0
+            x, y = xd * s, yd * s
+            t2 = th * th
+            back = th * (1 + t2 * (k1 + t2 * (k2 + t2 * (p1 + t2 * p2)))) - rd
+            ok = abs(back) <= 1e-9 * (1.0 + max(abs(xd), abs(yd)))
+        else:
+            x, y = xd, yd
+            ex = ey = 0.0
+            for _ in range(20):
+                r2 = x * x + y * y
+                num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+                radial = num / den
+                ex = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
+                ey = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
+                if max(abs(ex), abs(ey)) < 1e-15:
+                    break
+                drad = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) * den - num * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / (den * den)
+                j00 = radial + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
+                j01 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
+                j10 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
+                j11 = radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
+                det = j00 * j11 - j01 * j10
+                x -= (j11 * ex - j01 * ey) / det
+                y -= (-j10 * ex + j00 * ey) / det
+            r2 = x * x + y * y
+            radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+            ex = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
+            ey = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
+            ok = max(abs(ex), abs(ey)) <= 1e-9 * (1.0 + max(abs(xd), abs(yd)))
+        if ok:
+            out[i, 0], out[i, 1] = x, y
+        else:
+            out[i, 0] = out[i, 1] = np.nan
+    return out
 
 
 class Projector:
@@ -68,13 +132,13 @@ class Projector:
         m = camera.model
         self.R = np.ascontiguousarray(camera.R, dtype=np.float64)
         self.t = np.ascontiguousarray(camera.t, dtype=np.float64).reshape(3)
-        self.fisheye = m.kind == FISHEYE
-        self.dist = np.zeros(8)
-        d = np.asarray(m.dist, dtype=np.float64)
-        self.dist[: min(len(d), 4 if self.fisheye else 8)] = d[: 4 if self.fisheye else 8]
-        self.intrinsics = np.array([m.fx, m.fy, m.cx, m.cy, m.width, m.height], dtype=np.float64)
+        self.intrinsics, self.dist, self.fisheye = lens_arrays(m)
         # beyond this angle from the axis the lens model folds back: not visible
         self.cos_max = float(np.cos(m.max_theta))
+
+    def undistort(self, pixels: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) float64 -> normalised coordinates (N, 2), as undistort_points."""
+        return undistort_normalized(pixels, self.intrinsics, self.dist, self.fisheye)
 
     def project(self, points_world: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """(N, 3) world points -> (N, 2) pixels; NaN when behind, outside the lens model or off the sensor (+ margin)."""
@@ -132,12 +196,13 @@ def associate(predicted: np.ndarray, blobs: np.ndarray, gate: float) -> np.ndarr
     M = len(predicted)
     if M == 0 or len(blobs) == 0:
         return np.full(M, -1, dtype=np.int64)
-    return _associate(np.ascontiguousarray(predicted, dtype=np.float64), np.ascontiguousarray(blobs[:, :2], dtype=np.float64),
+    return associate_blobs(np.ascontiguousarray(predicted, dtype=np.float64), np.ascontiguousarray(blobs[:, :2], dtype=np.float64),
                       float(gate) * float(gate))
 
 
 @njit
-def _associate(pred, blobs, g2):
+def associate_blobs(pred, blobs, g2):
+    """Compiled core of `associate`: pred (M, 2), blobs (N, 2) float64, g2 the squared gate."""
     M, N = pred.shape[0], blobs.shape[0]
     d2 = np.empty((M, N))
     for m in range(M):
@@ -334,27 +399,50 @@ def triangulate_irls(xn, R, t, f, offsets, has_offsets, iterations):
     return X, rms, n_views
 
 
+@njit
+def _world_rays(xn, R):
+    """Normalised coordinates (N, 2) of a camera with world->camera rotation R -> unit world directions (N, 3)."""
+    out = np.empty((xn.shape[0], 3))
+    for i in range(xn.shape[0]):
+        n = 0.0
+        for k in range(3):
+            out[i, k] = R[0, k] * xn[i, 0] + R[1, k] * xn[i, 1] + R[2, k]
+            n += out[i, k] * out[i, k]
+        n = math.sqrt(n)
+        for k in range(3):
+            out[i, k] /= n
+    return out
+
+
+@njit
 def ray_distances(c1: np.ndarray, d1: np.ndarray, c2: np.ndarray, d2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Closest approach of two bundles of rays from two centres.
+    """Closest approach of two bundles of rays from two centres (compiled).
 
     c1, c2: (3,) centres; d1 (N1, 3), d2 (N2, 3) unit directions. Returns
     distance (N1, N2) in metres (inf where the closest point lies behind a
     camera or the rays are parallel) and midpoints (N1, N2, 3).
     """
+    N1, N2 = d1.shape[0], d2.shape[0]
+    dist = np.full((N1, N2), np.inf)
+    mid = np.empty((N1, N2, 3))
     w0 = c1 - c2
-    a = 1.0
-    b = d1 @ d2.T  # (N1, N2)
-    dd = d1 @ w0  # (N1,)
-    e = d2 @ w0  # (N2,)
-    den = a - b * b
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (b * e[None, :] - dd[:, None]) / den  # along d1
-        u = (e[None, :] - b * dd[:, None]) / den  # along d2
-    p1 = c1 + s[..., None] * d1[:, None, :]
-    p2 = c2 + u[..., None] * d2[None, :, :]
-    dist = np.linalg.norm(p1 - p2, axis=-1)
-    dist = np.where((den > 1e-10) & (s > 0) & (u > 0), dist, np.inf)
-    return dist, 0.5 * (p1 + p2)
+    for i in range(N1):
+        dd = d1[i, 0] * w0[0] + d1[i, 1] * w0[1] + d1[i, 2] * w0[2]
+        for j in range(N2):
+            b = d1[i, 0] * d2[j, 0] + d1[i, 1] * d2[j, 1] + d1[i, 2] * d2[j, 2]
+            e = d2[j, 0] * w0[0] + d2[j, 1] * w0[1] + d2[j, 2] * w0[2]
+            den = 1.0 - b * b
+            s = (b * e - dd) / den  # along d1
+            u = (e - b * dd) / den  # along d2
+            ss = 0.0
+            for k in range(3):
+                p1 = c1[k] + s * d1[i, k]
+                p2 = c2[k] + u * d2[j, k]
+                mid[i, j, k] = 0.5 * (p1 + p2)
+                ss += (p1 - p2) * (p1 - p2)
+            if den > 1e-10 and s > 0 and u > 0:
+                dist[i, j] = math.sqrt(ss)
+    return dist, mid
 
 
 def match_unlabeled(
@@ -375,11 +463,7 @@ def match_unlabeled(
     """
     V = len(xn)
     centres = -np.einsum("vji,vj->vi", R, t)
-    rays = []
-    for v in range(V):
-        n = len(xn[v])
-        d = np.column_stack([xn[v], np.ones(n)]) @ R[v]  # camera -> world directions
-        rays.append(d / np.linalg.norm(d, axis=1, keepdims=True) if n else np.zeros((0, 3)))
+    rays = [_world_rays(np.ascontiguousarray(xn[v], dtype=np.float64), R[v]) for v in range(V)]
     # 1. seed pairs
     seeds = []
     for a in range(V):

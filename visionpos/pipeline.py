@@ -93,14 +93,13 @@ import numpy as np
 
 from visionpos.config import ArenaConfig, ConfigError, Section
 from visionpos.jit import COMPILED, cross3, dot3, matmul3, matmul3_bt, matvec3, njit
-from visionpos.matching import Projector, triangulate_irls, associate, match_unlabeled, undistort_points
+from visionpos.matching import Projector, associate_blobs, match_unlabeled, project_points, triangulate_irls, undistort_normalized
 from visionpos.messages import BlobFrame, BodyState, LoosePoints
 from visionpos.rigidbody import BodyModel, identify, kabsch_weighted, layout_ambiguities
 from visionpos.timealign import MODES, MOTION_COMPENSATED, Group, TimeAligner
 from visionpos.tracking import BodyFilter, KalmanSettings, rodrigues, matrix_to_quat, pose_covariance, velocity_covariance
 
 
-_I3 = np.eye(3)
 # the image-space manoeuvre detector samples at most this often (capture clock)
 _IMAGE_NIS_INTERVAL_NS = 2_000_000
 
@@ -334,6 +333,41 @@ def _marker_motion(x, R_nom, state_dt, sizes, local):
 
 
 @njit
+def _observe_frame(px, dt, X0, V, A, rows, marker_xn, R, t, intrinsics, dist, fisheye, cos_max, gate):
+    """One camera frame against the tracked bodies' predicted markers (compiled).
+
+    px (N, 2) blob pixels; markers X0 + dt V + dt^2 / 2 A (M, 3) predicted to the
+    frame's capture time, their global rows (M,); camera pose R, t and lens
+    (matching.lens_arrays, cos_max); gate px. Fills marker_xn (P, 2), each marker's
+    observation (NaN = none). Returns normalised blobs xn (N, 2), blob labels (N,)
+    (global marker row or -1), the predicted markers Xw (M, 3), their pixels (M, 2)
+    and the associated blob of each (M,) (-1 = none).
+    """
+    xn = undistort_normalized(px, intrinsics, dist, fisheye)
+    Xw = X0 + dt * (V + (0.5 * dt) * A)
+    pred = project_points(Xw, R, t, intrinsics, dist, fisheye, cos_max, gate)
+    a = associate_blobs(pred, px, gate * gate)
+    label = np.full(px.shape[0], -1, dtype=np.int64)
+    marker_xn[:, :] = np.nan
+    for q in range(a.shape[0]):
+        if a[q] >= 0:
+            label[a[q]] = rows[q]
+            marker_xn[rows[q], 0] = xn[a[q], 0]
+            marker_xn[rows[q], 1] = xn[a[q], 1]
+    return xn, label, Xw, pred, a
+
+
+@njit
+def _scaled_pose_cov(cov_unit, var, var_p, var_r):
+    """cov_unit (6, 6) * var, plus var_p on the position and var_r on the rotation diagonal."""
+    C = cov_unit * var
+    for i in range(3):
+        C[i, i] += var_p
+        C[3 + i, 3 + i] += var_r
+    return C
+
+
+@njit
 def _image_nis(Xw, pred, px, a, body, exp_px, exp_pos, R2, t2, f):
     """One frame's prediction residual per body over its expected size, per degree of freedom.
 
@@ -362,12 +396,13 @@ def _image_nis(Xw, pred, px, a, body, exp_px, exp_pos, R2, t2, f):
 
 
 @njit
-def _tracked_measurements(xn, R, t, f, dt, x, R_nom, state_dt, sv2, sw2, compensate, sizes, local,
+def _tracked_measurements(marker_xn, views, rows, R, t, f, dt, x, R_nom, state_dt, sv2, sw2, compensate, sizes, local,
                           max_residual_px, identify_tolerance, compensate_max_vel_var):
     """Pose measurements of the tracked bodies from one fusion of V views (compiled).
 
-    xn (P, V, 2): normalised observation of each tracked marker row (NaN = none);
-    R (V, 3, 3), t (V, 3), f (V,): the views; dt (V,): view capture - reference (s).
+    marker_xn (cameras, all markers, 2): each camera's normalised observation of each
+    marker (NaN = none); views (V,): the fused cameras' indices in it; rows (P,): the
+    tracked bodies' marker rows, body by body. R (V, 3, 3), t (V, 3), f (V,): the views; dt (V,): view capture - reference (s).
     Per body (B): filter state x (B, 15), R_nom (B, 3, 3), state_dt (B,) reference -
     filter time (s), sv2 / sw2 (B,) velocity / rate variance; sizes (B,) marker
     counts; local (P, 3) body-frame markers of the rows. compensate: motion
@@ -378,7 +413,12 @@ def _tracked_measurements(xn, R, t, f, dt, x, R_nom, state_dt, sv2, sw2, compens
     pose covariance (B, 6, 6), motion variance added to position / rotation (B,),
     fit tolerance (B,); and the number of points refused by the residual gate.
     """
-    P, V = xn.shape[0], xn.shape[1]
+    P, V = rows.shape[0], views.shape[0]
+    xn = np.empty((P, V, 2))
+    for q in range(P):
+        for v in range(V):
+            xn[q, v, 0] = marker_xn[views[v], rows[q], 0]
+            xn[q, v, 1] = marker_xn[views[v], rows[q], 1]
     B = sizes.shape[0]
     dt2_mean = 0.0
     dt_max = 0.0
@@ -569,6 +609,9 @@ class FusionPipeline:
             min_interval_ns=st.min_fusion_interval_ns,
         )
         self.obs: dict[int, _Obs] = {}
+        # each camera's newest observation of every marker (NaN = none); _Obs.marker_xn is its row,
+        # so a fusion reads its views without stacking them
+        self._marker_xn = np.full((len(arena.cameras), self.P, 2), np.nan)
         self.tracks = [_Track(BodyFilter(st.kalman)) for _ in self.models]
         self.loose_points: LoosePoints | None = None
         self._last_acquire_ns = -(1 << 62)
@@ -615,7 +658,8 @@ class FusionPipeline:
             self._stats["malformed"] += 1
             return
         px = blobs[:, :2].astype(np.float64)
-        px = px[np.isfinite(px).all(axis=1)]
+        if not np.isfinite(px).all():
+            px = px[np.isfinite(px).all(axis=1)]
         t = int(frame.capture_ns)
         why = self.aligner.admit(cam, t)
         if why is not None:
@@ -647,13 +691,13 @@ class FusionPipeline:
             self._rows_cache[key] = r
         return r
 
-    def _predicted_markers(self, bodies: list[int], t_ns: int) -> np.ndarray:
-        """World positions (sum M_b, 3) of the markers of `bodies` predicted to t_ns.
+    def _motion_cache(self, bodies: list[int]) -> tuple:
+        """(key, fusion count, t_c, X0, V, A): marker positions, velocities and accelerations
+        (sum M_b, 3) of `bodies` at t_c, the newest filter time.
 
-        Between fusions the filters do not change, so marker positions,
-        velocities and accelerations (incl. the rotation's w x r terms) are
-        expanded once per fusion and each frame only evaluates the
-        second-order polynomial (error ~ r (w dt)^3 / 6, micrometres).
+        Between fusions the filters do not change, so marker motion (incl. the
+        rotation's w x r terms) is expanded once per fusion and each frame only
+        evaluates X0 + dt V + dt^2 / 2 A (error ~ r (w dt)^3 / 6, micrometres).
         """
         key = tuple(bodies)
         c = self._pred_cache
@@ -663,8 +707,7 @@ class FusionPipeline:
             x, R_nom, state_dt = self._filter_states(bodies, t_c)
             X0, V, A = _marker_motion(x, R_nom, state_dt, self._layout(bodies)[1], self._marker_local[rows])
             c = self._pred_cache = (key, self._fusion_count, t_c, X0, V, A)
-        dt = (t_ns - c[2]) * 1e-9
-        return c[3] + dt * (c[4] + (0.5 * dt) * c[5])
+        return c
 
     def _filter_states(self, bodies: list[int], t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Filter states x (B, 15), nominal rotations (B, 3, 3) and t_ns - filter time (B,) s."""
@@ -679,22 +722,21 @@ class FusionPipeline:
         return x, R_nom, state_dt
 
     def _observe(self, cam: int, t_ns: int, px: np.ndarray) -> _Obs:
-        camera = self.cameras[cam]
-        xn = undistort_points(camera.model, px)
-        label = np.full(len(px), -1, dtype=np.int64)
-        marker_xn = np.full((self.P, 2), np.nan)
+        proj = self._proj[cam]
+        marker_xn = self._marker_xn[self._cam_index[cam]]  # this camera's row of the shared array
         tracked = [b for b, tr in enumerate(self.tracks) if tr.tracked]
-        if tracked and len(px):
-            rows = self._rows(tracked)
-            Xw = self._predicted_markers(tracked, t_ns)
-            pred = self._proj[cam].project(Xw, self.settings.match_gate_px)
-            a = associate(pred, px, self.settings.match_gate_px)
-            hit = a >= 0
-            label[a[hit]] = rows[hit]
-            marker_xn[rows[hit]] = xn[a[hit]]
-            if abs(t_ns - self._last_img_ns) >= _IMAGE_NIS_INTERVAL_NS:  # plenty for a detector; saves CPU
-                self._last_img_ns = t_ns
-                self._image_innovation(cam, t_ns, tracked, Xw, pred, px, a)
+        if not tracked or not len(px):
+            marker_xn[:] = np.nan
+            return _Obs(t_ns, proj.undistort(px), np.full(len(px), -1, dtype=np.int64), marker_xn)
+        rows = self._rows(tracked)
+        c = self._motion_cache(tracked)
+        xn, label, Xw, pred, a = _observe_frame(
+            px, (t_ns - c[2]) * 1e-9, c[3], c[4], c[5], rows, marker_xn, proj.R, proj.t, proj.intrinsics, proj.dist,
+            proj.fisheye, proj.cos_max, float(self.settings.match_gate_px),
+        )
+        if abs(t_ns - self._last_img_ns) >= _IMAGE_NIS_INTERVAL_NS:  # plenty for a detector; saves CPU
+            self._last_img_ns = t_ns
+            self._image_innovation(cam, t_ns, tracked, Xw, pred, px, a)
         return _Obs(t_ns, xn, label, marker_xn)
 
     def _image_innovation(self, cam: int, t_ns: int, tracked: list[int], Xw, pred, px, a) -> None:
@@ -729,7 +771,7 @@ class FusionPipeline:
         obs = [self.obs[c] for c in cams]
         tracked = [b for b, tr in enumerate(self.tracks) if tr.tracked]
         if tracked:
-            self._update_tracked(tracked, obs, cams, R, t, f, ref, g.compensate)
+            self._update_tracked(tracked, obs, vi, R, t, f, ref, g.compensate)
         # acquisition is for lost bodies; with all tracked it only refreshes the loose points
         lost = any(not tr.tracked for tr in self.tracks)
         interval = st.acquire_interval_ns if lost else st.loose_points_interval_ns
@@ -753,11 +795,10 @@ class FusionPipeline:
             self._layout_cache[key] = lay
         return lay
 
-    def _update_tracked(self, tracked, obs, cams, R, t, f, ref, compensate) -> None:
+    def _update_tracked(self, tracked, obs, vi, R, t, f, ref, compensate) -> None:
         st = self.settings
         rows, sizes, _ = self._layout(tracked)
         B = len(tracked)
-        xn = np.stack([o.marker_xn[rows] for o in obs], axis=1)  # (P, V, 2)
         dt = np.array([(o.capture_ns - ref) * 1e-9 for o in obs])  # (V,) view time - reference time
         x, R_nom, state_dt = self._filter_states(tracked, ref)
         sv2 = np.empty(B)
@@ -767,7 +808,7 @@ class FusionPipeline:
             sv2[i] = (P[3, 3] + P[4, 4] + P[5, 5]) / 3.0
             sw2[i] = (P[12, 12] + P[13, 13] + P[14, 14]) / 3.0
         Rk, tk, counts, res2, n_cams, px_var, cov_unit, var_p, var_r, fit_tol, refused = _tracked_measurements(
-            xn, R, t, f, dt, x, R_nom, state_dt, sv2, sw2, bool(compensate), sizes, self._marker_local[rows],
+            self._marker_xn, vi, rows, R, t, f, dt, x, R_nom, state_dt, sv2, sw2, bool(compensate), sizes, self._marker_local[rows],
             st.max_residual_px, st.identify_tolerance, _COMPENSATE_MAX_VEL_STD**2,
         )
         self._stats["rejected_residual"] += int(refused)
@@ -789,9 +830,7 @@ class FusionPipeline:
             tr.marker_var += 0.05 * (float(res2[i]) / (3 * n - 6) - tr.marker_var)
             var = max(tr.marker_var, st.marker_sigma**2)
             # reused frames: split their information over the fusions that share them
-            cov = cov_unit[i] * (var * reuse)
-            cov[0:3, 0:3] += _I3 * var_p[i]
-            cov[3:6, 3:6] += _I3 * var_r[i]
+            cov = _scaled_pose_cov(cov_unit[i], var * reuse, var_p[i], var_r[i])
             accepted, _ = tr.filter.update(ref, tk[i], Rk[i], cov)
             if not accepted:
                 self._stats["rejected_gate"] += 1

@@ -288,6 +288,19 @@ def _kf_update(
 
 
 @njit
+def _kf_predict_update(x, P, R_nom, dt, qj, qw, position, R, cov, gate_chi2):
+    """_kf_predict over dt (when dt != 0) then _kf_update, in one call; returns
+    (folds done, accepted, squared Mahalanobis distance, position NIS / 3, rotation NIS / 3)."""
+    folds = 0
+    if dt != 0.0 and _kf_predict(x, P, R_nom, dt, qj, qw):
+        folds += 1
+    accepted, d2, nis_p, nis_r = _kf_update(x, P, R_nom, position, R, cov, gate_chi2)
+    if accepted:
+        folds += 1
+    return folds, accepted, d2, nis_p, nis_r
+
+
+@njit
 def _spd_inverse(S: np.ndarray) -> np.ndarray:
     """Inverse of a small symmetric positive-definite matrix (Cholesky, no library call)."""
     n = S.shape[0]
@@ -399,13 +412,15 @@ class BodyFilter:
         [p, world rotation vector]. Returns (accepted, squared Mahalanobis
         distance); a gated measurement leaves the state predicted only.
         """
-        dt = (int(t_ns) - self.t_ns) * 1e-9
-        self.predict_to(t_ns)
-        accepted, d2, nis_p, nis_r = _kf_update(
-            self.x, self.P, self.R_nom, np.asarray(position, dtype=np.float64), np.ascontiguousarray(R, dtype=np.float64),
+        t_ns = int(t_ns)
+        dt = (t_ns - self.t_ns) * 1e-9
+        folds, accepted, d2, nis_p, nis_r = _kf_predict_update(
+            self.x, self.P, self.R_nom, dt, self.s.jerk_psd * self.scale_p, self.s.angular_accel_psd * self.scale_r,
+            np.asarray(position, dtype=np.float64), np.ascontiguousarray(R, dtype=np.float64),
             np.ascontiguousarray(meas_cov, dtype=np.float64), self.s.gate_chi2 if gate else 0.0,
         )
-        if accepted:
+        self.t_ns = t_ns
+        for _ in range(folds):
             self._folded()
         # NIS per block drives the process-noise scale (gated ones too, capped,
         # so that a manoeuvre that starts outside the gate still opens it)
