@@ -79,6 +79,28 @@ def test_predict_and_update_match_filterpy():
         keep = [0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 13, 14]
         assert np.allclose(f.x[keep], ref.x[keep, 0], rtol=1e-9, atol=1e-12)
         assert np.allclose(f.R_nom, rotvec_to_matrix(ref.x[9:12, 0]) @ R_nom, atol=1e-12)
+        # the outputs predicted 7 ms ahead, without changing the filter
+        R_nom = rotvec_to_matrix(ref.x[9:12, 0]) @ R_nom
+        ref.x[9:12] = 0.0
+        x_before = f.x.copy()
+        p, q, v, w_body, cov, vcov = f.output_at(t + 7_000_000)
+        assert np.array_equal(f.x, x_before)
+        h = 0.007
+        F = np.eye(15)
+        for k in range(3):
+            F[k, 3 + k] = F[3 + k, 6 + k] = F[9 + k, 12 + k] = h
+            F[k, 6 + k] = 0.5 * h * h
+        Q = np.zeros((15, 15))
+        Q[0:9, 0:9] = Q_continuous_white_noise(3, h, f.s.jerk_psd * f.scale_p, block_size=3, order_by_dim=False)
+        Q[9:15, 9:15] = Q_continuous_white_noise(2, h, f.s.angular_accel_psd * f.scale_r, block_size=3, order_by_dim=False)
+        ref.predict(F=F, Q=Q)
+        pose = [0, 1, 2, 9, 10, 11]
+        assert np.allclose(cov, ref.P[np.ix_(pose, pose)], rtol=1e-9, atol=1e-15)
+        assert np.allclose(vcov, ref.P[3:6, 3:6], rtol=1e-9, atol=1e-15)
+        assert np.allclose(p, ref.x[0:3, 0]) and np.allclose(v, ref.x[3:6, 0])
+        R_out = Rotation.from_rotvec(ref.x[9:12, 0]).as_matrix() @ R_nom
+        assert np.allclose(Rotation.from_quat(q).as_matrix(), R_out, atol=1e-12) and q[3] >= 0
+        assert np.allclose(w_body, R_out.T @ ref.x[12:15, 0], atol=1e-12)
 
 
 def test_static_jitter_drops_well_below_raw():
@@ -151,7 +173,7 @@ def test_covariance_grows_with_prediction_horizon():
     f.initialize(0, np.zeros(3), np.eye(3), _cov())
     for k in range(1, 50):
         f.update(k * 10 * MS, np.zeros(3), np.eye(3), _cov())
-    P1 = f.state_at(50 * 10 * MS)[4]
-    P2 = f.state_at(60 * 10 * MS)[4]
+    P1 = f.output_at(50 * 10 * MS)[4]
+    P2 = f.output_at(60 * 10 * MS)[4]
     assert np.trace(P2[:3, :3]) > np.trace(P1[:3, :3]) > 0
     assert np.all(np.linalg.eigvalsh(P2) > -1e-15)

@@ -10,6 +10,7 @@ correct, only slower; `COMPILED` says which.
 
 from __future__ import annotations
 
+import logging
 import os
 from typing import Callable, TypeVar
 
@@ -28,7 +29,17 @@ try:
         """Compile fn in nopython mode, cached on disk. No fastmath: results stay IEEE-exact.
         numpy's error model: a division by zero gives inf / NaN as in numpy, never an exception
         in the middle of a fusion."""
-        return _njit(cache=True, nogil=True, error_model="numpy")(fn)
+        try:
+            return _njit(cache=True, nogil=True, error_model="numpy")(fn)
+        except RuntimeError as e:  # numba finds no writable cache directory (read-only install, no home)
+            if not _uncached:
+                _uncached.append(fn.__qualname__)
+                logging.getLogger(__name__).warning(
+                    "numba cannot cache the compiled kernels (%s): they compile on every start; "
+                    "set NUMBA_CACHE_DIR to a writable directory", e)
+            return _njit(nogil=True, error_model="numpy")(fn)
+
+    _uncached: list[str] = []
 
 except ImportError:
     COMPILED = False

@@ -97,7 +97,7 @@ from visionpos.matching import Projector, associate_blobs, match_unlabeled, proj
 from visionpos.messages import BlobFrame, BodyState, LoosePoints
 from visionpos.rigidbody import BodyModel, identify, kabsch_weighted, layout_ambiguities
 from visionpos.timealign import MODES, MOTION_COMPENSATED, Group, TimeAligner
-from visionpos.tracking import BodyFilter, KalmanSettings, rodrigues, matrix_to_quat, pose_covariance, velocity_covariance
+from visionpos.tracking import BodyFilter, KalmanSettings, rodrigues
 
 
 # the image-space manoeuvre detector samples at most this often (capture clock)
@@ -910,7 +910,7 @@ class FusionPipeline:
         for b, (model, tr) in enumerate(zip(self.models, self.tracks)):
             age = now_ns - tr.last_update_ns
             if tr.tracked and age <= st.max_prediction_ns and age <= st.lost_timeout_ns:
-                p, R, v, w, P = tr.filter.state_at(now_ns)
+                p, q, v, w_body, cov, vcov = tr.filter.output_at(now_ns)
                 out.append(
                     BodyState(
                         name=model.name,
@@ -918,11 +918,11 @@ class FusionPipeline:
                         time_ns=int(now_ns),
                         capture_ns=int(tr.last_capture_ns),
                         position=p,
-                        quaternion=matrix_to_quat(R),
+                        quaternion=q,
                         velocity=v,
-                        angular_velocity=R.T @ w,
-                        covariance=pose_covariance(P),
-                        velocity_covariance=velocity_covariance(P),
+                        angular_velocity=w_body,
+                        covariance=cov,
+                        velocity_covariance=vcov,
                         tracked=True,
                         n_markers=tr.n_markers,
                         n_cameras=tr.n_cameras,

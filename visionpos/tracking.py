@@ -69,8 +69,8 @@ def rodrigues(rv: np.ndarray) -> np.ndarray:
 
 
 @njit
-def _matrix_rotvec(R: np.ndarray) -> np.ndarray:
-    # through the unit quaternion (Shepperd): well conditioned at every angle, 180 deg included
+def _quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
+    """Rotation matrix (3, 3) -> unit quaternion (x, y, z, w), w >= 0 (Shepperd's method)."""
     m00, m01, m02 = R[0, 0], R[0, 1], R[0, 2]
     m10, m11, m12 = R[1, 0], R[1, 1], R[1, 2]
     m20, m21, m22 = R[2, 0], R[2, 1], R[2, 2]
@@ -87,8 +87,16 @@ def _matrix_rotvec(R: np.ndarray) -> np.ndarray:
     else:
         s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
         qx, qy, qz, qw = (m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s
+    n = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
     if qw < 0.0:
-        qx, qy, qz, qw = -qx, -qy, -qz, -qw
+        n = -n
+    return qx / n, qy / n, qz / n, qw / n
+
+
+@njit
+def _matrix_rotvec(R: np.ndarray) -> np.ndarray:
+    # through the unit quaternion: well conditioned at every angle, 180 deg included
+    qx, qy, qz, qw = _quaternion(R)
     n = math.sqrt(qx * qx + qy * qy + qz * qz)
     out = np.empty(3)
     # angle / sin(angle / 2) -> 2 as the angle -> 0
@@ -109,23 +117,7 @@ def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """Rotation matrix (3, 3) -> quaternion (4,) x, y, z, w with w >= 0 (Shepperd's method)."""
-    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = R.tolist()
-    tr = m00 + m11 + m22
-    if tr > 0.0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        q = [(m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s, 0.25 * s]
-    elif m00 > m11 and m00 > m22:
-        s = 2.0 * math.sqrt(1.0 + m00 - m11 - m22)
-        q = [0.25 * s, (m01 + m10) / s, (m02 + m20) / s, (m21 - m12) / s]
-    elif m11 > m22:
-        s = 2.0 * math.sqrt(1.0 + m11 - m00 - m22)
-        q = [(m01 + m10) / s, 0.25 * s, (m12 + m21) / s, (m02 - m20) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
-        q = [(m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s]
-    out = np.array(q)
-    out /= np.linalg.norm(out)
-    return -out if out[3] < 0 else out
+    return np.array(_quaternion(np.ascontiguousarray(R, dtype=np.float64)))
 
 
 @dataclass(frozen=True)
@@ -333,6 +325,28 @@ def _spd_inverse(S: np.ndarray) -> np.ndarray:
     return out
 
 
+@njit
+def _output_at(x, P, R_nom, dt, qj, qw):
+    """Prediction by dt for the outputs: position (3,), quaternion xyzw (4,), velocity (3,),
+    body-frame angular rate (3,), pose covariance (6, 6) over [p, rotation vector] and
+    velocity covariance (3, 3)."""
+    Pn = _predicted_cov(P, dt, qj, qw)
+    w = x[12:15]
+    R = matmul3(rodrigues(w * dt), R_nom)
+    p = x[0:3] + x[3:6] * dt + x[6:9] * (0.5 * dt * dt)
+    v = x[3:6] + x[6:9] * dt
+    q = np.empty(4)
+    q[0], q[1], q[2], q[3] = _quaternion(R)
+    w_body = np.empty(3)
+    for i in range(3):
+        w_body[i] = R[0, i] * w[0] + R[1, i] * w[1] + R[2, i] * w[2]
+    cov = np.empty((6, 6))
+    for i in range(6):
+        for j in range(6):
+            cov[i, j] = Pn[_POSE[i], _POSE[j]]
+    return p, q, v, w_body, cov, Pn[3:6, 3:6].copy()
+
+
 class BodyFilter:
     """Error-state Kalman filter of one body; times are int64 ns (capture clock).
 
@@ -463,23 +477,9 @@ class BodyFilter:
         p = x[0:3] + x[3:6] * dt + x[6:9] * (0.5 * dt * dt)
         return p, rodrigues(w * dt) @ self.R_nom, x[3:6] + x[6:9] * dt, w.copy()
 
-    def state_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Non-mutating prediction with covariance.
-
-        Returns position (3,), R (3, 3), velocity (3,), world angular rate
-        (3,), covariance P (15, 15) of the error state at t_ns.
-        """
+    def output_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Non-mutating prediction for the outputs: position (3,), quaternion xyzw (4,),
+        velocity (3,), body-frame angular rate (3,), pose covariance (6, 6) over
+        [p, world rotation vector] and velocity covariance (3, 3)."""
         dt = (int(t_ns) - self.t_ns) * 1e-9
-        P = _predicted_cov(self.P, dt, self.s.jerk_psd * self.scale_p, self.s.angular_accel_psd * self.scale_r)
-        p, R, v, w = self.pose_at(t_ns)
-        return p, R, v, w, P
-
-
-def pose_covariance(P: np.ndarray) -> np.ndarray:
-    """(15, 15) filter covariance -> (6, 6) over [x, y, z, rx, ry, rz]."""
-    return P[_POSE_IX].copy()
-
-
-def velocity_covariance(P: np.ndarray) -> np.ndarray:
-    """(15, 15) filter covariance -> (3, 3) velocity block."""
-    return P[3:6, 3:6].copy()
+        return _output_at(self.x, self.P, self.R_nom, dt, self.s.jerk_psd * self.scale_p, self.s.angular_accel_psd * self.scale_r)
