@@ -462,83 +462,141 @@ def match_unlabeled(
     every blob is used by at most one point.
     """
     V = len(xn)
-    centres = -np.einsum("vji,vj->vi", R, t)
-    rays = [_world_rays(np.ascontiguousarray(xn[v], dtype=np.float64), R[v]) for v in range(V)]
-    # 1. seed pairs
-    seeds = []
+    start = np.zeros(V + 1, dtype=np.int64)
+    start[1:] = np.cumsum([len(x) for x in xn])
+    pts = np.concatenate([np.asarray(x, dtype=np.float64).reshape(-1, 2) for x in xn]) if V else np.zeros((0, 2))
+    return _match_unlabeled(np.ascontiguousarray(pts), start, np.ascontiguousarray(R, dtype=np.float64),
+                            np.ascontiguousarray(t, dtype=np.float64), np.ascontiguousarray(f, dtype=np.float64),
+                            float(max_ray_distance), float(max_residual_px))
+
+
+@njit
+def _match_unlabeled(pts, start, R, t, f, max_ray_distance, max_residual_px):
+    """Compiled core of match_unlabeled; view v's blobs are pts[start[v]:start[v + 1]] (N, 2)."""
+    V = start.shape[0] - 1
+    centres = np.empty((V, 3))
+    for v in range(V):
+        for k in range(3):
+            centres[v, k] = -(R[v, 0, k] * t[v, 0] + R[v, 1, k] * t[v, 1] + R[v, 2, k] * t[v, 2])
+    rays = np.empty((pts.shape[0], 3))
+    for v in range(V):
+        rays[start[v] : start[v + 1]] = _world_rays(pts[start[v] : start[v + 1]], R[v])
+    # 1. seed pairs: rays of two views that pass within max_ray_distance
+    cap = 0
     for a in range(V):
-        if len(rays[a]) == 0:
+        for b in range(a + 1, V):
+            cap += (start[a + 1] - start[a]) * (start[b + 1] - start[b])
+    idx = np.full((cap, V), -1, dtype=np.int64)
+    X0 = np.empty((cap, 3))
+    S = 0
+    for a in range(V):
+        if start[a + 1] == start[a]:
             continue
         for b in range(a + 1, V):
-            if len(rays[b]) == 0:
+            if start[b + 1] == start[b]:
                 continue
-            dist, mid = ray_distances(centres[a], rays[a], centres[b], rays[b])
-            ia, ib = np.nonzero(dist < max_ray_distance)
-            for i, j in zip(ia, ib):
-                seeds.append((a, int(i), b, int(j), mid[i, j]))
-    if not seeds:
+            dist, mid = ray_distances(centres[a], rays[start[a] : start[a + 1]], centres[b], rays[start[b] : start[b + 1]])
+            for i in range(dist.shape[0]):
+                for j in range(dist.shape[1]):
+                    if dist[i, j] < max_ray_distance:
+                        idx[S, a], idx[S, b] = i, j
+                        X0[S] = mid[i, j]
+                        S += 1
+    if S == 0:
         return np.zeros((0, 3)), np.zeros((0, V), dtype=np.int64), np.zeros(0)
-    # 2. grow every seed to the other views by reprojection (vectorised over seeds)
-    S = len(seeds)
-    X0 = np.array([s[4] for s in seeds])  # (S, 3)
-    idx = np.full((S, V), -1, dtype=np.int64)
-    for k, (a, i, b, j, _) in enumerate(seeds):
-        idx[k, a] = i
-        idx[k, b] = j
+    idx = idx[:S].copy()
+    # 2. grow every seed to the other views by reprojection; the growth gate is looser than the
+    # final one: the seed midpoint is not the maximum-likelihood point
     for v in range(V):
-        if len(xn[v]) == 0:
+        n = start[v + 1] - start[v]
+        if n == 0:
             continue
-        pc = X0 @ R[v].T + t[v]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            proj = pc[:, :2] / pc[:, 2:3]
-        d = np.linalg.norm(proj[:, None, :] - xn[v][None], axis=-1) * f[v]  # (S, N_v) px
-        d = np.where(pc[:, 2:3] > 0, d, np.inf)
-        nn = np.argmin(d, axis=1)
-        # growth gate is looser than the final one: the seed midpoint is not the ML point
-        take = (idx[:, v] < 0) & (d[np.arange(S), nn] < 3.0 * max_residual_px)
-        idx[take, v] = nn[take]
-    obs = np.full((S, V, 2), np.nan)
-    for v in range(V):
-        sel = idx[:, v] >= 0
-        obs[sel, v] = xn[v][idx[sel, v]]
-    X, rms, nv = triangulate(obs, R, t, f)
-    # a view whose own residual is over the gate was grown onto a wrong blob: drop the worst such view
-    r = _view_residuals_all(X, obs, R, t, f)  # (S, V)
-    worst = np.argmax(np.where(np.isnan(r), -1.0, r), axis=1)
-    bad = (r[np.arange(S), worst] > max_residual_px) & (nv > 2)
-    if bad.any():
-        obs[bad, worst[bad]] = np.nan
-        idx[bad, worst[bad]] = -1
-        X[bad], rms[bad], nv[bad] = triangulate(obs[bad], R, t, f)
-    # 3. greedy acceptance, each blob once; a candidate that shares blobs with an
-    # accepted point keeps its other views if at least two remain
-    good = np.nonzero(rms < max_residual_px)[0]
-    order = sorted(good.tolist(), key=lambda k: (-int(nv[k]), float(rms[k]), k))
-    used = [set() for _ in range(V)]
-    keep_X, keep_idx, keep_rms = [], [], []
-    for k in order:
-        views = [v for v in range(V) if idx[k, v] >= 0]
-        clash = [v for v in views if int(idx[k, v]) in used[v]]
-        Xk, rk, ik = X[k], float(rms[k]), idx[k].copy()
-        if clash:
-            if len(views) - len(clash) < 2:
+        for s in range(S):
+            if idx[s, v] >= 0:
                 continue
-            ok = obs[k].copy()
-            ok[clash] = np.nan
-            ik[clash] = -1
-            Xs, rs, _ = triangulate(ok[None], R, t, f)
+            z = R[v, 2, 0] * X0[s, 0] + R[v, 2, 1] * X0[s, 1] + R[v, 2, 2] * X0[s, 2] + t[v, 2]
+            if not z > 0:
+                continue
+            u = (R[v, 0, 0] * X0[s, 0] + R[v, 0, 1] * X0[s, 1] + R[v, 0, 2] * X0[s, 2] + t[v, 0]) / z
+            w = (R[v, 1, 0] * X0[s, 0] + R[v, 1, 1] * X0[s, 1] + R[v, 1, 2] * X0[s, 2] + t[v, 1]) / z
+            best, nn = np.inf, -1
+            for j in range(n):
+                du, dw = u - pts[start[v] + j, 0], w - pts[start[v] + j, 1]
+                d = math.sqrt(du * du + dw * dw) * f[v]
+                if d < best:
+                    best, nn = d, j
+            if best < 3.0 * max_residual_px:
+                idx[s, v] = nn
+    obs = np.full((S, V, 2), np.nan)
+    for s in range(S):
+        for v in range(V):
+            if idx[s, v] >= 0:
+                obs[s, v] = pts[start[v] + idx[s, v]]
+    no_offsets = np.zeros((0, 0, 3))
+    X, rms, nv = triangulate_irls(obs, R, t, f, no_offsets, False, 2)
+    # a view whose own residual is over the gate was grown onto a wrong blob: drop the worst such view
+    for s in range(S):
+        worst, r_worst = -1, -1.0
+        for v in range(V):
+            if idx[s, v] < 0:
+                continue
+            z = R[v, 2, 0] * X[s, 0] + R[v, 2, 1] * X[s, 1] + R[v, 2, 2] * X[s, 2] + t[v, 2]
+            du = (R[v, 0, 0] * X[s, 0] + R[v, 0, 1] * X[s, 1] + R[v, 0, 2] * X[s, 2] + t[v, 0]) / z - obs[s, v, 0]
+            dw = (R[v, 1, 0] * X[s, 0] + R[v, 1, 1] * X[s, 1] + R[v, 1, 2] * X[s, 2] + t[v, 1]) / z - obs[s, v, 1]
+            r = math.sqrt(du * du + dw * dw) * f[v]
+            if r > r_worst:
+                worst, r_worst = v, r
+        if worst >= 0 and r_worst > max_residual_px and nv[s] > 2:
+            obs[s, worst] = np.nan
+            idx[s, worst] = -1
+            Xs, rs, ns = triangulate_irls(obs[s : s + 1], R, t, f, no_offsets, False, 2)
+            X[s], rms[s], nv[s] = Xs[0], rs[0], ns[0]
+    # 3. greedy acceptance (most views, then lowest residual), each blob once; a candidate that
+    # shares blobs with an accepted point keeps its other views if at least two remain
+    by_rms = np.argsort(np.where(rms < max_residual_px, rms, np.inf), kind="mergesort")
+    order = by_rms[np.argsort(-nv[by_rms], kind="mergesort")]  # stable: views, then residual, then index
+    used = np.zeros(pts.shape[0], dtype=np.bool_)
+    keep = np.zeros(S, dtype=np.bool_)
+    for s in order:
+        if not rms[s] < max_residual_px:
+            break
+        n_views = 0
+        n_clash = 0
+        for v in range(V):
+            if idx[s, v] >= 0:
+                n_views += 1
+                if used[start[v] + idx[s, v]]:
+                    n_clash += 1
+        if n_clash:
+            if n_views - n_clash < 2:
+                continue
+            ok = obs[s : s + 1].copy()
+            for v in range(V):
+                if idx[s, v] >= 0 and used[start[v] + idx[s, v]]:
+                    ok[0, v] = np.nan
+                    idx[s, v] = -1
+            Xs, rs, _ = triangulate_irls(ok, R, t, f, no_offsets, False, 2)
             if not rs[0] < max_residual_px:
                 continue
-            Xk, rk = Xs[0], float(rs[0])
-        keep_X.append(Xk)
-        keep_idx.append(ik)
-        keep_rms.append(rk)
+            X[s], rms[s] = Xs[0], rs[0]
+        keep[s] = True
         for v in range(V):
-            if ik[v] >= 0:
-                used[v].add(int(ik[v]))
-    if not keep_X:
-        return np.zeros((0, 3)), np.zeros((0, V), dtype=np.int64), np.zeros(0)
-    return np.array(keep_X), np.array(keep_idx, dtype=np.int64), np.array(keep_rms)
+            if idx[s, v] >= 0:
+                used[start[v] + idx[s, v]] = True
+    # in acceptance order
+    Q = 0
+    for s in order:
+        if keep[s]:
+            Q += 1
+    out_X = np.empty((Q, 3))
+    out_idx = np.empty((Q, V), dtype=np.int64)
+    out_rms = np.empty(Q)
+    q = 0
+    for s in order:
+        if keep[s]:
+            out_X[q], out_idx[q], out_rms[q] = X[s], idx[s], rms[s]
+            q += 1
+    return out_X, out_idx, out_rms
 
 
 def _view_residuals_all(X: np.ndarray, obs: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray) -> np.ndarray:
