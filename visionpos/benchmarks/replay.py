@@ -41,7 +41,9 @@ def run(quick: bool = False) -> BenchResult:
         for scenario, duration in cases:
             log = Path(d) / f"{scenario}.mcap"
             _record(scenario, duration, log)
-            rep = replay_log(log)
+            # the fastest of three identical (deterministic) replays: the least disturbed by the
+            # rest of a shared machine, as for the detector's timing
+            rep = min((replay_log(log) for _ in range(3)), key=lambda r: r.wall_s)
             ms = rep.metrics()
             rmse = float(np.nanmean([m.position_rmse_mm for m in ms]))
             rot = float(np.nanmean([m.rotation_rmse_deg for m in ms]))
@@ -69,7 +71,7 @@ def run(quick: bool = False) -> BenchResult:
         "Replay drives the server's own ingest and FusionPipeline on the recording's receive clock, "
         "output ticks at server.output_rate_hz; goal >= 20x real time on the thesis arena. "
         "replay_speed_x_* is against wall time, replay_speed_x_cpu_* against this process's CPU time "
-        "(the same figure on an idle machine; robust when the machine is shared). "
+        "(the same figure on an idle machine; robust when the machine is shared); the fastest of three replays. "
         "Latency is capture -> output tick inside the pipeline (no network)."
     )
     return res
