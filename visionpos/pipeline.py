@@ -553,7 +553,7 @@ def warm_up_kernels(arena: ArenaConfig, settings: dict[str, Any] | None = None) 
     markers = np.asarray(arena.bodies[0].markers, dtype=np.float64) + centre
     pipe = FusionPipeline(arena, settings, warm_up=False)
     notice = threading.Timer(2.0, lambda: log.warning(
-        "compiling the fusion kernels: the first run after installing takes about half a minute; "
+        "compiling the fusion kernels: the first run after installing takes about a minute; "
         "later runs load them from numba's cache"))
     notice.daemon = True
     notice.start()
