@@ -13,7 +13,7 @@ def test_building_blocks_match_numpy():
     A, B = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
     a, b = rng.normal(size=3), rng.normal(size=3)
     assert np.allclose(jit.matmul3(A, B), A @ B, atol=1e-15)
-    assert np.allclose(jit.matmul3_bt(A, B), A @ B.T, atol=1e-15)
+    assert np.allclose(jit.matmul3(A, B.T), A @ B.T, atol=1e-15)
     assert np.allclose(jit.matvec3(A, a), A @ a, atol=1e-15)
     assert np.allclose(jit.cross3(a, b), np.cross(a, b), atol=1e-15)
     assert jit.dot3(a, b) == pytest.approx(float(a @ b), abs=1e-15)

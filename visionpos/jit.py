@@ -55,21 +55,11 @@ except ImportError:
 
 @njit
 def matmul3(A, B):
-    """(3, 3) @ (3, 3) -> (3, 3)."""
+    """(3, 3) @ (3, 3) -> (3, 3) (either may be a transposed view)."""
     C = np.empty((3, 3))
     for i in range(3):
         for j in range(3):
             C[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
-    return C
-
-
-@njit
-def matmul3_bt(A, B):
-    """(3, 3) @ (3, 3).T -> (3, 3)."""
-    C = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            C[i, j] = A[i, 0] * B[j, 0] + A[i, 1] * B[j, 1] + A[i, 2] * B[j, 2]
     return C
 
 

@@ -92,7 +92,7 @@ from typing import Any
 import numpy as np
 
 from visionpos.config import ArenaConfig, ConfigError, Section
-from visionpos.jit import COMPILED, cross3, dot3, matmul3, matmul3_bt, matvec3, njit
+from visionpos.jit import COMPILED, cross3, dot3, matmul3, matvec3, njit
 from visionpos.matching import Projector, associate_blobs, match_unlabeled, project_points, triangulate_irls, undistort_normalized
 from visionpos.messages import BlobFrame, BodyState, LoosePoints
 from visionpos.rigidbody import BodyModel, identify, kabsch_weighted, layout_ambiguities
@@ -294,7 +294,7 @@ def pose_measurement_cov(markers_world: np.ndarray, origin: np.ndarray, var: flo
     ox = np.array([[0.0, -o[2], o[1]], [o[2], 0.0, -o[0]], [-o[1], o[0], 0.0]])
     oxC = matmul3(ox, Crot)
     C = np.empty((6, 6))
-    C[0:3, 0:3] = matmul3_bt(oxC, ox)
+    C[0:3, 0:3] = matmul3(oxC, ox.T)
     for i in range(3):
         C[i, i] += var / n
     C[0:3, 3:6] = -oxC

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visionpos.jit import matmul3, matmul3_bt, njit
+from visionpos.jit import matmul3, njit
 
 NX = 15
 _POSE_IX = np.ix_([0, 1, 2, 9, 10, 11], [0, 1, 2, 9, 10, 11])
@@ -227,7 +227,7 @@ def _kf_update(
     """
     z = np.empty(6)
     z[0:3] = position
-    z[3:6] = _matrix_rotvec(matmul3_bt(R, R_nom))
+    z[3:6] = _matrix_rotvec(matmul3(R, R_nom.T))
     S = np.empty((6, 6))
     y = np.empty(6)
     PHt = np.empty((NX, 6))  # P H^T: the measured columns
