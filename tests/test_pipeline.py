@@ -346,3 +346,40 @@ def test_fast_body_reacquired_after_occlusion(fast):
     p_true, _ = sc.truth_at("quad", t[ok])
     err = np.linalg.norm(rep.positions["quad"][ok] - p_true, axis=1)
     assert np.sqrt((err**2).mean()) < 5e-3
+
+
+def test_warm_up_compiles_every_kernel_the_fusion_uses():
+    """After FusionPipeline's warm-up, a run with acquisition, tracking, loss, reacquisition and
+    loose markers compiles nothing more: the server never stalls on numba at its first packets
+    (a kernel meeting a new argument type would compile then, for seconds)."""
+    from numba.core.registry import CPUDispatcher
+
+    import visionpos.jit
+    import visionpos.matching
+    import visionpos.pipeline
+    import visionpos.rigidbody
+    import visionpos.tracking
+
+    if not visionpos.jit.COMPILED:
+        pytest.skip("numba is not installed")
+
+    def signatures():
+        out = {}
+        for mod in (visionpos.jit, visionpos.matching, visionpos.pipeline, visionpos.rigidbody, visionpos.tracking):
+            for name, obj in vars(mod).items():
+                if isinstance(obj, CPUDispatcher):
+                    out[f"{mod.__name__}.{name}"] = len(obj.signatures)
+        return out
+
+    sc = load_scenario("thesis", session="hover", duration=2.0)
+    visionpos.pipeline.warm_up_kernels(sc.arena)  # what the first FusionPipeline of a process does
+    before = signatures()
+    assert sum(before.values()) >= 10  # the kernels Python calls (callees compile inside them)
+    sim = simulate(sc)
+    t0 = sim.frames[0].capture_ns
+    gap = (t0 + 800_000_000, t0 + 1_100_000_000)
+    rep = replay(sc.arena, _without(sim, lambda f, tr: (tr.body == 0) & (gap[0] <= f.capture_ns < gap[1])))
+    st = rep.pipeline.stats()
+    assert st["lost"] >= 1 and st["acquisitions"] >= 2 and st["measurements"] > 100
+    after = signatures()
+    assert after == before, {k: (before.get(k), v) for k, v in after.items() if before.get(k) != v}
