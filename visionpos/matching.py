@@ -5,8 +5,8 @@ Two ways a blob gets its meaning:
    projected into the camera at the frame's capture time and blobs are
    associated by nearest neighbour within a gate (`associate`); where two
    predictions compete for a blob, the assignment is solved jointly
-   (Hungarian, scipy.optimize.linear_sum_assignment), so one blob never
-   feeds two markers or two bodies.
+   (Hungarian, `min_cost_assignment`), so one blob never feeds two markers
+   or two bodies.
 2. Acquisition (lost bodies, loose markers): unlabeled blobs of different
    cameras are paired by the closest approach of their rays, each pair is
    grown to more views by reprojection, and candidates are accepted greedily
@@ -14,8 +14,8 @@ Two ways a blob gets its meaning:
    (`match_unlabeled`). False blobs rarely find a consistent partner in a
    third view; missing markers just give fewer points.
 
-`triangulate` is the per-packet hot path: a vectorised, iteratively
-re-weighted linear triangulation in normalised image coordinates. With the
+`triangulate` is the per-packet hot path: an iteratively re-weighted
+linear triangulation in normalised image coordinates. With the
 weights f/z (focal length over depth) its cost is exactly the reprojection
 error in pixels, so after 2-3 re-weightings it reaches the maximum-likelihood
 point for isotropic pixel noise (up to lens-distortion scale changes). It
@@ -24,7 +24,9 @@ compensation. Two passes suffice: the first (unit weights) fixes the depths
 to ~1e-3 relative, so the second pass's weights are exact for practical
 purposes. geometry.triangulate_* does the same job with a Gauss-Newton
 refinement for offline work; this one is here because it runs several
-thousand times a second and has to stay a handful of numpy calls.
+thousand times a second. The per-frame steps are compiled loops
+(visionpos/jit.py); the public functions are thin wrappers that fix the
+argument types.
 """
 
 from __future__ import annotations

@@ -591,7 +591,7 @@ class FusionPipeline:
         self.P = int(self._off[-1])
         self._marker_body = np.repeat(np.arange(len(self.models)), sizes)
         self._marker_local = np.concatenate([m.markers for m in self.models]) if self.models else np.zeros((0, 3))
-        # cameras: stacked poses for vectorised fusion
+        # cameras: stacked poses, indexed by the kernels
         self.cameras = {c.id: c for c in arena.cameras}
         self._cam_index = {c.id: i for i, c in enumerate(arena.cameras)}
         self._R = np.array([c.R for c in arena.cameras]).reshape(-1, 3, 3)

@@ -11,8 +11,11 @@ with disjoint point sets; a 3-point hypothesis that fits more than one
 body equally well is ambiguous and refused (tracking, not identification,
 is what continues with 3 of 4 markers).
 
-Poses of tracked bodies come from `kabsch_batch`, a weighted Kabsch over
-several bodies at once (padded marker sets, weight 0 = missing).
+Poses come from `kabsch_weighted` (compiled; the pipeline calls it per
+tracked body inside its measurement kernel) and `kabsch_batch`, the same
+over several bodies at once (padded marker sets, weight 0 = missing): the
+rotation from Horn's quaternion method, the eigenvector of a 4x4 symmetric
+matrix, computed by a small Jacobi solver (`symmetric_eigen`).
 """
 
 from __future__ import annotations
