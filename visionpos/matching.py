@@ -137,6 +137,9 @@ class Projector:
         self.intrinsics, self.dist, self.fisheye = lens_arrays(m)
         # beyond this angle from the axis the lens model folds back: not visible
         self.cos_max = float(np.cos(m.max_theta))
+        # all of it in one array for the compiled per-frame call: R (9), t (3), intrinsics (6),
+        # dist (8), cos_max, fisheye (1.0 / 0.0)
+        self.packed = np.concatenate([self.R.ravel(), self.t, self.intrinsics, self.dist, [self.cos_max, float(self.fisheye)]])
 
     def undistort(self, pixels: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) float64 -> normalised coordinates (N, 2), as undistort_points."""

@@ -304,12 +304,12 @@ def pose_measurement_cov(markers_world: np.ndarray, origin: np.ndarray, var: flo
 
 
 @njit
-def _marker_motion(x, R_nom, state_dt, sizes, local):
+def _marker_motion(states, sizes, local):
     """Marker positions, velocities and accelerations (P, 3) each, world, of B bodies.
 
-    x (B, 15), R_nom (B, 3, 3): filter states, predicted by state_dt (B,) s;
-    sizes (B,): marker counts; local (P, 3): body-frame markers, body by body.
-    Includes the rotation's w x r and w x (w x r) terms.
+    states (B, 27): filter states as FusionPipeline._filter_states packs them, predicted
+    by their state_dt; sizes (B,): marker counts; local (P, 3): body-frame markers, body
+    by body. Includes the rotation's w x r and w x (w x r) terms.
     """
     P = local.shape[0]
     X0 = np.empty((P, 3))
@@ -317,32 +317,35 @@ def _marker_motion(x, R_nom, state_dt, sizes, local):
     A = np.empty((P, 3))
     q = 0
     for b in range(sizes.shape[0]):
-        h = state_dt[b]
-        p = x[b, 0:3] + x[b, 3:6] * h + x[b, 6:9] * (0.5 * h * h)
-        v = x[b, 3:6] + x[b, 6:9] * h
-        w = x[b, 12:15]
-        Rb = matmul3(rodrigues(w * h), R_nom[b])
+        x = states[b, 0:15]
+        h = states[b, 24]
+        p = x[0:3] + x[3:6] * h + x[6:9] * (0.5 * h * h)
+        v = x[3:6] + x[6:9] * h
+        w = x[12:15]
+        Rb = matmul3(rodrigues(w * h), states[b, 15:24].reshape((3, 3)))
         for _ in range(sizes[b]):
             r = matvec3(Rb, local[q])  # lever arm, world
             wxr = cross3(w, r)
             X0[q] = p + r
             V[q] = v + wxr
-            A[q] = x[b, 6:9] + cross3(w, wxr)
+            A[q] = x[6:9] + cross3(w, wxr)
             q += 1
     return X0, V, A
 
 
 @njit
-def _observe_frame(px, dt, X0, V, A, rows, marker_xn, R, t, intrinsics, dist, fisheye, cos_max, gate):
+def _observe_frame(px, dt, X0, V, A, rows, marker_xn, camera, gate):
     """One camera frame against the tracked bodies' predicted markers (compiled).
 
     px (N, 2) blob pixels; markers X0 + dt V + dt^2 / 2 A (M, 3) predicted to the
-    frame's capture time, their global rows (M,); camera pose R, t and lens
-    (matching.lens_arrays, cos_max); gate px. Fills marker_xn (P, 2), each marker's
+    frame's capture time, their global rows (M,); camera: the camera packed as
+    matching.Projector.packed (pose, lens, visibility limit); gate px. Fills marker_xn (P, 2), each marker's
     observation (NaN = none). Returns normalised blobs xn (N, 2), blob labels (N,)
     (global marker row or -1), the predicted markers Xw (M, 3), their pixels (M, 2)
     and the associated blob of each (M,) (-1 = none).
     """
+    R, t, intrinsics, dist = camera[0:9].reshape((3, 3)), camera[9:12], camera[12:18], camera[18:26]
+    fisheye, cos_max = camera[27] != 0.0, camera[26]
     xn = undistort_normalized(px, intrinsics, dist, fisheye)
     Xw = X0 + dt * (V + (0.5 * dt) * A)
     pred = project_points(Xw, R, t, intrinsics, dist, fisheye, cos_max, gate)
@@ -396,23 +399,25 @@ def _image_nis(Xw, pred, px, a, body, exp_px, exp_pos, R2, t2, f):
 
 
 @njit
-def _tracked_measurements(marker_xn, views, rows, R, t, f, dt, x, R_nom, state_dt, sv2, sw2, compensate, sizes, local,
-                          max_residual_px, identify_tolerance, compensate_max_vel_var):
+def _tracked_measurements(marker_xn, views, rows, R, t, f, dt, states, compensate, sizes, local, params):
     """Pose measurements of the tracked bodies from one fusion of V views (compiled).
 
     marker_xn (cameras, all markers, 2): each camera's normalised observation of each
     marker (NaN = none); views (V,): the fused cameras' indices in it; rows (P,): the
-    tracked bodies' marker rows, body by body. R (V, 3, 3), t (V, 3), f (V,): the views; dt (V,): view capture - reference (s).
-    Per body (B): filter state x (B, 15), R_nom (B, 3, 3), state_dt (B,) reference -
-    filter time (s), sv2 / sw2 (B,) velocity / rate variance; sizes (B,) marker
-    counts; local (P, 3) body-frame markers of the rows. compensate: motion
-    compensation on (velocity-gated per body).
+    tracked bodies' marker rows, body by body. R (V, 3, 3), t (V, 3), f (V,): the views;
+    dt (V,): view capture - reference (s). states (B, 27): per body its filter state as
+    FusionPipeline._filter_states packs it (x, R_nom, reference - filter time, velocity
+    and rate variance); sizes (B,) marker counts; local (P, 3) body-frame markers of the
+    rows. compensate: motion compensation on (velocity-gated per body). params: max
+    residual px, identification tolerance m, the velocity variance below which a body
+    is compensated.
 
     Returns per body: R (B, 3, 3), t (B, 3), markers used (B,), fit residual sum
     of squares (B,), cameras seeing it (B,), pixel-variance sample (B,), unit-variance
     pose covariance (B, 6, 6), motion variance added to position / rotation (B,),
     fit tolerance (B,); and the number of points refused by the residual gate.
     """
+    max_residual_px, identify_tolerance, compensate_max_vel_var = params[0], params[1], params[2]
     P, V = rows.shape[0], views.shape[0]
     xn = np.empty((P, V, 2))
     for q in range(P):
@@ -441,23 +446,24 @@ def _tracked_measurements(marker_xn, views, rows, R, t, f, dt, x, R_nom, state_d
     fit_tol = np.empty(B)
     moving = False
     for b in range(B):
-        h = state_dt[b]
-        p = x[b, 0:3] + x[b, 3:6] * h + x[b, 6:9] * (0.5 * h * h)
-        v = x[b, 3:6] + x[b, 6:9] * h
-        w = x[b, 12:15]
-        Rb[b] = matmul3(rodrigues(w * h), R_nom[b])
-        if compensate and sv2[b] < compensate_max_vel_var:
-            vel[b], acc[b], rate[b] = v, x[b, 6:9], w
-            moving = moving or np.any(v != 0.0) or np.any(x[b, 6:9] != 0.0) or np.any(w != 0.0)
-            var_p[b], var_r[b] = dt2_mean * sv2[b], dt2_mean * sw2[b]
-            spread = 2.0 * math.sqrt(sv2[b])
+        x = states[b, 0:15]
+        h, sv2, sw2 = states[b, 24], states[b, 25], states[b, 26]
+        p = x[0:3] + x[3:6] * h + x[6:9] * (0.5 * h * h)
+        v = x[3:6] + x[6:9] * h
+        w = x[12:15]
+        Rb[b] = matmul3(rodrigues(w * h), states[b, 15:24].reshape((3, 3)))
+        if compensate and sv2 < compensate_max_vel_var:
+            vel[b], acc[b], rate[b] = v, x[6:9], w
+            moving = moving or np.any(v != 0.0) or np.any(x[6:9] != 0.0) or np.any(w != 0.0)
+            var_p[b], var_r[b] = dt2_mean * sv2, dt2_mean * sw2
+            spread = 2.0 * math.sqrt(sv2)
         else:
             # velocity not known well enough (or naive mode): compensating with a wrong one
             # would bias the measurement towards it (a feedback loop); the views are treated
             # as simultaneous and the motion between them counts as measurement noise
             vv, ww = dot3(v, v), dot3(w, w)
-            var_p[b], var_r[b] = dt2_mean * (vv + sv2[b]), dt2_mean * (ww + sw2[b])
-            spread = math.sqrt(vv) + 2.0 * math.sqrt(sv2[b])
+            var_p[b], var_r[b] = dt2_mean * (vv + sv2), dt2_mean * (ww + sw2)
+            spread = math.sqrt(vv) + 2.0 * math.sqrt(sv2)
         d = p - centre
         # residual gate widened by the motion the views may still disagree by
         gate[b] = max_residual_px + f_mean * spread * dt_max / max(math.sqrt(dot3(d, d)), 0.5)
@@ -599,7 +605,9 @@ class FusionPipeline:
         self._f = np.array([np.sqrt(c.model.fx * c.model.fy) for c in arena.cameras])
         self._proj = {c.id: Projector(c) for c in arena.cameras}
         self._rows_cache: dict[tuple[int, ...], np.ndarray] = {}
-        self._layout_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._layout_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._gate_px = float(st.match_gate_px)
+        self._kernel_params = np.array([st.max_residual_px, st.identify_tolerance, _COMPENSATE_MAX_VEL_STD**2])
         self.aligner = TimeAligner(
             st.time_alignment,
             st.window_ns,
@@ -702,24 +710,25 @@ class FusionPipeline:
         key = tuple(bodies)
         c = self._pred_cache
         if c is None or c[0] != key or c[1] != self._fusion_count:
-            rows = self._rows(bodies)
             t_c = max(self.tracks[b].filter.t_ns for b in bodies)
-            x, R_nom, state_dt = self._filter_states(bodies, t_c)
-            X0, V, A = _marker_motion(x, R_nom, state_dt, self._layout(bodies)[1], self._marker_local[rows])
+            _, sizes, _, local = self._layout(bodies)
+            X0, V, A = _marker_motion(self._filter_states(bodies, t_c), sizes, local)
             c = self._pred_cache = (key, self._fusion_count, t_c, X0, V, A)
         return c
 
-    def _filter_states(self, bodies: list[int], t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Filter states x (B, 15), nominal rotations (B, 3, 3) and t_ns - filter time (B,) s."""
-        B = len(bodies)
-        x = np.empty((B, 15))
-        R_nom = np.empty((B, 3, 3))
-        state_dt = np.empty(B)
+    def _filter_states(self, bodies: list[int], t_ns: int) -> np.ndarray:
+        """(B, 27) per body: filter state x (15), R_nom (9, row-major), t_ns - filter time (s),
+        mean velocity variance and mean angular-rate variance (the kernels' packed input)."""
+        out = np.empty((len(bodies), 27))
         for i, b in enumerate(bodies):
             fl = self.tracks[b].filter
-            x[i], R_nom[i] = fl.x, fl.R_nom
-            state_dt[i] = (t_ns - fl.t_ns) * 1e-9
-        return x, R_nom, state_dt
+            P = fl.P
+            out[i, 0:15] = fl.x
+            out[i, 15:24] = fl.R_nom.ravel()
+            out[i, 24] = (t_ns - fl.t_ns) * 1e-9
+            out[i, 25] = (P[3, 3] + P[4, 4] + P[5, 5]) / 3.0
+            out[i, 26] = (P[12, 12] + P[13, 13] + P[14, 14]) / 3.0
+        return out
 
     def _observe(self, cam: int, t_ns: int, px: np.ndarray) -> _Obs:
         proj = self._proj[cam]
@@ -731,8 +740,7 @@ class FusionPipeline:
         rows = self._rows(tracked)
         c = self._motion_cache(tracked)
         xn, label, Xw, pred, a = _observe_frame(
-            px, (t_ns - c[2]) * 1e-9, c[3], c[4], c[5], rows, marker_xn, proj.R, proj.t, proj.intrinsics, proj.dist,
-            proj.fisheye, proj.cos_max, float(self.settings.match_gate_px),
+            px, (t_ns - c[2]) * 1e-9, c[3], c[4], c[5], rows, marker_xn, proj.packed, self._gate_px,
         )
         if abs(t_ns - self._last_img_ns) >= _IMAGE_NIS_INTERVAL_NS:  # plenty for a detector; saves CPU
             self._last_img_ns = t_ns
@@ -784,32 +792,26 @@ class FusionPipeline:
                 tr.tracked = False
                 self._stats["lost"] += 1
 
-    def _layout(self, tracked: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _layout(self, tracked: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For a set of tracked bodies (cached): global marker rows (P,), marker counts (B,),
-        and for each marker row the index of its body in `tracked` (P,)."""
+        for each marker row the index of its body in `tracked` (P,), and the body-frame
+        markers of the rows (P, 3)."""
         key = tuple(tracked)
         lay = self._layout_cache.get(key)
         if lay is None:
             sizes = np.array([self._off[b + 1] - self._off[b] for b in tracked], dtype=np.int64)
-            lay = (self._rows(tracked), sizes, np.repeat(np.arange(len(tracked)), sizes))
+            rows = self._rows(tracked)
+            lay = (rows, sizes, np.repeat(np.arange(len(tracked)), sizes), self._marker_local[rows])
             self._layout_cache[key] = lay
         return lay
 
     def _update_tracked(self, tracked, obs, vi, R, t, f, ref, compensate) -> None:
         st = self.settings
-        rows, sizes, _ = self._layout(tracked)
-        B = len(tracked)
+        rows, sizes, _, local = self._layout(tracked)
         dt = np.array([(o.capture_ns - ref) * 1e-9 for o in obs])  # (V,) view time - reference time
-        x, R_nom, state_dt = self._filter_states(tracked, ref)
-        sv2 = np.empty(B)
-        sw2 = np.empty(B)
-        for i, b in enumerate(tracked):
-            P = self.tracks[b].filter.P
-            sv2[i] = (P[3, 3] + P[4, 4] + P[5, 5]) / 3.0
-            sw2[i] = (P[12, 12] + P[13, 13] + P[14, 14]) / 3.0
         Rk, tk, counts, res2, n_cams, px_var, cov_unit, var_p, var_r, fit_tol, refused = _tracked_measurements(
-            self._marker_xn, vi, rows, R, t, f, dt, x, R_nom, state_dt, sv2, sw2, bool(compensate), sizes, self._marker_local[rows],
-            st.max_residual_px, st.identify_tolerance, _COMPENSATE_MAX_VEL_STD**2,
+            self._marker_xn, vi, rows, R, t, f, dt, self._filter_states(tracked, ref), bool(compensate), sizes, local,
+            self._kernel_params,
         )
         self._stats["rejected_residual"] += int(refused)
         reuse = min(len(obs), self._max_reuse) if compensate else 1
