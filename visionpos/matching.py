@@ -64,12 +64,36 @@ def lens_arrays(model: CameraModel) -> tuple[np.ndarray, np.ndarray, bool]:
 
 
 @njit
+def _pinhole_distort(x, y, dist):
+    """One normalised point -> distorted (OpenCV rational + tangential, dist (8,)); also the
+    radial factor and its derivative by r^2, which Newton's Jacobian needs."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = dist[0], dist[1], dist[2], dist[3], dist[4], dist[5], dist[6], dist[7]
+    r2 = x * x + y * y
+    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    radial = num / den
+    drad = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) * den - num * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / (den * den)
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return xd, yd, radial, drad
+
+
+@njit
+def _kb_radius(th, dist):
+    """Kannala-Brandt: distorted radius at angle th (dist[0:4] = k1..k4) and its derivative."""
+    t2 = th * th
+    r = th * (1 + t2 * (dist[0] + t2 * (dist[1] + t2 * (dist[2] + t2 * dist[3]))))
+    dr = 1 + t2 * (3 * dist[0] + t2 * (5 * dist[1] + t2 * (7 * dist[2] + t2 * 9 * dist[3])))
+    return r, dr
+
+
+@njit
 def undistort_normalized(px, intrinsics, dist, fisheye):
     """Compiled pixels (N, 2) -> normalised coordinates (N, 2): Newton on the distortion
     (2D for the pinhole model, on the angle for Kannala-Brandt), then a check that the
     result distorts back to the pixel (NaN where it does not: a fold of the model)."""
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    k1, k2, p1, p2, k3, k4, k5, k6 = dist[0], dist[1], dist[2], dist[3], dist[4], dist[5], dist[6], dist[7]
+    p1, p2 = dist[2], dist[3]
     N = px.shape[0]
     out = np.empty((N, 2))
     for i in range(N):
@@ -78,43 +102,29 @@ def undistort_normalized(px, intrinsics, dist, fisheye):
             rd = math.sqrt(xd * xd + yd * yd)
             th = min(max(rd, 0.0), math.pi / 2 - 1e-6)
             for _ in range(20):
-                t2 = th * th
-                r = th * (1 + t2 * (k1 + t2 * (k2 + t2 * (p1 + t2 * p2))))  # k1..k4 in slots 0..3
-                dr = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * p1 + t2 * 9 * p2)))
+                r, dr = _kb_radius(th, dist)
                 step = (r - rd) / dr
                 th = min(max(th - step, 0.0), math.pi / 2 - 1e-9)
                 if abs(step) < 1e-15:
                     break
             s = math.tan(th) / rd if rd > 1e-12 else 1.0
             x, y = xd * s, yd * s
-            t2 = th * th
-            back = th * (1 + t2 * (k1 + t2 * (k2 + t2 * (p1 + t2 * p2)))) - rd
-            ok = abs(back) <= 1e-9 * (1.0 + max(abs(xd), abs(yd)))
+            ok = abs(_kb_radius(th, dist)[0] - rd) <= 1e-9 * (1.0 + max(abs(xd), abs(yd)))
         else:
             x, y = xd, yd
-            ex = ey = 0.0
             for _ in range(20):
-                r2 = x * x + y * y
-                num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-                radial = num / den
-                ex = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
-                ey = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
+                ux, uy, radial, drad = _pinhole_distort(x, y, dist)
+                ex, ey = ux - xd, uy - yd
                 if max(abs(ex), abs(ey)) < 1e-15:
                     break
-                drad = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) * den - num * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / (den * den)
                 j00 = radial + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
-                j01 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
-                j10 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
+                j01 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y  # symmetric: j10 == j01
                 j11 = radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
-                det = j00 * j11 - j01 * j10
+                det = j00 * j11 - j01 * j01
                 x -= (j11 * ex - j01 * ey) / det
-                y -= (-j10 * ex + j00 * ey) / det
-            r2 = x * x + y * y
-            radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-            ex = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
-            ey = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
-            ok = max(abs(ex), abs(ey)) <= 1e-9 * (1.0 + max(abs(xd), abs(yd)))
+                y -= (-j01 * ex + j00 * ey) / det
+            ux, uy, _, _ = _pinhole_distort(x, y, dist)
+            ok = max(abs(ux - xd), abs(uy - yd)) <= 1e-9 * (1.0 + max(abs(xd), abs(yd)))
         if ok:
             out[i, 0], out[i, 1] = x, y
         else:
@@ -161,7 +171,6 @@ def project_points(X, R, t, intrinsics, dist, fisheye, cos_max, margin):
     off the sensor by more than margin px.
     """
     fx, fy, cx, cy, w, h = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3], intrinsics[4], intrinsics[5]
-    k1, k2, p1, p2, k3, k4, k5, k6 = dist[0], dist[1], dist[2], dist[3], dist[4], dist[5], dist[6], dist[7]
     N = X.shape[0]
     uv = np.full((N, 2), np.nan)
     for i in range(N):
@@ -171,18 +180,12 @@ def project_points(X, R, t, intrinsics, dist, fisheye, cos_max, margin):
         if not pc2 > cos_max * math.sqrt(pc0 * pc0 + pc1 * pc1 + pc2 * pc2):
             continue
         x, y = pc0 / pc2, pc1 / pc2
-        r2 = x * x + y * y
         if fisheye:
-            r = math.sqrt(r2)
-            th = math.atan(r)
-            t2 = th * th
-            rd = th * (1 + t2 * (dist[0] + t2 * (dist[1] + t2 * (dist[2] + t2 * dist[3]))))  # Kannala-Brandt
-            s = rd / r if r > 1e-12 else 1.0
+            r = math.sqrt(x * x + y * y)
+            s = _kb_radius(math.atan(r), dist)[0] / r if r > 1e-12 else 1.0
             xd, yd = x * s, y * s
         else:
-            radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-            xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-            yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+            xd, yd, _, _ = _pinhole_distort(x, y, dist)
         u, v = fx * xd + cx, fy * yd + cy
         if -0.5 - margin < u < w - 0.5 + margin and -0.5 - margin < v < h - 0.5 + margin:
             uv[i, 0], uv[i, 1] = u, v

@@ -97,7 +97,7 @@ from visionpos.matching import Projector, associate_blobs, match_unlabeled, proj
 from visionpos.messages import BlobFrame, BodyState, LoosePoints
 from visionpos.rigidbody import BodyModel, identify, kabsch_weighted, layout_ambiguities
 from visionpos.timealign import MODES, MOTION_COMPENSATED, Group, TimeAligner
-from visionpos.tracking import BodyFilter, KalmanSettings, rodrigues
+from visionpos.tracking import BodyFilter, KalmanSettings, predict_mean
 
 
 # the image-space manoeuvre detector samples at most this often (capture clock)
@@ -318,11 +318,8 @@ def _marker_motion(states, sizes, local):
     q = 0
     for b in range(sizes.shape[0]):
         x = states[b, 0:15]
-        h = states[b, 24]
-        p = x[0:3] + x[3:6] * h + x[6:9] * (0.5 * h * h)
-        v = x[3:6] + x[6:9] * h
         w = x[12:15]
-        Rb = matmul3(rodrigues(w * h), states[b, 15:24].reshape((3, 3)))
+        p, Rb, v = predict_mean(x, states[b, 15:24].reshape((3, 3)), states[b, 24])
         for _ in range(sizes[b]):
             r = matvec3(Rb, local[q])  # lever arm, world
             wxr = cross3(w, r)
@@ -447,11 +444,9 @@ def _tracked_measurements(marker_xn, views, rows, R, t, f, dt, states, compensat
     moving = False
     for b in range(B):
         x = states[b, 0:15]
-        h, sv2, sw2 = states[b, 24], states[b, 25], states[b, 26]
-        p = x[0:3] + x[3:6] * h + x[6:9] * (0.5 * h * h)
-        v = x[3:6] + x[6:9] * h
+        sv2, sw2 = states[b, 25], states[b, 26]
         w = x[12:15]
-        Rb[b] = matmul3(rodrigues(w * h), states[b, 15:24].reshape((3, 3)))
+        p, Rb[b], v = predict_mean(x, states[b, 15:24].reshape((3, 3)), states[b, 24])
         if compensate and sv2 < compensate_max_vel_var:
             vel[b], acc[b], rate[b] = v, x[6:9], w
             moving = moving or np.any(v != 0.0) or np.any(x[6:9] != 0.0) or np.any(w != 0.0)
@@ -563,12 +558,14 @@ def warm_up_kernels(arena: ArenaConfig, settings: dict[str, Any] | None = None) 
         "later runs load them from numba's cache"))
     notice.daemon = True
     notice.start()
+    views = []
+    for c in cams:
+        uv = Projector(c).project(markers)
+        uv = uv[np.isfinite(uv[:, 0])]
+        views.append(np.column_stack([uv, np.full(len(uv), 12.0), np.full(len(uv), 200.0)]).astype(np.float32))
     try:
         for k in range(12):
-            for i, c in enumerate(cams):
-                uv = Projector(c).project(markers)
-                uv = uv[np.isfinite(uv[:, 0])]
-                blobs = np.column_stack([uv, np.full(len(uv), 12.0), np.full(len(uv), 200.0)]).astype(np.float32)
+            for i, (c, blobs) in enumerate(zip(cams, views)):
                 pipe.push(BlobFrame(c.id, k, 1_000_000_000 + k * 10_000_000 + i * 1_000_000, blobs))
             pipe.tick(1_000_000_000 + k * 10_000_000 + 9_000_000)
     finally:

@@ -326,15 +326,21 @@ def _spd_inverse(S: np.ndarray) -> np.ndarray:
 
 
 @njit
+def predict_mean(x: np.ndarray, R_nom: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mean of state x (15,) with nominal rotation R_nom (3, 3) predicted by dt (s):
+    position (3,), rotation body->world (3, 3), velocity (3,)."""
+    p = x[0:3] + x[3:6] * dt + x[6:9] * (0.5 * dt * dt)
+    return p, matmul3(rodrigues(x[12:15] * dt), R_nom), x[3:6] + x[6:9] * dt
+
+
+@njit
 def _output_at(x, P, R_nom, dt, qj, qw):
     """Prediction by dt for the outputs: position (3,), quaternion xyzw (4,), velocity (3,),
     body-frame angular rate (3,), pose covariance (6, 6) over [p, rotation vector] and
     velocity covariance (3, 3)."""
     Pn = _predicted_cov(P, dt, qj, qw)
     w = x[12:15]
-    R = matmul3(rodrigues(w * dt), R_nom)
-    p = x[0:3] + x[3:6] * dt + x[6:9] * (0.5 * dt * dt)
-    v = x[3:6] + x[6:9] * dt
+    p, R, v = predict_mean(x, R_nom, dt)
     q = np.empty(4)
     q[0], q[1], q[2], q[3] = _quaternion(R)
     w_body = np.empty(3)
@@ -471,11 +477,8 @@ class BodyFilter:
     # -------------------------------------------------------------- read-outs
     def pose_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Non-mutating mean prediction: position (3,), R (3, 3), velocity (3,), world angular rate (3,)."""
-        dt = (int(t_ns) - self.t_ns) * 1e-9
-        x = self.x
-        w = x[12:15]
-        p = x[0:3] + x[3:6] * dt + x[6:9] * (0.5 * dt * dt)
-        return p, rodrigues(w * dt) @ self.R_nom, x[3:6] + x[6:9] * dt, w.copy()
+        p, R, v = predict_mean(self.x, self.R_nom, (int(t_ns) - self.t_ns) * 1e-9)
+        return p, R, v, self.x[12:15].copy()
 
     def output_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Non-mutating prediction for the outputs: position (3,), quaternion xyzw (4,),
