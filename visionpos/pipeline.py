@@ -97,7 +97,7 @@ from visionpos.matching import Projector, associate_blobs, match_unlabeled, proj
 from visionpos.messages import BlobFrame, BodyState, LoosePoints
 from visionpos.rigidbody import BodyModel, identify, kabsch_weighted, layout_ambiguities
 from visionpos.timealign import MODES, MOTION_COMPENSATED, Group, TimeAligner
-from visionpos.tracking import BodyFilter, KalmanSettings, predict_mean
+from visionpos.tracking import CLOCK_T, BodyFilter, FilterBank, KalmanSettings, array_field, filter_update, predict_mean, report_image_nis
 
 
 # the image-space manoeuvre detector samples at most this often (capture clock)
@@ -240,21 +240,45 @@ class _Obs:
     marker_xn: np.ndarray
 
 
-@dataclass
-class _Track:
-    """Per-body tracking state."""
+# per-body track state, one row per body: FusionPipeline._ti (int64) and _tf (float64) columns
+_LAST_UPDATE, _LAST_CAPTURE, _N_MARKERS, _N_CAMERAS, _FIRST_REJECT, _TRACKED, _RESETS = range(7)
+_PX_VAR, _MARKER_VAR, _RESIDUAL_MM = range(3)
+_NO_TIME = np.iinfo(np.int64).min  # _FIRST_REJECT: no measurement rejected since the last accepted one
+_PX_VAR_PRIOR = 0.25  # px^2, per-axis pixel noise before any residual is seen
+# _fuse_tracked's verdict per tracked body, and the columns of its measurement rows (one array:
+# each array a kernel returns costs a few microseconds to hand to Python)
+_TOO_FEW, _FIT_REJECTED, _ACCEPTED, _GATED = range(4)
+_M_ROT, _M_POS, _M_COV = slice(0, 9), slice(9, 12), slice(12, 48)  # R (3, 3), t (3,), covariance (6, 6)
+_M_MARKERS, _M_CAMERAS, _M_FIT = 48, 49, 50  # markers used, cameras, fit RMS (m)
 
-    filter: BodyFilter
-    tracked: bool = False
-    last_update_ns: int = 0
-    last_capture_ns: int = 0
-    first_reject_ns: int | None = None
-    n_markers: int = 0
-    n_cameras: int = 0
-    residual_mm: float = float("nan")
-    reset_counter: int = 0
-    marker_var: float = 0.0  # running per-marker 3D noise variance (m^2) from fit residuals
-    px_var: float = 0.25  # running per-axis pixel noise variance (px^2) from triangulation residuals
+
+class _Track:
+    """One body's tracking state: views of its rows of the pipeline's track arrays, and its filter."""
+
+    tracked = array_field("i", _TRACKED, bool)
+    last_update_ns = array_field("i", _LAST_UPDATE, int, "reference time of the last accepted measurement")
+    last_capture_ns = array_field("i", _LAST_CAPTURE, int, "newest capture time in it")
+    n_markers = array_field("i", _N_MARKERS, int)
+    n_cameras = array_field("i", _N_CAMERAS, int)
+    reset_counter = array_field("i", _RESETS, int)
+    px_var = array_field("f", _PX_VAR, float, "running per-axis pixel noise variance (px^2) from triangulation residuals")
+    marker_var = array_field("f", _MARKER_VAR, float, "running per-marker 3D noise variance (m^2) from fit residuals")
+    residual_mm = array_field("f", _RESIDUAL_MM, float)
+
+    def __init__(self, filter: BodyFilter, i: np.ndarray, f: np.ndarray):
+        self.filter = filter
+        self.i = i  # (7,) int64 row
+        self.f = f  # (3,) float64 row
+
+    @property
+    def first_reject_ns(self) -> int | None:
+        """When the filter began rejecting measurements (None: the last one was accepted)."""
+        v = int(self.i[_FIRST_REJECT])
+        return None if v == _NO_TIME else v
+
+    @first_reject_ns.setter
+    def first_reject_ns(self, value: int | None) -> None:
+        self.i[_FIRST_REJECT] = _NO_TIME if value is None else value
 
 
 @njit
@@ -307,8 +331,8 @@ def pose_measurement_cov(markers_world: np.ndarray, origin: np.ndarray, var: flo
 def _marker_motion(states, sizes, local):
     """Marker positions, velocities and accelerations (P, 3) each, world, of B bodies.
 
-    states (B, 27): filter states as FusionPipeline._filter_states packs them, predicted
-    by their state_dt; sizes (B,): marker counts; local (P, 3): body-frame markers, body
+    states (B, 27): filter states as _pack_states packs them, predicted by their
+    state_dt; sizes (B,): marker counts; local (P, 3): body-frame markers, body
     by body. Includes the rotation's w x r and w x (w x r) terms.
     """
     P = local.shape[0]
@@ -331,15 +355,49 @@ def _marker_motion(states, sizes, local):
 
 
 @njit
-def _observe_frame(px, dt, X0, V, A, rows, marker_xn, camera, gate):
+def _pack_states(x, P, R_nom, clock, bodies, t_ns):
+    """The kernels' packed input (B, 27) for the filters `bodies` (B,) of a FilterBank
+    (x, P, R_nom, clock): per body its state x (15), R_nom (9, row-major), t_ns - filter
+    time (s), mean velocity variance and mean angular-rate variance."""
+    out = np.empty((bodies.shape[0], 27))
+    for i in range(bodies.shape[0]):
+        b = bodies[i]
+        out[i, 0:15] = x[b]
+        for r in range(3):
+            for c in range(3):
+                out[i, 15 + 3 * r + c] = R_nom[b, r, c]
+        out[i, 24] = (t_ns - clock[b, CLOCK_T]) * 1e-9
+        out[i, 25] = (P[b, 3, 3] + P[b, 4, 4] + P[b, 5, 5]) / 3.0
+        out[i, 26] = (P[b, 12, 12] + P[b, 13, 13] + P[b, 14, 14]) / 3.0
+    return out
+
+
+@njit
+def _finite_rows(px):
+    """px (N, 2) itself when every row is finite, else a copy of its finite rows."""
+    keep = np.empty(px.shape[0], dtype=np.bool_)
+    n = 0
+    for j in range(px.shape[0]):
+        keep[j] = np.isfinite(px[j, 0]) and np.isfinite(px[j, 1])
+        n += keep[j]
+    return px if n == px.shape[0] else px[keep]
+
+
+@njit
+def _observe_frame(px, dt, X0, V, A, rows, marker_xn, camera, gate, image_nis, t_ns, tracked, body, tf, P, adapt,
+                   clock, kalman):
     """One camera frame against the tracked bodies' predicted markers (compiled).
 
     px (N, 2) blob pixels; markers X0 + dt V + dt^2 / 2 A (M, 3) predicted to the
-    frame's capture time, their global rows (M,); camera: the camera packed as
+    frame's capture time t_ns, their global rows (M,); camera: the camera packed as
     matching.Projector.packed (pose, lens, visibility limit); gate px. Fills marker_xn (P, 2), each marker's
-    observation (NaN = none). Returns normalised blobs xn (N, 2), blob labels (N,)
-    (global marker row or -1), the predicted markers Xw (M, 3), their pixels (M, 2)
-    and the associated blob of each (M,) (-1 = none).
+    observation (NaN = none). Returns normalised blobs xn (N, 2) and blob labels (N,)
+    (global marker row or -1).
+
+    image_nis: also feed each tracked body's manoeuvre detector (tracking.report_image_nis)
+    with this frame's prediction residual over its expected size (_image_nis). tracked
+    (B,): the bodies, body (M,): the index in it of each marker row; tf: the track rows
+    (pixel variance); P, adapt, clock, kalman: the FilterBank's.
     """
     R, t, intrinsics, dist = camera[0:9].reshape((3, 3)), camera[9:12], camera[12:18], camera[18:26]
     fisheye, cos_max = camera[27] != 0.0, camera[26]
@@ -354,7 +412,21 @@ def _observe_frame(px, dt, X0, V, A, rows, marker_xn, camera, gate):
             label[a[q]] = rows[q]
             marker_xn[rows[q], 0] = xn[a[q], 0]
             marker_xn[rows[q], 1] = xn[a[q], 1]
-    return xn, label, Xw, pred, a
+    if image_nis:
+        # expected: the body's pixel noise plus its position uncertainty seen from this camera
+        B = tracked.shape[0]
+        exp_px = np.empty(B)
+        exp_pos = np.empty(B)
+        for i in range(B):
+            b = tracked[i]
+            exp_px[i] = tf[b, _PX_VAR]
+            exp_pos[i] = (P[b, 0, 0] + P[b, 1, 1] + P[b, 2, 2]) / 3.0
+        nis, n = _image_nis(Xw, pred, px, a, body, exp_px, exp_pos, R[2], t[2], math.sqrt(intrinsics[0] * intrinsics[1]))
+        for i in range(B):
+            if n[i] >= 2:
+                b = tracked[i]
+                report_image_nis(adapt[b], clock[b], kalman, t_ns, nis[i])
+    return xn, label
 
 
 @njit
@@ -403,8 +475,7 @@ def _tracked_measurements(marker_xn, views, rows, R, t, f, dt, states, compensat
     marker (NaN = none); views (V,): the fused cameras' indices in it; rows (P,): the
     tracked bodies' marker rows, body by body. R (V, 3, 3), t (V, 3), f (V,): the views;
     dt (V,): view capture - reference (s). states (B, 27): per body its filter state as
-    FusionPipeline._filter_states packs it (x, R_nom, reference - filter time, velocity
-    and rate variance); sizes (B,) marker counts; local (P, 3) body-frame markers of the
+    _pack_states packs it (x, R_nom, reference - filter time, velocity and rate variance); sizes (B,) marker counts; local (P, 3) body-frame markers of the
     rows. compensate: motion compensation on (velocity-gated per body). params: max
     residual px, identification tolerance m, the velocity variance below which a body
     is compensated.
@@ -522,6 +593,84 @@ def _tracked_measurements(marker_xn, views, rows, R, t, f, dt, states, compensat
     return Rk, tk, count, res2, n_cams, px_var, cov, var_p, var_r, fit_tol, refused
 
 
+@njit
+def _track_measured(ti, tf, ref, cap, n, n_cams, fit_rms):
+    """Record a measurement the filter took (or restarted at) in one body's track rows ti (7,),
+    tf (3,): reference time ref, newest capture time cap, markers n, cameras n_cams, fit RMS (m)."""
+    ti[_FIRST_REJECT] = _NO_TIME
+    ti[_LAST_UPDATE] = ref
+    ti[_LAST_CAPTURE] = cap
+    ti[_N_MARKERS] = n
+    ti[_N_CAMERAS] = n_cams
+    tf[_RESIDUAL_MM] = fit_rms * 1e3
+
+
+@njit
+def _fuse_tracked(marker_xn, views, capture_ns, ref, R, t, f, tracked, rows, sizes, local, params, compensate, reuse,
+                  x, P, R_nom, adapt, clock, kalman, ti, tf):
+    """One fusion for the tracked bodies: pose measurements, their covariances and the
+    filter updates, in place (compiled).
+
+    marker_xn, views, R, t, f, rows, sizes, local, compensate: as _tracked_measurements;
+    capture_ns (cameras,): each camera's newest capture time; ref: reference time (ns);
+    tracked (B,): the bodies; params: _tracked_measurements' then the fewest markers for
+    a pose and the floor of the per-marker variance (m^2); reuse: fusions that share each
+    frame (multiplies the measurement covariance); x, P, R_nom, adapt, clock, kalman: the
+    FilterBank's arrays and params; ti (bodies, 7), tf (bodies, 3): the track rows.
+
+    Returns per tracked body its verdict (B,) (_TOO_FEW, _FIT_REJECTED, _ACCEPTED,
+    _GATED) and its measurement (B, 51) (columns _M_*: pose R and t, its covariance,
+    markers used, cameras, fit RMS in m); the number of points refused by the residual
+    gate; the newest filter time t_c and the tracked markers' positions, velocities and
+    accelerations there (3, P, 3) (_marker_motion).
+    """
+    V = views.shape[0]
+    dt = np.empty(V)
+    cap = capture_ns[views[0]]
+    for v in range(V):
+        dt[v] = (capture_ns[views[v]] - ref) * 1e-9
+        cap = max(cap, capture_ns[views[v]])
+    Rk, tk, counts, res2, n_cams, px_var, cov_unit, var_p, var_r, fit_tol, refused = _tracked_measurements(
+        marker_xn, views, rows, R, t, f, dt, _pack_states(x, P, R_nom, clock, tracked, ref), compensate, sizes,
+        local, params)
+    B = tracked.shape[0]
+    verdict = np.full(B, _TOO_FEW, dtype=np.int64)
+    meas = np.zeros((B, 51))
+    for i in range(B):
+        meas[i, _M_ROT] = Rk[i].ravel()
+        meas[i, _M_POS] = tk[i]
+        meas[i, _M_MARKERS] = counts[i]
+        meas[i, _M_CAMERAS] = n_cams[i]
+        n = counts[i]
+        if n < params[3]:
+            meas[i, _M_FIT] = np.nan
+            continue
+        fit = meas[i, _M_FIT] = math.sqrt(res2[i] / n)
+        if fit > fit_tol[i]:
+            verdict[i] = _FIT_REJECTED
+            continue
+        b = tracked[i]
+        # pixel noise from the triangulation residuals of its markers; per-marker 3D noise
+        # from the fit residual (3n - 6 degrees of freedom); both running averages per body
+        tf[b, _PX_VAR] += 0.05 * (px_var[i] - tf[b, _PX_VAR])
+        tf[b, _MARKER_VAR] += 0.05 * (res2[i] / (3 * n - 6) - tf[b, _MARKER_VAR])
+        # reused frames: split their information over the fusions that share them
+        cov = _scaled_pose_cov(cov_unit[i], max(tf[b, _MARKER_VAR], params[4]) * reuse, var_p[i], var_r[i])
+        meas[i, _M_COV] = cov.ravel()
+        accepted, _ = filter_update(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref, tk[i], Rk[i], cov, True)
+        if accepted:
+            verdict[i] = _ACCEPTED
+            _track_measured(ti[b], tf[b], ref, cap, n, n_cams[i], fit)
+        else:
+            verdict[i] = _GATED
+    t_c = clock[tracked[0], CLOCK_T]
+    for i in range(B):
+        t_c = max(t_c, clock[tracked[i], CLOCK_T])
+    motion = np.empty((3, local.shape[0], 3))
+    motion[0], motion[1], motion[2] = _marker_motion(_pack_states(x, P, R_nom, clock, tracked, t_c), sizes, local)
+    return verdict, meas, refused, t_c, motion
+
+
 log = logging.getLogger(__name__)
 _warm = [False]  # kernels compiled (or loaded) in this process
 
@@ -604,7 +753,9 @@ class FusionPipeline:
         self._rows_cache: dict[tuple[int, ...], np.ndarray] = {}
         self._layout_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self._gate_px = float(st.match_gate_px)
-        self._kernel_params = np.array([st.max_residual_px, st.identify_tolerance, _COMPENSATE_MAX_VEL_STD**2])
+        self._kernel_params = np.array([st.max_residual_px, st.identify_tolerance, _COMPENSATE_MAX_VEL_STD**2,
+                                        st.min_markers, st.marker_sigma**2])
+        self._view_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self.aligner = TimeAligner(
             st.time_alignment,
             st.window_ns,
@@ -617,7 +768,17 @@ class FusionPipeline:
         # each camera's newest observation of every marker (NaN = none); _Obs.marker_xn is its row,
         # so a fusion reads its views without stacking them
         self._marker_xn = np.full((len(arena.cameras), self.P, 2), np.nan)
-        self.tracks = [_Track(BodyFilter(st.kalman)) for _ in self.models]
+        self._capture_ns = np.zeros(len(arena.cameras), dtype=np.int64)  # each camera's newest frame
+        # per-body state in arrays the kernels update in place; tracks[b] is a view of row b
+        self.bank = FilterBank(len(self.models), st.kalman)
+        self._ti = np.zeros((len(self.models), 7), dtype=np.int64)
+        self._ti[:, _FIRST_REJECT] = _NO_TIME
+        self._tf = np.zeros((len(self.models), 3))
+        self._tf[:, _PX_VAR] = _PX_VAR_PRIOR
+        self._tf[:, _RESIDUAL_MM] = np.nan
+        self.tracks = [_Track(fl, self._ti[b], self._tf[b]) for b, fl in enumerate(self.bank.filters)]
+        self._tracked: tuple[int, ...] = ()  # bodies tracked now (see _tracking_changed)
+        self._tracked_idx = np.zeros(0, dtype=np.int64)
         self.loose_points: LoosePoints | None = None
         self._last_acquire_ns = -(1 << 62)
         self._last_img_ns = -(1 << 62)
@@ -662,9 +823,7 @@ class FusionPipeline:
         if blobs.ndim != 2 or (blobs.shape[0] and blobs.shape[1] < 2):
             self._stats["malformed"] += 1
             return
-        px = blobs[:, :2].astype(np.float64)
-        if not np.isfinite(px).all():
-            px = px[np.isfinite(px).all(axis=1)]
+        px = _finite_rows(blobs[:, :2].astype(np.float64))
         t = int(frame.capture_ns)
         why = self.aligner.admit(cam, t)
         if why is not None:
@@ -696,98 +855,87 @@ class FusionPipeline:
             self._rows_cache[key] = r
         return r
 
-    def _motion_cache(self, bodies: list[int]) -> tuple:
-        """(key, fusion count, t_c, X0, V, A): marker positions, velocities and accelerations
-        (sum M_b, 3) of `bodies` at t_c, the newest filter time.
+    def _tracking_changed(self) -> None:
+        """Refresh the tracked-body set after a body was acquired or lost."""
+        self._tracked = tuple(int(b) for b in np.flatnonzero(self._ti[:, _TRACKED]))
+        self._tracked_idx = np.array(self._tracked, dtype=np.int64)
+
+    def _motion_cache(self) -> tuple:
+        """(bodies, fusion count, t_c, X0, V, A): marker positions, velocities and accelerations
+        (sum M_b, 3) of the tracked bodies at t_c, the newest filter time.
 
         Between fusions the filters do not change, so marker motion (incl. the
-        rotation's w x r terms) is expanded once per fusion and each frame only
-        evaluates X0 + dt V + dt^2 / 2 A (error ~ r (w dt)^3 / 6, micrometres).
+        rotation's w x r terms) is expanded once per fusion (by _fuse_tracked)
+        and each frame only evaluates X0 + dt V + dt^2 / 2 A (error ~ r (w dt)^3 / 6,
+        micrometres).
         """
-        key = tuple(bodies)
         c = self._pred_cache
-        if c is None or c[0] != key or c[1] != self._fusion_count:
-            t_c = max(self.tracks[b].filter.t_ns for b in bodies)
-            _, sizes, _, local = self._layout(bodies)
-            X0, V, A = _marker_motion(self._filter_states(bodies, t_c), sizes, local)
-            c = self._pred_cache = (key, self._fusion_count, t_c, X0, V, A)
+        if c is None or c[0] != self._tracked or c[1] != self._fusion_count:
+            idx = self._tracked_idx
+            bank = self.bank
+            t_c = int(bank.clock[idx, CLOCK_T].max())
+            _, sizes, _, local = self._layout(self._tracked)
+            X0, V, A = _marker_motion(_pack_states(bank.x, bank.P, bank.R_nom, bank.clock, idx, t_c), sizes, local)
+            c = self._pred_cache = (self._tracked, self._fusion_count, t_c, X0, V, A)
         return c
-
-    def _filter_states(self, bodies: list[int], t_ns: int) -> np.ndarray:
-        """(B, 27) per body: filter state x (15), R_nom (9, row-major), t_ns - filter time (s),
-        mean velocity variance and mean angular-rate variance (the kernels' packed input)."""
-        out = np.empty((len(bodies), 27))
-        for i, b in enumerate(bodies):
-            fl = self.tracks[b].filter
-            P = fl.P
-            out[i, 0:15] = fl.x
-            out[i, 15:24] = fl.R_nom.ravel()
-            out[i, 24] = (t_ns - fl.t_ns) * 1e-9
-            out[i, 25] = (P[3, 3] + P[4, 4] + P[5, 5]) / 3.0
-            out[i, 26] = (P[12, 12] + P[13, 13] + P[14, 14]) / 3.0
-        return out
 
     def _observe(self, cam: int, t_ns: int, px: np.ndarray) -> _Obs:
         proj = self._proj[cam]
-        marker_xn = self._marker_xn[self._cam_index[cam]]  # this camera's row of the shared array
-        tracked = [b for b, tr in enumerate(self.tracks) if tr.tracked]
-        if not tracked or not len(px):
+        v = self._cam_index[cam]
+        self._capture_ns[v] = t_ns
+        marker_xn = self._marker_xn[v]  # this camera's row of the shared array
+        if not self._tracked or not len(px):
             marker_xn[:] = np.nan
             return _Obs(t_ns, proj.undistort(px), np.full(len(px), -1, dtype=np.int64), marker_xn)
-        rows = self._rows(tracked)
-        c = self._motion_cache(tracked)
-        xn, label, Xw, pred, a = _observe_frame(
-            px, (t_ns - c[2]) * 1e-9, c[3], c[4], c[5], rows, marker_xn, proj.packed, self._gate_px,
-        )
-        if abs(t_ns - self._last_img_ns) >= _IMAGE_NIS_INTERVAL_NS:  # plenty for a detector; saves CPU
+        rows, _, body, _ = self._layout(self._tracked)
+        c = self._motion_cache()
+        # the image-space manoeuvre detector: plenty often for a detector, and saves CPU
+        image_nis = abs(t_ns - self._last_img_ns) >= _IMAGE_NIS_INTERVAL_NS
+        if image_nis:
             self._last_img_ns = t_ns
-            self._image_innovation(cam, t_ns, tracked, Xw, pred, px, a)
+        bank = self.bank
+        xn, label = _observe_frame(
+            px, (t_ns - c[2]) * 1e-9, c[3], c[4], c[5], rows, marker_xn, proj.packed, self._gate_px, image_nis, t_ns,
+            self._tracked_idx, body, self._tf, bank.P, bank.adapt, bank.clock, bank.params,
+        )
         return _Obs(t_ns, xn, label, marker_xn)
 
-    def _image_innovation(self, cam: int, t_ns: int, tracked: list[int], Xw, pred, px, a) -> None:
-        """Per tracked body, this frame's prediction residual over its expected size -> the filter's
-        manoeuvre detector. Expected: the body's pixel noise (running mean of its triangulation
-        residuals) plus the filter's position uncertainty seen from this camera."""
-        v = self._cam_index[cam]
-        B = len(tracked)
-        exp_px = np.empty(B)
-        exp_pos = np.empty(B)
-        for i, b in enumerate(tracked):
-            tr = self.tracks[b]
-            P = tr.filter.P
-            exp_px[i] = tr.px_var
-            exp_pos[i] = (P[0, 0] + P[1, 1] + P[2, 2]) / 3.0
-        nis, n = _image_nis(Xw, pred, px, a, self._layout(tracked)[2], exp_px, exp_pos, self._R[v, 2], self._t[v, 2], self._f[v])
-        for i, b in enumerate(tracked):
-            if n[i] >= 2:
-                self.tracks[b].filter.report_image_nis(t_ns, float(nis[i]))
-
     # ----------------------------------------------------------------- fusion
+    def _views(self, cams: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Camera indices (V,) of `cams` and their R (V, 3, 3), t (V, 3), f (V,) (cached per set)."""
+        v = self._view_cache.get(cams)
+        if v is None:
+            vi = np.array([self._cam_index[c] for c in cams], dtype=np.int64)
+            v = self._view_cache[cams] = (vi, self._R[vi], self._t[vi], self._f[vi])
+        return v
+
     def _fuse(self, g: Group) -> None:
-        cams = [c for c in g.cameras if c in self.obs]
-        if not cams:
-            return
+        obs = self.obs
+        cams = g.cameras
+        if not all(c in obs for c in cams):
+            cams = tuple(c for c in cams if c in obs)
+            if not cams:
+                return
         st = self.settings
         ref = g.ref_ns
         self._stats["fusions"] += 1
         self._fusion_count += 1
-        vi = np.array([self._cam_index[c] for c in cams])
-        R, t, f = self._R[vi], self._t[vi], self._f[vi]
-        obs = [self.obs[c] for c in cams]
-        tracked = [b for b, tr in enumerate(self.tracks) if tr.tracked]
-        if tracked:
-            self._update_tracked(tracked, obs, vi, R, t, f, ref, g.compensate)
+        vi, R, t, f = self._views(cams)
+        if self._tracked:
+            self._update_tracked(cams, vi, R, t, f, ref, g.compensate)
         # acquisition is for lost bodies; with all tracked it only refreshes the loose points
-        lost = any(not tr.tracked for tr in self.tracks)
+        lost = len(self._tracked) < len(self.tracks)
         interval = st.acquire_interval_ns if lost else st.loose_points_interval_ns
         if (lost or st.loose_points) and (ref - self._last_acquire_ns >= interval or ref < self._last_acquire_ns):
             self._last_acquire_ns = ref
-            self._acquire(obs, R, t, f, ref)
+            self._acquire([obs[c] for c in cams], R, t, f, ref)
         # lost-track bookkeeping on the capture clock
-        for b, tr in enumerate(self.tracks):
-            if tr.tracked and ref - tr.last_update_ns > st.lost_timeout_ns:
-                tr.tracked = False
-                self._stats["lost"] += 1
+        ti = self._ti
+        gone = [b for b in self._tracked if ref - ti[b, _LAST_UPDATE] > st.lost_timeout_ns]
+        if gone:
+            ti[gone, _TRACKED] = 0
+            self._stats["lost"] += len(gone)
+            self._tracking_changed()
 
     def _layout(self, tracked: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For a set of tracked bodies (cached): global marker rows (P,), marker counts (B,),
@@ -802,65 +950,56 @@ class FusionPipeline:
             self._layout_cache[key] = lay
         return lay
 
-    def _update_tracked(self, tracked, obs, vi, R, t, f, ref, compensate) -> None:
+    def _update_tracked(self, cams: tuple[int, ...], vi, R, t, f, ref: int, compensate: bool) -> None:
         st = self.settings
+        tracked = self._tracked
         rows, sizes, _, local = self._layout(tracked)
-        dt = np.array([(o.capture_ns - ref) * 1e-9 for o in obs])  # (V,) view time - reference time
-        Rk, tk, counts, res2, n_cams, px_var, cov_unit, var_p, var_r, fit_tol, refused = _tracked_measurements(
-            self._marker_xn, vi, rows, R, t, f, dt, self._filter_states(tracked, ref), bool(compensate), sizes, local,
-            self._kernel_params,
+        bank = self.bank
+        reuse = min(len(cams), self._max_reuse) if compensate else 1.0
+        verdict, meas, refused, t_c, motion = _fuse_tracked(
+            self._marker_xn, vi, self._capture_ns, ref, R, t, f, self._tracked_idx, rows, sizes, local,
+            self._kernel_params, bool(compensate), float(reuse), bank.x, bank.P, bank.R_nom, bank.adapt, bank.clock,
+            bank.params, self._ti, self._tf,
         )
-        self._stats["rejected_residual"] += int(refused)
-        reuse = min(len(obs), self._max_reuse) if compensate else 1
-        cap = max(o.capture_ns for o in obs)
+        # the filters moved: the next frames predict their markers from this fusion
+        self._pred_cache = (tracked, self._fusion_count, int(t_c), motion[0], motion[1], motion[2])
+        stats = self._stats
+        stats["rejected_residual"] += int(refused)
         for i, b in enumerate(tracked):
+            v = verdict[i]
+            if v == _ACCEPTED:
+                stats["measurements"] += 1
+            elif v == _FIT_REJECTED:
+                stats["rejected_fit"] += 1
+            if v >= _ACCEPTED:
+                m = meas[i]
+                self.last_raw[b] = (ref, m[_M_POS], m[_M_ROT].reshape(3, 3))
+            if v != _GATED:
+                continue
+            stats["rejected_gate"] += 1
             tr = self.tracks[b]
-            n = int(counts[i])
-            if n < st.min_markers:
+            if tr.first_reject_ns is None:
+                tr.first_reject_ns = ref
+            if ref - tr.first_reject_ns < st.reset_after_ns:
                 continue
-            fit = math.sqrt(res2[i] / n)
-            if fit > fit_tol[i]:
-                self._stats["rejected_fit"] += 1
-                continue
-            self.last_raw[b] = (ref, tk[i], Rk[i])
-            # pixel noise from the triangulation residuals of its markers; per-marker 3D noise
-            # from the fit residual (3n - 6 degrees of freedom); both running averages per body
-            tr.px_var += 0.05 * (float(px_var[i]) - tr.px_var)
-            tr.marker_var += 0.05 * (float(res2[i]) / (3 * n - 6) - tr.marker_var)
-            var = max(tr.marker_var, st.marker_sigma**2)
-            # reused frames: split their information over the fusions that share them
-            cov = _scaled_pose_cov(cov_unit[i], var * reuse, var_p[i], var_r[i])
-            accepted, _ = tr.filter.update(ref, tk[i], Rk[i], cov)
-            if not accepted:
-                self._stats["rejected_gate"] += 1
-                if tr.first_reject_ns is None:
-                    tr.first_reject_ns = ref
-                if ref - tr.first_reject_ns < st.reset_after_ns:
-                    continue
-                # persistently inconsistent: believe the measurements, restart the filter there
-                tr.filter.initialize(ref, tk[i], Rk[i], cov)
-                tr.reset_counter += 1
-                self._stats["filter_resets"] += 1
-            tr.first_reject_ns = None
-            tr.last_update_ns = ref
-            tr.last_capture_ns = cap
-            tr.n_markers = n
-            tr.n_cameras = int(n_cams[i])
-            tr.residual_mm = fit * 1e3
-            self._stats["measurements"] += 1
+            # persistently inconsistent: believe the measurements, restart the filter there
+            tr.filter.initialize(ref, m[_M_POS], m[_M_ROT].reshape(3, 3), m[_M_COV].reshape(6, 6))
+            tr.reset_counter += 1
+            stats["filter_resets"] += 1
+            stats["measurements"] += 1
+            _track_measured(tr.i, tr.f, ref, int(self._capture_ns[vi].max()), int(m[_M_MARKERS]), int(m[_M_CAMERAS]),
+                            float(m[_M_FIT]))
+            self._pred_cache = None
 
     def _acquire(self, obs: list[_Obs], R, t, f, ref: int) -> None:
         """Match leftover blobs across views; identify lost bodies; report loose points."""
         st = self.settings
-        lost = [b for b, tr in enumerate(self.tracks) if not tr.tracked]
+        lost = [b for b in range(len(self.tracks)) if b not in self._tracked]
         if not lost and not st.loose_points:
             return
-        tracked_mask = np.array([tr.tracked for tr in self.tracks] + [False])  # label -1 -> False
-        free = []
-        for o in obs:
-            lb = o.label
-            owner = np.where(lb >= 0, self._marker_body[np.maximum(lb, 0)] if self.P else -1, -1)
-            free.append(np.nonzero(~tracked_mask[owner])[0])
+        # a blob is free unless it is labelled with a marker of a tracked body (label -1: the last entry)
+        is_free = np.append(self._ti[self._marker_body, _TRACKED] == 0, True)
+        free = [np.flatnonzero(is_free[o.label]) for o in obs]
         if sum(len(fr) > 0 for fr in free) < 2:
             self.loose_points = LoosePoints(ref, np.zeros((0, 3)), np.zeros(0))
             return
@@ -895,6 +1034,7 @@ class FusionPipeline:
                             o.label[blob] = self._off[b] + m
                             o.marker_xn[self._off[b] + m] = o.xn[blob]
                 tr.n_cameras = int(sum((o.label >= self._off[b]).any() and (o.label < self._off[b + 1]).any() for o in obs))
+                self._tracking_changed()
         self.loose_points = LoosePoints(ref, pts[left], rms[left])
 
     # ----------------------------------------------------------------- output
@@ -907,15 +1047,16 @@ class FusionPipeline:
         st = self.settings
         out = []
         for b, (model, tr) in enumerate(zip(self.models, self.tracks)):
-            age = now_ns - tr.last_update_ns
-            if tr.tracked and age <= st.max_prediction_ns and age <= st.lost_timeout_ns:
+            last_update, last_capture, n_markers, n_cameras, _, tracked, resets = self._ti[b].tolist()
+            age = now_ns - last_update
+            if tracked and age <= st.max_prediction_ns and age <= st.lost_timeout_ns:
                 p, q, v, w_body, cov, vcov = tr.filter.output_at(now_ns)
                 out.append(
                     BodyState(
                         name=model.name,
                         body_id=model.id,
                         time_ns=int(now_ns),
-                        capture_ns=int(tr.last_capture_ns),
+                        capture_ns=last_capture,
                         position=p,
                         quaternion=q,
                         velocity=v,
@@ -923,10 +1064,10 @@ class FusionPipeline:
                         covariance=cov,
                         velocity_covariance=vcov,
                         tracked=True,
-                        n_markers=tr.n_markers,
-                        n_cameras=tr.n_cameras,
-                        residual_mm=tr.residual_mm,
-                        reset_counter=tr.reset_counter,
+                        n_markers=n_markers,
+                        n_cameras=n_cameras,
+                        residual_mm=float(self._tf[b, _RESIDUAL_MM]),
+                        reset_counter=resets,
                     )
                 )
             else:

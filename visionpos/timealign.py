@@ -35,7 +35,7 @@ replays are deterministic.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 MOTION_COMPENSATED = "motion_compensated"
 NAIVE = "naive"
@@ -52,8 +52,7 @@ REORDERED = "reordered"
 _SOLO_TRUST_NS = 200_000_000
 
 
-@dataclass(frozen=True)
-class Group:
+class Group(NamedTuple):
     """cameras: ids of the frames to fuse (their latest stored frames);
     ref_ns: the reference time; compensate: shift views by predicted motion."""
 
@@ -97,12 +96,13 @@ class TimeAligner:
         self._last_cam = camera_id
         if prev_cam != camera_id:
             self._solo_start = capture_ns
-        last = self.latest.get(camera_id)
+        latest = self.latest
+        last = latest.get(camera_id)
         if last is not None and capture_ns <= last:
             return REORDERED
         if self.newest_ns is not None:
             lead = capture_ns - self.newest_ns
-            others_alive = any(c != camera_id for c in self.latest)
+            others_alive = len(latest) > (last is not None)  # another camera has a stored frame
             if lead > self.max_lead_ns and others_alive and capture_ns - self._solo_start < _SOLO_TRUST_NS:
                 # one camera alone ahead is a clock fault; two cameras that agree on the new time saw a
                 # real gap (every station stalled, a network or host hiccup), which must not be refused
@@ -129,13 +129,22 @@ class TimeAligner:
         before: list[Group] = []
         after: list[Group] = []
         if self.mode == MOTION_COMPENSATED:
-            self.latest[camera_id] = capture_ns
-            self.newest_ns = capture_ns if self.newest_ns is None else max(self.newest_ns, capture_ns)
-            members = tuple(sorted(c for c, t in self.latest.items() if abs(t - capture_ns) <= self.window_ns))
-            ref = max(self.latest[c] for c in members)
+            latest = self.latest
+            latest[camera_id] = capture_ns
+            if self.newest_ns is None or capture_ns > self.newest_ns:
+                self.newest_ns = capture_ns
+            lo, hi = capture_ns - self.window_ns, capture_ns + self.window_ns
+            members = []
+            ref = capture_ns  # the newest capture time of the group
+            for c, t in latest.items():
+                if lo <= t <= hi:
+                    members.append(c)
+                    if t > ref:
+                        ref = t
+            members.sort()
             if not self._defer(camera_id, ref):
                 self.last_fused_ns = ref
-                after.append(Group(members, ref, True))
+                after.append(Group(tuple(members), ref, True))
         else:
             b = self._bin_of(capture_ns)
             if self._bin is not None and b > self._bin and self._pending:

@@ -46,7 +46,6 @@ import numpy as np
 from visionpos.jit import matmul3, njit
 
 NX = 15
-_POSE_IX = np.ix_([0, 1, 2, 9, 10, 11], [0, 1, 2, 9, 10, 11])
 _NIS_HIGH = 2.0  # averaged NIS/dof above this means the motion model lags
 _SCALE_DECAY_S = 0.2  # s, time constant of the process-noise scale's return to its floor
 
@@ -335,22 +334,153 @@ def predict_mean(x: np.ndarray, R_nom: np.ndarray, dt: float) -> tuple[np.ndarra
 
 @njit
 def _output_at(x, P, R_nom, dt, qj, qw):
-    """Prediction by dt for the outputs: position (3,), quaternion xyzw (4,), velocity (3,),
-    body-frame angular rate (3,), pose covariance (6, 6) over [p, rotation vector] and
-    velocity covariance (3, 3)."""
+    """Prediction by dt for the outputs, packed in one array (58,): position (3,), quaternion
+    xyzw (4,), velocity (3,), body-frame angular rate (3,), pose covariance (6, 6) over
+    [p, rotation vector] and velocity covariance (3, 3), row-major (see BodyFilter.output_at)."""
     Pn = _predicted_cov(P, dt, qj, qw)
     w = x[12:15]
     p, R, v = predict_mean(x, R_nom, dt)
-    q = np.empty(4)
-    q[0], q[1], q[2], q[3] = _quaternion(R)
-    w_body = np.empty(3)
+    out = np.empty(58)
+    out[0:3] = p
+    out[3], out[4], out[5], out[6] = _quaternion(R)
+    out[7:10] = v
     for i in range(3):
-        w_body[i] = R[0, i] * w[0] + R[1, i] * w[1] + R[2, i] * w[2]
-    cov = np.empty((6, 6))
+        out[10 + i] = R[0, i] * w[0] + R[1, i] * w[1] + R[2, i] * w[2]
     for i in range(6):
         for j in range(6):
-            cov[i, j] = Pn[_POSE[i], _POSE[j]]
-    return p, q, v, w_body, cov, Pn[3:6, 3:6].copy()
+            out[13 + 6 * i + j] = Pn[_POSE[i], _POSE[j]]
+    for i in range(3):
+        for j in range(3):
+            out[49 + 3 * i + j] = Pn[3 + i, 3 + j]
+    return out
+
+
+# packed filter state: one row per body in FilterBank.adapt / .clock, one entry in .params
+_SCALE_P, _SCALE_R, _NIS_P, _NIS_R, _NIS_IMG = range(5)  # adapt (float)
+CLOCK_T, _IMG_T, _FOLDS = range(3)  # clock (int64 ns, count)
+_JERK, _ANG_ACC, _MAX_SCALE, _NIS_TAU, _GATE = range(5)  # params
+_ORTHO_EVERY = 256  # folds between re-orthonormalisations of R_nom
+_IMG_NIS_FRESH_NS = 50_000_000  # an image-space NIS older than this no longer drives the noise scale
+
+
+@njit
+def _orthonormalize(R: np.ndarray) -> None:
+    """R (3, 3) <- its nearest rotation, in place, for R already orthonormal to round-off
+    (one Newton step of the polar decomposition, R (3 I - R^T R) / 2: quadratic convergence)."""
+    RtR = matmul3(R.T, R)
+    M = -0.5 * RtR
+    for i in range(3):
+        M[i, i] += 1.5
+    R[:, :] = matmul3(R, M)
+
+
+@njit
+def _count_folds(R_nom: np.ndarray, clock: np.ndarray, folds: int) -> None:
+    for _ in range(folds):
+        clock[_FOLDS] += 1
+        if clock[_FOLDS] % _ORTHO_EVERY == 0:  # keep R_nom orthonormal against round-off
+            _orthonormalize(R_nom)
+
+
+@njit
+def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: float) -> float:
+    if nis > _NIS_HIGH:
+        scale *= (nis / _NIS_HIGH) ** (3.0 * alpha)
+    else:
+        scale *= decay
+    return min(smax, max(1.0, scale))
+
+
+@njit
+def filter_update(x, P, R_nom, adapt, clock, params, t_ns, position, R, cov, gate):
+    """Predict one body filter to t_ns (int ns) and fuse a pose measurement, in place (compiled).
+
+    x (15,), P (15, 15), R_nom (3, 3), adapt (5,), clock (3,): the body's rows of a
+    FilterBank; params (5,) its settings. position (3,), R (3, 3) body->world,
+    cov (6, 6) over [p, world rotation vector]; gate: apply the innovation gate.
+    Returns (accepted, squared Mahalanobis distance); a gated measurement leaves
+    the state predicted only. Then adapts the process-noise scales to the NIS.
+    """
+    dt = (t_ns - clock[CLOCK_T]) * 1e-9
+    folds, accepted, d2, nis_p, nis_r = _kf_predict_update(
+        x, P, R_nom, dt, params[_JERK] * adapt[_SCALE_P], params[_ANG_ACC] * adapt[_SCALE_R],
+        position, R, cov, params[_GATE] if gate else 0.0,
+    )
+    clock[CLOCK_T] = t_ns
+    _count_folds(R_nom, clock, folds)
+    # NIS per block drives the process-noise scale (gated ones too, capped, so that a
+    # manoeuvre that starts outside the gate still opens it)
+    cap = params[_GATE] / 3.0
+    alpha = 1.0 - math.exp(-dt / params[_NIS_TAU]) if dt > 0.0 else 0.05
+    adapt[_NIS_P] += alpha * (min(nis_p, cap) - adapt[_NIS_P])
+    adapt[_NIS_R] += alpha * (min(nis_r, cap) - adapt[_NIS_R])
+    # the image-space detector (report_image_nis) sees lag the fused pose can hide
+    nis_img = adapt[_NIS_IMG] if t_ns - clock[_IMG_T] < _IMG_NIS_FRESH_NS else 0.0
+    # NIS/dof ~ 1 says nothing about q while the measurement noise dominates the
+    # innovation (a hovering body), so only a clear excess (> _NIS_HIGH) raises q:
+    # innovations k x too big -> q x k^3 per averaging time (CA/CV scaling laws);
+    # otherwise q decays back to its floor
+    decay = math.exp(-max(dt, 0.0) / _SCALE_DECAY_S)
+    adapt[_SCALE_P] = _adapt_scale(adapt[_SCALE_P], max(adapt[_NIS_P], nis_img), alpha, decay, params[_MAX_SCALE])
+    adapt[_SCALE_R] = _adapt_scale(adapt[_SCALE_R], adapt[_NIS_R], alpha, decay, params[_MAX_SCALE])
+    return accepted, d2
+
+
+@njit
+def report_image_nis(adapt, clock, params, t_ns, nis):
+    """Feed one body's manoeuvre detector (adapt (5,), clock (3,): its FilterBank rows)
+    with one camera frame's prediction residual nis at t_ns (see BodyFilter.report_image_nis)."""
+    dt = max((t_ns - clock[_IMG_T]) * 1e-9, 0.0)
+    alpha = 1.0 - math.exp(-dt / params[_NIS_TAU]) if clock[_IMG_T] != 0 else 1.0
+    adapt[_NIS_IMG] += alpha * (min(nis, params[_GATE] / 3.0) - adapt[_NIS_IMG])
+    clock[_IMG_T] = t_ns
+
+
+class FilterBank:
+    """The states of n body filters, one row each, so that compiled kernels update them in place.
+
+    x (n, 15), P (n, 15, 15), R_nom (n, 3, 3); adapt (n, 5): process-noise scales
+    and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img]; clock (n, 3) int64:
+    [filter time ns, last image-NIS time ns, folds]; params (5,): [jerk_psd,
+    angular_accel_psd, max_noise_scale, nis_time_constant, gate_chi2].
+    filters[i] is the BodyFilter over row i.
+    """
+
+    def __init__(self, n: int, settings: KalmanSettings, make_filters: bool = True):
+        self.s = settings
+        self.x = np.zeros((n, NX))
+        self.P = np.tile(np.eye(NX), (n, 1, 1))
+        self.R_nom = np.tile(np.eye(3), (n, 1, 1))
+        self.adapt = np.ones((n, 5))
+        self.clock = np.zeros((n, 3), dtype=np.int64)
+        self.params = np.array([settings.jerk_psd, settings.angular_accel_psd, settings.max_noise_scale,
+                                settings.nis_time_constant, settings.gate_chi2])
+        self.filters = [BodyFilter(settings, self, i) for i in range(n)] if make_filters else []
+
+
+def _row_view(name: str, doc: str) -> property:
+    """A BodyFilter attribute that is its row of a FilterBank array; assigning copies into it."""
+
+    def get(self):
+        return getattr(self.bank, name)[self.row]
+
+    def put(self, value):
+        getattr(self.bank, name)[self.row] = value
+
+    return property(get, put, doc=doc)
+
+
+def array_field(row: str, col: int, kind: type, doc: str = "") -> property:
+    """An attribute kept in cell `col` of the 1-D array attribute `row` (a view of a packed state
+    row, so compiled kernels read and write the same value); assigning writes the cell."""
+
+    def get(self):
+        return kind(getattr(self, row)[col])
+
+    def put(self, value):
+        getattr(self, row)[col] = value
+
+    return property(get, put, doc=doc)
 
 
 class BodyFilter:
@@ -358,25 +488,29 @@ class BodyFilter:
 
     State x (15,) and covariance P (15, 15) as in the module docstring, plus
     the nominal rotation R_nom (3, 3) body->world and the NIS-driven noise
-    scales. The linear algebra is in compiled kernels (visionpos.jit); the
+    scales. They live in a row of a FilterBank (a bank of one when none is
+    given). The linear algebra is in compiled kernels (visionpos.jit): the
     standard predict and Joseph-form update, checked against filterpy's
     KalmanFilter in the tests.
     """
 
-    def __init__(self, settings: KalmanSettings):
+    x = _row_view("x", "state (15,)")
+    P = _row_view("P", "covariance (15, 15)")
+    R_nom = _row_view("R_nom", "nominal rotation (3, 3) body->world")
+    t_ns = array_field("_clock", CLOCK_T, int, "filter time, ns")
+    scale_p = array_field("_adapt", _SCALE_P, float, "process-noise scale of the position block")
+    scale_r = array_field("_adapt", _SCALE_R, float, "process-noise scale of the rotation block")
+
+    def __init__(self, settings: KalmanSettings, bank: FilterBank | None = None, row: int = 0):
         self.s = settings
-        self.x = np.zeros(NX)
-        self.P = np.eye(NX)
-        self.R_nom = np.eye(3)
-        self.t_ns = 0
+        if bank is None:  # a bank of its own
+            bank, row = FilterBank(1, settings, make_filters=False), 0
+            bank.filters.append(self)
+        self.bank = bank
+        self.row = row
+        self._adapt = bank.adapt[row]
+        self._clock = bank.clock[row]
         self.initialized = False
-        self.scale_p = 1.0
-        self.scale_r = 1.0
-        self._nis_p = 1.0
-        self._nis_r = 1.0
-        self._nis_img = 1.0
-        self._img_ns = 0
-        self._folds = 0
 
     # -------------------------------------------------------------- lifecycle
     def initialize(self, t_ns: int, position: np.ndarray, R: np.ndarray, meas_cov: np.ndarray | None = None) -> None:
@@ -395,69 +529,34 @@ class BodyFilter:
         P[6:9, 6:9] = np.eye(3) * s.init_acceleration_sigma**2
         P[12:15, 12:15] = np.eye(3) * s.init_angular_velocity_sigma**2
         self.P = P
-        self.R_nom = np.array(R, dtype=np.float64)
-        self.t_ns = int(t_ns)
+        self.R_nom = np.asarray(R, dtype=np.float64)
+        self._adapt[:] = 1.0  # scales and NIS averages
+        self._clock[CLOCK_T] = int(t_ns)
+        self._clock[_IMG_T] = 0
         self.initialized = True
-        self.scale_p = self.scale_r = 1.0
-        self._nis_p = self._nis_r = self._nis_img = 1.0
-        self._img_ns = 0
-
-    def _folded(self) -> None:
-        self._folds += 1
-        if self._folds % 256 == 0:  # keep R_nom orthonormal against round-off
-            u, _, vt = np.linalg.svd(self.R_nom)
-            self.R_nom = u @ vt
 
     def predict_to(self, t_ns: int) -> None:
         """Advance the filter (mutating) to t_ns; small backward steps are allowed."""
         dt = (int(t_ns) - self.t_ns) * 1e-9
         if dt != 0.0:
-            if _kf_predict(self.x, self.P, self.R_nom, dt, self.s.jerk_psd * self.scale_p, self.s.angular_accel_psd * self.scale_r):
-                self._folded()
+            folded = _kf_predict(self.x, self.P, self.R_nom, dt, self.s.jerk_psd * self.scale_p,
+                                 self.s.angular_accel_psd * self.scale_r)
+            _count_folds(self.R_nom, self._clock, int(folded))
             self.t_ns = int(t_ns)
-
-    @staticmethod
-    def _adapt(scale: float, nis: float, alpha: float, decay: float, smax: float) -> float:
-        if nis > _NIS_HIGH:
-            scale *= (nis / _NIS_HIGH) ** (3.0 * alpha)
-        else:
-            scale *= decay
-        return min(smax, max(1.0, scale))
 
     # ------------------------------------------------------------ measurement
     def update(self, t_ns: int, position: np.ndarray, R: np.ndarray, meas_cov: np.ndarray, gate: bool = True) -> tuple[bool, float]:
-        """Predict to t_ns and fuse a pose measurement.
+        """Predict to t_ns and fuse a pose measurement (filter_update on this row).
 
         position (3,), R (3, 3) body->world, meas_cov (6, 6) over
         [p, world rotation vector]. Returns (accepted, squared Mahalanobis
         distance); a gated measurement leaves the state predicted only.
         """
-        t_ns = int(t_ns)
-        dt = (t_ns - self.t_ns) * 1e-9
-        folds, accepted, d2, nis_p, nis_r = _kf_predict_update(
-            self.x, self.P, self.R_nom, dt, self.s.jerk_psd * self.scale_p, self.s.angular_accel_psd * self.scale_r,
+        accepted, d2 = filter_update(
+            self.x, self.P, self.R_nom, self._adapt, self._clock, self.bank.params, int(t_ns),
             np.asarray(position, dtype=np.float64), np.ascontiguousarray(R, dtype=np.float64),
-            np.ascontiguousarray(meas_cov, dtype=np.float64), self.s.gate_chi2 if gate else 0.0,
+            np.ascontiguousarray(meas_cov, dtype=np.float64), bool(gate),
         )
-        self.t_ns = t_ns
-        for _ in range(folds):
-            self._folded()
-        # NIS per block drives the process-noise scale (gated ones too, capped,
-        # so that a manoeuvre that starts outside the gate still opens it)
-        cap = self.s.gate_chi2 / 3.0
-        alpha = 1.0 - math.exp(-max(dt, 0.0) / self.s.nis_time_constant) if dt > 0 else 0.05
-        self._nis_p += alpha * (min(nis_p, cap) - self._nis_p)
-        self._nis_r += alpha * (min(nis_r, cap) - self._nis_r)
-        # the image-space detector (report_image_nis) sees lag the fused pose can hide
-        nis_img = self._nis_img if self.t_ns - self._img_ns < 50_000_000 else 0.0
-        smax = self.s.max_noise_scale
-        # NIS/dof ~ 1 says nothing about q while the measurement noise dominates the
-        # innovation (a hovering body), so only a clear excess (> _NIS_HIGH) raises q:
-        # innovations k x too big -> q x k^3 per averaging time (CA/CV scaling laws);
-        # otherwise q decays back to its floor
-        decay = math.exp(-max(dt, 0.0) / _SCALE_DECAY_S)
-        self.scale_p = self._adapt(self.scale_p, max(self._nis_p, nis_img), alpha, decay, smax)
-        self.scale_r = self._adapt(self.scale_r, self._nis_r, alpha, decay, smax)
         return bool(accepted), float(d2)
 
     def report_image_nis(self, t_ns: int, nis: float) -> None:
@@ -469,10 +568,7 @@ class BodyFilter:
         comes from a single uncompensated view, so unlike the fused pose it
         cannot be pulled towards the prediction by motion compensation.
         """
-        dt = max((int(t_ns) - self._img_ns) * 1e-9, 0.0)
-        alpha = 1.0 - math.exp(-dt / self.s.nis_time_constant) if self._img_ns else 1.0
-        self._nis_img += alpha * (min(nis, self.s.gate_chi2 / 3.0) - self._nis_img)
-        self._img_ns = int(t_ns)
+        report_image_nis(self._adapt, self._clock, self.bank.params, int(t_ns), float(nis))
 
     # -------------------------------------------------------------- read-outs
     def pose_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -484,5 +580,8 @@ class BodyFilter:
         """Non-mutating prediction for the outputs: position (3,), quaternion xyzw (4,),
         velocity (3,), body-frame angular rate (3,), pose covariance (6, 6) over
         [p, world rotation vector] and velocity covariance (3, 3)."""
-        dt = (int(t_ns) - self.t_ns) * 1e-9
-        return _output_at(self.x, self.P, self.R_nom, dt, self.s.jerk_psd * self.scale_p, self.s.angular_accel_psd * self.scale_r)
+        b, i = self.bank, self.row
+        a = self._adapt
+        o = _output_at(b.x[i], b.P[i], b.R_nom[i], (int(t_ns) - int(self._clock[CLOCK_T])) * 1e-9,
+                       self.s.jerk_psd * a[_SCALE_P], self.s.angular_accel_psd * a[_SCALE_R])
+        return o[0:3], o[3:7], o[7:10], o[10:13], o[13:49].reshape(6, 6), o[49:58].reshape(3, 3)
