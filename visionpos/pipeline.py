@@ -97,7 +97,10 @@ from visionpos.matching import Projector, associate_blobs, match_unlabeled, proj
 from visionpos.messages import BlobFrame, BodyState, LoosePoints
 from visionpos.rigidbody import BodyModel, identify, kabsch_weighted, layout_ambiguities
 from visionpos.timealign import MODES, MOTION_COMPENSATED, Group, TimeAligner
-from visionpos.tracking import CLOCK_T, BodyFilter, FilterBank, KalmanSettings, array_field, filter_update, predict_mean, report_image_nis
+from visionpos.tracking import (
+    CLOCK_T, BodyFilter, FilterBank, KalmanSettings, array_field, filter_initialize, filter_update, predict_mean,
+    report_image_nis,
+)
 
 
 # the image-space manoeuvre detector samples at most this often (capture clock)
@@ -247,7 +250,7 @@ _NO_TIME = np.iinfo(np.int64).min  # _FIRST_REJECT: no measurement rejected sinc
 _PX_VAR_PRIOR = 0.25  # px^2, per-axis pixel noise before any residual is seen
 # _fuse_tracked's verdict per tracked body, and the columns of its measurement rows (one array:
 # each array a kernel returns costs a few microseconds to hand to Python)
-_TOO_FEW, _FIT_REJECTED, _ACCEPTED, _GATED = range(4)
+_TOO_FEW, _FIT_REJECTED, _ACCEPTED, _GATED, _RESET = range(5)
 _M_ROT, _M_POS, _M_COV = slice(0, 9), slice(9, 12), slice(12, 48)  # R (3, 3), t (3,), covariance (6, 6)
 _M_MARKERS, _M_CAMERAS, _M_FIT = 48, 49, 50  # markers used, cameras, fit RMS (m)
 
@@ -614,12 +617,13 @@ def _fuse_tracked(marker_xn, views, capture_ns, ref, R, t, f, tracked, rows, siz
     marker_xn, views, R, t, f, rows, sizes, local, compensate: as _tracked_measurements;
     capture_ns (cameras,): each camera's newest capture time; ref: reference time (ns);
     tracked (B,): the bodies; params: _tracked_measurements' then the fewest markers for
-    a pose and the floor of the per-marker variance (m^2); reuse: fusions that share each
+    a pose, the floor of the per-marker variance (m^2) and how long (ns) a filter may
+    reject measurements before it restarts at them; reuse: fusions that share each
     frame (multiplies the measurement covariance); x, P, R_nom, adapt, clock, kalman: the
     FilterBank's arrays and params; ti (bodies, 7), tf (bodies, 3): the track rows.
 
     Returns per tracked body its verdict (B,) (_TOO_FEW, _FIT_REJECTED, _ACCEPTED,
-    _GATED) and its measurement (B, 51) (columns _M_*: pose R and t, its covariance,
+    _GATED, _RESET: the filter restarted at the measurement) and its measurement (B, 51) (columns _M_*: pose R and t, its covariance,
     markers used, cameras, fit RMS in m); the number of points refused by the residual
     gate; the newest filter time t_c and the tracked markers' positions, velocities and
     accelerations there (3, P, 3) (_marker_motion).
@@ -660,9 +664,17 @@ def _fuse_tracked(marker_xn, views, capture_ns, ref, R, t, f, tracked, rows, siz
         accepted, _ = filter_update(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref, tk[i], Rk[i], cov, True)
         if accepted:
             verdict[i] = _ACCEPTED
-            _track_measured(ti[b], tf[b], ref, cap, n, n_cams[i], fit)
         else:
-            verdict[i] = _GATED
+            if ti[b, _FIRST_REJECT] == _NO_TIME:
+                ti[b, _FIRST_REJECT] = ref
+            if ref - ti[b, _FIRST_REJECT] < params[5]:
+                verdict[i] = _GATED
+                continue
+            # persistently inconsistent: believe the measurements, restart the filter there
+            filter_initialize(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref, tk[i], Rk[i], cov)
+            ti[b, _RESETS] += 1
+            verdict[i] = _RESET
+        _track_measured(ti[b], tf[b], ref, cap, n, n_cams[i], fit)
     t_c = clock[tracked[0], CLOCK_T]
     for i in range(B):
         t_c = max(t_c, clock[tracked[i], CLOCK_T])
@@ -754,7 +766,7 @@ class FusionPipeline:
         self._layout_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self._gate_px = float(st.match_gate_px)
         self._kernel_params = np.array([st.max_residual_px, st.identify_tolerance, _COMPENSATE_MAX_VEL_STD**2,
-                                        st.min_markers, st.marker_sigma**2])
+                                        st.min_markers, st.marker_sigma**2, st.reset_after_ns])
         self._view_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self.aligner = TimeAligner(
             st.time_alignment,
@@ -951,7 +963,6 @@ class FusionPipeline:
         return lay
 
     def _update_tracked(self, cams: tuple[int, ...], vi, R, t, f, ref: int, compensate: bool) -> None:
-        st = self.settings
         tracked = self._tracked
         rows, sizes, _, local = self._layout(tracked)
         bank = self.bank
@@ -967,29 +978,17 @@ class FusionPipeline:
         stats["rejected_residual"] += int(refused)
         for i, b in enumerate(tracked):
             v = verdict[i]
-            if v == _ACCEPTED:
-                stats["measurements"] += 1
-            elif v == _FIT_REJECTED:
+            if v == _FIT_REJECTED:
                 stats["rejected_fit"] += 1
-            if v >= _ACCEPTED:
+            elif v >= _ACCEPTED:
                 m = meas[i]
                 self.last_raw[b] = (ref, m[_M_POS], m[_M_ROT].reshape(3, 3))
-            if v != _GATED:
-                continue
-            stats["rejected_gate"] += 1
-            tr = self.tracks[b]
-            if tr.first_reject_ns is None:
-                tr.first_reject_ns = ref
-            if ref - tr.first_reject_ns < st.reset_after_ns:
-                continue
-            # persistently inconsistent: believe the measurements, restart the filter there
-            tr.filter.initialize(ref, m[_M_POS], m[_M_ROT].reshape(3, 3), m[_M_COV].reshape(6, 6))
-            tr.reset_counter += 1
-            stats["filter_resets"] += 1
-            stats["measurements"] += 1
-            _track_measured(tr.i, tr.f, ref, int(self._capture_ns[vi].max()), int(m[_M_MARKERS]), int(m[_M_CAMERAS]),
-                            float(m[_M_FIT]))
-            self._pred_cache = None
+                if v != _ACCEPTED:
+                    stats["rejected_gate"] += 1
+                if v != _GATED:
+                    stats["measurements"] += 1
+                if v == _RESET:
+                    stats["filter_resets"] += 1
 
     def _acquire(self, obs: list[_Obs], R, t, f, ref: int) -> None:
         """Match leftover blobs across views; identify lost bodies; report loose points."""

@@ -358,7 +358,7 @@ def _output_at(x, P, R_nom, dt, qj, qw):
 # packed filter state: one row per body in FilterBank.adapt / .clock, one entry in .params
 _SCALE_P, _SCALE_R, _NIS_P, _NIS_R, _NIS_IMG = range(5)  # adapt (float)
 CLOCK_T, _IMG_T, _FOLDS = range(3)  # clock (int64 ns, count)
-_JERK, _ANG_ACC, _MAX_SCALE, _NIS_TAU, _GATE = range(5)  # params
+_JERK, _ANG_ACC, _MAX_SCALE, _NIS_TAU, _GATE, _INIT_V, _INIT_A, _INIT_W = range(8)  # params
 _ORTHO_EVERY = 256  # folds between re-orthonormalisations of R_nom
 _IMG_NIS_FRESH_NS = 50_000_000  # an image-space NIS older than this no longer drives the noise scale
 
@@ -427,6 +427,28 @@ def filter_update(x, P, R_nom, adapt, clock, params, t_ns, position, R, cov, gat
 
 
 @njit
+def filter_initialize(x, P, R_nom, adapt, clock, params, t_ns, position, R, cov):
+    """(Re)start one body filter (its FilterBank rows, params as in filter_update) at a
+    measured pose: position (3,), R (3, 3) body->world with covariance cov (6, 6) over
+    [p, world rotation vector] at t_ns; the derivatives are unknown: zero, with the prior
+    variances of params. The noise scales and NIS averages start afresh."""
+    x[:] = 0.0
+    x[0:3] = position
+    P[:, :] = 0.0
+    for i in range(6):
+        for j in range(6):
+            P[_POSE[i], _POSE[j]] = cov[i, j]
+    for k in range(3):
+        P[3 + k, 3 + k] = params[_INIT_V]
+        P[6 + k, 6 + k] = params[_INIT_A]
+        P[12 + k, 12 + k] = params[_INIT_W]
+    R_nom[:, :] = R
+    adapt[:] = 1.0
+    clock[CLOCK_T] = t_ns
+    clock[_IMG_T] = 0
+
+
+@njit
 def report_image_nis(adapt, clock, params, t_ns, nis):
     """Feed one body's manoeuvre detector (adapt (5,), clock (3,): its FilterBank rows)
     with one camera frame's prediction residual nis at t_ns (see BodyFilter.report_image_nis)."""
@@ -441,8 +463,9 @@ class FilterBank:
 
     x (n, 15), P (n, 15, 15), R_nom (n, 3, 3); adapt (n, 5): process-noise scales
     and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img]; clock (n, 3) int64:
-    [filter time ns, last image-NIS time ns, folds]; params (5,): [jerk_psd,
-    angular_accel_psd, max_noise_scale, nis_time_constant, gate_chi2].
+    [filter time ns, last image-NIS time ns, folds]; params (8,): [jerk_psd,
+    angular_accel_psd, max_noise_scale, nis_time_constant, gate_chi2, then the prior
+    variances of velocity, acceleration and angular velocity at (re)initialisation].
     filters[i] is the BodyFilter over row i.
     """
 
@@ -454,7 +477,8 @@ class FilterBank:
         self.adapt = np.ones((n, 5))
         self.clock = np.zeros((n, 3), dtype=np.int64)
         self.params = np.array([settings.jerk_psd, settings.angular_accel_psd, settings.max_noise_scale,
-                                settings.nis_time_constant, settings.gate_chi2])
+                                settings.nis_time_constant, settings.gate_chi2, settings.init_velocity_sigma**2,
+                                settings.init_acceleration_sigma**2, settings.init_angular_velocity_sigma**2])
         self.filters = [BodyFilter(settings, self, i) for i in range(n)] if make_filters else []
 
 
@@ -510,30 +534,16 @@ class BodyFilter:
         self.row = row
         self._adapt = bank.adapt[row]
         self._clock = bank.clock[row]
-        self.initialized = False
 
     # -------------------------------------------------------------- lifecycle
     def initialize(self, t_ns: int, position: np.ndarray, R: np.ndarray, meas_cov: np.ndarray | None = None) -> None:
-        """Start (or restart) at a measured pose; derivatives unknown (zero with a wide prior)."""
-        x = np.zeros(NX)
-        x[0:3] = position
-        self.x = x
-        s = self.s
-        P = np.zeros((NX, NX))
-        if meas_cov is not None:
-            P[np.ix_(_POSE, _POSE)] = meas_cov
-        else:
-            P[0:3, 0:3] = np.eye(3) * 1e-6
-            P[9:12, 9:12] = np.eye(3) * 1e-4
-        P[3:6, 3:6] = np.eye(3) * s.init_velocity_sigma**2
-        P[6:9, 6:9] = np.eye(3) * s.init_acceleration_sigma**2
-        P[12:15, 12:15] = np.eye(3) * s.init_angular_velocity_sigma**2
-        self.P = P
-        self.R_nom = np.asarray(R, dtype=np.float64)
-        self._adapt[:] = 1.0  # scales and NIS averages
-        self._clock[CLOCK_T] = int(t_ns)
-        self._clock[_IMG_T] = 0
-        self.initialized = True
+        """Start (or restart) at a measured pose (filter_initialize); derivatives unknown (zero
+        with a wide prior). meas_cov (6, 6) over [p, world rotation vector]; None: 1 mm, 0.6 deg."""
+        if meas_cov is None:
+            meas_cov = np.diag([1e-6] * 3 + [1e-4] * 3)
+        filter_initialize(self.x, self.P, self.R_nom, self._adapt, self._clock, self.bank.params, int(t_ns),
+                          np.asarray(position, dtype=np.float64), np.ascontiguousarray(R, dtype=np.float64),
+                          np.ascontiguousarray(meas_cov, dtype=np.float64))
 
     def predict_to(self, t_ns: int) -> None:
         """Advance the filter (mutating) to t_ns; small backward steps are allowed."""
