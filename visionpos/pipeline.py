@@ -789,8 +789,7 @@ class FusionPipeline:
         self._tf[:, _PX_VAR] = _PX_VAR_PRIOR
         self._tf[:, _RESIDUAL_MM] = np.nan
         self.tracks = [_Track(fl, self._ti[b], self._tf[b]) for b, fl in enumerate(self.bank.filters)]
-        self._tracked: tuple[int, ...] = ()  # bodies tracked now (see _tracking_changed)
-        self._tracked_idx = np.zeros(0, dtype=np.int64)
+        self._tracking_changed()
         self.loose_points: LoosePoints | None = None
         self._last_acquire_ns = -(1 << 62)
         self._last_img_ns = -(1 << 62)
@@ -871,6 +870,8 @@ class FusionPipeline:
         """Refresh the tracked-body set after a body was acquired or lost."""
         self._tracked = tuple(int(b) for b in np.flatnonzero(self._ti[:, _TRACKED]))
         self._tracked_idx = np.array(self._tracked, dtype=np.int64)
+        # by blob label: free for acquisition unless a marker of a tracked body (label -1: the last entry)
+        self._label_free = np.append(self._ti[self._marker_body, _TRACKED] == 0, True)
 
     def _motion_cache(self) -> tuple:
         """(bodies, fusion count, t_c, X0, V, A): marker positions, velocities and accelerations
@@ -996,44 +997,44 @@ class FusionPipeline:
         lost = [b for b in range(len(self.tracks)) if b not in self._tracked]
         if not lost and not st.loose_points:
             return
-        # a blob is free unless it is labelled with a marker of a tracked body (label -1: the last entry)
-        is_free = np.append(self._ti[self._marker_body, _TRACKED] == 0, True)
-        free = [np.flatnonzero(is_free[o.label]) for o in obs]
+        free = [np.flatnonzero(self._label_free[o.label]) for o in obs]
         if sum(len(fr) > 0 for fr in free) < 2:
             self.loose_points = LoosePoints(ref, np.zeros((0, 3)), np.zeros(0))
             return
         xs = [o.xn[fr] for o, fr in zip(obs, free)]
         pts, idx, rms = match_unlabeled(xs, R, t, f, st.acquire_ray_distance, st.max_residual_px)
+        if not lost or len(pts) < 3:
+            self.loose_points = LoosePoints(ref, pts, rms)
+            return
         left = np.ones(len(pts), dtype=bool)
-        if lost and len(pts) >= 3:
-            for ident in identify(pts, self.models, st.identify_tolerance, st.min_markers, only=lost):
-                b = ident.body
-                tr = self.tracks[b]
-                matched = ident.point_index >= 0
-                n_id = int(matched.sum())
-                tr.marker_var = max(ident.rms**2 * n_id / max(n_id - 2, 1), st.marker_sigma**2)
-                tr.filter.initialize(ref, ident.t, ident.R, pose_measurement_cov(pts[ident.point_index[matched]], ident.t, tr.marker_var))
-                tr.tracked = True
-                tr.first_reject_ns = None
-                tr.last_update_ns = ref
-                tr.last_capture_ns = max(o.capture_ns for o in obs)
-                tr.n_markers = ident.n_markers
-                tr.residual_mm = ident.rms * 1e3
-                self._stats["acquisitions"] += 1
-                # label the blobs that made the body in the stored frames, so the
-                # next fusions see it in every camera at once
-                for m, q in enumerate(ident.point_index):
-                    if q < 0:
-                        continue
-                    left[q] = False
-                    for v, o in enumerate(obs):
-                        j = idx[q, v]
-                        if j >= 0:
-                            blob = free[v][j]
-                            o.label[blob] = self._off[b] + m
-                            o.marker_xn[self._off[b] + m] = o.xn[blob]
-                tr.n_cameras = int(sum((o.label >= self._off[b]).any() and (o.label < self._off[b + 1]).any() for o in obs))
-                self._tracking_changed()
+        for ident in identify(pts, self.models, st.identify_tolerance, st.min_markers, only=lost):
+            b = ident.body
+            tr = self.tracks[b]
+            matched = ident.point_index >= 0
+            n_id = int(matched.sum())
+            tr.marker_var = max(ident.rms**2 * n_id / max(n_id - 2, 1), st.marker_sigma**2)
+            tr.filter.initialize(ref, ident.t, ident.R, pose_measurement_cov(pts[ident.point_index[matched]], ident.t, tr.marker_var))
+            tr.tracked = True
+            tr.first_reject_ns = None
+            tr.last_update_ns = ref
+            tr.last_capture_ns = max(o.capture_ns for o in obs)
+            tr.n_markers = ident.n_markers
+            tr.residual_mm = ident.rms * 1e3
+            self._stats["acquisitions"] += 1
+            # label the blobs that made the body in the stored frames, so the
+            # next fusions see it in every camera at once
+            for m, q in enumerate(ident.point_index):
+                if q < 0:
+                    continue
+                left[q] = False
+                for v, o in enumerate(obs):
+                    j = idx[q, v]
+                    if j >= 0:
+                        blob = free[v][j]
+                        o.label[blob] = self._off[b] + m
+                        o.marker_xn[self._off[b] + m] = o.xn[blob]
+            tr.n_cameras = int(sum((o.label >= self._off[b]).any() and (o.label < self._off[b + 1]).any() for o in obs))
+            self._tracking_changed()
         self.loose_points = LoosePoints(ref, pts[left], rms[left])
 
     # ----------------------------------------------------------------- output
