@@ -134,9 +134,15 @@ class VehicleConfig:
     link_timeout_s: float = 3.0
 
     @property
+    def period_ns(self) -> int:
+        """Spacing of the sent poses' stamps: 1/rate_hz."""
+        return int(round(1e9 / self.rate_hz))
+
+    @property
     def min_interval_ns(self) -> int:
-        """Smallest capture-time spacing between two sent poses: 1/rate_hz less the tolerance
-        (camera capture times jitter by microseconds around an exact 2-frame spacing)."""
+        """Capture time after the last sent stamp from which the next pose goes out: 1/rate_hz
+        less the tolerance (camera capture times jitter by microseconds around an exact
+        2-frame spacing); the pose is then stamped on the grid (mavlink.VehicleLink._next_stamp)."""
         return int(round(1e9 / self.rate_hz - self.rate_tolerance_ms * 1e6))
 
 

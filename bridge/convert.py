@@ -117,20 +117,20 @@ def nan_covariance(n: int) -> list[float]:
     return [float("nan")] + [0.0] * (n - 1)
 
 
-def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: float) -> dict:
-    """BodyState -> NED / FRD quantities at the state's capture time.
+def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: float, at_ns: int | None = None) -> dict:
+    """BodyState -> NED / FRD quantities at time at_ns (default: the state's capture time).
 
-    The state is valid at time_ns; usec carries capture_ns, so the pose is
-    moved back to capture_ns with the state's velocities first, then shifted
-    to the vehicle reference point (pivot_offset (3,) m, body FLU) and turned
-    into NED / FRD.
+    The state is valid at time_ns; the message's usec carries at_ns, so the
+    pose is moved back to at_ns with the state's velocities first, then
+    shifted to the vehicle reference point (pivot_offset (3,) m, body FLU) and
+    turned into NED / FRD.
 
     Returns dict: position_ned (3,), quaternion_ned_frd (4,) xyzw, euler (3,)
     roll pitch yaw rad, velocity_ned (3,), velocity_frd (3,) (body),
     angular_velocity_frd (3,), pose_cov (6, 6) [x y z roll pitch yaw] or None,
     velocity_cov_ned (3, 3) or None, velocity_cov_frd (3, 3) or None.
     """
-    dt = (state.time_ns - state.capture_ns) * 1e-9
+    dt = (state.time_ns - (state.capture_ns if at_ns is None else at_ns)) * 1e-9
     w_body = np.asarray(state.angular_velocity, float)
     p_w, q_w = back_propagate(state.position, state.quaternion, state.velocity, w_body, dt)
     R_wb = quat_to_matrix(q_w)

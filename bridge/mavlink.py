@@ -3,9 +3,9 @@
 The server calls Bridge.publish(states) on its asyncio loop at every output
 tick. publish only drops the newest state into each vehicle's single-slot
 mailbox and pokes the vehicle's thread through a pipe: it never waits on a
-socket. The thread owns the link (reads, writes, reconnects), rate-limits on
-capture time, drops stale or frozen poses, answers TIMESYNC and sends the
-HEARTBEAT, origin and home.
+socket. The thread owns the link (reads, writes, reconnects), stamps the poses
+on an even 1/rate_hz grid of capture time, drops stale or frozen poses,
+answers TIMESYNC and sends the HEARTBEAT, origin and home.
 
 MAVLink2 is forced: each link has its own pymavlink v2 MAVLink object (never
 mavutil's process-wide dialect, which switches v1 -> v2 on the first v2
@@ -45,7 +45,7 @@ COUNTERS = (
     "heartbeats",
     "origin_sent",
     "superseded",  # a newer state replaced one the sender had not taken yet
-    "rate_limited",  # capture less than 1/rate_hz after the last sent one
+    "rate_limited",  # no new frame since the last sent stamp's next grid point
     "frozen",  # capture_ns not newer than the last sent: never resent
     "not_tracked",
     "dropped_stale",  # older than max_age_ms when the sender took it
@@ -106,6 +106,7 @@ class VehicleLink:
         self.yaw_offset_rad = math.radians(cfg.yaw_offset_deg)
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.lat_capture = _LatencyRing()
+        self.lat_stamp = _LatencyRing()
         self.lat_bridge = _LatencyRing()
         self.link: Link | None = None
         self.last_error = ""
@@ -116,6 +117,7 @@ class VehicleLink:
         self._slot_ns = 0
         self._busy = False
         self._last_capture: int | None = None
+        self._last_stamp: int | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._wake_r, self._wake_w = os.pipe()
@@ -332,7 +334,8 @@ class VehicleLink:
         if last is not None and st.capture_ns <= last:
             c["frozen"] += 1
             return
-        if last is not None and st.capture_ns - last < self.cfg.min_interval_ns:
+        stamp = self._next_stamp(st.capture_ns)
+        if stamp is None:
             c["rate_limited"] += 1
             return
         if now - st.capture_ns > self.cfg.max_age_ms * 1e6:
@@ -341,8 +344,8 @@ class VehicleLink:
         if not self._peer_known():
             c["no_link"] += 1
             return
-        conv = convert_state(st, self.pivot, self.yaw_offset_rad)
-        usec = (st.capture_ns + self.base_offset_ns) // 1000
+        conv = convert_state(st, self.pivot, self.yaw_offset_rad, at_ns=stamp)
+        usec = (stamp + self.base_offset_ns) // 1000
         reset = (int(st.reset_counter) + self.local_resets) % 256
         if self.cfg.message == "odometry":
             ok = self._send(self.mav.odometry_encode(**odometry_fields(conv, usec, reset, self.cfg.quality)))
@@ -353,10 +356,33 @@ class VehicleLink:
                     c["sent_speed"] += 1
         if ok:
             self._last_capture = st.capture_ns
+            self._last_stamp = stamp
             c["sent"] += 1
             t = self.clock_ns()
             self.lat_capture.add(t - st.capture_ns)
+            self.lat_stamp.add(t - stamp)
             self.lat_bridge.add(t - offered_ns)
+
+    def _next_stamp(self, capture_ns: int) -> int | None:
+        """The time (server clock) a pose whose newest frame was captured at capture_ns is
+        sent for, or None: too soon after the last one.
+
+        Stamps follow a grid of 1/rate_hz from the last sent stamp, so the autopilot gets
+        evenly spaced poses (EKF3 drops any closer than 20 ms) wherever the captures fall
+        between output ticks: with several asynchronous cameras the newest capture moves by
+        uneven steps from tick to tick, and stamping the capture time itself then skips
+        ticks (40-50 Hz instead of 50). The pose is moved to its stamp with its velocities
+        (convert_state): back by at most one period, or forward by at most rate_tolerance_ms
+        for a capture that falls that little short of the grid point (camera clocks jitter
+        by microseconds). After a gap of a period or more the grid restarts at the capture.
+        """
+        last = self._last_stamp
+        if last is None:
+            return capture_ns
+        nxt = last + self.cfg.period_ns
+        if capture_ns - last < self.cfg.min_interval_ns:
+            return None
+        return nxt if capture_ns - nxt < self.cfg.period_ns else capture_ns
 
     def _send(self, msg) -> bool:
         self._last_write_ok = False
@@ -393,7 +419,7 @@ class VehicleLink:
     # ---------------------------------------------------------------- reporting
     def stats(self) -> dict:
         out: dict = dict(self.counters)
-        lc, lb = self.lat_capture.values(), self.lat_bridge.values()
+        lc, ls, lb = self.lat_capture.values(), self.lat_stamp.values(), self.lat_bridge.values()
         out.update(
             sysid=self.cfg.sysid,
             body=self.cfg.body,
@@ -406,6 +432,8 @@ class VehicleLink:
             autopilot_heard_s_ago=((self.clock_ns() - self.last_rx_ns) * 1e-9 if self.last_rx_ns else None),
             latency_capture_ms_p50=_percentile_ms(lc, 50),
             latency_capture_ms_p99=_percentile_ms(lc, 99),
+            latency_stamp_ms_p50=_percentile_ms(ls, 50),
+            latency_stamp_ms_p99=_percentile_ms(ls, 99),
             latency_bridge_ms_p50=_percentile_ms(lb, 50),
             latency_bridge_ms_p99=_percentile_ms(lb, 99),
             latency_samples=len(lc),
@@ -414,15 +442,18 @@ class VehicleLink:
 
 
 def delay_advice(stats: dict) -> str:
-    """One line per vehicle: measured capture->send latency and the autopilot delay to set."""
+    """One line per vehicle: measured latencies and the autopilot delay to set (the age of a
+    pose's stamp when it is sent: what the autopilot must wait for)."""
     p50, p99 = stats["latency_capture_ms_p50"], stats["latency_capture_ms_p99"]
     if not np.isfinite(p50):
         return f"{stats['body']} (sysid {stats['sysid']}): no pose sent yet"
-    d = int(round(p50))
+    age = stats["latency_stamp_ms_p50"]
+    d = int(round(age))
     return (
-        f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms "
-        f"(bridge adds p50 {stats['latency_bridge_ms_p50']:.2f} ms) -> ArduPilot VISO_DELAY_MS={d} "
-        f"(+ link latency); PX4 EKF2_EV_DELAY={d} without TIMESYNC, ~0 with TIMESYNC converged"
+        f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms; "
+        f"pose stamp->send p50 {age:.1f} ms (bridge adds p50 {stats['latency_bridge_ms_p50']:.2f} ms) -> "
+        f"ArduPilot VISO_DELAY_MS={d} (+ link latency); PX4 EKF2_EV_DELAY={d} without TIMESYNC, "
+        f"~0 with TIMESYNC converged"
     )
 
 

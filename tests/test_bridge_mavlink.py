@@ -114,6 +114,39 @@ def test_rate_limit_50hz_from_100hz():
         ap.close()
 
 
+def test_even_50hz_stamps_from_uneven_captures():
+    """Several asynchronous cameras: the newest capture at each 100 Hz output tick moves by
+    uneven steps (here 6 and 14 ms in turn, with a few microseconds of jitter). Stamps still
+    come every 20 ms exactly, so every pose is one EKF3 keeps and the rate is the full 50 Hz
+    (stamping the captures themselves skips every other chance: about 36 Hz here), and each
+    pose is the state moved back to its stamp, not the pose at the capture."""
+    bridge, ap = start_pair()
+    try:
+        t0 = time.monotonic_ns() - 2_000_000_000  # a 2 s old flight, replayed in one go
+        v = np.array([0.5, -0.2, 0.1])  # m/s, world
+        p0 = np.array([1.0, 2.0, 1.0])
+        states = []
+        for k in range(100):
+            tick = t0 + k * 10_000_000
+            cap = tick - (4_000_000 if k % 2 else 0) - (k % 7) * 1_000  # 6 / 14 ms steps
+            states.append(body_state(capture_ns=cap, dt_ns=tick - cap, position=p0 + v * (tick - t0) * 1e-9,
+                                     velocity=v))
+        feed(bridge, states)
+        assert ap.wait_for(VPE, 45, 5.0)
+        time.sleep(0.1)
+        poses = [decode_pose(m) for m in ap.messages(VPE)]
+        usec = np.array([p["usec"] for p in poses])
+        assert len(poses) >= 49  # 100 ticks at 100 Hz: 50 poses at 50 Hz
+        assert set(np.diff(usec)) == {20_000}
+        assert ap.report()["stamps_closer_than_20ms"] == 0
+        for p, u in zip(poses, usec):
+            x, y, z = p0 + v * (u * 1000 - t0) * 1e-9  # the truth at the stamp, world z up
+            assert np.allclose(p["position_ned"], [x, -y, -z], atol=1e-5)
+    finally:
+        bridge.close()
+        ap.close()
+
+
 def test_stop_on_loss_and_no_frozen_resend():
     bridge, ap = start_pair()
     try:

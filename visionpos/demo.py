@@ -497,8 +497,8 @@ def format_summary(s: dict[str, Any]) -> str:
         f"{len(s['stations'])} stations ({st}), {s['ticks']} output ticks",
         table,
         f"latency capture -> MAVLink send: p50 {fmt(lat['p50'])} ms, p99 {fmt(lat['p99'])} ms "
-        f"(to the autopilot: p50 {fmt(s['latency_to_autopilot_ms']['p50'])} ms); "
-        f"set ArduPilot VISO_DELAY_MS / PX4 EKF2_EV_DELAY to about the p50",
+        f"(pose stamp -> autopilot: p50 {fmt(s['latency_to_autopilot_ms']['p50'])} ms); "
+        f"set ArduPilot VISO_DELAY_MS / PX4 EKF2_EV_DELAY to about the stamp -> autopilot p50",
         f"server: {s['server']['frames_accepted']} frames accepted"
         + (f" ({s['server']['frames_shed']} not fused: queued too long)" if s['server'].get('frames_shed') else "")
         + f", {s['server']['malformed']} malformed, "
