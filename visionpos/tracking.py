@@ -396,7 +396,7 @@ def filter_update(x, P, R_nom, adapt, clock, params, t_ns, position, R, cov, gat
     """Predict one body filter to t_ns (int ns) and fuse a pose measurement, in place (compiled).
 
     x (15,), P (15, 15), R_nom (3, 3), adapt (5,), clock (3,): the body's rows of a
-    FilterBank; params (5,) its settings. position (3,), R (3, 3) body->world,
+    FilterBank; params (8,) its settings (FilterBank.params). position (3,), R (3, 3) body->world,
     cov (6, 6) over [p, world rotation vector]; gate: apply the innovation gate.
     Returns (accepted, squared Mahalanobis distance); a gated measurement leaves
     the state predicted only. Then adapts the process-noise scales to the NIS.
