@@ -376,6 +376,19 @@ def _pack_states(x, P, R_nom, clock, bodies, t_ns):
 
 
 @njit
+def _tracked_motion(x, P, R_nom, clock, tracked, sizes, local):
+    """The newest filter time t_c of the bodies `tracked` (B,) of a FilterBank (x, P, R_nom,
+    clock) and their markers' positions, velocities and accelerations there, (3, P, 3)
+    (_marker_motion; sizes (B,), local (P, 3) as there)."""
+    t_c = clock[tracked[0], CLOCK_T]
+    for i in range(tracked.shape[0]):
+        t_c = max(t_c, clock[tracked[i], CLOCK_T])
+    motion = np.empty((3, local.shape[0], 3))
+    motion[0], motion[1], motion[2] = _marker_motion(_pack_states(x, P, R_nom, clock, tracked, t_c), sizes, local)
+    return t_c, motion
+
+
+@njit
 def _finite_rows(px):
     """px (N, 2) itself when every row is finite, else a copy of its finite rows."""
     keep = np.empty(px.shape[0], dtype=np.bool_)
@@ -387,12 +400,13 @@ def _finite_rows(px):
 
 
 @njit
-def _observe_frame(px, dt, X0, V, A, rows, marker_xn, camera, gate, image_nis, t_ns, tracked, body, tf, P, adapt,
-                   clock, kalman):
+def _observe_frame(px, dt, motion, rows, marker_xn, camera, gate, image_nis, t_ns, tracked, body, tf, P, adapt, clock,
+                   kalman):
     """One camera frame against the tracked bodies' predicted markers (compiled).
 
-    px (N, 2) blob pixels; markers X0 + dt V + dt^2 / 2 A (M, 3) predicted to the
-    frame's capture time t_ns, their global rows (M,); camera: the camera packed as
+    px (N, 2) blob pixels; motion (3, M, 3): the tracked markers' positions X0, velocities V
+    and accelerations A (_tracked_motion), so X0 + dt V + dt^2 / 2 A is where they are at the
+    frame's capture time t_ns; rows (M,): their global rows; camera: the camera packed as
     matching.Projector.packed (pose, lens, visibility limit); gate px. Fills marker_xn (P, 2), each marker's
     observation (NaN = none). Returns normalised blobs xn (N, 2) and blob labels (N,)
     (global marker row or -1).
@@ -405,7 +419,7 @@ def _observe_frame(px, dt, X0, V, A, rows, marker_xn, camera, gate, image_nis, t
     R, t, intrinsics, dist = camera[0:9].reshape((3, 3)), camera[9:12], camera[12:18], camera[18:26]
     fisheye, cos_max = camera[27] != 0.0, camera[26]
     xn = undistort_normalized(px, intrinsics, dist, fisheye)
-    Xw = X0 + dt * (V + (0.5 * dt) * A)
+    Xw = motion[0] + dt * (motion[1] + (0.5 * dt) * motion[2])
     pred = project_points(Xw, R, t, intrinsics, dist, fisheye, cos_max, gate)
     a = associate_blobs(pred, px, gate * gate)
     label = np.full(px.shape[0], -1, dtype=np.int64)
@@ -478,8 +492,9 @@ def _tracked_measurements(marker_xn, views, rows, R, t, f, dt, states, compensat
     marker (NaN = none); views (V,): the fused cameras' indices in it; rows (P,): the
     tracked bodies' marker rows, body by body. R (V, 3, 3), t (V, 3), f (V,): the views;
     dt (V,): view capture - reference (s). states (B, 27): per body its filter state as
-    _pack_states packs it (x, R_nom, reference - filter time, velocity and rate variance); sizes (B,) marker counts; local (P, 3) body-frame markers of the
-    rows. compensate: motion compensation on (velocity-gated per body). params: max
+    _pack_states packs it (x, R_nom, reference - filter time, velocity and rate
+    variance); sizes (B,) marker counts; local (P, 3) body-frame markers of the rows.
+    compensate: motion compensation on (velocity-gated per body). params: max
     residual px, identification tolerance m, the velocity variance below which a body
     is compensated.
 
@@ -623,10 +638,10 @@ def _fuse_tracked(marker_xn, views, capture_ns, ref, R, t, f, tracked, rows, siz
     FilterBank's arrays and params; ti (bodies, 7), tf (bodies, 3): the track rows.
 
     Returns per tracked body its verdict (B,) (_TOO_FEW, _FIT_REJECTED, _ACCEPTED,
-    _GATED, _RESET: the filter restarted at the measurement) and its measurement (B, 51) (columns _M_*: pose R and t, its covariance,
-    markers used, cameras, fit RMS in m); the number of points refused by the residual
-    gate; the newest filter time t_c and the tracked markers' positions, velocities and
-    accelerations there (3, P, 3) (_marker_motion).
+    _GATED, _RESET: the filter restarted at the measurement) and its measurement
+    (B, 51) (columns _M_*: pose R and t, its covariance, markers used, cameras, fit RMS
+    in m); the number of points refused by the residual gate; and, for the next frames,
+    _tracked_motion after the updates (t_c, motion (3, P, 3)).
     """
     V = views.shape[0]
     dt = np.empty(V)
@@ -675,11 +690,7 @@ def _fuse_tracked(marker_xn, views, capture_ns, ref, R, t, f, tracked, rows, siz
             ti[b, _RESETS] += 1
             verdict[i] = _RESET
         _track_measured(ti[b], tf[b], ref, cap, n, n_cams[i], fit)
-    t_c = clock[tracked[0], CLOCK_T]
-    for i in range(B):
-        t_c = max(t_c, clock[tracked[i], CLOCK_T])
-    motion = np.empty((3, local.shape[0], 3))
-    motion[0], motion[1], motion[2] = _marker_motion(_pack_states(x, P, R_nom, clock, tracked, t_c), sizes, local)
+    t_c, motion = _tracked_motion(x, P, R_nom, clock, tracked, sizes, local)
     return verdict, meas, refused, t_c, motion
 
 
@@ -762,7 +773,6 @@ class FusionPipeline:
         self._t = np.array([c.t for c in arena.cameras]).reshape(-1, 3)
         self._f = np.array([np.sqrt(c.model.fx * c.model.fy) for c in arena.cameras])
         self._proj = {c.id: Projector(c) for c in arena.cameras}
-        self._rows_cache: dict[tuple[int, ...], np.ndarray] = {}
         self._layout_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self._gate_px = float(st.match_gate_px)
         self._kernel_params = np.array([st.max_residual_px, st.identify_tolerance, _COMPENSATE_MAX_VEL_STD**2,
@@ -789,12 +799,11 @@ class FusionPipeline:
         self._tf[:, _PX_VAR] = _PX_VAR_PRIOR
         self._tf[:, _RESIDUAL_MM] = np.nan
         self.tracks = [_Track(fl, self._ti[b], self._tf[b]) for b, fl in enumerate(self.bank.filters)]
+        self._motion: tuple[int, np.ndarray] | None = None  # see _motion_cache
         self._tracking_changed()
         self.loose_points: LoosePoints | None = None
         self._last_acquire_ns = -(1 << 62)
         self._last_img_ns = -(1 << 62)
-        self._fusion_count = 0  # filters change only in fusions: versions the prediction cache
-        self._pred_cache: tuple | None = None
         # a frame takes part in about (frame period / fusion spacing) fusions at most
         self._max_reuse = max(1.0, (st.window_ns / 1.2) / max(st.min_fusion_interval_ns, 1))
         self.last_raw: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # body -> (ref_ns, position, R) of the last Kabsch pose
@@ -857,40 +866,29 @@ class FusionPipeline:
         self.aligner.remove(camera_id)
 
     # ------------------------------------------------------------ association
-    def _rows(self, bodies: list[int]) -> np.ndarray:
-        """Global marker rows of `bodies` (cached per body set)."""
-        key = tuple(bodies)
-        r = self._rows_cache.get(key)
-        if r is None:
-            r = np.concatenate([np.arange(self._off[b], self._off[b + 1]) for b in bodies])
-            self._rows_cache[key] = r
-        return r
-
     def _tracking_changed(self) -> None:
         """Refresh the tracked-body set after a body was acquired or lost."""
         self._tracked = tuple(int(b) for b in np.flatnonzero(self._ti[:, _TRACKED]))
         self._tracked_idx = np.array(self._tracked, dtype=np.int64)
         # by blob label: free for acquisition unless a marker of a tracked body (label -1: the last entry)
         self._label_free = np.append(self._ti[self._marker_body, _TRACKED] == 0, True)
+        self._motion = None
 
-    def _motion_cache(self) -> tuple:
-        """(bodies, fusion count, t_c, X0, V, A): marker positions, velocities and accelerations
-        (sum M_b, 3) of the tracked bodies at t_c, the newest filter time.
+    def _motion_cache(self) -> tuple[int, np.ndarray]:
+        """(t_c, motion (3, sum M_b, 3)): the tracked bodies' marker positions, velocities and
+        accelerations at t_c, the newest filter time.
 
-        Between fusions the filters do not change, so marker motion (incl. the
-        rotation's w x r terms) is expanded once per fusion (by _fuse_tracked)
-        and each frame only evaluates X0 + dt V + dt^2 / 2 A (error ~ r (w dt)^3 / 6,
-        micrometres).
+        The filters change only in fusions, and each fusion with tracked bodies
+        leaves this for the next frames (_fuse_tracked), so each frame only
+        evaluates X0 + dt V + dt^2 / 2 A (error ~ r (w dt)^3 / 6, micrometres).
+        It is computed here after the tracked set changed.
         """
-        c = self._pred_cache
-        if c is None or c[0] != self._tracked or c[1] != self._fusion_count:
-            idx = self._tracked_idx
+        if self._motion is None:
             bank = self.bank
-            t_c = int(bank.clock[idx, CLOCK_T].max())
             _, sizes, _, local = self._layout(self._tracked)
-            X0, V, A = _marker_motion(_pack_states(bank.x, bank.P, bank.R_nom, bank.clock, idx, t_c), sizes, local)
-            c = self._pred_cache = (self._tracked, self._fusion_count, t_c, X0, V, A)
-        return c
+            t_c, motion = _tracked_motion(bank.x, bank.P, bank.R_nom, bank.clock, self._tracked_idx, sizes, local)
+            self._motion = (int(t_c), motion)
+        return self._motion
 
     def _observe(self, cam: int, t_ns: int, px: np.ndarray) -> _Obs:
         proj = self._proj[cam]
@@ -901,14 +899,14 @@ class FusionPipeline:
             marker_xn[:] = np.nan
             return _Obs(t_ns, proj.undistort(px), np.full(len(px), -1, dtype=np.int64), marker_xn)
         rows, _, body, _ = self._layout(self._tracked)
-        c = self._motion_cache()
+        t_c, motion = self._motion_cache()
         # the image-space manoeuvre detector: plenty often for a detector, and saves CPU
         image_nis = abs(t_ns - self._last_img_ns) >= _IMAGE_NIS_INTERVAL_NS
         if image_nis:
             self._last_img_ns = t_ns
         bank = self.bank
         xn, label = _observe_frame(
-            px, (t_ns - c[2]) * 1e-9, c[3], c[4], c[5], rows, marker_xn, proj.packed, self._gate_px, image_nis, t_ns,
+            px, (t_ns - t_c) * 1e-9, motion, rows, marker_xn, proj.packed, self._gate_px, image_nis, t_ns,
             self._tracked_idx, body, self._tf, bank.P, bank.adapt, bank.clock, bank.params,
         )
         return _Obs(t_ns, xn, label, marker_xn)
@@ -932,7 +930,6 @@ class FusionPipeline:
         st = self.settings
         ref = g.ref_ns
         self._stats["fusions"] += 1
-        self._fusion_count += 1
         vi, R, t, f = self._views(cams)
         if self._tracked:
             self._update_tracked(cams, vi, R, t, f, ref, g.compensate)
@@ -958,7 +955,7 @@ class FusionPipeline:
         lay = self._layout_cache.get(key)
         if lay is None:
             sizes = np.array([self._off[b + 1] - self._off[b] for b in tracked], dtype=np.int64)
-            rows = self._rows(tracked)
+            rows = np.concatenate([np.arange(self._off[b], self._off[b + 1]) for b in tracked])
             lay = (rows, sizes, np.repeat(np.arange(len(tracked)), sizes), self._marker_local[rows])
             self._layout_cache[key] = lay
         return lay
@@ -974,7 +971,7 @@ class FusionPipeline:
             bank.params, self._ti, self._tf,
         )
         # the filters moved: the next frames predict their markers from this fusion
-        self._pred_cache = (tracked, self._fusion_count, int(t_c), motion[0], motion[1], motion[2])
+        self._motion = (int(t_c), motion)
         stats = self._stats
         stats["rejected_residual"] += int(refused)
         for i, b in enumerate(tracked):

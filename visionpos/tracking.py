@@ -470,7 +470,6 @@ class FilterBank:
     """
 
     def __init__(self, n: int, settings: KalmanSettings, make_filters: bool = True):
-        self.s = settings
         self.x = np.zeros((n, NX))
         self.P = np.tile(np.eye(NX), (n, 1, 1))
         self.R_nom = np.tile(np.eye(3), (n, 1, 1))
@@ -482,21 +481,10 @@ class FilterBank:
         self.filters = [BodyFilter(settings, self, i) for i in range(n)] if make_filters else []
 
 
-def _row_view(name: str, doc: str) -> property:
-    """A BodyFilter attribute that is its row of a FilterBank array; assigning copies into it."""
-
-    def get(self):
-        return getattr(self.bank, name)[self.row]
-
-    def put(self, value):
-        getattr(self.bank, name)[self.row] = value
-
-    return property(get, put, doc=doc)
-
-
-def array_field(row: str, col: int, kind: type, doc: str = "") -> property:
-    """An attribute kept in cell `col` of the 1-D array attribute `row` (a view of a packed state
-    row, so compiled kernels read and write the same value); assigning writes the cell."""
+def array_field(row: str, col, kind, doc: str = "") -> property:
+    """An attribute kept in cell `col` of the array attribute `row` (a view of a packed state
+    row, so compiled kernels read and write the same value), read through `kind`; assigning
+    writes the cell. col = ... : the whole row (kind np.asarray: the view itself)."""
 
     def get(self):
         return kind(getattr(self, row)[col])
@@ -518,9 +506,9 @@ class BodyFilter:
     KalmanFilter in the tests.
     """
 
-    x = _row_view("x", "state (15,)")
-    P = _row_view("P", "covariance (15, 15)")
-    R_nom = _row_view("R_nom", "nominal rotation (3, 3) body->world")
+    x = array_field("_x", ..., np.asarray, "state (15,)")
+    P = array_field("_P", ..., np.asarray, "covariance (15, 15)")
+    R_nom = array_field("_R_nom", ..., np.asarray, "nominal rotation (3, 3) body->world")
     t_ns = array_field("_clock", CLOCK_T, int, "filter time, ns")
     scale_p = array_field("_adapt", _SCALE_P, float, "process-noise scale of the position block")
     scale_r = array_field("_adapt", _SCALE_R, float, "process-noise scale of the rotation block")
@@ -532,8 +520,8 @@ class BodyFilter:
             bank.filters.append(self)
         self.bank = bank
         self.row = row
-        self._adapt = bank.adapt[row]
-        self._clock = bank.clock[row]
+        self._x, self._P, self._R_nom = bank.x[row], bank.P[row], bank.R_nom[row]
+        self._adapt, self._clock = bank.adapt[row], bank.clock[row]
 
     # -------------------------------------------------------------- lifecycle
     def initialize(self, t_ns: int, position: np.ndarray, R: np.ndarray, meas_cov: np.ndarray | None = None) -> None:
@@ -590,8 +578,7 @@ class BodyFilter:
         """Non-mutating prediction for the outputs: position (3,), quaternion xyzw (4,),
         velocity (3,), body-frame angular rate (3,), pose covariance (6, 6) over
         [p, world rotation vector] and velocity covariance (3, 3)."""
-        b, i = self.bank, self.row
         a = self._adapt
-        o = _output_at(b.x[i], b.P[i], b.R_nom[i], (int(t_ns) - int(self._clock[CLOCK_T])) * 1e-9,
+        o = _output_at(self._x, self._P, self._R_nom, (int(t_ns) - int(self._clock[CLOCK_T])) * 1e-9,
                        self.s.jerk_psd * a[_SCALE_P], self.s.angular_accel_psd * a[_SCALE_R])
         return o[0:3], o[3:7], o[7:10], o[10:13], o[13:49].reshape(6, 6), o[49:58].reshape(3, 3)
