@@ -1,6 +1,6 @@
 """The arena's `vehicles:` and `pose_stream:` sections, validated.
 
-Every error is a visionpos.config.ConfigError naming the file, the key path
+Every error is a visionpos.config.arena.ConfigError naming the file, the key path
 (e.g. `vehicles[1].endpoint`) and what would be right. The schema is
 documented in docs/autopilot-setup.md (vehicles) and docs/pose-stream.md.
 """
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from visionpos.config import ArenaConfig, ConfigError, Section
+from visionpos.config.arena import ArenaConfig, ConfigError, Section
 
 ENDPOINT_KINDS = ("udpin", "udpout", "tcp", "serial")
 MESSAGES = ("vision_position_estimate", "odometry")

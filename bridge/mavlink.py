@@ -30,7 +30,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 from bridge.config import VehicleConfig, parse_pose_stream, parse_vehicles, pivot_array
 from bridge.convert import convert_state, odometry_fields, vision_position_fields, vision_speed_fields
 from bridge.transport import Link, LinkDown, make_link
-from visionpos.config import ArenaConfig
+from visionpos.config.arena import ArenaConfig
 from visionpos.messages import BodyState
 
 log = logging.getLogger("visionpos.bridge")

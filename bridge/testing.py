@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from visionpos.config import ArenaConfig, parse_arena
+from visionpos.config.arena import ArenaConfig, parse_arena
 from visionpos.messages import BodyState
 
 # three well separated 4-marker layouts (m, body FLU)

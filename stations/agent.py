@@ -28,7 +28,7 @@ from stations.detector import Detector
 from stations.sources import EndOfStream, FrameSource, SourceError, make_source
 from visionpos import protocol as P
 from visionpos.messages import FLAG_RESYNC, FLAG_TRUNCATED, BlobFrame
-from visionpos.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
+from visionpos.server.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
 
 log = logging.getLogger("visionpos.station")
 

@@ -7,7 +7,7 @@ import logging
 import signal
 import sys
 
-from visionpos.config import ConfigError
+from visionpos.config.arena import ConfigError
 
 
 def build_parser() -> argparse.ArgumentParser:

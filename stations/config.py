@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from stations.detector import DetectorConfig
-from visionpos.config import ConfigError, Section, load_yaml
+from visionpos.config.arena import ConfigError, Section, load_yaml
 from visionpos.protocol import CAMERA_KINDS, DEFAULT_PORT, MAX_BLOBS_PER_PACKET
 
 SOURCE_KINDS = ("opencv", "picamera2", "video", "images", "sim")

@@ -11,12 +11,12 @@ import logging
 import sys
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("visionpos.demo", "run the whole chain on a simulated arena over loopback"),
-    "serve": ("visionpos.server", "start the fusion service for live stations"),
+    "demo": ("visionpos.app.demo", "run the whole chain on a simulated arena over loopback"),
+    "serve": ("visionpos.server.service", "start the fusion service for live stations"),
     "record": ("visionpos.recording", "record live station traffic to an MCAP log (no outputs)"),
     "sim": ("visionpos.sim.cli", "simulate a scenario and write a recording"),
-    "replay": ("visionpos.replay", "re-run the pipeline on a recording"),
-    "tune": ("visionpos.tune", "sweep settings over a recording and rank them"),
+    "replay": ("visionpos.analysis.replay", "re-run the pipeline on a recording"),
+    "tune": ("visionpos.analysis.tune", "sweep settings over a recording and rank them"),
     "calibrate": ("visionpos.calibration.cli", "intrinsics, wand extrinsics, ground plane"),
     "bench": ("visionpos.benchmarks.cli", "run the benchmark suite"),
 }

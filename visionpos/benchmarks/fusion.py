@@ -14,10 +14,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from visionpos.benchmarks import BenchResult
-from visionpos.config import ArenaConfig
+from visionpos.config.arena import ArenaConfig
 from visionpos.messages import BlobFrame
-from visionpos.pipeline import FusionPipeline
-from visionpos.metrics import position_jitter
+from visionpos.fusion.pipeline import FusionPipeline
+from visionpos.analysis.metrics import position_jitter
 
 
 @dataclass
@@ -382,11 +382,11 @@ def _throughput(quick: bool, res: BenchResult) -> None:
 
 
 def _ingest(quick: bool, res: BenchResult) -> None:
-    """The server's own per-packet cost in front of fusion (visionpos.ingest.measure_packet_cost)."""
+    """The server's own per-packet cost in front of fusion (visionpos.server.ingest.measure_packet_cost)."""
     import os
     import tempfile
 
-    from visionpos.ingest import measure_packet_cost
+    from visionpos.server.ingest import measure_packet_cost
 
     n = 4000 if quick else 20000
     with tempfile.TemporaryDirectory() as d:

@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from visionpos.benchmarks import BenchResult
-from visionpos.camera import Camera, CameraModel, look_at_rotation
+from visionpos.camera.model import Camera, CameraModel, look_at_rotation
 from visionpos.geometry import (
     CameraRig,
     decompose_essential,
@@ -55,7 +55,7 @@ def thesis_cameras_from_numbers() -> list[Camera]:
 def arena_cameras(name: str) -> tuple[list[Camera], str]:
     """Cameras of a built-in arena, and where they came from."""
     try:
-        from visionpos.config import load_arena
+        from visionpos.config.arena import load_arena
 
         return list(load_arena(name).cameras), f"load_arena('{name}')"
     except Exception as e:  # the bench must still run where the config is missing or broken

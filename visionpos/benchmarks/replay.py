@@ -30,7 +30,7 @@ def _record(scenario: str, duration: float, out: Path) -> None:
 
 
 def run(quick: bool = False) -> BenchResult:
-    from visionpos.replay import replay_log
+    from visionpos.analysis.replay import replay_log
 
     res = BenchResult()
     cases = [("thesis", 5.0 if quick else 20.0)]

@@ -28,7 +28,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from visionpos.calibration.wand import CalibrationError, WandData, WandSpec
-from visionpos.camera import Camera, CameraModel
+from visionpos.camera.model import Camera, CameraModel
 from visionpos.geometry import CameraRig, decompose_essential, essential_from_points, skew, triangulate_normalized
 
 log = logging.getLogger(__name__)

@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 
 from visionpos.calibration.wand import CalibrationError, WandSpec
-from visionpos.config import ConfigError, dump_yaml, load_arena, parse_arena
+from visionpos.config.arena import ConfigError, dump_yaml, load_arena, parse_arena
 from visionpos.messages import BlobFrame
 
 

@@ -19,7 +19,7 @@ from typing import Sequence
 import numpy as np
 
 from visionpos.calibration.wand import CalibrationError
-from visionpos.camera import Camera
+from visionpos.camera.model import Camera
 from visionpos.geometry import kabsch, triangulate_pixels
 from visionpos.messages import BlobFrame
 

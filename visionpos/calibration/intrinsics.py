@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from visionpos.calibration.wand import CalibrationError
-from visionpos.camera import FISHEYE, PINHOLE, CameraModel
+from visionpos.camera.model import FISHEYE, PINHOLE, CameraModel
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from visionpos.calibration.wand import WandSpec
-from visionpos.camera import Camera, CameraModel, look_at_rotation
+from visionpos.camera.model import Camera, CameraModel, look_at_rotation
 from visionpos.messages import BlobFrame
 
 

@@ -25,7 +25,7 @@ from typing import Sequence
 
 import numpy as np
 
-from visionpos.camera import Camera
+from visionpos.camera.model import Camera
 from visionpos.messages import BlobFrame
 
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from visionpos.camera import Camera
+from visionpos.camera.model import Camera
 from visionpos.messages import FLAG_TRUNCATED, BlobFrame
 from visionpos.sim.scenario import TAG_FRAMES, TAG_STATIC, CameraTiming, Scenario, rng_for
 from visionpos.sim.trajectories import Motion

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from visionpos.config import apply_overrides, load_yaml, parse_arena, resolve_config_path
+from visionpos.config.arena import apply_overrides, load_yaml, parse_arena, resolve_config_path
 from visionpos.sim.capture import iter_frames
 from visionpos.sim.scenario import scenario_from_arena
 

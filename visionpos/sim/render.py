@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import i0e
 
-from visionpos.camera import Camera
+from visionpos.camera.model import Camera
 from visionpos.messages import BlobFrame
 from visionpos.sim.capture import FrameTruth, marker_geometry
 from visionpos.sim.scenario import Scenario

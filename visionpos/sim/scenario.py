@@ -58,9 +58,9 @@ from typing import Any
 
 import numpy as np
 
-from visionpos.camera import Camera
+from visionpos.camera.model import Camera
 from visionpos.protocol import MAX_BLOBS_PER_PACKET
-from visionpos.config import (
+from visionpos.config.arena import (
     ArenaConfig,
     BodyConfig,
     Section,

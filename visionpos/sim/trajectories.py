@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from visionpos.config import Section
+from visionpos.config.arena import Section
 
 GRAVITY = 9.80665
 _OMEGA_STEP_S = 1e-5  # central-difference step for the body rate

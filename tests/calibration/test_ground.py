@@ -1,0 +1,130 @@
+"""Ground plane step and the calibrate CLI, against known cameras."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from visionpos.calibration.bundle import compare_cameras
+from visionpos.calibration.ground import apply_world, calibrate_ground, identify_layout, world_from_layout
+from visionpos.calibration.synthetic import ring_cameras
+from visionpos.calibration.wand import CalibrationError
+from visionpos.messages import BlobFrame
+
+LFRAME = np.array([[0.0, 0.0, 0.0], [0.10, 0.0, 0.0], [0.40, 0.0, 0.0], [0.0, 0.20, 0.0]])
+HEIGHT = 0.007
+
+
+def _static_frames(cams, points, n=40, noise=0.2, reflections=2, seed=0):
+    rng = np.random.default_rng(seed)
+    frames = []
+    for cam in cams:
+        fixed = rng.uniform([30, 30], [cam.model.width - 30, cam.model.height - 30], (reflections, 2))
+        uv = cam.project(points)
+        for k in range(n):
+            xy = np.vstack([uv + rng.normal(0, noise, uv.shape), fixed + rng.normal(0, noise, fixed.shape)])
+            xy = xy[rng.permutation(len(xy))]
+            blobs = np.column_stack([xy, np.full((len(xy), 2), 10.0)]).astype(np.float32)
+            frames.append(BlobFrame(cam.id, k, k * 10_000_000, blobs))
+    return frames
+
+
+def test_ground_recovers_world_frame():
+    true = ring_cameras(4, target=(0.0, 0.0, 0.5))
+    # the frame lies on the floor with its corner at (0.3, -0.2), turned 30 deg
+    Rf = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    markers_world = LFRAME @ Rf.T + np.array([0.3, -0.2, HEIGHT])
+    # the wand step left the cameras in some other rigid frame (e.g. the first camera's)
+    Rw = Rotation.from_rotvec([0.4, -0.3, 1.2]).as_matrix()
+    moved = apply_world(true, Rw, np.array([1.0, -2.0, 0.5]))
+    frames = _static_frames(true, markers_world)
+    g = calibrate_ground(frames, moved, LFRAME, origin=0, x_marker=2, marker_height=HEIGHT)
+    # expected world: origin under marker 0, x along the long arm = the true world moved by the frame pose
+    expected = apply_world(true, Rf.T, -Rf.T @ np.array([0.3, -0.2, 0.0]))
+    ce, re, _ = compare_cameras(g.cameras, expected, similarity=False)
+    assert ce.max() < 3e-3
+    assert re.max() < 0.05
+    np.testing.assert_allclose(g.markers, LFRAME + [0, 0, HEIGHT], atol=1e-3)
+    assert g.fit_rms < 1e-3
+
+
+def test_identify_layout_picks_markers_among_reflections():
+    rng = np.random.default_rng(1)
+    pts = np.vstack([rng.uniform(-2, 2, (6, 3)), LFRAME + [0.5, 0.5, 0.0]])
+    order = rng.permutation(len(pts))
+    idx = identify_layout(pts[order], LFRAME)
+    np.testing.assert_allclose(pts[order][idx], LFRAME + [0.5, 0.5, 0.0])
+
+
+def test_symmetric_layout_is_rejected():
+    iso = np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.0, 0.3, 0.0]])
+    with pytest.raises(CalibrationError, match="more than one way"):
+        identify_layout(iso + 1.0, iso)
+
+
+def test_missing_markers_are_reported():
+    with pytest.raises(CalibrationError, match="no 4 of the 4 static points"):
+        identify_layout(LFRAME * 1.5, LFRAME)
+
+
+def test_world_from_layout_axes():
+    R, t, fit = world_from_layout(LFRAME + [0, 0, HEIGHT], LFRAME, origin=0, x_marker=3, marker_height=HEIGHT)
+    # x towards marker 3 (the layout's +y), z up: y must be the layout's -x
+    np.testing.assert_allclose(R, [[0, 1, 0], [-1, 0, 0], [0, 0, 1]], atol=1e-12)
+    np.testing.assert_allclose(t, 0, atol=1e-12)
+
+
+def test_cli_wand_then_ground_on_the_simulator(tmp_path, capsys):
+    from visionpos.cli import main
+
+    cal = tmp_path / "cal.yaml"
+    png = tmp_path / "wand.png"
+    rc = main(["calibrate", "wand", "--sim", "thesis", "--set", "sim.duration=8", "--out", str(cal), "--no-progress",
+               "--report", str(png)])
+    assert rc == 0
+    assert png.stat().st_size > 1000
+    out = capsys.readouterr().out
+    assert "wand lengths" in out and "pi4" in out
+    final = tmp_path / "final.yaml"
+    rc = main(["calibrate", "ground", "--sim", "thesis", "--set", "sim.duration=1", "--config", str(cal),
+               "--x-marker", "2", "--out", str(final), "--no-progress"])
+    assert rc == 0
+    from visionpos.config.arena import load_arena
+
+    got = load_arena(final).cameras
+    truth = load_arena("thesis").cameras
+    ce, re, _ = compare_cameras(list(got), list(truth), similarity=False)
+    assert ce.max() < 6e-3 and re.max() < 0.1
+    assert yaml.safe_load(final.read_text())["calibration"]["ground"]["x_marker"] == 2
+
+
+def test_cli_reports_bad_input(tmp_path, capsys):
+    from visionpos.cli import main
+
+    rc = main(["calibrate", "wand", "--out", str(tmp_path / "x.yaml")])
+    assert rc == 2
+    assert "RECORDING or --sim" in capsys.readouterr().err
+
+
+def test_cli_wand_from_a_recording(tmp_path, capsys):
+    """The recording path: station packets in an MCAP file, config embedded, as the server writes them."""
+    from visionpos.cli import main
+    from visionpos.protocol import encode_frame
+    from visionpos.recording import RecordingWriter
+    from visionpos.sim import load_scenario, simulate
+
+    sc = load_scenario("thesis", ["sim.duration=6"], session="wand")
+    res = simulate(sc)
+    path = tmp_path / "wand.mcap"
+    with RecordingWriter(path, sc.arena.raw) as w:
+        for f in res.frames_by_recv():
+            w.write_packet(f.recv_ns, encode_frame(f))
+    out = tmp_path / "cal.yaml"
+    rc = main(["calibrate", "wand", str(path), "--out", str(out), "--no-progress"])
+    assert rc == 0, capsys.readouterr().err
+    from visionpos.config.arena import load_arena
+
+    ce, re, _ = compare_cameras(list(load_arena(out).cameras), list(sc.cameras))
+    assert ce.max() < 4e-3 and re.max() < 0.08

@@ -1,0 +1,190 @@
+"""Cross-view matching, association and the fast triangulation (visionpos/matching.py)."""
+
+import numpy as np
+import pytest
+
+from visionpos import geometry
+from visionpos.config.arena import load_arena
+from visionpos.fusion.matching import Projector, associate, match_unlabeled, min_cost_assignment, triangulate, undistort_points
+
+
+@pytest.fixture(scope="module")
+def rig():
+    arena = load_arena("thesis")
+    cams = list(arena.cameras)
+    R = np.array([c.R for c in cams])
+    t = np.array([c.t for c in cams])
+    f = np.array([np.sqrt(c.model.fx * c.model.fy) for c in cams])
+    return cams, R, t, f
+
+
+def _normalized(cams, X):
+    """(P, 3) world -> (P, V, 2) exact normalised coordinates."""
+    out = []
+    for c in cams:
+        pc = X @ c.R.T + c.t
+        out.append(pc[:, :2] / pc[:, 2:3])
+    return np.stack(out, axis=1)
+
+
+def test_undistort_points_agrees_with_camera_model():
+    for name in ("thesis", "arena8"):
+        for cam in load_arena(name).cameras:
+            rng = np.random.default_rng(cam.id)
+            px = rng.uniform([50, 50], [cam.model.width - 50, cam.model.height - 50], (20, 2))
+            ref = cam.model.undistort(px)
+            got = undistort_points(cam.model, px)
+            # back through the model's own distortion: the pixel must come back
+            assert np.abs(cam.model.distort(got) - px).max() < 1e-6
+            assert np.abs(got - ref).max() * cam.model.fx < 1e-6
+    # a strongly distorted lens, pixels well beyond the sensor: NaN exactly where the model's own
+    # undistortion finds no pre-image (the fold of the distortion), the same values elsewhere
+    from visionpos.camera.model import CameraModel
+
+    for m in (CameraModel("pinhole", 960, 640, 500.0, 500.0, 480.0, 320.0, np.array([-0.45, 0.2, 0.001, 0.0, -0.04])),
+              CameraModel("fisheye", 960, 640, 300.0, 300.0, 480.0, 320.0, np.array([0.1, -0.05, 0.01, -0.002]))):
+        px = np.random.default_rng(3).uniform([-1500, -1500], [2500, 2000], (4000, 2))
+        ref, got = m.undistort(px), undistort_points(m, px)
+        assert np.array_equal(np.isnan(ref[:, 0]), np.isnan(got[:, 0]))
+        assert 0 < np.isnan(got[:, 0]).sum() < len(px)
+        ok = ~np.isnan(got[:, 0])
+        assert np.abs(got[ok] - ref[ok]).max() * m.fx < 1e-6
+
+
+def test_triangulate_exact_missing_views_and_offsets(rig):
+    cams, R, t, f = rig
+    rng = np.random.default_rng(0)
+    X = rng.uniform([-0.8, -0.8, 0.3], [0.8, 0.8, 1.6], (10, 3))
+    xn = _normalized(cams, X)
+    xn[0, 1:] = np.nan  # one view only: no point
+    xn[1, :2] = np.nan  # two views left
+    Y, rms, nv = triangulate(xn, R, t, f)
+    assert np.isnan(Y[0]).all() and nv[0] == 1
+    assert np.abs(Y[1:] - X[1:]).max() < 1e-9
+    assert rms[1:].max() < 1e-6
+    # motion compensation: view v saw the point displaced by offsets[p, v]
+    off = rng.normal(0, 0.02, (10, 4, 3))
+    xo = np.stack([_normalized([c], X + off[:, v])[:, 0] for v, c in enumerate(cams)], axis=1)
+    Y, rms, _ = triangulate(xo, R, t, f, off)
+    assert np.abs(Y - X).max() < 1e-9
+    # without compensation the same data is inconsistent
+    _, rms_naive, _ = triangulate(xo, R, t, f)
+    assert rms_naive.min() > 1.0
+
+
+def test_triangulate_matches_maximum_likelihood_of_geometry(rig):
+    """Noisy views: the reweighted linear solution lands on geometry's LM (ML) point."""
+    cams, R, t, f = rig
+    rng = np.random.default_rng(1)
+    X = rng.uniform([-0.8, -0.8, 0.3], [0.8, 0.8, 1.6], (50, 3))
+    xn = _normalized(cams, X) + rng.normal(0, 0.3, (50, 4, 2)) / f[None, :, None]
+    Y, rms, _ = triangulate(xn, R, t, f)
+    ref = geometry.triangulate_normalized(xn, R, t, refine=True)
+    err = np.linalg.norm(Y - X, axis=1)
+    d = np.linalg.norm(Y - ref.points, axis=1)
+    assert np.median(d) < 0.05 * np.median(err)  # same point, up to a small fraction of the noise
+    assert 0.1 < np.median(rms) < 0.5
+
+
+def test_associate_with_spurious_and_missing():
+    pred = np.array([[100.0, 100.0], [200.0, 120.0], [300.0, 300.0], [np.nan, np.nan]])
+    blobs = np.array(
+        [
+            [301.5, 299.0],  # marker 2
+            [500.0, 500.0],  # spurious
+            [101.0, 99.5],  # marker 0
+            [150.0, 100.0],  # spurious, outside every gate
+        ]
+    )  # marker 1 missing, marker 3 not visible
+    a = associate(pred, blobs, gate=10.0)
+    assert a.tolist() == [2, -1, 0, -1]
+
+
+def test_associate_ambiguity_resolved_jointly():
+    # both predictions are nearest to blob 0; the joint assignment gives each its own blob
+    pred = np.array([[100.0, 100.0], [104.0, 100.0]])
+    blobs = np.array([[102.5, 100.0], [108.0, 100.0]])
+    a = associate(pred, blobs, gate=8.0)
+    assert a.tolist() == [0, 1]
+    # one blob for two predictions: only one gets it
+    a = associate(pred, blobs[:1], gate=8.0)
+    assert sorted(a.tolist()) == [-1, 0]
+
+
+def test_min_cost_assignment_is_optimal():
+    """Against scipy's linear_sum_assignment (an independent solver) on random rectangular costs."""
+    from scipy.optimize import linear_sum_assignment
+
+    rng = np.random.default_rng(4)
+    for _ in range(300):
+        n = int(rng.integers(1, 7))
+        m = int(rng.integers(n, 9))
+        C = rng.uniform(0, 100, (n, m))
+        C[rng.random((n, m)) < 0.3] = 1e5  # gated-out pairs
+        col = min_cost_assignment(C)
+        assert len(set(col.tolist())) == n and (col >= 0).all()
+        r, c = linear_sum_assignment(C)
+        assert C[np.arange(n), col].sum() == pytest.approx(C[r, c].sum(), rel=1e-12)
+
+
+@pytest.mark.parametrize("kind, dist", [("pinhole", [0.1, -0.2, 0.001, -0.002, 0.05, 0.01, -0.02, 0.03]),
+                                        ("pinhole", [-0.3, 0.1, 0.0, 0.0]), ("fisheye", [0.05, -0.01, 0.002, -0.001])])
+def test_projector_matches_opencv(kind, dist):
+    """The compiled projection equals cv2.projectPoints / cv2.fisheye.projectPoints (an
+    independent implementation of the same lens models) and hides what is off the sensor."""
+    import cv2
+
+    from visionpos.camera.model import Camera, CameraModel, look_at_rotation
+
+    m = CameraModel(kind, 960, 640, 600.0, 602.0, 480.0, 320.0, np.array(dist))
+    c = np.array([3.0, -2.0, 2.5])
+    R = look_at_rotation(c, np.zeros(3))
+    cam = Camera(1, "c", m, R, -R @ c)
+    X = np.random.default_rng(5).normal(0, 1.5, (2000, 3))
+    uv = Projector(cam).project(X, margin=8.0)
+    rvec = cv2.Rodrigues(R)[0]
+    if kind == "fisheye":
+        ref = cv2.fisheye.projectPoints(X.reshape(-1, 1, 3), rvec, cam.t, m.K, m.dist)[0].reshape(-1, 2)
+    else:
+        ref = cv2.projectPoints(X, rvec, cam.t, m.K, m.dist)[0].reshape(-1, 2)
+    pc = X @ R.T + cam.t
+    on = (pc[:, 2] > 0.2) & (ref > -8.5).all(1) & (ref[:, 0] < 967.5) & (ref[:, 1] < 647.5)
+    on &= np.arctan2(np.linalg.norm(pc[:, :2], axis=1), pc[:, 2]) < m.max_theta
+    assert 500 < on.sum() < 2000
+    assert np.array_equal(np.isfinite(uv[:, 0]), on)
+    assert np.abs(uv[on] - ref[on]).max() < 1e-9
+
+
+def test_match_unlabeled_spurious_and_missing(rig):
+    cams, R, t, f = rig
+    rng = np.random.default_rng(2)
+    X = rng.uniform([-0.6, -0.6, 0.5], [0.6, 0.6, 1.4], (8, 3))
+    xn = _normalized(cams, X) + rng.normal(0, 0.2, (8, 4, 2)) / f[None, :, None]
+    seen = np.ones((8, 4), bool)
+    seen[0, [1, 2]] = False  # two views
+    seen[1, 3] = False  # three views
+    seen[2, 1:] = False  # only one view: cannot be triangulated
+    views, truth = [], []
+    for v in range(4):
+        pts = xn[seen[:, v], v]
+        ids = np.nonzero(seen[:, v])[0]
+        junk = rng.uniform(-0.6, 0.6, (3, 2))  # spurious blobs
+        allp = np.vstack([pts, junk])
+        order = rng.permutation(len(allp))
+        views.append(allp[order])
+        truth.append(np.concatenate([ids, -np.ones(3, int)])[order])
+    P, idx, rms = match_unlabeled(views, R, t, f, max_ray_distance=0.01, max_residual_px=2.0)
+    found = {}
+    for q in range(len(P)):
+        labels = {int(truth[v][idx[q, v]]) for v in range(4) if idx[q, v] >= 0}
+        assert len(labels) == 1, "a matched point mixes blobs of different markers"
+        label = labels.pop()
+        if label == -1:
+            # two junk rays that happen to cross are geometrically a valid 2-view
+            # point; a third view must never confirm junk
+            assert (idx[q] >= 0).sum() == 2
+            continue
+        found[label] = P[q]
+    assert set(found) == {0, 1, 3, 4, 5, 6, 7}
+    for k, p in found.items():
+        assert np.linalg.norm(p - X[k]) < 0.003

@@ -1,0 +1,419 @@
+"""Ingest: registration, sync, heartbeats, HMAC, sequence and clock checks, bad packets.
+
+Driven through Ingest.handle() with chosen receive times (no sockets, no sleeps);
+the loopback UDP path is covered in test_server.py.
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+import time
+
+import numpy as np
+import pytest
+
+from visionpos import protocol as P
+from visionpos.config.arena import ConfigError, load_arena, parse_arena, load_yaml, resolve_config_path
+from visionpos.server.ingest import Ingest, ServerSettings
+from visionpos.messages import FLAG_RESYNC, BlobFrame
+
+ADDR = ("127.0.0.1", 40000)
+MS = 1_000_000
+T0 = 10_000 * MS  # a receive-time origin far from 0
+
+
+class Collector:
+    """Records what ingest hands the pipeline (ingest's output, not a fusion stand-in)."""
+
+    def __init__(self):
+        self.frames: list[BlobFrame] = []
+        self.removed: list[int] = []
+
+    def push(self, frame):
+        self.frames.append(frame)
+
+    def remove_camera(self, camera_id):
+        self.removed.append(camera_id)
+
+
+class Clock:
+    def __init__(self, t):
+        self.t = t
+
+    def __call__(self):
+        return self.t
+
+
+def _arena(server: dict | None = None, tmp_path=None):
+    data = load_yaml(resolve_config_path("thesis"))
+    if server is not None:
+        data["server"] = server
+    src = str(tmp_path / "arena.yaml") if tmp_path is not None else str(resolve_config_path("thesis"))
+    return parse_arena(data, src)
+
+
+def _ingest(server=None, tmp_path=None, t=T0):
+    clock = Clock(t)
+    pipe = Collector()
+    ing = Ingest(_arena(server, tmp_path), pipeline=pipe, clock=clock)
+    return ing, pipe, clock
+
+
+def _frame(cam: int, seq: int, capture_ns: int, station: int = None, flags: int = 0, n: int = 3) -> BlobFrame:
+    blobs = np.arange(n * 4, dtype=np.float32).reshape(n, 4) + seq
+    return BlobFrame(cam, seq, capture_ns, blobs, cam if station is None else station, flags)
+
+
+def _hello(cam, session=7, station=None, w=960, h=640, timebase=P.TIMEBASE_SERVER):
+    return P.Hello(cam if station is None else station, cam, session, w, h, 100.0, "fisheye", f"pi{cam}", "test",
+                   timebase)
+
+
+def _send(ing, msg, recv_ns, key=None, addr=ADDR):
+    return [P.decode(r, key) for r in ing.handle(P.encode(msg, key), addr, recv_ns)]
+
+
+def test_registration_and_trigger_time():
+    ing, _, clock = _ingest({"start_delay_s": 2.0})
+    assert ing.start_ns == T0 + 2_000 * MS
+    (ack,) = _send(ing, _hello(1), T0)
+    assert isinstance(ack, P.HelloAck)
+    assert (ack.status, ack.session, ack.camera_id, ack.start_ns, ack.server_ns) == (P.ACK_OK, 7, 1, T0 + 2000 * MS, T0)
+    h = ing.health()["cameras"][1]
+    assert h["registered"] and h["station_id"] == 1 and h["addr"] == "127.0.0.1:40000"
+    # resolution that does not match the calibration: refused with the reason
+    (ack,) = _send(ing, _hello(2, w=640, h=480), T0)
+    assert ack.status == P.ACK_REJECTED
+    assert not ing.health()["cameras"][2]["registered"]
+
+
+def test_frames_before_trigger_are_dropped():
+    ing, pipe, _ = _ingest({"start_delay_s": 1.0})
+    _send(ing, _hello(1), T0)
+    _send(ing, _frame(1, 0, T0 + 500 * MS), T0 + 503 * MS)
+    _send(ing, _frame(1, 1, T0 + 1000 * MS), T0 + 1003 * MS)
+    assert [f.seq for f in pipe.frames] == [1]
+    assert ing.health()["cameras"][1]["before_start"] == 1
+
+
+def test_unknown_station_refused_and_logged_once(caplog):
+    ing, pipe, _ = _ingest()
+    with caplog.at_level(logging.WARNING, logger="visionpos.server.ingest"):
+        for i in range(5):
+            (ack,) = _send(ing, _hello(9), T0 + i)
+            assert ack.status == P.ACK_REJECTED
+        for i in range(5):
+            assert _send(ing, _frame(9, i, T0 + i * 10 * MS), T0 + i * 10 * MS + 3 * MS) == []
+        assert _send(ing, P.SyncRequest(9, 9, 123, 1), T0) == []
+    assert pipe.frames == []
+    h = ing.health()
+    assert h["unknown"] == 11 and h["unknown_sources"] == {"9/9": 11}
+    lines = [r.getMessage() for r in caplog.records if "camera 9" in r.getMessage()]
+    assert len(lines) == 1 and "not in the arena config" in lines[0]
+
+
+def test_station_id_pinned_in_config():
+    data = load_yaml(resolve_config_path("thesis"))
+    data["cameras"][0]["station"] = 11
+    ing = Ingest(parse_arena(data, "a.yaml"), pipeline=Collector(), clock=Clock(T0))
+    (ack,) = _send(ing, _hello(1, station=12), T0)
+    assert ack.status == P.ACK_REJECTED
+    (ack,) = _send(ing, _hello(1, station=11), T0)
+    assert ack.status == P.ACK_OK
+
+
+def test_clock_sync_reply_stamps():
+    ing, _, clock = _ingest()
+    clock.t = T0 + 250_000  # the reply is built 0.25 ms after the datagram arrived
+    (rep,) = _send(ing, P.SyncRequest(1, 1, t1_ns=-55_555, seq=42), T0)
+    assert isinstance(rep, P.SyncReply)
+    assert (rep.t1_ns, rep.t2_ns, rep.t3_ns, rep.seq) == (-55_555, T0, T0 + 250_000, 42)
+
+
+def test_heartbeat_records_station_clock():
+    ing, _, _ = _ingest()
+    hb = P.Heartbeat(1, 1, 3, session=7, status=P.HB_CLOCK_SYNCED, frames_captured=500, frames_dropped=2,
+                     clock_offset_ns=-1_234_567, clock_uncertainty_ns=40_000, drift_ppb=-15000, temperature_c=51.5)
+    (ack,) = _send(ing, hb, T0)
+    assert ack.status == P.ACK_UNKNOWN_SESSION  # not registered yet: register again
+    _send(ing, _hello(1), T0)
+    (ack,) = _send(ing, hb, T0 + MS)
+    assert ack.status == P.ACK_OK and ack.session == 7
+    h = ing.health()["cameras"][1]
+    assert h["clock_offset_ms"] == pytest.approx(-1.234567)
+    assert h["clock_uncertainty_us"] == pytest.approx(40.0)
+    assert h["drift_ppb"] == -15000 and h["temperature_c"] == 51.5 and h["station_frames_dropped"] == 2
+
+
+def test_hmac_wrong_key_and_unsigned_dropped(tmp_path, caplog):
+    (tmp_path / "key.bin").write_bytes(b"the right key 0123456789")
+    ing, pipe, _ = _ingest({"key_file": "key.bin"}, tmp_path)  # relative to the arena file
+    good, bad = b"the right key 0123456789", b"the wrong key 0123456789"
+    with caplog.at_level(logging.WARNING, logger="visionpos.server.ingest"):
+        assert _send(ing, _hello(1), T0, key=bad) == []
+        assert ing.handle(P.encode(_frame(1, 0, T0), bad), ADDR, T0 + 3 * MS) == []
+        assert ing.handle(P.encode(_frame(1, 1, T0), None), ADDR, T0 + 3 * MS) == []
+    assert pipe.frames == [] and ing.health()["auth_failed"] == 3
+    assert any("authentication" in r.getMessage() for r in caplog.records)
+    (ack,) = _send(ing, _hello(1), T0, key=good)  # replies are signed with the key
+    assert ack.status == P.ACK_OK
+    with pytest.raises(P.ProtocolError):
+        P.decode(ing.handle(P.encode(_hello(1), good), ADDR, T0)[0], bad)
+    _send(ing, _frame(1, 2, T0 + 10 * MS), T0 + 13 * MS, key=good)
+    assert [f.seq for f in pipe.frames] == [2]
+
+
+def test_sequence_loss_duplicates_reordering_replay():
+    ing, pipe, _ = _ingest()
+    _send(ing, _hello(1), T0)
+    seqs = [100, 101, 102, 105, 105, 103, 106, 107] + list(range(108, 300)) + [150, 20, 300]
+    for i, s in enumerate(seqs):
+        t = T0 + i * 10 * MS
+        _send(ing, _frame(1, s, t), t + 4 * MS)
+    got = [f.seq for f in pipe.frames]
+    assert got == [100, 101, 102, 105, 106, 107] + list(range(108, 301))
+    h = ing.health()["cameras"][1]
+    assert h["duplicates"] == 1
+    assert h["reordered"] == 1  # 103 came late: dropped, and no longer counted as lost
+    assert h["lost"] == 1  # 104 never came
+    assert h["replayed"] == 2  # 150 and 20 are far older than 299
+    assert h["frames"] == len(got)
+    assert all(f.recv_ns == T0 + i * 10 * MS + 4 * MS for i, f in zip(range(3), pipe.frames))
+    # sequence wraps at 2^32 without counting a loss
+    _send(ing, _hello(2), T0)
+    for i, s in enumerate([2**32 - 2, 2**32 - 1, 0, 1]):
+        t = T0 + i * 10 * MS
+        _send(ing, _frame(2, s, t), t + 4 * MS)
+    assert ing.health()["cameras"][2]["lost"] == 0 and ing.health()["cameras"][2]["frames"] == 4
+
+
+def test_new_session_restarts_sequence():
+    ing, pipe, _ = _ingest()
+    _send(ing, _hello(1, session=1), T0)
+    _send(ing, _frame(1, 500, T0), T0 + 3 * MS)
+    _send(ing, _hello(1, session=2), T0 + 5 * MS)  # station restarted: seq starts over
+    _send(ing, _frame(1, 0, T0 + 10 * MS), T0 + 13 * MS)
+    assert [f.seq for f in pipe.frames] == [500, 0]
+
+
+def test_frames_that_queued_too_long_are_shed_not_fused():
+    """Load shedding: a frame that waited in the server's receive queue longer than
+    shed_backlog_ms is checked and counted, not fused; fresh frames are fused. A station's
+    own steady latency (here 45 ms, longer than the shedding threshold) never sheds."""
+    ing, pipe, clock = _ingest({"shed_backlog_ms": 30})
+    _send(ing, _hello(1), T0)
+    for seq, backlog_ms in enumerate([0, 2, 55, 31, 29, 0], start=1):
+        t = T0 + 100 * MS + seq * 10 * MS  # captures after the trigger time
+        clock.t = t
+        frame = P.encode(_frame(1, seq, t - 45 * MS), None)
+        ing.handle(frame, ADDR, t, backlog_ms * MS)
+    assert [f.seq for f in pipe.frames] == [1, 2, 5, 6]
+    h = ing.health()
+    assert h["frames_shed"] == 2 and h["cameras"][1]["shed"] == 2 and h["frames_accepted"] == 6
+    assert h["cameras"][1]["clock_jumps"] == 0
+    off, off_pipe, _ = _ingest({"shed_backlog_ms": 0})  # 0 = off
+    _send(off, _hello(1), T0)
+    off.handle(P.encode(_frame(1, 1, T0 + 5 * MS), None), ADDR, T0 + 10 * MS, 10_000 * MS)
+    assert len(off_pipe.frames) == 1
+
+
+def test_clock_jumps_dropped_then_resync():
+    ing, pipe, clock = _ingest({"resync_after": 5, "max_future_ms": 20, "max_age_ms": 300})
+    _send(ing, _hello(1), T0)
+    t = T0
+    seq = 0
+
+    def send(capture_offset_ms, flags=0):
+        nonlocal t, seq
+        t += 10 * MS
+        seq += 1
+        clock.t = t
+        return _send(ing, _frame(1, seq, t - 3 * MS + capture_offset_ms * MS, flags=flags), t)
+
+    send(0)
+    send(0)
+    assert len(pipe.frames) == 2
+    assert send(+500) == []  # capture 0.5 s in the future
+    assert send(-900) == []  # capture 0.9 s old: clock stepped back (or a delayed replay)
+    send(0)
+    assert send(-15) == []  # 15 ms earlier than the previous frame: time going backwards
+    send(0)
+    h = ing.health()["cameras"][1]
+    assert (h["clock_jumps_future"], h["clock_jumps_stale"], h["clock_jumps_backwards"]) == (1, 1, 1)
+    assert len(pipe.frames) == 4
+    # a station whose clock stays 2 s off: frames dropped, then the server asks it to resync
+    replies = [send(+2000) for _ in range(5)]
+    assert replies[:4] == [[]] * 4
+    (ack,) = replies[4]
+    assert isinstance(ack, P.HelloAck) and ack.status == P.ACK_UNKNOWN_SESSION and ack.session == 7
+    assert ing.health()["cameras"][1]["resync_requests"] == 1
+    assert len(pipe.frames) == 4
+    # the station registers again (and resyncs); one that flags its own resync may step back a little
+    _send(ing, _hello(1), t)
+    assert send(0) == []
+    assert send(-8, flags=FLAG_RESYNC) == []
+    assert len(pipe.frames) == 6 and pipe.frames[-1].flags & FLAG_RESYNC
+
+
+def test_realtime_timebase_converted():
+    ing, pipe, _ = _ingest()
+    _send(ing, _hello(1, timebase=P.TIMEBASE_REALTIME), T0)
+    mono, real = time.monotonic_ns(), time.time_ns()
+    ing.handle(P.encode(_frame(1, 0, real - 4 * MS)), ADDR, mono)
+    (f,) = pipe.frames
+    assert abs((mono - f.capture_ns) - 4 * MS) < 2 * MS  # only the two clock reads apart
+    assert f.recv_ns == mono
+    # replay: the offset comes from the recording, not from today's clocks
+    ing.realtime_minus_monotonic_ns = 1_700_000_000 * 10**9
+    _send(ing, _hello(1, session=8, timebase=P.TIMEBASE_REALTIME), T0)  # a new run on another clock
+    ing.handle(P.encode(_frame(1, 1, 1_700_000_000 * 10**9 + T0 + 20 * MS)), ADDR, T0 + 25 * MS)
+    assert pipe.frames[-1].capture_ns == T0 + 20 * MS
+
+
+def test_vanish_and_return_and_bye():
+    ing, pipe, clock = _ingest({"vanish_periods": 10, "vanish_min_s": 0.0})
+    for cam in (1, 2):
+        _send(ing, _hello(cam), T0)
+    for i in range(20):
+        t = T0 + i * 10 * MS
+        for cam in (1, 2):
+            _send(ing, _frame(cam, i, t), t + 3 * MS)
+    last = T0 + 19 * 10 * MS + 3 * MS
+    assert ing.check_vanished(last + 99 * MS) == []  # 10 periods of 100 Hz = 100 ms
+    for i in range(20, 40):  # camera 2 goes on, camera 1 is silent
+        t = T0 + i * 10 * MS
+        _send(ing, _frame(2, i, t), t + 3 * MS)
+        ing.check_vanished(t + 3 * MS)
+    assert pipe.removed == [1]
+    h = ing.health()["cameras"]
+    assert not h[1]["online"] and h[1]["vanished"] == 1 and h[2]["online"]
+    t = T0 + 41 * 10 * MS
+    _send(ing, _frame(1, 41, t), t + 3 * MS)  # back, with a gap in seq
+    assert ing.health()["cameras"][1]["online"] and ing.health()["cameras"][1]["lost"] == 21
+    _send(ing, P.Bye(2, 2, 7), t + 5 * MS)
+    assert pipe.removed == [1, 2]
+    assert not ing.health()["cameras"][2]["registered"]
+
+
+def test_garbage_and_truncated_packets_never_raise():
+    ing, pipe, _ = _ingest()
+    rng = random.Random(5)
+    valid = [P.encode(_hello(1)), P.encode(_frame(1, 1, T0, n=5)), P.encode(P.SyncRequest(1, 1, 5, 1)),
+             P.encode(P.Heartbeat(1, 1, 1, session=7)), P.encode(P.HelloAck(1, 1, 7, 0, 0)),
+             P.encode(_frame(2, 1, T0, n=0), b"k")]
+    n_bad = 0
+    for v in valid:
+        for cut in range(len(v)):  # every truncation
+            assert ing.handle(v[:cut], ADDR, T0 + 3 * MS) == []
+            n_bad += 1
+    for _ in range(2000):  # random bytes, and valid packets with random bytes flipped
+        if rng.random() < 0.5:
+            data = bytes(rng.getrandbits(8) for _ in range(rng.randrange(0, 1600)))
+        else:
+            data = bytearray(rng.choice(valid))
+            for _ in range(rng.randrange(1, 4)):
+                data[rng.randrange(len(data))] ^= 1 << rng.randrange(8)
+            data = bytes(data)
+        ing.handle(data, ADDR, T0 + 3 * MS)
+    h = ing.health()
+    assert h["malformed"] >= n_bad
+    assert h["packets"] == n_bad + 2000
+    # every frame that got through decoded to exactly what a valid frame carries
+    for f in pipe.frames:
+        assert f.blobs.shape[1] == 4
+    # the server still works afterwards
+    _send(ing, _hello(3), T0)
+    _send(ing, _frame(3, 1, T0 + 10 * MS), T0 + 13 * MS)
+    assert pipe.frames[-1].camera_id == 3 and pipe.frames[-1].seq == 1
+
+
+def test_malformed_logged_once_per_sender_and_reason(caplog):
+    ing, _, _ = _ingest()
+    with caplog.at_level(logging.WARNING, logger="visionpos.server.ingest"):
+        for _ in range(50):
+            ing.handle(b"GET / HTTP/1.1\r\n\r\n", ADDR, T0)
+    msgs = [r.getMessage() for r in caplog.records]
+    assert len(msgs) == 1 and "bad magic" in msgs[0] and "127.0.0.1:40000" in msgs[0]
+    assert ing.health()["malformed_reasons"] == {"bad magic": 50}
+
+
+def test_recorder_gets_every_datagram():
+    class Rec:
+        def __init__(self):
+            self.got = []
+
+        def write_packet(self, recv_ns, data, source=None):
+            self.got.append((recv_ns, data, source))
+
+    rec = Rec()
+    ing = Ingest(_arena(), pipeline=None, recorder=rec, clock=Clock(T0))
+    pkts = [P.encode(_hello(1)), b"junk", P.encode(_frame(9, 1, T0))]
+    for i, p in enumerate(pkts):
+        ing.handle(p, ("10.0.0.5", 5000 + i), T0 + i)
+    assert rec.got == [(T0 + i, p, ("10.0.0.5", 5000 + i)) for i, p in enumerate(pkts)]
+
+
+@pytest.mark.parametrize("server, key, what", [
+    ({"port": "abc"}, "server.port", "expected an integer"),
+    ({"port": 70000}, "server.port", "<= 65535"),
+    ({"output_rate_hz": 0}, "server.output_rate_hz", ">= 1"),
+    ({"outptu_rate_hz": 50}, "server.outptu_rate_hz", "unknown key"),
+    ({"key_file": "missing.key"}, "server.key_file", "cannot read"),
+    ([1, 2], "server", "expected a mapping"),
+])
+def test_config_errors_name_the_key(server, key, what, tmp_path):
+    with pytest.raises(ConfigError) as ei:
+        ServerSettings.from_arena(_arena(server, tmp_path))
+    assert ei.value.key == key and what in str(ei.value) and "arena.yaml" in str(ei.value)
+
+
+def test_empty_key_file_refused(tmp_path):
+    (tmp_path / "k").write_bytes(b"")
+    with pytest.raises(ConfigError, match="server.key_file.*empty"):
+        ServerSettings.from_arena(_arena({"key_file": "k"}, tmp_path))
+
+
+def test_builtin_config_defaults():
+    s = ServerSettings.from_arena(load_arena("thesis"))
+    assert s.port == P.DEFAULT_PORT and s.output_rate_hz == 100.0 and s.key is None
+
+
+def test_station_vanishes_mid_flight_tracking_continues():
+    """Deterministic: simulated stations' packets through handle() on the simulation's clock,
+    the real FusionPipeline, 100 Hz ticks; camera 2 stops sending half-way."""
+    sim = pytest.importorskip("visionpos.sim")
+    from visionpos.fusion.pipeline import FusionPipeline
+
+    sc = sim.load_scenario("thesis", ["sim.duration=2.5"])
+    frames = sim.simulate(sc).frames_by_recv()
+    cut = sc.start_ns + 1_200 * MS
+    arena = sc.arena
+    pipe = FusionPipeline(arena, arena.raw.get("fusion"))
+    clock = Clock(frames[0].recv_ns)
+    ing = Ingest(arena, pipeline=pipe, clock=clock)
+    ing.set_start(sc.start_ns)
+    states, lost_at = [], None
+    tick = frames[0].recv_ns
+    for f in frames:
+        while tick <= f.recv_ns:
+            clock.t = tick
+            if ing.check_vanished(tick) == [2]:
+                lost_at = tick
+            states += pipe.tick(tick)
+            tick += 10 * MS
+        if f.camera_id == 2 and f.capture_ns >= cut:
+            continue
+        clock.t = f.recv_ns
+        ing.handle(P.encode_frame(f), ("127.0.0.1", 6000 + f.camera_id), f.recv_ns)
+    h = ing.health()
+    assert h["frames_accepted"] == len([f for f in frames if not (f.camera_id == 2 and f.capture_ns >= cut)])
+    # lost after its vanish timeout (10 frame periods = 100 ms), not before, and only camera 2
+    assert lost_at is not None and cut + 100 * MS <= lost_at <= cut + 130 * MS
+    assert [c for c, v in h["cameras"].items() if v["vanished"]] == [2]
+    assert pipe.stats()["removed_camera"] == 1
+    after = [s for s in states if s.time_ns > lost_at + 50 * MS]
+    assert len(after) > 50 and all(s.tracked and s.n_cameras == 3 for s in after)
+    truth, _ = sc.truth_at("quad", np.array([s.time_ns for s in after], dtype=np.int64))
+    err = np.linalg.norm(np.array([s.position for s in after]) - truth, axis=1)
+    assert np.median(err) < 0.002 and err.max() < 0.005  # 3 cameras still give millimetres

@@ -1,0 +1,458 @@
+"""`visionpos replay`: re-run the fusion pipeline on a recording, deterministically.
+
+The recording holds every station datagram with its receive time on the
+server clock. Replay decodes them in order and pushes the frames into a fresh
+FusionPipeline; output ticks fall on a fixed grid of the recording's clock
+(first receive time + k / output rate) and run before any packet received
+after them. Nothing reads the wall clock, so the same log and settings give
+the same outputs, byte for byte (--speed only sleeps between steps).
+
+Writes trajectories.csv; where the log carries ground truth also
+metrics.json, a printed table and PNG plots (plots need matplotlib).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+
+from visionpos.analysis import metrics as M
+from visionpos.config.arena import ArenaConfig, ConfigError, apply_overrides, load_yaml, parse_arena, resolve_config_path
+from visionpos.messages import BodyState
+
+
+# ---------------------------------------------------------------- results
+
+
+@dataclass
+class BodyTrack:
+    """One body's outputs as arrays, one row per output tick (N rows).
+
+    tick_ns: (N,) when the pipeline produced the state (recording clock);
+    time_ns: (N,) the instant the state is valid for; capture_ns: (N,) newest
+    contributing capture; position (N, 3) m; quaternion (N, 4) xyzw;
+    velocity (N, 3) m/s; tracked (N,) bool; n_markers, n_cameras (N,) int;
+    residual_mm (N,).
+    """
+
+    name: str
+    tick_ns: np.ndarray
+    time_ns: np.ndarray
+    capture_ns: np.ndarray
+    position: np.ndarray
+    quaternion: np.ndarray
+    velocity: np.ndarray
+    tracked: np.ndarray
+    n_markers: np.ndarray
+    n_cameras: np.ndarray
+    residual_mm: np.ndarray
+
+    @property
+    def latency_ns(self) -> np.ndarray:
+        """(N,) capture -> output time inside the pipeline."""
+        return self.tick_ns - self.capture_ns
+
+    @classmethod
+    def from_states(cls, name: str, ticks: list[int], states: list[BodyState]) -> "BodyTrack":
+        n = len(states)
+        f = lambda attr, shape: np.array([getattr(s, attr) for s in states], dtype=np.float64).reshape((n, *shape))  # noqa: E731
+        return cls(
+            name=name,
+            tick_ns=np.asarray(ticks, dtype=np.int64),
+            time_ns=np.array([s.time_ns for s in states], dtype=np.int64),
+            capture_ns=np.array([s.capture_ns for s in states], dtype=np.int64),
+            position=f("position", (3,)),
+            quaternion=f("quaternion", (4,)),
+            velocity=f("velocity", (3,)),
+            tracked=np.array([bool(s.tracked) for s in states], dtype=bool),
+            n_markers=np.array([int(s.n_markers) for s in states], dtype=np.int64),
+            n_cameras=np.array([int(s.n_cameras) for s in states], dtype=np.int64),
+            residual_mm=np.array([float(s.residual_mm) for s in states], dtype=np.float64),
+        )
+
+
+@dataclass
+class ReplayResult:
+    """Everything one replay produced. truth: name -> (times (T,), positions (T, 3), quats (T, 4))."""
+
+    arena: ArenaConfig
+    ticks_ns: np.ndarray
+    bodies: dict[str, BodyTrack]
+    truth: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
+    n_packets: int = 0
+    n_frames: int = 0
+    n_bad: int = 0
+    bad_reasons: dict[str, int] = field(default_factory=dict)
+    span_ns: int = 0
+    first_frame_ns: int | None = None
+    wall_s: float = 0.0
+    cpu_s: float = 0.0
+    pipeline_stats: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def speed_x(self) -> float:
+        """Recording time replayed per wall-clock second."""
+        return self.span_ns * 1e-9 / self.wall_s if self.wall_s > 0 else float("inf")
+
+    @property
+    def speed_x_cpu(self) -> float:
+        """Recording time replayed per CPU second of this process (robust to a busy machine)."""
+        return self.span_ns * 1e-9 / self.cpu_s if self.cpu_s > 0 else float("inf")
+
+    def metrics(self) -> list[M.BodyMetrics]:
+        """Per-body metrics; error columns are nan for bodies without truth.
+
+        tracked_fraction and rate_hz count the ticks from the first accepted
+        frame on (registration and clock sync before it are not tracking time).
+        """
+        first = self.first_frame_ns if self.first_frame_ns is not None else (
+            int(self.ticks_ns[0]) if len(self.ticks_ns) else 0)
+        n_ticks = int(np.count_nonzero(self.ticks_ns >= first))
+        span = int(self.ticks_ns[-1] - first) if len(self.ticks_ns) and self.ticks_ns[-1] > first else self.span_ns
+        out = []
+        for name, b in self.bodies.items():
+            out.append(
+                M.body_metrics(
+                    name,
+                    b.time_ns,
+                    b.tracked,
+                    b.position,
+                    b.quaternion,
+                    latencies_ns=b.latency_ns,
+                    truth=self.truth.get(name),
+                    n_ticks=n_ticks,
+                    span_ns=span,
+                )
+            )
+        return out
+
+
+# ---------------------------------------------------------------- core
+
+
+def load_settings(
+    recorded_config: dict[str, Any] | None, config_path: str | None = None, overrides: Iterable[str] = ()
+) -> ArenaConfig:
+    """Arena for a replay: the recording's config (or --config), then --set overrides."""
+    if config_path is not None:
+        p = resolve_config_path(config_path)
+        data, source = load_yaml(p), str(p)
+    elif recorded_config:
+        data, source = recorded_config, "recording config"
+    else:
+        raise ConfigError("recording", "config", "the log carries no arena config; pass --config arena.yaml")
+    data = apply_overrides(data, list(overrides))
+    return parse_arena(data, source)
+
+
+def run_pipeline(
+    arena: ArenaConfig,
+    packets: Iterable[tuple[int, bytes] | tuple[int, bytes, Any]],
+    rate_hz: float | None = None,
+    speed: float | None = None,
+    realtime_minus_monotonic_ns: int | None = None,
+) -> ReplayResult:
+    """Feed recorded datagrams through the server's own ingest into a fresh pipeline.
+
+    packets: (recv_ns, datagram) or (recv_ns, datagram, (host, port)) in
+    receive order. The server's Ingest does what it does live (registration,
+    sequence and clock checks, HMAC when the arena has a key, cameras that
+    vanish), on a clock that is the recording's receive time, so the only
+    input is the log. Ticks: t0 + k * period for k >= 1, t0 the first receive
+    time; every tick at or before a packet's receive time runs before that
+    packet (and the vanish check runs every 20 ms of recording time before a
+    tick, as in the server), ticks continue to the last receive time.
+    speed: None = as fast as possible, else sleep so recording time runs at
+    speed x wall time. realtime_minus_monotonic_ns: the recording host's
+    CLOCK_REALTIME - monotonic difference (from the recording's meta), used
+    for stations that stamp in TIMEBASE_REALTIME instead of this host's clocks.
+    """
+    from visionpos.server.ingest import Ingest, ServerSettings
+    from visionpos.fusion.pipeline import FusionPipeline
+    from visionpos.server.service import VANISH_CHECK_S
+
+    settings = ServerSettings.from_arena(arena)
+    rate = float(rate_hz or settings.output_rate_hz)
+    period = int(round(1e9 / rate))
+    check_ns = int(VANISH_CHECK_S * 1e9)
+    pipe = FusionPipeline(arena, arena.raw.get("fusion"))
+    now = [0]
+    ingest = Ingest(arena, settings, pipe, None, clock=lambda: now[0])
+    # the recording holds only what stations sent after their trigger: accept all of it
+    ingest.set_start(-(1 << 62))
+    if realtime_minus_monotonic_ns is not None:
+        # live, Ingest converts realtime-stamped frames with this host's clocks; a replay must use
+        # the recording host's difference
+        ingest.realtime_minus_monotonic_ns = int(realtime_minus_monotonic_ns)
+    names: list[str] = [b.name for b in arena.bodies]
+    per_body: dict[str, tuple[list[int], list[BodyState]]] = {}
+    ticks: list[int] = []
+    t0 = next_tick = last = first_frame = None
+    next_check = 0
+    wall0 = time.perf_counter()
+    cpu0 = time.process_time()
+
+    def do_tick(t: int) -> None:
+        nonlocal next_check
+        now[0] = t
+        if t >= next_check:
+            next_check = t + check_ns
+            ingest.check_vanished(t)
+        ticks.append(t)
+        for s in pipe.tick(t):
+            tk, st = per_body.setdefault(s.name, ([], []))
+            tk.append(t)
+            st.append(s)
+
+    def pace(t: int) -> None:
+        if speed:
+            ahead = (t - t0) * 1e-9 / speed - (time.perf_counter() - wall0)
+            if ahead > 0:
+                time.sleep(ahead)
+
+    for item in packets:
+        recv_ns, data = int(item[0]), item[1]
+        addr = item[2] if len(item) > 2 and item[2] is not None else ("replay", 0)
+        if t0 is None:
+            t0 = recv_ns
+            next_tick = t0 + period
+        while next_tick <= recv_ns:
+            pace(next_tick)
+            do_tick(next_tick)
+            next_tick += period
+        last = recv_ns
+        now[0] = recv_ns
+        ingest.handle(data, addr, recv_ns)
+        if first_frame is None and ingest.counters.frames_accepted:
+            first_frame = recv_ns
+    wall = time.perf_counter() - wall0
+    cpu = time.process_time() - cpu0
+    if t0 is None:
+        raise ValueError("the recording holds no station packets; record with stations streaming")
+    order = names + sorted(set(per_body) - set(names))
+    bodies = {n: BodyTrack.from_states(n, *per_body[n]) for n in order if n in per_body}
+    try:
+        stats = dict(pipe.stats())
+    except Exception as e:  # stats are informative only; never fail a replay on them
+        stats = {"error": str(e)}
+    c = ingest.counters
+    reasons = dict(c.malformed_reasons)
+    for k in ("auth_failed", "unknown", "pipeline_errors"):
+        if getattr(c, k):
+            reasons[k] = getattr(c, k)
+    return ReplayResult(
+        arena=arena,
+        ticks_ns=np.asarray(ticks, dtype=np.int64),
+        bodies=bodies,
+        truth={},
+        n_packets=c.packets,
+        n_frames=c.frames_accepted,
+        n_bad=c.malformed + c.auth_failed,
+        bad_reasons=reasons,
+        span_ns=int(last - t0),
+        first_frame_ns=first_frame,
+        wall_s=wall,
+        cpu_s=cpu,
+        pipeline_stats=stats,
+    )
+
+
+def replay_log(
+    log: str | Path,
+    config: str | None = None,
+    overrides: Iterable[str] = (),
+    speed: float | None = None,
+    rate_hz: float | None = None,
+) -> ReplayResult:
+    """Replay a recording file with optional config replacement and overrides."""
+    from visionpos.recording import RecordingReader
+
+    p = Path(log)
+    if not p.exists():
+        raise ConfigError(str(p), "(file)", "no such recording; make one with `visionpos sim --out` or `visionpos record`")
+    reader = RecordingReader(p)
+    arena = load_settings(reader.config, config, overrides)
+    meta = reader.meta or {}
+    rt = None
+    if isinstance(meta.get("wall_start_unix_ns"), int) and isinstance(meta.get("monotonic_start_ns"), int):
+        rt = meta["wall_start_unix_ns"] - meta["monotonic_start_ns"]
+    res = run_pipeline(arena, reader.packets_with_source(), rate_hz=rate_hz, speed=speed,
+                       realtime_minus_monotonic_ns=rt)
+    res.truth = dict(reader.truth() or {})
+    return res
+
+
+# ---------------------------------------------------------------- outputs
+
+CSV_HEADER = (
+    "body,tick_ns,time_ns,capture_ns,x,y,z,qx,qy,qz,qw,vx,vy,vz,tracked,n_markers,n_cameras,residual_mm\n"
+)
+
+
+def _csv_rows(b: BodyTrack) -> Iterator[str]:
+    for i in range(len(b.tick_ns)):
+        p, q, v = b.position[i], b.quaternion[i], b.velocity[i]
+        yield (
+            f"{b.name},{b.tick_ns[i]},{b.time_ns[i]},{b.capture_ns[i]},"
+            f"{p[0]:.6f},{p[1]:.6f},{p[2]:.6f},{q[0]:.8f},{q[1]:.8f},{q[2]:.8f},{q[3]:.8f},"
+            f"{v[0]:.5f},{v[1]:.5f},{v[2]:.5f},{int(b.tracked[i])},{b.n_markers[i]},{b.n_cameras[i]},"
+            f"{b.residual_mm[i]:.4f}\n"
+        )
+
+
+def write_trajectories_csv(result: ReplayResult, path: str | Path) -> Path:
+    """One row per body per tick, bodies in config order then tick order. Deterministic text."""
+    path = Path(path)
+    with path.open("w", newline="") as f:
+        f.write(CSV_HEADER)
+        for b in result.bodies.values():
+            f.writelines(_csv_rows(b))
+    return path
+
+
+METRIC_COLUMNS = [
+    ("name", "body", ""),
+    ("tracked_fraction", "tracked", ".3f"),
+    ("rate_hz", "rate Hz", ".1f"),
+    ("position_rmse_mm", "pos RMSE mm", ".2f"),
+    ("position_max_mm", "pos max mm", ".2f"),
+    ("rotation_rmse_deg", "rot RMSE deg", ".3f"),
+    ("position_jitter_mm", "jitter mm", ".3f"),
+    ("latency_p50_ms", "lat p50 ms", ".2f"),
+    ("latency_p99_ms", "lat p99 ms", ".2f"),
+]
+
+
+def metrics_rows(result: ReplayResult) -> list[dict]:
+    rows = []
+    for m in result.metrics():
+        d = m.as_dict()
+        d["latency_p50_ms"] = m.latency_ms["p50"]
+        d["latency_p99_ms"] = m.latency_ms["p99"]
+        rows.append(d)
+    return rows
+
+
+def write_plots(result: ReplayResult, out: Path) -> list[Path]:
+    """trajectory.png, errors.png (truth only), latency.png. Raises PlotsUnavailable without matplotlib."""
+    from visionpos.analysis import plots
+
+    t0 = int(result.ticks_ns[0]) if len(result.ticks_ns) else 0
+    sec = lambda t: (np.asarray(t, dtype=np.int64) - t0) * 1e-9  # noqa: E731
+    traj, errs, lats = {}, {}, {}
+    for name, b in result.bodies.items():
+        pos = np.where(b.tracked[:, None], b.position, np.nan)
+        d = {"t": sec(b.time_ns), "position": pos}
+        if name in result.truth:
+            tt, tp, tq = result.truth[name]
+            inside = (tt >= b.time_ns[0]) & (tt <= b.time_ns[-1]) if len(b.time_ns) else tt == tt
+            d["truth_t"], d["truth_position"] = sec(tt[inside]), tp[inside]
+            trp, trq, valid = M.interpolate_truth(tt, tp, tq, b.time_ns)
+            ok = valid & b.tracked
+            errs[name] = {
+                "t": sec(b.time_ns),
+                "position_error_mm": np.where(ok, M.position_errors(b.position, trp) * 1e3, np.nan),
+                "rotation_error_deg": np.where(ok, np.degrees(M.rotation_errors(b.quaternion, trq)), np.nan),
+            }
+        traj[name] = d
+        lats[name] = b.latency_ns[b.tracked] * 1e-6
+    paths = [plots.plot_trajectories(out / "trajectory.png", traj)]
+    if errs:
+        paths.append(plots.plot_errors(out / "errors.png", errs))
+    paths.append(plots.plot_latency(out / "latency.png", lats))
+    return paths
+
+
+def _json_safe(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def summary(result: ReplayResult) -> dict[str, Any]:
+    """JSON-ready summary: per-body metrics and replay counters."""
+    return _json_safe(
+        {
+            "bodies": metrics_rows(result),
+            "has_truth": bool(result.truth),
+            "duration_s": result.span_ns * 1e-9,
+            "ticks": len(result.ticks_ns),
+            "packets": result.n_packets,
+            "frames": result.n_frames,
+            "bad_packets": result.n_bad,
+            "bad_reasons": result.bad_reasons,
+            "replay_wall_s": result.wall_s,
+            "replay_speed_x": result.speed_x,
+            "replay_cpu_s": result.cpu_s,
+        }
+    )
+
+
+# ---------------------------------------------------------------- CLI
+
+
+def parse_speed(s: str) -> float | None:
+    if s == "max":
+        return None
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--speed takes a number (1 = real time) or 'max', got {s!r}") from None
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"--speed must be > 0, got {s}")
+    return v
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("log", help="recording (.mcap) from `visionpos sim --out` or `visionpos record`")
+    p.add_argument("--config", help="arena YAML replacing the one stored in the recording")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a setting, e.g. fusion.time_alignment=naive (repeatable)")
+    p.add_argument("--speed", type=parse_speed, default=None, metavar="1|max", help="1 = real time, N = N x real time, max = as fast as possible (default)")
+    p.add_argument("--rate", type=float, default=None, metavar="HZ", help="output tick rate (default: server.output_rate_hz or 100)")
+    p.add_argument("--out", default="replay_out", metavar="DIR", help="output folder (default ./replay_out)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots (faster; no matplotlib needed)")
+
+
+def run(args: argparse.Namespace) -> int:
+    res = replay_log(args.log, args.config, args.set, speed=args.speed, rate_hz=args.rate)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [write_trajectories_csv(res, out / "trajectories.csv")]
+    summ = summary(res)
+    (out / "metrics.json").write_text(json.dumps(summ, indent=2, sort_keys=True) + "\n")
+    written.append(out / "metrics.json")
+    note = None
+    if not args.no_plots:
+        try:
+            written += write_plots(res, out)
+        except ImportError as e:  # plots extra not installed: everything else is written
+            note = str(e)
+    if args.json:
+        print(json.dumps(summ, indent=2, sort_keys=True))
+    else:
+        print(
+            f"replayed {summ['duration_s']:.2f} s of recording ({res.n_packets} packets, {res.n_frames} frames, "
+            f"{res.n_bad} bad) in {res.wall_s:.2f} s = {res.speed_x:.1f}x real time, {len(res.ticks_ns)} ticks"
+        )
+        cols = METRIC_COLUMNS if res.truth else [c for c in METRIC_COLUMNS if "rmse" not in c[0] and "max" not in c[0]]
+        print(M.format_table(metrics_rows(res), cols))
+        if not res.truth:
+            print("(the recording carries no ground truth: no error metrics; jitter and latency only)")
+    if note:
+        print(f"note: {note}", file=sys.stderr)
+    print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
+    return 0

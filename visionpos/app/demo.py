@@ -1,0 +1,543 @@
+"""`visionpos demo`: the whole chain on a simulated arena, over loopback, in real time.
+
+    simulated stations (one asyncio task per camera, own UDP socket, own clock)
+        --Hello / SyncRequest / Heartbeat / frames (the real protocol)--> FusionServer
+        --> Bridge (MAVLink, one udpin endpoint per vehicle) --> FakeAutopilot per body
+
+Every socket is on 127.0.0.1. The simulator renders the scenario's frames up
+front (so generating them never stalls the event loop); each station then
+registers, synchronises its clock (its clock is offset from the server's by
+the scenario's raw station offset, and it converts its stamps with the
+estimate, as a real station does), and sends each frame at its simulated
+receive time, paced by the wall clock. Live status once a second; a summary
+at the end (`--json` for a machine-readable one). Errors are against the
+simulator's truth at each output's time.
+
+The demo keeps the scenario's `vehicles` settings (message, rate, signing)
+but always puts their endpoints on free loopback ports; without a `vehicles`
+section it makes one vehicle per body (sysid = body id).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import json
+import logging
+import random
+import socket
+import sys
+import time
+from typing import Any, TextIO
+
+import numpy as np
+
+from visionpos.analysis import metrics as M
+from visionpos import protocol as P
+from visionpos.config.arena import ArenaConfig, apply_overrides, load_yaml, parse_arena, resolve_config_path
+from visionpos.messages import BlobFrame, BodyState
+
+log = logging.getLogger(__name__)
+
+REGISTER_TIMEOUT_S = 5.0
+STREAM_LEAD_S = 0.3  # first exposure this long after every station is registered and synced
+
+
+# ---------------------------------------------------------------- set-up
+
+
+def free_udp_port() -> int:
+    """A currently free UDP port on 127.0.0.1."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def demo_arena(scenario: str, duration_s: float, seed: int | None, overrides: list[str]) -> ArenaConfig:
+    """The scenario's arena with loopback vehicle endpoints, sim duration and seed applied."""
+    path = resolve_config_path(scenario)
+    data = load_yaml(path)
+    sets = list(overrides) + [f"sim.duration={duration_s}"] + ([f"sim.seed={seed}"] if seed is not None else [])
+    data = apply_overrides(data, sets)
+    arena = parse_arena(data, str(path))
+    vehicles = data.get("vehicles") or [{"body": b.name, "sysid": b.id} for b in arena.bodies]
+    vehicles = [dict(v) for v in vehicles]
+    for v in vehicles:
+        v["endpoint"] = f"udpin:127.0.0.1:{free_udp_port()}"
+    data["vehicles"] = vehicles
+    return parse_arena(data, str(path))
+
+
+# ---------------------------------------------------------------- simulated station
+
+
+class _StationProtocol(asyncio.DatagramProtocol):
+    def __init__(self, station: "SimStation"):
+        self.station = station
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        self.station.on_datagram(data)
+
+    def error_received(self, exc: Exception) -> None:
+        self.station.send_errors += 1
+
+
+class SimStation:
+    """One camera station speaking the real protocol to the server on loopback.
+
+    frames: this camera's BlobFrames with capture_ns and recv_ns already on the
+    server clock (true exposure stamp and simulated network arrival time).
+    clock_offset_ns: this station's raw clock minus the server clock.
+    """
+
+    def __init__(self, camera, station_id: int, frames: list[BlobFrame], clock_offset_ns: int, server_port: int,
+                 session: int):
+        from stations.clocksync import ClockSync
+
+        self.camera = camera
+        self.station_id = station_id
+        self.frames = frames
+        self.clock_offset_ns = int(clock_offset_ns)
+        self.server = ("127.0.0.1", server_port)
+        self.session = session
+        self.sync = ClockSync(station_id, camera.id, interval_s=1.0, burst=8, burst_interval_s=0.02)
+        self.transport: asyncio.DatagramTransport | None = None
+        self.ack: P.HelloAck | None = None
+        self.acked = asyncio.Event()
+        self.sent = 0
+        self.send_errors = 0
+        self.bad_replies = 0
+        self._hb_seq = 0
+
+    def station_clock(self) -> int:
+        return time.monotonic_ns() + self.clock_offset_ns
+
+    def on_datagram(self, data: bytes) -> None:
+        t4 = self.station_clock()
+        try:
+            msg = P.decode(data)
+        except P.ProtocolError:
+            self.bad_replies += 1
+            return
+        if isinstance(msg, P.SyncReply):
+            self.sync.reply(msg, t4)
+        elif isinstance(msg, P.HelloAck):
+            if msg.status == P.ACK_OK and msg.session == self.session:
+                self.ack = msg
+                self.acked.set()
+            elif msg.status == P.ACK_UNKNOWN_SESSION:
+                self.acked.clear()
+                self._send(self.hello())
+            else:
+                self.bad_replies += 1
+
+    def _send(self, msg: Any) -> None:
+        try:
+            self.transport.sendto(P.encode(msg))
+        except OSError:
+            self.send_errors += 1
+
+    def hello(self) -> P.Hello:
+        m = self.camera.model
+        return P.Hello(self.station_id, self.camera.id, self.session, m.width, m.height, float(self.camera.fps),
+                       m.kind if m.kind in P.CAMERA_KINDS else "unknown", self.camera.name[:32], "visionpos-demo")
+
+    async def open(self) -> None:
+        loop = asyncio.get_running_loop()
+        self.transport, _ = await loop.create_datagram_endpoint(lambda: _StationProtocol(self),
+                                                                remote_addr=self.server)
+
+    async def register_and_sync(self) -> None:
+        """Hello until acknowledged, then a burst of clock-sync exchanges."""
+        end = time.monotonic() + REGISTER_TIMEOUT_S
+        while not self.acked.is_set():
+            if time.monotonic() > end:
+                raise RuntimeError(f"station {self.station_id}: the server did not acknowledge registration")
+            self._send(self.hello())
+            try:
+                await asyncio.wait_for(self.acked.wait(), 0.2)
+            except asyncio.TimeoutError:
+                pass
+        while self.sync.estimator.estimate is None or self.sync.estimator.estimate.samples < self.sync.burst:
+            if time.monotonic() > end:
+                raise RuntimeError(f"station {self.station_id}: clock sync got no replies")
+            if self.sync.due(self.station_clock()):
+                self._send(self.sync.request(self.station_clock()))
+            await asyncio.sleep(0.005)
+
+    def heartbeat(self) -> P.Heartbeat:
+        est = self.sync.estimator.estimate
+        self._hb_seq += 1
+        status = P.HB_CAMERA_OK | P.HB_STREAMING | (P.HB_CLOCK_SYNCED if est is not None else 0)
+        return P.Heartbeat(
+            self.station_id, self.camera.id, self._hb_seq, self.session, status, self.sent, 0, self.send_errors,
+            0 if est is None else est.offset_ns, -1 if est is None else int(est.uncertainty_ns),
+            0 if est is None else int(est.drift_ppm * 1e3), None, self.station_clock(),
+        )
+
+    async def stream(self, stop_ns: int) -> None:
+        """Send every frame at its receive time (server clock), stamped via this station's own clock sync."""
+        next_hb = time.monotonic_ns()
+        for f in self.frames:
+            if f.recv_ns > stop_ns:
+                break
+            wait = (f.recv_ns - time.monotonic_ns()) * 1e-9
+            if wait > 0:
+                await asyncio.sleep(wait)
+            now_local = self.station_clock()
+            if self.sync.due(now_local):
+                self._send(self.sync.request(now_local))
+            if time.monotonic_ns() >= next_hb:
+                self._send(self.heartbeat())
+                next_hb += 1_000_000_000
+            # the station reads the exposure on its own clock and converts it with its sync estimate
+            local = f.capture_ns + self.clock_offset_ns
+            est = self.sync.estimator.estimate
+            capture = est.to_server(local) if est is not None else f.capture_ns
+            try:
+                self.transport.sendto(P.encode_frame(BlobFrame(f.camera_id, f.seq, capture, f.blobs,
+                                                               self.station_id, f.flags)))
+                self.sent += 1
+            except OSError:
+                self.send_errors += 1
+
+    def close(self) -> None:
+        if self.transport is not None:
+            self._send(P.Bye(self.station_id, self.camera.id, self.session))
+            self.transport.close()
+            self.transport = None
+
+
+# ---------------------------------------------------------------- output collector
+
+
+class Collector:
+    """Server sink: keeps every published state (tick time = the server clock at publish)."""
+
+    def __init__(self, names: list[str]):
+        self.names = names
+        self.ticks: list[int] = []
+        self.states: dict[str, list[tuple[int, BodyState]]] = {n: [] for n in names}
+        self.last: dict[str, BodyState] = {}
+
+    def publish(self, states: list[BodyState]) -> None:
+        now = time.monotonic_ns()
+        self.ticks.append(now)
+        for s in states:
+            self.states.setdefault(s.name, []).append((now, s))
+            self.last[s.name] = s
+
+
+# ---------------------------------------------------------------- the run
+
+
+async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | None,
+                   record: str | None = None) -> dict[str, Any]:
+    """Run everything for duration_s seconds of streaming; returns the summary dict.
+
+    record: MCAP path; the server records every station packet and output, and the
+    simulator's truth (on the server clock) is added, so `visionpos replay` and
+    `visionpos tune` work on the demo's session.
+    """
+    from bridge import Bridge
+    from bridge.fake_autopilot import FakeAutopilot, decode_pose
+    from visionpos.server.ingest import ServerSettings
+    from visionpos.server.service import FusionServer
+    from visionpos.sim import scenario_from_arena, simulate
+
+    t_wall0 = time.perf_counter()
+    sc = scenario_from_arena(arena)
+    sim = simulate(sc)
+    sim_s = time.perf_counter() - t_wall0
+    names = [b.name for b in arena.bodies]
+    tracked_names = [n for n in names if any(sb.name == n for sb in sc.bodies)]
+
+    settings = dataclasses.replace(ServerSettings.from_arena(arena), status_period_s=0.0)
+    bridge = Bridge(arena, {"pose_stream": False, "report_interval_s": 0})
+    collector = Collector(names)
+    recorder = None
+    if record is not None:
+        from visionpos.recording import RecordingWriter
+
+        recorder = RecordingWriter(record, arena.raw, {"command": "demo", "scenario": arena.source,
+                                                       "session": sc.session, "seed": sc.seed})
+    server = FusionServer(arena, settings, sinks=[bridge, collector], host="127.0.0.1", port=0, recorder=recorder)
+    await server.start()
+    autopilots = {}
+    stations: list[SimStation] = []
+    try:
+        for v in bridge.vehicles:
+            ap = FakeAutopilot(f"udpout:127.0.0.1:{v.cfg.endpoint.port}", sysid=v.cfg.sysid,
+                               signing_key=v.cfg.signing_key)
+            autopilots[v.cfg.body] = (ap.start(), v)
+
+        rng = random.Random(sc.seed)
+        by_cam = sim.frames_by_camera()
+        timing = {t.camera_id: t for t in sc.timings}
+        for cam in sc.cameras:
+            sid = timing[cam.id].station_id
+            clock = sc.clocks.get(sid)
+            st = SimStation(cam, sid, by_cam.get(cam.id, []), clock.offset_ns if clock is not None else 0,
+                            server.port, rng.randrange(1, 1 << 32))
+            await st.open()
+            stations.append(st)
+        await asyncio.gather(*(s.register_and_sync() for s in stations))
+
+        # sim time -> server clock: the scenario starts STREAM_LEAD_S from now
+        shift = time.monotonic_ns() + int(STREAM_LEAD_S * 1e9) - sc.start_ns
+        for s in stations:
+            s.frames = [dataclasses.replace(f, capture_ns=f.capture_ns + shift, recv_ns=f.recv_ns + shift)
+                        for f in sorted(s.frames, key=lambda f: f.recv_ns)]
+        t_start = sc.start_ns + shift
+        t_stop = sc.end_ns + shift
+        tasks = [asyncio.create_task(s.stream(t_stop), name=f"station-{s.station_id}") for s in stations]
+        status = asyncio.create_task(_status_loop(server, bridge, collector, stations, sc, shift, t_start,
+                                                  status_out))
+        await asyncio.gather(*tasks)
+        await asyncio.sleep(0.05)  # the last frames' ticks and sends
+        status.cancel()
+        try:
+            await status
+        except asyncio.CancelledError:
+            pass
+        bridge.flush(0.5)
+        health = server.health()
+    finally:
+        for s in stations:
+            s.close()
+        if recorder is not None and "shift" in locals():
+            _record_truth(recorder, sc, shift)
+        await server.stop()
+        for ap, _ in autopilots.values():
+            ap.close()
+    wall = time.perf_counter() - t_wall0
+
+    return _summary(arena, sc, shift, t_start, t_stop, collector, bridge, autopilots, stations, health,
+                    tracked_names, wall, sim_s, decode_pose)
+
+
+def _record_truth(recorder, sc, shift: int) -> None:
+    """The simulator's truth at its truth rate, on the server clock (as `visionpos sim` records it)."""
+    step = int(round(1e9 / sc.truth_rate_hz))
+    times = np.arange(sc.start_ns, sc.end_ns + 1, step, dtype=np.int64)
+    for b in sc.bodies:
+        pos, quat = sc.truth_at(b.name, times)
+        for ti, p, q in zip(times, pos, quat):
+            recorder.write_truth(int(ti + shift), b.name, p, q)
+
+
+async def _status_loop(server, bridge, collector: Collector, stations: list[SimStation], sc, shift: int,
+                       t_start: int, out: TextIO | None) -> None:
+    if out is None:
+        return
+    prev: dict[int, int] = {}
+    prev_t = time.monotonic_ns()
+    while True:
+        await asyncio.sleep(1.0)
+        now = time.monotonic_ns()
+        h = server.ingest.health(now)
+        # frames the server accepted per camera since the last line
+        dt = (now - prev_t) * 1e-9
+        fps = " ".join(f"{cid}:{(c['frames'] - prev.get(cid, 0)) / dt:.0f}" for cid, c in h["cameras"].items())
+        prev = {cid: c["frames"] for cid, c in h["cameras"].items()}
+        prev_t = now
+        parts = []
+        for b in sc.bodies:
+            s = collector.last.get(b.name)
+            if s is None:
+                continue
+            if s.tracked:
+                tp, tq = sc.truth_at(b.name, np.array([s.time_ns - shift]))
+                err = M.position_errors(s.position[None], tp)[0] * 1e3
+                rot = np.degrees(M.rotation_errors(np.asarray(s.quaternion)[None], tq))[0]
+                state = f"tracked err {err:5.1f} mm {rot:4.1f} deg"
+            else:
+                state = "LOST"
+            try:
+                vs = bridge.vehicle(b.name).stats()
+                lat = vs["latency_capture_ms_p50"]
+                state += f" | capture->MAVLink p50 {lat:4.1f} ms, {vs['sent']} sent" if np.isfinite(lat) else " | nothing sent yet"
+            except KeyError:
+                pass
+            parts.append(f"{b.name}: {state}")
+        out.write(f"[{(now - t_start) * 1e-9:5.1f} s] fps {fps} | " + " | ".join(parts) + "\n")
+        out.flush()
+
+
+def _summary(arena, sc, shift, t_start, t_stop, collector: Collector, bridge, autopilots, stations, health,
+             tracked_names, wall, sim_s, decode_pose) -> dict[str, Any]:
+    ticks = np.asarray(collector.ticks, dtype=np.int64)
+    in_run = (ticks >= t_start) & (ticks <= t_stop)
+    n_ticks = int(in_run.sum())
+    span = t_stop - t_start
+    all_send_lat = []
+    all_ap_lat = []
+    bodies = []
+    for name in tracked_names:
+        rows = [(tk, s) for tk, s in collector.states.get(name, []) if t_start <= tk <= t_stop]
+        t = np.array([s.time_ns for _, s in rows], dtype=np.int64)
+        tick_t = np.array([tk for tk, _ in rows], dtype=np.int64)
+        cap = np.array([s.capture_ns for _, s in rows], dtype=np.int64)
+        trk = np.array([bool(s.tracked) for _, s in rows], dtype=bool)
+        pos = np.array([s.position for _, s in rows], dtype=float).reshape(-1, 3)
+        quat = np.array([s.quaternion for _, s in rows], dtype=float).reshape(-1, 4)
+        tt = np.arange(t_start - shift, t_stop - shift + 1, 5_000_000, dtype=np.int64)
+        tp, tq = sc.truth_at(name, tt)
+        m = M.body_metrics(name, t, trk, pos, quat, tick_t - cap, (tt + shift, tp, tq), n_ticks=n_ticks,
+                           span_ns=span)
+        d = {
+            "name": name,
+            "position_rmse_mm": m.position_rmse_mm,
+            "position_max_mm": m.position_max_mm,
+            "rotation_rmse_deg": m.rotation_rmse_deg,
+            "tracked_fraction": m.tracked_fraction,
+            "rate_hz": m.rate_hz,
+            "jitter_mm": m.position_jitter_mm,
+            "pipeline_latency_ms": m.latency_ms,
+        }
+        if name in autopilots:
+            ap, link = autopilots[name]
+            poses = ap.messages(("VISION_POSITION_ESTIMATE", "ODOMETRY"))
+            rep = ap.report()
+            st = link.stats()
+            d["mavlink_messages"] = len(poses)
+            d["mavlink_rate_hz"] = len(poses) / (span * 1e-9) if span > 0 else 0.0
+            d["mavlink_max_gap_ms"] = rep.get("max_gap_ms", float("nan"))
+            send_lat = link.lat_capture.values()
+            all_send_lat.append(send_lat)
+            d["latency_ms"] = M.percentiles_ms(send_lat, (50, 99))
+            if poses and link.cfg.time_base == "boot":
+                usec = np.array([decode_pose(p)["usec"] for p in poses], dtype=np.int64)
+                recv = np.array([p.recv_ns for p in poses], dtype=np.int64)
+                all_ap_lat.append(recv - usec * 1000)
+                # what the autopilot got, back in the world frame (N, E, D) -> (x, -y, -z)
+                inside = (usec * 1000 >= t_start) & (usec * 1000 <= t_stop)
+                if link.cfg.yaw_offset_deg == 0 and not np.any(link.cfg.pivot_offset) and inside.any():
+                    ned = np.array([decode_pose(p)["position_ned"] for p in poses], dtype=float)[inside]
+                    world = ned * np.array([1.0, -1.0, -1.0])
+                    tp2, _ = sc.truth_at(name, usec[inside] * 1000 - shift)
+                    e = M.position_errors(world, tp2) * 1e3
+                    d["mavlink_position_rmse_mm"] = M.rms(e)
+                    d["mavlink_position_max_mm"] = float(e.max())
+            d["bridge"] = {k: st[k] for k in ("sent", "rate_limited", "not_tracked", "dropped_stale", "no_link",
+                                                "frozen", "timesync_answered")}
+        bodies.append(d)
+    send = np.concatenate(all_send_lat) if all_send_lat else np.zeros(0)
+    aplat = np.concatenate(all_ap_lat) if all_ap_lat else np.zeros(0)
+    cams = health.get("cameras", {})
+    stations_out = []
+    for s in stations:
+        c = cams.get(s.camera.id, {})
+        stations_out.append({
+            "camera_id": s.camera.id, "name": s.camera.name, "station_id": s.station_id,
+            "frames_sent": s.sent, "frames_accepted": c.get("frames"), "fps": (s.sent / (span * 1e-9)) if span else 0.0,
+            "clock_offset_true_ms": -s.clock_offset_ns * 1e-6,
+            "clock_offset_reported_ms": c.get("clock_offset_ms"),
+            "latency_ms": c.get("latency_ms"),
+        })
+    return _json_safe({
+        "scenario": arena.source,
+        "session": sc.session,
+        "seed": sc.seed,
+        "duration_s": span * 1e-9,
+        "wall_s": wall,
+        "simulate_s": sim_s,
+        "output_rate_hz": n_ticks / (span * 1e-9) if span > 0 else 0.0,
+        "ticks": n_ticks,
+        "late_ticks": health.get("late_ticks"),
+        "bodies": bodies,
+        "latency_ms": M.percentiles_ms(send, (50, 99)),
+        "latency_to_autopilot_ms": M.percentiles_ms(aplat, (50, 99)),
+        "stations": stations_out,
+        "server": {k: health.get(k) for k in ("packets", "frames_accepted", "frames_shed", "malformed", "unknown", "pipeline_errors",
+                                              "tick_cost_max_ms")},
+        "pipeline": {k: v for k, v in (health.get("pipeline") or {}).items() if isinstance(v, (int, float, str))},
+    })
+
+
+def _json_safe(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return round(float(x), 4) if np.isfinite(x) else None
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    rows = []
+    for b in s["bodies"]:
+        r = dict(b)
+        r["lat_p50"] = (b.get("latency_ms") or {}).get("p50")
+        r["lat_p99"] = (b.get("latency_ms") or {}).get("p99")
+        rows.append({k: (float("nan") if v is None else v) for k, v in r.items()})
+    table = M.format_table(rows, [
+        ("name", "body", ""),
+        ("tracked_fraction", "tracked", ".3f"),
+        ("rate_hz", "out Hz", ".1f"),
+        ("position_rmse_mm", "pos RMSE mm", ".2f"),
+        ("position_max_mm", "pos max mm", ".2f"),
+        ("rotation_rmse_deg", "rot RMSE deg", ".3f"),
+        ("mavlink_rate_hz", "MAVLink Hz", ".1f"),
+        ("mavlink_position_rmse_mm", "MAVLink pos RMSE mm", ".2f"),
+        ("lat_p50", "lat p50 ms", ".2f"),
+        ("lat_p99", "lat p99 ms", ".2f"),
+    ])
+    lat = s["latency_ms"]
+    fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
+    st = " ".join(f"{x['camera_id']}:{x['fps']:.0f}fps" for x in s["stations"])
+    return "\n".join([
+        f"visionpos demo: {s['scenario']} ({s['session']}, seed {s['seed']}), {s['duration_s']:.1f} s streamed, "
+        f"{len(s['stations'])} stations ({st}), {s['ticks']} output ticks",
+        table,
+        f"latency capture -> MAVLink send: p50 {fmt(lat['p50'])} ms, p99 {fmt(lat['p99'])} ms "
+        f"(pose stamp -> autopilot: p50 {fmt(s['latency_to_autopilot_ms']['p50'])} ms); "
+        f"set ArduPilot VISO_DELAY_MS / PX4 EKF2_EV_DELAY to about the stamp -> autopilot p50",
+        f"server: {s['server']['frames_accepted']} frames accepted"
+        + (f" ({s['server']['frames_shed']} not fused: queued too long)" if s['server'].get('frames_shed') else "")
+        + f", {s['server']['malformed']} malformed, "
+        f"{s['late_ticks']} late ticks; wall time {s['wall_s']:.1f} s (simulation {s['simulate_s']:.1f} s)",
+    ])
+
+
+# ---------------------------------------------------------------- CLI
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenario", default="thesis", help="arena: thesis (default), arena8 or a YAML path with a sim section")
+    p.add_argument("--duration", type=float, default=10.0, help="seconds of streaming (real time; default 10)")
+    p.add_argument("--seed", type=int, default=None, help="simulation seed (default: the scenario's sim.seed)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key (repeatable)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout (live status goes to stderr)")
+    p.add_argument("--quiet", action="store_true", help="no live status")
+    p.add_argument("--record", metavar="FILE", help="also record the session (packets, outputs, truth) to an MCAP file for replay/tune")
+
+
+def run(args: argparse.Namespace) -> int:
+    if not 0.5 <= args.duration <= 3600:
+        raise ValueError(f"--duration {args.duration}: give 0.5 to 3600 seconds")
+    arena = demo_arena(args.scenario, args.duration, args.seed, args.set)
+    status_out = None if args.quiet else (sys.stderr if args.json else sys.stdout)
+    if status_out is not None:
+        status_out.write(f"visionpos demo: {len(arena.cameras)} simulated stations, {len(arena.bodies)} bodies, "
+                         f"{args.duration:g} s on 127.0.0.1 ...\n")
+        status_out.flush()
+    summary = asyncio.run(run_demo(arena, args.duration, status_out, args.record))
+    if args.record:
+        summary["recording"] = args.record
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(format_summary(summary))
+        if args.record:
+            print(f"recorded to {args.record}; try: visionpos replay {args.record}")
+    ok = all(b["tracked_fraction"] and b["tracked_fraction"] > 0 for b in summary["bodies"])
+    if not ok:
+        print("visionpos demo: a body was never tracked; see the log above", file=sys.stderr)
+    return 0 if ok else 1

@@ -1,0 +1,265 @@
+"""Arena configuration: YAML in, validated dataclasses out.
+
+One arena file holds `cameras`, `bodies` and optional sections owned by
+other stages (`fusion`, `server`, `vehicles`, `pose_stream`, `sim`). This
+module validates the shared parts; each stage validates its own section
+with the helpers here, so every error names the file, the key and what
+would be right.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from visionpos.camera.model import Camera, CameraModelError
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+BUILTIN_SCENARIOS = {"thesis": "thesis_arena.yaml", "arena8": "arena8.yaml"}
+
+
+class ConfigError(ValueError):
+    """A configuration problem. str() names the file, the key and the fix."""
+
+    def __init__(self, source: str, key: str, message: str):
+        self.source, self.key, self.message = source, key, message
+        super().__init__(f"{source}: {key}: {message}")
+
+
+def resolve_config_path(name_or_path: str | Path) -> Path:
+    """A built-in scenario name ('thesis', 'arena8') or a path -> existing Path."""
+    s = str(name_or_path)
+    if s in BUILTIN_SCENARIOS:
+        return CONFIG_DIR / BUILTIN_SCENARIOS[s]
+    p = Path(s)
+    if p.exists():
+        return p
+    if (CONFIG_DIR / s).exists():
+        return CONFIG_DIR / s
+    raise ConfigError(
+        s, "(file)", f"no such file; give a path or a built-in scenario name {sorted(BUILTIN_SCENARIOS)}"
+    )
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML mapping; raises ConfigError naming the file on any problem."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as e:
+        raise ConfigError(str(p), "(file)", f"cannot read: {e.strerror or e}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ConfigError(str(p), "(syntax)", f"not valid YAML: {e}") from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(str(p), "(top level)", "expected a mapping of sections (cameras, bodies, ...)")
+    return data
+
+
+class Section:
+    """Typed reads from one YAML mapping with errors naming file and key path.
+
+    >>> s = Section({"rate_hz": 50}, "arena.yaml", "vehicles[0]")
+    >>> s.number("rate_hz", 100, min=1)
+    50.0
+    """
+
+    def __init__(self, data: Any, source: str, path: str):
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            raise ConfigError(source, path, f"expected a mapping, got {type(data).__name__}")
+        self.data, self.source, self.path = data, source, path
+
+    def _key(self, key: str) -> str:
+        return f"{self.path}.{key}" if self.path else key
+
+    def error(self, key: str, message: str) -> ConfigError:
+        return ConfigError(self.source, self._key(key), message)
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def sub(self, key: str) -> "Section":
+        return Section(self.data.get(key), self.source, self._key(key))
+
+    def items(self, key: str) -> list["Section"]:
+        v = self.data.get(key, [])
+        if not isinstance(v, list):
+            raise self.error(key, "expected a list")
+        return [Section(x, self.source, f"{self._key(key)}[{i}]") for i, x in enumerate(v)]
+
+    def number(self, key: str, default: float | None = None, *, min: float | None = None, max: float | None = None) -> float:
+        if key not in self.data:
+            if default is None:
+                raise self.error(key, "required number is missing")
+            return float(default)
+        v = self.data[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise self.error(key, f"expected a number, got {v!r}")
+        v = float(v)
+        if not np.isfinite(v):
+            raise self.error(key, f"must be finite, got {v}")
+        if min is not None and v < min:
+            raise self.error(key, f"must be >= {min}, got {v}")
+        if max is not None and v > max:
+            raise self.error(key, f"must be <= {max}, got {v}")
+        return v
+
+    def integer(self, key: str, default: int | None = None, *, min: int | None = None, max: int | None = None) -> int:
+        if key not in self.data and default is not None:
+            return int(default)
+        v = self.data.get(key)
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self.error(key, f"expected an integer, got {v!r}")
+        if min is not None and v < min:
+            raise self.error(key, f"must be >= {min}, got {v}")
+        if max is not None and v > max:
+            raise self.error(key, f"must be <= {max}, got {v}")
+        return v
+
+    def string(self, key: str, default: str | None = None, *, choices: tuple[str, ...] | None = None) -> str:
+        if key not in self.data:
+            if default is None:
+                raise self.error(key, "required text is missing")
+            return default
+        v = self.data[key]
+        if not isinstance(v, str):
+            raise self.error(key, f"expected text, got {v!r}")
+        if choices is not None and v not in choices:
+            raise self.error(key, f"'{v}' is not one of {list(choices)}")
+        return v
+
+    def boolean(self, key: str, default: bool) -> bool:
+        v = self.data.get(key, default)
+        if not isinstance(v, bool):
+            raise self.error(key, f"expected true or false, got {v!r}")
+        return v
+
+    def array(self, key: str, shape: tuple[int | None, ...], default: Any = None) -> np.ndarray:
+        """Numeric array with a shape pattern (None = any length)."""
+        if key not in self.data:
+            if default is None:
+                raise self.error(key, f"required array of shape {shape} is missing")
+            return np.asarray(default, dtype=np.float64)
+        try:
+            a = np.asarray(self.data[key], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise self.error(key, f"expected numbers of shape {shape}, got {self.data[key]!r}") from None
+        if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape)):
+            raise self.error(key, f"expected shape {shape}, got {a.shape}")
+        if not np.isfinite(a).all():
+            raise self.error(key, "contains non-finite values")
+        return a
+
+
+@dataclass(frozen=True)
+class BodyConfig:
+    """A rigid body: markers (M, 3) in the body frame (m; x forward, y left, z up)."""
+
+    name: str
+    id: int
+    markers: np.ndarray
+    marker_diameter: float = 0.014
+    raw: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ArenaConfig:
+    """Cameras and bodies plus the raw YAML of every section (for stage-owned sections)."""
+
+    source: str
+    cameras: tuple[Camera, ...]
+    bodies: tuple[BodyConfig, ...]
+    raw: dict[str, Any]
+
+    def camera_by_id(self) -> dict[int, Camera]:
+        return {c.id: c for c in self.cameras}
+
+    def section(self, key: str) -> Section:
+        return Section(self.raw.get(key), self.source, key)
+
+    def with_cameras(self, cameras: list[Camera]) -> "ArenaConfig":
+        raw = dict(self.raw)
+        raw["cameras"] = [c.to_dict() for c in cameras]
+        return ArenaConfig(self.source, tuple(cameras), self.bodies, raw)
+
+
+def parse_arena(data: dict[str, Any], source: str = "<arena>") -> ArenaConfig:
+    """Validate a parsed arena mapping."""
+    top = Section(data, source, "")
+    cams: list[Camera] = []
+    for i, c in enumerate(top.items("cameras")):
+        try:
+            cams.append(Camera.from_dict(c.data, where=f"cameras[{i}]"))
+        except CameraModelError as e:
+            raise ConfigError(source, f"cameras[{i}]", str(e)) from None
+    ids = [c.id for c in cams]
+    if len(set(ids)) != len(ids):
+        raise ConfigError(source, "cameras", f"camera ids must be unique, got {ids}")
+    bodies: list[BodyConfig] = []
+    for b in top.items("bodies"):
+        markers = b.array("markers", (None, 3))
+        if len(markers) < 3:
+            raise b.error("markers", f"a rigid body needs at least 3 markers, got {len(markers)}")
+        d = np.linalg.norm(markers[:, None] - markers[None], axis=-1)
+        if np.min(d + np.eye(len(markers)) * 1e9) < 0.01:
+            raise b.error("markers", "two markers are closer than 10 mm; cameras cannot separate them")
+        bodies.append(
+            BodyConfig(
+                name=b.string("name"),
+                id=b.integer("id", len(bodies) + 1, min=1, max=255),
+                markers=markers,
+                marker_diameter=b.number("marker_diameter", 0.014, min=0.001),
+                raw=b.data,
+            )
+        )
+    names = [b.name for b in bodies]
+    if len(set(names)) != len(names):
+        raise ConfigError(source, "bodies", f"body names must be unique, got {names}")
+    return ArenaConfig(source, tuple(cams), tuple(bodies), data)
+
+
+def load_arena(path: str | Path) -> ArenaConfig:
+    """Load and validate an arena YAML (a path or a built-in scenario name)."""
+    p = resolve_config_path(path)
+    return parse_arena(load_yaml(p), str(p))
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str], source: str = "--set") -> dict[str, Any]:
+    """Apply `dotted.key=value` overrides (value parsed as YAML) to a nested mapping; returns a copy.
+
+    List items are addressed by index: `bodies.0.marker_diameter=0.02`.
+    """
+    import copy
+
+    out = copy.deepcopy(data)
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(source, item, "expected key=value, e.g. fusion.max_residual_px=2.0")
+        key, value = item.split("=", 1)
+        parts = key.strip().split(".")
+        node: Any = out
+        for j, part in enumerate(parts[:-1]):
+            if isinstance(node, list):
+                node = node[int(part)]
+            else:
+                node = node.setdefault(part, {})
+        last = parts[-1]
+        parsed = yaml.safe_load(value)
+        if isinstance(node, list):
+            node[int(last)] = parsed
+        else:
+            node[last] = parsed
+    return out
+
+
+def dump_yaml(data: dict[str, Any], path: str | Path) -> None:
+    Path(path).write_text(yaml.safe_dump(data, sort_keys=False))

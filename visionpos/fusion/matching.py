@@ -1,0 +1,615 @@
+"""Cross-view correspondence and the pipeline's fast N-view triangulation.
+
+Two ways a blob gets its meaning:
+1. Tracked bodies (the common case): the body's predicted markers are
+   projected into the camera at the frame's capture time and blobs are
+   associated by nearest neighbour within a gate (`associate`); where two
+   predictions compete for a blob, the assignment is solved jointly
+   (Hungarian, `min_cost_assignment`), so one blob never feeds two markers
+   or two bodies.
+2. Acquisition (lost bodies, loose markers): unlabeled blobs of different
+   cameras are paired by the closest approach of their rays, each pair is
+   grown to more views by reprojection, and candidates are accepted greedily
+   by (number of views, residual) so that every blob is used once
+   (`match_unlabeled`). False blobs rarely find a consistent partner in a
+   third view; missing markers just give fewer points.
+
+`triangulate` is the per-packet hot path: an iteratively re-weighted
+linear triangulation in normalised image coordinates. With the
+weights f/z (focal length over depth) its cost is exactly the reprojection
+error in pixels, so after 2-3 re-weightings it reaches the maximum-likelihood
+point for isotropic pixel noise (up to lens-distortion scale changes). It
+accepts per-view offsets (view v observed X + offsets[p, v]) for motion
+compensation. Two passes suffice: the first (unit weights) fixes the depths
+to ~1e-3 relative, so the second pass's weights are exact for practical
+purposes. geometry.triangulate_* does the same job with a Gauss-Newton
+refinement for offline work; this one is here because it runs several
+thousand times a second. The per-frame steps are compiled loops
+(visionpos/jit.py); the public functions are thin wrappers that fix the
+argument types.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from visionpos.camera.model import FISHEYE, CameraModel
+from visionpos.jit import njit
+
+
+
+def undistort_points(model: CameraModel, pixels: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) -> normalised image coordinates (N, 2), same model as camera.py.
+
+    Compiled Newton iterations to round-off (agrees with CameraModel.undistort
+    to ~1e-12); NaN where the lens model cannot map the pixel back (beyond
+    the fold of its distortion), as CameraModel.undistort.
+    """
+    px = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
+    intrinsics, dist, fisheye = lens_arrays(model)
+    return undistort_normalized(px, intrinsics, dist, fisheye)
+
+
+def lens_arrays(model: CameraModel) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The model as the kernels take it: intrinsics (fx, fy, cx, cy, width, height), dist (8,)
+    (OpenCV pinhole k1, k2, p1, p2, k3, k4, k5, k6, or Kannala-Brandt k1..k4), fisheye."""
+    fisheye = model.kind == FISHEYE
+    dist = np.zeros(8)
+    d = np.asarray(model.dist, dtype=np.float64)
+    n = min(len(d), 4 if fisheye else 8)
+    dist[:n] = d[:n]
+    return np.array([model.fx, model.fy, model.cx, model.cy, model.width, model.height], dtype=np.float64), dist, fisheye
+
+
+@njit
+def _pinhole_distort(x, y, dist):
+    """One normalised point -> distorted (OpenCV rational + tangential, dist (8,)); also the
+    radial factor and its derivative by r^2, which Newton's Jacobian needs."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = dist[0], dist[1], dist[2], dist[3], dist[4], dist[5], dist[6], dist[7]
+    r2 = x * x + y * y
+    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    radial = num / den
+    drad = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) * den - num * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / (den * den)
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return xd, yd, radial, drad
+
+
+@njit
+def _kb_radius(th, dist):
+    """Kannala-Brandt: distorted radius at angle th (dist[0:4] = k1..k4) and its derivative."""
+    t2 = th * th
+    r = th * (1 + t2 * (dist[0] + t2 * (dist[1] + t2 * (dist[2] + t2 * dist[3]))))
+    dr = 1 + t2 * (3 * dist[0] + t2 * (5 * dist[1] + t2 * (7 * dist[2] + t2 * 9 * dist[3])))
+    return r, dr
+
+
+@njit
+def undistort_normalized(px, intrinsics, dist, fisheye):
+    """Compiled pixels (N, 2) -> normalised coordinates (N, 2): Newton on the distortion
+    (2D for the pinhole model, on the angle for Kannala-Brandt), then a check that the
+    result distorts back to the pixel (NaN where it does not: a fold of the model)."""
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    p1, p2 = dist[2], dist[3]
+    N = px.shape[0]
+    out = np.empty((N, 2))
+    for i in range(N):
+        xd, yd = (px[i, 0] - cx) / fx, (px[i, 1] - cy) / fy
+        if fisheye:
+            rd = math.sqrt(xd * xd + yd * yd)
+            th = min(max(rd, 0.0), math.pi / 2 - 1e-6)
+            for _ in range(20):
+                r, dr = _kb_radius(th, dist)
+                step = (r - rd) / dr
+                th = min(max(th - step, 0.0), math.pi / 2 - 1e-9)
+                if abs(step) < 1e-15:
+                    break
+            s = math.tan(th) / rd if rd > 1e-12 else 1.0
+            x, y = xd * s, yd * s
+            ok = abs(_kb_radius(th, dist)[0] - rd) <= 1e-9 * (1.0 + max(abs(xd), abs(yd)))
+        else:
+            x, y = xd, yd
+            for _ in range(20):
+                ux, uy, radial, drad = _pinhole_distort(x, y, dist)
+                ex, ey = ux - xd, uy - yd
+                if max(abs(ex), abs(ey)) < 1e-15:
+                    break
+                j00 = radial + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
+                j01 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y  # symmetric: j10 == j01
+                j11 = radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
+                det = j00 * j11 - j01 * j01
+                x -= (j11 * ex - j01 * ey) / det
+                y -= (-j01 * ex + j00 * ey) / det
+            ux, uy, _, _ = _pinhole_distort(x, y, dist)
+            ok = max(abs(ux - xd), abs(uy - yd)) <= 1e-9 * (1.0 + max(abs(xd), abs(yd)))
+        if ok:
+            out[i, 0], out[i, 1] = x, y
+        else:
+            out[i, 0] = out[i, 1] = np.nan
+    return out
+
+
+class Projector:
+    """Fast world -> pixel projection for one camera (same models as camera.py, compiled).
+
+    camera.Camera.project is exact but built from many small numpy steps;
+    this runs per packet, so it is one compiled loop over the points.
+    """
+
+    def __init__(self, camera):
+        self.camera = camera
+        m = camera.model
+        self.R = np.ascontiguousarray(camera.R, dtype=np.float64)
+        self.t = np.ascontiguousarray(camera.t, dtype=np.float64).reshape(3)
+        self.intrinsics, self.dist, self.fisheye = lens_arrays(m)
+        # beyond this angle from the axis the lens model folds back: not visible
+        self.cos_max = float(np.cos(m.max_theta))
+        # all of it in one array for the compiled per-frame call: R (9), t (3), intrinsics (6),
+        # dist (8), cos_max, fisheye (1.0 / 0.0)
+        self.packed = np.concatenate([self.R.ravel(), self.t, self.intrinsics, self.dist, [self.cos_max, float(self.fisheye)]])
+
+    def undistort(self, pixels: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) float64 -> normalised coordinates (N, 2), as undistort_points."""
+        return undistort_normalized(pixels, self.intrinsics, self.dist, self.fisheye)
+
+    def project(self, points_world: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """(N, 3) world points -> (N, 2) pixels; NaN when behind, outside the lens model or off the sensor (+ margin)."""
+        X = np.ascontiguousarray(points_world, dtype=np.float64).reshape(-1, 3)
+        return project_points(X, self.R, self.t, self.intrinsics, self.dist, self.fisheye, self.cos_max, float(margin))
+
+
+@njit
+def project_points(X, R, t, intrinsics, dist, fisheye, cos_max, margin):
+    """World points X (N, 3) -> pixels (N, 2) through camera pose R (3, 3), t (3,).
+
+    intrinsics: fx, fy, cx, cy, width, height; dist (8,): OpenCV pinhole
+    k1, k2, p1, p2, k3, k4, k5, k6, or Kannala-Brandt k1..k4 when fisheye.
+    NaN where the point is behind, beyond the lens model's angle (cos_max) or
+    off the sensor by more than margin px.
+    """
+    fx, fy, cx, cy, w, h = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3], intrinsics[4], intrinsics[5]
+    N = X.shape[0]
+    uv = np.full((N, 2), np.nan)
+    for i in range(N):
+        pc0 = R[0, 0] * X[i, 0] + R[0, 1] * X[i, 1] + R[0, 2] * X[i, 2] + t[0]
+        pc1 = R[1, 0] * X[i, 0] + R[1, 1] * X[i, 1] + R[1, 2] * X[i, 2] + t[1]
+        pc2 = R[2, 0] * X[i, 0] + R[2, 1] * X[i, 1] + R[2, 2] * X[i, 2] + t[2]
+        if not pc2 > cos_max * math.sqrt(pc0 * pc0 + pc1 * pc1 + pc2 * pc2):
+            continue
+        x, y = pc0 / pc2, pc1 / pc2
+        if fisheye:
+            r = math.sqrt(x * x + y * y)
+            s = _kb_radius(math.atan(r), dist)[0] / r if r > 1e-12 else 1.0
+            xd, yd = x * s, y * s
+        else:
+            xd, yd, _, _ = _pinhole_distort(x, y, dist)
+        u, v = fx * xd + cx, fy * yd + cy
+        if -0.5 - margin < u < w - 0.5 + margin and -0.5 - margin < v < h - 0.5 + margin:
+            uv[i, 0], uv[i, 1] = u, v
+    return uv
+
+
+def associate(predicted: np.ndarray, blobs: np.ndarray, gate: float) -> np.ndarray:
+    """Assign blobs to predicted marker positions, each blob at most once.
+
+    predicted: (M, 2) predicted pixels (NaN rows = not visible); blobs:
+    (N, 2+) pixels; gate: max distance (px). Returns (M,) blob index or -1.
+    Nearest neighbour when unambiguous; minimum total squared distance
+    (Hungarian) over the gated pairs when two predictions want the same blob
+    or one prediction has two blobs inside its gate.
+    """
+    M = len(predicted)
+    if M == 0 or len(blobs) == 0:
+        return np.full(M, -1, dtype=np.int64)
+    return associate_blobs(np.ascontiguousarray(predicted, dtype=np.float64), np.ascontiguousarray(blobs[:, :2], dtype=np.float64),
+                      float(gate) * float(gate))
+
+
+@njit
+def associate_blobs(pred, blobs, g2):
+    """Compiled core of `associate`: pred (M, 2), blobs (N, 2) float64, g2 the squared gate."""
+    M, N = pred.shape[0], blobs.shape[0]
+    d2 = np.empty((M, N))
+    for m in range(M):
+        for n in range(N):
+            dx, dy = pred[m, 0] - blobs[n, 0], pred[m, 1] - blobs[n, 1]
+            d2[m, n] = dx * dx + dy * dy  # NaN (invisible) fails every `< g2`
+    out = np.full(M, -1, dtype=np.int64)
+    taken = np.zeros(N, dtype=np.bool_)
+    ambiguous = False
+    for m in range(M):
+        inside = 0
+        for n in range(N):
+            if d2[m, n] < g2:
+                inside += 1
+                out[m] = n
+        if inside > 1 or (inside == 1 and taken[out[m]]):
+            ambiguous = True
+            break
+        if inside == 1:
+            taken[out[m]] = True
+    if not ambiguous:
+        return out
+    # Hungarian on the rows and columns that have a pair inside the gate
+    rows = np.array([m for m in range(M) if (d2[m] < g2).any()])
+    cols = np.array([n for n in range(N) if (d2[:, n] < g2).any()])
+    cost = np.empty((len(rows), len(cols)))
+    for i in range(len(rows)):
+        for j in range(len(cols)):
+            c = d2[rows[i], cols[j]]
+            cost[i, j] = c if c < g2 else g2 * 1e3
+    out[:] = -1
+    if len(rows) <= len(cols):
+        col_of = min_cost_assignment(cost)
+        for i in range(len(rows)):
+            if cost[i, col_of[i]] < g2:
+                out[rows[i]] = cols[col_of[i]]
+    else:
+        row_of = min_cost_assignment(cost.T.copy())
+        for j in range(len(cols)):
+            if cost[row_of[j], j] < g2:
+                out[rows[row_of[j]]] = cols[j]
+    return out
+
+
+@njit
+def min_cost_assignment(C: np.ndarray) -> np.ndarray:
+    """Rectangular assignment problem, compiled: C (n, m) finite costs, n <= m.
+
+    Returns the column (n,) of each row that minimises the total cost
+    (Hungarian method with potentials, shortest augmenting paths, O(n^2 m)).
+    """
+    n, m = C.shape
+    u = np.zeros(n + 1)
+    v = np.zeros(m + 1)
+    match = np.zeros(m + 1, dtype=np.int64)  # row (1-based) assigned to column j; 0 = free
+    way = np.zeros(m + 1, dtype=np.int64)
+    for i in range(1, n + 1):
+        match[0] = i
+        j0 = 0
+        minv = np.full(m + 1, np.inf)
+        used = np.zeros(m + 1, dtype=np.bool_)
+        while True:
+            used[j0] = True
+            i0 = match[j0]
+            delta = np.inf
+            j1 = 0
+            for j in range(1, m + 1):
+                if not used[j]:
+                    cur = C[i0 - 1, j - 1] - u[i0] - v[j]
+                    if cur < minv[j]:
+                        minv[j] = cur
+                        way[j] = j0
+                    if minv[j] < delta:
+                        delta = minv[j]
+                        j1 = j
+            for j in range(m + 1):
+                if used[j]:
+                    u[match[j]] += delta
+                    v[j] -= delta
+                else:
+                    minv[j] -= delta
+            j0 = j1
+            if match[j0] == 0:
+                break
+        while j0 != 0:  # flip the augmenting path
+            j1 = way[j0]
+            match[j0] = match[j1]
+            j0 = j1
+    col_of = np.full(n, -1, dtype=np.int64)
+    for j in range(1, m + 1):
+        if match[j] != 0:
+            col_of[match[j] - 1] = j - 1
+    return col_of
+
+
+def triangulate(
+    xn: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    f: np.ndarray,
+    offsets: np.ndarray | None = None,
+    iterations: int = 2,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Iteratively re-weighted linear N-view triangulation.
+
+    xn: (P, V, 2) normalised image coordinates, NaN where view v does not see
+    point p. R (V, 3, 3), t (V, 3): world->camera poses. f: (V,) focal length
+    in pixels (sqrt(fx fy)), which makes residuals pixels. offsets: (P, V, 3)
+    or None; view v observed X + offsets[p, v] (motion compensation).
+    Returns points (P, 3) (NaN with fewer than 2 views), rms residual (P,)
+    px, n_views (P,).
+    """
+    xn = np.ascontiguousarray(xn, dtype=np.float64)
+    off = _NO_OFFSETS if offsets is None else np.ascontiguousarray(offsets, dtype=np.float64)
+    return triangulate_irls(xn, np.ascontiguousarray(R, dtype=np.float64), np.ascontiguousarray(t, dtype=np.float64),
+                        np.ascontiguousarray(f, dtype=np.float64), off, offsets is not None, int(iterations))
+
+
+_NO_OFFSETS = np.zeros((0, 0, 3))
+
+
+@njit
+def triangulate_irls(xn, R, t, f, offsets, has_offsets, iterations):
+    """Compiled core of `triangulate` (same arrays; offsets (P, V, 3) read only if has_offsets)."""
+    # Each view gives two linear equations (R0 - u R2) . X = u t2 - t0 (and v), weighted
+    # by f / depth so that residuals are pixels; the depth comes from the previous
+    # solution (1 to start), which turns the algebraic error into the reprojection error.
+    P, V = xn.shape[0], xn.shape[1]
+    X = np.full((P, 3), np.nan)
+    rms = np.full(P, np.nan)
+    n_views = np.zeros(P, dtype=np.int64)
+    A = np.empty((V, 2, 3))
+    b = np.empty((V, 2))
+    w = np.empty(V)
+    seen = np.empty(V, dtype=np.bool_)
+    for p in range(P):
+        n = 0
+        for v in range(V):
+            seen[v] = not np.isnan(xn[p, v, 0])
+            if not seen[v]:
+                continue
+            n += 1
+            for j in range(2):
+                u = xn[p, v, j]
+                bj = u * t[v, 2] - t[v, j]
+                for k in range(3):
+                    A[v, j, k] = R[v, j, k] - u * R[v, 2, k]
+                    if has_offsets:
+                        bj -= A[v, j, k] * offsets[p, v, k]
+                b[v, j] = bj
+            w[v] = f[v]
+        n_views[p] = n
+        if n < 2:
+            continue
+        x0 = x1 = x2 = 0.0
+        for _ in range(iterations):
+            n00 = n01 = n02 = n11 = n12 = n22 = r0 = r1 = r2 = 0.0
+            for v in range(V):
+                if not seen[v]:
+                    continue
+                ww = w[v] * w[v]
+                for j in range(2):
+                    a0, a1, a2, bj = A[v, j, 0], A[v, j, 1], A[v, j, 2], b[v, j]
+                    n00 += ww * a0 * a0
+                    n01 += ww * a0 * a1
+                    n02 += ww * a0 * a2
+                    n11 += ww * a1 * a1
+                    n12 += ww * a1 * a2
+                    n22 += ww * a2 * a2
+                    r0 += ww * a0 * bj
+                    r1 += ww * a1 * bj
+                    r2 += ww * a2 * bj
+            # symmetric 3x3 solve by the adjugate
+            c00, c01, c02 = n11 * n22 - n12 * n12, n02 * n12 - n01 * n22, n01 * n12 - n02 * n11
+            c11, c12, c22 = n00 * n22 - n02 * n02, n01 * n02 - n00 * n12, n00 * n11 - n01 * n01
+            det = n00 * c00 + n01 * c01 + n02 * c02
+            x0 = (c00 * r0 + c01 * r1 + c02 * r2) / det
+            x1 = (c01 * r0 + c11 * r1 + c12 * r2) / det
+            x2 = (c02 * r0 + c12 * r1 + c22 * r2) / det
+            for v in range(V):
+                if seen[v]:
+                    z = R[v, 2, 0] * x0 + R[v, 2, 1] * x1 + R[v, 2, 2] * x2 + t[v, 2]
+                    if has_offsets:
+                        z += R[v, 2, 0] * offsets[p, v, 0] + R[v, 2, 1] * offsets[p, v, 1] + R[v, 2, 2] * offsets[p, v, 2]
+                    w[v] = f[v] / max(z, 1e-6)
+        ss = 0.0
+        for v in range(V):
+            if seen[v]:
+                for j in range(2):
+                    r = (A[v, j, 0] * x0 + A[v, j, 1] * x1 + A[v, j, 2] * x2 - b[v, j]) * w[v]  # pixels
+                    ss += r * r
+        X[p, 0], X[p, 1], X[p, 2] = x0, x1, x2
+        rms[p] = math.sqrt(ss / n)
+    return X, rms, n_views
+
+
+@njit
+def _world_rays(xn, R):
+    """Normalised coordinates (N, 2) of a camera with world->camera rotation R -> unit world directions (N, 3)."""
+    out = np.empty((xn.shape[0], 3))
+    for i in range(xn.shape[0]):
+        n = 0.0
+        for k in range(3):
+            out[i, k] = R[0, k] * xn[i, 0] + R[1, k] * xn[i, 1] + R[2, k]
+            n += out[i, k] * out[i, k]
+        n = math.sqrt(n)
+        for k in range(3):
+            out[i, k] /= n
+    return out
+
+
+@njit
+def ray_distances(c1: np.ndarray, d1: np.ndarray, c2: np.ndarray, d2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest approach of two bundles of rays from two centres (compiled).
+
+    c1, c2: (3,) centres; d1 (N1, 3), d2 (N2, 3) unit directions. Returns
+    distance (N1, N2) in metres (inf where the closest point lies behind a
+    camera or the rays are parallel) and midpoints (N1, N2, 3).
+    """
+    N1, N2 = d1.shape[0], d2.shape[0]
+    dist = np.full((N1, N2), np.inf)
+    mid = np.empty((N1, N2, 3))
+    w0 = c1 - c2
+    for i in range(N1):
+        dd = d1[i, 0] * w0[0] + d1[i, 1] * w0[1] + d1[i, 2] * w0[2]
+        for j in range(N2):
+            b = d1[i, 0] * d2[j, 0] + d1[i, 1] * d2[j, 1] + d1[i, 2] * d2[j, 2]
+            e = d2[j, 0] * w0[0] + d2[j, 1] * w0[1] + d2[j, 2] * w0[2]
+            den = 1.0 - b * b
+            s = (b * e - dd) / den  # along d1
+            u = (e - b * dd) / den  # along d2
+            ss = 0.0
+            for k in range(3):
+                p1 = c1[k] + s * d1[i, k]
+                p2 = c2[k] + u * d2[j, k]
+                mid[i, j, k] = 0.5 * (p1 + p2)
+                ss += (p1 - p2) * (p1 - p2)
+            if den > 1e-10 and s > 0 and u > 0:
+                dist[i, j] = math.sqrt(ss)
+    return dist, mid
+
+
+def match_unlabeled(
+    xn: list[np.ndarray],
+    R: np.ndarray,
+    t: np.ndarray,
+    f: np.ndarray,
+    max_ray_distance: float,
+    max_residual_px: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cross-view matching and triangulation of unlabeled blobs.
+
+    xn: per view v an (N_v, 2) array of normalised coordinates. R (V, 3, 3),
+    t (V, 3), f (V,) as in `triangulate`. max_ray_distance: pair gate (m).
+    max_residual_px: growth gate and final RMS gate.
+    Returns points (Q, 3), blob index (Q, V) (-1 = not seen), rms (Q,) px;
+    every blob is used by at most one point.
+    """
+    V = len(xn)
+    start = np.zeros(V + 1, dtype=np.int64)
+    start[1:] = np.cumsum([len(x) for x in xn])
+    pts = np.concatenate([np.asarray(x, dtype=np.float64).reshape(-1, 2) for x in xn]) if V else np.zeros((0, 2))
+    return _match_unlabeled(np.ascontiguousarray(pts), start, np.ascontiguousarray(R, dtype=np.float64),
+                            np.ascontiguousarray(t, dtype=np.float64), np.ascontiguousarray(f, dtype=np.float64),
+                            float(max_ray_distance), float(max_residual_px))
+
+
+@njit
+def _match_unlabeled(pts, start, R, t, f, max_ray_distance, max_residual_px):
+    """Compiled core of match_unlabeled; view v's blobs are pts[start[v]:start[v + 1]] (N, 2)."""
+    V = start.shape[0] - 1
+    centres = np.empty((V, 3))
+    for v in range(V):
+        for k in range(3):
+            centres[v, k] = -(R[v, 0, k] * t[v, 0] + R[v, 1, k] * t[v, 1] + R[v, 2, k] * t[v, 2])
+    rays = np.empty((pts.shape[0], 3))
+    for v in range(V):
+        rays[start[v] : start[v + 1]] = _world_rays(pts[start[v] : start[v + 1]], R[v])
+    # 1. seed pairs: rays of two views that pass within max_ray_distance
+    cap = 0
+    for a in range(V):
+        for b in range(a + 1, V):
+            cap += (start[a + 1] - start[a]) * (start[b + 1] - start[b])
+    idx = np.full((cap, V), -1, dtype=np.int64)
+    X0 = np.empty((cap, 3))
+    S = 0
+    for a in range(V):
+        if start[a + 1] == start[a]:
+            continue
+        for b in range(a + 1, V):
+            if start[b + 1] == start[b]:
+                continue
+            dist, mid = ray_distances(centres[a], rays[start[a] : start[a + 1]], centres[b], rays[start[b] : start[b + 1]])
+            for i in range(dist.shape[0]):
+                for j in range(dist.shape[1]):
+                    if dist[i, j] < max_ray_distance:
+                        idx[S, a], idx[S, b] = i, j
+                        X0[S] = mid[i, j]
+                        S += 1
+    if S == 0:
+        return np.zeros((0, 3)), np.zeros((0, V), dtype=np.int64), np.zeros(0)
+    idx = idx[:S].copy()
+    # 2. grow every seed to the other views by reprojection; the growth gate is looser than the
+    # final one: the seed midpoint is not the maximum-likelihood point
+    for v in range(V):
+        n = start[v + 1] - start[v]
+        if n == 0:
+            continue
+        for s in range(S):
+            if idx[s, v] >= 0:
+                continue
+            z = R[v, 2, 0] * X0[s, 0] + R[v, 2, 1] * X0[s, 1] + R[v, 2, 2] * X0[s, 2] + t[v, 2]
+            if not z > 0:
+                continue
+            u = (R[v, 0, 0] * X0[s, 0] + R[v, 0, 1] * X0[s, 1] + R[v, 0, 2] * X0[s, 2] + t[v, 0]) / z
+            w = (R[v, 1, 0] * X0[s, 0] + R[v, 1, 1] * X0[s, 1] + R[v, 1, 2] * X0[s, 2] + t[v, 1]) / z
+            best, nn = np.inf, -1
+            for j in range(n):
+                du, dw = u - pts[start[v] + j, 0], w - pts[start[v] + j, 1]
+                d = math.sqrt(du * du + dw * dw) * f[v]
+                if d < best:
+                    best, nn = d, j
+            if best < 3.0 * max_residual_px:
+                idx[s, v] = nn
+    obs = np.full((S, V, 2), np.nan)
+    for s in range(S):
+        for v in range(V):
+            if idx[s, v] >= 0:
+                obs[s, v] = pts[start[v] + idx[s, v]]
+    no_offsets = np.zeros((0, 0, 3))
+    X, rms, nv = triangulate_irls(obs, R, t, f, no_offsets, False, 2)
+    # a view whose own residual is over the gate was grown onto a wrong blob: drop the worst such view
+    for s in range(S):
+        worst, r_worst = -1, -1.0
+        for v in range(V):
+            if idx[s, v] < 0:
+                continue
+            z = R[v, 2, 0] * X[s, 0] + R[v, 2, 1] * X[s, 1] + R[v, 2, 2] * X[s, 2] + t[v, 2]
+            du = (R[v, 0, 0] * X[s, 0] + R[v, 0, 1] * X[s, 1] + R[v, 0, 2] * X[s, 2] + t[v, 0]) / z - obs[s, v, 0]
+            dw = (R[v, 1, 0] * X[s, 0] + R[v, 1, 1] * X[s, 1] + R[v, 1, 2] * X[s, 2] + t[v, 1]) / z - obs[s, v, 1]
+            r = math.sqrt(du * du + dw * dw) * f[v]
+            if r > r_worst:
+                worst, r_worst = v, r
+        if worst >= 0 and r_worst > max_residual_px and nv[s] > 2:
+            obs[s, worst] = np.nan
+            idx[s, worst] = -1
+            Xs, rs, ns = triangulate_irls(obs[s : s + 1], R, t, f, no_offsets, False, 2)
+            X[s], rms[s], nv[s] = Xs[0], rs[0], ns[0]
+    # 3. greedy acceptance (most views, then lowest residual), each blob once; a candidate that
+    # shares blobs with an accepted point keeps its other views if at least two remain
+    by_rms = np.argsort(np.where(rms < max_residual_px, rms, np.inf), kind="mergesort")
+    order = by_rms[np.argsort(-nv[by_rms], kind="mergesort")]  # stable: views, then residual, then index
+    used = np.zeros(pts.shape[0], dtype=np.bool_)
+    keep = np.zeros(S, dtype=np.bool_)
+    for s in order:
+        if not rms[s] < max_residual_px:
+            break
+        n_views = 0
+        n_clash = 0
+        for v in range(V):
+            if idx[s, v] >= 0:
+                n_views += 1
+                if used[start[v] + idx[s, v]]:
+                    n_clash += 1
+        if n_clash:
+            if n_views - n_clash < 2:
+                continue
+            ok = obs[s : s + 1].copy()
+            for v in range(V):
+                if idx[s, v] >= 0 and used[start[v] + idx[s, v]]:
+                    ok[0, v] = np.nan
+                    idx[s, v] = -1
+            Xs, rs, _ = triangulate_irls(ok, R, t, f, no_offsets, False, 2)
+            if not rs[0] < max_residual_px:
+                continue
+            X[s], rms[s] = Xs[0], rs[0]
+        keep[s] = True
+        for v in range(V):
+            if idx[s, v] >= 0:
+                used[start[v] + idx[s, v]] = True
+    # in acceptance order
+    Q = 0
+    for s in order:
+        if keep[s]:
+            Q += 1
+    out_X = np.empty((Q, 3))
+    out_idx = np.empty((Q, V), dtype=np.int64)
+    out_rms = np.empty(Q)
+    q = 0
+    for s in order:
+        if keep[s]:
+            out_X[q], out_idx[q], out_rms[q] = X[s], idx[s], rms[s]
+            q += 1
+    return out_X, out_idx, out_rms
+
+
+def _view_residuals_all(X: np.ndarray, obs: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Per-view reprojection errors (S, V) px of points X (S, 3) against obs (S, V, 2); NaN = missing."""
+    pc = np.einsum("vij,sj->svi", R, X) + t[None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        proj = pc[..., :2] / pc[..., 2:3]
+    return np.linalg.norm(proj - obs, axis=-1) * f[None, :]

@@ -1,0 +1,377 @@
+"""`visionpos serve`: the fusion service. asyncio glue, one event loop, one thread.
+
+    stations --UDP--> Ingest.handle --push--> FusionPipeline
+                                                 | tick(now) every 1/output_rate_hz
+                                                 v
+                                   sinks: publish(states)  (bridge, pose stream, recorder)
+
+Sinks are any objects with `publish(states: list[BodyState])`, called on the loop at
+every output tick, and optionally `publish_markers(points: LoosePoints)`, called at a
+tick after the pipeline triangulated a new set of loose markers (points of no body).
+Neither may block (queue internally; the recorder only appends to memory). Optional
+`start()`, `close()` (plain or async) and `stats()` are used when present. A sink that raises is logged and keeps being called.
+
+Programmatic use (demo, tests):
+
+    server = FusionServer(arena, sinks=[my_sink], host="127.0.0.1", port=0)
+    await server.start(); print(server.port)
+    ...; server.health(); await server.stop()
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import inspect
+import logging
+import signal
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from visionpos.config.arena import ArenaConfig, ConfigError, apply_overrides, load_yaml, parse_arena, resolve_config_path
+from visionpos.server.ingest import Ingest, ServerSettings
+from visionpos.messages import BodyState
+
+log = logging.getLogger(__name__)
+# the periodic status line: INFO, but `serve` and `record` turn this logger on by default
+status_log = logging.getLogger("visionpos.status")
+
+VANISH_CHECK_S = 0.02
+
+
+def load_config_with_overrides(config: str | Path, overrides: Sequence[str] = ()) -> ArenaConfig:
+    """Arena from a path or built-in name, with `key=value` overrides applied before validation."""
+    path = resolve_config_path(config)
+    data = load_yaml(path)
+    if overrides:
+        data = apply_overrides(data, list(overrides))
+    return parse_arena(data, str(path))
+
+
+async def _maybe_await(x: Any) -> Any:
+    if inspect.isawaitable(x):
+        return await x
+    return x
+
+
+class FusionServer:
+    """Ingest + pipeline + output tick + sinks on the running event loop.
+
+    arena: validated ArenaConfig. settings: ServerSettings (default: the arena's `server:`
+    section). sinks: objects with publish(states). pipeline: a FusionPipeline-like object
+    (default: visionpos.fusion.pipeline.FusionPipeline(arena, arena.raw.get('fusion'))).
+    recorder: a RecordingWriter; it gets every packet, events and health snapshots, is added to the
+    sinks, and is closed by stop() (the server owns it from then on).
+    port: None = settings.port; 0 = any free port (see .port after start()).
+    """
+
+    def __init__(self, arena: ArenaConfig, settings: ServerSettings | None = None, sinks: Sequence[Any] = (),
+                 host: str = "127.0.0.1", port: int | None = None, pipeline: Any = None, recorder: Any = None,
+                 clock: Callable[[], int] = time.monotonic_ns):
+        self.arena = arena
+        self.settings = settings or ServerSettings.from_arena(arena)
+        if pipeline is None:
+            from visionpos.fusion.pipeline import FusionPipeline
+
+            pipeline = FusionPipeline(arena, arena.raw.get("fusion"))
+        self.pipeline = pipeline
+        self.recorder = recorder
+        self.sinks: list[Any] = list(sinks)
+        if recorder is not None and recorder not in self.sinks:
+            self.sinks.append(recorder)
+        self.host = host
+        self._port_req = self.settings.port if port is None else int(port)
+        self.clock = clock
+        self.ingest = Ingest(arena, self.settings, pipeline, recorder, clock=clock, events=self._on_event)
+        self.period_ns = int(round(1e9 / self.settings.output_rate_hz))
+        self.ticks = 0
+        self.late_ticks = 0
+        self.sink_errors: dict[str, int] = {}
+        self.tick_cost_ns_max = 0
+        self.states_out = 0
+        self._body_tracked: dict[str, int] = {}
+        self._body_counts_prev: dict[str, int] = {}
+        self._status_prev_ns = 0
+        self._tasks: list[asyncio.Task] = []
+        self._running = False
+        self.last_states: list[BodyState] = []
+        self._markers_ns: int | None = None  # time of the last loose-marker set handed to sinks
+        self.loose_markers = 0  # markers in that set
+
+    # ---------------------------------------------------------------- lifecycle
+
+    @property
+    def port(self) -> int | None:
+        return self.ingest.port
+
+    async def start(self) -> None:
+        for s in self.sinks:
+            if hasattr(s, "start"):
+                await _maybe_await(s.start())
+        await self.ingest.start(self.host, self._port_req)
+        self._running = True
+        self._status_prev_ns = self.clock()
+        loop = asyncio.get_running_loop()
+        self._tasks = [loop.create_task(self._tick_loop(), name="visionpos-tick")]
+        if self.settings.status_period_s > 0:
+            self._tasks.append(loop.create_task(self._status_loop(), name="visionpos-status"))
+        log.info("fusion server listening on udp %s:%d (%d cameras, %d bodies, %g Hz output%s)", self.host,
+                 self.port, len(self.arena.cameras), len(self.arena.bodies), self.settings.output_rate_hz,
+                 ", HMAC on" if self.settings.key else "")
+
+    async def stop(self) -> None:
+        """Stop ingest and ticks, close sinks (the recorder last: it holds everything). Idempotent."""
+        if not self._running:
+            return
+        self._running = False
+        self.ingest.close()
+        for t in self._tasks:
+            t.cancel()
+        for t in self._tasks:
+            try:
+                await t
+            except (asyncio.CancelledError, Exception):
+                pass
+        self._tasks = []
+        for s in self.sinks:
+            if s is self.recorder:
+                continue
+            if hasattr(s, "close"):
+                try:
+                    await _maybe_await(s.close())
+                except Exception:
+                    log.exception("closing sink %s failed", type(s).__name__)
+        if self.recorder is not None:
+            try:
+                self.recorder.write_json("/server/health", self.clock(), self.health())
+            except Exception:
+                log.exception("could not record final health")
+            self.recorder.close()
+
+    async def __aenter__(self) -> "FusionServer":
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: Any) -> None:
+        await self.stop()
+
+    # ---------------------------------------------------------------- loops
+
+    def tick(self, now_ns: int) -> list[BodyState]:
+        """One output tick: pipeline.tick(now_ns) -> every sink's publish. Errors are counted in
+        health()['sink_errors'] (under 'pipeline.tick' or the sink's class name), never raised."""
+        t0 = time.perf_counter_ns()
+        try:
+            states = self.pipeline.tick(now_ns)
+        except Exception:
+            self.sink_errors["pipeline.tick"] = self.sink_errors.get("pipeline.tick", 0) + 1
+            if self.sink_errors["pipeline.tick"] in (1, 100, 10_000):
+                log.exception("pipeline.tick failed")
+            states = []
+        self.ticks += 1
+        self.states_out += len(states)
+        for s in states:
+            if s.tracked:
+                self._body_tracked[s.name] = self._body_tracked.get(s.name, 0) + 1
+        self.last_states = states
+        for sink in self.sinks:
+            self._to_sink(sink, sink.publish, states, type(sink).__name__)
+        lp = getattr(self.pipeline, "loose_points", None)
+        if lp is not None and lp.time_ns != self._markers_ns:
+            self._markers_ns = lp.time_ns
+            self.loose_markers = len(lp.points)
+            for sink in self.sinks:
+                if hasattr(sink, "publish_markers"):
+                    self._to_sink(sink, sink.publish_markers, lp, type(sink).__name__ + ".publish_markers")
+        cost = time.perf_counter_ns() - t0
+        if cost > self.tick_cost_ns_max:
+            self.tick_cost_ns_max = cost
+        return states
+
+    def _to_sink(self, sink: Any, method: Any, arg: Any, name: str) -> None:
+        """method(arg); a failure is counted under `name` and logged at the 1st, 100th, 10000th time."""
+        try:
+            method(arg)
+        except Exception:
+            self.sink_errors[name] = self.sink_errors.get(name, 0) + 1
+            if self.sink_errors[name] in (1, 100, 10_000):
+                log.exception("sink %s failed (%d times)", name, self.sink_errors[name])
+
+    async def _tick_loop(self) -> None:
+        period = self.period_ns
+        next_t = self.clock() + period
+        next_check = 0
+        check_ns = int(VANISH_CHECK_S * 1e9)
+        while self._running:
+            delay = (next_t - self.clock()) * 1e-9
+            if delay > 0:
+                await asyncio.sleep(delay)
+            else:
+                await asyncio.sleep(0)  # let ingest in even when ticks run late
+            now = self.clock()
+            if now >= next_check:
+                next_check = now + check_ns
+                self.ingest.check_vanished(now)
+            self.tick(now)
+            next_t += period
+            if now - next_t > 2 * period:  # far behind (loop stalled): skip, never burst
+                self.late_ticks += 1
+                next_t = now + period
+
+    async def _status_loop(self) -> None:
+        while self._running:
+            await asyncio.sleep(self.settings.status_period_s)
+            status_log.info("%s", self.status_line())
+            if self.recorder is not None:  # health history in the log, for post-mortems
+                try:
+                    self.recorder.write_json("/server/health", self.clock(), self.health())
+                except Exception:
+                    log.exception("could not record health")
+
+    def status_line(self) -> str:
+        now = self.clock()
+        span = (now - self._status_prev_ns) * 1e-9 if self._status_prev_ns else None
+        parts = []
+        for b in self.arena.bodies:
+            n = self._body_tracked.get(b.name, 0)
+            rate = (n - self._body_counts_prev.get(b.name, 0)) / span if span else None
+            parts.append(f"{b.name}:{'-' if rate is None else f'{rate:.0f}Hz'} tracked")
+            self._body_counts_prev[b.name] = n
+        self._status_prev_ns = now
+        return self.ingest.status_line() + " | bodies: " + (" ".join(parts) or "none")
+
+    # ---------------------------------------------------------------- observability
+
+    def _on_event(self, kind: str, info: dict[str, Any]) -> None:
+        if self.recorder is not None:
+            self.recorder.write_json("/server/events", self.clock(), {"kind": kind, **info})
+
+    def health(self) -> dict[str, Any]:
+        h = self.ingest.health()
+        h["ticks"] = self.ticks
+        h["late_ticks"] = self.late_ticks
+        h["states_out"] = self.states_out
+        h["loose_markers"] = self.loose_markers
+        h["tick_cost_max_ms"] = self.tick_cost_ns_max * 1e-6
+        h["sink_errors"] = dict(self.sink_errors)
+        h["bodies_tracked_ticks"] = dict(self._body_tracked)
+        try:
+            h["pipeline"] = dict(self.pipeline.stats())
+        except Exception as e:
+            h["pipeline"] = {"error": repr(e)}
+        sinks = {}
+        for s in self.sinks:
+            if hasattr(s, "stats"):
+                try:
+                    sinks[type(s).__name__] = s.stats()
+                except Exception as e:
+                    sinks[type(s).__name__] = {"error": repr(e)}
+        h["sinks"] = sinks
+        return h
+
+
+# ---------------------------------------------------------------- bridge
+
+
+def default_sinks(arena: ArenaConfig) -> list[Any]:
+    """The bridge (MAVLink per vehicle + pose stream) when the arena configures one."""
+    if not (arena.raw.get("vehicles") or arena.raw.get("pose_stream")):
+        return []
+    try:
+        from bridge import Bridge
+    except ImportError as e:
+        raise ConfigError(arena.source, "vehicles",
+                          f"the config asks for vehicle outputs but the bridge package cannot be imported ({e}); "
+                          "install visionpos completely or remove the vehicles/pose_stream sections") from None
+    return [Bridge(arena)]
+
+
+async def run_until_signal(duration_s: float | None = None, status: Callable[[], None] | None = None,
+                           status_period_s: float = 0.0) -> None:
+    """Wait for SIGINT/SIGTERM (or duration_s); call status() every status_period_s."""
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    installed = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            loop.add_signal_handler(sig, stop.set)
+            installed.append(sig)
+        except (NotImplementedError, RuntimeError):  # not the main thread / platform
+            pass
+    try:
+        t_end = None if duration_s is None else loop.time() + duration_s
+        while not stop.is_set():
+            timeout = status_period_s if status_period_s > 0 else None
+            if t_end is not None:
+                left = t_end - loop.time()
+                if left <= 0:
+                    break
+                timeout = left if timeout is None else min(timeout, left)
+            try:
+                await asyncio.wait_for(stop.wait(), timeout)
+            except asyncio.TimeoutError:
+                if t_end is not None and loop.time() >= t_end:
+                    break
+                if status is not None and status_period_s > 0 and not stop.is_set():
+                    status()
+    finally:
+        for sig in installed:
+            loop.remove_signal_handler(sig)
+
+
+# ---------------------------------------------------------------- `visionpos serve`
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", required=True, help="arena YAML (path or built-in name: thesis, arena8)")
+    p.add_argument("--record", metavar="FILE", help="record every station packet, the config and outputs (MCAP)")
+    p.add_argument("--port", type=int, default=None, help="UDP port for stations (default server.port, 5600)")
+    p.add_argument("--host", default="0.0.0.0", help="address to listen on (default all interfaces)")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: Ctrl-C)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config key, e.g. server.output_rate_hz=50 (repeatable)")
+
+
+def run(args: argparse.Namespace) -> int:
+    if status_log.level == logging.NOTSET:
+        status_log.setLevel(logging.INFO)
+    arena = load_config_with_overrides(args.config, args.set)
+    settings = ServerSettings.from_arena(arena)
+    if args.port is not None:
+        settings = settings.with_port(args.port)
+    sinks = default_sinks(arena)
+
+    async def main() -> int:
+        recorder = None
+        if args.record:
+            from visionpos.recording import RecordingWriter
+
+            recorder = RecordingWriter(args.record, arena.raw, {"command": "serve", "config_path": arena.source})
+        server = FusionServer(arena, settings, sinks, host=args.host, port=settings.port, recorder=recorder)
+        try:
+            await server.start()
+        except OSError as e:  # port in use, bad address: a message, not a traceback
+            if recorder is not None:
+                recorder.close()
+            print(f"visionpos serve: error: {e.strerror or e}", file=sys.stderr)
+            return 2
+        except BaseException:
+            if recorder is not None:
+                recorder.close()
+            raise
+        print(f"visionpos serve: listening on udp {args.host}:{server.port}"
+              + (f", recording to {args.record}" if args.record else "") + "; Ctrl-C to stop", flush=True)
+        try:
+            await run_until_signal(args.duration)
+        finally:
+            await server.stop()
+        h = server.health()
+        print(f"visionpos serve: stopped after {h['packets']} packets ({h['frames_accepted']} frames accepted, "
+              f"{h['frames_shed']} shed as backlog, {h['malformed']} malformed, {h['auth_failed']} failed auth, {h['unknown']} unknown), "
+              f"{h['ticks']} output ticks", flush=True)
+        return 0
+
+    return asyncio.run(main())
