@@ -649,7 +649,8 @@ def run(args: argparse.Namespace) -> int:
     """Record live station traffic: answer registration/sync/heartbeats, log every packet, no fusion."""
     import asyncio
 
-    from visionpos.server.ingest import Ingest, ServerSettings
+    from visionpos.server.ingest import Ingest
+    from visionpos.server.settings import ServerSettings
     from visionpos.server.service import load_config_with_overrides, run_until_signal, status_log
 
     if status_log.level == logging.NOTSET:

@@ -15,7 +15,8 @@ import pytest
 
 from visionpos import protocol as P
 from visionpos.config.arena import ConfigError, load_arena, parse_arena, load_yaml, resolve_config_path
-from visionpos.server.ingest import Ingest, ServerSettings
+from visionpos.server.ingest import Ingest
+from visionpos.server.settings import ServerSettings
 from visionpos.messages import FLAG_RESYNC, BlobFrame
 
 ADDR = ("127.0.0.1", 40000)

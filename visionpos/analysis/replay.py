@@ -174,7 +174,8 @@ def run_pipeline(
     CLOCK_REALTIME - monotonic difference (from the recording's meta), used
     for stations that stamp in TIMEBASE_REALTIME instead of this host's clocks.
     """
-    from visionpos.server.ingest import Ingest, ServerSettings
+    from visionpos.server.ingest import Ingest
+    from visionpos.server.settings import ServerSettings
     from visionpos.fusion.pipeline import FusionPipeline
     from visionpos.server.service import VANISH_CHECK_S
 

@@ -242,7 +242,7 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     """
     from bridge import Bridge
     from bridge.fake_autopilot import FakeAutopilot, decode_pose
-    from visionpos.server.ingest import ServerSettings
+    from visionpos.server.settings import ServerSettings
     from visionpos.server.service import FusionServer
     from visionpos.sim import scenario_from_arena, simulate
 

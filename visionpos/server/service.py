@@ -32,7 +32,8 @@ from pathlib import Path
 from typing import Any
 
 from visionpos.config.arena import ArenaConfig, ConfigError, apply_overrides, load_yaml, parse_arena, resolve_config_path
-from visionpos.server.ingest import Ingest, ServerSettings
+from visionpos.server.ingest import Ingest
+from visionpos.server.settings import ServerSettings
 from visionpos.messages import BodyState
 
 log = logging.getLogger(__name__)
