@@ -82,7 +82,7 @@ class StationAgent:
         self.cfg = cfg
         self.clock = clock or (time.monotonic_ns if cfg.clock_sync else time.time_ns)
         self.source = source or make_source(cfg.source, self.clock, cfg.camera_id)
-        self.timebase = P.TIMEBASE_SERVER if cfg.clock_sync else P.TIMEBASE_REALTIME
+        self.timebase = P.Timebase.SERVER if cfg.clock_sync else P.Timebase.REALTIME
         self.session = secrets.randbits(32) or 1
         self.stats = AgentStats()
         self.sync = ClockSync(cfg.station_id, cfg.camera_id) if cfg.clock_sync else None
@@ -199,7 +199,7 @@ class StationAgent:
                     self._last_heard = t4
 
     def _on_ack(self, ack: P.HelloAck, now: int) -> None:
-        if ack.status == P.ACK_UNKNOWN_SESSION and ack.session in (self.session, 0):
+        if ack.status == P.AckStatus.UNKNOWN_SESSION and ack.session in (self.session, 0):
             if self.registered:
                 log.warning("server does not know this station any more (restarted, or asked for a resync): "
                             "registering again")
@@ -209,7 +209,7 @@ class StationAgent:
         if ack.session != self.session:
             return
         self._last_heard = now
-        if ack.status == P.ACK_REJECTED:
+        if ack.status == P.AckStatus.REJECTED:
             if not self.rejected:
                 log.error("server %s:%d rejected camera %d of station %d: the camera id is not in its arena config "
                           "or the resolution differs; fix the configs (retrying every %.0f s)",
@@ -219,7 +219,7 @@ class StationAgent:
             self.registered = False
             self._hello_gap_s = HELLO_MAX_S
             return
-        if ack.status != P.ACK_OK:
+        if ack.status != P.AckStatus.OK:
             log.warning("server answered with unknown status %d; ignoring", ack.status)
             return
         if not self.registered:
@@ -275,13 +275,18 @@ class StationAgent:
 
     def _heartbeat(self, now: int) -> P.Heartbeat:
         self._hb_seq = (self._hb_seq + 1) & 0xFFFFFFFF
-        status = (P.HB_CAMERA_OK if self.camera_ok else 0) | (P.HB_STREAMING if self.streaming(now) else 0)
+        hb = P.HeartbeatStatus
+        status = hb(0)
+        if self.camera_ok:
+            status |= hb.CAMERA_OK
+        if self.streaming(now):
+            status |= hb.STREAMING
         off, unc, drift = 0, P.UNCERTAINTY_UNKNOWN, 0
         if self.sync is None:
-            status |= P.HB_CLOCK_EXTERNAL | P.HB_CLOCK_SYNCED
+            status |= hb.CLOCK_EXTERNAL | hb.CLOCK_SYNCED
         elif self.sync.estimator.estimate is not None:
             est = self.sync.estimator.estimate
-            status |= P.HB_CLOCK_SYNCED
+            status |= hb.CLOCK_SYNCED
             off, unc, drift = est.offset_at(now), int(round(est.uncertainty_ns)), int(round(est.drift_ppm * 1000))
         s = self.stats
         return P.Heartbeat(self.cfg.station_id, self.cfg.camera_id, self._hb_seq, self.session, status,

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import re
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from visionpos import protocol as P
-from visionpos.messages import FLAG_TRUNCATED, BlobFrame
+from visionpos.messages import FLAG_RESYNC, FLAG_TRUNCATED, BlobFrame, FrameFlag
 
 KEY = b"0123456789abcdef-shared"
 
@@ -194,3 +196,66 @@ def test_server_helpers():
 def test_truncated_flag_survives():
     f = _frame(flags=FLAG_TRUNCATED)
     assert P.decode(P.encode(f)).flags & FLAG_TRUNCATED
+
+
+# ---------------------------------------------------------------- enums against docs/protocol.md
+
+_DOC = (Path(__file__).resolve().parents[1] / "docs" / "protocol.md").read_text(encoding="utf-8")
+
+
+def _doc_cell(section: str, field: str) -> str:
+    """The last cell of the table row for `field` in the docs section whose heading starts with `section`."""
+    (body,) = [part for part in _DOC.split("\n### ")[1:] if part.startswith(section)]
+    for line in body.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) >= 4 and cells[2] == field:
+            return cells[-1]
+    raise AssertionError(f"no row {field!r} under {section!r} in docs/protocol.md")
+
+
+def _doc_numbered(cell: str) -> dict[str, int]:
+    """"0 `OK`; 1 `UNKNOWN_SESSION`: ..." -> {"OK": 0, "UNKNOWN_SESSION": 1}."""
+    return {name: int(n) for n, name in re.findall(r"(\d+) `(\w+)`", cell)}
+
+
+def _doc_bits(cell: str) -> dict[str, int]:
+    """"bit 0 `SIGNED`: ..." or "bit 0 camera OK; ..." -> {"SIGNED": 1, "CAMERA_OK": 1, ...}."""
+    found = re.findall(r"bit (\d+) (`\w+`|[A-Za-z ]+?)(?=[:;(]| \(|$)", cell)
+    return {name.strip("`").strip().upper().replace(" ", "_"): 1 << int(bit) for bit, name in found}
+
+
+def _members(enum) -> dict[str, int]:
+    return {m.name: m.value for m in enum}
+
+
+def test_message_types_are_the_documented_bytes():
+    rows = re.findall(r"^\|\s*(\d+)\s*\|\s*([A-Z_]+)\s*\|\s*(?:station|server) →", _DOC, re.MULTILINE)
+    assert len(rows) == 7
+    assert _members(P.MsgType) == {name: int(n) for n, name in rows}
+    assert P.MSG_HELLO_ACK is P.MsgType.HELLO_ACK  # the old names are the members
+
+
+def test_statuses_and_kinds_are_the_documented_values():
+    assert _members(P.AckStatus) == _doc_numbered(_doc_cell("HELLO_ACK", "status"))
+    assert _members(P.Timebase) == _doc_numbered(_doc_cell("HELLO ", "timebase"))
+    kinds = dict(re.findall(r"(\d+) (\w+)", _doc_cell("HELLO ", "camera_kind")))
+    assert P.CAMERA_KINDS == tuple(kinds[str(i)] for i in range(len(kinds)))
+    assert _members(P.CameraKind) == {name.upper(): int(n) for n, name in kinds.items()}
+
+
+def test_flag_bits_are_the_documented_bits():
+    assert _members(P.HeaderFlag) == _doc_bits(_doc_cell("Common header", "hflags"))
+    assert _members(FrameFlag) == _doc_bits(_doc_cell("FRAME", "flags"))
+    assert _members(P.HeartbeatStatus) == _doc_bits(_doc_cell("HEARTBEAT", "status"))
+    # the old names stay plain ints: `int & IntFlag` would build an IntFlag per packet
+    assert type(FLAG_RESYNC) is int and FLAG_RESYNC == FrameFlag.RESYNC
+    assert type(P.HF_SIGNED) is int and P.HF_SIGNED == P.HeaderFlag.SIGNED
+
+
+def test_worked_example_header_bytes_are_the_enums():
+    dumps = re.findall(r"```\n((?:[0-9a-f]{4}  [0-9a-f ]+\n)+)```", _DOC)
+    unsigned, tag = (bytes.fromhex("".join(line[6:] for line in d.splitlines())) for d in dumps)
+    assert len(unsigned) == 64 and len(tag) == 16
+    assert unsigned[5] == P.MsgType.FRAME and unsigned[6] == 0
+    signed = P.decode(unsigned[:6] + bytes([P.HeaderFlag.SIGNED]) + unsigned[7:] + tag, b"example-key")
+    assert (signed.station_id, signed.camera_id, signed.seq) == (2, 3, 1000)

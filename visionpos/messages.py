@@ -7,13 +7,23 @@ Quaternions are scalar-last (x, y, z, w), as scipy's Rotation uses.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import IntFlag
 
 import numpy as np
 
-# BlobFrame.flags bits
-FLAG_TRUNCATED = 1 << 0  # detector hit its blob cap (sunlight, reflections): blobs were dropped
-FLAG_SATURATED = 1 << 1  # many pixels at full scale: exposure too long
-FLAG_RESYNC = 1 << 2  # station's clock offset jumped since the previous frame
+
+class FrameFlag(IntFlag):
+    """BlobFrame.flags bits (the frame's u16 flags field on the wire)."""
+
+    TRUNCATED = 1 << 0  # detector hit its blob cap (sunlight, reflections): blobs were dropped
+    SATURATED = 1 << 1  # many pixels at full scale: exposure too long
+    RESYNC = 1 << 2  # station's clock offset jumped since the previous frame
+
+
+# Plain ints for per-frame bit tests: `int & IntFlag` builds a new IntFlag, and `~IntFlag` is not the int complement.
+FLAG_TRUNCATED = FrameFlag.TRUNCATED.value
+FLAG_SATURATED = FrameFlag.SATURATED.value
+FLAG_RESYNC = FrameFlag.RESYNC.value
 
 BLOB_COLUMNS = ("x", "y", "area", "peak")
 

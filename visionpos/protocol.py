@@ -21,9 +21,11 @@ import hashlib
 import hmac
 import struct
 from dataclasses import dataclass
+from enum import IntEnum, IntFlag
 
 import numpy as np
 
+from visionpos.errors import VisionposError
 from visionpos.messages import BlobFrame
 
 PROTOCOL_VERSION = 1
@@ -40,35 +42,79 @@ TAG_BYTES = 16  # HMAC-SHA256 truncated to its first 16 bytes
 # 32 + 88 * 16 + 16 = 1456 <= 1472: a signed full frame still fits one datagram.
 MAX_BLOBS_PER_PACKET = 88
 
-# message types (header byte 5)
-MSG_FRAME = 1
-MSG_HELLO = 2
-MSG_HELLO_ACK = 3
-MSG_HEARTBEAT = 4
-MSG_SYNC_REQUEST = 5
-MSG_SYNC_REPLY = 6
-MSG_BYE = 7
 
-# header flags (header byte 6)
-HF_SIGNED = 0x01  # a 16-byte HMAC tag follows the body
+class MsgType(IntEnum):
+    """Message type, header byte 5."""
 
-# HelloAck.status
-ACK_OK = 0
-ACK_UNKNOWN_SESSION = 1  # server does not know this station/session (it restarted): send Hello again
-ACK_REJECTED = 2  # camera id not configured on the server, or resolution mismatch: fix config
-ACK_STATUS_NAMES = {ACK_OK: "ok", ACK_UNKNOWN_SESSION: "unknown session", ACK_REJECTED: "rejected"}
+    FRAME = 1
+    HELLO = 2
+    HELLO_ACK = 3
+    HEARTBEAT = 4
+    SYNC_REQUEST = 5
+    SYNC_REPLY = 6
+    BYE = 7
 
-# Hello.timebase: which clock Frame.capture_ns is on
-TIMEBASE_SERVER = 0  # converted to the server clock with the built-in sync exchange
-TIMEBASE_REALTIME = 1  # station CLOCK_REALTIME, disciplined by PTP/chrony (server converts)
 
-CAMERA_KINDS = ("unknown", "pinhole", "fisheye")
+class HeaderFlag(IntFlag):
+    """Header flag bits, header byte 6."""
 
-# Heartbeat.status bits
-HB_CAMERA_OK = 0x01  # the last capture attempt produced a frame
-HB_CLOCK_SYNCED = 0x02  # clock offset estimate is valid (or the clock is external)
-HB_CLOCK_EXTERNAL = 0x04  # built-in sync is off: host clock disciplined by PTP/chrony
-HB_STREAMING = 0x08  # trigger time reached, frames are being sent
+    SIGNED = 0x01  # a 16-byte HMAC tag follows the body
+
+
+class AckStatus(IntEnum):
+    """HelloAck.status."""
+
+    OK = 0
+    UNKNOWN_SESSION = 1  # server does not know this station/session (it restarted): send Hello again
+    REJECTED = 2  # camera id not configured on the server, or resolution mismatch: fix config
+
+
+class Timebase(IntEnum):
+    """Hello.timebase: which clock Frame.capture_ns is on."""
+
+    SERVER = 0  # converted to the server clock with the built-in sync exchange
+    REALTIME = 1  # station CLOCK_REALTIME, disciplined by PTP/chrony (server converts)
+
+
+class CameraKind(IntEnum):
+    """Hello.camera_kind on the wire; Hello carries its lower-case name."""
+
+    UNKNOWN = 0
+    PINHOLE = 1
+    FISHEYE = 2
+
+
+class HeartbeatStatus(IntFlag):
+    """Heartbeat.status bits."""
+
+    CAMERA_OK = 0x01  # the last capture attempt produced a frame
+    CLOCK_SYNCED = 0x02  # clock offset estimate is valid (or the clock is external)
+    CLOCK_EXTERNAL = 0x04  # built-in sync is off: host clock disciplined by PTP/chrony
+    STREAMING = 0x08  # trigger time reached, frames are being sent
+
+
+# The names before the enums, kept for their users. Enum values are the members (int comparisons cost
+# nothing extra); flag bits stay plain ints: `int & IntFlag` builds a new IntFlag (~1 us a packet)
+# and `~IntFlag` is not the int complement.
+MSG_FRAME = MsgType.FRAME
+MSG_HELLO = MsgType.HELLO
+MSG_HELLO_ACK = MsgType.HELLO_ACK
+MSG_HEARTBEAT = MsgType.HEARTBEAT
+MSG_SYNC_REQUEST = MsgType.SYNC_REQUEST
+MSG_SYNC_REPLY = MsgType.SYNC_REPLY
+MSG_BYE = MsgType.BYE
+HF_SIGNED = HeaderFlag.SIGNED.value
+ACK_OK = AckStatus.OK
+ACK_UNKNOWN_SESSION = AckStatus.UNKNOWN_SESSION
+ACK_REJECTED = AckStatus.REJECTED
+ACK_STATUS_NAMES = {s: s.name.lower().replace("_", " ") for s in AckStatus}  # "ok", "unknown session", ...
+TIMEBASE_SERVER = Timebase.SERVER
+TIMEBASE_REALTIME = Timebase.REALTIME
+CAMERA_KINDS = tuple(k.name.lower() for k in CameraKind)  # Hello.camera_kind values, in wire order
+HB_CAMERA_OK = HeartbeatStatus.CAMERA_OK.value
+HB_CLOCK_SYNCED = HeartbeatStatus.CLOCK_SYNCED.value
+HB_CLOCK_EXTERNAL = HeartbeatStatus.CLOCK_EXTERNAL.value
+HB_STREAMING = HeartbeatStatus.STREAMING.value
 
 TEMPERATURE_UNKNOWN = -32768  # Heartbeat temperature field value for "no sensor"
 UNCERTAINTY_UNKNOWN = -1
@@ -91,7 +137,7 @@ _U32 = 0xFFFFFFFF
 _I64_MIN, _I64_MAX = -(1 << 63), (1 << 63) - 1
 
 
-class ProtocolError(ValueError):
+class ProtocolError(VisionposError, ValueError):  # ValueError: callers that catch it still do
     """A packet that cannot be encoded or decoded; the message says why and what to do."""
 
 
@@ -344,15 +390,7 @@ _BODY_SIZES = {
     MSG_SYNC_REPLY: _SYNC_REPLY.size,
     MSG_BYE: _BYE.size,
 }
-_TYPE_NAMES = {
-    MSG_FRAME: "frame",
-    MSG_HELLO: "hello",
-    MSG_HELLO_ACK: "hello-ack",
-    MSG_HEARTBEAT: "heartbeat",
-    MSG_SYNC_REQUEST: "sync-request",
-    MSG_SYNC_REPLY: "sync-reply",
-    MSG_BYE: "bye",
-}
+_TYPE_NAMES = {t: t.name.lower().replace("_", "-") for t in MsgType}  # "hello-ack", ... (error messages)
 
 
 def decode(data: bytes, key: bytes | None = None, recv_ns: int = 0) -> Message:

@@ -6,6 +6,7 @@ the loopback UDP path is covered in test_server.py.
 
 from __future__ import annotations
 
+import json
 import logging
 import random
 import time
@@ -15,7 +16,7 @@ import pytest
 
 from visionpos import protocol as P
 from visionpos.config.arena import ConfigError, load_arena, parse_arena, load_yaml, resolve_config_path
-from visionpos.server.ingest import Ingest
+from visionpos.server.ingest import ClockJump, Ingest, IngestEvent
 from visionpos.server.settings import ServerSettings
 from visionpos.messages import FLAG_RESYNC, BlobFrame
 
@@ -418,3 +419,36 @@ def test_station_vanishes_mid_flight_tracking_continues():
     truth, _ = sc.truth_at("quad", np.array([s.time_ns for s in after], dtype=np.int64))
     err = np.linalg.norm(np.array([s.position for s in after]) - truth, axis=1)
     assert np.median(err) < 0.002 and err.max() < 0.005  # 3 cameras still give millimetres
+
+
+def test_clock_jump_kinds_are_the_logged_words_and_health_counters(caplog):
+    ing, _, clock = _ingest({"max_future_ms": 20, "max_age_ms": 300})
+    _send(ing, _hello(1), T0)
+    counters = {ClockJump.FUTURE: "clock_jumps_future", ClockJump.STALE: "clock_jumps_stale",
+                ClockJump.BACKWARDS: "clock_jumps_backwards"}
+    with caplog.at_level(logging.WARNING, logger="visionpos.server.ingest"):
+        t = T0 + 10 * MS
+        _send(ing, _frame(1, 1, t - 3 * MS), t)
+        for seq, (kind, offset_ms) in enumerate([(ClockJump.FUTURE, +500), (ClockJump.STALE, -900),
+                                                 (ClockJump.BACKWARDS, -40)], start=2):
+            t += 10 * MS
+            clock.t = t
+            assert _send(ing, _frame(1, seq, t - 3 * MS + offset_ms * MS), t) == []
+            assert f"clock jump ({kind.value})" in caplog.records[-1].getMessage()
+            assert ing.health()["cameras"][1][counters[kind]] == 1
+    assert [k.value for k in ClockJump] == ["in the future", "too old", "going backwards"]
+
+
+def test_event_kinds_are_the_recorded_strings():
+    recorded = []  # what the service writes on /server/events: JSON with "kind"
+    clock = Clock(T0)
+    ing = Ingest(_arena({"vanish_periods": 10, "vanish_min_s": 0.0, "resync_after": 2}), pipeline=Collector(),
+                 clock=clock, events=lambda kind, info: recorded.append(json.loads(json.dumps({"kind": kind}))["kind"]))
+    _send(ing, _hello(1), T0)
+    _send(ing, _frame(1, 1, T0), T0 + 3 * MS)
+    ing.check_vanished(T0 + 500 * MS)
+    _send(ing, _frame(1, 2, T0 + 600 * MS), T0 + 603 * MS)
+    for seq in (3, 4):
+        _send(ing, _frame(1, seq, T0 + 5000 * MS), T0 + 610 * MS)  # 4.4 s in the future, twice: resync
+    assert recorded == ["registered", "camera_lost", "camera_back", "resync_request"]
+    assert [e.value for e in IngestEvent] == recorded

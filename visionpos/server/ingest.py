@@ -38,6 +38,7 @@ import re
 import socket
 import time
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any, Protocol
 
 from visionpos import protocol as P
@@ -52,6 +53,23 @@ Addr = tuple[Any, ...]
 _REORDER_WINDOW = 64  # a frame this many seqs late is "reordered"; older is a replay
 _SEQ_RESTART = 1 << 20
 _REASON = re.compile(r"[A-Za-z][A-Za-z -]*")  # a forward seq jump this big is a restart, not 1M lost frames
+
+
+class ClockJump(StrEnum):
+    """Why a frame's capture time was refused; the value is the log's wording."""
+
+    FUTURE = "in the future"  # counted in clock_jumps_future
+    STALE = "too old"  # clock_jumps_stale
+    BACKWARDS = "going backwards"  # clock_jumps_backwards
+
+
+class IngestEvent(StrEnum):
+    """Kinds handed to the `events` observer; the value is the "kind" recorded on /server/events."""
+
+    REGISTERED = "registered"
+    CAMERA_LOST = "camera_lost"
+    CAMERA_BACK = "camera_back"
+    RESYNC_REQUEST = "resync_request"
 
 
 class PipelineLike(Protocol):
@@ -240,7 +258,7 @@ class Ingest:
             self._logged.add(key)
             log.log(level, msg, *args)
 
-    def _event(self, kind: str, **info: Any) -> None:
+    def _event(self, kind: IngestEvent, **info: Any) -> None:
         if self.events is not None:
             try:
                 self.events(kind, info)
@@ -324,7 +342,7 @@ class Ingest:
             return None
         return cam
 
-    def _ack(self, msg: P.Hello | P.Heartbeat, status: int) -> bytes:
+    def _ack(self, msg: P.Hello | P.Heartbeat, status: P.AckStatus) -> bytes:
         self.counters.replies += 1
         ack = P.make_hello_ack(msg, self.start_ns, self.clock(), status, self.duration_ns)
         return P.encode(ack, self.key)
@@ -356,7 +374,7 @@ class Ingest:
                 log.info("camera %d (%s) registered from station %d at %s (%s, %.0f fps, %s)", cam.camera_id,
                          cam.name, msg.station_id, _fmt(addr), msg.software or "?", msg.fps, msg.camera_kind)
             cam.reset_sequence()
-            self._event("registered", camera_id=cam.camera_id, station_id=msg.station_id, session=msg.session)
+            self._event(IngestEvent.REGISTERED, camera_id=cam.camera_id, station_id=msg.station_id, session=msg.session)
         cam.station_id, cam.session, cam.addr, cam.registered = msg.station_id, msg.session, addr, True
         cam.timebase, cam.software = msg.timebase, msg.software
         if msg.fps > 0:
@@ -405,7 +423,7 @@ class Ingest:
             self._remove(cam, "station said bye")
         return []
 
-    def _clock_jump(self, cam: CameraHealth, kind: str, frame: BlobFrame, addr: Addr, lat: int) -> list[bytes]:
+    def _clock_jump(self, cam: CameraHealth, kind: ClockJump, frame: BlobFrame, addr: Addr, lat: int) -> list[bytes]:
         cam.clock_jumps += 1
         cam.jump_run += 1
         self._once(("jump", cam.camera_id, kind), logging.WARNING,
@@ -419,7 +437,7 @@ class Ingest:
             cam.resync_requests += 1
             log.warning("camera %d (%s): %d clock-jumped frames in a row; asking the station to resync",
                         cam.camera_id, cam.name, self.settings.resync_after)
-            self._event("resync_request", camera_id=cam.camera_id)
+            self._event(IngestEvent.RESYNC_REQUEST, camera_id=cam.camera_id)
             self.counters.replies += 1
             ack = P.HelloAck(frame.station_id, frame.camera_id, cam.session, self.start_ns, self.clock(),
                              P.ACK_UNKNOWN_SESSION, self.duration_ns)
@@ -492,13 +510,13 @@ class Ingest:
         lat = recv_ns - capture
         if lat < -self._future_ns:
             cam.future += 1
-            return replies + self._clock_jump(cam, "in the future", f, addr, lat)
+            return replies + self._clock_jump(cam, ClockJump.FUTURE, f, addr, lat)
         if lat > self._max_age_ns:
             cam.stale += 1
-            return replies + self._clock_jump(cam, "too old", f, addr, lat)
+            return replies + self._clock_jump(cam, ClockJump.STALE, f, addr, lat)
         if cam.last_capture_ns is not None and capture <= cam.last_capture_ns and not f.flags & FLAG_RESYNC:
             cam.backwards += 1
-            return replies + self._clock_jump(cam, "going backwards", f, addr, lat)
+            return replies + self._clock_jump(cam, ClockJump.BACKWARDS, f, addr, lat)
         if capture < self.start_ns:
             cam.before_start += 1
             return replies
@@ -528,7 +546,7 @@ class Ingest:
             cam.online = True
             if cam.vanished:
                 log.warning("camera %d (%s) is back", cam.camera_id, cam.name)
-                self._event("camera_back", camera_id=cam.camera_id)
+                self._event(IngestEvent.CAMERA_BACK, camera_id=cam.camera_id)
         self.counters.frames_accepted += 1
         if self._shed_ns is not None and backlog_ns > self._shed_ns:
             cam.shed += 1
@@ -574,7 +592,7 @@ class Ingest:
 
     def _remove(self, cam: CameraHealth, why: str) -> None:
         log.warning("camera %d (%s) lost: %s; fusing without it", cam.camera_id, cam.name, why)
-        self._event("camera_lost", camera_id=cam.camera_id, reason=why)
+        self._event(IngestEvent.CAMERA_LOST, camera_id=cam.camera_id, reason=why)
         if self.pipeline is not None:
             try:
                 self.pipeline.remove_camera(cam.camera_id)
