@@ -21,12 +21,13 @@ import cv2
 import numpy as np
 
 from stations.config import SourceConfig
+from visionpos.errors import VisionposError
 
 Clock = Callable[[], int]
 IMAGE_SUFFIXES = (".png", ".pgm", ".bmp", ".jpg", ".jpeg", ".tif", ".tiff")
 
 
-class SourceError(RuntimeError):
+class SourceError(VisionposError, RuntimeError):
     """The camera or file failed; the message says what and what to check."""
 
 

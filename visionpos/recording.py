@@ -54,6 +54,7 @@ from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, IndexType, Writer
 
 from visionpos import __version__
+from visionpos.errors import VisionposError
 from visionpos.messages import BodyState
 
 log = logging.getLogger(__name__)
@@ -109,7 +110,7 @@ _TRUTH_SCHEMA = {
 }
 
 
-class RecordingError(ValueError):
+class RecordingError(VisionposError, ValueError):
     """A recording that cannot be read. str() names the file and what is wrong."""
 
 

@@ -10,8 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
+from visionpos.errors import VisionposError
 
-class PlotsUnavailable(ImportError):
+
+class PlotsUnavailable(VisionposError, ImportError):
     """matplotlib is not installed."""
 
 

@@ -26,10 +26,11 @@ from typing import Sequence
 import numpy as np
 
 from visionpos.camera.model import Camera
+from visionpos.errors import VisionposError
 from visionpos.messages import BlobFrame
 
 
-class CalibrationError(ValueError):
+class CalibrationError(VisionposError, ValueError):
     """Calibration input that cannot give a calibration; the message says what to capture or fix."""
 
 

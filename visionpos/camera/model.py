@@ -16,12 +16,14 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from visionpos.errors import VisionposError
+
 PINHOLE = "pinhole"
 FISHEYE = "fisheye"
 _KINDS = (PINHOLE, FISHEYE)
 
 
-class CameraModelError(ValueError):
+class CameraModelError(VisionposError, ValueError):
     """A camera description that cannot be used; the message says which field and why."""
 
 

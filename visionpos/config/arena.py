@@ -17,12 +17,13 @@ import numpy as np
 import yaml
 
 from visionpos.camera.model import Camera, CameraModelError
+from visionpos.errors import VisionposError
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 BUILTIN_SCENARIOS = {"thesis": "thesis_arena.yaml", "arena8": "arena8.yaml"}
 
 
-class ConfigError(ValueError):
+class ConfigError(VisionposError, ValueError):
     """A configuration problem. str() names the file, the key and the fix."""
 
     def __init__(self, source: str, key: str, message: str):
