@@ -51,8 +51,8 @@ log = logging.getLogger(__name__)
 
 Addr = tuple[Any, ...]
 _REORDER_WINDOW = 64  # a frame this many seqs late is "reordered"; older is a replay
-_SEQ_RESTART = 1 << 20
-_REASON = re.compile(r"[A-Za-z][A-Za-z -]*")  # a forward seq jump this big is a restart, not 1M lost frames
+_SEQ_RESTART = 1 << 20  # a forward seq jump this big is a restart, not 1M lost frames
+_REASON = re.compile(r"[A-Za-z][A-Za-z -]*")  # the words of a ProtocolError message, its drop reason
 
 
 class ClockJump(StrEnum):
