@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from visionpos.config.arena import ArenaConfig, ConfigError, Section
+from visionpos.config.settings import Setting, section
 
 ENDPOINT_KINDS = ("udpin", "udpout", "tcp", "serial")
 MESSAGES = ("vision_position_estimate", "odometry")
@@ -25,6 +26,79 @@ ENDPOINT_HELP = (
     "write it as udpin:HOST:PORT (the autopilot sends to us; we answer the address it sent from), "
     "udpout:HOST:PORT (we send to the autopilot), tcp:HOST:PORT (we connect, e.g. SITL's 5760) "
     "or serial:DEVICE:BAUD (e.g. serial:/dev/ttyUSB0:921600)"
+)
+
+
+ORIGIN = section(
+    "vehicles[i].origin",
+    "Geodetic origin of the local frame, sent to the autopilot as its GPS global origin (and home).",
+    Setting("lat", "number", doc="latitude (degrees)", min=-90, max=90),
+    Setting("lon", "number", doc="longitude (degrees)", min=-180, max=180),
+    Setting("alt", "number", 0.0, "altitude above mean sea level (m)"),
+)
+
+SIGNING = section(
+    "vehicles[i].signing",
+    "MAVLink2 message signing.",
+    Setting("key_file", "text", doc="signing key file (relative to the arena file): 64 hex characters, 32 raw "
+            "bytes, or a passphrase hashed with SHA-256 as MAVProxy and Mission Planner do"),
+    Setting("link_id", "integer", 0, "MAVLink2 signing link id", min=0, max=255),
+)
+
+VEHICLE = section(
+    "vehicles[i]",
+    "One autopilot the bridge feeds with the pose of one body (docs/autopilot-setup.md).",
+    Setting("body", "text", doc="name of the body in `bodies`"),
+    Setting("name", "text", None, "vehicle name in logs", default_doc="the body's name"),
+    Setting("sysid", "integer", None, "MAVLink system id of the autopilot", min=1, max=255,
+            default_doc="the body's id"),
+    Setting("endpoint", "text", doc="the link: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or "
+            "serial:DEVICE:BAUD"),
+    Setting("message", "text", "vision_position_estimate", "MAVLink message carrying the pose", choices=MESSAGES),
+    Setting("vision_speed", "boolean", False, "also send VISION_SPEED_ESTIMATE (vision_position_estimate only)"),
+    Setting("rate_hz", "number", 50.0, "poses per second", min=0.1, max=400.0),
+    Setting("rate_tolerance_ms", "number", 0.1, "a pose may go out this much before its slot (capture stamps "
+            "jitter around the frame spacing); at most half a period", min=0.0),
+    Setting("max_age_ms", "number", 200.0, "a pose older than this is not sent", min=1.0),
+    Setting("yaw_offset_deg", "number", 0.0, "compass heading of world +x (degrees clockwise from north)",
+            min=-360, max=360),
+    Setting("pivot_offset", "array", [0.0, 0.0, 0.0], "from the body origin to the vehicle's reference point "
+            "(m, body FLU)", shape=(3,)),
+    Setting("time_base", "text", "boot", "time stamps in the autopilot's boot time or Unix epoch",
+            choices=TIME_BASES),
+    Setting("heartbeat_hz", "number", 1.0, "heartbeats per second", min=0.1, max=50.0),
+    Setting("timesync", "boolean", True, "estimate the autopilot's boot clock with TIMESYNC"),
+    Setting("quality", "integer", 100, "ODOMETRY quality (-1 = invalid, 0..100)", min=-1, max=100),
+    Setting("origin", "section", None, "set the autopilot's GPS global origin", spec=ORIGIN,
+            default_doc="(not sent)"),
+    Setting("set_home", "boolean", True, "with an origin, also set home there"),
+    Setting("origin_interval_s", "number", 5.0, "resend the origin this often", min=0.0),
+    Setting("signing", "section", None, "MAVLink2 signing", spec=SIGNING, default_doc="(unsigned)"),
+    Setting("reconnect_min_s", "number", 0.5, "first reconnect delay after a link failure", min=0.01),
+    Setting("reconnect_max_s", "number", 5.0, "longest reconnect delay (at least reconnect_min_s)",
+            default_doc="max(5, reconnect_min_s)"),
+    Setting("link_timeout_s", "number", 3.0, "no message from the autopilot for this long: the link is down",
+            min=0.1),
+)
+
+POSE_STREAM = section(
+    "pose_stream",
+    "UDP pose stream (docs/pose-stream.md).",
+    Setting("enabled", "boolean", True, "false: the section is ignored"),
+    Setting("destinations", "any", doc="'HOST:PORT' or a list of them (unicast or a multicast group)",
+),
+    Setting("destination", "any", None, "the same as destinations, for one HOST:PORT",
+            default_doc="(or destinations)"),
+    Setting("format", "text", "json", "datagram format", choices=("json", "binary")),
+    Setting("rate_hz", "number", 0.0, "datagrams per second per body (0 = every output tick)", min=0.0,
+            max=1000.0),
+    Setting("multicast_ttl", "integer", 1, "multicast time-to-live", min=0, max=255),
+    Setting("multicast_loopback", "boolean", True, "multicast datagrams also reach this host"),
+    Setting("multicast_interface", "text", "", "IPv4 address of the interface multicast leaves by "
+            "(empty: the system's choice)"),
+    Setting("include_untracked", "boolean", True, "also send bodies that are not tracked (NaN pose)"),
+    Setting("markers", "boolean", False, "also send the loose markers (points of no body), in datagrams of "
+            "their own"),
 )
 
 
@@ -113,25 +187,25 @@ class VehicleConfig:
     body_id: int
     sysid: int
     endpoint: Endpoint
-    message: str = "vision_position_estimate"
-    vision_speed: bool = False
-    rate_hz: float = 50.0
-    rate_tolerance_ms: float = 0.1
-    max_age_ms: float = 200.0
-    yaw_offset_deg: float = 0.0
+    message: str = VEHICLE["message"].field_default
+    vision_speed: bool = VEHICLE["vision_speed"].field_default
+    rate_hz: float = VEHICLE["rate_hz"].field_default
+    rate_tolerance_ms: float = VEHICLE["rate_tolerance_ms"].field_default
+    max_age_ms: float = VEHICLE["max_age_ms"].field_default
+    yaw_offset_deg: float = VEHICLE["yaw_offset_deg"].field_default
     pivot_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    time_base: str = "boot"
-    heartbeat_hz: float = 1.0
-    timesync: bool = True
-    quality: int = 100
+    time_base: str = VEHICLE["time_base"].field_default
+    heartbeat_hz: float = VEHICLE["heartbeat_hz"].field_default
+    timesync: bool = VEHICLE["timesync"].field_default
+    quality: int = VEHICLE["quality"].field_default
     origin: Origin | None = None
-    set_home: bool = True
-    origin_interval_s: float = 5.0
+    set_home: bool = VEHICLE["set_home"].field_default
+    origin_interval_s: float = VEHICLE["origin_interval_s"].field_default
     signing_key: bytes | None = None
     signing_link_id: int = 0
-    reconnect_min_s: float = 0.5
-    reconnect_max_s: float = 5.0
-    link_timeout_s: float = 3.0
+    reconnect_min_s: float = VEHICLE["reconnect_min_s"].field_default
+    reconnect_max_s: float = VEHICLE["reconnect_max_s"].field_default
+    link_timeout_s: float = VEHICLE["link_timeout_s"].field_default
 
     @property
     def period_ns(self) -> int:
@@ -151,13 +225,13 @@ class PoseStreamConfig:
     """UDP pose stream (see docs/pose-stream.md)."""
 
     destinations: tuple[tuple[str, int], ...]
-    format: str = "json"
-    rate_hz: float = 0.0  # 0: every output tick
-    multicast_ttl: int = 1
-    multicast_loopback: bool = True
-    multicast_interface: str = ""
-    include_untracked: bool = True
-    markers: bool = False  # also send the loose markers (points of no body), in datagrams of their own
+    format: str = POSE_STREAM["format"].field_default
+    rate_hz: float = POSE_STREAM["rate_hz"].field_default
+    multicast_ttl: int = POSE_STREAM["multicast_ttl"].field_default
+    multicast_loopback: bool = POSE_STREAM["multicast_loopback"].field_default
+    multicast_interface: str = POSE_STREAM["multicast_interface"].field_default
+    include_untracked: bool = POSE_STREAM["include_untracked"].field_default
+    markers: bool = POSE_STREAM["markers"].field_default
 
 
 def _host_port(s: Section, key: str, value: object) -> tuple[str, int]:
@@ -181,28 +255,30 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
     top = Section(arena.raw, arena.source, "")
     bodies = {b.name: b for b in arena.bodies}
     out: list[VehicleConfig] = []
+    V = VEHICLE
     for v in top.items("vehicles"):
-        body = v.string("body")
+        v = V.check(v)
+        body = V.read(v, "body")
         if body not in bodies:
             raise v.error("body", f"no body named {body!r} in `bodies`; known: {sorted(bodies)}")
-        name = v.string("name", body)
-        sysid = v.integer("sysid", bodies[body].id, min=1, max=255)
+        name = V.read(v, "name", default=body)
+        sysid = V.read(v, "sysid", default=bodies[body].id)
         if "endpoint" not in v.data:
             raise v.error("endpoint", f"required; {ENDPOINT_HELP}")
         try:
             endpoint = parse_endpoint(v.data["endpoint"])
         except ValueError as e:
             raise v.error("endpoint", str(e)) from None
-        rate = v.number("rate_hz", 50.0, min=0.1, max=400.0)
+        rate = V.read(v, "rate_hz")
         origin = None
         if v.has("origin"):
-            o = v.sub("origin")
-            origin = Origin(o.number("lat", min=-90, max=90), o.number("lon", min=-180, max=180), o.number("alt", 0.0))
+            o = ORIGIN.check(v.sub("origin"))
+            origin = Origin(ORIGIN.read(o, "lat"), ORIGIN.read(o, "lon"), ORIGIN.read(o, "alt"))
         key = None
         link_id = 0
         if v.has("signing"):
-            s = v.sub("signing")
-            path = Path(s.string("key_file"))
+            s = SIGNING.check(v.sub("signing"))
+            path = Path(SIGNING.read(s, "key_file"))
             if not path.is_absolute():
                 path = Path(arena.source).resolve().parent / path
             try:
@@ -211,8 +287,8 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                 raise s.error("key_file", f"cannot read {path}: {e.strerror or e}") from None
             except ValueError as e:
                 raise s.error("key_file", str(e)) from None
-            link_id = s.integer("link_id", 0, min=0, max=255)
-        rmin = v.number("reconnect_min_s", 0.5, min=0.01)
+            link_id = SIGNING.read(s, "link_id")
+        rmin = V.read(v, "reconnect_min_s")
         out.append(
             VehicleConfig(
                 name=name,
@@ -220,25 +296,25 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                 body_id=bodies[body].id,
                 sysid=sysid,
                 endpoint=endpoint,
-                message=v.string("message", "vision_position_estimate", choices=MESSAGES),
-                vision_speed=v.boolean("vision_speed", False),
+                message=V.read(v, "message"),
+                vision_speed=V.read(v, "vision_speed"),
                 rate_hz=rate,
-                rate_tolerance_ms=v.number("rate_tolerance_ms", 0.1, min=0.0, max=0.5 * 1000.0 / rate),
-                max_age_ms=v.number("max_age_ms", 200.0, min=1.0),
-                yaw_offset_deg=v.number("yaw_offset_deg", 0.0, min=-360, max=360),
-                pivot_offset=tuple(float(x) for x in v.array("pivot_offset", (3,), [0.0, 0.0, 0.0])),
-                time_base=v.string("time_base", "boot", choices=TIME_BASES),
-                heartbeat_hz=v.number("heartbeat_hz", 1.0, min=0.1, max=50.0),
-                timesync=v.boolean("timesync", True),
-                quality=v.integer("quality", 100, min=-1, max=100),
+                rate_tolerance_ms=V.read(v, "rate_tolerance_ms", max=0.5 * 1000.0 / rate),
+                max_age_ms=V.read(v, "max_age_ms"),
+                yaw_offset_deg=V.read(v, "yaw_offset_deg"),
+                pivot_offset=tuple(float(x) for x in V.read(v, "pivot_offset")),
+                time_base=V.read(v, "time_base"),
+                heartbeat_hz=V.read(v, "heartbeat_hz"),
+                timesync=V.read(v, "timesync"),
+                quality=V.read(v, "quality"),
                 origin=origin,
-                set_home=v.boolean("set_home", True),
-                origin_interval_s=v.number("origin_interval_s", 5.0, min=0.0),
+                set_home=V.read(v, "set_home"),
+                origin_interval_s=V.read(v, "origin_interval_s"),
                 signing_key=key,
                 signing_link_id=link_id,
                 reconnect_min_s=rmin,
-                reconnect_max_s=v.number("reconnect_max_s", max(5.0, rmin), min=rmin),
-                link_timeout_s=v.number("link_timeout_s", 3.0, min=0.1),
+                reconnect_max_s=V.read(v, "reconnect_max_s", default=max(5.0, rmin), min=rmin),
+                link_timeout_s=V.read(v, "link_timeout_s"),
             )
         )
         if out[-1].message == "odometry" and out[-1].vision_speed:
@@ -270,8 +346,9 @@ def parse_pose_stream(arena: ArenaConfig) -> PoseStreamConfig | None:
     """Validate `pose_stream:`; None when absent or `enabled: false`."""
     if "pose_stream" not in arena.raw:
         return None
-    s = arena.section("pose_stream")
-    if not s.boolean("enabled", True):
+    s = POSE_STREAM.check(arena.section("pose_stream"))
+    P = POSE_STREAM
+    if not P.read(s, "enabled"):
         return None
     raw = s.data.get("destinations", s.data.get("destination"))
     if raw is None:
@@ -280,10 +357,10 @@ def parse_pose_stream(arena: ArenaConfig) -> PoseStreamConfig | None:
     dests = tuple(_host_port(s, f"destinations[{i}]", x) for i, x in enumerate(items))
     if not dests:
         raise s.error("destinations", "needs at least one 'HOST:PORT'")
-    rate = s.number("rate_hz", 0.0, min=0.0, max=1000.0)
+    rate = P.read(s, "rate_hz")
     if rate and not math.isfinite(rate):
         raise s.error("rate_hz", "must be finite")
-    iface = s.string("multicast_interface", "")
+    iface = P.read(s, "multicast_interface")
     if iface:
         try:
             ipaddress.IPv4Address(iface)
@@ -291,13 +368,13 @@ def parse_pose_stream(arena: ArenaConfig) -> PoseStreamConfig | None:
             raise s.error("multicast_interface", f"expected the IPv4 address of a local interface, got {iface!r}") from None
     return PoseStreamConfig(
         destinations=dests,
-        format=s.string("format", "json", choices=("json", "binary")),
+        format=P.read(s, "format"),
         rate_hz=rate,
-        multicast_ttl=s.integer("multicast_ttl", 1, min=0, max=255),
-        multicast_loopback=s.boolean("multicast_loopback", True),
+        multicast_ttl=P.read(s, "multicast_ttl"),
+        multicast_loopback=P.read(s, "multicast_loopback"),
         multicast_interface=iface,
-        include_untracked=s.boolean("include_untracked", True),
-        markers=s.boolean("markers", False),
+        include_untracked=P.read(s, "include_untracked"),
+        markers=P.read(s, "markers"),
     )
 
 

@@ -83,3 +83,20 @@ def test_documented_examples_parse(tmp_path):
     ex = parse_vehicles(parse_arena({"bodies": bodies, **examples}, str(tmp_path / "arena.yaml")))
     assert [v.endpoint.kind for v in ex] == ["udpin", "udpout", "tcp", "serial"]
     assert [v.sysid for v in ex] == [1, 2, 3, 4]
+
+
+def test_misspelt_pose_stream_and_vehicle_keys_are_errors():
+    import pytest as _pytest
+
+    from bridge.config import parse_pose_stream, parse_vehicles
+    from visionpos.config.arena import ConfigError as _ConfigError, load_yaml as _load, parse_arena as _parse
+    from visionpos.config.arena import resolve_config_path as _resolve
+
+    raw = _load(_resolve("thesis"))
+    body = raw["bodies"][0]["name"]
+    ps = dict(raw, pose_stream={"destinations": ["127.0.0.1:5005"], "formt": "binary"})
+    with _pytest.raises(_ConfigError, match="did you mean `format`"):
+        parse_pose_stream(_parse(ps, "a.yaml"))
+    v = dict(raw, vehicles=[{"body": body, "endpoint": "udpout:127.0.0.1:14550", "signin": {"key_file": "k"}}])
+    with _pytest.raises(_ConfigError, match="did you mean `signing`"):
+        parse_vehicles(_parse(v, "a.yaml"))

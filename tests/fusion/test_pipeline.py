@@ -211,7 +211,7 @@ def test_settings_validated_with_key_names(hover):
     with pytest.raises(ConfigError, match="at least 2 cameras"):
         FusionPipeline(one_camera)
     p = FusionPipeline(sc.arena, {"fusion.kalman.lost_timeout_ms": 120, "window_ms": 8})
-    assert p.settings.lost_timeout_ns == 120_000_000 and p.settings.window_ns == 8_000_000
+    assert p.settings.kalman.lost_timeout_ns == 120_000_000 and p.settings.window_ns == 8_000_000
 
 
 def test_time_aligner_rules():

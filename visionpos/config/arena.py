@@ -50,9 +50,13 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML mapping; raises ConfigError naming the file on any problem."""
     p = Path(path)
     try:
-        text = p.read_text()
+        text = p.read_bytes().decode("utf-8")
     except OSError as e:
         raise ConfigError(str(p), "(file)", f"cannot read: {e.strerror or e}") from None
+    except UnicodeDecodeError as e:
+        line = p.read_bytes()[: e.start].count(b"\n") + 1
+        raise ConfigError(str(p), "(file)", f"not UTF-8 text (byte {e.start}, line {line}); "
+                                            "save the file as UTF-8") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:
@@ -195,9 +199,14 @@ class ArenaConfig:
 
 def parse_arena(data: dict[str, Any], source: str = "<arena>") -> ArenaConfig:
     """Validate a parsed arena mapping."""
-    top = Section(data, source, "")
+    from visionpos.config import sections  # sections imports this module
+
+    top = sections.TOP.check(Section(data, source, ""))
     cams: list[Camera] = []
     for i, c in enumerate(top.items("cameras")):
+        c = sections.CAMERA.check(c)
+        if isinstance(c.data.get("pose"), dict):
+            sections.CAMERA_POSE.check(c.sub("pose"))
         try:
             cams.append(Camera.from_dict(c.data, where=f"cameras[{i}]"))
         except CameraModelError as e:
@@ -207,7 +216,10 @@ def parse_arena(data: dict[str, Any], source: str = "<arena>") -> ArenaConfig:
         raise ConfigError(source, "cameras", f"camera ids must be unique, got {ids}")
     bodies: list[BodyConfig] = []
     for b in top.items("bodies"):
-        markers = b.array("markers", (None, 3))
+        b = sections.BODY.check(b)
+        if b.has("occlusion"):
+            sections.BODY_OCCLUSION.check(b.sub("occlusion"))
+        markers = sections.BODY.read(b, "markers")
         if len(markers) < 3:
             raise b.error("markers", f"a rigid body needs at least 3 markers, got {len(markers)}")
         d = np.linalg.norm(markers[:, None] - markers[None], axis=-1)
@@ -215,10 +227,10 @@ def parse_arena(data: dict[str, Any], source: str = "<arena>") -> ArenaConfig:
             raise b.error("markers", "two markers are closer than 10 mm; cameras cannot separate them")
         bodies.append(
             BodyConfig(
-                name=b.string("name"),
-                id=b.integer("id", len(bodies) + 1, min=1, max=255),
+                name=sections.BODY.read(b, "name"),
+                id=sections.BODY.read(b, "id", default=len(bodies) + 1),
                 markers=markers,
-                marker_diameter=b.number("marker_diameter", 0.014, min=0.001),
+                marker_diameter=sections.BODY.read(b, "marker_diameter"),
                 raw=b.data,
             )
         )
@@ -235,31 +247,10 @@ def load_arena(path: str | Path) -> ArenaConfig:
 
 
 def apply_overrides(data: dict[str, Any], overrides: list[str], source: str = "--set") -> dict[str, Any]:
-    """Apply `dotted.key=value` overrides (value parsed as YAML) to a nested mapping; returns a copy.
+    """Apply `dotted.key=value` overrides to an arena mapping; returns a copy (see config/overrides.py)."""
+    from visionpos.config.overrides import apply_overrides as apply  # overrides imports this module
 
-    List items are addressed by index: `bodies.0.marker_diameter=0.02`.
-    """
-    import copy
-
-    out = copy.deepcopy(data)
-    for item in overrides:
-        if "=" not in item:
-            raise ConfigError(source, item, "expected key=value, e.g. fusion.max_residual_px=2.0")
-        key, value = item.split("=", 1)
-        parts = key.strip().split(".")
-        node: Any = out
-        for j, part in enumerate(parts[:-1]):
-            if isinstance(node, list):
-                node = node[int(part)]
-            else:
-                node = node.setdefault(part, {})
-        last = parts[-1]
-        parsed = yaml.safe_load(value)
-        if isinstance(node, list):
-            node[int(last)] = parsed
-        else:
-            node[last] = parsed
-    return out
+    return apply(data, overrides, source)
 
 
 def dump_yaml(data: dict[str, Any], path: str | Path) -> None:

@@ -49,35 +49,8 @@ tracked=False with a NaN pose (a stale pose is never sent).
 reset_counter increments only when a tracked filter is restarted at a
 measurement it kept rejecting (a jump), not on a dropout or reacquisition.
 
-The `fusion:` section of the arena YAML (every key optional):
-
-fusion:
-  time_alignment: motion_compensated  # or naive (nearest-timestamp grouping on a fixed grid, the baseline)
-  window_ms: 0            # frames of other cameras captured within this of the newest are fused with it;
-                          #   0 = 1.2 x the slowest camera's frame period
-  naive_grid_hz: 0        # naive grouping grid; 0 = the fastest camera's rate
-  max_clock_lead_ms: 30   # a frame stamped this far ahead of all other cameras is a clock jump: dropped
-  match_gate_px: 12       # predicted marker -> blob association radius
-  max_residual_px: 2.0    # a triangulated marker with a larger RMS reprojection residual is dropped
-  acquire_ray_distance_m: 0.01  # acquisition: two rays closer than this may see the same marker
-  identify_tolerance_m: 0.008   # identification: marker distances and Kabsch RMS within this
-  min_markers: 3          # fewest markers for a pose (tracking) and for identification
-  loose_points: true      # triangulate blobs that belong to no body and report them
-  loose_points_interval_ms: 50  # loose points are refreshed this often while every body is tracked
-  acquire_interval_ms: 10 # while a body is lost, acquisition runs at most this often (capture clock)
-  min_fusion_interval_ms: 2.0  # rate limit of motion-compensated fusions for many fast cameras: a fusion
-                          #   is skipped when the last one is younger than this and another camera's
-                          #   next frame is due within it (so it lands at the end of a burst); 0 = off
-  kalman:
-    jerk_psd: 0.1              # m^2/s^5, floor of the white-jerk density (constant-acceleration model)
-    angular_accel_psd: 1.0     # rad^2/s^3, floor of the white angular-acceleration density
-    max_noise_scale: 10000     # the innovation-driven (NIS) adaptation may raise both by up to this factor
-    nis_time_constant_ms: 15   # averaging time of the NIS that drives the adaptation
-    marker_sigma_m: 0.0001     # floor of the per-marker 3D noise used for the measurement covariance
-    gate_chi2: 40.0            # Mahalanobis^2 gate on the 6-dof innovation (chi2 with 6 dof)
-    reset_after_ms: 60         # measurements gated out for this long: the filter restarts at the measurement
-    max_prediction_ms: 50      # tick() predicts at most this far past the last update, else tracked=False
-    lost_timeout_ms: 150       # no accepted measurement for this long: the body is lost and re-identified
+Every `fusion:` key (and `fusion.kalman:`) with its unit, default and bounds is in
+docs/configuration.md, generated from the declarations in fusion/settings.py.
 The output rate is the server's (tick() is called by it).
 """
 
@@ -638,7 +611,7 @@ class FusionPipeline:
         st = self.settings
         self.models = [BodyModel(b.name, b.id, np.asarray(b.markers, float)) for b in arena.bodies]
         # layouts the geometry cannot tell apart would be swapped or flipped: refuse them
-        problems = layout_ambiguities(self.models, 0.5 * st.identify_tolerance)
+        problems = layout_ambiguities(self.models, 0.5 * st.identify_tolerance_m)
         if problems:
             raise ConfigError(
                 arena.source, "bodies", "; ".join(problems) + ". Move a marker so every body's distances differ by > 1 cm."
@@ -657,8 +630,8 @@ class FusionPipeline:
         self._proj = {c.id: Projector(c) for c in arena.cameras}
         self._layout_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self._gate_px = float(st.match_gate_px)
-        self._kernel_params = np.array([st.max_residual_px, st.identify_tolerance, _COMPENSATE_MAX_VEL_STD**2,
-                                        st.min_markers, st.marker_sigma**2, st.reset_after_ns])
+        self._kernel_params = np.array([st.max_residual_px, st.identify_tolerance_m, _COMPENSATE_MAX_VEL_STD**2,
+                                        st.min_markers, st.kalman.marker_sigma_m**2, st.kalman.reset_after_ns])
         self._view_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self.aligner = TimeAligner(
             st.time_alignment,
@@ -823,7 +796,7 @@ class FusionPipeline:
             self._acquire([obs[c] for c in cams], R, t, f, ref)
         # lost-track bookkeeping on the capture clock
         ti = self._ti
-        gone = [b for b in self._tracked if ref - ti[b, _LAST_UPDATE] > st.lost_timeout_ns]
+        gone = [b for b in self._tracked if ref - ti[b, _LAST_UPDATE] > st.kalman.lost_timeout_ns]
         if gone:
             ti[gone, _TRACKED] = 0
             self._stats["lost"] += len(gone)
@@ -881,17 +854,17 @@ class FusionPipeline:
             self.loose_points = LoosePoints(ref, np.zeros((0, 3)), np.zeros(0))
             return
         xs = [o.xn[fr] for o, fr in zip(obs, free)]
-        pts, idx, rms = match_unlabeled(xs, R, t, f, st.acquire_ray_distance, st.max_residual_px)
+        pts, idx, rms = match_unlabeled(xs, R, t, f, st.acquire_ray_distance_m, st.max_residual_px)
         if not lost or len(pts) < 3:
             self.loose_points = LoosePoints(ref, pts, rms)
             return
         left = np.ones(len(pts), dtype=bool)
-        for ident in identify(pts, self.models, st.identify_tolerance, st.min_markers, only=lost):
+        for ident in identify(pts, self.models, st.identify_tolerance_m, st.min_markers, only=lost):
             b = ident.body
             tr = self.tracks[b]
             matched = ident.point_index >= 0
             n_id = int(matched.sum())
-            tr.marker_var = max(ident.rms**2 * n_id / max(n_id - 2, 1), st.marker_sigma**2)
+            tr.marker_var = max(ident.rms**2 * n_id / max(n_id - 2, 1), st.kalman.marker_sigma_m**2)
             tr.filter.initialize(ref, ident.t, ident.R, pose_measurement_cov(pts[ident.point_index[matched]], ident.t, tr.marker_var))
             tr.tracked = True
             tr.first_reject_ns = None
@@ -928,7 +901,7 @@ class FusionPipeline:
         for b, (model, tr) in enumerate(zip(self.models, self.tracks)):
             last_update, last_capture, n_markers, n_cameras, _, tracked, resets = self._ti[b].tolist()
             age = now_ns - last_update
-            if tracked and age <= st.max_prediction_ns and age <= st.lost_timeout_ns:
+            if tracked and age <= st.kalman.max_prediction_ns and age <= st.kalman.lost_timeout_ns:
                 p, q, v, w_body, cov, vcov = tr.filter.output_at(now_ns)
                 out.append(
                     BodyState(

@@ -1,4 +1,8 @@
-"""The `fusion:` section of the arena YAML: validated, in SI units (see pipeline.py for what each key does)."""
+"""The `fusion:` section of the arena YAML: declared once here, validated into SI units.
+
+What each key does and why is in pipeline.py and tracking.py; the reference table is
+docs/configuration.md (generated from these declarations).
+"""
 
 from __future__ import annotations
 
@@ -6,59 +10,105 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from visionpos.config.arena import ArenaConfig, Section
+from visionpos.config.overrides import merge_section
+from visionpos.config.settings import Setting, ms_to_ns, section
 from visionpos.fusion.timealign import MODES, MOTION_COMPENSATED
-from visionpos.fusion.tracking import KalmanSettings
+
+KALMAN = section(
+    "fusion.kalman",
+    "The body filter (tracking.py): process noise, its innovation-driven adaptation, gating, timeouts.",
+    Setting("jerk_psd", "number", 0.1, "floor of the white-jerk density (m^2/s^5; constant-acceleration model)",
+            min=1e-12),
+    Setting("angular_accel_psd", "number", 1.0, "floor of the white angular-acceleration density (rad^2/s^3)",
+            min=1e-12),
+    Setting("max_noise_scale", "number", 1e4, "the innovation-driven (NIS) adaptation may raise both "
+            "densities by up to this factor", min=1.0),
+    Setting("nis_time_constant_ms", "number", 15.0, "averaging time of the NIS that drives the adaptation",
+            field="nis_time_constant_s", convert=lambda ms: ms * 1e-3, min=0.1),
+    Setting("marker_sigma_m", "number", 0.0001, "floor of the per-marker 3D noise used for the measurement "
+            "covariance", min=1e-7),
+    Setting("gate_chi2", "number", 40.0, "Mahalanobis^2 gate on the 6-dof innovation (chi2 with 6 dof)", min=1.0),
+    Setting("reset_after_ms", "number", 60.0, "measurements gated out for this long: the filter restarts at "
+            "the measurement", field="reset_after_ns", convert=ms_to_ns, min=0.0),
+    Setting("max_prediction_ms", "number", 50.0, "tick() predicts at most this far past the last update, "
+            "else tracked=false", field="max_prediction_ns", convert=ms_to_ns, min=0.0),
+    Setting("lost_timeout_ms", "number", 150.0, "no accepted measurement for this long: the body is lost and "
+            "re-identified", field="lost_timeout_ns", convert=ms_to_ns, min=1.0),
+)
+
+FUSION = section(
+    "fusion",
+    "Fusion (pipeline.py): which camera frames are fused together, association, triangulation, "
+    "acquisition of lost bodies. The output rate is the server's.",
+    Setting("time_alignment", "text", MOTION_COMPENSATED, "motion_compensated, or naive: nearest-timestamp "
+            "grouping on a fixed grid (the baseline)", choices=MODES),
+    Setting("window_ms", "number", 0.0, "frames of other cameras captured within this of the newest are "
+            "fused with it", field="window_ns", convert=ms_to_ns, min=0.0, max=1000.0,
+            auto="1.2 x the slowest camera's frame period"),
+    Setting("naive_grid_hz", "number", 0.0, "naive grouping grid", field="grid_ns",
+            convert=lambda hz: int(1e9 / hz), min=0.0, max=10000.0, auto="the fastest camera's rate"),
+    Setting("max_clock_lead_ms", "number", 30.0, "a frame stamped this far ahead of all other cameras is a "
+            "clock jump: dropped", field="max_clock_lead_ns", convert=ms_to_ns, min=0.1),
+    Setting("match_gate_px", "number", 12.0, "predicted marker -> blob association radius", min=0.1),
+    Setting("max_residual_px", "number", 2.0, "a triangulated marker with a larger RMS reprojection residual "
+            "is dropped", min=0.01),
+    Setting("acquire_ray_distance_m", "number", 0.01, "acquisition: two rays closer than this may see the "
+            "same marker", min=1e-5),
+    Setting("identify_tolerance_m", "number", 0.008, "identification: marker distances and Kabsch RMS within "
+            "this", min=1e-5),
+    Setting("min_markers", "integer", 3, "fewest markers for a pose (tracking) and for identification", min=3),
+    Setting("loose_points", "boolean", True, "triangulate blobs that belong to no body and report them"),
+    Setting("acquire_interval_ms", "number", 10.0, "while a body is lost, acquisition runs at most this "
+            "often (capture clock)", field="acquire_interval_ns", convert=ms_to_ns, min=0.0),
+    Setting("min_fusion_interval_ms", "number", 2.0, "rate limit of motion-compensated fusions for many fast "
+            "cameras: a fusion is skipped when the last one is younger than this and another camera's next "
+            "frame is due within it (so it lands at the end of a burst); 0 = off",
+            field="min_fusion_interval_ns", convert=ms_to_ns, min=0.0),
+    Setting("loose_points_interval_ms", "number", 50.0, "loose points are refreshed this often while every "
+            "body is tracked", field="loose_points_interval_ns", convert=ms_to_ns, min=0.0),
+    Setting("kalman", "section", {}, "the body filter", spec=KALMAN),
+)
+
+
+@dataclass(frozen=True)
+class KalmanSettings:
+    """Noise, adaptation, gating and timeouts of the body filter (SI units; `fusion.kalman` in the YAML).
+
+    init_*: prior std of the unmeasured derivatives at (re)initialisation (not configurable).
+    """
+
+    jerk_psd: float = KALMAN["jerk_psd"].field_default
+    angular_accel_psd: float = KALMAN["angular_accel_psd"].field_default
+    max_noise_scale: float = KALMAN["max_noise_scale"].field_default
+    nis_time_constant_s: float = KALMAN["nis_time_constant_ms"].field_default
+    marker_sigma_m: float = KALMAN["marker_sigma_m"].field_default
+    gate_chi2: float = KALMAN["gate_chi2"].field_default
+    reset_after_ns: int = KALMAN["reset_after_ms"].field_default
+    max_prediction_ns: int = KALMAN["max_prediction_ms"].field_default
+    lost_timeout_ns: int = KALMAN["lost_timeout_ms"].field_default
+    init_velocity_sigma_m_s: float = 2.0
+    init_acceleration_sigma_m_s2: float = 10.0
+    init_angular_velocity_sigma_rad_s: float = 6.0
 
 
 @dataclass(frozen=True)
 class FusionSettings:
-    """Validated `fusion:` section (SI units; see the module docstring)."""
+    """Validated `fusion:` section (SI units). window_ns and grid_ns are 0 until derived from the cameras."""
 
-    time_alignment: str = MOTION_COMPENSATED
-    window_ns: int = 0
-    grid_ns: int = 0
-    max_clock_lead_ns: int = 30_000_000
-    match_gate_px: float = 12.0
-    max_residual_px: float = 2.0
-    acquire_ray_distance: float = 0.01
-    identify_tolerance: float = 0.008
-    min_markers: int = 3
-    loose_points: bool = True
-    acquire_interval_ns: int = 10_000_000
-    min_fusion_interval_ns: int = 2_000_000
-    loose_points_interval_ns: int = 50_000_000
-    marker_sigma: float = 0.0001
+    time_alignment: str = FUSION["time_alignment"].field_default
+    window_ns: int = FUSION["window_ms"].field_default
+    grid_ns: int = FUSION["naive_grid_hz"].field_default
+    max_clock_lead_ns: int = FUSION["max_clock_lead_ms"].field_default
+    match_gate_px: float = FUSION["match_gate_px"].field_default
+    max_residual_px: float = FUSION["max_residual_px"].field_default
+    acquire_ray_distance_m: float = FUSION["acquire_ray_distance_m"].field_default
+    identify_tolerance_m: float = FUSION["identify_tolerance_m"].field_default
+    min_markers: int = FUSION["min_markers"].field_default
+    loose_points: bool = FUSION["loose_points"].field_default
+    acquire_interval_ns: int = FUSION["acquire_interval_ms"].field_default
+    min_fusion_interval_ns: int = FUSION["min_fusion_interval_ms"].field_default
+    loose_points_interval_ns: int = FUSION["loose_points_interval_ms"].field_default
     kalman: KalmanSettings = field(default_factory=KalmanSettings)
-    reset_after_ns: int = 60_000_000
-    max_prediction_ns: int = 50_000_000
-    lost_timeout_ns: int = 150_000_000
-
-
-def _expand_dotted(d: dict[str, Any]) -> dict[str, Any]:
-    """{'kalman.gate_chi2': 20} -> {'kalman': {'gate_chi2': 20}} (nested dicts pass through)."""
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        parts = str(k).split(".")
-        node = out
-        for p in parts[:-1]:
-            node = node.setdefault(p, {})
-        if isinstance(v, dict):
-            v = _expand_dotted(v)
-            if isinstance(node.get(parts[-1]), dict):
-                node[parts[-1]] = _merge(node[parts[-1]], v)
-                continue
-        node[parts[-1]] = v
-    return out
-
-
-def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for k, v in over.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _merge(out[k], v)
-        else:
-            out[k] = v
-    return out
 
 
 def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = None) -> FusionSettings:
@@ -66,64 +116,10 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
     base = arena.raw.get("fusion") or {}
     if not isinstance(base, dict):
         arena.section("fusion")  # raises a ConfigError naming the key
-    data = _expand_dotted(dict(base))
-    source = arena.source
-    if settings:
-        over = _expand_dotted(dict(settings))
-        if isinstance(over.get("fusion"), dict):  # `--set fusion.x=y` style keys
-            inner = over.pop("fusion")
-            over = _merge(over, inner)
-        data = _merge(data, over)
-        source = f"{arena.source} (+ overrides)"
-    s = Section(data, source, "fusion")
-    known = {
-        "time_alignment", "window_ms", "naive_grid_hz", "max_clock_lead_ms", "match_gate_px", "max_residual_px",
-        "acquire_ray_distance_m", "identify_tolerance_m", "min_markers", "loose_points", "loose_points_interval_ms", "acquire_interval_ms", "min_fusion_interval_ms",
-        "kalman",
-    }  # fmt: skip
-    for k in data:
-        if k not in known:
-            raise s.error(str(k), f"unknown setting; known keys are {sorted(known)}")
-    k = s.sub("kalman")
-    kknown = {
-        "jerk_psd", "angular_accel_psd", "max_noise_scale", "nis_time_constant_ms", "marker_sigma_m", "gate_chi2",
-        "reset_after_ms", "max_prediction_ms", "lost_timeout_ms",
-    }  # fmt: skip
-    for key in k.data:
-        if key not in kknown:
-            raise k.error(str(key), f"unknown setting; known keys are {sorted(kknown)}")
+    data = merge_section(base, settings, "fusion")
+    source = f"{arena.source} (+ overrides)" if settings else arena.source
+    s = FUSION.check(Section(data, source, "fusion"))
+    kalman = KALMAN.parse(s.sub("kalman"))
     fps = [c.fps for c in arena.cameras] or [100.0]
-    window_ms = s.number("window_ms", 0.0, min=0.0, max=1000.0)
-    if window_ms == 0.0:
-        window_ms = 1.2e3 / min(fps)
-    grid_hz = s.number("naive_grid_hz", 0.0, min=0.0, max=10000.0)
-    if grid_hz == 0.0:
-        grid_hz = max(fps)
-    ks = KalmanSettings(
-        jerk_psd=k.number("jerk_psd", 0.1, min=1e-12),
-        angular_accel_psd=k.number("angular_accel_psd", 1.0, min=1e-12),
-        max_noise_scale=k.number("max_noise_scale", 1e4, min=1.0),
-        nis_time_constant=k.number("nis_time_constant_ms", 15.0, min=0.1) * 1e-3,
-        gate_chi2=k.number("gate_chi2", 40.0, min=1.0),
-    )
-    lost = k.number("lost_timeout_ms", 150.0, min=1.0)
-    return FusionSettings(
-        time_alignment=s.string("time_alignment", MOTION_COMPENSATED, choices=MODES),
-        window_ns=int(window_ms * 1e6),
-        grid_ns=int(1e9 / grid_hz),
-        max_clock_lead_ns=int(s.number("max_clock_lead_ms", 30.0, min=0.1) * 1e6),
-        match_gate_px=s.number("match_gate_px", 12.0, min=0.1),
-        max_residual_px=s.number("max_residual_px", 2.0, min=0.01),
-        acquire_ray_distance=s.number("acquire_ray_distance_m", 0.01, min=1e-5),
-        identify_tolerance=s.number("identify_tolerance_m", 0.008, min=1e-5),
-        min_markers=s.integer("min_markers", 3, min=3),
-        loose_points=s.boolean("loose_points", True),
-        acquire_interval_ns=int(s.number("acquire_interval_ms", 10.0, min=0.0) * 1e6),
-        min_fusion_interval_ns=int(s.number("min_fusion_interval_ms", 2.0, min=0.0) * 1e6),
-        loose_points_interval_ns=int(s.number("loose_points_interval_ms", 50.0, min=0.0) * 1e6),
-        marker_sigma=k.number("marker_sigma_m", 0.0001, min=1e-7),
-        kalman=ks,
-        reset_after_ns=int(k.number("reset_after_ms", 60.0, min=0.0) * 1e6),
-        max_prediction_ns=int(k.number("max_prediction_ms", 50.0, min=0.0) * 1e6),
-        lost_timeout_ns=int(lost * 1e6),
-    )
+    derived = {"window_ms": 1.2e3 / min(fps), "naive_grid_hz": max(fps)}
+    return FusionSettings(**FUSION.parse(s, derived), kalman=KalmanSettings(**kalman))

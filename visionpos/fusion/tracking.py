@@ -39,10 +39,10 @@ Outliers are gated by the squared Mahalanobis distance of the innovation.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
+from visionpos.fusion.settings import KalmanSettings
 from visionpos.jit import matmul3, njit
 
 NX = 15
@@ -117,28 +117,6 @@ def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """Rotation matrix (3, 3) -> quaternion (4,) x, y, z, w with w >= 0 (Shepperd's method)."""
     return np.array(_quaternion(np.ascontiguousarray(R, dtype=np.float64)))
-
-
-@dataclass(frozen=True)
-class KalmanSettings:
-    """Noise, adaptation and gating of the body filter (SI units).
-
-    jerk_psd: floor of the white-jerk spectral density (m^2/s^5).
-    angular_accel_psd: floor of the white angular-acceleration density (rad^2/s^3).
-    max_noise_scale: largest factor the NIS adaptation may apply to them.
-    nis_time_constant: s, averaging time of the NIS that drives the adaptation.
-    gate_chi2: squared-Mahalanobis threshold of the 6-dof innovation.
-    init_*_sigma: prior std of the unmeasured derivatives at (re)initialisation.
-    """
-
-    jerk_psd: float = 0.1
-    angular_accel_psd: float = 1.0
-    max_noise_scale: float = 1e4
-    nis_time_constant: float = 0.015
-    gate_chi2: float = 40.0
-    init_velocity_sigma: float = 2.0
-    init_acceleration_sigma: float = 10.0
-    init_angular_velocity_sigma: float = 6.0
 
 
 _POSE = (0, 1, 2, 9, 10, 11)  # the measured states: position, rotation error
@@ -476,8 +454,8 @@ class FilterBank:
         self.adapt = np.ones((n, 5))
         self.clock = np.zeros((n, 3), dtype=np.int64)
         self.params = np.array([settings.jerk_psd, settings.angular_accel_psd, settings.max_noise_scale,
-                                settings.nis_time_constant, settings.gate_chi2, settings.init_velocity_sigma**2,
-                                settings.init_acceleration_sigma**2, settings.init_angular_velocity_sigma**2])
+                                settings.nis_time_constant_s, settings.gate_chi2, settings.init_velocity_sigma_m_s**2,
+                                settings.init_acceleration_sigma_m_s2**2, settings.init_angular_velocity_sigma_rad_s**2])
         self.filters = [BodyFilter(settings, self, i) for i in range(n)] if make_filters else []
 
 

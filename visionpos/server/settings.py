@@ -1,4 +1,7 @@
-"""The `server:` section of the arena YAML, validated."""
+"""The `server:` section of the arena YAML: declared once here, validated.
+
+Reference table: docs/configuration.md (generated from SERVER below).
+"""
 
 from __future__ import annotations
 
@@ -7,50 +10,63 @@ from pathlib import Path
 
 from visionpos import protocol as P
 from visionpos.config.arena import ArenaConfig
+from visionpos.config.settings import Setting, section
+
+SERVER = section(
+    "server",
+    "The fusion server: network, output rate, and which frames it accepts. Why the timing keys exist:\n\n"
+    "- `max_future_ms` / `max_age_ms` bound the accepted (receive - capture) time; outside it a frame is a "
+    "clock jump (or a replay) and is dropped, and `resync_after` such drops in a row make the server ask the "
+    "station to register again (its clock sync is stale).\n"
+    "- `shed_backlog_ms` is load shedding: a frame that waited longer than this in the server's receive queue "
+    "(from the kernel's arrival stamp to its turn) is checked, counted and recorded but not fused. A host too "
+    "slow for its cameras then fuses the freshest frames at the rate it can sustain instead of falling ever "
+    "further behind. Only the server's own backlog counts, never a station's or the network's latency (a "
+    "steady slow link is used). Replays have no backlog and never shed.",
+    Setting("port", "integer", P.DEFAULT_PORT, "UDP port the stations send to", min=0, max=65535),
+    Setting("key_file", "text", None, "shared HMAC key file (relative to the arena file); with a key every "
+            "packet must be signed", default_doc="(no signing)"),
+    Setting("output_rate_hz", "number", 100.0, "BodyState ticks per second", min=1.0, max=2000.0),
+    Setting("start_delay_s", "number", 0.0, "trigger time = server start + this", min=0.0, max=3600.0),
+    Setting("duration_s", "number", 0.0, "stop after this long (0 = run until stopped)", min=0.0),
+    Setting("vanish_periods", "number", 10.0, "frame periods of silence before a camera counts as gone", min=2.0),
+    Setting("vanish_min_s", "number", 0.1, "and at least this long", min=0.0),
+    Setting("max_future_ms", "number", 50.0, "a frame captured more than this after its receive time is dropped",
+            min=0.0),
+    Setting("max_age_ms", "number", 500.0, "a frame received more than this after its capture is dropped",
+            min=1.0),
+    Setting("resync_after", "integer", 10, "clock-jump drops in a row before the station is asked to register "
+            "again", min=1),
+    Setting("status_period_s", "number", 5.0, "period of the status log line (0 = off)", min=0.0),
+    Setting("shed_backlog_ms", "number", 15.0, "frames that waited longer than this in the receive queue are "
+            "not fused (0 = off)", min=0.0),
+)
 
 
 @dataclass(frozen=True)
 class ServerSettings:
-    """The arena's `server:` section (every key optional).
+    """The arena's `server:` section (every key optional; see SERVER for the meaning of each).
 
-    port: UDP port stations send to. key_file: shared HMAC key (path relative to the
-    arena file); with a key every packet must be signed. output_rate_hz: BodyState
-    ticks per second. start_delay_s: trigger time = server start + this.
-    vanish_periods / vanish_min_s: silence before a camera counts as gone.
-    max_future_ms / max_age_ms: accepted window of (receive - capture) time; outside
-    it a frame is a clock jump (or a replay) and is dropped. resync_after: that many
-    clock-jump drops in a row make the server ask the station to register again.
-    status_period_s: period of the status log line (0 = off).
-    shed_backlog_ms: load shedding. A frame that waited longer than this in the server's
-    receive queue (from the kernel's arrival stamp to its turn) is checked, counted and
-    recorded but not fused: a host too slow for its cameras then fuses the freshest frames at
-    the rate it can sustain instead of falling ever further behind. Only the server's own
-    backlog counts, never a station's or the network's latency (a steady slow link is used).
-    0 = off. Replays have no backlog and never shed.
+    key: the bytes of key_file (None: no signing); key_file: its resolved path.
     """
 
-    port: int = P.DEFAULT_PORT
+    port: int = SERVER["port"].field_default
     key: bytes | None = None
     key_file: str | None = None
-    output_rate_hz: float = 100.0
-    start_delay_s: float = 0.0
-    duration_s: float = 0.0
-    vanish_periods: float = 10.0
-    vanish_min_s: float = 0.1
-    max_future_ms: float = 50.0
-    max_age_ms: float = 500.0
-    resync_after: int = 10
-    status_period_s: float = 5.0
-    shed_backlog_ms: float = 15.0
+    output_rate_hz: float = SERVER["output_rate_hz"].field_default
+    start_delay_s: float = SERVER["start_delay_s"].field_default
+    duration_s: float = SERVER["duration_s"].field_default
+    vanish_periods: float = SERVER["vanish_periods"].field_default
+    vanish_min_s: float = SERVER["vanish_min_s"].field_default
+    max_future_ms: float = SERVER["max_future_ms"].field_default
+    max_age_ms: float = SERVER["max_age_ms"].field_default
+    resync_after: int = SERVER["resync_after"].field_default
+    status_period_s: float = SERVER["status_period_s"].field_default
+    shed_backlog_ms: float = SERVER["shed_backlog_ms"].field_default
 
     @classmethod
     def from_arena(cls, arena: ArenaConfig) -> "ServerSettings":
-        s = arena.section("server")
-        known = {"port", "key_file", "output_rate_hz", "start_delay_s", "duration_s", "vanish_periods",
-                 "vanish_min_s", "max_future_ms", "max_age_ms", "resync_after", "status_period_s", "shed_backlog_ms"}
-        for k in s.data:
-            if k not in known:
-                raise s.error(str(k), f"unknown key; the server section takes {sorted(known)}")
+        s = SERVER.check(arena.section("server"))
         key = None
         key_file = None
         if s.has("key_file"):
@@ -66,21 +82,9 @@ class ServerSettings:
             if not key:
                 raise s.error("key_file", f"{p} is empty; the shared HMAC key needs at least 1 byte (use 32 random)")
             key_file = str(p)
-        return cls(
-            port=s.integer("port", P.DEFAULT_PORT, min=0, max=65535),
-            key=key,
-            key_file=key_file,
-            output_rate_hz=s.number("output_rate_hz", 100.0, min=1.0, max=2000.0),
-            start_delay_s=s.number("start_delay_s", 0.0, min=0.0, max=3600.0),
-            duration_s=s.number("duration_s", 0.0, min=0.0),
-            vanish_periods=s.number("vanish_periods", 10.0, min=2.0),
-            vanish_min_s=s.number("vanish_min_s", 0.1, min=0.0),
-            max_future_ms=s.number("max_future_ms", 50.0, min=0.0),
-            max_age_ms=s.number("max_age_ms", 500.0, min=1.0),
-            shed_backlog_ms=s.number("shed_backlog_ms", 15.0, min=0.0),
-            resync_after=s.integer("resync_after", 10, min=1),
-            status_period_s=s.number("status_period_s", 5.0, min=0.0),
-        )
+        values = SERVER.parse(s)
+        values.pop("key_file")
+        return cls(key=key, key_file=key_file, **values)
 
     def with_port(self, port: int) -> "ServerSettings":
         from dataclasses import replace

@@ -4,50 +4,8 @@ A Scenario is everything `capture.simulate` needs, fully resolved and
 deterministic from `seed`: which bodies move how, each camera's frame timing,
 each station's clock, the noise and nuisance models.
 
-The `sim` section (all keys optional; defaults in brackets):
-
-  duration: s of simulated capture [30]
-  seed: integer seed of every random draw [0]
-  start_time: s, server-clock time of the scenario start [1000]
-  session: which entry of `sessions` runs [first one]
-  sessions: {name: {body_name: {trajectory: KIND, ...}}}; body names come
-      from `bodies` or `props` (see trajectories.from_config for the keys).
-      Without sessions every body hovers at 1 m, spread along x.
-  props: list of simulated-only bodies fusion does not track (calibration
-      wand, L-frame): {name, markers, marker_diameter, occlusion}
-  truth_rate: Hz of the fine ground-truth samples in SimResult [200]
-  phase: random | zero: each camera's first exposure offset within a frame [random]
-  timing_jitter_us: std of exposure instants around the frame grid
-      (clipped at 4 std) [20]
-  stamp_noise_us: std of white noise on reported capture stamps [0]
-  clock_offset_ms: std of raw station clock offsets before sync [200]
-  clock_drift_ppm: std of station crystal drift (frame periods stretch) [20]
-  sync_residual_us: std of the offset error left after clock sync, per
-      station: a constant part plus slow (0.01-0.2 Hz) wander [50]
-  centroid_noise_px: std of blob centroid noise per axis [0.2]
-  drop_probability: chance each frame is lost (its seq is skipped) [0.002]
-  latency_ms: {mean [4], std [0.5], max [15]}: exposure -> server receive,
-      gamma distributed, clipped at max
-  spurious: {static_per_camera [2]: fixed floor reflections of the IR ring
-      seen every frame, random_per_frame [0.02]: mean one-frame glints,
-      floor_mirror [0]: brightness ratio of the markers' mirror images in a
-      glossy floor (0 = matte floor; 0.3 = polished concrete)}
-  occlusion: {enabled [true], disc_radius [0.05] m: a disc in the body's
-      x-y plane at its origin (hub, battery) that hides markers of any body
-      behind it, normal_cutoff_deg [105]: a marker is seen only from
-      directions within this angle of its normal (body z tilted ~27 deg
-      outward)}; bodies and props may override it
-      with their own `occlusion` mapping
-  brightness: {peak_at_1m [1000]: blob peak (0-255 scale, clipped) of a
-      marker 1 m away, falling with range^2, min_peak [20]}
-  merge_blobs: markers whose images overlap become one blob [true]
-  max_blobs: a station sends at most this many blobs (FLAG_TRUNCATED) [64];
-      at most visionpos.protocol.MAX_BLOBS_PER_PACKET (one datagram)
-  rolling_shutter_ms: readout time from the first to the last row; 0 is a
-      global shutter [0]. Pi camera modules are rolling-shutter (~10-30 ms
-      full-frame readout); capture_ns then stamps the first row
-  cameras: {camera_id: {fps, phase_ms, drop_probability, rolling_shutter_ms,
-      enabled}} per-camera overrides
+The `sim` section (every key optional) is declared in SIM below; its reference table is in
+docs/configuration.md.
 """
 
 from __future__ import annotations
@@ -69,15 +27,100 @@ from visionpos.config.arena import (
     parse_arena,
     resolve_config_path,
 )
+from visionpos.config.settings import Setting, section
 from visionpos.sim import trajectories as trj
 from visionpos.sim.trajectories import Motion, Trajectory
 
-_SIM_KEYS = {
-    "duration", "seed", "start_time", "session", "sessions", "props", "truth_rate", "phase",
-    "timing_jitter_us", "stamp_noise_us", "clock_offset_ms", "clock_drift_ppm", "sync_residual_us",
-    "centroid_noise_px", "drop_probability", "latency_ms", "spurious", "occlusion", "brightness",
-    "merge_blobs", "max_blobs", "cameras", "rolling_shutter_ms",
-}  # fmt: skip
+SIM_OCCLUSION = section(
+    "sim.occlusion",
+    "How bodies hide markers; bodies, props and session entries may override it with their own `occlusion`.",
+    Setting("enabled", "boolean", True, "simulate occlusion at all"),
+    Setting("disc_radius", "number", 0.05, "radius (m) of a disc in each body's x-y plane at its origin (hub, "
+            "battery) that hides markers of any body behind it", min=0.0, max=2.0),
+    Setting("normal_cutoff_deg", "number", 105.0, "a marker is seen only from directions within this angle of "
+            "its normal (body z tilted ~27 deg outward)", min=0.0, max=180.0),
+)
+PROP_OCCLUSION = section("occlusion", "Self-occlusion of one body, prop or session entry (overrides `sim.occlusion`).",
+                         *[st for st in SIM_OCCLUSION.settings if st.key != "enabled"])
+PROP = section(
+    "sim.props[i]",
+    "A simulated-only body fusion does not track (calibration wand, L-frame).",
+    Setting("name", "text", doc="unique among bodies and props; sessions refer to it"),
+    Setting("markers", "array", doc="marker centres (M, 3) in the body frame (m)", shape=(None, 3)),
+    Setting("marker_diameter", "number", 0.014, "marker sphere diameter (m)", min=0.001),
+    Setting("occlusion", "section", {}, "self-occlusion", spec=PROP_OCCLUSION),
+)
+LATENCY = section(
+    "sim.latency_ms",
+    "Exposure -> server receive latency, gamma distributed, clipped at max.",
+    Setting("mean", "number", 4.0, "mean (ms)", min=0.0),
+    Setting("std", "number", 0.5, "standard deviation (ms)", min=0.0),
+    Setting("max", "number", 15.0, "clip (ms), at least mean", default_doc="max(15, 4 x mean)"),
+)
+SPURIOUS = section(
+    "sim.spurious",
+    "Blobs that are not markers.",
+    Setting("static_per_camera", "integer", 2, "fixed floor reflections of the IR ring seen every frame",
+            min=0, max=1000),
+    Setting("random_per_frame", "number", 0.02, "mean one-frame glints per frame", min=0.0, max=1000.0),
+    Setting("floor_mirror", "number", 0.0, "brightness ratio of the markers' mirror images in a glossy floor "
+            "(0 = matte; 0.3 = polished concrete)", min=0.0, max=1.0),
+)
+BRIGHTNESS = section(
+    "sim.brightness",
+    "Blob brightness (0-255 scale, clipped).",
+    Setting("peak_at_1m", "number", 1000.0, "blob peak of a marker 1 m away, falling with range^2", min=1.0),
+    Setting("min_peak", "number", 20.0, "dimmer blobs are not detected", min=0.0, max=255.0),
+)
+SIM_CAMERA = section(
+    "sim.cameras.ID",
+    "Per-camera overrides, keyed by camera id.",
+    Setting("enabled", "boolean", True, "false: the camera is not simulated"),
+    Setting("fps", "number", None, "frame rate (Hz)", min=0.1, max=10000.0, default_doc="the camera's fps"),
+    Setting("phase_ms", "number", None, "first exposure offset within a frame", min=0.0,
+            default_doc="from `phase`"),
+    Setting("drop_probability", "number", None, "chance each frame is lost", min=0.0, max=1.0,
+            default_doc="sim.drop_probability"),
+    Setting("rolling_shutter_ms", "number", None, "readout time, at most a frame period", min=0.0,
+            default_doc="sim.rolling_shutter_ms"),
+)
+SIM = section(
+    "sim",
+    "The simulator's scenario (`visionpos sim`, `visionpos demo`): motion, timing, clocks, noise and nuisances. "
+    "Deterministic from `seed`.",
+    Setting("duration", "number", 30.0, "simulated capture (s)", min=0.001),
+    Setting("seed", "integer", 0, "seed of every random draw", min=0),
+    Setting("start_time", "number", 1000.0, "server-clock time of the scenario start (s)", min=0.0),
+    Setting("session", "text", None, "which entry of `sessions` runs", default_doc="the first"),
+    Setting("sessions", "section", {}, "{name: {body_or_prop_name: {trajectory: KIND, ...}}} (the trajectory "
+            "keys: visionpos/sim/trajectories.py from_config); each entry may also hold an `occlusion` mapping. "
+            "Without sessions every body hovers at 1 m, spread along x"),
+    Setting("props", "list", [], "simulated-only bodies", spec=PROP),
+    Setting("truth_rate", "number", 200.0, "rate of the fine ground-truth samples (Hz)", min=1.0, max=100000.0),
+    Setting("phase", "text", "random", "each camera's first exposure offset within a frame",
+            choices=("random", "zero")),
+    Setting("timing_jitter_us", "number", 20.0, "std of exposure instants around the frame grid (clipped at "
+            "4 std)", min=0.0),
+    Setting("stamp_noise_us", "number", 0.0, "std of white noise on reported capture stamps", min=0.0),
+    Setting("clock_offset_ms", "number", 200.0, "std of raw station clock offsets before sync", min=0.0),
+    Setting("clock_drift_ppm", "number", 20.0, "std of station crystal drift (frame periods stretch)", min=0.0,
+            max=1000.0),
+    Setting("sync_residual_us", "number", 50.0, "std of the offset error left after clock sync, per station: a "
+            "constant part plus slow (0.01-0.2 Hz) wander", min=0.0),
+    Setting("centroid_noise_px", "number", 0.2, "std of blob centroid noise per axis", min=0.0, max=50.0),
+    Setting("drop_probability", "number", 0.002, "chance each frame is lost (its seq is skipped)", min=0.0,
+            max=1.0),
+    Setting("latency_ms", "section", {}, "exposure -> receive latency", spec=LATENCY),
+    Setting("spurious", "section", {}, "spurious blobs", spec=SPURIOUS),
+    Setting("occlusion", "section", {}, "occlusion model", spec=SIM_OCCLUSION),
+    Setting("brightness", "section", {}, "blob brightness", spec=BRIGHTNESS),
+    Setting("merge_blobs", "boolean", True, "markers whose images overlap become one blob"),
+    Setting("max_blobs", "integer", 64, "a station sends at most this many blobs (FLAG_TRUNCATED); at most one "
+            "datagram's worth", min=1, max=MAX_BLOBS_PER_PACKET),
+    Setting("cameras", "map", {}, "per-camera overrides by camera id", spec=SIM_CAMERA),
+    Setting("rolling_shutter_ms", "number", 0.0, "readout time from the first to the last row (0 = global "
+            "shutter); capture_ns stamps the first row", min=0.0, max=1000.0),
+)
 
 # stream tags for per-purpose random generators: rng([seed, TAG, ...])
 TAG_TRAJ, TAG_CLOCK, TAG_PHASE, TAG_FRAMES, TAG_STATIC = 1, 2, 3, 4, 5
@@ -224,9 +267,7 @@ def _marker_normals(markers: np.ndarray) -> np.ndarray:
 def _occlusion_params(s: Section, default: tuple[float, float]) -> tuple[float, float]:
     if not s.data:
         return default
-    extra = sorted(set(s.data) - {"enabled", "disc_radius", "normal_cutoff_deg"})
-    if extra:
-        raise s.error(extra[0], "unknown occlusion key; use disc_radius, normal_cutoff_deg (and enabled in sim.occlusion)")
+    s = PROP_OCCLUSION.check(s)
     return (
         s.number("disc_radius", default[0], min=0.0, max=2.0),
         s.number("normal_cutoff_deg", default[1], min=0.0, max=180.0),
@@ -238,10 +279,8 @@ def _props(sim: Section, arena: ArenaConfig) -> list[tuple[BodyConfig, Section]]
     out = []
     names = {b.name for b in arena.bodies}
     for p in sim.items("props"):
-        extra = sorted(set(p.data) - {"name", "markers", "marker_diameter", "occlusion"})
-        if extra:
-            raise p.error(extra[0], "unknown prop key; use name, markers, marker_diameter, occlusion")
-        name = p.string("name")
+        p = PROP.check(p)
+        name = PROP.read(p, "name")
         if name in names:
             raise p.error("name", f"'{name}' is already a body or prop name; props need their own names")
         names.add(name)
@@ -251,7 +290,7 @@ def _props(sim: Section, arena: ArenaConfig) -> list[tuple[BodyConfig, Section]]
         d = np.linalg.norm(markers[:, None] - markers[None], axis=-1) + np.eye(len(markers)) * 1e9
         if d.min() < 0.01:
             raise p.error("markers", "two markers are closer than 10 mm; cameras cannot separate them")
-        body = BodyConfig(name, 0, markers, p.number("marker_diameter", 0.014, min=0.001), p.data)
+        body = BodyConfig(name, 0, markers, PROP.read(p, "marker_diameter"), p.data)
         out.append((body, p.sub("occlusion")))
     return out
 
@@ -267,21 +306,16 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
     if session is not None:
         raw_sim["session"] = session
     sim = Section(raw_sim, arena.source, "sim")
-    extra = sorted(set(sim.data) - _SIM_KEYS)
-    if extra:
-        raise sim.error(extra[0], f"unknown sim key; known keys: {sorted(_SIM_KEYS)}")
+    sim = SIM.check(sim)
 
-    seed = sim.integer("seed", 0, min=0)
-    duration = sim.number("duration", 30.0, min=0.001)
-    start_ns = int(round(sim.number("start_time", 1000.0, min=0.0) * 1e9))
+    seed = SIM.read(sim, "seed")
+    duration = SIM.read(sim, "duration")
+    start_ns = int(round(SIM.read(sim, "start_time") * 1e9))
 
     # ---- bodies: tracked ones and props, selected by the session
-    occ = sim.sub("occlusion")
-    extra = sorted(set(occ.data) - {"enabled", "disc_radius", "normal_cutoff_deg"})
-    if extra:
-        raise occ.error(extra[0], "unknown occlusion key; use enabled, disc_radius, normal_cutoff_deg")
-    occ_enabled = occ.boolean("enabled", True)
-    occ_default = (occ.number("disc_radius", 0.05, min=0.0, max=2.0), occ.number("normal_cutoff_deg", 105.0, min=0.0, max=180.0))
+    occ = SIM_OCCLUSION.check(sim.sub("occlusion"))
+    occ_enabled = SIM_OCCLUSION.read(occ, "enabled")
+    occ_default = (SIM_OCCLUSION.read(occ, "disc_radius"), SIM_OCCLUSION.read(occ, "normal_cutoff_deg"))
     candidates: dict[str, tuple[BodyConfig, Section, bool]] = {
         b.name: (b, Section(b.raw.get("occlusion"), arena.source, f"bodies[{i}].occlusion"), True)
         for i, b in enumerate(arena.bodies)
@@ -348,17 +382,18 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
         norm[kid] = v
     cam_over = Section(norm, cam_over.source, cam_over.path)
     phase_mode = sim.string("phase", "random", choices=("random", "zero"))
-    jitter_ns = sim.number("timing_jitter_us", 20.0, min=0.0) * 1e3
-    stamp_ns = sim.number("stamp_noise_us", 0.0, min=0.0) * 1e3
-    offset_std = sim.number("clock_offset_ms", 200.0, min=0.0) * 1e6
-    drift_std = sim.number("clock_drift_ppm", 20.0, min=0.0, max=1000.0)
-    resid_std = sim.number("sync_residual_us", 50.0, min=0.0) * 1e3
-    drop = sim.number("drop_probability", 0.002, min=0.0, max=1.0)
-    readout_ms = sim.number("rolling_shutter_ms", 0.0, min=0.0, max=1000.0)
+    jitter_ns = SIM.read(sim, "timing_jitter_us") * 1e3
+    stamp_ns = SIM.read(sim, "stamp_noise_us") * 1e3
+    offset_std = SIM.read(sim, "clock_offset_ms") * 1e6
+    drift_std = SIM.read(sim, "clock_drift_ppm")
+    resid_std = SIM.read(sim, "sync_residual_us") * 1e3
+    drop = SIM.read(sim, "drop_probability")
+    readout_ms = SIM.read(sim, "rolling_shutter_ms")
     cameras, timings = [], []
     clocks: dict[int, StationClock] = {}
     for cam in arena.cameras:
         co = cam_over.sub(cam.id) if cam.id in cam_over.data else Section({}, arena.source, f"sim.cameras.{cam.id}")
+        co = SIM_CAMERA.check(co)
         if not co.boolean("enabled", True):
             continue
         fps = co.number("fps", cam.fps, min=0.1, max=10000.0)
@@ -399,14 +434,10 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
     if not cameras:
         raise sim.error("cameras", "every camera is disabled; enable at least one")
 
-    lat = sim.sub("latency_ms")
-    spur = sim.sub("spurious")
-    bright = sim.sub("brightness")
-    for sec, keys in ((lat, {"mean", "std", "max"}), (spur, {"static_per_camera", "random_per_frame", "floor_mirror"}), (bright, {"peak_at_1m", "min_peak"})):
-        extra = sorted(set(sec.data) - keys)
-        if extra:
-            raise sec.error(extra[0], f"unknown key; known keys: {sorted(keys)}")
-    lat_mean = lat.number("mean", 4.0, min=0.0)
+    lat = LATENCY.check(sim.sub("latency_ms"))
+    spur = SPURIOUS.check(sim.sub("spurious"))
+    bright = BRIGHTNESS.check(sim.sub("brightness"))
+    lat_mean = LATENCY.read(lat, "mean")
     lat_max = lat.number("max", max(15.0, 4 * lat_mean), min=lat_mean)
     return Scenario(
         arena=arena,
@@ -418,19 +449,19 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
         duration_s=duration,
         seed=seed,
         start_ns=start_ns,
-        truth_rate_hz=sim.number("truth_rate", 200.0, min=1.0, max=100000.0),
-        centroid_noise_px=sim.number("centroid_noise_px", 0.2, min=0.0, max=50.0),
+        truth_rate_hz=SIM.read(sim, "truth_rate"),
+        centroid_noise_px=SIM.read(sim, "centroid_noise_px"),
         latency_mean_ns=lat_mean * 1e6,
-        latency_std_ns=lat.number("std", 0.5, min=0.0) * 1e6,
+        latency_std_ns=LATENCY.read(lat, "std") * 1e6,
         latency_max_ns=lat_max * 1e6,
-        static_spurious_per_camera=spur.integer("static_per_camera", 2, min=0, max=1000),
-        random_spurious_per_frame=spur.number("random_per_frame", 0.02, min=0.0, max=1000.0),
-        floor_mirror=spur.number("floor_mirror", 0.0, min=0.0, max=1.0),
+        static_spurious_per_camera=SPURIOUS.read(spur, "static_per_camera"),
+        random_spurious_per_frame=SPURIOUS.read(spur, "random_per_frame"),
+        floor_mirror=SPURIOUS.read(spur, "floor_mirror"),
         occlusion=occ_enabled,
-        peak_at_1m=bright.number("peak_at_1m", 1000.0, min=1.0),
-        min_peak=bright.number("min_peak", 20.0, min=0.0, max=255.0),
-        merge_blobs=sim.boolean("merge_blobs", True),
-        max_blobs=sim.integer("max_blobs", 64, min=1, max=MAX_BLOBS_PER_PACKET),
+        peak_at_1m=BRIGHTNESS.read(bright, "peak_at_1m"),
+        min_peak=BRIGHTNESS.read(bright, "min_peak"),
+        merge_blobs=SIM.read(sim, "merge_blobs"),
+        max_blobs=SIM.read(sim, "max_blobs"),
         raw=raw_sim,
     )
 

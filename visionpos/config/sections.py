@@ -1,0 +1,109 @@
+"""Declarations of the arena file's shared parts: the top level, `cameras[i]`, `bodies[i]`, `calibration`.
+
+Stage-owned sections are declared beside their parsers (fusion/settings.py, server/settings.py,
+bridge/config.py, sim/scenario.py); config/schema.py assembles the whole file.
+"""
+
+from __future__ import annotations
+
+from visionpos.config.settings import Setting, section
+
+CAMERA_POSE = section(
+    "cameras[i].pose",
+    "Where the camera is and where it looks, in the world frame (m). Give `position` plus one of two "
+    "orientation forms:\n\n"
+    "- `quaternion_xyzw: [x, y, z, w]`: the camera->world rotation (the camera's axes in world "
+    "coordinates; camera frame: x right, y down, z along the optical axis). This is the form "
+    "calibration writes (`visionpos calibrate` stores every camera this way).\n"
+    "- `look_at: [x, y, z]` (with optional `up`): the optical axis points from `position` at this "
+    "world point, with no roll: the image x axis is horizontal (perpendicular to `up`) and image "
+    "up (-y) is as close to `up` as possible. Looking straight along `up`, the world y axis "
+    "takes its place.\n\n"
+    "`quaternion_xyzw` wins when both are given.",
+    Setting("position", "array", doc="camera centre in the world frame (m)", shape=(3,)),
+    Setting("quaternion_xyzw", "array", None, "camera->world rotation as a quaternion (x, y, z, w); "
+            "need not be normalised", shape=(4,), default_doc="(or look_at)"),
+    Setting("look_at", "array", None, "world point (m) the optical axis passes through", shape=(3,),
+            default_doc="(or quaternion_xyzw)"),
+    Setting("up", "array", [0, 0, 1], "world direction that appears up in the image (look_at only)", shape=(3,)),
+)
+
+CAMERA = section(
+    "cameras[i]",
+    "One calibrated camera: intrinsics, distortion, pose and frame rate.\n\n"
+    "Lens models (`model`):\n\n"
+    "- `pinhole`: OpenCV's pinhole model with its distortion vector in OpenCV's order: "
+    "`dist: [k1, k2, p1, p2, k3]` (k1, k2, k3 radial; p1, p2 tangential), optionally followed by "
+    "the rational k4, k5, k6; 0, 4, 5 or 8 numbers, missing ones are 0. The same vector "
+    "`cv2.calibrateCamera` returns.\n"
+    "- `fisheye`: OpenCV's fisheye model (`cv2.fisheye`), the Kannala-Brandt polynomial "
+    "theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8) with zero skew: "
+    "`dist: [k1, k2, k3, k4]` (0 or 4 numbers).",
+    Setting("id", "integer", doc="camera id: the one its station sends in every frame"),
+    Setting("name", "text", None, "name in logs and plots", default_doc="cam{id}"),
+    Setting("fps", "number", 100.0, "frame rate (Hz); sets the default fusion window and naive grid"),
+    Setting("station", "integer", None, "station id expected to send this camera's frames "
+            "(others are refused); absent: any station", default_doc="(any)"),
+    Setting("model", "text", "pinhole", "lens model", choices=("pinhole", "fisheye")),
+    Setting("width", "integer", doc="image width (px)"),
+    Setting("height", "integer", doc="image height (px)"),
+    Setting("fx", "number", doc="focal length along x (px)"),
+    Setting("fy", "number", doc="focal length along y (px)"),
+    Setting("cx", "number", doc="principal point x (px)"),
+    Setting("cy", "number", doc="principal point y (px)"),
+    Setting("dist", "array", [], "distortion coefficients in OpenCV's order (see the lens models)",
+            default_doc="[] (none)"),
+    Setting("pose", "section", doc="camera position and orientation", spec=CAMERA_POSE),
+)
+
+BODY_OCCLUSION = section(
+    "bodies[i].occlusion",
+    "Simulator only: how this body hides its own markers (overrides `sim.occlusion`).",
+    Setting("disc_radius", "number", 0.05, "radius (m) of a disc in the body's x-y plane at its origin "
+            "(hub, battery) that hides markers behind it", min=0.0, max=2.0),
+    Setting("normal_cutoff_deg", "number", 105.0, "a marker is seen only from directions within this angle "
+            "of its normal", min=0.0, max=180.0),
+)
+
+BODY = section(
+    "bodies[i]",
+    "A rigid body fusion tracks: its markers in the body frame (m; x forward, y left, z up).",
+    Setting("name", "text", doc="unique name (vehicles and the pose stream refer to it)"),
+    Setting("id", "integer", None, "body id in outputs (1..255)", min=1, max=255, default_doc="position in the list + 1"),
+    Setting("markers", "array", doc="marker centres (M, 3) in m, at least 3, no two closer than 10 mm",
+            shape=(None, 3)),
+    Setting("marker_diameter", "number", 0.014, "marker sphere diameter (m)", min=0.001),
+    Setting("occlusion", "section", doc="simulator self-occlusion of this body", spec=BODY_OCCLUSION),
+)
+
+WAND = section(
+    "calibration.wand",
+    "The calibration wand: three collinear markers A, B, C (`visionpos calibrate extrinsics`); "
+    "the command line's --ab/--bc win.",
+    Setting("ab", "number", 0.054, "distance A-B (m)", min=0.005),
+    Setting("bc", "number", 0.103, "distance B-C (m)", min=0.005),
+)
+
+CALIBRATION = section(
+    "calibration",
+    "Calibration inputs, and the reports `visionpos calibrate` writes back into the arena it produces.",
+    Setting("wand", "section", doc="the wand's geometry", spec=WAND),
+    Setting("extrinsics", "any", None, "report written by `calibrate extrinsics` (reference camera, "
+            "residuals); read by nobody", default_doc="(written)"),
+    Setting("ground", "any", None, "report written by `calibrate ground` (marker choice, fit residual); "
+            "read by nobody", default_doc="(written)"),
+)
+
+# the stage-owned sections get their specs in config/schema.py
+TOP = section(
+    "(top level)",
+    "The sections of an arena file. Only `cameras` and `bodies` are needed; every other section is optional.",
+    Setting("cameras", "list", [], "the cameras", spec=CAMERA),
+    Setting("bodies", "list", [], "the rigid bodies to track", spec=BODY),
+    Setting("fusion", "section", {}, "fusion: time alignment, matching, tracking"),
+    Setting("server", "section", {}, "the fusion server's network and timing"),
+    Setting("vehicles", "list", [], "autopilots the MAVLink bridge feeds"),
+    Setting("pose_stream", "section", None, "UDP pose stream", default_doc="(off)"),
+    Setting("sim", "section", {}, "the simulator's scenario"),
+    Setting("calibration", "section", {}, "calibration wand and reports", spec=CALIBRATION),
+)
