@@ -17,7 +17,8 @@ from pymavlink import mavutil
 
 from bridge import Bridge
 from bridge.fake_autopilot import FakeAutopilot
-from bridge.testing import arena_with_vehicles, body_state, free_port
+from visionpos.app.ports import free_port
+from visionpos.benchmarks.factories import arena_with_vehicles, body_state
 
 S45 = math.sqrt(0.5)
 
