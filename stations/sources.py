@@ -353,6 +353,7 @@ class SimSource(FrameSource):
         self.last_truth = np.zeros((0, 2))
 
     def open(self) -> None:
+        # imported here: a station loads the simulator only when configured with a sim source
         from visionpos.sim.scenario import load_scenario
 
         sc = load_scenario(self.cfg.scenario)

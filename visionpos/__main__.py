@@ -1,3 +1,3 @@
-from visionpos.cli import main
+from visionpos.cli.main import main
 
 raise SystemExit(main())

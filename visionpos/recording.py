@@ -26,7 +26,6 @@ never touches the disk: records are appended to an in-memory spool under a lock.
 
 from __future__ import annotations
 
-import argparse
 import atexit
 import json
 import logging
@@ -36,7 +35,6 @@ import mmap
 import os
 import socket
 import struct
-import sys
 import threading
 import time
 import warnings
@@ -632,58 +630,3 @@ class RecordingReader:
         for topic, _, _, _ in self.messages():
             counts[topic] = counts.get(topic, 0) + 1
         return counts
-
-
-# ---------------------------------------------------------------- `visionpos record`
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("output", help="MCAP file to write")
-    p.add_argument("--config", required=True, help="arena YAML (path or built-in name: thesis, arena8)")
-    p.add_argument("--port", type=int, default=None, help="UDP port (default: server.port from the config, 5600)")
-    p.add_argument("--host", default="0.0.0.0", help="address to listen on (default all interfaces)")
-    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: until Ctrl-C)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
-
-
-def run(args: argparse.Namespace) -> int:
-    """Record live station traffic: answer registration/sync/heartbeats, log every packet, no fusion."""
-    import asyncio
-
-    from visionpos.server.ingest import Ingest
-    from visionpos.server.settings import ServerSettings
-    from visionpos.server.service import load_config_with_overrides, run_until_signal, status_log
-
-    if status_log.level == logging.NOTSET:
-        status_log.setLevel(logging.INFO)
-    arena = load_config_with_overrides(args.config, args.set)
-    settings = ServerSettings.from_arena(arena)
-    if args.port is not None:
-        settings = settings.with_port(args.port)
-
-    async def main() -> int:
-        with RecordingWriter(args.output, arena.raw, {"command": "record"}) as rec:
-            ingest = Ingest(arena, settings, pipeline=None, recorder=rec,
-                            events=lambda kind, info: rec.write_json("/server/events", time.monotonic_ns(),
-                                                                     {"kind": kind, **info}))
-            try:
-                await ingest.start(args.host, settings.port)
-            except OSError as e:  # port in use, bad address: a message, not a traceback
-                print(f"visionpos record: error: {e.strerror or e}", file=sys.stderr)
-                return 2
-            print(f"visionpos record: listening on udp {args.host}:{ingest.port}, recording to {args.output}; "
-                  "Ctrl-C to stop", flush=True)
-
-            def status() -> None:
-                ingest.check_vanished(time.monotonic_ns())
-                status_log.info("%s | recorded %d packets", ingest.status_line(), rec.counts.get(TOPIC_PACKETS, 0))
-
-            try:
-                await run_until_signal(args.duration, status=status, status_period_s=settings.status_period_s)
-            finally:
-                ingest.close()
-                rec.write_json("/server/health", time.monotonic_ns(), ingest.health())
-            print(f"visionpos record: {rec.counts.get(TOPIC_PACKETS, 0)} packets written to {args.output}", flush=True)
-        return 0
-
-    return asyncio.run(main())

@@ -194,7 +194,7 @@ def test_replay_without_matplotlib_writes_everything_else(thesis_log, tmp_path, 
 
 
 def test_parse_speed():
-    from visionpos.analysis.replay import parse_speed
+    from visionpos.cli.replay import parse_speed
 
     assert parse_speed("max") is None
     assert parse_speed("1") == 1.0

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from visionpos.benchmarks import GOALS, GROUPS, BenchResult, Goal
-from visionpos.benchmarks.cli import goal_rows, to_markdown
+from visionpos.benchmarks.runner import goal_rows, to_markdown
 
 
 def test_goal_checks_both_directions_and_relative_targets():

@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from bridge.config import Endpoint, parse_endpoint, parse_vehicles
-from bridge.testing import arena_with_vehicles
+from visionpos.benchmarks.factories import arena_with_vehicles
 from visionpos.config.arena import ConfigError, parse_arena
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md"

@@ -14,7 +14,7 @@ from bridge.convert import (
     vision_position_fields,
     vision_speed_fields,
 )
-from bridge.testing import body_state
+from visionpos.benchmarks.factories import body_state
 
 S45 = math.sqrt(0.5)
 YAW_LEFT_90 = (0.0, 0.0, S45, S45)  # body x -> world +y (turned 90 deg left, counter-clockwise from above)

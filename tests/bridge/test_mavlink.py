@@ -15,7 +15,8 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from bridge import Bridge
 from bridge.fake_autopilot import FakeAutopilot, decode_pose
-from bridge.testing import arena_with_vehicles, body_state, free_port
+from visionpos.app.ports import free_port
+from visionpos.benchmarks.factories import arena_with_vehicles, body_state
 
 S45 = math.sqrt(0.5)
 YAW_LEFT_90 = (0.0, 0.0, S45, S45)

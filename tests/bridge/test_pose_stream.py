@@ -15,7 +15,8 @@ import pytest
 from bridge import Bridge, PoseStream
 from bridge.config import parse_pose_stream
 from bridge.pose_stream import decode_binary, upper_to_full
-from bridge.testing import arena_with_vehicles, body_state, free_port
+from visionpos.app.ports import free_port
+from visionpos.benchmarks.factories import arena_with_vehicles, body_state
 from visionpos.config.arena import ConfigError
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "pose-stream.md"

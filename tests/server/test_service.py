@@ -22,7 +22,8 @@ import pytest
 from visionpos import protocol as P
 from visionpos.messages import BlobFrame
 from visionpos.recording import RecordingDamagedWarning, RecordingReader, RecordingWriter
-from visionpos.server.service import FusionServer, default_sinks, load_config_with_overrides
+from visionpos.app.serve import bridge_sinks
+from visionpos.server.service import FusionServer, load_config_with_overrides
 
 ROOT = Path(__file__).resolve().parents[2]
 MS = 1_000_000
@@ -110,7 +111,7 @@ def test_tracking_continues_after_station_vanishes():
     async def main():
         loop = asyncio.get_running_loop()
         sink = Collect()
-        server = FusionServer(arena, sinks=[sink, *default_sinks(arena)], port=0, pipeline=pipe)
+        server = FusionServer(arena, sinks=[sink, *bridge_sinks(arena)], port=0, pipeline=pipe)
         await server.start()
         try:
             socks = await _station_sockets(loop, server.port, [1, 2, 3, 4])
@@ -277,7 +278,7 @@ def test_command_sigterm_flushes_recording(command, tmp_path):
     pytest.importorskip("visionpos.fusion.pipeline")
     out = tmp_path / "run.mcap"
     args = (["serve", "--config", "thesis", "--record", str(out)] if command == "serve"
-            else ["record", str(out), "--config", "thesis"])
+            else ["record", "--out", str(out), "--config", "thesis"])
     proc = _serve(args + ["--host", "127.0.0.1", "--port", "0", "--set", "server.status_period_s=0"], tmp_path)
     try:
         port = _port_from(proc)

@@ -13,9 +13,7 @@ metrics.json, a printed table and PNG plots (plots need matplotlib).
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -402,58 +400,21 @@ def summary(result: ReplayResult) -> dict[str, Any]:
     )
 
 
-# ---------------------------------------------------------------- CLI
+def write_outputs(result: ReplayResult, out: str | Path, plots: bool = True) -> tuple[list[Path], str | None]:
+    """trajectories.csv, metrics.json and (plots=True) the PNGs in folder `out`.
 
-
-def parse_speed(s: str) -> float | None:
-    if s == "max":
-        return None
-    try:
-        v = float(s)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--speed takes a number (1 = real time) or 'max', got {s!r}") from None
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"--speed must be > 0, got {s}")
-    return v
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("log", help="recording (.mcap) from `visionpos sim --out` or `visionpos record`")
-    p.add_argument("--config", help="arena YAML replacing the one stored in the recording")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a setting, e.g. fusion.time_alignment=naive (repeatable)")
-    p.add_argument("--speed", type=parse_speed, default=None, metavar="1|max", help="1 = real time, N = N x real time, max = as fast as possible (default)")
-    p.add_argument("--rate", type=float, default=None, metavar="HZ", help="output tick rate (default: server.output_rate_hz or 100)")
-    p.add_argument("--out", default="replay_out", metavar="DIR", help="output folder (default ./replay_out)")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots (faster; no matplotlib needed)")
-
-
-def run(args: argparse.Namespace) -> int:
-    res = replay_log(args.log, args.config, args.set, speed=args.speed, rate_hz=args.rate)
-    out = Path(args.out)
+    Returns (files written, note): the note says why the plots are missing when matplotlib
+    (the plots extra) is not installed; everything else is written anyway.
+    """
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    written = [write_trajectories_csv(res, out / "trajectories.csv")]
-    summ = summary(res)
-    (out / "metrics.json").write_text(json.dumps(summ, indent=2, sort_keys=True) + "\n")
+    written = [write_trajectories_csv(result, out / "trajectories.csv")]
+    (out / "metrics.json").write_text(json.dumps(summary(result), indent=2, sort_keys=True) + "\n")
     written.append(out / "metrics.json")
     note = None
-    if not args.no_plots:
+    if plots:
         try:
-            written += write_plots(res, out)
-        except ImportError as e:  # plots extra not installed: everything else is written
+            written += write_plots(result, out)
+        except ImportError as e:
             note = str(e)
-    if args.json:
-        print(json.dumps(summ, indent=2, sort_keys=True))
-    else:
-        print(
-            f"replayed {summ['duration_s']:.2f} s of recording ({res.n_packets} packets, {res.n_frames} frames, "
-            f"{res.n_bad} bad) in {res.wall_s:.2f} s = {res.speed_x:.1f}x real time, {len(res.ticks_ns)} ticks"
-        )
-        cols = METRIC_COLUMNS if res.truth else [c for c in METRIC_COLUMNS if "rmse" not in c[0] and "max" not in c[0]]
-        print(M.format_table(metrics_rows(res), cols))
-        if not res.truth:
-            print("(the recording carries no ground truth: no error metrics; jitter and latency only)")
-    if note:
-        print(f"note: {note}", file=sys.stderr)
-    print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
-    return 0
+    return written, note

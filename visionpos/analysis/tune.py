@@ -9,25 +9,28 @@ best in the sweep.
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
-import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
-from typing import Any, TextIO
+from pathlib import Path
+from typing import Any, Sequence, TextIO
 
 import numpy as np
 import yaml
 
 from visionpos.analysis import metrics as M
 from visionpos.config.arena import ConfigError
+from visionpos.errors import UsageError
 
 # a setting keeps its rank by error only if it tracks at least this share of
 # what the best-tracking setting of the sweep tracks
 TRACKING_KEEP = 0.9
+
+# the arena sections a replay reads: a grid key elsewhere could not change any trial
+REPLAYED_SECTIONS = ("fusion", "server", "cameras", "bodies")
 
 
 def parse_grid(items: list[str]) -> list[tuple[str, list[Any]]]:
@@ -156,6 +159,44 @@ class Progress:
             self.stream.flush()
 
 
+def check_sweep(log: str, grid: list[tuple[str, list[Any]]], base_overrides: Sequence[str] = (),
+                config: str | None = None) -> None:
+    """Fail fast, before any trial: the recording opens, and every grid key is a setting.
+
+    Each key is tried with each of its values on the recording's arena (or `config`), through
+    the same config, fusion and server validation a replay does; a key none of whose values
+    validate (an unknown key, a typo) raises a UsageError. A key with some bad values is left
+    to the sweep, which reports those trials as failed.
+    """
+    from visionpos.analysis.replay import load_settings
+    from visionpos.fusion.settings import parse_fusion_settings
+    from visionpos.recording import RecordingReader
+    from visionpos.server.settings import ServerSettings
+
+    if not Path(log).is_file():
+        raise UsageError(f"{log}: no such recording; make one with `visionpos sim --out` or `visionpos record --out`")
+    recorded = RecordingReader(log).config
+
+    def validate(overrides: list[str]) -> None:
+        arena = load_settings(recorded, config, overrides)
+        parse_fusion_settings(arena)
+        ServerSettings.from_arena(arena)
+
+    validate(list(base_overrides))
+    for key, values in grid:
+        if key.split(".")[0] not in REPLAYED_SECTIONS:
+            raise UsageError(f"--grid {key}: not a setting a replay uses; sweep keys of the sections "
+                             f"{', '.join(REPLAYED_SECTIONS)} (e.g. fusion.time_alignment=naive,motion_compensated)")
+        errors = []
+        for v in values:
+            try:
+                validate(list(base_overrides) + _override_strings({key: v}))
+            except (ValueError, KeyError, TypeError) as e:
+                errors.append(e)
+        if errors and len(errors) == len(values):
+            raise UsageError(f"--grid {key}: {errors[0]}")
+
+
 def sweep(
     log: str,
     grid: list[tuple[str, list[Any]]],
@@ -216,40 +257,3 @@ def table(ranked: list[TrialResult]) -> str:
         ("note", "note", ""),
     ]
     return M.format_table(rows, cols)
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("log", help="recording (.mcap)")
-    p.add_argument("--grid", action="append", required=True, metavar="KEY=V1,V2,...", help="a setting and its values to sweep (repeatable: cartesian product)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="fixed override applied to every trial")
-    p.add_argument("--config", help="arena YAML replacing the one stored in the recording")
-    p.add_argument("--jobs", type=int, default=1, help="parallel replays (processes); default 1")
-    p.add_argument("--json", action="store_true", help="print the ranked results as JSON")
-
-
-def run(args: argparse.Namespace) -> int:
-    grid = parse_grid(args.grid)
-    if args.jobs < 1:
-        raise ConfigError("--jobs", str(args.jobs), "must be >= 1")
-    jobs = min(args.jobs, os.cpu_count() or 1, len(grid_points(grid)))
-    ranked = sweep(args.log, grid, args.set, args.config, jobs=jobs, progress=True)
-    if args.json:
-        out = [
-            {k: (v if not isinstance(v, float) or np.isfinite(v) else None) for k, v in t.__dict__.items()}
-            for t in ranked
-        ]
-        print(json.dumps(out, indent=2))
-    else:
-        if any(t.has_truth for t in ranked):
-            basis = "mean position RMSE (settings that lose tracking last)"
-        else:
-            basis = "jitter + latency relative to the best (the log has no ground truth)"
-        print(f"ranked by {basis}; best first")
-        print(table(ranked))
-        errors: dict[str, list[str]] = {}
-        for t in ranked:
-            if t.error:
-                errors.setdefault(t.error, []).append(" ".join(f"{k}={v}" for k, v in t.point.items()))
-        for err, pts in errors.items():
-            print(f"failed ({len(pts)}x, e.g. {pts[0]}): {err}")
-    return 1 if all(t.error for t in ranked) else 0

@@ -20,20 +20,17 @@ section it makes one vehicle per body (sysid = body id).
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import dataclasses
-import json
 import logging
 import random
-import socket
-import sys
 import time
 from typing import Any, TextIO
 
 import numpy as np
 
 from visionpos.analysis import metrics as M
+from visionpos.app.ports import free_port
 from visionpos import protocol as P
 from visionpos.config.arena import ArenaConfig, apply_overrides, load_yaml, parse_arena, resolve_config_path
 from visionpos.messages import BlobFrame, BodyState
@@ -47,13 +44,6 @@ STREAM_LEAD_S = 0.3  # first exposure this long after every station is registere
 # ---------------------------------------------------------------- set-up
 
 
-def free_udp_port() -> int:
-    """A currently free UDP port on 127.0.0.1."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def demo_arena(scenario: str, duration_s: float, seed: int | None, overrides: list[str]) -> ArenaConfig:
     """The scenario's arena with loopback vehicle endpoints, sim duration and seed applied."""
     path = resolve_config_path(scenario)
@@ -64,7 +54,7 @@ def demo_arena(scenario: str, duration_s: float, seed: int | None, overrides: li
     vehicles = data.get("vehicles") or [{"body": b.name, "sysid": b.id} for b in arena.bodies]
     vehicles = [dict(v) for v in vehicles]
     for v in vehicles:
-        v["endpoint"] = f"udpin:127.0.0.1:{free_udp_port()}"
+        v["endpoint"] = f"udpin:127.0.0.1:{free_port()}"
     data["vehicles"] = vehicles
     return parse_arena(data, str(path))
 
@@ -470,74 +460,46 @@ def _json_safe(x: Any) -> Any:
     return x
 
 
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
 def format_summary(s: dict[str, Any]) -> str:
-    rows = []
+    """The summary in words: every figure says what it measures and in which unit."""
+    fmt = lambda v, spec=".2f": "-" if v is None else format(v, spec)  # noqa: E731
+    fps = ", ".join(f"camera {x['camera_id']} {x['fps']:.0f}" for x in s["stations"])
+    lines = [
+        f"visionpos demo on {s['scenario']} (session {s['session']}, seed {s['seed']}): "
+        f"{_plural(len(s['stations']), 'simulated station')} streamed {s['duration_s']:.1f} s of camera frames "
+        f"(frames per second: {fps}); the server published {s['ticks']} pose updates",
+    ]
     for b in s["bodies"]:
-        r = dict(b)
-        r["lat_p50"] = (b.get("latency_ms") or {}).get("p50")
-        r["lat_p99"] = (b.get("latency_ms") or {}).get("p99")
-        rows.append({k: (float("nan") if v is None else v) for k, v in r.items()})
-    table = M.format_table(rows, [
-        ("name", "body", ""),
-        ("tracked_fraction", "tracked", ".3f"),
-        ("rate_hz", "out Hz", ".1f"),
-        ("position_rmse_mm", "pos RMSE mm", ".2f"),
-        ("position_max_mm", "pos max mm", ".2f"),
-        ("rotation_rmse_deg", "rot RMSE deg", ".3f"),
-        ("mavlink_rate_hz", "MAVLink Hz", ".1f"),
-        ("mavlink_position_rmse_mm", "MAVLink pos RMSE mm", ".2f"),
-        ("lat_p50", "lat p50 ms", ".2f"),
-        ("lat_p99", "lat p99 ms", ".2f"),
-    ])
+        lat = b.get("latency_ms") or {}
+        tracked = b["tracked_fraction"]
+        lines += [
+            f"{b['name']}:",
+            f"  tracked in {fmt(None if tracked is None else 100 * tracked, '.1f')}% of the pose updates, "
+            f"at {fmt(b['rate_hz'], '.1f')} poses per second",
+            f"  position error against the simulator's truth: RMS {fmt(b['position_rmse_mm'])} mm, "
+            f"largest {fmt(b['position_max_mm'])} mm; rotation error RMS {fmt(b['rotation_rmse_deg'], '.3f')} deg",
+        ]
+        if "mavlink_rate_hz" in b:
+            lines.append(f"  MAVLink: {fmt(b['mavlink_rate_hz'], '.1f')} pose messages per second reached the "
+                         f"autopilot; position error of what it got: RMS {fmt(b.get('mavlink_position_rmse_mm'))} mm")
+            lines.append(f"  latency from camera exposure to MAVLink send: median {fmt(lat.get('p50'))} ms, "
+                         f"99th percentile {fmt(lat.get('p99'))} ms")
     lat = s["latency_ms"]
-    fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
-    st = " ".join(f"{x['camera_id']}:{x['fps']:.0f}fps" for x in s["stations"])
-    return "\n".join([
-        f"visionpos demo: {s['scenario']} ({s['session']}, seed {s['seed']}), {s['duration_s']:.1f} s streamed, "
-        f"{len(s['stations'])} stations ({st}), {s['ticks']} output ticks",
-        table,
-        f"latency capture -> MAVLink send: p50 {fmt(lat['p50'])} ms, p99 {fmt(lat['p99'])} ms "
-        f"(pose stamp -> autopilot: p50 {fmt(s['latency_to_autopilot_ms']['p50'])} ms); "
-        f"set ArduPilot VISO_DELAY_MS / PX4 EKF2_EV_DELAY to about the stamp -> autopilot p50",
-        f"server: {s['server']['frames_accepted']} frames accepted"
-        + (f" ({s['server']['frames_shed']} not fused: queued too long)" if s['server'].get('frames_shed') else "")
-        + f", {s['server']['malformed']} malformed, "
-        f"{s['late_ticks']} late ticks; wall time {s['wall_s']:.1f} s (simulation {s['simulate_s']:.1f} s)",
-    ])
-
-
-# ---------------------------------------------------------------- CLI
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scenario", default="thesis", help="arena: thesis (default), arena8 or a YAML path with a sim section")
-    p.add_argument("--duration", type=float, default=10.0, help="seconds of streaming (real time; default 10)")
-    p.add_argument("--seed", type=int, default=None, help="simulation seed (default: the scenario's sim.seed)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key (repeatable)")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout (live status goes to stderr)")
-    p.add_argument("--quiet", action="store_true", help="no live status")
-    p.add_argument("--record", metavar="FILE", help="also record the session (packets, outputs, truth) to an MCAP file for replay/tune")
-
-
-def run(args: argparse.Namespace) -> int:
-    if not 0.5 <= args.duration <= 3600:
-        raise ValueError(f"--duration {args.duration}: give 0.5 to 3600 seconds")
-    arena = demo_arena(args.scenario, args.duration, args.seed, args.set)
-    status_out = None if args.quiet else (sys.stderr if args.json else sys.stdout)
-    if status_out is not None:
-        status_out.write(f"visionpos demo: {len(arena.cameras)} simulated stations, {len(arena.bodies)} bodies, "
-                         f"{args.duration:g} s on 127.0.0.1 ...\n")
-        status_out.flush()
-    summary = asyncio.run(run_demo(arena, args.duration, status_out, args.record))
-    if args.record:
-        summary["recording"] = args.record
-    if args.json:
-        print(json.dumps(summary, indent=2))
-    else:
-        print(format_summary(summary))
-        if args.record:
-            print(f"recorded to {args.record}; try: visionpos replay {args.record}")
-    ok = all(b["tracked_fraction"] and b["tracked_fraction"] > 0 for b in summary["bodies"])
-    if not ok:
-        print("visionpos demo: a body was never tracked; see the log above", file=sys.stderr)
-    return 0 if ok else 1
+    server = s["server"]
+    shed = server.get("frames_shed")
+    lines += [
+        f"latency from camera exposure to MAVLink send, all bodies: median {fmt(lat['p50'])} ms, "
+        f"99th percentile {fmt(lat['p99'])} ms; from a pose's timestamp to its arrival at the autopilot: "
+        f"median {fmt(s['latency_to_autopilot_ms']['p50'])} ms (set ArduPilot VISO_DELAY_MS / PX4 EKF2_EV_DELAY "
+        "to about this)",
+        f"server: accepted {server['frames_accepted']} camera frames"
+        + (f" ({shed} not fused: they queued too long)" if shed else "")
+        + f", {_plural(server['malformed'] or 0, 'malformed packet')}, "
+        f"{_plural(s['late_ticks'] or 0, 'output tick')} late; the demo ran for {s['wall_s']:.1f} s of "
+        f"wall-clock time, of which simulating the camera frames took {s['simulate_s']:.1f} s",
+    ]
+    return "\n".join(lines)

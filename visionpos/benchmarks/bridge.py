@@ -25,7 +25,7 @@ N_VEHICLES = 3
 
 
 def _states(n: int):
-    from bridge.testing import body_state
+    from visionpos.benchmarks.factories import body_state
 
     rng = np.random.default_rng(0)
     out = []
@@ -86,7 +86,8 @@ def bench_encode(n: int) -> dict[str, float]:
 def bench_loopback(duration_s: float) -> tuple[dict[str, float], list[dict]]:
     from bridge import Bridge
     from bridge.fake_autopilot import FakeAutopilot
-    from bridge.testing import arena_with_vehicles, body_state, free_port
+    from visionpos.app.ports import free_port
+    from visionpos.benchmarks.factories import arena_with_vehicles, body_state
 
     ports = [free_port() for _ in range(N_VEHICLES)]
     arena = arena_with_vehicles(

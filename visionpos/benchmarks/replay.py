@@ -1,7 +1,7 @@
 """Replay benchmark: how fast a recording re-runs through ingest + fusion, and how accurate it is.
 
 Simulates the thesis arena's test flight (and arena8's three-drone flight in
-full mode), writes it as a recording exactly as `visionpos sim --out` does,
+full mode), writes it as a recording as `visionpos sim --out` does (sim.write),
 then times `replay_log` at --speed max. Speed is recording seconds per wall
 second (goal >= 20x on the thesis arena); accuracy is against the
 simulator's truth stored in the log.
@@ -18,15 +18,9 @@ from visionpos.benchmarks import BenchResult
 
 
 def _record(scenario: str, duration: float, out: Path) -> None:
-    from visionpos.cli import main
+    from visionpos.sim.write import write_recording
 
-    import contextlib
-    import io
-
-    with contextlib.redirect_stdout(io.StringIO()):  # the sim prints a per-camera table
-        rc = main(["sim", "--scenario", scenario, "--duration", str(duration), "--out", str(out)])
-    if rc != 0:
-        raise RuntimeError(f"visionpos sim --scenario {scenario} failed with exit {rc}")
+    write_recording(scenario, out, duration_s=duration)
 
 
 def run(quick: bool = False) -> BenchResult:

@@ -4,7 +4,7 @@
     cal = calibrate_wand(frames, arena.cameras, WandSpec(0.054, 0.103))   # world = first camera
     g = calibrate_ground(ground_frames, cal.cameras, layout, origin=0, x_marker=1, marker_height=0.007)
 
-`visionpos calibrate intrinsics|wand|ground` (visionpos/calibration/cli.py) wraps these.
+`visionpos calibrate intrinsics|wand|ground` (visionpos/cli/calibrate.py; session steps in workflow.py) wraps these.
 """
 
 from visionpos.calibration.bundle import (

@@ -550,6 +550,7 @@ def _fuse_tracked(marker_xn, views, capture_ns, ref, R, t, f, tracked, rows, siz
 
 
 log = logging.getLogger(__name__)
+progress_log = logging.getLogger("visionpos.progress")  # shown by default by the CLI
 _warm = [False]  # kernels compiled (or loaded) in this process
 
 
@@ -580,11 +581,21 @@ def warm_up_kernels(arena: ArenaConfig, settings: dict[str, Any] | None = None) 
         return
     markers = np.asarray(arena.bodies[0].markers, dtype=np.float64) + centre
     pipe = FusionPipeline(arena, settings, warm_up=False)
-    notice = threading.Timer(2.0, lambda: log.warning(
-        "compiling the fusion kernels: the first run after installing takes about a minute; "
-        "later runs load them from numba's cache"))
-    notice.daemon = True
-    notice.start()
+    step = [0]  # warm-up frames done
+    done = threading.Event()
+
+    def report() -> None:  # says nothing when the kernels load from numba's cache (well under 2 s)
+        waited, interval = 0.0, 2.0
+        while not done.wait(interval):
+            if not waited:
+                progress_log.info("compiling the fusion kernels (first run after install, about a minute; later "
+                                  "runs load them from numba's cache)")
+            waited, interval = waited + interval, 5.0
+            progress_log.info("compiling the fusion kernels: warm-up frame %d/12, %.0f s so far", step[0] + 1, waited)
+        if waited:
+            progress_log.info("fusion kernels compiled and cached")
+
+    threading.Thread(target=report, name="warm-up progress", daemon=True).start()
     views = []
     for c in cams:
         uv = Projector(c).project(markers)
@@ -592,11 +603,12 @@ def warm_up_kernels(arena: ArenaConfig, settings: dict[str, Any] | None = None) 
         views.append(np.column_stack([uv, np.full(len(uv), 12.0), np.full(len(uv), 200.0)]).astype(np.float32))
     try:
         for k in range(12):
+            step[0] = k
             for i, (c, blobs) in enumerate(zip(cams, views)):
                 pipe.push(BlobFrame(c.id, k, 1_000_000_000 + k * 10_000_000 + i * 1_000_000, blobs))
             pipe.tick(1_000_000_000 + k * 10_000_000 + 9_000_000)
     finally:
-        notice.cancel()
+        done.set()
 
 
 class FusionPipeline:

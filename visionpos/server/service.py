@@ -1,4 +1,4 @@
-"""`visionpos serve`: the fusion service. asyncio glue, one event loop, one thread.
+"""The fusion service: asyncio glue, one event loop, one thread (`visionpos serve` runs it).
 
     stations --UDP--> Ingest.handle --push--> FusionPipeline
                                                  | tick(now) every 1/output_rate_hz
@@ -9,7 +9,8 @@ Sinks are any objects with `publish(states: list[BodyState])`, called on the loo
 every output tick, and optionally `publish_markers(points: LoosePoints)`, called at a
 tick after the pipeline triangulated a new set of loose markers (points of no body).
 Neither may block (queue internally; the recorder only appends to memory). Optional
-`start()`, `close()` (plain or async) and `stats()` are used when present. A sink that raises is logged and keeps being called.
+`start()`, `close()` (plain or async) and `stats()` are used when present. A sink that raises is logged and
+keeps being called. The server knows no concrete output: visionpos.app.serve composes it with the bridge.
 
 Programmatic use (demo, tests):
 
@@ -20,18 +21,16 @@ Programmatic use (demo, tests):
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import inspect
 import logging
 import signal
-import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from visionpos.config.arena import ArenaConfig, ConfigError, apply_overrides, load_yaml, parse_arena, resolve_config_path
+from visionpos.config.arena import ArenaConfig, apply_overrides, load_yaml, parse_arena, resolve_config_path
 from visionpos.server.ingest import Ingest
 from visionpos.server.settings import ServerSettings
 from visionpos.messages import BodyState
@@ -274,22 +273,6 @@ class FusionServer:
         return h
 
 
-# ---------------------------------------------------------------- bridge
-
-
-def default_sinks(arena: ArenaConfig) -> list[Any]:
-    """The bridge (MAVLink per vehicle + pose stream) when the arena configures one."""
-    if not (arena.raw.get("vehicles") or arena.raw.get("pose_stream")):
-        return []
-    try:
-        from bridge import Bridge
-    except ImportError as e:
-        raise ConfigError(arena.source, "vehicles",
-                          f"the config asks for vehicle outputs but the bridge package cannot be imported ({e}); "
-                          "install visionpos completely or remove the vehicles/pose_stream sections") from None
-    return [Bridge(arena)]
-
-
 async def run_until_signal(duration_s: float | None = None, status: Callable[[], None] | None = None,
                            status_period_s: float = 0.0) -> None:
     """Wait for SIGINT/SIGTERM (or duration_s); call status() every status_period_s."""
@@ -323,56 +306,32 @@ async def run_until_signal(duration_s: float | None = None, status: Callable[[],
             loop.remove_signal_handler(sig)
 
 
-# ---------------------------------------------------------------- `visionpos serve`
+async def record_traffic(arena: ArenaConfig, settings: ServerSettings, out: str | Path, host: str = "0.0.0.0",
+                         duration_s: float | None = None,
+                         on_listening: Callable[[int], None] | None = None) -> int:
+    """Record live station traffic to `out` until a signal (or duration_s): no fusion, no outputs.
 
+    Answers registration, clock sync and heartbeats as the server does, so stations stream as
+    they would to it, and logs every packet. on_listening(port) is called once the socket is
+    open; an OSError (port in use, bad address) propagates. Returns the packets recorded.
+    """
+    from visionpos.recording import TOPIC_PACKETS, RecordingWriter
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", required=True, help="arena YAML (path or built-in name: thesis, arena8)")
-    p.add_argument("--record", metavar="FILE", help="record every station packet, the config and outputs (MCAP)")
-    p.add_argument("--port", type=int, default=None, help="UDP port for stations (default server.port, 5600)")
-    p.add_argument("--host", default="0.0.0.0", help="address to listen on (default all interfaces)")
-    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: Ctrl-C)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config key, e.g. server.output_rate_hz=50 (repeatable)")
+    with RecordingWriter(out, arena.raw, {"command": "record"}) as rec:
+        ingest = Ingest(arena, settings, pipeline=None, recorder=rec,
+                        events=lambda kind, info: rec.write_json("/server/events", time.monotonic_ns(),
+                                                                 {"kind": kind, **info}))
+        await ingest.start(host, settings.port)
+        if on_listening is not None:
+            on_listening(ingest.port)
 
+        def status() -> None:
+            ingest.check_vanished(time.monotonic_ns())
+            status_log.info("%s | recorded %d packets", ingest.status_line(), rec.counts.get(TOPIC_PACKETS, 0))
 
-def run(args: argparse.Namespace) -> int:
-    if status_log.level == logging.NOTSET:
-        status_log.setLevel(logging.INFO)
-    arena = load_config_with_overrides(args.config, args.set)
-    settings = ServerSettings.from_arena(arena)
-    if args.port is not None:
-        settings = settings.with_port(args.port)
-    sinks = default_sinks(arena)
-
-    async def main() -> int:
-        recorder = None
-        if args.record:
-            from visionpos.recording import RecordingWriter
-
-            recorder = RecordingWriter(args.record, arena.raw, {"command": "serve", "config_path": arena.source})
-        server = FusionServer(arena, settings, sinks, host=args.host, port=settings.port, recorder=recorder)
         try:
-            await server.start()
-        except OSError as e:  # port in use, bad address: a message, not a traceback
-            if recorder is not None:
-                recorder.close()
-            print(f"visionpos serve: error: {e.strerror or e}", file=sys.stderr)
-            return 2
-        except BaseException:
-            if recorder is not None:
-                recorder.close()
-            raise
-        print(f"visionpos serve: listening on udp {args.host}:{server.port}"
-              + (f", recording to {args.record}" if args.record else "") + "; Ctrl-C to stop", flush=True)
-        try:
-            await run_until_signal(args.duration)
+            await run_until_signal(duration_s, status=status, status_period_s=settings.status_period_s)
         finally:
-            await server.stop()
-        h = server.health()
-        print(f"visionpos serve: stopped after {h['packets']} packets ({h['frames_accepted']} frames accepted, "
-              f"{h['frames_shed']} shed as backlog, {h['malformed']} malformed, {h['auth_failed']} failed auth, {h['unknown']} unknown), "
-              f"{h['ticks']} output ticks", flush=True)
-        return 0
-
-    return asyncio.run(main())
+            ingest.close()
+            rec.write_json("/server/health", time.monotonic_ns(), ingest.health())
+        return rec.counts.get(TOPIC_PACKETS, 0)

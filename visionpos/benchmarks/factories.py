@@ -1,8 +1,11 @@
-"""Helpers for tests, benchmarks and the demo: arenas with vehicles, states, free ports."""
+"""Made-up inputs for the bridge: arenas with vehicles and body states, for benchmarks and tests.
+
+They live in the application layer, beside the benchmarks that use them, not in the shipped
+bridge: nothing in the product builds fake states. Free ports: visionpos.app.ports.
+"""
 
 from __future__ import annotations
 
-import socket
 import time
 
 import numpy as np
@@ -16,15 +19,6 @@ _LAYOUTS = [
     [[0.12, 0.02, 0.0], [-0.03, 0.10, 0.01], [-0.09, -0.06, 0.0], [0.05, -0.11, 0.03]],
     [[0.15, 0.0, 0.01], [0.0, 0.13, 0.0], [-0.11, -0.02, 0.03], [0.03, -0.14, 0.0]],
 ]
-
-
-def free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    """A currently free 127.0.0.1 port (UDP by default)."""
-    s = socket.socket(socket.AF_INET, kind)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 def arena_with_vehicles(vehicles: list[dict], pose_stream: dict | None = None,

@@ -1,4 +1,4 @@
-"""`visionpos bench`: run benchmark groups, print a table, optionally JSON and docs.
+"""Runs benchmark groups for `visionpos bench`: results, goals and the markdown of docs/benchmarks.md.
 
 Each group runs in its own child process with one BLAS/OpenCV thread, so
 figures are one-core figures and one group cannot disturb another.
@@ -6,7 +6,6 @@ figures are one-core figures and one group cannot disturb another.
 
 from __future__ import annotations
 
-import argparse
 import datetime as _dt
 import importlib
 import json
@@ -26,13 +25,6 @@ _ONE_THREAD = {
     "VECLIB_MAXIMUM_THREADS": "1",
     "NUMEXPR_NUM_THREADS": "1",
 }
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--only", action="append", choices=sorted(GROUPS), help="run only this group (repeatable)")
-    p.add_argument("--quick", action="store_true", help="shorter runs (smoke test; figures are noisier)")
-    p.add_argument("--json", action="store_true", help="print all metrics as one JSON object")
-    p.add_argument("--write-docs", metavar="FILE", help="write the results as markdown (e.g. docs/benchmarks.md)")
 
 
 def machine_description() -> str:
@@ -60,10 +52,11 @@ def machine_description() -> str:
 
 
 def run_group_in_child(group: str, quick: bool) -> tuple[BenchResult, float]:
+    """Run one group in a child process with one BLAS/OpenCV thread: (result, seconds it took)."""
     env = dict(os.environ, **_ONE_THREAD)
     t0 = time.perf_counter()
     proc = subprocess.run(
-        [sys.executable, "-m", "visionpos.benchmarks.cli", group, "1" if quick else "0"],
+        [sys.executable, "-m", "visionpos.benchmarks.runner", group, "1" if quick else "0"],
         env=env,
         capture_output=True,
         text=True,
@@ -88,7 +81,7 @@ def _child(group: str, quick: bool) -> None:
     print(json.dumps({"metrics": res.metrics, "tables": res.tables, "notes": res.notes}, default=float))
 
 
-def _fmt(v: float) -> str:
+def format_value(v: float) -> str:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         return str(v)
     a = abs(v)
@@ -97,7 +90,7 @@ def _fmt(v: float) -> str:
     return f"{v:.3g}"
 
 
-def _merged(results: dict[str, tuple[BenchResult, float]]) -> dict[str, float]:
+def merged_metrics(results: dict[str, tuple[BenchResult, float]]) -> dict[str, float]:
     """Every group's metrics in one mapping."""
     merged: dict[str, float] = {}
     for res, _ in results.values():
@@ -107,7 +100,7 @@ def _merged(results: dict[str, tuple[BenchResult, float]]) -> dict[str, float]:
 
 def goal_rows(results: dict[str, tuple[BenchResult, float]]) -> list[tuple[str, float, str, float, bool]]:
     """(description, measured, op, target, met) for every goal whose metric was run."""
-    merged = _merged(results)
+    merged = merged_metrics(results)
     rows = []
     for g in GOALS:
         v, t, ok = g.check(merged)
@@ -132,13 +125,13 @@ def to_markdown(results: dict[str, tuple[BenchResult, float]], command: str, qui
     goals = goal_rows(results)
     if goals:
         out += ["## Goals from the issues", "", "| goal | measured | target | met |", "|---|---|---|---|"]
-        out += [f"| {g} | {_fmt(v)} | {op} {_fmt(t)} | {'yes' if ok else '**no**'} |" for g, v, op, t, ok in goals]
+        out += [f"| {g} | {format_value(v)} | {op} {format_value(t)} | {'yes' if ok else '**no**'} |" for g, v, op, t, ok in goals]
         out.append("")
     for group, (res, elapsed) in results.items():
         out += [f"## {group}", "", f"Run time {elapsed:.1f} s.", ""]
         if res.metrics:
             out += ["| metric | value |", "|---|---|"]
-            out += [f"| `{k}` | {_fmt(v)} |" for k, v in res.metrics.items()]
+            out += [f"| `{k}` | {format_value(v)} |" for k, v in res.metrics.items()]
             out.append("")
         for title, table in res.tables.items():
             out += [f"### {title}", "", table.strip(), ""]
@@ -147,39 +140,5 @@ def to_markdown(results: dict[str, tuple[BenchResult, float]], command: str, qui
     return "\n".join(out)
 
 
-def run(args: argparse.Namespace) -> int:
-    groups = args.only or list(GROUPS)
-    results: dict[str, tuple[BenchResult, float]] = {}
-    failed = False
-    for g in groups:
-        if not args.json:
-            print(f"[bench] {g} ...", file=sys.stderr, flush=True)
-        res, elapsed = run_group_in_child(g, args.quick)
-        failed |= any("failed (exit" in n for n in res.notes)
-        results[g] = (res, elapsed)
-        if not args.json:
-            print(f"\n== {g} ({elapsed:.1f} s)")
-            width = max((len(k) for k in res.metrics), default=10)
-            for k, v in res.metrics.items():
-                print(f"  {k:<{width}}  {_fmt(v)}")
-            for title, table in res.tables.items():
-                print(f"\n  {title}\n" + "\n".join("  " + line for line in table.strip().splitlines()))
-            for n in res.notes:
-                print(f"  note: {n}")
-    if not args.json:
-        goals = goal_rows(results)
-        if goals:
-            print("\n== goals from the issues")
-            for g, v, op, t, ok in goals:
-                print(f"  {'met ' if ok else 'MISS'}  {g}: {_fmt(v)} (target {op} {_fmt(t)})")
-    if args.json:
-        print(json.dumps(_merged(results), indent=2, default=float))
-    if args.write_docs:
-        cmd = "visionpos bench" + "".join(f" --only {g}" for g in (args.only or [])) + (" --quick" if args.quick else "")
-        Path(args.write_docs).write_text(to_markdown(results, cmd, args.quick))
-        print(f"wrote {args.write_docs}", file=sys.stderr)
-    return 1 if failed else 0
-
-
-if __name__ == "__main__":  # child entry point: python -m visionpos.benchmarks.cli GROUP QUICK
+if __name__ == "__main__":  # child entry point: python -m visionpos.benchmarks.runner GROUP QUICK
     _child(sys.argv[1], sys.argv[2] == "1")

@@ -1,59 +1,64 @@
-"""`visionpos sim`: simulate a scenario and write a recording.
+"""A simulated session written as a recording, the library behind `visionpos sim`.
 
 The recording is what `visionpos record` would have captured from real
 stations: one Hello per station, then every frame as its protocol datagram
 stamped with its receive time, in receive order; plus the arena config (with
-the --set changes applied), the bodies' ground truth at sim.truth_rate Hz
+the overrides applied), the bodies' ground truth at sim.truth_rate Hz
 on /sim/truth, and optionally every frame's blob labels on /sim/frame_truth.
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
 from visionpos.config.arena import apply_overrides, load_yaml, parse_arena, resolve_config_path
 from visionpos.sim.capture import iter_frames
-from visionpos.sim.scenario import scenario_from_arena
+from visionpos.sim.scenario import Scenario, scenario_from_arena
 
 TOPIC_FRAME_TRUTH = "/sim/frame_truth"
 TOPIC_SIM_INFO = "/sim/info"
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scenario", default="thesis", help="arena with a sim section: thesis, arena8 or a YAML path (default thesis)")
-    p.add_argument("--session", default=None, help="entry of sim.sessions to run (e.g. flight, hover, wand, ground)")
-    p.add_argument("--duration", type=float, default=None, help="seconds to simulate (default sim.duration)")
-    p.add_argument("--seed", type=int, default=None, help="random seed (default sim.seed)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any config key, e.g. sim.centroid_noise_px=0.5 (repeatable)")
-    p.add_argument("--key", default=None, help="HMAC key (text) to sign packets with, as stations configured with one do")
-    p.add_argument("--frame-truth", action="store_true", help="also record every frame's blob labels and true pixels")
-    p.add_argument("--out", required=True, help="MCAP file to write")
+@dataclass
+class SimRecording:
+    """What write_recording wrote: the scenario, its config file, per-camera counts and the time it took."""
+
+    path: Path
+    scenario: Scenario
+    config_path: Path
+    per_camera: dict[int, dict[str, int]]  # camera id -> frames, blobs, spurious (blobs of no marker)
+    wall_s: float
 
 
-def run(args: argparse.Namespace) -> int:
+def write_recording(scenario: str | Path, out: str | Path, *, duration_s: float | None = None,
+                    seed: int | None = None, session: str | None = None, overrides: Sequence[str] = (),
+                    key: bytes | None = None, frame_truth: bool = False) -> SimRecording:
+    """Simulate `scenario` (built-in name or arena YAML with a sim section) and write it to `out`.
+
+    duration_s, seed, session: replace sim.duration, sim.seed, sim.session; overrides: any
+    `key=value` config changes. key: HMAC key the packets are signed with. frame_truth: also
+    record every frame's blob labels and true pixels.
+    """
     from visionpos import protocol as P
     from visionpos.recording import RecordingWriter
 
-    path = resolve_config_path(args.scenario)
+    path = resolve_config_path(scenario)
     data = load_yaml(path)
-    sim_over = [f"sim.duration={args.duration}"] if args.duration is not None else []
-    if args.seed is not None:
-        sim_over.append(f"sim.seed={args.seed}")
-    if args.session is not None:
-        sim_over.append(f"sim.session={args.session}")
-    data = apply_overrides(data, list(args.set) + sim_over)
+    sim_over = [f"sim.duration={duration_s}"] if duration_s is not None else []
+    if seed is not None:
+        sim_over.append(f"sim.seed={seed}")
+    if session is not None:
+        sim_over.append(f"sim.session={session}")
+    data = apply_overrides(data, list(overrides) + sim_over)
     arena = parse_arena(data, str(path))
     sc = scenario_from_arena(arena)
-    key = args.key.encode() if args.key else None
 
-    out = Path(args.out)
-    if out.parent and not out.parent.exists():
-        raise ValueError(f"--out {out}: folder {out.parent} does not exist")
+    out = Path(out)
     meta = {
         "source": "visionpos sim",
         "scenario": str(path),
@@ -61,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         "seed": sc.seed,
         "duration_s": sc.duration_s,
         "start_ns": sc.start_ns,
-        "overrides": list(args.set),
+        "overrides": list(overrides),
         "signed": key is not None,
     }
     t_wall = time.perf_counter()
@@ -88,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
             c["frames"] += 1
             c["blobs"] += len(frame.blobs)
             c["spurious"] += int(np.count_nonzero(truth.body < 0))
-            if args.frame_truth:
+            if frame_truth:
                 rec.write_json(
                     TOPIC_FRAME_TRUTH,
                     frame.recv_ns,
@@ -110,20 +115,7 @@ def run(args: argparse.Namespace) -> int:
             pos, quat = sc.truth_at(b.name, times)
             for ti, p, q in zip(times, pos, quat):
                 rec.write_truth(int(ti), b.name, p, q)
-    wall = time.perf_counter() - t_wall
-
-    print(f"wrote {out}: {sc.duration_s:g} s of '{sc.session}' on {path.name} (seed {sc.seed}) in {wall:.1f} s")
-    print(f"bodies: {', '.join(b.name + ('' if b.tracked else ' (prop)') for b in sc.bodies)}")
-    print(f"{'camera':>8} {'fps':>6} {'frames':>7} {'blobs':>8} {'per frame':>9} {'spurious':>8}")
-    for t in sc.timings:
-        c = per_cam[t.camera_id]
-        per = c["blobs"] / max(c["frames"], 1)
-        print(f"{t.camera_id:>8} {t.fps:>6g} {c['frames']:>7} {c['blobs']:>8} {per:>9.2f} {c['spurious']:>8}")
-    total_f = sum(c["frames"] for c in per_cam.values())
-    total_b = sum(c["blobs"] for c in per_cam.values())
-    print(f"{'total':>8} {'':>6} {total_f:>7} {total_b:>8}")
-    sys.stdout.flush()
-    return 0
+    return SimRecording(out, sc, path, per_cam, time.perf_counter() - t_wall)
 
 
 def _source(station_id: int) -> tuple[str, int]:

@@ -1,4 +1,4 @@
-"""`visionpos calibrate intrinsics|wand|ground`.
+"""`visionpos calibrate intrinsics|wand|ground` (solvers in visionpos.calibration, steps in its workflow.py).
 
     visionpos calibrate intrinsics --images DIR --board chessboard --cols 10 --rows 7 --square 0.025 \
         --model pinhole --out cam.yaml [--plot cov.png] [--rescale 640x480]
@@ -11,17 +11,12 @@
 from __future__ import annotations
 
 import argparse
-import copy
-import sys
 from pathlib import Path
-from typing import Any
 
-import numpy as np
 import yaml
 
-from visionpos.calibration.wand import CalibrationError, WandSpec
-from visionpos.config.arena import ConfigError, dump_yaml, load_arena, parse_arena
-from visionpos.messages import BlobFrame
+from visionpos.calibration.workflow import capture_frames, ground_layout, rescaled_mode, wand_spec, write_arena
+from visionpos.errors import UsageError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -77,72 +72,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="height of the marker centres above the floor (m) [marker_diameter/2]")
 
 
-# ------------------------------------------------------------------- inputs
-def read_recording(path: str) -> tuple[list[BlobFrame], dict[str, Any]]:
-    """BlobFrames and the arena config stored in a recording."""
-    from visionpos.protocol import ProtocolError, decode
-    from visionpos.recording import RecordingReader
-
-    reader = RecordingReader(path)
-    frames: list[BlobFrame] = []
-    bad = 0
-    for recv_ns, data in reader.packets():
-        try:
-            msg = decode(data, recv_ns=recv_ns)
-        except ProtocolError:
-            bad += 1
-            continue
-        if isinstance(msg, BlobFrame):
-            frames.append(msg)
-    if not frames:
-        raise CalibrationError(f"{path}: the recording holds no camera frames ({bad} undecodable packets)")
-    return frames, reader.config
-
-
-def _frames_and_arena(args, session: str):
-    """(frames, arena config used for intrinsics, true cameras or None)."""
-    if (args.recording is None) == (args.sim is None):
-        raise CalibrationError("give either a RECORDING or --sim SCENARIO")
-    truth = None
-    if args.sim is not None:
-        from visionpos.sim import load_scenario, simulate
-
-        sc = load_scenario(args.sim, list(args.set), session=session)
-        res = simulate(sc)
-        frames = res.frames
-        arena = sc.arena
-        truth = list(sc.cameras)
-    else:
-        frames, cfg = read_recording(args.recording)
-        arena = parse_arena(cfg, f"{args.recording} (embedded config)")
-    if args.config is not None:
-        arena = load_arena(args.config)
-    return frames, arena, truth
-
-
-def _wand_spec(args, arena) -> WandSpec:
-    sec = arena.section("calibration").sub("wand")
-    ab = args.ab if args.ab is not None else sec.number("ab", 0.054, min=0.005)
-    bc = args.bc if args.bc is not None else sec.number("bc", 0.103, min=0.005)
-    return WandSpec(ab, bc)
-
-
-def _write_arena(arena, cameras, out: str, extra: dict[str, Any]) -> None:
-    raw = copy.deepcopy(arena.raw)
-    raw["cameras"] = [c.to_dict() for c in cameras]
-    cal = raw.get("calibration") if isinstance(raw.get("calibration"), dict) else {}
-    cal.update(extra)
-    raw["calibration"] = cal
-    dump_yaml(raw, out)
-
-
 # -------------------------------------------------------------------- steps
 def _run_intrinsics(args) -> int:
     from visionpos.calibration.intrinsics import BoardSpec, calibrate_images, load_images
     from visionpos.calibration.report import intrinsics_report, plot_intrinsics, progress_printer
 
     if args.board == "charuco" and args.marker is None:
-        raise CalibrationError("--board charuco needs --marker (the ArUco marker side in m)")
+        raise UsageError("--board charuco needs --marker (the ArUco marker side in m)")
     board = BoardSpec(args.board, args.cols, args.rows, args.square, args.marker or 0.0, args.dict)
     images = load_images(args.images)
     res = calibrate_images(images, board, args.model, args.max_views, progress_printer(True), fix_k3=not args.free_k3)
@@ -152,7 +88,7 @@ def _run_intrinsics(args) -> int:
     d["views"] = len(res.views)
     modes = []
     for spec in args.rescale:
-        modes.append(_rescaled(res.model, spec))
+        modes.append(rescaled_mode(res.model, spec))
     if modes:
         d["modes"] = modes
     Path(args.out).write_text(yaml.safe_dump(d, sort_keys=False))
@@ -163,28 +99,18 @@ def _run_intrinsics(args) -> int:
     return 0
 
 
-def _rescaled(model, spec: str) -> dict[str, Any]:
-    try:
-        size, _, crop = spec.partition("+")
-        w, h = (int(v) for v in size.lower().split("x"))
-        U, V = (float(v) for v in crop.lower().split("x")) if crop else (0.0, 0.0)
-    except ValueError:
-        raise CalibrationError(f"--rescale '{spec}': expected WxH or WxH+UxV, e.g. 640x480 or 640x480+0x60") from None
-    return model.rescale(w, h, (U, V)).to_dict()
-
-
 def _run_wand(args) -> int:
     from visionpos.calibration.bundle import calibrate_wand, compare_cameras
     from visionpos.calibration.report import plot_wand, progress_printer, wand_report
 
-    frames, arena, truth = _frames_and_arena(args, "wand")
-    spec = _wand_spec(args, arena)
+    frames, arena, truth = capture_frames(args.recording, args.sim, "wand", args.set, args.config)
+    spec = wand_spec(arena, args.ab, args.bc)
     cams = list(arena.cameras)
     ref = 0
     if args.ref is not None:
         ids = [c.id for c in cams]
         if args.ref not in ids:
-            raise CalibrationError(f"--ref {args.ref}: no such camera id (cameras: {ids})")
+            raise UsageError(f"--ref {args.ref}: no such camera id (cameras: {ids})")
         ref = ids.index(args.ref)
     cal = calibrate_wand(
         frames, cams, spec, ref=ref, rate_hz=args.rate, refine_intrinsics=args.refine_intrinsics,
@@ -197,7 +123,7 @@ def _run_wand(args) -> int:
               f"centre error max {ce.max() * 1000:.2f} mm, orientation error max {re.max():.4f} deg")
     L = cal.length_stats()
     stats = cal.camera_stats()
-    _write_arena(arena, cal.cameras, args.out, {
+    write_arena(arena, cal.cameras, args.out, {
         "wand": {"ab": spec.ab, "bc": spec.bc},
         "extrinsics": {
             "frame": f"camera {cal.cameras[ref].name}",
@@ -214,47 +140,14 @@ def _run_wand(args) -> int:
     return 0
 
 
-def _ground_layout(args, arena) -> tuple[np.ndarray, float]:
-    """(layout (M,3), marker height)."""
-    if args.markers:
-        try:
-            layout = np.array([[float(v) for v in p.split(",")] for p in args.markers.split(";") if p.strip()])
-        except ValueError:
-            raise CalibrationError(f"--markers '{args.markers}': expected X,Y,Z;X,Y,Z;... in metres") from None
-        if layout.ndim != 2 or layout.shape[1] != 3:
-            raise CalibrationError(f"--markers '{args.markers}': every marker needs 3 numbers")
-        return layout, 0.007 if args.marker_height is None else args.marker_height
-    candidates = [args.frame] if args.frame else ["lframe", "ground", "triangle", "ground_frame"]
-    entries: list[dict] = []
-    for b in arena.raw.get("bodies") or []:
-        if isinstance(b, dict):
-            entries.append(b)
-    sim = arena.raw.get("sim") if isinstance(arena.raw.get("sim"), dict) else {}
-    for b in sim.get("props") or []:
-        if isinstance(b, dict):
-            entries.append(b)
-    for name in candidates:
-        for e in entries:
-            if e.get("name") == name:
-                layout = np.asarray(e.get("markers"), float)
-                h = args.marker_height
-                if h is None:
-                    h = float(e.get("marker_diameter", 0.014)) / 2
-                return layout, h
-    raise CalibrationError(
-        f"{arena.source}: no ground frame named {' or '.join(candidates)} in bodies or sim.props; "
-        "give --frame NAME or --markers X,Y,Z;..."
-    )
-
-
 def _run_ground(args) -> int:
     from visionpos.calibration.bundle import compare_cameras
     from visionpos.calibration.ground import calibrate_ground
 
     if args.config is None:
-        raise CalibrationError("ground needs --config: the arena YAML written by `visionpos calibrate wand`")
-    frames, arena, truth = _frames_and_arena(args, "ground")
-    layout, height = _ground_layout(args, arena)
+        raise UsageError("ground needs --config: the arena YAML written by `visionpos calibrate wand`")
+    frames, arena, truth = capture_frames(args.recording, args.sim, "ground", args.set, args.config)
+    layout, height = ground_layout(arena, args.frame, args.markers, args.marker_height)
     x_marker = args.x_marker if args.x_marker is not None else 1
     g = calibrate_ground(frames, list(arena.cameras), layout, args.origin, x_marker, height)
     print(f"ground frame: {len(layout)} markers found among {g.n_static} static points, layout fit RMS "
@@ -266,7 +159,7 @@ def _run_ground(args) -> int:
         ce, re, _ = compare_cameras(g.cameras, truth, similarity=False)
         print(f"against the simulator's cameras (no alignment): centre error max {ce.max() * 1000:.2f} mm, "
               f"orientation error max {re.max():.4f} deg")
-    _write_arena(arena, g.cameras, args.out, {
+    write_arena(arena, g.cameras, args.out, {
         "ground": {"origin_marker": args.origin, "x_marker": x_marker, "marker_height": height,
                    "fit_rms_mm": round(g.fit_rms * 1000, 4)},
     })
@@ -274,13 +167,9 @@ def _run_ground(args) -> int:
     return 0
 
 
-def run(args) -> int:
-    try:
-        if args.step == "intrinsics":
-            return _run_intrinsics(args)
-        if args.step == "wand":
-            return _run_wand(args)
-        return _run_ground(args)
-    except (CalibrationError, ConfigError) as e:
-        print(f"visionpos calibrate {args.step}: error: {e}", file=sys.stderr)
-        return 2
+def run(args: argparse.Namespace) -> int:
+    if args.step == "intrinsics":
+        return _run_intrinsics(args)
+    if args.step == "wand":
+        return _run_wand(args)
+    return _run_ground(args)

@@ -1,0 +1,153 @@
+"""Imports go one way: application -> edges -> core, and inside the core from higher layers to lower.
+
+    application  visionpos.app, visionpos.benchmarks, visionpos.cli (compose everything; only
+                 `python -m visionpos` imports the CLI)
+    edges        bridge/, stations/ (use the core; never the application, never each other)
+    core         every other visionpos package, in the layers of CORE_LAYERS
+
+Every import statement of every module counts, those inside functions too (a lazy import is
+still a dependency). Rules are per package (visionpos.geometry.*, visionpos.fusion.*), so
+splitting a package into modules does not change them.
+"""
+
+from __future__ import annotations
+
+import ast
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+TOP_PACKAGES = ("visionpos", "bridge", "stations")
+
+# lowest first; a core package imports only packages of lower layers (and itself). Packages in
+# one layer are independent of each other.
+CORE_LAYERS: list[tuple[str, ...]] = [
+    ("visionpos", "visionpos.errors"),  # the package root holds only __version__
+    ("visionpos.jit", "visionpos.messages"),
+    ("visionpos.protocol",),
+    ("visionpos.camera",),
+    ("visionpos.config",),  # parses the cameras of an arena with camera models
+    ("visionpos.geometry",),
+    ("visionpos.fusion", "visionpos.recording"),
+    ("visionpos.sim", "visionpos.server"),  # sim writes recordings; the server fuses and records
+    ("visionpos.calibration",),  # calibrates from recordings or simulated captures
+    ("visionpos.analysis",),  # replays recordings through the server's ingest and fusion
+]
+APPLICATION = ("visionpos.app", "visionpos.benchmarks", "visionpos.cli", "visionpos.__main__")
+EDGES = ("bridge", "stations")
+LAYER = {unit: i for i, units in enumerate(CORE_LAYERS) for unit in units}
+
+
+def unit_of(module: str) -> str:
+    """The package a rule is about: 'visionpos.fusion.tracking' -> 'visionpos.fusion', 'bridge.x' -> 'bridge'."""
+    parts = module.split(".")
+    if parts[0] != "visionpos" or len(parts) == 1:
+        return parts[0]
+    return "visionpos." + parts[1]
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def is_module(name: str) -> bool:
+    p = ROOT.joinpath(*name.split("."))
+    return p.with_suffix(".py").is_file() or (p / "__init__.py").is_file()
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Every project module that `path` imports, anywhere in it."""
+    own = module_name(path)
+    package = own if path.name == "__init__.py" else own.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:  # relative: resolve against this module's package
+                anchor = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                base = ".".join(anchor + ([base] if base else []))
+            found.add(base)
+            # `from visionpos import protocol` imports the module visionpos.protocol
+            found.update(f"{base}.{a.name}" for a in node.names if is_module(f"{base}.{a.name}"))
+    return {m for m in found if m.split(".")[0] in TOP_PACKAGES}
+
+
+def all_modules() -> list[Path]:
+    return sorted(p for top in TOP_PACKAGES for p in (ROOT / top).rglob("*.py"))
+
+
+def violation(importer: str, imported: str) -> str | None:
+    """Why `importer` may not import `imported`, or None when it may."""
+    a, b = unit_of(importer), unit_of(imported)
+    if a == b:
+        return None
+    if b in ("visionpos.cli", "visionpos.__main__") and a != "visionpos.__main__":
+        return "only `python -m visionpos` imports the CLI"
+    if a in APPLICATION:
+        return None
+    if b in APPLICATION:
+        return f"{a} is below the application layer"
+    if a in EDGES:
+        return f"the edges ({', '.join(EDGES)}) are independent of each other" if b in EDGES else None
+    if b in EDGES:
+        return "the core never imports the edges"
+    if a not in LAYER or b not in LAYER:
+        return f"{a if a not in LAYER else b} has no layer in CORE_LAYERS: add it"
+    if LAYER[b] >= LAYER[a]:
+        return f"{b} (layer {LAYER[b]}) is not below {a} (layer {LAYER[a]})"
+    return None
+
+
+def test_every_package_has_a_layer():
+    units = {unit_of(module_name(p)) for p in all_modules()}
+    unknown = units - set(LAYER) - set(APPLICATION) - set(EDGES)
+    assert not unknown, f"packages with no layer in tests/test_layers.py: {sorted(unknown)}"
+
+
+def test_imports_go_one_way():
+    problems = []
+    for path in all_modules():
+        importer = module_name(path)
+        for imported in sorted(imported_modules(path)):
+            why = violation(importer, imported)
+            if why:
+                problems.append(f"{path.relative_to(ROOT)} imports {imported}: {why}")
+    assert not problems, "\n".join(problems)
+
+
+@pytest.mark.parametrize("importer, imported, allowed", [
+    ("visionpos.server.service", "bridge", False),
+    ("visionpos.geometry.frames", "visionpos.fusion.tracking", False),
+    ("visionpos.fusion.kernels", "visionpos.geometry.rotations", True),
+    ("bridge.mavlink", "stations.agent", False),
+    ("stations.sources", "visionpos.sim.render", True),
+    ("visionpos.app.serve", "bridge", True),
+    ("visionpos.app.demo", "visionpos.cli.main", False),
+    ("visionpos.recording", "visionpos.server.ingest", False),
+])
+def test_the_rules_themselves(importer, imported, allowed):
+    assert (violation(importer, imported) is None) == allowed
+
+
+def test_a_station_loads_the_simulator_only_when_configured_to():
+    """stations.sources imports visionpos.sim inside SimSource only (edge -> core is allowed, but a
+    camera station that reads a real camera should not pay for loading the simulator)."""
+    code = (
+        "import sys, stations.agent, stations.sources as s\n"
+        "from stations.config import SourceConfig\n"
+        "s.make_source(SourceConfig(kind='images', path='.'))\n"
+        "loaded = sorted(m for m in sys.modules if m.startswith('visionpos.sim'))\n"
+        "assert not loaded, loaded\n"
+    )
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr

@@ -1,0 +1,60 @@
+"""The fusion service with its outputs: FusionServer composed with the bridge (MAVLink, pose stream).
+
+The server core knows sinks only as objects with `publish(states)`; which sinks an arena asks
+for (its `vehicles:` and `pose_stream:` sections) is decided here, so the core never imports
+the bridge.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from visionpos.config.arena import ArenaConfig, ConfigError
+from visionpos.server.service import FusionServer, run_until_signal
+from visionpos.server.settings import ServerSettings
+
+
+def bridge_sinks(arena: ArenaConfig) -> list[Any]:
+    """The bridge (MAVLink per vehicle + pose stream) when the arena configures one."""
+    if not (arena.raw.get("vehicles") or arena.raw.get("pose_stream")):
+        return []
+    try:
+        from bridge import Bridge
+    except ImportError as e:
+        raise ConfigError(arena.source, "vehicles",
+                          f"the config asks for vehicle outputs but the bridge package cannot be imported ({e}); "
+                          "install visionpos completely or remove the vehicles/pose_stream sections") from None
+    return [Bridge(arena)]
+
+
+async def serve(arena: ArenaConfig, settings: ServerSettings, host: str = "0.0.0.0", record: str | Path | None = None,
+                duration_s: float | None = None,
+                on_listening: Callable[[FusionServer], None] | None = None) -> dict[str, Any]:
+    """Run the fusion server with the arena's bridge sinks until a signal (or duration_s); returns its health.
+
+    record: MCAP path; every station packet, the config and the outputs are recorded.
+    on_listening(server) is called once the socket is open; an OSError (port in use, bad
+    address) propagates, with the recording closed.
+    """
+    sinks = bridge_sinks(arena)
+    recorder = None
+    if record is not None:
+        from visionpos.recording import RecordingWriter
+
+        recorder = RecordingWriter(record, arena.raw, {"command": "serve", "config_path": arena.source})
+    server = FusionServer(arena, settings, sinks, host=host, port=settings.port, recorder=recorder)
+    try:
+        await server.start()
+    except BaseException:
+        if recorder is not None:
+            recorder.close()
+        raise
+    if on_listening is not None:
+        on_listening(server)
+    try:
+        await run_until_signal(duration_s)
+    finally:
+        await server.stop()
+    return server.health()

@@ -1,0 +1,134 @@
+"""The steps of a calibration session around the solvers: captures in, arena YAML out.
+
+`visionpos calibrate` strings these together: the frames of a capture (a recording, or the
+simulator for a dry run), the wand and ground-frame geometry from the arena or the command
+line, and the calibrated cameras written back into a copy of the arena.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from visionpos.calibration.wand import CalibrationError, WandSpec
+from visionpos.config.arena import ArenaConfig, dump_yaml, load_arena, parse_arena
+from visionpos.messages import BlobFrame
+
+# ground frames looked up by name in the arena's bodies and sim.props, in this order
+GROUND_FRAME_NAMES = ("lframe", "ground", "triangle", "ground_frame")
+
+
+def read_recording(path: str | Path) -> tuple[list[BlobFrame], dict[str, Any]]:
+    """BlobFrames and the arena config stored in a recording."""
+    from visionpos.protocol import ProtocolError, decode
+    from visionpos.recording import RecordingReader
+
+    reader = RecordingReader(path)
+    frames: list[BlobFrame] = []
+    bad = 0
+    for recv_ns, data in reader.packets():
+        try:
+            msg = decode(data, recv_ns=recv_ns)
+        except ProtocolError:
+            bad += 1
+            continue
+        if isinstance(msg, BlobFrame):
+            frames.append(msg)
+    if not frames:
+        raise CalibrationError(f"{path}: the recording holds no camera frames ({bad} undecodable packets)")
+    return frames, reader.config
+
+
+def capture_frames(recording: str | None, sim: str | None, session: str, overrides: Sequence[str] = (),
+                   config: str | None = None) -> tuple[list[BlobFrame], ArenaConfig, list | None]:
+    """(frames, arena with the cameras' intrinsics, the true cameras or None) of one capture.
+
+    Exactly one of recording (an MCAP file) or sim (a scenario simulated with `session` and
+    `overrides`) is given; config, when given, replaces the arena the capture carries.
+    """
+    if (recording is None) == (sim is None):
+        raise CalibrationError("give either a RECORDING or --sim SCENARIO")
+    truth = None
+    if sim is not None:
+        from visionpos.sim import load_scenario, simulate
+
+        sc = load_scenario(sim, list(overrides), session=session)
+        frames = simulate(sc).frames
+        arena = sc.arena
+        truth = list(sc.cameras)
+    else:
+        frames, cfg = read_recording(recording)
+        arena = parse_arena(cfg, f"{recording} (embedded config)")
+    if config is not None:
+        arena = load_arena(config)
+    return frames, arena, truth
+
+
+def wand_spec(arena: ArenaConfig, ab: float | None = None, bc: float | None = None) -> WandSpec:
+    """The wand's A-B and B-C distances: given ones, else calibration.wand in the arena, else the defaults."""
+    sec = arena.section("calibration").sub("wand")
+    ab = ab if ab is not None else sec.number("ab", 0.054, min=0.005)
+    bc = bc if bc is not None else sec.number("bc", 0.103, min=0.005)
+    return WandSpec(ab, bc)
+
+
+def write_arena(arena: ArenaConfig, cameras: Sequence[Any], out: str | Path, extra: dict[str, Any]) -> None:
+    """A copy of the arena with these cameras and `extra` merged into its calibration section."""
+    raw = copy.deepcopy(arena.raw)
+    raw["cameras"] = [c.to_dict() for c in cameras]
+    cal = raw.get("calibration") if isinstance(raw.get("calibration"), dict) else {}
+    cal.update(extra)
+    raw["calibration"] = cal
+    dump_yaml(raw, out)
+
+
+def ground_layout(arena: ArenaConfig, frame: str | None = None, markers: str | None = None,
+                  marker_height: float | None = None) -> tuple[np.ndarray, float]:
+    """(marker layout (M, 3) in m, marker centre height above the floor) of the ground frame.
+
+    markers: 'X,Y,Z;X,Y,Z;...' given by hand; else the body or sim prop named `frame` (or
+    the first of GROUND_FRAME_NAMES) in the arena.
+    """
+    if markers:
+        try:
+            layout = np.array([[float(v) for v in p.split(",")] for p in markers.split(";") if p.strip()])
+        except ValueError:
+            raise CalibrationError(f"--markers '{markers}': expected X,Y,Z;X,Y,Z;... in metres") from None
+        if layout.ndim != 2 or layout.shape[1] != 3:
+            raise CalibrationError(f"--markers '{markers}': every marker needs 3 numbers")
+        return layout, 0.007 if marker_height is None else marker_height
+    candidates = [frame] if frame else list(GROUND_FRAME_NAMES)
+    entries: list[dict] = []
+    for b in arena.raw.get("bodies") or []:
+        if isinstance(b, dict):
+            entries.append(b)
+    sim = arena.raw.get("sim") if isinstance(arena.raw.get("sim"), dict) else {}
+    for b in sim.get("props") or []:
+        if isinstance(b, dict):
+            entries.append(b)
+    for name in candidates:
+        for e in entries:
+            if e.get("name") == name:
+                layout = np.asarray(e.get("markers"), float)
+                h = marker_height
+                if h is None:
+                    h = float(e.get("marker_diameter", 0.014)) / 2
+                return layout, h
+    raise CalibrationError(
+        f"{arena.source}: no ground frame named {' or '.join(candidates)} in bodies or sim.props; "
+        "give --frame NAME or --markers X,Y,Z;..."
+    )
+
+
+def rescaled_mode(model: Any, spec: str) -> dict[str, Any]:
+    """The intrinsics for another capture mode 'WxH' or 'WxH+UxV' (crop U x V pixels after resizing)."""
+    try:
+        size, _, crop = spec.partition("+")
+        w, h = (int(v) for v in size.lower().split("x"))
+        U, V = (float(v) for v in crop.lower().split("x")) if crop else (0.0, 0.0)
+    except ValueError:
+        raise CalibrationError(f"--rescale '{spec}': expected WxH or WxH+UxV, e.g. 640x480 or 640x480+0x60") from None
+    return model.rescale(w, h, (U, V)).to_dict()

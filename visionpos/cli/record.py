@@ -1,0 +1,62 @@
+"""`visionpos record`: record live station traffic to an MCAP log, no fusion and no outputs."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import sys
+
+from visionpos.errors import UsageError
+from visionpos.server.service import load_config_with_overrides, record_traffic, status_log
+from visionpos.server.settings import ServerSettings
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", metavar="FILE", help="MCAP file to write")
+    # the form before --out, `visionpos record FILE --config ...`, still works (with a warning)
+    p.add_argument("output", nargs="?", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--config", required=True, help="arena YAML (path or built-in name: thesis, arena8)")
+    p.add_argument("--port", type=int, default=None, help="UDP port (default: server.port from the config, 5600)")
+    p.add_argument("--host", default="0.0.0.0", help="address to listen on (default all interfaces)")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: until Ctrl-C)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+
+
+def output_path(args: argparse.Namespace) -> str:
+    """--out, or the deprecated positional FILE."""
+    if args.out is not None and args.output is not None:
+        raise UsageError(f"give the output once: --out {args.out} (not also {args.output})")
+    if args.out is None and args.output is None:
+        raise UsageError("say where to write the recording: --out FILE.mcap")
+    if args.output is not None:
+        print(f"visionpos record: warning: `visionpos record {args.output}` is deprecated; "
+              f"use `visionpos record --out {args.output}`", file=sys.stderr)
+        return args.output
+    return args.out
+
+
+def run(args: argparse.Namespace) -> int:
+    if status_log.level == logging.NOTSET:
+        status_log.setLevel(logging.INFO)
+    out = output_path(args)
+    arena = load_config_with_overrides(args.config, args.set)
+    settings = ServerSettings.from_arena(arena)
+    if args.port is not None:
+        settings = settings.with_port(args.port)
+    listening_on: list[int] = []
+
+    def listening(port: int) -> None:
+        listening_on.append(port)
+        print(f"visionpos record: listening on udp {args.host}:{port}, recording to {out}; Ctrl-C to stop",
+              flush=True)
+
+    try:
+        n = asyncio.run(record_traffic(arena, settings, out, args.host, args.duration, listening))
+    except OSError as e:
+        if listening_on:
+            raise
+        # port in use, bad address: the user's environment, not a bug
+        raise UsageError(e.strerror or str(e)) from None
+    print(f"visionpos record: {n} packets written to {out}", flush=True)
+    return 0
