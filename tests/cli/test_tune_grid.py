@@ -18,7 +18,7 @@ def short_log(tmp_path_factory):
 
 @pytest.mark.parametrize("grid, message", [
     ("a=1,2", "not a setting a replay uses"),
-    ("fusion.bogus=1,2", "fusion.bogus: unknown setting"),
+    ("fusion.bogus=1,2", "unknown key; `fusion` takes time_alignment"),
     ("fusion.max_residual_px=-1,-2", "must be >= 0.01"),
 ])
 def test_bad_grid_keys_fail_before_any_trial(short_log, grid, message, capsys, monkeypatch):

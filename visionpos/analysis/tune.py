@@ -194,7 +194,9 @@ def check_sweep(log: str, grid: list[tuple[str, list[Any]]], base_overrides: Seq
             except (ValueError, KeyError, TypeError) as e:
                 errors.append(e)
         if errors and len(errors) == len(values):
-            raise UsageError(f"--grid {key}: {errors[0]}")
+            first = errors[0]
+            detail = first.message if isinstance(first, ConfigError) and first.source == "--set" else first
+            raise UsageError(f"--grid {key}: {detail}")
 
 
 def sweep(

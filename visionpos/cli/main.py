@@ -56,26 +56,6 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
-def _user_errors() -> tuple[type[BaseException], ...]:
-    """VisionposError, plus the input errors that still derive from ValueError/RuntimeError.
-
-    Until every such class derives from VisionposError, each is caught here by name, so that
-    a bad config or recording stays a one-line message and not a traceback.
-    """
-    from visionpos.calibration.wand import CalibrationError
-    from visionpos.camera.model import CameraModelError
-    from visionpos.config.arena import ConfigError
-    from visionpos.protocol import ProtocolError
-    from visionpos.recording import RecordingError
-
-    errors: list[type[BaseException]] = [VisionposError, ConfigError, ProtocolError, RecordingError,
-                                         CalibrationError, CameraModelError]
-    sources = sys.modules.get("stations.sources")  # a SourceError is only possible once stations loaded
-    if sources is not None:
-        errors.append(sources.SourceError)
-    return tuple(errors)
-
-
 def configure_logging(verbose: int) -> None:
     level = [logging.WARNING, logging.INFO, logging.DEBUG][min(verbose, 2)]
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -98,8 +78,8 @@ def main(argv: list[str] | None = None) -> int:
         return int(command.run(args) or 0)
     except KeyboardInterrupt:
         return 130
-    except Exception as e:
-        if not isinstance(e, _user_errors()) or args.verbose >= 2:
+    except VisionposError as e:  # the user's input or environment; anything else is a bug: traceback
+        if args.verbose >= 2:
             raise
         command_name = " ".join(filter(None, [args.command, getattr(args, "step", None)]))  # calibrate STEP
         print(f"visionpos {command_name}: error: {e}", file=sys.stderr)
