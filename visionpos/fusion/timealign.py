@@ -91,6 +91,7 @@ class TimeAligner:
         if mode not in MODES:
             raise ValueError(f"time alignment '{mode}' is unknown; use one of {MODES}")
         self.mode = TimeAlignment(mode)
+        self._naive = self.mode == TimeAlignment.NAIVE  # read per frame: a bool is cheaper than an enum member
         self.window_ns = int(window_ns)
         self.grid_ns = int(grid_ns)
         self.max_lead_ns = int(max_lead_ns)
@@ -128,7 +129,7 @@ class TimeAligner:
                     return CLOCK_JUMP
             if capture_ns < self.newest_ns - self.window_ns:
                 return LATE
-            if self.mode == TimeAlignment.NAIVE and self._bin is not None and self._bin_of(capture_ns) < self._bin:
+            if self._naive and self._bin is not None and self._bin_of(capture_ns) < self._bin:
                 return LATE
         return None
 
@@ -143,7 +144,7 @@ class TimeAligner:
         """
         before: list[Group] = []
         after: list[Group] = []
-        if self.mode == TimeAlignment.MOTION_COMPENSATED:
+        if not self._naive:  # motion-compensated
             latest = self.latest
             latest[camera_id] = capture_ns
             if self.newest_ns is None or capture_ns > self.newest_ns:
