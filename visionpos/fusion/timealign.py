@@ -35,16 +35,31 @@ replays are deterministic.
 
 from __future__ import annotations
 
+from enum import StrEnum
 from typing import NamedTuple
 
-MOTION_COMPENSATED = "motion_compensated"
-NAIVE = "naive"
-MODES = (MOTION_COMPENSATED, NAIVE)
 
-# rejection reasons (stats keys)
-CLOCK_JUMP = "clock_jump"
-LATE = "late"
-REORDERED = "reordered"
+class TimeAlignment(StrEnum):
+    """The `fusion.time_alignment` setting; members compare equal to their YAML strings."""
+
+    MOTION_COMPENSATED = "motion_compensated"
+    NAIVE = "naive"
+
+
+MOTION_COMPENSATED = TimeAlignment.MOTION_COMPENSATED
+NAIVE = TimeAlignment.NAIVE
+MODES = tuple(m.value for m in TimeAlignment)  # the setting's valid strings
+
+
+class Rejection(StrEnum):
+    """Why TimeAligner.admit drops a frame; the values are the pipeline's stats keys."""
+
+    CLOCK_JUMP = "clock_jump"
+    LATE = "late"
+    REORDERED = "reordered"
+
+
+CLOCK_JUMP, LATE, REORDERED = Rejection.CLOCK_JUMP, Rejection.LATE, Rejection.REORDERED
 
 # a run of frames from one camera alone, with no other camera in between,
 # spanning this much of its own capture time means the others went silent:
@@ -66,7 +81,7 @@ class TimeAligner:
 
     def __init__(
         self,
-        mode: str,
+        mode: str | TimeAlignment,
         window_ns: int,
         grid_ns: int,
         max_lead_ns: int,
@@ -75,7 +90,8 @@ class TimeAligner:
     ):
         if mode not in MODES:
             raise ValueError(f"time alignment '{mode}' is unknown; use one of {MODES}")
-        self.mode = mode
+        self.mode = TimeAlignment(mode)
+        self._naive = self.mode == TimeAlignment.NAIVE  # read per frame: a bool is cheaper than an enum member
         self.window_ns = int(window_ns)
         self.grid_ns = int(grid_ns)
         self.max_lead_ns = int(max_lead_ns)
@@ -90,7 +106,7 @@ class TimeAligner:
         self._bin: int | None = None  # naive: pending grid bin
         self._pending: dict[int, int] = {}  # naive: camera -> capture_ns in the pending bin
 
-    def admit(self, camera_id: int, capture_ns: int) -> str | None:
+    def admit(self, camera_id: int, capture_ns: int) -> Rejection | None:
         """None if the frame may be used, else the reason it must be dropped."""
         prev_cam = self._last_cam
         self._last_cam = camera_id
@@ -113,7 +129,7 @@ class TimeAligner:
                     return CLOCK_JUMP
             if capture_ns < self.newest_ns - self.window_ns:
                 return LATE
-            if self.mode == NAIVE and self._bin is not None and self._bin_of(capture_ns) < self._bin:
+            if self._naive and self._bin is not None and self._bin_of(capture_ns) < self._bin:
                 return LATE
         return None
 
@@ -128,7 +144,7 @@ class TimeAligner:
         """
         before: list[Group] = []
         after: list[Group] = []
-        if self.mode == MOTION_COMPENSATED:
+        if not self._naive:  # motion-compensated
             latest = self.latest
             latest[camera_id] = capture_ns
             if self.newest_ns is None or capture_ns > self.newest_ns:

@@ -42,10 +42,17 @@ import math
 
 import numpy as np
 
+from visionpos.fusion.layout import (
+    ACC0, ADAPT_NIS_IMG, ADAPT_NIS_P, ADAPT_NIS_R, ADAPT_SCALE_P, ADAPT_SCALE_R, CLOCK_FOLDS, CLOCK_IMG_T_NS,
+    CLOCK_T_NS, KALMAN_ANG_ACC_PSD, KALMAN_GATE_CHI2, KALMAN_INIT_ACC_VAR, KALMAN_INIT_RATE_VAR,
+    KALMAN_INIT_VEL_VAR, KALMAN_JERK_PSD, KALMAN_MAX_SCALE, KALMAN_NIS_TAU_S, N_ADAPT, N_CLOCK, N_OUT, N_STATE,
+    OUT_POS, OUT_POSE_COV, OUT_POSE_COV0, OUT_QUAT0, OUT_QUAT_XYZW, OUT_RATE_BODY, OUT_RATE_BODY0, OUT_VEL,
+    OUT_VEL_COV, OUT_VEL_COV0, POS0, POSE_P, POSE_ROT, RATE0, ROT_ERR0, VEL0, X_ACC, X_POS, X_POSE, X_RATE,
+    X_ROT_ERR, X_VEL, FilterArrays,
+)
 from visionpos.fusion.settings import KalmanSettings
 from visionpos.jit import matmul3, njit
 
-NX = 15
 _NIS_HIGH = 2.0  # averaged NIS/dof above this means the motion model lags
 _SCALE_DECAY_S = 0.2  # s, time constant of the process-noise scale's return to its floor
 
@@ -119,7 +126,6 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     return np.array(_quaternion(np.ascontiguousarray(R, dtype=np.float64)))
 
 
-_POSE = (0, 1, 2, 9, 10, 11)  # the measured states: position, rotation error
 
 
 @njit
@@ -134,10 +140,10 @@ def _add_process_noise(P: np.ndarray, dt: float, qj: float, qw: float) -> None:
     for k in range(3):
         for i in range(3):
             for j in range(3):
-                P[i * 3 + k, j * 3 + k] += cj[i, j]
+                P[POS0 + i * 3 + k, POS0 + j * 3 + k] += cj[i, j]  # blocks p, v, a
         for i in range(2):
             for j in range(2):
-                P[9 + i * 3 + k, 9 + j * 3 + k] += cw[i, j]
+                P[ROT_ERR0 + i * 3 + k, ROT_ERR0 + j * 3 + k] += cw[i, j]  # blocks dtheta, w
 
 
 @njit
@@ -146,27 +152,27 @@ def _predicted_cov(P: np.ndarray, dt: float, qj: float, qw: float) -> np.ndarray
     h = 0.5 * dt * dt
     FP = P.copy()
     for k in range(3):  # rows: F P
-        for j in range(NX):
-            FP[k, j] = P[k, j] + dt * P[3 + k, j] + h * P[6 + k, j]
-            FP[3 + k, j] = P[3 + k, j] + dt * P[6 + k, j]
-            FP[9 + k, j] = P[9 + k, j] + dt * P[12 + k, j]
+        for j in range(N_STATE):
+            FP[POS0 + k, j] = P[POS0 + k, j] + dt * P[VEL0 + k, j] + h * P[ACC0 + k, j]
+            FP[VEL0 + k, j] = P[VEL0 + k, j] + dt * P[ACC0 + k, j]
+            FP[ROT_ERR0 + k, j] = P[ROT_ERR0 + k, j] + dt * P[RATE0 + k, j]
     Pn = FP.copy()
     for k in range(3):  # columns: (F P) F^T
-        for i in range(NX):
-            Pn[i, k] = FP[i, k] + dt * FP[i, 3 + k] + h * FP[i, 6 + k]
-            Pn[i, 3 + k] = FP[i, 3 + k] + dt * FP[i, 6 + k]
-            Pn[i, 9 + k] = FP[i, 9 + k] + dt * FP[i, 12 + k]
+        for i in range(N_STATE):
+            Pn[i, POS0 + k] = FP[i, POS0 + k] + dt * FP[i, VEL0 + k] + h * FP[i, ACC0 + k]
+            Pn[i, VEL0 + k] = FP[i, VEL0 + k] + dt * FP[i, ACC0 + k]
+            Pn[i, ROT_ERR0 + k] = FP[i, ROT_ERR0 + k] + dt * FP[i, RATE0 + k]
     _add_process_noise(Pn, dt, qj, qw)
     return Pn
 
 
 @njit
 def _fold(x: np.ndarray, R_nom: np.ndarray) -> bool:
-    """Move the rotation error x[9:12] into R_nom (in place) and zero it; False if it was zero."""
-    if x[9] == 0.0 and x[10] == 0.0 and x[11] == 0.0:
+    """Move the rotation error x[X_ROT_ERR] into R_nom (in place) and zero it; False if it was zero."""
+    if x[ROT_ERR0] == 0.0 and x[ROT_ERR0 + 1] == 0.0 and x[ROT_ERR0 + 2] == 0.0:
         return False
-    R_nom[:, :] = matmul3(rodrigues(x[9:12]), R_nom)
-    x[9:12] = 0.0
+    R_nom[:, :] = matmul3(rodrigues(x[X_ROT_ERR]), R_nom)
+    x[X_ROT_ERR] = 0.0
     return True
 
 
@@ -174,9 +180,9 @@ def _fold(x: np.ndarray, R_nom: np.ndarray) -> bool:
 def _kf_predict(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: float, qw: float) -> bool:
     """Advance state x (15,), covariance P (15, 15) and R_nom (3, 3) in place by dt; True if it folded."""
     for k in range(3):
-        x[k] += x[3 + k] * dt + x[6 + k] * (0.5 * dt * dt)
-        x[3 + k] += x[6 + k] * dt
-        x[9 + k] += x[12 + k] * dt
+        x[POS0 + k] += x[VEL0 + k] * dt + x[ACC0 + k] * (0.5 * dt * dt)
+        x[VEL0 + k] += x[ACC0 + k] * dt
+        x[ROT_ERR0 + k] += x[RATE0 + k] * dt
     P[:, :] = _predicted_cov(P, dt, qj, qw)
     return _fold(x, R_nom)
 
@@ -203,61 +209,63 @@ def _kf_update(
     Mahalanobis distance, position NIS / 3, rotation NIS / 3).
     """
     z = np.empty(6)
-    z[0:3] = position
-    z[3:6] = _matrix_rotvec(matmul3(R, R_nom.T))
+    z[POSE_P] = position
+    z[POSE_ROT] = _matrix_rotvec(matmul3(R, R_nom.T))
     S = np.empty((6, 6))
     y = np.empty(6)
-    PHt = np.empty((NX, 6))  # P H^T: the measured columns
+    PHt = np.empty((N_STATE, 6))  # P H^T: the measured columns
     for j in range(6):
-        y[j] = z[j] - x[_POSE[j]]
-        for i in range(NX):
-            PHt[i, j] = P[i, _POSE[j]]
+        y[j] = z[j] - x[X_POSE[j]]
+        for i in range(N_STATE):
+            PHt[i, j] = P[i, X_POSE[j]]
         for i in range(6):
-            S[i, j] = P[_POSE[i], _POSE[j]] + cov[i, j]
+            S[i, j] = P[X_POSE[i], X_POSE[j]] + cov[i, j]
     Sinv = _spd_inverse(S)
     d2 = 0.0
     for i in range(6):
         for j in range(6):
             d2 += y[i] * Sinv[i, j] * y[j]
-    nis_p = _quad3(S[0:3, 0:3], y[0:3]) / 3.0
-    nis_r = _quad3(S[3:6, 3:6], y[3:6]) / 3.0
+    nis_p = _quad3(S[POSE_P, POSE_P], y[POSE_P]) / 3.0
+    nis_r = _quad3(S[POSE_ROT, POSE_ROT], y[POSE_ROT]) / 3.0
     if gate_chi2 > 0.0 and d2 > gate_chi2:
         return False, d2, nis_p, nis_r
-    K = np.zeros((NX, 6))  # P H^T S^-1
-    for i in range(NX):
+    K = np.zeros((N_STATE, 6))  # P H^T S^-1
+    for i in range(N_STATE):
         for j in range(6):
             acc = 0.0
             for l in range(6):
                 acc += PHt[i, l] * Sinv[l, j]
             K[i, j] = acc
-    for i in range(NX):
+    for i in range(N_STATE):
         for j in range(6):
             x[i] += K[i, j] * y[j]
-    # Joseph form (I - K H) P (I - K H)^T + K C K^T, with H selecting the _POSE states
+    # Joseph form (I - K H) P (I - K H)^T + K C K^T, with H selecting the X_POSE states
     AP = P.copy()
-    for i in range(NX):
-        for j in range(NX):
+    for i in range(N_STATE):
+        for j in range(N_STATE):
             acc = 0.0
             for l in range(6):
-                acc += K[i, l] * P[_POSE[l], j]
+                acc += K[i, l] * P[X_POSE[l], j]
             AP[i, j] -= acc
-    KC = np.zeros((NX, 6))
-    for i in range(NX):
+    KC = np.zeros((N_STATE, 6))
+    for i in range(N_STATE):
         for j in range(6):
             for l in range(6):
                 KC[i, j] += K[i, l] * cov[l, j]
-    for i in range(NX):
-        for j in range(NX):
+    for i in range(N_STATE):
+        for j in range(N_STATE):
             acc = AP[i, j]
             for l in range(6):
-                acc += -AP[i, _POSE[l]] * K[j, l] + KC[i, l] * K[j, l]
+                acc += -AP[i, X_POSE[l]] * K[j, l] + KC[i, l] * K[j, l]
             P[i, j] = acc
     _fold(x, R_nom)
     return True, d2, nis_p, nis_r
 
 
 @njit
-def _kf_predict_update(x, P, R_nom, dt, qj, qw, position, R, cov, gate_chi2):
+def _kf_predict_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: float, qw: float,
+                       position: np.ndarray, R: np.ndarray, cov: np.ndarray,
+                       gate_chi2: float) -> tuple[int, bool, float, float, float]:
     """_kf_predict over dt (when dt != 0) then _kf_update, in one call; returns
     (folds done, accepted, squared Mahalanobis distance, position NIS / 3, rotation NIS / 3)."""
     folds = 0
@@ -306,37 +314,33 @@ def _spd_inverse(S: np.ndarray) -> np.ndarray:
 def predict_mean(x: np.ndarray, R_nom: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The mean of state x (15,) with nominal rotation R_nom (3, 3) predicted by dt (s):
     position (3,), rotation body->world (3, 3), velocity (3,)."""
-    p = x[0:3] + x[3:6] * dt + x[6:9] * (0.5 * dt * dt)
-    return p, matmul3(rodrigues(x[12:15] * dt), R_nom), x[3:6] + x[6:9] * dt
+    p = x[X_POS] + x[X_VEL] * dt + x[X_ACC] * (0.5 * dt * dt)
+    return p, matmul3(rodrigues(x[X_RATE] * dt), R_nom), x[X_VEL] + x[X_ACC] * dt
 
 
 @njit
-def _output_at(x, P, R_nom, dt, qj, qw):
-    """Prediction by dt for the outputs, packed in one array (58,): position (3,), quaternion
-    xyzw (4,), velocity (3,), body-frame angular rate (3,), pose covariance (6, 6) over
+def _output_at(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: float, qw: float) -> np.ndarray:
+    """Prediction by dt for the outputs, packed in one array (N_OUT,) (columns OUT_*): position (3,),
+    quaternion xyzw (4,), velocity (3,), body-frame angular rate (3,), pose covariance (6, 6) over
     [p, rotation vector] and velocity covariance (3, 3), row-major (see BodyFilter.output_at)."""
     Pn = _predicted_cov(P, dt, qj, qw)
-    w = x[12:15]
+    w = x[X_RATE]
     p, R, v = predict_mean(x, R_nom, dt)
-    out = np.empty(58)
-    out[0:3] = p
-    out[3], out[4], out[5], out[6] = _quaternion(R)
-    out[7:10] = v
+    out = np.empty(N_OUT)
+    out[OUT_POS] = p
+    out[OUT_QUAT0], out[OUT_QUAT0 + 1], out[OUT_QUAT0 + 2], out[OUT_QUAT0 + 3] = _quaternion(R)
+    out[OUT_VEL] = v
     for i in range(3):
-        out[10 + i] = R[0, i] * w[0] + R[1, i] * w[1] + R[2, i] * w[2]
+        out[OUT_RATE_BODY0 + i] = R[0, i] * w[0] + R[1, i] * w[1] + R[2, i] * w[2]
     for i in range(6):
         for j in range(6):
-            out[13 + 6 * i + j] = Pn[_POSE[i], _POSE[j]]
+            out[OUT_POSE_COV0 + 6 * i + j] = Pn[X_POSE[i], X_POSE[j]]
     for i in range(3):
         for j in range(3):
-            out[49 + 3 * i + j] = Pn[3 + i, 3 + j]
+            out[OUT_VEL_COV0 + 3 * i + j] = Pn[VEL0 + i, VEL0 + j]
     return out
 
 
-# packed filter state: one row per body in FilterBank.adapt / .clock, one entry in .params
-_SCALE_P, _SCALE_R, _NIS_P, _NIS_R, _NIS_IMG = range(5)  # adapt (float)
-CLOCK_T, _IMG_T, _FOLDS = range(3)  # clock (int64 ns, count)
-_JERK, _ANG_ACC, _MAX_SCALE, _NIS_TAU, _GATE, _INIT_V, _INIT_A, _INIT_W = range(8)  # params
 _ORTHO_EVERY = 256  # folds between re-orthonormalisations of R_nom
 _IMG_NIS_FRESH_NS = 50_000_000  # an image-space NIS older than this no longer drives the noise scale
 
@@ -355,8 +359,8 @@ def _orthonormalize(R: np.ndarray) -> None:
 @njit
 def _count_folds(R_nom: np.ndarray, clock: np.ndarray, folds: int) -> None:
     for _ in range(folds):
-        clock[_FOLDS] += 1
-        if clock[_FOLDS] % _ORTHO_EVERY == 0:  # keep R_nom orthonormal against round-off
+        clock[CLOCK_FOLDS] += 1
+        if clock[CLOCK_FOLDS] % _ORTHO_EVERY == 0:  # keep R_nom orthonormal against round-off
             _orthonormalize(R_nom)
 
 
@@ -370,7 +374,9 @@ def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: flo
 
 
 @njit
-def filter_update(x, P, R_nom, adapt, clock, params, t_ns, position, R, cov, gate):
+def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.ndarray, clock: np.ndarray,
+                  params: np.ndarray, t_ns: int, position: np.ndarray, R: np.ndarray, cov: np.ndarray,
+                  gate: bool) -> tuple[bool, float]:
     """Predict one body filter to t_ns (int ns) and fuse a pose measurement, in place (compiled).
 
     x (15,), P (15, 15), R_nom (3, 3), adapt (5,), clock (3,): the body's rows of a
@@ -379,61 +385,64 @@ def filter_update(x, P, R_nom, adapt, clock, params, t_ns, position, R, cov, gat
     Returns (accepted, squared Mahalanobis distance); a gated measurement leaves
     the state predicted only. Then adapts the process-noise scales to the NIS.
     """
-    dt = (t_ns - clock[CLOCK_T]) * 1e-9
+    dt = (t_ns - clock[CLOCK_T_NS]) * 1e-9
     folds, accepted, d2, nis_p, nis_r = _kf_predict_update(
-        x, P, R_nom, dt, params[_JERK] * adapt[_SCALE_P], params[_ANG_ACC] * adapt[_SCALE_R],
-        position, R, cov, params[_GATE] if gate else 0.0,
+        x, P, R_nom, dt,
+        params[KALMAN_JERK_PSD] * adapt[ADAPT_SCALE_P], params[KALMAN_ANG_ACC_PSD] * adapt[ADAPT_SCALE_R],
+        position, R, cov, params[KALMAN_GATE_CHI2] if gate else 0.0,
     )
-    clock[CLOCK_T] = t_ns
+    clock[CLOCK_T_NS] = t_ns
     _count_folds(R_nom, clock, folds)
     # NIS per block drives the process-noise scale (gated ones too, capped, so that a
     # manoeuvre that starts outside the gate still opens it)
-    cap = params[_GATE] / 3.0
-    alpha = 1.0 - math.exp(-dt / params[_NIS_TAU]) if dt > 0.0 else 0.05
-    adapt[_NIS_P] += alpha * (min(nis_p, cap) - adapt[_NIS_P])
-    adapt[_NIS_R] += alpha * (min(nis_r, cap) - adapt[_NIS_R])
+    cap = params[KALMAN_GATE_CHI2] / 3.0
+    alpha = 1.0 - math.exp(-dt / params[KALMAN_NIS_TAU_S]) if dt > 0.0 else 0.05
+    adapt[ADAPT_NIS_P] += alpha * (min(nis_p, cap) - adapt[ADAPT_NIS_P])
+    adapt[ADAPT_NIS_R] += alpha * (min(nis_r, cap) - adapt[ADAPT_NIS_R])
     # the image-space detector (report_image_nis) sees lag the fused pose can hide
-    nis_img = adapt[_NIS_IMG] if t_ns - clock[_IMG_T] < _IMG_NIS_FRESH_NS else 0.0
+    nis_img = adapt[ADAPT_NIS_IMG] if t_ns - clock[CLOCK_IMG_T_NS] < _IMG_NIS_FRESH_NS else 0.0
     # NIS/dof ~ 1 says nothing about q while the measurement noise dominates the
     # innovation (a hovering body), so only a clear excess (> _NIS_HIGH) raises q:
     # innovations k x too big -> q x k^3 per averaging time (CA/CV scaling laws);
     # otherwise q decays back to its floor
     decay = math.exp(-max(dt, 0.0) / _SCALE_DECAY_S)
-    adapt[_SCALE_P] = _adapt_scale(adapt[_SCALE_P], max(adapt[_NIS_P], nis_img), alpha, decay, params[_MAX_SCALE])
-    adapt[_SCALE_R] = _adapt_scale(adapt[_SCALE_R], adapt[_NIS_R], alpha, decay, params[_MAX_SCALE])
+    max_scale = params[KALMAN_MAX_SCALE]
+    adapt[ADAPT_SCALE_P] = _adapt_scale(adapt[ADAPT_SCALE_P], max(adapt[ADAPT_NIS_P], nis_img), alpha, decay, max_scale)
+    adapt[ADAPT_SCALE_R] = _adapt_scale(adapt[ADAPT_SCALE_R], adapt[ADAPT_NIS_R], alpha, decay, max_scale)
     return accepted, d2
 
 
 @njit
-def filter_initialize(x, P, R_nom, adapt, clock, params, t_ns, position, R, cov):
+def filter_initialize(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.ndarray, clock: np.ndarray,
+                      params: np.ndarray, t_ns: int, position: np.ndarray, R: np.ndarray, cov: np.ndarray) -> None:
     """(Re)start one body filter (its FilterBank rows, params as in filter_update) at a
     measured pose: position (3,), R (3, 3) body->world with covariance cov (6, 6) over
     [p, world rotation vector] at t_ns; the derivatives are unknown: zero, with the prior
     variances of params. The noise scales and NIS averages start afresh."""
     x[:] = 0.0
-    x[0:3] = position
+    x[X_POS] = position
     P[:, :] = 0.0
     for i in range(6):
         for j in range(6):
-            P[_POSE[i], _POSE[j]] = cov[i, j]
+            P[X_POSE[i], X_POSE[j]] = cov[i, j]
     for k in range(3):
-        P[3 + k, 3 + k] = params[_INIT_V]
-        P[6 + k, 6 + k] = params[_INIT_A]
-        P[12 + k, 12 + k] = params[_INIT_W]
+        P[VEL0 + k, VEL0 + k] = params[KALMAN_INIT_VEL_VAR]
+        P[ACC0 + k, ACC0 + k] = params[KALMAN_INIT_ACC_VAR]
+        P[RATE0 + k, RATE0 + k] = params[KALMAN_INIT_RATE_VAR]
     R_nom[:, :] = R
     adapt[:] = 1.0
-    clock[CLOCK_T] = t_ns
-    clock[_IMG_T] = 0
+    clock[CLOCK_T_NS] = t_ns
+    clock[CLOCK_IMG_T_NS] = 0
 
 
 @njit
-def report_image_nis(adapt, clock, params, t_ns, nis):
+def report_image_nis(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, nis: float) -> None:
     """Feed one body's manoeuvre detector (adapt (5,), clock (3,): its FilterBank rows)
     with one camera frame's prediction residual nis at t_ns (see BodyFilter.report_image_nis)."""
-    dt = max((t_ns - clock[_IMG_T]) * 1e-9, 0.0)
-    alpha = 1.0 - math.exp(-dt / params[_NIS_TAU]) if clock[_IMG_T] != 0 else 1.0
-    adapt[_NIS_IMG] += alpha * (min(nis, params[_GATE] / 3.0) - adapt[_NIS_IMG])
-    clock[_IMG_T] = t_ns
+    dt = max((t_ns - clock[CLOCK_IMG_T_NS]) * 1e-9, 0.0)
+    alpha = 1.0 - math.exp(-dt / params[KALMAN_NIS_TAU_S]) if clock[CLOCK_IMG_T_NS] != 0 else 1.0
+    adapt[ADAPT_NIS_IMG] += alpha * (min(nis, params[KALMAN_GATE_CHI2] / 3.0) - adapt[ADAPT_NIS_IMG])
+    clock[CLOCK_IMG_T_NS] = t_ns
 
 
 class FilterBank:
@@ -442,20 +451,22 @@ class FilterBank:
     x (n, 15), P (n, 15, 15), R_nom (n, 3, 3); adapt (n, 5): process-noise scales
     and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img]; clock (n, 3) int64:
     [filter time ns, last image-NIS time ns, folds]; params (8,): [jerk_psd,
-    angular_accel_psd, max_noise_scale, nis_time_constant, gate_chi2, then the prior
+    angular_accel_psd, max_noise_scale, nis_time_constant_s, gate_chi2, then the prior
     variances of velocity, acceleration and angular velocity at (re)initialisation].
     filters[i] is the BodyFilter over row i.
     """
 
     def __init__(self, n: int, settings: KalmanSettings, make_filters: bool = True):
-        self.x = np.zeros((n, NX))
-        self.P = np.tile(np.eye(NX), (n, 1, 1))
+        self.x = np.zeros((n, N_STATE))
+        self.P = np.tile(np.eye(N_STATE), (n, 1, 1))
         self.R_nom = np.tile(np.eye(3), (n, 1, 1))
-        self.adapt = np.ones((n, 5))
-        self.clock = np.zeros((n, 3), dtype=np.int64)
+        self.adapt = np.ones((n, N_ADAPT))
+        self.clock = np.zeros((n, N_CLOCK), dtype=np.int64)
         self.params = np.array([settings.jerk_psd, settings.angular_accel_psd, settings.max_noise_scale,
                                 settings.nis_time_constant_s, settings.gate_chi2, settings.init_velocity_sigma_m_s**2,
                                 settings.init_acceleration_sigma_m_s2**2, settings.init_angular_velocity_sigma_rad_s**2])
+        # the kernels' argument (layout.FilterArrays as a plain tuple: cheaper for numba to dispatch)
+        self.arrays = tuple(FilterArrays(self.x, self.P, self.R_nom, self.adapt, self.clock, self.params))
         self.filters = [BodyFilter(settings, self, i) for i in range(n)] if make_filters else []
 
 
@@ -487,9 +498,9 @@ class BodyFilter:
     x = array_field("_x", ..., np.asarray, "state (15,)")
     P = array_field("_P", ..., np.asarray, "covariance (15, 15)")
     R_nom = array_field("_R_nom", ..., np.asarray, "nominal rotation (3, 3) body->world")
-    t_ns = array_field("_clock", CLOCK_T, int, "filter time, ns")
-    scale_p = array_field("_adapt", _SCALE_P, float, "process-noise scale of the position block")
-    scale_r = array_field("_adapt", _SCALE_R, float, "process-noise scale of the rotation block")
+    t_ns = array_field("_clock", CLOCK_T_NS, int, "filter time, ns")
+    scale_p = array_field("_adapt", ADAPT_SCALE_P, float, "process-noise scale of the position block")
+    scale_r = array_field("_adapt", ADAPT_SCALE_R, float, "process-noise scale of the rotation block")
 
     def __init__(self, settings: KalmanSettings, bank: FilterBank | None = None, row: int = 0):
         self.s = settings
@@ -550,13 +561,14 @@ class BodyFilter:
     def pose_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Non-mutating mean prediction: position (3,), R (3, 3), velocity (3,), world angular rate (3,)."""
         p, R, v = predict_mean(self.x, self.R_nom, (int(t_ns) - self.t_ns) * 1e-9)
-        return p, R, v, self.x[12:15].copy()
+        return p, R, v, self.x[X_RATE].copy()
 
     def output_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Non-mutating prediction for the outputs: position (3,), quaternion xyzw (4,),
         velocity (3,), body-frame angular rate (3,), pose covariance (6, 6) over
         [p, world rotation vector] and velocity covariance (3, 3)."""
         a = self._adapt
-        o = _output_at(self._x, self._P, self._R_nom, (int(t_ns) - int(self._clock[CLOCK_T])) * 1e-9,
-                       self.s.jerk_psd * a[_SCALE_P], self.s.angular_accel_psd * a[_SCALE_R])
-        return o[0:3], o[3:7], o[7:10], o[10:13], o[13:49].reshape(6, 6), o[49:58].reshape(3, 3)
+        o = _output_at(self._x, self._P, self._R_nom, (int(t_ns) - int(self._clock[CLOCK_T_NS])) * 1e-9,
+                       self.s.jerk_psd * a[ADAPT_SCALE_P], self.s.angular_accel_psd * a[ADAPT_SCALE_R])
+        return (o[OUT_POS], o[OUT_QUAT_XYZW], o[OUT_VEL], o[OUT_RATE_BODY], o[OUT_POSE_COV].reshape(6, 6),
+                o[OUT_VEL_COV].reshape(3, 3))

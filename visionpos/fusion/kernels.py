@@ -1,0 +1,463 @@
+"""The compiled per-frame and per-fusion kernels of the fusion pipeline (pipeline.py orchestrates).
+
+Why kernels: a frame or a fusion touches a few dozen markers, where numpy's
+per-call overhead, not arithmetic, sets the cost; each step is a loop compiled
+by numba (visionpos.jit). Each Python -> kernel call also costs microseconds
+per argument type it must check, so one frame is one call (_observe_frame)
+and one fusion is one call (_fuse_tracked), state is updated in place in the
+FilterBank and track arrays, and results come back packed in a few arrays.
+Every packed layout and argument group is named in layout.py.
+
+The arithmetic order of each kernel is part of its contract: replays are
+compared byte for byte with earlier versions.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from visionpos.fusion.layout import (
+    CAMERA_COS_MAX, CAMERA_DIST, CAMERA_FISHEYE, CAMERA_INTRINSICS, CAMERA_R, CAMERA_T, CLOCK_T_NS, INTRINSICS_FX,
+    INTRINSICS_FY, MEAS_COV, MEAS_FIT_RMS_M, MEAS_N_CAMERAS, MEAS_N_MARKERS, MEAS_POS, MEAS_ROT, MOTION_ACC,
+    MOTION_POS, MOTION_VEL, N_MEAS, N_STATE_COLS, NO_TIME, PARAM_COMPENSATE_MAX_VEL_VAR, PARAM_IDENTIFY_TOL_M,
+    PARAM_MARKER_VAR_FLOOR, PARAM_MAX_RESIDUAL_PX, PARAM_MIN_MARKERS, PARAM_RESET_AFTER_NS, POS0, POSE_P, POSE_ROT,
+    POSE_ROT0, RATE0, STATE_DT_S, STATE_R_NOM, STATE_R_NOM0, STATE_RATE_VAR, STATE_VEL_VAR, STATE_X,
+    TRACK_FIRST_REJECT_NS, TRACK_LAST_CAPTURE_NS, TRACK_LAST_UPDATE_NS, TRACK_MARKER_VAR, TRACK_N_CAMERAS,
+    TRACK_N_MARKERS, TRACK_PX_VAR, TRACK_RESETS, TRACK_RESIDUAL_MM, VEL0, VERDICT_ACCEPTED, VERDICT_FIT_REJECTED,
+    VERDICT_GATED, VERDICT_RESET, VERDICT_TOO_FEW, X_ACC, X_RATE,
+)
+from visionpos.fusion.matching import associate_blobs, project_points, triangulate_irls, undistort_normalized
+from visionpos.fusion.rigidbody import kabsch_weighted
+from visionpos.fusion.tracking import filter_initialize, filter_update, predict_mean, report_image_nis
+from visionpos.jit import cross3, dot3, matmul3, matvec3, njit
+
+
+@njit
+def _inv3(A: np.ndarray) -> np.ndarray:
+    """Inverse of a 3x3 matrix by the adjugate."""
+    C = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            i1, i2, j1, j2 = (j + 1) % 3, (j + 2) % 3, (i + 1) % 3, (i + 2) % 3
+            C[i, j] = A[i1, j1] * A[i2, j2] - A[i1, j2] * A[i2, j1]  # cofactor of A[j, i]
+    return C / (A[0, 0] * C[0, 0] + A[0, 1] * C[1, 0] + A[0, 2] * C[2, 0])
+
+
+@njit
+def pose_measurement_cov(markers_world: np.ndarray, origin: np.ndarray, var: float) -> np.ndarray:
+    """Covariance (6, 6) over [p, world rotation vector] of a Kabsch pose.
+
+    markers_world: (n, 3) fitted marker positions, n >= 3 not collinear;
+    origin: (3,) body origin; var: per-marker, per-axis noise variance (m^2).
+    Small-error, equal weights.
+    """
+    n = markers_world.shape[0]
+    c = np.zeros(3)
+    for m in range(n):
+        c += markers_world[m]
+    c /= n
+    J = np.zeros((3, 3))  # inertia-like sum (|r|^2 I - r r^T)
+    for m in range(n):
+        r = markers_world[m] - c
+        rr = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+        for i in range(3):
+            J[i, i] += rr
+            for j in range(3):
+                J[i, j] -= r[i] * r[j]
+    Crot = var * _inv3(J)
+    o = origin - c
+    ox = np.array([[0.0, -o[2], o[1]], [o[2], 0.0, -o[0]], [-o[1], o[0], 0.0]])
+    oxC = matmul3(ox, Crot)
+    C = np.empty((6, 6))
+    C[POSE_P, POSE_P] = matmul3(oxC, ox.T)
+    for i in range(3):
+        C[i, i] += var / n
+    C[POSE_P, POSE_ROT] = -oxC
+    C[POSE_ROT, POSE_P] = -oxC.T
+    C[POSE_ROT, POSE_ROT] = Crot
+    return C
+
+
+@njit
+def _marker_motion(
+    states: np.ndarray, sizes: np.ndarray, local: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Marker positions, velocities and accelerations (M, 3) each, world, of B bodies.
+
+    states (B, N_STATE_COLS): filter states as _pack_states packs them, predicted
+    by their STATE_DT_S; sizes (B,): marker counts; local (M, 3): body-frame
+    markers, body by body. Includes the rotation's w x r and w x (w x r) terms.
+    """
+    n_markers = local.shape[0]
+    X0 = np.empty((n_markers, 3))
+    V = np.empty((n_markers, 3))
+    A = np.empty((n_markers, 3))
+    q = 0
+    for b in range(sizes.shape[0]):
+        x = states[b, STATE_X]
+        w = x[X_RATE]
+        p, Rb, v = predict_mean(x, states[b, STATE_R_NOM].reshape((3, 3)), states[b, STATE_DT_S])
+        for _ in range(sizes[b]):
+            r = matvec3(Rb, local[q])  # lever arm, world
+            wxr = cross3(w, r)
+            X0[q] = p + r
+            V[q] = v + wxr
+            A[q] = x[X_ACC] + cross3(w, wxr)
+            q += 1
+    return X0, V, A
+
+
+@njit
+def _pack_states(bank: tuple, bodies: np.ndarray, t_ns: int) -> np.ndarray:
+    """The kernels' packed input (B, N_STATE_COLS) (columns STATE_*) for the filters `bodies` (B,)
+    of a FilterBank (bank: layout.FilterArrays as a tuple) at t_ns: per body its state, nominal
+    rotation, t_ns - filter time (s), mean velocity variance and mean angular-rate variance."""
+    x, P, R_nom, _, clock, _ = bank
+    out = np.empty((bodies.shape[0], N_STATE_COLS))
+    for i in range(bodies.shape[0]):
+        b = bodies[i]
+        out[i, STATE_X] = x[b]
+        for r in range(3):
+            for c in range(3):
+                out[i, STATE_R_NOM0 + 3 * r + c] = R_nom[b, r, c]
+        out[i, STATE_DT_S] = (t_ns - clock[b, CLOCK_T_NS]) * 1e-9
+        out[i, STATE_VEL_VAR] = (P[b, VEL0, VEL0] + P[b, VEL0 + 1, VEL0 + 1] + P[b, VEL0 + 2, VEL0 + 2]) / 3.0
+        out[i, STATE_RATE_VAR] = (P[b, RATE0, RATE0] + P[b, RATE0 + 1, RATE0 + 1] + P[b, RATE0 + 2, RATE0 + 2]) / 3.0
+    return out
+
+
+@njit
+def _tracked_motion(bank: tuple, tracked: tuple) -> tuple[int, np.ndarray]:
+    """The newest filter time t_c (ns) of the tracked bodies (tracked: layout.TrackedSet as a tuple)
+    of a FilterBank (bank: layout.FilterArrays as a tuple) and their markers' positions, velocities
+    and accelerations there, motion (3, M, 3) indexed by MOTION_* (_marker_motion)."""
+    bodies, _, sizes, _, local = tracked
+    _, _, _, _, clock, _ = bank
+    t_c = clock[bodies[0], CLOCK_T_NS]
+    for i in range(bodies.shape[0]):
+        t_c = max(t_c, clock[bodies[i], CLOCK_T_NS])
+    motion = np.empty((3, local.shape[0], 3))
+    motion[MOTION_POS], motion[MOTION_VEL], motion[MOTION_ACC] = _marker_motion(
+        _pack_states(bank, bodies, t_c), sizes, local)
+    return t_c, motion
+
+
+@njit
+def _finite_rows(px: np.ndarray) -> np.ndarray:
+    """px (N, 2) itself when every row is finite, else a copy of its finite rows."""
+    keep = np.empty(px.shape[0], dtype=np.bool_)
+    n = 0
+    for j in range(px.shape[0]):
+        keep[j] = np.isfinite(px[j, 0]) and np.isfinite(px[j, 1])
+        n += keep[j]
+    return px if n == px.shape[0] else px[keep]
+
+
+@njit
+def _observe_frame(px: np.ndarray, dt_s: float, motion: np.ndarray, tracked: tuple, marker_xn: np.ndarray,
+                   camera: np.ndarray, gate_px: float, image_nis: bool, t_ns: int, bank: tuple,
+                   track_floats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One camera frame against the tracked bodies' predicted markers (compiled).
+
+    px (N, 2) blob pixels; motion (3, M, 3): the tracked markers' positions, velocities and
+    accelerations (_tracked_motion), so X0 + dt V + dt^2 / 2 A is where they are at the frame's
+    capture time t_ns, dt_s (s) after them; tracked: layout.TrackedSet (tuple) of the bodies;
+    camera (N_CAMERA,): the camera packed as matching.Projector.packed (columns CAMERA_*);
+    gate_px: association radius. Fills marker_xn (all markers, 2), each marker's observation
+    (NaN = none). Returns normalised blobs xn (N, 2) and blob labels (N,) (global marker row
+    or -1).
+
+    image_nis: also feed each tracked body's manoeuvre detector (tracking.report_image_nis)
+    with this frame's prediction residual over its expected size (_image_nis); bank:
+    layout.FilterArrays (tuple) of the FilterBank; track_floats: the track rows (pixel variance).
+    """
+    bodies, rows, _, body_of_row, _ = tracked
+    _, P, _, adapt, clock, kalman = bank
+    R, t = camera[CAMERA_R].reshape((3, 3)), camera[CAMERA_T]
+    intrinsics, dist = camera[CAMERA_INTRINSICS], camera[CAMERA_DIST]
+    fisheye, cos_max = camera[CAMERA_FISHEYE] != 0.0, camera[CAMERA_COS_MAX]
+    xn = undistort_normalized(px, intrinsics, dist, fisheye)
+    Xw = motion[MOTION_POS] + dt_s * (motion[MOTION_VEL] + (0.5 * dt_s) * motion[MOTION_ACC])
+    pred = project_points(Xw, R, t, intrinsics, dist, fisheye, cos_max, gate_px)
+    blob_of = associate_blobs(pred, px, gate_px * gate_px)
+    label = np.full(px.shape[0], -1, dtype=np.int64)
+    marker_xn[:, :] = np.nan
+    for q in range(blob_of.shape[0]):
+        if blob_of[q] >= 0:
+            label[blob_of[q]] = rows[q]
+            marker_xn[rows[q], 0] = xn[blob_of[q], 0]
+            marker_xn[rows[q], 1] = xn[blob_of[q], 1]
+    if image_nis:
+        # expected: the body's pixel noise plus its position uncertainty seen from this camera
+        n_bodies = bodies.shape[0]
+        exp_px = np.empty(n_bodies)
+        exp_pos = np.empty(n_bodies)
+        for i in range(n_bodies):
+            b = bodies[i]
+            exp_px[i] = track_floats[b, TRACK_PX_VAR]
+            exp_pos[i] = (P[b, POS0, POS0] + P[b, POS0 + 1, POS0 + 1] + P[b, POS0 + 2, POS0 + 2]) / 3.0
+        focal_px = math.sqrt(intrinsics[INTRINSICS_FX] * intrinsics[INTRINSICS_FY])
+        nis, n = _image_nis(Xw, pred, px, blob_of, body_of_row, exp_px, exp_pos, R[2], t[2], focal_px)
+        for i in range(n_bodies):
+            if n[i] >= 2:
+                b = bodies[i]
+                report_image_nis(adapt[b], clock[b], kalman, t_ns, nis[i])
+    return xn, label
+
+
+@njit
+def _scaled_pose_cov(cov_unit: np.ndarray, var: float, var_p: float, var_r: float) -> np.ndarray:
+    """cov_unit (6, 6) * var, plus var_p on the position and var_r on the rotation diagonal."""
+    C = cov_unit * var
+    for i in range(3):
+        C[i, i] += var_p
+        C[POSE_ROT0 + i, POSE_ROT0 + i] += var_r
+    return C
+
+
+@njit
+def _image_nis(Xw: np.ndarray, pred: np.ndarray, px: np.ndarray, blob_of: np.ndarray, body_of_row: np.ndarray,
+               exp_px: np.ndarray, exp_pos: np.ndarray, R2: np.ndarray, t2: float,
+               focal_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """One frame's prediction residual per body over its expected size, per degree of freedom.
+
+    Xw (M, 3) predicted markers, pred (M, 2) their pixels, px (N, 2) blobs, blob_of (M,)
+    associated blob or -1, body_of_row (M,) body of each row; per body (B,): pixel noise
+    variance exp_px and position variance exp_pos; R2 (3,), t2, focal_px: the camera's
+    optical-axis row, its translation and focal length (depth -> pixels).
+    Returns mean NIS (B,) and the number of markers behind it (B,).
+    """
+    n_bodies = exp_px.shape[0]
+    nis = np.zeros(n_bodies)
+    n = np.zeros(n_bodies, dtype=np.int64)
+    for q in range(blob_of.shape[0]):
+        j = blob_of[q]
+        if j < 0:
+            continue
+        b = body_of_row[q]
+        z = max(Xw[q, 0] * R2[0] + Xw[q, 1] * R2[1] + Xw[q, 2] * R2[2] + t2, 0.1)
+        du, dv = px[j, 0] - pred[q, 0], px[j, 1] - pred[q, 1]
+        nis[b] += (du * du + dv * dv) / (2.0 * (exp_px[b] + focal_px * focal_px * exp_pos[b] / (z * z)))
+        n[b] += 1
+    for b in range(n_bodies):
+        if n[b] > 0:
+            nis[b] /= n[b]
+    return nis, n
+
+
+@njit
+def _tracked_measurements(marker_xn: np.ndarray, views: tuple, tracked: tuple, dt: np.ndarray, states: np.ndarray,
+                          compensate: bool, params: np.ndarray) -> tuple:
+    """Pose measurements of the tracked bodies from one fusion of V views (compiled).
+
+    marker_xn (cameras, all markers, 2): each camera's normalised observation of each
+    marker (NaN = none); views: layout.ViewSet (tuple) of the fused cameras; tracked:
+    layout.TrackedSet (tuple); dt (V,): view capture - reference (s). states
+    (B, N_STATE_COLS): the bodies' filter states as _pack_states packs them.
+    compensate: motion compensation on (velocity-gated per body). params: the fusion
+    params (columns PARAM_*).
+
+    Returns per body: R (B, 3, 3), t (B, 3), markers used (B,), fit residual sum
+    of squares (B,), cameras seeing it (B,), pixel-variance sample (B,), unit-variance
+    pose covariance (B, 6, 6), motion variance added to position / rotation (B,),
+    fit tolerance (B,); and the number of points refused by the residual gate.
+    """
+    cameras, R, t, f = views
+    _, rows, sizes, _, local = tracked
+    max_residual_px, identify_tolerance = params[PARAM_MAX_RESIDUAL_PX], params[PARAM_IDENTIFY_TOL_M]
+    compensate_max_vel_var = params[PARAM_COMPENSATE_MAX_VEL_VAR]
+    n_markers, n_views = rows.shape[0], cameras.shape[0]
+    xn = np.empty((n_markers, n_views, 2))
+    for q in range(n_markers):
+        for v in range(n_views):
+            xn[q, v, 0] = marker_xn[cameras[v], rows[q], 0]
+            xn[q, v, 1] = marker_xn[cameras[v], rows[q], 1]
+    n_bodies = sizes.shape[0]
+    dt2_mean = 0.0
+    dt_max = 0.0
+    centre = np.zeros(3)
+    f_mean = 0.0
+    for v in range(n_views):
+        dt2_mean += dt[v] * dt[v] / n_views
+        dt_max = max(dt_max, abs(dt[v]))
+        f_mean += f[v] / n_views
+        for i in range(3):
+            for j in range(3):
+                centre[i] -= R[v, j, i] * t[v, j] / n_views  # mean camera centre: a px-per-metre scale
+    vel = np.zeros((n_bodies, 3))
+    acc = np.zeros((n_bodies, 3))
+    rate = np.zeros((n_bodies, 3))
+    Rb = np.empty((n_bodies, 3, 3))
+    var_p = np.empty(n_bodies)
+    var_r = np.empty(n_bodies)
+    gate = np.empty(n_bodies)
+    fit_tol = np.empty(n_bodies)
+    moving = False
+    for b in range(n_bodies):
+        x = states[b, STATE_X]
+        sv2, sw2 = states[b, STATE_VEL_VAR], states[b, STATE_RATE_VAR]
+        w = x[X_RATE]
+        p, Rb[b], v = predict_mean(x, states[b, STATE_R_NOM].reshape((3, 3)), states[b, STATE_DT_S])
+        if compensate and sv2 < compensate_max_vel_var:
+            vel[b], acc[b], rate[b] = v, x[X_ACC], w
+            moving = moving or np.any(v != 0.0) or np.any(x[X_ACC] != 0.0) or np.any(w != 0.0)
+            var_p[b], var_r[b] = dt2_mean * sv2, dt2_mean * sw2
+            spread = 2.0 * math.sqrt(sv2)
+        else:
+            # velocity not known well enough (or naive mode): compensating with a wrong one
+            # would bias the measurement towards it (a feedback loop); the views are treated
+            # as simultaneous and the motion between them counts as measurement noise
+            vv, ww = dot3(v, v), dot3(w, w)
+            var_p[b], var_r[b] = dt2_mean * (vv + sv2), dt2_mean * (ww + sw2)
+            spread = math.sqrt(vv) + 2.0 * math.sqrt(sv2)
+        d = p - centre
+        # residual gate widened by the motion the views may still disagree by
+        gate[b] = max_residual_px + f_mean * spread * dt_max / max(math.sqrt(dot3(d, d)), 0.5)
+        fit_tol[b] = identify_tolerance + spread * dt_max  # the rigid fit may disagree as much
+    body = np.empty(n_markers, dtype=np.int64)
+    k = 0
+    for b in range(n_bodies):
+        body[k : k + sizes[b]] = b
+        k += sizes[b]
+    has_offsets = compensate and dt_max > 0.0 and moving
+    offsets = np.zeros((n_markers if has_offsets else 0, n_views, 3))
+    if has_offsets:
+        for q in range(n_markers):
+            b = body[q]
+            r = matvec3(Rb[b], local[q])  # lever arm, world
+            wxr = cross3(rate[b], r)
+            u1 = vel[b] + wxr
+            u2 = 0.5 * (acc[b] + cross3(rate[b], wxr))
+            for v in range(n_views):  # marker displacement from ref to the view's capture time (2nd order)
+                offsets[q, v] = u1 * dt[v] + u2 * (dt[v] * dt[v])
+    X, rms, nv = triangulate_irls(xn, R, t, f, offsets, has_offsets, 2)
+    w_fit = np.zeros(n_markers)
+    refused = 0
+    for q in range(n_markers):
+        if nv[q] >= 2:
+            if rms[q] < gate[body[q]]:
+                w_fit[q] = nv[q]  # more rays, better-conditioned point
+            else:
+                refused += 1
+    Rk = np.empty((n_bodies, 3, 3))
+    tk = np.empty((n_bodies, 3))
+    count = np.zeros(n_bodies, dtype=np.int64)
+    res2 = np.zeros(n_bodies)
+    n_cams = np.zeros(n_bodies, dtype=np.int64)
+    px_var = np.zeros(n_bodies)
+    cov = np.full((n_bodies, 6, 6), np.nan)
+    k = 0
+    for b in range(n_bodies):
+        s = slice(k, k + sizes[b])
+        Rk[b], tk[b] = kabsch_weighted(local[s], X[s], w_fit[s])
+        for v in range(n_views):
+            for q in range(k, k + sizes[b]):
+                if not np.isnan(xn[q, v, 0]):
+                    n_cams[b] += 1
+                    break
+        fitted = np.empty((sizes[b], 3))
+        n = 0
+        for q in range(k, k + sizes[b]):
+            if w_fit[q] > 0:
+                fitted[n] = matvec3(Rk[b], local[q]) + tk[b]
+                e = X[q] - fitted[n]
+                res2[b] += dot3(e, e)
+                # (the fitted point absorbs 3 of the 2 nv residual dof: E[rms^2] = sigma^2 (2 nv - 3) / nv)
+                px_var[b] += rms[q] * rms[q] * nv[q] / (2.0 * nv[q] - 3.0)
+                n += 1
+        count[b] = n
+        if n >= 3:
+            px_var[b] /= n
+            cov[b] = pose_measurement_cov(fitted[:n], tk[b], 1.0)
+        k += sizes[b]
+    return Rk, tk, count, res2, n_cams, px_var, cov, var_p, var_r, fit_tol, refused
+
+
+@njit
+def _track_measured(track_ints: np.ndarray, track_floats: np.ndarray, ref_ns: int, capture_ns: int, n_markers: int,
+                    n_cameras: int, fit_rms_m: float) -> None:
+    """Record a measurement the filter took (or restarted at) in one body's track rows
+    track_ints (N_TRACK_INTS,), track_floats (N_TRACK_FLOATS,): reference time ref_ns,
+    newest capture time capture_ns, markers, cameras, fit RMS (m)."""
+    track_ints[TRACK_FIRST_REJECT_NS] = NO_TIME
+    track_ints[TRACK_LAST_UPDATE_NS] = ref_ns
+    track_ints[TRACK_LAST_CAPTURE_NS] = capture_ns
+    track_ints[TRACK_N_MARKERS] = n_markers
+    track_ints[TRACK_N_CAMERAS] = n_cameras
+    track_floats[TRACK_RESIDUAL_MM] = fit_rms_m * 1e3
+
+
+@njit
+def _fuse_tracked(marker_xn: np.ndarray, capture_ns: np.ndarray, views: tuple, ref_ns: int, tracked: tuple,
+                  params: np.ndarray, compensate: bool, reuse: float, bank: tuple,
+                  tracks: tuple) -> tuple[np.ndarray, np.ndarray, int, int, np.ndarray]:
+    """One fusion for the tracked bodies: pose measurements, their covariances and the
+    filter updates, in place (compiled).
+
+    marker_xn, views, tracked, compensate, params: as _tracked_measurements;
+    capture_ns (cameras,): each camera's newest capture time; ref_ns: reference time;
+    params also give the fewest markers for a pose, the floor of the per-marker variance
+    (m^2) and how long (ns) a filter may reject measurements before it restarts at them;
+    reuse: fusions that share each frame (multiplies the measurement covariance); bank:
+    layout.FilterArrays (tuple) of the FilterBank; tracks: layout.TrackRows (tuple).
+
+    Returns per tracked body its verdict (B,) (layout.Verdict) and its measurement
+    (B, N_MEAS) (columns MEAS_*: pose R and t, its covariance, markers used, cameras, fit
+    RMS in m); the number of points refused by the residual gate; and, for the next
+    frames, _tracked_motion after the updates (t_c, motion (3, M, 3)).
+    """
+    x, P, R_nom, adapt, clock, kalman = bank
+    track_ints, track_floats = tracks
+    bodies, _, _, _, _ = tracked
+    cameras, _, _, _ = views
+    n_views = cameras.shape[0]
+    dt = np.empty(n_views)
+    newest_capture_ns = capture_ns[cameras[0]]
+    for v in range(n_views):
+        dt[v] = (capture_ns[cameras[v]] - ref_ns) * 1e-9
+        newest_capture_ns = max(newest_capture_ns, capture_ns[cameras[v]])
+    Rk, tk, counts, res2, n_cams, px_var, cov_unit, var_p, var_r, fit_tol, refused = _tracked_measurements(
+        marker_xn, views, tracked, dt, _pack_states(bank, bodies, ref_ns), compensate, params)
+    n_bodies = bodies.shape[0]
+    verdict = np.full(n_bodies, VERDICT_TOO_FEW, dtype=np.int64)
+    meas = np.zeros((n_bodies, N_MEAS))
+    for i in range(n_bodies):
+        meas[i, MEAS_ROT] = Rk[i].ravel()
+        meas[i, MEAS_POS] = tk[i]
+        meas[i, MEAS_N_MARKERS] = counts[i]
+        meas[i, MEAS_N_CAMERAS] = n_cams[i]
+        n = counts[i]
+        if n < params[PARAM_MIN_MARKERS]:
+            meas[i, MEAS_FIT_RMS_M] = np.nan
+            continue
+        fit = meas[i, MEAS_FIT_RMS_M] = math.sqrt(res2[i] / n)
+        if fit > fit_tol[i]:
+            verdict[i] = VERDICT_FIT_REJECTED
+            continue
+        b = bodies[i]
+        # pixel noise from the triangulation residuals of its markers; per-marker 3D noise
+        # from the fit residual (3n - 6 degrees of freedom); both running averages per body
+        track_floats[b, TRACK_PX_VAR] += 0.05 * (px_var[i] - track_floats[b, TRACK_PX_VAR])
+        track_floats[b, TRACK_MARKER_VAR] += 0.05 * (res2[i] / (3 * n - 6) - track_floats[b, TRACK_MARKER_VAR])
+        # reused frames: split their information over the fusions that share them
+        marker_var = max(track_floats[b, TRACK_MARKER_VAR], params[PARAM_MARKER_VAR_FLOOR]) * reuse
+        cov = _scaled_pose_cov(cov_unit[i], marker_var, var_p[i], var_r[i])
+        meas[i, MEAS_COV] = cov.ravel()
+        accepted, _ = filter_update(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i], cov, True)
+        if accepted:
+            verdict[i] = VERDICT_ACCEPTED
+        else:
+            if track_ints[b, TRACK_FIRST_REJECT_NS] == NO_TIME:
+                track_ints[b, TRACK_FIRST_REJECT_NS] = ref_ns
+            if ref_ns - track_ints[b, TRACK_FIRST_REJECT_NS] < params[PARAM_RESET_AFTER_NS]:
+                verdict[i] = VERDICT_GATED
+                continue
+            # persistently inconsistent: believe the measurements, restart the filter there
+            filter_initialize(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i], cov)
+            track_ints[b, TRACK_RESETS] += 1
+            verdict[i] = VERDICT_RESET
+        _track_measured(track_ints[b], track_floats[b], ref_ns, newest_capture_ns, n, n_cams[i], fit)
+    t_c, motion = _tracked_motion(bank, tracked)
+    return verdict, meas, refused, t_c, motion

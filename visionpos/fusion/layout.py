@@ -1,0 +1,145 @@
+"""Every packed array layout of the fusion path, named in one place.
+
+The compiled kernels exchange state through flat numpy arrays rather than
+objects: numba handles arrays cheaply, each array crossing the Python/kernel
+boundary costs microseconds, and the filters' rows must be updated in place
+by the kernels and read by Python through views. The price is that a column
+is just a number; this module gives each column (or slice of columns) its
+name, so kernels and orchestrator read `states[b, STATE_VEL_VAR]` instead of
+`states[b, 25]`. Plain ints and slices: numba freezes them as constants.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+from typing import NamedTuple
+
+import numpy as np
+
+# ---------------------------------------------------------------- filter state x (15,)
+# [p (3) m, v (3) m/s, a (3) m/s^2, dtheta (3) rad, w (3) rad/s], world frame (tracking.py)
+N_STATE = 15
+POS0, VEL0, ACC0, ROT_ERR0, RATE0 = 0, 3, 6, 9, 12  # first index of each 3-vector block
+X_POS, X_VEL, X_ACC = slice(POS0, POS0 + 3), slice(VEL0, VEL0 + 3), slice(ACC0, ACC0 + 3)
+X_ROT_ERR, X_RATE = slice(ROT_ERR0, ROT_ERR0 + 3), slice(RATE0, RATE0 + 3)
+X_POSE = (0, 1, 2, 9, 10, 11)  # the measured states: position, rotation error
+
+# ---------------------------------------------------------------- pose measurement (6,) and its covariance (6, 6)
+# [p (3) m, world rotation vector (3) rad]
+POSE_P, POSE_ROT = slice(0, 3), slice(3, 6)
+POSE_ROT0 = 3
+
+# ---------------------------------------------------------------- FilterBank rows (tracking.py)
+# adapt (n, 5) float: process-noise scales and NIS averages
+ADAPT_SCALE_P, ADAPT_SCALE_R, ADAPT_NIS_P, ADAPT_NIS_R, ADAPT_NIS_IMG = range(5)
+N_ADAPT = 5
+# clock (n, 3) int64: filter time ns, last image-NIS time ns, folds of the rotation error since the start
+CLOCK_T_NS, CLOCK_IMG_T_NS, CLOCK_FOLDS = range(3)
+N_CLOCK = 3
+# params (8,) float: the KalmanSettings the kernels read
+(KALMAN_JERK_PSD, KALMAN_ANG_ACC_PSD, KALMAN_MAX_SCALE, KALMAN_NIS_TAU_S, KALMAN_GATE_CHI2,
+ KALMAN_INIT_VEL_VAR, KALMAN_INIT_ACC_VAR, KALMAN_INIT_RATE_VAR) = range(8)
+N_KALMAN_PARAMS = 8
+
+# ---------------------------------------------------------------- filter output row (58,) (tracking._output_at)
+OUT_POS, OUT_QUAT_XYZW, OUT_VEL, OUT_RATE_BODY = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13)
+OUT_QUAT0, OUT_RATE_BODY0, OUT_POSE_COV0, OUT_VEL_COV0 = 3, 10, 13, 49  # first index, for loops
+OUT_POSE_COV, OUT_VEL_COV = slice(13, 49), slice(49, 58)  # (6, 6) and (3, 3), row-major
+N_OUT = 58
+
+# ---------------------------------------------------------------- packed body states (B, 27) (kernels._pack_states)
+STATE_X = slice(0, N_STATE)  # the filter state x
+STATE_R_NOM = slice(15, 24)  # nominal rotation (3, 3), row-major
+STATE_R_NOM0 = 15
+STATE_DT_S = 24  # reference time - filter time (s): how far to predict
+STATE_VEL_VAR = 25  # mean velocity variance (m^2/s^2)
+STATE_RATE_VAR = 26  # mean angular-rate variance (rad^2/s^2)
+N_STATE_COLS = 27
+
+# ---------------------------------------------------------------- packed camera (28,) (matching.Projector.packed)
+CAMERA_R, CAMERA_T = slice(0, 9), slice(9, 12)  # world -> camera rotation (3, 3) row-major, translation
+CAMERA_INTRINSICS, CAMERA_DIST = slice(12, 18), slice(18, 26)  # lens (matching.lens_arrays)
+INTRINSICS_FX, INTRINSICS_FY = 0, 1  # focal lengths (px) in the intrinsics (6,)
+CAMERA_COS_MAX = 26  # visibility limit: cosine of the largest angle off the optical axis
+CAMERA_FISHEYE = 27  # 1.0: Kannala-Brandt lens model, 0.0: pinhole
+N_CAMERA = 28
+
+# ---------------------------------------------------------------- marker motion (3, M, 3) (kernels._tracked_motion)
+MOTION_POS, MOTION_VEL, MOTION_ACC = range(3)
+
+# ---------------------------------------------------------------- fusion params (6,) float (FusionPipeline)
+(PARAM_MAX_RESIDUAL_PX, PARAM_IDENTIFY_TOL_M, PARAM_COMPENSATE_MAX_VEL_VAR, PARAM_MIN_MARKERS,
+ PARAM_MARKER_VAR_FLOOR, PARAM_RESET_AFTER_NS) = range(6)
+N_PARAMS = 6
+
+# ---------------------------------------------------------------- track rows, one per body (tracks._Track)
+# track_ints (bodies, 7) int64
+(TRACK_LAST_UPDATE_NS, TRACK_LAST_CAPTURE_NS, TRACK_N_MARKERS, TRACK_N_CAMERAS, TRACK_FIRST_REJECT_NS,
+ TRACK_TRACKED, TRACK_RESETS) = range(7)
+N_TRACK_INTS = 7
+NO_TIME = np.iinfo(np.int64).min  # TRACK_FIRST_REJECT_NS: nothing rejected since the last accepted measurement
+# track_floats (bodies, 3) float64
+TRACK_PX_VAR, TRACK_MARKER_VAR, TRACK_RESIDUAL_MM = range(3)
+N_TRACK_FLOATS = 3
+
+# ---------------------------------------------------------------- per-body fusion results (kernels._fuse_tracked)
+# measurement rows (B, 51), one array: each array a kernel returns costs a few microseconds to hand to Python
+MEAS_ROT, MEAS_POS, MEAS_COV = slice(0, 9), slice(9, 12), slice(12, 48)  # R (3, 3), t (3,), covariance (6, 6)
+MEAS_N_MARKERS, MEAS_N_CAMERAS, MEAS_FIT_RMS_M = 48, 49, 50
+N_MEAS = 51
+
+
+class Verdict(IntEnum):
+    """What one fusion did with a tracked body's measurement."""
+
+    TOO_FEW = 0  # fewer markers than a pose needs
+    FIT_REJECTED = 1  # the rigid fit residual is above its tolerance
+    ACCEPTED = 2
+    GATED = 3  # outside the filter's innovation gate
+    RESET = 4  # gated for too long: the filter restarted at the measurement
+
+
+# the kernels' plain-int copies (numba reads module-level ints as constants)
+VERDICT_TOO_FEW, VERDICT_FIT_REJECTED, VERDICT_ACCEPTED, VERDICT_GATED, VERDICT_RESET = (int(v) for v in Verdict)
+
+
+# ---------------------------------------------------------------- argument groups of the kernels
+# The kernels take these as plain tuples (tuple(group)) and unpack them in this field order: numba
+# types a namedtuple argument in Python, about 1 us per call on the per-frame path, a plain tuple in C.
+
+
+class FilterArrays(NamedTuple):
+    """A FilterBank's arrays (tracking.py): one row per body, updated in place by the kernels."""
+
+    x: np.ndarray  # (n, N_STATE) states
+    P: np.ndarray  # (n, N_STATE, N_STATE) covariances
+    R_nom: np.ndarray  # (n, 3, 3) nominal rotations body -> world
+    adapt: np.ndarray  # (n, N_ADAPT) noise scales and NIS averages
+    clock: np.ndarray  # (n, N_CLOCK) int64 times and fold counts
+    params: np.ndarray  # (N_KALMAN_PARAMS,) settings
+
+
+class TrackedSet(NamedTuple):
+    """The tracked bodies and their markers, body by body (FusionPipeline._layout)."""
+
+    bodies: np.ndarray  # (B,) int64 body indices
+    rows: np.ndarray  # (M,) int64 global marker rows
+    sizes: np.ndarray  # (B,) int64 marker counts
+    body_of_row: np.ndarray  # (M,) int64 index into `bodies` of each row's body
+    local: np.ndarray  # (M, 3) body-frame marker positions (m)
+
+
+class ViewSet(NamedTuple):
+    """The cameras of one fusion (FusionPipeline._views)."""
+
+    cameras: np.ndarray  # (V,) int64 camera indices
+    R: np.ndarray  # (V, 3, 3) world -> camera rotations
+    t: np.ndarray  # (V, 3) translations (m)
+    focal_px: np.ndarray  # (V,) geometric-mean focal lengths (px)
+
+
+class TrackRows(NamedTuple):
+    """The per-body track rows (tracks.Track views a row of each)."""
+
+    ints: np.ndarray  # (bodies, N_TRACK_INTS) int64, columns TRACK_* above
+    floats: np.ndarray  # (bodies, N_TRACK_FLOATS) float64
