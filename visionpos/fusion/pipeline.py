@@ -93,9 +93,11 @@ import numpy as np
 
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.jit import COMPILED, cross3, dot3, matmul3, matvec3, njit
-from visionpos.fusion.matching import Projector, associate_blobs, match_unlabeled, project_points, triangulate_irls, undistort_normalized
+from visionpos.camera.model import undistort_pixels
+from visionpos.fusion.matching import Projector, associate_blobs, match_unlabeled, project_points, triangulate_irls
 from visionpos.messages import BlobFrame, BodyState, LoosePoints
-from visionpos.fusion.rigidbody import BodyModel, identify, kabsch_weighted, layout_ambiguities
+from visionpos.fusion.rigidbody import BodyModel, identify, layout_ambiguities
+from visionpos.geometry.alignment import kabsch_horn_compiled
 from visionpos.fusion.settings import parse_fusion_settings
 from visionpos.fusion.timealign import MOTION_COMPENSATED, Group, TimeAligner
 from visionpos.fusion.tracking import (
@@ -300,7 +302,7 @@ def _observe_frame(px, dt, motion, rows, marker_xn, camera, gate, image_nis, t_n
     """
     R, t, intrinsics, dist = camera[0:9].reshape((3, 3)), camera[9:12], camera[12:18], camera[18:26]
     fisheye, cos_max = camera[27] != 0.0, camera[26]
-    xn = undistort_normalized(px, intrinsics, dist, fisheye)
+    xn = undistort_pixels(px, intrinsics, dist, fisheye)
     Xw = motion[0] + dt * (motion[1] + (0.5 * dt) * motion[2])
     pred = project_points(Xw, R, t, intrinsics, dist, fisheye, cos_max, gate)
     a = associate_blobs(pred, px, gate * gate)
@@ -469,7 +471,7 @@ def _tracked_measurements(marker_xn, views, rows, R, t, f, dt, states, compensat
     k = 0
     for b in range(B):
         s = slice(k, k + sizes[b])
-        Rk[b], tk[b] = kabsch_weighted(local[s], X[s], w_fit[s])
+        Rk[b], tk[b] = kabsch_horn_compiled(local[s], X[s], w_fit[s])
         for v in range(V):
             for q in range(k, k + sizes[b]):
                 if not np.isnan(xn[q, v, 0]):
