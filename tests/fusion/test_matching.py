@@ -1,4 +1,4 @@
-"""Cross-view matching, association and the fast triangulation (visionpos/matching.py)."""
+"""Cross-view matching, association and the fast triangulation (visionpos/fusion/matching.py)."""
 
 import numpy as np
 import pytest

@@ -74,3 +74,12 @@ def test_yaw_matrix_is_a_turn_about_down(yaw_deg):
     np.testing.assert_allclose(Y, Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix(), atol=1e-15)
     # clockwise seen from above: north turns towards east for a positive yaw
     assert np.sign((Y @ [1.0, 0.0, 0.0])[1]) == np.sign(yaw_deg)
+
+
+def test_euler_ned_frd_matches_scipy_on_the_conjugated_rotation():
+    """Reference: scipy's ZYX Euler angles of F R F, F = diag(1, -1, -1) written out here."""
+    F = np.diag([1.0, -1.0, -1.0])
+    R = Rotation.random(12, random_state=10)
+    ref = Rotation.from_matrix(F @ R.as_matrix() @ F).as_euler("ZYX")[:, ::-1]
+    np.testing.assert_allclose(euler_ned_frd(R.as_quat()), ref, atol=1e-12)
+    np.testing.assert_allclose(euler_ned_frd(R.as_quat()[0]), ref[0], atol=1e-12)  # one quaternion

@@ -90,6 +90,8 @@ def test_skew_is_the_cross_product_batched():
 def test_euler_zyx_matches_scipy(seed):
     R = Rotation.random(random_state=seed)
     np.testing.assert_allclose(euler_zyx_from_matrix(R.as_matrix()), R.as_euler("ZYX")[::-1], atol=1e-12)
+    Rs = Rotation.random(6, random_state=seed)
+    np.testing.assert_allclose(euler_zyx_from_matrix(Rs.as_matrix()), Rs.as_euler("ZYX")[:, ::-1], atol=1e-12)
 
 
 def test_euler_rate_matrix_matches_finite_differences_and_its_inverse():

@@ -22,9 +22,10 @@ point for isotropic pixel noise (up to lens-distortion scale changes). It
 accepts per-view offsets (view v observed X + offsets[p, v]) for motion
 compensation. Two passes suffice: the first (unit weights) fixes the depths
 to ~1e-3 relative, so the second pass's weights are exact for practical
-purposes. geometry.triangulate_* does the same job with a Gauss-Newton
+purposes. geometry/triangulation.py does the same job with a Gauss-Newton
 refinement for offline work; this one is here because it runs several
-thousand times a second. The per-frame steps are compiled loops
+thousand times a second. Lens models come from camera/pinhole.py and
+camera/fisheye.py (their compiled per-point kernels). The per-frame steps are compiled loops
 (visionpos/jit.py); the public functions are thin wrappers that fix the
 argument types.
 """
@@ -42,9 +43,9 @@ from visionpos.jit import njit
 
 
 class Projector:
-    """Fast world -> pixel projection for one camera (same models as camera.py, compiled).
+    """Fast world -> pixel projection for one camera (the lens models of camera/, compiled).
 
-    camera.Camera.project is exact but built from many small numpy steps;
+    camera.model.Camera.project is exact but built from many small numpy steps;
     this runs per packet, so it is one compiled loop over the points.
     """
 

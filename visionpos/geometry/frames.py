@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from visionpos.geometry.rotations import euler_zyx_from_matrix
+
 __all__ = [
     "FLU_FRD",
     "world_to_ned",
@@ -81,8 +83,8 @@ def euler_ned_frd(q_world_flu: np.ndarray) -> np.ndarray:
     """(..., 4) xyzw body FLU -> world  ->  (..., 3) roll, pitch, yaw (rad) of FRD in NED
     (aerospace ZYX), as an autopilot reports them."""
     q = quat_world_body_to_ned_frd(q_world_flu)
-    ypr = Rotation.from_quat(q.reshape(-1, 4)).as_euler("ZYX")
-    return ypr[:, ::-1].reshape(q.shape[:-1] + (3,))
+    R = Rotation.from_quat(q.reshape(-1, 4)).as_matrix()
+    return euler_zyx_from_matrix(R).reshape(q.shape[:-1] + (3,))
 
 
 def yaw_matrix_ned(yaw_offset_rad: float) -> np.ndarray:

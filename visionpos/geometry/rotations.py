@@ -170,9 +170,11 @@ def average_rotations(Rs: np.ndarray, weights: np.ndarray | None = None) -> np.n
 
 # ------------------------------------------------------------ ZYX Euler angles
 def euler_zyx_from_matrix(R: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation -> (3,) roll, pitch, yaw (rad) with R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    pitch = -np.arcsin(np.clip(R[2, 0], -1.0, 1.0))
-    return np.array([np.arctan2(R[2, 1], R[2, 2]), pitch, np.arctan2(R[1, 0], R[0, 0])])
+    """(..., 3, 3) rotations -> (..., 3) roll, pitch, yaw (rad) with R = Rz(yaw) Ry(pitch) Rx(roll)
+    (aerospace ZYX; pitch in [-pi/2, pi/2])."""
+    R = np.asarray(R, dtype=np.float64)
+    pitch = -np.arcsin(np.clip(R[..., 2, 0], -1.0, 1.0))
+    return np.stack([np.arctan2(R[..., 2, 1], R[..., 2, 2]), pitch, np.arctan2(R[..., 1, 0], R[..., 0, 0])], axis=-1)
 
 
 def euler_rate_matrix(euler: np.ndarray) -> np.ndarray:
