@@ -196,15 +196,18 @@ class CameraModel:
             uv[ok] = self.project_camera(p[ok])
         return ok & self.in_image(uv, margin)
 
-    def project_jacobian(self, points_cam: np.ndarray, eps: float = 1e-6) -> np.ndarray:
-        """d pixels / d camera-frame point, (N, 2, 3), by central differences (relative step)."""
+    def project_jacobian(self, points_cam: np.ndarray) -> np.ndarray:
+        """d pixels / d camera-frame point, (N, 2, 3), analytic through the lens's Jacobian; NaN behind
+        the camera."""
         p = _as_points(points_cam, 3)
-        J = np.empty((len(p), 2, 3))
-        scale = np.maximum(np.abs(p[:, 2]), 1e-3) * eps
-        for k in range(3):
-            d = np.zeros_like(p)
-            d[:, k] = scale
-            J[:, :, k] = (self.project_camera(p + d) - self.project_camera(p - d)) / (2 * scale[:, None])
+        z = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xn = p[:, :2] / z[:, None]
+            _, Jd = self.lens.distort_with_jacobian(xn, self.dist)
+            # d xn / d p = [[1, 0, -x], [0, 1, -y]] / z
+            A = np.concatenate([Jd, -(Jd @ xn[:, :, None])], axis=2) / z[:, None, None]
+        J = A * np.array([self.fx, self.fy])[:, None]
+        J[z <= 0] = np.nan
         return J
 
     # ----------------------------------------------------------- capture modes
