@@ -115,7 +115,7 @@ class CameraModel:
         Jacobian determinant first reaches zero in any direction (the image folds
         over there), or just below 90 deg.
         """
-        return fisheye.max_angle(self.dist) if self.kind == FISHEYE else pinhole.max_angle(self.dist)
+        return self.lens.max_angle(self.dist)
 
     @property
     def lens(self):
