@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from visionpos.config.schema import register_section
 from visionpos.config.arena import ArenaConfig, ConfigError, Section
 from visionpos.config.settings import Setting, section
 
@@ -380,3 +381,6 @@ def parse_pose_stream(arena: ArenaConfig) -> PoseStreamConfig | None:
 
 def pivot_array(cfg: VehicleConfig) -> np.ndarray:
     return np.asarray(cfg.pivot_offset, dtype=np.float64)
+
+register_section("vehicles", VEHICLE)
+register_section("pose_stream", POSE_STREAM)

@@ -1,7 +1,7 @@
 """Pure conversions from a BodyState to MAVLink fields (no I/O).
 
 World is z-up (x, y, z), body is FLU; MAVLink wants NED / FRD. The turn is
-visionpos.geometry's (N = x, E = -y, D = -z; body likewise), followed by a
+visionpos.geometry.frames' (N = x, E = -y, D = -z; body likewise), followed by a
 yaw about the down axis (yaw_offset: compass heading of world +x).
 Covariances are rotated with the same Jacobians; the attitude block is
 converted from the small world-frame rotation-vector error of BodyState to
@@ -11,65 +11,27 @@ roll/pitch/yaw (ZYX Euler) through the Euler-rate matrix.
 from __future__ import annotations
 
 import numpy as np
-from visionpos.geometry import FLU_FRD, flu_to_frd, quat_world_body_to_ned_frd, world_to_ned
+
+from visionpos.geometry.frames import (
+    FLU_FRD,
+    flu_to_frd,
+    quat_world_body_to_ned_frd,
+    world_to_ned,
+    yaw_matrix_ned,
+)
+from visionpos.geometry.rotations import (
+    euler_rate_matrix_inverse,
+    euler_zyx_from_matrix,
+    matrix_from_quat,
+    quat_from_rotvec,
+    quat_multiply,
+    skew,
+)
+from visionpos.jit import cross3
 from visionpos.messages import BodyState
 
 UT6 = np.triu_indices(6)  # MAVLink's upper-triangle, row-major order: (0,0) (0,1) .. (0,5) (1,1) ..
 UT3 = np.triu_indices(3)
-
-
-def yaw_matrix_ned(yaw_offset_rad: float) -> np.ndarray:
-    """(3, 3) rotation about NED down by yaw_offset (clockwise seen from above)."""
-    c, s = np.cos(yaw_offset_rad), np.sin(yaw_offset_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3,) x (3,) -> (3,); np.cross costs ~10x more on single vectors."""
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """(3,) -> (3, 3) cross-product matrix."""
-    x, y, z = v
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-
-
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(4,) xyzw Hamilton product a * b (apply b, then a)."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return np.array([
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    ])
-
-
-def quat_from_rotvec(v: np.ndarray) -> np.ndarray:
-    """(3,) rotation vector (rad) -> (4,) xyzw."""
-    angle = float(np.sqrt(v @ v))
-    if angle < 1e-12:
-        return np.array([0.5 * v[0], 0.5 * v[1], 0.5 * v[2], 1.0])
-    s = np.sin(0.5 * angle) / angle
-    return np.array([v[0] * s, v[1] * s, v[2] * s, np.cos(0.5 * angle)])
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(4,) xyzw (any norm) -> (3, 3) rotation matrix."""
-    x, y, z, w = q / np.sqrt(q @ q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def euler_zyx(R: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation -> (3,) roll, pitch, yaw (rad) with R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    pitch = -np.arcsin(np.clip(R[2, 0], -1.0, 1.0))
-    return np.array([np.arctan2(R[2, 1], R[2, 2]), pitch, np.arctan2(R[1, 0], R[0, 0])])
 
 
 def back_propagate(position: np.ndarray, quaternion: np.ndarray, velocity: np.ndarray,
@@ -82,28 +44,6 @@ def back_propagate(position: np.ndarray, quaternion: np.ndarray, velocity: np.nd
     p = np.asarray(position, float) - np.asarray(velocity, float) * dt_s
     q = quat_multiply(np.asarray(quaternion, float), quat_from_rotvec(-np.asarray(angular_velocity, float) * dt_s))
     return p, q / np.sqrt(q @ q)
-
-
-def euler_rate_matrix(euler: np.ndarray) -> np.ndarray:
-    """(3,) roll, pitch, yaw (ZYX) -> (3, 3) E with spatial angular rate w = E @ d(roll, pitch, yaw)/dt.
-
-    R = Rz(yaw) Ry(pitch) Rx(roll): w = yaw' z + pitch' Rz y + roll' Rz Ry x.
-    """
-    roll, pitch, yaw = euler
-    cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
-    col_roll = np.array([cy * cp, sy * cp, -sp])
-    col_pitch = np.array([-sy, cy, 0.0])
-    col_yaw = np.array([0.0, 0.0, 1.0])
-    return np.stack([col_roll, col_pitch, col_yaw], axis=1)
-
-
-def euler_rate_matrix_inverse(euler: np.ndarray) -> np.ndarray:
-    """(3,) roll, pitch, yaw -> (3, 3) inverse of euler_rate_matrix (closed form; pitch kept off +-90 deg)."""
-    _, pitch, yaw = euler
-    cy, sy, sp = np.cos(yaw), np.sin(yaw), np.sin(pitch)
-    cp = np.cos(pitch)
-    cp = np.copysign(max(abs(cp), 1e-9), cp)
-    return np.array([[cy / cp, sy / cp, 0.0], [-sy, cy, 0.0], [sp * cy / cp, sp * sy / cp, 1.0]])
 
 
 def mavlink_upper_triangle(m: np.ndarray) -> np.ndarray:
@@ -133,11 +73,11 @@ def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: fl
     dt = (state.time_ns - (state.capture_ns if at_ns is None else at_ns)) * 1e-9
     w_body = np.asarray(state.angular_velocity, float)
     p_w, q_w = back_propagate(state.position, state.quaternion, state.velocity, w_body, dt)
-    R_wb = quat_to_matrix(q_w)
+    R_wb = matrix_from_quat(q_w)
     o = np.asarray(pivot_offset, float)
     lever = R_wb @ o  # world-frame lever arm body origin -> reference point
     p_ref = p_w + lever
-    v_ref = np.asarray(state.velocity, float) + R_wb @ cross(w_body, o)
+    v_ref = np.asarray(state.velocity, float) + R_wb @ cross3(w_body, o)
 
     Y = yaw_matrix_ned(yaw_offset_rad)
     J = Y @ FLU_FRD  # world z-up -> offset NED, for vectors and small rotations
@@ -147,8 +87,8 @@ def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: fl
     q_nf = quat_multiply(q_yaw, quat_world_body_to_ned_frd(q_w))
     if q_nf[3] < 0:
         q_nf = -q_nf
-    R_nf = quat_to_matrix(q_nf)
-    euler = euler_zyx(R_nf)
+    R_nf = matrix_from_quat(q_nf)
+    euler = euler_zyx_from_matrix(R_nf)
     v_frd = R_nf.T @ v_ned
 
     pose_cov = None

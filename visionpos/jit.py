@@ -50,7 +50,9 @@ except ImportError:
 
 # Building blocks for the kernels. numba's `@` and np.cross go through generic
 # BLAS / broadcasting code that costs seconds to compile and microseconds per
-# call on 3-vectors; these are the loops written out.
+# call on 3-vectors; these are the loops written out. cross3 is also the
+# single-vector cross product outside the kernels (bridge/convert.py); rotation
+# helpers live in visionpos/geometry/rotations.py.
 
 
 @njit

@@ -75,15 +75,6 @@ def test_body_metrics_against_hand_computed_values():
 # ---------------------------------------------------------------- replay of a simulated recording
 
 
-@pytest.fixture(scope="module")
-def thesis_log(tmp_path_factory):
-    from visionpos.cli import main
-
-    path = tmp_path_factory.mktemp("rec") / "thesis3.mcap"
-    assert main(["sim", "--scenario", "thesis", "--duration", "3", "--seed", "5", "--out", str(path)]) == 0
-    return path
-
-
 def test_replay_is_byte_identical_across_runs_and_processes(thesis_log, tmp_path):
     import os
     import subprocess

@@ -217,10 +217,10 @@ def test_camera_yaml_round_trip_pose():
     assert np.abs(back.project(X) - cam.project(X)).max() < 1e-9
 
 
-def test_look_at_points_the_optical_axis_at_the_target():
+def test_look_at_points_the_optical_axis_at_the_target(look_at_camera):
     C = np.array([-2.12, 2.41, 2.6])
-    R = look_at_rotation(C, np.array([0.0, 0.0, 0.5]))
-    cam = Camera(0, "c", V2_NOIR, R, -R @ C)
+    cam = look_at_camera(C, [0.0, 0.0, 0.5], V2_NOIR, camera_id=0)
+    R = cam.R
     uv = cam.project(np.array([[0.0, 0.0, 0.5]]))[0]
     assert np.allclose(uv, [V2_NOIR.cx, V2_NOIR.cy], atol=1e-9)
     # image 'up' (-y of the camera) points towards world +z
@@ -245,7 +245,14 @@ def test_project_jacobian_matches_cv2_jacobian():
     # R = I is d pixel / d camera-frame point
     _, jac = cv2.fisheye.projectPoints(pc.reshape(-1, 1, 3), rv.reshape(3, 1), t.reshape(3, 1), V2_NOIR.K, V2_NOIR.dist)
     Jcv = jac[:, 11:14].reshape(-1, 2, 3)
-    assert np.abs(J - Jcv).max() < 1e-4 * np.abs(Jcv).max()
+    assert np.abs(J - Jcv).max() < 1e-6 * np.abs(Jcv).max()
+    # the pinhole model against central differences of OpenCV's projection
+    h = 1e-7
+    fd = np.stack([(cv2.projectPoints(pc + h * e, rv, t, STRONG_PINHOLE.K, STRONG_PINHOLE.dist)[0]
+                    - cv2.projectPoints(pc - h * e, rv, t, STRONG_PINHOLE.K, STRONG_PINHOLE.dist)[0]).reshape(-1, 2)
+                   / (2 * h) for e in np.eye(3)], axis=2)
+    assert np.abs(STRONG_PINHOLE.project_jacobian(pc) - fd).max() < 1e-5 * np.abs(fd).max()
+    assert np.isnan(V2_NOIR.project_jacobian([[0.1, 0.2, -1.0]])).all()
 
 
 @pytest.mark.parametrize(

@@ -3,8 +3,8 @@ from pathlib import Path
 
 import pytest
 
-from visionpos.config.arena import ConfigError, Section, load_arena, load_yaml, parse_arena
-from visionpos.config.reference import render
+from visionpos.config.arena import ConfigError, Section, load_arena, load_yaml
+from visionpos.app.config_reference import render
 from visionpos.config.settings import DeprecatedKeyWarning, Setting, section
 from visionpos.errors import VisionposError
 
@@ -12,7 +12,7 @@ DOC = Path(__file__).resolve().parents[2] / "docs" / "configuration.md"
 
 
 def test_reference_doc_is_in_sync():
-    assert DOC.read_text() == render(), "run: python -m visionpos.config.reference > docs/configuration.md"
+    assert DOC.read_text() == render(), "run: python -m visionpos.app.config_reference > docs/configuration.md"
 
 
 def test_reference_names_every_section_and_the_lens_and_pose_forms():

@@ -1,11 +1,12 @@
-"""Cross-view matching, association and the fast triangulation (visionpos/matching.py)."""
+"""Cross-view matching, association and the fast triangulation (visionpos/fusion/matching.py)."""
 
 import numpy as np
 import pytest
 
-from visionpos import geometry
+from visionpos.camera.model import undistort_points
 from visionpos.config.arena import load_arena
-from visionpos.fusion.matching import Projector, associate, match_unlabeled, min_cost_assignment, triangulate, undistort_points
+from visionpos.fusion.matching import Projector, associate, match_unlabeled, min_cost_assignment, triangulate
+from visionpos.geometry.triangulation import triangulate_normalized
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +80,7 @@ def test_triangulate_matches_maximum_likelihood_of_geometry(rig):
     X = rng.uniform([-0.8, -0.8, 0.3], [0.8, 0.8, 1.6], (50, 3))
     xn = _normalized(cams, X) + rng.normal(0, 0.3, (50, 4, 2)) / f[None, :, None]
     Y, rms, _ = triangulate(xn, R, t, f)
-    ref = geometry.triangulate_normalized(xn, R, t, refine=True)
+    ref = triangulate_normalized(xn, R, t, refine=True)
     err = np.linalg.norm(Y - X, axis=1)
     d = np.linalg.norm(Y - ref.points, axis=1)
     assert np.median(d) < 0.05 * np.median(err)  # same point, up to a small fraction of the noise

@@ -1,30 +1,15 @@
-"""Rigid-body identification and Kabsch poses (visionpos/rigidbody.py)."""
+"""Rigid-body identification (visionpos/fusion/rigidbody.py); the Kabsch kernels are in tests/geometry/test_alignment.py."""
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from visionpos.config.arena import load_arena
-from visionpos.fusion.rigidbody import BodyModel, identify, kabsch_batch, layout_ambiguities
+from visionpos.fusion.rigidbody import BodyModel, identify, layout_ambiguities
+from visionpos.geometry.alignment import kabsch_horn_batch
 
 
 def _models(name="arena8"):
     return [BodyModel(b.name, b.id, b.markers) for b in load_arena(name).bodies]
-
-
-def test_kabsch_batch_recovers_poses_and_ignores_zero_weights():
-    rng = np.random.default_rng(0)
-    B, M = 5, 6
-    src = rng.normal(0, 0.1, (B, M, 3))
-    Rt = Rotation.random(B, random_state=1).as_matrix()
-    tt = rng.normal(0, 1, (B, 3))
-    dst = np.einsum("bij,bmj->bmi", Rt, src) + tt[:, None]
-    w = np.ones((B, M))
-    dst[:, -1] = 1e3  # garbage row ...
-    w[:, -1] = 0.0  # ... with weight 0
-    R, t = kabsch_batch(src, dst, w)
-    assert np.abs(R - Rt).max() < 1e-9
-    assert np.abs(t - tt).max() < 1e-9
-    assert np.allclose(np.linalg.det(R), 1.0)
 
 
 def test_identify_several_bodies_among_clutter():
@@ -95,7 +80,7 @@ def test_pose_measurement_covariance_matches_monte_carlo():
     rng = np.random.default_rng(7)
     N = 4000
     dst = mw[None] + rng.normal(0, sigma, (N, len(m), 3))
-    R, t = kabsch_batch(np.broadcast_to(m, dst.shape), dst, np.ones((N, len(m))))
+    R, t = kabsch_horn_batch(np.broadcast_to(m, dst.shape), dst, np.ones((N, len(m))))
     rv = Rotation.from_matrix(R @ R0.T).as_rotvec()
     emp = np.cov(np.hstack([t - t0, rv]).T)
     pred = pose_measurement_cov(mw, t0, sigma**2)

@@ -3,7 +3,9 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from visionpos.fusion.tracking import BodyFilter, KalmanSettings, matrix_to_quat, matrix_to_rotvec, rotvec_to_matrix
+from visionpos.fusion.tracking import BodyFilter, KalmanSettings
+from visionpos.geometry.rotations import matrix_from_rotvec as rotvec_to_matrix, quat_from_matrix as matrix_to_quat
+from visionpos.geometry.rotations import rotvec_from_matrix as matrix_to_rotvec
 
 MS = 1_000_000
 

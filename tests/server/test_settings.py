@@ -1,6 +1,6 @@
 import pytest
 
-from visionpos.config.arena import ConfigError, load_arena, parse_arena
+from visionpos.config.arena import ConfigError, parse_arena
 from visionpos.server.settings import SERVER, ServerSettings
 
 

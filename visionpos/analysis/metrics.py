@@ -100,14 +100,6 @@ def position_jitter(times_ns: np.ndarray, positions: np.ndarray) -> float:
     return float(np.sqrt(np.mean(d2 * d2) / 6.0))
 
 
-def interval_jitter_ns(times_ns: np.ndarray) -> float:
-    """Std of the intervals between consecutive outputs, ns. times_ns: (N,)."""
-    t = np.asarray(times_ns, dtype=np.int64)
-    if len(t) < 3:
-        return float("nan")
-    return float(np.std(np.diff(t).astype(np.float64)))
-
-
 def rate_hz(times_ns: np.ndarray, span_ns: int | None = None) -> float:
     """Mean rate of events at times_ns (N,) over span_ns (default: first to last)."""
     t = np.asarray(times_ns, dtype=np.int64)

@@ -62,7 +62,7 @@ def wand_length_crb(cameras, pixels: np.ndarray, sigma_px: float) -> float:
     triangulations are independent), evaluated at the triangulated points with
     the views that saw them.
     """
-    from visionpos.geometry import triangulate_pixels, triangulation_crb
+    from visionpos.geometry.triangulation import triangulate_pixels, triangulation_crb
 
     F, V = pixels.shape[:2]
     obs = pixels.transpose(0, 2, 1, 3).reshape(F * 3, V, 2)

@@ -105,10 +105,10 @@ def pose_crb(cameras, markers_world: np.ndarray, origin: np.ndarray, sigma_px: f
 
     markers_world: (M, 3); origin: (3,) body origin; visible: (M, V) which
     camera sees which marker. Per-marker information from
-    geometry.triangulation_crb, chained through d marker / d pose =
+    geometry.triangulation.triangulation_crb, chained through d marker / d pose =
     [I, -skew(marker - origin)].
     """
-    from visionpos.geometry import triangulation_crb
+    from visionpos.geometry.triangulation import triangulation_crb
 
     C = triangulation_crb(list(cameras), markers_world, sigma_px, visible)  # (M, 3, 3)
     F = np.zeros((6, 6))

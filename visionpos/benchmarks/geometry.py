@@ -18,15 +18,9 @@ import numpy as np
 
 from visionpos.benchmarks import BenchResult
 from visionpos.camera.model import Camera, CameraModel, look_at_rotation
-from visionpos.geometry import (
-    CameraRig,
-    decompose_essential,
-    essential_from_points,
-    kabsch,
-    triangulate_normalized,
-    triangulate_pixels,
-    triangulation_crb,
-)
+from visionpos.geometry.alignment import kabsch_svd
+from visionpos.geometry.epipolar import decompose_essential, essential_from_points
+from visionpos.geometry.triangulation import CameraRig, triangulate_normalized, triangulate_pixels, triangulation_crb
 
 SIGMAS_PX = (0.1, 0.2, 0.5)
 # flight volume used for the accuracy figures (m, world z-up, origin at the arena centre on the floor)
@@ -160,7 +154,7 @@ def other_speed(min_time: float) -> dict[str, float]:
     return {
         "essential_ransac_200": _time_call(lambda: essential_from_points(x1, x2, threshold=1e-3), min_time),
         "essential_decompose_200": _time_call(lambda: decompose_essential(np.eye(3)[[1, 0, 2]], x1, x2), min_time),
-        "kabsch_4": _time_call(lambda: kabsch(src, src @ R.T + t), min_time),
+        "kabsch_4": _time_call(lambda: kabsch_svd(src, src @ R.T + t), min_time),
     }
 
 

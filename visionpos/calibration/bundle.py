@@ -29,7 +29,9 @@ from scipy.spatial.transform import Rotation
 
 from visionpos.calibration.wand import CalibrationError, WandData, WandSpec
 from visionpos.camera.model import Camera, CameraModel
-from visionpos.geometry import CameraRig, decompose_essential, essential_from_points, skew, triangulate_normalized
+from visionpos.geometry.epipolar import decompose_essential, essential_from_points
+from visionpos.geometry.rotations import skew
+from visionpos.geometry.triangulation import CameraRig, triangulate_normalized
 
 log = logging.getLogger(__name__)
 
@@ -630,7 +632,7 @@ class WandCalibration:
 
 def wand_lengths(cameras: list[Camera], pixels: np.ndarray) -> np.ndarray:
     """Freely triangulated wand lengths: pixels (F, V, 3, 2) -> (F, 3) |AB|, |BC|, |AC| (m)."""
-    from visionpos.geometry import triangulate_pixels
+    from visionpos.geometry.triangulation import triangulate_pixels
 
     F, V = pixels.shape[:2]
     tri = triangulate_pixels(cameras, pixels.transpose(0, 2, 1, 3).reshape(F * 3, V, 2))
@@ -735,16 +737,16 @@ def compare_cameras(
     orientations); orientations are compared after the same rotation.
     Returns centre errors (V,) m, orientation errors (V,) deg and the scale applied.
     """
-    from visionpos.geometry import umeyama
+    from visionpos.geometry.alignment import umeyama_svd
 
     Ce = np.array([c.center for c in estimated])
     Ct = np.array([c.center for c in truth])
     if similarity and len(Ce) >= 3:
-        s, Ra, ta = umeyama(Ce, Ct)
+        s, Ra, ta = umeyama_svd(Ce, Ct)
     elif similarity:
         # two centres leave the turn about the baseline free: take the rotation from the
         # orientations (R_e = R_t Ra for every camera), then scale and shift from the centres
-        from visionpos.geometry import average_rotations
+        from visionpos.geometry.rotations import average_rotations
 
         Ra = average_rotations(np.stack([t.R.T @ e.R for e, t in zip(estimated, truth)]))
         P = Ce @ Ra.T

@@ -20,7 +20,8 @@ import numpy as np
 
 from visionpos.calibration.wand import CalibrationError
 from visionpos.camera.model import Camera
-from visionpos.geometry import kabsch, triangulate_pixels
+from visionpos.geometry.alignment import kabsch_svd
+from visionpos.geometry.triangulation import triangulate_pixels
 from visionpos.messages import BlobFrame
 
 
@@ -192,7 +193,7 @@ def world_from_layout(
     floor plane), z along the layout's +z.
     Returns R (3,3), t (3,) with X_new = R X_old + t, and the fit RMS (m).
     """
-    Rl, tl = kabsch(layout, measured)  # measured ~ Rl layout + tl
+    Rl, tl = kabsch_svd(layout, measured)  # measured ~ Rl layout + tl
     fit = float(np.sqrt(np.mean(np.sum((layout @ Rl.T + tl - measured) ** 2, axis=1))))
     z = Rl[:, 2]
     x = measured[x_marker] - measured[origin]

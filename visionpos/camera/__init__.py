@@ -1,0 +1,8 @@
+"""Cameras: one lens model per kind, and the calibrated camera built on them.
+
+- pinhole.py  OpenCV rational + tangential distortion (cv2.projectPoints)
+- fisheye.py  Kannala-Brandt (cv2.fisheye)
+  each: distort, its Jacobian and undistort, vectorised numpy and compiled per-point forms
+- model.py    CameraModel (intrinsics, capture modes, YAML), Camera (pose), look_at_rotation,
+              and the compiled pixel undistortion of the fusion hot path
+"""

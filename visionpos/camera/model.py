@@ -1,10 +1,15 @@
-"""Camera models: pinhole with OpenCV distortion and Kannala-Brandt fisheye.
+"""Camera models: intrinsics (CameraModel), a calibrated camera in the arena (Camera).
 
 Camera frame is OpenCV's: x right, y down, z forward. Pixel centres sit at
 integer coordinates (OpenCV convention). A pose (R, t) maps world to camera:
 x_cam = R @ x_world + t; the camera centre is C = -R.T @ t.
 
-Everything here is vectorised over N points; shapes are in the docstrings.
+The lens models themselves live one per kind in camera/pinhole.py (OpenCV
+rational + tangential) and camera/fisheye.py (Kannala-Brandt); this module adds
+the focal length and principal point, poses and YAML. CameraModel's methods are
+vectorised over N points (shapes in the docstrings); `undistort_pixels` is the
+compiled per-point form of CameraModel.undistort for the fusion hot path, on the
+arrays `lens_arrays` packs.
 """
 
 from __future__ import annotations
@@ -16,6 +21,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from visionpos.camera import fisheye, pinhole
+from visionpos.jit import njit
 from visionpos.errors import VisionposError
 
 PINHOLE = "pinhole"
@@ -109,7 +116,12 @@ class CameraModel:
         Jacobian determinant first reaches zero in any direction (the image folds
         over there), or just below 90 deg.
         """
-        return _max_theta(self)
+        return self.lens.max_angle(self.dist)
+
+    @property
+    def lens(self):
+        """The lens model's module (camera.pinhole or camera.fisheye)."""
+        return fisheye if self.kind == FISHEYE else pinhole
 
     def fov_deg(self) -> tuple[float, float]:
         """Horizontal and vertical field of view (deg) from the image edges."""
@@ -121,11 +133,7 @@ class CameraModel:
     # -------------------------------------------------------------- projection
     def distort(self, xn: np.ndarray) -> np.ndarray:
         """Normalised image coordinates (N, 2) (x/z, y/z) -> pixels (N, 2)."""
-        xn = _as_points(xn, 2)
-        if self.kind == PINHOLE:
-            xd = _pinhole_distort(xn, self.dist)
-        else:
-            xd = _fisheye_distort(xn, self.dist)
+        xd = self.lens.distort(_as_points(xn, 2), self.dist)
         return np.column_stack([self.fx * xd[:, 0] + self.cx, self.fy * xd[:, 1] + self.cy])
 
     def project_camera(self, points_cam: np.ndarray) -> np.ndarray:
@@ -152,12 +160,9 @@ class CameraModel:
         """
         uv = _as_points(pixels, 2)
         xd = np.column_stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy])
-        if self.kind == PINHOLE:
-            xn = _pinhole_undistort(xd, self.dist, iterations)
-            back = _pinhole_distort(xn, self.dist)
-        else:
-            xn = _fisheye_undistort(xd, self.dist, iterations)
-            back = _fisheye_distort(xn, self.dist)
+        # started where the compiled undistort_pixels starts, so both find the same preimages
+        xn = self.lens.undistort(xd, self.dist, iterations, seeded=False)
+        back = self.lens.distort(xn, self.dist)
         with np.errstate(invalid="ignore"):
             # 1e-9 normalised ~ 1e-6 px: far looser than convergence, far tighter than a fold
             bad = ~(np.abs(back - xd).max(axis=1) <= 1e-9 * (1.0 + np.abs(xd).max(axis=1)))
@@ -192,15 +197,18 @@ class CameraModel:
             uv[ok] = self.project_camera(p[ok])
         return ok & self.in_image(uv, margin)
 
-    def project_jacobian(self, points_cam: np.ndarray, eps: float = 1e-6) -> np.ndarray:
-        """d pixels / d camera-frame point, (N, 2, 3), by central differences (relative step)."""
+    def project_jacobian(self, points_cam: np.ndarray) -> np.ndarray:
+        """d pixels / d camera-frame point, (N, 2, 3), analytic through the lens's Jacobian; NaN behind
+        the camera."""
         p = _as_points(points_cam, 3)
-        J = np.empty((len(p), 2, 3))
-        scale = np.maximum(np.abs(p[:, 2]), 1e-3) * eps
-        for k in range(3):
-            d = np.zeros_like(p)
-            d[:, k] = scale
-            J[:, :, k] = (self.project_camera(p + d) - self.project_camera(p - d)) / (2 * scale[:, None])
+        z = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xn = p[:, :2] / z[:, None]
+            _, Jd = self.lens.distort_with_jacobian(xn, self.dist)
+            # d xn / d p = [[1, 0, -x], [0, 1, -y]] / z
+            A = np.concatenate([Jd, -(Jd @ xn[:, :, None])], axis=2) / z[:, None, None]
+        J = A * np.array([self.fx, self.fy])[:, None]
+        J[z <= 0] = np.nan
         return J
 
     # ----------------------------------------------------------- capture modes
@@ -384,100 +392,45 @@ def look_at_rotation(center: np.ndarray, target: np.ndarray, up: np.ndarray = np
     return np.vstack([x, y, z])
 
 
-# ------------------------------------------------------------------- internals
-def _pinhole_distort(xn: np.ndarray, d: np.ndarray) -> np.ndarray:
-    k1, k2, p1, p2, k3, k4, k5, k6 = d
-    x, y = xn[:, 0], xn[:, 1]
-    r2 = x * x + y * y
-    radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return np.column_stack([xd, yd])
+# ------------------------------------------------------------ compiled form for the hot path
+def lens_arrays(model: CameraModel) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The model as the compiled kernels take it: intrinsics (6,) = (fx, fy, cx, cy, width, height),
+    dist (8,) (pinhole k1, k2, p1, p2, k3, k4, k5, k6, or Kannala-Brandt k1..k4 zero-padded), fisheye."""
+    fisheye_ = model.kind == FISHEYE
+    dist = np.zeros(8)
+    d = np.asarray(model.dist, dtype=np.float64)
+    n = min(len(d), 4 if fisheye_ else 8)
+    dist[:n] = d[:n]
+    intrinsics = np.array([model.fx, model.fy, model.cx, model.cy, model.width, model.height], dtype=np.float64)
+    return intrinsics, dist, fisheye_
 
 
-def _pinhole_distort_jac(xn: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """(N, 2, 2) Jacobian of _pinhole_distort."""
-    k1, k2, p1, p2, k3, k4, k5, k6 = d
-    x, y = xn[:, 0], xn[:, 1]
-    r2 = x * x + y * y
-    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-    dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-    dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
-    radial = num / den
-    drad = (dnum * den - num * dden) / (den * den)  # d radial / d r2
-    J = np.empty((len(x), 2, 2))
-    J[:, 0, 0] = radial + x * drad * 2 * x + 2 * p1 * y + p2 * 6 * x
-    J[:, 0, 1] = x * drad * 2 * y + 2 * p1 * x + p2 * 2 * y
-    J[:, 1, 0] = y * drad * 2 * x + p1 * 2 * x + 2 * p2 * y
-    J[:, 1, 1] = radial + y * drad * 2 * y + p1 * 6 * y + 2 * p2 * x
-    return J
+@njit
+def undistort_pixels(px, intrinsics, dist, fisheye_):
+    """Compiled CameraModel.undistort: pixels (N, 2) float64 -> normalised coordinates (N, 2).
+
+    intrinsics, dist, fisheye_ as from `lens_arrays`. Newton to round-off per point; NaN where
+    the result does not distort back to the pixel (a fold of the model).
+    """
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    N = px.shape[0]
+    out = np.empty((N, 2))
+    for i in range(N):
+        xd, yd = (px[i, 0] - cx) / fx, (px[i, 1] - cy) / fy
+        if fisheye_:
+            x, y, ok = fisheye.undistort_point(xd, yd, dist)
+        else:
+            x, y, ok = pinhole.undistort_point(xd, yd, dist)
+        if ok:
+            out[i, 0], out[i, 1] = x, y
+        else:
+            out[i, 0] = out[i, 1] = np.nan
+    return out
 
 
-def _pinhole_undistort(xd: np.ndarray, d: np.ndarray, iterations: int) -> np.ndarray:
-    if not np.any(d):
-        return xd.copy()
-    x = xd.copy()
-    for _ in range(iterations):
-        r = _pinhole_distort(x, d) - xd
-        if np.nanmax(np.abs(r), initial=0.0) < 1e-15:
-            break
-        J = _pinhole_distort_jac(x, d)
-        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        dx = (J[:, 1, 1] * r[:, 0] - J[:, 0, 1] * r[:, 1]) / det
-        dy = (-J[:, 1, 0] * r[:, 0] + J[:, 0, 0] * r[:, 1]) / det
-        x[:, 0] -= dx
-        x[:, 1] -= dy
-    return x
-
-
-def _kb_poly(theta: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """r(theta) and dr/dtheta of the Kannala-Brandt polynomial."""
-    k1, k2, k3, k4 = d
-    t2 = theta * theta
-    r = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
-    dr = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
-    return r, dr
-
-
-def _fisheye_distort(xn: np.ndarray, d: np.ndarray) -> np.ndarray:
-    r = np.linalg.norm(xn, axis=1)
-    theta = np.arctan(r)
-    rd, _ = _kb_poly(theta, d)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scale = np.where(r > 1e-12, rd / r, 1.0)
-    return xn * scale[:, None]
-
-
-def _fisheye_undistort(xd: np.ndarray, d: np.ndarray, iterations: int) -> np.ndarray:
-    rd = np.linalg.norm(xd, axis=1)
-    theta = np.clip(rd, 0, np.pi / 2 - 1e-6)
-    for _ in range(iterations):
-        r, dr = _kb_poly(theta, d)
-        step = (r - rd) / dr
-        theta = np.clip(theta - step, 0.0, np.pi / 2 - 1e-9)
-        if np.nanmax(np.abs(step), initial=0.0) < 1e-15:
-            break
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scale = np.where(rd > 1e-12, np.tan(theta) / rd, 1.0)
-    return xd * scale[:, None]
-
-
-def _max_theta(m: CameraModel) -> float:
-    theta = np.linspace(1e-4, np.pi / 2 - 1e-3, 4000)
-    if m.kind == FISHEYE:
-        _, dr = _kb_poly(theta, m.dist)
-        bad = np.nonzero(dr <= 0)[0]
-    else:
-        # tangential terms make the fold direction-dependent: check 36 azimuths
-        phi = np.linspace(-np.pi, np.pi, 36, endpoint=False)
-        r = np.tan(theta)[:, None]
-        xn = np.stack([r * np.cos(phi), r * np.sin(phi)], axis=-1).reshape(-1, 2)
-        J = _pinhole_distort_jac(xn, m.dist)
-        det = (J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]).reshape(len(theta), len(phi))
-        # also require the radial image distance to keep growing along each ray
-        xd = _pinhole_distort(xn, m.dist).reshape(len(theta), len(phi), 2)
-        rd = np.linalg.norm(xd, axis=-1)
-        grow = np.diff(rd, axis=0, prepend=0.0) > 0
-        bad = np.nonzero(((det <= 0) | ~grow).any(axis=1))[0]
-    return float(theta[max(bad[0] - 1, 0)]) if bad.size else float(np.pi / 2 - 1e-3)
+def undistort_points(model: CameraModel, pixels: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) -> normalised image coordinates (N, 2) by the compiled `undistort_pixels`
+    (agrees with model.undistort to ~1e-12, NaN at the same places)."""
+    px = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
+    intrinsics, dist, fisheye_ = lens_arrays(model)
+    return undistort_pixels(px, intrinsics, dist, fisheye_)

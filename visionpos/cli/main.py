@@ -73,6 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         build_parser().print_help()
         return 2
+    importlib.import_module("visionpos.app.sections")  # every section's keys known to --set
     command = importlib.import_module(f"visionpos.cli.{args.command}")
     try:
         return int(command.run(args) or 0)

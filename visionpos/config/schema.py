@@ -1,22 +1,29 @@
-"""The whole arena file's declarations: the top level with every stage's section attached."""
+"""The whole arena file's declarations: the top level with each stage's section attached.
+
+Each stage declares its own section beside the code that reads it (fusion/settings.py,
+server/settings.py, sim/scenario.py, bridge/config.py) and registers it here when imported.
+The config layer thus never imports the stages above it. A section nobody has registered is
+still checked by its owner's parser when the arena is loaded; the CLI and the reference-doc
+generator import every stage (visionpos/app/sections.py), so `--set` checks every key there.
+"""
 
 from __future__ import annotations
 
 from dataclasses import replace
-from functools import lru_cache
 
 from visionpos.config.settings import Spec
 
+_SECTIONS: dict[str, Spec] = {}  # top-level key -> that section's Spec (for a list section: one item's)
 
-@lru_cache(maxsize=1)
+
+def register_section(key: str, spec: Spec) -> None:
+    """Attach a stage's Spec to the top-level key `key` of the arena file (at that module's import)."""
+    _SECTIONS[key] = spec
+
+
 def arena_schema() -> Spec:
-    """The top-level Spec, each section's Setting holding that section's Spec."""
-    from bridge.config import POSE_STREAM, VEHICLE
+    """The top-level Spec, each registered section's Setting holding that section's Spec."""
     from visionpos.config.sections import TOP
-    from visionpos.fusion.settings import FUSION
-    from visionpos.server.settings import SERVER
-    from visionpos.sim.scenario import SIM
 
-    stage = {"fusion": FUSION, "server": SERVER, "vehicles": VEHICLE, "pose_stream": POSE_STREAM, "sim": SIM}
-    settings = tuple(replace(s, spec=stage[s.key]) if s.key in stage else s for s in TOP.settings)
+    settings = tuple(replace(s, spec=_SECTIONS[s.key]) if s.key in _SECTIONS else s for s in TOP.settings)
     return replace(TOP, settings=settings)

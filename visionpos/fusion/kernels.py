@@ -28,8 +28,9 @@ from visionpos.fusion.layout import (
     TRACK_N_MARKERS, TRACK_PX_VAR, TRACK_RESETS, TRACK_RESIDUAL_MM, VEL0, VERDICT_ACCEPTED, VERDICT_FIT_REJECTED,
     VERDICT_GATED, VERDICT_RESET, VERDICT_TOO_FEW, X_ACC, X_RATE,
 )
-from visionpos.fusion.matching import associate_blobs, project_points, triangulate_irls, undistort_normalized
-from visionpos.fusion.rigidbody import kabsch_weighted
+from visionpos.camera.model import undistort_pixels
+from visionpos.fusion.matching import associate_blobs, project_points, triangulate_irls
+from visionpos.geometry.alignment import kabsch_horn_compiled
 from visionpos.fusion.tracking import filter_initialize, filter_update, predict_mean, report_image_nis
 from visionpos.jit import cross3, dot3, matmul3, matvec3, njit
 
@@ -178,7 +179,7 @@ def _observe_frame(px: np.ndarray, dt_s: float, motion: np.ndarray, tracked: tup
     R, t = camera[CAMERA_R].reshape((3, 3)), camera[CAMERA_T]
     intrinsics, dist = camera[CAMERA_INTRINSICS], camera[CAMERA_DIST]
     fisheye, cos_max = camera[CAMERA_FISHEYE] != 0.0, camera[CAMERA_COS_MAX]
-    xn = undistort_normalized(px, intrinsics, dist, fisheye)
+    xn = undistort_pixels(px, intrinsics, dist, fisheye)
     Xw = motion[MOTION_POS] + dt_s * (motion[MOTION_VEL] + (0.5 * dt_s) * motion[MOTION_ACC])
     pred = project_points(Xw, R, t, intrinsics, dist, fisheye, cos_max, gate_px)
     blob_of = associate_blobs(pred, px, gate_px * gate_px)
@@ -351,7 +352,7 @@ def _tracked_measurements(marker_xn: np.ndarray, views: tuple, tracked: tuple, d
     k = 0
     for b in range(n_bodies):
         s = slice(k, k + sizes[b])
-        Rk[b], tk[b] = kabsch_weighted(local[s], X[s], w_fit[s])
+        Rk[b], tk[b] = kabsch_horn_compiled(local[s], X[s], w_fit[s])
         for v in range(n_views):
             for q in range(k, k + sizes[b]):
                 if not np.isnan(xn[q, v, 0]):

@@ -58,7 +58,7 @@ N_STATE_COLS = 27
 
 # ---------------------------------------------------------------- packed camera (28,) (matching.Projector.packed)
 CAMERA_R, CAMERA_T = slice(0, 9), slice(9, 12)  # world -> camera rotation (3, 3) row-major, translation
-CAMERA_INTRINSICS, CAMERA_DIST = slice(12, 18), slice(18, 26)  # lens (matching.lens_arrays)
+CAMERA_INTRINSICS, CAMERA_DIST = slice(12, 18), slice(18, 26)  # lens (camera.model.lens_arrays)
 INTRINSICS_FX, INTRINSICS_FY = 0, 1  # focal lengths (px) in the intrinsics (6,)
 CAMERA_COS_MAX = 26  # visibility limit: cosine of the largest angle off the optical axis
 CAMERA_FISHEYE = 27  # 1.0: Kannala-Brandt lens model, 0.0: pinhole

@@ -22,9 +22,10 @@ point for isotropic pixel noise (up to lens-distortion scale changes). It
 accepts per-view offsets (view v observed X + offsets[p, v]) for motion
 compensation. Two passes suffice: the first (unit weights) fixes the depths
 to ~1e-3 relative, so the second pass's weights are exact for practical
-purposes. geometry.triangulate_* does the same job with a Gauss-Newton
+purposes. geometry/triangulation.py does the same job with a Gauss-Newton
 refinement for offline work; this one is here because it runs several
-thousand times a second. The per-frame steps are compiled loops
+thousand times a second. Lens models come from camera/pinhole.py and
+camera/fisheye.py (their compiled per-point kernels). The per-frame steps are compiled loops
 (visionpos/jit.py); the public functions are thin wrappers that fix the
 argument types.
 """
@@ -35,107 +36,16 @@ import math
 
 import numpy as np
 
-from visionpos.camera.model import FISHEYE, CameraModel
+from visionpos.camera import fisheye as fisheye_lens
+from visionpos.camera import pinhole as pinhole_lens
+from visionpos.camera.model import lens_arrays, undistort_pixels
 from visionpos.jit import njit
 
 
-
-def undistort_points(model: CameraModel, pixels: np.ndarray) -> np.ndarray:
-    """Pixels (N, 2) -> normalised image coordinates (N, 2), same model as camera.py.
-
-    Compiled Newton iterations to round-off (agrees with CameraModel.undistort
-    to ~1e-12); NaN where the lens model cannot map the pixel back (beyond
-    the fold of its distortion), as CameraModel.undistort.
-    """
-    px = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
-    intrinsics, dist, fisheye = lens_arrays(model)
-    return undistort_normalized(px, intrinsics, dist, fisheye)
-
-
-def lens_arrays(model: CameraModel) -> tuple[np.ndarray, np.ndarray, bool]:
-    """The model as the kernels take it: intrinsics (fx, fy, cx, cy, width, height), dist (8,)
-    (OpenCV pinhole k1, k2, p1, p2, k3, k4, k5, k6, or Kannala-Brandt k1..k4), fisheye."""
-    fisheye = model.kind == FISHEYE
-    dist = np.zeros(8)
-    d = np.asarray(model.dist, dtype=np.float64)
-    n = min(len(d), 4 if fisheye else 8)
-    dist[:n] = d[:n]
-    return np.array([model.fx, model.fy, model.cx, model.cy, model.width, model.height], dtype=np.float64), dist, fisheye
-
-
-@njit
-def _pinhole_distort(x, y, dist):
-    """One normalised point -> distorted (OpenCV rational + tangential, dist (8,)); also the
-    radial factor and its derivative by r^2, which Newton's Jacobian needs."""
-    k1, k2, p1, p2, k3, k4, k5, k6 = dist[0], dist[1], dist[2], dist[3], dist[4], dist[5], dist[6], dist[7]
-    r2 = x * x + y * y
-    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-    radial = num / den
-    drad = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) * den - num * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / (den * den)
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return xd, yd, radial, drad
-
-
-@njit
-def _kb_radius(th, dist):
-    """Kannala-Brandt: distorted radius at angle th (dist[0:4] = k1..k4) and its derivative."""
-    t2 = th * th
-    r = th * (1 + t2 * (dist[0] + t2 * (dist[1] + t2 * (dist[2] + t2 * dist[3]))))
-    dr = 1 + t2 * (3 * dist[0] + t2 * (5 * dist[1] + t2 * (7 * dist[2] + t2 * 9 * dist[3])))
-    return r, dr
-
-
-@njit
-def undistort_normalized(px, intrinsics, dist, fisheye):
-    """Compiled pixels (N, 2) -> normalised coordinates (N, 2): Newton on the distortion
-    (2D for the pinhole model, on the angle for Kannala-Brandt), then a check that the
-    result distorts back to the pixel (NaN where it does not: a fold of the model)."""
-    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    p1, p2 = dist[2], dist[3]
-    N = px.shape[0]
-    out = np.empty((N, 2))
-    for i in range(N):
-        xd, yd = (px[i, 0] - cx) / fx, (px[i, 1] - cy) / fy
-        if fisheye:
-            rd = math.sqrt(xd * xd + yd * yd)
-            th = min(max(rd, 0.0), math.pi / 2 - 1e-6)
-            for _ in range(20):
-                r, dr = _kb_radius(th, dist)
-                step = (r - rd) / dr
-                th = min(max(th - step, 0.0), math.pi / 2 - 1e-9)
-                if abs(step) < 1e-15:
-                    break
-            s = math.tan(th) / rd if rd > 1e-12 else 1.0
-            x, y = xd * s, yd * s
-            ok = abs(_kb_radius(th, dist)[0] - rd) <= 1e-9 * (1.0 + max(abs(xd), abs(yd)))
-        else:
-            x, y = xd, yd
-            for _ in range(20):
-                ux, uy, radial, drad = _pinhole_distort(x, y, dist)
-                ex, ey = ux - xd, uy - yd
-                if max(abs(ex), abs(ey)) < 1e-15:
-                    break
-                j00 = radial + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
-                j01 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y  # symmetric: j10 == j01
-                j11 = radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
-                det = j00 * j11 - j01 * j01
-                x -= (j11 * ex - j01 * ey) / det
-                y -= (-j01 * ex + j00 * ey) / det
-            ux, uy, _, _ = _pinhole_distort(x, y, dist)
-            ok = max(abs(ux - xd), abs(uy - yd)) <= 1e-9 * (1.0 + max(abs(xd), abs(yd)))
-        if ok:
-            out[i, 0], out[i, 1] = x, y
-        else:
-            out[i, 0] = out[i, 1] = np.nan
-    return out
-
-
 class Projector:
-    """Fast world -> pixel projection for one camera (same models as camera.py, compiled).
+    """Fast world -> pixel projection for one camera (the lens models of camera/, compiled).
 
-    camera.Camera.project is exact but built from many small numpy steps;
+    camera.model.Camera.project is exact but built from many small numpy steps;
     this runs per packet, so it is one compiled loop over the points.
     """
 
@@ -152,8 +62,8 @@ class Projector:
         self.packed = np.concatenate([self.R.ravel(), self.t, self.intrinsics, self.dist, [self.cos_max, float(self.fisheye)]])
 
     def undistort(self, pixels: np.ndarray) -> np.ndarray:
-        """Pixels (N, 2) float64 -> normalised coordinates (N, 2), as undistort_points."""
-        return undistort_normalized(pixels, self.intrinsics, self.dist, self.fisheye)
+        """Pixels (N, 2) float64 -> normalised coordinates (N, 2), as camera.model.undistort_points."""
+        return undistort_pixels(pixels, self.intrinsics, self.dist, self.fisheye)
 
     def project(self, points_world: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """(N, 3) world points -> (N, 2) pixels; NaN when behind, outside the lens model or off the sensor (+ margin)."""
@@ -181,11 +91,9 @@ def project_points(X, R, t, intrinsics, dist, fisheye, cos_max, margin):
             continue
         x, y = pc0 / pc2, pc1 / pc2
         if fisheye:
-            r = math.sqrt(x * x + y * y)
-            s = _kb_radius(math.atan(r), dist)[0] / r if r > 1e-12 else 1.0
-            xd, yd = x * s, y * s
+            xd, yd = fisheye_lens.distort_point(x, y, dist)
         else:
-            xd, yd, _, _ = _pinhole_distort(x, y, dist)
+            xd, yd = pinhole_lens.distort_point(x, y, dist)
         u, v = fx * xd + cx, fy * yd + cy
         if -0.5 - margin < u < w - 0.5 + margin and -0.5 - margin < v < h - 0.5 + margin:
             uv[i, 0], uv[i, 1] = u, v
@@ -605,11 +513,3 @@ def _match_unlabeled(pts, start, R, t, f, max_ray_distance, max_residual_px):
             out_X[q], out_idx[q], out_rms[q] = X[s], idx[s], rms[s]
             q += 1
     return out_X, out_idx, out_rms
-
-
-def _view_residuals_all(X: np.ndarray, obs: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Per-view reprojection errors (S, V) px of points X (S, 3) against obs (S, V, 2); NaN = missing."""
-    pc = np.einsum("vij,sj->svi", R, X) + t[None]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        proj = pc[..., :2] / pc[..., 2:3]
-    return np.linalg.norm(proj - obs, axis=-1) * f[None, :]

@@ -11,22 +11,19 @@ with disjoint point sets; a 3-point hypothesis that fits more than one
 body equally well is ambiguous and refused (tracking, not identification,
 is what continues with 3 of 4 markers).
 
-Poses come from `kabsch_weighted` (compiled; the pipeline calls it per
-tracked body inside its measurement kernel) and `kabsch_batch`, the same
-over several bodies at once (padded marker sets, weight 0 = missing): the
-rotation from Horn's quaternion method, the eigenvector of a 4x4 symmetric
-matrix, computed by a small Jacobi solver (`symmetric_eigen`).
+Poses come from Horn's quaternion method (geometry/alignment.py:
+`kabsch_horn` here, its compiled kernel `kabsch_horn_compiled` per tracked
+body inside the pipeline's measurement step).
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from itertools import permutations
 
 import numpy as np
 
-from visionpos.jit import njit
+from visionpos.geometry.alignment import kabsch_horn
 
 
 @dataclass(frozen=True)
@@ -64,138 +61,6 @@ class Identification:
         return int((self.point_index >= 0).sum())
 
 
-def kabsch_batch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted Kabsch for B problems at once: dst ~ R src + t.
-
-    src, dst: (B, M, 3); weights: (B, M) >= 0 (0 = unused; NaN rows must
-    carry weight 0). Returns R (B, 3, 3) proper rotations, t (B, 3).
-    """
-    return _kabsch_batch(np.ascontiguousarray(src, dtype=np.float64), np.ascontiguousarray(dst, dtype=np.float64),
-                         np.ascontiguousarray(weights, dtype=np.float64))
-
-
-@njit
-def _kabsch_batch(src, dst, w):
-    B = w.shape[0]
-    Rs = np.empty((B, 3, 3))
-    ts = np.empty((B, 3))
-    for b in range(B):
-        Rs[b], ts[b] = kabsch_weighted(src[b], dst[b], w[b])
-    return Rs, ts
-
-
-@njit
-def kabsch_weighted(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Compiled weighted Kabsch: src, dst (M, 3), w (M,) >= 0 (0 = unused) -> R (3, 3), t (3,).
-
-    The best proper rotation comes from Horn's quaternion form: the unit
-    eigenvector of the largest eigenvalue of a symmetric 4x4 matrix built
-    from the cross-covariance (no SVD and no reflection case; exact for
-    coplanar markers too).
-    """
-    M = w.shape[0]
-    ws = 0.0
-    cs = np.zeros(3)
-    cd = np.zeros(3)
-    for m in range(M):
-        if w[m] > 0:
-            ws += w[m]
-            for i in range(3):
-                cs[i] += w[m] * src[m, i]
-                cd[i] += w[m] * dst[m, i]
-    if ws <= 0:
-        ws = 1.0
-    cs /= ws
-    cd /= ws
-    S = np.zeros((3, 3))  # cross-covariance sum w (src - cs)(dst - cd)^T
-    for m in range(M):
-        if w[m] > 0:
-            for i in range(3):
-                si = w[m] * (src[m, i] - cs[i])
-                for j in range(3):
-                    S[i, j] += si * (dst[m, j] - cd[j])
-    N = np.empty((4, 4))
-    N[0, 0] = S[0, 0] + S[1, 1] + S[2, 2]
-    N[1, 1] = S[0, 0] - S[1, 1] - S[2, 2]
-    N[2, 2] = -S[0, 0] + S[1, 1] - S[2, 2]
-    N[3, 3] = -S[0, 0] - S[1, 1] + S[2, 2]
-    N[0, 1] = N[1, 0] = S[1, 2] - S[2, 1]
-    N[0, 2] = N[2, 0] = S[2, 0] - S[0, 2]
-    N[0, 3] = N[3, 0] = S[0, 1] - S[1, 0]
-    N[1, 2] = N[2, 1] = S[0, 1] + S[1, 0]
-    N[1, 3] = N[3, 1] = S[2, 0] + S[0, 2]
-    N[2, 3] = N[3, 2] = S[1, 2] + S[2, 1]
-    evals, evecs = symmetric_eigen(N)
-    k = np.argmax(evals)
-    qw, qx, qy, qz = evecs[0, k], evecs[1, k], evecs[2, k], evecs[3, k]
-    n2 = qw * qw + qx * qx + qy * qy + qz * qz
-    R = np.empty((3, 3))
-    R[0, 0] = (qw * qw + qx * qx - qy * qy - qz * qz) / n2
-    R[1, 1] = (qw * qw - qx * qx + qy * qy - qz * qz) / n2
-    R[2, 2] = (qw * qw - qx * qx - qy * qy + qz * qz) / n2
-    R[0, 1] = 2.0 * (qx * qy - qw * qz) / n2
-    R[1, 0] = 2.0 * (qx * qy + qw * qz) / n2
-    R[0, 2] = 2.0 * (qx * qz + qw * qy) / n2
-    R[2, 0] = 2.0 * (qx * qz - qw * qy) / n2
-    R[1, 2] = 2.0 * (qy * qz - qw * qx) / n2
-    R[2, 1] = 2.0 * (qy * qz + qw * qx) / n2
-    t = np.empty(3)
-    for i in range(3):
-        t[i] = cd[i] - (R[i, 0] * cs[0] + R[i, 1] * cs[1] + R[i, 2] * cs[2])
-    return R, t
-
-
-@njit
-def symmetric_eigen(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Eigenvalues (n,) and eigenvectors (columns, (n, n)) of a small symmetric matrix (cyclic Jacobi).
-
-    Converges quadratically; for 4x4 a handful of sweeps reach round-off, and
-    a library call's fixed overhead would cost more than the arithmetic.
-    """
-    n = A.shape[0]
-    a = A.copy()
-    V = np.eye(n)
-    scale = 0.0
-    for i in range(n):
-        for j in range(n):
-            scale += a[i, j] * a[i, j]
-    for _ in range(50):
-        off = 0.0
-        for i in range(n):
-            for j in range(i + 1, n):
-                off += a[i, j] * a[i, j]
-        if off <= 1e-32 * scale or off == 0.0:
-            break
-        for p in range(n):
-            for q in range(p + 1, n):
-                if a[p, q] == 0.0:
-                    continue
-                theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
-                tt = (1.0 if theta >= 0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                c = 1.0 / math.sqrt(tt * tt + 1.0)
-                s = tt * c
-                for k in range(n):  # A <- J^T A J
-                    akp, akq = a[k, p], a[k, q]
-                    a[k, p], a[k, q] = c * akp - s * akq, s * akp + c * akq
-                for k in range(n):
-                    apk, aqk = a[p, k], a[q, k]
-                    a[p, k], a[q, k] = c * apk - s * aqk, s * apk + c * aqk
-                for k in range(n):
-                    vkp, vkq = V[k, p], V[k, q]
-                    V[k, p], V[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
-    evals = np.empty(n)
-    for i in range(n):
-        evals[i] = a[i, i]
-    return evals, V
-
-
-def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Single weighted Kabsch: src, dst (M, 3) -> R (3, 3), t (3,) with dst ~ R src + t."""
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, float)
-    R, t = kabsch_batch(np.asarray(src, float)[None], np.asarray(dst, float)[None], w[None])
-    return R[0], t[0]
-
-
 def _hypotheses(points: np.ndarray, D: np.ndarray, model: BodyModel, tol: float) -> list[tuple[int, float, np.ndarray, np.ndarray, np.ndarray]]:
     """All consistent placements of one body among points.
 
@@ -219,7 +84,7 @@ def _hypotheses(points: np.ndarray, D: np.ndarray, model: BodyModel, tol: float)
                     for k in ks:
                         if k == i or k == j:
                             continue
-                        R, t = kabsch(mk[[a, b, c]], points[[i, j, k]])
+                        R, t = kabsch_horn(mk[[a, b, c]], points[[i, j, k]])
                         pred = mk @ R.T + t
                         dist = np.linalg.norm(pred[:, None] - points[None], axis=-1)  # (M, K)
                         idx = np.full(M, -1)
@@ -241,7 +106,7 @@ def _hypotheses(points: np.ndarray, D: np.ndarray, model: BodyModel, tol: float)
                             continue
                         seen.add(key)
                         sel = idx >= 0
-                        R, t = kabsch(mk[sel], points[idx[sel]])
+                        R, t = kabsch_horn(mk[sel], points[idx[sel]])
                         res = points[idx[sel]] - (mk[sel] @ R.T + t)
                         rms = float(np.sqrt((res**2).sum(axis=1).mean()))
                         if rms < tol:
@@ -307,7 +172,7 @@ def layout_ambiguities(models: list[BodyModel], tolerance: float) -> list[str]:
             for perm in permutations(range(M)):
                 if list(perm) == list(range(M)):
                     continue
-                R, t = kabsch(a.markers, a.markers[list(perm)])
+                R, t = kabsch_horn(a.markers, a.markers[list(perm)])
                 res = a.markers[list(perm)] - (a.markers @ R.T + t)
                 if np.sqrt((res**2).sum(axis=1).mean()) < tolerance:
                     problems.append(f"body '{a.name}' is symmetric: its orientation is ambiguous")

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from visionpos.config.schema import register_section
 from visionpos.config.arena import ArenaConfig, Section
 from visionpos.config.overrides import merge_section
 from visionpos.config.settings import Setting, ms_to_ns, section
@@ -123,3 +124,5 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
     fps = [c.fps for c in arena.cameras] or [100.0]
     derived = {"window_ms": 1.2e3 / min(fps), "naive_grid_hz": max(fps)}
     return FusionSettings(**FUSION.parse(s, derived), kalman=KalmanSettings(**kalman))
+
+register_section("fusion", FUSION)

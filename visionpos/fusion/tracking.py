@@ -51,79 +51,13 @@ from visionpos.fusion.layout import (
     X_ROT_ERR, X_VEL, FilterArrays,
 )
 from visionpos.fusion.settings import KalmanSettings
+from visionpos.geometry.rotations import (
+    matrix_from_rotvec_compiled, quat_from_matrix_compiled, rotvec_from_matrix_compiled,
+)
 from visionpos.jit import matmul3, njit
 
 _NIS_HIGH = 2.0  # averaged NIS/dof above this means the motion model lags
 _SCALE_DECAY_S = 0.2  # s, time constant of the process-noise scale's return to its floor
-
-
-@njit
-def rodrigues(rv: np.ndarray) -> np.ndarray:
-    """Compiled rotation vector (3,) float64 -> matrix (3, 3)."""
-    x, y, z = rv[0], rv[1], rv[2]
-    th2 = x * x + y * y + z * z
-    if th2 < 1e-16:
-        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
-    else:
-        th = math.sqrt(th2)
-        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
-    R = np.empty((3, 3))
-    R[0, 0], R[0, 1], R[0, 2] = 1.0 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z
-    R[1, 0], R[1, 1], R[1, 2] = a * z + b * x * y, 1.0 - b * (x * x + z * z), -a * x + b * y * z
-    R[2, 0], R[2, 1], R[2, 2] = -a * y + b * x * z, a * x + b * y * z, 1.0 - b * (x * x + y * y)
-    return R
-
-
-@njit
-def _quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
-    """Rotation matrix (3, 3) -> unit quaternion (x, y, z, w), w >= 0 (Shepperd's method)."""
-    m00, m01, m02 = R[0, 0], R[0, 1], R[0, 2]
-    m10, m11, m12 = R[1, 0], R[1, 1], R[1, 2]
-    m20, m21, m22 = R[2, 0], R[2, 1], R[2, 2]
-    tr = m00 + m11 + m22
-    if tr > 0.0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        qx, qy, qz, qw = (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s, 0.25 * s
-    elif m00 > m11 and m00 > m22:
-        s = 2.0 * math.sqrt(1.0 + m00 - m11 - m22)
-        qx, qy, qz, qw = 0.25 * s, (m01 + m10) / s, (m02 + m20) / s, (m21 - m12) / s
-    elif m11 > m22:
-        s = 2.0 * math.sqrt(1.0 + m11 - m00 - m22)
-        qx, qy, qz, qw = (m01 + m10) / s, 0.25 * s, (m12 + m21) / s, (m02 - m20) / s
-    else:
-        s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
-        qx, qy, qz, qw = (m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s
-    n = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-    if qw < 0.0:
-        n = -n
-    return qx / n, qy / n, qz / n, qw / n
-
-
-@njit
-def _matrix_rotvec(R: np.ndarray) -> np.ndarray:
-    # through the unit quaternion: well conditioned at every angle, 180 deg included
-    qx, qy, qz, qw = _quaternion(R)
-    n = math.sqrt(qx * qx + qy * qy + qz * qz)
-    out = np.empty(3)
-    # angle / sin(angle / 2) -> 2 as the angle -> 0
-    k = 2.0 * math.atan2(n, qw) / n if n > 1e-300 else 2.0 / qw
-    out[0], out[1], out[2] = k * qx, k * qy, k * qz
-    return out
-
-
-def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
-    """Rodrigues: one rotation vector (3,) -> matrix (3, 3)."""
-    return rodrigues(np.ascontiguousarray(rv, dtype=np.float64))
-
-
-def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) -> rotation vector (3,) (angle <= pi)."""
-    return _matrix_rotvec(np.ascontiguousarray(R, dtype=np.float64))
-
-
-def matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) -> quaternion (4,) x, y, z, w with w >= 0 (Shepperd's method)."""
-    return np.array(_quaternion(np.ascontiguousarray(R, dtype=np.float64)))
 
 
 
@@ -171,7 +105,7 @@ def _fold(x: np.ndarray, R_nom: np.ndarray) -> bool:
     """Move the rotation error x[X_ROT_ERR] into R_nom (in place) and zero it; False if it was zero."""
     if x[ROT_ERR0] == 0.0 and x[ROT_ERR0 + 1] == 0.0 and x[ROT_ERR0 + 2] == 0.0:
         return False
-    R_nom[:, :] = matmul3(rodrigues(x[X_ROT_ERR]), R_nom)
+    R_nom[:, :] = matmul3(matrix_from_rotvec_compiled(x[X_ROT_ERR]), R_nom)
     x[X_ROT_ERR] = 0.0
     return True
 
@@ -210,7 +144,7 @@ def _kf_update(
     """
     z = np.empty(6)
     z[POSE_P] = position
-    z[POSE_ROT] = _matrix_rotvec(matmul3(R, R_nom.T))
+    z[POSE_ROT] = rotvec_from_matrix_compiled(matmul3(R, R_nom.T))
     S = np.empty((6, 6))
     y = np.empty(6)
     PHt = np.empty((N_STATE, 6))  # P H^T: the measured columns
@@ -315,7 +249,7 @@ def predict_mean(x: np.ndarray, R_nom: np.ndarray, dt: float) -> tuple[np.ndarra
     """The mean of state x (15,) with nominal rotation R_nom (3, 3) predicted by dt (s):
     position (3,), rotation body->world (3, 3), velocity (3,)."""
     p = x[X_POS] + x[X_VEL] * dt + x[X_ACC] * (0.5 * dt * dt)
-    return p, matmul3(rodrigues(x[X_RATE] * dt), R_nom), x[X_VEL] + x[X_ACC] * dt
+    return p, matmul3(matrix_from_rotvec_compiled(x[X_RATE] * dt), R_nom), x[X_VEL] + x[X_ACC] * dt
 
 
 @njit
@@ -328,7 +262,7 @@ def _output_at(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: f
     p, R, v = predict_mean(x, R_nom, dt)
     out = np.empty(N_OUT)
     out[OUT_POS] = p
-    out[OUT_QUAT0], out[OUT_QUAT0 + 1], out[OUT_QUAT0 + 2], out[OUT_QUAT0 + 3] = _quaternion(R)
+    out[OUT_QUAT0], out[OUT_QUAT0 + 1], out[OUT_QUAT0 + 2], out[OUT_QUAT0 + 3] = quat_from_matrix_compiled(R)
     out[OUT_VEL] = v
     for i in range(3):
         out[OUT_RATE_BODY0 + i] = R[0, i] * w[0] + R[1, i] * w[1] + R[2, i] * w[2]

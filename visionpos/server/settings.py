@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from visionpos import protocol as P
+from visionpos.config.schema import register_section
 from visionpos.config.arena import ArenaConfig
 from visionpos.config.settings import Setting, section
 
@@ -90,3 +91,5 @@ class ServerSettings:
         from dataclasses import replace
 
         return replace(self, port=int(port))
+
+register_section("server", SERVER)

@@ -18,6 +18,7 @@ import numpy as np
 
 from visionpos.camera.model import Camera
 from visionpos.protocol import MAX_BLOBS_PER_PACKET
+from visionpos.config.schema import register_section
 from visionpos.config.arena import (
     ArenaConfig,
     BodyConfig,
@@ -483,3 +484,5 @@ def load_scenario(
         data = apply_overrides(data, list(overrides))
     arena = parse_arena(data, str(path))
     return scenario_from_arena(arena, session=session, **sim_overrides)
+
+register_section("sim", SIM)

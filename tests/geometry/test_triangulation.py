@@ -1,9 +1,9 @@
-"""Multi-view geometry against ground truth and independently computed references.
+"""N-view triangulation (geometry/triangulation.py) against ground truth and independent references.
 
-References here never come from visionpos.geometry itself: projections come from
-OpenCV (cv2.projectPoints / cv2.fisheye.projectPoints), Cramer-Rao bounds from an
+References never come from visionpos itself: projections come from OpenCV
+(cv2.projectPoints / cv2.fisheye.projectPoints), Cramer-Rao bounds from an
 explicit Fisher-information sum over finite-difference Jacobians of those OpenCV
-projections, and alignment optima from a generic scipy optimiser.
+projections.
 """
 
 from __future__ import annotations
@@ -11,32 +11,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from hypothesis import assume, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
 from visionpos.camera.model import Camera, CameraModel, look_at_rotation
-from visionpos.geometry import (
-    FLU_FRD,
-    CameraRig,
-    average_rotations,
-    decompose_essential,
-    essential_from_points,
-    euler_ned_frd,
-    flu_to_frd,
-    frd_to_flu,
-    kabsch,
-    ned_to_world,
-    quat_ned_frd_to_world_body,
-    quat_world_body_to_ned_frd,
-    skew,
-    triangulate_normalized,
-    triangulate_pixels,
-    triangulation_crb,
-    umeyama,
-    world_to_ned,
-)
+from visionpos.geometry.triangulation import CameraRig, triangulate_normalized, triangulate_pixels, triangulation_crb
 
 V2_NOIR = [  # thesis Table 4.1, V2 NoIR cameras 1-4 at 960x640
     CameraModel("fisheye", 960, 640, 720.313, 719.521, 481.014, 360.991, [0.396, 0.634, -2.417, 2.111]),
@@ -116,7 +96,6 @@ def fisher_reference(cams, X, vis, sigma, h=1e-6):
     return np.linalg.inv(F)
 
 
-# ------------------------------------------------------------------ triangulation
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), n_cams=st.integers(2, 8))
 def test_noiseless_triangulation_is_exact(seed, n_cams):
@@ -277,196 +256,6 @@ def test_missing_views_outliers_and_shapes():
         triangulate_pixels(cams, px, offsets=np.zeros((3, 4, 2)))
     with pytest.raises(ValueError, match="t must"):
         triangulate_normalized(np.zeros((3, 4, 2)), np.stack([np.eye(3)] * 4), np.zeros((4, 2)))
-
-
-# -------------------------------------------------------------- essential matrix
-def _two_view(rng, n=40):
-    """Random two-camera configuration looking at a common point cloud.
-    Returns x1, x2 (N, 2) normalised, R, t (X2 = R X1 + t), points in camera 1."""
-    X = rng.normal(0, 0.6, (n, 3)) + [0, 0, rng.uniform(2.0, 6.0)]  # cloud in front of camera 1
-    # camera 2 centre anywhere around (sideways, forward, backward), aimed at the cloud with random roll
-    C2 = rng.normal(0, 1.5, 3)
-    C2[2] = rng.uniform(-1.0, 1.5)
-    R_look = look_at_rotation(C2, X.mean(axis=0), up=np.array([0.0, -1.0, 0.0]))
-    R = Rotation.from_rotvec([0, 0, rng.uniform(-np.pi, np.pi)]).as_matrix() @ R_look
-    t = -R @ C2
-    X2 = X @ R.T + t
-    front = (X[:, 2] > 0.1) & (X2[:, 2] > 0.1)
-    X, X2 = X[front], X2[front]
-    return X[:, :2] / X[:, 2:], X2[:, :2] / X2[:, 2:], R, t
-
-
-@settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1))
-def test_cheirality_picks_true_pose(seed):
-    rng = np.random.default_rng(seed)
-    x1, x2, R, t = _two_view(rng)
-    assume(len(x1) >= 8 and np.linalg.norm(t) > 0.05)  # a usable configuration (nearly always)
-    tu = t / np.linalg.norm(t)
-    for E in (skew(t) @ R, -3.0 * skew(t) @ R, essential_from_points(x1, x2)[0]):
-        Re, te, front = decompose_essential(E, x1, x2)
-        assert np.abs(Re - R).max() < 1e-6
-        assert np.abs(te - tu).max() < 1e-6
-        assert front.all()
-        assert np.isclose(np.linalg.det(Re), 1.0)
-
-
-def test_essential_matrix_properties_and_ransac():
-    rng = np.random.default_rng(8)
-    x1, x2, R, t = _two_view(rng, n=120)
-    n_in = len(x1)
-    x1n = x1 + rng.normal(0, 2e-4, x1.shape)  # ~0.15 px at f = 720
-    x2n = x2 + rng.normal(0, 2e-4, x2.shape)
-    # 40 % gross outliers
-    n_out = int(0.4 * n_in)
-    o1 = rng.uniform(-0.6, 0.6, (n_out, 2))
-    o2 = rng.uniform(-0.6, 0.6, (n_out, 2))
-    a1 = np.vstack([x1n, o1])
-    a2 = np.vstack([x2n, o2])
-    E, inl = essential_from_points(a1, a2, threshold=1e-3)
-    s = np.linalg.svd(E, compute_uv=False)
-    assert np.isclose(s[0], s[1]) and s[2] < 1e-12 and np.isclose(np.linalg.norm(E), 1.0)
-    assert inl[:n_in].mean() > 0.95 and inl[n_in:].mean() < 0.05
-    Re, te, _ = decompose_essential(E, a1[inl], a2[inl])
-    ang = np.degrees(np.linalg.norm(Rotation.from_matrix(Re @ R.T).as_rotvec()))
-    assert ang < 0.5
-    assert np.degrees(np.arccos(np.clip(te @ t / np.linalg.norm(t), -1, 1))) < 2.0
-    # without RANSAC the outliers wreck the estimate
-    E_bad, all_in = essential_from_points(a1, a2)
-    assert all_in.all()
-    Rb, _, _ = decompose_essential(E_bad, a1, a2)
-    assert np.degrees(np.linalg.norm(Rotation.from_matrix(Rb @ R.T).as_rotvec())) > ang
-    with pytest.raises(ValueError, match="at least 8"):
-        essential_from_points(x1[:7], x2[:7])
-
-
-# --------------------------------------------------------------------- alignment
-def _rigid_cost(R, t, src, dst, w):
-    return float(np.sum(w * np.sum((src @ R.T + t - dst) ** 2, axis=1)))
-
-
-def _best_proper_rigid_by_search(src, dst, w):
-    """Independent reference: minimise the weighted cost over rotation vectors (scipy)."""
-    best = np.inf
-    for rv0 in np.random.default_rng(0).normal(0, 1.5, (12, 3)):
-        def f(rv):
-            R = Rotation.from_rotvec(rv).as_matrix()
-            t = (w @ (dst - src @ R.T)) / w.sum()
-            return _rigid_cost(R, t, src, dst, w)
-        r = minimize(f, rv0, method="BFGS", options={"gtol": 1e-12})
-        best = min(best, r.fun)
-    return best
-
-
-@settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), n=st.integers(3, 60))
-def test_kabsch_recovers_random_pose(seed, n):
-    rng = np.random.default_rng(seed)
-    R = Rotation.random(random_state=rng.integers(1 << 31)).as_matrix()
-    t = rng.normal(0, 3, 3)
-    src = rng.normal(0, 1, (n, 3))
-    dst = src @ R.T + t
-    Re, te = kabsch(src, dst)
-    assert np.abs(Re - R).max() < 1e-9 and np.abs(te - t).max() < 1e-9
-    # weights: points with weight 0 may be anything
-    w = rng.uniform(0.5, 2.0, n)
-    bad = rng.random(n) < 0.3
-    bad[:3] = False
-    w[bad] = 0.0
-    dst_c = dst.copy()
-    dst_c[bad] += rng.normal(0, 5, (bad.sum(), 3))
-    Rw, tw = kabsch(src, dst_c, weights=w)
-    assert np.abs(Rw - R).max() < 1e-9 and np.abs(tw - t).max() < 1e-9
-
-
-def test_weighted_kabsch_is_optimal_with_noise():
-    rng = np.random.default_rng(9)
-    src = rng.normal(0, 1, (25, 3))
-    R = Rotation.random(random_state=1).as_matrix()
-    dst = src @ R.T + [0.3, -1, 2] + rng.normal(0, 0.1, (25, 3))
-    w = rng.uniform(0.1, 3.0, 25)
-    Re, te = kabsch(src, dst, w)
-    assert _rigid_cost(Re, te, src, dst, w) <= _best_proper_rigid_by_search(src, dst, w) + 1e-9
-
-
-def test_kabsch_never_returns_a_reflection():
-    rng = np.random.default_rng(10)
-    src = rng.normal(0, 1, (30, 3)) * [2.0, 1.0, 0.3]
-    dst = src * [1.0, 1.0, -1.0] + [0.5, 0.0, 1.0]  # mirror image: best orthogonal map is a reflection
-    Re, te = kabsch(src, dst)
-    assert np.isclose(np.linalg.det(Re), 1.0) and np.allclose(Re @ Re.T, np.eye(3))
-    w = np.ones(30)
-    assert _rigid_cost(Re, te, src, dst, w) <= _best_proper_rigid_by_search(src, dst, w) + 1e-9
-
-
-@settings(max_examples=30, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1))
-def test_umeyama_recovers_similarity(seed):
-    rng = np.random.default_rng(seed)
-    R = Rotation.random(random_state=rng.integers(1 << 31)).as_matrix()
-    s = rng.uniform(0.05, 20.0)
-    t = rng.normal(0, 3, 3)
-    src = rng.normal(0, 1, (12, 3))
-    s_e, R_e, t_e = umeyama(src, s * src @ R.T + t)
-    assert abs(s_e - s) < 1e-9 * s and np.abs(R_e - R).max() < 1e-9 and np.abs(t_e - t).max() < 1e-8
-
-
-def test_alignment_input_errors():
-    with pytest.raises(ValueError, match="shape"):
-        kabsch(np.zeros((4, 3)), np.zeros((5, 3)))
-    with pytest.raises(ValueError, match="weights"):
-        kabsch(np.eye(3), np.eye(3), weights=[1, -1, 1])
-
-
-def test_average_rotations_recovers_centre():
-    rng = np.random.default_rng(12)
-    R0 = Rotation.random(random_state=3)
-    d = rng.normal(0, 0.05, (50, 3))
-    Rs = (R0 * Rotation.from_rotvec(np.vstack([d, -d]))).as_matrix()  # symmetric spread
-    assert np.abs(average_rotations(Rs) - R0.as_matrix()).max() < 1e-3
-
-
-# ---------------------------------------------------------------- frame helpers
-def test_vector_frames_hand_worked():
-    np.testing.assert_array_equal(world_to_ned([1.0, 2.0, 3.0]), [1.0, -2.0, -3.0])
-    np.testing.assert_array_equal(ned_to_world([1.0, -2.0, -3.0]), [1.0, 2.0, 3.0])
-    np.testing.assert_array_equal(flu_to_frd([[0.5, 1.0, 2.0]]), [[0.5, -1.0, -2.0]])
-    np.testing.assert_array_equal(frd_to_flu([[0.5, -1.0, -2.0]]), [[0.5, 1.0, 2.0]])
-    # a point 1 m above the origin is at Down = -1
-    assert world_to_ned([0.0, 0.0, 1.0])[2] == -1.0
-    np.testing.assert_array_equal(FLU_FRD @ FLU_FRD, np.eye(3))
-
-
-@pytest.mark.parametrize(
-    "axis, deg_world, expect_rpy_ned_deg",
-    [
-        ("z", 90.0, (0.0, 0.0, -90.0)),  # yawed left (CCW from above) -> NED yaw -90
-        ("z", -30.0, (0.0, 0.0, 30.0)),  # yawed right
-        ("y", -10.0, (0.0, 10.0, 0.0)),  # nose up (x towards +z) -> positive pitch
-        ("x", 20.0, (20.0, 0.0, 0.0)),  # left side up = right wing down -> positive roll
-    ],
-)
-def test_attitude_frames_hand_worked(axis, deg_world, expect_rpy_ned_deg):
-    q = Rotation.from_euler(axis, deg_world, degrees=True).as_quat()
-    rpy = np.degrees(euler_ned_frd(q))
-    np.testing.assert_allclose(rpy, expect_rpy_ned_deg, atol=1e-9)
-
-
-def test_quaternion_frames_consistent_with_vectors():
-    rng = np.random.default_rng(13)
-    q = Rotation.random(20, random_state=4).as_quat()
-    qn = quat_world_body_to_ned_frd(q)
-    v_body = rng.normal(size=(20, 3))
-    # rotate a body vector to world then to NED, or to FRD then by the NED/FRD rotation
-    a = world_to_ned(Rotation.from_quat(q).apply(v_body))
-    b = Rotation.from_quat(qn).apply(flu_to_frd(v_body))
-    np.testing.assert_allclose(a, b, atol=1e-12)
-    # nose direction: body forward (1,0,0) for a body yawed +90 deg points to world +y = West
-    q_yaw = Rotation.from_euler("z", 90, degrees=True).as_quat()
-    fwd_ned = Rotation.from_quat(quat_world_body_to_ned_frd(q_yaw)).apply([1.0, 0.0, 0.0])
-    np.testing.assert_allclose(fwd_ned, [0.0, -1.0, 0.0], atol=1e-12)  # East = -1: facing West
-    back = quat_ned_frd_to_world_body(qn)
-    assert np.allclose(np.abs(np.sum(back * q, axis=1)), 1.0)
 
 
 def test_refined_point_is_a_stationary_point_of_the_pixel_reprojection_error():

@@ -1,0 +1,10 @@
+"""Import every stage that declares a section of the arena file, so the schema is complete.
+
+The CLI imports this before it applies `--set` overrides, and the reference generator before it
+renders docs/configuration.md; the core's config layer cannot import the stages itself.
+"""
+
+import bridge.config  # noqa: F401  vehicles, pose_stream
+import visionpos.fusion.settings  # noqa: F401  fusion
+import visionpos.server.settings  # noqa: F401  server
+import visionpos.sim.scenario  # noqa: F401  sim
