@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from visionpos.config.schema import register_section
 from visionpos.config.arena import ArenaConfig, ConfigError, Section
+from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, section
 
 ENDPOINT_KINDS = ("udpin", "udpout", "tcp", "serial")

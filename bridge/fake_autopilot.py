@@ -28,7 +28,6 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 from scipy.spatial.transform import Rotation
 
-
 POSE_TYPES = ("VISION_POSITION_ESTIMATE", "ODOMETRY")
 RECORDED = POSE_TYPES + ("VISION_SPEED_ESTIMATE", "HEARTBEAT", "TIMESYNC", "SET_GPS_GLOBAL_ORIGIN", "SET_HOME_POSITION")
 AUTOPILOTS = {"ardupilot": mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, "px4": mavlink2.MAV_AUTOPILOT_PX4}

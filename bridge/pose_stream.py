@@ -26,7 +26,6 @@ import numpy as np
 from bridge.config import PoseStreamConfig, is_multicast
 from visionpos.messages import BodyState, LoosePoints
 
-
 MAGIC = b"VPS1"
 VERSION = 1
 MAX_DATAGRAM = 8192  # JSON: lines are packed up to this size (fits any LAN's reassembly comfortably)

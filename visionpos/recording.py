@@ -27,9 +27,9 @@ never touches the disk: records are appended to an in-memory spool under a lock.
 from __future__ import annotations
 
 import atexit
+import io
 import json
 import logging
-import io
 import math
 import mmap
 import os

@@ -199,9 +199,9 @@ def test_replay_of_realtime_stamped_stations_uses_the_recording_hosts_clocks(the
     realtime - monotonic difference. A replay, on another host and day, must use the one the
     recording host had, so it reproduces the server-timebase replay exactly."""
     from visionpos import protocol as P
+    from visionpos.analysis.replay import replay_log, write_trajectories_csv
     from visionpos.messages import BlobFrame
     from visionpos.recording import RecordingReader, RecordingWriter
-    from visionpos.analysis.replay import replay_log, write_trajectories_csv
 
     rt_minus_mono = 1_700_000_000_000_000_000 - 1_000_000_000_000  # a 2023 wall clock vs a 1000 s uptime
     src = RecordingReader(thesis_log)

@@ -78,8 +78,8 @@ def test_tune_ranks_motion_compensation_first_on_aggressive_flight(aggressive_lo
 def test_tune_ranks_a_sane_residual_gate_above_one_that_rejects_real_markers(tmp_path, capsys):
     """Centroid noise 0.5 px: a 0.05 px residual gate throws away real markers and loses the
     body; the default 2 px gate keeps them. The known best is 2.0 whatever the fusion tuning."""
-    from visionpos.cli import main
     from visionpos.analysis.tune import sweep
+    from visionpos.cli import main
 
     log = tmp_path / "noisy.mcap"
     rc = main(["sim", "--scenario", "thesis", "--duration", "2", "--seed", "7", "--set", "sim.centroid_noise_px=0.5",

@@ -89,7 +89,9 @@ def test_misspelt_pose_stream_and_vehicle_keys_are_errors():
     import pytest as _pytest
 
     from bridge.config import parse_pose_stream, parse_vehicles
-    from visionpos.config.arena import ConfigError as _ConfigError, load_yaml as _load, parse_arena as _parse
+    from visionpos.config.arena import ConfigError as _ConfigError
+    from visionpos.config.arena import load_yaml as _load
+    from visionpos.config.arena import parse_arena as _parse
     from visionpos.config.arena import resolve_config_path as _resolve
 
     raw = _load(_resolve("thesis"))

@@ -3,8 +3,8 @@ from pathlib import Path
 
 import pytest
 
-from visionpos.config.arena import ConfigError, Section, load_arena, load_yaml
 from visionpos.app.config_reference import render
+from visionpos.config.arena import ConfigError, Section, load_arena, load_yaml
 from visionpos.config.settings import DeprecatedKeyWarning, Setting, section
 from visionpos.errors import VisionposError
 

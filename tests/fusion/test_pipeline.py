@@ -8,8 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from visionpos.benchmarks.fusion import errors, replay
 from visionpos.config.arena import ConfigError
-from visionpos.messages import BlobFrame
 from visionpos.fusion.pipeline import FusionPipeline
+from visionpos.messages import BlobFrame
 from visionpos.sim import load_scenario, simulate
 
 FAST = [

@@ -3,7 +3,16 @@
 import pytest
 
 from visionpos.fusion.timealign import (
-    CLOCK_JUMP, LATE, MODES, MOTION_COMPENSATED, NAIVE, REORDERED, Group, Rejection, TimeAligner, TimeAlignment,
+    CLOCK_JUMP,
+    LATE,
+    MODES,
+    MOTION_COMPENSATED,
+    NAIVE,
+    REORDERED,
+    Group,
+    Rejection,
+    TimeAligner,
+    TimeAlignment,
 )
 
 MS = 1_000_000

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from visionpos import protocol as P
-from visionpos.config.arena import ConfigError, load_arena, parse_arena, load_yaml, resolve_config_path
+from visionpos.config.arena import ConfigError, load_arena, load_yaml, parse_arena, resolve_config_path
+from visionpos.messages import FLAG_RESYNC, BlobFrame
 from visionpos.server.ingest import ClockJump, Ingest, IngestEvent
 from visionpos.server.settings import ServerSettings
-from visionpos.messages import FLAG_RESYNC, BlobFrame
 
 ADDR = ("127.0.0.1", 40000)
 MS = 1_000_000

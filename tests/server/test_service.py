@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 
 from visionpos import protocol as P
+from visionpos.app.serve import bridge_sinks
 from visionpos.messages import BlobFrame
 from visionpos.recording import RecordingDamagedWarning, RecordingReader, RecordingWriter
-from visionpos.app.serve import bridge_sinks
 from visionpos.server.service import FusionServer, load_config_with_overrides
 
 ROOT = Path(__file__).resolve().parents[2]

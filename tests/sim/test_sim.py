@@ -10,9 +10,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from visionpos.config.arena import ConfigError, load_arena, load_yaml, parse_arena, resolve_config_path
+from visionpos.messages import FLAG_TRUNCATED
 from visionpos.sim import iter_frames, load_scenario, scenario_from_arena, simulate
 from visionpos.sim import trajectories as T
-from visionpos.messages import FLAG_TRUNCATED
 from visionpos.sim.capture import SPURIOUS_MIRROR, SPURIOUS_RANDOM, SPURIOUS_STATIC
 
 # ------------------------------------------------------------------ helpers
@@ -454,9 +454,9 @@ def test_determinism_and_streaming_equivalence():
 
 def test_sim_cli_writes_a_replayable_recording(tmp_path, capsys):
     from visionpos.cli import main
+    from visionpos.messages import BlobFrame
     from visionpos.protocol import decode
     from visionpos.recording import RecordingReader
-    from visionpos.messages import BlobFrame
 
     out = tmp_path / "s.mcap"
     rc = main(["sim", "--scenario", "thesis", "--duration", "1", "--seed", "5", "--set", "sim.centroid_noise_px=0.1", "--out", str(out)])

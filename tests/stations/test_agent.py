@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 
 from stations.agent import StationAgent
-from visionpos.server.netstamps import SO_TIMESTAMPNS, TIMESPEC as _TIMESPEC
 from stations.config import SourceConfig, parse_station
 from stations.sources import FrameSource, SourceError
 from visionpos import protocol as P
 from visionpos.messages import FLAG_RESYNC, FLAG_TRUNCATED, BlobFrame
+from visionpos.server.netstamps import SO_TIMESTAMPNS
+from visionpos.server.netstamps import TIMESPEC as _TIMESPEC
 from visionpos.sim.render import render_blobs
 
 KEY = b"test-key-0123456789abcdef"

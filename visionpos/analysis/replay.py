@@ -22,9 +22,15 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 
 from visionpos.analysis import metrics as M
-from visionpos.config.arena import ArenaConfig, ConfigError, apply_overrides, load_yaml, parse_arena, resolve_config_path
+from visionpos.config.arena import (
+    ArenaConfig,
+    ConfigError,
+    apply_overrides,
+    load_yaml,
+    parse_arena,
+    resolve_config_path,
+)
 from visionpos.messages import BodyState
-
 
 # ---------------------------------------------------------------- results
 
@@ -172,10 +178,10 @@ def run_pipeline(
     CLOCK_REALTIME - monotonic difference (from the recording's meta), used
     for stations that stamp in TIMEBASE_REALTIME instead of this host's clocks.
     """
-    from visionpos.server.ingest import Ingest
-    from visionpos.server.settings import ServerSettings
     from visionpos.fusion.pipeline import FusionPipeline
+    from visionpos.server.ingest import Ingest
     from visionpos.server.service import VANISH_CHECK_S
+    from visionpos.server.settings import ServerSettings
 
     settings = ServerSettings.from_arena(arena)
     rate = float(rate_hz or settings.output_rate_hz)

@@ -29,9 +29,9 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from visionpos import protocol as P
 from visionpos.analysis import metrics as M
 from visionpos.app.ports import free_port
-from visionpos import protocol as P
 from visionpos.config.arena import ArenaConfig, apply_overrides, load_yaml, parse_arena, resolve_config_path
 from visionpos.messages import BlobFrame, BodyState
 
@@ -232,8 +232,8 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     """
     from bridge import Bridge
     from bridge.fake_autopilot import FakeAutopilot, decode_pose
-    from visionpos.server.settings import ServerSettings
     from visionpos.server.service import FusionServer
+    from visionpos.server.settings import ServerSettings
     from visionpos.sim import scenario_from_arena, simulate
 
     t_wall0 = time.perf_counter()

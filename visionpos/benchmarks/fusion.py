@@ -13,11 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from visionpos.analysis.metrics import position_jitter
 from visionpos.benchmarks import BenchResult
 from visionpos.config.arena import ArenaConfig
-from visionpos.messages import BlobFrame
 from visionpos.fusion.pipeline import FusionPipeline
-from visionpos.analysis.metrics import position_jitter
+from visionpos.messages import BlobFrame
 
 
 @dataclass

@@ -22,8 +22,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from visionpos.camera import fisheye, pinhole
-from visionpos.jit import njit
 from visionpos.errors import VisionposError
+from visionpos.jit import njit
 
 PINHOLE = "pinhole"
 FISHEYE = "fisheye"

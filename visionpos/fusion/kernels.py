@@ -18,20 +18,67 @@ import math
 
 import numpy as np
 
-from visionpos.fusion.layout import (
-    CAMERA_COS_MAX, CAMERA_DIST, CAMERA_FISHEYE, CAMERA_INTRINSICS, CAMERA_R, CAMERA_T, CLOCK_T_NS, INTRINSICS_FX,
-    INTRINSICS_FY, MEAS_COV, MEAS_FIT_RMS_M, MEAS_N_CAMERAS, MEAS_N_MARKERS, MEAS_POS, MEAS_ROT, MOTION_ACC,
-    MOTION_POS, MOTION_VEL, N_MEAS, N_STATE_COLS, NO_TIME, PARAM_COMPENSATE_MAX_VEL_VAR, PARAM_IDENTIFY_TOL_M,
-    PARAM_MARKER_VAR_FLOOR, PARAM_MAX_RESIDUAL_PX, PARAM_MIN_MARKERS, PARAM_RESET_AFTER_NS, POS0, POSE_P, POSE_ROT,
-    POSE_ROT0, RATE0, STATE_DT_S, STATE_R_NOM, STATE_R_NOM0, STATE_RATE_VAR, STATE_VEL_VAR, STATE_X,
-    TRACK_FIRST_REJECT_NS, TRACK_LAST_CAPTURE_NS, TRACK_LAST_UPDATE_NS, TRACK_MARKER_VAR, TRACK_N_CAMERAS,
-    TRACK_N_MARKERS, TRACK_PX_VAR, TRACK_RESETS, TRACK_RESIDUAL_MM, VEL0, VERDICT_ACCEPTED, VERDICT_FIT_REJECTED,
-    VERDICT_GATED, VERDICT_RESET, VERDICT_TOO_FEW, X_ACC, X_RATE,
-)
 from visionpos.camera.model import undistort_pixels
+from visionpos.fusion.layout import (
+    CAMERA_COS_MAX,
+    CAMERA_DIST,
+    CAMERA_FISHEYE,
+    CAMERA_INTRINSICS,
+    CAMERA_R,
+    CAMERA_T,
+    CLOCK_T_NS,
+    INTRINSICS_FX,
+    INTRINSICS_FY,
+    MEAS_COV,
+    MEAS_FIT_RMS_M,
+    MEAS_N_CAMERAS,
+    MEAS_N_MARKERS,
+    MEAS_POS,
+    MEAS_ROT,
+    MOTION_ACC,
+    MOTION_POS,
+    MOTION_VEL,
+    N_MEAS,
+    N_STATE_COLS,
+    NO_TIME,
+    PARAM_COMPENSATE_MAX_VEL_VAR,
+    PARAM_IDENTIFY_TOL_M,
+    PARAM_MARKER_VAR_FLOOR,
+    PARAM_MAX_RESIDUAL_PX,
+    PARAM_MIN_MARKERS,
+    PARAM_RESET_AFTER_NS,
+    POS0,
+    POSE_P,
+    POSE_ROT,
+    POSE_ROT0,
+    RATE0,
+    STATE_DT_S,
+    STATE_R_NOM,
+    STATE_R_NOM0,
+    STATE_RATE_VAR,
+    STATE_VEL_VAR,
+    STATE_X,
+    TRACK_FIRST_REJECT_NS,
+    TRACK_LAST_CAPTURE_NS,
+    TRACK_LAST_UPDATE_NS,
+    TRACK_MARKER_VAR,
+    TRACK_N_CAMERAS,
+    TRACK_N_MARKERS,
+    TRACK_PX_VAR,
+    TRACK_RESETS,
+    TRACK_RESIDUAL_MM,
+    VEL0,
+    VERDICT_ACCEPTED,
+    VERDICT_FIT_REJECTED,
+    VERDICT_GATED,
+    VERDICT_RESET,
+    VERDICT_TOO_FEW,
+    X_ACC,
+    X_RATE,
+)
 from visionpos.fusion.matching import associate_blobs, project_points, triangulate_irls
-from visionpos.geometry.alignment import kabsch_horn_compiled
 from visionpos.fusion.tracking import filter_initialize, filter_update, predict_mean, report_image_nis
+from visionpos.geometry.alignment import kabsch_horn_compiled
 from visionpos.jit import cross3, dot3, matmul3, matvec3, njit
 
 

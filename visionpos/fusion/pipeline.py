@@ -63,9 +63,25 @@ import numpy as np
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.fusion.kernels import _finite_rows, _fuse_tracked, _observe_frame, _tracked_motion, pose_measurement_cov
 from visionpos.fusion.layout import (
-    MEAS_POS, MEAS_ROT, N_PARAMS, PARAM_COMPENSATE_MAX_VEL_VAR, PARAM_IDENTIFY_TOL_M, PARAM_MARKER_VAR_FLOOR,
-    PARAM_MAX_RESIDUAL_PX, PARAM_MIN_MARKERS, PARAM_RESET_AFTER_NS, TRACK_LAST_CAPTURE_NS, TRACK_LAST_UPDATE_NS,
-    TRACK_N_CAMERAS, TRACK_N_MARKERS, TRACK_RESETS, TRACK_RESIDUAL_MM, TRACK_TRACKED, TrackedSet, Verdict, ViewSet,
+    MEAS_POS,
+    MEAS_ROT,
+    N_PARAMS,
+    PARAM_COMPENSATE_MAX_VEL_VAR,
+    PARAM_IDENTIFY_TOL_M,
+    PARAM_MARKER_VAR_FLOOR,
+    PARAM_MAX_RESIDUAL_PX,
+    PARAM_MIN_MARKERS,
+    PARAM_RESET_AFTER_NS,
+    TRACK_LAST_CAPTURE_NS,
+    TRACK_LAST_UPDATE_NS,
+    TRACK_N_CAMERAS,
+    TRACK_N_MARKERS,
+    TRACK_RESETS,
+    TRACK_RESIDUAL_MM,
+    TRACK_TRACKED,
+    TrackedSet,
+    Verdict,
+    ViewSet,
 )
 from visionpos.fusion.matching import Projector, match_unlabeled
 from visionpos.fusion.rigidbody import BodyModel, identify, layout_ambiguities

@@ -9,9 +9,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from visionpos.config.schema import register_section
 from visionpos.config.arena import ArenaConfig, Section
 from visionpos.config.overrides import merge_section
+from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, ms_to_ns, section
 from visionpos.fusion.timealign import MODES, MOTION_COMPENSATED
 

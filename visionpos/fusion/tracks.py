@@ -13,8 +13,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from visionpos.fusion.layout import (
-    N_TRACK_FLOATS, N_TRACK_INTS, NO_TIME, TRACK_FIRST_REJECT_NS, TRACK_LAST_CAPTURE_NS, TRACK_LAST_UPDATE_NS,
-    TRACK_MARKER_VAR, TRACK_N_CAMERAS, TRACK_N_MARKERS, TRACK_PX_VAR, TRACK_RESETS, TRACK_RESIDUAL_MM, TRACK_TRACKED,
+    N_TRACK_FLOATS,
+    N_TRACK_INTS,
+    NO_TIME,
+    TRACK_FIRST_REJECT_NS,
+    TRACK_LAST_CAPTURE_NS,
+    TRACK_LAST_UPDATE_NS,
+    TRACK_MARKER_VAR,
+    TRACK_N_CAMERAS,
+    TRACK_N_MARKERS,
+    TRACK_PX_VAR,
+    TRACK_RESETS,
+    TRACK_RESIDUAL_MM,
+    TRACK_TRACKED,
     TrackRows,
 )
 from visionpos.fusion.tracking import BodyFilter, array_field

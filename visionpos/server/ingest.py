@@ -44,8 +44,8 @@ from typing import Any, Protocol
 from visionpos import protocol as P
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.messages import FLAG_RESYNC, BlobFrame
-from visionpos.server.settings import ServerSettings
 from visionpos.server.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
+from visionpos.server.settings import ServerSettings
 
 log = logging.getLogger(__name__)
 

@@ -31,9 +31,9 @@ from pathlib import Path
 from typing import Any
 
 from visionpos.config.arena import ArenaConfig, apply_overrides, load_yaml, parse_arena, resolve_config_path
+from visionpos.messages import BodyState
 from visionpos.server.ingest import Ingest
 from visionpos.server.settings import ServerSettings
-from visionpos.messages import BodyState
 
 log = logging.getLogger(__name__)
 # the periodic status line: INFO, but `serve` and `record` turn this logger on by default

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from visionpos import protocol as P
-from visionpos.config.schema import register_section
 from visionpos.config.arena import ArenaConfig
+from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, section
 
 SERVER = section(

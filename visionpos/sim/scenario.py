@@ -17,8 +17,6 @@ from typing import Any
 import numpy as np
 
 from visionpos.camera.model import Camera
-from visionpos.protocol import MAX_BLOBS_PER_PACKET
-from visionpos.config.schema import register_section
 from visionpos.config.arena import (
     ArenaConfig,
     BodyConfig,
@@ -28,7 +26,9 @@ from visionpos.config.arena import (
     parse_arena,
     resolve_config_path,
 )
+from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, section
+from visionpos.protocol import MAX_BLOBS_PER_PACKET
 from visionpos.sim import trajectories as trj
 from visionpos.sim.trajectories import Motion, Trajectory
 
