@@ -319,7 +319,10 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
             )
         )
         if out[-1].message == "odometry" and out[-1].vision_speed:
-            raise v.error("vision_speed", "ODOMETRY already carries velocity; use vision_speed with message: vision_position_estimate")
+            raise v.error(
+                "vision_speed",
+                "ODOMETRY already carries velocity; use vision_speed with message: vision_position_estimate",
+            )
     _check_unique(top, out)
     return out
 
@@ -327,7 +330,12 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
 def _check_unique(top: Section, vehicles: list[VehicleConfig]) -> None:
     seen: dict[object, int] = {}
     for i, v in enumerate(vehicles):
-        for what, key in (("name", v.name), ("body", ("body", v.body)), ("sysid", ("sysid", v.sysid)), ("endpoint", ("ep", str(v.endpoint)))):
+        for what, key in (
+            ("name", v.name),
+            ("body", ("body", v.body)),
+            ("sysid", ("sysid", v.sysid)),
+            ("endpoint", ("ep", str(v.endpoint))),
+        ):
             if key in seen:
                 raise ConfigError(
                     top.source,
@@ -339,7 +347,11 @@ def _check_unique(top: Section, vehicles: list[VehicleConfig]) -> None:
         if v.endpoint.kind == "udpin":
             port_key = ("udpin-port", v.endpoint.port)
             if port_key in seen:
-                raise ConfigError(top.source, f"vehicles[{i}].endpoint", f"udpin port {v.endpoint.port} is already used by vehicles[{seen[port_key]}]")
+                raise ConfigError(
+                    top.source,
+                    f"vehicles[{i}].endpoint",
+                    f"udpin port {v.endpoint.port} is already used by vehicles[{seen[port_key]}]",
+                )
             seen[port_key] = i
 
 
@@ -366,7 +378,9 @@ def parse_pose_stream(arena: ArenaConfig) -> PoseStreamConfig | None:
         try:
             ipaddress.IPv4Address(iface)
         except ValueError:
-            raise s.error("multicast_interface", f"expected the IPv4 address of a local interface, got {iface!r}") from None
+            raise s.error(
+                "multicast_interface", f"expected the IPv4 address of a local interface, got {iface!r}"
+            ) from None
     return PoseStreamConfig(
         destinations=dests,
         format=P.read(s, "format"),

@@ -84,7 +84,9 @@ class FakeAutopilot:
         kind, _, rest = endpoint.partition(":")
         host, _, port = rest.rpartition(":")
         if kind not in ("udpout", "udpin", "tcpin") or not host or not port.isdigit():
-            raise ValueError(f"fake autopilot endpoint {endpoint!r}: use udpout:HOST:PORT, udpin:HOST:PORT or tcpin:HOST:PORT")
+            raise ValueError(
+                f"fake autopilot endpoint {endpoint!r}: use udpout:HOST:PORT, udpin:HOST:PORT or tcpin:HOST:PORT"
+            )
         if autopilot not in AUTOPILOTS:
             raise ValueError(f"autopilot {autopilot!r}: one of {sorted(AUTOPILOTS)}")
         self.kind, self.host, self.port = kind, host, int(port)

@@ -355,7 +355,9 @@ class StationAgent:
         if self.sync is not None:
             est = self.sync.estimator.estimate
             if est is not self._estimate_seen:
-                if self._estimate_seen is not None and abs(est.offset_at(t_local) - self._estimate_seen.offset_at(t_local)) > self.sync.jump_ns:
+                if self._estimate_seen is not None and (
+                    abs(est.offset_at(t_local) - self._estimate_seen.offset_at(t_local)) > self.sync.jump_ns
+                ):
                     flags |= FLAG_RESYNC
                 self._estimate_seen = est
         frame = BlobFrame(self.cfg.camera_id, seq, t_server, blobs, self.cfg.station_id, flags)

@@ -131,7 +131,9 @@ def parse_station(data: dict[str, Any], source: str = "<station>", base_dir: str
     path = src.string("path", "")
     if kind in ("video", "images"):
         if not path:
-            raise src.error("path", f"required for kind '{kind}' (the {'video file' if kind == 'video' else 'image folder'})")
+            raise src.error(
+                "path", f"required for kind '{kind}' (the {'video file' if kind == 'video' else 'image folder'})"
+            )
         p = Path(path) if Path(path).is_absolute() else base / path
         if not p.exists():
             raise src.error("path", f"{p} does not exist")

@@ -251,8 +251,8 @@ def _centroids(img: np.ndarray, c0: np.ndarray, aperture: np.ndarray, r: int, it
     H, W = img.shape
     S = 2 * r + 3  # one spare pixel each side so the aperture can move by +-1 px
     M = len(c0)
-    I = np.rint(c0).astype(np.int64)  # (M, 2) window centres
-    XY = I[:, :, None] + np.arange(-(r + 1), r + 2)  # (M, 2, S) pixel columns / rows of each window
+    centre_px = np.rint(c0).astype(np.int64)  # (M, 2) window centres
+    XY = centre_px[:, :, None] + np.arange(-(r + 1), r + 2)  # (M, 2, S) pixel columns / rows of each window
     corners = (XY[:, :, 0]).tolist()  # window top-left x, y
     edge = any(x < 0 or y < 0 or x + S > W or y + S > H for x, y in corners)
     if edge:  # rare: windows cut by the image border get a validity mask
@@ -295,7 +295,7 @@ def _centroids(img: np.ndarray, c0: np.ndarray, aperture: np.ndarray, r: int, it
             N = (WS * F).sum(axis=2) / flux[:, None]
             # the window has one spare pixel: an estimate further than 1 px from
             # its centre means the aperture lost the blob (no real signal)
-            bad = ~(flux > 0) | ~(np.abs(N - I).max(axis=1) <= 1.0)
+            bad = ~(flux > 0) | ~(np.abs(N - centre_px).max(axis=1) <= 1.0)
             C = np.where(bad[:, None], np.nan, N)
         flux = np.where(np.isnan(C[:, 0]), np.nan, flux)  # lost in the last iteration too
         # second moments over the aperture -> axis ratio (roundness)

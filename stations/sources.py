@@ -187,7 +187,9 @@ class Picamera2Source(FrameSource):
         try:
             cam = Picamera2()
         except Exception as e:  # libcamera raises RuntimeError/IndexError when no camera is attached
-            raise SourceError(f"no Raspberry Pi camera found ({e}); check the ribbon cable and `rpicam-hello --list-cameras`") from None
+            raise SourceError(
+                f"no Raspberry Pi camera found ({e}); check the ribbon cable and `rpicam-hello --list-cameras`"
+            ) from None
         w, h = self.cfg.width or 960, self.cfg.height or 640
         fps = self.cfg.fps or 100.0
         controls: dict[str, object] = {"FrameDurationLimits": (int(1e6 / fps), int(1e6 / fps))}

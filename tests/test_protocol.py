@@ -190,7 +190,10 @@ def test_server_helpers():
     assert P.seq_delta(0, 2**32 - 1) == 1  # wrap-around
     assert P.seq_delta(4, 5) == -1
     assert P.seq_delta(7, 7) == 0
-    assert P.server_time_from_realtime(1_700_000_000_000_000_000, 1_700_000_000_500_000_000, 3_000_000_000) == 2_500_000_000
+    assert (
+        P.server_time_from_realtime(1_700_000_000_000_000_000, 1_700_000_000_500_000_000, 3_000_000_000)
+        == 2_500_000_000
+    )
 
 
 def test_truncated_flag_survives():

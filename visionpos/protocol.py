@@ -499,7 +499,9 @@ def make_hello_ack(
     Heartbeat whose session the server does not know with
     status=ACK_UNKNOWN_SESSION so the station registers again at once.
     """
-    return HelloAck(hello.station_id, hello.camera_id, hello.session, int(start_ns), int(server_ns), status, duration_ns)
+    return HelloAck(
+        hello.station_id, hello.camera_id, hello.session, int(start_ns), int(server_ns), status, duration_ns
+    )
 
 
 def seq_delta(new: int, old: int) -> int:

@@ -348,7 +348,9 @@ class RecordingWriter:
     def write_json(self, topic: str, time_ns: int, obj: dict[str, Any]) -> None:
         """Any JSON-able mapping on its own topic (events, camera truth, stats)."""
         if topic in (TOPIC_PACKETS, TOPIC_STATES, TOPIC_TRUTH, TOPIC_MARKERS):
-            raise ValueError(f"write_json: topic {topic!r} is reserved; use write_packet/write_state/write_truth/publish_markers")
+            raise ValueError(
+                f"write_json: topic {topic!r} is reserved; use write_packet/write_state/write_truth/publish_markers"
+            )
         data = _dumps(_plain(obj))
         with self._lock:
             ch = self._channel_for(topic, "json", 0)

@@ -50,7 +50,10 @@ def aggressive_log(tmp_path_factory):
     from visionpos.cli import main
 
     path = tmp_path_factory.mktemp("rec") / "aggressive.mcap"
-    session = "{quad: {trajectory: aggressive, center: [0.0, 0.0, 0.9], radius: 0.7, peak_speed: 3.0, height_amp: 0.2, yaw_rate: 2.0}}"
+    session = (
+        "{quad: {trajectory: aggressive, center: [0.0, 0.0, 0.9], radius: 0.7, peak_speed: 3.0, height_amp: 0.2, "
+        "yaw_rate: 2.0}}"
+    )
     rc = main(
         [
             "sim", "--scenario", "thesis", "--duration", "3", "--seed", "2",

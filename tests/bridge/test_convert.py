@@ -117,14 +117,18 @@ def test_speed_fields_and_unknown_covariance():
     Cv = np.array([[1.0, 0.1, 0.2], [0.1, 2.0, 0.3], [0.2, 0.3, 3.0]]) * 1e-3
     f = vision_speed_fields(conv(body_state(velocity=(1, 2, 3), velocity_covariance=Cv)), usec=5, reset_counter=2)
     assert (f["x"], f["y"], f["z"]) == pytest.approx((1, -2, -3))
-    np.testing.assert_allclose(f["covariance"], np.array([1, -0.1, -0.2, -0.1, 2, 0.3, -0.2, 0.3, 3]) * 1e-3, atol=1e-15)
+    np.testing.assert_allclose(
+        f["covariance"], np.array([1, -0.1, -0.2, -0.1, 2, 0.3, -0.2, 0.3, 3]) * 1e-3, atol=1e-15
+    )
     f = vision_position_fields(conv(body_state(covariance=np.full((6, 6), np.nan))), usec=1, reset_counter=0)
     assert math.isnan(f["covariance"][0])
 
 
 def test_upper_triangle_order():
     m = np.arange(36.0).reshape(6, 6)
-    assert mavlink_upper_triangle(m).tolist() == [0, 1, 2, 3, 4, 5, 7, 8, 9, 10, 11, 14, 15, 16, 17, 21, 22, 23, 28, 29, 35]
+    assert mavlink_upper_triangle(m).tolist() == [
+        0, 1, 2, 3, 4, 5, 7, 8, 9, 10, 11, 14, 15, 16, 17, 21, 22, 23, 28, 29, 35
+    ]
 
 
 def test_back_propagation_matches_scipy_composition():

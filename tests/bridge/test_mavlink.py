@@ -283,8 +283,14 @@ def test_signing_accepted_and_rejected(tmp_path):
     good, bad = (FakeAutopilot("udpin:127.0.0.1:0", sysid=s, signing_key=k, timesync_hz=0).start()
                  for s, k in ((1, key), (2, hashlib.sha256(b"another fleet").digest())))
     arena = arena_with_vehicles([
-        {"body": "body1", "sysid": 1, "endpoint": f"udpout:127.0.0.1:{good.port}", "signing": {"key_file": str(key_file)}},
-        {"body": "body2", "sysid": 2, "endpoint": f"udpout:127.0.0.1:{bad.port}", "signing": {"key_file": str(key_file)}},
+        {
+            "body": "body1", "sysid": 1, "endpoint": f"udpout:127.0.0.1:{good.port}",
+            "signing": {"key_file": str(key_file)},
+        },
+        {
+            "body": "body2", "sysid": 2, "endpoint": f"udpout:127.0.0.1:{bad.port}",
+            "signing": {"key_file": str(key_file)},
+        },
     ])
     bridge = Bridge(arena, {"report_interval_s": 0})
     bridge.start()

@@ -157,7 +157,9 @@ def test_docs_client_example_runs(tmp_path):
     script = tmp_path / "client.py"
     script.write_text(code)
     port = free_port()
-    proc = subprocess.Popen([sys.executable, str(script), str(port), "3"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(port), "3"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
     ps = PoseStream.to(f"127.0.0.1:{port}")
     ps.start()
     try:

@@ -178,7 +178,9 @@ def test_camera_without_overlap_is_named():
     cams = ring_cameras(3)
     frames = wand_frames(cams, 4.0, SPEC)
     # camera 3 saw the wand, but never at the same time as the others
-    shifted = [BlobFrame(f.camera_id, f.seq, f.capture_ns + 100_000_000_000, f.blobs) for f in frames if f.camera_id == 3]
+    shifted = [
+        BlobFrame(f.camera_id, f.seq, f.capture_ns + 100_000_000_000, f.blobs) for f in frames if f.camera_id == 3
+    ]
     frames = [f for f in frames if f.camera_id != 3] + shifted
     with pytest.raises(CalibrationError, match=r"cam3 cannot be connected"):
         calibrate_wand(frames, cams, SPEC)

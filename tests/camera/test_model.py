@@ -259,12 +259,30 @@ def test_project_jacobian_matches_cv2_jacobian():
     "d, msg",
     [
         ({"model": "fishy", "width": 960, "height": 640, "fx": 1, "fy": 1, "cx": 0, "cy": 0}, "unknown"),
-        ({"model": "pinhole", "width": 960, "height": 640, "fx": 1, "fy": 1, "cx": 0, "cy": 0, "dist": [1, 2, 3]}, "coefficients"),
-        ({"model": "fisheye", "width": 960, "height": 640, "fx": 1, "fy": 1, "cx": 0, "cy": 0, "dist": [1, 2, 3, 4, 5]}, "fisheye dist"),
+        (
+            {"model": "pinhole", "width": 960, "height": 640, "fx": 1, "fy": 1, "cx": 0, "cy": 0, "dist": [1, 2, 3]},
+            "coefficients",
+        ),
+        (
+            {
+                "model": "fisheye", "width": 960, "height": 640, "fx": 1, "fy": 1, "cx": 0, "cy": 0,
+                "dist": [1, 2, 3, 4, 5],
+            },
+            "fisheye dist",
+        ),
         ({"model": "pinhole", "width": 960, "height": 640, "fx": -700, "fy": 700, "cx": 0, "cy": 0}, "focal"),
         ({"model": "pinhole", "width": 0, "height": 640, "fx": 700, "fy": 700, "cx": 0, "cy": 0}, "image size"),
-        ({"model": "pinhole", "width": 960, "height": 640, "fx": 700, "fy": 700, "cx": float("nan"), "cy": 0}, "principal point"),
-        ({"model": "pinhole", "width": 960, "height": 640, "fx": 700, "fy": 700, "cx": 0, "cy": 0, "dist": [0, float("inf"), 0, 0]}, "finite"),
+        (
+            {"model": "pinhole", "width": 960, "height": 640, "fx": 700, "fy": 700, "cx": float("nan"), "cy": 0},
+            "principal point",
+        ),
+        (
+            {
+                "model": "pinhole", "width": 960, "height": 640, "fx": 700, "fy": 700, "cx": 0, "cy": 0,
+                "dist": [0, float("inf"), 0, 0],
+            },
+            "finite",
+        ),
         ({"model": "pinhole", "width": 960, "height": 640, "fx": "seven", "fy": 700, "cx": 0, "cy": 0}, "numbers"),
         ({"model": "pinhole", "width": 960, "height": 640, "fy": 700, "cx": 0, "cy": 0}, "fx"),
         ([1, 2, 3], "mapping"),

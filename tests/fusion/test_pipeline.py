@@ -99,7 +99,12 @@ def test_camera_removed_mid_run_tracking_continues(hover):
     removed = []
 
     def cb(p):
-        if not removed and p.stats()["per_camera_frames"].get(1, 0) and p.aligner.newest_ns and p.aligner.newest_ns >= t_cut:
+        if (
+            not removed
+            and p.stats()["per_camera_frames"].get(1, 0)
+            and p.aligner.newest_ns
+            and p.aligner.newest_ns >= t_cut
+        ):
             p.remove_camera(gone)
             removed.append(True)
 
@@ -175,7 +180,9 @@ def test_two_bodies_crossing_are_never_swapped():
 def test_loose_points_report_untracked_markers():
     ov = ["sim.sessions.both.quad.trajectory=hover", "sim.sessions.both.lframe.trajectory=static",
           "sim.sessions.both.lframe.position=[0.5, -0.5, 0.007]"]  # fmt: skip
-    sc = load_scenario("thesis", ov, session="both", duration=1.0, spurious={"static_per_camera": 0, "random_per_frame": 0.0})
+    sc = load_scenario(
+        "thesis", ov, session="both", duration=1.0, spurious={"static_per_camera": 0, "random_per_frame": 0.0}
+    )
     sim = simulate(sc)
     rep = replay(sc.arena, sim.frames)
     lp = rep.pipeline.loose_points
@@ -195,7 +202,11 @@ def test_bad_frames_are_counted_not_fatal(hover):
     p.push(f0)  # duplicate
     st = p.stats()
     assert st["unknown_camera"] == 1 and st["malformed"] == 1 and st["reordered"] == 1
-    p.push(BlobFrame(camera_id=1, seq=1, capture_ns=f0.capture_ns + 10_000_000, blobs=np.full((2, 4), np.nan, np.float32)))
+    p.push(
+        BlobFrame(
+            camera_id=1, seq=1, capture_ns=f0.capture_ns + 10_000_000, blobs=np.full((2, 4), np.nan, np.float32)
+        )
+    )
     assert p.stats()["frames"] == 5
 
 

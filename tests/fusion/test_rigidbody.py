@@ -1,4 +1,5 @@
-"""Rigid-body identification (visionpos/fusion/rigidbody.py); the Kabsch kernels are in tests/geometry/test_alignment.py."""
+"""Rigid-body identification (visionpos/fusion/rigidbody.py); the Kabsch kernels are in
+tests/geometry/test_alignment.py."""
 
 import numpy as np
 from scipy.spatial.transform import Rotation

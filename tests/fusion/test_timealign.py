@@ -132,21 +132,32 @@ def test_time_aligner_rules():
     assert before[0].cameras == (1, 2) and before[0].ref_ns == 100_500_000 and not before[0].compensate
 
     # rate limit: skip when the last fusion is recent and another camera is due soon
-    rl = TimeAligner("motion_compensated", 12 * MS, 10 * MS, 30 * MS, periods_ns={1: 10 * MS, 2: 10 * MS}, min_interval_ns=2 * MS)
+    rl = TimeAligner(
+        "motion_compensated", 12 * MS, 10 * MS, 30 * MS, periods_ns={1: 10 * MS, 2: 10 * MS}, min_interval_ns=2 * MS
+    )
     rl.add(1, 100 * MS)
     rl.add(2, 105 * MS)
     _, a = rl.add(1, 110 * MS)  # 5 ms after the last fusion: fuse
     assert a
     _, a = rl.add(2, 110_500_000)  # 0.5 ms after, camera 1's next frame is 9.5 ms away: fuse
     assert a
-    rl2 = TimeAligner("motion_compensated", 12 * MS, 10 * MS, 30 * MS, periods_ns={1: 10 * MS, 2: 10 * MS}, min_interval_ns=2 * MS)
+    rl2 = TimeAligner(
+        "motion_compensated", 12 * MS, 10 * MS, 30 * MS, periods_ns={1: 10 * MS, 2: 10 * MS}, min_interval_ns=2 * MS
+    )
     rl2.add(2, 99 * MS)
     rl2.add(1, 100 * MS)
     _, a = rl2.add(2, 109 * MS)  # fused at 100 ms: 9 ms ago -> fuse
     assert a
     _, a = rl2.add(1, 109_200_000)  # 0.2 ms after the last fusion; camera 2 next due at 119 ms -> fuse
     assert a
-    rl3 = TimeAligner("motion_compensated", 12 * MS, 10 * MS, 30 * MS, periods_ns={1: 10 * MS, 2: 10 * MS, 3: 10 * MS}, min_interval_ns=2 * MS)
+    rl3 = TimeAligner(
+        "motion_compensated",
+        12 * MS,
+        10 * MS,
+        30 * MS,
+        periods_ns={1: 10 * MS, 2: 10 * MS, 3: 10 * MS},
+        min_interval_ns=2 * MS,
+    )
     for cam, tc in ((1, 100 * MS), (2, 100_500_000), (3, 101 * MS)):
         rl3.add(cam, tc)
     _, a = rl3.add(1, 110 * MS)  # last fusion 9 ms ago: fuse

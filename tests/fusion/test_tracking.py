@@ -67,7 +67,9 @@ def test_predict_and_update_match_filterpy():
         f.predict_to(t)
         R_nom = rotvec_to_matrix(ref.x[9:12, 0]) @ R_nom  # the filter folds the rotation error
         assert np.allclose(f.P, ref.P, rtol=1e-9, atol=1e-12)
-        assert np.allclose(f.x[[0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 13, 14]], ref.x[[0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 13, 14], 0])
+        assert np.allclose(
+            f.x[[0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 13, 14]], ref.x[[0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 13, 14], 0]
+        )
         assert np.allclose(f.R_nom, R_nom, atol=1e-12)
         ref.x[9:12] = 0.0
         # a measurement near the prediction
@@ -95,7 +97,9 @@ def test_predict_and_update_match_filterpy():
             F[k, 6 + k] = 0.5 * h * h
         Q = np.zeros((15, 15))
         Q[0:9, 0:9] = Q_continuous_white_noise(3, h, f.s.jerk_psd * f.scale_p, block_size=3, order_by_dim=False)
-        Q[9:15, 9:15] = Q_continuous_white_noise(2, h, f.s.angular_accel_psd * f.scale_r, block_size=3, order_by_dim=False)
+        Q[9:15, 9:15] = Q_continuous_white_noise(
+            2, h, f.s.angular_accel_psd * f.scale_r, block_size=3, order_by_dim=False
+        )
         ref.predict(F=F, Q=Q)
         pose = [0, 1, 2, 9, 10, 11]
         assert np.allclose(cov, ref.P[np.ix_(pose, pose)], rtol=1e-9, atol=1e-15)

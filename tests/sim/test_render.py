@@ -27,7 +27,9 @@ def test_profile_matches_direct_integration():
     R, s = 2.5, 0.7
     for rho in (0.0, 1.0, 2.5, 3.3):
         f = lambda y, x: np.exp(-((x - rho) ** 2 + y**2) / (2 * s * s)) / (2 * np.pi * s * s)  # noqa: E731
-        val, _ = integrate.dblquad(f, -R, R, lambda x: -np.sqrt(R * R - x * x), lambda x: np.sqrt(R * R - x * x), epsabs=1e-10)
+        val, _ = integrate.dblquad(
+            f, -R, R, lambda x: -np.sqrt(R * R - x * x), lambda x: np.sqrt(R * R - x * x), epsabs=1e-10
+        )
         assert blurred_disc_profile(np.array([rho]), R, s)[0] == pytest.approx(val, abs=1e-7)
 
 

@@ -31,7 +31,9 @@ def _cv2_project(cam, pts: np.ndarray) -> np.ndarray:
     """Independent projection through OpenCV (world points (N, 3) -> pixels (N, 2))."""
     rvec, _ = cv2.Rodrigues(cam.R)
     if cam.model.kind == "fisheye":
-        uv, _ = cv2.fisheye.projectPoints(pts.reshape(-1, 1, 3), rvec, cam.t.reshape(3, 1), cam.model.K, cam.model.dist[:4])
+        uv, _ = cv2.fisheye.projectPoints(
+            pts.reshape(-1, 1, 3), rvec, cam.t.reshape(3, 1), cam.model.K, cam.model.dist[:4]
+        )
     else:
         uv, _ = cv2.projectPoints(pts.reshape(-1, 1, 3), rvec, cam.t.reshape(3, 1), cam.model.K, cam.model.dist)
     return uv.reshape(-1, 2)
@@ -192,7 +194,9 @@ def test_thesis_arena_matches_the_thesis():
     assert np.allclose(sorted(set(np.round(np.abs(np.diff(c[:, 0])), 6)) - {0.0}), [4.24])
     assert np.allclose(np.ptp(c[:, 0]), 4.24) and np.allclose(np.ptp(c[:, 1]), 4.82)
     # a 1.6 m x 1.6 m x 1.7 m flight volume (the thesis square and well beyond) is seen by all four
-    g = np.array(list(itertools.product(np.linspace(-0.8, 0.8, 9), np.linspace(-0.8, 0.8, 9), np.linspace(0.3, 2.0, 6))))
+    g = np.array(
+        list(itertools.product(np.linspace(-0.8, 0.8, 9), np.linspace(-0.8, 0.8, 9), np.linspace(0.3, 2.0, 6)))
+    )
     assert all(cam.visible(g, margin=5).all() for cam in a.cameras)
     quad = a.bodies[0].markers
     assert 0.16 < np.max(np.linalg.norm(quad[:, None] - quad[None], axis=-1)) < 0.20
@@ -217,7 +221,11 @@ def test_bodies_are_distinguishable(name):
     for d1, d2 in itertools.combinations(ds, 2):
         assert len(d1) != len(d2) or np.abs(d1 - d2).max() >= 0.01
     # with one marker hidden: every marker triangle differs from every other by >= 1 cm in a side
-    tris = [_sorted_distances(b.markers[list(c)]) for b in a.bodies for c in itertools.combinations(range(len(b.markers)), 3)]
+    tris = [
+        _sorted_distances(b.markers[list(c)])
+        for b in a.bodies
+        for c in itertools.combinations(range(len(b.markers)), 3)
+    ]
     for t1, t2 in itertools.combinations(tris, 2):
         assert np.abs(t1 - t2).max() >= 0.01
 
@@ -311,7 +319,9 @@ def test_frame_timing_drops_and_jitter_statistics():
 
 
 def test_occlusion_by_disc_and_marker_normal():
-    bodies = [{"name": "probe", "id": 1, "markers": [[0.0, 0.0, 0.05], [0.0, 0.0, -0.05], [0.3, 0.0, 0.0], [-0.3, 0.0, 0.0]]}]
+    bodies = [
+        {"name": "probe", "id": 1, "markers": [[0.0, 0.0, 0.05], [0.0, 0.0, -0.05], [0.3, 0.0, 0.0], [-0.3, 0.0, 0.0]]}
+    ]
     sim = dict(QUIET, sessions={"s": {"probe": {"trajectory": "static", "position": [0.0, 0.0, 0.8]}}})
     # a 20 cm disc between the lower marker and every (higher) camera; no normal cut
     sim["occlusion"] = {"disc_radius": 0.2, "normal_cutoff_deg": 180}
@@ -323,7 +333,10 @@ def test_occlusion_by_disc_and_marker_normal():
     for cutoff, want in ((55, []), (70, [0, 1])):
         sim["occlusion"] = {"disc_radius": 0.0, "normal_cutoff_deg": cutoff}
         res = simulate(scenario_from_arena(_arena_with(sim, bodies)))
-        elev = [np.degrees(np.arccos((c.center - [0, 0, 0.8])[2] / np.linalg.norm(c.center - [0, 0, 0.8]))) for c in res.scenario.cameras]
+        elev = [
+            np.degrees(np.arccos((c.center - [0, 0, 0.8])[2] / np.linalg.norm(c.center - [0, 0, 0.8])))
+            for c in res.scenario.cameras
+        ]
         assert all(55 < e < 70 for e in elev)
         for tr in res.frame_truth:
             # markers 2 and 3 are off-axis (normals lean outward): check 0 and 1 only
@@ -459,7 +472,10 @@ def test_sim_cli_writes_a_replayable_recording(tmp_path, capsys):
     from visionpos.recording import RecordingReader
 
     out = tmp_path / "s.mcap"
-    rc = main(["sim", "--scenario", "thesis", "--duration", "1", "--seed", "5", "--set", "sim.centroid_noise_px=0.1", "--out", str(out)])
+    rc = main(
+        ["sim", "--scenario", "thesis", "--duration", "1", "--seed", "5", "--set", "sim.centroid_noise_px=0.1",
+         "--out", str(out)]
+    )
     assert rc == 0
     text = capsys.readouterr().out
     assert "frames" in text and "total" in text

@@ -277,7 +277,9 @@ def test_station_process_streams_images_to_a_loopback_server(tmp_path: Path):
     proc = subprocess.Popen([sys.executable, "-m", "stations.cli", "--config", str(tmp_path / "station.yaml"),
                              "--frames", "150"], cwd=root, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
-        assert wait_for(lambda: len(server.frames) >= 20, timeout=20.0), proc.stdout.read1().decode() if proc.poll() is not None else "no frames"
+        assert wait_for(lambda: len(server.frames) >= 20, timeout=20.0), (
+            proc.stdout.read1().decode() if proc.poll() is not None else "no frames"
+        )
         f = server.frames[-1]
         assert (f.station_id, f.camera_id) == (1, 2) and len(f.blobs) == 3
         assert proc.wait(timeout=20) == 0

@@ -193,7 +193,11 @@ def test_compiled_centroids_equal_the_numpy_reference(monkeypatch):
     for trial in range(120):
         n = int(rng.integers(1, 12))
         edge = trial % 2 == 1
-        c = rng.uniform(1.0, [W - 2.0, H - 2.0], (n, 2)) if edge else centers_grid(n, rng, sep=14.0 if trial % 3 else 28.0)
+        c = (
+            rng.uniform(1.0, [W - 2.0, H - 2.0], (n, 2))
+            if edge
+            else centers_grid(n, rng, sep=14.0 if trial % 3 else 28.0)
+        )
         img = render_blobs(W, H, c, rng.uniform(1.5, 24.0, n), rng.uniform(40, 300, n), rng, read_noise_dn=3.0)
         out = []
         for compiled in (True, False):

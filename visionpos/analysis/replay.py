@@ -281,7 +281,9 @@ def replay_log(
 
     p = Path(log)
     if not p.exists():
-        raise ConfigError(str(p), "(file)", "no such recording; make one with `visionpos sim --out` or `visionpos record`")
+        raise ConfigError(
+            str(p), "(file)", "no such recording; make one with `visionpos sim --out` or `visionpos record`"
+        )
     reader = RecordingReader(p)
     arena = load_settings(reader.config, config, overrides)
     meta = reader.meta or {}

@@ -40,7 +40,9 @@ def parse_grid(items: list[str]) -> list[tuple[str, list[Any]]]:
         key, sep, values = item.partition("=")
         key = key.strip()
         if not sep or not key or not values.strip():
-            raise ConfigError("--grid", item, "expected key=v1,v2,..., e.g. --grid fusion.time_alignment=naive,motion_compensated")
+            raise ConfigError(
+                "--grid", item, "expected key=v1,v2,..., e.g. --grid fusion.time_alignment=naive,motion_compensated"
+            )
         vals = [yaml.safe_load(v.strip()) for v in values.split(",") if v.strip()]
         if any(k == key for k, _ in out):
             raise ConfigError("--grid", key, "given twice; list all its values in one --grid")

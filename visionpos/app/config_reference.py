@@ -1,4 +1,5 @@
-"""Render docs/configuration.md from the declarations: `python -m visionpos.app.config_reference > docs/configuration.md`.
+"""Render docs/configuration.md from the declarations:
+`python -m visionpos.app.config_reference > docs/configuration.md`.
 
 tests/config/test_settings.py checks that the committed file equals this output.
 """

@@ -347,7 +347,11 @@ async def _status_loop(server, bridge, collector: Collector, stations: list[SimS
             try:
                 vs = bridge.vehicle(b.name).stats()
                 lat = vs["latency_capture_ms_p50"]
-                state += f" | capture->MAVLink p50 {lat:4.1f} ms, {vs['sent']} sent" if np.isfinite(lat) else " | nothing sent yet"
+                state += (
+                    f" | capture->MAVLink p50 {lat:4.1f} ms, {vs['sent']} sent"
+                    if np.isfinite(lat)
+                    else " | nothing sent yet"
+                )
             except KeyError:
                 pass
             parts.append(f"{b.name}: {state}")
@@ -440,7 +444,8 @@ def _summary(arena, sc, shift, t_start, t_stop, collector: Collector, bridge, au
         "latency_ms": M.percentiles_ms(send, (50, 99)),
         "latency_to_autopilot_ms": M.percentiles_ms(aplat, (50, 99)),
         "stations": stations_out,
-        "server": {k: health.get(k) for k in ("packets", "frames_accepted", "frames_shed", "malformed", "unknown", "pipeline_errors",
+        "server": {k: health.get(k) for k in ("packets", "frames_accepted", "frames_shed", "malformed", "unknown",
+                                              "pipeline_errors",
                                               "tick_cost_max_ms")},
         "pipeline": {k: v for k, v in (health.get("pipeline") or {}).items() if isinstance(v, (int, float, str))},
     })

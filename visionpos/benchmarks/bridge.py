@@ -160,10 +160,13 @@ def run(quick: bool = False) -> BenchResult:
     res.tables["Bridge encode cost (one core, CPU time per message)"] = "\n".join([
         "| step | µs |",
         "|---|---|",
-        f"| convert BodyState -> NED/FRD (back-propagation, pivot, covariances) | {enc['bridge_convert_only_us']:.1f} |",
-        f"| convert + VISION_POSITION_ESTIMATE pack ({enc['bridge_vpe_bytes']:.0f} bytes) | {enc['bridge_encode_vpe_us']:.1f} |",
+        "| convert BodyState -> NED/FRD (back-propagation, pivot, covariances) | "
+        f"{enc['bridge_convert_only_us']:.1f} |",
+        f"| convert + VISION_POSITION_ESTIMATE pack ({enc['bridge_vpe_bytes']:.0f} bytes) | "
+        f"{enc['bridge_encode_vpe_us']:.1f} |",
         f"| convert + VISION_POSITION_ESTIMATE pack, signed | {enc['bridge_encode_vpe_signed_us']:.1f} |",
-        f"| convert + ODOMETRY pack ({enc['bridge_odometry_bytes']:.0f} bytes) | {enc['bridge_encode_odometry_us']:.1f} |",
+        f"| convert + ODOMETRY pack ({enc['bridge_odometry_bytes']:.0f} bytes) | "
+        f"{enc['bridge_encode_odometry_us']:.1f} |",
         f"| pose stream JSON, 3 bodies | {enc['pose_stream_json_us_3_bodies']:.1f} |",
         f"| pose stream binary, 3 bodies | {enc['pose_stream_binary_us_3_bodies']:.1f} |",
     ])
@@ -176,12 +179,16 @@ def run(quick: bool = False) -> BenchResult:
         lines.append(
             f"| {r['vehicle']} | {r['configured_hz']:.0f} | {r['achieved_hz']:.1f} | {r['sent']} | {r['received']} "
             f"| {r['stamps_under_20ms']} | {r['gaps_over_400ms']} | {r['max_gap_ms']:.1f} "
-            f"| {r['bridge_ms_p50']:.2f} / {r['bridge_ms_p99']:.2f} | {r['capture_ms_p50']:.2f} / {r['capture_ms_p99']:.2f} |"
+            f"| {r['bridge_ms_p50']:.2f} / {r['bridge_ms_p99']:.2f} "
+            f"| {r['capture_ms_p50']:.2f} / {r['capture_ms_p99']:.2f} |"
         )
-    res.tables[f"Bridge on loopback: {N_VEHICLES} vehicles, 100 Hz in, {duration:.0f} s, fake autopilots"] = "\n".join(lines)
+    res.tables[f"Bridge on loopback: {N_VEHICLES} vehicles, 100 Hz in, {duration:.0f} s, fake autopilots"] = (
+        "\n".join(lines)
+    )
     res.notes.append(
         f"Server-loop cost of Bridge.publish for {N_VEHICLES} vehicles: p50 "
-        f"{loop['bridge_publish_us_p50_3_vehicles']:.1f} µs, p99 {loop['bridge_publish_us_p99_3_vehicles']:.1f} µs (wall time). "
+        f"{loop['bridge_publish_us_p50_3_vehicles']:.1f} µs, "
+        f"p99 {loop['bridge_publish_us_p99_3_vehicles']:.1f} µs (wall time). "
         "Capture->send here is the feeder loop's wake-up lateness plus what the bridge adds (publish->send); "
         "on a live server add the pipeline latency before publish."
     )

@@ -23,7 +23,9 @@ from visionpos.benchmarks import BenchResult
 RESOLUTIONS = ((640, 480), (960, 640), (1280, 960))
 
 
-def random_centers(n: int, width: int, height: int, rng: np.random.Generator, margin: float = 20.0, min_sep: float = 30.0) -> np.ndarray:
+def random_centers(
+    n: int, width: int, height: int, rng: np.random.Generator, margin: float = 20.0, min_sep: float = 30.0
+) -> np.ndarray:
     """n well-separated sub-pixel centres, (n, 2)."""
     pts: list[np.ndarray] = []
     while len(pts) < n:
@@ -33,7 +35,9 @@ def random_centers(n: int, width: int, height: int, rng: np.random.Generator, ma
     return np.array(pts)
 
 
-def accuracy(diameter: float, read_noise: float, peak: float = 200.0, frames: int = 40, seed: int = 1) -> dict[str, float]:
+def accuracy(
+    diameter: float, read_noise: float, peak: float = 200.0, frames: int = 40, seed: int = 1
+) -> dict[str, float]:
     """Centroid error statistics for one blob size and noise level.
 
     Returns bias (|mean error| over x and y, the larger), rms (2-D per-axis
@@ -68,7 +72,9 @@ def accuracy(diameter: float, read_noise: float, peak: float = 200.0, frames: in
     }
 
 
-def speed(width: int, height: int, frames_per_run: int, runs: int, seed: int = 2, numpy_path: bool = False) -> tuple[float, float]:
+def speed(
+    width: int, height: int, frames_per_run: int, runs: int, seed: int = 2, numpy_path: bool = False
+) -> tuple[float, float]:
     """(detector seconds per frame, threshold-pass seconds per frame) on
     frames with 4..12 blobs of 2..8 px, one core. numpy_path: time the
     vectorised numpy centroids (what runs without numba) instead of the compiled loop.
@@ -90,7 +96,9 @@ def speed(width: int, height: int, frames_per_run: int, runs: int, seed: int = 2
         D.COMPILED = compiled
 
 
-def _speed(det, width: int, height: int, frames_per_run: int, runs: int, seed: int, render_blobs) -> tuple[float, float]:
+def _speed(
+    det, width: int, height: int, frames_per_run: int, runs: int, seed: int, render_blobs
+) -> tuple[float, float]:
     rng = np.random.default_rng(seed)
     frames = []
     for i in range(8):
@@ -128,7 +136,9 @@ def run(quick: bool = False) -> BenchResult:
             rows.append(f"| {w}x{h} | {t * 1e6:.1f} | {1 / t:.0f} | {floor * 1e6:.1f} | {t / floor:.1f} |")
         t, floor = speed(960, 640, per_run, runs, numpy_path=True)
         res.metrics["detector_fps_960x640_numpy_path"] = round(1.0 / t, 1)
-        rows.append(f"| 960x640, numpy path (no numba) | {t * 1e6:.1f} | {1 / t:.0f} | {floor * 1e6:.1f} | {t / floor:.1f} |")
+        rows.append(
+            f"| 960x640, numpy path (no numba) | {t * 1e6:.1f} | {1 / t:.0f} | {floor * 1e6:.1f} | {t / floor:.1f} |"
+        )
         res.tables["Detector speed (one core, 4-12 blobs of 2-8 px)"] = "\n".join(rows)
 
         diameters = (2, 3, 4, 6, 8)
@@ -154,7 +164,8 @@ def run(quick: bool = False) -> BenchResult:
             "diameter, 0.6 px PSF blur, peak 200 DN over a 6 DN background, shot noise 4 e-/DN, read noise as "
             "listed), matched to the true centres; bias = larger |mean error| of x and y, RMS over both axes. "
             "detector_*_good_snr = worst cell at read noise <= 3 DN. Speed: cv2.setNumThreads(1); detector and one "
-            "cv2.threshold pass (the memory-bound floor) timed on the thread CPU clock in alternating runs over the same 8 frames, best run each."
+            "cv2.threshold pass (the memory-bound floor) timed on the thread CPU clock in alternating runs "
+            "over the same 8 frames, best run each."
         )
         return res
     finally:

@@ -43,7 +43,9 @@ def body_state(name: str = "body1", body_id: int = 1, *, capture_ns: int | None 
         name=name, body_id=body_id, time_ns=c + dt_ns, capture_ns=c,
         position=np.asarray(position, float), quaternion=np.asarray(quaternion, float),
         velocity=np.asarray(velocity, float), angular_velocity=np.asarray(angular_velocity, float),
-        covariance=np.diag([1e-6, 1e-6, 1e-6, 1e-5, 1e-5, 1e-5]) if covariance is None else np.asarray(covariance, float),
+        covariance=(
+            np.diag([1e-6, 1e-6, 1e-6, 1e-5, 1e-5, 1e-5]) if covariance is None else np.asarray(covariance, float)
+        ),
         velocity_covariance=np.eye(3) * 1e-4 if velocity_covariance is None else np.asarray(velocity_covariance, float),
         tracked=tracked, n_markers=n_markers, n_cameras=n_cameras, residual_mm=residual_mm,
         reset_counter=reset_counter,

@@ -100,7 +100,9 @@ def errors(rep: Replay, truth_at, name: str, skip_s: float = 0.5) -> dict[str, f
     }
 
 
-def pose_crb(cameras, markers_world: np.ndarray, origin: np.ndarray, sigma_px: float, visible: np.ndarray) -> np.ndarray:
+def pose_crb(
+    cameras, markers_world: np.ndarray, origin: np.ndarray, sigma_px: float, visible: np.ndarray
+) -> np.ndarray:
     """Cramer-Rao bound (6, 6) of a rigid-body pose [p, world rotation vector] from one snapshot.
 
     markers_world: (M, 3); origin: (3,) body origin; visible: (M, V) which
@@ -167,7 +169,11 @@ def _static(quick: bool, res: BenchResult) -> None:
         P = np.array([raws[k][1] for k in t])
         R = np.array([raws[k][2] for k in t])
         raw_pos = float(np.sqrt(((P - p_true[0]) ** 2).sum(1).mean()) * 1e3)
-        raw_rot = float(np.degrees(np.sqrt(((Rotation.from_matrix(R) * Rotation.from_quat(q_true[0]).inv()).magnitude() ** 2).mean())))
+        raw_rot = float(
+            np.degrees(
+                np.sqrt(((Rotation.from_matrix(R) * Rotation.from_quat(q_true[0]).inv()).magnitude() ** 2).mean())
+            )
+        )
         e = errors(rep, sc.truth_at, "quad")
         # jitter: high-frequency noise per axis (second differences), raw poses vs outputs
         ok = rep.tracked["quad"] & (rep.times_ns >= t[0])
@@ -189,14 +195,19 @@ def _static(quick: bool, res: BenchResult) -> None:
             res.metrics["fusion_static_filtered_jitter_mm"] = out_jit
             res.metrics["fusion_static_jitter_filtered_over_raw"] = out_jit / raw_jit
     tbl = [
-        f"Cramer-Rao bound of one snapshot (4 cameras, {sigma} px): position {crb_pos_mm:.3f} mm, rotation {crb_rot_deg:.3f} deg.",
+        f"Cramer-Rao bound of one snapshot (4 cameras, {sigma} px): position {crb_pos_mm:.3f} mm, "
+        f"rotation {crb_rot_deg:.3f} deg.",
         "",
-        "| time alignment | raw pose RMS (mm) | raw / CRB | filtered output RMS (mm) | raw rotation (deg) | filtered rotation (deg) "
+        "| time alignment | raw pose RMS (mm) | raw / CRB | filtered output RMS (mm) | raw rotation (deg) "
+        "| filtered rotation (deg) "
         "| raw std (mm/axis) | raw jitter (mm/axis) | output jitter (mm/axis) |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for mode, rp, fp, rr, fr, rs, rj, oj in rows:
-        tbl.append(f"| {mode} | {rp:.3f} | {rp / crb_pos_mm:.2f} | {fp:.3f} | {rr:.3f} | {fr:.3f} | {rs:.3f} | {rj:.3f} | {oj:.3f} |")
+        tbl.append(
+            f"| {mode} | {rp:.3f} | {rp / crb_pos_mm:.2f} | {fp:.3f} | {rr:.3f} | {fr:.3f} | "
+            f"{rs:.3f} | {rj:.3f} | {oj:.3f} |"
+        )
     tbl += [
         "",
         "Jitter is the high-frequency noise per axis (metrics.position_jitter: second differences of consecutive "
@@ -204,7 +215,10 @@ def _static(quick: bool, res: BenchResult) -> None:
         "'raw std' (the static raw error per axis) is the fairer raw figure. The filtered RMS against truth also holds "
         "the slow wander of a filter averaging a finite window.",
     ]
-    res.tables["Fusion: static body, thesis arena, sigma 0.2 px (raw = one Kabsch pose per fusion; filtered = output predicted to the 100 Hz tick)"] = "\n".join(tbl)
+    res.tables[
+        "Fusion: static body, thesis arena, sigma 0.2 px "
+        "(raw = one Kabsch pose per fusion; filtered = output predicted to the 100 Hz tick)"
+    ] = "\n".join(tbl)
 
 
 def _fast(quick: bool, res: BenchResult) -> None:
@@ -242,7 +256,8 @@ def _fast(quick: bool, res: BenchResult) -> None:
         res.metrics[f"fusion_fast_tracked_fraction{suffix}"] = trk
         tbl.append(f"| {mode} | {pos:.2f} | {rot:.3f} | {100 * trk:.1f} % |")
     res.tables[
-        f"Fusion: fast trajectory (thesis arena, aggressive circle at 3 m/s peak, 4 cameras at 100 Hz with random phases; "
+        f"Fusion: fast trajectory (thesis arena, aggressive circle at 3 m/s peak, "
+        f"4 cameras at 100 Hz with random phases; "
         f"{len(seeds)} seeds x {dur:.0f} s, output at 100 Hz vs truth at the tick)"
     ] = "\n".join(tbl)
 
@@ -260,7 +275,10 @@ def _arena8(quick: bool, res: BenchResult) -> None:
         e = errors(rep, sc.truth_at, b.name)
         res.metrics[f"fusion_arena8_{b.name}_pos_rmse_mm"] = e["pos_rmse_mm"]
         res.metrics[f"fusion_arena8_{b.name}_rot_rmse_deg"] = e["rot_rmse_deg"]
-        tbl.append(f"| {b.name} | {kinds.get(b.name, '')} | {e['pos_rmse_mm']:.2f} | {e['rot_rmse_deg']:.3f} | {100 * e['tracked_fraction']:.1f} % |")
+        tbl.append(
+            f"| {b.name} | {kinds.get(b.name, '')} | {e['pos_rmse_mm']:.2f} | {e['rot_rmse_deg']:.3f} | "
+            f"{100 * e['tracked_fraction']:.1f} % |"
+        )
     res.tables["Fusion: three drones on arena8 (8 cameras, 100/120 Hz, output at 100 Hz vs truth)"] = "\n".join(tbl)
 
 
@@ -324,11 +342,15 @@ def _latency(quick: bool, res: BenchResult) -> None:
         [
             "| cost | p50 (ms) | p99 (ms) | max (ms) |",
             "|---|---|---|---|",
-            f"| {what} | {np.percentile(pu, 50) / 1e3:.3f} | {np.percentile(pu, 99) / 1e3:.3f} | {pu.max() / 1e3:.3f} |",
-            f"| tick (2 bodies) | {np.percentile(tu, 50) / 1e3:.3f} | {np.percentile(tu, 99) / 1e3:.3f} | {tu.max() / 1e3:.3f} |",
-            f"| {what}, wall clock | {np.percentile(wu, 50) / 1e3:.3f} | {np.percentile(wu, 99) / 1e3:.3f} | {wu.max() / 1e3:.3f} |",
+            f"| {what} | {np.percentile(pu, 50) / 1e3:.3f} | {np.percentile(pu, 99) / 1e3:.3f} | "
+            f"{pu.max() / 1e3:.3f} |",
+            f"| tick (2 bodies) | {np.percentile(tu, 50) / 1e3:.3f} | {np.percentile(tu, 99) / 1e3:.3f} | "
+            f"{tu.max() / 1e3:.3f} |",
+            f"| {what}, wall clock | {np.percentile(wu, 50) / 1e3:.3f} | {np.percentile(wu, 99) / 1e3:.3f} | "
+            f"{wu.max() / 1e3:.3f} |",
             "",
-            "CPU time of the fusion thread (time.thread_time), which a busy machine does not inflate; the wall-clock row"
+            "CPU time of the fusion thread (time.thread_time), which a busy machine does not inflate; "
+            "the wall-clock row"
             " includes preemption by whatever else runs on the machine.",
             f"{len(pu)} packets, {st['fusions']} fusions, {st['measurements']} pose updates.",
         ]
@@ -373,7 +395,8 @@ def _throughput(quick: bool, res: BenchResult) -> None:
     res.metrics["fusion_packets_per_s_arena8"] = float(rows[0][2])
     res.metrics["fusion_packets_per_s_arena8_375hz"] = float(rows[1][2])
     tbl = [
-        "| cameras | real-time load (packets/s) | processed (packets per CPU-second) | fusions | frames joined to the next fusion | bodies tracked |",
+        "| cameras | real-time load (packets/s) | processed (packets per CPU-second) | fusions "
+        "| frames joined to the next fusion | bodies tracked |",
         "|---|---|---|---|---|---|",
     ]
     for label, load, rate, fu, de, tr, nb in rows:
@@ -422,7 +445,8 @@ def run(quick: bool = False) -> BenchResult:
     _ingest(quick, res)
     res.notes.append(
         "Fusion numbers come from the simulator (visionpos/sim) driven through FusionPipeline exactly as the server "
-        "drives it (frames in receive order, ticks at 100 Hz); timings are CPU time of the one fusion thread (time.thread_time), "
+        "drives it (frames in receive order, ticks at 100 Hz); "
+        "timings are CPU time of the one fusion thread (time.thread_time), "
         "so other load on the machine does not inflate them (it still slows them somewhat through shared caches)."
     )
     return res

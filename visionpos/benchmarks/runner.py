@@ -125,7 +125,10 @@ def to_markdown(results: dict[str, tuple[BenchResult, float]], command: str, qui
     goals = goal_rows(results)
     if goals:
         out += ["## Goals from the issues", "", "| goal | measured | target | met |", "|---|---|---|---|"]
-        out += [f"| {g} | {format_value(v)} | {op} {format_value(t)} | {'yes' if ok else '**no**'} |" for g, v, op, t, ok in goals]
+        out += [
+            f"| {g} | {format_value(v)} | {op} {format_value(t)} | {'yes' if ok else '**no**'} |"
+            for g, v, op, t, ok in goals
+        ]
         out.append("")
     for group, (res, elapsed) in results.items():
         out += [f"## {group}", "", f"Run time {elapsed:.1f} s.", ""]

@@ -262,7 +262,8 @@ def initial_poses(
             raise CalibrationError(
                 f"camera(s) {', '.join(names[v] for v in missing)} cannot be connected to "
                 f"{', '.join(names[v] for v in sorted(done))} (need >= {min_shared} wand frames seen together):"
-                f"{detail}{why}\nwave the wand where each of them and at least one connected camera see it at the same time"
+                f"{detail}{why}\nwave the wand where each of them and at least one connected camera "
+                "see it at the same time"
             )
     return R, t, used
 
@@ -757,5 +758,7 @@ def compare_cameras(
         s, Ra, ta = 1.0, np.eye(3), np.zeros(3)
     cerr = np.linalg.norm(s * Ce @ Ra.T + ta - Ct, axis=1)
     # camera rotation in the aligned world: R_e Ra^T
-    rerr = np.array([np.degrees(Rotation.from_matrix(t.R @ (e.R @ Ra.T).T).magnitude()) for e, t in zip(estimated, truth)])
+    rerr = np.array(
+        [np.degrees(Rotation.from_matrix(t.R @ (e.R @ Ra.T).T).magnitude()) for e, t in zip(estimated, truth)]
+    )
     return cerr, rerr, float(s)

@@ -101,7 +101,9 @@ class Section:
             raise self.error(key, "expected a list")
         return [Section(x, self.source, f"{self._key(key)}[{i}]") for i, x in enumerate(v)]
 
-    def number(self, key: str, default: float | None = None, *, min: float | None = None, max: float | None = None) -> float:
+    def number(
+        self, key: str, default: float | None = None, *, min: float | None = None, max: float | None = None
+    ) -> float:
         if key not in self.data:
             if default is None:
                 raise self.error(key, "required number is missing")

@@ -69,7 +69,9 @@ BODY = section(
     "bodies[i]",
     "A rigid body fusion tracks: its markers in the body frame (m; x forward, y left, z up).",
     Setting("name", "text", doc="unique name (vehicles and the pose stream refer to it)"),
-    Setting("id", "integer", None, "body id in outputs (1..255)", min=1, max=255, default_doc="position in the list + 1"),
+    Setting(
+        "id", "integer", None, "body id in outputs (1..255)", min=1, max=255, default_doc="position in the list + 1"
+    ),
     Setting("markers", "array", doc="marker centres (M, 3) in m, at least 3, no two closer than 10 mm",
             shape=(None, 3)),
     Setting("marker_diameter", "number", 0.014, "marker sphere diameter (m)", min=0.001),

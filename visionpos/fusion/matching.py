@@ -59,14 +59,17 @@ class Projector:
         self.cos_max = float(np.cos(m.max_theta))
         # all of it in one array for the compiled per-frame call: R (9), t (3), intrinsics (6),
         # dist (8), cos_max, fisheye (1.0 / 0.0)
-        self.packed = np.concatenate([self.R.ravel(), self.t, self.intrinsics, self.dist, [self.cos_max, float(self.fisheye)]])
+        self.packed = np.concatenate(
+            [self.R.ravel(), self.t, self.intrinsics, self.dist, [self.cos_max, float(self.fisheye)]]
+        )
 
     def undistort(self, pixels: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) float64 -> normalised coordinates (N, 2), as camera.model.undistort_points."""
         return undistort_pixels(pixels, self.intrinsics, self.dist, self.fisheye)
 
     def project(self, points_world: np.ndarray, margin: float = 0.0) -> np.ndarray:
-        """(N, 3) world points -> (N, 2) pixels; NaN when behind, outside the lens model or off the sensor (+ margin)."""
+        """(N, 3) world points -> (N, 2) pixels; NaN when behind, outside the lens model or off the
+        sensor (+ margin)."""
         X = np.ascontiguousarray(points_world, dtype=np.float64).reshape(-1, 3)
         return project_points(X, self.R, self.t, self.intrinsics, self.dist, self.fisheye, self.cos_max, float(margin))
 
@@ -112,7 +115,8 @@ def associate(predicted: np.ndarray, blobs: np.ndarray, gate: float) -> np.ndarr
     M = len(predicted)
     if M == 0 or len(blobs) == 0:
         return np.full(M, -1, dtype=np.int64)
-    return associate_blobs(np.ascontiguousarray(predicted, dtype=np.float64), np.ascontiguousarray(blobs[:, :2], dtype=np.float64),
+    return associate_blobs(np.ascontiguousarray(predicted, dtype=np.float64),
+                          np.ascontiguousarray(blobs[:, :2], dtype=np.float64),
                       float(gate) * float(gate))
 
 
@@ -302,7 +306,11 @@ def triangulate_irls(xn, R, t, f, offsets, has_offsets, iterations):
                 if seen[v]:
                     z = R[v, 2, 0] * x0 + R[v, 2, 1] * x1 + R[v, 2, 2] * x2 + t[v, 2]
                     if has_offsets:
-                        z += R[v, 2, 0] * offsets[p, v, 0] + R[v, 2, 1] * offsets[p, v, 1] + R[v, 2, 2] * offsets[p, v, 2]
+                        z += (
+                            R[v, 2, 0] * offsets[p, v, 0]
+                            + R[v, 2, 1] * offsets[p, v, 1]
+                            + R[v, 2, 2] * offsets[p, v, 2]
+                        )
                     w[v] = f[v] / max(z, 1e-6)
         ss = 0.0
         for v in range(V):
@@ -411,7 +419,9 @@ def _match_unlabeled(pts, start, R, t, f, max_ray_distance, max_residual_px):
         for b in range(a + 1, V):
             if start[b + 1] == start[b]:
                 continue
-            dist, mid = ray_distances(centres[a], rays[start[a] : start[a + 1]], centres[b], rays[start[b] : start[b + 1]])
+            dist, mid = ray_distances(
+                centres[a], rays[start[a] : start[a + 1]], centres[b], rays[start[b] : start[b + 1]]
+            )
             for i in range(dist.shape[0]):
                 for j in range(dist.shape[1]):
                     if dist[i, j] < max_ray_distance:

@@ -117,7 +117,8 @@ class FusionPipeline:
         self.arena = arena
         if len(arena.cameras) < 2:
             raise ConfigError(arena.source, "cameras", f"fusion needs at least 2 cameras, the arena has "
-                              f"{len(arena.cameras)}; add the calibrated cameras (`visionpos calibrate wand` writes them)")
+                              f"{len(arena.cameras)}; add the calibrated cameras "
+                              "(`visionpos calibrate wand` writes them)")
         self.settings = parse_fusion_settings(arena, settings)
         st = self.settings
         self.models = [BodyModel(b.name, b.id, np.asarray(b.markers, float)) for b in arena.bodies]
@@ -125,7 +126,9 @@ class FusionPipeline:
         problems = layout_ambiguities(self.models, 0.5 * st.identify_tolerance_m)
         if problems:
             raise ConfigError(
-                arena.source, "bodies", "; ".join(problems) + ". Move a marker so every body's distances differ by > 1 cm."
+                arena.source,
+                "bodies",
+                "; ".join(problems) + ". Move a marker so every body's distances differ by > 1 cm.",
             )
         sizes = [len(m.markers) for m in self.models]
         self._marker_start = np.concatenate([[0], np.cumsum(sizes)]).astype(int)  # body b: rows start[b]:start[b + 1]
@@ -176,7 +179,8 @@ class FusionPipeline:
         self._last_img_ns = -(1 << 62)
         # a frame takes part in about (frame period / fusion spacing) fusions at most
         self._max_reuse = max(1.0, (st.window_ns / 1.2) / max(st.min_fusion_interval_ns, 1))
-        self.last_raw: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # body -> (ref_ns, position, R) of the last Kabsch pose
+        # body -> (ref_ns, position, R) of the last Kabsch pose
+        self.last_raw: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
         self._stats: dict[str, int] = {
             "frames": 0,
             "fusions": 0,
@@ -370,7 +374,9 @@ class FusionPipeline:
             matched = ident.point_index >= 0
             n_id = int(matched.sum())
             tr.marker_var = max(ident.rms**2 * n_id / max(n_id - 2, 1), st.kalman.marker_sigma_m**2)
-            tr.filter.initialize(ref, ident.t, ident.R, pose_measurement_cov(pts[ident.point_index[matched]], ident.t, tr.marker_var))
+            tr.filter.initialize(
+                ref, ident.t, ident.R, pose_measurement_cov(pts[ident.point_index[matched]], ident.t, tr.marker_var)
+            )
             tr.tracked = True
             tr.first_reject_ns = None
             tr.last_update_ns = ref

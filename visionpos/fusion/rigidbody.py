@@ -61,7 +61,9 @@ class Identification:
         return int((self.point_index >= 0).sum())
 
 
-def _hypotheses(points: np.ndarray, D: np.ndarray, model: BodyModel, tol: float) -> list[tuple[int, float, np.ndarray, np.ndarray, np.ndarray]]:
+def _hypotheses(
+    points: np.ndarray, D: np.ndarray, model: BodyModel, tol: float
+) -> list[tuple[int, float, np.ndarray, np.ndarray, np.ndarray]]:
     """All consistent placements of one body among points.
 
     Returns (n_markers, rms, point_index (M,), R, t) tuples.

@@ -174,7 +174,13 @@ def _quad3(S: np.ndarray, y: np.ndarray) -> float:
 
 @njit
 def _kf_update(
-    x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, position: np.ndarray, R: np.ndarray, cov: np.ndarray, gate_chi2: float
+    x: np.ndarray,
+    P: np.ndarray,
+    R_nom: np.ndarray,
+    position: np.ndarray,
+    R: np.ndarray,
+    cov: np.ndarray,
+    gate_chi2: float,
 ) -> tuple[bool, float, float, float]:
     """Fuse a pose measurement into x (15,), P (15, 15), R_nom (3, 3) in place (Joseph form).
 
@@ -207,8 +213,8 @@ def _kf_update(
     for i in range(N_STATE):
         for j in range(6):
             acc = 0.0
-            for l in range(6):
-                acc += PHt[i, l] * Sinv[l, j]
+            for m in range(6):
+                acc += PHt[i, m] * Sinv[m, j]
             K[i, j] = acc
     for i in range(N_STATE):
         for j in range(6):
@@ -218,19 +224,19 @@ def _kf_update(
     for i in range(N_STATE):
         for j in range(N_STATE):
             acc = 0.0
-            for l in range(6):
-                acc += K[i, l] * P[X_POSE[l], j]
+            for m in range(6):
+                acc += K[i, m] * P[X_POSE[m], j]
             AP[i, j] -= acc
     KC = np.zeros((N_STATE, 6))
     for i in range(N_STATE):
         for j in range(6):
-            for l in range(6):
-                KC[i, j] += K[i, l] * cov[l, j]
+            for m in range(6):
+                KC[i, j] += K[i, m] * cov[m, j]
     for i in range(N_STATE):
         for j in range(N_STATE):
             acc = AP[i, j]
-            for l in range(6):
-                acc += -AP[i, X_POSE[l]] * K[j, l] + KC[i, l] * K[j, l]
+            for m in range(6):
+                acc += -AP[i, X_POSE[m]] * K[j, m] + KC[i, m] * K[j, m]
             P[i, j] = acc
     _fold(x, R_nom)
     return True, d2, nis_p, nis_r
@@ -438,7 +444,8 @@ class FilterBank:
         self.clock = np.zeros((n, N_CLOCK), dtype=np.int64)
         self.params = np.array([settings.jerk_psd, settings.angular_accel_psd, settings.max_noise_scale,
                                 settings.nis_time_constant_s, settings.gate_chi2, settings.init_velocity_sigma_m_s**2,
-                                settings.init_acceleration_sigma_m_s2**2, settings.init_angular_velocity_sigma_rad_s**2])
+                                settings.init_acceleration_sigma_m_s2**2,
+                                settings.init_angular_velocity_sigma_rad_s**2])
         # the kernels' argument (layout.FilterArrays as a plain tuple: cheaper for numba to dispatch)
         self.arrays = tuple(FilterArrays(self.x, self.P, self.R_nom, self.adapt, self.clock, self.params))
         self.filters = [BodyFilter(settings, self, i) for i in range(n)] if make_filters else []
@@ -506,7 +513,9 @@ class BodyFilter:
             self.t_ns = int(t_ns)
 
     # ------------------------------------------------------------ measurement
-    def update(self, t_ns: int, position: np.ndarray, R: np.ndarray, meas_cov: np.ndarray, gate: bool = True) -> tuple[bool, float]:
+    def update(
+        self, t_ns: int, position: np.ndarray, R: np.ndarray, meas_cov: np.ndarray, gate: bool = True
+    ) -> tuple[bool, float]:
         """Predict to t_ns and fuse a pose measurement (filter_update on this row).
 
         position (3,), R (3, 3) body->world, meas_cov (6, 6) over

@@ -223,7 +223,9 @@ class Ingest:
             raw = arena.raw.get("cameras", [{}] * len(arena.cameras))[i]
             req = raw.get("station") if isinstance(raw, dict) else None
             if req is not None and (isinstance(req, bool) or not isinstance(req, int)):
-                raise ConfigError(arena.source, f"cameras[{i}].station", f"expected the station id (integer), got {req!r}")
+                raise ConfigError(
+                    arena.source, f"cameras[{i}].station", f"expected the station id (integer), got {req!r}"
+                )
             self.cameras[cam.id] = CameraHealth(cam.id, cam.name, float(cam.fps), cam.model.width,
                                                 cam.model.height, req)
         self.start_ns = 0

@@ -99,7 +99,14 @@ class SimResult:
         """Counts per camera: frames, dropped, blobs, marker blobs, spurious blobs."""
         cams = {}
         for t in self.scenario.timings:
-            cams[t.camera_id] = {"fps": t.fps, "frames": 0, "dropped": int(len(self.dropped.get(t.camera_id, ()))), "blobs": 0, "marker_blobs": 0, "spurious_blobs": 0}
+            cams[t.camera_id] = {
+                "fps": t.fps,
+                "frames": 0,
+                "dropped": int(len(self.dropped.get(t.camera_id, ()))),
+                "blobs": 0,
+                "marker_blobs": 0,
+                "spurious_blobs": 0,
+            }
         for f, tr in zip(self.frames, self.frame_truth):
             c = cams[f.camera_id]
             c["frames"] += 1
@@ -230,7 +237,9 @@ def _rolling_shutter(s: Scenario, cam: Camera, readout_ns: float, true_ns: np.nd
     return W, N, dt
 
 
-def marker_geometry(camera: Camera, points_world: np.ndarray, diameter: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def marker_geometry(
+    camera: Camera, points_world: np.ndarray, diameter: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixel centre (N, 2), projected diameter (N,) px and range (N,) m of spheres.
 
     points_world (N, 3); diameter (N,) m. The diameter is the geometric mean of
@@ -278,7 +287,9 @@ def _static_spurious(s: Scenario, cam: Camera) -> tuple[np.ndarray, np.ndarray, 
     uv = cam.project(pts[ok])[:n]
     if len(uv) < n:  # the floor is out of view: anywhere on the sensor
         m = n - len(uv)
-        uv = np.vstack([uv, np.column_stack([rng.uniform(10, cam.model.width - 11, m), rng.uniform(10, cam.model.height - 11, m)])])
+        uv = np.vstack(
+            [uv, np.column_stack([rng.uniform(10, cam.model.width - 11, m), rng.uniform(10, cam.model.height - 11, m)])]
+        )
     return uv, rng.uniform(6.0, 40.0, n), rng.uniform(120.0, 255.0, n)
 
 
@@ -433,7 +444,9 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
         fbody, fmark, fd, fdt = body_col[a:b], marker_col[a:b], dpx[a:b], dt_col[a:b]
         merged = np.zeros(b - a, bool)
         if needs_merge[j]:
-            fxy, ftrue, farea, fpeak, fbody, fmark, merged, fdt = _merge(fxy, ftrue, farea, fpeak, fbody, fmark, fd, fdt)
+            fxy, ftrue, farea, fpeak, fbody, fmark, merged, fdt = _merge(
+                fxy, ftrue, farea, fpeak, fbody, fmark, fd, fdt
+            )
         flags = 0
         if len(fxy) > s.max_blobs:
             # detectors scan in raster order and stop at their cap

@@ -235,7 +235,9 @@ class Scenario:
         for b in self.bodies:
             if b.name == name:
                 return b
-        raise KeyError(f"no simulated body '{name}'; bodies in session '{self.session}': {[b.name for b in self.bodies]}")
+        raise KeyError(
+            f"no simulated body '{name}'; bodies in session '{self.session}': {[b.name for b in self.bodies]}"
+        )
 
     def motion_at(self, body_name: str, times_ns: Any) -> Motion:
         """Full true motion of a body at server-clock times (T,) int64 ns."""
