@@ -405,11 +405,11 @@ def _throughput(quick: bool, res: BenchResult) -> None:
 
 
 def _ingest(quick: bool, res: BenchResult) -> None:
-    """The server's own per-packet cost in front of fusion (visionpos.server.ingest.measure_packet_cost)."""
+    """The server's own per-packet cost in front of fusion (visionpos.benchmarks.packets.measure_packet_cost)."""
     import os
     import tempfile
 
-    from visionpos.server.ingest import measure_packet_cost
+    from visionpos.benchmarks.packets import measure_packet_cost
 
     n = 4000 if quick else 20000
     with tempfile.TemporaryDirectory() as d:
