@@ -29,6 +29,15 @@ ENDPOINT_HELP = (
     "or serial:DEVICE:BAUD (e.g. serial:/dev/ttyUSB0:921600)"
 )
 
+# Drones fly on our output: an address learned from packets anyone can forge is not used.
+UDPIN_UNAUTHENTICATED = (
+    "a udpin endpoint without signing would learn where to send the poses from unauthenticated packets, so "
+    "anyone who can reach port {port} could divert them; add `signing: {{key_file: ...}}` (recommended: the "
+    "bridge then answers only packets signed with the vehicle's key) or `autopilot_address: HOST:PORT` (the "
+    "address the autopilot sends from), or use udpout:HOST:PORT or tcp:HOST:PORT "
+    "(docs/autopilot-setup.md, Signing)"
+)
+
 
 ORIGIN = section(
     "vehicles[i].origin",
@@ -55,6 +64,9 @@ VEHICLE = section(
             default_doc="the body's id"),
     Setting("endpoint", "text", doc="the link: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or "
             "serial:DEVICE:BAUD"),
+    Setting("autopilot_address", "text", None, "udpin only: the HOST:PORT the autopilot sends from; poses go "
+            "there only and packets from anywhere else are dropped unread",
+            default_doc="(learned from signed packets; udpin needs this or signing)"),
     Setting("message", "text", "vision_position_estimate", "MAVLink message carrying the pose", choices=MESSAGES),
     Setting("vision_speed", "boolean", False, "also send VISION_SPEED_ESTIMATE (vision_position_estimate only)"),
     Setting("rate_hz", "number", 50.0, "poses per second", min=0.1, max=400.0),
@@ -204,6 +216,7 @@ class VehicleConfig:
     origin_interval_s: float = VEHICLE["origin_interval_s"].field_default
     signing_key: bytes | None = None
     signing_link_id: int = 0
+    autopilot_address: tuple[str, int] | None = None
     reconnect_min_s: float = VEHICLE["reconnect_min_s"].field_default
     reconnect_max_s: float = VEHICLE["reconnect_max_s"].field_default
     link_timeout_s: float = VEHICLE["link_timeout_s"].field_default
@@ -289,6 +302,12 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
             except ValueError as e:
                 raise s.error("key_file", str(e)) from None
             link_id = SIGNING.read(s, "link_id")
+        autopilot_address = None
+        if v.data.get("autopilot_address") is not None:
+            if endpoint.kind != "udpin":
+                raise v.error("autopilot_address", f"only for udpin endpoints; a {endpoint.kind} endpoint already "
+                              "names where the poses go")
+            autopilot_address = _host_port(v, "autopilot_address", v.data["autopilot_address"])
         rmin = V.read(v, "reconnect_min_s")
         out.append(
             VehicleConfig(
@@ -313,6 +332,7 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                 origin_interval_s=V.read(v, "origin_interval_s"),
                 signing_key=key,
                 signing_link_id=link_id,
+                autopilot_address=autopilot_address,
                 reconnect_min_s=rmin,
                 reconnect_max_s=V.read(v, "reconnect_max_s", default=max(5.0, rmin), min=rmin),
                 link_timeout_s=V.read(v, "link_timeout_s"),
@@ -323,6 +343,8 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                 "vision_speed",
                 "ODOMETRY already carries velocity; use vision_speed with message: vision_position_estimate",
             )
+        if endpoint.kind == "udpin" and key is None and autopilot_address is None:
+            raise v.error("endpoint", UDPIN_UNAUTHENTICATED.format(port=endpoint.port))
     _check_unique(top, out)
     return out
 

@@ -76,11 +76,13 @@ class FakeAutopilot:
     signing_key: 32 bytes; when set, everything it sends is signed and
     anything unsigned or signed with another key is rejected (counted in
     rejected_signature, not recorded). duration_s: stop by itself after it.
+    source_port (udpout): send from this local port (0: any free one), e.g. the
+    port a bridge's `autopilot_address` names.
     """
 
     def __init__(self, endpoint: str, sysid: int = 1, *, autopilot: str = "ardupilot",
                  signing_key: bytes | None = None, heartbeat_hz: float = 1.0, timesync_hz: float = 1.0,
-                 duration_s: float | None = None, clock_ns=time.monotonic_ns):
+                 duration_s: float | None = None, clock_ns=time.monotonic_ns, source_port: int = 0):
         kind, _, rest = endpoint.partition(":")
         host, _, port = rest.rpartition(":")
         if kind not in ("udpout", "udpin", "tcpin") or not host or not port.isdigit():
@@ -95,6 +97,7 @@ class FakeAutopilot:
         self.clock_ns = clock_ns
         self.heartbeat_hz, self.timesync_hz = heartbeat_hz, timesync_hz
         self.duration_s = duration_s
+        self.source_port = source_port
         self.mav = mavlink2.MAVLink(self, srcSystem=sysid, srcComponent=1)
         self.mav.robust_parsing = True
         if signing_key is not None:
@@ -130,7 +133,7 @@ class FakeAutopilot:
                 s.bind((self.host, self.port))
                 self.port = s.getsockname()[1]
             else:
-                s.bind(("127.0.0.1" if self.host.startswith("127.") else "0.0.0.0", 0))
+                s.bind(("127.0.0.1" if self.host.startswith("127.") else "0.0.0.0", self.source_port))
                 self._peer = (socket.gethostbyname(self.host), self.port)
             s.setblocking(False)
             self._sock = s

@@ -7,14 +7,23 @@ socket. The thread owns the link (reads, writes, reconnects), stamps the poses
 on an even 1/rate_hz grid of capture time, drops stale or frozen poses,
 answers TIMESYNC and sends the HEARTBEAT, origin and home.
 
-MAVLink2 is forced: each link has its own pymavlink v2 MAVLink object (never
+MAVLink2 is forced: each link has its own pymavlink v2 MAVLink objects (never
 mavutil's process-wide dialect, which switches v1 -> v2 on the first v2
-packet and loses a signing setup in the switch); signing is set up on that
-object.
+packet and loses a signing setup in the switch): one encodes and signs what we
+send, one only parses what we receive. Incoming signatures are checked here
+(_verify), not by pymavlink, whose check records a packet's timestamp before
+the signature is verified (one forged packet with a far-future timestamp
+would make every genuine one after it look replayed).
+
+Who gets the poses on a udpin endpoint: the configured autopilot_address, or
+the address of the newest packet whose signature verifies with the vehicle's
+key. Nothing else moves it (config.py refuses udpin with neither).
 """
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import logging
 import math
 import os
@@ -37,6 +46,11 @@ log = logging.getLogger("visionpos.bridge")
 
 MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197
 SIGNING_EPOCH_S = 1420070400  # MAVLink2 signing timestamps count 10 us units from 2015-01-01
+SIGNING_TICKS_PER_S = 100_000
+NEW_STREAM_WINDOW_TICKS = 60 * SIGNING_TICKS_PER_S  # a new signed stream may start this far behind the newest seen
+SIGNATURE_BLOCK_LEN = 13  # link id (1), timestamp (6, LE, 10 us), signature (6)
+MAVLINK2_MAGIC = 0xFD
+WARN_INTERVAL_S = 10.0
 LATENCY_SAMPLES = 4096
 
 COUNTERS = (
@@ -55,9 +69,39 @@ COUNTERS = (
     "reconnects",
     "timesync_answered",
     "rx_packets",
-    "rx_bad",  # CRC / framing errors, bad signatures
+    "rx_bad",  # CRC / framing errors
     "rx_foreign",  # from another sysid: ignored, not answered, not learned as peer
+    "rx_unsigned",  # signed link: an unsigned (or MAVLink1) packet as the vehicle: dropped
+    "rx_bad_signature",  # signed link: signature does not verify with the key: dropped
+    "rx_replayed",  # signed link: timestamp not newer than its stream's last (or a stale new stream): dropped
+    "rx_wrong_source",  # udpin with autopilot_address: datagram from another address, dropped unread
+    "peer_refused",  # udpin: a datagram or packet from an address other than the autopilot's that may not move it
 )
+
+
+class _RateLimitedLog:
+    """At most one warning per kind every WARN_INTERVAL_S; the next one counts those held back."""
+
+    def __init__(self, clock_ns: Callable[[], int]):
+        self.clock_ns = clock_ns
+        self._next: dict[str, int] = {}
+        self._held: dict[str, int] = {}
+
+    def warning(self, kind: str, msg: str, *args) -> None:
+        now = self.clock_ns()
+        if now < self._next.get(kind, 0):
+            self._held[kind] = self._held.get(kind, 0) + 1
+            return
+        held = self._held.pop(kind, 0)
+        if held:
+            msg += " (and %d more in the last %.0f s)"
+            args = (*args, held, WARN_INTERVAL_S)
+        log.warning(msg, *args)
+        self._next[kind] = now + int(WARN_INTERVAL_S * 1e9)
+
+
+def _fmt_addr(addr: tuple | None) -> str:
+    return ":".join(str(x) for x in addr) if addr else "?"
 
 
 def _percentile_ms(samples: np.ndarray, q: float) -> float:
@@ -93,15 +137,23 @@ class VehicleLink:
         # usec and TIMESYNC tc1 share one time base: the server clock, or the
         # server clock shifted to the Unix epoch (time_base: epoch)
         self.base_offset_ns = (time.time_ns() - clock_ns()) if cfg.time_base == "epoch" else 0
+        # self.mav encodes (and signs) what we send; self._rx only parses, signatures are checked in _verify
         self.mav = mavlink2.MAVLink(self, srcSystem=cfg.sysid, srcComponent=MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY)
-        self.mav.robust_parsing = True
-        if cfg.signing_key is not None:
+        self._rx = mavlink2.MAVLink(None)
+        self._rx.robust_parsing = True
+        self._key = cfg.signing_key
+        # signing clock: wall time at start, then the monotonic clock (never steps back with NTP)
+        self._sign_base = int((max(time.time(), SIGNING_EPOCH_S) - SIGNING_EPOCH_S) * SIGNING_TICKS_PER_S)
+        self._sign_mono0 = time.monotonic_ns()
+        if self._key is not None:
             s = self.mav.signing
-            s.secret_key = cfg.signing_key
+            s.secret_key = self._key
             s.sign_outgoing = True
             s.link_id = cfg.signing_link_id
-            s.allow_unsigned_callback = None  # incoming must be signed with our key
-            s.timestamp = int((max(time.time(), SIGNING_EPOCH_S) - SIGNING_EPOCH_S) * 1e5)
+            s.timestamp = self._sign_base
+        self._stream_ts: dict[tuple[int, int], int] = {}  # (link id, component) -> last verified timestamp
+        self._newest_ts = -1  # newest verified timestamp from the vehicle, any stream
+        self._warn = _RateLimitedLog(clock_ns)
         self.pivot = pivot_array(cfg)
         self.yaw_offset_rad = math.radians(cfg.yaw_offset_deg)
         self.counters = dict.fromkeys(COUNTERS, 0)
@@ -155,6 +207,7 @@ class VehicleLink:
     def start(self) -> None:
         if self._thread is not None:
             return
+        self._announce()
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name=f"mavlink-{self.cfg.name}", daemon=True)
         self._thread.start()
@@ -185,7 +238,7 @@ class VehicleLink:
             while not self._stop.is_set():
                 now = self.clock_ns()
                 if self.link is None and now >= next_open:
-                    link = make_link(self.cfg.endpoint)
+                    link = make_link(self.cfg.endpoint, self.cfg.autopilot_address)
                     try:
                         link.open()
                     except LinkDown as e:
@@ -259,30 +312,99 @@ class VehicleLink:
         self._origin_done = False
         self._next_origin = self.clock_ns()
 
+    def _announce(self) -> None:
+        """Say once at start who the poses go to and how that is authenticated."""
+        cfg = self.cfg
+        if cfg.endpoint.kind == "udpin" and cfg.autopilot_address is not None:
+            log.info("vehicle %s: %s: poses go to %s:%d only; datagrams from anywhere else are dropped",
+                     cfg.name, cfg.endpoint, *cfg.autopilot_address)
+        elif cfg.endpoint.kind == "udpin":
+            log.info("vehicle %s: %s: nothing is sent until a packet signed with the vehicle's key arrives; "
+                     "poses then go to its address", cfg.name, cfg.endpoint)
+        if self._key is None:
+            log.warning("vehicle %s: MAVLink link %s is not signed: the autopilot cannot tell our poses from "
+                        "forged ones; set up signing (docs/autopilot-setup.md, Signing)", cfg.name, cfg.endpoint)
+
     def _peer_known(self) -> bool:
         return self.link is not None and self.link.peer is not None
 
     def _on_readable(self) -> None:
-        for data, addr in self.link.read():
-            msgs = self.mav.parse_buffer(data) or []
-            from_vehicle = False
+        c = self.counters
+        link = self.link
+        rx = self._rx
+        learning = link.kind == "udpin" and not link.fixed
+        for data, addr in link.read():
+            if link.kind == "udpin" and addr != link.peer:
+                if not learning:
+                    c["rx_wrong_source"] += 1
+                    c["peer_refused"] += 1
+                    self._warn.warning("wrong_source", "vehicle %s: dropped a datagram from %s:%d: the autopilot "
+                                       "is configured at %s:%d", self.cfg.name, *addr, *link.peer)
+                    continue
+            msgs = rx.parse_buffer(data) or []
+            if rx.buf_len():  # a datagram holds whole packets: never let a fragment join the next sender's
+                rx.buf = bytearray()
+                rx.buf_index = 0
+                rx.expected_length = mavlink2.HEADER_LEN_V1 + 2
             for m in msgs:
                 if m.get_type() == "BAD_DATA":
-                    self.counters["rx_bad"] += 1
+                    c["rx_bad"] += 1
                     continue
-                self.counters["rx_packets"] += 1
-                if m.get_srcSystem() != self.cfg.sysid:
-                    self.counters["rx_foreign"] += 1
+                c["rx_packets"] += 1
+                buf = m.get_msgbuf()
+                v2 = buf[0] == MAVLINK2_MAGIC
+                sysid, compid = (buf[5], buf[6]) if v2 else (buf[3], buf[4])
+                if sysid != self.cfg.sysid:
+                    c["rx_foreign"] += 1
                     continue
-                from_vehicle = True
+                ts, newest_before = -1, self._newest_ts
+                if self._key is not None:
+                    ts = self._verify(buf, v2, compid, addr)
+                    if ts < 0:
+                        continue
+                if learning and addr != link.peer:
+                    if ts <= newest_before:
+                        c["peer_refused"] += 1  # genuine but older than what we have had: a replay elsewhere
+                        self._warn.warning("stale", "vehicle %s: a signed packet from %s:%d is older than the "
+                                           "autopilot's newest; not moving the poses there", self.cfg.name, *addr)
+                        continue
+                    self._learn_peer(addr)
                 self.last_rx_ns = self.clock_ns()
                 if m.get_type() == "TIMESYNC" and m.tc1 == 0 and self.cfg.timesync:
-                    if self.link.kind == "udpin" and addr != self.link.peer:
-                        self._learn_peer(addr)
-                    self.counters["timesync_answered"] += 1  # before sending: the reply can arrive before we return
-                    self.mav.send(self.mav.timesync_encode(self.now_base_ns(), m.ts1))
-            if from_vehicle and self.link.kind == "udpin" and addr != self.link.peer:
-                self._learn_peer(addr)
+                    c["timesync_answered"] += 1  # before sending: the reply can arrive before we return
+                    self._send(self.mav.timesync_encode(self.now_base_ns(), m.ts1))
+
+    def _verify(self, buf: bytearray, v2: bool, compid: int, addr: tuple | None) -> int:
+        """The packet's signing timestamp if it is signed with the vehicle's key and newer than the last
+        on its stream (link id, component); else -1, counted. State changes only for a packet that passes."""
+        c = self.counters
+        reason = ""
+        if not v2 or not buf[2] & 0x01 or len(buf) < 12 + SIGNATURE_BLOCK_LEN:
+            c["rx_unsigned"] += 1
+            reason = "unsigned"
+        else:
+            sig = hashlib.sha256(self._key + bytes(buf[:-6])).digest()[:6]
+            if not hmac.compare_digest(sig, bytes(buf[-6:])):
+                c["rx_bad_signature"] += 1
+                reason = "bad signature"
+            else:
+                stream = (buf[-13], compid)
+                ts = int.from_bytes(buf[-12:-6], "little")
+                last = self._stream_ts.get(stream)
+                if (ts <= last) if last is not None else (ts + NEW_STREAM_WINDOW_TICKS < self._newest_ts):
+                    c["rx_replayed"] += 1
+                    reason = "replayed"
+                else:
+                    self._stream_ts[stream] = ts
+                    if ts > self._newest_ts:
+                        self._newest_ts = ts
+                    return ts
+        if self.link is not None and addr != self.link.peer:
+            c["peer_refused"] += 1
+            self._warn.warning(reason, "vehicle %s: refused a packet as sysid %d from %s (%s); the poses go "
+                               "only to an autopilot whose packets verify with the vehicle's key",
+                               self.cfg.name, self.cfg.sysid, _fmt_addr(addr), reason)
+        return -1
 
     def _learn_peer(self, addr: tuple) -> None:
         old = self.link.peer
@@ -386,6 +508,11 @@ class VehicleLink:
 
     def _send(self, msg) -> bool:
         self._last_write_ok = False
+        if self._key is not None:
+            # never behind the clock nor the autopilot (it refuses a new stream over a minute behind its own)
+            s = self.mav.signing
+            now = self._sign_base + (time.monotonic_ns() - self._sign_mono0) // 10_000
+            s.timestamp = max(s.timestamp, now, self._newest_ts + 1)
         self.mav.send(msg)
         return self._last_write_ok
 
@@ -427,7 +554,8 @@ class VehicleLink:
             message=self.cfg.message,
             rate_hz=self.cfg.rate_hz,
             link_up=self._peer_known(),
-            peer=(":".join(str(x) for x in self.link.peer) if self._peer_known() else None),
+            peer=(_fmt_addr(self.link.peer) if self._peer_known() else None),
+            signed=self._key is not None,
             last_error=self.last_error,
             autopilot_heard_s_ago=((self.clock_ns() - self.last_rx_ns) * 1e-9 if self.last_rx_ns else None),
             latency_capture_ms_p50=_percentile_ms(lc, 50),

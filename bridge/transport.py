@@ -31,6 +31,7 @@ class Link(abc.ABC):
     """One open endpoint. write() returns False when the packet was not sent (no peer yet, buffer full)."""
 
     kind = ""
+    fixed = False  # udpin with a configured autopilot address: the peer never moves
 
     def __init__(self, endpoint: Endpoint):
         self.endpoint = endpoint
@@ -59,18 +60,27 @@ class Link(abc.ABC):
 
 
 class UdpLink(Link):
-    """udpin: bind HOST:PORT, answer the learned peer. udpout: send to HOST:PORT."""
+    """udpin: bind HOST:PORT, answer the peer (fixed_peer, or learned by the owner). udpout: send to HOST:PORT.
 
-    def __init__(self, endpoint: Endpoint):
+    fixed_peer (udpin only): (host, port) the autopilot sends from; it is resolved at open() and
+    is then the only peer (`fixed` is True: the owner drops datagrams from anywhere else).
+    """
+
+    def __init__(self, endpoint: Endpoint, fixed_peer: tuple[str, int] | None = None):
         super().__init__(endpoint)
         self.kind = endpoint.kind
         self.sock: socket.socket | None = None
+        self.fixed_peer = fixed_peer
+        self.fixed = False
 
     def open(self) -> None:
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             if self.kind == "udpin":
                 s.bind((self.endpoint.host, self.endpoint.port))
+                if self.fixed_peer is not None:
+                    self.peer = (socket.gethostbyname(self.fixed_peer[0]), self.fixed_peer[1])
+                    self.fixed = True
             else:
                 self.peer = (socket.gethostbyname(self.endpoint.host), self.endpoint.port)
         except OSError as e:
@@ -255,9 +265,10 @@ class SerialLink(_StreamLink):
             self.fd = -1
 
 
-def make_link(endpoint: Endpoint) -> Link:
+def make_link(endpoint: Endpoint, fixed_peer: tuple[str, int] | None = None) -> Link:
+    """The link for an endpoint; fixed_peer: a udpin endpoint's configured autopilot address."""
     if endpoint.kind in ("udpin", "udpout"):
-        return UdpLink(endpoint)
+        return UdpLink(endpoint, fixed_peer)
     if endpoint.kind == "tcp":
         return TcpLink(endpoint)
     if endpoint.kind == "serial":

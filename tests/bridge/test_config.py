@@ -28,7 +28,7 @@ def test_endpoint_forms():
 
 
 def test_defaults():
-    (v,) = vehicles({"body": "body2", "endpoint": "udpin:0.0.0.0:14561"})
+    (v,) = vehicles({"body": "body2", "endpoint": "udpin:0.0.0.0:14561", "autopilot_address": "10.0.0.2:14550"})
     assert (v.name, v.sysid, v.message, v.rate_hz, v.time_base, v.timesync) == (
         "body2", 2, "vision_position_estimate", 50.0, "boot", True)
     assert v.min_interval_ns == 19_900_000 and v.signing_key is None and v.origin is None
@@ -61,15 +61,17 @@ def test_errors_name_file_and_key(vehicle, key, text):
         vehicles(vehicle)
 
 
-UDPIN1 = {"body": "body1", "sysid": 1, "endpoint": "udpin:0.0.0.0:1"}
+UDPIN1 = {"body": "body1", "sysid": 1, "endpoint": "udpin:0.0.0.0:1", "autopilot_address": "10.0.0.1:1"}
 UDPOUT1 = {"body": "body1", "sysid": 1, "endpoint": "udpout:10.0.0.1:1"}
 
 
 @pytest.mark.parametrize("first, second, what", [
-    (UDPIN1, {"body": "body2", "sysid": 1, "endpoint": "udpin:0.0.0.0:2"}, "sysid"),
+    (UDPIN1, {"body": "body2", "sysid": 1, "endpoint": "udpin:0.0.0.0:2", "autopilot_address": "10.0.0.2:1"}, "sysid"),
     (UDPOUT1, {"body": "body2", "endpoint": "udpout:10.0.0.1:1"}, "endpoint"),
-    (UDPIN1, {"body": "body1", "name": "other", "endpoint": "udpin:0.0.0.0:2"}, "body"),
-    (UDPIN1, {"body": "body2", "endpoint": "udpin:127.0.0.1:1"}, "endpoint"),  # same udpin port, other address
+    (UDPIN1, {"body": "body1", "name": "other", "endpoint": "udpin:0.0.0.0:2", "autopilot_address": "10.0.0.2:1"},
+     "body"),
+    (UDPIN1, {"body": "body2", "endpoint": "udpin:127.0.0.1:1", "autopilot_address": "10.0.0.2:1"},
+     "endpoint"),  # same udpin port, other address
 ])
 def test_one_link_and_sysid_per_vehicle(first, second, what):
     with pytest.raises(ConfigError, match=rf"vehicles\[1\]\.{what}"):

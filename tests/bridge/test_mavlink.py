@@ -4,9 +4,11 @@ Expected values are hand-computed from the frame conventions (world z-up,
 body FLU -> NED / FRD), never taken from the bridge's own conversion code.
 """
 
+import hashlib
 import math
 import os
 import socket
+import tempfile
 import time
 
 import numpy as np
@@ -23,14 +25,30 @@ YAW_LEFT_90 = (0.0, 0.0, S45, S45)
 VPE, ODO, VSE = "VISION_POSITION_ESTIMATE", "ODOMETRY", "VISION_SPEED_ESTIMATE"
 
 
+KEY = hashlib.sha256(b"visionpos test fleet").digest()
+_KEY_DIR = tempfile.TemporaryDirectory(prefix="visionpos-test-keys-")  # removed when the module is unloaded
+
+
+def key_file(key: bytes = KEY) -> str:
+    """A key file holding key as 64 hex characters."""
+    path = os.path.join(_KEY_DIR.name, key.hex()[:16] + ".key")
+    if not os.path.exists(path):
+        with open(path, "w") as f:
+            f.write(key.hex() + "\n")
+    return path
+
+
 def start_pair(tmp_path=None, ap_kw=None, **vehicle):
-    """A started Bridge with one vehicle on udpin and a fake autopilot pointed at it (heard by the bridge)."""
+    """A started Bridge with one signed vehicle on udpin and a fake autopilot with the same key pointed
+    at it (heard by the bridge)."""
     port = free_port()
-    v = {"body": "body1", "sysid": 1, "endpoint": f"udpin:127.0.0.1:{port}", "max_age_ms": 10000}
+    v = {"body": "body1", "sysid": 1, "endpoint": f"udpin:127.0.0.1:{port}", "max_age_ms": 10000,
+         "signing": {"key_file": key_file()}}
     v.update(vehicle)
     bridge = Bridge(arena_with_vehicles([v]), {"report_interval_s": 0})
     bridge.start()
-    ap = FakeAutopilot(f"udpout:127.0.0.1:{port}", sysid=v["sysid"], **(ap_kw or {})).start()
+    ap_kw = {"signing_key": KEY, **(ap_kw or {})}
+    ap = FakeAutopilot(f"udpout:127.0.0.1:{port}", sysid=v["sysid"], **ap_kw).start()
     assert ap.wait_for("HEARTBEAT", 1, 5.0), "bridge never answered the autopilot's heartbeat"
     return bridge, ap
 
@@ -235,15 +253,16 @@ def test_epoch_time_base_consistent_with_timesync():
 
 def test_two_vehicles_no_cross_talk():
     pa, pb = free_port(), free_port()
+    sign = {"key_file": key_file()}
     arena = arena_with_vehicles([
-        {"body": "body1", "sysid": 1, "endpoint": f"udpin:127.0.0.1:{pa}"},
-        {"body": "body2", "sysid": 2, "endpoint": f"udpin:127.0.0.1:{pb}", "message": "odometry"},
+        {"body": "body1", "sysid": 1, "endpoint": f"udpin:127.0.0.1:{pa}", "signing": sign},
+        {"body": "body2", "sysid": 2, "endpoint": f"udpin:127.0.0.1:{pb}", "message": "odometry", "signing": sign},
     ])
     bridge = Bridge(arena, {"report_interval_s": 0})
     bridge.start()
-    aps = [FakeAutopilot(f"udpout:127.0.0.1:{p}", sysid=s).start() for p, s in ((pa, 1), (pb, 2))]
-    # a third system sending to body1's port with another sysid must not be answered
-    intruder = FakeAutopilot(f"udpout:127.0.0.1:{pa}", sysid=9, heartbeat_hz=20).start()
+    aps = [FakeAutopilot(f"udpout:127.0.0.1:{p}", sysid=s, signing_key=KEY).start() for p, s in ((pa, 1), (pb, 2))]
+    # a third system sending to body1's port with another sysid (even signed with the key) must not be answered
+    intruder = FakeAutopilot(f"udpout:127.0.0.1:{pa}", sysid=9, heartbeat_hz=20, signing_key=KEY).start()
     try:
         assert aps[0].wait_for("HEARTBEAT", 1) and aps[1].wait_for("HEARTBEAT", 1)
         assert intruder.wait_for("HEARTBEAT", 1, 0.3) is False
@@ -398,7 +417,8 @@ def test_serial_link_over_pty():
 
 def test_publish_never_blocks_on_a_dead_link():
     # nobody ever answers on udpin: publish keeps only the newest state, nothing is sent
-    bridge = Bridge(arena_with_vehicles([{"body": "body1", "endpoint": f"udpin:127.0.0.1:{free_port()}"}]),
+    bridge = Bridge(arena_with_vehicles([{"body": "body1", "endpoint": f"udpin:127.0.0.1:{free_port()}",
+                                          "signing": {"key_file": key_file()}}]),
                     {"report_interval_s": 0})
     bridge.start()
     try:
@@ -417,10 +437,11 @@ def test_publish_never_blocks_on_a_dead_link():
 def test_latency_advice_printed():
     lines = []
     port = free_port()
-    arena = arena_with_vehicles([{"body": "body1", "endpoint": f"udpin:127.0.0.1:{port}"}])
+    arena = arena_with_vehicles([{"body": "body1", "endpoint": f"udpin:127.0.0.1:{port}",
+                                  "signing": {"key_file": key_file()}}])
     bridge = Bridge(arena, {"report_interval_s": 3600, "report": lines.append})
     bridge.start()
-    ap = FakeAutopilot(f"udpout:127.0.0.1:{port}", sysid=1).start()
+    ap = FakeAutopilot(f"udpout:127.0.0.1:{port}", sysid=1, signing_key=KEY).start()
     try:
         assert ap.wait_for("HEARTBEAT", 1)
         feed(bridge, [body_state(capture_ns=time.monotonic_ns() - 15_000_000)])
@@ -441,7 +462,7 @@ def test_udpin_relearns_the_autopilot_address():
         feed(bridge, [body_state(position=(1, 0, 0))])
         assert ap1.wait_for(VPE, 1)
         ap1.close()  # the companion restarts and comes back from another source port
-        ap2 = FakeAutopilot(f"udpout:127.0.0.1:{port}", sysid=1, timesync_hz=0).start()
+        ap2 = FakeAutopilot(f"udpout:127.0.0.1:{port}", sysid=1, timesync_hz=0, signing_key=KEY).start()
         assert ap2.wait_for("HEARTBEAT", 1)
         feed(bridge, [body_state(position=(2, 0, 0))])
         assert ap2.wait_for(VPE, 1)
