@@ -15,15 +15,22 @@ simulator's truth at each output's time.
 
 The demo keeps the scenario's `vehicles` settings (message, rate, signing)
 but always puts their endpoints on free loopback ports; without a `vehicles`
-section it makes one vehicle per body (sysid = body id).
+section it makes one vehicle per body (sysid = body id). MAVLink is signed, as
+on a real set-up: a vehicle without a `signing` key gets a fresh one for the
+run, and its fake autopilot signs with it and rejects anything unsigned.
 """
 
 from __future__ import annotations
 
 import asyncio
+import atexit
 import dataclasses
 import logging
+import os
 import random
+import secrets
+import shutil
+import tempfile
 import time
 from typing import Any, TextIO
 
@@ -53,10 +60,25 @@ def demo_arena(scenario: str, duration_s: float, seed: int | None, overrides: li
     arena = parse_arena(data, str(path))
     vehicles = data.get("vehicles") or [{"body": b.name, "sysid": b.id} for b in arena.bodies]
     vehicles = [dict(v) for v in vehicles]
+    key_file = None
     for v in vehicles:
         v["endpoint"] = f"udpin:127.0.0.1:{free_port()}"
+        v.pop("autopilot_address", None)
+        if "signing" not in v:
+            key_file = key_file or _demo_mavlink_key_file()
+            v["signing"] = {"key_file": key_file}
     data["vehicles"] = vehicles
     return parse_arena(data, str(path))
+
+
+def _demo_mavlink_key_file() -> str:
+    """A fresh MAVLink signing key for this run, in a private temporary file removed at exit."""
+    folder = tempfile.mkdtemp(prefix="visionpos-demo-")
+    atexit.register(shutil.rmtree, folder, True)
+    path = os.path.join(folder, "mavlink.key")
+    with os.fdopen(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600), "w") as f:
+        f.write(secrets.token_hex(32) + "\n")
+    return path
 
 
 # ---------------------------------------------------------------- simulated station
@@ -396,6 +418,8 @@ def _summary(arena, sc, shift, t_start, t_stop, collector: Collector, bridge, au
             rep = ap.report()
             st = link.stats()
             d["mavlink_messages"] = len(poses)
+            d["mavlink_signed"] = link.cfg.signing_key is not None
+            d["mavlink_rejected_signature"] = rep["rejected_signature"]
             d["mavlink_rate_hz"] = len(poses) / (span * 1e-9) if span > 0 else 0.0
             d["mavlink_max_gap_ms"] = rep.get("max_gap_ms", float("nan"))
             send_lat = link.lat_capture.values()

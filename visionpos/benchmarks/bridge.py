@@ -90,12 +90,15 @@ def bench_loopback(duration_s: float) -> tuple[dict[str, float], list[dict]]:
     from visionpos.benchmarks.factories import arena_with_vehicles, body_state
 
     ports = [free_port() for _ in range(N_VEHICLES)]
+    ap_ports = [free_port() for _ in range(N_VEHICLES)]  # udpin without signing needs the autopilot's address
     arena = arena_with_vehicles(
-        [{"body": f"body{i + 1}", "sysid": i + 1, "endpoint": f"udpin:127.0.0.1:{p}"} for i, p in enumerate(ports)]
+        [{"body": f"body{i + 1}", "sysid": i + 1, "endpoint": f"udpin:127.0.0.1:{p}",
+          "autopilot_address": f"127.0.0.1:{a}"} for i, (p, a) in enumerate(zip(ports, ap_ports))]
     )
     bridge = Bridge(arena, {"report_interval_s": 0})
     bridge.start()
-    aps = [FakeAutopilot(f"udpout:127.0.0.1:{p}", sysid=i + 1, timesync_hz=10).start() for i, p in enumerate(ports)]
+    aps = [FakeAutopilot(f"udpout:127.0.0.1:{p}", sysid=i + 1, timesync_hz=10, source_port=a).start()
+           for i, (p, a) in enumerate(zip(ports, ap_ports))]
     publish_cpu = []
     try:
         for ap in aps:
