@@ -53,6 +53,11 @@ def main(argv: list[str] | None = None) -> int:
               f"source {agent.source.name} {img.shape[1]}x{img.shape[0]}")
         return 0
 
+    if cfg.key is None:
+        log.warning("INSECURE: insecure is true (%s), so packets are neither signed nor checked; anyone on the "
+                    "network can pose as this station or its server. Copy the server's key (`visionpos keygen`) "
+                    "here and remove `insecure` (docs/security.md)", args.config)
+
     def _stop(signum, _frame):
         log.info("signal %d: stopping", signum)
         agent.stop()
