@@ -36,6 +36,10 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"visionpos-station: config error: {e}", file=sys.stderr)
         return 2
+    if cfg.key is None:
+        log.warning("INSECURE: insecure is true (%s), so packets are neither signed nor checked; anyone on the "
+                    "network can pose as this station or its server. Copy the server's key (`visionpos keygen`) "
+                    "here and remove `insecure` (docs/security.md)", args.config)
     try:
         agent = StationAgent(cfg)
     except OSError as e:
@@ -52,11 +56,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"config OK: station {cfg.station_id} camera {cfg.camera_id} -> {cfg.server_host}:{cfg.server_port}, "
               f"source {agent.source.name} {img.shape[1]}x{img.shape[0]}")
         return 0
-
-    if cfg.key is None:
-        log.warning("INSECURE: insecure is true (%s), so packets are neither signed nor checked; anyone on the "
-                    "network can pose as this station or its server. Copy the server's key (`visionpos keygen`) "
-                    "here and remove `insecure` (docs/security.md)", args.config)
 
     def _stop(signum, _frame):
         log.info("signal %d: stopping", signum)

@@ -451,7 +451,7 @@ def _summary(arena, sc, shift, t_start, t_stop, collector: Collector, bridge, au
         "latency_to_autopilot_ms": M.percentiles_ms(aplat, (50, 99)),
         "stations": stations_out,
         "server": {k: health.get(k) for k in ("packets", "frames_accepted", "frames_shed", "malformed", "unknown",
-                                              "pipeline_errors",
+                                              "pipeline_errors", "authenticated", "auth_failed",
                                               "tick_cost_max_ms")},
         "pipeline": {k: v for k, v in (health.get("pipeline") or {}).items() if isinstance(v, (int, float, str))},
     })

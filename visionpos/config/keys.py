@@ -36,7 +36,8 @@ def default_key_path() -> Path:
 def check_key_bytes(data: bytes, path: Path) -> str | None:
     """Why `data` (read from path) is no usable key, or None."""
     if len(data) < MIN_KEY_BYTES:
-        return (f"{path} holds {len(data)} bytes; a key needs at least {MIN_KEY_BYTES} random bytes: "
+        size = "is empty" if not data else f"holds only {len(data)} bytes"
+        return (f"{path} {size}; a key needs at least {MIN_KEY_BYTES} random bytes: "
                 f"make one with `visionpos keygen --out {path} --force` and copy it to the server and every station")
     return None
 
@@ -61,19 +62,21 @@ def resolve_key(sec: Section, base_dir: Path | None, fallback_key: bytes | None 
         p = Path(sec.string("key_file")).expanduser()
         if not p.is_absolute() and base_dir is not None:
             p = base_dir / p
-        missing = f"{p} does not exist"
-        where = str(p)
+        missing = f"cannot read key file {p}: no such file"
+        make = f"visionpos keygen --out {p}"
+        where = f"key file {p}"
     elif fallback_key is not None:
         return fallback_key, None
     else:
         p = default_key_path()
-        missing = (f"key_file is not set and the default key file {p} does not exist (the default is "
+        missing = (f"no shared key: key_file is not set and the default key file {p} does not exist (the default is "
                    f"${KEY_ENV}, else ~/.config/visionpos/key)")
         where = f"the default key file {p}"
+        make = "visionpos keygen"
     try:
         data = p.read_bytes()  # the exact bytes: server and stations read the same copied file
     except FileNotFoundError:
-        raise sec.error("key_file", f"no shared key: {missing}. Run `visionpos keygen` and copy the file to "
+        raise sec.error("key_file", f"{missing}. Run `{make}` and copy the file to "
                                     f"every station, or set {insecure_hint} to run without authentication "
                                     "(unsafe on a shared network)") from None
     except OSError as e:
