@@ -85,6 +85,15 @@ def test_settings_in_code_need_a_key_or_insecure():
         ServerSettings(key=KEY, insecure=True)
 
 
+def test_host_option_must_be_an_address():
+    from visionpos.errors import UsageError
+
+    s = ServerSettings(insecure=True)
+    assert s.with_bind("0.0.0.0").bind == "0.0.0.0" and not s.with_bind("0.0.0.0").loopback and s.loopback
+    with pytest.raises(UsageError, match="--host lab-pc: give an IP address"):
+        s.with_bind("lab-pc")
+
+
 def test_replay_needs_no_key_file_but_checks_a_named_one(tmp_path):
     s = ServerSettings.for_replay(_arena({}, tmp_path))  # no default key file exists in the tests
     assert s.key is None and s.insecure
@@ -101,15 +110,15 @@ def test_insecure_server_warns_at_start_and_in_its_status_line(caplog):
         server = FusionServer(arena, pipeline=_NoFusion(), port=0)
         await server.start()
         try:
-            return server.status_line()
+            return server.status_line(), server.health()["insecure"]
         finally:
             await server.stop()
 
     with caplog.at_level(logging.WARNING, logger="visionpos.server.service"):
-        line = asyncio.run(main())
+        line, insecure_in_health = asyncio.run(main())
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING and "INSECURE" in r.getMessage()]
     assert len(warnings) == 1 and "a.yaml" in warnings[0].getMessage()
-    assert line.startswith("INSECURE")
+    assert line.startswith("INSECURE") and insecure_in_health is True
 
 
 def test_signed_server_status_line_has_no_insecure_mark():

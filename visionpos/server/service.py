@@ -254,6 +254,7 @@ class FusionServer:
 
     def health(self) -> dict[str, Any]:
         h = self.ingest.health()
+        h["insecure"] = self.settings.insecure
         h["ticks"] = self.ticks
         h["late_ticks"] = self.late_ticks
         h["states_out"] = self.states_out
