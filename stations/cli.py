@@ -36,6 +36,10 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"visionpos-station: config error: {e}", file=sys.stderr)
         return 2
+    if cfg.key is None:
+        log.warning("INSECURE: insecure is true (%s), so packets are neither signed nor checked; anyone on the "
+                    "network can pose as this station or its server. Copy the server's key (`visionpos keygen`) "
+                    "here and remove `insecure` (docs/security.md)", args.config)
     try:
         agent = StationAgent(cfg)
     except OSError as e:

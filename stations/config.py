@@ -5,13 +5,16 @@ Example (docs/stations.md has the full list):
     station_id: 1
     camera_id: 0
     server: {host: 192.168.1.10, port: 5600}
-    key_file: /etc/visionpos/key      # optional shared HMAC key
+    key_file: /etc/visionpos/key      # shared HMAC key (default: $VISIONPOS_KEY_FILE, else
+                                      # ~/.config/visionpos/key); `insecure: true` runs without one
     source: {kind: picamera2, width: 960, height: 640, fps: 100, exposure_us: 1500, gain: 2.0}
     camera: {kind: pinhole, name: imx219 noir}
     detector: {threshold: auto, max_blobs: 64, min_roundness: 0.3}
     clock: {sync: true}               # false when PTP/chrony disciplines the host clock
 
-Every error names the file, the key and what would be right (ConfigError).
+Every error names the file, the key and what would be right (ConfigError). The key rules are
+the server's (visionpos.config.keys): with neither key_file nor `insecure: true` the default key
+file must exist.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import numpy as np
 
 from stations.detector import DetectorConfig
 from visionpos.config.arena import ConfigError, Section, load_yaml
+from visionpos.config.keys import resolve_key
 from visionpos.protocol import CAMERA_KINDS, DEFAULT_PORT, MAX_BLOBS_PER_PACKET
 
 SOURCE_KINDS = ("opencv", "picamera2", "video", "images", "sim")
@@ -66,7 +70,7 @@ class StationConfig:
     detector: DetectorConfig
     camera_kind: str = "unknown"
     camera_name: str = ""
-    key: bytes | None = None
+    key: bytes | None = None  # None only when the config says `insecure: true`
     clock_sync: bool = True
     heartbeat_s: float = 1.0
     link_timeout_s: float = 3.5
@@ -95,27 +99,11 @@ def _rects(sec: Section, key: str) -> tuple[tuple[int, int, int, int], ...]:
     return tuple(tuple(int(v) for v in r) for r in a)
 
 
-def _read_key(sec: Section, key: str, base: Path) -> bytes | None:
-    if not sec.has(key):
-        return None
-    p = Path(sec.string(key))
-    if not p.is_absolute():
-        p = base / p
-    try:
-        data = p.read_bytes()  # the exact bytes, as the server reads them: copy the same file
-    except OSError as e:
-        raise sec.error(key, f"cannot read key file {p}: {e.strerror or e}") from None
-    if not data:
-        raise sec.error(key, f"key file {p} is empty; use 32 random bytes "
-                             "(e.g. `head -c 32 /dev/urandom > key`) and copy the same file to the server")
-    return data
-
-
 def parse_station(data: dict[str, Any], source: str = "<station>", base_dir: str | Path = ".") -> StationConfig:
     """Validate a station mapping. base_dir resolves relative file paths."""
     top = Section(data, source, "")
-    _only(top, {"station_id", "camera_id", "server", "key_file", "source", "camera", "detector", "clock",
-                "heartbeat_s", "link_timeout_s", "retry_max_s"})
+    _only(top, {"station_id", "camera_id", "server", "key_file", "insecure", "source", "camera", "detector",
+                "clock", "heartbeat_s", "link_timeout_s", "retry_max_s"})
     base = Path(base_dir)
     srv = top.sub("server")
     _only(srv, {"host", "port"})
@@ -194,7 +182,7 @@ def parse_station(data: dict[str, Any], source: str = "<station>", base_dir: str
         detector=dcfg,
         camera_kind=cam.string("kind", "unknown", choices=CAMERA_KINDS),
         camera_name=cam.string("name", ""),
-        key=_read_key(top, "key_file", base),
+        key=resolve_key(top, base)[0],
         clock_sync=clock.boolean("sync", True),
         heartbeat_s=top.number("heartbeat_s", 1.0, min=0.05, max=60.0),
         link_timeout_s=top.number("link_timeout_s", 3.5, min=0.2, max=600.0),

@@ -30,6 +30,13 @@ def _camera_looking_at(center, target, model: CameraModel, camera_id: int = 1, n
     return Camera(camera_id, name, model, R, -R @ center, **kwargs)
 
 
+@pytest.fixture(autouse=True)
+def _no_default_key(monkeypatch, tmp_path_factory):
+    """Hermetic keys: the default key file is one that does not exist, never the developer's
+    ~/.config/visionpos/key; a test that builds a server gives it a key or says insecure."""
+    monkeypatch.setenv("VISIONPOS_KEY_FILE", str(tmp_path_factory.getbasetemp() / "no-default-key"))
+
+
 @pytest.fixture
 def arena_yaml():
     """arena_yaml(name='thesis') -> a fresh, mutable copy of a built-in arena's YAML mapping."""

@@ -41,6 +41,8 @@ def test_demo_json_summary_is_sane_and_its_recording_replays(capsys, tmp_path):
         # the station's clock was offset by the scenario's raw offset; the server saw the sync result
         assert st["clock_offset_reported_ms"] == pytest.approx(st["clock_offset_true_ms"], abs=0.5)
     assert s["server"]["malformed"] == 0
+    # signed with the demo's in-memory key (no key file on this machine: the tests' default key is absent)
+    assert s["server"]["authenticated"] is True and s["server"]["auth_failed"] == 0
 
     # the live session, recorded by the server with the simulator's truth, replays offline
     from visionpos.analysis.replay import replay_log

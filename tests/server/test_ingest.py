@@ -51,6 +51,8 @@ def _arena(server: dict | None = None, tmp_path=None):
     data = load_yaml(resolve_config_path("thesis"))
     if server is not None:
         data["server"] = server
+    if isinstance(data.get("server"), dict) and "key_file" not in data["server"]:
+        data["server"] = {"insecure": True, **data["server"]}  # unsigned test packets, said explicitly
     src = str(tmp_path / "arena.yaml") if tmp_path is not None else str(resolve_config_path("thesis"))
     return parse_arena(data, src)
 
@@ -118,6 +120,7 @@ def test_unknown_station_refused_and_logged_once(caplog):
 def test_station_id_pinned_in_config():
     data = load_yaml(resolve_config_path("thesis"))
     data["cameras"][0]["station"] = 11
+    data["server"]["insecure"] = True
     ing = Ingest(parse_arena(data, "a.yaml"), pipeline=Collector(), clock=Clock(T0))
     (ack,) = _send(ing, _hello(1, station=12), T0)
     assert ack.status == P.ACK_REJECTED
@@ -377,8 +380,8 @@ def test_empty_key_file_refused(tmp_path):
 
 
 def test_builtin_config_defaults():
-    s = ServerSettings.from_arena(load_arena("thesis"))
-    assert s.port == P.DEFAULT_PORT and s.output_rate_hz == 100.0 and s.key is None
+    s = ServerSettings.for_replay(load_arena("thesis"))
+    assert s.port == P.DEFAULT_PORT and s.output_rate_hz == 100.0 and s.key is None and s.bind == "127.0.0.1"
 
 
 def test_station_vanishes_mid_flight_tracking_continues():
@@ -387,7 +390,7 @@ def test_station_vanishes_mid_flight_tracking_continues():
     sim = pytest.importorskip("visionpos.sim")
     from visionpos.fusion.pipeline import FusionPipeline
 
-    sc = sim.load_scenario("thesis", ["sim.duration=2.5"])
+    sc = sim.load_scenario("thesis", ["sim.duration=2.5", "server.insecure=true"])
     frames = sim.simulate(sc).frames_by_recv()
     cut = sc.start_ns + 1_200 * MS
     arena = sc.arena

@@ -31,6 +31,7 @@ MS = 1_000_000
 # vanish/age windows keep the real-time test independent of scheduling hiccups
 SIM_SET = ["sim.duration=3.0"] + [f"cameras.{i}.fps=30" for i in range(4)]
 SERVER_SET = ["server.vanish_min_s=0.6", "server.max_age_ms=3000", "server.status_period_s=0"]
+INSECURE = "server.insecure=true"  # the tests' stations send unsigned packets, and say so
 
 
 class Collect:
@@ -102,7 +103,7 @@ def test_tracking_continues_after_station_vanishes():
     autopilot.bind(("127.0.0.1", 0))
     autopilot.settimeout(0.01)
     vehicles = [f"vehicles=[{{body: quad, endpoint: 'udpout:127.0.0.1:{autopilot.getsockname()[1]}'}}]"]
-    arena = load_config_with_overrides("thesis", SIM_SET + SERVER_SET + vehicles)
+    arena = load_config_with_overrides("thesis", SIM_SET + SERVER_SET + vehicles + [INSECURE])
     cut_ns = sc.start_ns + 1_500 * MS  # camera 2 goes silent half-way through
     from visionpos.fusion.pipeline import FusionPipeline
 
@@ -228,7 +229,7 @@ def test_bad_traffic_over_udp(tmp_path):
 
 def test_sink_errors_do_not_stop_outputs():
     pytest.importorskip("visionpos.fusion.pipeline")
-    arena = load_config_with_overrides("thesis", ["server.status_period_s=0", "server.output_rate_hz=200"])
+    arena = load_config_with_overrides("thesis", ["server.status_period_s=0", "server.output_rate_hz=200", INSECURE])
 
     class Broken:
         def publish(self, states):
@@ -279,7 +280,8 @@ def test_command_sigterm_flushes_recording(command, tmp_path):
     out = tmp_path / "run.mcap"
     args = (["serve", "--config", "thesis", "--record", str(out)] if command == "serve"
             else ["record", "--out", str(out), "--config", "thesis"])
-    proc = _serve(args + ["--host", "127.0.0.1", "--port", "0", "--set", "server.status_period_s=0"], tmp_path)
+    proc = _serve(args + ["--host", "127.0.0.1", "--port", "0", "--set", "server.status_period_s=0", "--set", INSECURE],
+                  tmp_path)
     try:
         port = _port_from(proc)
         sent = _send_frames(port, 200)
@@ -306,7 +308,7 @@ def test_serve_killed_leaves_readable_recording(tmp_path):
     pytest.importorskip("visionpos.fusion.pipeline")
     out = tmp_path / "killed.mcap"
     proc = _serve(["serve", "--config", "thesis", "--record", str(out), "--host", "127.0.0.1", "--port", "0",
-                   "--set", "server.status_period_s=0"], tmp_path)
+                   "--set", "server.status_period_s=0", "--set", INSECURE], tmp_path)
     try:
         port = _port_from(proc)
         sent = _send_frames(port, 300, sleep_s=0.001)
@@ -343,7 +345,7 @@ def test_server_stall_is_not_a_vanished_station():
 
     from visionpos.server.ingest import Ingest
 
-    arena = load_config_with_overrides("thesis", ["server.vanish_min_s=0.2", "server.vanish_periods=2"])
+    arena = load_config_with_overrides("thesis", ["server.vanish_min_s=0.2", "server.vanish_periods=2", INSECURE])
     pushed = []
 
     class Frames:  # what ingest hands on (no fusion involved)
@@ -401,7 +403,8 @@ def test_port_in_use_is_a_message(tmp_path):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-        proc = _serve(["serve", "--config", "thesis", "--host", "127.0.0.1", "--port", str(port)], tmp_path)
+        proc = _serve(["serve", "--config", "thesis", "--host", "127.0.0.1", "--port", str(port), "--set", INSECURE],
+                      tmp_path)
         _, stderr = proc.communicate(timeout=30)
     assert proc.returncode == 2 and f"127.0.0.1:{port}" in stderr and "--port" in stderr
     assert "Traceback" not in stderr
@@ -415,7 +418,7 @@ def test_loose_markers_reach_sinks_and_the_recording(tmp_path):
     from visionpos.fusion.pipeline import FusionPipeline
     from visionpos.sim import load_scenario, simulate
 
-    sc = load_scenario("thesis", ["sim.duration=1.0", "sim.spurious.random_per_frame=0"], session="wand")
+    sc = load_scenario("thesis", ["sim.duration=1.0", "sim.spurious.random_per_frame=0", INSECURE], session="wand")
     sim = simulate(sc)
 
     class Markers:
@@ -457,7 +460,7 @@ def test_loose_markers_reach_sinks_and_the_recording(tmp_path):
 def test_backlogged_frames_are_shed_over_a_real_socket():
     """Frames that queued in the kernel while the loop was blocked (kernel arrival stamps) are
     counted and not fused; frames that arrive once it keeps up are fused."""
-    arena = load_config_with_overrides("thesis", ["server.status_period_s=0", "server.shed_backlog_ms=30"])
+    arena = load_config_with_overrides("thesis", ["server.status_period_s=0", "server.shed_backlog_ms=30", INSECURE])
 
     class Frames:
         def __init__(self):

@@ -145,6 +145,8 @@ def station_cfg(port: int, **extra):
         "link_timeout_s": 1.0,
         "retry_max_s": 0.1,
     }
+    if "key_file" not in extra:
+        data["insecure"] = True  # a key, where a test wants one, is set on the parsed config
     data.update(extra)
     cfg = parse_station(data, "test.yaml")
     return cfg

@@ -167,7 +167,7 @@ def run_pipeline(
 
     packets: (recv_ns, datagram) or (recv_ns, datagram, (host, port)) in
     receive order. The server's Ingest does what it does live (registration,
-    sequence and clock checks, HMAC when the arena has a key, cameras that
+    sequence and clock checks, HMAC when the arena names a key_file, cameras that
     vanish), on a clock that is the recording's receive time, so the only
     input is the log. Ticks: t0 + k * period for k >= 1, t0 the first receive
     time; every tick at or before a packet's receive time runs before that
@@ -183,7 +183,7 @@ def run_pipeline(
     from visionpos.server.service import VANISH_CHECK_S
     from visionpos.server.settings import ServerSettings
 
-    settings = ServerSettings.from_arena(arena)
+    settings = ServerSettings.for_replay(arena)  # recordings are trusted: no key file needed
     rate = float(rate_hz or settings.output_rate_hz)
     period = int(round(1e9 / rate))
     check_ns = int(VANISH_CHECK_S * 1e9)

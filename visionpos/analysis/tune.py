@@ -182,7 +182,7 @@ def check_sweep(log: str, grid: list[tuple[str, list[Any]]], base_overrides: Seq
     def validate(overrides: list[str]) -> None:
         arena = load_settings(recorded, config, overrides)
         parse_fusion_settings(arena)
-        ServerSettings.from_arena(arena)
+        ServerSettings.for_replay(arena)
 
     validate(list(base_overrides))
     for key, values in grid:

@@ -40,6 +40,7 @@ from visionpos import protocol as P
 from visionpos.analysis import metrics as M
 from visionpos.app.ports import free_port
 from visionpos.config.arena import ArenaConfig, apply_overrides, load_yaml, parse_arena, resolve_config_path
+from visionpos.config.keys import KEY_BYTES
 from visionpos.messages import BlobFrame, BodyState
 
 log = logging.getLogger(__name__)
@@ -100,11 +101,11 @@ class SimStation:
 
     frames: this camera's BlobFrames with capture_ns and recv_ns already on the
     server clock (true exposure stamp and simulated network arrival time).
-    clock_offset_ns: this station's raw clock minus the server clock.
+    clock_offset_ns: this station's raw clock minus the server clock. key: the server's HMAC key.
     """
 
     def __init__(self, camera, station_id: int, frames: list[BlobFrame], clock_offset_ns: int, server_port: int,
-                 session: int):
+                 session: int, key: bytes | None = None):
         from stations.clocksync import ClockSync
 
         self.camera = camera
@@ -113,6 +114,7 @@ class SimStation:
         self.clock_offset_ns = int(clock_offset_ns)
         self.server = ("127.0.0.1", server_port)
         self.session = session
+        self.key = key
         self.sync = ClockSync(station_id, camera.id, interval_s=1.0, burst=8, burst_interval_s=0.02)
         self.transport: asyncio.DatagramTransport | None = None
         self.ack: P.HelloAck | None = None
@@ -128,7 +130,7 @@ class SimStation:
     def on_datagram(self, data: bytes) -> None:
         t4 = self.station_clock()
         try:
-            msg = P.decode(data)
+            msg = P.decode(data, self.key)
         except P.ProtocolError:
             self.bad_replies += 1
             return
@@ -146,7 +148,7 @@ class SimStation:
 
     def _send(self, msg: Any) -> None:
         try:
-            self.transport.sendto(P.encode(msg))
+            self.transport.sendto(P.encode(msg, self.key))
         except OSError:
             self.send_errors += 1
 
@@ -209,7 +211,7 @@ class SimStation:
             capture = est.to_server(local) if est is not None else f.capture_ns
             try:
                 self.transport.sendto(P.encode_frame(BlobFrame(f.camera_id, f.seq, capture, f.blobs,
-                                                               self.station_id, f.flags)))
+                                                               self.station_id, f.flags), self.key))
                 self.sent += 1
             except OSError:
                 self.send_errors += 1
@@ -265,7 +267,10 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     names = [b.name for b in arena.bodies]
     tracked_names = [n for n in names if any(sb.name == n for sb in sc.bodies)]
 
-    settings = dataclasses.replace(ServerSettings.from_arena(arena), status_period_s=0.0)
+    # a fresh key in memory, shared by the in-process stations and the server: signed like a real
+    # set-up, and no key file needed (unless the arena names one, or says insecure: true)
+    settings = dataclasses.replace(ServerSettings.from_arena(arena, key=secrets.token_bytes(KEY_BYTES)),
+                                   status_period_s=0.0)
     bridge = Bridge(arena, {"pose_stream": False, "report_interval_s": 0})
     collector = Collector(names)
     recorder = None
@@ -291,7 +296,7 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
             sid = timing[cam.id].station_id
             clock = sc.clocks.get(sid)
             st = SimStation(cam, sid, by_cam.get(cam.id, []), clock.offset_ns if clock is not None else 0,
-                            server.port, rng.randrange(1, 1 << 32))
+                            server.port, rng.randrange(1, 1 << 32), settings.key)
             await st.open()
             stations.append(st)
         await asyncio.gather(*(s.register_and_sync() for s in stations))
@@ -469,7 +474,7 @@ def _summary(arena, sc, shift, t_start, t_stop, collector: Collector, bridge, au
         "latency_to_autopilot_ms": M.percentiles_ms(aplat, (50, 99)),
         "stations": stations_out,
         "server": {k: health.get(k) for k in ("packets", "frames_accepted", "frames_shed", "malformed", "unknown",
-                                              "pipeline_errors",
+                                              "pipeline_errors", "authenticated", "auth_failed",
                                               "tick_cost_max_ms")},
         "pipeline": {k: v for k, v in (health.get("pipeline") or {}).items() if isinstance(v, (int, float, str))},
     })

@@ -29,12 +29,13 @@ def bridge_sinks(arena: ArenaConfig) -> list[Any]:
     return [Bridge(arena)]
 
 
-async def serve(arena: ArenaConfig, settings: ServerSettings, host: str = "0.0.0.0", record: str | Path | None = None,
+async def serve(arena: ArenaConfig, settings: ServerSettings, host: str | None = None, record: str | Path | None = None,
                 duration_s: float | None = None,
                 on_listening: Callable[[FusionServer], None] | None = None) -> dict[str, Any]:
     """Run the fusion server with the arena's bridge sinks until a signal (or duration_s); returns its health.
 
-    record: MCAP path; every station packet, the config and the outputs are recorded.
+    host: the address to listen on (None: settings.bind). record: MCAP path; every station
+    packet, the config and the outputs are recorded.
     on_listening(server) is called once the socket is open; an OSError (port in use, bad
     address) propagates, with the recording closed.
     """

@@ -31,7 +31,8 @@ def measure_packet_cost(n: int = 20000, blobs: int = 8, key: bytes | None = None
     `blobs` blobs each, HMAC-signed when key is given. decode/handle: thread CPU time, best of 10 chunk means.
     """
     arena = load_arena("thesis")
-    settings = ServerSettings(key=key, max_age_ms=1e9, status_period_s=0)  # packets are pre-stamped
+    # packets are pre-stamped (max_age); unsigned packets measured on an explicitly insecure server
+    settings = ServerSettings(key=key, insecure=key is None, max_age_ms=1e9, status_period_s=0)
     rng = np.random.default_rng(0)
     t0 = time.monotonic_ns()
     pk = []

@@ -21,6 +21,7 @@ COMMANDS: dict[str, str] = {
     "demo": "run the whole chain on a simulated arena over loopback",
     "serve": "start the fusion service for live stations",
     "record": "record live station traffic to an MCAP log (no outputs)",
+    "keygen": "make the shared key that server and stations sign packets with",
     "sim": "simulate a scenario and write a recording",
     "replay": "re-run the pipeline on a recording",
     "tune": "sweep settings over a recording and rank them",

@@ -8,7 +8,7 @@ import logging
 import sys
 
 from visionpos.errors import UsageError
-from visionpos.server.service import load_config_with_overrides, record_traffic, status_log
+from visionpos.server.service import load_config_with_overrides, loopback_note, record_traffic, status_log
 from visionpos.server.settings import ServerSettings
 
 
@@ -18,7 +18,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("output", nargs="?", default=None, help=argparse.SUPPRESS)
     p.add_argument("--config", required=True, help="arena YAML (path or built-in name: thesis, arena8)")
     p.add_argument("--port", type=int, default=None, help="UDP port (default: server.port from the config, 5600)")
-    p.add_argument("--host", default="0.0.0.0", help="address to listen on (default all interfaces)")
+    p.add_argument("--host", default=None, metavar="ADDRESS",
+                   help="address to listen on (default: server.bind from the config, 127.0.0.1)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: until Ctrl-C)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
 
@@ -44,15 +45,20 @@ def run(args: argparse.Namespace) -> int:
     settings = ServerSettings.from_arena(arena)
     if args.port is not None:
         settings = settings.with_port(args.port)
+    if args.host is not None:
+        settings = settings.with_bind(args.host)
     listening_on: list[int] = []
 
     def listening(port: int) -> None:
         listening_on.append(port)
-        print(f"visionpos record: listening on udp {args.host}:{port}, recording to {out}; Ctrl-C to stop",
+        print(f"visionpos record: listening on udp {settings.bind}:{port}, recording to {out}; Ctrl-C to stop",
               flush=True)
+        note = loopback_note(settings.bind)
+        if note is not None:
+            print(f"visionpos record: {note}", flush=True)
 
     try:
-        n = asyncio.run(record_traffic(arena, settings, out, args.host, args.duration, listening))
+        n = asyncio.run(record_traffic(arena, settings, out, None, args.duration, listening))
     except OSError as e:
         if listening_on:
             raise

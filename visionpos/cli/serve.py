@@ -8,7 +8,7 @@ import logging
 
 from visionpos.app.serve import serve
 from visionpos.errors import UsageError
-from visionpos.server.service import load_config_with_overrides, status_log
+from visionpos.server.service import load_config_with_overrides, loopback_note, status_log
 from visionpos.server.settings import ServerSettings
 
 
@@ -16,7 +16,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", required=True, help="arena YAML (path or built-in name: thesis, arena8)")
     p.add_argument("--record", metavar="FILE", help="record every station packet, the config and outputs (MCAP)")
     p.add_argument("--port", type=int, default=None, help="UDP port for stations (default server.port, 5600)")
-    p.add_argument("--host", default="0.0.0.0", help="address to listen on (default all interfaces)")
+    p.add_argument("--host", default=None, metavar="ADDRESS",
+                   help="address to listen on (default: server.bind from the config, 127.0.0.1)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: Ctrl-C)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key, e.g. server.output_rate_hz=50 (repeatable)")
@@ -29,16 +30,21 @@ def run(args: argparse.Namespace) -> int:
     settings = ServerSettings.from_arena(arena)
     if args.port is not None:
         settings = settings.with_port(args.port)
+    if args.host is not None:
+        settings = settings.with_bind(args.host)
 
     listening_on: list[int] = []
 
     def listening(server) -> None:
         listening_on.append(server.port)
-        print(f"visionpos serve: listening on udp {args.host}:{server.port}"
+        print(f"visionpos serve: listening on udp {settings.bind}:{server.port}"
               + (f", recording to {args.record}" if args.record else "") + "; Ctrl-C to stop", flush=True)
+        note = loopback_note(settings.bind)
+        if note is not None:
+            print(f"visionpos serve: {note}", flush=True)
 
     try:
-        h = asyncio.run(serve(arena, settings, args.host, args.record, args.duration, listening))
+        h = asyncio.run(serve(arena, settings, None, args.record, args.duration, listening))
     except OSError as e:
         if listening_on:
             raise

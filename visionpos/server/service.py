@@ -14,7 +14,7 @@ keeps being called. The server knows no concrete output: visionpos.app.serve com
 
 Programmatic use (demo, tests):
 
-    server = FusionServer(arena, sinks=[my_sink], host="127.0.0.1", port=0)
+    server = FusionServer(arena, sinks=[my_sink], port=0)   # listens on settings.bind
     await server.start(); print(server.port)
     ...; server.health(); await server.stop()
 """
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import inspect
+import ipaddress
 import logging
 import signal
 import time
@@ -65,11 +66,11 @@ class FusionServer:
     (default: visionpos.fusion.pipeline.FusionPipeline(arena, arena.raw.get('fusion'))).
     recorder: a RecordingWriter; it gets every packet, events and health snapshots, is added to the
     sinks, and is closed by stop() (the server owns it from then on).
-    port: None = settings.port; 0 = any free port (see .port after start()).
+    host: None = settings.bind. port: None = settings.port; 0 = any free port (see .port after start()).
     """
 
     def __init__(self, arena: ArenaConfig, settings: ServerSettings | None = None, sinks: Sequence[Any] = (),
-                 host: str = "127.0.0.1", port: int | None = None, pipeline: Any = None, recorder: Any = None,
+                 host: str | None = None, port: int | None = None, pipeline: Any = None, recorder: Any = None,
                  clock: Callable[[], int] = time.monotonic_ns):
         self.arena = arena
         self.settings = settings or ServerSettings.from_arena(arena)
@@ -82,7 +83,7 @@ class FusionServer:
         self.sinks: list[Any] = list(sinks)
         if recorder is not None and recorder not in self.sinks:
             self.sinks.append(recorder)
-        self.host = host
+        self.host = self.settings.bind if host is None else host
         self._port_req = self.settings.port if port is None else int(port)
         self.clock = clock
         self.ingest = Ingest(arena, self.settings, pipeline, recorder, clock=clock, events=self._on_event)
@@ -121,6 +122,7 @@ class FusionServer:
         log.info("fusion server listening on udp %s:%d (%d cameras, %d bodies, %g Hz output%s)", self.host,
                  self.port, len(self.arena.cameras), len(self.arena.bodies), self.settings.output_rate_hz,
                  ", HMAC on" if self.settings.key else "")
+        warn_if_insecure(self.settings, self.arena.source)
 
     async def stop(self) -> None:
         """Stop ingest and ticks, close sinks (the recorder last: it holds everything). Idempotent."""
@@ -241,7 +243,8 @@ class FusionServer:
             parts.append(f"{b.name}:{'-' if rate is None else f'{rate:.0f}Hz'} tracked")
             self._body_counts_prev[b.name] = n
         self._status_prev_ns = now
-        return self.ingest.status_line() + " | bodies: " + (" ".join(parts) or "none")
+        return (insecure_prefix(self.settings) + self.ingest.status_line() + " | bodies: "
+                + (" ".join(parts) or "none"))
 
     # ---------------------------------------------------------------- observability
 
@@ -251,6 +254,7 @@ class FusionServer:
 
     def health(self) -> dict[str, Any]:
         h = self.ingest.health()
+        h["insecure"] = self.settings.insecure
         h["ticks"] = self.ticks
         h["late_ticks"] = self.late_ticks
         h["states_out"] = self.states_out
@@ -271,6 +275,30 @@ class FusionServer:
                     sinks[type(s).__name__] = {"error": repr(e)}
         h["sinks"] = sinks
         return h
+
+
+def insecure_prefix(settings: ServerSettings) -> str:
+    """The status line's first words when the server runs without a key."""
+    return "INSECURE (no key, packets unauthenticated) | " if settings.insecure else ""
+
+
+def warn_if_insecure(settings: ServerSettings, source: str) -> None:
+    if settings.insecure:
+        log.warning("INSECURE: server.insecure is true (%s), so station packets are neither signed nor checked; "
+                    "anyone who can reach the port can inject poses. Run `visionpos keygen`, copy the key to "
+                    "every station and remove `insecure` (docs/security.md)", source)
+
+
+def loopback_note(host: str) -> str | None:
+    """What `serve` and `record` add when they listen on loopback, where no real station reaches them."""
+    try:
+        loopback = ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return None
+    if not loopback:
+        return None
+    return (f"{host} is loopback: stations on other hosts cannot reach it; set server.bind to this host's "
+            "address on the lab network (or pass --host ADDRESS)")
 
 
 async def run_until_signal(duration_s: float | None = None, status: Callable[[], None] | None = None,
@@ -306,14 +334,15 @@ async def run_until_signal(duration_s: float | None = None, status: Callable[[],
             loop.remove_signal_handler(sig)
 
 
-async def record_traffic(arena: ArenaConfig, settings: ServerSettings, out: str | Path, host: str = "0.0.0.0",
+async def record_traffic(arena: ArenaConfig, settings: ServerSettings, out: str | Path, host: str | None = None,
                          duration_s: float | None = None,
                          on_listening: Callable[[int], None] | None = None) -> int:
     """Record live station traffic to `out` until a signal (or duration_s): no fusion, no outputs.
 
     Answers registration, clock sync and heartbeats as the server does, so stations stream as
-    they would to it, and logs every packet. on_listening(port) is called once the socket is
-    open; an OSError (port in use, bad address) propagates. Returns the packets recorded.
+    they would to it, and logs every packet. host: None = settings.bind. on_listening(port) is
+    called once the socket is open; an OSError (port in use, bad address) propagates. Returns
+    the packets recorded.
     """
     from visionpos.recording import TOPIC_PACKETS, RecordingWriter
 
@@ -321,13 +350,15 @@ async def record_traffic(arena: ArenaConfig, settings: ServerSettings, out: str 
         ingest = Ingest(arena, settings, pipeline=None, recorder=rec,
                         events=lambda kind, info: rec.write_json("/server/events", time.monotonic_ns(),
                                                                  {"kind": kind, **info}))
-        await ingest.start(host, settings.port)
+        await ingest.start(settings.bind if host is None else host, settings.port)
+        warn_if_insecure(settings, arena.source)
         if on_listening is not None:
             on_listening(ingest.port)
 
         def status() -> None:
             ingest.check_vanished(time.monotonic_ns())
-            status_log.info("%s | recorded %d packets", ingest.status_line(), rec.counts.get(TOPIC_PACKETS, 0))
+            status_log.info("%s%s | recorded %d packets", insecure_prefix(settings), ingest.status_line(),
+                            rec.counts.get(TOPIC_PACKETS, 0))
 
         try:
             await run_until_signal(duration_s, status=status, status_period_s=settings.status_period_s)

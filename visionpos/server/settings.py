@@ -5,13 +5,16 @@ Reference table: docs/configuration.md (generated from SERVER below).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import ipaddress
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from visionpos import protocol as P
-from visionpos.config.arena import ArenaConfig
+from visionpos.config.arena import ArenaConfig, Section
+from visionpos.config.keys import resolve_key
 from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, section
+from visionpos.errors import UsageError
 
 SERVER = section(
     "server",
@@ -23,10 +26,17 @@ SERVER = section(
     "(from the kernel's arrival stamp to its turn) is checked, counted and recorded but not fused. A host too "
     "slow for its cameras then fuses the freshest frames at the rate it can sustain instead of falling ever "
     "further behind. Only the server's own backlog counts, never a station's or the network's latency (a "
-    "steady slow link is used). Replays have no backlog and never shed.",
+    "steady slow link is used). Replays have no backlog and never shed.\n"
+    "- Authentication is on by default: with neither `key_file` nor `insecure: true` the server reads the "
+    "default key file and refuses to start without one (docs/security.md).",
     Setting("port", "integer", P.DEFAULT_PORT, "UDP port the stations send to", min=0, max=65535),
-    Setting("key_file", "text", None, "shared HMAC key file (relative to the arena file); with a key every "
-            "packet must be signed", default_doc="(no signing)"),
+    Setting("bind", "text", "127.0.0.1", "address of this host's interface to listen on: the lab network's "
+            "(e.g. 192.168.1.10) for real stations, 0.0.0.0 for every interface; `--host` overrides it"),
+    Setting("key_file", "text", None, "shared HMAC key file (relative to the arena file); every packet must be "
+            "signed with it. Make one with `visionpos keygen` and copy it to every station",
+            default_doc="`$VISIONPOS_KEY_FILE`, else `~/.config/visionpos/key`"),
+    Setting("insecure", "boolean", False, "run without a key: packets are neither signed nor checked (a "
+            "WARNING at start, INSECURE in the status line); not together with key_file"),
     Setting("output_rate_hz", "number", 100.0, "BodyState ticks per second", min=1.0, max=2000.0),
     Setting("start_delay_s", "number", 0.0, "trigger time = server start + this", min=0.0, max=3600.0),
     Setting("duration_s", "number", 0.0, "stop after this long (0 = run until stopped)", min=0.0),
@@ -48,12 +58,16 @@ SERVER = section(
 class ServerSettings:
     """The arena's `server:` section (every key optional; see SERVER for the meaning of each).
 
-    key: the bytes of key_file (None: no signing); key_file: its resolved path.
+    key: the shared HMAC key; key_file: where it was read from (None: given in memory).
+    insecure: no key, by explicit choice. Exactly one of key and insecure: a server without a
+    key must have been asked to run without one.
     """
 
     port: int = SERVER["port"].field_default
+    bind: str = SERVER["bind"].field_default
     key: bytes | None = None
     key_file: str | None = None
+    insecure: bool = False
     output_rate_hz: float = SERVER["output_rate_hz"].field_default
     start_delay_s: float = SERVER["start_delay_s"].field_default
     duration_s: float = SERVER["duration_s"].field_default
@@ -65,31 +79,62 @@ class ServerSettings:
     status_period_s: float = SERVER["status_period_s"].field_default
     shed_backlog_ms: float = SERVER["shed_backlog_ms"].field_default
 
+    def __post_init__(self) -> None:
+        if self.key is None and not self.insecure:
+            raise ValueError("ServerSettings without a key: give key=<shared key bytes> or insecure=True")
+        if self.key is not None and self.insecure:
+            raise ValueError("ServerSettings with a key and insecure=True: give one of them")
+
     @classmethod
-    def from_arena(cls, arena: ArenaConfig) -> "ServerSettings":
+    def from_arena(cls, arena: ArenaConfig, key: bytes | None = None) -> "ServerSettings":
+        """The validated `server:` section with its key read (visionpos.config.keys.resolve_key).
+
+        key: used instead of the default key file when the section names neither key_file nor
+        insecure (the demo's in-memory key). Raises ConfigError naming the file, the key and the fix.
+        """
         s = SERVER.check(arena.section("server"))
-        key = None
-        key_file = None
-        if s.has("key_file"):
-            key_file = s.string("key_file")
-            p = Path(key_file).expanduser()
-            if not p.is_absolute() and Path(arena.source).parent.exists():
-                p = Path(arena.source).parent / p
-            try:
-                key = p.read_bytes()
-            except OSError as e:
-                raise s.error("key_file", f"cannot read {p}: {e.strerror or e}; give the shared key file "
-                                          "the stations use") from None
-            if not key:
-                raise s.error("key_file", f"{p} is empty; the shared HMAC key needs at least 1 byte (use 32 random)")
-            key_file = str(p)
         values = SERVER.parse(s)
-        values.pop("key_file")
-        return cls(key=key, key_file=key_file, **values)
+        _check_bind(s, values["bind"])
+        base = Path(arena.source).parent if Path(arena.source).parent.exists() else None
+        values["key"], values["key_file"] = resolve_key(s, base, key, insecure_hint="server.insecure: true")
+        return cls(**values)
+
+    @classmethod
+    def for_replay(cls, arena: ArenaConfig) -> "ServerSettings":
+        """Settings to re-run recorded packets, which are trusted local files: signatures are checked
+        only with a key_file the arena names (as the live server did); no default key file is needed."""
+        s = SERVER.check(arena.section("server"))
+        if s.has("key_file") and not s.data.get("insecure"):
+            return cls.from_arena(arena)
+        values = SERVER.parse(s)
+        values.update(key=None, key_file=None, insecure=True)
+        return cls(**values)
 
     def with_port(self, port: int) -> "ServerSettings":
-        from dataclasses import replace
-
         return replace(self, port=int(port))
+
+    def with_bind(self, address: str) -> "ServerSettings":
+        """This address to listen on (the `--host` option); UsageError when it is no IP address."""
+        try:
+            ipaddress.ip_address(address)
+        except ValueError:
+            raise UsageError(f"--host {address}: give an IP address of this host (e.g. 192.168.1.10, "
+                             "127.0.0.1, or 0.0.0.0 for every interface)") from None
+        return replace(self, bind=address)
+
+    @property
+    def loopback(self) -> bool:
+        """The server listens on loopback only: stations on other hosts cannot reach it."""
+        return ipaddress.ip_address(self.bind).is_loopback
+
+
+def _check_bind(s: Section, address: str) -> None:
+    try:
+        ipaddress.ip_address(address)
+    except ValueError:
+        raise s.error("bind", f"{address!r} is no IP address; give the address of this host's interface on the "
+                              "stations' network (e.g. 192.168.1.10), 127.0.0.1, or 0.0.0.0 for every "
+                              "interface") from None
+
 
 register_section("server", SERVER)
