@@ -516,7 +516,7 @@ class VrpnServer:
         except (BlockingIOError, InterruptedError):
             return
         except OSError as e:
-            self._drop(c, "connection error", str(e))
+            self._drop(c, "disconnected mid-message" if c.reader.buf else "connection error", str(e))
             return
         if not data:
             self._drop(c, "disconnected mid-message" if c.reader.buf else "disconnected")
