@@ -1,7 +1,7 @@
 """The fusion service with its outputs: FusionServer composed with the bridge (MAVLink, pose stream).
 
 The server core knows sinks only as objects with `publish(states)`; which sinks an arena asks
-for (its `vehicles:` and `pose_stream:` sections) is decided here, so the core never imports
+for (its `vehicles:`, `pose_stream:` and `vrpn:` sections) is decided here, so the core never imports
 the bridge.
 """
 
@@ -17,16 +17,23 @@ from visionpos.server.settings import ServerSettings
 
 
 def bridge_sinks(arena: ArenaConfig) -> list[Any]:
-    """The bridge (MAVLink per vehicle + pose stream) when the arena configures one."""
+    """The bridge (MAVLink per vehicle + pose stream) and the VRPN server, as the arena configures them."""
+    sinks: list[Any] = []
+    if arena.raw.get("vrpn") is not None:
+        from bridge.vrpn import VrpnServer, parse_vrpn
+
+        vrpn = parse_vrpn(arena)
+        if vrpn is not None:
+            sinks.append(VrpnServer(vrpn))
     if not (arena.raw.get("vehicles") or arena.raw.get("pose_stream")):
-        return []
+        return sinks
     try:
         from bridge import Bridge
     except ImportError as e:
         raise ConfigError(arena.source, "vehicles",
                           f"the config asks for vehicle outputs but the bridge package cannot be imported ({e}); "
                           "install visionpos completely or remove the vehicles/pose_stream sections") from None
-    return [Bridge(arena)]
+    return [Bridge(arena), *sinks]
 
 
 async def serve(arena: ArenaConfig, settings: ServerSettings, host: str | None = None, record: str | Path | None = None,

@@ -106,6 +106,7 @@ TOP = section(
     Setting("server", "section", {}, "the fusion server's network and timing"),
     Setting("vehicles", "list", [], "autopilots the MAVLink bridge feeds"),
     Setting("pose_stream", "section", None, "UDP pose stream", default_doc="(off)"),
+    Setting("vrpn", "section", None, "VRPN server", default_doc="(off)"),
     Setting("sim", "section", {}, "the simulator's scenario"),
     Setting("calibration", "section", {}, "calibration wand and reports", spec=CALIBRATION),
 )
