@@ -17,7 +17,7 @@ from visionpos.server.settings import ServerSettings
 
 
 def bridge_sinks(arena: ArenaConfig) -> list[Any]:
-    """The bridge (MAVLink per vehicle + pose stream) and the VRPN server, as the arena configures them."""
+    """The bridge (MAVLink per vehicle + pose stream), the VRPN and the NatNet servers, as the arena configures them."""
     sinks: list[Any] = []
     if arena.raw.get("vrpn") is not None:
         from bridge.vrpn import VrpnServer, parse_vrpn
@@ -25,6 +25,12 @@ def bridge_sinks(arena: ArenaConfig) -> list[Any]:
         vrpn = parse_vrpn(arena)
         if vrpn is not None:
             sinks.append(VrpnServer(vrpn))
+    if arena.raw.get("natnet") is not None:
+        from bridge.natnet import NatNetServer
+
+        natnet = NatNetServer.from_arena(arena)
+        if natnet is not None:
+            sinks.append(natnet)
     if not (arena.raw.get("vehicles") or arena.raw.get("pose_stream")):
         return sinks
     try:
