@@ -61,7 +61,7 @@ def check_pose(pos, quat_xyzw, st, up="y"):
     p, R = expected(st, up)
     np.testing.assert_allclose(pos, p, atol=1e-5)  # float32 on the wire
     got = Rotation.from_quat(quat_xyzw).as_matrix()
-    np.testing.assert_allclose(got, R, atol=2e-6 * 10)
+    np.testing.assert_allclose(got, R, atol=2e-6)  # float32 quaternion
 
 
 def drive(srv, seconds, lost=False, rate_hz=RATE_HZ, sent=None):
@@ -176,7 +176,7 @@ def test_natnetsdk_unicast_bodies_poses_validity_rate_and_bitstream_change():
             assert rb.error == pytest.approx(s.residual_mm * 1e-3, rel=1e-5)
         sfx = frame.suffix_data
         assert sfx.stamp_camera_mid_exposure <= sfx.stamp_data_received <= sfx.stamp_transmit
-        assert sfx.stamp_camera_mid_exposure == st[0].capture_ns or sfx.stamp_camera_mid_exposure >= st[0].capture_ns
+        assert sfx.stamp_camera_mid_exposure == max(s.capture_ns for s in st)  # server monotonic ns
         numbers = [f.prefix_data.frame_number for _, f in got["frames"]]
         assert numbers == sorted(numbers)
         # labelled markers of the tracked bodies: model id in the high word
