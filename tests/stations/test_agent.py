@@ -26,6 +26,7 @@ from visionpos.sim.render import render_blobs
 KEY = b"test-key-0123456789abcdef"
 SERVER_OFFSET_NS = 7_000_000_000  # the test server's clock runs 7 s ahead of the station's
 W, H = 160, 120
+COOKIE = b"test-cookie-0123"
 TRUE = np.array([[40.3, 30.6], [100.7, 80.2], [130.1, 20.9]])
 
 
@@ -75,17 +76,17 @@ class LoopbackServer:
                 continue
             out = None
             if isinstance(msg, BlobFrame):
-                if (msg.station_id, msg.camera_id) in self.sessions:
+                if self.sessions.get((msg.station_id, msg.camera_id)) == msg.session:
                     self.frames.append(msg)
-                else:  # unregistered (we restarted): ask the station to register, once per burst
+                else:  # unregistered (we restarted): counted, never answered
                     self.unregistered_frames += 1
-                    if self.unregistered_frames % 20 == 1:
-                        out = P.HelloAck(msg.station_id, msg.camera_id, 0, self.start_ns, self.clock(),
-                                         P.ACK_UNKNOWN_SESSION)
             elif isinstance(msg, P.Hello):
-                self.hellos.append(msg)
-                self.sessions[(msg.station_id, msg.camera_id)] = msg.session
-                out = P.make_hello_ack(msg, self.start_ns, self.clock())
+                if msg.cookie != COOKIE:  # the protocol's challenge round trip
+                    out = P.make_hello_ack(msg, self.start_ns, self.clock(), P.ACK_CHALLENGE, cookie=COOKIE)
+                else:
+                    self.hellos.append(msg)
+                    self.sessions[(msg.station_id, msg.camera_id)] = msg.session
+                    out = P.make_hello_ack(msg, self.start_ns, self.clock())
             elif isinstance(msg, P.Heartbeat):
                 self.heartbeats.append(msg)
                 known = self.sessions.get((msg.station_id, msg.camera_id)) == msg.session
