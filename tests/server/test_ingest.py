@@ -1,11 +1,14 @@
 """Ingest: registration, sync, heartbeats, HMAC, sequence and clock checks, bad packets.
 
 Driven through Ingest.handle() with chosen receive times (no sockets, no sleeps);
-the loopback UDP path is covered in test_server.py.
+the loopback UDP path is covered in test_service.py. `_send` plays a well-behaved
+station: it answers the HELLO cookie challenge and numbers control messages; the
+attack tests at the end build their packets by hand.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import random
@@ -62,18 +65,29 @@ def _ingest(server=None, tmp_path=None, t=T0):
     return ing, pipe, clock
 
 
-def _frame(cam: int, seq: int, capture_ns: int, station: int = None, flags: int = 0, n: int = 3) -> BlobFrame:
+def _frame(cam: int, seq: int, capture_ns: int, station: int = None, flags: int = 0, n: int = 3,
+           session: int = 7) -> BlobFrame:
     blobs = np.arange(n * 4, dtype=np.float32).reshape(n, 4) + seq
-    return BlobFrame(cam, seq, capture_ns, blobs, cam if station is None else station, flags)
+    return BlobFrame(cam, seq, capture_ns, blobs, cam if station is None else station, flags, 0, session)
 
 
-def _hello(cam, session=7, station=None, w=960, h=640, timebase=P.TIMEBASE_SERVER):
+def _hello(cam, session=7, station=None, w=960, h=640, timebase=P.TIMEBASE_SERVER, counter=0, cookie=P.NO_COOKIE):
     return P.Hello(cam if station is None else station, cam, session, w, h, 100.0, "fisheye", f"pi{cam}", "test",
-                   timebase)
+                   timebase, counter, cookie)
 
 
 def _send(ing, msg, recv_ns, key=None, addr=ADDR):
-    return [P.decode(r, key) for r in ing.handle(P.encode(msg, key), addr, recv_ns)]
+    """Send like a station: control messages without a counter get the next one; a HELLO without a
+    cookie that is challenged is sent again with the cookie (the replies to that one are returned)."""
+    if isinstance(msg, (P.Hello, P.Heartbeat, P.SyncRequest, P.Bye)):
+        last = getattr(ing, "_test_counter", 0)
+        if msg.counter == 0:
+            msg = dataclasses.replace(msg, counter=last + 1)
+        ing._test_counter = max(last, msg.counter)
+    replies = [P.decode(r, key) for r in ing.handle(P.encode(msg, key), addr, recv_ns)]
+    if isinstance(msg, P.Hello) and msg.cookie == P.NO_COOKIE and [r.status for r in replies] == [P.ACK_CHALLENGE]:
+        return _send(ing, dataclasses.replace(msg, counter=0, cookie=replies[0].cookie), recv_ns, key, addr)
+    return replies
 
 
 def test_registration_and_trigger_time():
@@ -127,15 +141,16 @@ def test_station_id_pinned_in_config():
 
 def test_clock_sync_reply_stamps():
     ing, _, clock = _ingest()
+    _send(ing, _hello(1), T0)
     clock.t = T0 + 250_000  # the reply is built 0.25 ms after the datagram arrived
-    (rep,) = _send(ing, P.SyncRequest(1, 1, t1_ns=-55_555, seq=42), T0)
+    (rep,) = _send(ing, P.SyncRequest(1, 1, t1_ns=-55_555, counter=42, session=7), T0)
     assert isinstance(rep, P.SyncReply)
-    assert (rep.t1_ns, rep.t2_ns, rep.t3_ns, rep.seq) == (-55_555, T0, T0 + 250_000, 42)
+    assert (rep.t1_ns, rep.t2_ns, rep.t3_ns, rep.echo, rep.session) == (-55_555, T0, T0 + 250_000, 42, 7)
 
 
 def test_heartbeat_records_station_clock():
     ing, _, _ = _ingest()
-    hb = P.Heartbeat(1, 1, 3, session=7, status=P.HB_CLOCK_SYNCED, frames_captured=500, frames_dropped=2,
+    hb = P.Heartbeat(1, 1, 0, session=7, status=P.HB_CLOCK_SYNCED, frames_captured=500, frames_dropped=2,
                      clock_offset_ns=-1_234_567, clock_uncertainty_ns=40_000, drift_ppb=-15000, temperature_c=51.5)
     (ack,) = _send(ing, hb, T0)
     assert ack.status == P.ACK_UNKNOWN_SESSION  # not registered yet: register again
@@ -193,10 +208,12 @@ def test_sequence_loss_duplicates_reordering_replay():
 def test_new_session_restarts_sequence():
     ing, pipe, _ = _ingest()
     _send(ing, _hello(1, session=1), T0)
-    _send(ing, _frame(1, 500, T0), T0 + 3 * MS)
+    _send(ing, _frame(1, 500, T0, session=1), T0 + 3 * MS)
     _send(ing, _hello(1, session=2), T0 + 5 * MS)  # station restarted: seq starts over
-    _send(ing, _frame(1, 0, T0 + 10 * MS), T0 + 13 * MS)
+    _send(ing, _frame(1, 0, T0 + 10 * MS, session=2), T0 + 13 * MS)
+    _send(ing, _frame(1, 501, T0 + 20 * MS, session=1), T0 + 23 * MS)  # the old session's frames: refused
     assert [f.seq for f in pipe.frames] == [500, 0]
+    assert ing.health()["cameras"][1]["wrong_session"] == 1
 
 
 def test_frames_that_queued_too_long_are_shed_not_fused():
@@ -244,15 +261,17 @@ def test_clock_jumps_dropped_then_resync():
     h = ing.health()["cameras"][1]
     assert (h["clock_jumps_future"], h["clock_jumps_stale"], h["clock_jumps_backwards"]) == (1, 1, 1)
     assert len(pipe.frames) == 4
-    # a station whose clock stays 2 s off: frames dropped, then the server asks it to resync
-    replies = [send(+2000) for _ in range(5)]
-    assert replies[:4] == [[]] * 4
-    (ack,) = replies[4]
-    assert isinstance(ack, P.HelloAck) and ack.status == P.ACK_UNKNOWN_SESSION and ack.session == 7
-    assert ing.health()["cameras"][1]["resync_requests"] == 1
+    # a station whose clock stays 2 s off: frames dropped (never answered), then the server asks it to
+    # resync in the answer to its next heartbeat
+    assert [send(+2000) for _ in range(5)] == [[]] * 5
+    h = ing.health()["cameras"][1]
+    assert h["resync_requests"] == 1 and h["registered"]
     assert len(pipe.frames) == 4
-    # the station registers again (and resyncs); one that flags its own resync may step back a little
-    _send(ing, _hello(1), t)
+    (ack,) = _send(ing, P.Heartbeat(1, 1, 0, session=7), t)
+    assert ack.status == P.ACK_RESYNC and ack.session == 7
+    (ack,) = _send(ing, P.Heartbeat(1, 1, 0, session=7), t)
+    assert ack.status == P.ACK_OK  # asked once
+    # the station resyncs; one that flags its own resync may step back a little
     assert send(0) == []
     assert send(-8, flags=FLAG_RESYNC) == []
     assert len(pipe.frames) == 6 and pipe.frames[-1].flags & FLAG_RESYNC
@@ -269,7 +288,7 @@ def test_realtime_timebase_converted():
     # replay: the offset comes from the recording, not from today's clocks
     ing.realtime_minus_monotonic_ns = 1_700_000_000 * 10**9
     _send(ing, _hello(1, session=8, timebase=P.TIMEBASE_REALTIME), T0)  # a new run on another clock
-    ing.handle(P.encode(_frame(1, 1, 1_700_000_000 * 10**9 + T0 + 20 * MS)), ADDR, T0 + 25 * MS)
+    ing.handle(P.encode(_frame(1, 1, 1_700_000_000 * 10**9 + T0 + 20 * MS, session=8)), ADDR, T0 + 25 * MS)
     assert pipe.frames[-1].capture_ns == T0 + 20 * MS
 
 
@@ -301,7 +320,8 @@ def test_vanish_and_return_and_bye():
 def test_garbage_and_truncated_packets_never_raise():
     ing, pipe, _ = _ingest()
     rng = random.Random(5)
-    valid = [P.encode(_hello(1)), P.encode(_frame(1, 1, T0, n=5)), P.encode(P.SyncRequest(1, 1, 5, 1)),
+    _send(ing, _hello(1), T0)
+    valid = [P.encode(_hello(1)), P.encode(_frame(1, 1, T0, n=5)), P.encode(P.SyncRequest(1, 1, 5, 1, 7)),
              P.encode(P.Heartbeat(1, 1, 1, session=7)), P.encode(P.HelloAck(1, 1, 7, 0, 0)),
              P.encode(_frame(2, 1, T0, n=0), b"k")]
     n_bad = 0
@@ -320,7 +340,7 @@ def test_garbage_and_truncated_packets_never_raise():
         ing.handle(data, ADDR, T0 + 3 * MS)
     h = ing.health()
     assert h["malformed"] >= n_bad
-    assert h["packets"] == n_bad + 2000
+    assert h["packets"] == n_bad + 2000 + 2
     # every frame that got through decoded to exactly what a valid frame carries
     for f in pipe.frames:
         assert f.blobs.shape[1] == 4
@@ -330,30 +350,45 @@ def test_garbage_and_truncated_packets_never_raise():
     assert pipe.frames[-1].camera_id == 3 and pipe.frames[-1].seq == 1
 
 
-def test_malformed_logged_once_per_sender_and_reason(caplog):
+def test_malformed_logged_rate_limited_per_reason_with_a_count(caplog):
     ing, _, _ = _ingest()
+    now = [100.0]
+    ing.rlog.clock = lambda: now[0]
     with caplog.at_level(logging.WARNING, logger="visionpos.server.ingest"):
-        for _ in range(50):
-            ing.handle(b"GET / HTTP/1.1\r\n\r\n", ADDR, T0)
+        for i in range(50):
+            ing.handle(b"GET / HTTP/1.1\r\n\r\n", ("10.0.0.1", 1000 + i), T0)  # 50 senders, one reason
+        now[0] += 11.0
+        ing.handle(b"GET / HTTP/1.1\r\n\r\n", ADDR, T0)
     msgs = [r.getMessage() for r in caplog.records]
-    assert len(msgs) == 1 and "bad magic" in msgs[0] and "127.0.0.1:40000" in msgs[0]
-    assert ing.health()["malformed_reasons"] == {"bad magic": 50}
+    assert len(msgs) == 2 and all("bad magic" in m for m in msgs) and "10.0.0.1:1000" in msgs[0]
+    assert "127.0.0.1:40000" in msgs[1] and "49 more like this" in msgs[1]
+    assert ing.health()["malformed_reasons"] == {"bad magic": 51}
 
 
-def test_recorder_gets_every_datagram():
-    class Rec:
-        def __init__(self):
-            self.got = []
+class Rec:
+    def __init__(self):
+        self.got = []
 
-        def write_packet(self, recv_ns, data, source=None):
-            self.got.append((recv_ns, data, source))
+    def write_packet(self, recv_ns, data, source=None):
+        self.got.append((recv_ns, data, source))
 
+
+def test_recorder_gets_only_accepted_packets():
+    """Nothing undecodable, unauthenticated, of an unknown camera or refused is recorded; it is counted."""
     rec = Rec()
     ing = Ingest(_arena(), pipeline=None, recorder=rec, clock=Clock(T0))
-    pkts = [P.encode(_hello(1)), b"junk", P.encode(_frame(9, 1, T0))]
-    for i, p in enumerate(pkts):
-        ing.handle(p, ("10.0.0.5", 5000 + i), T0 + i)
-    assert rec.got == [(T0 + i, p, ("10.0.0.5", 5000 + i)) for i, p in enumerate(pkts)]
+    src = ("10.0.0.5", 5000)
+    challenge = ing.handle(P.encode(_hello(1)), src, T0)  # no cookie: challenged, not recorded
+    (ack,) = [P.decode(r) for r in challenge]
+    hello = P.encode(_hello(1, counter=1, cookie=ack.cookie))
+    good_frame = P.encode(_frame(1, 1, T0 + MS))
+    pkts = [hello, b"junk" * 100, P.encode(_frame(9, 1, T0)), P.encode(_frame(1, 1, T0, session=8)),
+            good_frame, P.encode(_frame(1, 1, T0 + MS)), P.encode(_frame(2, 1, T0 + MS))]
+    for p in pkts:
+        ing.handle(p, src, T0 + 3 * MS)
+    assert rec.got == [(T0 + 3 * MS, hello, src), (T0 + 3 * MS, good_frame, src)]
+    assert ing.health()["not_recorded"] == {"no valid cookie": 1, "undecodable": 1, "unknown camera": 1,
+                                            "wrong session": 1, "duplicate seq": 1, "not registered": 1}
 
 
 @pytest.mark.parametrize("server, key, what", [
@@ -395,6 +430,8 @@ def test_station_vanishes_mid_flight_tracking_continues():
     clock = Clock(frames[0].recv_ns)
     ing = Ingest(arena, pipeline=pipe, clock=clock)
     ing.set_start(sc.start_ns)
+    for cam in arena.cameras:
+        _send(ing, _hello(cam.id, station=cam.id), frames[0].recv_ns, addr=("127.0.0.1", 6000 + cam.id))
     states, lost_at = [], None
     tick = frames[0].recv_ns
     for f in frames:
@@ -407,6 +444,7 @@ def test_station_vanishes_mid_flight_tracking_continues():
         if f.camera_id == 2 and f.capture_ns >= cut:
             continue
         clock.t = f.recv_ns
+        f = dataclasses.replace(f, station_id=f.camera_id, session=7)
         ing.handle(P.encode_frame(f), ("127.0.0.1", 6000 + f.camera_id), f.recv_ns)
     h = ing.health()
     assert h["frames_accepted"] == len([f for f in frames if not (f.camera_id == 2 and f.capture_ns >= cut)])
