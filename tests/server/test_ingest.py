@@ -490,3 +490,140 @@ def test_event_kinds_are_the_recorded_strings():
         _send(ing, _frame(1, seq, T0 + 5000 * MS), T0 + 610 * MS)  # 4.4 s in the future, twice: resync
     assert recorded == ["registered", "camera_lost", "camera_back", "resync_request"]
     assert [e.value for e in IngestEvent] == recorded
+
+
+# ---------------------------------------------------------------- attacks of issue 14 (each passed on v1's ingest)
+
+
+def _streaming(ing, pipe, cam=1, n=3, t0=T0):
+    """Register camera `cam` and accept n frames; returns the time of the last one."""
+    _send(ing, _hello(cam), t0)
+    t = t0
+    for seq in range(n):
+        t = t0 + (seq + 1) * 10 * MS
+        _send(ing, _frame(cam, seq, t - 3 * MS), t)
+    return t
+
+
+def test_a_refused_frame_with_a_far_ahead_seq_does_not_blind_the_camera():
+    """v1 stored the seq before checking the time: one forged or replayed frame blinded a camera."""
+    ing, pipe, _ = _ingest()
+    t = _streaming(ing, pipe)
+    before = ing.health()["cameras"][1]
+    _send(ing, _frame(1, 1_000_000, t - 10**12), t + MS)  # seq far ahead, capture 1000 s old
+    _send(ing, _frame(1, 2_000_000, t + 10**12), t + MS)  # ... and 1000 s in the future
+    after = ing.health()["cameras"][1]
+    changed = {k for k in before if before[k] != after[k]}
+    assert changed <= {"clock_jumps", "clock_jumps_stale", "clock_jumps_future", "last_drop_reason",
+                       "last_seen_s_ago"}, changed
+    assert after["last_seen_s_ago"] == before["last_seen_s_ago"]  # refused: not "seen"
+    _send(ing, _frame(1, 3, t + 7 * MS), t + 10 * MS)  # the genuine next frame
+    assert [f.seq for f in pipe.frames] == [0, 1, 2, 3]
+    assert ing.health()["cameras"][1]["lost"] == 0
+
+
+def test_frames_of_a_camera_that_never_registered_are_not_fused_and_not_answered():
+    ing, pipe, _ = _ingest()
+    for seq in range(3):
+        assert ing.handle(P.encode(_frame(2, seq, T0 + seq * MS)), ADDR, T0 + seq * MS + 3 * MS) == []
+    assert pipe.frames == []
+    cam = ing.health()["cameras"][2]
+    assert cam["unregistered"] == 3 and cam["frames"] == 0 and not cam["registered"]
+
+
+def test_frames_only_from_the_registered_session_and_address():
+    ing, pipe, _ = _ingest()
+    t = _streaming(ing, pipe)
+    forger = ("127.0.0.1", 40666)
+    assert ing.handle(P.encode(_frame(1, 3, t + 2 * MS)), forger, t + 5 * MS) == []  # right session, wrong address
+    assert ing.handle(P.encode(_frame(1, 3, t + 2 * MS, session=8)), ADDR, t + 5 * MS) == []  # wrong session
+    assert ing.handle(P.encode(_frame(1, 3, t + 2 * MS, station=9)), ADDR, t + 5 * MS) == []  # other station
+    assert [f.seq for f in pipe.frames] == [0, 1, 2]
+    cam = ing.health()["cameras"][1]
+    assert (cam["wrong_address"], cam["wrong_session"]) == (1, 2)
+    _send(ing, _frame(1, 3, t + 7 * MS), t + 10 * MS)
+    assert [f.seq for f in pipe.frames] == [0, 1, 2, 3]
+
+
+def test_hello_needs_the_cookie_of_its_own_address_and_time():
+    ing, pipe, _ = _ingest()
+    (ch,) = [P.decode(r) for r in ing.handle(P.encode(_hello(1, counter=1)), ADDR, T0)]
+    assert ch.status == P.ACK_CHALLENGE and ch.echo == 1 and ch.cookie != P.NO_COOKIE
+    assert not ing.health()["cameras"][1]["registered"]  # a challenge changes no state
+    wrong_addr = ing.handle(P.encode(_hello(1, counter=2, cookie=ch.cookie)), ("127.0.0.1", 40001), T0)
+    assert P.decode(wrong_addr[0]).status == P.ACK_CHALLENGE  # the cookie was for another source port
+    late = ing.handle(P.encode(_hello(1, counter=2, cookie=ch.cookie)), ADDR, T0 + 20_001 * MS)
+    assert P.decode(late[0]).status == P.ACK_CHALLENGE  # two 10 s buckets later: expired
+    assert not ing.health()["cameras"][1]["registered"]
+    ok = ing.handle(P.encode(_hello(1, counter=2, cookie=ch.cookie)), ADDR, T0 + 9_000 * MS)
+    assert P.decode(ok[0]).status == P.ACK_OK and ing.health()["cameras"][1]["registered"]
+
+
+def test_replayed_signed_hello_and_heartbeat_change_nothing(tmp_path):
+    """v1: an old signed HELLO replayed once a second re-registered the station each time."""
+    key = b"the right key 0123456789"
+    (tmp_path / "key.bin").write_bytes(key)
+    ing, pipe, _ = _ingest({"key_file": "key.bin"}, tmp_path)
+    (ch,) = [P.decode(r, key) for r in ing.handle(P.encode(_hello(1, session=1, counter=1), key), ADDR, T0)]
+    old_hello = P.encode(_hello(1, session=1, counter=2, cookie=ch.cookie), key)  # what an attacker captures
+    assert P.decode(ing.handle(old_hello, ADDR, T0)[0], key).status == P.ACK_OK
+    hb = P.encode(P.Heartbeat(1, 1, 3, session=1, clock_offset_ns=5), key)
+    assert P.decode(ing.handle(hb, ADDR, T0 + MS)[0], key).status == P.ACK_OK
+    # replays of the current session: stale counters, no answer, no state change
+    assert ing.handle(old_hello, ADDR, T0 + 2 * MS) == []
+    assert ing.handle(hb, ADDR, T0 + 2 * MS) == []
+    assert ing.health()["cameras"][1]["stale_control"] == 2
+    # the station restarts (session 2); the old session's HELLO, replayed with its still-valid cookie, is refused
+    _send(ing, _hello(1, session=2, counter=1), T0 + 3 * MS, key=key)
+    _send(ing, _frame(1, 0, T0 + 4 * MS, session=2), T0 + 6 * MS, key=key)
+    assert ing.handle(old_hello, ADDR, T0 + 7 * MS) == []
+    cam = ing.health()["cameras"][1]
+    assert cam["registered"] and ing.cameras[1].session == 2
+    _send(ing, _frame(1, 1, T0 + 8 * MS, session=2), T0 + 10 * MS, key=key)
+    assert [f.seq for f in pipe.frames] == [0, 1]  # the sequence state was not reset by the replay
+    # a replayed BYE of the old session does not unregister the new one
+    assert ing.handle(P.encode(P.Bye(1, 1, 1, 99), key), ADDR, T0 + 11 * MS) == []
+    assert ing.health()["cameras"][1]["registered"]
+
+
+def test_resync_is_asked_in_the_next_heartbeat_reply_never_in_answer_to_frames():
+    ing, pipe, clock = _ingest({"resync_after": 3})
+    t = _streaming(ing, pipe)
+    replies = [ing.handle(P.encode(_frame(1, seq, t + 5_000 * MS)), ADDR, t + seq * MS) for seq in range(3, 9)]
+    assert replies == [[]] * 6
+    assert ing.health()["cameras"][1]["resync_requests"] == 1  # once pending, not asked again per frame
+    (ack,) = _send(ing, P.Heartbeat(1, 1, 0, session=7), t + 10 * MS)
+    assert ack.status == P.ACK_RESYNC
+    assert ing.health()["cameras"][1]["registered"]  # the station keeps its registration and seq
+
+
+def test_a_camera_whose_frames_are_dropped_shows_dropping_with_the_reason_never_gone():
+    ing, pipe, clock = _ingest({"vanish_periods": 10, "vanish_min_s": 0.0, "max_age_ms": 300})
+    t = _streaming(ing, pipe, cam=2)
+    for k in range(1, 40):  # the station streams on, its clock 2 s behind: every frame refused
+        now = t + k * 10 * MS
+        clock.t = now
+        ing.handle(P.encode(_frame(2, 2 + k, now - 2_000 * MS)), ADDR, now)
+        ing.check_vanished(now)
+    h = ing.health(clock.t)["cameras"][2]
+    assert not h["online"] and h["state"] == "dropping" and h["dropping"] == "clock jump: too old"
+    assert "2:dropping(clock jump: too old)" in ing.status_line(clock.t)
+    assert "2:gone" not in ing.status_line(clock.t)
+    # a station that stops altogether is gone once its last frame is older than the vanish timeout
+    assert "2:gone" in ing.status_line(clock.t + 200 * MS)
+    # frames of another session: the reason says so
+    ing.handle(P.encode(_frame(2, 50, clock.t, session=99)), ADDR, clock.t + 3 * MS)
+    assert "2:dropping(wrong session)" in ing.status_line(clock.t + 3 * MS)
+
+
+def test_per_sender_tables_and_logs_are_bounded(caplog):
+    ing, _, _ = _ingest()
+    with caplog.at_level(logging.WARNING, logger="visionpos.server.ingest"):
+        for i in range(1000):  # 1000 made-up station/camera pairs
+            ing.handle(P.encode(_frame(100 + i, 1, T0)), ("10.9.0.1", 1000 + i), T0)
+    h = ing.health()
+    assert len(h["unknown_sources"]) == 64 and h["unknown_sources_evicted"] == 1000 - 64
+    assert h["unknown"] == 1000
+    assert "1099/1099" in h["unknown_sources"] and "100/100" not in h["unknown_sources"]  # the newest kept
+    assert len([r for r in caplog.records if "not in the arena config" in r.getMessage()]) == 1
+    assert len(ing.rlog) <= 2
