@@ -1,5 +1,7 @@
 """Station agent: capture -> detect -> stamp -> send, plus registration,
-heartbeats and clock sync with the fusion server (docs/protocol.md).
+heartbeats and clock sync with the fusion server (docs/protocol.md). The
+protocol's registration state and reply checks live in stations/session.py
+(StationLink); this module is its socket and capture loop.
 
 One thread. The network never blocks capture: the UDP socket is
 non-blocking, incoming packets are drained between frames, and a send that
@@ -11,22 +13,23 @@ talking to the server (heartbeats say camera not OK).
 from __future__ import annotations
 
 import logging
-import secrets
 import select
 import socket
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
 from stations.clocksync import ClockSync
 from stations.config import StationConfig, build_mask, load_background
 from stations.detector import Detector
+from stations.session import LinkEvent, StationLink
 from stations.sources import EndOfStream, FrameSource, SourceError, make_source
 from visionpos import protocol as P
+from visionpos.logutil import RateLimitedLog
 from visionpos.messages import FLAG_RESYNC, FLAG_TRUNCATED, BlobFrame
 from visionpos.server.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
 
@@ -54,7 +57,8 @@ class AgentStats:
     truncated_frames: int = 0
     camera_failures: int = 0
     registrations: int = 0
-    bad_packets: int = 0
+    bad_packets: int = 0  # undecodable or unauthenticated
+    refused_replies: int = 0  # decoded, but not from the server / session / a recent request of ours
 
 
 def read_temperature() -> float | None:
@@ -83,31 +87,46 @@ class StationAgent:
         self.clock = clock or (time.monotonic_ns if cfg.clock_sync else time.time_ns)
         self.source = source or make_source(cfg.source, self.clock, cfg.camera_id)
         self.timebase = P.Timebase.SERVER if cfg.clock_sync else P.Timebase.REALTIME
-        self.session = secrets.randbits(32) or 1
+        self.link = StationLink(cfg.station_id, cfg.camera_id)
         self.stats = AgentStats()
         self.sync = ClockSync(cfg.station_id, cfg.camera_id) if cfg.clock_sync else None
         self.detector: Detector | None = None
-        self.registered = False
-        self.rejected = False
-        self.start_ns: int | None = None
-        self.duration_ns = 0
         self.camera_ok = False
         self._stop = threading.Event()
         self._sleep = sleep
         self._seq = 0
-        self._hb_seq = 0
         self._hello_gap_s = HELLO_FIRST_S
         self._next_hello = 0
         self._next_hb = 0
         self._last_heard: int | None = None
         self._estimate_seen = None
         self._size: tuple[int, int] | None = None
-        self._logged: set[str] = set()
+        self.rlog = RateLimitedLog(log)
         self._addr: tuple | None = None
         self._next_resolve = 0.0
         self.sock: socket.socket | None = None
         if not self._resolve():
             self.sock = self._make_socket(socket.AF_INET)
+
+    @property
+    def session(self) -> int:
+        return self.link.session
+
+    @property
+    def registered(self) -> bool:
+        return self.link.registered
+
+    @property
+    def rejected(self) -> bool:
+        return self.link.rejected
+
+    @property
+    def start_ns(self) -> int | None:
+        return self.link.start_ns
+
+    @property
+    def duration_ns(self) -> int:
+        return self.link.duration_ns
 
     # ------------------------------------------------------------ network
 
@@ -144,22 +163,19 @@ class StationAgent:
         return s
 
     def _log_once(self, key: str, level: int, msg: str, *args: object) -> None:
-        """One log line per distinct problem (a misconfigured peer must not flood the journal)."""
-        if key not in self._logged:
-            if len(self._logged) < 1000:
-                self._logged.add(key)
-            log.log(level, msg, *args)
+        """Rate-limited per problem (a misconfigured or hostile peer must not flood the journal)."""
+        self.rlog.log(key, level, msg, *args)
 
-    def _recv(self) -> tuple[bytes, int]:
-        """One datagram and its receive time on the station clock."""
+    def _recv(self) -> tuple[bytes, Any, int]:
+        """One datagram, its sender and its receive time on the station clock."""
         if not self._rx_stamps:
-            data, _ = self.sock.recvfrom(2048)
-            return data, self.clock()
-        data, anc, _, _ = self.sock.recvmsg(2048, ANC_SIZE)
+            data, src = self.sock.recvfrom(2048)
+            return data, src, self.clock()
+        data, anc, _, src = self.sock.recvmsg(2048, ANC_SIZE)
         k = kernel_stamp_ns(anc)
         if k:  # kernel stamp is CLOCK_REALTIME: move it onto the station clock
-            return data, k - (time.time_ns() - self.clock())
-        return data, self.clock()
+            return data, src, k - (time.time_ns() - self.clock())
+        return data, src, self.clock()
 
     def _send(self, data: bytes) -> bool:
         if not self._resolve():
@@ -179,7 +195,7 @@ class StationAgent:
         """Handle every pending datagram; never blocks."""
         while True:
             try:
-                data, t4 = self._recv()
+                data, src, t4 = self._recv()
             except (BlockingIOError, InterruptedError):
                 return
             except OSError:  # ICMP port unreachable surfaces here on Linux: server is down
@@ -188,53 +204,52 @@ class StationAgent:
                 msg = P.decode(data, self.cfg.key)
             except P.ProtocolError as e:
                 self.stats.bad_packets += 1
-                self._log_once(f"bad {str(e)[:24]}", logging.WARNING, "dropping packets from the server: %s", e)
+                self._log_once(f"bad {str(e)[:24]}", logging.WARNING, "dropping packets from %s: %s", src, e)
                 continue
-            if getattr(msg, "station_id", None) != self.cfg.station_id or msg.camera_id != self.cfg.camera_id:
+            if not isinstance(msg, (P.HelloAck, P.SyncReply)) or not self.link.believe(msg, src, self._addr):
+                self.stats.refused_replies += 1
+                self._log_once("refused", logging.WARNING, "ignoring a %s from %s: not an answer from the server "
+                               "%s to this station's session", type(msg).__name__, src, self._addr)
                 continue
+            self._last_heard = t4
             if isinstance(msg, P.HelloAck):
                 self._on_ack(msg, t4)
-            elif isinstance(msg, P.SyncReply) and self.sync is not None:
-                if self.sync.reply(msg, t4):
-                    self._last_heard = t4
+            elif self.sync is not None:
+                self.sync.reply(msg, t4)
 
     def _on_ack(self, ack: P.HelloAck, now: int) -> None:
-        if ack.status == P.AckStatus.UNKNOWN_SESSION and ack.session in (self.session, 0):
-            if self.registered:
-                log.warning("server does not know this station any more (restarted, or asked for a resync): "
-                            "registering again")
+        event = self.link.on_ack(ack)
+        if event is LinkEvent.LOST:
+            self._log_once("lost", logging.WARNING, "server does not know this station's session (it restarted, or "
+                           "this station's address changed): registering again")
             self._lost(now)
             self._next_hello = now  # at once
-            return
-        if ack.session != self.session:
-            return
-        self._last_heard = now
-        if ack.status == P.AckStatus.REJECTED:
-            if not self.rejected:
-                log.error("server %s:%d rejected camera %d of station %d: the camera id is not in its arena config "
-                          "or the resolution differs; fix the configs (retrying every %.0f s)",
-                          self.cfg.server_host, self.cfg.server_port, self.cfg.camera_id, self.cfg.station_id,
-                          HELLO_MAX_S)
-            self.rejected = True
-            self.registered = False
+        elif event is LinkEvent.CHALLENGED:
+            if self.link.cookie_is_new:
+                self._next_hello = now  # answer the challenge at once
+        elif event is LinkEvent.REJECTED:
+            self._log_once("rejected", logging.ERROR, "server %s:%d rejected camera %d of station %d: the camera id "
+                           "is not in its arena config or the resolution differs; fix the configs (retrying every "
+                           "%.0f s)", self.cfg.server_host, self.cfg.server_port, self.cfg.camera_id,
+                           self.cfg.station_id, HELLO_MAX_S)
             self._hello_gap_s = HELLO_MAX_S
-            return
-        if ack.status != P.AckStatus.OK:
-            log.warning("server answered with unknown status %d; ignoring", ack.status)
-            return
-        if not self.registered:
+        elif event is LinkEvent.RESYNC:
+            self._log_once("resync", logging.WARNING, "server saw this camera's capture times jump: restarting "
+                           "clock sync")
+            if self.sync is not None:
+                self.sync.reset()  # frames wait for the new estimate; the first one carries FLAG_RESYNC
+        elif event is LinkEvent.REGISTERED:
             self.stats.registrations += 1
             log.info("registered with %s:%d (session %08x); capture start at server time %d",
                      self.cfg.server_host, self.cfg.server_port, self.session, ack.start_ns)
             self._next_hb = now
-        self.registered = True
-        self.rejected = False
-        self.start_ns, self.duration_ns = ack.start_ns, ack.duration_ns
-        self._hello_gap_s = HELLO_FIRST_S
+            self._hello_gap_s = HELLO_FIRST_S
+        elif event is LinkEvent.IGNORED:
+            self._log_once("status", logging.WARNING, "server answered with unknown status %d; ignoring", ack.status)
 
     def _lost(self, now: int) -> None:
         """Back to registration; the server may be a new one, so its clock too."""
-        self.registered = False
+        self.link.lost()
         self._hello_gap_s = HELLO_FIRST_S
         self._last_heard = None
         if self.sync is not None:
@@ -261,7 +276,9 @@ class StationAgent:
             self._send(P.encode(self._heartbeat(now), self.cfg.key))
             self._next_hb = now + int(self.cfg.heartbeat_s * 1e9)
         if self.sync is not None and self.sync.due(now):
-            self._send(P.encode(self.sync.request(self.clock()), self.cfg.key))
+            t1 = self.clock()
+            req = self.link.sync_request(t1)
+            self._send(P.encode(self.sync.request(t1, req.counter, req.session), self.cfg.key))
 
     def _hello(self) -> P.Hello:
         src = self.source
@@ -269,12 +286,10 @@ class StationAgent:
         kind = self.cfg.camera_kind
         if kind == "unknown" and getattr(src, "camera_kind", "unknown") in P.CAMERA_KINDS:
             kind = src.camera_kind
-        return P.Hello(self.cfg.station_id, self.cfg.camera_id, self.session, int(src.width or 0),
-                       int(src.height or 0), float(src.fps or 0.0), kind, name, SOFTWARE,
-                       self.timebase)
+        return self.link.hello(int(src.width or 0), int(src.height or 0), float(src.fps or 0.0), kind, name,
+                               SOFTWARE, self.timebase)
 
     def _heartbeat(self, now: int) -> P.Heartbeat:
-        self._hb_seq = (self._hb_seq + 1) & 0xFFFFFFFF
         hb = P.HeartbeatStatus
         status = hb(0)
         if self.camera_ok:
@@ -289,9 +304,9 @@ class StationAgent:
             status |= hb.CLOCK_SYNCED
             off, unc, drift = est.offset_at(now), int(round(est.uncertainty_ns)), int(round(est.drift_ppm * 1000))
         s = self.stats
-        return P.Heartbeat(self.cfg.station_id, self.cfg.camera_id, self._hb_seq, self.session, status,
-                           s.frames_captured, s.frames_dropped, s.send_errors, off, unc, drift,
-                           read_temperature(), now)
+        return self.link.heartbeat(status=status, frames_captured=s.frames_captured, frames_dropped=s.frames_dropped,
+                                   send_errors=s.send_errors, clock_offset_ns=off, clock_uncertainty_ns=unc,
+                                   drift_ppb=drift, temperature_c=read_temperature(), station_ns=now)
 
     def to_server(self, t_local: int) -> int | None:
         """Station-clock capture time -> server clock; None while unsynced."""
@@ -360,7 +375,7 @@ class StationAgent:
                 ):
                     flags |= FLAG_RESYNC
                 self._estimate_seen = est
-        frame = BlobFrame(self.cfg.camera_id, seq, t_server, blobs, self.cfg.station_id, flags)
+        frame = BlobFrame(self.cfg.camera_id, seq, t_server, blobs, self.cfg.station_id, flags, 0, self.session)
         if self._send(P.encode_frame(frame, self.cfg.key)):
             self.stats.frames_sent += 1
             return frame
@@ -413,7 +428,7 @@ class StationAgent:
         finally:
             self.source.close()
             if self.registered:
-                self._send(P.encode(P.Bye(self.cfg.station_id, self.cfg.camera_id, self.session), self.cfg.key))
+                self._send(P.encode(self.link.bye(), self.cfg.key))
             self.sock.close()
         return 0
 

@@ -199,21 +199,25 @@ class ClockSync:
         gap = self.burst_interval_ns if self._accepted < self.burst else self.interval_ns
         return now_ns - self._last_sent >= gap
 
-    def request(self, now_ns: int) -> SyncRequest:
-        self._seq = (self._seq + 1) & 0xFFFFFFFF
-        self._outstanding[self._seq] = int(now_ns)
+    def request(self, now_ns: int, counter: int | None = None, session: int = 0) -> SyncRequest:
+        """The next request, t1 = now_ns. counter: the session's control counter (stations/session.py);
+        None numbers requests here (tests, tools)."""
+        if counter is None:
+            self._seq = (self._seq + 1) & 0xFFFFFFFF
+            counter = self._seq
+        self._outstanding[counter] = int(now_ns)
         if len(self._outstanding) > 16:  # lost replies: forget the oldest
             self._outstanding.pop(next(iter(self._outstanding)))
         self._last_sent = int(now_ns)
-        return SyncRequest(self.station_id, self.camera_id, int(now_ns), self._seq)
+        return SyncRequest(self.station_id, self.camera_id, int(now_ns), counter, session)
 
     def reply(self, msg: SyncReply, t4_ns: int) -> bool:
         """Feed a reply received at station time t4_ns; False if it answers no
         outstanding request (late, duplicate or forged) or is implausible."""
-        t1 = self._outstanding.get(msg.seq)
+        t1 = self._outstanding.get(msg.echo)
         if t1 is None or t1 != msg.t1_ns:
             return False
-        del self._outstanding[msg.seq]
+        del self._outstanding[msg.echo]
         ok = self.estimator.add(t1, msg.t2_ns, msg.t3_ns, t4_ns)
         self._accepted += ok
         return ok

@@ -26,7 +26,7 @@ TOP_PACKAGES = ("visionpos", "bridge", "stations")
 # lowest first; a core package imports only packages of lower layers (and itself). Packages in
 # one layer are independent of each other.
 CORE_LAYERS: list[tuple[str, ...]] = [
-    ("visionpos", "visionpos.errors"),  # the package root holds only __version__
+    ("visionpos", "visionpos.errors", "visionpos.logutil"),  # the package root holds only __version__
     ("visionpos.jit", "visionpos.messages"),
     ("visionpos.protocol",),
     ("visionpos.camera",),

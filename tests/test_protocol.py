@@ -19,22 +19,22 @@ from visionpos.messages import FLAG_RESYNC, FLAG_TRUNCATED, BlobFrame, FrameFlag
 KEY = b"0123456789abcdef-shared"
 
 
-def _frame(n=3, seq=7, cap=123456789012345, flags=0, sid=2, cid=3):
+def _frame(n=3, seq=7, cap=123456789012345, flags=0, sid=2, cid=3, session=0x51):
     blobs = np.arange(n * 4, dtype=np.float32).reshape(n, 4) + 0.25
-    return BlobFrame(cid, seq, cap, blobs, sid, flags)
+    return BlobFrame(cid, seq, cap, blobs, sid, flags, 0, session)
 
 
 def test_frame_bytes_match_the_documented_layout():
     """Build the worked example of docs/protocol.md by hand with struct and compare."""
     blobs = np.array([[320.25, 240.5, 12, 200], [100.0, 50.75, 6, 150]], np.float32)
-    f = BlobFrame(3, 1000, 1_700_000_000_123_456_789, blobs, 2, 0)
-    expect = b"VPOS" + bytes([1, 1, 0, 0]) + struct.pack("<HHHH", 2, 3, 48, 0)
-    expect += struct.pack("<IHHq", 1000, 0, 2, 1_700_000_000_123_456_789)
+    f = BlobFrame(3, 1000, 1_700_000_000_123_456_789, blobs, 2, 0, 0, 0x12345678)
+    expect = b"VPOS" + bytes([2, 1, 0, 0]) + struct.pack("<HHHH", 2, 3, 56, 0)
+    expect += struct.pack("<IIqHH4x", 0x12345678, 1000, 1_700_000_000_123_456_789, 0, 2)
     expect += struct.pack("<8f", 320.25, 240.5, 12, 200, 100.0, 50.75, 6, 150)
     assert P.encode_frame(f) == expect
     hexdump = (
-        "56504f53010100000200030030000000e80300000000020015cd853dfe9c9717"
-        "0020a043008070430000404100004843" "0000c84200004b420000c04000001643"
+        "56504f530201000002000300380000007856341" "2e803000015cd853dfe9c9717"
+        "00000200000000000020a043008070430000404100004843" "0000c84200004b420000c04000001643"
     )
     assert expect.hex() == hexdump  # the hex printed in docs/protocol.md
     signed = P.encode_frame(f, b"example-key")
@@ -42,7 +42,27 @@ def test_frame_bytes_match_the_documented_layout():
     body[6] = 1
     tag = hmac.new(b"example-key", bytes(body), hashlib.sha256).digest()[:16]
     assert signed == bytes(body) + tag
-    assert tag.hex() == "0bed310e233470c6e3dcbade5b4845f1"
+    assert tag.hex() == "425e84565419f0c6887ab25f6e60b912"
+
+
+def test_control_bytes_match_the_documented_layout():
+    """HELLO and HELLO_ACK by hand with struct: session and counter first, cookie where the tables say."""
+    cookie = bytes(range(16))
+    hello = P.Hello(2, 3, 0x12345678, 960, 640, 100.0, "fisheye", "pi", "vp", P.TIMEBASE_SERVER, 9, cookie)
+    expect = b"VPOS" + bytes([2, 2, 0, 0]) + struct.pack("<HHHH", 2, 3, 84, 0)
+    expect += struct.pack("<IIHHfBB2x", 0x12345678, 9, 960, 640, 100.0, 2, 0) + cookie
+    expect += b"pi" + bytes(30) + b"vp" + bytes(14)
+    assert P.encode(hello) == expect
+    ack = P.HelloAck(2, 3, 0x12345678, 5, 6, P.ACK_CHALLENGE, 7, 9, cookie)
+    expect = b"VPOS" + bytes([2, 3, 0, 0]) + struct.pack("<HHHH", 2, 3, 56, 0)
+    expect += struct.pack("<IIB7xqqq", 0x12345678, 9, 3, 5, 6, 7) + cookie
+    assert P.encode(ack) == expect
+    hb = P.encode(P.Heartbeat(2, 3, 11, 0x12345678))
+    assert struct.unpack_from("<II", hb, 16) == (0x12345678, 11)
+    assert struct.unpack_from("<IIq", P.encode(P.SyncRequest(2, 3, -5, 12, 0x12345678)), 16) == (0x12345678, 12, -5)
+    assert struct.unpack_from("<IIqqq", P.encode(P.SyncReply(2, 3, 1, 2, 3, 12, 0x12345678)), 16) == (
+        0x12345678, 12, 1, 2, 3)
+    assert struct.unpack_from("<II", P.encode(P.Bye(2, 3, 0x12345678, 13)), 16) == (0x12345678, 13)
 
 
 blob_arrays = st.integers(0, P.MAX_BLOBS_PER_PACKET).flatmap(
@@ -69,6 +89,7 @@ def test_frame_round_trip(blobs, seq, cap, flags, sid, cid, signed):
     assert len(data) <= P.MAX_PACKET_BYTES
     g = P.decode(data, key, recv_ns=99)
     assert (g.camera_id, g.seq, g.capture_ns, g.station_id, g.flags, g.recv_ns) == (cid, seq, cap, sid, flags, 99)
+    assert g.session == 0
     assert g.blobs.shape == (len(blobs), 4) and g.blobs.dtype == np.float32
     np.testing.assert_array_equal(g.blobs, blobs)
 
@@ -78,16 +99,19 @@ u32 = st.integers(0, 2**32 - 1)
 u16 = st.integers(0, 0xFFFF)
 text = st.text(alphabet=st.characters(min_codepoint=33, max_codepoint=126), max_size=16)
 
+u16p = st.integers(1, 0xFFFF)
+cookies = st.binary(min_size=16, max_size=16)
 messages = st.one_of(
-    st.builds(P.Hello, u16, u16, u32, u16, u16, st.floats(0, 1000, width=32), st.sampled_from(P.CAMERA_KINDS),
-              text, text, st.sampled_from([P.TIMEBASE_SERVER, P.TIMEBASE_REALTIME])),
-    st.builds(P.HelloAck, u16, u16, u32, i64, i64, st.sampled_from([0, 1, 2]), st.integers(0, 2**63 - 1)),
+    st.builds(P.Hello, u16, u16, u32, u16p, u16p, st.floats(0.5, 1000, width=32), st.sampled_from(P.CAMERA_KINDS),
+              text, text, st.sampled_from([P.TIMEBASE_SERVER, P.TIMEBASE_REALTIME]), u32, cookies),
+    st.builds(P.HelloAck, u16, u16, u32, i64, i64, st.sampled_from(list(P.AckStatus)), st.integers(0, 2**63 - 1),
+              u32, cookies),
     st.builds(P.Heartbeat, u16, u16, u32, u32, u16, u32, u32, u32, i64, st.integers(-1, 2**63 - 1),
               st.integers(-(2**31), 2**31 - 1),
               st.one_of(st.none(), st.integers(-30000, 30000).map(lambda c: c / 100.0)), i64),
-    st.builds(P.SyncRequest, u16, u16, i64, u32),
-    st.builds(P.SyncReply, u16, u16, i64, i64, i64, u32),
-    st.builds(P.Bye, u16, u16, u32),
+    st.builds(P.SyncRequest, u16, u16, i64, u32, u32),
+    st.builds(P.SyncReply, u16, u16, i64, i64, i64, u32, u32),
+    st.builds(P.Bye, u16, u16, u32, u32),
 )
 
 
@@ -100,8 +124,8 @@ def test_message_round_trip(msg, signed):
 
 def test_body_sizes_as_documented():
     sizes = {
-        P.Hello(1, 2, 3, 4, 5, 6.0): 64,
-        P.HelloAck(1, 2, 3, 4, 5): 32,
+        P.Hello(1, 2, 3, 4, 5, 6.0): 84,
+        P.HelloAck(1, 2, 3, 4, 5): 56,
         P.Heartbeat(1, 2, 3): 56,
         P.SyncRequest(1, 2, 3): 16,
         P.SyncReply(1, 2, 3, 4, 5): 32,
@@ -115,7 +139,7 @@ def test_body_sizes_as_documented():
 
 def test_full_signed_frame_fits_one_datagram():
     f = _frame(n=P.MAX_BLOBS_PER_PACKET)
-    assert len(P.encode(f, KEY)) <= 1472
+    assert len(P.encode(f, KEY)) == 16 + 24 + 88 * 16 + 16 == 1464 <= 1472
     with pytest.raises(P.ProtocolError, match="89 blobs; at most 88 fit"):
         P.encode(_frame(n=P.MAX_BLOBS_PER_PACKET + 1))
 
@@ -128,10 +152,11 @@ def test_full_signed_frame_fits_one_datagram():
         (lambda d: d + b"\0", "trailing bytes"),
         (lambda d: d + b"\0" * 1500, "oversize packet"),
         (lambda d: b"XPOS" + d[4:], "bad magic"),
-        (lambda d: d[:4] + b"\x02" + d[5:], "protocol version 2 unsupported.*upgrade"),
+        (lambda d: d[:4] + b"\x03" + d[5:], "protocol version 3 unsupported.*upgrade"),
+        (lambda d: d[:4] + b"\x01" + d[5:], "protocol version 1 unsupported.*upgrade the sender"),
         (lambda d: d[:4] + b"\x00" + d[5:], "protocol version 0 unsupported"),
         (lambda d: d[:5] + b"\x09" + d[6:], "unknown message type 9"),
-        (lambda d: d[:22] + struct.pack("<H", 5) + d[24:], "blob count 5 does not match"),
+        (lambda d: d[:34] + struct.pack("<H", 5) + d[36:], "blob count 5 does not match"),
     ],
 )
 def test_malformed_packets_are_rejected_with_a_reason(mutate, pattern):
@@ -153,6 +178,10 @@ def test_authentication():
     tampered[24] ^= 1  # capture time
     with pytest.raises(P.ProtocolError, match="bad signature"):
         P.decode(bytes(tampered), KEY)
+    tampered = bytearray(signed)
+    tampered[16] ^= 1  # session: bound into the tag
+    with pytest.raises(P.ProtocolError, match="bad signature"):
+        P.decode(bytes(tampered), KEY)
     # clearing the SIGNED flag and dropping the tag must not pass either
     stripped = bytearray(signed[:-16])
     stripped[6] = 0
@@ -164,7 +193,7 @@ def test_decoded_blobs_do_not_alias_a_reused_buffer():
     buf = bytearray(P.encode(_frame()))
     g = P.decode(buf)
     before = g.blobs.copy()
-    buf[32:48] = b"\xff" * 16
+    buf[40:56] = b"\xff" * 16
     np.testing.assert_array_equal(g.blobs, before)
 
 
@@ -180,12 +209,12 @@ def test_encode_rejects_out_of_range_fields():
 
 
 def test_server_helpers():
-    req = P.SyncRequest(4, 5, 1000, 17)
+    req = P.SyncRequest(4, 5, 1000, 17, 0xABC)
     rep = P.make_sync_reply(req, 2000, 2100)
-    assert rep == P.SyncReply(4, 5, 1000, 2000, 2100, 17)
-    hello = P.Hello(4, 5, 0xDEADBEEF, 960, 640, 100.0)
+    assert rep == P.SyncReply(4, 5, 1000, 2000, 2100, 17, 0xABC)  # echoes the request's counter and session
+    hello = P.Hello(4, 5, 0xDEADBEEF, 960, 640, 100.0, counter=33)
     ack = P.make_hello_ack(hello, start_ns=10**12, server_ns=10**12 + 5)
-    assert (ack.session, ack.start_ns, ack.status) == (0xDEADBEEF, 10**12, P.ACK_OK)
+    assert (ack.session, ack.start_ns, ack.status, ack.echo) == (0xDEADBEEF, 10**12, P.ACK_OK, 33)
     assert P.seq_delta(5, 4) == 1
     assert P.seq_delta(0, 2**32 - 1) == 1  # wrap-around
     assert P.seq_delta(4, 5) == -1
@@ -258,7 +287,69 @@ def test_flag_bits_are_the_documented_bits():
 def test_worked_example_header_bytes_are_the_enums():
     dumps = re.findall(r"```\n((?:[0-9a-f]{4}  [0-9a-f ]+\n)+)```", _DOC)
     unsigned, tag = (bytes.fromhex("".join(line[6:] for line in d.splitlines())) for d in dumps)
-    assert len(unsigned) == 64 and len(tag) == 16
+    assert len(unsigned) == 72 and len(tag) == 16
+    assert len(unsigned) == 72 and unsigned[4] == P.PROTOCOL_VERSION
     assert unsigned[5] == P.MsgType.FRAME and unsigned[6] == 0
     signed = P.decode(unsigned[:6] + bytes([P.HeaderFlag.SIGNED]) + unsigned[7:] + tag, b"example-key")
-    assert (signed.station_id, signed.camera_id, signed.seq) == (2, 3, 1000)
+    assert (signed.station_id, signed.camera_id, signed.seq, signed.session) == (2, 3, 1000, 0x12345678)
+
+
+# ---------------------------------------------------------------- validation (issue 14: each passed on v1's decoder)
+
+
+def _raw_frame(blobs: np.ndarray, count: int | None = None) -> bytes:
+    """A v2 frame packed by hand, so counts the encoder refuses can be sent."""
+    n = len(blobs) if count is None else count
+    body = struct.pack("<IIqHH4x", 7, 1, 10**9, 0, n) + np.asarray(blobs, "<f4").tobytes()
+    return b"VPOS" + bytes([2, 1, 0, 0]) + struct.pack("<HHHH", 1, 1, len(body), 0) + body
+
+
+@pytest.mark.parametrize("n", [89])  # 90 no longer fits 1472 bytes
+def test_frames_over_88_blobs_are_rejected(n):
+    assert P.decode(_raw_frame(np.ones((88, 4)))).blobs.shape == (88, 4)
+    with pytest.raises(P.ProtocolError, match=f"blob count {n} > 88"):
+        P.decode(_raw_frame(np.ones((n, 4))))
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, 3e38])
+@pytest.mark.parametrize("col", [0, 1, 2, 3])
+def test_non_finite_blob_values_are_rejected(bad, col):
+    blobs = np.full((3, 4), 100.0)
+    blobs[1, col] = bad
+    with pytest.raises(P.ProtocolError, match="not finite"):
+        P.decode(_raw_frame(blobs))
+    blobs[1, col] = -1.6e38  # large but below 2**127: a number, passed on (fusion bounds pixels)
+    assert P.decode(_raw_frame(blobs)).blobs[1, col] == np.float32(-1.6e38)
+
+
+@pytest.mark.parametrize("w, h, fps, what", [
+    (0, 0, 100.0, "resolution 0x0"), (960, 0, 100.0, "resolution 960x0"), (0, 640, 100.0, "resolution 0x640"),
+    (960, 640, float("inf"), "fps inf"), (960, 640, float("nan"), "fps nan"), (960, 640, 0.0, "fps 0.0"),
+    (960, 640, -5.0, "fps -5.0"), (960, 640, 1000.5, "fps 1000.5"),
+])
+def test_hello_with_impossible_camera_is_rejected(w, h, fps, what):
+    data = P.encode(P.Hello(1, 1, 7, w, h, fps))
+    with pytest.raises(P.ProtocolError, match=what):
+        P.decode(data)
+    assert P.decode(P.encode(P.Hello(1, 1, 7, 960, 640, 1000.0))).fps == 1000.0
+
+
+def test_v1_decoder_reads_hand_packed_v1_packets():
+    """Version-1 bytes packed here with struct from the v1 spec (not by the code under test)."""
+    hdr = lambda t, n: b"VPOS" + bytes([1, t, 0, 0]) + struct.pack("<HHHH", 2, 3, n, 0)  # noqa: E731
+    blobs = struct.pack("<8f", 320.25, 240.5, 12, 200, 100.0, 50.75, 6, 150)
+    frame = hdr(1, 48) + struct.pack("<IHHq", 1000, 4, 2, 1_700_000_000_123_456_789) + blobs
+    f = P.decode_v1(frame)
+    assert (f.camera_id, f.station_id, f.seq, f.flags, f.capture_ns, f.session) == (
+        3, 2, 1000, 4, 1_700_000_000_123_456_789, 0)
+    np.testing.assert_array_equal(f.blobs, [[320.25, 240.5, 12, 200], [100.0, 50.75, 6, 150]])
+    hello = hdr(2, 64) + struct.pack("<IHHfBBBB32s16s", 0x5102, 960, 640, 100.0, 2, 0, 0, 0, b"pi2", b"sim")
+    assert P.decode_v1(hello) == P.Hello(2, 3, 0x5102, 960, 640, 100.0, "fisheye", "pi2", "sim", 0)
+    hb = hdr(4, 56) + struct.pack("<IHhIIIiqqqI4x", 5, 3, 4150, 10, 1, 0, -20, 123, 40, 99, 0x5102)
+    assert P.decode_v1(hb) == P.Heartbeat(2, 3, 5, 0x5102, 3, 10, 1, 0, 123, 40, -20, 41.5, 99)
+    assert P.decode_v1(hdr(5, 16) + struct.pack("<qI4x", -7, 4)) == P.SyncRequest(2, 3, -7, 4)
+    assert P.decode_v1(hdr(7, 8) + struct.pack("<I4x", 0x5102)) == P.Bye(2, 3, 0x5102)
+    with pytest.raises(P.ProtocolError, match="version 1 unsupported"):
+        P.decode(frame)  # live peers must speak v2
+    with pytest.raises(P.ProtocolError, match="not a v1 station"):
+        P.decode_v1(hdr(3, 32) + bytes(32))  # a v1 HELLO_ACK is not recorded station traffic

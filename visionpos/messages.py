@@ -35,6 +35,7 @@ class BlobFrame:
     blobs: (N, 4) float32, columns x_px, y_px (distorted image coordinates,
     pixel centres at integer values), area_px, peak (0..255 scale).
     capture_ns: capture time on the server clock (station converted it).
+    session: the station session the frame was sent in (protocol v2; 0 where unknown).
     """
 
     camera_id: int
@@ -44,6 +45,7 @@ class BlobFrame:
     station_id: int = 0
     flags: int = 0
     recv_ns: int = 0
+    session: int = 0
 
     @property
     def xy(self) -> np.ndarray:

@@ -11,6 +11,14 @@ Frames decode to `visionpos.messages.BlobFrame`; the other messages decode to
 the small frozen dataclasses below. `decode` raises `ProtocolError` with a
 message naming what was wrong, so a server can count and drop bad packets.
 
+Version 2 binds every message to its station session and makes every one
+fresh: frames carry the session and their own seq; station -> server control
+messages (HELLO, HEARTBEAT, SYNC_REQUEST, BYE) carry a per-session counter
+that must strictly increase; HELLO carries the server's cookie (a stateless
+challenge); replies echo the session and the counter they answer. All of it
+is inside the HMAC. `decode_v1` reads version-1 packets (recordings made
+before version 2) for replay only.
+
 Server-side helpers (pure, no I/O): `make_hello_ack`, `make_sync_reply`,
 `seq_delta`, `server_time_from_realtime`.
 """
@@ -28,7 +36,7 @@ import numpy as np
 from visionpos.errors import VisionposError
 from visionpos.messages import BlobFrame
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 MAGIC = b"VPOS"
 DEFAULT_PORT = 5600
 
@@ -36,11 +44,14 @@ DEFAULT_PORT = 5600
 # (1500 - 20 IPv4 - 8 UDP). Every packet of this protocol fits in it.
 MAX_PACKET_BYTES = 1472
 HEADER_BYTES = 16
-FRAME_FIXED_BYTES = 16  # seq, flags, count, capture_ns
+FRAME_FIXED_BYTES = 24  # session, seq, capture_ns, flags, count, reserved
 BLOB_BYTES = 16  # x, y, area, peak: 4 x float32
 TAG_BYTES = 16  # HMAC-SHA256 truncated to its first 16 bytes
-# 32 + 88 * 16 + 16 = 1456 <= 1472: a signed full frame still fits one datagram.
+COOKIE_BYTES = 16
+NO_COOKIE = bytes(COOKIE_BYTES)  # Hello.cookie before the server has challenged
+# 40 + 88 * 16 + 16 = 1464 <= 1472: a signed full frame still fits one datagram.
 MAX_BLOBS_PER_PACKET = 88
+MAX_FPS = 1000.0
 
 
 class MsgType(IntEnum):
@@ -67,6 +78,8 @@ class AckStatus(IntEnum):
     OK = 0
     UNKNOWN_SESSION = 1  # server does not know this station/session (it restarted): send Hello again
     REJECTED = 2  # camera id not configured on the server, or resolution mismatch: fix config
+    CHALLENGE = 3  # Hello without a valid cookie: send it again carrying HelloAck.cookie
+    RESYNC = 4  # heartbeat accepted, but the frames' capture times are off: restart clock sync
 
 
 class Timebase(IntEnum):
@@ -107,6 +120,8 @@ HF_SIGNED = HeaderFlag.SIGNED.value
 ACK_OK = AckStatus.OK
 ACK_UNKNOWN_SESSION = AckStatus.UNKNOWN_SESSION
 ACK_REJECTED = AckStatus.REJECTED
+ACK_CHALLENGE = AckStatus.CHALLENGE
+ACK_RESYNC = AckStatus.RESYNC
 ACK_STATUS_NAMES = {s: s.name.lower().replace("_", " ") for s in AckStatus}  # "ok", "unknown session", ...
 TIMEBASE_SERVER = Timebase.SERVER
 TIMEBASE_REALTIME = Timebase.REALTIME
@@ -119,17 +134,19 @@ HB_STREAMING = HeartbeatStatus.STREAMING.value
 TEMPERATURE_UNKNOWN = -32768  # Heartbeat temperature field value for "no sensor"
 UNCERTAINTY_UNKNOWN = -1
 
+# Every body starts with session u32 and a u32 counter (frame seq, control counter, or the echoed counter).
 _HEADER = struct.Struct("<4sBBBBHHHH")
-_FRAME_HEAD = struct.Struct("<4sBBBBHHHHIHHq")  # header + fixed frame part, 32 bytes
-_HELLO = struct.Struct("<IHHfBBBB32s16s")  # 64 bytes
-_HELLO_ACK = struct.Struct("<IB3xqqq")  # 32 bytes
-_HEARTBEAT = struct.Struct("<IHhIIIiqqqI4x")  # 56 bytes
-_SYNC_REQUEST = struct.Struct("<qI4x")  # 16 bytes
-_SYNC_REPLY = struct.Struct("<qqqI4x")  # 32 bytes
-_BYE = struct.Struct("<I4x")  # 8 bytes
+_FRAME_HEAD = struct.Struct("<4sBBBBHHHHIIqHH4x")  # header + fixed frame part, 40 bytes
+_HELLO = struct.Struct("<IIHHfBB2x16s32s16s")  # 84 bytes
+_HELLO_ACK = struct.Struct("<IIB7xqqq16s")  # 56 bytes
+_HEARTBEAT = struct.Struct("<IIHhIIIi4xqqq")  # 56 bytes
+_SYNC_REQUEST = struct.Struct("<IIq")  # 16 bytes
+_SYNC_REPLY = struct.Struct("<IIqqq")  # 32 bytes
+_BYE = struct.Struct("<II")  # 8 bytes
 _BLOB_DTYPE = np.dtype("<f4")
+_BLOB0 = HEADER_BYTES + FRAME_FIXED_BYTES
 
-assert _HEADER.size == HEADER_BYTES and _FRAME_HEAD.size == HEADER_BYTES + FRAME_FIXED_BYTES
+assert _HEADER.size == HEADER_BYTES and _FRAME_HEAD.size == _BLOB0
 assert HEADER_BYTES + FRAME_FIXED_BYTES + MAX_BLOBS_PER_PACKET * BLOB_BYTES + TAG_BYTES <= MAX_PACKET_BYTES
 
 _U16 = 0xFFFF
@@ -147,7 +164,10 @@ class Hello:
 
     session: random non-zero u32 chosen at agent start; it tells the server
     that a station restarted (new session) and echoes back in HelloAck.
-    fps: nominal frame rate. camera_kind: one of CAMERA_KINDS.
+    fps: nominal frame rate, in (0, MAX_FPS]. camera_kind: one of CAMERA_KINDS.
+    counter: the session's control counter (strictly increasing over Hello,
+    Heartbeat, SyncRequest, Bye). cookie: NO_COOKIE, or the cookie of the
+    server's CHALLENGE answer.
     """
 
     station_id: int
@@ -160,6 +180,8 @@ class Hello:
     camera_name: str = ""
     software: str = ""
     timebase: int = TIMEBASE_SERVER
+    counter: int = 0
+    cookie: bytes = NO_COOKIE
 
 
 @dataclass(frozen=True, slots=True)
@@ -169,7 +191,8 @@ class HelloAck:
     start_ns: capture start (trigger) time on the server clock; stations send
     no frames captured before it. server_ns: server clock when sent.
     duration_ns: recording length after start_ns, 0 = until stopped.
-    status: ACK_OK / ACK_UNKNOWN_SESSION / ACK_REJECTED.
+    status: an AckStatus. echo: the counter of the Hello/Heartbeat answered.
+    cookie: with CHALLENGE, what the next Hello must carry (else NO_COOKIE).
     """
 
     station_id: int
@@ -179,6 +202,8 @@ class HelloAck:
     server_ns: int
     status: int = ACK_OK
     duration_ns: int = 0
+    echo: int = 0
+    cookie: bytes = NO_COOKIE
 
 
 @dataclass(frozen=True, slots=True)
@@ -188,12 +213,12 @@ class Heartbeat:
     clock_offset_ns: server clock - station clock estimate; clock_uncertainty_ns
     its 1-sigma uncertainty (-1 = unknown). drift_ppb: station clock rate
     error (server - station) in parts per billion. temperature_c: None = no sensor.
-    station_ns: station local clock when sent.
+    station_ns: station local clock when sent. counter: the session's control counter.
     """
 
     station_id: int
     camera_id: int
-    seq: int
+    counter: int
     session: int = 0
     status: int = 0
     frames_captured: int = 0
@@ -208,24 +233,27 @@ class Heartbeat:
 
 @dataclass(frozen=True, slots=True)
 class SyncRequest:
-    """Clock-sync request: t1_ns = station clock at send."""
+    """Clock-sync request: t1_ns = station clock at send; counter: the session's control counter."""
 
     station_id: int
     camera_id: int
     t1_ns: int
-    seq: int = 0
+    counter: int = 0
+    session: int = 0
 
 
 @dataclass(frozen=True, slots=True)
 class SyncReply:
-    """Clock-sync reply: t1 echoed, t2 = server clock at receive, t3 = server clock at send."""
+    """Clock-sync reply: t1 echoed, t2 = server clock at receive, t3 = server clock at send;
+    echo and session: the request's counter and session."""
 
     station_id: int
     camera_id: int
     t1_ns: int
     t2_ns: int
     t3_ns: int
-    seq: int = 0
+    echo: int = 0
+    session: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -235,6 +263,7 @@ class Bye:
     station_id: int
     camera_id: int
     session: int = 0
+    counter: int = 0
 
 
 Message = BlobFrame | Hello | HelloAck | Heartbeat | SyncRequest | SyncReply | Bye
@@ -299,17 +328,24 @@ def encode_frame(frame: BlobFrame, key: bytes | None = None) -> bytes:
         )
     sid = _check_range("station_id", frame.station_id, 0, _U16)
     cid = _check_range("camera_id", frame.camera_id, 0, _U16)
+    session = _check_range("session", frame.session, 0, _U32)
     seq = _check_range("seq", frame.seq, 0, _U32)
     flags = _check_range("flags", frame.flags, 0, _U16)
     cap = _check_range("capture_ns", frame.capture_ns, _I64_MIN, _I64_MAX)
     hflags = HF_SIGNED if key is not None else 0
     body_len = FRAME_FIXED_BYTES + n * BLOB_BYTES
     packet = _FRAME_HEAD.pack(
-        MAGIC, PROTOCOL_VERSION, MSG_FRAME, hflags, 0, sid, cid, body_len, 0, seq, flags, n, cap
+        MAGIC, PROTOCOL_VERSION, MSG_FRAME, hflags, 0, sid, cid, body_len, 0, session, seq, cap, flags, n
     ) + np.ascontiguousarray(blobs, dtype=_BLOB_DTYPE).tobytes()
     if key is not None:
         packet += _tag(key, packet)
     return packet
+
+
+def _cookie(name: str, c: bytes) -> bytes:
+    if type(c) is not bytes or len(c) != COOKIE_BYTES:
+        raise ProtocolError(f"{name} must be {COOKIE_BYTES} bytes, got {c!r}")
+    return c
 
 
 def encode(msg: Message, key: bytes | None = None) -> bytes:
@@ -321,13 +357,13 @@ def encode(msg: Message, key: bytes | None = None) -> bytes:
             raise ProtocolError(f"camera_kind {msg.camera_kind!r} is not one of {CAMERA_KINDS}")
         body = _HELLO.pack(
             _check_range("session", msg.session, 0, _U32),
+            _check_range("counter", msg.counter, 0, _U32),
             _check_range("width", msg.width, 0, _U16),
             _check_range("height", msg.height, 0, _U16),
             float(msg.fps),
             CAMERA_KINDS.index(msg.camera_kind),
             _check_range("timebase", msg.timebase, 0, 255),
-            0,
-            0,
+            _cookie("cookie", msg.cookie),
             _text("camera_name", msg.camera_name, 32),
             _text("software", msg.software, 16),
         )
@@ -335,10 +371,12 @@ def encode(msg: Message, key: bytes | None = None) -> bytes:
     if isinstance(msg, HelloAck):
         body = _HELLO_ACK.pack(
             _check_range("session", msg.session, 0, _U32),
+            _check_range("echo", msg.echo, 0, _U32),
             _check_range("status", msg.status, 0, 255),
             _check_range("start_ns", msg.start_ns, _I64_MIN, _I64_MAX),
             _check_range("server_ns", msg.server_ns, _I64_MIN, _I64_MAX),
             _check_range("duration_ns", msg.duration_ns, 0, _I64_MAX),
+            _cookie("cookie", msg.cookie),
         )
         return _finish(MSG_HELLO_ACK, msg.station_id, msg.camera_id, body, key)
     if isinstance(msg, Heartbeat):
@@ -347,7 +385,8 @@ def encode(msg: Message, key: bytes | None = None) -> bytes:
         else:
             temp = int(np.clip(round(msg.temperature_c * 100.0), -32767, 32767))
         body = _HEARTBEAT.pack(
-            _check_range("seq", msg.seq, 0, _U32),
+            _check_range("session", msg.session, 0, _U32),
+            _check_range("counter", msg.counter, 0, _U32),
             _check_range("status", msg.status, 0, _U16),
             temp,
             int(msg.frames_captured) & _U32,
@@ -357,24 +396,26 @@ def encode(msg: Message, key: bytes | None = None) -> bytes:
             _check_range("clock_offset_ns", msg.clock_offset_ns, _I64_MIN, _I64_MAX),
             _check_range("clock_uncertainty_ns", msg.clock_uncertainty_ns, -1, _I64_MAX),
             _check_range("station_ns", msg.station_ns, _I64_MIN, _I64_MAX),
-            _check_range("session", msg.session, 0, _U32),
         )
         return _finish(MSG_HEARTBEAT, msg.station_id, msg.camera_id, body, key)
     if isinstance(msg, SyncRequest):
         body = _SYNC_REQUEST.pack(
-            _check_range("t1_ns", msg.t1_ns, _I64_MIN, _I64_MAX), _check_range("seq", msg.seq, 0, _U32)
+            _check_range("session", msg.session, 0, _U32),
+            _check_range("counter", msg.counter, 0, _U32),
+            _check_range("t1_ns", msg.t1_ns, _I64_MIN, _I64_MAX),
         )
         return _finish(MSG_SYNC_REQUEST, msg.station_id, msg.camera_id, body, key)
     if isinstance(msg, SyncReply):
         body = _SYNC_REPLY.pack(
+            _check_range("session", msg.session, 0, _U32),
+            _check_range("echo", msg.echo, 0, _U32),
             _check_range("t1_ns", msg.t1_ns, _I64_MIN, _I64_MAX),
             _check_range("t2_ns", msg.t2_ns, _I64_MIN, _I64_MAX),
             _check_range("t3_ns", msg.t3_ns, _I64_MIN, _I64_MAX),
-            _check_range("seq", msg.seq, 0, _U32),
         )
         return _finish(MSG_SYNC_REPLY, msg.station_id, msg.camera_id, body, key)
     if isinstance(msg, Bye):
-        body = _BYE.pack(_check_range("session", msg.session, 0, _U32))
+        body = _BYE.pack(_check_range("session", msg.session, 0, _U32), _check_range("counter", msg.counter, 0, _U32))
         return _finish(MSG_BYE, msg.station_id, msg.camera_id, body, key)
     raise ProtocolError(f"cannot encode {type(msg).__name__}: not a protocol message")
 
@@ -393,16 +434,8 @@ _BODY_SIZES = {
 _TYPE_NAMES = {t: t.name.lower().replace("_", "-") for t in MsgType}  # "hello-ack", ... (error messages)
 
 
-def decode(data: bytes, key: bytes | None = None, recv_ns: int = 0) -> Message:
-    """One datagram -> message. Raises ProtocolError naming the problem.
-
-    With `key` set, packets without a tag or with a wrong tag are rejected.
-    Without a key, a tag that is present is skipped unchecked.
-    recv_ns is stored on decoded BlobFrames (it is not on the wire).
-    Decoded frame blobs are a read-only (N, 4) float32 view of the packet.
-    """
-    if type(data) is not bytes:
-        data = bytes(data)  # own the memory: blobs view into it
+def _check_header(data: bytes, key: bytes | None, version_ok: int) -> tuple[int, int, int, int, int]:
+    """Length, magic, version, size and tag checks shared by both versions; (mtype, sid, cid, body_len, n)."""
     n = len(data)
     if n > MAX_PACKET_BYTES:
         raise ProtocolError(f"oversize packet: {n} bytes > {MAX_PACKET_BYTES}")
@@ -411,14 +444,12 @@ def decode(data: bytes, key: bytes | None = None, recv_ns: int = 0) -> Message:
     magic, version, mtype, hflags, _r0, sid, cid, body_len, _r1 = _HEADER.unpack_from(data)
     if magic != MAGIC:
         raise ProtocolError(f"bad magic {magic!r} (expected {MAGIC!r}): not a visionpos packet")
-    if version != PROTOCOL_VERSION:
-        if version > PROTOCOL_VERSION:
+    if version != version_ok:
+        if version > version_ok:
             hint = "the sender is newer; upgrade visionpos on this side (server or station)"
         else:
             hint = "the sender is older; upgrade the sender"
-        raise ProtocolError(
-            f"protocol version {version} unsupported (this build speaks {PROTOCOL_VERSION}): {hint}"
-        )
+        raise ProtocolError(f"protocol version {version} unsupported (this build speaks {version_ok}): {hint}")
     end = HEADER_BYTES + body_len
     signed = hflags & HF_SIGNED
     expected = end + TAG_BYTES if signed else end
@@ -433,46 +464,150 @@ def decode(data: bytes, key: bytes | None = None, recv_ns: int = 0) -> Message:
             raise ProtocolError("unsigned packet rejected: this side requires HMAC (give the sender the shared key)")
         if not hmac.compare_digest(_tag(key, memoryview(data)[:end]), data[end:]):
             raise ProtocolError("bad signature: HMAC tag mismatch (check the shared key on both sides)")
+    return mtype, sid, cid, body_len, end
 
-    if mtype == MSG_FRAME:
-        if body_len < FRAME_FIXED_BYTES:
+
+def _check_blobs(data: bytes, start: int, end: int) -> None:
+    """Reject NaN/inf blob values (see decode)."""
+    hi = data[start + 3:end:4]
+    if 0x7F in hi or 0xFF in hi:
+        raise ProtocolError("frame blob value not finite (NaN, inf or beyond 2^127)")
+
+
+def _check_hello(w: int, h: int, fps: float, kind: int) -> None:
+    if not w or not h:
+        raise ProtocolError(f"hello resolution {w}x{h}: width and height must be > 0")
+    if not (0.0 < fps <= MAX_FPS):  # false for NaN too
+        raise ProtocolError(f"hello fps {fps} out of range (0, {MAX_FPS:g}]")
+    if kind >= len(CAMERA_KINDS):
+        raise ProtocolError(f"hello camera kind {kind} unknown (expected 0..{len(CAMERA_KINDS) - 1})")
+
+
+def decode(data: bytes, key: bytes | None = None, recv_ns: int = 0) -> Message:
+    """One datagram -> message. Raises ProtocolError naming the problem.
+
+    With `key` set, packets without a tag or with a wrong tag are rejected.
+    Without a key, a tag that is present is skipped unchecked.
+    recv_ns is stored on decoded BlobFrames (it is not on the wire).
+    Decoded frame blobs are a read-only (N, 4) float32 view of the packet.
+    """
+    if type(data) is not bytes:
+        data = bytes(data)  # own the memory: blobs view into it
+    n = len(data)
+    # the frame path is inlined (per packet); anything unusual is diagnosed by _check_header
+    if n >= _BLOB0 and n <= MAX_PACKET_BYTES and data[5] == MSG_FRAME and (key is None or data[6] & HF_SIGNED):
+        (magic, version, _t, hflags, _r0, sid, cid, body_len, _r1, session, seq, capture_ns, flags,
+         count) = _FRAME_HEAD.unpack_from(data)
+        end = HEADER_BYTES + body_len
+        if (magic != MAGIC or version != PROTOCOL_VERSION or n != (end + TAG_BYTES if hflags & HF_SIGNED else end)
+                or (key is not None and not hmac.compare_digest(_tag(key, memoryview(data)[:end]), data[end:]))):
+            _check_header(data, key, PROTOCOL_VERSION)  # raises, naming the problem
+            raise ProtocolError("malformed frame header")  # not reached: the checks above are the same
+    else:
+        _t, sid, cid, body_len, end = _check_header(data, key, PROTOCOL_VERSION)
+        if _t == MSG_FRAME:  # shorter than the fixed part
             raise ProtocolError(f"truncated frame: body {body_len} bytes < {FRAME_FIXED_BYTES}")
-        seq, flags, count, capture_ns = _FRAME_HEAD.unpack_from(data)[9:]
-        if body_len != FRAME_FIXED_BYTES + count * BLOB_BYTES:
-            raise ProtocolError(
-                f"frame blob count {count} does not match body length {body_len} "
-                f"(expected {FRAME_FIXED_BYTES + count * BLOB_BYTES})"
-            )
-        blobs = np.frombuffer(data, _BLOB_DTYPE, count * 4, HEADER_BYTES + FRAME_FIXED_BYTES).reshape(count, 4)
-        return BlobFrame(cid, seq, capture_ns, blobs, sid, flags, recv_ns)
+        return _decode_control(data, _t, sid, cid, body_len)
+    if body_len != FRAME_FIXED_BYTES + count * BLOB_BYTES:
+        raise ProtocolError(
+            f"frame blob count {count} does not match body length {body_len} "
+            f"(expected {FRAME_FIXED_BYTES + count * BLOB_BYTES})"
+        )
+    if count > MAX_BLOBS_PER_PACKET:
+        raise ProtocolError(f"frame blob count {count} > {MAX_BLOBS_PER_PACKET}, the most a frame may carry")
+    # NaN/inf cheaply: a float32 whose high byte is 0x7f or 0xff has an exponent of at least 254, i.e. it
+    # is NaN, +-inf or of magnitude >= 2**127 (no pixel value is that big)
+    hi = data[_BLOB0 + 3:end:4]
+    if 0x7F in hi or 0xFF in hi:
+        raise ProtocolError("frame blob value not finite (NaN, inf or beyond 2^127)")
+    blobs = np.frombuffer(data, _BLOB_DTYPE, count * 4, _BLOB0).reshape(count, 4)
+    return BlobFrame(cid, seq, capture_ns, blobs, sid, flags, recv_ns, session)
 
+
+def _decode_control(data: bytes, mtype: int, sid: int, cid: int, body_len: int) -> Message:
     size = _BODY_SIZES.get(mtype)
     if size is None:
         raise ProtocolError(f"unknown message type {mtype} (station and server versions differ?)")
     if body_len != size:
         raise ProtocolError(f"{_TYPE_NAMES[mtype]} body is {body_len} bytes, expected {size}")
     if mtype == MSG_HELLO:
-        session, w, h, fps, kind, timebase, _a, _b, name, sw = _HELLO.unpack_from(data, HEADER_BYTES)
-        if kind >= len(CAMERA_KINDS):
-            raise ProtocolError(f"hello camera kind {kind} unknown (expected 0..{len(CAMERA_KINDS) - 1})")
-        return Hello(sid, cid, session, w, h, fps, CAMERA_KINDS[kind], _untext(name), _untext(sw), timebase)
+        session, counter, w, h, fps, kind, timebase, cookie, name, sw = _HELLO.unpack_from(data, HEADER_BYTES)
+        _check_hello(w, h, fps, kind)
+        return Hello(sid, cid, session, w, h, fps, CAMERA_KINDS[kind], _untext(name), _untext(sw), timebase,
+                     counter, cookie)
     if mtype == MSG_HELLO_ACK:
-        session, status, start, server, dur = _HELLO_ACK.unpack_from(data, HEADER_BYTES)
-        return HelloAck(sid, cid, session, start, server, status, dur)
+        session, echo, status, start, server, dur, cookie = _HELLO_ACK.unpack_from(data, HEADER_BYTES)
+        return HelloAck(sid, cid, session, start, server, status, dur, echo, cookie)
     if mtype == MSG_HEARTBEAT:
-        (seq, status, temp, cap, drop, err, drift, off, unc, st_ns, session) = _HEARTBEAT.unpack_from(
+        (session, counter, status, temp, cap, drop, err, drift, off, unc, st_ns) = _HEARTBEAT.unpack_from(
             data, HEADER_BYTES
         )
         temp_c = None if temp == TEMPERATURE_UNKNOWN else temp / 100.0
+        return Heartbeat(sid, cid, counter, session, status, cap, drop, err, off, unc, drift, temp_c, st_ns)
+    if mtype == MSG_SYNC_REQUEST:
+        session, counter, t1 = _SYNC_REQUEST.unpack_from(data, HEADER_BYTES)
+        return SyncRequest(sid, cid, t1, counter, session)
+    if mtype == MSG_SYNC_REPLY:
+        session, echo, t1, t2, t3 = _SYNC_REPLY.unpack_from(data, HEADER_BYTES)
+        return SyncReply(sid, cid, t1, t2, t3, echo, session)
+    session, counter = _BYE.unpack_from(data, HEADER_BYTES)
+    return Bye(sid, cid, session, counter)
+
+
+# ---------------------------------------------------------------- version 1 (replay of old recordings only)
+
+_V1_FRAME_HEAD = struct.Struct("<IHHq")  # seq, flags, count, capture_ns
+_V1_BODIES = {
+    MSG_HELLO: struct.Struct("<IHHfBBBB32s16s"),
+    MSG_HEARTBEAT: struct.Struct("<IHhIIIiqqqI4x"),
+    MSG_SYNC_REQUEST: struct.Struct("<qI4x"),
+    MSG_BYE: struct.Struct("<I4x"),
+}
+
+
+def decode_v1(data: bytes) -> Message:
+    """A protocol-1 station -> server packet (as recorded before version 2) -> the version-2 dataclass.
+
+    For replays of old recordings only: the tag is not checked (a replay trusts its recording), v1
+    has no counters, cookies or frame sessions (they decode as 0 / NO_COOKIE), and server -> station
+    types are refused. The same validation as version 2 applies otherwise.
+    """
+    if type(data) is not bytes:
+        data = bytes(data)
+    mtype, sid, cid, body_len, end = _check_header(data, None, 1)
+    if mtype == MSG_FRAME:
+        if body_len < _V1_FRAME_HEAD.size:
+            raise ProtocolError(f"truncated frame: body {body_len} bytes < {_V1_FRAME_HEAD.size}")
+        seq, flags, count, capture_ns = _V1_FRAME_HEAD.unpack_from(data, HEADER_BYTES)
+        start = HEADER_BYTES + _V1_FRAME_HEAD.size
+        if body_len != _V1_FRAME_HEAD.size + count * BLOB_BYTES or count > MAX_BLOBS_PER_PACKET:
+            raise ProtocolError(f"frame blob count {count} does not match body length {body_len} (v1)")
+        _check_blobs(data, start, end)
+        blobs = np.frombuffer(data, _BLOB_DTYPE, count * 4, start).reshape(count, 4)
+        return BlobFrame(cid, seq, capture_ns, blobs, sid, flags)
+    st = _V1_BODIES.get(mtype)
+    if st is None:
+        raise ProtocolError(f"message type {mtype} is not a v1 station -> server message")
+    if body_len != st.size:
+        raise ProtocolError(f"{_TYPE_NAMES[mtype]} body is {body_len} bytes, expected {st.size} (v1)")
+    v = st.unpack_from(data, HEADER_BYTES)
+    if mtype == MSG_HELLO:
+        session, w, h, fps, kind, timebase, _a, _b, name, sw = v
+        _check_hello(w, h, fps, kind)
+        return Hello(sid, cid, session, w, h, fps, CAMERA_KINDS[kind], _untext(name), _untext(sw), timebase)
+    if mtype == MSG_HEARTBEAT:
+        seq, status, temp, cap, drop, err, drift, off, unc, st_ns, session = v
+        temp_c = None if temp == TEMPERATURE_UNKNOWN else temp / 100.0
         return Heartbeat(sid, cid, seq, session, status, cap, drop, err, off, unc, drift, temp_c, st_ns)
     if mtype == MSG_SYNC_REQUEST:
-        t1, seq = _SYNC_REQUEST.unpack_from(data, HEADER_BYTES)
+        t1, seq = v
         return SyncRequest(sid, cid, t1, seq)
-    if mtype == MSG_SYNC_REPLY:
-        t1, t2, t3, seq = _SYNC_REPLY.unpack_from(data, HEADER_BYTES)
-        return SyncReply(sid, cid, t1, t2, t3, seq)
-    (session,) = _BYE.unpack_from(data, HEADER_BYTES)
-    return Bye(sid, cid, session)
+    return Bye(sid, cid, v[0])
+
+
+def packet_version(data: bytes) -> int | None:
+    """The version byte of a visionpos packet, None if it is not one."""
+    return data[4] if len(data) >= HEADER_BYTES and data[:4] == MAGIC else None
 
 
 # ---------------------------------------------------------------- server-side helpers
@@ -482,7 +617,7 @@ def make_sync_reply(req: SyncRequest, t2_ns: int, t3_ns: int) -> SyncReply:
     """Server answer to a SyncRequest. t2_ns: server clock when the request
     was received (take it as early as possible, e.g. the datagram's receive
     time); t3_ns: server clock just before sending the reply."""
-    return SyncReply(req.station_id, req.camera_id, req.t1_ns, int(t2_ns), int(t3_ns), req.seq)
+    return SyncReply(req.station_id, req.camera_id, req.t1_ns, int(t2_ns), int(t3_ns), req.counter, req.session)
 
 
 def make_hello_ack(
@@ -491,17 +626,18 @@ def make_hello_ack(
     server_ns: int,
     status: int = ACK_OK,
     duration_ns: int = 0,
+    cookie: bytes = NO_COOKIE,
 ) -> HelloAck:
     """Server answer to a Hello (registration) or a Heartbeat (keep-alive).
 
     start_ns: the capture start (trigger) time on the server clock, the same
     for every station of a session; server_ns: server clock now. Answer a
     Heartbeat whose session the server does not know with
-    status=ACK_UNKNOWN_SESSION so the station registers again at once.
+    status=ACK_UNKNOWN_SESSION so the station registers again at once. The
+    ack echoes the request's session and counter (the station checks both).
     """
-    return HelloAck(
-        hello.station_id, hello.camera_id, hello.session, int(start_ns), int(server_ns), status, duration_ns
-    )
+    return HelloAck(hello.station_id, hello.camera_id, hello.session, int(start_ns), int(server_ns), status,
+                    duration_ns, hello.counter, cookie)
 
 
 def seq_delta(new: int, old: int) -> int:

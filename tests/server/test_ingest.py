@@ -1,11 +1,14 @@
 """Ingest: registration, sync, heartbeats, HMAC, sequence and clock checks, bad packets.
 
 Driven through Ingest.handle() with chosen receive times (no sockets, no sleeps);
-the loopback UDP path is covered in test_server.py.
+the loopback UDP path is covered in test_service.py. `_send` plays a well-behaved
+station: it answers the HELLO cookie challenge and numbers control messages; the
+attack tests at the end build their packets by hand.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import random
@@ -64,18 +67,29 @@ def _ingest(server=None, tmp_path=None, t=T0):
     return ing, pipe, clock
 
 
-def _frame(cam: int, seq: int, capture_ns: int, station: int = None, flags: int = 0, n: int = 3) -> BlobFrame:
+def _frame(cam: int, seq: int, capture_ns: int, station: int = None, flags: int = 0, n: int = 3,
+           session: int = 7) -> BlobFrame:
     blobs = np.arange(n * 4, dtype=np.float32).reshape(n, 4) + seq
-    return BlobFrame(cam, seq, capture_ns, blobs, cam if station is None else station, flags)
+    return BlobFrame(cam, seq, capture_ns, blobs, cam if station is None else station, flags, 0, session)
 
 
-def _hello(cam, session=7, station=None, w=960, h=640, timebase=P.TIMEBASE_SERVER):
+def _hello(cam, session=7, station=None, w=960, h=640, timebase=P.TIMEBASE_SERVER, counter=0, cookie=P.NO_COOKIE):
     return P.Hello(cam if station is None else station, cam, session, w, h, 100.0, "fisheye", f"pi{cam}", "test",
-                   timebase)
+                   timebase, counter, cookie)
 
 
 def _send(ing, msg, recv_ns, key=None, addr=ADDR):
-    return [P.decode(r, key) for r in ing.handle(P.encode(msg, key), addr, recv_ns)]
+    """Send like a station: control messages without a counter get the next one; a HELLO without a
+    cookie that is challenged is sent again with the cookie (the replies to that one are returned)."""
+    if isinstance(msg, (P.Hello, P.Heartbeat, P.SyncRequest, P.Bye)):
+        last = getattr(ing, "_test_counter", 0)
+        if msg.counter == 0:
+            msg = dataclasses.replace(msg, counter=last + 1)
+        ing._test_counter = max(last, msg.counter)
+    replies = [P.decode(r, key) for r in ing.handle(P.encode(msg, key), addr, recv_ns)]
+    if isinstance(msg, P.Hello) and msg.cookie == P.NO_COOKIE and [r.status for r in replies] == [P.ACK_CHALLENGE]:
+        return _send(ing, dataclasses.replace(msg, counter=0, cookie=replies[0].cookie), recv_ns, key, addr)
+    return replies
 
 
 def test_registration_and_trigger_time():
@@ -130,15 +144,16 @@ def test_station_id_pinned_in_config():
 
 def test_clock_sync_reply_stamps():
     ing, _, clock = _ingest()
+    _send(ing, _hello(1), T0)
     clock.t = T0 + 250_000  # the reply is built 0.25 ms after the datagram arrived
-    (rep,) = _send(ing, P.SyncRequest(1, 1, t1_ns=-55_555, seq=42), T0)
+    (rep,) = _send(ing, P.SyncRequest(1, 1, t1_ns=-55_555, counter=42, session=7), T0)
     assert isinstance(rep, P.SyncReply)
-    assert (rep.t1_ns, rep.t2_ns, rep.t3_ns, rep.seq) == (-55_555, T0, T0 + 250_000, 42)
+    assert (rep.t1_ns, rep.t2_ns, rep.t3_ns, rep.echo, rep.session) == (-55_555, T0, T0 + 250_000, 42, 7)
 
 
 def test_heartbeat_records_station_clock():
     ing, _, _ = _ingest()
-    hb = P.Heartbeat(1, 1, 3, session=7, status=P.HB_CLOCK_SYNCED, frames_captured=500, frames_dropped=2,
+    hb = P.Heartbeat(1, 1, 0, session=7, status=P.HB_CLOCK_SYNCED, frames_captured=500, frames_dropped=2,
                      clock_offset_ns=-1_234_567, clock_uncertainty_ns=40_000, drift_ppb=-15000, temperature_c=51.5)
     (ack,) = _send(ing, hb, T0)
     assert ack.status == P.ACK_UNKNOWN_SESSION  # not registered yet: register again
@@ -196,10 +211,12 @@ def test_sequence_loss_duplicates_reordering_replay():
 def test_new_session_restarts_sequence():
     ing, pipe, _ = _ingest()
     _send(ing, _hello(1, session=1), T0)
-    _send(ing, _frame(1, 500, T0), T0 + 3 * MS)
+    _send(ing, _frame(1, 500, T0, session=1), T0 + 3 * MS)
     _send(ing, _hello(1, session=2), T0 + 5 * MS)  # station restarted: seq starts over
-    _send(ing, _frame(1, 0, T0 + 10 * MS), T0 + 13 * MS)
+    _send(ing, _frame(1, 0, T0 + 10 * MS, session=2), T0 + 13 * MS)
+    _send(ing, _frame(1, 501, T0 + 20 * MS, session=1), T0 + 23 * MS)  # the old session's frames: refused
     assert [f.seq for f in pipe.frames] == [500, 0]
+    assert ing.health()["cameras"][1]["wrong_session"] == 1
 
 
 def test_frames_that_queued_too_long_are_shed_not_fused():
@@ -247,15 +264,17 @@ def test_clock_jumps_dropped_then_resync():
     h = ing.health()["cameras"][1]
     assert (h["clock_jumps_future"], h["clock_jumps_stale"], h["clock_jumps_backwards"]) == (1, 1, 1)
     assert len(pipe.frames) == 4
-    # a station whose clock stays 2 s off: frames dropped, then the server asks it to resync
-    replies = [send(+2000) for _ in range(5)]
-    assert replies[:4] == [[]] * 4
-    (ack,) = replies[4]
-    assert isinstance(ack, P.HelloAck) and ack.status == P.ACK_UNKNOWN_SESSION and ack.session == 7
-    assert ing.health()["cameras"][1]["resync_requests"] == 1
+    # a station whose clock stays 2 s off: frames dropped (never answered), then the server asks it to
+    # resync in the answer to its next heartbeat
+    assert [send(+2000) for _ in range(5)] == [[]] * 5
+    h = ing.health()["cameras"][1]
+    assert h["resync_requests"] == 1 and h["registered"]
     assert len(pipe.frames) == 4
-    # the station registers again (and resyncs); one that flags its own resync may step back a little
-    _send(ing, _hello(1), t)
+    (ack,) = _send(ing, P.Heartbeat(1, 1, 0, session=7), t)
+    assert ack.status == P.ACK_RESYNC and ack.session == 7
+    (ack,) = _send(ing, P.Heartbeat(1, 1, 0, session=7), t)
+    assert ack.status == P.ACK_OK  # asked once
+    # the station resyncs; one that flags its own resync may step back a little
     assert send(0) == []
     assert send(-8, flags=FLAG_RESYNC) == []
     assert len(pipe.frames) == 6 and pipe.frames[-1].flags & FLAG_RESYNC
@@ -272,7 +291,7 @@ def test_realtime_timebase_converted():
     # replay: the offset comes from the recording, not from today's clocks
     ing.realtime_minus_monotonic_ns = 1_700_000_000 * 10**9
     _send(ing, _hello(1, session=8, timebase=P.TIMEBASE_REALTIME), T0)  # a new run on another clock
-    ing.handle(P.encode(_frame(1, 1, 1_700_000_000 * 10**9 + T0 + 20 * MS)), ADDR, T0 + 25 * MS)
+    ing.handle(P.encode(_frame(1, 1, 1_700_000_000 * 10**9 + T0 + 20 * MS, session=8)), ADDR, T0 + 25 * MS)
     assert pipe.frames[-1].capture_ns == T0 + 20 * MS
 
 
@@ -304,7 +323,8 @@ def test_vanish_and_return_and_bye():
 def test_garbage_and_truncated_packets_never_raise():
     ing, pipe, _ = _ingest()
     rng = random.Random(5)
-    valid = [P.encode(_hello(1)), P.encode(_frame(1, 1, T0, n=5)), P.encode(P.SyncRequest(1, 1, 5, 1)),
+    _send(ing, _hello(1), T0)
+    valid = [P.encode(_hello(1)), P.encode(_frame(1, 1, T0, n=5)), P.encode(P.SyncRequest(1, 1, 5, 1, 7)),
              P.encode(P.Heartbeat(1, 1, 1, session=7)), P.encode(P.HelloAck(1, 1, 7, 0, 0)),
              P.encode(_frame(2, 1, T0, n=0), b"k")]
     n_bad = 0
@@ -323,7 +343,7 @@ def test_garbage_and_truncated_packets_never_raise():
         ing.handle(data, ADDR, T0 + 3 * MS)
     h = ing.health()
     assert h["malformed"] >= n_bad
-    assert h["packets"] == n_bad + 2000
+    assert h["packets"] == n_bad + 2000 + 2
     # every frame that got through decoded to exactly what a valid frame carries
     for f in pipe.frames:
         assert f.blobs.shape[1] == 4
@@ -333,30 +353,45 @@ def test_garbage_and_truncated_packets_never_raise():
     assert pipe.frames[-1].camera_id == 3 and pipe.frames[-1].seq == 1
 
 
-def test_malformed_logged_once_per_sender_and_reason(caplog):
+def test_malformed_logged_rate_limited_per_reason_with_a_count(caplog):
     ing, _, _ = _ingest()
+    now = [100.0]
+    ing.rlog.clock = lambda: now[0]
     with caplog.at_level(logging.WARNING, logger="visionpos.server.ingest"):
-        for _ in range(50):
-            ing.handle(b"GET / HTTP/1.1\r\n\r\n", ADDR, T0)
+        for i in range(50):
+            ing.handle(b"GET / HTTP/1.1\r\n\r\n", ("10.0.0.1", 1000 + i), T0)  # 50 senders, one reason
+        now[0] += 11.0
+        ing.handle(b"GET / HTTP/1.1\r\n\r\n", ADDR, T0)
     msgs = [r.getMessage() for r in caplog.records]
-    assert len(msgs) == 1 and "bad magic" in msgs[0] and "127.0.0.1:40000" in msgs[0]
-    assert ing.health()["malformed_reasons"] == {"bad magic": 50}
+    assert len(msgs) == 2 and all("bad magic" in m for m in msgs) and "10.0.0.1:1000" in msgs[0]
+    assert "127.0.0.1:40000" in msgs[1] and "49 more like this" in msgs[1]
+    assert ing.health()["malformed_reasons"] == {"bad magic": 51}
 
 
-def test_recorder_gets_every_datagram():
-    class Rec:
-        def __init__(self):
-            self.got = []
+class Rec:
+    def __init__(self):
+        self.got = []
 
-        def write_packet(self, recv_ns, data, source=None):
-            self.got.append((recv_ns, data, source))
+    def write_packet(self, recv_ns, data, source=None):
+        self.got.append((recv_ns, data, source))
 
+
+def test_recorder_gets_only_accepted_packets():
+    """Nothing undecodable, unauthenticated, of an unknown camera or refused is recorded; it is counted."""
     rec = Rec()
     ing = Ingest(_arena(), pipeline=None, recorder=rec, clock=Clock(T0))
-    pkts = [P.encode(_hello(1)), b"junk", P.encode(_frame(9, 1, T0))]
-    for i, p in enumerate(pkts):
-        ing.handle(p, ("10.0.0.5", 5000 + i), T0 + i)
-    assert rec.got == [(T0 + i, p, ("10.0.0.5", 5000 + i)) for i, p in enumerate(pkts)]
+    src = ("10.0.0.5", 5000)
+    challenge = ing.handle(P.encode(_hello(1)), src, T0)  # no cookie: challenged, not recorded
+    (ack,) = [P.decode(r) for r in challenge]
+    hello = P.encode(_hello(1, counter=1, cookie=ack.cookie))
+    good_frame = P.encode(_frame(1, 1, T0 + MS))
+    pkts = [hello, b"junk" * 100, P.encode(_frame(9, 1, T0)), P.encode(_frame(1, 1, T0, session=8)),
+            good_frame, P.encode(_frame(1, 1, T0 + MS)), P.encode(_frame(2, 1, T0 + MS))]
+    for p in pkts:
+        ing.handle(p, src, T0 + 3 * MS)
+    assert rec.got == [(T0 + 3 * MS, hello, src), (T0 + 3 * MS, good_frame, src)]
+    assert ing.health()["not_recorded"] == {"no valid cookie": 1, "undecodable": 1, "unknown camera": 1,
+                                            "wrong session": 1, "duplicate seq": 1, "not registered": 1}
 
 
 @pytest.mark.parametrize("server, key, what", [
@@ -398,6 +433,8 @@ def test_station_vanishes_mid_flight_tracking_continues():
     clock = Clock(frames[0].recv_ns)
     ing = Ingest(arena, pipeline=pipe, clock=clock)
     ing.set_start(sc.start_ns)
+    for cam in arena.cameras:
+        _send(ing, _hello(cam.id, station=cam.id), frames[0].recv_ns, addr=("127.0.0.1", 6000 + cam.id))
     states, lost_at = [], None
     tick = frames[0].recv_ns
     for f in frames:
@@ -410,6 +447,7 @@ def test_station_vanishes_mid_flight_tracking_continues():
         if f.camera_id == 2 and f.capture_ns >= cut:
             continue
         clock.t = f.recv_ns
+        f = dataclasses.replace(f, station_id=f.camera_id, session=7)
         ing.handle(P.encode_frame(f), ("127.0.0.1", 6000 + f.camera_id), f.recv_ns)
     h = ing.health()
     assert h["frames_accepted"] == len([f for f in frames if not (f.camera_id == 2 and f.capture_ns >= cut)])
@@ -455,3 +493,140 @@ def test_event_kinds_are_the_recorded_strings():
         _send(ing, _frame(1, seq, T0 + 5000 * MS), T0 + 610 * MS)  # 4.4 s in the future, twice: resync
     assert recorded == ["registered", "camera_lost", "camera_back", "resync_request"]
     assert [e.value for e in IngestEvent] == recorded
+
+
+# ---------------------------------------------------------------- attacks of issue 14 (each passed on v1's ingest)
+
+
+def _streaming(ing, pipe, cam=1, n=3, t0=T0):
+    """Register camera `cam` and accept n frames; returns the time of the last one."""
+    _send(ing, _hello(cam), t0)
+    t = t0
+    for seq in range(n):
+        t = t0 + (seq + 1) * 10 * MS
+        _send(ing, _frame(cam, seq, t - 3 * MS), t)
+    return t
+
+
+def test_a_refused_frame_with_a_far_ahead_seq_does_not_blind_the_camera():
+    """v1 stored the seq before checking the time: one forged or replayed frame blinded a camera."""
+    ing, pipe, _ = _ingest()
+    t = _streaming(ing, pipe)
+    before = ing.health()["cameras"][1]
+    _send(ing, _frame(1, 1_000_000, t - 10**12), t + MS)  # seq far ahead, capture 1000 s old
+    _send(ing, _frame(1, 2_000_000, t + 10**12), t + MS)  # ... and 1000 s in the future
+    after = ing.health()["cameras"][1]
+    changed = {k for k in before if before[k] != after[k]}
+    assert changed <= {"clock_jumps", "clock_jumps_stale", "clock_jumps_future", "last_drop_reason",
+                       "last_seen_s_ago"}, changed
+    assert after["last_seen_s_ago"] == before["last_seen_s_ago"]  # refused: not "seen"
+    _send(ing, _frame(1, 3, t + 7 * MS), t + 10 * MS)  # the genuine next frame
+    assert [f.seq for f in pipe.frames] == [0, 1, 2, 3]
+    assert ing.health()["cameras"][1]["lost"] == 0
+
+
+def test_frames_of_a_camera_that_never_registered_are_not_fused_and_not_answered():
+    ing, pipe, _ = _ingest()
+    for seq in range(3):
+        assert ing.handle(P.encode(_frame(2, seq, T0 + seq * MS)), ADDR, T0 + seq * MS + 3 * MS) == []
+    assert pipe.frames == []
+    cam = ing.health()["cameras"][2]
+    assert cam["unregistered"] == 3 and cam["frames"] == 0 and not cam["registered"]
+
+
+def test_frames_only_from_the_registered_session_and_address():
+    ing, pipe, _ = _ingest()
+    t = _streaming(ing, pipe)
+    forger = ("127.0.0.1", 40666)
+    assert ing.handle(P.encode(_frame(1, 3, t + 2 * MS)), forger, t + 5 * MS) == []  # right session, wrong address
+    assert ing.handle(P.encode(_frame(1, 3, t + 2 * MS, session=8)), ADDR, t + 5 * MS) == []  # wrong session
+    assert ing.handle(P.encode(_frame(1, 3, t + 2 * MS, station=9)), ADDR, t + 5 * MS) == []  # other station
+    assert [f.seq for f in pipe.frames] == [0, 1, 2]
+    cam = ing.health()["cameras"][1]
+    assert (cam["wrong_address"], cam["wrong_session"]) == (1, 2)
+    _send(ing, _frame(1, 3, t + 7 * MS), t + 10 * MS)
+    assert [f.seq for f in pipe.frames] == [0, 1, 2, 3]
+
+
+def test_hello_needs_the_cookie_of_its_own_address_and_time():
+    ing, pipe, _ = _ingest()
+    (ch,) = [P.decode(r) for r in ing.handle(P.encode(_hello(1, counter=1)), ADDR, T0)]
+    assert ch.status == P.ACK_CHALLENGE and ch.echo == 1 and ch.cookie != P.NO_COOKIE
+    assert not ing.health()["cameras"][1]["registered"]  # a challenge changes no state
+    wrong_addr = ing.handle(P.encode(_hello(1, counter=2, cookie=ch.cookie)), ("127.0.0.1", 40001), T0)
+    assert P.decode(wrong_addr[0]).status == P.ACK_CHALLENGE  # the cookie was for another source port
+    late = ing.handle(P.encode(_hello(1, counter=2, cookie=ch.cookie)), ADDR, T0 + 20_001 * MS)
+    assert P.decode(late[0]).status == P.ACK_CHALLENGE  # two 10 s buckets later: expired
+    assert not ing.health()["cameras"][1]["registered"]
+    ok = ing.handle(P.encode(_hello(1, counter=2, cookie=ch.cookie)), ADDR, T0 + 9_000 * MS)
+    assert P.decode(ok[0]).status == P.ACK_OK and ing.health()["cameras"][1]["registered"]
+
+
+def test_replayed_signed_hello_and_heartbeat_change_nothing(tmp_path):
+    """v1: an old signed HELLO replayed once a second re-registered the station each time."""
+    key = b"the right key 0123456789"
+    (tmp_path / "key.bin").write_bytes(key)
+    ing, pipe, _ = _ingest({"key_file": "key.bin"}, tmp_path)
+    (ch,) = [P.decode(r, key) for r in ing.handle(P.encode(_hello(1, session=1, counter=1), key), ADDR, T0)]
+    old_hello = P.encode(_hello(1, session=1, counter=2, cookie=ch.cookie), key)  # what an attacker captures
+    assert P.decode(ing.handle(old_hello, ADDR, T0)[0], key).status == P.ACK_OK
+    hb = P.encode(P.Heartbeat(1, 1, 3, session=1, clock_offset_ns=5), key)
+    assert P.decode(ing.handle(hb, ADDR, T0 + MS)[0], key).status == P.ACK_OK
+    # replays of the current session: stale counters, no answer, no state change
+    assert ing.handle(old_hello, ADDR, T0 + 2 * MS) == []
+    assert ing.handle(hb, ADDR, T0 + 2 * MS) == []
+    assert ing.health()["cameras"][1]["stale_control"] == 2
+    # the station restarts (session 2); the old session's HELLO, replayed with its still-valid cookie, is refused
+    _send(ing, _hello(1, session=2, counter=1), T0 + 3 * MS, key=key)
+    _send(ing, _frame(1, 0, T0 + 4 * MS, session=2), T0 + 6 * MS, key=key)
+    assert ing.handle(old_hello, ADDR, T0 + 7 * MS) == []
+    cam = ing.health()["cameras"][1]
+    assert cam["registered"] and ing.cameras[1].session == 2
+    _send(ing, _frame(1, 1, T0 + 8 * MS, session=2), T0 + 10 * MS, key=key)
+    assert [f.seq for f in pipe.frames] == [0, 1]  # the sequence state was not reset by the replay
+    # a replayed BYE of the old session does not unregister the new one
+    assert ing.handle(P.encode(P.Bye(1, 1, 1, 99), key), ADDR, T0 + 11 * MS) == []
+    assert ing.health()["cameras"][1]["registered"]
+
+
+def test_resync_is_asked_in_the_next_heartbeat_reply_never_in_answer_to_frames():
+    ing, pipe, clock = _ingest({"resync_after": 3})
+    t = _streaming(ing, pipe)
+    replies = [ing.handle(P.encode(_frame(1, seq, t + 5_000 * MS)), ADDR, t + seq * MS) for seq in range(3, 9)]
+    assert replies == [[]] * 6
+    assert ing.health()["cameras"][1]["resync_requests"] == 1  # once pending, not asked again per frame
+    (ack,) = _send(ing, P.Heartbeat(1, 1, 0, session=7), t + 10 * MS)
+    assert ack.status == P.ACK_RESYNC
+    assert ing.health()["cameras"][1]["registered"]  # the station keeps its registration and seq
+
+
+def test_a_camera_whose_frames_are_dropped_shows_dropping_with_the_reason_never_gone():
+    ing, pipe, clock = _ingest({"vanish_periods": 10, "vanish_min_s": 0.0, "max_age_ms": 300})
+    t = _streaming(ing, pipe, cam=2)
+    for k in range(1, 40):  # the station streams on, its clock 2 s behind: every frame refused
+        now = t + k * 10 * MS
+        clock.t = now
+        ing.handle(P.encode(_frame(2, 2 + k, now - 2_000 * MS)), ADDR, now)
+        ing.check_vanished(now)
+    h = ing.health(clock.t)["cameras"][2]
+    assert not h["online"] and h["state"] == "dropping" and h["dropping"] == "clock jump: too old"
+    assert "2:dropping(clock jump: too old)" in ing.status_line(clock.t)
+    assert "2:gone" not in ing.status_line(clock.t)
+    # a station that stops altogether is gone once its last frame is older than the vanish timeout
+    assert "2:gone" in ing.status_line(clock.t + 200 * MS)
+    # frames of another session: the reason says so
+    ing.handle(P.encode(_frame(2, 50, clock.t, session=99)), ADDR, clock.t + 3 * MS)
+    assert "2:dropping(wrong session)" in ing.status_line(clock.t + 3 * MS)
+
+
+def test_per_sender_tables_and_logs_are_bounded(caplog):
+    ing, _, _ = _ingest()
+    with caplog.at_level(logging.WARNING, logger="visionpos.server.ingest"):
+        for i in range(1000):  # 1000 made-up station/camera pairs
+            ing.handle(P.encode(_frame(100 + i, 1, T0)), ("10.9.0.1", 1000 + i), T0)
+    h = ing.health()
+    assert len(h["unknown_sources"]) == 64 and h["unknown_sources_evicted"] == 1000 - 64
+    assert h["unknown"] == 1000
+    assert "1099/1099" in h["unknown_sources"] and "100/100" not in h["unknown_sources"]  # the newest kept
+    assert len([r for r in caplog.records if "not in the arena config" in r.getMessage()]) == 1
+    assert len(ing.rlog) <= 2

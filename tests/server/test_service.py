@@ -79,6 +79,35 @@ async def _recv(loop, sock, timeout=2.0):
     return await asyncio.wait_for(loop.sock_recv(sock, 2048), timeout)
 
 
+def _hello(c, session, cookie=P.NO_COOKIE, counter=1):
+    return P.Hello(c, c, session, 960, 640, 30.0, "fisheye", f"pi{c}", "test", P.TIMEBASE_SERVER, counter, cookie)
+
+
+async def _register(loop, sock, c, session, key=None) -> bytes:
+    """HELLO, CHALLENGE, HELLO with the cookie, OK: as a station registers. Returns the accepted HELLO."""
+    sock.send(P.encode(_hello(c, session), key))
+    challenge = P.decode(await _recv(loop, sock), key)
+    assert challenge.status == P.ACK_CHALLENGE and challenge.echo == 1
+    hello = P.encode(_hello(c, session, challenge.cookie, 2), key)
+    sock.send(hello)
+    ack = P.decode(await _recv(loop, sock), key)
+    assert isinstance(ack, P.HelloAck) and ack.status == P.ACK_OK and ack.session == session and ack.echo == 2
+    return hello
+
+
+def _register_blocking(sock, addr, c, session, key=None) -> bytes:
+    """As _register, blocking; returns once the trigger time has come (same host, same clock)."""
+    sock.settimeout(2.0)
+    sock.sendto(P.encode(_hello(c, session), key), addr)
+    challenge = P.decode(sock.recv(2048), key)
+    hello = P.encode(_hello(c, session, challenge.cookie, 2), key)
+    sock.sendto(hello, addr)
+    ack = P.decode(sock.recv(2048), key)
+    assert ack.status == P.ACK_OK
+    time.sleep(max(0.0, (ack.start_ns + 10 * MS - time.monotonic_ns()) * 1e-9))  # frames are stamped 3 ms back
+    return hello
+
+
 async def _replay_frames(frames, socks, offset_ns, skip=lambda f: False, key=None):
     """Send sim frames at their receive time (shifted onto this clock), capture times shifted alike."""
     for f in frames:
@@ -88,7 +117,8 @@ async def _replay_frames(frames, socks, offset_ns, skip=lambda f: False, key=Non
         delay = (target - time.monotonic_ns()) * 1e-9
         if delay > 0:
             await asyncio.sleep(delay)
-        g = BlobFrame(f.camera_id, f.seq, f.capture_ns + offset_ns, f.blobs, f.station_id, f.flags)
+        g = BlobFrame(f.camera_id, f.seq, f.capture_ns + offset_ns, f.blobs, f.camera_id, f.flags, 0,
+                      100 + f.camera_id)
         socks[f.camera_id].send(P.encode_frame(g, key))
 
 
@@ -117,9 +147,7 @@ def test_tracking_continues_after_station_vanishes():
         try:
             socks = await _station_sockets(loop, server.port, [1, 2, 3, 4])
             for c, s in socks.items():  # register like a station does
-                s.send(P.encode(P.Hello(c, c, 100 + c, 960, 640, 30.0, "fisheye", f"pi{c}", "test")))
-                ack = P.decode(await _recv(loop, s))
-                assert isinstance(ack, P.HelloAck) and ack.status == P.ACK_OK and ack.session == 100 + c
+                await _register(loop, s, c, 100 + c)
             offset = time.monotonic_ns() + 100 * MS - sc.start_ns
             await _replay_frames(frames, socks, offset, skip=lambda f: f.camera_id == 2 and f.capture_ns >= cut_ns)
             await asyncio.sleep(0.05)
@@ -188,43 +216,47 @@ def test_bad_traffic_over_udp(tmp_path):
                 s.send(b)
 
             rng = np.random.default_rng(0)
-            good = P.encode(P.Hello(1, 1, 5, 960, 640, 100.0), key)
+            good = P.encode(_hello(1, 5), key)
             for n in (0, 1, 15, 16, 40):
                 send(good[:n])  # truncated
             for _ in range(30):
                 send(rng.integers(0, 256, rng.integers(1, 1400)).astype(np.uint8).tobytes())  # garbage
-            send(P.encode(P.Hello(1, 1, 5, 960, 640, 100.0), wrong))  # wrong key
-            send(P.encode(P.Hello(1, 1, 5, 960, 640, 100.0)))  # unsigned
+            send(P.encode(_hello(1, 5), wrong))  # wrong key
+            send(P.encode(_hello(1, 5)))  # unsigned
             send(P.encode(P.Hello(7, 42, 5, 960, 640, 100.0), key))  # unknown camera
             ack = P.decode(await _recv(loop, s), key)
             assert ack.camera_id == 42 and ack.status == P.ACK_REJECTED
-            send(good)
-            ack = P.decode(await _recv(loop, s), key)
-            assert ack.camera_id == 1 and ack.status == P.ACK_OK
+            sent.append(await _register(loop, s, 1, 5, key))
             now = time.monotonic_ns()
+            frames = {}
             for seq in (10, 11, 12, 11, 10, 12, 13):  # duplicates / reordering
-                send(P.encode_frame(BlobFrame(1, seq, now - 5 * MS + seq * MS, np.zeros((0, 4), np.float32), 1), key))
-            send(P.encode(P.SyncRequest(1, 1, 777, 3), key))
+                frames[seq] = P.encode_frame(BlobFrame(1, seq, now - 5 * MS + seq * MS, np.zeros((0, 4), np.float32),
+                                                       1, 0, 0, 5), key)
+                send(frames[seq])
+            sync = P.encode(P.SyncRequest(1, 1, 777, 3, 5), key)
+            send(sync)
             rep = P.decode(await _recv(loop, s), key)
-            assert isinstance(rep, P.SyncReply) and rep.t1_ns == 777 and rep.seq == 3
+            assert isinstance(rep, P.SyncReply) and rep.t1_ns == 777 and rep.echo == 3 and rep.session == 5
             assert now <= rep.t2_ns <= rep.t3_ns <= time.monotonic_ns()
             await asyncio.sleep(0.05)
             s.close()
-            return server.health(), sent
+            return server.health(), sent, [sent[-9]] + [frames[q] for q in (10, 11, 12, 13)] + [sync]
         finally:
             await server.stop()
 
-    health, sent = asyncio.run(main())
+    health, sent, accepted = asyncio.run(main())
     assert health["auth_failed"] == 2
     assert health["unknown"] == 1 and health["unknown_sources"] == {"7/42": 1}
     assert health["malformed"] >= 35 - 1  # a random buffer is almost surely not a valid signed packet
     cam = health["cameras"][1]
     assert cam["frames"] == 4 and cam["duplicates"] + cam["reordered"] == 3
-    assert health["packets"] == len(sent)
-    # the recording holds every datagram as sent, in order, and the final health
+    assert health["packets"] == len(sent) + 1  # + the challenged HELLO
+    # the recording holds only what was accepted, in order (not junk, not refused), and the final health
     r = RecordingReader(rec_path)
-    assert [d for _, d in r.packets()] == sent
-    assert list(r.json("/server/health"))[-1][1]["auth_failed"] == 2
+    assert [d for _, d in r.packets()] == accepted
+    nr = list(r.json("/server/health"))[-1][1]["not_recorded"]
+    assert nr["unauthenticated"] == 2 and nr["unknown camera"] == 1 and nr["no valid cookie"] == 1
+    assert nr["duplicate seq"] + nr["reordered"] == 3 and nr["undecodable"] == health["malformed"]
 
 
 def test_sink_errors_do_not_stop_outputs():
@@ -261,11 +293,17 @@ def _port_from(proc) -> int:
     return int(line.split("listening on udp ")[1].split(",")[0].split(";")[0].rsplit(":", 1)[1])
 
 
+def _assert_recorded(r, sent):
+    """The recording holds what was accepted: the HELLO that carried the cookie, then every frame."""
+    assert [d for _, d in r.packets()] == sent
+
+
 def _send_frames(port, n, sleep_s=0.0):
-    sent = []
+    """Register camera 1 and send n frames; returns what the server accepts (and records)."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        sent = [_register_blocking(s, ("127.0.0.1", port), 1, 9)]
         for i in range(n):
-            f = BlobFrame(1, i, time.monotonic_ns() - 3 * MS, np.full((2, 4), i, np.float32), 1)
+            f = BlobFrame(1, i, time.monotonic_ns() - 3 * MS, np.full((2, 4), i, np.float32), 1, 0, 0, 9)
             b = P.encode_frame(f)
             s.sendto(b, ("127.0.0.1", port))
             sent.append(b)
@@ -280,8 +318,9 @@ def test_command_sigterm_flushes_recording(command, tmp_path):
     out = tmp_path / "run.mcap"
     args = (["serve", "--config", "thesis", "--record", str(out)] if command == "serve"
             else ["record", "--out", str(out), "--config", "thesis"])
-    proc = _serve(args + ["--host", "127.0.0.1", "--port", "0", "--set", "server.status_period_s=0", "--set", INSECURE],
-                  tmp_path)
+    # a generous age window: a frame that queued while the server warmed up is still accepted (and recorded)
+    proc = _serve(args + ["--host", "127.0.0.1", "--port", "0", "--set", "server.status_period_s=0",
+                          "--set", "server.max_age_ms=60000", "--set", INSECURE], tmp_path)
     try:
         port = _port_from(proc)
         sent = _send_frames(port, 200)
@@ -296,7 +335,7 @@ def test_command_sigterm_flushes_recording(command, tmp_path):
     r = RecordingReader(out)
     assert r.complete
     assert r.config["cameras"][0]["name"] == "pi1"
-    assert [d for _, d in r.packets()] == sent
+    _assert_recorded(r, sent)
     if command == "serve":
         states = list(r.states())
         assert len(states) > 5 and {s.name for s in states} == {"quad"}
@@ -308,7 +347,8 @@ def test_serve_killed_leaves_readable_recording(tmp_path):
     pytest.importorskip("visionpos.fusion.pipeline")
     out = tmp_path / "killed.mcap"
     proc = _serve(["serve", "--config", "thesis", "--record", str(out), "--host", "127.0.0.1", "--port", "0",
-                   "--set", "server.status_period_s=0", "--set", INSECURE], tmp_path)
+                   "--set", "server.status_period_s=0", "--set", "server.max_age_ms=60000", "--set", INSECURE],
+                  tmp_path)
     try:
         port = _port_from(proc)
         sent = _send_frames(port, 300, sleep_s=0.001)
@@ -323,7 +363,7 @@ def test_serve_killed_leaves_readable_recording(tmp_path):
         warnings.simplefilter("ignore", RecordingDamagedWarning)
         r = RecordingReader(out)
         assert not r.complete
-        assert [d for _, d in r.packets()] == sent
+        _assert_recorded(r, sent)
         assert len(list(r.states())) > 0
 
 
@@ -362,12 +402,15 @@ def test_server_stall_is_not_a_vanished_station():
 
         def station():
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+                for cam in (1, 2):
+                    _register_blocking(s, ("127.0.0.1", ing.port), cam, 50 + cam)
                 seq = 0
                 while not stop_all.is_set():
                     for cam in (1, 2):
                         if cam == 1 and stop_cam1.is_set():
                             continue
-                        f = BlobFrame(cam, seq, time.monotonic_ns() - 2 * MS, np.zeros((1, 4), np.float32), cam)
+                        f = BlobFrame(cam, seq, time.monotonic_ns() - 2 * MS, np.zeros((1, 4), np.float32), cam, 0,
+                                      0, 50 + cam)
                         s.sendto(P.encode_frame(f), ("127.0.0.1", ing.port))
                     seq += 1
                     time.sleep(0.01)
@@ -485,8 +528,10 @@ def test_backlogged_frames_are_shed_over_a_real_socket():
         async with server:
             await asyncio.sleep(0.05)  # captures after the trigger time
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+                await asyncio.to_thread(_register_blocking, s, ("127.0.0.1", server.port), 1, 4)
+
                 def send(seq):
-                    f = BlobFrame(1, seq, time.monotonic_ns() - 3 * MS, np.full((2, 4), 1.0, np.float32), 1)
+                    f = BlobFrame(1, seq, time.monotonic_ns() - 3 * MS, np.full((2, 4), 1.0, np.float32), 1, 0, 0, 4)
                     s.sendto(P.encode_frame(f), ("127.0.0.1", server.port))
 
                 for seq in range(1, 21):

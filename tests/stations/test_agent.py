@@ -8,6 +8,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace as dataclass_replace
 from pathlib import Path
 
 import cv2
@@ -26,6 +27,7 @@ from visionpos.sim.render import render_blobs
 KEY = b"test-key-0123456789abcdef"
 SERVER_OFFSET_NS = 7_000_000_000  # the test server's clock runs 7 s ahead of the station's
 W, H = 160, 120
+COOKIE = b"test-cookie-0123"
 TRUE = np.array([[40.3, 30.6], [100.7, 80.2], [130.1, 20.9]])
 
 
@@ -75,17 +77,17 @@ class LoopbackServer:
                 continue
             out = None
             if isinstance(msg, BlobFrame):
-                if (msg.station_id, msg.camera_id) in self.sessions:
+                if self.sessions.get((msg.station_id, msg.camera_id)) == msg.session:
                     self.frames.append(msg)
-                else:  # unregistered (we restarted): ask the station to register, once per burst
+                else:  # unregistered (we restarted): counted, never answered
                     self.unregistered_frames += 1
-                    if self.unregistered_frames % 20 == 1:
-                        out = P.HelloAck(msg.station_id, msg.camera_id, 0, self.start_ns, self.clock(),
-                                         P.ACK_UNKNOWN_SESSION)
             elif isinstance(msg, P.Hello):
-                self.hellos.append(msg)
-                self.sessions[(msg.station_id, msg.camera_id)] = msg.session
-                out = P.make_hello_ack(msg, self.start_ns, self.clock())
+                if msg.cookie != COOKIE:  # the protocol's challenge round trip
+                    out = P.make_hello_ack(msg, self.start_ns, self.clock(), P.ACK_CHALLENGE, cookie=COOKIE)
+                else:
+                    self.hellos.append(msg)
+                    self.sessions[(msg.station_id, msg.camera_id)] = msg.session
+                    out = P.make_hello_ack(msg, self.start_ns, self.clock())
             elif isinstance(msg, P.Heartbeat):
                 self.heartbeats.append(msg)
                 known = self.sessions.get((msg.station_id, msg.camera_id)) == msg.session
@@ -350,3 +352,56 @@ def test_sources_fail_clearly_and_files_play(tmp_path: Path):
     with pytest.raises(EndOfStream):
         src.read()
     src.close()
+
+
+def test_agent_and_real_ingest_shrug_off_forged_and_replayed_packets(tmp_path: Path):
+    """End to end over loopback (issue 14): a real StationAgent streams to the server's real Ingest
+    while an attacker sends forged UNKNOWN_SESSION replies to the station (signed, from another
+    address, and unsigned) and frames with a far-ahead seq to the server. The station never drops
+    out and the camera is never blinded. (On v1 the first forged ack knocked the station out.)"""
+    import asyncio
+
+    from visionpos.config.arena import load_yaml, parse_arena, resolve_config_path
+    from visionpos.server.ingest import Ingest
+
+    (tmp_path / "key").write_bytes(KEY)
+    data = load_yaml(resolve_config_path("thesis"))
+    data["cameras"][0].update(id=5, width=W, height=H, fps=200)
+    data["server"] = {"key_file": str(tmp_path / "key"), "status_period_s": 0, "start_delay_s": 0.0}
+    arena = parse_arena(data, str(tmp_path / "arena.yaml"))
+    loop = asyncio.new_event_loop()
+    ing = Ingest(arena)
+    loop_thread = threading.Thread(target=loop.run_forever, daemon=True)
+    loop_thread.start()
+    asyncio.run_coroutine_threadsafe(ing.start("127.0.0.1", 0), loop).result(5)
+    cfg = station_cfg(ing.port)
+    agent = StationAgent(type(cfg)(**{**cfg.__dict__, "key": KEY}), source=FakeCamera())
+    th = start_agent(agent)
+    attacker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        cam = ing.cameras[5]
+        assert wait_for(lambda: cam.frames >= 30), ing.health()
+        station_addr = ("127.0.0.1", agent.sock.getsockname()[1])
+        for echo in range(0, 200, 4):
+            forged = P.HelloAck(3, 5, agent.session, 0, 0, P.ACK_UNKNOWN_SESSION, 0, echo)
+            attacker.sendto(P.encode(forged, KEY), station_addr)  # signed, from the wrong address
+            attacker.sendto(P.encode(dataclass_replace(forged, session=0)), station_addr)  # v1-style, unsigned
+            seq = cam.last_seq + 1_000_000
+            frame = BlobFrame(5, seq, time.monotonic_ns() - 10**12, np.zeros((0, 4), np.float32), 3, 0, 0,
+                              agent.session)
+            attacker.sendto(P.encode(frame, KEY), ("127.0.0.1", ing.port))  # far-ahead seq, wrong address
+            time.sleep(0.002)
+        n = cam.frames
+        assert wait_for(lambda: cam.frames >= n + 30), ing.health()
+        assert agent.stats.registrations == 1 and agent.registered
+        assert agent.stats.refused_replies >= 50 and agent.stats.bad_packets >= 50
+        h = ing.health()["cameras"][5]
+        assert h["wrong_address"] >= 50 and h["replayed"] == 0 and h["online"] and h["state"] == "streaming"
+    finally:
+        attacker.close()
+        agent.stop()
+        th.join(5.0)
+        loop.call_soon_threadsafe(ing.close)
+        loop.call_soon_threadsafe(loop.stop)
+        loop_thread.join(5.0)
+    assert not th.is_alive()

@@ -105,10 +105,10 @@ def test_clocksync_matches_replies_to_requests():
     assert cs.due(0)
     r = cs.request(1000)
     assert not cs.due(1000 + 50_000_000) and cs.due(1000 + 100_000_000)
-    assert not cs.reply(SyncReply(1, 2, 999, 5000, 5100, r.seq), 2000)  # wrong t1: forged/late
-    assert cs.reply(SyncReply(1, 2, 1000, 5000, 5100, r.seq), 2000)
-    assert not cs.reply(SyncReply(1, 2, 1000, 5000, 5100, r.seq), 2000)  # duplicate
+    assert not cs.reply(SyncReply(1, 2, 999, 5000, 5100, r.counter), 2000)  # wrong t1: forged/late
+    assert cs.reply(SyncReply(1, 2, 1000, 5000, 5100, r.counter), 2000)
+    assert not cs.reply(SyncReply(1, 2, 1000, 5000, 5100, r.counter), 2000)  # duplicate
     r2 = cs.request(200_000_000)
-    assert cs.reply(SyncReply(1, 2, r2.t1_ns, 200_004_000, 200_004_100, r2.seq), 200_001_000)
+    assert cs.reply(SyncReply(1, 2, r2.t1_ns, 200_004_000, 200_004_100, r2.counter), 200_001_000)
     # burst done: next request only after interval_s
     assert not cs.due(200_000_000 + 10**9) and cs.due(200_000_000 + 2 * 10**9)

@@ -1,8 +1,13 @@
 """`visionpos replay`: re-run the fusion pipeline on a recording, deterministically.
 
-The recording holds every station datagram with its receive time on the
-server clock. Replay decodes them in order and pushes the frames into a fresh
-FusionPipeline; output ticks fall on a fixed grid of the recording's clock
+The recording holds every station datagram the live server accepted, with
+its receive time on the server clock. Replay feeds them in order through the
+server's own Ingest into a fresh FusionPipeline; the sequence and time rules
+are checked again, but registrations are trusted (the HELLO cookie cannot be
+re-checked: the live server's secret is gone) and tags are not verified, so a
+recording replays without the key. Recordings of protocol version 1 (before
+sessions and counters) are upgraded packet by packet (`V1Upgrade`). Output
+ticks fall on a fixed grid of the recording's clock
 (first receive time + k / output rate) and run before any packet received
 after them. Nothing reads the wall clock, so the same log and settings give
 the same outputs, byte for byte (--speed only sleeps between steps).
@@ -15,12 +20,13 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 import numpy as np
 
+from visionpos import protocol as P
 from visionpos.analysis import metrics as M
 from visionpos.config.arena import (
     ArenaConfig,
@@ -30,7 +36,7 @@ from visionpos.config.arena import (
     parse_arena,
     resolve_config_path,
 )
-from visionpos.messages import BodyState
+from visionpos.messages import BlobFrame, BodyState
 
 # ---------------------------------------------------------------- results
 
@@ -189,7 +195,9 @@ def run_pipeline(
     check_ns = int(VANISH_CHECK_S * 1e9)
     pipe = FusionPipeline(arena, arena.raw.get("fusion"))
     now = [0]
-    ingest = Ingest(arena, settings, pipe, None, clock=lambda: now[0])
+    # the recording holds only what a live server accepted: trust its registrations, need no key
+    ingest = Ingest(arena, settings, pipe, None, clock=lambda: now[0], verify_cookies=False, authenticate=False)
+    upgrade = V1Upgrade()
     # the recording holds only what stations sent after their trigger: accept all of it
     ingest.set_start(-(1 << 62))
     if realtime_minus_monotonic_ns is not None:
@@ -224,6 +232,8 @@ def run_pipeline(
 
     for item in packets:
         recv_ns, data = int(item[0]), item[1]
+        if len(data) > 4 and data[4] == 1 and data[:4] == P.MAGIC:
+            data = upgrade(data)
         addr = item[2] if len(item) > 2 and item[2] is not None else ("replay", 0)
         if t0 is None:
             t0 = recv_ns
@@ -267,6 +277,36 @@ def run_pipeline(
         cpu_s=cpu,
         pipeline_stats=stats,
     )
+
+
+class V1Upgrade:
+    """Protocol-1 datagrams of an old recording -> the unsigned version-2 datagrams they stand for.
+
+    Version 1 has no frame sessions and no control counters: a frame gets the session of its camera's
+    latest HELLO (none: 0, so a camera that never registered stays unregistered, as live), and control
+    messages get a counter that increases per camera. Packets that do not decode as v1 pass unchanged
+    (ingest counts them as malformed).
+    """
+
+    def __init__(self) -> None:
+        self.sessions: dict[int, int] = {}
+        self.counters: dict[int, int] = {}
+
+    def __call__(self, data: bytes) -> bytes:
+        try:
+            msg = P.decode_v1(data)
+        except P.ProtocolError:
+            return data
+        cid = msg.camera_id
+        if isinstance(msg, BlobFrame):
+            return P.encode_frame(replace(msg, session=self.sessions.get(cid, 0)))
+        if isinstance(msg, P.Hello) and self.sessions.get(cid) != msg.session:
+            self.sessions[cid] = msg.session
+            self.counters[cid] = 0
+        self.counters[cid] = counter = self.counters.get(cid, 0) + 1
+        if isinstance(msg, (P.Hello, P.Heartbeat, P.Bye)):
+            return P.encode(replace(msg, counter=counter))
+        return P.encode(replace(msg, counter=counter, session=self.sessions.get(cid, 0)))  # SyncRequest
 
 
 def replay_log(

@@ -90,7 +90,7 @@ class _StationProtocol(asyncio.DatagramProtocol):
         self.station = station
 
     def datagram_received(self, data: bytes, addr: Any) -> None:
-        self.station.on_datagram(data)
+        self.station.on_datagram(data, addr)
 
     def error_received(self, exc: Exception) -> None:
         self.station.send_errors += 1
@@ -107,14 +107,16 @@ class SimStation:
     def __init__(self, camera, station_id: int, frames: list[BlobFrame], clock_offset_ns: int, server_port: int,
                  session: int, key: bytes | None = None):
         from stations.clocksync import ClockSync
+        from stations.session import StationLink
 
         self.camera = camera
         self.station_id = station_id
         self.frames = frames
         self.clock_offset_ns = int(clock_offset_ns)
         self.server = ("127.0.0.1", server_port)
-        self.session = session
         self.key = key
+        self.link = StationLink(station_id, camera.id, session)  # registration, counters, reply checks
+        self.session = self.link.session
         self.sync = ClockSync(station_id, camera.id, interval_s=1.0, burst=8, burst_interval_s=0.02)
         self.transport: asyncio.DatagramTransport | None = None
         self.ack: P.HelloAck | None = None
@@ -122,29 +124,38 @@ class SimStation:
         self.sent = 0
         self.send_errors = 0
         self.bad_replies = 0
-        self._hb_seq = 0
 
     def station_clock(self) -> int:
         return time.monotonic_ns() + self.clock_offset_ns
 
-    def on_datagram(self, data: bytes) -> None:
+    def on_datagram(self, data: bytes, addr: Any) -> None:
+        from stations.session import LinkEvent
+
         t4 = self.station_clock()
         try:
             msg = P.decode(data, self.key)
         except P.ProtocolError:
             self.bad_replies += 1
             return
+        if not isinstance(msg, (P.SyncReply, P.HelloAck)) or not self.link.believe(msg, addr, self.server):
+            self.bad_replies += 1
+            return
         if isinstance(msg, P.SyncReply):
             self.sync.reply(msg, t4)
-        elif isinstance(msg, P.HelloAck):
-            if msg.status == P.ACK_OK and msg.session == self.session:
-                self.ack = msg
-                self.acked.set()
-            elif msg.status == P.ACK_UNKNOWN_SESSION:
-                self.acked.clear()
-                self._send(self.hello())
-            else:
-                self.bad_replies += 1
+            return
+        event = self.link.on_ack(msg)
+        if event in (LinkEvent.REGISTERED, LinkEvent.KEPT):
+            self.ack = msg
+            self.acked.set()
+        elif event is LinkEvent.CHALLENGED:
+            self._send(self.hello())  # the same HELLO with the server's cookie
+        elif event is LinkEvent.LOST:
+            self.acked.clear()
+            self._send(self.hello())
+        elif event is LinkEvent.RESYNC:
+            self.sync.reset()
+        else:
+            self.bad_replies += 1
 
     def _send(self, msg: Any) -> None:
         try:
@@ -154,8 +165,9 @@ class SimStation:
 
     def hello(self) -> P.Hello:
         m = self.camera.model
-        return P.Hello(self.station_id, self.camera.id, self.session, m.width, m.height, float(self.camera.fps),
-                       m.kind if m.kind in P.CAMERA_KINDS else "unknown", self.camera.name[:32], "visionpos-demo")
+        return self.link.hello(m.width, m.height, float(self.camera.fps),
+                               m.kind if m.kind in P.CAMERA_KINDS else "unknown", self.camera.name[:32],
+                               "visionpos-demo")
 
     async def open(self) -> None:
         loop = asyncio.get_running_loop()
@@ -177,17 +189,21 @@ class SimStation:
             if time.monotonic() > end:
                 raise RuntimeError(f"station {self.station_id}: clock sync got no replies")
             if self.sync.due(self.station_clock()):
-                self._send(self.sync.request(self.station_clock()))
+                self._send(self.sync_request())
             await asyncio.sleep(0.005)
+
+    def sync_request(self, t1_ns: int | None = None) -> P.SyncRequest:
+        req = self.link.sync_request(self.station_clock() if t1_ns is None else t1_ns)
+        return self.sync.request(req.t1_ns, req.counter, req.session)
 
     def heartbeat(self) -> P.Heartbeat:
         est = self.sync.estimator.estimate
-        self._hb_seq += 1
         status = P.HB_CAMERA_OK | P.HB_STREAMING | (P.HB_CLOCK_SYNCED if est is not None else 0)
-        return P.Heartbeat(
-            self.station_id, self.camera.id, self._hb_seq, self.session, status, self.sent, 0, self.send_errors,
-            0 if est is None else est.offset_ns, -1 if est is None else int(est.uncertainty_ns),
-            0 if est is None else int(est.drift_ppm * 1e3), None, self.station_clock(),
+        return self.link.heartbeat(
+            status=status, frames_captured=self.sent, frames_dropped=0, send_errors=self.send_errors,
+            clock_offset_ns=0 if est is None else est.offset_ns,
+            clock_uncertainty_ns=-1 if est is None else int(est.uncertainty_ns),
+            drift_ppb=0 if est is None else int(est.drift_ppm * 1e3), station_ns=self.station_clock(),
         )
 
     async def stream(self, stop_ns: int) -> None:
@@ -201,7 +217,7 @@ class SimStation:
                 await asyncio.sleep(wait)
             now_local = self.station_clock()
             if self.sync.due(now_local):
-                self._send(self.sync.request(now_local))
+                self._send(self.sync_request(now_local))
             if time.monotonic_ns() >= next_hb:
                 self._send(self.heartbeat())
                 next_hb += 1_000_000_000
@@ -211,14 +227,14 @@ class SimStation:
             capture = est.to_server(local) if est is not None else f.capture_ns
             try:
                 self.transport.sendto(P.encode_frame(BlobFrame(f.camera_id, f.seq, capture, f.blobs,
-                                                               self.station_id, f.flags), self.key))
+                                                               self.station_id, f.flags, 0, self.session), self.key))
                 self.sent += 1
             except OSError:
                 self.send_errors += 1
 
     def close(self) -> None:
         if self.transport is not None:
-            self._send(P.Bye(self.station_id, self.camera.id, self.session))
+            self._send(self.link.bye())
             self.transport.close()
             self.transport = None
 

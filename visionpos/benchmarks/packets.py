@@ -39,7 +39,8 @@ def measure_packet_cost(n: int = 20000, blobs: int = 8, key: bytes | None = None
     step = int(1e9 / rate_hz)  # capture times advance at the sending rate: no clock-jump branch
     for i in range(n):
         cam = 1 + i % 4
-        f = BlobFrame(cam, i // 4, t0 + i * step, rng.uniform(0, 600, (blobs, 4)).astype(np.float32), cam)
+        f = BlobFrame(cam, i // 4, t0 + i * step, rng.uniform(0, 600, (blobs, 4)).astype(np.float32), cam, 0, 0,
+                      _SESSION + cam)
         pk.append(P.encode_frame(f, key))
     out: dict[str, float] = {"n": float(n), "blobs": float(blobs), "signed": float(key is not None)}
 
@@ -68,6 +69,7 @@ def measure_packet_cost(n: int = 20000, blobs: int = 8, key: bytes | None = None
     ing.set_start(t0)
     recv = [t0 + i * step + 3_000_000 for i in range(n)]
     addr = ("127.0.0.1", 5000)
+    _register(ing, arena, key, addr, t0)
 
     def han(part):
         for p, r in part:
@@ -91,13 +93,13 @@ def measure_packet_cost(n: int = 20000, blobs: int = 8, key: bytes | None = None
         )
 
         async def loop_cost(path: str) -> tuple[float, int]:
-            ing2 = Ingest(arena, settings, pipeline=None)
+            ing2 = Ingest(arena, settings, pipeline=None, verify_cookies=False)  # the sender registers blind
             await ing2.start("127.0.0.1", 0)
             ing2.set_start(t0)
             proc = await asyncio.create_subprocess_exec(sys.executable, "-c", sender, path, str(ing2.port),
                                                         str(rate_hz))
             c0 = time.thread_time()
-            while ing2.counters.packets < n and proc.returncode is None:
+            while ing2.counters.packets < n + 4 and proc.returncode is None:
                 await asyncio.sleep(0.05)
             await proc.wait()
             await asyncio.sleep(0.05)
@@ -106,9 +108,26 @@ def measure_packet_cost(n: int = 20000, blobs: int = 8, key: bytes | None = None
             return c1 - c0, ing2.counters.packets
 
         with tempfile.NamedTemporaryFile(suffix=".bin") as tmp:
-            tmp.write(b"".join(len(p).to_bytes(2, "little") + p for p in pk))
+            hellos = [P.encode(_hello(arena, c), key) for c in range(1, 5)]
+            tmp.write(b"".join(len(p).to_bytes(2, "little") + p for p in hellos + pk))
             tmp.flush()
             cpu, got = asyncio.run(loop_cost(tmp.name))
         out["udp_loop_us"] = cpu / max(got, 1) * 1e6
         out["udp_received"] = float(got)
     return out
+
+
+_SESSION = 0xB000
+
+
+def _hello(arena, cam: int, cookie: bytes = P.NO_COOKIE) -> P.Hello:
+    m = {c.id: c for c in arena.cameras}[cam].model
+    return P.Hello(cam, cam, _SESSION + cam, m.width, m.height, 100.0, counter=1, cookie=cookie)
+
+
+def _register(ing: Ingest, arena, key: bytes | None, addr, now_ns: int) -> None:
+    """Register cameras 1..4 the way a station does: HELLO, CHALLENGE, HELLO with the cookie."""
+    for cam in range(1, 5):
+        (challenge,) = ing.handle(P.encode(_hello(arena, cam), key), addr, now_ns)
+        cookie = P.decode(challenge, key).cookie
+        ing.handle(P.encode(_hello(arena, cam, cookie), key), addr, now_ns)

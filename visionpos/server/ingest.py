@@ -6,43 +6,59 @@ with chosen receive times; `Ingest.start()` puts it on a UDP socket read by the
 running asyncio loop (every waiting datagram per wake-up, at most ~2 ms of work
 per batch so output ticks stay on time).
 
-Frames from a configured camera that has not registered (the server restarted
-under a streaming station) are used, and answered with HelloAck UNKNOWN_SESSION
-at most every 0.5 s so the station registers again. With a key, only signed
-packets count at all. A camera can be pinned to one station with `station: N`
-in its `cameras[i]` entry.
+Everything from the network is hostile until it passes every check, and a
+packet that fails one changes no state but its rejection counters (and the
+camera's "dropping (reason)" shown in status_line/health). Per packet: decode
+(HMAC-checked when the arena has a key; with a key, unsigned packets count
+nowhere else), then by type (docs/protocol.md has the rules byte by byte):
+  Hello        needs the server's cookie (stateless challenge: a HELLO without a
+               valid one is answered CHALLENGE and changes nothing); then registers
+               the camera to (station, session, source address), or refreshes it
+               (same session: its counter must be newer); a session that was
+               replaced on this camera is refused. Unknown cameras -> REJECTED
+  Heartbeat    from the registered session, address and a newer counter: keeps the
+               station's clock health, answered OK (or RESYNC when the frames' times
+               asked for a clock resync); an unknown session -> UNKNOWN_SESSION
+  SyncRequest  same checks; answered SyncReply (t2 = receive stamp, t3 = send stamp)
+  Bye          same checks; the camera leaves now: pipeline.remove_camera()
+  BlobFrame    from the registered station, session and address; seq newer (loss,
+               duplicate, reordered, replayed); capture time sane (in the future /
+               too old / going backwards = clock jump). Only then does any state
+               change; then pipeline.push(frame). Nothing is ever sent in answer
+               to a frame: a station learns that it is unknown, or that the server
+               wants a clock resync, from the reply to its next heartbeat.
+Only accepted packets are recorded (recorder.write_packet); the others are counted
+in counters.not_recorded by reason. Replays (analysis/replay.py) build an Ingest
+with verify_cookies=False (the live server's secret is gone; the recording holds
+only what it accepted) and authenticate=False (no key needed to replay).
+Nothing from the network can raise out of handle(). Warnings are rate-limited
+(visionpos.logutil.RateLimitedLog) and keyed by camera or kind, never by sender,
+and unknown_sources is a bounded LRU, so spoofed senders cannot grow any table.
 
-Per packet: record the raw bytes (recorder.write_packet), decode (HMAC-checked
-when the arena has a key), then by type:
-  Hello        register the camera (new session -> its sequence state restarts),
-               answer HelloAck with the run's trigger time; unknown cameras -> REJECTED
-  SyncRequest  answer SyncReply (t2 = receive stamp, t3 = send stamp, server monotonic clock)
-  Heartbeat    keep the station's clock offset/uncertainty/drift, answer HelloAck
-  Bye          the camera leaves now: pipeline.remove_camera()
-  BlobFrame    sequence checks (loss, duplicate, reordered, replayed), time checks
-               (capture in the future / too old / going backwards = clock jump),
-               then pipeline.push(frame)
-Nothing from the network can raise out of handle(): bad packets are counted by
-reason and dropped, each kind logged once per sender.
-
-A camera that sends no frame for `vanish_periods` frame periods (at least
+A camera that sends no accepted frame for `vanish_periods` frame periods (at least
 `vanish_min_s`) is reported and removed from the pipeline so fusion stops
-waiting for it; its next frame brings it back.
+waiting for it; its next accepted frame brings it back.
 """
 
 from __future__ import annotations
 
 import asyncio
+import hashlib
+import hmac
 import logging
 import re
+import secrets
 import socket
+import struct
 import time
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, Protocol
 
 from visionpos import protocol as P
 from visionpos.config.arena import ArenaConfig, ConfigError
+from visionpos.logutil import RateLimitedLog
 from visionpos.messages import FLAG_RESYNC, BlobFrame
 from visionpos.server.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
 from visionpos.server.settings import ServerSettings
@@ -53,6 +69,11 @@ Addr = tuple[Any, ...]
 _REORDER_WINDOW = 64  # a frame this many seqs late is "reordered"; older is a replay
 _SEQ_RESTART = 1 << 20  # a forward seq jump this big is a restart, not 1M lost frames
 _REASON = re.compile(r"[A-Za-z][A-Za-z -]*")  # the words of a ProtocolError message, its drop reason
+_U32 = 0xFFFFFFFF
+COOKIE_BUCKET_NS = 10_000_000_000  # a cookie is valid in its 10 s bucket and the next one
+RETIRED_SESSIONS = 4  # replaced sessions kept per camera: a HELLO for one of them is a replay
+UNKNOWN_SOURCES_MAX = 64
+_COOKIE_FIELDS = struct.Struct("<HHIq")
 
 
 class ClockJump(StrEnum):
@@ -61,6 +82,24 @@ class ClockJump(StrEnum):
     FUTURE = "in the future"  # counted in clock_jumps_future
     STALE = "too old"  # clock_jumps_stale
     BACKWARDS = "going backwards"  # clock_jumps_backwards
+
+
+class Refusal(StrEnum):
+    """Why a packet that decoded was not accepted: counters.not_recorded keys, cameras' drop reasons."""
+
+    UNKNOWN_CAMERA = "unknown camera"
+    NOT_REGISTERED = "not registered"
+    WRONG_SESSION = "wrong session"
+    WRONG_ADDRESS = "wrong address"
+    STALE_COUNTER = "stale counter"  # control message replayed (or reordered)
+    RETIRED_SESSION = "retired session"  # HELLO of a session already replaced on this camera
+    CHALLENGED = "no valid cookie"
+    REJECTED = "rejected"  # resolution mismatch, camera of another station
+    DUPLICATE = "duplicate seq"
+    REORDERED = "reordered"
+    REPLAYED = "replayed seq"
+    BEFORE_START = "before start"
+    WRONG_DIRECTION = "server message"
 
 
 class IngestEvent(StrEnum):
@@ -97,14 +136,19 @@ class CameraHealth:
     timebase: int = P.TIMEBASE_SERVER
     registered: bool = False
     software: str = ""
+    last_counter: int = 0  # the registered session's newest control counter
+    retired: deque = field(default_factory=lambda: deque(maxlen=RETIRED_SESSIONS))
+    resync_pending: bool = False  # tell the station at its next heartbeat
     # sequence / time state
     last_seq: int | None = None
     last_capture_ns: int | None = None
-    last_seen_ns: int = 0  # any packet
+    last_seen_ns: int = 0  # any accepted packet
     last_frame_ns: int = 0  # accepted frame (receive time)
     online: bool = False
     jump_run: int = 0
-    last_unreg_ack_ns: int = 0
+    # the newest refused frame: shows "dropping (reason)" while no frame gets through
+    drop_reason: str = ""
+    last_drop_ns: int = 0
     # counters since start
     frames: int = 0
     lost: int = 0
@@ -117,6 +161,10 @@ class CameraHealth:
     stale: int = 0
     backwards: int = 0
     before_start: int = 0
+    unregistered: int = 0  # frames while no HELLO was accepted
+    wrong_session: int = 0  # frames or control messages of another session / station
+    wrong_address: int = 0  # ... of the registered session from another address
+    stale_control: int = 0  # control messages whose counter was not newer (replays)
     shed: int = 0  # accepted but not fused: it queued too long in the server (load shedding)
     resync_requests: int = 0
     vanished: int = 0
@@ -145,8 +193,17 @@ class CameraHealth:
         self.last_capture_ns = None
         self.jump_run = 0
 
-    def snapshot(self, now_ns: int) -> dict[str, Any]:
+    def state(self, now_ns: int, timeout_ns: int) -> str:
+        """streaming / dropping (frames arrive, none accepted) / gone / waiting."""
+        if self.online:
+            return "streaming"
+        if self.last_drop_ns and now_ns - self.last_drop_ns <= timeout_ns:
+            return "dropping"
+        return "gone" if self.vanished else "waiting"
+
+    def snapshot(self, now_ns: int, timeout_ns: int) -> dict[str, Any]:
         total = self.frames + self.lost
+        state = self.state(now_ns, timeout_ns)
         return {
             "camera_id": self.camera_id,
             "name": self.name,
@@ -154,6 +211,9 @@ class CameraHealth:
             "addr": None if self.addr is None else f"{self.addr[0]}:{self.addr[1]}",
             "registered": self.registered,
             "online": self.online,
+            "state": state,
+            "dropping": self.drop_reason if state == "dropping" else None,
+            "last_drop_reason": self.drop_reason or None,
             "fps": round(self.fps, 2),
             "fps_nominal": self.fps_nominal,
             "frames": self.frames,
@@ -169,6 +229,10 @@ class CameraHealth:
             "clock_jumps_stale": self.stale,
             "clock_jumps_backwards": self.backwards,
             "before_start": self.before_start,
+            "unregistered": self.unregistered,
+            "wrong_session": self.wrong_session,
+            "wrong_address": self.wrong_address,
+            "stale_control": self.stale_control,
             "shed": self.shed,
             "resync_requests": self.resync_requests,
             "vanished": self.vanished,
@@ -197,19 +261,28 @@ class IngestCounters:
     malformed: int = 0
     auth_failed: int = 0
     unknown: int = 0
+    unknown_sources_evicted: int = 0
     rejected_hello: int = 0
+    challenges: int = 0
     pipeline_errors: int = 0
     replies: int = 0
     send_errors: int = 0
     by_type: dict[str, int] = field(default_factory=dict)
     malformed_reasons: dict[str, int] = field(default_factory=dict)
+    not_recorded: dict[str, int] = field(default_factory=dict)  # with a recorder: packets refused, by reason
 
 
 class Ingest:
-    """Server side of the station protocol for one arena. Not thread-safe: run on one loop."""
+    """Server side of the station protocol for one arena. Not thread-safe: run on one loop.
+
+    verify_cookies=False and authenticate=False are for replays of recordings (which hold only
+    packets a live server accepted): registrations are trusted without the cookie round trip and
+    tags are not checked, so a recording replays on a machine without the key.
+    """
 
     def __init__(self, arena: ArenaConfig, settings: ServerSettings | None = None, pipeline: PipelineLike | None = None,
-                 recorder: RecorderLike | None = None, clock=time.monotonic_ns, events=None):
+                 recorder: RecorderLike | None = None, clock=time.monotonic_ns, events=None, *,
+                 verify_cookies: bool = True, authenticate: bool = True):
         self.arena = arena
         self.settings = settings or ServerSettings.from_arena(arena)
         self.pipeline = pipeline
@@ -217,6 +290,9 @@ class Ingest:
         self.clock = clock
         self.events = events  # optional callable(kind: str, info: dict) for the recorder/demo
         self.key = self.settings.key
+        self._decode_key = self.key if authenticate else None
+        self.verify_cookies = verify_cookies
+        self._secret = secrets.token_bytes(32)  # cookie key: this process only
         self.counters = IngestCounters()
         self.cameras: dict[int, CameraHealth] = {}
         for i, cam in enumerate(arena.cameras):
@@ -234,8 +310,9 @@ class Ingest:
         self._max_age_ns = int(self.settings.max_age_ms * 1e6)
         self._shed_ns = int(self.settings.shed_backlog_ms * 1e6) or None
         self._last_shed_log_ns = -(1 << 62)
-        self._logged: set[tuple] = set()
-        self.unknown_sources: dict[tuple[int, int], int] = {}
+        self.rlog = RateLimitedLog(log)
+        # (station, camera) -> packets of cameras not configured (or pinned to another station); LRU
+        self.unknown_sources: OrderedDict[tuple[int, int], int] = OrderedDict()
         self._rt_minus_mono = 0
         self._rt_update_ns = 0
         # CLOCK_REALTIME - server clock for TIMEBASE_REALTIME stations; None = read the host clocks
@@ -254,11 +331,9 @@ class Ingest:
         """Trigger time handed to stations (default: now + start_delay_s)."""
         self.start_ns = int(self.clock() + self.settings.start_delay_s * 1e9) if start_ns is None else int(start_ns)
 
-    def _once(self, key: tuple, level: int, msg: str, *args: Any) -> None:
-        """Log a problem once per key (e.g. per sender and kind): no log floods from bad traffic."""
-        if key not in self._logged and len(self._logged) < 10_000:  # capped: spoofed senders cannot flood
-            self._logged.add(key)
-            log.log(level, msg, *args)
+    def _warn(self, key: tuple, level: int, msg: str, *args: Any) -> None:
+        """Log a problem, rate-limited per key (keys name a camera or a kind, never a sender)."""
+        self.rlog.log(key, level, msg, *args)
 
     def _event(self, kind: IngestEvent, **info: Any) -> None:
         if self.events is not None:
@@ -266,6 +341,15 @@ class Ingest:
                 self.events(kind, info)
             except Exception:  # an observer must never take ingest down
                 log.exception("event observer failed on %s", kind)
+
+    def _refused(self, reason: str) -> None:
+        if self.recorder is not None:
+            nr = self.counters.not_recorded
+            nr[reason] = nr.get(reason, 0) + 1
+
+    def _record(self, data: bytes, addr: Addr, recv_ns: int) -> None:
+        if self.recorder is not None:
+            self.recorder.write_packet(recv_ns, data, (str(addr[0]), int(addr[1])) if addr else None)
 
     # ---------------------------------------------------------------- per packet
 
@@ -277,122 +361,192 @@ class Ingest:
         c = self.counters
         c.packets += 1
         c.bytes += len(data)
-        if self.recorder is not None:
-            self.recorder.write_packet(recv_ns, data, (str(addr[0]), int(addr[1])) if addr else None)
         try:
-            msg = P.decode(data, self.key, recv_ns)
+            msg = P.decode(data, self._decode_key, recv_ns)
         except P.ProtocolError as e:
             text = str(e)
-            if self.key is not None and (text.startswith("bad signature") or text.startswith("unsigned packet")):
+            if self._decode_key is not None and (text.startswith("bad signature") or text.startswith("unsigned")):
                 c.auth_failed += 1
-                self._once(("auth", addr[0] if addr else None), logging.WARNING,
-                           "dropping packets from %s that fail authentication: %s", _fmt(addr), text)
+                self._refused("unauthenticated")
+                self._warn(("auth",), logging.WARNING, "dropping packets that fail authentication (last from %s): %s",
+                           _fmt(addr), text)
             else:
                 c.malformed += 1
+                self._refused("undecodable")
                 # the reason's fixed words only: packet bytes in the text must not grow the dict
                 m = _REASON.match(text)
                 reason = m.group(0).removesuffix(" b").strip() if m else "undecodable"
                 c.malformed_reasons[reason] = c.malformed_reasons.get(reason, 0) + 1
-                self._once(("bad", addr[0] if addr else None, reason), logging.WARNING,
-                           "dropping malformed packet from %s: %s", _fmt(addr), text)
+                self._warn(("bad", reason), logging.WARNING, "dropping malformed packet (last from %s): %s",
+                           _fmt(addr), text)
             return []
         except Exception as e:  # decode must not fail otherwise, but a packet never takes the server down
             c.malformed += 1
-            self._once(("crash", type(e).__name__), logging.ERROR, "decoder failed on a packet from %s: %r",
+            self._refused("undecodable")
+            self._warn(("crash", type(e).__name__), logging.ERROR, "decoder failed on a packet from %s: %r",
                        _fmt(addr), e)
             return []
         if type(msg) is BlobFrame:
             c.by_type["frame"] = c.by_type.get("frame", 0) + 1
-            return self._frame(msg, addr, recv_ns, backlog_ns)
+            self._frame(msg, data, addr, recv_ns, backlog_ns)
+            return []  # never an answer to a frame: no amplification
         name = type(msg).__name__
         c.by_type[name] = c.by_type.get(name, 0) + 1
         try:
             if isinstance(msg, P.SyncRequest):
-                return self._sync(msg, addr, recv_ns)
-            if isinstance(msg, P.Hello):
-                return self._hello(msg, addr, recv_ns)
-            if isinstance(msg, P.Heartbeat):
-                return self._heartbeat(msg, addr, recv_ns)
-            if isinstance(msg, P.Bye):
-                return self._bye(msg, addr, recv_ns)
-        except P.ProtocolError as e:  # a reply field out of range (e.g. absurd session): drop
+                replies, refusal = self._sync(msg, addr, recv_ns)
+            elif isinstance(msg, P.Hello):
+                replies, refusal = self._hello(msg, addr, recv_ns)
+            elif isinstance(msg, P.Heartbeat):
+                replies, refusal = self._heartbeat(msg, addr, recv_ns)
+            elif isinstance(msg, P.Bye):
+                replies, refusal = self._bye(msg, addr, recv_ns)
+            else:  # HelloAck / SyncReply are server -> station; a station sending them is confused
+                c.malformed += 1
+                self._refused(Refusal.WRONG_DIRECTION)
+                self._warn(("dir", name), logging.WARNING,
+                           "dropping %s from %s: that message goes server -> station", name, _fmt(addr))
+                return []
+        except P.ProtocolError as e:  # a reply field out of range: drop
             c.malformed += 1
-            self._once(("reply", addr[0] if addr else None), logging.WARNING, "cannot answer %s from %s: %s",
-                       name, _fmt(addr), e)
+            self._refused("undecodable")
+            self._warn(("reply", name), logging.WARNING, "cannot answer %s from %s: %s", name, _fmt(addr), e)
             return []
-        # HelloAck / SyncReply are server -> station; a station sending them is confused
-        c.malformed += 1
-        self._once(("dir", name, addr[0] if addr else None), logging.WARNING,
-                   "dropping %s from %s: that message goes server -> station", name, _fmt(addr))
-        return []
+        if refusal is None:
+            self._record(data, addr, recv_ns)
+        else:
+            self._refused(refusal)
+        return replies
 
     def _camera(self, station_id: int, camera_id: int, addr: Addr, what: str) -> CameraHealth | None:
         cam = self.cameras.get(camera_id)
         if cam is None or (cam.required_station is not None and cam.required_station != station_id):
-            self.counters.unknown += 1
+            c = self.counters
+            c.unknown += 1
             k = (station_id, camera_id)
-            self.unknown_sources[k] = self.unknown_sources.get(k, 0) + 1
+            src = self.unknown_sources
+            n = src.pop(k, 0) + 1
+            if n == 1 and len(src) >= UNKNOWN_SOURCES_MAX:
+                src.popitem(last=False)
+                c.unknown_sources_evicted += 1
+            src[k] = n
             if cam is None:
-                self._once(("unknown", station_id, camera_id), logging.WARNING,
+                self._warn(("unknown",), logging.WARNING,
                            "refusing %s from station %d camera %d at %s: camera %d is not in the arena config "
                            "(%s); add it under `cameras` or fix the station's camera id", what, station_id,
                            camera_id, _fmt(addr), camera_id, self.arena.source)
             else:
-                self._once(("unknown", station_id, camera_id), logging.WARNING,
+                self._warn(("unknown", camera_id), logging.WARNING,
                            "refusing %s from station %d camera %d at %s: the config says camera %d belongs to "
                            "station %d", what, station_id, camera_id, _fmt(addr), camera_id, cam.required_station)
             return None
         return cam
 
-    def _ack(self, msg: P.Hello | P.Heartbeat, status: P.AckStatus) -> bytes:
+    def _ack(self, msg: P.Hello | P.Heartbeat, status: P.AckStatus, cookie: bytes = P.NO_COOKIE) -> bytes:
         self.counters.replies += 1
-        ack = P.make_hello_ack(msg, self.start_ns, self.clock(), status, self.duration_ns)
+        ack = P.make_hello_ack(msg, self.start_ns, self.clock(), status, self.duration_ns, cookie)
         return P.encode(ack, self.key)
 
-    def _hello(self, msg: P.Hello, addr: Addr, recv_ns: int) -> list[bytes]:
+    def cookie(self, msg: P.Hello, addr: Addr, bucket: int) -> bytes:
+        """The HELLO cookie for this sender and 10 s bucket: a MAC under this process's secret, so the
+        server keeps no state for it and a HELLO replayed later or from elsewhere fails."""
+        h = hmac.new(self._secret, _COOKIE_FIELDS.pack(msg.station_id, msg.camera_id, msg.session, bucket),
+                     hashlib.sha256)
+        h.update(f"{addr[0] if addr else ''}|{addr[1] if addr else ''}".encode())
+        return h.digest()[:P.COOKIE_BYTES]
+
+    def _cookie_ok(self, msg: P.Hello, addr: Addr, recv_ns: int) -> bool:
+        if msg.cookie == P.NO_COOKIE:
+            return False
+        b = recv_ns // COOKIE_BUCKET_NS
+        return (hmac.compare_digest(msg.cookie, self.cookie(msg, addr, b))
+                or hmac.compare_digest(msg.cookie, self.cookie(msg, addr, b - 1)))
+
+    def _hello(self, msg: P.Hello, addr: Addr, recv_ns: int) -> tuple[list[bytes], str | None]:
         cam = self._camera(msg.station_id, msg.camera_id, addr, "registration")
         if cam is None:
             self.counters.rejected_hello += 1
-            return [self._ack(msg, P.ACK_REJECTED)]
-        if (msg.width, msg.height) != (cam.width, cam.height) and msg.width and msg.height:
+            return [self._ack(msg, P.ACK_REJECTED)], Refusal.UNKNOWN_CAMERA
+        if (msg.width, msg.height) != (cam.width, cam.height):
             self.counters.rejected_hello += 1
-            self._once(("res", msg.camera_id, msg.width, msg.height), logging.WARNING,
+            self._warn(("res", msg.camera_id), logging.WARNING,
                        "refusing camera %d (%s) at %s: it streams %dx%d but the arena calibration is for %dx%d; "
                        "set the station's resolution or recalibrate", msg.camera_id, cam.name, _fmt(addr),
                        msg.width, msg.height, cam.width, cam.height)
-            return [self._ack(msg, P.ACK_REJECTED)]
-        if (cam.registered and cam.station_id is not None and cam.station_id != msg.station_id and cam.online):
+            return [self._ack(msg, P.ACK_REJECTED)], Refusal.REJECTED
+        if self.verify_cookies and not self._cookie_ok(msg, addr, recv_ns):
+            # stateless: the answer goes to the claimed sender only, and is no bigger than the HELLO
+            self.counters.challenges += 1
+            return [self._ack(msg, P.ACK_CHALLENGE, self.cookie(msg, addr, recv_ns // COOKIE_BUCKET_NS))], \
+                Refusal.CHALLENGED
+        if msg.session in cam.retired:
+            cam.stale_control += 1
+            self._warn(("retired", cam.camera_id), logging.WARNING,
+                       "camera %d (%s): refusing a HELLO from %s for session %08x, which a newer session replaced "
+                       "(a replay)", cam.camera_id, cam.name, _fmt(addr), msg.session)
+            return [], Refusal.RETIRED_SESSION
+        same = cam.registered and cam.session == msg.session and cam.station_id == msg.station_id
+        if same:
+            if P.seq_delta(msg.counter, cam.last_counter) <= 0:
+                cam.stale_control += 1
+                return [], Refusal.STALE_COUNTER
+        elif cam.registered and cam.station_id != msg.station_id and cam.online:
             self.counters.rejected_hello += 1
-            self._once(("dupcam", msg.camera_id, msg.station_id), logging.WARNING,
+            self._warn(("dupcam", msg.camera_id), logging.WARNING,
                        "refusing camera %d from station %d at %s: station %d is already streaming it; "
                        "two stations are configured with the same camera id", msg.camera_id, msg.station_id,
                        _fmt(addr), cam.station_id)
-            return [self._ack(msg, P.ACK_REJECTED)]
-        if cam.session != msg.session or cam.station_id != msg.station_id:
+            return [self._ack(msg, P.ACK_REJECTED)], Refusal.REJECTED
+        else:
             if cam.session is not None:
+                cam.retired.append(cam.session)
                 log.info("camera %d (%s): station %d restarted (new session)", cam.camera_id, cam.name,
                          msg.station_id)
             else:
                 log.info("camera %d (%s) registered from station %d at %s (%s, %.0f fps, %s)", cam.camera_id,
                          cam.name, msg.station_id, _fmt(addr), msg.software or "?", msg.fps, msg.camera_kind)
             cam.reset_sequence()
+            cam.resync_pending = False
             self._event(IngestEvent.REGISTERED, camera_id=cam.camera_id, station_id=msg.station_id, session=msg.session)
         cam.station_id, cam.session, cam.addr, cam.registered = msg.station_id, msg.session, addr, True
+        cam.last_counter = msg.counter
         cam.timebase, cam.software = msg.timebase, msg.software
-        if msg.fps > 0:
-            cam.fps_nominal = float(msg.fps)
+        cam.fps_nominal = float(msg.fps)
         cam.last_seen_ns = recv_ns
-        return [self._ack(msg, P.ACK_OK)]
+        return [self._ack(msg, P.ACK_OK)], None
 
-    def _heartbeat(self, msg: P.Heartbeat, addr: Addr, recv_ns: int) -> list[bytes]:
-        cam = self._camera(msg.station_id, msg.camera_id, addr, "heartbeat")
+    def _control(self, msg: P.Heartbeat | P.SyncRequest | P.Bye, addr: Addr,
+                 what: str) -> tuple[CameraHealth | None, str | None]:
+        """The checks every station -> server control message passes before it changes anything."""
+        cam = self._camera(msg.station_id, msg.camera_id, addr, what)
         if cam is None:
-            return [self._ack(msg, P.ACK_REJECTED)]
+            return None, Refusal.UNKNOWN_CAMERA
+        if not cam.registered or cam.session != msg.session or cam.station_id != msg.station_id:
+            if cam.registered:
+                cam.wrong_session += 1
+            return cam, Refusal.WRONG_SESSION if cam.registered else Refusal.NOT_REGISTERED
+        if P.seq_delta(msg.counter, cam.last_counter) <= 0:
+            cam.stale_control += 1
+            self._warn(("stale", cam.camera_id), logging.WARNING,
+                       "camera %d (%s): dropping a %s from %s whose counter %d is not newer than %d (replayed)",
+                       cam.camera_id, cam.name, what, _fmt(addr), msg.counter, cam.last_counter)
+            return cam, Refusal.STALE_COUNTER
+        if addr != cam.addr:
+            cam.wrong_address += 1
+            return cam, Refusal.WRONG_ADDRESS
+        return cam, None
+
+    def _heartbeat(self, msg: P.Heartbeat, addr: Addr, recv_ns: int) -> tuple[list[bytes], str | None]:
+        cam, refusal = self._control(msg, addr, "heartbeat")
+        if refusal is not None:
+            if refusal == Refusal.UNKNOWN_CAMERA:
+                return [self._ack(msg, P.ACK_REJECTED)], refusal
+            if refusal == Refusal.STALE_COUNTER:
+                return [], refusal
+            # unknown session (the server restarted), or a new address: the station registers (again)
+            return [self._ack(msg, P.ACK_UNKNOWN_SESSION)], refusal
+        cam.last_counter = msg.counter
         cam.last_seen_ns = recv_ns
-        known = cam.registered and cam.session == msg.session and cam.station_id == msg.station_id
-        if not known:
-            return [self._ack(msg, P.ACK_UNKNOWN_SESSION)]
-        cam.addr = addr
         cam.clock_offset_ns = msg.clock_offset_ns
         cam.clock_uncertainty_ns = msg.clock_uncertainty_ns
         cam.drift_ppb = msg.drift_ppb
@@ -401,101 +555,110 @@ class Ingest:
         cam.station_frames_dropped = msg.frames_dropped
         cam.station_send_errors = msg.send_errors
         cam.temperature_c = msg.temperature_c
-        return [self._ack(msg, P.ACK_OK)]
+        if cam.resync_pending:
+            cam.resync_pending = False
+            return [self._ack(msg, P.ACK_RESYNC)], None
+        return [self._ack(msg, P.ACK_OK)], None
 
-    def _sync(self, msg: P.SyncRequest, addr: Addr, recv_ns: int) -> list[bytes]:
-        cam = self._camera(msg.station_id, msg.camera_id, addr, "clock sync")
-        if cam is None:
-            return []
+    def _sync(self, msg: P.SyncRequest, addr: Addr, recv_ns: int) -> tuple[list[bytes], str | None]:
+        cam, refusal = self._control(msg, addr, "clock sync")
+        if refusal is not None:
+            return [], refusal
+        cam.last_counter = msg.counter
         cam.last_seen_ns = recv_ns
         self.counters.replies += 1
         # t2 = the datagram's receive stamp, t3 = as late as possible before the send
-        return [P.encode(P.make_sync_reply(msg, recv_ns, self.clock()), self.key)]
+        return [P.encode(P.make_sync_reply(msg, recv_ns, self.clock()), self.key)], None
 
-    def _bye(self, msg: P.Bye, addr: Addr, recv_ns: int) -> list[bytes]:
-        cam = self._camera(msg.station_id, msg.camera_id, addr, "bye")
-        if cam is None or cam.session not in (None, msg.session) and msg.session != 0:
-            return []
+    def _bye(self, msg: P.Bye, addr: Addr, recv_ns: int) -> tuple[list[bytes], str | None]:
+        cam, refusal = self._control(msg, addr, "bye")
+        if refusal is not None:
+            return [], refusal
         log.info("camera %d (%s): station %s said bye", cam.camera_id, cam.name, msg.station_id)
+        cam.retired.append(cam.session)
         cam.registered = False
         cam.session = None
+        cam.resync_pending = False
         cam.reset_sequence()
+        cam.last_seen_ns = recv_ns
         if cam.online:
             cam.online = False
             self._remove(cam, "station said bye")
-        return []
+        return [], None
 
-    def _clock_jump(self, cam: CameraHealth, kind: ClockJump, frame: BlobFrame, addr: Addr, lat: int) -> list[bytes]:
+    def _drop(self, cam: CameraHealth, reason: str, recv_ns: int) -> None:
+        """A refused frame: only its counters and the camera's drop reason change."""
+        cam.drop_reason = reason
+        cam.last_drop_ns = recv_ns
+        self._refused(reason)
+
+    def _clock_jump(self, cam: CameraHealth, kind: ClockJump, addr: Addr, lat: int, recv_ns: int) -> None:
         cam.clock_jumps += 1
         cam.jump_run += 1
-        self._once(("jump", cam.camera_id, kind), logging.WARNING,
+        self._drop(cam, f"clock jump: {kind}", recv_ns)
+        self._warn(("jump", cam.camera_id, kind), logging.WARNING,
                    "camera %d (%s): clock jump (%s): capture time is %.1f ms %s the receive time; dropping its "
                    "frames until the station's clock is sane again", cam.camera_id, cam.name, kind,
                    abs(lat) * 1e-6, "after" if lat < 0 else "before")
-        if cam.jump_run >= self.settings.resync_after and cam.session is not None:
-            # ask the station to register (and so resync) again; restart the time checks
+        if cam.jump_run >= self.settings.resync_after and not cam.resync_pending:
+            # ask the station (in the reply to its next heartbeat) to resync; restart the time checks
             cam.jump_run = 0
             cam.last_capture_ns = None
+            cam.resync_pending = True
             cam.resync_requests += 1
-            log.warning("camera %d (%s): %d clock-jumped frames in a row; asking the station to resync",
-                        cam.camera_id, cam.name, self.settings.resync_after)
+            self._warn(("resync", cam.camera_id), logging.WARNING,
+                       "camera %d (%s): %d clock-jumped frames in a row; asking the station to resync",
+                       cam.camera_id, cam.name, self.settings.resync_after)
             self._event(IngestEvent.RESYNC_REQUEST, camera_id=cam.camera_id)
-            self.counters.replies += 1
-            ack = P.HelloAck(frame.station_id, frame.camera_id, cam.session, self.start_ns, self.clock(),
-                             P.ACK_UNKNOWN_SESSION, self.duration_ns)
-            cam.registered = False
-            return [P.encode(ack, self.key)]
-        return []
 
-    def _frame(self, f: BlobFrame, addr: Addr, recv_ns: int, backlog_ns: int = 0) -> list[bytes]:
+    def _frame(self, f: BlobFrame, data: bytes, addr: Addr, recv_ns: int, backlog_ns: int = 0) -> None:
         cam = self.cameras.get(f.camera_id)
         if cam is None or (cam.required_station is not None and cam.required_station != f.station_id):
             self._camera(f.station_id, f.camera_id, addr, "frames")
-            return []
-        cam.last_seen_ns = recv_ns
-        replies: list[bytes] = []
+            self._refused(Refusal.UNKNOWN_CAMERA)
+            return
+        # who: only the registered station, session and address; nothing changes before every check passed
         if not cam.registered:
-            # protocol: tell an unregistered streamer (server restarted) to register, at most every 0.5 s
-            if recv_ns - cam.last_unreg_ack_ns > 500_000_000:
-                cam.last_unreg_ack_ns = recv_ns
-                self.counters.replies += 1
-                ack = P.HelloAck(f.station_id, f.camera_id, 0, self.start_ns, self.clock(),
-                                 P.ACK_UNKNOWN_SESSION, self.duration_ns)
-                replies.append(P.encode(ack, self.key))
-            if cam.station_id is None:
-                cam.station_id = f.station_id
-            cam.addr = addr
-        elif cam.station_id != f.station_id:
-            self.counters.unknown += 1
-            self._once(("dupcam-frame", f.camera_id, f.station_id), logging.WARNING,
-                       "dropping frames for camera %d from station %d at %s: camera %d is registered to "
-                       "station %d", f.camera_id, f.station_id, _fmt(addr), f.camera_id, cam.station_id)
-            return replies
+            cam.unregistered += 1
+            self._warn(("unreg", cam.camera_id), logging.WARNING,
+                       "camera %d (%s): dropping frames from %s: the camera has not registered (no HELLO accepted)",
+                       cam.camera_id, cam.name, _fmt(addr))
+            return self._drop(cam, Refusal.NOT_REGISTERED, recv_ns)
+        if f.session != cam.session or f.station_id != cam.station_id:
+            cam.wrong_session += 1
+            self._warn(("session", cam.camera_id), logging.WARNING,
+                       "camera %d (%s): dropping frames from %s of station %d session %08x: registered is station %d "
+                       "session %08x", cam.camera_id, cam.name, _fmt(addr), f.station_id, f.session,
+                       cam.station_id, cam.session)
+            return self._drop(cam, Refusal.WRONG_SESSION, recv_ns)
+        if addr != cam.addr:
+            cam.wrong_address += 1
+            self._warn(("addr", cam.camera_id), logging.WARNING,
+                       "camera %d (%s): dropping frames from %s: the station registered from %s",
+                       cam.camera_id, cam.name, _fmt(addr), _fmt(cam.addr))
+            return self._drop(cam, Refusal.WRONG_ADDRESS, recv_ns)
 
         # sequence: later only; gaps are loss, older is duplicate / reordered / replayed
-        if cam.last_seq is not None:
-            d = P.seq_delta(f.seq, cam.last_seq)
+        last_seq = cam.last_seq
+        d = 1
+        if last_seq is not None:
+            d = (f.seq - last_seq) & _U32
+            if d >= 0x80000000:
+                d -= 0x100000000
             if d <= 0:
                 if d == 0:
                     cam.duplicates += 1
-                elif d >= -_REORDER_WINDOW:
+                    return self._drop(cam, Refusal.DUPLICATE, recv_ns)
+                if d >= -_REORDER_WINDOW:
                     cam.reordered += 1
                     cam.lost -= 1  # it was counted lost when the gap opened; it came, late
                     cam._bucket_lost -= 1
-                else:
-                    cam.replayed += 1
-                    self._once(("replay", cam.camera_id), logging.WARNING,
-                               "camera %d (%s): dropping frame seq %d from %s, older than the last accepted %d "
-                               "(replayed or restarted without registering)", cam.camera_id, cam.name,
-                               f.seq, _fmt(addr), cam.last_seq)
-                return replies
-            if d > 1:
-                if d < _SEQ_RESTART:
-                    cam.lost += d - 1
-                    cam._bucket_lost += d - 1
-                else:
-                    cam.seq_restarts += 1
-        cam.last_seq = f.seq
+                    return self._drop(cam, Refusal.REORDERED, recv_ns)
+                cam.replayed += 1
+                self._warn(("replay", cam.camera_id), logging.WARNING,
+                           "camera %d (%s): dropping frame seq %d from %s, older than the last accepted %d "
+                           "(replayed)", cam.camera_id, cam.name, f.seq, _fmt(addr), last_seq)
+                return self._drop(cam, Refusal.REPLAYED, recv_ns)
 
         # time: capture must be on the server clock, a little before receive, and move forward
         capture = f.capture_ns
@@ -508,22 +671,34 @@ class Ingest:
                     self._rt_update_ns = recv_ns
                 rt = self._rt_minus_mono
             capture = capture - rt
-            f = BlobFrame(f.camera_id, f.seq, capture, f.blobs, f.station_id, f.flags, recv_ns)
+            f = BlobFrame(f.camera_id, f.seq, capture, f.blobs, f.station_id, f.flags, recv_ns, f.session)
         lat = recv_ns - capture
         if lat < -self._future_ns:
             cam.future += 1
-            return replies + self._clock_jump(cam, ClockJump.FUTURE, f, addr, lat)
+            return self._clock_jump(cam, ClockJump.FUTURE, addr, lat, recv_ns)
         if lat > self._max_age_ns:
             cam.stale += 1
-            return replies + self._clock_jump(cam, ClockJump.STALE, f, addr, lat)
+            return self._clock_jump(cam, ClockJump.STALE, addr, lat, recv_ns)
         if cam.last_capture_ns is not None and capture <= cam.last_capture_ns and not f.flags & FLAG_RESYNC:
             cam.backwards += 1
-            return replies + self._clock_jump(cam, ClockJump.BACKWARDS, f, addr, lat)
+            return self._clock_jump(cam, ClockJump.BACKWARDS, addr, lat, recv_ns)
         if capture < self.start_ns:
             cam.before_start += 1
-            return replies
+            return self._drop(cam, Refusal.BEFORE_START, recv_ns)
+
+        # accepted: now the state moves
+        if self.recorder is not None:
+            self.recorder.write_packet(recv_ns, data, (str(addr[0]), int(addr[1])) if addr else None)
+        if d > 1:
+            if d < _SEQ_RESTART:
+                cam.lost += d - 1
+                cam._bucket_lost += d - 1
+            else:
+                cam.seq_restarts += 1
+        cam.last_seq = f.seq
         cam.jump_run = 0
         cam.last_capture_ns = capture
+        cam.last_seen_ns = recv_ns
 
         # health
         cam.frames += 1
@@ -559,7 +734,7 @@ class Ingest:
                             "stall (start-up, a pause); if it keeps happening this host is too slow for these "
                             "cameras (fewer cameras, a lower frame rate, a faster host, or a higher "
                             "fusion.min_fusion_interval_ms)", backlog_ns * 1e-6, self.counters.frames_shed)
-            return replies
+            return
         if self.pipeline is not None:
             try:
                 self.pipeline.push(f)
@@ -568,7 +743,6 @@ class Ingest:
                 if self.counters.pipeline_errors == 1 or self.counters.pipeline_errors % 1000 == 0:
                     log.exception("pipeline.push failed (%d times so far); frame dropped",
                                   self.counters.pipeline_errors)
-        return replies
 
     # ---------------------------------------------------------------- periodic
 
@@ -589,7 +763,11 @@ class Ingest:
                 cam.online = False
                 cam.vanished += 1
                 gone.append(cam.camera_id)
-                self._remove(cam, f"no frames for {(ref - cam.last_frame_ns) * 1e-6:.0f} ms")
+                why = f"no frames for {(ref - cam.last_frame_ns) * 1e-6:.0f} ms"
+                if cam.last_drop_ns > cam.last_frame_ns:  # frames arrive but are refused
+                    why = f"no frames accepted for {(ref - cam.last_frame_ns) * 1e-6:.0f} ms, dropping its " \
+                          f"frames ({cam.drop_reason})"
+                self._remove(cam, why)
         return gone
 
     def _remove(self, cam: CameraHealth, why: str) -> None:
@@ -606,7 +784,7 @@ class Ingest:
         now = self.clock() if now_ns is None else now_ns
         c = self.counters
         return {
-            "cameras": {cid: cam.snapshot(now) for cid, cam in self.cameras.items()},
+            "cameras": {cid: cam.snapshot(now, self.vanish_timeout_ns(cam)) for cid, cam in self.cameras.items()},
             "packets": c.packets,
             "bytes": c.bytes,
             "frames_accepted": c.frames_accepted,
@@ -616,7 +794,11 @@ class Ingest:
             "auth_failed": c.auth_failed,
             "unknown": c.unknown,
             "unknown_sources": {f"{s}/{cid}": n for (s, cid), n in self.unknown_sources.items()},
+            "unknown_sources_evicted": c.unknown_sources_evicted,
             "rejected_hello": c.rejected_hello,
+            "challenges": c.challenges,
+            "not_recorded": dict(c.not_recorded),
+            "log_suppressed": self.rlog.suppressed,
             "pipeline_errors": c.pipeline_errors,
             "replies": c.replies,
             "send_errors": c.send_errors,
@@ -625,11 +807,14 @@ class Ingest:
             "authenticated": self.key is not None,
         }
 
-    def status_line(self) -> str:
+    def status_line(self, now_ns: int | None = None) -> str:
+        now = self.clock() if now_ns is None else now_ns
         parts = []
         for cam in self.cameras.values():
             if not cam.online:
-                parts.append(f"{cam.camera_id}:{'gone' if cam.vanished else 'waiting'}")
+                state = cam.state(now, self.vanish_timeout_ns(cam))
+                parts.append(f"{cam.camera_id}:{state}({cam.drop_reason})" if state == "dropping"
+                             else f"{cam.camera_id}:{state}")
                 continue
             off = "" if cam.clock_offset_ns is None else f" off{cam.clock_offset_ns * 1e-6:+.1f}ms"
             parts.append(f"{cam.camera_id}:{cam.fps:.0f}fps loss{100 * cam.loss_rate:.1f}%"

@@ -21,7 +21,7 @@ SERVER = section(
     "The fusion server: network, output rate, and which frames it accepts. Why the timing keys exist:\n\n"
     "- `max_future_ms` / `max_age_ms` bound the accepted (receive - capture) time; outside it a frame is a "
     "clock jump (or a replay) and is dropped, and `resync_after` such drops in a row make the server ask the "
-    "station to register again (its clock sync is stale).\n"
+    "station to resync its clock (in the reply to its next heartbeat).\n"
     "- `shed_backlog_ms` is load shedding: a frame that waited longer than this in the server's receive queue "
     "(from the kernel's arrival stamp to its turn) is checked, counted and recorded but not fused. A host too "
     "slow for its cameras then fuses the freshest frames at the rate it can sustain instead of falling ever "
@@ -46,8 +46,8 @@ SERVER = section(
             min=0.0),
     Setting("max_age_ms", "number", 500.0, "a frame received more than this after its capture is dropped",
             min=1.0),
-    Setting("resync_after", "integer", 10, "clock-jump drops in a row before the station is asked to register "
-            "again", min=1),
+    Setting("resync_after", "integer", 10, "clock-jump drops in a row before the station is asked to resync its "
+            "clock", min=1),
     Setting("status_period_s", "number", 5.0, "period of the status log line (0 = off)", min=0.0),
     Setting("shed_backlog_ms", "number", 15.0, "frames that waited longer than this in the receive queue are "
             "not fused (0 = off)", min=0.0),

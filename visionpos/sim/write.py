@@ -1,14 +1,18 @@
 """A simulated session written as a recording, the library behind `visionpos sim`.
 
 The recording is what `visionpos record` would have captured from real
-stations: one Hello per station, then every frame as its protocol datagram
-stamped with its receive time, in receive order; plus the arena config (with
+stations (protocol version 2): one accepted Hello per camera (its control
+counter 1; a live server records only the HELLO that carried a valid cookie,
+and replay trusts recorded registrations), then every frame as its protocol
+datagram in that station's session, stamped with its receive time, in
+receive order; plus the arena config (with
 the overrides applied), the bodies' ground truth at sim.truth_rate Hz
 on /sim/truth, and optionally every frame's blob labels on /sim/frame_truth.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -74,21 +78,25 @@ def write_recording(scenario: str | Path, out: str | Path, *, duration_s: float 
     with RecordingWriter(out, data, meta) as rec:
         rec.write_json(TOPIC_SIM_INFO, sc.start_ns, _sim_info(sc))
         first_recv = sc.start_ns
+        sessions: dict[int, int] = {}
         for t, cam in zip(sc.timings, sc.cameras):
+            sessions[cam.id] = _session(t.station_id)
             hello = P.Hello(
                 station_id=t.station_id,
                 camera_id=cam.id,
-                session=0x5100 + t.station_id,
+                session=sessions[cam.id],
                 width=cam.model.width,
                 height=cam.model.height,
                 fps=float(t.fps),
                 camera_kind=cam.model.kind,
                 camera_name=cam.name,
                 software="visionpos-sim",
+                counter=1,
             )
             rec.write_packet(first_recv, P.encode(hello, key), _source(t.station_id))
         for frame, truth in iter_frames(sc, order="recv", with_truth=True):
-            rec.write_packet(frame.recv_ns, P.encode_frame(frame, key), _source(frame.station_id))
+            wire = dataclasses.replace(frame, session=sessions[frame.camera_id])
+            rec.write_packet(frame.recv_ns, P.encode_frame(wire, key), _source(frame.station_id))
             c = per_cam[frame.camera_id]
             c["frames"] += 1
             c["blobs"] += len(frame.blobs)
@@ -116,6 +124,11 @@ def write_recording(scenario: str | Path, out: str | Path, *, duration_s: float 
             for ti, p, q in zip(times, pos, quat):
                 rec.write_truth(int(ti), b.name, p, q)
     return SimRecording(out, sc, path, per_cam, time.perf_counter() - t_wall)
+
+
+def _session(station_id: int) -> int:
+    """The simulated station's session number (fixed: the recording is deterministic)."""
+    return 0x5100 + station_id
 
 
 def _source(station_id: int) -> tuple[str, int]:
