@@ -384,7 +384,8 @@ class RecordingWriter:
     def write_packet(self, recv_ns: int, data: bytes, source: tuple[str, int] | None = None) -> None:
         """One received UDP payload, untouched, stamped with its receive time (server monotonic ns)."""
         with self._lock:
-            if not self._recording():
+            if self._closed or self._write_error is not None:  # inline: this runs for every packet
+                self._recording()
                 return
             ch = self._packet_channels.get(source)
             if ch is None:
@@ -544,7 +545,10 @@ class RecordingWriter:
         os.close(self._fd)
 
     def stats(self) -> dict[str, Any]:
+        """messages: handed to the recorder per topic; recorded: messages on disk; dropped: messages
+        lost to a write error (the failed write's and every later one)."""
         return {"path": str(self.path), "messages": dict(self.counts), "bytes": self.bytes_written,
+                "recorded": self.messages_on_disk,
                 "packet_sources": len(self._packet_channels), "overflow_sources": len(self._overflow_sources),
                 "overflow_packets": self.overflow_packets, "dropped": self.dropped,
                 "error": None if self._write_error is None else str(self._write_error)}
