@@ -150,6 +150,11 @@ def test_sigkill_leaves_readable_log(tmp_path):
             proc.kill()
             proc.wait()
     assert proc.returncode == -signal.SIGKILL
+    # mcap's own reader, its default call, reads the killed file directly
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_header().profile == "visionpos"
+        got = [(ch.topic, ch.metadata, m.data) for _, ch, m in reader.iter_messages()]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         r = RecordingReader(path)
@@ -162,11 +167,6 @@ def test_sigkill_leaves_readable_log(tmp_path):
     assert [w.category for w in caught] == [RecordingDamagedWarning]
     assert r.damage is not None and r.end() is None
 
-    # mcap's own reader, its default call, reads the same messages straight from the killed file
-    with open(path, "rb") as f:
-        reader = make_reader(f)
-        assert reader.get_header().profile == "visionpos"
-        got = [(ch.topic, ch.metadata, m.data) for _, ch, m in reader.iter_messages()]
     assert got == [(TOPIC_PACKETS, {"host": "127.0.0.1", "port": "1"}, d) for d in pk]
 
     # recovered: a clean, indexed file whose summary counts every message
@@ -429,14 +429,14 @@ def test_file_size_limit_in_a_real_process(tmp_path):
     proc = subprocess.run([sys.executable, "-c", _CHILD_FSIZE, str(path), str(ROOT), str(limit)],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
-    st = json.loads(proc.stdout)
-    assert st["error"] and st["dropped"] > 0
-    assert "recording stopped" in proc.stderr and proc.stderr.count("recording stopped") == 1
-    assert os.path.getsize(path) == st["bytes"] <= limit
     with open(path, "rb") as f:
         pk = [m.data for _, _, m in make_reader(f).iter_messages()]
     assert len(pk) > 100
     assert pk == [struct.pack("<I", i) + bytes(i % 50) for i in range(len(pk))]
+    st = json.loads(proc.stdout)
+    assert st["error"] and st["dropped"] > 0
+    assert "recording stopped" in proc.stderr and proc.stderr.count("recording stopped") == 1
+    assert os.path.getsize(path) == st["bytes"] <= limit
     assert st["recorded"] == len(pk) and len(pk) + st["dropped"] == st["sent"]
 
 
