@@ -464,3 +464,22 @@ def test_packet_channels_are_bounded(tmp_path):
     assert end["packet_sources"] == MAX_PACKET_SOURCES
     assert end["overflow_sources"] == n - MAX_PACKET_SOURCES and end["overflow_packets"] == n - MAX_PACKET_SOURCES
     assert end["messages"] == {TOPIC_PACKETS: 2 * n}
+
+
+def test_disk_full_at_close_or_at_start(tmp_path, monkeypatch):
+    path = tmp_path / "c.mcap"
+    disk = _FullDisk(10**9)
+    monkeypatch.setattr(recording.os, "pwrite", disk)
+    w = RecordingWriter(path, CONFIG, flush_interval_s=60.0)
+    for i in range(30):
+        w.write_packet(i, _packet(i))
+    w.flush()
+    disk.capacity = os.path.getsize(path) + 40  # no room for the summary
+    w.write_packet(30, _packet(30))
+    w.close()  # does not raise
+    assert disk.failures == 1 and w.stats()["dropped"] == 1
+    with open(path, "rb") as f:
+        assert [m.data for _, _, m in make_reader(f).iter_messages()] == [_packet(i) for i in range(30)]
+    disk.capacity = 10
+    with pytest.raises(RecordingError, match=r"c2\.mcap: cannot write recording: No space left"):
+        RecordingWriter(tmp_path / "c2.mcap", CONFIG)
