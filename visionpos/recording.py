@@ -460,6 +460,8 @@ class RecordingWriter:
                 parts, self._spool.parts = self._spool.parts, []
                 n_messages, self._spool.messages = self._spool.messages, 0
                 failed = self._write_error is not None
+                if failed:  # written between the failed flush and the stop: lost too
+                    self.dropped += n_messages
             if failed or (not parts and not final):
                 return
             data = b"".join(parts)
@@ -561,7 +563,8 @@ class RecordingReader:
     """Read a visionpos recording, tolerating a missing footer and a truncated last record.
 
     .config -> dict, .meta -> dict; packets()/states()/truth()/json(topic)/messages() stream
-    from the file each time they are called. A damaged tail emits one RecordingDamagedWarning
+    from the file each time they are called. .complete is True for a cleanly closed file (with
+    its summary); end() returns the writer's closing counts. A damaged tail emits one RecordingDamagedWarning
     per reader and `.damage` names it; everything before it is returned.
     """
 
