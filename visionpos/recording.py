@@ -18,15 +18,34 @@ Layout (MCAP profile "visionpos"):
 
 Crash safety: the file is written *unchunked* (every record goes straight to the data
 section) and a background thread moves what was written to the OS every
-FLUSH_INTERVAL_S. A SIGKILLed writer therefore leaves a file that is valid up to
-its last flush, missing only the summary and footer; the reader accepts that,
-warns, and returns everything before the damage. The writer's calling thread
-never touches the disk: records are appended to an in-memory spool under a lock.
+FLUSH_INTERVAL_S, each time followed by a provisional end: DataEnd, a Footer with no
+summary (summary_start 0) and the closing magic, which the next flush overwrites with
+new data and a new provisional end, in one write. A writer killed with SIGKILL therefore
+leaves a complete MCAP file without a summary, ending at its last flush: any MCAP reader
+(mcap's own `make_reader(f).iter_messages()`, Foxglove) reads it linearly, losing at most
+the last FLUSH_INTERVAL_S of data. close() replaces the provisional end with the summary,
+its indexes and the real footer. A kill landing inside a flush's write, or a power cut, can
+leave a torn end: visionpos's reader still reads everything before it, and
+`visionpos recover` (recover()) rewrites any damaged file as a clean, indexed one.
+
+A write error (disk full) stops the recording, not the caller: the provisional end is put
+back after the last complete flush (its bytes were already on disk, so this needs no new
+space), one error is logged, and later writes are counted as dropped.
+
+Bounded state: packets get one channel per sender (host, port) for the first
+max_sources senders (MAX_PACKET_SOURCES); packets from any further sender share one
+overflow channel (metadata overflow: "true", no address), so spoofed source ports
+cannot grow the channel table. A cleanly closed file ends its data with metadata
+"visionpos.end" {"json": counts per topic, sources, overflow, dropped, error}.
+
+The writer's calling thread never touches the disk: records are appended to an
+in-memory spool under a lock.
 """
 
 from __future__ import annotations
 
 import atexit
+import errno
 import io
 import json
 import logging
@@ -40,14 +59,15 @@ import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
 import yaml
-from mcap.data_stream import ReadDataStream
+from mcap.data_stream import ReadDataStream, RecordBuilder
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, Footer, Header, Message, Metadata, Schema
+from mcap.reader import make_reader
+from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, IndexType, Writer
 
@@ -65,10 +85,27 @@ TOPIC_TRUTH = "/sim/truth"
 TOPIC_MARKERS = "/fusion/markers"
 PACKET_ENCODING = "visionpos.station"
 FLUSH_INTERVAL_S = 0.25
+# senders with their own packet channel; the rest share one. Far above any arena's station
+# count (and their reconnects, each from a new port), far below what a flood of spoofed
+# ports would make
+MAX_PACKET_SOURCES = 64
+_OVERFLOW_SOURCES_COUNTED = 1024  # distinct overflow senders counted exactly up to this many
+META_END = "visionpos.end"
 _MAX_RECORD = 64 * 2**20  # a corrupted length field must not make the reader allocate GiB
 _MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, content length
 _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+
+
+def _provisional_end() -> bytes:
+    b = RecordBuilder()
+    DataEnd(0).write(b)  # crc 0: not computed
+    Footer(0, 0, 0).write(b)  # summary_start 0: no summary, readers read the data section linearly
+    b.write(_MAGIC)
+    return b.end()
+
+
+_PROVISIONAL_END = _provisional_end()
 # the records the reader uses, parsed by mcap's classes (messages are parsed in _records)
 _RECORD_TYPES = {Opcode.HEADER: Header, Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.METADATA: Metadata,
                  Opcode.CHUNK: Chunk, Opcode.FOOTER: Footer}
@@ -204,12 +241,14 @@ def _dumps(obj: Any) -> bytes:
 class _Spool:
     """File-like sink for mcap.Writer: appends to memory; a flusher thread moves it to disk.
 
-    Only tell() and write() are needed by the writer (unchunked mode).
+    Only tell() and write() are needed by the writer (unchunked mode). tell() is the
+    offset in the file, which the writer's summary indexes rely on.
     """
 
     def __init__(self) -> None:
         self.parts: list[bytes] = []
         self.pos = 0
+        self.messages = 0  # messages in parts
 
     def write(self, b: bytes) -> int:
         self.parts.append(b)
@@ -229,27 +268,39 @@ class RecordingWriter:
     config: the arena config mapping (ArenaConfig.raw; an object with `.raw` is accepted).
     meta: free-form JSON-able facts (scenario, seed, command line ...). The writer adds
     version, host, wall-clock and monotonic start times.
+    max_sources: senders that get their own packet channel; later ones share one.
 
-    All write_* methods are thread-safe; none does disk I/O on the caller's thread.
+    All write_* methods are thread-safe; none does disk I/O on the caller's thread, and
+    none raises because of the disk: after a write error they only count what they drop.
     """
 
     def __init__(self, path: str | Path, config: dict[str, Any] | Any, meta: dict[str, Any] | None = None,
-                 flush_interval_s: float = FLUSH_INTERVAL_S):
+                 flush_interval_s: float = FLUSH_INTERVAL_S, max_sources: int = MAX_PACKET_SOURCES):
         self.path = Path(path)
         raw = getattr(config, "raw", config)
         if not isinstance(raw, dict):
             raise TypeError(f"RecordingWriter: config must be a mapping (arena YAML), got {type(raw).__name__}")
+        if max_sources < 1:
+            raise ValueError(f"RecordingWriter: max_sources must be >= 1, got {max_sources}")
         try:
-            self._file: IO[bytes] = open(self.path, "wb")
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0), 0o644)
         except OSError as e:
             raise RecordingError(f"{self.path}: cannot create recording: {e.strerror or e}") from None
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the spool and the mcap writer
+        self._io_lock = threading.Lock()  # the file: one flush at a time
         self._spool = _Spool()
         self._closed = False
         self._flush_interval = float(flush_interval_s)
-        self._write_error: BaseException | None = None
+        self._write_error: OSError | None = None
+        self._data_end = 0  # file offset of the provisional end: where the next flush writes
         self.counts: dict[str, int] = {}
         self.bytes_written = 0
+        self.messages_on_disk = 0
+        self.dropped = 0  # messages not recorded because of a write error
+        self._max_sources = int(max_sources)
+        self._overflow_channel: int | None = None
+        self._overflow_sources: set[tuple[str, int]] = set()
+        self.overflow_packets = 0
         self._w = Writer(
             self._spool,
             compression=CompressionType.NONE,
@@ -274,6 +325,10 @@ class RecordingWriter:
         self._topic_channels: dict[str, int] = {}
         self._seq = 0
         self._flush_to_disk()  # header + config on disk before any data arrives
+        if self._write_error is not None:
+            os.close(self._fd)
+            err = self._write_error
+            raise RecordingError(f"{self.path}: cannot write recording: {err.strerror or err}")
         self._stop = threading.Event()
         self._flusher = threading.Thread(target=self._flush_loop, name=f"mcap-flush:{self.path.name}", daemon=True)
         self._flusher.start()
@@ -287,7 +342,7 @@ class RecordingWriter:
     def __exit__(self, *exc: Any) -> None:
         self.close()
 
-    # -- writes
+    # -- writes (all under self._lock)
     def _channel_for(self, topic: str, encoding: str, schema_id: int) -> int:
         ch = self._topic_channels.get(topic)
         if ch is None:
@@ -295,29 +350,55 @@ class RecordingWriter:
             self._topic_channels[topic] = ch
         return ch
 
-    def _add(self, channel: int, log_ns: int, data: bytes, topic: str) -> None:
+    def _recording(self) -> bool:
+        """False once closed (raises) or stopped by a write error (counts the drop)."""
         if self._closed:
             raise RuntimeError(f"{self.path}: recording is closed")
+        if self._write_error is not None:
+            self.dropped += 1
+            return False
+        return True
+
+    def _add(self, channel: int, log_ns: int, data: bytes, topic: str) -> None:
         self._seq += 1
         self._w.add_message(channel, log_ns, data, log_ns, self._seq & 0xFFFFFFFF)
+        self._spool.messages += 1
         self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def _source_channel(self, source: tuple[str, int] | None) -> int:
+        """A new sender's channel: its own while there are fewer than max_sources, else the shared one."""
+        if len(self._packet_channels) < self._max_sources:
+            md = {} if source is None else {"host": str(source[0]), "port": str(int(source[1]))}
+            ch = self._packet_channels[source] = self._w.register_channel(TOPIC_PACKETS, PACKET_ENCODING, 0, md)
+            return ch
+        self.overflow_packets += 1
+        if len(self._overflow_sources) < _OVERFLOW_SOURCES_COUNTED and source is not None:
+            self._overflow_sources.add(source)
+        if self._overflow_channel is None:
+            self._overflow_channel = self._w.register_channel(TOPIC_PACKETS, PACKET_ENCODING, 0,
+                                                              {"overflow": "true"})
+            log.warning("%s: more than %d packet senders; the packets of later ones share one channel without "
+                        "their address", self.path, self._max_sources)
+        return self._overflow_channel
 
     def write_packet(self, recv_ns: int, data: bytes, source: tuple[str, int] | None = None) -> None:
         """One received UDP payload, untouched, stamped with its receive time (server monotonic ns)."""
         with self._lock:
+            if self._closed or self._write_error is not None:  # inline: this runs for every packet
+                self._recording()
+                return
             ch = self._packet_channels.get(source)
             if ch is None:
-                md = {} if source is None else {"host": str(source[0]), "port": str(int(source[1]))}
-                ch = self._w.register_channel(TOPIC_PACKETS, PACKET_ENCODING, 0, md)
-                self._packet_channels[source] = ch
+                ch = self._source_channel(source)
             self._add(ch, int(recv_ns), bytes(data), TOPIC_PACKETS)
 
     def write_state(self, state: BodyState) -> None:
         """One fused BodyState, logged at its time_ns."""
         data = _dumps(state_to_dict(state))
         with self._lock:
-            ch = self._channel_for(TOPIC_STATES, "json", self._state_schema)
-            self._add(ch, int(state.time_ns), data, TOPIC_STATES)
+            if self._recording():
+                ch = self._channel_for(TOPIC_STATES, "json", self._state_schema)
+                self._add(ch, int(state.time_ns), data, TOPIC_STATES)
 
     def write_states(self, states: list[BodyState]) -> None:
         for s in states:
@@ -331,8 +412,9 @@ class RecordingWriter:
         """Sink interface: a new set of loose markers (LoosePoints), logged at its time_ns."""
         data = _dumps({"points": _plain(lp.points), "residual_px": _plain(lp.residual_px)})
         with self._lock:
-            ch = self._channel_for(TOPIC_MARKERS, "json", 0)
-            self._add(ch, int(lp.time_ns), data, TOPIC_MARKERS)
+            if self._recording():
+                ch = self._channel_for(TOPIC_MARKERS, "json", 0)
+                self._add(ch, int(lp.time_ns), data, TOPIC_MARKERS)
 
     def write_truth(self, time_ns: int, name: str, position: np.ndarray, quaternion: np.ndarray) -> None:
         """Simulator ground truth of body `name`: position (3,) m, quaternion (4,) xyzw."""
@@ -342,8 +424,9 @@ class RecordingWriter:
             raise ValueError(f"write_truth: position must be (3,) and quaternion (4,), got {p.shape}, {q.shape}")
         data = _dumps({"name": str(name), "position": p.tolist(), "quaternion": q.tolist()})
         with self._lock:
-            ch = self._channel_for(TOPIC_TRUTH, "json", self._truth_schema)
-            self._add(ch, int(time_ns), data, TOPIC_TRUTH)
+            if self._recording():
+                ch = self._channel_for(TOPIC_TRUTH, "json", self._truth_schema)
+                self._add(ch, int(time_ns), data, TOPIC_TRUTH)
 
     def write_json(self, topic: str, time_ns: int, obj: dict[str, Any]) -> None:
         """Any JSON-able mapping on its own topic (events, camera truth, stats)."""
@@ -353,24 +436,70 @@ class RecordingWriter:
             )
         data = _dumps(_plain(obj))
         with self._lock:
-            ch = self._channel_for(topic, "json", 0)
-            self._add(ch, int(time_ns), data, topic)
+            if self._recording():
+                ch = self._channel_for(topic, "json", 0)
+                self._add(ch, int(time_ns), data, topic)
 
     # -- disk
-    def _flush_to_disk(self) -> None:
+    def _pwrite_all(self, data: bytes, offset: int) -> None:
+        view = memoryview(data)
+        while view:
+            n = os.pwrite(self._fd, view, offset)
+            if n <= 0:  # a regular file accepts nothing more only when the disk is full
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            view = view[n:]
+            offset += n
+
+    def _flush_to_disk(self, final: bool = False) -> None:
+        """Write the spool at the provisional end, followed by a new one (by the summary when final).
+
+        One write per flush: a file cut anywhere but inside it is a complete MCAP file.
+        """
+        with self._io_lock:
+            with self._lock:
+                parts, self._spool.parts = self._spool.parts, []
+                n_messages, self._spool.messages = self._spool.messages, 0
+                failed = self._write_error is not None
+                if failed:  # written between the failed flush and the stop: lost too
+                    self.dropped += n_messages
+            if failed or (not parts and not final):
+                return
+            data = b"".join(parts)
+            buf = data if final else data + _PROVISIONAL_END
+            try:
+                self._pwrite_all(buf, self._data_end)
+                if final:  # the summary is longer than the provisional end, but make sure
+                    os.ftruncate(self._fd, self._data_end + len(buf))
+            except OSError as e:
+                self._stop_on_error(e, n_messages)
+                return
+            self._data_end += len(data)
+            self.messages_on_disk += n_messages
+            self.bytes_written = self._data_end + len(buf) - len(data)
+
+    def _stop_on_error(self, err: OSError, lost: int) -> None:
+        """Stop recording after a failed write; end the file after the last complete flush."""
         with self._lock:
-            parts, self._spool.parts = self._spool.parts, []
-        if not parts:
+            self._write_error = err
+            self.dropped += lost
+        if self._data_end == 0:  # nothing on disk yet: __init__ reports it
             return
-        data = b"".join(parts)
         try:
-            self._file.write(data)
-            self._file.flush()  # into the OS page cache: survives the process being killed
-            self.bytes_written += len(data)
-        except OSError as e:  # disk full etc.: keep the server running, report once
-            if self._write_error is None:
-                log.error("%s: writing the recording failed: %s; later data is lost", self.path, e)
-            self._write_error = e
+            # these bytes were on disk before the failed write: rewriting them needs no new space
+            self._pwrite_all(_PROVISIONAL_END, self._data_end)
+            os.ftruncate(self._fd, self._data_end + len(_PROVISIONAL_END))
+            readable = "a complete MCAP file without a summary, readable by any MCAP reader"
+            self.bytes_written = self._data_end + len(_PROVISIONAL_END)
+        except OSError:
+            try:
+                os.ftruncate(self._fd, self._data_end)
+                self.bytes_written = self._data_end
+            except OSError:
+                pass
+            readable = f"readable by visionpos; `visionpos recover {self.path}` makes it a clean MCAP file"
+        log.error("%s: recording stopped, writing failed (%s). The file keeps the %d messages (%d bytes) recorded "
+                  "before the error: %s. The server goes on without recording.", self.path,
+                  err.strerror or err, self.messages_on_disk, self.bytes_written, readable)
 
     def _flush_loop(self) -> None:
         while not self._stop.wait(self._flush_interval):
@@ -383,8 +512,23 @@ class RecordingWriter:
         """Move everything written so far to the OS now."""
         self._flush_to_disk()
 
+    def _end_meta(self) -> dict[str, Any]:
+        return {
+            "messages": dict(self.counts),
+            "packet_sources": len(self._packet_channels),
+            "max_sources": self._max_sources,
+            "overflow_sources": len(self._overflow_sources),
+            "overflow_sources_counted_up_to": _OVERFLOW_SOURCES_COUNTED,
+            "overflow_packets": self.overflow_packets,
+            "wall_end_unix_ns": time.time_ns(),
+            "monotonic_end_ns": time.monotonic_ns(),
+        }
+
     def close(self) -> None:
-        """Write the summary and footer and close. Idempotent; nothing already written is lost."""
+        """Write the summary and footer and close. Idempotent; nothing already written is lost.
+
+        After a write error the file keeps its provisional end (no summary).
+        """
         if self._closed:
             return
         atexit.unregister(self.close)
@@ -392,17 +536,23 @@ class RecordingWriter:
         self._flusher.join()
         with self._lock:
             self._closed = True
-            self._w.finish()
-        self._flush_to_disk()
+            if self._write_error is None:
+                self._w.add_metadata(META_END, {"json": json.dumps(self._end_meta())})
+                self._w.finish()
+        self._flush_to_disk(final=True)
         try:
-            self._file.flush()
-            os.fsync(self._file.fileno())
+            os.fsync(self._fd)
         except OSError:
             pass
-        self._file.close()
+        os.close(self._fd)
 
     def stats(self) -> dict[str, Any]:
+        """messages: handed to the recorder per topic; recorded: messages on disk; dropped: messages
+        lost to a write error (the failed write's and every later one)."""
         return {"path": str(self.path), "messages": dict(self.counts), "bytes": self.bytes_written,
+                "recorded": self.messages_on_disk,
+                "packet_sources": len(self._packet_channels), "overflow_sources": len(self._overflow_sources),
+                "overflow_packets": self.overflow_packets, "dropped": self.dropped,
                 "error": None if self._write_error is None else str(self._write_error)}
 
 
@@ -413,7 +563,8 @@ class RecordingReader:
     """Read a visionpos recording, tolerating a missing footer and a truncated last record.
 
     .config -> dict, .meta -> dict; packets()/states()/truth()/json(topic)/messages() stream
-    from the file each time they are called. A damaged tail emits one RecordingDamagedWarning
+    from the file each time they are called. .complete is True for a cleanly closed file (with
+    its summary); end() returns the writer's closing counts. A damaged tail emits one RecordingDamagedWarning
     per reader and `.damage` names it; everything before it is returned.
     """
 
@@ -425,8 +576,8 @@ class RecordingReader:
             magic = f.read(8)
             f.seek(0, os.SEEK_END)
             size = f.tell()
-            f.seek(max(0, size - 8))
-            tail = f.read(8)
+            f.seek(max(0, size - len(_PROVISIONAL_END)))
+            tail = f.read(len(_PROVISIONAL_END))
         if magic != _MAGIC:
             raise RecordingError(
                 f"{self.path}: not an MCAP file (starts with {magic[:8]!r}); "
@@ -434,8 +585,10 @@ class RecordingReader:
             )
         self.damage: str | None = None
         self._warned = False
-        # a cleanly closed file ends with footer + magic; a killed writer's file does not
-        self.complete = size > 16 and tail == magic
+        # a cleanly closed file ends with its summary, footer and magic; a writer killed or stopped by
+        # a write error leaves its provisional end (no summary), or a torn end if killed mid-write
+        unclosed = tail == _PROVISIONAL_END
+        self.complete = size > 16 and tail[-len(_MAGIC):] == magic and not unclosed
         config = meta = None
         header_seen = False
         for rec in self._records(stop_at_message=True):
@@ -465,6 +618,23 @@ class RecordingReader:
         if int(self.meta.get("format_version", FORMAT_VERSION)) > FORMAT_VERSION:
             raise RecordingError(f"{self.path}: recording format {self.meta['format_version']} is newer than this "
                                  f"visionpos ({FORMAT_VERSION}); upgrade visionpos")
+        if unclosed:
+            self._damaged("recording was not closed (its writer was killed or stopped by a write error such as a "
+                          "full disk): it ends at the writer's last flush, without a summary")
+
+    def end(self) -> dict[str, Any] | None:
+        """The writer's closing counts (metadata "visionpos.end": messages per topic, packet_sources,
+        overflow_sources, overflow_packets, ...), or None when it never closed (killed, disk full)."""
+        if not self.complete:
+            return None
+        try:
+            with open(self.path, "rb") as f:
+                for md in make_reader(f).iter_metadata():  # through the summary's metadata index
+                    if md.name == META_END:
+                        return json.loads(md.metadata.get("json", "{}"))
+        except (McapError, struct.error, EOFError, ValueError) as e:
+            raise RecordingError(f"{self.path}: summary is damaged ({type(e).__name__}: {e})") from None
+        return None
 
     def _parse_config(self, text: str) -> dict[str, Any]:
         try:
@@ -481,9 +651,10 @@ class RecordingReader:
             self._warned = True
             warnings.warn(RecordingDamagedWarning(f"{self.path}: {what}; using everything before it"), stacklevel=3)
 
-    def _records(self, stop_at_message: bool = False) -> Iterator[Any]:
+    def _records(self, stop_at_message: bool = False, message_records: bool = False) -> Iterator[Any]:
         """The data records in file order: a message as a tuple (channel id, log time ns, data),
-        the others the reader uses (Header, Schema, Channel, Metadata) as mcap's record objects.
+        or as mcap's Message when message_records, the others the reader uses (Header, Schema,
+        Channel, Metadata) as mcap's record objects.
 
         Messages are parsed here, straight from the mapped file: mcap's StreamReader takes
         about ten reads and calls per record, which made reading the log a tenth of a
@@ -515,8 +686,11 @@ class RecordingReader:
                         return
                     if stop_at_message:
                         return
-                    cid, _, log_time, _ = _MESSAGE_HEAD.unpack_from(mm, start)
-                    yield cid, log_time, mm[start + _MESSAGE_HEAD.size:pos]
+                    cid, seq, log_time, pub_time = _MESSAGE_HEAD.unpack_from(mm, start)
+                    if message_records:
+                        yield Message(cid, log_time, mm[start + _MESSAGE_HEAD.size:pos], pub_time, seq)
+                    else:
+                        yield cid, log_time, mm[start + _MESSAGE_HEAD.size:pos]
                     continue
                 kind = _RECORD_TYPES.get(op)
                 if kind is None:  # indexes, statistics, attachments, data end: not needed
@@ -534,7 +708,7 @@ class RecordingReader:
                     if isinstance(r, Message):
                         if stop_at_message:
                             return
-                        yield r.channel_id, r.log_time, r.data
+                        yield r if message_records else (r.channel_id, r.log_time, r.data)
                     else:
                         yield r
 
@@ -632,3 +806,72 @@ class RecordingReader:
         for topic, _, _, _ in self.messages():
             counts[topic] = counts.get(topic, 0) + 1
         return counts
+
+
+# ---------------------------------------------------------------- recover
+
+META_RECOVERED = "visionpos.recovered"
+
+
+def recover(src: str | Path, dst: str | Path) -> dict[str, Any]:
+    """Rewrite the recording `src` as a clean MCAP file `dst`: every record before any damage,
+    then a summary with statistics, channels and the metadata index, as a cleanly closed
+    recording has. Works on a killed writer's file (provisional or torn end), one stopped by
+    a full disk, or a complete one. Writes `dst` through a temporary file, never `src`.
+
+    Returns what was done (also stored in dst as metadata "visionpos.recovered"):
+    {"from", "messages", "messages_by_topic", "damage" (None or what ended the read), "was_complete"}.
+    """
+    src, dst = Path(src), Path(dst)
+    if dst.exists() and dst.resolve() == src.resolve():
+        raise RecordingError(f"{dst}: recover writes a new file; give another output than the input")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RecordingDamagedWarning)  # reported in the result instead
+        reader = RecordingReader(src)
+        tmp = dst.with_name(dst.name + ".part")
+        try:
+            with open(tmp, "wb") as f:
+                report = _rewrite(reader, f)
+            os.replace(tmp, dst)
+        except OSError as e:
+            tmp.unlink(missing_ok=True)
+            raise RecordingError(f"{dst}: cannot write the recovered recording: {e.strerror or e}") from None
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+    return report
+
+
+def _rewrite(reader: RecordingReader, f: Any) -> dict[str, Any]:
+    w = Writer(f, compression=CompressionType.NONE, use_chunking=False, index_types=IndexType.METADATA,
+               enable_crcs=True)
+    schemas: dict[int, int] = {}  # id in the input -> id in the output
+    channels: dict[int, tuple[int, str]] = {}  # id in the input -> (id in the output, topic)
+    by_topic: dict[str, int] = {}
+    started = False
+    for rec in reader._records(message_records=True):
+        if isinstance(rec, Message):
+            ch = channels.get(rec.channel_id)
+            if ch is None:  # the reader has flagged it (damage); nothing to attach it to
+                continue
+            w.add_message(ch[0], rec.log_time, rec.data, rec.publish_time, rec.sequence)
+            by_topic[ch[1]] = by_topic.get(ch[1], 0) + 1
+        elif isinstance(rec, Header):
+            if not started:
+                w.start(profile=rec.profile, library=rec.library)
+                started = True
+        elif isinstance(rec, Schema):
+            if rec.id not in schemas:  # a complete file repeats schemas and channels in its summary
+                schemas[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+        elif isinstance(rec, Channel):
+            if rec.id not in channels:
+                sid = schemas.get(rec.schema_id, 0)
+                channels[rec.id] = (w.register_channel(rec.topic, rec.message_encoding, sid, dict(rec.metadata)),
+                                    rec.topic)
+        elif isinstance(rec, Metadata) and rec.name != META_RECOVERED:
+            w.add_metadata(rec.name, dict(rec.metadata))
+    report = {"from": str(reader.path), "messages": sum(by_topic.values()), "messages_by_topic": by_topic,
+              "damage": reader.damage, "was_complete": reader.complete}
+    w.add_metadata(META_RECOVERED, {"json": json.dumps(report)})
+    w.finish()
+    return report

@@ -24,6 +24,7 @@ COMMANDS: dict[str, str] = {
     "keygen": "make the shared key that server and stations sign packets with",
     "sim": "simulate a scenario and write a recording",
     "replay": "re-run the pipeline on a recording",
+    "recover": "rewrite a recording cut short (writer killed, disk full) as a clean MCAP file",
     "tune": "sweep settings over a recording and rank them",
     "calibrate": "intrinsics, wand extrinsics, ground plane",
     "bench": "run the benchmark suite",
