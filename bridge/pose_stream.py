@@ -24,6 +24,7 @@ from typing import Callable
 import numpy as np
 
 from bridge.config import PoseStreamConfig, is_multicast
+from bridge.transport import pack_datagrams
 from visionpos.messages import BodyState, LoosePoints
 
 MAGIC = b"VPS1"
@@ -115,17 +116,8 @@ def state_to_json(st: BodyState, sent_ns: int) -> dict:
 
 def encode_json(states: list[BodyState], sent_ns: int) -> list[bytes]:
     """States -> datagrams of JSON lines (each <= MAX_DATAGRAM unless one line is larger)."""
-    out: list[bytes] = []
-    cur = bytearray()
-    for st in states:
-        line = json.dumps(state_to_json(st, sent_ns), separators=(",", ":")).encode() + b"\n"
-        if cur and len(cur) + len(line) > MAX_DATAGRAM:
-            out.append(bytes(cur))
-            cur = bytearray()
-        cur += line
-    if cur:
-        out.append(bytes(cur))
-    return out
+    lines = (json.dumps(state_to_json(st, sent_ns), separators=(",", ":")).encode() + b"\n" for st in states)
+    return pack_datagrams(lines, MAX_DATAGRAM)
 
 
 def encode_binary(states: list[BodyState], sent_ns: int, seq: int) -> list[bytes]:

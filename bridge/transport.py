@@ -23,6 +23,21 @@ from bridge.config import Endpoint
 STREAM_BUFFER_MAX = 64 * 1024
 
 
+def pack_datagrams(chunks, max_bytes: int) -> list[bytes]:
+    """Byte strings -> UDP payloads of whole chunks, each at most max_bytes (a chunk is never split, so a
+    single chunk longer than max_bytes goes alone)."""
+    out: list[bytes] = []
+    cur = bytearray()
+    for c in chunks:
+        if cur and len(cur) + len(c) > max_bytes:
+            out.append(bytes(cur))
+            cur = bytearray()
+        cur += c
+    if cur:
+        out.append(bytes(cur))
+    return out
+
+
 class LinkDown(Exception):
     """The link failed; str() says why. The owner closes and reopens it."""
 

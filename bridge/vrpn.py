@@ -44,6 +44,7 @@ from typing import Callable
 import numpy as np
 
 from bridge.convert import back_propagate
+from bridge.transport import pack_datagrams
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, section
@@ -673,27 +674,13 @@ class VrpnServer:
                 self._queue(c, b"".join(msgs))
                 continue
             if v not in grams:
-                grams[v] = _pack_datagrams(msgs)
+                grams[v] = pack_datagrams(msgs, UDP_DATAGRAM_MAX)
             for g in grams[v]:
                 try:
                     self._udp.sendto(g, c.udp_addr)
                     self.counters["datagrams"] += 1
                 except OSError:  # buffer full, ICMP refused: lossy by design, never block
                     self.counters["send_errors"] += 1
-
-
-def _pack_datagrams(msgs: list[bytes]) -> list[bytes]:
-    """Messages -> UDP payloads of at most UDP_DATAGRAM_MAX bytes (a message is never split)."""
-    out: list[bytes] = []
-    cur = bytearray()
-    for m in msgs:
-        if cur and len(cur) + len(m) > UDP_DATAGRAM_MAX:
-            out.append(bytes(cur))
-            cur = bytearray()
-        cur += m
-    if cur:
-        out.append(bytes(cur))
-    return out
 
 
 def _parse_lob(data: bytes) -> int | None:

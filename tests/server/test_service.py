@@ -549,3 +549,33 @@ def test_backlogged_frames_are_shed_over_a_real_socket():
         pytest.skip("no kernel receive stamps on this platform")
     assert health["frames_accepted"] == 25
     assert health["frames_shed"] == 20 and pipe.seqs == list(range(21, 26))
+
+
+def test_oversize_datagrams_over_udp_are_refused_whole(tmp_path):
+    """64 KB and 1473-byte datagrams on the live socket are counted as oversize and change nothing; a
+    frame right after them is handled normally (the receive buffer is one preallocated bytearray)."""
+    from visionpos.server.ingest import Ingest
+
+    arena = load_config_with_overrides("thesis", [INSECURE])
+
+    async def main():
+        ing = Ingest(arena)
+        await ing.start("127.0.0.1", 0)
+        try:
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+                for size in (65000, P.MAX_PACKET_BYTES + 1, 9000):
+                    s.sendto(P.MAGIC + bytes(size - 4), ("127.0.0.1", ing.port))
+                s.sendto(P.encode(P.Hello(1, 1, 77, 960, 640, 100.0, counter=1)), ("127.0.0.1", ing.port))
+                for _ in range(100):  # bounded: 1 s at most
+                    await asyncio.sleep(0.01)
+                    if ing.counters.packets >= 4:
+                        break
+        finally:
+            ing.close()
+        return ing
+
+    ing = asyncio.run(main())
+    assert ing.counters.packets == 4
+    assert ing.counters.malformed == 3
+    assert ing.counters.malformed_reasons.get("oversize packet") == 3, ing.counters.malformed_reasons
+    assert ing.counters.challenges == 1  # the HELLO after them was read whole and answered

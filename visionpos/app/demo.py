@@ -32,7 +32,8 @@ import secrets
 import shutil
 import tempfile
 import time
-from typing import Any, TextIO
+from collections import deque
+from typing import Any, Awaitable, Callable, TextIO
 
 import numpy as np
 
@@ -124,6 +125,10 @@ class SimStation:
         self.sent = 0
         self.send_errors = 0
         self.bad_replies = 0
+        # the last packets this station sent and the replies it believed, as a sniffer on the
+        # network would see them (the robustness benchmark replays them)
+        self.sniffed_sent: deque[bytes] = deque(maxlen=64)
+        self.sniffed_received: deque[bytes] = deque(maxlen=16)
 
     def station_clock(self) -> int:
         return time.monotonic_ns() + self.clock_offset_ns
@@ -140,6 +145,7 @@ class SimStation:
         if not isinstance(msg, (P.SyncReply, P.HelloAck)) or not self.link.believe(msg, addr, self.server):
             self.bad_replies += 1
             return
+        self.sniffed_received.append(data)
         if isinstance(msg, P.SyncReply):
             self.sync.reply(msg, t4)
             return
@@ -157,9 +163,15 @@ class SimStation:
         else:
             self.bad_replies += 1
 
+    @property
+    def local_port(self) -> int:
+        return self.transport.get_extra_info("sockname")[1]
+
     def _send(self, msg: Any) -> None:
         try:
-            self.transport.sendto(P.encode(msg, self.key))
+            data = P.encode(msg, self.key)
+            self.sniffed_sent.append(data)
+            self.transport.sendto(data, self.server)
         except OSError:
             self.send_errors += 1
 
@@ -171,8 +183,9 @@ class SimStation:
 
     async def open(self) -> None:
         loop = asyncio.get_running_loop()
+        # not connected, as a real station's socket: replies from anywhere reach the protocol's own checks
         self.transport, _ = await loop.create_datagram_endpoint(lambda: _StationProtocol(self),
-                                                                remote_addr=self.server)
+                                                                local_addr=("127.0.0.1", 0))
 
     async def register_and_sync(self) -> None:
         """Hello until acknowledged, then a burst of clock-sync exchanges."""
@@ -226,8 +239,10 @@ class SimStation:
             est = self.sync.estimator.estimate
             capture = est.to_server(local) if est is not None else f.capture_ns
             try:
-                self.transport.sendto(P.encode_frame(BlobFrame(f.camera_id, f.seq, capture, f.blobs,
-                                                               self.station_id, f.flags, 0, self.session), self.key))
+                data = P.encode_frame(BlobFrame(f.camera_id, f.seq, capture, f.blobs, self.station_id, f.flags, 0,
+                                                self.session), self.key)
+                self.transport.sendto(data, self.server)
+                self.sniffed_sent.append(data)
                 self.sent += 1
             except OSError:
                 self.send_errors += 1
@@ -262,13 +277,28 @@ class Collector:
 # ---------------------------------------------------------------- the run
 
 
+@dataclasses.dataclass
+class DemoContext:
+    """What a `during` observer of run_demo can see: the live parts of the running demo."""
+
+    arena: ArenaConfig
+    server: Any  # FusionServer
+    stations: list["SimStation"]
+    bridge: Any  # bridge.Bridge
+    key: bytes | None
+    duration_s: float
+
+
 async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | None,
-                   record: str | None = None) -> dict[str, Any]:
+                   record: str | None = None,
+                   during: Callable[[DemoContext], Awaitable[None]] | None = None) -> dict[str, Any]:
     """Run everything for duration_s seconds of streaming; returns the summary dict.
 
     record: MCAP path; the server records every station packet and output, and the
     simulator's truth (on the server clock) is added, so `visionpos replay` and
     `visionpos tune` work on the demo's session.
+    during: awaited alongside the streaming (it starts when the stations do), e.g. the
+    robustness benchmark's attacker; the demo waits for both.
     """
     from bridge import Bridge
     from bridge.fake_autopilot import FakeAutopilot, decode_pose
@@ -327,6 +357,9 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
         tasks = [asyncio.create_task(s.stream(t_stop), name=f"station-{s.station_id}") for s in stations]
         status = asyncio.create_task(_status_loop(server, bridge, collector, stations, sc, shift, t_start,
                                                   status_out))
+        if during is not None:
+            tasks.append(asyncio.create_task(during(DemoContext(arena, server, stations, bridge, settings.key,
+                                                                duration_s))))
         await asyncio.gather(*tasks)
         await asyncio.sleep(0.05)  # the last frames' ticks and sends
         status.cancel()

@@ -15,6 +15,7 @@ GROUPS: dict[str, str] = {
     "bridge": "bridge",
     "calibration": "calibration",
     "replay": "replay",
+    "robustness": "robustness",
 }
 
 
@@ -74,4 +75,10 @@ GOALS: list[Goal] = [
     Goal("calib_arena8_wand_std_mm", "<=", 0.5, "wand calibration, arena8: wand-length std (mm)"),
     Goal("calib_ba_seconds_8cam_3000", "<=", 30.0, "bundle adjustment, 8 cameras x 3000 frames (CPU s)"),
     Goal("replay_speed_x_cpu_thesis", ">=", 20.0, "replay speed, thesis arena (x real time)"),
+    Goal("robustness_packets_thrown", ">=", 1_000_000, "hostile packets thrown at the live demo, all attacks"),
+    Goal("robustness_cameras_blinded", "<=", 0, "cameras blinded under attack"),
+    Goal("robustness_tracked_fraction_min", ">=", 0.99, "tracked fraction under the worst attack"),
+    Goal("robustness_rmse_over_reference_max", "<=", 1.1, "position RMSE under attack / without (accuracy unchanged)"),
+    Goal("robustness_rss_growth_mb_max", "<=", 10.0, "RSS growth under attack (MB)"),
+    Goal("robustness_recording_growth_pct_max", "<=", 1.0, "recording size vs the run without attack (%)"),
 ]
