@@ -201,7 +201,7 @@ def run(quick: bool = False) -> BenchResult:
     res.tables["Under attack: the thesis arena's demo, authenticated, with a hostile sender "
                f"({RATE_PPS:.0f} packets/s)"] = "\n".join(lines)
     res.notes.append("Attacks: " + "; ".join(f"{k}: {v}" for k, v in ATTACKS.items()) + ". Counted as refused: "
-                     "the server's malformed + auth_failed + unknown + rejected counters for attacks on the server, "
+                     "the server's not_recorded counts (every refused packet, by reason) for attacks on the server, "
                      "the stations' refused replies for spoof_replies, the bridge's refused MAVLink packets for "
                      "mavlink_spoof. Recording growth is against the reference run's file (same scenario, seed "
                      "and authenticated traffic). RSS growth is the process's resident memory at the end of each "
