@@ -30,6 +30,7 @@ import numpy as np
 
 import visionpos
 from bridge import natnet_packets as nn
+from bridge.transport import RateGrid
 from visionpos.config.arena import ArenaConfig, BodyConfig
 from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, section
@@ -202,8 +203,7 @@ class NatNetServer:
         self._threads: list[threading.Thread] = []
         self.cmd_sock: socket.socket | None = None
         self.data_sock: socket.socket | None = None
-        self._period_ns = int(1e9 / cfg.rate_hz) if cfg.rate_hz > 0 else 0
-        self._next_ns = 0
+        self._grid = RateGrid(cfg.rate_hz)
         self._frame_number = 0
         self._start_ns = 0
         self._last_frame: nn.Frame | None = None
@@ -270,11 +270,9 @@ class NatNetServer:
         if not self._running:
             return
         now = self.clock_ns()
-        if self._period_ns:
-            if now < self._next_ns:
-                self.counters["skipped_rate"] += 1
-                return
-            self._next_ns = max(self._next_ns + self._period_ns, now - self._period_ns // 2)
+        if not self._grid.due(now):
+            self.counters["skipped_rate"] += 1
+            return
         if self._last_publish_ns:
             dt = now - self._last_publish_ns
             self._interval_ns = dt if not self._interval_ns else 0.9 * self._interval_ns + 0.1 * dt

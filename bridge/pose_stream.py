@@ -24,7 +24,7 @@ from typing import Callable
 import numpy as np
 
 from bridge.config import PoseStreamConfig, is_multicast
-from bridge.transport import pack_datagrams
+from bridge.transport import RateGrid, pack_datagrams
 from visionpos.messages import BodyState, LoosePoints
 
 MAGIC = b"VPS1"
@@ -237,8 +237,7 @@ class PoseStream:
         self.seq = 0
         self.counters = {"ticks": 0, "datagrams": 0, "bytes": 0, "send_errors": 0, "skipped_rate": 0,
                          "marker_sets": 0}
-        self._next_ns = 0
-        self._period_ns = int(1e9 / cfg.rate_hz) if cfg.rate_hz > 0 else 0
+        self._grid = RateGrid(cfg.rate_hz)
 
     @classmethod
     def to(cls, *destinations: str, format: str = "json", rate_hz: float = 0.0, **kw) -> "PoseStream":
@@ -265,12 +264,9 @@ class PoseStream:
         if self.sock is None:
             return
         now = self.clock_ns()
-        if self._period_ns:
-            if now < self._next_ns:
-                self.counters["skipped_rate"] += 1
-                return
-            # keep the grid, but do not burst after a pause
-            self._next_ns = max(self._next_ns + self._period_ns, now - self._period_ns // 2)
+        if not self._grid.due(now):
+            self.counters["skipped_rate"] += 1
+            return
         if not self.cfg.include_untracked:
             states = [s for s in states if s.tracked]
         if not states:

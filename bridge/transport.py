@@ -38,6 +38,26 @@ def pack_datagrams(chunks, max_bytes: int) -> list[bytes]:
     return out
 
 
+class RateGrid:
+    """Output ticks on an even grid of 1/rate_hz (rate_hz <= 0: every call is due); after a pause the grid
+    restarts near now instead of bursting to catch up."""
+
+    __slots__ = ("period_ns", "next_ns")
+
+    def __init__(self, rate_hz: float):
+        self.period_ns = int(1e9 / rate_hz) if rate_hz > 0 else 0
+        self.next_ns = 0
+
+    def due(self, now_ns: int) -> bool:
+        """True when an output is due at now_ns (and the grid moves on)."""
+        if not self.period_ns:
+            return True
+        if now_ns < self.next_ns:
+            return False
+        self.next_ns = max(self.next_ns + self.period_ns, now_ns - self.period_ns // 2)
+        return True
+
+
 class LinkDown(Exception):
     """The link failed; str() says why. The owner closes and reopens it."""
 

@@ -44,7 +44,7 @@ from typing import Callable
 import numpy as np
 
 from bridge.convert import back_propagate
-from bridge.transport import pack_datagrams
+from bridge.transport import RateGrid, pack_datagrams
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, section
@@ -280,8 +280,7 @@ class VrpnServer:
         self.port: int | None = None
         self._pending: list[BodyState] | None = None
         self._last_capture = [-(1 << 62)] * len(cfg.bodies)
-        self._period_ns = int(1e9 / cfg.rate_hz) if cfg.rate_hz > 0 else 0
-        self._next_ns = 0
+        self._grid = RateGrid(cfg.rate_hz)
         self._seq = 0
         self._wall_offset_ns = 0
         self._offset_at_ns = -(1 << 62)
@@ -630,11 +629,9 @@ class VrpnServer:
 
     def _send_reports(self, states: list[BodyState]) -> None:
         now = self.clock_ns()
-        if self._period_ns:
-            if now < self._next_ns:
-                self.counters["skipped_rate"] += 1
-                return
-            self._next_ns = max(self._next_ns + self._period_ns, now - self._period_ns // 2)
+        if not self._grid.due(now):
+            self.counters["skipped_rate"] += 1
+            return
         if now - self._offset_at_ns > 1_000_000_000:  # follow steps of the wall clock (NTP)
             self._wall_offset_ns = self.wall_clock_ns() - self.clock_ns()
             self._offset_at_ns = now
