@@ -13,8 +13,13 @@ plus conversion and the send call).
 
 from __future__ import annotations
 
+import asyncio
 import math
+import socket
+import struct
+import threading
 import time
+from typing import Any
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
@@ -154,6 +159,7 @@ def bench_loopback(duration_s: float) -> tuple[dict[str, float], list[dict]]:
 
 def run(quick: bool = False) -> BenchResult:
     res = BenchResult()
+    _report_outputs(res, quick)
     enc = bench_encode(300 if quick else 3000)
     res.metrics.update(enc)
     duration = 2.0 if quick else 10.0
@@ -198,3 +204,301 @@ def run(quick: bool = False) -> BenchResult:
     if not math.isfinite(loop["bridge_rate_hz_min"]):
         res.notes.append("a fake autopilot received fewer than two poses: the loopback figures are not meaningful")
     return res
+
+
+# ---------------------------------------------------------------- outputs on the live demo (issue 16)
+
+OUTPUT_PAIRS_QUICK, OUTPUT_PAIRS_FULL = 1, 2  # runs without / with the outputs, alternated
+OUTPUT_DURATION_S_QUICK, OUTPUT_DURATION_S_FULL = 3.0, 6.0
+OUTPUT_SETTLE_S = 0.8  # measuring starts this long after the stations do (registration, first poses)
+OUTPUT_TAIL_S = 0.4  # and ends this long before they stop
+
+
+class _Listener:
+    """A client on its own thread (a subclass's _run) counting the frames it receives in `frames` until stop()."""
+
+    def __init__(self, name: str):
+        self.frames = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"bench-{name}", daemon=True)
+
+    def start(self) -> "_Listener":
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+
+
+class _PoseStreamListener(_Listener):
+    """Receives the pose stream's datagrams on its own socket; one datagram per body and tick."""
+
+    def __init__(self, port: int):
+        super().__init__("pose-stream")
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", port))
+        self.sock.settimeout(0.1)
+
+    def _run(self) -> None:
+        with self.sock:
+            while not self._stop.is_set():
+                try:
+                    self.sock.recv(65536)
+                except TimeoutError:
+                    continue
+                self.frames += 1
+
+
+class _NatNetClient(_Listener):
+    """A minimal unicast NatNet client: NAT_CONNECT asking for bitstream 4.1, then counts NAT_FRAMEOFDATA
+    (frames come from the data port to the address the connect came from); a keep-alive every second."""
+
+    def __init__(self, command_port: int):
+        super().__init__("natnet")
+        from bridge import natnet_packets as nn
+
+        self.nn = nn
+        self.server = ("127.0.0.1", command_port)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.1)
+        self.server_info = False
+
+    def _run(self) -> None:
+        nn = self.nn
+        connect = bytearray(nn.CONNECT_VERSION_AT + 4)
+        connect[:5] = b"bench"
+        connect[nn.CONNECT_VERSION_AT:nn.CONNECT_VERSION_AT + 2] = bytes((4, 1))
+        next_keepalive = 0.0
+        with self.sock:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                if now >= next_keepalive:  # the first one is the connect, repeated until answered
+                    self.sock.sendto(nn.packet(nn.NAT_KEEPALIVE if self.server_info else nn.NAT_CONNECT,
+                                               b"" if self.server_info else bytes(connect)), self.server)
+                    next_keepalive = now + (1.0 if self.server_info else 0.2)
+                try:
+                    data = self.sock.recv(65536)
+                except TimeoutError:
+                    continue
+                msg_id = int.from_bytes(data[:2], "little") if len(data) >= 4 else -1
+                if msg_id == nn.NAT_FRAMEOFDATA:
+                    self.frames += 1
+                elif msg_id == nn.NAT_SERVERINFO:
+                    self.server_info = True
+
+
+class _VrpnClient(_Listener):
+    """A minimal VRPN client over TCP (`tcp://` in VRPN's naming): the cookie exchange, the descriptions a
+    vrpn_Tracker_Remote sends, then counts "vrpn_Tracker Pos_Quat" reports (type ids from the server's
+    type descriptions)."""
+
+    COOKIE = b"vrpn: ver. 07.35  0".ljust(24, b"\0")
+    HEAD = struct.Struct("!iiiiii")  # length without padding, sec, usec, sender, type, sequence
+
+    def __init__(self, port: int, body: str):
+        super().__init__("vrpn")
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=5.0)
+        self.sock.settimeout(0.1)
+        self.body = body
+        self.cookie_ok = False
+
+    @classmethod
+    def _message(cls, sender: int, msg_type: int, name: str) -> bytes:
+        raw = name.encode() + b"\0"
+        payload = struct.pack("!i", len(raw)) + raw
+        return cls.HEAD.pack(24 + len(payload), 0, 0, sender, msg_type, 0) + payload + bytes(-len(payload) % 8)
+
+    def _run(self) -> None:
+        buf = bytearray()
+        pos_quat = None
+        with self.sock:
+            self.sock.sendall(self.COOKIE + self._message(0, -1, self.body)
+                              + self._message(0, -2, "vrpn_Tracker Pos_Quat")
+                              + self._message(1, -2, "vrpn_Tracker Velocity"))
+            while not self._stop.is_set():
+                try:
+                    chunk = self.sock.recv(65536)
+                except TimeoutError:
+                    continue
+                if not chunk:
+                    return
+                buf += chunk
+                if not self.cookie_ok:
+                    if len(buf) < 24:
+                        continue
+                    self.cookie_ok = bytes(buf[:14]) == b"vrpn: ver. 07."
+                    del buf[:24]
+                pos = 0
+                while pos + 24 <= len(buf):
+                    length, _, _, sender, msg_type, _ = self.HEAD.unpack_from(buf, pos)
+                    n = length - 24
+                    if n < 0 or pos + 24 + n > len(buf):
+                        break
+                    if msg_type == -2 and buf[pos + 28:pos + 24 + n].rstrip(b"\0") == b"vrpn_Tracker Pos_Quat":
+                        pos_quat = sender  # a type description: the header's sender field is the type id
+                    elif pos_quat is not None and msg_type == pos_quat:
+                        self.frames += 1
+                    pos += 24 + n + (-n % 8)
+                del buf[:pos]
+
+
+SERVER_THREADS = ("mavlink-", "natnet-", "vrpn-server")  # the bridge's and the outputs' own threads
+
+
+def _server_threads_cpu_s() -> dict[int, float]:
+    """CPU seconds so far of each of the server's sender threads (not the loop, not the bench's clients)."""
+    out = {}
+    for t in threading.enumerate():
+        if t.name.startswith(SERVER_THREADS) and t.ident is not None:
+            try:
+                out[t.ident] = time.clock_gettime(time.pthread_getcpuclockid(t.ident))
+            except (OSError, AttributeError):  # ended meanwhile; or a platform without per-thread clocks
+                pass
+    return out
+
+
+def _output_overrides(pose_port: int, natnet_cmd: int, natnet_data: int) -> list[str]:
+    return [f"pose_stream.destination=127.0.0.1:{pose_port}",
+            "natnet.transmission=unicast", "natnet.interface=127.0.0.1",
+            f"natnet.command_port={natnet_cmd}", f"natnet.data_port={natnet_data}",
+            "vrpn.host=127.0.0.1", "vrpn.port=0"]
+
+
+def _demo_run(arena, duration_s: float, outputs: bool) -> dict[str, Any]:
+    """One live demo run; measures on the server's loop thread between OUTPUT_SETTLE_S and OUTPUT_TAIL_S
+    before the end: its CPU time per station packet, output ticks/s and, with outputs, each client's frames/s."""
+    from bridge.config import parse_pose_stream
+    from bridge.natnet import NatNetServer
+    from bridge.pose_stream import PoseStream
+    from bridge.vrpn import VrpnServer, parse_vrpn
+    from visionpos.app.demo import run_demo
+
+    got: dict[str, Any] = {}
+
+    async def during(ctx) -> None:
+        server = ctx.server
+        sinks, clients = [], {}
+        if outputs:
+            pose = PoseStream(parse_pose_stream(arena))
+            natnet = NatNetServer.from_arena(arena)
+            vrpn = VrpnServer(parse_vrpn(arena))
+            sinks = [pose, natnet, vrpn]
+
+            def start() -> dict[str, _Listener]:  # off the loop: nothing here may delay a tick
+                for s in sinks:
+                    s.start()
+                return {"pose_stream": _PoseStreamListener(pose.cfg.destinations[0][1]).start(),
+                        "natnet": _NatNetClient(natnet.command_port).start(),
+                        "vrpn": _VrpnClient(vrpn.port, arena.bodies[0].name).start()}
+
+            clients = await asyncio.to_thread(start)
+            # the server calls every sink in its list at each tick; added between two ticks (this is its loop)
+            server.sinks[0:0] = sinks
+        try:
+            await asyncio.sleep(OUTPUT_SETTLE_S)
+            cpu0, pk0, tk0 = time.thread_time(), server.ingest.counters.packets, server.ticks
+            side0 = _server_threads_cpu_s()
+            fr0, t0 = {k: c.frames for k, c in clients.items()}, time.perf_counter()
+            await asyncio.sleep(ctx.duration_s - OUTPUT_SETTLE_S - OUTPUT_TAIL_S)
+            cpu1, pk1, tk1 = time.thread_time(), server.ingest.counters.packets, server.ticks
+            side1 = _server_threads_cpu_s()
+            fr1, t1 = {k: c.frames for k, c in clients.items()}, time.perf_counter()
+        finally:
+            for s in sinks:
+                server.sinks.remove(s)
+
+            def stop() -> None:  # joins threads: off the loop
+                for c in clients.values():
+                    c.stop()
+                for s in sinks:
+                    s.close()
+
+            await asyncio.to_thread(stop)
+        side_s = sum(side1[k] - side0[k] for k in side1 if k in side0)
+        got.update(cpu_s=cpu1 - cpu0, side_cpu_s=side_s, packets=pk1 - pk0, ticks_hz=(tk1 - tk0) / (t1 - t0),
+                   clients_hz={k: (fr1[k] - fr0[k]) / (t1 - t0) for k in clients},
+                   sink_stats={type(s).__name__: s.stats() for s in sinks})
+
+    summary = asyncio.run(run_demo(arena, duration_s, None, during=during))
+    got["cpu_us_per_packet"] = got["cpu_s"] / max(got["packets"], 1) * 1e6
+    got["side_cpu_us_per_packet"] = got["side_cpu_s"] / max(got["packets"], 1) * 1e6
+    got["output_rate_hz"] = summary["output_rate_hz"]
+    got["mavlink_hz"] = min(b.get("mavlink_rate_hz") or 0.0 for b in summary["bodies"])
+    got["tracked_fraction"] = min(b["tracked_fraction"] for b in summary["bodies"])
+    return got
+
+
+def bench_outputs(quick: bool) -> tuple[dict[str, float], list[dict]]:
+    """The thesis arena's demo without the outputs and with pose stream, NatNet and VRPN on, one client each."""
+    from visionpos.app.demo import demo_arena
+    from visionpos.app.ports import free_port
+
+    duration_s = OUTPUT_DURATION_S_QUICK if quick else OUTPUT_DURATION_S_FULL
+    pairs = OUTPUT_PAIRS_QUICK if quick else OUTPUT_PAIRS_FULL
+    cmd = free_port()
+    data = free_port()
+    while data == cmd:
+        data = free_port()
+    # the demo ignores these sections (its bridge runs MAVLink only); the runs with outputs start them
+    arena = demo_arena("thesis", duration_s, 1, _output_overrides(free_port(), cmd, data))
+    runs: dict[bool, list[dict]] = {False: [], True: []}
+    for _ in range(pairs):
+        for outputs in (False, True):
+            runs[outputs].append(_demo_run(arena, duration_s, outputs))
+    off, on = runs[False], runs[True]
+    cost_off = float(np.median([r["cpu_us_per_packet"] for r in off]))
+    cost_on = float(np.median([r["cpu_us_per_packet"] for r in on]))
+    side_off = float(np.median([r["side_cpu_us_per_packet"] for r in off]))
+    side_on = float(np.median([r["side_cpu_us_per_packet"] for r in on]))
+    metrics = {
+        "bridge_outputs_threads_cpu_us_per_packet_off": side_off,
+        "bridge_outputs_threads_cpu_us_per_packet_on": side_on,
+        "bridge_outputs_total_cost_ratio": (cost_on + side_on) / (cost_off + side_off),
+        "bridge_outputs_loop_cpu_us_per_packet_off": cost_off,
+        "bridge_outputs_loop_cpu_us_per_packet_on": cost_on,
+        "bridge_outputs_cost_ratio": cost_on / cost_off,
+        "bridge_outputs_tick_hz_off": float(np.median([r["ticks_hz"] for r in off])),
+        "bridge_outputs_tick_hz_on": float(np.median([r["ticks_hz"] for r in on])),
+        "bridge_outputs_output_rate_hz_off": float(np.median([r["output_rate_hz"] for r in off])),
+        "bridge_outputs_output_rate_hz_on": float(np.median([r["output_rate_hz"] for r in on])),
+        "bridge_outputs_mavlink_hz_off": float(np.median([r["mavlink_hz"] for r in off])),
+        "bridge_outputs_mavlink_hz_on": float(np.median([r["mavlink_hz"] for r in on])),
+    }
+    for ratio, hz in (("output_rate_ratio", "output_rate_hz"), ("mavlink_rate_ratio", "mavlink_hz")):
+        metrics[f"bridge_outputs_{ratio}"] = metrics[f"bridge_outputs_{hz}_on"] / metrics[f"bridge_outputs_{hz}_off"]
+    for k in ("pose_stream", "natnet", "vrpn"):
+        metrics[f"bridge_outputs_{k}_client_hz"] = float(np.median([r["clients_hz"][k] for r in on]))
+    metrics["bridge_outputs_client_rate_ratio_min"] = (
+        min(metrics[f"bridge_outputs_{k}_client_hz"] for k in ("pose_stream", "natnet", "vrpn"))
+        / metrics["bridge_outputs_tick_hz_on"])
+    rows = [dict(r, outputs=o) for o in (False, True) for r in runs[o]]
+    return metrics, rows
+
+
+def _report_outputs(res: BenchResult, quick: bool) -> None:
+    m, rows = bench_outputs(quick)
+    res.metrics.update(m)
+    lines = ["| outputs | loop CPU µs / station packet | sender threads CPU µs / packet | output ticks/s "
+             "| MAVLink poses/s | pose stream client /s | NatNet client frames/s | VRPN client reports/s "
+             "| tracked |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        c = r["clients_hz"]
+        cell = lambda k: f"{c[k]:.1f}" if k in c else "-"  # noqa: E731
+        lines.append(f"| {'all three' if r['outputs'] else 'none'} | {r['cpu_us_per_packet']:.1f} "
+                     f"| {r['side_cpu_us_per_packet']:.1f} | {r['output_rate_hz']:.1f} | {r['mavlink_hz']:.1f} "
+                     f"| {cell('pose_stream')} | {cell('natnet')} | {cell('vrpn')} | {r['tracked_fraction']:.4f} |")
+    dur = OUTPUT_DURATION_S_QUICK if quick else OUTPUT_DURATION_S_FULL
+    res.tables[f"Outputs on the live demo: thesis arena, {dur:.0f} s per run, without and with the pose stream, "
+               "NatNet (unicast) and VRPN (TCP), one client each"] = "\n".join(lines)
+    res.notes.append(
+        f"Outputs: per-packet cost with all three outputs / without: {m['bridge_outputs_cost_ratio']:.3f} on the "
+        f"server's event-loop thread (median over runs; {m['bridge_outputs_loop_cpu_us_per_packet_off']:.1f} -> "
+        f"{m['bridge_outputs_loop_cpu_us_per_packet_on']:.1f} µs), {m['bridge_outputs_total_cost_ratio']:.3f} "
+        "counting the MAVLink, NatNet and VRPN sender threads too. Loop CPU is time.thread_time on the loop over the "
+        "window, divided by the station packets the server received; in the demo the loop also runs the four "
+        "simulated stations' sends, the same in both runs. Output ticks/s and MAVLink poses/s (at the fake "
+        "autopilot) are over the whole run; client rates over the measuring window. Foxglove (issue 16) is not "
+        "implemented yet, so it is not measured."
+    )
