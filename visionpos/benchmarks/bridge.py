@@ -14,9 +14,11 @@ plus conversion and the send call).
 from __future__ import annotations
 
 import asyncio
+import json
 import math
 import socket
 import struct
+import sys
 import threading
 import time
 from typing import Any
@@ -208,9 +210,9 @@ def run(quick: bool = False) -> BenchResult:
 
 # ---------------------------------------------------------------- outputs on the live demo (issue 16)
 
-OUTPUT_PAIRS_QUICK, OUTPUT_PAIRS_FULL = 1, 2  # runs without / with the outputs, alternated
-OUTPUT_DURATION_S_QUICK, OUTPUT_DURATION_S_FULL = 3.0, 6.0
-OUTPUT_SETTLE_S = 0.8  # measuring starts this long after the stations do (registration, first poses)
+OUTPUT_PAIRS_QUICK, OUTPUT_PAIRS_FULL = 1, 3  # runs without / with the outputs, alternated
+OUTPUT_DURATION_S_QUICK, OUTPUT_DURATION_S_FULL = 4.0, 8.0
+OUTPUT_SETTLE_S = 1.0  # measuring starts this long after the stations do (registration, client start)
 OUTPUT_TAIL_S = 0.4  # and ends this long before they stop
 
 
@@ -359,6 +361,28 @@ def _server_threads_cpu_s() -> dict[int, float]:
     return out
 
 
+async def _client_counts(proc) -> dict[str, float]:
+    """The client process's frame counts and its clock (key t, seconds); {} without clients."""
+    if proc is None:
+        return {}
+    proc.stdin.write(b"count\n")
+    await proc.stdin.drain()
+    return json.loads(await proc.stdout.readline())
+
+
+def _clients_main(pose_port: int, natnet_command_port: int, vrpn_port: int, body: str) -> None:
+    """The client process: one client per output; answers each line on stdin with the counts so far
+    (JSON), stops at end of input."""
+    clients = {"pose_stream": _PoseStreamListener(pose_port).start(),
+               "natnet": _NatNetClient(natnet_command_port).start(),
+               "vrpn": _VrpnClient(vrpn_port, body).start()}
+    print("ready", flush=True)
+    for _ in sys.stdin:
+        print(json.dumps({"t": time.perf_counter(), **{k: c.frames for k, c in clients.items()}}), flush=True)
+    for c in clients.values():
+        c.stop()
+
+
 def _output_overrides(pose_port: int, natnet_cmd: int, natnet_data: int) -> list[str]:
     return [f"pose_stream.destination=127.0.0.1:{pose_port}",
             "natnet.transmission=unicast", "natnet.interface=127.0.0.1",
@@ -379,46 +403,41 @@ def _demo_run(arena, duration_s: float, outputs: bool) -> dict[str, Any]:
 
     async def during(ctx) -> None:
         server = ctx.server
-        sinks, clients = [], {}
+        t_end = time.monotonic() + ctx.duration_s - OUTPUT_TAIL_S
+        sinks, clients = [], None
         if outputs:
             pose = PoseStream(parse_pose_stream(arena))
             natnet = NatNetServer.from_arena(arena)
             vrpn = VrpnServer(parse_vrpn(arena))
             sinks = [pose, natnet, vrpn]
-
-            def start() -> dict[str, _Listener]:  # off the loop: nothing here may delay a tick
-                for s in sinks:
-                    s.start()
-                return {"pose_stream": _PoseStreamListener(pose.cfg.destinations[0][1]).start(),
-                        "natnet": _NatNetClient(natnet.command_port).start(),
-                        "vrpn": _VrpnClient(vrpn.port, arena.bodies[0].name).start()}
-
-            clients = await asyncio.to_thread(start)
+            await asyncio.to_thread(lambda: [s.start() for s in sinks])  # off the loop: nothing may delay a tick
             # the server calls every sink in its list at each tick; added between two ticks (this is its loop)
             server.sinks[0:0] = sinks
+            # the clients in a process of their own, as they would be: they must not share this one's GIL
+            clients = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "visionpos.benchmarks.bridge", str(pose.cfg.destinations[0][1]),
+                str(natnet.command_port), str(vrpn.port), arena.bodies[0].name,
+                stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE)
+            await clients.stdout.readline()  # "ready"
         try:
             await asyncio.sleep(OUTPUT_SETTLE_S)
             cpu0, pk0, tk0 = time.thread_time(), server.ingest.counters.packets, server.ticks
-            side0 = _server_threads_cpu_s()
-            fr0, t0 = {k: c.frames for k, c in clients.items()}, time.perf_counter()
-            await asyncio.sleep(ctx.duration_s - OUTPUT_SETTLE_S - OUTPUT_TAIL_S)
+            side0, t0 = _server_threads_cpu_s(), time.perf_counter()
+            fr0 = await _client_counts(clients)
+            await asyncio.sleep(max(0.5, t_end - time.monotonic()))
             cpu1, pk1, tk1 = time.thread_time(), server.ingest.counters.packets, server.ticks
-            side1 = _server_threads_cpu_s()
-            fr1, t1 = {k: c.frames for k, c in clients.items()}, time.perf_counter()
+            side1, t1 = _server_threads_cpu_s(), time.perf_counter()
+            fr1 = await _client_counts(clients)
         finally:
             for s in sinks:
                 server.sinks.remove(s)
-
-            def stop() -> None:  # joins threads: off the loop
-                for c in clients.values():
-                    c.stop()
-                for s in sinks:
-                    s.close()
-
-            await asyncio.to_thread(stop)
+            if clients is not None:
+                clients.stdin.close()
+                await clients.wait()
+            await asyncio.to_thread(lambda: [s.close() for s in sinks])  # joins threads: off the loop
         side_s = sum(side1[k] - side0[k] for k in side1 if k in side0)
         got.update(cpu_s=cpu1 - cpu0, side_cpu_s=side_s, packets=pk1 - pk0, ticks_hz=(tk1 - tk0) / (t1 - t0),
-                   clients_hz={k: (fr1[k] - fr0[k]) / (t1 - t0) for k in clients},
+                   clients_hz={k: (fr1[k] - fr0[k]) / (fr1["t"] - fr0["t"]) for k in fr1 if k != "t"},
                    sink_stats={type(s).__name__: s.stats() for s in sinks})
 
     summary = asyncio.run(run_demo(arena, duration_s, None, during=during))
@@ -502,3 +521,7 @@ def _report_outputs(res: BenchResult, quick: bool) -> None:
         "autopilot) are over the whole run; client rates over the measuring window. Foxglove (issue 16) is not "
         "implemented yet, so it is not measured."
     )
+
+
+if __name__ == "__main__":  # the clients of bench_outputs: python -m visionpos.benchmarks.bridge PORTS... BODY
+    _clients_main(int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4])
