@@ -9,6 +9,13 @@ autopilot; states with capture times on an exact 100 Hz grid are published as th
 wall clock reaches them, for a few seconds; the fake autopilots report the rate and stamp spacing the EKF would see;
 the bridge reports publish->send latency (time the state waited in the mailbox
 plus conversion and the send call).
+
+Outputs (issue 16): the demo's live chain on the thesis arena, same seed and duration, alternately
+without and with the pose stream, NatNet (unicast) and VRPN (TCP) on loopback, one client each in a
+separate process. Per run: the server's event-loop thread CPU time per received station packet, the
+CPU of its sender threads (MAVLink, NatNet, VRPN), output ticks/s, MAVLink poses/s at the fake
+autopilot and each client's frames/s. Goal: loop cost ratio <= 1.10, rates unchanged. Foxglove is
+not implemented yet and not measured.
 """
 
 from __future__ import annotations
