@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
-import logging
 import sys
 
+from visionpos.cli.serve import announce_listening, live_settings, run_listening
 from visionpos.errors import UsageError
-from visionpos.server.service import load_config_with_overrides, loopback_note, record_traffic, status_log
-from visionpos.server.settings import ServerSettings
+from visionpos.server.service import record_traffic
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -38,31 +36,14 @@ def output_path(args: argparse.Namespace) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    if status_log.level == logging.NOTSET:
-        status_log.setLevel(logging.INFO)
     out = output_path(args)
-    arena = load_config_with_overrides(args.config, args.set)
-    settings = ServerSettings.from_arena(arena)
-    if args.port is not None:
-        settings = settings.with_port(args.port)
-    if args.host is not None:
-        settings = settings.with_bind(args.host)
+    arena, settings = live_settings(args)
     listening_on: list[int] = []
 
     def listening(port: int) -> None:
         listening_on.append(port)
-        print(f"visionpos record: listening on udp {settings.bind}:{port}, recording to {out}; Ctrl-C to stop",
-              flush=True)
-        note = loopback_note(settings.bind)
-        if note is not None:
-            print(f"visionpos record: {note}", flush=True)
+        announce_listening("record", settings, port, f", recording to {out}")
 
-    try:
-        n = asyncio.run(record_traffic(arena, settings, out, None, args.duration, listening))
-    except OSError as e:
-        if listening_on:
-            raise
-        # port in use, bad address: the user's environment, not a bug
-        raise UsageError(e.strerror or str(e)) from None
+    n = run_listening(record_traffic(arena, settings, out, None, args.duration, listening), listening_on)
     print(f"visionpos record: {n} packets written to {out}", flush=True)
     return 0

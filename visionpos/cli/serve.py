@@ -5,11 +5,15 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+from typing import Any, Coroutine, TypeVar
 
 from visionpos.app.serve import serve
+from visionpos.config.arena import ArenaConfig
 from visionpos.errors import UsageError
 from visionpos.server.service import load_config_with_overrides, loopback_note, status_log
 from visionpos.server.settings import ServerSettings
+
+T = TypeVar("T")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -23,7 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="override a config key, e.g. server.output_rate_hz=50 (repeatable)")
 
 
-def run(args: argparse.Namespace) -> int:
+def live_settings(args: argparse.Namespace) -> tuple[ArenaConfig, ServerSettings]:
+    """The arena with --set applied, and its server settings with --port and --host applied (serve, record)."""
     if status_log.level == logging.NOTSET:
         status_log.setLevel(logging.INFO)
     arena = load_config_with_overrides(args.config, args.set)
@@ -32,24 +37,37 @@ def run(args: argparse.Namespace) -> int:
         settings = settings.with_port(args.port)
     if args.host is not None:
         settings = settings.with_bind(args.host)
+    return arena, settings
 
+
+def announce_listening(command: str, settings: ServerSettings, port: int, doing: str) -> None:
+    """The start-up line of a live command, and the loopback hint when it listens on loopback only."""
+    print(f"visionpos {command}: listening on udp {settings.bind}:{port}{doing}; Ctrl-C to stop", flush=True)
+    note = loopback_note(settings.bind)
+    if note is not None:
+        print(f"visionpos {command}: {note}", flush=True)
+
+
+def run_listening(main: Coroutine[Any, Any, T], listening_on: list[int]) -> T:
+    """asyncio.run(main); an OSError before the socket listened (port in use, bad address) is the user's
+    environment, not a bug: a one-line UsageError."""
+    try:
+        return asyncio.run(main)
+    except OSError as e:
+        if listening_on:
+            raise
+        raise UsageError(e.strerror or str(e)) from None
+
+
+def run(args: argparse.Namespace) -> int:
+    arena, settings = live_settings(args)
     listening_on: list[int] = []
 
     def listening(server) -> None:
         listening_on.append(server.port)
-        print(f"visionpos serve: listening on udp {settings.bind}:{server.port}"
-              + (f", recording to {args.record}" if args.record else "") + "; Ctrl-C to stop", flush=True)
-        note = loopback_note(settings.bind)
-        if note is not None:
-            print(f"visionpos serve: {note}", flush=True)
+        announce_listening("serve", settings, server.port, f", recording to {args.record}" if args.record else "")
 
-    try:
-        h = asyncio.run(serve(arena, settings, None, args.record, args.duration, listening))
-    except OSError as e:
-        if listening_on:
-            raise
-        # port in use, bad address: the user's environment, not a bug
-        raise UsageError(e.strerror or str(e)) from None
+    h = run_listening(serve(arena, settings, None, args.record, args.duration, listening), listening_on)
     print(f"visionpos serve: stopped after {h['packets']} packets ({h['frames_accepted']} frames accepted, "
           f"{h['frames_shed']} shed as backlog, {h['malformed']} malformed, {h['auth_failed']} failed auth, "
           f"{h['unknown']} unknown), {h['ticks']} output ticks", flush=True)
