@@ -158,13 +158,15 @@ def test_natnetsdk_unicast_bodies_poses_validity_rate_and_bitstream_change():
 
         sent = []
         drive(srv, 0.3, sent=sent)  # warm-up
+        time.sleep(0.2)  # the warm-up's frames still in flight arrive before the count starts
         n0 = len(got["frames"])
-        t0 = time.monotonic()
         k = drive(srv, 1.0, sent=sent)
         wait_for(lambda: len(got["frames"]) - n0 >= k, 1.0)
-        window = [f for t, f in got["frames"][n0:] if t - t0 < 1.05]
+        # the frames of that second, counted when they arrive: the client's reader thread may run late on a
+        # busy 2-core machine, so its receive times are not the send rate; a frame lost is still missing
+        window = [f for _, f in got["frames"][n0:]]
         assert k >= 0.95 * RATE_HZ
-        assert len(window) >= 0.9 * RATE_HZ, f"{len(window)} frames in 1 s at {RATE_HZ} Hz"
+        assert len(window) >= 0.9 * k, f"{len(window)} of the {k} frames sent in 1 s at {RATE_HZ} Hz"
         frame = got["frames"][-1][1]
         st = last_sent(sent, frame)
         by_id = {rb.id_num: rb for rb in frame.rigid_body_data.rigid_body_list}
