@@ -166,9 +166,18 @@ class OpenCVSource(FrameSource):
             self.cap = None
 
 
+def mid_exposure_offset_ns(exposure_us: float | None) -> int:
+    """Start of exposure -> mid-exposure: half the exposure time (µs, from the frame's metadata), in ns;
+    0 when the metadata has none."""
+    if exposure_us is None or not exposure_us > 0:
+        return 0
+    return int(round(float(exposure_us) * 500.0))
+
+
 class Picamera2Source(FrameSource):
     """Raspberry Pi camera through Picamera2/libcamera, manual exposure and
-    gain, stamped with the sensor's start-of-exposure timestamp."""
+    gain, stamped at mid-exposure: the sensor's start-of-exposure timestamp plus half the
+    frame's exposure time (a moving blob's centroid is where the marker was then)."""
 
     kind = "picamera2"
 
@@ -240,7 +249,8 @@ class Picamera2Source(FrameSource):
             raise SourceError(f"Pi camera capture failed: {e}") from None
         img = np.ascontiguousarray(yuv[: self.height, : self.width])  # the Y plane is the grey image
         ts = md.get("SensorTimestamp")
-        t = self._to_clock(int(ts)) if ts else self.clock() - self._offset_ns
+        t = self._to_clock(int(ts)) + mid_exposure_offset_ns(md.get("ExposureTime")) if ts \
+            else self.clock() - self._offset_ns
         return self._check_size(to_grey(img, "Pi camera"), "Pi camera"), t
 
     def close(self) -> None:
