@@ -16,24 +16,38 @@ from visionpos.calibration.bundle import WandCalibration
 from visionpos.calibration.intrinsics import IntrinsicsResult
 
 
-def progress_printer(enabled: bool = True) -> Callable[[str, int, int], None]:
-    """A ProgressFn(stage, done, total) that draws one bar per stage (tqdm when installed)."""
+def progress_printer(enabled: bool = True, stream=None) -> Callable[[str, int, int], None]:
+    """A ProgressFn(stage, done, total): one bar per stage on a terminal (tqdm when installed); into a log
+    or a pipe, whole lines at each tenth of a stage (a carriage return there runs the updates together)."""
     if not enabled:
         return lambda stage, done, total: None
+    out = sys.stderr if stream is None else stream
+    if not (hasattr(out, "isatty") and out.isatty()):
+        shown: dict[str, int] = {}
+
+        def lines(stage: str, done: int, total: int) -> None:
+            tenth = 10 if done >= total else (10 * done) // max(total, 1)
+            if tenth > shown.get(stage, -1):
+                shown[stage] = tenth
+                print(f"{stage}: {done}/{total} ({10 * tenth} %)", file=out, flush=True)
+            if done >= total:
+                shown.pop(stage, None)
+
+        return lines
     bars: dict[str, object] = {}
     try:
         from tqdm import tqdm
-    except ImportError:  # plain counter
+    except ImportError:  # plain counter, redrawn in place
         def plain(stage: str, done: int, total: int) -> None:
             end = "\n" if done >= total else ""
-            print(f"\r{stage}: {done}/{total}", end=end, file=sys.stderr, flush=True)
+            print(f"\r{stage}: {done}/{total}", end=end, file=out, flush=True)
 
         return plain
 
     def bar(stage: str, done: int, total: int) -> None:
         b = bars.get(stage)
         if b is None:
-            b = bars[stage] = tqdm(total=total, desc=stage, leave=True, file=sys.stderr)
+            b = bars[stage] = tqdm(total=total, desc=stage, leave=True, file=out)
         b.n = done  # type: ignore[attr-defined]
         b.refresh()  # type: ignore[attr-defined]
         if done >= total:
