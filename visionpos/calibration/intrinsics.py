@@ -322,7 +322,8 @@ def calibrate_images(
                     f"{other[0]}x{other[1]} (OpenCV's pattern size counts inner corners, --squares counts squares)")
         else:
             msg += ("; check the counts (--inner-corners counts the corners where four squares meet, as OpenCV's "
-                    "pattern size; --squares counts squares), that the whole board is in the image, sharp and evenly lit")
+                    "pattern size; --squares counts squares), and that the whole board is in the image, sharp and "
+                    "evenly lit")
         raise CalibrationError(msg)
     h, w = images[0][1].shape[:2]
     return calibrate_intrinsics(dets, board, (w, h), kind, max_views, fix_k3=fix_k3)
@@ -357,8 +358,8 @@ def model_warnings(res: IntrinsicsResult) -> list[str]:
         out.append(f"the principal point ({m.cx:.0f}, {m.cy:.0f}) is {abs(dx):.0f}, {abs(dy):.0f} px from the image "
                    "centre (more than 10 % of the image): the views probably did not cover the image evenly")
     if abs(m.fx / m.fy - 1) > 0.03:
-        out.append(f"fx {m.fx:.1f} and fy {m.fy:.1f} differ by {100 * abs(m.fx / m.fy - 1):.1f} % (square pixels differ "
-                   "by well under 1 %): add views with the board tilted both ways")
+        out.append(f"fx {m.fx:.1f} and fy {m.fy:.1f} differ by {100 * abs(m.fx / m.fy - 1):.1f} % (square pixels "
+                   "differ by well under 1 %): add views with the board tilted both ways")
     px = np.concatenate(res.pixels) if res.pixels else np.zeros((0, 2))
     if len(px):
         hull = cv2.convexHull(px.astype(np.float32))
