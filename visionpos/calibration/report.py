@@ -179,6 +179,41 @@ def plot_wand(cal: WandCalibration, path: str | Path, truth: list | None = None)
     plt.close(fig)
 
 
+def plot_ground(g, layout: np.ndarray, path: str | Path) -> None:
+    """PNG of the ground step (a calibration.ground.GroundResult) in the new world: cameras, every static point
+    found, the frame's markers as identified (numbered as in its layout) with the world axes, from above and
+    from the side."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.5))
+    C = np.array([c.center for c in g.cameras])
+    pts = g.static_points if g.static_points is not None else np.zeros((0, 3))
+    span = max(float(np.ptp(C[:, :2], axis=0).max()), 0.5)
+    for ax, (i, j), name in ((axes[0], (0, 1), "from above (x, y)"), (axes[1], (0, 2), "from the side (x, z)")):
+        ax.scatter(C[:, i], C[:, j], marker="^", c="k", s=50, label="cameras")
+        for c, p in zip(g.cameras, C):
+            ax.annotate(c.name, (p[i], p[j]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        if len(pts):
+            ax.scatter(pts[:, i], pts[:, j], c="0.6", s=12, label="static points")
+        ax.scatter(g.markers[:, i], g.markers[:, j], c="tab:red", s=30, label="frame markers")
+        for k, p in enumerate(g.markers):
+            ax.annotate(str(k), (p[i], p[j]), color="tab:red", fontsize=8, xytext=(4, -10), textcoords="offset points")
+        L = 0.15 * span
+        for axis, colour in ((0, "tab:red"), (1, "tab:green"), (2, "tab:blue")):
+            d = np.eye(3)[axis] * L
+            ax.annotate("", xy=(d[i], d[j]), xytext=(0, 0), arrowprops=dict(arrowstyle="->", color=colour, lw=2))
+        ax.set_title(name)
+        ax.set_xlabel("xyz"[i] + " (m)")
+        ax.set_ylabel("xyz"[j] + " (m)")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="best", fontsize=7)
+    std = "" if g.marker_std is None else f", markers measured to {1000 * float(np.max(g.marker_std)):.2f} mm"
+    fig.suptitle(f"ground frame: layout fit RMS {1000 * g.fit_rms:.2f} mm{std}; world axes x red, y green, z blue")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def plot_intrinsics(res: IntrinsicsResult, path: str | Path) -> None:
     """PNG: corner coverage over the image coloured by residual, residual scatter, per-view RMS."""
     plt = _pyplot()

@@ -86,6 +86,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--x-marker", type=int, default=None, help="marker index the world x axis points to [1]")
     g.add_argument("--marker-height", type=float, default=None,
                    help="height of the marker centres above the floor (m) [marker_diameter/2]")
+    g.add_argument("--tolerance-sigma", type=float, default=4.0,
+                   help="a measured distance matches the frame's when they differ by less than this many standard "
+                        "deviations of the difference (from the measured triangulation noise; default 4)")
+    g.add_argument("--frame-accuracy-mm", type=float, default=1.0,
+                   help="how well the frame's marker distances are known (mm, 1 sigma; default 1: a frame built "
+                        "with a ruler)")
+    g.add_argument("--plot", default=None, help="PNG of the cameras, the static points and the frame, from above and "
+                   "from the side")
 
 
 # -------------------------------------------------------------------- steps
@@ -202,9 +210,17 @@ def _run_ground(args) -> int:
     frames, arena, truth = capture_frames(args.recording, args.sim, "ground", args.set, args.config)
     layout, height = ground_layout(arena, args.frame, args.markers, args.marker_height)
     x_marker = args.x_marker if args.x_marker is not None else 1
-    g = calibrate_ground(frames, list(arena.cameras), layout, args.origin, x_marker, height)
+    if not args.tolerance_sigma > 0 or not args.frame_accuracy_mm >= 0:
+        raise UsageError("--tolerance-sigma must be > 0 and --frame-accuracy-mm >= 0")
+    if args.plot:
+        from visionpos.analysis.plots import _pyplot
+
+        _pyplot()  # matplotlib missing: say so before the work
+    g = calibrate_ground(frames, list(arena.cameras), layout, args.origin, x_marker, height,
+                         n_sigma=args.tolerance_sigma, layout_std=args.frame_accuracy_mm * 1e-3)
     print(f"ground frame: {len(layout)} markers found among {g.n_static} static points, layout fit RMS "
-          f"{g.fit_rms * 1000:.2f} mm")
+          f"{g.fit_rms * 1000:.2f} mm (markers measured to {1000 * float(g.marker_std.max()):.2f} mm, effective "
+          f"pixel error {g.sigma_px:.2f} px)")
     for c in g.cameras:
         C = c.center
         print(f"  {c.name:>10}: position {C[0]:+.4f} {C[1]:+.4f} {C[2]:+.4f} m")
@@ -217,6 +233,11 @@ def _run_ground(args) -> int:
                    "fit_rms_mm": round(g.fit_rms * 1000, 4)},
     })
     print(f"wrote {args.out}")
+    if args.plot:
+        from visionpos.calibration.report import plot_ground
+
+        plot_ground(g, layout, args.plot)
+        print(f"wrote {args.plot}")
     return 0
 
 
