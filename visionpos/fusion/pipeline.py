@@ -363,7 +363,7 @@ class FusionPipeline:
             self.loose_points = LoosePoints(ref, np.zeros((0, 3)), np.zeros(0))
             return
         xs = [o.xn[fr] for o, fr in zip(obs, free)]
-        pts, idx, rms = match_unlabeled(xs, R, t, focal_px, st.acquire_ray_distance_m, st.max_residual_px)
+        pts, idx, rms = match_unlabeled(xs, R, t, focal_px, st.acquire_ray_gate_px, st.max_residual_px)
         if not lost or len(pts) < 3:
             self.loose_points = LoosePoints(ref, pts, rms)
             return

@@ -9,11 +9,18 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from visionpos.config.arena import ArenaConfig, Section
+from visionpos.config.arena import ArenaConfig, ConfigError, Section
 from visionpos.config.overrides import merge_section
 from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, ms_to_ns, section
 from visionpos.fusion.timealign import MODES, MOTION_COMPENSATED
+
+# keys that no longer exist and cannot be renamed (their unit changed): the error says what to write
+REMOVED = {
+    "acquire_ray_distance_m": "removed: a gate in metres was too tight far from the cameras and too loose close "
+    "to them; the acquisition gate is now in pixels at each ray's range: write `fusion.acquire_ray_gate_px` "
+    "(default 3) instead",
+}
 
 KALMAN = section(
     "fusion.kalman",
@@ -53,8 +60,10 @@ FUSION = section(
     Setting("match_gate_px", "number", 12.0, "predicted marker -> blob association radius", min=0.1),
     Setting("max_residual_px", "number", 2.0, "a triangulated marker with a larger RMS reprojection residual "
             "is dropped", min=0.01),
-    Setting("acquire_ray_distance_m", "number", 0.01, "acquisition: two rays closer than this may see the "
-            "same marker", min=1e-5),
+    Setting("acquire_ray_gate_px", "number", 3.0, "acquisition: two rays may see the same marker when they pass "
+            "within this many pixels of each other at their ranges (metres: this x sqrt((r1/f1)^2 + (r2/f2)^2), "
+            "r the range along each ray, f the focal length in px); about 3 sigma of the blob and calibration "
+            "noise, and ~1.4 x max_residual_px, the RMS residual such a pair triangulates to", min=0.05, max=100.0),
     Setting("identify_tolerance_m", "number", 0.008, "identification: marker distances and Kabsch RMS within "
             "this", min=1e-5),
     Setting("min_markers", "integer", 3, "fewest markers for a pose (tracking) and for identification", min=3),
@@ -102,7 +111,7 @@ class FusionSettings:
     max_clock_lead_ns: int = FUSION["max_clock_lead_ms"].field_default
     match_gate_px: float = FUSION["match_gate_px"].field_default
     max_residual_px: float = FUSION["max_residual_px"].field_default
-    acquire_ray_distance_m: float = FUSION["acquire_ray_distance_m"].field_default
+    acquire_ray_gate_px: float = FUSION["acquire_ray_gate_px"].field_default
     identify_tolerance_m: float = FUSION["identify_tolerance_m"].field_default
     min_markers: int = FUSION["min_markers"].field_default
     loose_points: bool = FUSION["loose_points"].field_default
@@ -119,6 +128,9 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
         arena.section("fusion")  # raises a ConfigError naming the key
     data = merge_section(base, settings, "fusion")
     source = f"{arena.source} (+ overrides)" if settings else arena.source
+    for key, message in REMOVED.items():
+        if key in data:
+            raise ConfigError(source, f"fusion.{key}", message)
     s = FUSION.check(Section(data, source, "fusion"))
     kalman = KALMAN.parse(s.sub("kalman"))
     fps = [c.fps for c in arena.cameras] or [100.0]
