@@ -64,3 +64,73 @@ def test_metric_ray_gate_is_refused_with_the_new_key(arena_yaml):
         FusionPipeline(parse_arena(data, "old.yaml"), warm_up=False)
     data["fusion"] = {"acquire_ray_gate_px": 4.0}
     assert FusionPipeline(parse_arena(data, "new.yaml"), warm_up=False).settings.acquire_ray_gate_px == 4.0
+
+
+def _slow_stations(fps: float, duration: float = 3.0):
+    """The thesis hover with cameras configured at 100 Hz that deliver `fps`, phases spread over the interval."""
+    from visionpos.sim import load_scenario, simulate
+
+    period_ms = 1e3 / fps
+    sets = [f"sim.cameras.{c}.fps={fps}" for c in (1, 2, 3, 4)]
+    sets += [f"sim.cameras.{c}.phase_ms={k * period_ms / 4:.3f}" for k, c in enumerate((1, 2, 3, 4))]
+    sc = load_scenario("thesis", sets, session="hover", duration=duration)
+    assert all(c.fps == 100 for c in sc.arena.cameras)
+    return sc, simulate(sc)
+
+
+def test_stations_delivering_15_fps_of_a_configured_100_are_fused_and_tracked():
+    # issue 15: the fusion window was 1.2 x the configured period (12 ms); four cameras at 15 fps,
+    # 16.7 ms apart, never had two frames inside it, so the body was never tracked
+    from visionpos.benchmarks.fusion import errors, replay
+
+    sc, sim = _slow_stations(15.0)
+    rep = replay(sc.arena, sim.frames)
+    st = rep.pipeline.stats()
+    assert st["acquisitions"] >= 1 and st["measurements"] > 100
+    measured = rep.pipeline.aligner.measured_ns
+    assert set(measured) == {1, 2, 3, 4}
+    assert all(abs(m - 1e9 / 15) < 1e6 for m in measured.values())
+    assert rep.pipeline.aligner.window_ns == pytest.approx(1.2e9 / 15, rel=0.02)
+    late = rep.times_ns >= rep.times_ns[0] + 1_000_000_000  # after the first second
+    assert rep.tracked["quad"][late].all()
+    e = errors(rep, sc.truth_at, "quad")
+    assert e["pos_rmse_mm"] < 2.0
+
+
+def test_configured_rate_until_measured_and_fixed_window_kept():
+    from visionpos.fusion.timealign import TimeAligner
+
+    al = TimeAligner("motion_compensated", 0, 10 * MS, 30 * MS, periods_ns={1: 10 * MS, 2: 10 * MS},
+                     auto_window=True)
+    al.window_ns = 12 * MS
+    refused = []
+    for k in range(8):  # 7 intervals of 66 ms: not enough to trust
+        for cam, phase in ((1, 0), (2, 33 * MS)):
+            t = k * 66 * MS + phase
+            if al.admit(cam, t) is None:
+                al.add(cam, t)
+            else:
+                refused.append(cam)
+    # until measured, camera 2 (33 ms ahead, more than the 30 ms lead) looks like a clock jump
+    assert refused == [2] * 8
+    assert al.window_ns == 12 * MS and al.period_ns(1) == 10 * MS and al.period_ns(2) == 10 * MS
+    for k in range(8, 12):
+        for cam, phase in ((1, 0), (2, 33 * MS)):
+            t = k * 66 * MS + phase
+            assert al.admit(cam, t) is None  # 33 ms ahead of the other camera: not a clock jump
+            al.add(cam, t)
+    assert al.period_ns(1) == al.period_ns(2) == 66 * MS and al.window_ns == int(1.2 * 66 * MS)
+    # lost frames (132 ms intervals) do not move the median
+    for k in range(12, 21):
+        for cam, phase in ((1, 0), (2, 33 * MS)):
+            if cam == 1 and k % 2:
+                continue
+            assert al.admit(cam, k * 66 * MS + phase) is None
+            al.add(cam, k * 66 * MS + phase)
+    assert al.period_ns(1) == 66 * MS
+    # a window set in the config stays as set
+    fixed = TimeAligner("motion_compensated", 8 * MS, 10 * MS, 30 * MS, periods_ns={1: 10 * MS})
+    for k in range(20):
+        assert fixed.admit(1, k * 66 * MS) is None
+        fixed.add(1, k * 66 * MS)
+    assert fixed.window_ns == 8 * MS and fixed.period_ns(1) == 66 * MS

@@ -52,7 +52,8 @@ FUSION = section(
             "grouping on a fixed grid (the baseline)", choices=MODES),
     Setting("window_ms", "number", 0.0, "frames of other cameras captured within this of the newest are "
             "fused with it", field="window_ns", convert=ms_to_ns, min=0.0, max=1000.0,
-            auto="1.2 x the slowest camera's frame period"),
+            auto="1.2 x the slowest camera's measured frame interval (its configured fps until measured), so "
+            "stations that deliver fewer frames than configured are still fused"),
     Setting("naive_grid_hz", "number", 0.0, "naive grouping grid", field="grid_ns",
             convert=lambda hz: int(1e9 / hz), min=0.0, max=10000.0, auto="the fastest camera's rate"),
     Setting("max_clock_lead_ms", "number", 30.0, "a frame stamped this far ahead of all other cameras is a "
@@ -103,10 +104,13 @@ class KalmanSettings:
 
 @dataclass(frozen=True)
 class FusionSettings:
-    """Validated `fusion:` section (SI units). window_ns and grid_ns are 0 until derived from the cameras."""
+    """Validated `fusion:` section (SI units). window_ns and grid_ns are 0 until derived from the cameras;
+    auto_window: window_ms was 0, so the window follows the cameras' measured frame intervals
+    (timealign.py) and window_ns is only its starting value."""
 
     time_alignment: str = FUSION["time_alignment"].field_default
     window_ns: int = FUSION["window_ms"].field_default
+    auto_window: bool = True
     grid_ns: int = FUSION["naive_grid_hz"].field_default
     max_clock_lead_ns: int = FUSION["max_clock_lead_ms"].field_default
     match_gate_px: float = FUSION["match_gate_px"].field_default
@@ -135,6 +139,7 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
     kalman = KALMAN.parse(s.sub("kalman"))
     fps = [c.fps for c in arena.cameras] or [100.0]
     derived = {"window_ms": 1.2e3 / min(fps), "naive_grid_hz": max(fps)}
-    return FusionSettings(**FUSION.parse(s, derived), kalman=KalmanSettings(**kalman))
+    auto_window = FUSION["window_ms"].read(s) == 0
+    return FusionSettings(**FUSION.parse(s, derived), auto_window=auto_window, kalman=KalmanSettings(**kalman))
 
 register_section("fusion", FUSION)
