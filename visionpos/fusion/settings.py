@@ -63,8 +63,8 @@ FUSION = section(
             "is dropped", min=0.01),
     Setting("acquire_ray_gate_px", "number", 3.0, "acquisition: two rays may see the same marker when they pass "
             "within this many pixels of each other at their ranges (metres: this x sqrt((r1/f1)^2 + (r2/f2)^2), "
-            "r the range along each ray, f the focal length in px); about 3 sigma of the blob and calibration "
-            "noise, and ~1.4 x max_residual_px, the RMS residual such a pair triangulates to", min=0.05, max=100.0),
+            "r the range along each ray, f the focal length in px); the default is about sqrt(2) x max_residual_px: "
+            "a pair further apart triangulates to a larger RMS residual than that", min=0.05, max=100.0),
     Setting("identify_tolerance_m", "number", 0.008, "identification: marker distances and Kabsch RMS within "
             "this", min=1e-5),
     Setting("min_markers", "integer", 3, "fewest markers for a pose (tracking) and for identification", min=3),
