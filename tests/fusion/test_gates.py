@@ -57,6 +57,35 @@ def test_body_on_the_floor_far_from_two_cameras_is_acquired(arena_yaml):
     assert np.linalg.norm(state.position - [0.0, 7.0, 0.0]) < 0.05
 
 
+def test_wrong_pairing_up_close_is_refused(arena_yaml):
+    # 1.1 m from two cameras, camera 2 sees a marker 8 mm above the one camera 1 sees: their rays
+    # pass ~8 mm apart, inside the old fixed 10 mm gate, which paired them into a phantom loose
+    # marker (with a rough calibration's residual gate of 4 px); 3 px at 1.1 m is ~6 mm
+    data = arena_yaml("thesis")
+    cam = {"model": "pinhole", "width": 960, "height": 640, "fx": 740.0, "fy": 740.0, "cx": 480.0, "cy": 320.0,
+           "dist": [0.0, 0.0, 0.0, 0.0, 0.0], "fps": 100}
+    data["cameras"] = [
+        {**cam, "id": 1, "name": "left", "pose": {"position": [-0.5, 0.0, 1.0], "look_at": [0.0, 1.0, 1.0]}},
+        {**cam, "id": 2, "name": "right", "pose": {"position": [0.5, 0.0, 1.0], "look_at": [0.0, 1.0, 1.0]}},
+    ]
+    data.pop("sim", None)
+    data["fusion"] = {"max_residual_px": 4.0}
+    arena = parse_arena(data, "close.yaml")
+    proj = {c.id: Projector(c) for c in arena.cameras}
+    marker = np.array([[0.0, 1.0, 1.0]])
+
+    def loose(seen_by_2):
+        pipe = FusionPipeline(arena, warm_up=False)
+        for k, (cid, X) in enumerate(((1, marker), (2, seen_by_2))):
+            px = proj[cid].project(X)
+            # 11 ms apart: the second frame is past acquire_interval_ms and inside the window
+            pipe.push(BlobFrame(cid, 0, 10**9 + k * 11 * MS, np.column_stack([px, [3.0], [200.0]]), cid))
+        return pipe.loose_points.points
+
+    assert len(loose(marker)) == 1  # the right pairing
+    assert len(loose(marker + [0.0, 0.0, 0.008])) == 0
+
+
 def test_metric_ray_gate_is_refused_with_the_new_key(arena_yaml):
     data = arena_yaml("thesis")
     data["fusion"] = {"acquire_ray_distance_m": 0.02}
