@@ -118,10 +118,10 @@ class TimeAligner:
         self.max_lead_ns = self.configured_lead_ns = int(max_lead_ns)
         self.auto_window = bool(auto_window)
         self.max_window_ns = int(max_window_ns)
-        self._intervals: dict[int, list[int]] = {}  # camera -> its last capture intervals (ring)
-        self._n_intervals: dict[int, int] = {}  # camera -> intervals seen
+        # camera -> [capture_ns of its previous frame (admitted or not), intervals seen, the last
+        # _INTERVALS of them (a ring)]: one lookup per frame
+        self._rate: dict[int, list] = {}
         self.measured_ns: dict[int, int] = {}  # camera -> measured frame interval (median)
-        self._seen: dict[int, int] = {}  # camera -> capture_ns of its previous frame, admitted or not
         self.latest: dict[int, int] = {}  # camera -> capture_ns of its stored frame
         self.newest_ns: int | None = None  # newest admitted capture time
         self._last_cam: int | None = None
@@ -141,10 +141,22 @@ class TimeAligner:
         # the interval is measured on every frame, refused ones too: a camera whose every frame is
         # refused as a clock jump only because its real interval is longer than configured must not
         # stay refused for want of a measurement (a real jump is one outlier of the median)
-        seen = self._seen.get(camera_id)
-        self._seen[camera_id] = capture_ns
-        if seen is not None and capture_ns > seen:
-            self._measure(camera_id, capture_ns - seen)
+        rate = self._rate.get(camera_id)
+        if rate is None:
+            self._rate[camera_id] = [capture_ns, 0, []]
+        else:
+            interval = capture_ns - rate[0]
+            rate[0] = capture_ns
+            if 0 < interval <= _MAX_INTERVAL_NS:  # longer: an outage, not a frame interval
+                n = rate[1]
+                if n < _INTERVALS:
+                    rate[2].append(interval)
+                else:
+                    rate[2][n % _INTERVALS] = interval
+                n += 1
+                rate[1] = n
+                if n >= _MIN_INTERVALS and not n & 3:  # the median every 4th frame: cheap, and fresh enough
+                    self._measured(camera_id, sorted(rate[2])[len(rate[2]) // 2])
         if prev_cam != camera_id:
             self._solo_start = capture_ns
         latest = self.latest
@@ -208,23 +220,10 @@ class TimeAligner:
             self.newest_ns = capture_ns if self.newest_ns is None else max(self.newest_ns, capture_ns)
         return before, after
 
-    def _measure(self, camera_id: int, interval_ns: int) -> None:
-        """One capture interval of a camera; every few frames its median becomes its interval."""
-        if interval_ns > _MAX_INTERVAL_NS:
-            return
-        ring = self._intervals.get(camera_id)
-        if ring is None:
-            ring = self._intervals[camera_id] = []
-        n = self._n_intervals.get(camera_id, 0)
-        if len(ring) < _INTERVALS:
-            ring.append(interval_ns)
-        else:
-            ring[n % _INTERVALS] = interval_ns
-        n += 1
-        self._n_intervals[camera_id] = n
-        if n >= _MIN_INTERVALS and n % 4 == 0:  # a median of 16 every 4th frame: cheap, and fresh enough
-            self.measured_ns[camera_id] = self.periods_ns[camera_id] = sorted(ring)[len(ring) // 2]
-            self._refresh()
+    def _measured(self, camera_id: int, interval_ns: int) -> None:
+        """A camera's new measured frame interval: the window and lead follow."""
+        self.measured_ns[camera_id] = self.periods_ns[camera_id] = interval_ns
+        self._refresh()
 
     def period_ns(self, camera_id: int) -> int | None:
         """The camera's frame interval: measured, else configured (None: neither)."""
@@ -273,9 +272,7 @@ class TimeAligner:
         self.latest.pop(camera_id, None)
         self._pending.pop(camera_id, None)
         self._ahead.pop(camera_id, None)
-        self._intervals.pop(camera_id, None)
-        self._seen.pop(camera_id, None)
-        self._n_intervals.pop(camera_id, None)
+        self._rate.pop(camera_id, None)
         self.measured_ns.pop(camera_id, None)
         if camera_id in self.configured_ns:
             self.periods_ns[camera_id] = self.configured_ns[camera_id]
