@@ -208,6 +208,7 @@ def _run_ground(args) -> int:
     if args.config is None:
         raise UsageError("ground needs --config: the arena YAML written by `visionpos calibrate wand`")
     frames, arena, truth = capture_frames(args.recording, args.sim, "ground", args.set, args.config)
+    arena.require_poses("the ground step")
     layout, height = ground_layout(arena, args.frame, args.markers, args.marker_height)
     x_marker = args.x_marker if args.x_marker is not None else 1
     if not args.tolerance_sigma > 0 or not args.frame_accuracy_mm >= 0:

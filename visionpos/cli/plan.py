@@ -41,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.noise_px > 0:
         raise UsageError(f"--noise-px {args.noise_px}: must be > 0")
     arena = load_arena(args.config)
+    arena.require_poses("the planner")
     if len(arena.cameras) < 2:
         raise UsageError(f"{arena.source}: the planner needs at least 2 cameras, the file has {len(arena.cameras)}")
     if args.volume is None:

@@ -53,7 +53,9 @@ CAMERA = section(
     Setting("cy", "number", doc="principal point y (px)"),
     Setting("dist", "array", [], "distortion coefficients in OpenCV's order (see the lens models)",
             default_doc="[] (none)"),
-    Setting("pose", "section", doc="camera position and orientation", spec=CAMERA_POSE),
+    Setting("pose", "section", None, "camera position and orientation. Leave it out before the cameras are "
+            "calibrated: `visionpos record` records a wand wave without poses and `visionpos calibrate wand` finds "
+            "them; fusion, serving and planning need every pose", spec=CAMERA_POSE, default_doc="(not calibrated yet)"),
 )
 
 BODY_OCCLUSION = section(

@@ -122,6 +122,7 @@ class FusionPipeline:
 
     def __init__(self, arena: ArenaConfig, settings: dict[str, Any] | None = None, warm_up: bool = True):
         self.arena = arena
+        arena.require_poses("fusion")
         if len(arena.cameras) < 2:
             raise ConfigError(arena.source, "cameras", f"fusion needs at least 2 cameras, the arena has "
                               f"{len(arena.cameras)}; add the calibrated cameras "

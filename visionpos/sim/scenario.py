@@ -304,6 +304,7 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
     overrides: sim keys to replace (e.g. duration=5, seed=3, centroid_noise_px=0),
     applied before validation so bad values are reported like config errors.
     """
+    arena.require_poses("the simulator")
     raw_sim = dict(arena.raw.get("sim") or {})
     raw_sim.update(overrides)
     if session is not None:
