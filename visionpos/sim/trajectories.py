@@ -20,8 +20,8 @@ Kinds (the `trajectory:` key of a session entry in the `sim` section):
               (roll reversals of +-30 deg), height bob, yaw swinging at up to
               `peak_yaw_rate_deg` deg/s (default 180)
   dash        an indoor MAV flying point to point between `waypoints` the way
-              a multirotor does: acceleration ramped to `max_accel` (4 m/s^2)
-              within `ramp` (0.25 s), i.e. pitch/roll flicks of ~22 deg, coast
+              a multirotor does: acceleration ramped to `max_accel` (5 m/s^2)
+              within `ramp` (0.2 s), i.e. pitch/roll flicks of ~27 deg, coast
               at `peak_speed` (2 m/s), brake as hard; the heading turns by up
               to 180 deg per leg at up to `peak_yaw_rate_deg` (180 deg/s),
               yaw rate ramped as fast; `pause` s of hover at each waypoint
@@ -396,18 +396,18 @@ class Dash(Trajectory):
 
     Each leg is flown the way a multirotor does it: the acceleration ramps to
     `max_accel` m/s^2 within `ramp` s (with the defaults the drone pitches/rolls
-    22 deg into the leg in 0.25 s), holds until `peak_speed` m/s, coasts upright,
+    27 deg into the leg in 0.2 s), holds until `peak_speed` m/s, coasts upright,
     then brakes as hard, tilting back the other way (_BangCoastBang:
     jerk-limited, so the body rate is continuous but changes fast: tilt rates
-    of ~190 deg/s, angular accelerations of thousands of deg/s^2).
+    of ~300 deg/s, angular accelerations of ~4000 deg/s^2).
     Meanwhile the heading turns by up to 180 deg, left on even legs and right
     on odd ones, with the yaw rate ramping to `peak_yaw_rate` rad/s within
     `ramp` s."""
 
     waypoints: np.ndarray
     peak_speed: float = 2.0
-    max_accel: float = 4.0
-    ramp: float = 0.25
+    max_accel: float = 5.0
+    ramp: float = 0.2
     peak_yaw_rate: float = np.pi
     pause: float = 0.3
 
@@ -615,8 +615,8 @@ def from_config(s: Section, rng: np.random.Generator) -> Trajectory:
         out = Dash(
             wp,
             s.number("peak_speed", 2.0, min=0.01, max=50.0),
-            s.number("max_accel", 4.0, min=0.01, max=100.0),
-            s.number("ramp", 0.25, min=0.005, max=10.0),
+            s.number("max_accel", 5.0, min=0.01, max=100.0),
+            s.number("ramp", 0.2, min=0.005, max=10.0),
             np.radians(s.number("peak_yaw_rate_deg", 180.0, min=0.0, max=3600.0)),
             s.number("pause", 0.3, min=0.0),
         )
