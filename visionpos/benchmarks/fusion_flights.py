@@ -113,12 +113,15 @@ def path_crb(sc, sim, body_name: str, times_ns: np.ndarray) -> tuple[float, floa
     return float(np.sqrt(np.mean(pos_var)) * 1e3), float(np.degrees(np.sqrt(np.mean(rot_var))))
 
 
-def fly(session: str, duration_s: float, seed: int, settings: dict | None = None) -> dict[str, float]:
-    """One flight of the thesis arena's `session` through the pipeline: errors, bound, stall (see the module)."""
+def fly(session: str, duration_s: float, seed: int, settings: dict | None = None,
+        overrides: list[str] | None = None) -> dict[str, float]:
+    """One flight of the thesis arena's `session` through the pipeline: errors, bound, stall (see the module).
+
+    settings: fusion settings for the pipeline; overrides: `--set` style changes of the arena file."""
     from visionpos.benchmarks.fusion import replay
     from visionpos.sim import load_scenario, simulate
 
-    sc = load_scenario("thesis", session=session, duration=duration_s, seed=seed)
+    sc = load_scenario("thesis", overrides, session=session, duration=duration_s, seed=seed)
     sim = simulate(sc)
     name = sc.arena.bodies[0].name
     accepted: list[int] = []
