@@ -24,12 +24,17 @@ the noise is scaled by a running average of the normalised innovation
 squared (NIS, separately for position and orientation): while the model fits
 the measurements NIS/dof ~ 1 and the floor `jerk_psd` / `angular_accel_psd`
 smooths hard; a manoeuvre makes NIS grow and the process noise follows
-within a few updates (bounded by `max_noise_scale`). The position scale
-also listens to an image-space detector (report_image_nis): each new
-frame's markers predicted to its capture time against the blobs found. That
-view is uncompensated, so motion compensation (which uses this filter's own
-velocity) cannot pull it towards the prediction and hide a lag the way it
-can for the fused pose.
+within a few updates (bounded by `max_noise_scale`). Both scales also
+listen to an image-space detector (report_image_nis): each new frame's
+markers predicted to its capture time against the blobs found. That view is
+uncompensated, so motion compensation (which uses this filter's own velocity
+and angular rate) cannot pull it towards the prediction and hide a lag the
+way it can for the fused pose. Its residual is split: the markers' common
+shift is a position lag and raises the position noise, their spread about it
+is an orientation lag and raises the rotation noise. (Sending it all to the
+position noise, as before issue 15, left the orientation of a drone flicking
+its attitude at ~300 deg/s with its noise at the floor: its rate lagged by
+radians per second and the 6-dof gate refused every measurement for 30-40 ms.)
 
 The measurement is a 6-DoF pose [p, log(R_meas R_nom^T)] with a covariance
 given by the caller (pipeline.py estimates it from the rigid-body fit).
