@@ -441,7 +441,7 @@ def report_image_nis(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t
 class FilterBank:
     """The states of n body filters, one row each, so that compiled kernels update them in place.
 
-    x (n, 15), P (n, 15, 15), R_nom (n, 3, 3); adapt (n, 5): process-noise scales
+    x (n, 15), P (n, 15, 15), R_nom (n, 3, 3); adapt (n, 6): process-noise scales
     and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img, nis_img_r]; clock (n, 3) int64:
     [filter time ns, last image-NIS time ns, folds]; params (8,): [jerk_psd,
     angular_accel_psd, max_noise_scale, nis_time_constant_s, gate_chi2, then the prior
