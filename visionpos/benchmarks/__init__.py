@@ -64,6 +64,16 @@ GOALS: list[Goal] = [
         "3 m/s: position RMSE (mm) vs naive grouping",
         "fusion_fast_pos_rmse_mm_naive",
     ),
+    Goal("fusion_flights_slalom_pos_over_crb", "<=", 1.2, "slalom flight: position RMSE / CRB along the path"),
+    Goal("fusion_flights_slalom_rot_over_crb", "<=", 1.0, "slalom flight: rotation RMSE / CRB along the path"),
+    Goal("fusion_flights_slalom_max_err_mm", "<=", 4.0, "slalom flight: maximum position error (mm)"),
+    Goal("fusion_flights_slalom_max_gap_periods", "<=", 2.0, "slalom flight: longest time with no accepted "
+         "measurement while >= 2 cameras see >= 3 markers (frame periods)"),
+    Goal("fusion_flights_dash_pos_over_crb", "<=", 1.2, "dash flight: position RMSE / CRB along the path"),
+    Goal("fusion_flights_dash_rot_over_crb", "<=", 1.0, "dash flight: rotation RMSE / CRB along the path"),
+    Goal("fusion_flights_dash_max_err_mm", "<=", 4.0, "dash flight: maximum position error (mm)"),
+    Goal("fusion_flights_dash_max_gap_periods", "<=", 2.0, "dash flight: longest time with no accepted "
+         "measurement while >= 2 cameras see >= 3 markers (frame periods)"),
     Goal("fusion_latency_p99_ms", "<=", 2.0, "processing latency per packet p99 (ms), 4 cams x 100 Hz x 2 bodies"),
     Goal("fusion_max_packets_per_s", ">=", 3000, "sustained packets/s on one core, 3 bodies"),
     Goal("bridge_rate_hz_min", ">=", 49.5, "MAVLink rate per vehicle (Hz), default 50"),

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from visionpos.analysis.metrics import position_jitter
-from visionpos.benchmarks import BenchResult
+from visionpos.benchmarks import BenchResult, fusion_flights
 from visionpos.config.arena import ArenaConfig
 from visionpos.fusion.pipeline import FusionPipeline
 from visionpos.messages import BlobFrame
@@ -439,6 +439,7 @@ def run(quick: bool = False) -> BenchResult:
     res = BenchResult()
     _static(quick, res)
     _fast(quick, res)
+    fusion_flights.run(quick, res)
     _arena8(quick, res)
     _latency(quick, res)
     _throughput(quick, res)

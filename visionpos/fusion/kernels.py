@@ -52,6 +52,7 @@ from visionpos.fusion.layout import (
     POSE_ROT,
     POSE_ROT0,
     RATE0,
+    ROT_ERR0,
     STATE_DT_S,
     STATE_R_NOM,
     STATE_R_NOM0,
@@ -242,16 +243,20 @@ def _observe_frame(px: np.ndarray, dt_s: float, motion: np.ndarray, tracked: tup
         n_bodies = bodies.shape[0]
         exp_px = np.empty(n_bodies)
         exp_pos = np.empty(n_bodies)
+        exp_rot = np.empty(n_bodies)
         for i in range(n_bodies):
             b = bodies[i]
             exp_px[i] = track_floats[b, TRACK_PX_VAR]
             exp_pos[i] = (P[b, POS0, POS0] + P[b, POS0 + 1, POS0 + 1] + P[b, POS0 + 2, POS0 + 2]) / 3.0
+            exp_rot[i] = (P[b, ROT_ERR0, ROT_ERR0] + P[b, ROT_ERR0 + 1, ROT_ERR0 + 1]
+                          + P[b, ROT_ERR0 + 2, ROT_ERR0 + 2]) / 3.0
         focal_px = math.sqrt(intrinsics[INTRINSICS_FX] * intrinsics[INTRINSICS_FY])
-        nis, n = _image_nis(Xw, pred, px, blob_of, body_of_row, exp_px, exp_pos, R[2], t[2], focal_px)
+        nis, nis_rot, n = _image_nis(Xw, pred, px, blob_of, body_of_row, exp_px, exp_pos, exp_rot, R[2], t[2],
+                                     focal_px)
         for i in range(n_bodies):
             if n[i] >= 2:
                 b = bodies[i]
-                report_image_nis(adapt[b], clock[b], kalman, t_ns, nis[i])
+                report_image_nis(adapt[b], clock[b], kalman, t_ns, nis[i], nis_rot[i])
     return xn, label
 
 
@@ -267,19 +272,31 @@ def _scaled_pose_cov(cov_unit: np.ndarray, var: float, var_p: float, var_r: floa
 
 @njit
 def _image_nis(Xw: np.ndarray, pred: np.ndarray, px: np.ndarray, blob_of: np.ndarray, body_of_row: np.ndarray,
-               exp_px: np.ndarray, exp_pos: np.ndarray, R2: np.ndarray, t2: float,
-               focal_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """One frame's prediction residual per body over its expected size, per degree of freedom.
+               exp_px: np.ndarray, exp_pos: np.ndarray, exp_rot: np.ndarray, R2: np.ndarray, t2: float,
+               focal_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One frame's prediction residual per body over its expected size, per degree of freedom,
+    split into translation and rotation.
 
     Xw (M, 3) predicted markers, pred (M, 2) their pixels, px (N, 2) blobs, blob_of (M,)
     associated blob or -1, body_of_row (M,) body of each row; per body (B,): pixel noise
-    variance exp_px and position variance exp_pos; R2 (3,), t2, focal_px: the camera's
-    optical-axis row, its translation and focal length (depth -> pixels).
-    Returns mean NIS (B,) and the number of markers behind it (B,).
+    variance exp_px, position variance exp_pos and rotation variance exp_rot (rad^2, per
+    axis); R2 (3,), t2, focal_px: the camera's optical-axis row, its translation and focal
+    length (depth -> pixels).
+
+    A position error moves a body's markers together: the mean residual d_mean (2 dof,
+    expected 2 (exp_px / n + f^2 exp_pos / z^2)). An orientation error turns them about
+    the body: the residuals' spread about their mean (2 (n - 1) dof, expected
+    2 (n - 1) exp_px + 4/3 f^2 exp_rot sum |X - X_mean|^2 / z^2 for a random rotation
+    error seen from one side). Judging them apart sends each lag to its own process noise.
+    Returns the translation NIS (B,), the rotation NIS (B,) and the markers behind them (B,).
     """
     n_bodies = exp_px.shape[0]
-    nis = np.zeros(n_bodies)
     n = np.zeros(n_bodies, dtype=np.int64)
+    d_sum = np.zeros((n_bodies, 2))
+    d2_sum = np.zeros(n_bodies)
+    x_sum = np.zeros((n_bodies, 3))
+    x2_sum = np.zeros(n_bodies)
+    inv_z2 = np.zeros(n_bodies)
     for q in range(blob_of.shape[0]):
         j = blob_of[q]
         if j < 0:
@@ -287,12 +304,29 @@ def _image_nis(Xw: np.ndarray, pred: np.ndarray, px: np.ndarray, blob_of: np.nda
         b = body_of_row[q]
         z = max(Xw[q, 0] * R2[0] + Xw[q, 1] * R2[1] + Xw[q, 2] * R2[2] + t2, 0.1)
         du, dv = px[j, 0] - pred[q, 0], px[j, 1] - pred[q, 1]
-        nis[b] += (du * du + dv * dv) / (2.0 * (exp_px[b] + focal_px * focal_px * exp_pos[b] / (z * z)))
+        d_sum[b, 0] += du
+        d_sum[b, 1] += dv
+        d2_sum[b] += du * du + dv * dv
+        for k in range(3):
+            x_sum[b, k] += Xw[q, k]
+            x2_sum[b] += Xw[q, k] * Xw[q, k]
+        inv_z2[b] += 1.0 / (z * z)
         n[b] += 1
+    nis = np.zeros(n_bodies)
+    nis_rot = np.zeros(n_bodies)
+    f2 = focal_px * focal_px
     for b in range(n_bodies):
-        if n[b] > 0:
-            nis[b] /= n[b]
-    return nis, n
+        m = n[b]
+        if m == 0:
+            continue
+        iz2 = inv_z2[b] / m
+        mean2 = (d_sum[b, 0] * d_sum[b, 0] + d_sum[b, 1] * d_sum[b, 1]) / (m * m)
+        nis[b] = mean2 / (2.0 * (exp_px[b] / m + f2 * exp_pos[b] * iz2))
+        if m >= 2:
+            spread2 = max(d2_sum[b] - m * mean2, 0.0)  # sum |d - d_mean|^2
+            lever2 = max(x2_sum[b] - dot3(x_sum[b], x_sum[b]) / m, 0.0)  # sum |X - X_mean|^2
+            nis_rot[b] = spread2 / (2.0 * (m - 1) * exp_px[b] + (4.0 / 3.0) * f2 * exp_rot[b] * lever2 * iz2)
+    return nis, nis_rot, n
 
 
 @njit

@@ -30,9 +30,10 @@ POSE_P, POSE_ROT = slice(0, 3), slice(3, 6)
 POSE_ROT0 = 3
 
 # ---------------------------------------------------------------- FilterBank rows (tracking.py)
-# adapt (n, 5) float: process-noise scales and NIS averages
-ADAPT_SCALE_P, ADAPT_SCALE_R, ADAPT_NIS_P, ADAPT_NIS_R, ADAPT_NIS_IMG = range(5)
-N_ADAPT = 5
+# adapt (n, 6) float: process-noise scales and NIS averages (fused pose: position, rotation; image: the
+# translation and the rotation part of the residual)
+ADAPT_SCALE_P, ADAPT_SCALE_R, ADAPT_NIS_P, ADAPT_NIS_R, ADAPT_NIS_IMG, ADAPT_NIS_IMG_R = range(6)
+N_ADAPT = 6
 # clock (n, 3) int64: filter time ns, last image-NIS time ns, folds of the rotation error since the start
 CLOCK_T_NS, CLOCK_IMG_T_NS, CLOCK_FOLDS = range(3)
 N_CLOCK = 3

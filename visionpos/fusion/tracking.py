@@ -24,12 +24,17 @@ the noise is scaled by a running average of the normalised innovation
 squared (NIS, separately for position and orientation): while the model fits
 the measurements NIS/dof ~ 1 and the floor `jerk_psd` / `angular_accel_psd`
 smooths hard; a manoeuvre makes NIS grow and the process noise follows
-within a few updates (bounded by `max_noise_scale`). The position scale
-also listens to an image-space detector (report_image_nis): each new
-frame's markers predicted to its capture time against the blobs found. That
-view is uncompensated, so motion compensation (which uses this filter's own
-velocity) cannot pull it towards the prediction and hide a lag the way it
-can for the fused pose.
+within a few updates (bounded by `max_noise_scale`). Both scales also
+listen to an image-space detector (report_image_nis): each new frame's
+markers predicted to its capture time against the blobs found. That view is
+uncompensated, so motion compensation (which uses this filter's own velocity
+and angular rate) cannot pull it towards the prediction and hide a lag the
+way it can for the fused pose. Its residual is split: the markers' common
+shift is a position lag and raises the position noise, their spread about it
+is an orientation lag and raises the rotation noise. (Sending it all to the
+position noise, as before issue 15, left the orientation of a drone flicking
+its attitude at ~300 deg/s with its noise at the floor: its rate lagged by
+radians per second and the 6-dof gate refused every measurement for 30-40 ms.)
 
 The measurement is a 6-DoF pose [p, log(R_meas R_nom^T)] with a covariance
 given by the caller (pipeline.py estimates it from the rigid-body fit).
@@ -45,6 +50,7 @@ import numpy as np
 from visionpos.fusion.layout import (
     ACC0,
     ADAPT_NIS_IMG,
+    ADAPT_NIS_IMG_R,
     ADAPT_NIS_P,
     ADAPT_NIS_R,
     ADAPT_SCALE_P,
@@ -380,7 +386,9 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
     adapt[ADAPT_NIS_P] += alpha * (min(nis_p, cap) - adapt[ADAPT_NIS_P])
     adapt[ADAPT_NIS_R] += alpha * (min(nis_r, cap) - adapt[ADAPT_NIS_R])
     # the image-space detector (report_image_nis) sees lag the fused pose can hide
-    nis_img = adapt[ADAPT_NIS_IMG] if t_ns - clock[CLOCK_IMG_T_NS] < _IMG_NIS_FRESH_NS else 0.0
+    fresh = t_ns - clock[CLOCK_IMG_T_NS] < _IMG_NIS_FRESH_NS
+    nis_img = adapt[ADAPT_NIS_IMG] if fresh else 0.0
+    nis_img_r = adapt[ADAPT_NIS_IMG_R] if fresh else 0.0
     # NIS/dof ~ 1 says nothing about q while the measurement noise dominates the
     # innovation (a hovering body), so only a clear excess (> _NIS_HIGH) raises q:
     # innovations k x too big -> q x k^3 per averaging time (CA/CV scaling laws);
@@ -388,7 +396,8 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
     decay = math.exp(-max(dt, 0.0) / _SCALE_DECAY_S)
     max_scale = params[KALMAN_MAX_SCALE]
     adapt[ADAPT_SCALE_P] = _adapt_scale(adapt[ADAPT_SCALE_P], max(adapt[ADAPT_NIS_P], nis_img), alpha, decay, max_scale)
-    adapt[ADAPT_SCALE_R] = _adapt_scale(adapt[ADAPT_SCALE_R], adapt[ADAPT_NIS_R], alpha, decay, max_scale)
+    adapt[ADAPT_SCALE_R] = _adapt_scale(adapt[ADAPT_SCALE_R], max(adapt[ADAPT_NIS_R], nis_img_r), alpha, decay,
+                                        max_scale)
     return accepted, d2
 
 
@@ -416,20 +425,24 @@ def filter_initialize(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np
 
 
 @njit
-def report_image_nis(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, nis: float) -> None:
-    """Feed one body's manoeuvre detector (adapt (5,), clock (3,): its FilterBank rows)
-    with one camera frame's prediction residual nis at t_ns (see BodyFilter.report_image_nis)."""
+def report_image_nis(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, nis: float,
+                     nis_rot: float) -> None:
+    """Feed one body's manoeuvre detector (adapt (6,), clock (3,): its FilterBank rows)
+    with one camera frame's prediction residual at t_ns, its translation part nis and its
+    rotation part nis_rot (see BodyFilter.report_image_nis)."""
     dt = max((t_ns - clock[CLOCK_IMG_T_NS]) * 1e-9, 0.0)
     alpha = 1.0 - math.exp(-dt / params[KALMAN_NIS_TAU_S]) if clock[CLOCK_IMG_T_NS] != 0 else 1.0
-    adapt[ADAPT_NIS_IMG] += alpha * (min(nis, params[KALMAN_GATE_CHI2] / 3.0) - adapt[ADAPT_NIS_IMG])
+    cap = params[KALMAN_GATE_CHI2] / 3.0
+    adapt[ADAPT_NIS_IMG] += alpha * (min(nis, cap) - adapt[ADAPT_NIS_IMG])
+    adapt[ADAPT_NIS_IMG_R] += alpha * (min(nis_rot, cap) - adapt[ADAPT_NIS_IMG_R])
     clock[CLOCK_IMG_T_NS] = t_ns
 
 
 class FilterBank:
     """The states of n body filters, one row each, so that compiled kernels update them in place.
 
-    x (n, 15), P (n, 15, 15), R_nom (n, 3, 3); adapt (n, 5): process-noise scales
-    and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img]; clock (n, 3) int64:
+    x (n, 15), P (n, 15, 15), R_nom (n, 3, 3); adapt (n, 6): process-noise scales
+    and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img, nis_img_r]; clock (n, 3) int64:
     [filter time ns, last image-NIS time ns, folds]; params (8,): [jerk_psd,
     angular_accel_psd, max_noise_scale, nis_time_constant_s, gate_chi2, then the prior
     variances of velocity, acceleration and angular velocity at (re)initialisation].
@@ -529,16 +542,20 @@ class BodyFilter:
         )
         return bool(accepted), float(d2)
 
-    def report_image_nis(self, t_ns: int, nis: float) -> None:
+    def report_image_nis(self, t_ns: int, nis: float, nis_rot: float = 0.0) -> None:
         """Feed the manoeuvre detector with one camera frame's prediction residual.
 
-        nis: mean squared pixel distance between the markers predicted to the
-        frame's capture time and the blobs associated with them, over its
-        expected value, per degree of freedom (~1 while the model fits). It
-        comes from a single uncompensated view, so unlike the fused pose it
-        cannot be pulled towards the prediction by motion compensation.
+        The residuals are the pixel offsets between the markers predicted to the
+        frame's capture time and the blobs associated with them. nis: their mean
+        (the body's translation error) squared over its expected value; nis_rot:
+        their spread about that mean (the orientation error turns the markers
+        about the body) squared over its expected value; both per degree of
+        freedom (~1 while the model fits). They raise the position and the
+        rotation noise respectively. They come from a single uncompensated view,
+        so unlike the fused pose they cannot be pulled towards the prediction by
+        motion compensation (which uses this filter's own velocity and rate).
         """
-        report_image_nis(self._adapt, self._clock, self.bank.params, int(t_ns), float(nis))
+        report_image_nis(self._adapt, self._clock, self.bank.params, int(t_ns), float(nis), float(nis_rot))
 
     # -------------------------------------------------------------- read-outs
     def pose_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
