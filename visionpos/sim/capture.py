@@ -173,6 +173,9 @@ def _ordered(scenario: Scenario, duration_s: float, order: str, dropped: dict[in
         t0, t1 = c * CHUNK_S * 1e9, (c + 1) * CHUNK_S * 1e9
         last = t1 >= end_rel_ns
         for timing, cam in zip(scenario.timings, scenario.cameras):
+            bump = scenario.bumps.get(cam.id)
+            if bump is not None and t0 >= bump[0]:
+                cam = bump[1]  # knocked: the true pose differs from the arena file's from here on
             for frame, truth in _camera_chunk(scenario, cam, timing, c, t0, min(t1, end_rel_ns), dropped):
                 key = frame.capture_ns if order == "capture" else frame.recv_ns
                 heapq.heappush(heap, (key, frame.camera_id, counter, frame, truth))

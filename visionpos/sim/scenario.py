@@ -84,6 +84,12 @@ SIM_CAMERA = section(
             default_doc="sim.drop_probability"),
     Setting("rolling_shutter_ms", "number", None, "readout time, at most a frame period", min=0.0,
             default_doc="sim.rolling_shutter_ms"),
+    Setting("bump_at_s", "number", None, "the camera is knocked at this scenario time (s; from the first "
+            "0.5 s generation window that starts at or after it): its true pose turns by bump_rotation_deg "
+            "and moves by bump_shift_m, while the arena file keeps the old pose", min=0.0, default_doc="(never)"),
+    Setting("bump_rotation_deg", "array", [0.0, 0.0, 0.0], "rotation vector of the bump in the camera frame "
+            "(deg; x right, y down, z along the optical axis)", shape=(3,)),
+    Setting("bump_shift_m", "array", [0.0, 0.0, 0.0], "move of the camera centre in the world frame (m)", shape=(3,)),
 )
 SIM = section(
     "sim",
@@ -226,6 +232,8 @@ class Scenario:
     merge_blobs: bool
     max_blobs: int
     raw: dict[str, Any] = field(default_factory=dict)
+    # camera id -> (ns after start from which it renders, the knocked camera): sim.cameras.ID.bump_*
+    bumps: dict[int, tuple[int, Camera]] = field(default_factory=dict)
 
     @property
     def end_ns(self) -> int:
@@ -394,6 +402,7 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
     drop = SIM.read(sim, "drop_probability")
     readout_ms = SIM.read(sim, "rolling_shutter_ms")
     cameras, timings = [], []
+    bumps: dict[int, tuple[int, Camera]] = {}
     clocks: dict[int, StationClock] = {}
     for cam in arena.cameras:
         co = cam_over.sub(cam.id) if cam.id in cam_over.data else Section({}, arena.source, f"sim.cameras.{cam.id}")
@@ -422,6 +431,13 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
         else:
             phase = 0.0
         cameras.append(cam)
+        if co.has("bump_at_s"):
+            from scipy.spatial.transform import Rotation
+
+            dR = Rotation.from_rotvec(np.radians(co.array("bump_rotation_deg", (3,)))).as_matrix()
+            R_new = dR @ cam.R  # a turn about the camera's own axes
+            C_new = cam.center + co.array("bump_shift_m", (3,))
+            bumps[cam.id] = (int(round(co.number("bump_at_s", min=0.0) * 1e9)), cam.with_pose(R_new, -R_new @ C_new))
         timings.append(
             CameraTiming(
                 camera_id=cam.id,
@@ -467,6 +483,7 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
         merge_blobs=SIM.read(sim, "merge_blobs"),
         max_blobs=SIM.read(sim, "max_blobs"),
         raw=raw_sim,
+        bumps=bumps,
     )
 
 
