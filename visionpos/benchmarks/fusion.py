@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from visionpos.analysis.metrics import position_jitter
 from visionpos.benchmarks import BenchResult
+from visionpos.benchmarks.fusion_occlusion import run_occlusion
 from visionpos.config.arena import ArenaConfig
 from visionpos.fusion.pipeline import FusionPipeline
 from visionpos.messages import BlobFrame
@@ -440,6 +441,7 @@ def run(quick: bool = False) -> BenchResult:
     _static(quick, res)
     _fast(quick, res)
     _arena8(quick, res)
+    run_occlusion(quick, res)
     _latency(quick, res)
     _throughput(quick, res)
     _ingest(quick, res)

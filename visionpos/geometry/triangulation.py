@@ -1,4 +1,4 @@
-"""N-view triangulation of points seen by calibrated cameras, and its Cramer-Rao bound.
+"""N-view triangulation of points seen by calibrated cameras, and its Cramer-Rao bounds.
 
 Conventions (see visionpos/camera/model.py and docs/architecture.md):
 - A camera pose (R, t) maps world to camera: x_cam = R @ x_world + t.
@@ -21,7 +21,8 @@ import numpy as np
 from visionpos.camera import fisheye, pinhole
 from visionpos.camera.model import FISHEYE, PINHOLE, Camera
 
-__all__ = ["TriangulationResult", "CameraRig", "triangulate_normalized", "triangulate_pixels", "triangulation_crb"]
+__all__ = ["TriangulationResult", "CameraRig", "triangulate_normalized", "triangulate_pixels", "triangulation_crb",
+           "pose_crb_from_views"]
 
 
 class TriangulationResult(NamedTuple):
@@ -503,3 +504,50 @@ def triangulation_crb(
         if good.any():
             out[good] = np.linalg.inv(F[good])
     return out
+
+
+def pose_crb_from_views(
+    cameras: Sequence[Camera],
+    markers_world: np.ndarray,
+    origin: np.ndarray,
+    sigma_px: float,
+    visible: np.ndarray,
+) -> np.ndarray:
+    """Cramer-Rao lower bound (6, 6) on a rigid-body pose from the 2-D projections of its markers.
+
+    The pose is [p (m), world rotation vector (rad)] about the true pose: a marker at X moves by
+    dX = dp - [X - origin]x dtheta. Every camera v that sees marker m (visible[m, v]) measures its
+    pixel with isotropic Gaussian noise sigma_px (px, per axis), so the Fisher information is
+    F = sum_{m, v} G^T G / sigma_px^2 with G = J_v [I, -[X_m - origin]x] (2, 6) and
+    J_v = d pixel / d X (2, 3) through camera v's lens model (CameraModel.project_jacobian times
+    its rotation). Unlike a triangulated pose, a marker seen by one camera only counts too: this
+    bounds what one camera seeing >= 3 markers, or several cameras seeing 1-2 markers each,
+    can tell about the pose in one snapshot.
+
+    cameras: V cameras; markers_world: (M, 3) true marker positions (m); origin: (3,) true body
+    origin (m); visible: (M, V) bool. Returns F^-1 (6, 6) in m^2 / rad^2; all +inf when F is
+    singular (the views do not determine the pose, e.g. one camera seeing 1-2 markers).
+    The position block's trace is the bound on the mean squared position error (m^2).
+    """
+    X = np.asarray(markers_world, dtype=np.float64).reshape(-1, 3)
+    o = np.asarray(origin, dtype=np.float64).reshape(3)
+    visible = np.asarray(visible, dtype=bool)
+    if visible.shape != (len(X), len(cameras)):
+        raise ValueError(f"visible must have shape (M, V) = ({len(X)}, {len(cameras)}), got {visible.shape}")
+    F = np.zeros((6, 6))
+    for v, cam in enumerate(cameras):
+        seen = visible[:, v]
+        if not seen.any():
+            continue
+        Xs = X[seen]
+        J = cam.model.project_jacobian(Xs @ cam.R.T + cam.t) @ cam.R  # (n, 2, 3) d pixel / d world point
+        r = Xs - o
+        skew = np.zeros((len(r), 3, 3))  # [r]x
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -r[:, 2], r[:, 1], -r[:, 0]
+        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = r[:, 2], -r[:, 1], r[:, 0]
+        G = np.concatenate([J, -J @ skew], axis=2)  # (n, 2, 6)
+        F += np.einsum("nia,nib->ab", G, G)
+    F /= float(sigma_px) ** 2
+    if not np.isfinite(F).all() or np.linalg.matrix_rank(F, tol=1e-9 * max(np.abs(F).max(), 1e-300)) < 6:
+        return np.full((6, 6), np.inf)
+    return np.linalg.inv(F)
