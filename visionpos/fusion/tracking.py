@@ -380,13 +380,13 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
     )
     clock[CLOCK_T_NS] = t_ns
     _count_folds(R_nom, clock, folds)
-    _adapt_noise(adapt, clock, params, t_ns, dt, nis_p, nis_r)
+    _adapt_noise(adapt, clock, params, t_ns, dt, nis_p, nis_r, True)
     return accepted, d2
 
 
 @njit
 def _adapt_noise(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, dt: float, nis_p: float,
-                 nis_r: float) -> None:
+                 nis_r: float, use_image_nis: bool) -> None:
     """The NIS-driven process-noise adaptation after one update over dt (s), in place.
 
     The NIS per block drives the process-noise scale (gated ones too, capped, so that a
@@ -394,13 +394,17 @@ def _adapt_noise(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns:
     (report_image_nis) sees lag the fused pose can hide. NIS/dof ~ 1 says nothing about q
     while the measurement noise dominates the innovation (a hovering body), so only a clear
     excess (> _NIS_HIGH) raises q: innovations k x too big -> q x k^3 per averaging time
-    (CA/CV scaling laws); otherwise q decays back to its floor.
+    (CA/CV scaling laws); otherwise q decays back to its floor. use_image_nis: False for the
+    single-view updates, whose own innovation is the image-space residual with the full
+    predicted covariance (the detector's expected size leaves out the rotation uncertainty,
+    which matters while only 1-2 markers per view constrain it).
     """
     cap = params[KALMAN_GATE_CHI2] / 3.0
     alpha = 1.0 - math.exp(-dt / params[KALMAN_NIS_TAU_S]) if dt > 0.0 else 0.05
     adapt[ADAPT_NIS_P] += alpha * (min(nis_p, cap) - adapt[ADAPT_NIS_P])
     adapt[ADAPT_NIS_R] += alpha * (min(nis_r, cap) - adapt[ADAPT_NIS_R])
-    nis_img = adapt[ADAPT_NIS_IMG] if t_ns - clock[CLOCK_IMG_T_NS] < _IMG_NIS_FRESH_NS else 0.0
+    fresh = use_image_nis and t_ns - clock[CLOCK_IMG_T_NS] < _IMG_NIS_FRESH_NS
+    nis_img = adapt[ADAPT_NIS_IMG] if fresh else 0.0
     decay = math.exp(-max(dt, 0.0) / _SCALE_DECAY_S)
     max_scale = params[KALMAN_MAX_SCALE]
     adapt[ADAPT_SCALE_P] = _adapt_scale(adapt[ADAPT_SCALE_P], max(adapt[ADAPT_NIS_P], nis_img), alpha, decay, max_scale)
@@ -455,8 +459,9 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
     -A [R l]x, and (for a frame older than the filter, dt < 0) velocity A dt, acceleration
     A dt^2 / 2, angular rate -A [R l]x dt, A = d pixel / d world point. A newer frame
     predicts the filter to t_ns first. Joseph-form update; the NIS per dof drives the noise
-    adaptation of both blocks. Returns (accepted, NIS per dof, the frame's pose information
-    H^T H / var_px (6, 6) over [p, rotation error]); a point behind the camera rejects it.
+    adaptation of both blocks (not the image-space detector: this innovation is one).
+    Returns (accepted, NIS per dof, the frame's pose information H^T H / var_px (6, 6) over
+    [p, rotation error]); a point behind the camera rejects it.
     """
     n = local.shape[0]
     m = 2 * n
@@ -566,7 +571,7 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
                 kk += K[i, a] * K[j, a]
             P[i, j] = P[j, i] = acc + var_px * kk
     _count_folds(R_nom, clock, int(_fold(x, R_nom)))
-    _adapt_noise(adapt, clock, params, t_ns, max(dt_f, 0.0), nis, nis)
+    _adapt_noise(adapt, clock, params, t_ns, max(dt_f, 0.0), nis, nis, False)
     return True, nis, info
 
 
