@@ -17,6 +17,14 @@ marker, a weighted Kabsch pose per body, a gated Kalman update
 identification of lost bodies by marker geometry (rigidbody.py) and the
 loose points.
 
+Occlusion: a tracked body with fewer than min_markers markers triangulated in a
+fusion is updated instead from the 2-D markers each of the fusion's frames sees
+(kernels._single_views, tracking.filter_update_view: a reprojection measurement
+at the frame's own capture time, each frame used once, NIS-gated, only
+unambiguous associations). The track is kept only while the recent views' pose
+information bounds the pose; single views never acquire or re-identify.
+BodyState.update_kind says which kind of update last kept a body.
+
 Measurement covariance: from the rigid-body fit itself. The Kabsch residual
 gives the per-marker noise (sigma^2 = sum |r|^2 / (3n - 6), averaged per body
 over recent fusions, floored by `marker_sigma_m`); with the marker layout it

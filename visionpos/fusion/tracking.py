@@ -34,6 +34,14 @@ can for the fused pose.
 The measurement is a 6-DoF pose [p, log(R_meas R_nom^T)] with a covariance
 given by the caller (pipeline.py estimates it from the rigid-body fit).
 Outliers are gated by the squared Mahalanobis distance of the innovation.
+
+Through occlusion (the body cannot be triangulated) the measurement is what
+one camera frame sees instead (filter_update_view): the pixels of n of the
+body's markers at the frame's capture time, h = lens(R_c X + t_c) with
+X = p + exp(dtheta) R_nom l, linearised with the lens model's analytic
+Jacobian (camera/pinhole.py, camera/fisheye.py) over position and rotation
+error. The same linear filter and Joseph update do the rest, so the
+covariance shows what one view cannot see (its depth).
 """
 
 from __future__ import annotations
