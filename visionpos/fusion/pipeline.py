@@ -345,8 +345,8 @@ class FusionPipeline:
         interval = st.acquire_interval_ns if lost else st.loose_points_interval_ns
         if (lost or st.loose_points) and (ref - self._last_acquire_ns >= interval or ref < self._last_acquire_ns):
             self._last_acquire_ns = ref
-            _, R, t, focal_px, _ = views
-            self._acquire([obs[c] for c in cams], R, t, focal_px, ref)
+            cam_index, R, t, focal_px, _ = views
+            self._acquire([obs[c] for c in cams], cam_index, R, t, focal_px, ref)
         # lost-track bookkeeping on the capture clock
         track_ints = self._track_ints
         gone = [b for b in self._tracked if ref - track_ints[b, TRACK_LAST_UPDATE_NS] > st.kalman.lost_timeout_ns]
@@ -390,8 +390,10 @@ class FusionPipeline:
                 m = meas[i]
                 self.last_raw[b] = (ref, m[MEAS_POS], m[MEAS_ROT].reshape(3, 3))
 
-    def _acquire(self, obs: list[Observation], R: np.ndarray, t: np.ndarray, focal_px: np.ndarray, ref: int) -> None:
-        """Match leftover blobs across views; identify lost bodies; report loose points."""
+    def _acquire(self, obs: list[Observation], cam_index: np.ndarray, R: np.ndarray, t: np.ndarray,
+                 focal_px: np.ndarray, ref: int) -> None:
+        """Match leftover blobs across views (cam_index (V,): their cameras' indices); identify lost bodies;
+        report loose points."""
         st = self.settings
         lost = [b for b in range(len(self.tracks)) if b not in self._tracked]
         if not lost and not st.loose_points:
@@ -418,6 +420,9 @@ class FusionPipeline:
             tr.tracked = True
             tr.update_kind = UpdateKind.POSE
             self._track_info[b] = 0.0
+            # the frames that identified it are in the filter: the single-view path must not count them again
+            self._track_view_ns[b, cam_index] = np.maximum(self._track_view_ns[b, cam_index],
+                                                           [o.capture_ns for o in obs])
             tr.first_reject_ns = None
             tr.last_update_ns = ref
             tr.last_capture_ns = max(o.capture_ns for o in obs)
