@@ -131,6 +131,9 @@ _STATE_SCHEMA = {
         "n_cameras": {"type": "integer"},
         "residual_mm": {"type": ["number", "null"]},
         "reset_counter": {"type": "integer"},
+        "update_kind": {"type": "string", "enum": ["", "pose", "views"],
+                        "description": "last measurement that kept the body tracked: triangulated pose or "
+                                       "single-camera views"},
     },
 }
 _TRUTH_SCHEMA = {
@@ -201,6 +204,7 @@ def state_to_dict(s: BodyState) -> dict[str, Any]:
         "n_cameras": int(s.n_cameras),
         "residual_mm": _num(float(s.residual_mm)),
         "reset_counter": int(s.reset_counter),
+        "update_kind": str(s.update_kind),
     }
 
 
@@ -227,6 +231,7 @@ def state_from_dict(d: dict[str, Any]) -> BodyState:
         n_cameras=int(d.get("n_cameras", 0)),
         residual_mm=float("nan") if res is None else float(res),
         reset_counter=int(d.get("reset_counter", 0)),
+        update_kind=str(d.get("update_kind", "")),  # recordings before issue 15 have none
     )
 
 

@@ -74,6 +74,24 @@ GOALS: list[Goal] = [
     Goal("fusion_flights_dash_max_err_mm", "<=", 4.0, "dash flight: maximum position error (mm)"),
     Goal("fusion_flights_dash_max_gap_periods", "<=", 2.0, "dash flight: longest time with no accepted "
          "measurement while >= 2 cameras see >= 3 markers (frame periods)"),
+    Goal("fusion_occlusion_one_tracked_fraction", ">=", 1.0, "occlusion, one camera sees the body for 2 s: tracked "
+         "fraction"),
+    Goal("fusion_occlusion_one_rmse_over_crb", "<=", 1.5, "occlusion, one camera: position RMSE / its single-snapshot "
+         "Cramer-Rao bound"),
+    Goal("fusion_occlusion_one_swaps", "<=", 0, "occlusion, one camera: filter resets, losses, reacquisitions"),
+    Goal("fusion_occlusion_one_nees_over_hi", "<=", 1.0, "occlusion, one camera: position NEES / upper end of its "
+         "95 % chi-square interval"),
+    Goal("fusion_occlusion_one_nees_over_lo", ">=", 1.0, "occlusion, one camera: position NEES / lower end of its "
+         "95 % chi-square interval"),
+    Goal("fusion_occlusion_two_tracked_fraction", ">=", 1.0, "occlusion, two cameras see 2 different markers each: "
+         "tracked fraction"),
+    Goal("fusion_occlusion_two_rmse_over_crb", "<=", 1.5, "occlusion, two cameras x 2 markers: position RMSE / "
+         "their snapshot Cramer-Rao bound"),
+    Goal("fusion_occlusion_two_swaps", "<=", 0, "occlusion, two cameras x 2 markers: resets, losses, reacquisitions"),
+    Goal("fusion_occlusion_two_nees_over_hi", "<=", 1.0, "occlusion, two cameras x 2 markers: position NEES / upper "
+         "end of its 95 % interval"),
+    Goal("fusion_occlusion_two_nees_over_lo", ">=", 1.0, "occlusion, two cameras x 2 markers: position NEES / lower "
+         "end of its 95 % interval"),
     Goal("fusion_latency_p99_ms", "<=", 2.0, "processing latency per packet p99 (ms), 4 cams x 100 Hz x 2 bodies"),
     Goal("fusion_max_packets_per_s", ">=", 3000, "sustained packets/s on one core, 3 bodies"),
     Goal("bridge_rate_hz_min", ">=", 49.5, "MAVLink rate per vehicle (Hz), default 50"),

@@ -362,6 +362,11 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
             inside = np.linalg.norm(x - pos[:, None, :], axis=2) < radius
             vis &= ~(hit & inside)
     vis &= ~drop[:, None]
+    for win in s.view_schedule:  # the occlusion schedule, on the true exposure time
+        during = (true_ns >= win.start_ns) & (true_ns < win.end_ns)
+        if during.any():
+            cols = b_idx_a == win.body
+            vis[np.ix_(during, cols)] &= win.mask(cam.id, int(cols.sum()))[None, :]
 
     fi, mi = np.nonzero(vis)  # frame index, marker column
     uv, dpx, rng_m = marker_geometry(cam, W[fi, mi], diam_m[mi])
