@@ -627,7 +627,10 @@ def estimate_offsets(
                    f"(+-{2 * max_offset_ms:.0f} ms between two cameras): its clock may be off by more than "
                    f"{max_offset_ms:.0f} ms (check the station's clock sync, or raise the maximum clock offset)")
         else:
-            why = ("no offset makes its wand track agree with another camera's (no clear minimum): too few shared "
-                   "frames, the wand moving too little, wrong intrinsics, or blobs that are not the wand")
+            why = (f"no offset within the search range (+-{2 * max_offset_ms:.0f} ms between two cameras) makes its "
+                   "wand track agree with another camera's; likely causes: its clock off by more than "
+                   f"{max_offset_ms:.0f} ms (check the station's clock sync, or raise the maximum clock offset), too "
+                   "few frames shared with other cameras, the wand moving too little, wrong intrinsics, or blobs "
+                   "that are not the wand")
         problems.append(f"camera {names[v]}: clock offset not estimated, kept at 0: {why}")
     return OffsetEstimate(offsets, pairs, problems)
