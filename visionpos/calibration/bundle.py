@@ -845,7 +845,7 @@ class WandCheck:
                 f"{q.upper()} {self.lengths[k][q][0] * 1000:.2f} mm" for q in ("ab", "bc", "ac") if q != k)
             for k in ("ab", "bc", "ac") if k != s.known
         )
-        head = ("the wand does not match the configured one" if self.mismatch else "the wand matches the configured one")
+        head = "the wand does not match the configured one" if self.mismatch else "the wand matches the configured one"
         return (f"{head}: measured AB/AC {self.ratio:.5f} +- {self.ratio_std:.5f} (configured {s.ratio:.5f}); "
                 f"with {s.known.upper()} = {mm[s.known]:.2f} mm as configured (calibration.wand.known): {meas}; "
                 f"{alt}" + (". Measure the wand (marker centre to centre) and set calibration.wand.ab/bc "

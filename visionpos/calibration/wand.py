@@ -60,7 +60,9 @@ class WandSpec:
 
     def __post_init__(self) -> None:
         if self.known not in WAND_SEGMENTS:
-            raise CalibrationError(f"wand known length '{self.known}' is unknown; use one of {', '.join(WAND_SEGMENTS)}")
+            raise CalibrationError(
+                f"wand known length '{self.known}' is unknown; use one of {', '.join(WAND_SEGMENTS)}"
+            )
         if not (self.ab > 0 and self.bc > 0):
             raise CalibrationError(f"wand lengths must be positive, got AB={self.ab} BC={self.bc}")
         if abs(self.ab - self.bc) < 0.15 * (self.ab + self.bc):
