@@ -116,3 +116,20 @@ def test_wand_and_lframe_from_the_arena_yaml():
     bad = parse_arena({**base, "calibration": {"wand": {"known": "cd"}}}, "a.yaml")
     with pytest.raises(ConfigError, match="known"):
         wand_settings(bad)
+
+
+def test_cli_reports_clock_offsets_and_writes_them(tmp_path, capsys):
+    import yaml
+
+    from visionpos.cli.main import main
+
+    out = tmp_path / "arena.yaml"
+    rc = main(["calibrate", "wand", "--sim", "thesis", "--set", "sim.duration=10", "--set",
+               "sim.cameras.2.clock_error_ms=30", "--max-clock-offset-ms", "40", "--out", str(out), "--no-progress"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "clock offset ms" in text and "+30." in text
+    cal = yaml.safe_load(out.read_text())["calibration"]
+    assert cal["wand"]["max_clock_offset_ms"] == 40
+    offsets = cal["extrinsics"]["clock_offset_ms"]
+    assert abs(offsets["pi2"] - 30) < 1 and abs(offsets["pi3"]) < 1
