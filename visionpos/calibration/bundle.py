@@ -241,6 +241,7 @@ def initial_poses(
                 raise CalibrationError(
                     f"degenerate wand motion: cameras {names[p.i]} and {names[p.j]} saw the wand markers in (nearly) "
                     "one plane; wave the wand through the whole volume, up and down as well as sideways, tilting it"
+                    + _other_causes(p.inliers, p.shared, hint)
                 )
             Rab, tab = (p.R, p.t) if p.i == a else (p.R.T, -p.R.T @ p.t)
             R[b] = Rab @ R[a]
@@ -256,6 +257,7 @@ def initial_poses(
                 raise CalibrationError(
                     "degenerate wand motion: " + "; ".join(degenerate) + ". Wave the wand through the whole "
                     "tracking volume, up and down as well as sideways, tilting and turning it"
+                    + _other_causes(None, None, hint)
                 )
             detail = "".join(
                 f"\n  {names[v]}: {int(shared[v, done].max())} wand frames shared with a connected camera"
@@ -270,6 +272,14 @@ def initial_poses(
                 "the wand (calibration.wand, --ab/--bc); wrong intrinsics for the camera" + hint
             )
     return R, t, used
+
+
+def _other_causes(consistent: int | None, shared: int | None, hint: str) -> str:
+    """The causes besides the motion that make a pair's wand points look degenerate."""
+    frac = (f" (only {consistent} of {shared} shared frames were consistent)"
+            if consistent is not None and shared else "")
+    return (f"\nif the wand did sweep the volume{frac}, other likely causes: wand lengths that do not match the "
+            "wand (calibration.wand, --ab/--bc); wrong intrinsics" + hint)
 
 
 def initial_wand(
