@@ -109,6 +109,14 @@ GOALS: list[Goal] = [
     Goal("calib_arena8_rot_err_deg_max", "<=", 0.05, "wand calibration, arena8: orientation error (deg)"),
     Goal("calib_arena8_wand_std_mm", "<=", 0.5, "wand calibration, arena8: wand-length std (mm)"),
     Goal("calib_ba_seconds_8cam_3000", "<=", 30.0, "bundle adjustment, 8 cameras x 3000 frames (CPU s)"),
+    Goal("calib_offsets_err_ms_max", "<=", 0.2, "wand calibration, thesis: clock offsets of +-20 and +-50 ms, "
+         "error (ms)"),
+    Goal("calib_offsets20_center_err_ratio", "<=", 1.1, "wand calibration, thesis: camera centre error with "
+         "+-20 ms clock offsets / without ('as accurate')"),
+    Goal("calib_offsets20_rot_err_ratio", "<=", 1.1, "wand calibration, thesis: orientation error with "
+         "+-20 ms clock offsets / without ('as accurate')"),
+    Goal("calib_wand_length_err_mm_max", "<=", 0.3, "wand check: measured AB, BC of a wand 1 mm off the "
+         "configured one (mm)"),
     Goal("replay_speed_x_cpu_thesis", ">=", 20.0, "replay speed, thesis arena (x real time)"),
     Goal("planner_thesis_marker_ratio", "<=", 1.2, "planner, thesis: measured marker RMS / predicted bound"),
     Goal("planner_thesis_marker_ratio", ">=", 0.8, "planner, thesis: measured marker RMS / predicted bound"),

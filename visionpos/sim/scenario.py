@@ -84,6 +84,9 @@ SIM_CAMERA = section(
             default_doc="sim.drop_probability"),
     Setting("rolling_shutter_ms", "number", None, "readout time, at most a frame period", min=0.0,
             default_doc="sim.rolling_shutter_ms"),
+    Setting("clock_error_ms", "number", 0.0, "constant error of this camera's synced stamps (a station whose "
+            "clock sync is off, e.g. to test the wand calibration's clock-offset estimate)", min=-1000.0,
+            max=1000.0),
 )
 VIEW_WINDOW = section(
     "sim.view_schedule[i]",
@@ -471,7 +474,7 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
             station_id=station,
             offset_ns=int(round(crng.normal(0.0, offset_std))) if offset_std > 0 else 0,
             drift_ppm=drift,
-            bias_ns=float(crng.normal(0.0, resid_std / np.sqrt(2))),
+            bias_ns=float(crng.normal(0.0, resid_std / np.sqrt(2))) + co.number("clock_error_ms", 0.0) * 1e6,
             amp_ns=np.full(3, resid_std / np.sqrt(3)),
             freq_hz=crng.uniform(0.01, 0.2, 3),
             phase=crng.uniform(0, 2 * np.pi, 3),
