@@ -336,13 +336,12 @@ class TruthTrack:
         p0, v0, p1, v1 = x[i, 0:3], x[i, 3:6], x[j, 0:3], x[j, 3:6]
         s = np.where(inside, dt / h, 0.0)[:, None]
         hh = h[:, None]
-        # cubic Hermite with the velocities (position, its rate and second derivative)
+        # position: cubic Hermite with the velocities; velocity and acceleration from SITL's velocities
+        # (the position samples carry the slow pull to the quantised lat/lon, which is not motion)
         h00, h10, h01, h11 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2
         pos_in = h00 * p0 + h10 * hh * v0 + h01 * p1 + h11 * hh * v1
-        d00, d10, d01, d11 = 6 * s**2 - 6 * s, 3 * s**2 - 4 * s + 1, -6 * s**2 + 6 * s, 3 * s**2 - 2 * s
-        vel_in = (d00 * p0 + d01 * p1) / hh + d10 * v0 + d11 * v1
-        a00, a10, a01, a11 = 12 * s - 6, 6 * s - 4, -12 * s + 6, 6 * s - 2
-        acc_in = (a00 * p0 + a01 * p1) / hh**2 + (a10 * v0 + a11 * v1) / hh
+        vel_in = v0 + (v1 - v0) * s
+        acc_in = (v1 - v0) / hh
         before = times_ns < t[0]
         ext = np.where(before, 0.0, dt)[:, None]  # after the newest sample: constant velocity and body rate
         pos_out = p0 + v0 * ext
@@ -387,9 +386,9 @@ class LiveArena:
     Each camera's frames are made window by window (LIVE_WINDOW_NS), half-way through the window on the
     server clock: a frame's pose is at most half a window plus the truth's age ahead of the newest
     SIM_STATE (extrapolated for those ms), and a frame of the window's first half leaves up to half a
-    window late (more latency, which VISO_DELAY_MS absorbs; its capture stamp stays true). cut(start_ns, end_ns) hides the body from every
-    camera for a while (the frames still go out, without its markers: an occlusion, not a dead
-    station)."""
+    window late (more latency, which VISO_DELAY_MS absorbs; its capture stamp stays true).
+    cut(start_ns, end_ns) hides the body from every camera for a while (the frames still go out,
+    without its markers: an occlusion, not a dead station)."""
 
     def __init__(self, body: str, truth: TruthTrack):
         self.body = body
@@ -889,9 +888,11 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
                                     if a is not None and a <= t <= b and m not in ours]
     vb = next((x for x in demo.get("bodies", [])), {})
     out["vision"] = {k: vb.get(k) for k in ("position_rmse_mm", "position_max_mm", "rotation_rmse_deg",
-                                            "tracked_fraction", "mavlink_rate_hz", "mavlink_position_rmse_mm",
-                                            "mavlink_position_max_mm")}
-    out["vision"]["latency_to_autopilot_ms"] = demo.get("latency_to_autopilot_ms")
+                                            "tracked_fraction", "latency_ms")}
+    sent = (vb.get("bridge") or {}).get("sent") or 0
+    out["vision"]["poses_sent"] = sent
+    out["vision"]["poses_per_s"] = sent / demo["duration_s"] if demo.get("duration_s") else None
+    out["vision"]["frames_not_fused"] = (demo.get("server") or {}).get("frames_shed")
     out["truth_samples"] = truth.n
     h = out.get("ekf_horizontal_error_mm", {})
     out["ok"] = bool(out["completed"] and h.get("p99") is not None and h["p99"] <= 20.0
@@ -914,7 +915,8 @@ def format_flight(s: dict[str, Any]) -> str:
         f"max {f(y.get('max'), '.2f')} deg",
         f"  vision (fusion output) vs truth: RMS {f(vis.get('position_rmse_mm'), '.2f')} mm, max "
         f"{f(vis.get('position_max_mm'), '.2f')} mm, rotation RMS {f(vis.get('rotation_rmse_deg'), '.3f')} deg; "
-        f"reached SITL at {f(vis.get('mavlink_rate_hz'))} Hz, RMS {f(vis.get('mavlink_position_rmse_mm'), '.2f')} mm",
+        f"{vis['poses_sent']} poses sent to SITL ({f(vis.get('poses_per_s'))} per s); "
+        f"{vis.get('frames_not_fused') or 0} camera frames queued too long to fuse",
     ]
     for name, r in (s.get("ekf_test_ratios") or {}).items():
         lines.append(f"  EKF test ratio {name}: max {r['max']:.2f}, p99 {r['p99']:.2f}")
