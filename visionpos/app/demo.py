@@ -362,6 +362,9 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     stations: list[SimStation] = []
     try:
         for v in bridge.vehicles:
+            if live is not None:  # a real autopilot is on the link: a fake one beside it would answer as it
+                autopilots[v.cfg.body] = (None, v)
+                continue
             ap = FakeAutopilot(f"udpout:127.0.0.1:{v.cfg.endpoint.port}", sysid=v.cfg.sysid,
                                signing_key=v.cfg.signing_key)
             autopilots[v.cfg.body] = (ap.start(), v)
@@ -412,7 +415,8 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
             _record_truth(recorder, sc, shift, t_stop - shift if "t_stop" in locals() else sc.end_ns)
         await server.stop()
         for ap, _ in autopilots.values():
-            ap.close()
+            if ap is not None:
+                ap.close()
     wall = time.perf_counter() - t_wall0
 
     return _summary(arena, sc, shift, t_start, t_stop, collector, bridge, autopilots, stations, health,
@@ -505,8 +509,8 @@ def _summary(arena, sc, shift, t_start, t_stop, collector: Collector, bridge, au
         }
         if name in autopilots:
             ap, link = autopilots[name]
-            poses = ap.messages(("VISION_POSITION_ESTIMATE", "ODOMETRY"))
-            rep = ap.report()
+            poses = ap.messages(("VISION_POSITION_ESTIMATE", "ODOMETRY")) if ap is not None else []
+            rep = ap.report() if ap is not None else {"rejected_signature": None}
             st = link.stats()
             d["mavlink_messages"] = len(poses)
             d["mavlink_signed"] = link.cfg.signing_key is not None

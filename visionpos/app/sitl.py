@@ -3,16 +3,18 @@
     ArduPilot SITL (arducopter: the real flight code and EKF3, its own physics)
       SERIAL0 tcp:127.0.0.1:5760+10*I  <-> our GCS link: parameters, signing key, EKF origin and home,
                                             SIM_STATE (the true pose, 100 Hz), flight commands, telemetry
-      SERIAL1 tcp:127.0.0.1:5762+10*I  <-- the bridge (tcp endpoint): the vision stream
+      SERIAL1 udpclient --> the bridge's udpin endpoint: the signed vision stream comes back on it
     SIM_STATE -> TruthTrack -> LiveTrajectory (the simulated body follows the vehicle)
       -> the demo's simulated stations (live frames: noise, latency, asynchrony)
       -> FusionServer -> Bridge (VISION_POSITION_ESTIMATE or ODOMETRY) -> SITL's EKF3
 
 SITL runs in a fresh temporary folder (its eeprom.bin, logs), on an instance (-I) whose ports
 are free, and is killed when the run ends, however it ends. Its SERIAL0 takes one TCP client and
-waits for it again after a reboot (as SERIAL1 does for the bridge, which reconnects by itself);
-the binary takes `--serialN=udpclient:HOST:PORT` to send a port elsewhere (MAVProxy's `--out` is
-not a SITL option).
+waits for it again after a reboot; the binary takes `--serialN=udpclient:HOST:PORT` (MAVProxy's
+`--out` is not a SITL option), which points SERIAL1 at the bridge's udpin endpoint. The vision
+link is signed with the vehicle's key (installed by SETUP_SIGNING over SERIAL0), so the bridge
+learns SITL's address from signed packets only. The demo's fake autopilot is not started: it
+would answer on the same link as the same system.
 
 Order of the set-up, which matters to EKF3 (see docs/autopilot-setup.md):
 parameters (GPS and compass off, external nav on) -> reboot -> signing key -> EKF origin sent
@@ -119,6 +121,7 @@ LATLON_TO_M = 0.011131884502145034  # ArduPilot's metres per 1e-7 degree of lati
 LIVE_WINDOW_NS = 40_000_000  # cameras' frames are made 40 ms at a time (a call's cost is mostly fixed) ...
 LIVE_MAKE_AT = 0.5  # ... half-way through the window: at most 20 ms extrapolated, at most 20 ms held back
 EXTNAV_TEXT = "is using external nav data"
+LATE_NS = 50_000_000  # a camera frame made this long after it should have reached the server is late
 
 
 class SitlError(VisionposError):
@@ -398,6 +401,7 @@ class LiveArena:
         self.scenario: Any = None
         self.cuts: list[tuple[int, int]] = []
         self.frames_made = 0
+        self.frames_late = 0  # made more than LATE_NS after their receive time: the host fell behind real time
 
     def prepare(self, scenario: Any) -> Any:
         bodies = tuple(dataclasses.replace(b, trajectory=LiveTrajectory(self.truth, self.origin_ns))
@@ -434,6 +438,8 @@ class LiveArena:
                 if self._hidden(f.capture_ns):
                     f = dataclasses.replace(f, blobs=f.blobs[tr.body != body_index])
                 self.frames_made += 1
+                if time.monotonic_ns() - f.recv_ns > LATE_NS:
+                    self.frames_late += 1
                 yield f
             w += 1
 
@@ -653,23 +659,27 @@ def _vehicle_cfg(arena: ArenaConfig) -> dict[str, Any]:
 
 def run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | None) -> dict[str, Any]:
     """Start SITL, set it up for vision-only flight, fly the plan on the live arena; the summary dict."""
+    from bridge.config import load_signing_key
     from visionpos.app.demo import run_demo
 
     cfg = SitlSettings.from_arena(arena, binary)
     instance = cfg.instance if cfg.instance is not None else free_instance()
-    arena = _vision_link_to_sitl(arena, instance)
+    arena = _one_vehicle(arena)
     veh = _vehicle_cfg(arena)
     body = veh["body"]
+    key_path = veh["signing"]["key_file"]
+    key = load_signing_key(key_path if os.path.isabs(key_path) else Path(arena.source).resolve().parent / key_path)
+    vision_port = int(str(veh["endpoint"]).rsplit(":", 1)[1])
     say = (lambda text: (out.write(text + "\n"), out.flush())) if out is not None else (lambda text: None)
     truth = TruthTrack(cfg.home[:3])
     t0 = time.monotonic()
     old_switch = sys.getswitchinterval()
     sys.setswitchinterval(0.001)  # the GCS reader stamps truth on arrival: let it run promptly
-    with SitlProcess(cfg, instance) as proc:
+    with SitlProcess(cfg, instance, f"udpclient:127.0.0.1:{vision_port}") as proc:
         gcs = Gcs(proc.gcs_port, truth, on_text=lambda text: say(f"  SITL: {text}"))
         try:
             say(f"SITL instance {proc.instance} in {proc.folder}: GCS on SERIAL0 tcp:127.0.0.1:{proc.gcs_port}, "
-                f"the bridge on SERIAL1 {veh['endpoint']}")
+                f"SERIAL1 udpclient:127.0.0.1:{vision_port} -> the bridge ({veh['endpoint']}, signed)")
             gcs.connect(30.0, proc)
             params = vision_parameters(cfg, veh.get("message", "vision_position_estimate"),
                                        bool(veh.get("vision_speed", False)))
@@ -685,6 +695,7 @@ def run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | N
             if cfg.viso_delay_ms is not None:
                 noise["VISO_DELAY_MS"] = round(cfg.viso_delay_ms)
             gcs.set_params(noise)
+            _setup_signing(gcs, key)
             _set_origin(gcs, cfg, say)
             say(f"set-up done in {time.monotonic() - t0:.1f} s; cameras start")
             live = LiveArena(body, truth)
@@ -700,24 +711,31 @@ def run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | N
         finally:
             gcs.close()
             sys.setswitchinterval(old_switch)
-    return flight_summary(gcs, truth, demo, record, plan, time.monotonic() - t0)
+    summary = flight_summary(gcs, truth, demo, record, plan, time.monotonic() - t0)
+    made = max(live.frames_made, 1)
+    summary["real_time"] = {"frames_made": live.frames_made, "frames_late_fraction": live.frames_late / made,
+                            "frames_not_fused_fraction": (summary["vision"]["frames_not_fused"] or 0) / made}
+    return summary
 
 
-def _vision_link_to_sitl(arena: ArenaConfig, instance: int) -> ArenaConfig:
-    """The first vehicle's link on SITL's SERIAL1 TCP server (the bridge connects; unsigned on loopback).
-
-    Not udpclient + signing: with SITL's SERIAL1 as `udpclient` and the key installed by SETUP_SIGNING,
-    the bridge refused SITL's signed packets (counted `rx_replayed`), so no pose was sent; see the report."""
+def _one_vehicle(arena: ArenaConfig) -> ArenaConfig:
+    """The arena with its first vehicle only (SITL is one copter, system 1)."""
     from visionpos.config.arena import parse_arena
 
     data = dict(arena.raw)
     vehicles = [dict(v) for v in data["vehicles"]]
     if int(vehicles[0].get("sysid", 1)) != 1:
         raise UsageError(f"vehicles[0].sysid {vehicles[0].get('sysid')}: SITL is system 1; fly a body with sysid 1")
-    vehicles[0]["endpoint"] = f"tcp:127.0.0.1:{5762 + 10 * instance}"
-    vehicles[0].pop("signing", None)
     data["vehicles"] = vehicles[:1]
     return parse_arena(data, arena.source)
+
+
+def _setup_signing(gcs: Gcs, key: bytes) -> None:
+    """Install the vision link's key with SETUP_SIGNING on SERIAL0 (channel 0, which ArduPilot lets through
+    unsigned): SITL then signs on SERIAL1 and takes only signed vision there, as a real signed set-up, and
+    the bridge's udpin endpoint learns SITL's address from signed packets only."""
+    stamp = int((time.time() - 1420070400) * 1e5)  # 10 us since 2015-01-01
+    gcs.conn.mav.setup_signing_send(1, 1, key, stamp)
 
 
 def _set_origin(gcs: Gcs, cfg: SitlSettings, say: Callable[[str], None]) -> None:
@@ -928,5 +946,11 @@ def format_flight(s: dict[str, Any]) -> str:
     lines.append(f"  failsafe / lane switch messages: {s['failsafe_or_lane_switch'] or 'none'}; "
                  f"mode changes not commanded: {s['mode_changes_not_ours'] or 'none'}")
     lines.append("  STATUSTEXT: " + " | ".join(s["statustext"]))
+    rt = s.get("real_time") or {}
+    if rt:
+        lines.append(f"  real time: {rt['frames_made']} camera frames made, {100 * rt['frames_late_fraction']:.1f}% "
+                     f"more than {LATE_NS // 1_000_000} ms late, {100 * rt['frames_not_fused_fraction']:.1f}% not "
+                     "fused (queued too long): above a few % this host could not keep up, and the figures above "
+                     "measure the host, not the EKF")
     lines.append(f"  target (EKF horizontal p99 <= 20 mm, no failsafe): {'met' if s['ok'] else 'NOT met'}")
     return "\n".join(lines)
