@@ -119,7 +119,8 @@ TELEMETRY_RATE_HZ = 50.0
 TRUTH_BLEND_S = 1.0  # time constant pulling the integrated horizontal truth to the 1e-7 deg one
 LATLON_TO_M = 0.011131884502145034  # ArduPilot's metres per 1e-7 degree of latitude
 LIVE_WINDOW_NS = 40_000_000  # cameras' frames are made 40 ms at a time (a call's cost is mostly fixed) ...
-LIVE_MAKE_AT = 0.5  # ... half-way through the window: at most 20 ms extrapolated, at most 20 ms held back
+LIVE_MAKE_AT = (0.25, 0.75)  # ... between a quarter and three quarters into the window, cameras spread over it
+# (one camera's window costs a few ms of the server's loop: made all at once they would hold up the fusion)
 EXTNAV_TEXT = "is using external nav data"
 LATE_NS = 50_000_000  # a camera frame made this long after it should have reached the server is late
 
@@ -386,10 +387,11 @@ class LiveTrajectory(Trajectory):
 class LiveArena:
     """The demo's live source (app/demo.py LiveSource): the vehicle's body follows SITL's truth.
 
-    Each camera's frames are made window by window (LIVE_WINDOW_NS), half-way through the window on the
-    server clock: a frame's pose is at most half a window plus the truth's age ahead of the newest
-    SIM_STATE (extrapolated for those ms), and a frame of the window's first half leaves up to half a
-    window late (more latency, which VISO_DELAY_MS absorbs; its capture stamp stays true).
+    Each camera's frames are made window by window (LIVE_WINDOW_NS), a quarter to three quarters into
+    the window on the server clock (the cameras spread over it): a frame's pose is at most three
+    quarters of a window plus the truth's age ahead of the newest SIM_STATE (extrapolated for those
+    ms), and a frame exposed early in the window leaves late (more latency, which VISO_DELAY_MS
+    absorbs; its capture stamp stays true).
     cut(start_ns, end_ns) hides the body from every camera for a while (the frames still go out,
     without its markers: an occlusion, not a dead station)."""
 
@@ -427,9 +429,11 @@ class LiveArena:
         sc = self.scenario
         self.origin_ns[0] = sc.start_ns + shift_ns
         body_index = next(i for i, b in enumerate(sc.bodies) if b.name == self.body)
+        lo, hi = LIVE_MAKE_AT
+        make_at = lo + (hi - lo) * camera_index / max(1, len(sc.cameras) - 1)
         w = 0
         while self.stopped_ns is None:
-            opens = self.origin_ns[0] + int((w + LIVE_MAKE_AT) * LIVE_WINDOW_NS)
+            opens = self.origin_ns[0] + int((w + make_at) * LIVE_WINDOW_NS)
             wait = (opens - time.monotonic_ns()) * 1e-9
             if wait > 0:
                 await asyncio.sleep(wait)
