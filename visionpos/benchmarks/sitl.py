@@ -35,7 +35,12 @@ def run(quick: bool = False) -> BenchResult:
         "sitl_failsafe_messages": float(len(s["failsafe_or_lane_switch"]) + len(s["mode_changes_not_ours"])),
         "sitl_cut_1s_max_drift_mm": cut.get("max_drift_from_hold_mm"),
         "sitl_viso_delay_ms": s.get("viso_delay_ms"),
+        "sitl_frames_late_fraction": s["real_time"]["frames_late_fraction"],
+        "sitl_frames_not_fused_fraction": s["real_time"]["frames_not_fused_fraction"],
     }
     metrics = {k: float(v) for k, v in metrics.items() if v is not None}
     notes = ["STATUSTEXT during the run: " + " | ".join(s["statustext"])]
+    if s["real_time"]["frames_late_fraction"] > 0.02 or s["real_time"]["frames_not_fused_fraction"] > 0.05:
+        notes.append("this host did not keep real time during the flight (camera frames late or not fused): the "
+                     "EKF figures measure the host's load, not the EKF")
     return BenchResult(metrics=metrics, notes=notes)
