@@ -790,7 +790,12 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
             break
         except SitlError:
             if time.monotonic() > arm_end:
-                raise SitlError("SITL would not arm; last messages: " + "; ".join(t for _, _, t in gcs.texts[-5:]))
+                late = live.frames_late / max(1, live.frames_made)
+                raise SitlError("SITL would not arm; last messages: " + "; ".join(t for _, _, t in gcs.texts[-5:])
+                                + f". {100 * late:.0f}% of the camera frames so far were made more than "
+                                f"{LATE_NS // 1_000_000} ms late" + (": this host is not keeping real time, and "
+                                "'VisOdom: not healthy' means gaps of over 300 ms in the vision" if late > 0.02
+                                else ""))
     record["armed_ns"] = time.monotonic_ns()
     say("armed in GUIDED")
     await gcs.command_async(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, plan.altitude_m, what="takeoff")
