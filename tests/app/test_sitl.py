@@ -61,7 +61,7 @@ def test_truth_track_follows_a_known_motion_in_the_world_frame():
 
 
 def test_vision_parameters_turn_gps_and_compass_off_and_external_nav_on():
-    cfg = S.SitlSettings(S.SHARED_BINARY, None, "+", 1.0, None, (*HOME, 0.0), None, 0.01, 0.02, 0.05)
+    cfg = S.SitlSettings(S.SHARED_BINARY, None, "+", None, (*HOME, 0.0), None, 0.01, 0.02, 0.05)
     p = S.vision_parameters(cfg, "vision_position_estimate", False)
     assert p["VISO_TYPE"] == 1 and p["GPS1_TYPE"] == 0 and p["COMPASS_USE"] == 0 and p["COMPASS_ENABLE"] == 0
     assert p["EK3_SRC1_POSXY"] == p["EK3_SRC1_POSZ"] == p["EK3_SRC1_YAW"] == 6

@@ -88,7 +88,6 @@ SITL = section(
     Setting("defaults", "text", None, "SITL parameter defaults file (--defaults)",
             default_doc="copter.parm beside the binary, when there"),
     Setting("model", "text", "+", "SITL frame model (--model)"),
-    Setting("speedup", "number", 1.0, "SITL speed-up; the cameras run in real time, so keep 1", min=1.0, max=1.0),
     Setting("instance", "integer", None, "SITL instance (-I): ports 5760 + 10*I ...", min=0, max=200,
             default_doc="the first whose ports are free from 1"),
     Setting("home", "array", [-35.363261, 149.165230, 584.0, 0.0], "SITL home and EKF origin: lat, lon (deg), "
@@ -176,7 +175,6 @@ class SitlSettings:
     binary: Path
     defaults: Path | None
     model: str
-    speedup: float
     instance: int | None
     home: tuple[float, float, float, float]
     viso_delay_ms: float | None
@@ -200,7 +198,7 @@ class SitlSettings:
         if not (-90 <= home[0] <= 90 and -180 <= home[1] <= 180):
             raise ConfigError(arena.source, "sitl.home", f"{list(home)}: give [lat (-90..90), lon (-180..180), "
                               "alt m, heading deg]")
-        return cls(binary, dp, SITL.read(sec, "model"), SITL.read(sec, "speedup"), SITL.read(sec, "instance"),
+        return cls(binary, dp, SITL.read(sec, "model"), SITL.read(sec, "instance"),
                    home, SITL.read(sec, "viso_delay_ms"), SITL.read(sec, "viso_pos_m_nse"),
                    SITL.read(sec, "viso_yaw_m_nse"), SITL.read(sec, "viso_vel_m_nse"))
 
@@ -230,7 +228,8 @@ class SitlProcess:
         self.gcs_port = 5760 + 10 * self.instance
         self.folder = tempfile.mkdtemp(prefix="visionpos-sitl-")
         lat, lon, alt, hdg = cfg.home
-        self.args = [str(cfg.binary), "--model", cfg.model, "--speedup", f"{cfg.speedup:g}", "-I", str(self.instance),
+        # --speedup 1: the cameras, the fusion and the bridge run on the wall clock
+        self.args = [str(cfg.binary), "--model", cfg.model, "--speedup", "1", "-I", str(self.instance),
                      "--home", f"{lat:.7f},{lon:.7f},{alt:.2f},{hdg:g}"]
         if serial1 is not None:  # e.g. udpclient:HOST:PORT (SITL's own syntax; MAVProxy's --out is not one)
             self.args.append(f"--serial1={serial1}")
