@@ -707,6 +707,9 @@ def run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | N
             async def during(ctx: Any) -> None:
                 try:
                     await fly(ctx, gcs, live, plan, cfg, body, record, say)
+                except SitlError as e:  # the flight failed: still summarise what happened (and why)
+                    record["error"] = str(e)
+                    say(f"flight failed: {e}")
                 finally:
                     live.stop()
 
@@ -873,7 +876,7 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
     """EKF and vision against SITL's truth, EKF test ratios, every STATUSTEXT, failsafes."""
     a = record.get("armed_ns")
     b = record.get("disarmed_ns") or time.monotonic_ns()
-    out: dict[str, Any] = {"completed": bool(record.get("completed")), "wall_s": wall_s,
+    out: dict[str, Any] = {"completed": bool(record.get("completed")), "error": record.get("error"), "wall_s": wall_s,
                            "viso_delay_ms": record.get("viso_delay_ms")}
     if a is not None:
         loc = np.array([r for r in gcs.local if a <= r[0] <= b], dtype=float).reshape(-1, 4)
@@ -934,7 +937,8 @@ def format_flight(s: dict[str, Any]) -> str:
     vis = s["vision"]
     lines = [
         f"visionpos sitl: flight {'completed' if s['completed'] else 'NOT completed'} "
-        f"({s['wall_s']:.0f} s wall, VISO_DELAY_MS {f(s.get('viso_delay_ms'), '.0f')})",
+        f"({s['wall_s']:.0f} s wall, VISO_DELAY_MS {f(s.get('viso_delay_ms'), '.0f')})"
+        + (f": {s['error']}" if s.get("error") else ""),
         f"  EKF position vs SITL truth (armed to disarmed): horizontal p50 {f(h.get('p50'))} mm, p99 {f(h.get('p99'))}"
         f" mm, max {f(h.get('max'))} mm; vertical p99 {f(v.get('p99'))} mm",
         f"  EKF yaw vs truth: p50 {f(y.get('p50'), '.2f')} deg, p99 {f(y.get('p99'), '.2f')} deg, "
