@@ -17,6 +17,7 @@ GROUPS: dict[str, str] = {
     "replay": "replay",
     "robustness": "robustness",
     "planner": "planner",
+    "sitl": "sitl",
 }
 
 
@@ -130,4 +131,7 @@ GOALS: list[Goal] = [
     Goal("robustness_rmse_over_reference_max", "<=", 1.1, "position RMSE under attack / without (accuracy unchanged)"),
     Goal("robustness_rss_growth_mb_max", "<=", 10.0, "RSS growth under attack (MB)"),
     Goal("robustness_recording_growth_pct_max", "<=", 1.0, "recording size vs the run without attack (%)"),
+    Goal("sitl_flight_completed", ">=", 1, "ArduPilot SITL on visionpos: the scripted flight completes"),
+    Goal("sitl_ekf_horizontal_error_p99_mm", "<=", 20.0, "ArduPilot SITL: EKF horizontal position error p99 (mm)"),
+    Goal("sitl_failsafe_messages", "<=", 0, "ArduPilot SITL: failsafe / lane-switch messages, uncommanded modes"),
 ]

@@ -128,5 +128,6 @@ TOP = section(
     Setting("vrpn", "section", None, "VRPN server", default_doc="(off)"),
     Setting("natnet", "section", None, "NatNet server for OptiTrack clients", default_doc="(off)"),
     Setting("sim", "section", {}, "the simulator's scenario"),
+    Setting("sitl", "section", {}, "ArduPilot SITL for `visionpos sitl`"),
     Setting("calibration", "section", {}, "calibration wand, ground frame and reports", spec=CALIBRATION),
 )

@@ -156,6 +156,15 @@ def iter_frames(
         yield (frame, truth) if with_truth else frame
 
 
+def window_frames(scenario: Scenario, camera_index: int, window: int, t0_ns: float, t1_ns: float
+                  ) -> list[tuple[BlobFrame, FrameTruth]]:
+    """Frames of one camera (index into scenario.cameras) with nominal exposure in [t0_ns, t1_ns) after
+    the scenario start, generated on demand (a live trajectory: call it once the truth for the window is
+    known). window: this window's index, which seeds its random draws (give each window its own)."""
+    cam, timing = scenario.cameras[camera_index], scenario.timings[camera_index]
+    return _camera_chunk(scenario, cam, timing, window, float(t0_ns), float(t1_ns), None)
+
+
 # ------------------------------------------------------------------ internals
 def _ordered(scenario: Scenario, duration_s: float, order: str, dropped: dict[int, list[int]] | None):
     """Merge the per-chunk frames of all cameras into one exactly ordered stream.
