@@ -14,6 +14,8 @@ Layout (MCAP profile "visionpos"):
     /fusion/states     json, schema visionpos.BodyState
     /fusion/markers    json {"points": [[x, y, z], ...], "residual_px": [...]}: loose markers (no body)
     /sim/truth         json, schema visionpos.Truth
+    /foxglove/...      protobuf, schemas foxglove.* (visionpos/foxglove/channels.py): the 3-D scene, the
+                       cameras' blobs and health as Foxglove and Lichtblick show them, at a bounded rate
     any other topic    json, no schema (write_json)
 
 Crash safety: the file is written *unchunked* (every record goes straight to the data
@@ -72,7 +74,10 @@ from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, IndexType, Writer
 
 from visionpos import __version__
+from visionpos.config.arena import parse_arena
 from visionpos.errors import VisionposError
+from visionpos.foxglove.channels import DEFAULT_RATE_HZ, TOPIC_PREFIX, FoxgloveChannels
+from visionpos.foxglove.protobuf import file_descriptor_set
 from visionpos.messages import BodyState
 
 log = logging.getLogger(__name__)
@@ -83,6 +88,8 @@ TOPIC_PACKETS = "/station/packets"
 TOPIC_STATES = "/fusion/states"
 TOPIC_TRUTH = "/sim/truth"
 TOPIC_MARKERS = "/fusion/markers"
+TOPIC_HEALTH = "/server/health"
+TOPIC_EVENTS = "/server/events"
 PACKET_ENCODING = "visionpos.station"
 FLUSH_INTERVAL_S = 0.25
 # senders with their own packet channel; the rest share one. Far above any arena's station
@@ -235,6 +242,19 @@ def _dumps(obj: Any) -> bytes:
     return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
 
 
+def _arena_cameras(config: Any) -> tuple[Any, ...]:
+    """The calibrated cameras of a recording's config: an ArenaConfig's, or parsed from the raw mapping
+    (a mapping that is no valid arena, as some tools record, has none)."""
+    cams = getattr(config, "cameras", None)
+    if cams is not None:
+        return tuple(cams)
+    try:
+        return parse_arena(getattr(config, "raw", config)).cameras
+    except (VisionposError, TypeError, ValueError) as e:
+        log.debug("recording config is no arena (%s): Foxglove channels without cameras", e)
+        return ()
+
+
 # ---------------------------------------------------------------- writer
 
 
@@ -269,13 +289,18 @@ class RecordingWriter:
     meta: free-form JSON-able facts (scenario, seed, command line ...). The writer adds
     version, host, wall-clock and monotonic start times.
     max_sources: senders that get their own packet channel; later ones share one.
+    foxglove_rate_hz: the Foxglove channels' update rate (visionpos/foxglove/channels.py); 0 or None:
+    no Foxglove channels. Cameras for them come from the config (an ArenaConfig, or a raw mapping
+    that parses as an arena; one that does not gets the channels without cameras).
+    realtime_minus_monotonic_ns: for the Foxglove blobs of realtime-stamped stations (None: this host's).
 
     All write_* methods are thread-safe; none does disk I/O on the caller's thread, and
     none raises because of the disk: after a write error they only count what they drop.
     """
 
     def __init__(self, path: str | Path, config: dict[str, Any] | Any, meta: dict[str, Any] | None = None,
-                 flush_interval_s: float = FLUSH_INTERVAL_S, max_sources: int = MAX_PACKET_SOURCES):
+                 flush_interval_s: float = FLUSH_INTERVAL_S, max_sources: int = MAX_PACKET_SOURCES,
+                 foxglove_rate_hz: float | None = DEFAULT_RATE_HZ, realtime_minus_monotonic_ns: int | None = None):
         self.path = Path(path)
         raw = getattr(config, "raw", config)
         if not isinstance(raw, dict):
@@ -324,6 +349,10 @@ class RecordingWriter:
         self._packet_channels: dict[tuple[str, int] | None, int] = {}
         self._topic_channels: dict[str, int] = {}
         self._seq = 0
+        self._fox_schemas: dict[str, int] = {}
+        self.foxglove: FoxgloveChannels | None = None
+        if foxglove_rate_hz:
+            self.foxglove = FoxgloveChannels(_arena_cameras(config), foxglove_rate_hz, realtime_minus_monotonic_ns)
         self._flush_to_disk()  # header + config on disk before any data arrives
         if self._write_error is not None:
             os.close(self._fd)
@@ -381,8 +410,27 @@ class RecordingWriter:
                         "their address", self.path, self._max_sources)
         return self._overflow_channel
 
+    def _add_foxglove(self, out: list[tuple[str, str, int, bytes]]) -> None:
+        """Foxglove messages (topic, schema name, log time, protobuf bytes); lock held."""
+        for topic, schema, t, data in out:
+            ch = self._topic_channels.get(topic)
+            if ch is None:
+                sid = self._fox_schemas.get(schema)
+                if sid is None:
+                    sid = self._fox_schemas[schema] = self._w.register_schema(schema, "protobuf",
+                                                                              file_descriptor_set(schema))
+                ch = self._channel_for(topic, "protobuf", sid)
+            self._add(ch, t, data, topic)
+
+    def _foxglove_out(self, out: list[tuple[str, str, int, bytes]]) -> None:
+        if out:
+            with self._lock:
+                if self._recording():
+                    self._add_foxglove(out)
+
     def write_packet(self, recv_ns: int, data: bytes, source: tuple[str, int] | None = None) -> None:
         """One received UDP payload, untouched, stamped with its receive time (server monotonic ns)."""
+        fox = self.foxglove.packet(recv_ns, data) if self.foxglove is not None else None
         with self._lock:
             if self._closed or self._write_error is not None:  # inline: this runs for every packet
                 self._recording()
@@ -391,6 +439,8 @@ class RecordingWriter:
             if ch is None:
                 ch = self._source_channel(source)
             self._add(ch, int(recv_ns), bytes(data), TOPIC_PACKETS)
+            if fox:
+                self._add_foxglove(fox)
 
     def write_state(self, state: BodyState) -> None:
         """One fused BodyState, logged at its time_ns."""
@@ -401,8 +451,11 @@ class RecordingWriter:
                 self._add(ch, int(state.time_ns), data, TOPIC_STATES)
 
     def write_states(self, states: list[BodyState]) -> None:
+        """One output tick's states (the Foxglove bodies are updated from ticks, so give them together)."""
         for s in states:
             self.write_state(s)
+        if self.foxglove is not None:
+            self._foxglove_out(self.foxglove.states(states))
 
     def publish(self, states: list[BodyState]) -> None:
         """Sink interface (server output tick): record the outputs."""
@@ -411,10 +464,13 @@ class RecordingWriter:
     def publish_markers(self, lp) -> None:
         """Sink interface: a new set of loose markers (LoosePoints), logged at its time_ns."""
         data = _dumps({"points": _plain(lp.points), "residual_px": _plain(lp.residual_px)})
+        fox = self.foxglove.markers(int(lp.time_ns), lp.points) if self.foxglove is not None else None
         with self._lock:
             if self._recording():
                 ch = self._channel_for(TOPIC_MARKERS, "json", 0)
                 self._add(ch, int(lp.time_ns), data, TOPIC_MARKERS)
+                if fox:
+                    self._add_foxglove(fox)
 
     def write_truth(self, time_ns: int, name: str, position: np.ndarray, quaternion: np.ndarray) -> None:
         """Simulator ground truth of body `name`: position (3,) m, quaternion (4,) xyzw."""
@@ -429,16 +485,24 @@ class RecordingWriter:
                 self._add(ch, int(time_ns), data, TOPIC_TRUTH)
 
     def write_json(self, topic: str, time_ns: int, obj: dict[str, Any]) -> None:
-        """Any JSON-able mapping on its own topic (events, camera truth, stats)."""
-        if topic in (TOPIC_PACKETS, TOPIC_STATES, TOPIC_TRUTH, TOPIC_MARKERS):
+        """Any JSON-able mapping on its own topic (events, camera truth, stats).
+
+        /server/health and /server/events also go to the Foxglove log.
+        """
+        if topic in (TOPIC_PACKETS, TOPIC_STATES, TOPIC_TRUTH, TOPIC_MARKERS) or topic.startswith(TOPIC_PREFIX):
             raise ValueError(
                 f"write_json: topic {topic!r} is reserved; use write_packet/write_state/write_truth/publish_markers"
             )
         data = _dumps(_plain(obj))
+        fox = None
+        if self.foxglove is not None and topic in (TOPIC_HEALTH, TOPIC_EVENTS):
+            fox = (self.foxglove.health if topic == TOPIC_HEALTH else self.foxglove.event)(int(time_ns), obj)
         with self._lock:
             if self._recording():
                 ch = self._channel_for(topic, "json", 0)
                 self._add(ch, int(time_ns), data, topic)
+                if fox:
+                    self._add_foxglove(fox)
 
     # -- disk
     def _pwrite_all(self, data: bytes, offset: int) -> None:
