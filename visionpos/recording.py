@@ -906,36 +906,138 @@ def recover(src: str | Path, dst: str | Path) -> dict[str, Any]:
     return report
 
 
-def _rewrite(reader: RecordingReader, f: Any) -> dict[str, Any]:
+META_FOXGLOVE_COPY = "visionpos.foxglove_copy"
+
+
+def foxglove_copy(src: str | Path, dst: str | Path, rate_hz: float = DEFAULT_RATE_HZ) -> dict[str, Any]:
+    """Write `dst`: the recording `src` with Foxglove channels (visionpos/foxglove/channels.py) built
+    from what it recorded (station packets, outputs, loose markers, health, events), so a recording
+    made before them opens in Foxglove or Lichtblick as a 3-D scene. Every record of src is kept;
+    Foxglove channels src already has are replaced. A damaged src is copied up to the damage.
+
+    Returns (and stores in dst as metadata "visionpos.foxglove_copy") {"from", "messages",
+    "messages_by_topic", "foxglove_messages", "damage", "was_complete"}.
+    """
+    src, dst = Path(src), Path(dst)
+    if dst.exists() and dst.resolve() == src.resolve():
+        raise RecordingError(f"{dst}: the Foxglove copy is a new file; give another output than the input")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RecordingDamagedWarning)  # reported in the result instead
+        reader = RecordingReader(src)
+        meta = reader.meta
+        rt = None
+        if isinstance(meta.get("wall_start_unix_ns"), int) and isinstance(meta.get("monotonic_start_ns"), int):
+            rt = meta["wall_start_unix_ns"] - meta["monotonic_start_ns"]
+        fox = FoxgloveChannels(_arena_cameras(reader.config), rate_hz, rt)
+        tmp = dst.with_name(dst.name + ".part")
+        try:
+            with open(tmp, "wb") as f:
+                report = _rewrite(reader, f, fox)
+            os.replace(tmp, dst)
+        except OSError as e:
+            tmp.unlink(missing_ok=True)
+            raise RecordingError(f"{dst}: cannot write the Foxglove copy: {e.strerror or e}") from None
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+    return report
+
+
+class _FoxgloveFeed:
+    """Feeds a recording's messages, in file order, to FoxgloveChannels; writes what they return."""
+
+    def __init__(self, w: Writer, fox: FoxgloveChannels) -> None:
+        self.w, self.fox = w, fox
+        self.schemas: dict[str, int] = {}
+        self.channels: dict[str, int] = {}
+        self.tick: list[BodyState] = []  # the states of one output tick (recorded together, one time_ns)
+        self.count = 0
+
+    def _emit(self, out: list[tuple[str, str, int, bytes]]) -> None:
+        for topic, schema, t, data in out:
+            ch = self.channels.get(topic)
+            if ch is None:
+                sid = self.schemas.get(schema)
+                if sid is None:
+                    sid = self.schemas[schema] = self.w.register_schema(schema, "protobuf",
+                                                                        file_descriptor_set(schema))
+                ch = self.channels[topic] = self.w.register_channel(topic, "protobuf", sid)
+            self.w.add_message(ch, t, data, t, 0)
+            self.count += 1
+
+    def _end_tick(self) -> None:
+        if self.tick:
+            self._emit(self.fox.states(self.tick))
+            self.tick = []
+
+    def message(self, topic: str, t: int, data: bytes) -> None:
+        if topic == TOPIC_PACKETS:
+            self._emit(self.fox.packet(t, data))
+            return
+        if topic not in (TOPIC_STATES, TOPIC_MARKERS, TOPIC_HEALTH, TOPIC_EVENTS):
+            return
+        try:
+            obj = json.loads(data)
+            if topic == TOPIC_STATES:
+                s = state_from_dict(obj)
+                if self.tick and self.tick[-1].time_ns != s.time_ns:
+                    self._end_tick()
+                self.tick.append(s)
+            elif topic == TOPIC_MARKERS:
+                pts = np.asarray(obj["points"], dtype=np.float64).reshape(-1, 3)  # null -> NaN
+                self._emit(self.fox.markers(t, pts[np.isfinite(pts).all(axis=1)]))
+            elif topic == TOPIC_HEALTH:
+                self._emit(self.fox.health(t, obj))
+            else:
+                self._emit(self.fox.event(t, obj))
+        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, ValueError, TypeError):
+            return  # a malformed side-channel message: nothing to show for it
+
+    def finish(self) -> None:
+        self._end_tick()
+
+
+def _rewrite(reader: RecordingReader, f: Any, fox: FoxgloveChannels | None = None) -> dict[str, Any]:
+    """Copy every record of reader to f with a summary; with fox, also the Foxglove channels (a
+    Foxglove copy: src's own /foxglove/ channels are left out, fox writes them anew)."""
     w = Writer(f, compression=CompressionType.NONE, use_chunking=False, index_types=IndexType.METADATA,
                enable_crcs=True)
     schemas: dict[int, int] = {}  # id in the input -> id in the output
     channels: dict[int, tuple[int, str]] = {}  # id in the input -> (id in the output, topic)
     by_topic: dict[str, int] = {}
     started = False
+    feed = None
     for rec in reader._records(message_records=True):
         if isinstance(rec, Message):
             ch = channels.get(rec.channel_id)
-            if ch is None:  # the reader has flagged it (damage); nothing to attach it to
+            if ch is None:  # the reader has flagged it (damage) or it is a replaced Foxglove channel
                 continue
             w.add_message(ch[0], rec.log_time, rec.data, rec.publish_time, rec.sequence)
             by_topic[ch[1]] = by_topic.get(ch[1], 0) + 1
+            if feed is not None:
+                feed.message(ch[1], rec.log_time, rec.data)
         elif isinstance(rec, Header):
             if not started:
                 w.start(profile=rec.profile, library=rec.library)
                 started = True
+                feed = None if fox is None else _FoxgloveFeed(w, fox)
         elif isinstance(rec, Schema):
             if rec.id not in schemas:  # a complete file repeats schemas and channels in its summary
                 schemas[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
         elif isinstance(rec, Channel):
+            if fox is not None and rec.topic.startswith(TOPIC_PREFIX):
+                continue
             if rec.id not in channels:
                 sid = schemas.get(rec.schema_id, 0)
                 channels[rec.id] = (w.register_channel(rec.topic, rec.message_encoding, sid, dict(rec.metadata)),
                                     rec.topic)
-        elif isinstance(rec, Metadata) and rec.name != META_RECOVERED:
+        elif isinstance(rec, Metadata) and rec.name not in (META_RECOVERED, META_FOXGLOVE_COPY):
             w.add_metadata(rec.name, dict(rec.metadata))
     report = {"from": str(reader.path), "messages": sum(by_topic.values()), "messages_by_topic": by_topic,
               "damage": reader.damage, "was_complete": reader.complete}
-    w.add_metadata(META_RECOVERED, {"json": json.dumps(report)})
+    if feed is not None:
+        feed.finish()
+        report["foxglove_messages"] = feed.count
+    w.add_metadata(META_FOXGLOVE_COPY if fox is not None else META_RECOVERED, {"json": json.dumps(report)})
     w.finish()
     return report

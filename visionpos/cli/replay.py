@@ -8,6 +8,7 @@ import sys
 
 from visionpos.analysis import metrics as M
 from visionpos.analysis.replay import METRIC_COLUMNS, metrics_rows, replay_log, summary, write_outputs
+from visionpos.errors import UsageError
 
 
 def parse_speed(s: str) -> float | None:
@@ -34,9 +35,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="replay_out", metavar="DIR", help="output folder (default ./replay_out)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots (faster; no matplotlib needed)")
+    p.add_argument("--foxglove", metavar="OUT.mcap",
+                   help="instead of replaying, write a copy of LOG with the Foxglove channels (3-D scene, blobs, "
+                        "health) built from what it recorded, for Foxglove or Lichtblick (docs/interop.md)")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.foxglove:
+        return foxglove(args)
     res = replay_log(args.log, args.config, args.set, speed=args.speed, rate_hz=args.rate)
     written, note = write_outputs(res, args.out, plots=not args.no_plots)
     summ = summary(res)
@@ -54,4 +60,24 @@ def run(args: argparse.Namespace) -> int:
     if note:
         print(f"note: {note}", file=sys.stderr)
     print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
+    return 0
+
+
+def foxglove(args: argparse.Namespace) -> int:
+    from visionpos.recording import TOPIC_STATES, foxglove_copy
+
+    if args.config or args.set or args.rate is not None or args.speed is not None:
+        raise UsageError("--foxglove copies what LOG recorded; it takes no --config, --set, --rate or --speed")
+    rep = foxglove_copy(args.log, args.foxglove)
+    if args.json:
+        print(json.dumps(rep, indent=2, sort_keys=True))
+    else:
+        print(f"wrote {args.foxglove}: {rep['messages']} messages of {args.log} and {rep['foxglove_messages']} "
+              "Foxglove messages (open it in Foxglove or Lichtblick)")
+    if rep["damage"]:
+        print(f"note: {args.log} is damaged ({rep['damage']}); copied everything before it", file=sys.stderr)
+    if not rep["messages_by_topic"].get(TOPIC_STATES):
+        print(f"note: {args.log} recorded no poses (a `visionpos record` file?): the copy shows cameras and blobs; "
+              "the bodies appear in recordings of `visionpos serve --record` or `visionpos demo --record`",
+              file=sys.stderr)
     return 0

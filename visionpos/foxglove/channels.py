@@ -132,7 +132,7 @@ class FoxgloveChannels:
             self._next_blobs[cid] = recv_ns + self.period_ns
             out = self._static(capture)
             out.append((blobs_topic(cid), IMAGE_ANNOTATIONS, capture,
-                        encode(IMAGE_ANNOTATIONS, scene.image_annotations(capture, f.blobs))))
+                        scene.encode_image_annotations(capture, f.blobs)))
             return self._done(out)
 
     def _hello(self, data: bytes) -> Out:

@@ -10,7 +10,8 @@ neither protobuf nor the schema package.
 
 Messages are plain dicts keyed by field name; `encode(type_name, msg)` writes proto3 wire format:
 fields in number order, scalars equal to their default left out, repeated scalars packed, a
-sub-message present whenever its key is (even empty). Timestamps and durations are ints of ns.
+sub-message present whenever its key is (even empty). A sub-message may also be given as the
+bytes `encode` made of it (constants encoded once). `time_msg` makes timestamps and durations.
 """
 
 from __future__ import annotations
@@ -116,7 +117,8 @@ MESSAGES, ENUMS = _parse(SCHEMAS)
 # ---------------------------------------------------------------- wire format
 
 
-def _varint(n: int) -> bytes:
+def varint(n: int) -> bytes:
+    """A protobuf varint (negative ints as ten bytes of two's complement)."""
     if n < 0:
         n += 1 << 64  # int32/int64/enum: two's complement, ten bytes
     out = bytearray()
@@ -128,7 +130,7 @@ def _varint(n: int) -> bytes:
 
 
 def _key(number: int, wire: int) -> bytes:
-    return _varint(number << 3 | wire)
+    return varint(number << 3 | wire)
 
 
 _PACK = {"double": struct.Struct("<d"), "float": struct.Struct("<f"), "fixed32": struct.Struct("<I"),
@@ -142,10 +144,10 @@ def _scalar(kind: str, value: Any) -> bytes:
         return _PACK[kind].pack(value)
     if kind == "string":
         b = value.encode()
-        return _varint(len(b)) + b
+        return varint(len(b)) + b
     if kind == "bytes":
-        return _varint(len(value)) + bytes(value)
-    return _varint(int(value))  # ints, bool, enum
+        return varint(len(value)) + bytes(value)
+    return varint(int(value))  # ints, bool, enum
 
 
 class _Field:
@@ -165,8 +167,9 @@ class _Field:
 
 
 @lru_cache(maxsize=None)
-def _fields(type_name: str) -> tuple[_Field, ...]:
-    return tuple(_Field(*f) for f in sorted(MESSAGES[type_name], key=lambda f: f[1]))  # written in number order
+def _fields(type_name: str) -> tuple[tuple[_Field, ...], frozenset[str]]:
+    fields = tuple(_Field(*f) for f in sorted(MESSAGES[type_name], key=lambda f: f[1]))  # written in number order
+    return fields, frozenset(f.name for f in fields)
 
 
 def encode(type_name: str, msg: dict[str, Any]) -> bytes:
@@ -174,10 +177,9 @@ def encode(type_name: str, msg: dict[str, Any]) -> bytes:
 
     Keys that are not fields of type_name raise KeyError (a typo must not vanish silently).
     """
-    fields = _fields(type_name)
-    unknown = msg.keys() - {f.name for f in fields}
-    if unknown:
-        raise KeyError(f"{type_name} has no field {sorted(unknown)}")
+    fields, names = _fields(type_name)
+    if not names.issuperset(msg):
+        raise KeyError(f"{type_name} has no field {sorted(msg.keys() - names)}")
     out = bytearray()
     for f in fields:
         v = msg.get(f.name)
@@ -185,9 +187,9 @@ def encode(type_name: str, msg: dict[str, Any]) -> bytes:
             continue
         if f.message:
             for item in (v if f.repeated else (v,)):
-                body = encode(f.kind, item)
+                body = item if type(item) is bytes else encode(f.kind, item)
                 out += f.key
-                out += _varint(len(body))
+                out += varint(len(body))
                 out += body
         elif f.repeated:
             if len(v) == 0:
@@ -195,13 +197,13 @@ def encode(type_name: str, msg: dict[str, Any]) -> bytes:
             if f.pack is not None:  # packed fixed-width: one struct call
                 body = struct.pack(f"<{len(v)}{f.pack.format[-1]}", *v)
             elif f.wire == _WIRE_VARINT:
-                body = b"".join(_varint(int(x)) for x in v)
+                body = b"".join(varint(int(x)) for x in v)
             else:  # strings and bytes are never packed
                 for x in v:
                     out += f.key + _scalar(f.kind, x)
                 continue
             out += f.packed_key
-            out += _varint(len(body))
+            out += varint(len(body))
             out += body
         elif v:  # proto3: a default value is not written
             out += f.key
@@ -226,40 +228,43 @@ def _file_of(type_name: str) -> str:
 
 
 def _enum_descriptor(full_name: str) -> bytes:
-    values = b"".join(_len_field(2, _len_field(1, v.encode()) + _key(2, _WIRE_VARINT) + _varint(n))
+    values = b"".join(len_field(2, len_field(1, v.encode()) + _key(2, _WIRE_VARINT) + varint(n))
                       for v, n in ENUMS[full_name])
-    return _len_field(1, full_name.rsplit(".", 1)[1].encode()) + values
+    return len_field(1, full_name.rsplit(".", 1)[1].encode()) + values
 
 
-def _len_field(number: int, payload: bytes) -> bytes:
-    return _key(number, _WIRE_LEN) + _varint(len(payload)) + payload
+def len_field(number: int, payload: bytes) -> bytes:
+    """A length-delimited field (message, string, bytes, packed) with its key."""
+    return _key(number, _WIRE_LEN) + varint(len(payload)) + payload
 
 
 def _message_descriptor(type_name: str) -> tuple[bytes, set[str]]:
     """DescriptorProto of one message (with its nested enums) and the files it depends on."""
-    out = _len_field(1, type_name.rsplit(".", 1)[1].encode())
+    out = len_field(1, type_name.rsplit(".", 1)[1].encode())
     deps: set[str] = set()
     oneofs = b""
     n_oneofs = 0
     for name, number, kind, label in MESSAGES[type_name]:
-        f = _len_field(1, name.encode()) + _key(3, _WIRE_VARINT) + _varint(number)
-        f += _key(4, _WIRE_VARINT) + _varint(_LABEL_REPEATED if label == "*" else _LABEL_OPTIONAL)
+        f = len_field(1, name.encode()) + _key(3, _WIRE_VARINT) + varint(number)
+        f += _key(4, _WIRE_VARINT) + varint(_LABEL_REPEATED if label == "*" else _LABEL_OPTIONAL)
         if kind in _SCALARS:
-            f += _key(5, _WIRE_VARINT) + _varint(_SCALARS[kind])
+            f += _key(5, _WIRE_VARINT) + varint(_SCALARS[kind])
         else:
-            f += _key(5, _WIRE_VARINT) + _varint(_TYPE_MESSAGE if kind in MESSAGES else _TYPE_ENUM)
-            f += _len_field(6, f".{kind}".encode())
+            f += _key(5, _WIRE_VARINT) + varint(_TYPE_MESSAGE if kind in MESSAGES else _TYPE_ENUM)
+            f += len_field(6, f".{kind}".encode())
             owner = kind if kind in MESSAGES else kind.rsplit(".", 1)[0]
             if _file_of(owner) != _file_of(type_name):
                 deps.add(owner)
+        if type_name.startswith("google.protobuf."):  # the well-known types' descriptors carry json names
+            f += len_field(10, name.encode())
         if label == "?":  # proto3 `optional`: a synthetic one-field oneof
-            f += _key(9, _WIRE_VARINT) + _varint(n_oneofs) + _key(17, _WIRE_VARINT) + _varint(1)
-            oneofs += _len_field(8, _len_field(1, f"_{name}".encode()))
+            f += _key(9, _WIRE_VARINT) + varint(n_oneofs) + _key(17, _WIRE_VARINT) + varint(1)
+            oneofs += len_field(8, len_field(1, f"_{name}".encode()))
             n_oneofs += 1
-        out += _len_field(2, f)
+        out += len_field(2, f)
     for enum in ENUMS:
         if enum.rsplit(".", 1)[0] == type_name:
-            out += _len_field(4, _enum_descriptor(enum))
+            out += len_field(4, _enum_descriptor(enum))
     return out + oneofs, deps
 
 
@@ -282,9 +287,9 @@ def file_descriptor_set(type_name: str) -> bytes:
     for name in order:
         body, deps = _message_descriptor(name)
         package = name.rsplit(".", 1)[0]
-        fd = _len_field(1, _file_of(name).encode()) + _len_field(2, package.encode())
+        fd = len_field(1, _file_of(name).encode()) + len_field(2, package.encode())
         for d in sorted(deps):
-            fd += _len_field(3, _file_of(d).encode())
-        fd += _len_field(4, body) + _len_field(12, b"proto3")
-        files += _len_field(1, fd)
+            fd += len_field(3, _file_of(d).encode())
+        fd += len_field(4, body) + len_field(12, b"proto3")
+        files += len_field(1, fd)
     return files

@@ -9,13 +9,15 @@ the server's monotonic clock (the capture clock).
 from __future__ import annotations
 
 import math
+import struct
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from visionpos.camera.model import Camera
-from visionpos.foxglove.protobuf import time_msg
-from visionpos.geometry.rotations import quat_from_matrix
+from visionpos.foxglove.protobuf import encode, len_field, time_msg, varint
 
 WORLD_FRAME = "world"
 FRUSTUM_DEPTH_M = 0.4  # drawn frustum length: visible at arena scale, short enough not to clutter
@@ -32,7 +34,14 @@ CAMERA_COLOR = {"r": 1.0, "g": 0.75, "b": 0.1, "a": 1.0}
 MARKER_COLOR = {"r": 1.0, "g": 1.0, "b": 1.0, "a": 0.9}
 LABEL_COLOR = {"r": 1.0, "g": 1.0, "b": 1.0, "a": 1.0}
 BLOB_COLOR = {"r": 0.1, "g": 1.0, "b": 0.3, "a": 1.0}
-_IDENTITY = {"position": {}, "orientation": {"w": 1.0}}
+BLOB_THICKNESS_PX = 2.0
+_IDENTITY = encode("foxglove.Pose", {"position": {}, "orientation": {"w": 1.0}})
+_NO_ROTATION = encode("foxglove.Quaternion", {"w": 1.0})
+_AXES_COLORS = [encode("foxglove.Color", c) for c in (RED, RED, GREEN, GREEN, BLUE, BLUE)]
+_MARKER_COLOR = encode("foxglove.Color", MARKER_COLOR)
+_MARKER_SIZE = encode("foxglove.Vector3", {"x": MARKER_DIAMETER_M, "y": MARKER_DIAMETER_M, "z": MARKER_DIAMETER_M})
+_LABEL_COLOR = encode("foxglove.Color", LABEL_COLOR)
+_BLOB_COLOR = encode("foxglove.Color", BLOB_COLOR)
 
 LOG_INFO, LOG_WARNING = 2, 3  # foxglove.Log.Level
 _LINE_LIST = 2  # foxglove.LinePrimitive.Type
@@ -52,7 +61,8 @@ def camera_in_world(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarra
     rotation R^T, which takes camera axes to world axes (a FrameTransform's parent <- child).
     """
     R = np.asarray(R, dtype=np.float64).reshape(3, 3)
-    return -R.T @ np.asarray(t, dtype=np.float64).reshape(3), quat_from_matrix(R.T)
+    # scipy, not the compiled helper: loading numba's cache on a recorder's first packet would stall it
+    return -R.T @ np.asarray(t, dtype=np.float64).reshape(3), Rotation.from_matrix(R.T).as_quat()
 
 
 def frustum_segments(K: np.ndarray, width: int, height: int, depth_m: float = FRUSTUM_DEPTH_M) -> np.ndarray:
@@ -108,10 +118,19 @@ def _points(p: np.ndarray) -> list[dict[str, float]]:
     return [{"x": x, "y": y, "z": z} for x, y, z in np.asarray(p, dtype=np.float64).tolist()]
 
 
-def _lines(points: np.ndarray, color: dict[str, float] | None = None,
-           colors: list[dict[str, float]] | None = None, thickness_px: float = 2.0) -> dict[str, Any]:
+def _axes_points(length_m: float) -> list[bytes]:
+    axes = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 0], [0, 1, 0], [0, 0, 0], [0, 0, 1]], dtype=np.float64) * length_m
+    return [encode("foxglove.Point3", p) for p in _points(axes)]
+
+
+_BODY_AXES = _axes_points(AXES_LENGTH_M)
+
+
+def _lines(points: np.ndarray | list[bytes], color: dict[str, float] | None = None,
+           colors: list[Any] | None = None, thickness_px: float = 2.0) -> dict[str, Any]:
+    pts = points if isinstance(points, list) else _points(points)
     line: dict[str, Any] = {"type": _LINE_LIST, "pose": _IDENTITY, "thickness": thickness_px, "scale_invariant": True,
-                            "points": _points(points)}
+                            "points": pts}
     if colors is not None:
         line["colors"] = colors
     else:
@@ -120,40 +139,54 @@ def _lines(points: np.ndarray, color: dict[str, float] | None = None,
 
 
 def _text(text: str, position: np.ndarray, size_px: float = 14.0) -> dict[str, Any]:
-    return {"pose": {"position": _vec(position), "orientation": {"w": 1.0}}, "billboard": True, "font_size": size_px,
-            "scale_invariant": True, "color": LABEL_COLOR, "text": text}
+    return {"pose": {"position": _vec(position), "orientation": _NO_ROTATION}, "billboard": True,
+            "font_size": size_px, "scale_invariant": True, "color": _LABEL_COLOR, "text": text}
+
+
+@lru_cache(maxsize=64)
+def _camera_pose(camera: Camera) -> tuple[bytes, bytes, np.ndarray]:
+    """A camera's frame in the world: encoded Vector3 and Quaternion, and its centre (3,)."""
+    tr, q = camera_in_world(camera.R, camera.t)
+    return encode("foxglove.Vector3", _vec(tr)), encode("foxglove.Quaternion", _quat(q)), tr
 
 
 def frame_transforms(time_ns: int, cameras: list[Camera]) -> dict[str, Any]:
     """foxglove.FrameTransforms: world -> camera_<id> for every calibrated camera."""
     out = []
     for c in cameras:
-        tr, q = camera_in_world(c.R, c.t)
+        tr, q, _ = _camera_pose(c)
         out.append({"timestamp": time_msg(time_ns), "parent_frame_id": WORLD_FRAME,
-                    "child_frame_id": camera_frame_id(c.id), "translation": _vec(tr), "rotation": _quat(q)})
+                    "child_frame_id": camera_frame_id(c.id), "translation": tr, "rotation": q})
     return {"transforms": out}
+
+
+@lru_cache(maxsize=8)
+def _arena_entities(cameras: tuple[Camera, ...]) -> tuple[dict[str, Any], ...]:
+    """The arena's entities without their timestamps, primitives encoded (they never change)."""
+    world = {"frame_id": WORLD_FRAME, "id": "world", "frame_locked": True,
+             "lines": [encode("foxglove.LinePrimitive", _lines(_axes_points(0.5), colors=_AXES_COLORS,
+                                                                thickness_px=3.0))]}
+    entities = [world]
+    if cameras:
+        centres = np.array([_camera_pose(c)[2] for c in cameras])
+        lo, hi = centres[:, :2].min(axis=0), centres[:, :2].max(axis=0)
+        grid = _lines(grid_segments(lo, hi), color=GREY, thickness_px=1.0)
+        entities.append({"frame_id": WORLD_FRAME, "id": "floor", "frame_locked": True,
+                         "lines": [encode("foxglove.LinePrimitive", grid)]})
+    for c in cameras:
+        m = c.model
+        frustum = _lines(frustum_segments(m.K, m.width, m.height), color=CAMERA_COLOR)
+        entities.append({"frame_id": camera_frame_id(c.id), "id": f"camera/{c.id}", "frame_locked": True,
+                         "metadata": [{"key": "name", "value": c.name}, {"key": "model", "value": m.kind}],
+                         "lines": [encode("foxglove.LinePrimitive", frustum)],
+                         "texts": [encode("foxglove.TextPrimitive", _text(f"{c.id} {c.name}".strip(), np.zeros(3)))]})
+    return tuple(entities)
 
 
 def arena_scene(time_ns: int, cameras: list[Camera]) -> dict[str, Any]:
     """foxglove.SceneUpdate: the world axes, a floor grid under the cameras, each camera's frustum and name."""
     ts = time_msg(time_ns)
-    axes = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 0], [0, 1, 0], [0, 0, 0], [0, 0, 1]], dtype=np.float64) * 0.5
-    world = {"timestamp": ts, "frame_id": WORLD_FRAME, "id": "world", "frame_locked": True,
-             "lines": [_lines(axes, colors=[RED, RED, GREEN, GREEN, BLUE, BLUE], thickness_px=3.0)]}
-    entities = [world]
-    if cameras:
-        centres = np.array([camera_in_world(c.R, c.t)[0] for c in cameras])
-        lo, hi = centres[:, :2].min(axis=0), centres[:, :2].max(axis=0)
-        entities.append({"timestamp": ts, "frame_id": WORLD_FRAME, "id": "floor", "frame_locked": True,
-                         "lines": [_lines(grid_segments(lo, hi), color=GREY, thickness_px=1.0)]})
-    for c in cameras:
-        m = c.model
-        entities.append({"timestamp": ts, "frame_id": camera_frame_id(c.id), "id": f"camera/{c.id}",
-                         "frame_locked": True,
-                         "metadata": [{"key": "name", "value": c.name}, {"key": "model", "value": m.kind}],
-                         "lines": [_lines(frustum_segments(m.K, m.width, m.height), color=CAMERA_COLOR)],
-                         "texts": [_text(f"{c.id} {c.name}".strip(), np.zeros(3))]})
-    return {"entities": entities}
+    return {"entities": [{"timestamp": ts, **e} for e in _arena_entities(tuple(cameras))]}
 
 
 def body_entity_id(name: str) -> str:
@@ -165,12 +198,10 @@ def body_entity(state: Any, lifetime_ns: int) -> dict[str, Any]:
 
     The entity expires after lifetime_ns unless replaced, so a pose is never shown stale.
     """
-    L = AXES_LENGTH_M
-    axes = np.array([[0, 0, 0], [L, 0, 0], [0, 0, 0], [0, L, 0], [0, 0, 0], [0, 0, L]], dtype=np.float64)
     pose = {"position": _vec(state.position), "orientation": _quat(state.quaternion)}
-    line = _lines(axes, colors=[RED, RED, GREEN, GREEN, BLUE, BLUE], thickness_px=4.0)
+    line = _lines(_BODY_AXES, colors=_AXES_COLORS, thickness_px=4.0)
     line["pose"] = pose
-    label = _text(state.name, state.position + np.array([0.0, 0.0, 0.6 * L]))
+    label = _text(state.name, state.position + np.array([0.0, 0.0, 0.6 * AXES_LENGTH_M]))
     return {"timestamp": time_msg(state.time_ns), "frame_id": WORLD_FRAME, "id": body_entity_id(state.name),
             "lifetime": time_msg(lifetime_ns),
             "metadata": [{"key": "body_id", "value": str(int(state.body_id))},
@@ -187,9 +218,8 @@ def bodies_scene(time_ns: int, tracked: list[Any], lost: list[str], lifetime_ns:
 
 def markers_scene(time_ns: int, points: np.ndarray, lifetime_ns: int) -> dict[str, Any]:
     """foxglove.SceneUpdate: loose markers (N, 3) as spheres of one entity that expires after lifetime_ns."""
-    size = {"x": MARKER_DIAMETER_M, "y": MARKER_DIAMETER_M, "z": MARKER_DIAMETER_M}
-    spheres = [{"pose": {"position": p, "orientation": {"w": 1.0}}, "size": size, "color": MARKER_COLOR}
-               for p in _points(np.asarray(points, dtype=np.float64).reshape(-1, 3))]
+    spheres = [{"pose": encode("foxglove.Pose", {"position": p, "orientation": _NO_ROTATION}), "size": _MARKER_SIZE,
+                "color": _MARKER_COLOR} for p in _points(np.asarray(points, dtype=np.float64).reshape(-1, 3))]
     return {"entities": [{"timestamp": time_msg(time_ns), "frame_id": WORLD_FRAME, "id": "markers",
                           "lifetime": time_msg(lifetime_ns), "spheres": spheres}]}
 
@@ -199,8 +229,38 @@ def image_annotations(capture_ns: int, blobs: np.ndarray) -> dict[str, Any]:
     ts = time_msg(capture_ns)
     centres, diameters = blob_circles(blobs)
     return {"timestamp": ts, "circles": [
-        {"timestamp": ts, "position": {"x": x, "y": y}, "diameter": d, "thickness": 2.0, "outline_color": BLOB_COLOR}
-        for (x, y), d in zip(centres.tolist(), diameters.tolist())]}
+        {"timestamp": ts, "position": {"x": x, "y": y}, "diameter": d, "thickness": BLOB_THICKNESS_PX,
+         "outline_color": BLOB_COLOR} for (x, y), d in zip(centres.tolist(), diameters.tolist())]}
+
+
+_DOUBLE = struct.Struct("<d")
+
+
+@lru_cache(maxsize=256)
+def _circles_struct(n: int, head: int, tail: int) -> struct.Struct:
+    return struct.Struct("<" + f"{head}sdBdBd{tail}s" * n)
+
+
+def encode_image_annotations(capture_ns: int, blobs: np.ndarray) -> bytes:
+    """encode("foxglove.ImageAnnotations", image_annotations(capture_ns, blobs)), written directly:
+    this runs for every camera at the channel rate. The circles differ only in centre and diameter
+    (blob_circles, per blob here: numpy's per-call cost is larger for a few blobs), so they are
+    one struct of constant bytes and those three doubles."""
+    ts = encode("google.protobuf.Timestamp", time_msg(capture_ns))
+    head = len_field(1, ts) + bytes([0x12, 18, 0x09])  # timestamp (1); position (2): Point2 of 18 bytes, x (1)
+    tail = b"\x21" + _DOUBLE.pack(BLOB_THICKNESS_PX) + len_field(6, _BLOB_COLOR)  # thickness (4), outline_color (6)
+    head = b"\x0a" + varint(len(head) + 26 + len(tail)) + head  # ImageAnnotations.circles (1), all the same length
+    args: list[Any] = []
+    for x, y, area, _ in blobs.tolist():
+        x += 0.5
+        y += 0.5
+        if not (x and y):  # proto3 leaves a zero coordinate out: the fixed layout would not be canonical
+            return encode("foxglove.ImageAnnotations", image_annotations(capture_ns, blobs))
+        d = 2.0 * math.sqrt(area / math.pi) if area > 0 else 0.0
+        # Point2.y (2), diameter (3): never 0
+        args += (head, x, 0x11, y, 0x19, d if d > MIN_BLOB_DIAMETER_PX else MIN_BLOB_DIAMETER_PX, tail)
+    body = _circles_struct(len(args) // 7, len(head), len(tail)).pack(*args) if args else b""
+    return body + len_field(5, ts)  # ImageAnnotations.timestamp (5)
 
 
 def camera_calibration(time_ns: int, camera: Camera) -> dict[str, Any]:
@@ -212,12 +272,12 @@ def camera_calibration(time_ns: int, camera: Camera) -> dict[str, Any]:
     m = camera.model
     K = np.asarray(m.K, dtype=np.float64)
     d = np.asarray(m.dist, dtype=np.float64).ravel()
-    if m.kind == "fisheye":
-        model, D = "kannala_brandt", np.pad(d, (0, max(0, 4 - d.size)))[:4]
-    elif d.size > 5:
-        model, D = "rational_polynomial", np.pad(d, (0, max(0, 8 - d.size)))[:8]
+    if m.kind == "fisheye":  # the model stores k1..k4
+        model, D = "kannala_brandt", d[:4]
+    elif d[5:].any():  # the model stores 8 pinhole coefficients, k4..k6 zero unless rational
+        model, D = "rational_polynomial", d[:8]
     else:
-        model, D = "plumb_bob", np.pad(d, (0, 5 - d.size))
+        model, D = "plumb_bob", d[:5]
     P = np.hstack([K, np.zeros((3, 1))])
     return {"timestamp": time_msg(time_ns), "frame_id": camera_frame_id(camera.id), "width": m.width,
             "height": m.height, "distortion_model": model, "D": D.tolist(), "K": K.ravel().tolist(),
