@@ -17,7 +17,8 @@ from visionpos.server.settings import ServerSettings
 
 
 def bridge_sinks(arena: ArenaConfig) -> list[Any]:
-    """The bridge (MAVLink per vehicle + pose stream), the VRPN and the NatNet servers, as the arena configures them."""
+    """The bridge (MAVLink per vehicle + pose stream), the VRPN, NatNet and Foxglove servers, as the arena
+    configures them."""
     sinks: list[Any] = []
     if arena.raw.get("vrpn") is not None:
         from bridge.vrpn import VrpnServer, parse_vrpn
@@ -31,6 +32,12 @@ def bridge_sinks(arena: ArenaConfig) -> list[Any]:
         natnet = NatNetServer.from_arena(arena)
         if natnet is not None:
             sinks.append(natnet)
+    if arena.raw.get("foxglove") is not None:
+        from bridge.foxglove_live import FoxgloveServer
+
+        fox = FoxgloveServer.from_arena(arena)
+        if fox is not None:
+            sinks.append(fox)
     if not (arena.raw.get("vehicles") or arena.raw.get("pose_stream")):
         return sinks
     try:
