@@ -242,6 +242,12 @@ def _dumps(obj: Any) -> bytes:
     return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
 
 
+def _realtime_minus_monotonic(meta: dict[str, Any]) -> int | None:
+    """The recording host's CLOCK_REALTIME - monotonic difference at the start, from its meta."""
+    wall, mono = meta.get("wall_start_unix_ns"), meta.get("monotonic_start_ns")
+    return wall - mono if isinstance(wall, int) and isinstance(mono, int) else None
+
+
 def _arena_cameras(config: Any) -> tuple[Any, ...]:
     """The calibrated cameras of a recording's config: an ArenaConfig's, or parsed from the raw mapping
     (a mapping that is no valid arena, as some tools record, has none)."""
@@ -352,7 +358,10 @@ class RecordingWriter:
         self._fox_schemas: dict[str, int] = {}
         self.foxglove: FoxgloveChannels | None = None
         if foxglove_rate_hz:
-            self.foxglove = FoxgloveChannels(_arena_cameras(config), foxglove_rate_hz, realtime_minus_monotonic_ns)
+            rt = realtime_minus_monotonic_ns
+            if rt is None:  # the difference the recording states, as replay and foxglove_copy use it
+                rt = _realtime_minus_monotonic(full_meta)
+            self.foxglove = FoxgloveChannels(_arena_cameras(config), foxglove_rate_hz, rt)
         self._flush_to_disk()  # header + config on disk before any data arrives
         if self._write_error is not None:
             os.close(self._fd)
@@ -924,11 +933,7 @@ def foxglove_copy(src: str | Path, dst: str | Path, rate_hz: float = DEFAULT_RAT
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RecordingDamagedWarning)  # reported in the result instead
         reader = RecordingReader(src)
-        meta = reader.meta
-        rt = None
-        if isinstance(meta.get("wall_start_unix_ns"), int) and isinstance(meta.get("monotonic_start_ns"), int):
-            rt = meta["wall_start_unix_ns"] - meta["monotonic_start_ns"]
-        fox = FoxgloveChannels(_arena_cameras(reader.config), rate_hz, rt)
+        fox = FoxgloveChannels(_arena_cameras(reader.config), rate_hz, _realtime_minus_monotonic(reader.meta))
         tmp = dst.with_name(dst.name + ".part")
         try:
             with open(tmp, "wb") as f:

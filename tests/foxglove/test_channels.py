@@ -309,3 +309,24 @@ def test_packets_of_unknown_cameras_and_garbage_give_nothing():
     fox = C.FoxgloveChannels([], rate_hz=30)
     frame = P.encode_frame(BlobFrame(3, 1, 5, np.zeros((0, 4), np.float32), 1, 0, 0, 1))
     assert fox.packet(10, frame) == [] and fox.packet(10, b"VPOS") == [] and fox.packet(10, bytes(40)) == []
+
+
+def test_recording_puts_realtime_frames_on_the_clock_its_meta_states(tmp_path):
+    """The writer converts with the realtime - monotonic difference of the recording's meta (what replay
+    uses), and a frame that would land before the clock's origin is left out (MCAP times are unsigned)."""
+    from visionpos.config.arena import load_arena
+
+    arena = load_arena("thesis")
+    rt = 1_700_000_000_000_000_000 - 1_000_000_000_000
+    meta = {"wall_start_unix_ns": rt + 5_000_000_000, "monotonic_start_ns": 5_000_000_000}
+    path = tmp_path / "rt.mcap"
+    cam = arena.cameras[0].id
+    with RecordingWriter(path, arena.raw, meta) as w:
+        hello = P.Hello(station_id=1, camera_id=cam, session=9, width=640, height=480, fps=100.0,
+                        timebase=P.TIMEBASE_REALTIME, counter=1)
+        w.write_packet(1, P.encode(hello))
+        blobs = np.array([[100.0, 50.0, 9.0, 200.0]], dtype=np.float32)
+        w.write_packet(6_000_000_000, P.encode_frame(BlobFrame(cam, 1, rt + 5_990_000_000, blobs, 1, 0, 0, 9)))
+        w.write_packet(7_000_000_000, P.encode_frame(BlobFrame(cam, 2, rt - 10, blobs, 1, 0, 0, 9)))
+    got = [(topic, t) for topic, s, t, d in foxglove_messages(path) if topic == C.blobs_topic(cam)]
+    assert got == [(C.blobs_topic(cam), 5_990_000_000)]

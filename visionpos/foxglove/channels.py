@@ -128,6 +128,8 @@ class FoxgloveChannels:
         except P.ProtocolError:
             return []
         capture = f.capture_ns - self._rt if cid in self._realtime else f.capture_ns
+        if capture < 0:  # before the clock's origin: no time to show it at (MCAP times are unsigned)
+            return []
         with self._lock:
             self._next_blobs[cid] = recv_ns + self.period_ns
             out = self._static(capture)
