@@ -298,7 +298,8 @@ class RecordingWriter:
     foxglove_rate_hz: the Foxglove channels' update rate (visionpos/foxglove/channels.py); 0 or None:
     no Foxglove channels. Cameras for them come from the config (an ArenaConfig, or a raw mapping
     that parses as an arena; one that does not gets the channels without cameras).
-    realtime_minus_monotonic_ns: for the Foxglove blobs of realtime-stamped stations (None: this host's).
+    realtime_minus_monotonic_ns: for the Foxglove blobs of realtime-stamped stations (None: the meta's
+    wall_start_unix_ns - monotonic_start_ns, this host's at the start unless meta gives them).
 
     All write_* methods are thread-safe; none does disk I/O on the caller's thread, and
     none raises because of the disk: after a write error they only count what they drop.
@@ -976,6 +977,8 @@ class _FoxgloveFeed:
             self.tick = []
 
     def message(self, topic: str, t: int, data: bytes) -> None:
+        if topic != TOPIC_STATES:  # the live writer updates the bodies right after the tick's states
+            self._end_tick()
         if topic == TOPIC_PACKETS:
             self._emit(self.fox.packet(t, data))
             return

@@ -205,9 +205,11 @@ def test_blob_annotations_are_the_recorded_frames_on_the_capture_clock(demo_log)
         got = np.array([[c.position.x, c.position.y] for c in ann.circles])
         np.testing.assert_array_equal(got, f.blobs[:, :2].astype(np.float64) + 0.5)
         n[cid].append(t)
-    for cid, ts in n.items():
-        gaps = np.diff(ts)
-        assert len(ts) > 20 and gaps.min() >= 0.9 * 1e9 / C.DEFAULT_RATE_HZ - 15e6  # frame period jitter
+    assert set(n) == {c["id"] for c in RecordingReader(demo_log).config["cameras"]}
+    for cid, ts in n.items():  # at most rate_hz (decimated on receive time: count over the camera's span)
+        caps = [c for (i, c) in frames if i == cid]
+        span_s = (max(caps) - min(caps)) * 1e-9
+        assert 10 <= len(ts) <= span_s * C.DEFAULT_RATE_HZ + 2
 
 
 def test_body_pose_is_the_recorded_output_pose(demo_log):
