@@ -145,3 +145,13 @@ def test_without_the_extra_the_error_names_it(monkeypatch):
     arena = load_arena("thesis")
     with pytest.raises(ConfigError, match=r"visionpos\[foxglove\]"):
         FoxgloveServer(FoxgloveConfig(), arena.cameras, "a.yaml")
+
+
+def test_serve_adds_the_server_only_when_the_section_asks(arena_yaml):
+    from visionpos.app.serve import bridge_sinks
+
+    y = arena_yaml("thesis")
+    assert not any(isinstance(s, FoxgloveServer) for s in bridge_sinks(parse_arena(y, "a.yaml")))
+    y["foxglove"] = {"port": 8799}
+    (srv,) = [s for s in bridge_sinks(parse_arena(y, "a.yaml")) if isinstance(s, FoxgloveServer)]
+    assert srv.cfg.port == 8799 and srv.cfg.host == "127.0.0.1"  # not started: serve starts its sinks
