@@ -150,8 +150,11 @@ def test_without_the_extra_the_error_names_it(monkeypatch):
 def test_serve_adds_the_server_only_when_the_section_asks(arena_yaml):
     from visionpos.app.serve import bridge_sinks
 
+    def outputs(y):  # the network outputs sit behind the off-loop dispatcher
+        return [o for s in bridge_sinks(parse_arena(y, "a.yaml")) for o in getattr(s, "outputs", [s])]
+
     y = arena_yaml("thesis")
-    assert not any(isinstance(s, FoxgloveServer) for s in bridge_sinks(parse_arena(y, "a.yaml")))
+    assert not any(isinstance(s, FoxgloveServer) for s in outputs(y))
     y["foxglove"] = {"port": 8799}
-    (srv,) = [s for s in bridge_sinks(parse_arena(y, "a.yaml")) if isinstance(s, FoxgloveServer)]
+    (srv,) = [s for s in outputs(y) if isinstance(s, FoxgloveServer)]
     assert srv.cfg.port == 8799 and srv.cfg.host == "127.0.0.1"  # not started: serve starts its sinks

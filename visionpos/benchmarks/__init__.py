@@ -16,6 +16,7 @@ GROUPS: dict[str, str] = {
     "calibration": "calibration",
     "replay": "replay",
     "robustness": "robustness",
+    "planner": "planner",
 }
 
 
@@ -81,6 +82,12 @@ GOALS: list[Goal] = [
     Goal("calib_arena8_wand_std_mm", "<=", 0.5, "wand calibration, arena8: wand-length std (mm)"),
     Goal("calib_ba_seconds_8cam_3000", "<=", 30.0, "bundle adjustment, 8 cameras x 3000 frames (CPU s)"),
     Goal("replay_speed_x_cpu_thesis", ">=", 20.0, "replay speed, thesis arena (x real time)"),
+    Goal("planner_thesis_marker_ratio", "<=", 1.2, "planner, thesis: measured marker RMS / predicted bound"),
+    Goal("planner_thesis_marker_ratio", ">=", 0.8, "planner, thesis: measured marker RMS / predicted bound"),
+    Goal("planner_arena8_marker_ratio", "<=", 1.2, "planner, arena8: measured marker RMS / predicted bound"),
+    Goal("planner_arena8_marker_ratio", ">=", 0.8, "planner, arena8: measured marker RMS / predicted bound"),
+    Goal("planner_thesis_body_pos_ratio", "<=", 1.2, "planner, thesis quad: simulated pose RMS / predicted bound"),
+    Goal("planner_thesis_body_pos_ratio", ">=", 0.8, "planner, thesis quad: simulated pose RMS / predicted bound"),
     Goal("robustness_packets_thrown", ">=", 1_000_000, "hostile packets thrown at the live demo, all attacks"),
     Goal("robustness_cameras_blinded", "<=", 0, "cameras blinded under attack"),
     Goal("robustness_tracked_fraction_min", ">=", 0.99, "tracked fraction under the worst attack"),

@@ -121,14 +121,3 @@ def ground_layout(arena: ArenaConfig, frame: str | None = None, markers: str | N
         f"{arena.source}: no ground frame named {' or '.join(candidates)} in bodies or sim.props; "
         "give --frame NAME or --markers X,Y,Z;..."
     )
-
-
-def rescaled_mode(model: Any, spec: str) -> dict[str, Any]:
-    """The intrinsics for another capture mode 'WxH' or 'WxH+UxV' (crop U x V pixels after resizing)."""
-    try:
-        size, _, crop = spec.partition("+")
-        w, h = (int(v) for v in size.lower().split("x"))
-        U, V = (float(v) for v in crop.lower().split("x")) if crop else (0.0, 0.0)
-    except ValueError:
-        raise CalibrationError(f"--rescale '{spec}': expected WxH or WxH+UxV, e.g. 640x480 or 640x480+0x60") from None
-    return model.rescale(w, h, (U, V)).to_dict()

@@ -27,6 +27,7 @@ COMMANDS: dict[str, str] = {
     "recover": "rewrite a recording cut short (writer killed, disk full) as a clean MCAP file",
     "tune": "sweep settings over a recording and rank them",
     "calibrate": "intrinsics, wand extrinsics, ground plane",
+    "plan": "camera coverage and accuracy bounds over a flight volume; where to add a camera",
     "bench": "run the benchmark suite",
 }
 

@@ -45,7 +45,9 @@ gets the same treatment, so the comparison is with a fair baseline.
 
 Outputs: tick() predicts each tracked body to now_ns (latency cancelled)
 with its covariance; a body not updated for max_prediction_ms or lost is
-tracked=False with a NaN pose (a stale pose is never sent).
+tracked=False with a NaN pose (a stale pose is never sent). Both timeouts are
+at least 2 and 3 measured frame intervals of the slowest live camera
+(timealign.py measures them), so stations slower than configured still track.
 reset_counter increments only when a tracked filter is restarted at a
 measurement it kept rejecting (a jump), not on a dropout or reacquisition.
 
@@ -94,6 +96,11 @@ from visionpos.messages import BlobFrame, BodyState, LoosePoints
 
 # the image-space manoeuvre detector samples at most this often (capture clock)
 _IMAGE_NIS_INTERVAL_NS = 2_000_000
+
+# the output and lost timeouts are at least this many measured frame intervals of the slowest live camera
+# (max_prediction_ms and lost_timeout_ms are for cameras at their configured rate)
+_PREDICTION_PERIODS = 2
+_LOST_PERIODS = 3
 
 # motion compensation starts once the filter's velocity std is below this (m/s)
 _COMPENSATE_MAX_VEL_STD = 0.3
@@ -159,6 +166,7 @@ class FusionPipeline:
             st.max_clock_lead_ns,
             periods_ns={c.id: int(1e9 / c.fps) for c in arena.cameras if c.fps > 0},
             min_interval_ns=st.min_fusion_interval_ns,
+            auto_window=st.auto_window,
         )
         self._compensating = self.aligner.mode == TimeAlignment.MOTION_COMPENSATED
         self.obs: dict[int, Observation] = {}
@@ -311,7 +319,8 @@ class FusionPipeline:
             self._acquire([obs[c] for c in cams], R, t, focal_px, ref)
         # lost-track bookkeeping on the capture clock
         track_ints = self._track_ints
-        gone = [b for b in self._tracked if ref - track_ints[b, TRACK_LAST_UPDATE_NS] > st.kalman.lost_timeout_ns]
+        lost_ns = max(st.kalman.lost_timeout_ns, _LOST_PERIODS * self.aligner.slowest_period_ns())
+        gone = [b for b in self._tracked if ref - track_ints[b, TRACK_LAST_UPDATE_NS] > lost_ns]
         if gone:
             track_ints[gone, TRACK_TRACKED] = 0
             self._stats["lost"] += len(gone)
@@ -363,7 +372,7 @@ class FusionPipeline:
             self.loose_points = LoosePoints(ref, np.zeros((0, 3)), np.zeros(0))
             return
         xs = [o.xn[fr] for o, fr in zip(obs, free)]
-        pts, idx, rms = match_unlabeled(xs, R, t, focal_px, st.acquire_ray_distance_m, st.max_residual_px)
+        pts, idx, rms = match_unlabeled(xs, R, t, focal_px, st.acquire_ray_gate_px, st.max_residual_px)
         if not lost or len(pts) < 3:
             self.loose_points = LoosePoints(ref, pts, rms)
             return
@@ -410,10 +419,14 @@ class FusionPipeline:
         """
         st = self.settings
         out = []
+        # stations slower than configured: a body is updated about once per frame interval
+        slowest = self.aligner.slowest_period_ns()
+        max_prediction_ns = max(st.kalman.max_prediction_ns, _PREDICTION_PERIODS * slowest)
+        lost_ns = max(st.kalman.lost_timeout_ns, _LOST_PERIODS * slowest)
         for b, (model, tr) in enumerate(zip(self.models, self.tracks)):
             row = self._track_ints[b].tolist()  # Python ints, read once
             age = now_ns - row[TRACK_LAST_UPDATE_NS]
-            if row[TRACK_TRACKED] and age <= st.kalman.max_prediction_ns and age <= st.kalman.lost_timeout_ns:
+            if row[TRACK_TRACKED] and age <= max_prediction_ns and age <= lost_ns:
                 p, q, v, w_body, cov, vcov = tr.filter.output_at(now_ns)
                 out.append(
                     BodyState(

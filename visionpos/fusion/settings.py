@@ -9,11 +9,18 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from visionpos.config.arena import ArenaConfig, Section
+from visionpos.config.arena import ArenaConfig, ConfigError, Section
 from visionpos.config.overrides import merge_section
 from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, ms_to_ns, section
 from visionpos.fusion.timealign import MODES, MOTION_COMPENSATED
+
+# keys that no longer exist and cannot be renamed (their unit changed): the error says what to write
+REMOVED = {
+    "acquire_ray_distance_m": "removed: a gate in metres was too tight far from the cameras and too loose close "
+    "to them; the acquisition gate is now in pixels at each ray's range: write `fusion.acquire_ray_gate_px` "
+    "(default 3) instead",
+}
 
 KALMAN = section(
     "fusion.kalman",
@@ -45,7 +52,8 @@ FUSION = section(
             "grouping on a fixed grid (the baseline)", choices=MODES),
     Setting("window_ms", "number", 0.0, "frames of other cameras captured within this of the newest are "
             "fused with it", field="window_ns", convert=ms_to_ns, min=0.0, max=1000.0,
-            auto="1.2 x the slowest camera's frame period"),
+            auto="1.2 x the slowest camera's measured frame interval (its configured fps until measured), so "
+            "stations that deliver fewer frames than configured are still fused"),
     Setting("naive_grid_hz", "number", 0.0, "naive grouping grid", field="grid_ns",
             convert=lambda hz: int(1e9 / hz), min=0.0, max=10000.0, auto="the fastest camera's rate"),
     Setting("max_clock_lead_ms", "number", 30.0, "a frame stamped this far ahead of all other cameras is a "
@@ -53,8 +61,10 @@ FUSION = section(
     Setting("match_gate_px", "number", 12.0, "predicted marker -> blob association radius", min=0.1),
     Setting("max_residual_px", "number", 2.0, "a triangulated marker with a larger RMS reprojection residual "
             "is dropped", min=0.01),
-    Setting("acquire_ray_distance_m", "number", 0.01, "acquisition: two rays closer than this may see the "
-            "same marker", min=1e-5),
+    Setting("acquire_ray_gate_px", "number", 3.0, "acquisition: two rays may see the same marker when they pass "
+            "within this many pixels of each other at their ranges (metres: this x sqrt((r1/f1)^2 + (r2/f2)^2), "
+            "r the range along each ray, f the focal length in px); the default is about sqrt(2) x max_residual_px: "
+            "a pair further apart triangulates to a larger RMS residual than that", min=0.05, max=100.0),
     Setting("identify_tolerance_m", "number", 0.008, "identification: marker distances and Kabsch RMS within "
             "this", min=1e-5),
     Setting("min_markers", "integer", 3, "fewest markers for a pose (tracking) and for identification", min=3),
@@ -94,15 +104,18 @@ class KalmanSettings:
 
 @dataclass(frozen=True)
 class FusionSettings:
-    """Validated `fusion:` section (SI units). window_ns and grid_ns are 0 until derived from the cameras."""
+    """Validated `fusion:` section (SI units). window_ns and grid_ns are 0 until derived from the cameras;
+    auto_window: window_ms was 0, so the window follows the cameras' measured frame intervals
+    (timealign.py) and window_ns is only its starting value."""
 
     time_alignment: str = FUSION["time_alignment"].field_default
     window_ns: int = FUSION["window_ms"].field_default
+    auto_window: bool = True
     grid_ns: int = FUSION["naive_grid_hz"].field_default
     max_clock_lead_ns: int = FUSION["max_clock_lead_ms"].field_default
     match_gate_px: float = FUSION["match_gate_px"].field_default
     max_residual_px: float = FUSION["max_residual_px"].field_default
-    acquire_ray_distance_m: float = FUSION["acquire_ray_distance_m"].field_default
+    acquire_ray_gate_px: float = FUSION["acquire_ray_gate_px"].field_default
     identify_tolerance_m: float = FUSION["identify_tolerance_m"].field_default
     min_markers: int = FUSION["min_markers"].field_default
     loose_points: bool = FUSION["loose_points"].field_default
@@ -119,10 +132,14 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
         arena.section("fusion")  # raises a ConfigError naming the key
     data = merge_section(base, settings, "fusion")
     source = f"{arena.source} (+ overrides)" if settings else arena.source
+    for key, message in REMOVED.items():
+        if key in data:
+            raise ConfigError(source, f"fusion.{key}", message)
     s = FUSION.check(Section(data, source, "fusion"))
     kalman = KALMAN.parse(s.sub("kalman"))
     fps = [c.fps for c in arena.cameras] or [100.0]
     derived = {"window_ms": 1.2e3 / min(fps), "naive_grid_hz": max(fps)}
-    return FusionSettings(**FUSION.parse(s, derived), kalman=KalmanSettings(**kalman))
+    auto_window = FUSION["window_ms"].read(s) == 0
+    return FusionSettings(**FUSION.parse(s, derived), auto_window=auto_window, kalman=KalmanSettings(**kalman))
 
 register_section("fusion", FUSION)

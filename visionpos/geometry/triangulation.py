@@ -471,6 +471,20 @@ def triangulate_pixels(
 
 
 @np.errstate(divide="ignore", invalid="ignore")
+def pixel_jacobians(cameras: Sequence[Camera] | CameraRig, points: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """d pixel / d X (P, V, 2, 3), pixels per metre, through each camera's distortion; zero where a
+    point is not visible in a view or is behind it. points: (P, 3) world, finite; visible: (P, V) bool."""
+    rig = _as_rig(cameras)
+    X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    visible = np.asarray(visible, dtype=bool)
+    if visible.shape != (len(X), rig.V):
+        raise ValueError(f"visible must have shape (P, V) = ({len(X)}, {rig.V}), got {visible.shape}")
+    t = np.broadcast_to(rig.t, (len(X), rig.V, 3))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        _, J, _ = _residual_jac(X, rig.R, t, np.zeros((len(X), rig.V, 2)), visible, rig.distort)
+    return J
+
+
 def triangulation_crb(
     cameras: Sequence[Camera] | CameraRig,
     points: np.ndarray,
@@ -488,14 +502,10 @@ def triangulation_crb(
     X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if visible is None:
         visible = np.stack([c.visible(X) for c in rig.cameras], axis=1)
-    visible = np.asarray(visible, dtype=bool)
-    if visible.shape != (len(X), rig.V):
-        raise ValueError(f"visible must have shape (P, V) = ({len(X)}, {rig.V}), got {visible.shape}")
-    t = np.broadcast_to(rig.t, (len(X), rig.V, 3))
-    _, J, _ = _residual_jac(X, rig.R, t, np.zeros((len(X), rig.V, 2)), visible, rig.distort)
+    J = pixel_jacobians(rig, X, visible)
     F = np.einsum("pvia,pvib->pab", J, J) / float(sigma_px) ** 2
     out = np.full((len(X), 3, 3), np.nan)
-    ok = visible.sum(axis=1) >= 2
+    ok = np.asarray(visible, bool).sum(axis=1) >= 2
     if ok.any():
         cond = np.linalg.cond(F[ok])
         good = np.zeros(len(X), bool)
@@ -503,3 +513,33 @@ def triangulation_crb(
         if good.any():
             out[good] = np.linalg.inv(F[good])
     return out
+
+
+def pose_crb(
+    cameras: Sequence[Camera] | CameraRig,
+    markers_world: np.ndarray,
+    origin: np.ndarray,
+    sigma_px: float,
+    visible: np.ndarray,
+) -> np.ndarray:
+    """Cramer-Rao bound (6, 6) of a rigid body's pose [position (m), world rotation vector (rad)] from
+    one snapshot of its markers: every (marker, camera) pair in `visible` contributes its projection's
+    information, Fisher F = sum J^T J / sigma_px^2 with J = d pixel / d X (2x3) @ [I, -skew(X - origin)].
+
+    markers_world: (M, 3) m; origin: (3,) the body origin the position refers to; visible: (M, V)
+    bool (a marker seen by one camera still constrains the pose). NaN (6, 6) when F is singular
+    (too few observations to fix all six degrees of freedom).
+    """
+    X = np.asarray(markers_world, dtype=np.float64).reshape(-1, 3)
+    J = pixel_jacobians(cameras, X, visible)  # (M, V, 2, 3)
+    r = X - np.asarray(origin, dtype=np.float64).reshape(3)
+    G = np.zeros((len(X), 3, 6))  # d X / d pose
+    G[:, :, :3] = np.eye(3)
+    G[:, 0, 4], G[:, 0, 5] = r[:, 2], -r[:, 1]  # -skew(r)
+    G[:, 1, 3], G[:, 1, 5] = -r[:, 2], r[:, 0]
+    G[:, 2, 3], G[:, 2, 4] = r[:, 1], -r[:, 0]
+    H = np.einsum("mvia,mab->mvib", J, G)  # (M, V, 2, 6)
+    F = np.einsum("mvia,mvib->ab", H, H) / float(sigma_px) ** 2
+    if not np.isfinite(F).all() or np.linalg.cond(F) > 1e12:
+        return np.full((6, 6), np.nan)
+    return np.linalg.inv(F)
