@@ -5,6 +5,7 @@ renders docs/configuration.md; the core's config layer cannot import the stages 
 """
 
 import bridge.config  # noqa: F401  vehicles, pose_stream
+import bridge.foxglove_live  # noqa: F401  foxglove
 import bridge.natnet  # noqa: F401  natnet
 import bridge.vrpn  # noqa: F401  vrpn
 import visionpos.app.sitl  # noqa: F401  sitl

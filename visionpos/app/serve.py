@@ -18,7 +18,7 @@ from visionpos.server.settings import ServerSettings
 
 def bridge_sinks(arena: ArenaConfig) -> list[Any]:
     """The arena's outputs as sinks: the MAVLink bridge (one sender thread per vehicle) on the loop, and the
-    pose stream, VRPN and NatNet servers behind one off-loop dispatcher (bridge/outputs.py)."""
+    pose stream, VRPN, NatNet and Foxglove servers behind one off-loop dispatcher (bridge/outputs.py)."""
     network: list[Any] = []
     if arena.raw.get("pose_stream") is not None:
         from bridge.config import parse_pose_stream
@@ -39,6 +39,12 @@ def bridge_sinks(arena: ArenaConfig) -> list[Any]:
         natnet = NatNetServer.from_arena(arena)
         if natnet is not None:
             network.append(natnet)
+    if arena.raw.get("foxglove") is not None:
+        from bridge.foxglove_live import FoxgloveServer
+
+        fox = FoxgloveServer.from_arena(arena)
+        if fox is not None:
+            network.append(fox)
     sinks: list[Any] = []
     if arena.raw.get("vehicles"):
         try:

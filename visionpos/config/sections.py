@@ -127,6 +127,7 @@ TOP = section(
     Setting("pose_stream", "section", None, "UDP pose stream", default_doc="(off)"),
     Setting("vrpn", "section", None, "VRPN server", default_doc="(off)"),
     Setting("natnet", "section", None, "NatNet server for OptiTrack clients", default_doc="(off)"),
+    Setting("foxglove", "section", None, "Foxglove WebSocket server (the [foxglove] extra)", default_doc="(off)"),
     Setting("sim", "section", {}, "the simulator's scenario"),
     Setting("sitl", "section", {}, "ArduPilot SITL for `visionpos sitl`"),
     Setting("calibration", "section", {}, "calibration wand, ground frame and reports", spec=CALIBRATION),
