@@ -291,7 +291,8 @@ class DemoContext:
 
 async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | None,
                    record: str | None = None,
-                   during: Callable[[DemoContext], Awaitable[None]] | None = None) -> dict[str, Any]:
+                   during: Callable[[DemoContext], Awaitable[None]] | None = None, console: Any = None,
+                   on_console: Callable[[Any], None] | None = None) -> dict[str, Any]:
     """Run everything for duration_s seconds of streaming; returns the summary dict.
 
     record: MCAP path; the server records every station packet and output, and the
@@ -299,6 +300,8 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     `visionpos tune` work on the demo's session.
     during: awaited alongside the streaming (it starts when the stations do), e.g. the
     robustness benchmark's attacker; the demo waits for both.
+    console: ConsoleSettings of the web console (None: none), on the same loop; on_console(ConsoleServer)
+    once it listens.
     """
     from bridge import Bridge
     from bridge.fake_autopilot import FakeAutopilot, decode_pose
@@ -329,7 +332,14 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     await server.start()
     autopilots = {}
     stations: list[SimStation] = []
+    view = None
     try:
+        if console is not None:
+            from visionpos.app.console import open_console
+
+            view = await open_console(console, server)
+            if on_console is not None:
+                on_console(view)
         for v in bridge.vehicles:
             ap = FakeAutopilot(f"udpout:127.0.0.1:{v.cfg.endpoint.port}", sysid=v.cfg.sysid,
                                signing_key=v.cfg.signing_key)
@@ -374,6 +384,8 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
             s.close()
         if recorder is not None and "shift" in locals():
             _record_truth(recorder, sc, shift)
+        if view is not None:
+            await view.stop()
         await server.stop()
         for ap, _ in autopilots.values():
             ap.close()

@@ -7,6 +7,7 @@ import asyncio
 import json
 import sys
 
+from visionpos.app.console import add_console_arguments, announce_console, console_settings
 from visionpos.app.demo import demo_arena, format_summary, run_demo
 from visionpos.errors import UsageError
 
@@ -23,6 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no live status")
     p.add_argument("--record", metavar="FILE",
                    help="also record the session (packets, outputs, truth) to an MCAP file for replay/tune")
+    add_console_arguments(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -35,7 +37,12 @@ def run(args: argparse.Namespace) -> int:
         status_out.write(f"visionpos demo: {n_cams} simulated station{'s' * (n_cams != 1)}, "
                          f"{n_bodies} bod{'y' if n_bodies == 1 else 'ies'}, {args.duration:g} s on 127.0.0.1 ...\n")
         status_out.flush()
-    summary = asyncio.run(run_demo(arena, args.duration, status_out, args.record))
+    console = console_settings(arena, args)
+    try:
+        summary = asyncio.run(run_demo(arena, args.duration, status_out, args.record, console=console,
+                                       on_console=lambda view: announce_console("demo", view)))
+    except OSError as e:  # the console's port in use
+        raise UsageError(f"{e.strerror or e}; pick another --console-port or pass --no-console") from None
     if args.record:
         summary["recording"] = args.record
     if args.json:

@@ -8,6 +8,7 @@ import sys
 
 from visionpos.analysis import metrics as M
 from visionpos.analysis.replay import METRIC_COLUMNS, metrics_rows, replay_log, summary, write_outputs
+from visionpos.app.console import add_console_arguments, announce_console
 
 
 def parse_speed(s: str) -> float | None:
@@ -34,9 +35,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="replay_out", metavar="DIR", help="output folder (default ./replay_out)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots (faster; no matplotlib needed)")
+    p.add_argument("--view", action="store_true",
+                   help="serve the web console for the recording, with play, pause, seek and speed (until Ctrl-C); "
+                        "writes no outputs")
+    p.add_argument("--duration", type=float, default=None, help="--view: stop after this many seconds")
+    add_console_arguments(p)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.view:
+        return view(args)
     res = replay_log(args.log, args.config, args.set, speed=args.speed, rate_hz=args.rate)
     written, note = write_outputs(res, args.out, plots=not args.no_plots)
     summ = summary(res)
@@ -54,4 +62,31 @@ def run(args: argparse.Namespace) -> int:
     if note:
         print(f"note: {note}", file=sys.stderr)
     print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
+    return 0
+
+
+def view(args: argparse.Namespace) -> int:
+    """`replay LOG --view`: the console for the recording until Ctrl-C."""
+    import asyncio
+
+    from console.settings import ConsoleSettings
+    from visionpos.app.console import replay_view
+    from visionpos.errors import UsageError
+
+    if args.no_console:
+        raise UsageError("--view serves the console: leave out --no-console")
+    # the console's own section comes from --config or the recording's arena, with --set applied there
+    from visionpos.analysis.replay import load_settings
+    from visionpos.recording import RecordingReader
+
+    try:
+        arena = load_settings(RecordingReader(args.log).config, args.config, args.set)
+    except FileNotFoundError:
+        raise UsageError(f"{args.log}: no such recording") from None
+    settings = ConsoleSettings.from_arena(arena).with_address(args.console_bind, args.console_port)
+    try:
+        asyncio.run(replay_view(args.log, args.config, args.set, args.rate, settings,
+                                lambda v: announce_console("replay", v), args.duration))
+    except OSError as e:
+        raise UsageError(f"{e.strerror or e}; pick another --console-port") from None
     return 0

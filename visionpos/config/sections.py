@@ -109,5 +109,6 @@ TOP = section(
     Setting("vrpn", "section", None, "VRPN server", default_doc="(off)"),
     Setting("natnet", "section", None, "NatNet server for OptiTrack clients", default_doc="(off)"),
     Setting("sim", "section", {}, "the simulator's scenario"),
+    Setting("console", "section", {}, "the operator console (web page)"),
     Setting("calibration", "section", {}, "calibration wand and reports", spec=CALIBRATION),
 )
