@@ -61,7 +61,7 @@ class HealthView:
 
     def _rates_since(self, now_ns: int, tracked: dict[str, int], sent: dict[str, int]) -> None:
         """Body output rates (tracked ticks/s) and vehicle send rates (msgs/s) since the previous call (>= 0.5 s)."""
-        if self._prev_ns is not None and now_ns - self._prev_ns < 500_000_000:
+        if self._prev_ns is not None and now_ns - self._prev_ns < 400_000_000:
             return
         if self._prev_ns is not None:
             dt = (now_ns - self._prev_ns) * 1e-9
@@ -99,7 +99,8 @@ class HealthView:
             })
         server = {k: _get(h, k) for k in ("packets", "frames_accepted", "frames_shed", "malformed", "auth_failed",
                                           "unknown", "pipeline_errors", "late_ticks", "ticks", "insecure")}
-        out = {"time_ns": int(now_ns), "cameras": cameras, "bodies": bodies, "vehicles": vehicles, "server": server}
+        out = {"time_ns": int(now_ns), "cameras": cameras, "bodies": bodies, "vehicles": vehicles, "server": server,
+               "drop_reasons": DROP_REASONS}
         if "error" in h:
             out["error"] = h["error"]
         out["warnings"] = warnings(out, self.view.static_blobs(now_ns))
@@ -111,8 +112,7 @@ class HealthView:
         out = []
         for cid, cam in self.view.cameras.items():
             c = snaps.get(cid) or snaps.get(str(cid)) or {}
-            dropped = {why: int(_get(c, k)) for k, why in DROP_REASONS.items()
-                       if isinstance(_get(c, k), int) and _get(c, k) > 0}
+            dropped = {k: int(_get(c, k)) for k in DROP_REASONS if isinstance(_get(c, k), int) and _get(c, k) > 0}
             # configured rate: the station's own (as h-gates' health adds it) or the arena's
             configured = _num(_get(c, "fps_configured")) or _num(_get(c, "fps_nominal")) or float(cam.fps)
             w = self.view.watch[cid]

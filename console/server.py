@@ -210,7 +210,8 @@ class ConsoleServer:
             self.rlog.log("full", logging.WARNING, "console: refused a client from %s: %d connected "
                           "(console.max_clients)", request.remote, len(self.clients))
             return web.Response(status=503, text=f"the console serves at most {self.settings.max_clients} clients\n")
-        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=10.0)
+        # no per-message compression: it would cost the loop CPU for every client and update
+        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=10.0, compress=False)
         await ws.prepare(request)
         client = Client(ws, str(request.remote))
         self.clients.add(client)
@@ -304,14 +305,16 @@ class ConsoleServer:
                 now_s = loop.time()
                 if self.clients:
                     self.publish_once()
-                    if now_s >= next_health:
-                        next_health = now_s + HEALTH_PERIOD_S
-                        text = json.dumps({"type": "health", "health": self.health()})
-                        for c in self.clients:
-                            c.offer(text)
                 elif now_s >= next_watch:
                     next_watch = now_s + WATCH_PERIOD_S
                     self.view.camera_states(self.clock())
+                if now_s >= next_health:  # also without clients: the rates of /api/health need samples
+                    next_health = now_s + HEALTH_PERIOD_S
+                    h = self.health()
+                    if self.clients:
+                        text = json.dumps({"type": "health", "health": h})
+                        for c in self.clients:
+                            c.offer(text)
             except Exception:
                 self.counters["update_errors"] += 1
                 if self.counters["update_errors"] in (1, 100, 10_000):

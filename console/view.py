@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from visionpos.fusion.matching import Projector
 
 # a leftover blob that stays within one cell this long, seen in most updates, looks like a reflection
 STATIC_BLOB_S = 5.0
@@ -32,6 +33,15 @@ RESIDUAL_EWMA = 0.1
 def _r(x: float, nd: int) -> float | None:
     """JSON-safe rounded float (NaN and inf -> None)."""
     return round(float(x), nd) if math.isfinite(x) else None
+
+
+def _quat_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of a unit quaternion (x, y, z, w) (scipy's from_quat costs more than this whole
+    update's arithmetic)."""
+    x, y, z, w = q / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
 def scene(arena: Any) -> dict[str, Any]:
@@ -92,6 +102,7 @@ class ConsoleView:
         arena = source.arena
         self.scene = scene(arena)
         self.cameras = {c.id: c for c in arena.cameras}
+        self.projectors = {c.id: Projector(c) for c in arena.cameras}  # compiled, as fusion projects
         sizes = [len(b.markers) for b in arena.bodies]
         self.marker_body = np.repeat(np.arange(len(sizes)), sizes).astype(np.int64)
         self.marker_start = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
@@ -100,60 +111,70 @@ class ConsoleView:
 
     # ---------------------------------------------------------------- per camera
 
-    def _predicted(self, pipe: Any, t_ns: int) -> list[np.ndarray | None]:
-        """Each body's markers in the world at t_ns from its filter (None when not tracked)."""
-        out: list[np.ndarray | None] = []
+    def _predicted(self, pipe: Any, t_ns: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """(body, markers (M, 3) in the world at t_ns, velocity (3,)) of each tracked body, from its filter:
+        one prediction per body and update; each camera shifts it to its own capture time."""
+        out = []
         for b, tr in enumerate(pipe.tracks):
             if not tr.tracked or b >= len(self.body_markers):
-                out.append(None)
                 continue
-            p, q = tr.filter.output_at(t_ns)[:2]
-            if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
-                out.append(None)
-                continue
-            out.append(self.body_markers[b] @ Rotation.from_quat(q).as_matrix().T + p)
+            p, q, v = tr.filter.output_at(t_ns)[:3]
+            if np.all(np.isfinite(p)) and np.all(np.isfinite(q)) and np.all(np.isfinite(v)):
+                out.append((b, self.body_markers[b] @ _quat_matrix(q).T + p, v))
         return out
 
     def camera_states(self, now_ns: int) -> list[dict[str, Any]]:
         """Per camera: blobs [u, v, xn, yn, body (-1 = left over)], the filter's predicted markers
-        [u, v, body], the frame's age; updates the residual and static-blob watches."""
+        [u, v, body] at the frame's capture time, the frame's age; updates the residual and
+        static-blob watches."""
         pipe = self.source.pipeline
         obs_all = getattr(pipe, "obs", {})
         px_all = getattr(pipe, "last_px", {})
+        frames = [(cid, obs_all.get(cid), px_all.get(cid)) for cid in self.cameras]
+        newest = max((int(o.capture_ns) for _, o, _ in frames if o is not None), default=now_ns)
+        predicted = self._predicted(pipe, newest)
         out = []
-        for cid, cam in self.cameras.items():
-            o = obs_all.get(cid)
-            px = px_all.get(cid)
-            w = self.watch[cid]
+        for cid, o, px in frames:
             if o is None or px is None or len(px) != len(o.label):
                 out.append({"id": cid, "blobs": [], "pred": [], "age_ms": None})
                 continue
+            w = self.watch[cid]
             label = np.asarray(o.label)
             body = np.full(len(label), -1, dtype=np.int64)
             ok = (label >= 0) & (label < len(self.marker_body))
             body[ok] = self.marker_body[label[ok]]
-            xn = np.asarray(o.xn)
-            blobs = [[_r(px[j, 0], 1), _r(px[j, 1], 1), _r(xn[j, 0], 5), _r(xn[j, 1], 5), int(body[j])]
-                     for j in range(len(px))]
-            pred = []
-            sq, n = 0.0, 0
-            for b, world in enumerate(self._predicted(pipe, int(o.capture_ns))):
-                if world is None:
-                    continue
-                uv = cam.project(world)
-                for m, (u, v) in enumerate(uv):
-                    if math.isfinite(u) and math.isfinite(v):
-                        pred.append([_r(u, 1), _r(v, 1), b])
-                start = self.marker_start[b]
-                for j in np.flatnonzero((label >= start) & (label < start + len(world))):
-                    d = px[j] - uv[label[j] - start]
-                    if np.all(np.isfinite(d)):
-                        sq += float(d @ d)
-                        n += 1
+            rows = np.empty((len(px), 5))
+            rows[:, :2] = np.round(px[:, :2], 1)
+            rows[:, 2:4] = np.round(np.asarray(o.xn, dtype=float).reshape(-1, 2), 5)
+            rows[:, 4] = body
+            blobs = rows[np.isfinite(rows).all(axis=1)].tolist()
+            pred: list = []
+            if predicted:
+                dt_s = (int(o.capture_ns) - newest) * 1e-9
+                world = np.concatenate([m + v * dt_s for _, m, v in predicted])
+                owner = np.concatenate([np.full(len(m), b, dtype=np.int64) for b, m, _ in predicted])
+                uv = self.projectors[cid].project(world)
+                seen = np.isfinite(uv).all(axis=1)
+                pr = np.empty((int(seen.sum()), 3))
+                pr[:, :2] = np.round(uv[seen], 1)
+                pr[:, 2] = owner[seen]
+                pred = pr.tolist()
+                # residual: each matched blob against the prediction of its own marker
+                rows_of = np.concatenate([np.arange(self.marker_start[b], self.marker_start[b] + len(m))
+                                          for b, m, _ in predicted])
+                index = np.full(len(self.marker_body) + 1, -1, dtype=np.int64)
+                index[rows_of] = np.arange(len(rows_of))
+                j = np.flatnonzero(ok)
+                k = index[label[j]]
+                keep = k >= 0
+                d = px[j[keep], :2] - uv[k[keep]]
+                d = d[np.isfinite(d).all(axis=1)]
+            else:
+                d = np.zeros((0, 2))
             if o.capture_ns != w.last_capture_ns:
                 w.last_capture_ns = int(o.capture_ns)
-                if n:
-                    rms = math.sqrt(sq / n)
+                if len(d):
+                    rms = math.sqrt(float((d * d).sum()) / len(d))
                     w.residual_px = rms if w.residual_px is None else w.residual_px + RESIDUAL_EWMA * (
                         rms - w.residual_px)
                 self._watch_static(w, px[label < 0], now_ns)

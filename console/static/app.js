@@ -70,7 +70,7 @@ class Arena3D {
     this.scene.add(new THREE.AxesHelper(0.5));
     for (const c of cams) this.scene.add(this.frustum(c));
     const h = Math.max(2, ...cams.map(c => c.position[2]));
-    this.camera.position.set(extent * 1.6, -extent * 1.9, h * 1.8 + 1);
+    this.camera.position.set(extent * 1.0, -extent * 1.25, h * 1.1 + 0.5);
     this.controls.target.set(0, 0, 0.5);
   }
 
@@ -210,7 +210,11 @@ function fillTable(id, rows) {
   const body = document.querySelector(`#${id} tbody`);
   body.replaceChildren(...rows.map(cells => {
     const tr = el("tr");
-    for (const [text, cls] of cells) tr.append(el("td", text, cls));
+    for (const [text, cls, title] of cells) {
+      const td = el("td", text, cls);
+      if (title) td.title = title;
+      tr.append(td);
+    }
     return tr;
   }));
 }
@@ -220,14 +224,16 @@ function showHealth(h) {
   document.getElementById("warnings").replaceChildren(...h.warnings.map(w => el("li", w)));
   fillTable("cameras", h.cameras.map(c => {
     const slow = c.state === "streaming" && c.fps < 0.9 * c.fps_configured;
-    const dropped = Object.entries(c.dropped).map(([k, n]) => `${n} ${k}`).join("; ") || "none";
+    const dropped = Object.entries(c.dropped).map(([k, n]) => `${n} ${k.replaceAll("_", " ")}`).join(", ") || "none";
+    const droppedWhy = Object.keys(c.dropped).map(k => h.drop_reasons[k] || k).join("; ");
     const risen = c.residual_px !== null && c.residual_calibration_px !== null &&
       c.residual_px > Math.max(2 * c.residual_calibration_px, c.residual_calibration_px + 0.5);
     return [[`${c.id} ${c.name}`], [c.state, c.state === "streaming" ? "good" : "badv"],
       [`${fmt(c.fps, 0)} (${fmt(c.fps_configured, 0)})`, slow ? "warn" : ""], [fmt(c.latency_ms, 1)],
       [`${fmt(c.clock_offset_ms, 2)} (±${fmt(c.clock_uncertainty_us, 0)})`],
       [c.loss === null ? "-" : `${fmt(100 * c.loss, 1)}%`],
-      [`${fmt(c.residual_px, 2)} (${fmt(c.residual_calibration_px, 2)})`, risen ? "warn" : ""], [dropped]];
+      [`${fmt(c.residual_px, 2)} (${fmt(c.residual_calibration_px, 2)})`, risen ? "warn" : ""],
+      [dropped, "", droppedWhy]];
   }));
   fillTable("bodies", h.bodies.map(b => [[b.name], [b.tracked ? "yes" : "NO", b.tracked ? "good" : "badv"],
     [fmt(b.rate_hz, 0)], [b.tracked ? String(b.n_markers) : "-"], [b.tracked ? String(b.n_cameras) : "-"],

@@ -155,6 +155,7 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             # a tracked body and the ghost's reason in the health table
             await browser.wait_for("[...document.querySelectorAll('#bodies tbody tr')].some(r => "
                                    "r.cells[0].textContent === 'quad' && r.cells[1].textContent === 'yes')")
+            found["health"] = console.health()  # now, while the page shows the body tracked
             found["bodies"] = await browser.evaluate(
                 "[...document.querySelectorAll('#bodies tbody tr')].map(r => [...r.cells].map(c => c.textContent))")
             found["cameras"] = await browser.evaluate(
@@ -165,7 +166,6 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             found["r3d"] = await browser.evaluate(JS_RECT.format(sel="#view3d"))
             found["rcam"] = await browser.evaluate(JS_RECT.format(sel="#camgrid canvas"))
             found["img"] = await browser.screenshot(shots / "console.png")
-            found["health"] = console.health()
         finally:
             await browser.close()
 
