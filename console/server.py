@@ -262,8 +262,11 @@ class ConsoleServer:
             reply = await self.controls(msg)
         except ValueError as e:
             return await self._bad(client, "cmd", str(e))
-        if reply is not None:
-            client.offer(json.dumps({"type": "replay", **reply}))
+        if reply is not None:  # an answer, not an update: never dropped
+            try:
+                await client.ws.send_str(json.dumps({"type": "replay", **reply}))
+            except (ConnectionError, RuntimeError):
+                pass
 
     async def _sender(self, client: Client) -> None:
         try:
