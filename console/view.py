@@ -190,6 +190,9 @@ class ConsoleView:
                 continue
             k = (int(x // STATIC_CELL_PX), int(y // STATIC_CELL_PX))
             c = w.cells.get(k)
+            if c is None:  # a blob jittering across a cell border stays with its cell
+                near = STATIC_CELL_PX
+                c = next((c for c in w.cells.values() if abs(c.x - x) < near and abs(c.y - y) < near), None)
             if c is not None:
                 c.last_ns = now_ns
                 c.hits += 1
