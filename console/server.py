@@ -73,17 +73,20 @@ class ConsoleServer:
     controls: optional async callable(dict) -> dict | None for {"cmd": ...} messages (a replay's
     play/pause/seek/speed); without it such messages are answered with an error.
     extra: optional callable() -> dict merged into every state message (the replay's position).
+    masks: camera id -> {"rois", "ignore", "mask_png"} (visionpos.app.console.station_masks), shown in the views.
     """
 
     def __init__(self, settings: ConsoleSettings, source: Any, clock: Callable[[], int] = time.monotonic_ns,
                  controls: Callable[[dict[str, Any]], Awaitable[dict[str, Any] | None]] | None = None,
-                 extra: Callable[[], dict[str, Any]] | None = None):
+                 extra: Callable[[], dict[str, Any]] | None = None, masks: dict[int, dict[str, Any]] | None = None):
         self.settings = settings
         self.source = source
         self.clock = clock
         self.controls = controls
         self.extra = extra
         self.view = ConsoleView(source)
+        for cam in self.view.scene["cameras"]:
+            cam["mask"] = (masks or {}).get(cam["id"])
         self.health_view = HealthView(self.view)
         self.clients: set[Client] = set()
         self.rlog = RateLimitedLog(log)

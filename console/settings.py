@@ -8,6 +8,7 @@ from __future__ import annotations
 import ipaddress
 import secrets
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 from visionpos.config.arena import ArenaConfig
 from visionpos.config.schema import register_section
@@ -31,6 +32,8 @@ CONSOLE = section(
     Setting("max_clients", "integer", 4, "browser tabs connected at once; more are refused", min=1, max=64),
     Setting("update_rate_hz", "number", 30.0, "live updates sent to each browser per second", min=1.0,
             max=120.0),
+    Setting("stations", "any", [], "station YAML files (relative to the arena file) whose detector `mask`, `rois` "
+            "and `ignore` the camera views show, matched to cameras by their camera_id", default_doc="[] (none)"),
     Setting("token", "text", None, f"access token (at least {MIN_TOKEN_CHARS} characters) for a console bound "
             "to an address other than loopback", default_doc="a fresh one, printed at start"),
 )
@@ -51,6 +54,7 @@ class ConsoleSettings:
     update_rate_hz: float = 30.0
     token: str | None = None
     token_generated: bool = False
+    stations: tuple[str, ...] = ()  # station YAML paths, resolved against the arena file
 
     @classmethod
     def from_arena(cls, arena: ArenaConfig) -> "ConsoleSettings":
@@ -65,6 +69,11 @@ class ConsoleSettings:
         if token is not None and (len(token) < MIN_TOKEN_CHARS or not token.isprintable() or " " in token):
             raise s.error("token", f"give at least {MIN_TOKEN_CHARS} printable characters without spaces (e.g. "
                                    "the output of `python -c \"import secrets; print(secrets.token_urlsafe())\"`)")
+        stations = s.data.get("stations", [])
+        if not isinstance(stations, list) or not all(isinstance(p, str) and p for p in stations):
+            raise s.error("stations", "give a list of station YAML paths, e.g. [station1.yaml, station2.yaml]")
+        base = Path(arena.source).parent
+        values["stations"] = tuple(str(p if Path(p).is_absolute() else base / p) for p in stations)
         return cls(**values).with_token()
 
     def with_address(self, bind: str | None = None, port: int | None = None) -> "ConsoleSettings":

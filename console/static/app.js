@@ -171,6 +171,11 @@ class CameraView {
     this.canvas.height = Math.round(c.height * this.scale);
     box.append(this.title, this.canvas);
     document.getElementById("camgrid").append(box);
+    this.mask = null;
+    if (c.mask && c.mask.mask_png) {
+      this.mask = new Image();
+      this.mask.src = c.mask.mask_png;
+    }
     this.draw({ blobs: [], pred: [], age_ms: null });
   }
 
@@ -180,6 +185,7 @@ class CameraView {
     g.fillRect(0, 0, this.canvas.width, this.canvas.height);
     g.strokeStyle = "#2c323a";
     g.strokeRect(0.5, 0.5, this.canvas.width - 1, this.canvas.height - 1);
+    this.drawMask(g, s);
     let matched = 0, left = 0;
     for (const [u, vv, , , body] of v.blobs) {
       if (u === null || vv === null) continue;
@@ -201,6 +207,37 @@ class CameraView {
     this.title.textContent = `camera ${this.c.id} (${this.c.name}): ${matched} matched, ${left} left over` +
       (v.age_ms === null ? ", no frame yet" : `, frame ${fmt(v.age_ms, 0)} ms old`);
     stats.blobs[this.c.id] = v.blobs.length;
+  }
+
+  // the station's search area (console.stations): excluded pixels dimmed, ROIs green, ignore rectangles red
+  drawMask(g, s) {
+    const m = this.c.mask;
+    if (!m) return;
+    if (this.mask && this.mask.complete) {
+      if (!this.dim) this.dim = this.excluded();
+      if (this.dim) g.drawImage(this.dim, 0, 0, this.canvas.width, this.canvas.height);
+    }
+    g.lineWidth = 1;
+    for (const [key, color] of [["rois", "#5c5"], ["ignore", "#e55"]]) {
+      g.strokeStyle = color;
+      for (const [x0, y0, x1, y1] of m[key]) g.strokeRect(x0 * s + 0.5, y0 * s + 0.5, (x1 - x0) * s, (y1 - y0) * s);
+    }
+  }
+
+  excluded() {
+    const w = this.mask.naturalWidth, h = this.mask.naturalHeight;
+    if (!w || !h) return null;
+    const c = el("canvas");
+    c.width = w; c.height = h;
+    const g = c.getContext("2d");
+    g.drawImage(this.mask, 0, 0);
+    const img = g.getImageData(0, 0, w, h);
+    for (let i = 0; i < img.data.length; i += 4) {
+      const searched = img.data[i] > 127;
+      img.data[i] = 120; img.data[i + 1] = 40; img.data[i + 2] = 40; img.data[i + 3] = searched ? 0 : 90;
+    }
+    g.putImageData(img, 0, 0);
+    return c;
   }
 }
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import time
 from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -36,17 +38,80 @@ def console_settings(arena: ArenaConfig, args: argparse.Namespace) -> ConsoleSet
     return s.with_address(getattr(args, "console_bind", None), getattr(args, "console_port", None))
 
 
-def announce_console(command: str, console: ConsoleServer) -> None:
+MASK_VIEW_WIDTH_PX = 320  # the mask travels to the page at about the camera view's size
+
+
+def station_masks(arena: ArenaConfig, paths: tuple[str, ...]) -> dict[int, dict[str, Any]]:
+    """Camera id -> {"rois": [[x0, y0, x1, y1], ...], "ignore": [...], "mask_png": data URL or None} from the
+    station files' `detector` sections (console.stations): what each station searches for blobs."""
+    import base64
+
+    import cv2
+
+    from stations.config import build_mask
+    from visionpos.config.arena import ConfigError, Section, load_yaml
+
+    cams = {c.id: c for c in arena.cameras}
+    out: dict[int, dict[str, Any]] = {}
+    for path in paths:
+        try:
+            data = load_yaml(Path(path))
+        except (OSError, ConfigError) as e:
+            raise ConfigError(arena.source, "console.stations", f"cannot read {path}: {e}") from None
+        cid = data.get("camera_id") if isinstance(data, dict) else None
+        if cid not in cams:
+            raise ConfigError(path, "camera_id", f"{cid!r} is none of the arena's cameras {sorted(cams)} "
+                                                 "(console.stations lists this file)")
+        det = Section(data.get("detector") or {}, path, "detector")
+        rects = {k: ([[int(v) for v in r] for r in det.array(k, (None, 4))] if det.has(k) else [])
+                 for k in ("rois", "ignore")}
+        mask_file = det.data.get("mask") or ""
+        if mask_file and not Path(mask_file).is_absolute():
+            mask_file = str(Path(path).parent / mask_file)
+        m = cams[cid].model
+        spec = SimpleNamespace(mask_path=mask_file, rois=tuple(map(tuple, rects["rois"])),
+                               ignore=tuple(map(tuple, rects["ignore"])), source_file=path)
+        mask = build_mask(spec, m.width, m.height)
+        png = None
+        if mask is not None:
+            scale = min(1.0, MASK_VIEW_WIDTH_PX / m.width)
+            small = cv2.resize(mask, (max(1, round(m.width * scale)), max(1, round(m.height * scale))),
+                               interpolation=cv2.INTER_AREA)
+            ok, buf = cv2.imencode(".png", small)
+            png = "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode() if ok else None
+        out[cid] = {**rects, "mask_png": png}
+    return out
+
+
+def announce_console(command: str, console: ConsoleServer, out: Any = None) -> None:
+    """The console's address (and its fresh token) on out (default stdout)."""
     s = console.settings
-    print(f"visionpos {command}: console at {console.url}", flush=True)
+    print(f"visionpos {command}: console at {console.url}", file=out, flush=True)
     if s.token_generated:
         print(f"visionpos {command}: the console listens on {s.bind}, so it needs this token (set console.token "
-              f"to keep one): {s.token}", flush=True)
+              f"to keep one): {s.token}", file=out, flush=True)
+
+
+def port_in_use(settings: ConsoleSettings) -> bool:
+    """Whether the console's TCP port is taken on its address now (0: never)."""
+    import socket
+
+    if settings.port == 0:
+        return False
+    family = socket.AF_INET6 if ":" in settings.bind else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((settings.bind, settings.port))
+        except OSError:
+            return True
+    return False
 
 
 async def open_console(settings: ConsoleSettings, source: Any, **kw: Any) -> ConsoleServer:
-    """A started ConsoleServer for source (an OSError, such as the port in use, propagates)."""
-    console = ConsoleServer(settings, source, **kw)
+    """A started ConsoleServer for source, with the stations' masks of console.stations (an OSError, such as
+    the port in use, propagates)."""
+    console = ConsoleServer(settings, source, masks=station_masks(source.arena, settings.stations), **kw)
     await console.start()
     return console
 
