@@ -155,7 +155,12 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             # a tracked body and the ghost's reason in the health table
             await browser.wait_for("[...document.querySelectorAll('#bodies tbody tr')].some(r => "
                                    "r.cells[0].textContent === 'quad' && r.cells[1].textContent === 'yes')")
-            found["health"] = console.health()  # now, while the page shows the body tracked
+            # /api/health says the same (polled: on a loaded host the body may drop out for a moment)
+            for _ in range(40):
+                found["health"] = console.health()
+                if all(b["tracked"] == (b["name"] == "quad") for b in found["health"]["bodies"]):
+                    break
+                await asyncio.sleep(0.25)
             found["bodies"] = await browser.evaluate(
                 "[...document.querySelectorAll('#bodies tbody tr')].map(r => [...r.cells].map(c => c.textContent))")
             found["cameras"] = await browser.evaluate(

@@ -109,6 +109,7 @@ def test_token_needed_off_loopback_and_checked_on_every_request(arena, caplog):
 
     async def main():
         console, source = await _serve(arena, bind="0.0.0.0", token=TOKEN)
+        console._task.cancel()  # no updates: only the requests read the source here
         base = f"http://127.0.0.1:{console.port}"
         out = {}
         try:
