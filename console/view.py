@@ -228,6 +228,9 @@ class ConsoleView:
             if s.tracked:
                 d.update(p=[_r(v, 5) for v in s.position], q=[_r(v, 6) for v in s.quaternion],
                          n_markers=int(s.n_markers), n_cameras=int(s.n_cameras), residual_mm=_r(s.residual_mm, 3))
+            elif i < len(pipe.tracks) and pipe.tracks[i].tracked:  # the filter has it, but no fresh measurement
+                d["why"] = ("no measurement within fusion.max_prediction_ms: its cameras' frames are late or "
+                            "missing (see the cameras' state and frame age)")
             else:
                 d["why"] = why.get(i, "not seen yet")
             out.append(d)
