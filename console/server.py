@@ -42,7 +42,7 @@ log = logging.getLogger(__name__)
 STATIC = Path(__file__).with_name("static")
 QUEUE_UPDATES = 2  # per client: updates waiting to be sent; more drop the oldest
 HEALTH_PERIOD_S = 0.5
-WATCH_PERIOD_S = 0.2  # without clients, the residual and static-blob watches still run this often
+WATCH_PERIOD_S = 0.2  # the residual and static-blob watches run this often, with or without clients
 MAX_MESSAGE_BYTES = 4096  # from a client: commands are small
 COOKIE = "visionpos_console"
 CONTENT_TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css", ".txt": "text/plain",
@@ -58,6 +58,7 @@ class Client:
         self.queue: asyncio.Queue[str] = asyncio.Queue(QUEUE_UPDATES)
         self.sent = 0
         self.dropped = 0
+        self.rays: int | None = None  # the camera whose blob rays this tab draws
 
     def offer(self, text: str) -> None:
         """Queue one update; a full queue loses its oldest (the browser is behind)."""
@@ -258,6 +259,12 @@ class ConsoleServer:
         if msg["cmd"] == "health":
             client.offer(json.dumps({"type": "health", "health": self.health()}))
             return
+        if msg["cmd"] == "rays":
+            cam = msg.get("camera")
+            if cam is not None and (isinstance(cam, bool) or cam not in self.view.cameras):
+                return await self._bad(client, "rays", f"rays: camera {cam!r} is none of {sorted(self.view.cameras)}")
+            client.rays = cam
+            return
         if self.controls is None:
             return await self._bad(client, "cmd", f"unknown command {msg['cmd']!r} (replay controls need "
                                                   "`visionpos replay LOG --view`)")
@@ -286,10 +293,12 @@ class ConsoleServer:
 
     # ---------------------------------------------------------------- updates
 
-    def publish_once(self) -> None:
-        """One update tick: build, encode once, offer to every client (the update loop's body)."""
+    def publish_once(self, watch: bool = False) -> None:
+        """One update tick: build, encode once, offer to every client (the update loop's body). watch: also
+        run the view's residual and static-blob watches."""
         now = self.clock()
-        state = self.view.state(now)
+        rays = frozenset(c.rays for c in self.clients if c.rays is not None)
+        state = self.view.state(now, watch, rays)
         if self.extra is not None:
             state.update(self.extra())
         text = json.dumps(state)
@@ -309,11 +318,13 @@ class ConsoleServer:
                 next_t = loop.time()
             try:
                 now_s = loop.time()
-                if self.clients:
-                    self.publish_once()
-                elif now_s >= next_watch:
+                watch = now_s >= next_watch
+                if watch:
                     next_watch = now_s + WATCH_PERIOD_S
-                    self.view.camera_states(self.clock())
+                if self.clients:
+                    self.publish_once(watch)
+                elif watch:
+                    self.view.camera_states(self.clock(), watch=True)
                 if now_s >= next_health:  # also without clients: the rates of /api/health need samples
                     next_health = now_s + HEALTH_PERIOD_S
                     h = self.health()

@@ -123,63 +123,73 @@ class ConsoleView:
                 out.append((b, self.body_markers[b] @ _quat_matrix(q).T + p, v))
         return out
 
-    def camera_states(self, now_ns: int) -> list[dict[str, Any]]:
-        """Per camera: blobs [u, v, xn, yn, body (-1 = left over)], the filter's predicted markers
-        [u, v, body] at the frame's capture time, the frame's age; updates the residual and
-        static-blob watches."""
+    def camera_states(self, now_ns: int, watch: bool = False, rays: frozenset[int] = frozenset()
+                      ) -> list[dict[str, Any]]:
+        """Per camera: blobs [u, v, body (-1 = left over)] and the filter's predicted markers [u, v, body] at
+        the frame's capture time, pixels in tenths (integers encode fastest), the frame's age; for the
+        cameras in `rays` also each blob's undistorted coordinates [x, y] x 1e5 (its ray). watch: also
+        update the residual and static-blob watches (a few times a second is plenty)."""
         pipe = self.source.pipeline
         obs_all = getattr(pipe, "obs", {})
         px_all = getattr(pipe, "last_px", {})
         frames = [(cid, obs_all.get(cid), px_all.get(cid)) for cid in self.cameras]
         newest = max((int(o.capture_ns) for _, o, _ in frames if o is not None), default=now_ns)
         predicted = self._predicted(pipe, newest)
+        n_markers = len(self.marker_body)
         out = []
         for cid, o, px in frames:
             if o is None or px is None or len(px) != len(o.label):
                 out.append({"id": cid, "blobs": [], "pred": [], "age_ms": None})
                 continue
-            w = self.watch[cid]
             label = np.asarray(o.label)
-            body = np.full(len(label), -1, dtype=np.int64)
-            ok = (label >= 0) & (label < len(self.marker_body))
-            body[ok] = self.marker_body[label[ok]]
-            rows = np.empty((len(px), 5))
-            rows[:, :2] = np.round(px[:, :2], 1)
-            rows[:, 2:4] = np.round(np.asarray(o.xn, dtype=float).reshape(-1, 2), 5)
-            rows[:, 4] = body
-            blobs = rows[np.isfinite(rows).all(axis=1)].tolist()
-            pred: list = []
+            ok = (label >= 0) & (label < n_markers)
+            fin = np.isfinite(px[:, :2]).all(axis=1)
+            rows = np.empty((len(px), 3), dtype=np.int64)
+            rows[fin, :2] = np.rint(px[fin, :2] * 10.0)
+            rows[:, 2] = -1
+            rows[ok, 2] = self.marker_body[label[ok]]
+            d: dict[str, Any] = {"id": cid, "blobs": rows[fin].tolist(), "pred": [],
+                                 "age_ms": _r((now_ns - int(o.capture_ns)) * 1e-6, 1)}
+            if cid in rays:
+                xn = np.asarray(o.xn, dtype=float).reshape(-1, 2)
+                good = np.isfinite(xn).all(axis=1)
+                d["rays"] = np.rint(xn[good] * 1e5).astype(np.int64).tolist()
+            uv = None
             if predicted:
                 dt_s = (int(o.capture_ns) - newest) * 1e-9
                 world = np.concatenate([m + v * dt_s for _, m, v in predicted])
-                owner = np.concatenate([np.full(len(m), b, dtype=np.int64) for b, m, _ in predicted])
                 uv = self.projectors[cid].project(world)
                 seen = np.isfinite(uv).all(axis=1)
-                pr = np.empty((int(seen.sum()), 3))
-                pr[:, :2] = np.round(uv[seen], 1)
-                pr[:, 2] = owner[seen]
-                pred = pr.tolist()
-                # residual: each matched blob against the prediction of its own marker
-                rows_of = np.concatenate([np.arange(self.marker_start[b], self.marker_start[b] + len(m))
-                                          for b, m, _ in predicted])
-                index = np.full(len(self.marker_body) + 1, -1, dtype=np.int64)
-                index[rows_of] = np.arange(len(rows_of))
-                j = np.flatnonzero(ok)
-                k = index[label[j]]
-                keep = k >= 0
-                d = px[j[keep], :2] - uv[k[keep]]
-                d = d[np.isfinite(d).all(axis=1)]
-            else:
-                d = np.zeros((0, 2))
-            if o.capture_ns != w.last_capture_ns:
-                w.last_capture_ns = int(o.capture_ns)
-                if len(d):
-                    rms = math.sqrt(float((d * d).sum()) / len(d))
-                    w.residual_px = rms if w.residual_px is None else w.residual_px + RESIDUAL_EWMA * (
-                        rms - w.residual_px)
-                self._watch_static(w, px[label < 0], now_ns)
-            out.append({"id": cid, "blobs": blobs, "pred": pred, "age_ms": _r((now_ns - int(o.capture_ns)) * 1e-6, 1)})
+                pr = np.empty((int(seen.sum()), 3), dtype=np.int64)
+                pr[:, :2] = np.rint(uv[seen] * 10.0)
+                pr[:, 2] = np.concatenate([np.full(len(m), b, dtype=np.int64) for b, m, _ in predicted])[seen]
+                d["pred"] = pr.tolist()
+            if watch:
+                self._watch(cid, o, px, label, ok, predicted, uv, now_ns)
+            out.append(d)
         return out
+
+    def _watch(self, cid: int, o: Any, px: np.ndarray, label: np.ndarray, ok: np.ndarray, predicted: list,
+               uv: np.ndarray | None, now_ns: int) -> None:
+        """The residual of each matched blob against the prediction of its own marker; the static leftovers."""
+        w = self.watch[cid]
+        if o.capture_ns == w.last_capture_ns:
+            return
+        w.last_capture_ns = int(o.capture_ns)
+        if uv is not None:
+            rows_of = np.concatenate([np.arange(self.marker_start[b], self.marker_start[b] + len(m))
+                                      for b, m, _ in predicted])
+            index = np.full(len(self.marker_body) + 1, -1, dtype=np.int64)
+            index[rows_of] = np.arange(len(rows_of))
+            j = np.flatnonzero(ok)
+            k = index[label[j]]
+            keep = k >= 0
+            d = px[j[keep], :2] - uv[k[keep]]
+            d = d[np.isfinite(d).all(axis=1)]
+            if len(d):
+                rms = math.sqrt(float((d * d).sum()) / len(d))
+                w.residual_px = rms if w.residual_px is None else w.residual_px + RESIDUAL_EWMA * (rms - w.residual_px)
+        self._watch_static(w, px[label < 0], now_ns)
 
     def _watch_static(self, w: CameraWatch, left: np.ndarray, now_ns: int) -> None:
         gap_ns = int(STATIC_GAP_S * 1e9)
@@ -242,7 +252,7 @@ class ConsoleView:
             return []
         return [[_r(v, 4) for v in p] for p in np.asarray(lp.points).reshape(-1, 3)]
 
-    def state(self, now_ns: int) -> dict[str, Any]:
-        """The live message: bodies, loose markers, every camera's blobs and predictions."""
+    def state(self, now_ns: int, watch: bool = False, rays: frozenset[int] = frozenset()) -> dict[str, Any]:
+        """The live message: bodies, loose markers, every camera's blobs and predictions (camera_states)."""
         return {"type": "state", "t_ns": int(now_ns), "bodies": self.bodies(), "markers": self.loose_markers(),
-                "cameras": self.camera_states(now_ns)}
+                "cameras": self.camera_states(now_ns, watch, rays)}

@@ -136,10 +136,10 @@ class Arena3D {
     const rays = [];
     const cam = this.cameraPoses.find(c => String(c.id) === this.rayCamera);
     const view = cam && msg.cameras.find(c => c.id === cam.id);
-    if (view) {
+    if (view && view.rays) {
       const o = new THREE.Vector3(...cam.position);
-      for (const [, , xn, yn] of view.blobs) {
-        if (xn === null || yn === null) continue;
+      for (const [x5, y5] of view.rays) {
+        const xn = x5 * 1e-5, yn = y5 * 1e-5;  // undistorted image coordinates, sent x 1e5
         const n = Math.hypot(xn, yn, 1);
         const end = this.toWorld(cam, [xn / n * RAY_LENGTH_M, yn / n * RAY_LENGTH_M, RAY_LENGTH_M / n]);
         rays.push(o.x, o.y, o.z, end.x, end.y, end.z);
@@ -187,21 +187,21 @@ class CameraView {
     g.strokeRect(0.5, 0.5, this.canvas.width - 1, this.canvas.height - 1);
     this.drawMask(g, s);
     let matched = 0, left = 0;
-    for (const [u, vv, , , body] of v.blobs) {
-      if (u === null || vv === null) continue;
+    const s10 = s / 10;  // pixels arrive in tenths
+    for (const [u, vv, body] of v.blobs) {
       g.fillStyle = body >= 0 ? hex(BODY_COLORS[body % BODY_COLORS.length]) : LEFT_COLOR;
       g.beginPath();
-      g.arc(u * s, vv * s, 4, 0, 2 * Math.PI);
+      g.arc(u * s10, vv * s10, 4, 0, 2 * Math.PI);
       g.fill();
       body >= 0 ? matched++ : left++;
     }
     g.lineWidth = 1.5;
-    for (const [u, vv, body] of v.pred) {
-      if (u === null || vv === null) continue;
+    for (const [u10, v10, body] of v.pred) {
+      const u = u10 * s10, vv = v10 * s10;
       g.strokeStyle = hex(BODY_COLORS[body % BODY_COLORS.length]);
       g.beginPath();
-      g.moveTo(u * s - 7, vv * s); g.lineTo(u * s + 7, vv * s);
-      g.moveTo(u * s, vv * s - 7); g.lineTo(u * s, vv * s + 7);
+      g.moveTo(u - 7, vv); g.lineTo(u + 7, vv);
+      g.moveTo(u, vv - 7); g.lineTo(u, vv + 7);
       g.stroke();
     }
     this.title.textContent = `camera ${this.c.id} (${this.c.name}): ${matched} matched, ${left} left over` +
@@ -303,7 +303,10 @@ function wireControls() {
   seek.oninput = () => { seeking = true; };
   seek.onchange = () => { seeking = false; send({ cmd: "seek", t_s: Number(seek.value) }); };
   document.getElementById("speed").onchange = e => send({ cmd: "speed", x: Number(e.target.value) });
-  document.getElementById("rays").onchange = e => { if (scene3) scene3.rayCamera = e.target.value || null; };
+  document.getElementById("rays").onchange = e => {
+    if (scene3) scene3.rayCamera = e.target.value || null;
+    send({ cmd: "rays", camera: e.target.value ? Number(e.target.value) : null });  // the server sends only those
+  };
 }
 
 // ------------------------------------------------------------------ connection
@@ -336,7 +339,11 @@ function connect() {
   if (token) url.searchParams.set("token", token);
   ws = new WebSocket(url);
   const conn = document.getElementById("conn");
-  ws.onopen = () => { conn.textContent = "live"; conn.className = "ok"; };
+  ws.onopen = () => {
+    conn.textContent = "live"; conn.className = "ok";
+    const rays = document.getElementById("rays").value;
+    if (rays) send({ cmd: "rays", camera: Number(rays) });
+  };
   ws.onclose = () => { conn.textContent = "disconnected, retrying..."; conn.className = "bad"; setTimeout(connect, 1000); };
   ws.onmessage = e => {
     const msg = JSON.parse(e.data);

@@ -37,17 +37,20 @@ def test_a_body_never_seen_gets_its_reason_and_a_tracked_one_its_predictions(the
     s = ReplaySession(arena, list(r.packets_with_source()))
     s.advance_to(s.t0_ns + 1_500_000_000)
     view = ConsoleView(s)
-    state = view.state(s.clock())
+    state = view.state(s.clock(), watch=True, rays=frozenset({2}))
     quad, ghost = state["bodies"]
     assert quad["tracked"] and not ghost["tracked"]
     # the simulator flies no ghost: the leftover blobs are its static reflections, too few to make 3 markers
     assert ghost["why"].startswith("not seen by enough cameras") or "none fits its layout" in ghost["why"], ghost
     for cam in state["cameras"]:
-        labelled = [b for b in cam["blobs"] if b[4] == 0]
+        labelled = [b for b in cam["blobs"] if b[2] == 0]
         assert len(labelled) == 4 and len(cam["pred"]) == 4
-        # each matched blob within a pixel or two of the filter's prediction for this frame
-        for u, v, *_ in labelled:
-            assert min(np.hypot(u - p[0], v - p[1]) for p in cam["pred"]) < 2.0
+        # each matched blob within a pixel or two of the filter's prediction for this frame (tenths of px)
+        for u, v, _ in labelled:
+            assert min(np.hypot(u - p[0], v - p[1]) for p in cam["pred"]) < 20
+        assert ("rays" in cam) == (cam["id"] == 2)
+    rays = state["cameras"][1]["rays"]
+    assert len(rays) == len(state["cameras"][1]["blobs"]) and all(abs(x) < 1e5 for r in rays for x in r)
     # the live residual, blob against its own predicted marker (the simulator's centroid noise is 0.2 px)
     assert all(0.05 < view.watch[c.id].residual_px < 1.0 for c in arena.cameras)
 
