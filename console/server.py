@@ -3,7 +3,8 @@
     GET /                the page (static/index.html), its scripts and three.js (static/, vendored)
     GET /api/health      health as JSON (console/health.py)
     GET /api/scene       cameras and bodies (console/view.py scene)
-    GET /ws              WebSocket: {"type": "scene"} once, then {"type": "state"} at update_rate_hz,
+    GET /ws              WebSocket: {"type": "scene"} once, then {"type": "state"} at update_rate_hz (the
+                         camera views in every second one),
                          {"type": "health"} twice a second, {"type": "replay"} in a replay; the client
                          may send {"cmd": ...} (replay controls, console/replay.py)
 
@@ -42,6 +43,7 @@ log = logging.getLogger(__name__)
 STATIC = Path(__file__).with_name("static")
 QUEUE_UPDATES = 2  # per client: updates waiting to be sent; more drop the oldest
 HEALTH_PERIOD_S = 0.5
+CAMERA_EVERY = 2  # the camera views go with every second update (15 per second at the default 30 Hz)
 WATCH_PERIOD_S = 0.2  # the residual and static-blob watches run this often, with or without clients
 MAX_MESSAGE_BYTES = 4096  # from a client: commands are small
 COOKIE = "visionpos_console"
@@ -298,7 +300,8 @@ class ConsoleServer:
         run the view's residual and static-blob watches."""
         now = self.clock()
         rays = frozenset(c.rays for c in self.clients if c.rays is not None)
-        state = self.view.state(now, watch, rays)
+        # the camera views in every CAMERA_EVERY-th update: plenty for the eye, and half the update's cost
+        state = self.view.state(now, watch, rays, cameras=self.counters["updates"] % CAMERA_EVERY == 0)
         if self.extra is not None:
             state.update(self.extra())
         text = json.dumps(state)

@@ -252,7 +252,13 @@ class ConsoleView:
             return []
         return [[_r(v, 4) for v in p] for p in np.asarray(lp.points).reshape(-1, 3)]
 
-    def state(self, now_ns: int, watch: bool = False, rays: frozenset[int] = frozenset()) -> dict[str, Any]:
-        """The live message: bodies, loose markers, every camera's blobs and predictions (camera_states)."""
-        return {"type": "state", "t_ns": int(now_ns), "bodies": self.bodies(), "markers": self.loose_markers(),
-                "cameras": self.camera_states(now_ns, watch, rays)}
+    def state(self, now_ns: int, watch: bool = False, rays: frozenset[int] = frozenset(),
+              cameras: bool = True) -> dict[str, Any]:
+        """The live message: bodies, loose markers and, with cameras, every camera's blobs and predictions
+        (camera_states)."""
+        out = {"type": "state", "t_ns": int(now_ns), "bodies": self.bodies(), "markers": self.loose_markers()}
+        if cameras:
+            out["cameras"] = self.camera_states(now_ns, watch, rays)
+        elif watch:
+            self.camera_states(now_ns, watch=True)
+        return out

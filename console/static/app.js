@@ -133,6 +133,7 @@ class Arena3D {
     });
     const flat = msg.markers.flat().map(x => x ?? 0);
     this.markers.geometry.setAttribute("position", new THREE.Float32BufferAttribute(flat, 3));
+    if (!msg.cameras) return;  // the rays move with the camera views
     const rays = [];
     const cam = this.cameraPoses.find(c => String(c.id) === this.rayCamera);
     const view = cam && msg.cameras.find(c => c.id === cam.id);
@@ -329,7 +330,7 @@ function onScene(msg) {
 function onState(msg) {
   stats.states++;
   if (scene3) scene3.update(msg);
-  for (const v of msg.cameras) camViews.get(v.id)?.draw(v);
+  for (const v of msg.cameras || []) camViews.get(v.id)?.draw(v);  // every second update carries them
   if (msg.replay) showReplay(msg.replay);
 }
 
