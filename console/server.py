@@ -100,6 +100,7 @@ class ConsoleServer:
         self._runner: web.AppRunner | None = None
         self._task: asyncio.Task | None = None
         self._senders: set[asyncio.Task] = set()
+        self._watch_due = False
 
     # ---------------------------------------------------------------- lifecycle
 
@@ -300,8 +301,13 @@ class ConsoleServer:
         run the view's residual and static-blob watches."""
         now = self.clock()
         rays = frozenset(c.rays for c in self.clients if c.rays is not None)
-        # the camera views in every CAMERA_EVERY-th update: plenty for the eye, and half the update's cost
-        state = self.view.state(now, watch, rays, cameras=self.counters["updates"] % CAMERA_EVERY == 0)
+        # the camera views in every CAMERA_EVERY-th update: plenty for the eye, and half the update's cost;
+        # a watch that falls due in between waits for the next of them (it reads the same views)
+        cameras = self.counters["updates"] % CAMERA_EVERY == 0
+        self._watch_due |= watch
+        state = self.view.state(now, self._watch_due and cameras, rays, cameras=cameras)
+        if cameras:
+            self._watch_due = False
         if self.extra is not None:
             state.update(self.extra())
         text = json.dumps(state)
