@@ -317,7 +317,8 @@ class DemoContext:
 async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | None,
                    record: str | None = None,
                    during: Callable[[DemoContext], Awaitable[None]] | None = None,
-                   live: "LiveSource | None" = None) -> dict[str, Any]:
+                   live: "LiveSource | None" = None, console: Any = None,
+                   on_console: Callable[[Any], None] | None = None) -> dict[str, Any]:
     """Run everything for duration_s seconds of streaming; returns the summary dict.
 
     record: MCAP path; the server records every station packet and output, and the
@@ -328,6 +329,8 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     live: an externally driven arena (`visionpos sitl`): it replaces the scenario's trajectories
     and makes each camera's frames while the run goes (nothing is simulated up front); the
     streaming ends when it says so (its `stopped_ns`) or at the scenario's end.
+    console: ConsoleSettings of the web console (None: none), on the same loop; on_console(ConsoleServer)
+    once it listens.
     """
     from bridge import Bridge
     from bridge.fake_autopilot import FakeAutopilot, decode_pose
@@ -360,7 +363,14 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     await server.start()
     autopilots = {}
     stations: list[SimStation] = []
+    view = None
     try:
+        if console is not None:
+            from visionpos.app.console import open_console
+
+            view = await open_console(console, server)
+            if on_console is not None:
+                on_console(view)
         for v in bridge.vehicles:
             if live is not None:  # a real autopilot is on the link: a fake one beside it would answer as it
                 autopilots[v.cfg.body] = (None, v)
@@ -413,6 +423,8 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
             s.close()
         if recorder is not None and "shift" in locals():
             _record_truth(recorder, sc, shift, t_stop - shift if "t_stop" in locals() else sc.end_ns)
+        if view is not None:
+            await view.stop()
         await server.stop()
         for ap, _ in autopilots.values():
             if ap is not None:

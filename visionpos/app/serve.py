@@ -63,13 +63,15 @@ def bridge_sinks(arena: ArenaConfig) -> list[Any]:
 
 async def serve(arena: ArenaConfig, settings: ServerSettings, host: str | None = None, record: str | Path | None = None,
                 duration_s: float | None = None,
-                on_listening: Callable[[FusionServer], None] | None = None) -> dict[str, Any]:
+                on_listening: Callable[[FusionServer], None] | None = None, console: Any = None,
+                on_console: Callable[[Any], None] | None = None) -> dict[str, Any]:
     """Run the fusion server with the arena's bridge sinks until a signal (or duration_s); returns its health.
 
     host: the address to listen on (None: settings.bind). record: MCAP path; every station
     packet, the config and the outputs are recorded.
     on_listening(server) is called once the socket is open; an OSError (port in use, bad
-    address) propagates, with the recording closed.
+    address) propagates, with the recording closed. console: ConsoleSettings of the web console
+    (None: none), served on the same loop; on_console(ConsoleServer) once it listens.
     """
     sinks = bridge_sinks(arena)
     recorder = None
@@ -86,8 +88,17 @@ async def serve(arena: ArenaConfig, settings: ServerSettings, host: str | None =
         raise
     if on_listening is not None:
         on_listening(server)
+    view = None
     try:
+        if console is not None:
+            from visionpos.app.console import open_console
+
+            view = await open_console(console, server)
+            if on_console is not None:
+                on_console(view)
         await run_until_signal(duration_s)
     finally:
+        if view is not None:
+            await view.stop()
         await server.stop()
     return server.health()

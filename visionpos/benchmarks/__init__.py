@@ -18,6 +18,7 @@ GROUPS: dict[str, str] = {
     "robustness": "robustness",
     "planner": "planner",
     "sitl": "sitl",
+    "console": "console",
 }
 
 
@@ -103,6 +104,8 @@ GOALS: list[Goal] = [
          "tick; VRPN skips untracked ticks)"),
     Goal("bridge_outputs_mavlink_rate_ratio", ">=", 0.99, "MAVLink poses/s at the autopilot, outputs on / off "
          "(unchanged)"),
+    Goal("console_cost_ratio", "<=", 1.05, "server loop CPU per packet, console with one client / no console"),
+    Goal("console_client_updates_hz", ">=", 30.0, "updates/s the console's WebSocket client receives"),
     Goal("calib_thesis_center_err_mm_max", "<=", 2.0, "wand calibration, thesis: camera centre error (mm)"),
     Goal("calib_thesis_rot_err_deg_max", "<=", 0.05, "wand calibration, thesis: orientation error (deg)"),
     Goal("calib_thesis_wand_std_mm", "<=", 0.5, "wand calibration, thesis: wand-length std (mm)"),

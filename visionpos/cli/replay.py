@@ -9,6 +9,7 @@ from pathlib import Path
 
 from visionpos.analysis import metrics as M
 from visionpos.analysis.replay import METRIC_COLUMNS, metrics_rows, replay_log, summary, write_outputs
+from visionpos.app.console import add_console_arguments, announce_console
 from visionpos.errors import UsageError
 
 
@@ -41,9 +42,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="instead of replaying, write a copy of LOG (to --out) with the Foxglove channels (3-D scene, "
                         "blobs, health) built from what it recorded, for Foxglove or Lichtblick (docs/interop.md)")
     p.add_argument("--force", action="store_true", help="with --foxglove: overwrite the copy if it exists")
+    p.add_argument("--view", action="store_true",
+                   help="serve the web console for the recording, with play, pause, seek and speed (until Ctrl-C); "
+                        "writes no outputs")
+    p.add_argument("--duration", type=float, default=None, help="--view: stop after this many seconds")
+    add_console_arguments(p)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.view:
+        return view(args)
     if args.foxglove:
         return foxglove(args)
     if args.force:
@@ -90,4 +98,29 @@ def foxglove(args: argparse.Namespace) -> int:
         print(f"note: {args.log} recorded no poses (a `visionpos record` file?): the copy shows cameras and blobs; "
               "the bodies appear in recordings of `visionpos serve --record` or `visionpos demo --record`",
               file=sys.stderr)
+
+
+def view(args: argparse.Namespace) -> int:
+    """`replay LOG --view`: the console for the recording until Ctrl-C."""
+    import asyncio
+
+    from console.settings import ConsoleSettings
+    from visionpos.app.console import replay_view
+
+    if args.no_console:
+        raise UsageError("--view serves the console: leave out --no-console")
+    # the console's own section comes from --config or the recording's arena, with --set applied there
+    from visionpos.analysis.replay import load_settings
+    from visionpos.recording import RecordingReader
+
+    try:
+        arena = load_settings(RecordingReader(args.log).config, args.config, args.set)
+    except FileNotFoundError:
+        raise UsageError(f"{args.log}: no such recording") from None
+    settings = ConsoleSettings.from_arena(arena).with_address(args.console_bind, args.console_port)
+    try:
+        asyncio.run(replay_view(args.log, args.config, args.set, args.rate, settings,
+                                lambda v: announce_console("replay", v), args.duration))
+    except OSError as e:
+        raise UsageError(f"{e.strerror or e}; pick another --console-port") from None
     return 0

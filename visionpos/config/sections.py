@@ -130,5 +130,6 @@ TOP = section(
     Setting("foxglove", "section", None, "Foxglove WebSocket server (the [foxglove] extra)", default_doc="(off)"),
     Setting("sim", "section", {}, "the simulator's scenario"),
     Setting("sitl", "section", {}, "ArduPilot SITL for `visionpos sitl`"),
+    Setting("console", "section", {}, "the operator console (web page)"),
     Setting("calibration", "section", {}, "calibration wand, ground frame and reports", spec=CALIBRATION),
 )

@@ -136,6 +136,12 @@ _VERDICT_COUNTERS = {
 _POSE_FITTED = frozenset((Verdict.ACCEPTED, Verdict.GATED, Verdict.RESET))
 # BodyState.update_kind by layout.UpdateKind
 _UPDATE_NAMES = {int(UpdateKind.NONE): "", int(UpdateKind.POSE): "pose", int(UpdateKind.VIEWS): "views"}
+# why a tracked body was lost, from its last fusion's verdict (the console's health view)
+_LOST_WHY = {
+    Verdict.TOO_FEW: "not seen by enough cameras: too few of its markers in two views",
+    Verdict.FIT_REJECTED: "its markers did not fit its layout (rigid-fit residual too large)",
+    Verdict.GATED: "measurements gated: they disagreed with the filter's prediction",
+}
 
 
 class FusionPipeline:
@@ -244,6 +250,12 @@ class FusionPipeline:
             "rejected_view_gate": 0,
         }
         self._per_camera: dict[int, int] = {}
+        # for the operator console (read, never used by fusion): each camera's newest blobs in pixels, its
+        # rows as obs[cam].label's; each body's last fusion verdict (Verdict, -1 = none yet); and why each
+        # untracked body is not tracked, in words (set where acquisition decides, a few times a second)
+        self.last_px: dict[int, np.ndarray] = {}
+        self.last_verdict = [-1] * len(self.models)
+        self.untracked_why: dict[int, str] = {}
         if warm_up:
             warm_up_once(arena, settings)
 
@@ -271,6 +283,7 @@ class FusionPipeline:
             self._stats["deferred"] += 1
         for g in before:
             self._fuse(g)
+        self.last_px[cam] = px
         self.obs[cam] = self._observe(cam, t, px)
         for g in after:
             self._fuse(g)
@@ -363,6 +376,9 @@ class FusionPipeline:
         if gone:
             track_ints[gone, TRACK_TRACKED] = 0
             self._stats["lost"] += len(gone)
+            for b in gone:
+                self.untracked_why[b] = _LOST_WHY.get(self.last_verdict[b],
+                                                      "no new measurement: its cameras sent no frames")
             self._tracking_changed()
 
     def _layout(self, tracked: tuple[int, ...]) -> TrackedSet:
@@ -392,8 +408,10 @@ class FusionPipeline:
         self._motion = (int(t_c), motion)
         stats = self._stats
         stats["rejected_residual"] += int(refused)
+        last_verdict = self.last_verdict
         # Python ints: numpy compares its scalars with an IntEnum member slowly (microseconds)
         for i, (b, v) in enumerate(zip(tracked, verdict.tolist())):
+            last_verdict[b] = v
             for counter in _VERDICT_COUNTERS[v]:
                 stats[counter] += 1
             if v in _POSE_FITTED:
@@ -409,16 +427,30 @@ class FusionPipeline:
         if not lost and not st.loose_points:
             return
         free = [np.flatnonzero(self._label_free[o.label]) for o in obs]
-        if sum(len(fr) > 0 for fr in free) < 2:
+        seeing = sum(len(fr) > 0 for fr in free)
+        if seeing < 2:
+            for b in lost:
+                self.untracked_why[b] = (f"not seen by enough cameras: {seeing} of {len(obs)} see blobs no "
+                                         "tracked body explains (2 needed)")
             self.loose_points = LoosePoints(ref, np.zeros((0, 3)), np.zeros(0))
             return
         xs = [o.xn[fr] for o, fr in zip(obs, free)]
         pts, idx, rms = match_unlabeled(xs, R, t, focal_px, st.acquire_ray_gate_px, st.max_residual_px)
         if not lost or len(pts) < 3:
+            for b in lost:
+                self.untracked_why[b] = (f"not seen by enough cameras: {len(pts)} marker(s) seen by two cameras "
+                                         "or more (3 needed)")
             self.loose_points = LoosePoints(ref, pts, rms)
             return
         left = np.ones(len(pts), dtype=bool)
-        for ident in identify(pts, self.models, st.identify_tolerance_m, st.min_markers, only=lost):
+        ambiguous: set[int] = set()
+        found = identify(pts, self.models, st.identify_tolerance_m, st.min_markers, only=lost, ambiguous=ambiguous)
+        for b in lost:
+            self.untracked_why[b] = (
+                "identification ambiguous: its visible markers fit another body as well" if b in ambiguous
+                else f"{len(pts)} markers triangulated, none fits its layout within "
+                     f"{st.identify_tolerance_m * 1e3:.0f} mm")
+        for ident in found:
             b = ident.body
             tr = self.tracks[b]
             matched = ident.point_index >= 0
@@ -433,6 +465,7 @@ class FusionPipeline:
             # the frames that identified it are in the filter: the single-view path must not count them again
             self._track_view_ns[b, cam_index] = np.maximum(self._track_view_ns[b, cam_index],
                                                            [o.capture_ns for o in obs])
+            self.untracked_why.pop(b, None)
             tr.first_reject_ns = None
             tr.last_update_ns = ref
             tr.last_capture_ns = max(o.capture_ns for o in obs)
