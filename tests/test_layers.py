@@ -2,7 +2,7 @@
 
     application  visionpos.app, visionpos.benchmarks, visionpos.cli (compose everything; only
                  `python -m visionpos` imports the CLI)
-    edges        bridge/, stations/ (use the core; never the application, never each other)
+    edges        bridge/, stations/, console/ (use the core; never the application, never each other)
     core         every other visionpos package, in the layers of CORE_LAYERS
 
 Every import statement of every module counts, those inside functions too (a lazy import is
@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-TOP_PACKAGES = ("visionpos", "bridge", "stations")
+TOP_PACKAGES = ("visionpos", "bridge", "stations", "console")
 
 # lowest first; a core package imports only packages of lower layers (and itself). Packages in
 # one layer are independent of each other.
@@ -32,13 +32,14 @@ CORE_LAYERS: list[tuple[str, ...]] = [
     ("visionpos.camera",),
     ("visionpos.config",),  # parses the cameras of an arena with camera models
     ("visionpos.geometry",),
+    ("visionpos.foxglove",),  # the Foxglove channels of recordings: cameras, station packets, rotations
     ("visionpos.fusion", "visionpos.recording"),
     ("visionpos.sim", "visionpos.server"),  # sim writes recordings; the server fuses and records
     ("visionpos.calibration",),  # calibrates from recordings or simulated captures
     ("visionpos.analysis",),  # replays recordings through the server's ingest and fusion
 ]
 APPLICATION = ("visionpos.app", "visionpos.benchmarks", "visionpos.cli", "visionpos.__main__")
-EDGES = ("bridge", "stations")
+EDGES = ("bridge", "stations", "console")
 LAYER = {unit: i for i, units in enumerate(CORE_LAYERS) for unit in units}
 
 
@@ -133,6 +134,11 @@ def test_imports_go_one_way():
     ("visionpos.app.serve", "bridge", True),
     ("visionpos.app.demo", "visionpos.cli.main", False),
     ("visionpos.recording", "visionpos.server.ingest", False),
+    ("console.server", "visionpos.server.service", True),
+    ("console.view", "bridge.mavlink", False),
+    ("console.health", "visionpos.app.serve", False),
+    ("visionpos.server.service", "console.server", False),
+    ("visionpos.app.console", "console.server", True),
 ])
 def test_the_rules_themselves(importer, imported, allowed):
     assert (violation(importer, imported) is None) == allowed

@@ -58,7 +58,7 @@ def test_pose_bound_equals_the_chained_marker_bounds_and_needs_three_markers():
         F += G.T @ np.linalg.inv(Ci) @ G
     np.testing.assert_allclose(C, np.linalg.inv(F), rtol=1e-8)
     # two markers cannot fix the rotation about the line through them
-    assert np.isnan(pose_crb(cams, X[:2], origin, 0.2, vis[:2])).all()
+    assert np.isinf(pose_crb(cams, X[:2], origin, 0.2, vis[:2])).all()
     pos_mm, rot_deg = body_bounds(cams, body, origin, 0.2, yaws_deg=(0.0,))
     assert math.isclose(pos_mm, math.sqrt(np.trace(C[:3, :3])) * 1e3, rel_tol=1e-9)
     assert math.isclose(rot_deg, math.degrees(math.sqrt(np.trace(C[3:, 3:]))), rel_tol=1e-9)

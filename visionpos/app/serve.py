@@ -18,7 +18,7 @@ from visionpos.server.settings import ServerSettings
 
 def bridge_sinks(arena: ArenaConfig) -> list[Any]:
     """The arena's outputs as sinks: the MAVLink bridge (one sender thread per vehicle) on the loop, and the
-    pose stream, VRPN and NatNet servers behind one off-loop dispatcher (bridge/outputs.py)."""
+    pose stream, VRPN, NatNet and Foxglove servers behind one off-loop dispatcher (bridge/outputs.py)."""
     network: list[Any] = []
     if arena.raw.get("pose_stream") is not None:
         from bridge.config import parse_pose_stream
@@ -39,6 +39,12 @@ def bridge_sinks(arena: ArenaConfig) -> list[Any]:
         natnet = NatNetServer.from_arena(arena)
         if natnet is not None:
             network.append(natnet)
+    if arena.raw.get("foxglove") is not None:
+        from bridge.foxglove_live import FoxgloveServer
+
+        fox = FoxgloveServer.from_arena(arena)
+        if fox is not None:
+            network.append(fox)
     sinks: list[Any] = []
     if arena.raw.get("vehicles"):
         try:
@@ -57,13 +63,15 @@ def bridge_sinks(arena: ArenaConfig) -> list[Any]:
 
 async def serve(arena: ArenaConfig, settings: ServerSettings, host: str | None = None, record: str | Path | None = None,
                 duration_s: float | None = None,
-                on_listening: Callable[[FusionServer], None] | None = None) -> dict[str, Any]:
+                on_listening: Callable[[FusionServer], None] | None = None, console: Any = None,
+                on_console: Callable[[Any], None] | None = None) -> dict[str, Any]:
     """Run the fusion server with the arena's bridge sinks until a signal (or duration_s); returns its health.
 
     host: the address to listen on (None: settings.bind). record: MCAP path; every station
     packet, the config and the outputs are recorded.
     on_listening(server) is called once the socket is open; an OSError (port in use, bad
-    address) propagates, with the recording closed.
+    address) propagates, with the recording closed. console: ConsoleSettings of the web console
+    (None: none), served on the same loop; on_console(ConsoleServer) once it listens.
     """
     sinks = bridge_sinks(arena)
     recorder = None
@@ -80,8 +88,17 @@ async def serve(arena: ArenaConfig, settings: ServerSettings, host: str | None =
         raise
     if on_listening is not None:
         on_listening(server)
+    view = None
     try:
+        if console is not None:
+            from visionpos.app.console import open_console
+
+            view = await open_console(console, server)
+            if on_console is not None:
+                on_console(view)
         await run_until_signal(duration_s)
     finally:
+        if view is not None:
+            await view.stop()
         await server.stop()
     return server.health()

@@ -85,7 +85,7 @@ def path_crb(sc, sim, body_name: str, times_ns: np.ndarray) -> tuple[float, floa
 
     At each time: the true pose, and which camera sees which marker in its newest frame (simulator truth).
     """
-    from visionpos.benchmarks.fusion import pose_crb
+    from visionpos.geometry.triangulation import pose_crb
 
     b = [x.name for x in sc.bodies].index(body_name)
     body = sc.body(body_name)
@@ -107,7 +107,8 @@ def path_crb(sc, sim, body_name: str, times_ns: np.ndarray) -> tuple[float, floa
         if (visible.sum(1) >= 2).sum() < 3:
             continue  # no pose from this snapshot: no bound either
         mw = Rotation.from_quat(q).apply(body.markers) + p
-        crb = pose_crb(sc.cameras, mw, p, sc.centroid_noise_px, visible)
+        # the bound of the triangulated pose: markers that two or more cameras see
+        crb = pose_crb(sc.cameras, mw, p, sc.centroid_noise_px, visible & (visible.sum(1) >= 2)[:, None])
         pos_var.append(np.trace(crb[:3, :3]))
         rot_var.append(np.trace(crb[3:, 3:]))
     return float(np.sqrt(np.mean(pos_var)) * 1e3), float(np.degrees(np.sqrt(np.mean(rot_var))))

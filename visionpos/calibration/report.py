@@ -68,14 +68,22 @@ def _table(header: list[str], rows: list[list[str]]) -> str:
 def wand_report(cal: WandCalibration, title: str = "wand calibration") -> str:
     """Terminal report: per-camera residuals and positions, wand-length errors (thesis Table 4.2)."""
     rows = []
+
+    def sd(v: float, fmt: str) -> str:
+        return format(v, fmt) if np.isfinite(v) else "-"
+
     for s in cal.camera_stats():
         c = s["center"]
         rows.append(
             [s["name"], str(s["id"]), str(s["views"]), f"{s['rms_px']:.3f}", f"{s['max_px']:.2f}",
-             f"{c[0]:+.4f}", f"{c[1]:+.4f}", f"{c[2]:+.4f}"]
+             f"{c[0]:+.4f}", f"{c[1]:+.4f}", f"{c[2]:+.4f}", sd(s["center_std_mm"], ".2f"),
+             sd(s["rot_std_deg"], ".4f"), f"{s['offset_ms']:+.2f}", sd(s["offset_std_ms"], ".3f")]
         )
     out = [f"== {title}: {len(cal.data.times_ns)} time steps, {len(cal.cameras)} cameras =="]
-    out.append(_table(["camera", "id", "views", "rms px", "max px", "x m", "y m", "z m"], rows))
+    out.append(_table(["camera", "id", "views", "rms px", "max px", "x m", "y m", "z m", "pos std mm",
+                       "rot std deg", "clock offset ms", "std ms"], rows))
+    out.append("(std: one standard deviation from the bundle adjustment's covariance; clock offsets against the "
+               "first camera's clock: its stamps read true time + offset)")
     L = cal.length_stats()
     out.append("")
     out.append("wand lengths, freely triangulated with the calibrated cameras (mean error, std):")
@@ -84,10 +92,12 @@ def wand_report(cal: WandCalibration, title: str = "wand calibration") -> str:
         out.append(
             f"  {name} {true * 100:6.2f} cm: {L[k + '_mean_err'] * 1000:+7.3f} mm, std {L[k + '_std'] * 1000:6.3f} mm"
         )
+    if cal.check is not None:
+        out.append("  " + cal.check.message())
     t = cal.timings
     out.append("")
     out.append(
-        f"labelling {t.get('label_s', 0):.1f} s, pairwise init {t.get('init_s', 0):.1f} s, "
+        f"labelling and clock offsets {t.get('label_s', 0):.1f} s, pairwise init {t.get('init_s', 0):.1f} s, "
         f"bundle adjustment {t.get('bundle_s', 0):.1f} s ({cal.info.get('nfev', 0)} evaluations); "
         f"{cal.rejected_views} views rejected (> {cal.info.get('threshold_px', 0):.2f} px)"
     )

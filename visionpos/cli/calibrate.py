@@ -15,7 +15,7 @@ from pathlib import Path
 
 import yaml
 
-from visionpos.calibration.workflow import capture_frames, ground_layout, wand_spec, write_arena
+from visionpos.calibration.workflow import capture_frames, ground_layout, wand_settings, write_arena
 from visionpos.errors import UsageError
 
 
@@ -70,11 +70,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     w = sub.choices["wand"]
     w.add_argument("--ab", type=float, default=None, help="wand A-B distance (m) [0.054 or calibration.wand.ab]")
     w.add_argument("--bc", type=float, default=None, help="wand B-C distance (m) [0.103 or calibration.wand.bc]")
+    w.add_argument("--known", choices=("ab", "bc", "ac"), default=None,
+                   help="the wand segment measured most precisely; it sets the scale and the others are checked "
+                   "against it [ac or calibration.wand.known]")
+    w.add_argument("--max-clock-offset-ms", type=float, default=None,
+                   help="largest clock offset of a camera to search for; 0 trusts the stamps "
+                   "[60 or calibration.wand.max_clock_offset_ms]")
     w.add_argument("--rate", type=float, default=50.0, help="common time grid (Hz) the cameras are interpolated to")
     w.add_argument("--align", choices=("interpolate", "nearest"), default="interpolate",
                    help="bring asynchronous cameras to common times by interpolation or nearest frame (<= 2 ms)")
     w.add_argument("--ref", type=int, default=None, help="id of the camera that defines the frame [first]")
-    w.add_argument("--refine-intrinsics", action="store_true", help="also refine fx, fy, cx, cy per camera")
+    w.add_argument("--refine-intrinsics", action="store_true",
+                   help="also refine fx, fy, cx, cy per camera; refused (with the reason) where the wand data cannot "
+                   "determine them")
     w.add_argument("--max-frames", type=int, default=None, help="use at most this many time steps")
     w.add_argument("--report", default=None, help="PNG report (camera poses, residuals, wand lengths)")
     g = sub.choices["ground"]
@@ -165,7 +173,9 @@ def _run_wand(args) -> int:
     from visionpos.calibration.report import plot_wand, progress_printer, wand_report
 
     frames, arena, truth = capture_frames(args.recording, args.sim, "wand", args.set, args.config)
-    spec = wand_spec(arena, args.ab, args.bc)
+    if args.max_clock_offset_ms is not None and not 0 <= args.max_clock_offset_ms <= 500:
+        raise UsageError(f"--max-clock-offset-ms {args.max_clock_offset_ms}: expected 0 to 500")
+    spec, max_offset_ms = wand_settings(arena, args.ab, args.bc, args.known, args.max_clock_offset_ms)
     cams = list(arena.cameras)
     ref = 0
     if args.ref is not None:
@@ -176,6 +186,7 @@ def _run_wand(args) -> int:
     cal = calibrate_wand(
         frames, cams, spec, ref=ref, rate_hz=args.rate, refine_intrinsics=args.refine_intrinsics,
         max_frames=args.max_frames, progress=progress_printer(not args.no_progress), align=args.align,
+        max_offset_ms=max_offset_ms,
     )
     print(wand_report(cal))
     if truth is not None:
@@ -185,13 +196,16 @@ def _run_wand(args) -> int:
     L = cal.length_stats()
     stats = cal.camera_stats()
     write_arena(arena, cal.cameras, args.out, {
-        "wand": {"ab": spec.ab, "bc": spec.bc},
+        "wand": {"ab": spec.ab, "bc": spec.bc, "known": spec.known, "max_clock_offset_ms": max_offset_ms},
         "extrinsics": {
             "frame": f"camera {cal.cameras[ref].name}",
             "time_steps": len(cal.data.times_ns),
             "rms_px": {s["name"]: round(s["rms_px"], 4) for s in stats},
             "wand_ac_std_mm": round(L["ac_std"] * 1000, 4),
             "wand_ac_mean_err_mm": round(L["ac_mean_err"] * 1000, 4),
+            "clock_offset_ms": {s["name"]: round(s["offset_ms"], 4) for s in stats},
+            "wand_ratio_measured": round(cal.check.ratio, 6) if cal.check else None,
+            "warnings": list(cal.warnings),
         },
     })
     print(f"wrote {args.out} (world = camera {cal.cameras[ref].name}; run `visionpos calibrate ground` next)")

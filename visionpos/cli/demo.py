@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import errno
 import json
 import sys
 
+from visionpos.app.console import add_console_arguments, announce_console, console_settings, port_in_use
 from visionpos.app.demo import demo_arena, format_summary, run_demo
 from visionpos.errors import UsageError
 
@@ -23,6 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no live status")
     p.add_argument("--record", metavar="FILE",
                    help="also record the session (packets, outputs, truth) to an MCAP file for replay/tune")
+    add_console_arguments(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -35,7 +38,19 @@ def run(args: argparse.Namespace) -> int:
         status_out.write(f"visionpos demo: {n_cams} simulated station{'s' * (n_cams != 1)}, "
                          f"{n_bodies} bod{'y' if n_bodies == 1 else 'ies'}, {args.duration:g} s on 127.0.0.1 ...\n")
         status_out.flush()
-    summary = asyncio.run(run_demo(arena, args.duration, status_out, args.record))
+    console = console_settings(arena, args)
+    notes = sys.stderr if args.json else sys.stdout
+    if console is not None and args.console_port is None and port_in_use(console):
+        # a demo is for trying things: another program on the default port must not stop it
+        print(f"visionpos demo: port {console.port} is in use; the console takes a free port", file=notes)
+        console = console.with_address(port=0)
+    try:
+        summary = asyncio.run(run_demo(arena, args.duration, status_out, args.record, console=console,
+                                       on_console=lambda view: announce_console("demo", view, notes)))
+    except OSError as e:
+        if e.errno not in (errno.EADDRINUSE, errno.EADDRNOTAVAIL):
+            raise
+        raise UsageError(f"console: {e.strerror or e}; pick another --console-port or pass --no-console") from None
     if args.record:
         summary["recording"] = args.record
     if args.json:

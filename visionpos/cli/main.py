@@ -19,6 +19,7 @@ from visionpos.errors import VisionposError
 
 COMMANDS: dict[str, str] = {
     "demo": "run the whole chain on a simulated arena over loopback",
+    "sitl": "fly ArduPilot SITL closed loop on simulated cameras (the autopilot in the loop)",
     "serve": "start the fusion service for live stations",
     "record": "record live station traffic to an MCAP log (no outputs)",
     "keygen": "make the shared key that server and stations sign packets with",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from visionpos.app.console import add_console_arguments, announce_console, console_settings
 from visionpos.cli.serve import announce_listening, live_settings, run_listening
 from visionpos.errors import UsageError
 from visionpos.server.service import record_traffic
@@ -20,6 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="address to listen on (default: server.bind from the config, 127.0.0.1)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: until Ctrl-C)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    add_console_arguments(p)
 
 
 def output_path(args: argparse.Namespace) -> str:
@@ -44,6 +46,21 @@ def run(args: argparse.Namespace) -> int:
         listening_on.append(port)
         announce_listening("record", settings, port, f", recording to {out}")
 
-    n = run_listening(record_traffic(arena, settings, out, None, args.duration, listening), listening_on)
+    console = console_settings(arena, args)
+    source = None
+    on_ingest = None
+    if console is not None:
+        from visionpos.app.console import RecordSource, open_console
+
+        source = RecordSource(arena)
+
+        async def on_ingest(ingest):
+            source.ingest = ingest
+            view = await open_console(console, source)
+            announce_console("record", view)
+            return view.stop
+
+    n = run_listening(record_traffic(arena, settings, out, None, args.duration, listening, source, on_ingest),
+                      listening_on)
     print(f"visionpos record: {n} packets written to {out}", flush=True)
     return 0

@@ -7,6 +7,7 @@ import asyncio
 import logging
 from typing import Any, Coroutine, TypeVar
 
+from visionpos.app.console import add_console_arguments, announce_console, console_settings
 from visionpos.app.serve import serve
 from visionpos.config.arena import ArenaConfig
 from visionpos.errors import UsageError
@@ -25,6 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: Ctrl-C)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key, e.g. server.output_rate_hz=50 (repeatable)")
+    add_console_arguments(p)
 
 
 def live_settings(args: argparse.Namespace) -> tuple[ArenaConfig, ServerSettings]:
@@ -67,7 +69,9 @@ def run(args: argparse.Namespace) -> int:
         listening_on.append(server.port)
         announce_listening("serve", settings, server.port, f", recording to {args.record}" if args.record else "")
 
-    h = run_listening(serve(arena, settings, None, args.record, args.duration, listening), listening_on)
+    console = console_settings(arena, args)
+    h = run_listening(serve(arena, settings, None, args.record, args.duration, listening, console,
+                            lambda view: announce_console("serve", view)), listening_on)
     print(f"visionpos serve: stopped after {h['packets']} packets ({h['frames_accepted']} frames accepted, "
           f"{h['frames_shed']} shed as backlog, {h['malformed']} malformed, {h['auth_failed']} failed auth, "
           f"{h['unknown']} unknown), {h['ticks']} output ticks", flush=True)

@@ -17,6 +17,14 @@ marker, a weighted Kabsch pose per body, a gated Kalman update
 identification of lost bodies by marker geometry (rigidbody.py) and the
 loose points.
 
+Occlusion: a tracked body with fewer than min_markers markers triangulated in a
+fusion is updated instead from the 2-D markers each of the fusion's frames sees
+(kernels._single_views, tracking.filter_update_view: a reprojection measurement
+at the frame's own capture time, each frame used once, NIS-gated, only
+unambiguous associations). The track is kept only while the recent views' pose
+information bounds the pose; single views never acquire or re-identify.
+BodyState.update_kind says which kind of update last kept a body.
+
 Measurement covariance: from the rigid-body fit itself. The Kabsch residual
 gives the per-marker noise (sigma^2 = sum |r|^2 / (3n - 6), averaged per body
 over recent fusions, floored by `marker_sigma_m`); with the marker layout it
@@ -74,6 +82,12 @@ from visionpos.fusion.layout import (
     PARAM_MAX_RESIDUAL_PX,
     PARAM_MIN_MARKERS,
     PARAM_RESET_AFTER_NS,
+    PARAM_SV_ENABLED,
+    PARAM_SV_GATE_PER_DOF,
+    PARAM_SV_MAX_POS_VAR,
+    PARAM_SV_MAX_ROT_VAR,
+    PARAM_SV_MIN_PX_VAR,
+    PARAM_SV_WINDOW_NS,
     TRACK_LAST_CAPTURE_NS,
     TRACK_LAST_UPDATE_NS,
     TRACK_N_CAMERAS,
@@ -81,7 +95,9 @@ from visionpos.fusion.layout import (
     TRACK_RESETS,
     TRACK_RESIDUAL_MM,
     TRACK_TRACKED,
+    TRACK_UPDATE_KIND,
     TrackedSet,
+    UpdateKind,
     Verdict,
     ViewSet,
 )
@@ -113,8 +129,19 @@ _VERDICT_COUNTERS = {
     Verdict.ACCEPTED: ("measurements",),
     Verdict.GATED: ("rejected_gate",),
     Verdict.RESET: ("rejected_gate", "measurements", "filter_resets"),
+    Verdict.VIEWS: ("view_updates",),
+    Verdict.VIEWS_UNCONSTRAINED: ("view_updates_unconstrained",),
+    Verdict.VIEWS_GATED: ("rejected_view_gate",),
 }
 _POSE_FITTED = frozenset((Verdict.ACCEPTED, Verdict.GATED, Verdict.RESET))
+# BodyState.update_kind by layout.UpdateKind
+_UPDATE_NAMES = {int(UpdateKind.NONE): "", int(UpdateKind.POSE): "pose", int(UpdateKind.VIEWS): "views"}
+# why a tracked body was lost, from its last fusion's verdict (the console's health view)
+_LOST_WHY = {
+    Verdict.TOO_FEW: "not seen by enough cameras: too few of its markers in two views",
+    Verdict.FIT_REJECTED: "its markers did not fit its layout (rigid-fit residual too large)",
+    Verdict.GATED: "measurements gated: they disagreed with the filter's prediction",
+}
 
 
 class FusionPipeline:
@@ -152,6 +179,7 @@ class FusionPipeline:
         self._proj = {c.id: Projector(c) for c in arena.cameras}
         self._layout_cache: dict[tuple[int, ...], TrackedSet] = {}
         self._gate_px = float(st.match_gate_px)
+        self._unique_sigmas = float(st.single_view.unique_sigmas)
         self._kernel_params = np.empty(N_PARAMS)  # the fusion kernels' settings
         self._kernel_params[PARAM_MAX_RESIDUAL_PX] = st.max_residual_px
         self._kernel_params[PARAM_IDENTIFY_TOL_M] = st.identify_tolerance_m
@@ -159,6 +187,13 @@ class FusionPipeline:
         self._kernel_params[PARAM_MIN_MARKERS] = st.min_markers
         self._kernel_params[PARAM_MARKER_VAR_FLOOR] = st.kalman.marker_sigma_m**2
         self._kernel_params[PARAM_RESET_AFTER_NS] = st.kalman.reset_after_ns
+        sv = st.single_view
+        self._kernel_params[PARAM_SV_ENABLED] = float(sv.enabled)
+        self._kernel_params[PARAM_SV_GATE_PER_DOF] = sv.gate_nis_per_dof
+        self._kernel_params[PARAM_SV_WINDOW_NS] = sv.window_ns
+        self._kernel_params[PARAM_SV_MAX_POS_VAR] = sv.max_position_sigma_m**2
+        self._kernel_params[PARAM_SV_MAX_ROT_VAR] = np.radians(sv.max_rotation_sigma_deg) ** 2
+        self._kernel_params[PARAM_SV_MIN_PX_VAR] = sv.min_pixel_sigma_px**2
         self._view_cache: dict[tuple[int, ...], tuple] = {}  # ViewSets as plain tuples
         self.aligner = TimeAligner(
             st.time_alignment,
@@ -174,11 +209,14 @@ class FusionPipeline:
         # each camera's newest observation of every marker (NaN = none); Observation.marker_xn is its row,
         # so a fusion reads its views without stacking them
         self._marker_xn = np.full((len(arena.cameras), self.n_markers, 2), np.nan)
+        # ... and whether that association is unambiguous (the single-view path uses only those)
+        self._marker_ok = np.zeros((len(arena.cameras), self.n_markers), dtype=np.bool_)
+        self._camera_packed = np.array([self._proj[c.id].packed for c in arena.cameras])
         self._capture_ns = np.zeros(len(arena.cameras), dtype=np.int64)  # each camera's newest frame
         # per-body state in arrays the kernels update in place; tracks[b] is a view of row b
         self.bank = FilterBank(len(self.models), st.kalman)
-        self._track_rows = new_track_rows(len(self.models))
-        self._track_ints, self._track_floats = self._track_rows
+        self._track_rows = new_track_rows(len(self.models), len(arena.cameras))
+        self._track_ints, self._track_floats, self._track_view_ns, self._track_info = self._track_rows
         self._track_rows_arg = tuple(self._track_rows)  # the kernels take argument groups as plain tuples
         self.tracks = [Track(fl, self._track_ints[b], self._track_floats[b]) for b, fl in enumerate(self.bank.filters)]
         self._motion: tuple[int, np.ndarray] | None = None  # see _motion_cache
@@ -207,8 +245,17 @@ class FusionPipeline:
             "acquisitions": 0,
             "lost": 0,
             "filter_resets": 0,
+            "view_updates": 0,
+            "view_updates_unconstrained": 0,
+            "rejected_view_gate": 0,
         }
         self._per_camera: dict[int, int] = {}
+        # for the operator console (read, never used by fusion): each camera's newest blobs in pixels, its
+        # rows as obs[cam].label's; each body's last fusion verdict (Verdict, -1 = none yet); and why each
+        # untracked body is not tracked, in words (set where acquisition decides, a few times a second)
+        self.last_px: dict[int, np.ndarray] = {}
+        self.last_verdict = [-1] * len(self.models)
+        self.untracked_why: dict[int, str] = {}
         if warm_up:
             warm_up_once(arena, settings)
 
@@ -236,6 +283,7 @@ class FusionPipeline:
             self._stats["deferred"] += 1
         for g in before:
             self._fuse(g)
+        self.last_px[cam] = px
         self.obs[cam] = self._observe(cam, t, px)
         for g in after:
             self._fuse(g)
@@ -277,24 +325,27 @@ class FusionPipeline:
         marker_xn = self._marker_xn[v]  # this camera's row of the shared array
         if not self._tracked or not len(px):
             marker_xn[:] = np.nan
+            self._marker_ok[v] = False
             return Observation(t_ns, proj.undistort(px), np.full(len(px), -1, dtype=np.int64), marker_xn)
         t_c, motion = self._motion_cache()
         # the image-space manoeuvre detector: plenty often for a detector, and saves CPU
         image_nis = abs(t_ns - self._last_img_ns) >= _IMAGE_NIS_INTERVAL_NS
         if image_nis:
             self._last_img_ns = t_ns
-        xn, label = _observe_frame(px, (t_ns - t_c) * 1e-9, motion, self._tracked_set, marker_xn, proj.packed,
-                                   self._gate_px, image_nis, t_ns, self.bank.arrays, self._track_floats)
+        xn, label = _observe_frame(px, (t_ns - t_c) * 1e-9, motion, self._tracked_set, marker_xn, self._marker_ok[v],
+                                   proj.packed, self._gate_px, self._unique_sigmas, image_nis, t_ns, self.bank.arrays,
+                                   self._track_floats)
         return Observation(t_ns, xn, label, marker_xn)
 
     # ----------------------------------------------------------------- fusion
     def _views(self, cams: tuple[int, ...]) -> tuple:
-        """The ViewSet of `cams`: camera indices (V,), R (V, 3, 3), t (V, 3), focal_px (V,), as the plain
-        tuple the kernels take (cached per set)."""
+        """The ViewSet of `cams`: camera indices (V,), R (V, 3, 3), t (V, 3), focal_px (V,), packed cameras
+        (V, N_CAMERA), as the plain tuple the kernels take (cached per set)."""
         views = self._view_cache.get(cams)
         if views is None:
             index = np.array([self._cam_index[c] for c in cams], dtype=np.int64)
-            views = tuple(ViewSet(index, self._R[index], self._t[index], self._focal_px[index]))
+            views = tuple(ViewSet(index, self._R[index], self._t[index], self._focal_px[index],
+                                  self._camera_packed[index]))
             self._view_cache[cams] = views
         return views
 
@@ -316,8 +367,8 @@ class FusionPipeline:
         interval = st.acquire_interval_ns if lost else st.loose_points_interval_ns
         if (lost or st.loose_points) and (ref - self._last_acquire_ns >= interval or ref < self._last_acquire_ns):
             self._last_acquire_ns = ref
-            _, R, t, focal_px = views
-            self._acquire([obs[c] for c in cams], R, t, focal_px, ref)
+            cam_index, R, t, focal_px, _ = views
+            self._acquire([obs[c] for c in cams], cam_index, R, t, focal_px, ref)
         # lost-track bookkeeping on the capture clock
         track_ints = self._track_ints
         lost_ns = max(st.kalman.lost_timeout_ns, _LOST_PERIODS * self.aligner.slowest_period_ns())
@@ -325,6 +376,9 @@ class FusionPipeline:
         if gone:
             track_ints[gone, TRACK_TRACKED] = 0
             self._stats["lost"] += len(gone)
+            for b in gone:
+                self.untracked_why[b] = _LOST_WHY.get(self.last_verdict[b],
+                                                      "no new measurement: its cameras sent no frames")
             self._tracking_changed()
 
     def _layout(self, tracked: tuple[int, ...]) -> TrackedSet:
@@ -344,41 +398,59 @@ class FusionPipeline:
     def _update_tracked(self, views: tuple, ref: int, compensate: bool) -> None:
         """One fusion of the tracked bodies (_fuse_tracked) from the ViewSet `views` at ref (ns)."""
         tracked = self._tracked
-        cameras, _, _, _ = views
+        cameras, _, _, _, _ = views
         reuse = min(len(cameras), self._max_reuse) if compensate else 1.0
         verdict, meas, refused, t_c, motion = _fuse_tracked(
-            self._marker_xn, self._capture_ns, views, ref, self._tracked_set, self._kernel_params, bool(compensate),
-            float(reuse), self.bank.arrays, self._track_rows_arg,
+            self._marker_xn, self._marker_ok, self._capture_ns, views, ref, self._tracked_set, self._kernel_params,
+            bool(compensate), float(reuse), self.bank.arrays, self._track_rows_arg,
         )
         # the filters moved: the next frames predict their markers from this fusion
         self._motion = (int(t_c), motion)
         stats = self._stats
         stats["rejected_residual"] += int(refused)
+        last_verdict = self.last_verdict
         # Python ints: numpy compares its scalars with an IntEnum member slowly (microseconds)
         for i, (b, v) in enumerate(zip(tracked, verdict.tolist())):
+            last_verdict[b] = v
             for counter in _VERDICT_COUNTERS[v]:
                 stats[counter] += 1
             if v in _POSE_FITTED:
                 m = meas[i]
                 self.last_raw[b] = (ref, m[MEAS_POS], m[MEAS_ROT].reshape(3, 3))
 
-    def _acquire(self, obs: list[Observation], R: np.ndarray, t: np.ndarray, focal_px: np.ndarray, ref: int) -> None:
-        """Match leftover blobs across views; identify lost bodies; report loose points."""
+    def _acquire(self, obs: list[Observation], cam_index: np.ndarray, R: np.ndarray, t: np.ndarray,
+                 focal_px: np.ndarray, ref: int) -> None:
+        """Match leftover blobs across views (cam_index (V,): their cameras' indices); identify lost bodies;
+        report loose points."""
         st = self.settings
         lost = [b for b in range(len(self.tracks)) if b not in self._tracked]
         if not lost and not st.loose_points:
             return
         free = [np.flatnonzero(self._label_free[o.label]) for o in obs]
-        if sum(len(fr) > 0 for fr in free) < 2:
+        seeing = sum(len(fr) > 0 for fr in free)
+        if seeing < 2:
+            for b in lost:
+                self.untracked_why[b] = (f"not seen by enough cameras: {seeing} of {len(obs)} see blobs no "
+                                         "tracked body explains (2 needed)")
             self.loose_points = LoosePoints(ref, np.zeros((0, 3)), np.zeros(0))
             return
         xs = [o.xn[fr] for o, fr in zip(obs, free)]
         pts, idx, rms = match_unlabeled(xs, R, t, focal_px, st.acquire_ray_gate_px, st.max_residual_px)
         if not lost or len(pts) < 3:
+            for b in lost:
+                self.untracked_why[b] = (f"not seen by enough cameras: {len(pts)} marker(s) seen by two cameras "
+                                         "or more (3 needed)")
             self.loose_points = LoosePoints(ref, pts, rms)
             return
         left = np.ones(len(pts), dtype=bool)
-        for ident in identify(pts, self.models, st.identify_tolerance_m, st.min_markers, only=lost):
+        ambiguous: set[int] = set()
+        found = identify(pts, self.models, st.identify_tolerance_m, st.min_markers, only=lost, ambiguous=ambiguous)
+        for b in lost:
+            self.untracked_why[b] = (
+                "identification ambiguous: its visible markers fit another body as well" if b in ambiguous
+                else f"{len(pts)} markers triangulated, none fits its layout within "
+                     f"{st.identify_tolerance_m * 1e3:.0f} mm")
+        for ident in found:
             b = ident.body
             tr = self.tracks[b]
             matched = ident.point_index >= 0
@@ -388,6 +460,12 @@ class FusionPipeline:
                 ref, ident.t, ident.R, pose_measurement_cov(pts[ident.point_index[matched]], ident.t, tr.marker_var)
             )
             tr.tracked = True
+            tr.update_kind = UpdateKind.POSE
+            self._track_info[b] = 0.0
+            # the frames that identified it are in the filter: the single-view path must not count them again
+            self._track_view_ns[b, cam_index] = np.maximum(self._track_view_ns[b, cam_index],
+                                                           [o.capture_ns for o in obs])
+            self.untracked_why.pop(b, None)
             tr.first_reject_ns = None
             tr.last_update_ns = ref
             tr.last_capture_ns = max(o.capture_ns for o in obs)
@@ -446,6 +524,7 @@ class FusionPipeline:
                         n_cameras=row[TRACK_N_CAMERAS],
                         residual_mm=float(self._track_floats[b, TRACK_RESIDUAL_MM]),
                         reset_counter=row[TRACK_RESETS],
+                        update_kind=_UPDATE_NAMES[row[TRACK_UPDATE_KIND]],
                     )
                 )
             else:

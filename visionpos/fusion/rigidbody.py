@@ -122,12 +122,14 @@ def identify(
     tolerance: float = 0.008,
     min_markers: int = 3,
     only: list[int] | None = None,
+    ambiguous: set[int] | None = None,
 ) -> list[Identification]:
     """Find bodies among unlabeled points by their marker geometry.
 
     points: (K, 3) world points (m). models: the bodies. tolerance: max
     distance mismatch and Kabsch RMS (m). min_markers: fewest markers for a
     detection (>= 3). only: indices of the models to look for (default all).
+    ambiguous: when given, gets the bodies refused because another body fits their points as well.
     Returns at most one Identification per body, with disjoint points.
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -154,6 +156,8 @@ def identify(
         if n == 3:
             rivals = [c for c in cands if c[2] != bi and c[0] >= 3 and set(int(v) for v in c[3][c[3] >= 0]) == pts]
             if rivals:
+                if ambiguous is not None:
+                    ambiguous.add(bi)
                 continue
         found[bi] = Identification(bi, idx, R, t, rms)
         taken |= pts

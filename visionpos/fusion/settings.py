@@ -44,6 +44,30 @@ KALMAN = section(
             "re-identified", field="lost_timeout_ns", convert=ms_to_ns, min=1.0),
 )
 
+SINGLE_VIEW = section(
+    "fusion.single_view",
+    "Tracking through occlusion (kernels._single_views, tracking.filter_update_view): a tracked body that "
+    "cannot be triangulated (fewer than min_markers markers seen by 2 cameras) is updated from the 2-D "
+    "markers each camera frame sees, at the frame's capture time. It never acquires or re-identifies a "
+    "body; the track is kept only while the recent views' pose information bounds the pose.",
+    Setting("enabled", "boolean", True, "use single-camera reprojection updates for tracked bodies that "
+            "cannot be triangulated"),
+    Setting("gate_nis_per_dof", "number", 6.0, "a frame's reprojection innovation is refused when its "
+            "squared Mahalanobis distance over its 2n degrees of freedom exceeds this per degree", min=0.5),
+    Setting("unique_sigmas", "number", 4.0, "a marker's association is used only if no other blob lies within "
+            "this many predicted pixel std of its prediction (nor another marker's prediction near its blob); the "
+            "radius is at least 3 px and at most match_gate_px", min=1.0),
+    Setting("window_ms", "number", 50.0, "time constant of the decaying pose information of recent single "
+            "views (the observability check)", field="window_ns", convert=ms_to_ns, min=1.0),
+    Setting("max_position_sigma_m", "number", 0.05, "the views' pose information must bound the position "
+            "to this std (root of the covariance trace), else the updates do not keep the track (lost after "
+            "lost_timeout_ms)", min=1e-5),
+    Setting("max_rotation_sigma_deg", "number", 10.0, "likewise for the rotation (root of the trace)",
+            min=1e-3),
+    Setting("min_pixel_sigma_px", "number", 0.05, "floor of the per-axis pixel noise the updates assume (the "
+            "measured one comes from the triangulation residuals)", min=1e-4),
+)
+
 FUSION = section(
     "fusion",
     "Fusion (pipeline.py): which camera frames are fused together, association, triangulation, "
@@ -78,6 +102,7 @@ FUSION = section(
     Setting("loose_points_interval_ms", "number", 50.0, "loose points are refreshed this often while every "
             "body is tracked", field="loose_points_interval_ns", convert=ms_to_ns, min=0.0),
     Setting("kalman", "section", {}, "the body filter", spec=KALMAN),
+    Setting("single_view", "section", {}, "single-camera updates through occlusion", spec=SINGLE_VIEW),
 )
 
 
@@ -103,6 +128,19 @@ class KalmanSettings:
 
 
 @dataclass(frozen=True)
+class SingleViewSettings:
+    """The single-view path (`fusion.single_view` in the YAML; SI units)."""
+
+    enabled: bool = SINGLE_VIEW["enabled"].field_default
+    gate_nis_per_dof: float = SINGLE_VIEW["gate_nis_per_dof"].field_default
+    unique_sigmas: float = SINGLE_VIEW["unique_sigmas"].field_default
+    window_ns: int = SINGLE_VIEW["window_ms"].field_default
+    max_position_sigma_m: float = SINGLE_VIEW["max_position_sigma_m"].field_default
+    max_rotation_sigma_deg: float = SINGLE_VIEW["max_rotation_sigma_deg"].field_default
+    min_pixel_sigma_px: float = SINGLE_VIEW["min_pixel_sigma_px"].field_default
+
+
+@dataclass(frozen=True)
 class FusionSettings:
     """Validated `fusion:` section (SI units). window_ns and grid_ns are 0 until derived from the cameras;
     auto_window: window_ms was 0, so the window follows the cameras' measured frame intervals
@@ -123,6 +161,7 @@ class FusionSettings:
     min_fusion_interval_ns: int = FUSION["min_fusion_interval_ms"].field_default
     loose_points_interval_ns: int = FUSION["loose_points_interval_ms"].field_default
     kalman: KalmanSettings = field(default_factory=KalmanSettings)
+    single_view: SingleViewSettings = field(default_factory=SingleViewSettings)
 
 
 def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = None) -> FusionSettings:
@@ -137,9 +176,11 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
             raise ConfigError(source, f"fusion.{key}", message)
     s = FUSION.check(Section(data, source, "fusion"))
     kalman = KALMAN.parse(s.sub("kalman"))
+    single_view = SINGLE_VIEW.parse(s.sub("single_view"))
     fps = [c.fps for c in arena.cameras] or [100.0]
     derived = {"window_ms": 1.2e3 / min(fps), "naive_grid_hz": max(fps)}
     auto_window = FUSION["window_ms"].read(s) == 0
-    return FusionSettings(**FUSION.parse(s, derived), auto_window=auto_window, kalman=KalmanSettings(**kalman))
+    return FusionSettings(**FUSION.parse(s, derived), auto_window=auto_window, kalman=KalmanSettings(**kalman),
+                          single_view=SingleViewSettings(**single_view))
 
 register_section("fusion", FUSION)

@@ -1,4 +1,4 @@
-"""N-view triangulation of points seen by calibrated cameras, and its Cramer-Rao bound.
+"""N-view triangulation of points seen by calibrated cameras, and its Cramer-Rao bounds.
 
 Conventions (see visionpos/camera/model.py and docs/architecture.md):
 - A camera pose (R, t) maps world to camera: x_cam = R @ x_world + t.
@@ -21,7 +21,8 @@ import numpy as np
 from visionpos.camera import fisheye, pinhole
 from visionpos.camera.model import FISHEYE, PINHOLE, Camera
 
-__all__ = ["TriangulationResult", "CameraRig", "triangulate_normalized", "triangulate_pixels", "triangulation_crb"]
+__all__ = ["TriangulationResult", "CameraRig", "triangulate_normalized", "triangulate_pixels", "triangulation_crb",
+           "pose_crb"]
 
 
 class TriangulationResult(NamedTuple):
@@ -527,8 +528,10 @@ def pose_crb(
     information, Fisher F = sum J^T J / sigma_px^2 with J = d pixel / d X (2x3) @ [I, -skew(X - origin)].
 
     markers_world: (M, 3) m; origin: (3,) the body origin the position refers to; visible: (M, V)
-    bool (a marker seen by one camera still constrains the pose). NaN (6, 6) when F is singular
-    (too few observations to fix all six degrees of freedom).
+    bool: unlike a triangulated pose, a marker seen by one camera counts too, so this bounds what one
+    camera seeing >= 3 markers, or several cameras seeing 1-2 markers each, tell about the pose. All +inf
+    when F is singular (the views do not fix all six degrees of freedom, e.g. one camera seeing 1-2
+    markers). The position block's trace bounds the mean squared position error (m^2).
     """
     X = np.asarray(markers_world, dtype=np.float64).reshape(-1, 3)
     J = pixel_jacobians(cameras, X, visible)  # (M, V, 2, 3)
@@ -540,6 +543,6 @@ def pose_crb(
     G[:, 2, 3], G[:, 2, 4] = r[:, 1], -r[:, 0]
     H = np.einsum("mvia,mab->mvib", J, G)  # (M, V, 2, 6)
     F = np.einsum("mvia,mvib->ab", H, H) / float(sigma_px) ** 2
-    if not np.isfinite(F).all() or np.linalg.cond(F) > 1e12:
-        return np.full((6, 6), np.nan)
+    if not np.isfinite(F).all() or np.linalg.matrix_rank(F, tol=1e-9 * max(np.abs(F).max(), 1e-300)) < 6:
+        return np.full((6, 6), np.inf)
     return np.linalg.inv(F)

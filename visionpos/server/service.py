@@ -336,24 +336,27 @@ async def run_until_signal(duration_s: float | None = None, status: Callable[[],
 
 async def record_traffic(arena: ArenaConfig, settings: ServerSettings, out: str | Path, host: str | None = None,
                          duration_s: float | None = None,
-                         on_listening: Callable[[int], None] | None = None) -> int:
+                         on_listening: Callable[[int], None] | None = None, pipeline: Any = None,
+                         on_ingest: Callable[[Ingest], Any] | None = None) -> int:
     """Record live station traffic to `out` until a signal (or duration_s): no fusion, no outputs.
 
     Answers registration, clock sync and heartbeats as the server does, so stations stream as
     they would to it, and logs every packet. host: None = settings.bind. on_listening(port) is
     called once the socket is open; an OSError (port in use, bad address) propagates. Returns
-    the packets recorded.
+    the packets recorded. pipeline: gets every accepted frame (push) without fusing (the console's
+    blob view); on_ingest(ingest): awaited once listening, returns an async closer awaited at the end.
     """
     from visionpos.recording import TOPIC_PACKETS, RecordingWriter
 
     with RecordingWriter(out, arena.raw, {"command": "record"}) as rec:
-        ingest = Ingest(arena, settings, pipeline=None, recorder=rec,
+        ingest = Ingest(arena, settings, pipeline=pipeline, recorder=rec,
                         events=lambda kind, info: rec.write_json("/server/events", time.monotonic_ns(),
                                                                  {"kind": kind, **info}))
         await ingest.start(settings.bind if host is None else host, settings.port)
         warn_if_insecure(settings, arena.source)
         if on_listening is not None:
             on_listening(ingest.port)
+        closer = None
 
         def status() -> None:
             ingest.check_vanished(time.monotonic_ns())
@@ -361,8 +364,11 @@ async def record_traffic(arena: ArenaConfig, settings: ServerSettings, out: str 
                             rec.counts.get(TOPIC_PACKETS, 0))
 
         try:
+            closer = await on_ingest(ingest) if on_ingest is not None else None
             await run_until_signal(duration_s, status=status, status_period_s=settings.status_period_s)
         finally:
+            if closer is not None:
+                await closer()
             ingest.close()
             rec.write_json("/server/health", time.monotonic_ns(), ingest.health())
         return rec.counts.get(TOPIC_PACKETS, 0)

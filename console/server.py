@@ -1,0 +1,352 @@
+"""The console's HTTP and WebSocket server (aiohttp), on the fusion server's own asyncio loop.
+
+    GET /                the page (static/index.html), its scripts and three.js (static/, vendored)
+    GET /api/health      health as JSON (console/health.py)
+    GET /api/scene       cameras and bodies (console/view.py scene)
+    GET /ws              WebSocket: {"type": "scene"} once, then {"type": "state"} at update_rate_hz (the
+                         camera views in every second one),
+                         {"type": "health"} twice a second, {"type": "replay"} in a replay; the client
+                         may send {"cmd": ...} (replay controls, console/replay.py)
+
+One update task: once per tick it builds the state (only when a client is connected), encodes it
+ONCE and puts the text in each client's queue of QUEUE_UPDATES; a full queue drops its oldest
+update (counted), so a slow or stalled browser loses updates and never holds up fusion or the
+other clients. Each client's sender task awaits the socket; nothing else does.
+
+Access: bound to loopback no token is needed; bound elsewhere every request must carry the token
+(`?token=`, an `Authorization: Bearer` header, or the cookie the page gets with its first
+request). A WebSocket whose Origin is another site is refused (a page from elsewhere must not
+drive the console through the operator's browser). Bad requests and messages are answered or
+dropped and logged once per cause (RateLimitedLog).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any, Awaitable, Callable
+from urllib.parse import urlsplit
+
+from aiohttp import WSMsgType, web
+
+from console.health import HealthView
+from console.settings import ConsoleSettings
+from console.view import ConsoleView
+from visionpos.logutil import RateLimitedLog
+
+log = logging.getLogger(__name__)
+
+STATIC = Path(__file__).with_name("static")
+QUEUE_UPDATES = 2  # per client: updates waiting to be sent; more drop the oldest
+HEALTH_PERIOD_S = 0.5
+CAMERA_EVERY = 2  # the camera views go with every second update (15 per second at the default 30 Hz)
+WATCH_PERIOD_S = 0.2  # the residual and static-blob watches run this often, with or without clients
+MAX_MESSAGE_BYTES = 4096  # from a client: commands are small
+COOKIE = "visionpos_console"
+CONTENT_TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css", ".txt": "text/plain",
+                 ".png": "image/png"}
+
+
+class Client:
+    """One connected browser tab: its socket, its bounded queue of encoded updates, its counters."""
+
+    def __init__(self, ws: web.WebSocketResponse, peer: str):
+        self.ws = ws
+        self.peer = peer
+        self.queue: asyncio.Queue[str] = asyncio.Queue(QUEUE_UPDATES)
+        self.sent = 0
+        self.dropped = 0
+        self.rays: int | None = None  # the camera whose blob rays this tab draws
+
+    def offer(self, text: str) -> None:
+        """Queue one update; a full queue loses its oldest (the browser is behind)."""
+        if self.queue.full():
+            self.queue.get_nowait()
+            self.dropped += 1
+        self.queue.put_nowait(text)
+
+
+class ConsoleServer:
+    """The console for `source` (a FusionServer or a replay session; see console/view.py).
+
+    controls: optional async callable(dict) -> dict | None for {"cmd": ...} messages (a replay's
+    play/pause/seek/speed); without it such messages are answered with an error.
+    extra: optional callable() -> dict merged into every state message (the replay's position).
+    masks: camera id -> {"rois", "ignore", "mask_png"} (visionpos.app.console.station_masks), shown in the views.
+    """
+
+    def __init__(self, settings: ConsoleSettings, source: Any, clock: Callable[[], int] = time.monotonic_ns,
+                 controls: Callable[[dict[str, Any]], Awaitable[dict[str, Any] | None]] | None = None,
+                 extra: Callable[[], dict[str, Any]] | None = None, masks: dict[int, dict[str, Any]] | None = None):
+        self.settings = settings
+        self.source = source
+        self.clock = clock
+        self.controls = controls
+        self.extra = extra
+        self.view = ConsoleView(source)
+        for cam in self.view.scene["cameras"]:
+            cam["mask"] = (masks or {}).get(cam["id"])
+        self.health_view = HealthView(self.view)
+        self.clients: set[Client] = set()
+        self.rlog = RateLimitedLog(log)
+        self.counters = {"updates": 0, "refused_token": 0, "refused_origin": 0, "refused_full": 0,
+                         "bad_messages": 0, "send_errors": 0, "update_errors": 0}
+        self.cpu_ns = 0  # CPU time of the update task's work and of the sends (the loop's thread), for the bench
+        self.port: int | None = None
+        self._scene_text = json.dumps(self.view.scene)
+        self._runner: web.AppRunner | None = None
+        self._task: asyncio.Task | None = None
+        self._senders: set[asyncio.Task] = set()
+        self._watch_due = False
+
+    # ---------------------------------------------------------------- lifecycle
+
+    @property
+    def url(self) -> str:
+        host = self.settings.bind if self.settings.bind not in ("0.0.0.0", "::") else "127.0.0.1"
+        host = f"[{host}]" if ":" in host else host
+        token = f"/?token={self.settings.token}" if self.settings.token else "/"
+        return f"http://{host}:{self.port}{token}"
+
+    async def start(self) -> None:
+        app = web.Application(middlewares=[self._access], client_max_size=MAX_MESSAGE_BYTES)
+        app.router.add_get("/", self._index)
+        app.router.add_get("/api/health", self._health)
+        app.router.add_get("/api/scene", self._scene)
+        app.router.add_get("/ws", self._ws)
+        app.router.add_get("/static/{path:.+}", self._static)
+        self._runner = web.AppRunner(app, access_log=None, handle_signals=False)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.settings.bind, self.settings.port)
+        await site.start()
+        self.port = self._runner.addresses[0][1]
+        self._task = asyncio.get_running_loop().create_task(self._update_loop(), name="visionpos-console")
+        log.info("console on %s", self.url)
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except (asyncio.CancelledError, Exception):
+                pass
+            self._task = None
+        for c in list(self.clients):
+            await c.ws.close()
+        for t in list(self._senders):
+            t.cancel()
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+
+    def stats(self) -> dict[str, Any]:
+        return {**self.counters, "clients": len(self.clients),
+                "dropped": sum(c.dropped for c in self.clients), "log_suppressed": self.rlog.suppressed}
+
+    # ---------------------------------------------------------------- access
+
+    def _token_ok(self, request: web.Request) -> bool:
+        token = self.settings.token
+        if token is None:
+            return True
+        given = request.query.get("token") or request.cookies.get(COOKIE) or ""
+        auth = request.headers.get("Authorization", "")
+        if not given and auth.startswith("Bearer "):
+            given = auth[7:]
+        return hmac.compare_digest(given.encode("utf-8", "replace"), token.encode())
+
+    @web.middleware
+    async def _access(self, request: web.Request, handler: Any) -> web.StreamResponse:
+        if not self._token_ok(request):
+            self.counters["refused_token"] += 1
+            self.rlog.log("token", logging.WARNING,
+                          "console: refused %s %s from %s: missing or wrong token", request.method, request.path,
+                          request.remote)
+            return web.Response(status=401, text="visionpos console: this address needs the token printed at "
+                                                 "start: open the URL with ?token=...\n")
+        resp = await handler(request)
+        if self.settings.token is not None and request.query.get("token") and not resp.prepared:
+            resp.set_cookie(COOKIE, self.settings.token, httponly=True, samesite="Strict")
+        return resp
+
+    # ---------------------------------------------------------------- HTTP
+
+    async def _index(self, request: web.Request) -> web.Response:
+        return web.Response(body=(STATIC / "index.html").read_bytes(), content_type="text/html",
+                            headers={"Cache-Control": "no-store"})
+
+    async def _static(self, request: web.Request) -> web.Response:
+        rel = request.match_info["path"]
+        path = (STATIC / rel).resolve()
+        if not path.is_file() or STATIC.resolve() not in path.parents:
+            return web.Response(status=404, text="not found\n")
+        kind = CONTENT_TYPES.get(path.suffix, "application/octet-stream")
+        return web.Response(body=path.read_bytes(), content_type=kind)
+
+    async def _health(self, request: web.Request) -> web.Response:
+        h = self.health()
+        return web.Response(text=json.dumps(h), content_type="application/json")
+
+    async def _scene(self, request: web.Request) -> web.Response:
+        return web.Response(text=self._scene_text, content_type="application/json")
+
+    def health(self) -> dict[str, Any]:
+        h = self.health_view.health(self.clock())
+        h["console"] = self.stats()
+        return h
+
+    # ---------------------------------------------------------------- WebSocket
+
+    def _origin_ok(self, request: web.Request) -> bool:
+        origin = request.headers.get("Origin")
+        if origin is None:  # not a browser page (scripts, tests)
+            return True
+        return urlsplit(origin).netloc == request.host
+
+    async def _ws(self, request: web.Request) -> web.StreamResponse:
+        if not self._origin_ok(request):
+            self.counters["refused_origin"] += 1
+            self.rlog.log("origin", logging.WARNING, "console: refused a WebSocket from a page of %s (another site)",
+                          request.headers.get("Origin"))
+            return web.Response(status=403, text="cross-site WebSocket refused\n")
+        if len(self.clients) >= self.settings.max_clients:
+            self.counters["refused_full"] += 1
+            self.rlog.log("full", logging.WARNING, "console: refused a client from %s: %d connected "
+                          "(console.max_clients)", request.remote, len(self.clients))
+            return web.Response(status=503, text=f"the console serves at most {self.settings.max_clients} clients\n")
+        # no per-message compression: it would cost the loop CPU for every client and update
+        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=10.0, compress=False)
+        await ws.prepare(request)
+        client = Client(ws, str(request.remote))
+        self.clients.add(client)
+        sender = asyncio.get_running_loop().create_task(self._sender(client))
+        self._senders.add(sender)
+        try:
+            await ws.send_str(self._scene_text)
+            client.offer(json.dumps({"type": "health", "health": self.health()}))
+            async for msg in ws:
+                if msg.type == WSMsgType.TEXT:
+                    await self._command(client, msg.data)
+                elif msg.type == WSMsgType.BINARY:
+                    await self._bad(client, "binary", "binary messages are not understood; send JSON text")
+                elif msg.type == WSMsgType.ERROR:
+                    self.rlog.log(("wserror", client.peer), logging.INFO, "console: client %s: %s", client.peer,
+                                  ws.exception())
+        except (ConnectionError, asyncio.CancelledError):
+            pass
+        finally:
+            self.clients.discard(client)
+            sender.cancel()
+            self._senders.discard(sender)
+        return ws
+
+    async def _bad(self, client: Client, cause: str, message: str) -> None:
+        self.counters["bad_messages"] += 1
+        self.rlog.log(("bad", cause), logging.WARNING, "console: client %s sent a bad message (%s): %s", client.peer,
+                      cause, message)
+        try:
+            await client.ws.send_str(json.dumps({"type": "error", "error": message}))
+        except (ConnectionError, RuntimeError):
+            pass
+
+    async def _command(self, client: Client, text: str) -> None:
+        try:
+            msg = json.loads(text)
+        except ValueError:
+            return await self._bad(client, "json", "not JSON")
+        if not isinstance(msg, dict) or not isinstance(msg.get("cmd"), str):
+            return await self._bad(client, "shape", 'expected {"cmd": "..."}')
+        if msg["cmd"] == "health":
+            client.offer(json.dumps({"type": "health", "health": self.health()}))
+            return
+        if msg["cmd"] == "rays":
+            cam = msg.get("camera")
+            if cam is not None and (isinstance(cam, bool) or cam not in self.view.cameras):
+                return await self._bad(client, "rays", f"rays: camera {cam!r} is none of {sorted(self.view.cameras)}")
+            client.rays = cam
+            return
+        if self.controls is None:
+            return await self._bad(client, "cmd", f"unknown command {msg['cmd']!r} (replay controls need "
+                                                  "`visionpos replay LOG --view`)")
+        try:
+            reply = await self.controls(msg)
+        except ValueError as e:
+            return await self._bad(client, "cmd", str(e))
+        if reply is not None:  # an answer, not an update: never dropped
+            try:
+                await client.ws.send_str(json.dumps({"type": "replay", **reply}))
+            except (ConnectionError, RuntimeError):
+                pass
+
+    async def _sender(self, client: Client) -> None:
+        try:
+            while True:
+                text = await client.queue.get()
+                t0 = time.thread_time_ns()
+                await client.ws.send_str(text)
+                self.cpu_ns += time.thread_time_ns() - t0
+                client.sent += 1
+        except asyncio.CancelledError:
+            raise
+        except Exception as e:  # a closed tab mid-stream: its handler ends the client
+            self.counters["send_errors"] += 1
+            self.rlog.log(("send", type(e).__name__), logging.INFO, "console: a client went away mid-stream (%s)",
+                          type(e).__name__)
+
+    # ---------------------------------------------------------------- updates
+
+    def publish_once(self, watch: bool = False) -> None:
+        """One update tick: build, encode once, offer to every client (the update loop's body). watch: also
+        run the view's residual and static-blob watches."""
+        now = self.clock()
+        rays = frozenset(c.rays for c in self.clients if c.rays is not None)
+        # the camera views in every CAMERA_EVERY-th update: plenty for the eye, and half the update's cost;
+        # a watch that falls due in between waits for the next of them (it reads the same views)
+        cameras = self.counters["updates"] % CAMERA_EVERY == 0
+        self._watch_due |= watch
+        state = self.view.state(now, self._watch_due and cameras, rays, cameras=cameras)
+        if cameras:
+            self._watch_due = False
+        if self.extra is not None:
+            state.update(self.extra())
+        text = json.dumps(state)
+        self.counters["updates"] += 1
+        for c in self.clients:
+            c.offer(text)
+
+    async def _update_loop(self) -> None:
+        period_s = 1.0 / self.settings.update_rate_hz
+        next_health = next_watch = 0.0
+        loop = asyncio.get_running_loop()
+        next_t = loop.time()
+        while True:
+            next_t += period_s
+            await asyncio.sleep(max(0.0, next_t - loop.time()))
+            if loop.time() - next_t > 2 * period_s:  # the loop stalled: skip, never burst
+                next_t = loop.time()
+            t0 = time.thread_time_ns()
+            try:
+                now_s = loop.time()
+                watch = now_s >= next_watch
+                if watch:
+                    next_watch = now_s + WATCH_PERIOD_S
+                if self.clients:
+                    self.publish_once(watch)
+                elif watch:
+                    self.view.camera_states(self.clock(), watch=True)
+                if now_s >= next_health:  # also without clients: the rates of /api/health need samples
+                    next_health = now_s + HEALTH_PERIOD_S
+                    h = self.health()
+                    if self.clients:
+                        text = json.dumps({"type": "health", "health": h})
+                        for c in self.clients:
+                            c.offer(text)
+            except Exception:
+                self.counters["update_errors"] += 1
+                if self.counters["update_errors"] in (1, 100, 10_000):
+                    log.exception("console: building an update failed (%d times)", self.counters["update_errors"])
+            self.cpu_ns += time.thread_time_ns() - t0

@@ -1,0 +1,360 @@
+// visionpos operator console: one WebSocket, a three.js arena, a 2-D canvas per camera, health tables.
+// Messages (console/server.py): scene (once), state (update_rate_hz), health (2 Hz), replay, error.
+import * as THREE from "three";
+import { OrbitControls } from "./vendor/OrbitControls.js";
+
+const BODY_COLORS = [0x44ccff, 0xff66cc, 0x88ee66, 0xffdd44, 0xaa88ff, 0xff8844];
+const LEFT_COLOR = "#ffaa44";
+const TRAIL_POINTS = 90;       // a short trail: 3 s at 30 updates/s
+const FRUSTUM_DEPTH_M = 0.35;
+const RAY_LENGTH_M = 8;
+const CAM_VIEW_WIDTH_PX = 300;
+
+// what the browser tests read (tests/console/test_browser.py)
+const stats = { scenes: 0, states: 0, health: 0, errors: [], blobs: {}, frames3d: 0 };
+window.visionposConsole = stats;
+
+const params = new URLSearchParams(location.search);
+const token = params.get("token");
+let ws = null;
+let scene3 = null;
+let sceneMsg = null;
+const camViews = new Map();
+
+function hex(c) { return "#" + c.toString(16).padStart(6, "0"); }
+function fmt(x, d = 1) { return x === null || x === undefined ? "-" : Number(x).toFixed(d); }
+function el(tag, text, cls) {
+  const e = document.createElement(tag);
+  if (text !== undefined) e.textContent = text;
+  if (cls) e.className = cls;
+  return e;
+}
+
+// ------------------------------------------------------------------ 3D view
+
+class Arena3D {
+  constructor(canvas, msg) {
+    this.canvas = canvas;
+    this.renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
+    this.renderer.setPixelRatio(window.devicePixelRatio || 1);
+    this.scene = new THREE.Scene();
+    this.scene.background = new THREE.Color(0x15181c);
+    this.camera = new THREE.PerspectiveCamera(50, 1, 0.05, 200);
+    this.camera.up.set(0, 0, 1);  // world z is up
+    this.controls = new OrbitControls(this.camera, canvas);
+    this.cameraPoses = msg.cameras;
+    this.bodies = msg.bodies.map((b, i) => this.makeBody(b, i));
+    this.markers = new THREE.Points(new THREE.BufferGeometry(),
+      new THREE.PointsMaterial({ color: 0xffaa44, size: 6, sizeAttenuation: false }));
+    this.scene.add(this.markers);
+    this.rays = new THREE.LineSegments(new THREE.BufferGeometry(),
+      new THREE.LineBasicMaterial({ color: 0xffee88, transparent: true, opacity: 0.6 }));
+    this.scene.add(this.rays);
+    this.rayCamera = null;
+    this.addWorld(msg.cameras);
+    this.resize();
+    new ResizeObserver(() => this.resize()).observe(canvas);
+    const loop = () => { this.controls.update(); this.renderer.render(this.scene, this.camera); stats.frames3d++;
+      requestAnimationFrame(loop); };
+    loop();
+  }
+
+  addWorld(cams) {
+    // the floor grid spans the cameras' footprint, at least 4 m
+    let extent = 2;
+    for (const c of cams) extent = Math.max(extent, Math.abs(c.position[0]) + 0.5, Math.abs(c.position[1]) + 0.5);
+    const size = 2 * Math.ceil(extent);
+    const grid = new THREE.GridHelper(size, size * 2, 0x556070, 0x2c3540);
+    grid.rotation.x = Math.PI / 2;  // GridHelper lies in x-z; the floor is x-y
+    this.scene.add(grid);
+    this.scene.add(new THREE.AxesHelper(0.5));
+    for (const c of cams) this.scene.add(this.frustum(c));
+    const h = Math.max(2, ...cams.map(c => c.position[2]));
+    this.camera.position.set(extent * 1.0, -extent * 1.25, h * 1.1 + 0.5);
+    this.controls.target.set(0, 0, 0.5);
+  }
+
+  toWorld(c, p) {
+    const R = c.R_c2w;
+    return new THREE.Vector3(
+      R[0][0] * p[0] + R[0][1] * p[1] + R[0][2] * p[2] + c.position[0],
+      R[1][0] * p[0] + R[1][1] * p[1] + R[1][2] * p[2] + c.position[1],
+      R[2][0] * p[0] + R[2][1] * p[1] + R[2][2] * p[2] + c.position[2]);
+  }
+
+  frustum(c) {
+    const d = FRUSTUM_DEPTH_M;
+    const corners = [[0, 0], [c.width, 0], [c.width, c.height], [0, c.height]].map(([u, v]) =>
+      this.toWorld(c, [(u - c.cx) / c.fx * d, (v - c.cy) / c.fy * d, d]));
+    const o = new THREE.Vector3(...c.position);
+    const pts = [];
+    for (let i = 0; i < 4; i++) pts.push(o, corners[i], corners[i], corners[(i + 1) % 4]);
+    const g = new THREE.BufferGeometry().setFromPoints(pts);
+    const group = new THREE.Group();
+    group.add(new THREE.LineSegments(g, new THREE.LineBasicMaterial({ color: 0xc0c8d0 })));
+    const top = this.toWorld(c, [0, -c.cy / c.fy * d * 1.25, d]);  // a tick on the image's top edge
+    group.add(new THREE.Line(new THREE.BufferGeometry().setFromPoints([corners[0].clone().lerp(corners[1], 0.5), top]),
+      new THREE.LineBasicMaterial({ color: 0xc0c8d0 })));
+    return group;
+  }
+
+  makeBody(b, i) {
+    const color = BODY_COLORS[i % BODY_COLORS.length];
+    const group = new THREE.Group();
+    group.add(new THREE.AxesHelper(0.15));
+    const geom = new THREE.SphereGeometry(0.012, 10, 8);
+    const mat = new THREE.MeshBasicMaterial({ color });
+    for (const m of b.markers) { const s = new THREE.Mesh(geom, mat); s.position.set(...m); group.add(s); }
+    group.visible = false;
+    this.scene.add(group);
+    const trailGeom = new THREE.BufferGeometry();
+    trailGeom.setAttribute("position", new THREE.BufferAttribute(new Float32Array(TRAIL_POINTS * 3), 3));
+    trailGeom.setDrawRange(0, 0);
+    const trail = new THREE.Line(trailGeom, new THREE.LineBasicMaterial({ color }));
+    trail.frustumCulled = false;
+    this.scene.add(trail);
+    return { group, trail, n: 0 };
+  }
+
+  update(msg) {
+    msg.bodies.forEach((b, i) => {
+      const v = this.bodies[i];
+      if (!v) return;
+      v.group.visible = b.tracked;
+      if (!b.tracked) return;
+      v.group.position.set(...b.p);
+      v.group.quaternion.set(...b.q);  // x, y, z, w: the same order as visionpos
+      const arr = v.trail.geometry.attributes.position.array;
+      if (v.n === TRAIL_POINTS) { arr.copyWithin(0, 3); v.n--; }
+      arr.set(b.p, v.n * 3);
+      v.n++;
+      v.trail.geometry.setDrawRange(0, v.n);
+      v.trail.geometry.attributes.position.needsUpdate = true;
+    });
+    const flat = msg.markers.flat().map(x => x ?? 0);
+    this.markers.geometry.setAttribute("position", new THREE.Float32BufferAttribute(flat, 3));
+    if (!msg.cameras) return;  // the rays move with the camera views
+    const rays = [];
+    const cam = this.cameraPoses.find(c => String(c.id) === this.rayCamera);
+    const view = cam && msg.cameras.find(c => c.id === cam.id);
+    if (view && view.rays) {
+      const o = new THREE.Vector3(...cam.position);
+      for (const [x5, y5] of view.rays) {
+        const xn = x5 * 1e-5, yn = y5 * 1e-5;  // undistorted image coordinates, sent x 1e5
+        const n = Math.hypot(xn, yn, 1);
+        const end = this.toWorld(cam, [xn / n * RAY_LENGTH_M, yn / n * RAY_LENGTH_M, RAY_LENGTH_M / n]);
+        rays.push(o.x, o.y, o.z, end.x, end.y, end.z);
+      }
+    }
+    this.rays.geometry.setAttribute("position", new THREE.Float32BufferAttribute(rays, 3));
+  }
+
+  resize() {
+    const w = this.canvas.clientWidth, h = this.canvas.clientHeight;
+    if (!w || !h) return;
+    this.renderer.setSize(w, h, false);
+    this.camera.aspect = w / h;
+    this.camera.updateProjectionMatrix();
+  }
+}
+
+// ------------------------------------------------------------------ camera views
+
+class CameraView {
+  constructor(c) {
+    this.c = c;
+    this.scale = CAM_VIEW_WIDTH_PX / c.width;
+    const box = el("div", undefined, "cam");
+    this.title = el("div", `camera ${c.id} (${c.name})`);
+    this.canvas = el("canvas");
+    this.canvas.id = `cam-${c.id}`;
+    this.canvas.width = Math.round(c.width * this.scale);
+    this.canvas.height = Math.round(c.height * this.scale);
+    box.append(this.title, this.canvas);
+    document.getElementById("camgrid").append(box);
+    this.mask = null;
+    if (c.mask && c.mask.mask_png) {
+      this.mask = new Image();
+      this.mask.src = c.mask.mask_png;
+    }
+    this.draw({ blobs: [], pred: [], age_ms: null });
+  }
+
+  draw(v) {
+    const g = this.canvas.getContext("2d"), s = this.scale;
+    g.fillStyle = "#0d0f12";
+    g.fillRect(0, 0, this.canvas.width, this.canvas.height);
+    g.strokeStyle = "#2c323a";
+    g.strokeRect(0.5, 0.5, this.canvas.width - 1, this.canvas.height - 1);
+    this.drawMask(g, s);
+    let matched = 0, left = 0;
+    const s10 = s / 10;  // pixels arrive in tenths
+    for (const [u, vv, body] of v.blobs) {
+      g.fillStyle = body >= 0 ? hex(BODY_COLORS[body % BODY_COLORS.length]) : LEFT_COLOR;
+      g.beginPath();
+      g.arc(u * s10, vv * s10, 4, 0, 2 * Math.PI);
+      g.fill();
+      body >= 0 ? matched++ : left++;
+    }
+    g.lineWidth = 1.5;
+    for (const [u10, v10, body] of v.pred) {
+      const u = u10 * s10, vv = v10 * s10;
+      g.strokeStyle = hex(BODY_COLORS[body % BODY_COLORS.length]);
+      g.beginPath();
+      g.moveTo(u - 7, vv); g.lineTo(u + 7, vv);
+      g.moveTo(u, vv - 7); g.lineTo(u, vv + 7);
+      g.stroke();
+    }
+    this.title.textContent = `camera ${this.c.id} (${this.c.name}): ${matched} matched, ${left} left over` +
+      (v.age_ms === null ? ", no frame yet" : `, frame ${fmt(v.age_ms, 0)} ms old`);
+    stats.blobs[this.c.id] = v.blobs.length;
+  }
+
+  // the station's search area (console.stations): excluded pixels dimmed, ROIs green, ignore rectangles red
+  drawMask(g, s) {
+    const m = this.c.mask;
+    if (!m) return;
+    if (this.mask && this.mask.complete) {
+      if (!this.dim) this.dim = this.excluded();
+      if (this.dim) g.drawImage(this.dim, 0, 0, this.canvas.width, this.canvas.height);
+    }
+    g.lineWidth = 1;
+    for (const [key, color] of [["rois", "#5c5"], ["ignore", "#e55"]]) {
+      g.strokeStyle = color;
+      for (const [x0, y0, x1, y1] of m[key]) g.strokeRect(x0 * s + 0.5, y0 * s + 0.5, (x1 - x0) * s, (y1 - y0) * s);
+    }
+  }
+
+  excluded() {
+    const w = this.mask.naturalWidth, h = this.mask.naturalHeight;
+    if (!w || !h) return null;
+    const c = el("canvas");
+    c.width = w; c.height = h;
+    const g = c.getContext("2d");
+    g.drawImage(this.mask, 0, 0);
+    const img = g.getImageData(0, 0, w, h);
+    for (let i = 0; i < img.data.length; i += 4) {
+      const searched = img.data[i] > 127;
+      img.data[i] = 120; img.data[i + 1] = 40; img.data[i + 2] = 40; img.data[i + 3] = searched ? 0 : 90;
+    }
+    g.putImageData(img, 0, 0);
+    return c;
+  }
+}
+
+// ------------------------------------------------------------------ health
+
+function fillTable(id, rows) {
+  const body = document.querySelector(`#${id} tbody`);
+  body.replaceChildren(...rows.map(cells => {
+    const tr = el("tr");
+    for (const [text, cls, title] of cells) {
+      const td = el("td", text, cls);
+      if (title) td.title = title;
+      tr.append(td);
+    }
+    return tr;
+  }));
+}
+
+function showHealth(h) {
+  stats.health++;
+  document.getElementById("warnings").replaceChildren(...h.warnings.map(w => el("li", w)));
+  fillTable("cameras", h.cameras.map(c => {
+    const slow = c.state === "streaming" && c.fps < 0.9 * c.fps_configured;
+    const dropped = Object.entries(c.dropped).map(([k, n]) => `${n} ${k.replaceAll("_", " ")}`).join(", ") || "none";
+    const droppedWhy = Object.keys(c.dropped).map(k => h.drop_reasons[k] || k).join("; ");
+    const risen = c.residual_px !== null && c.residual_calibration_px !== null &&
+      c.residual_px > Math.max(2 * c.residual_calibration_px, c.residual_calibration_px + 0.5);
+    return [[`${c.id} ${c.name}`], [c.state, c.state === "streaming" ? "good" : "badv"],
+      [`${fmt(c.fps, 0)} (${fmt(c.fps_configured, 0)})`, slow ? "warn" : ""], [fmt(c.latency_ms, 1)],
+      [`${fmt(c.clock_offset_ms, 2)} (±${fmt(c.clock_uncertainty_us, 0)})`],
+      [c.loss === null ? "-" : `${fmt(100 * c.loss, 1)}%`],
+      [`${fmt(c.residual_px, 2)} (${fmt(c.residual_calibration_px, 2)})`, risen ? "warn" : ""],
+      [dropped, "", droppedWhy]];
+  }));
+  fillTable("bodies", h.bodies.map(b => [[b.name], [b.tracked ? "yes" : "NO", b.tracked ? "good" : "badv"],
+    [fmt(b.rate_hz, 0)], [b.tracked ? String(b.n_markers) : "-"], [b.tracked ? String(b.n_cameras) : "-"],
+    [b.tracked ? fmt(b.residual_mm, 2) : "-"], [b.tracked ? "" : b.why, "badv"]]));
+  fillTable("vehicles", h.vehicles.map(v => [[`${v.name} (sysid ${v.sysid})`],
+    [v.link_up ? "up" : "DOWN", v.link_up ? "good" : "badv"], [String(v.sent)],
+    [`${fmt(v.rate_hz, 0)} (${fmt(v.rate_configured_hz, 0)})`],
+    [v.timesync_rtt_ms !== null ? `rtt ${fmt(v.timesync_rtt_ms, 1)} ms` : `${v.timesync_answered ?? 0} answered`],
+    [v.signed ? "yes" : "no", v.signed ? "good" : "warn"], [fmt(v.latency_ms_p50, 1)]]));
+}
+
+// ------------------------------------------------------------------ replay controls
+
+function send(obj) { if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(obj)); }
+
+let seeking = false;
+function showReplay(r) {
+  document.getElementById("replay").hidden = false;
+  const seek = document.getElementById("seek");
+  seek.max = r.duration_s;
+  if (!seeking) seek.value = r.t_s;
+  document.getElementById("pos").textContent = `${fmt(r.t_s, 1)} / ${fmt(r.duration_s, 1)} s`;
+  document.getElementById("play").innerHTML = r.playing ? "&#10074;&#10074;" : "&#9658;";
+  document.getElementById("play").dataset.playing = r.playing ? "1" : "";
+}
+
+function wireControls() {
+  document.getElementById("play").onclick = e => send({ cmd: e.currentTarget.dataset.playing ? "pause" : "play" });
+  const seek = document.getElementById("seek");
+  seek.oninput = () => { seeking = true; };
+  seek.onchange = () => { seeking = false; send({ cmd: "seek", t_s: Number(seek.value) }); };
+  document.getElementById("speed").onchange = e => send({ cmd: "speed", x: Number(e.target.value) });
+  document.getElementById("rays").onchange = e => {
+    if (scene3) scene3.rayCamera = e.target.value || null;
+    send({ cmd: "rays", camera: e.target.value ? Number(e.target.value) : null });  // the server sends only those
+  };
+}
+
+// ------------------------------------------------------------------ connection
+
+function onScene(msg) {
+  stats.scenes++;
+  if (sceneMsg) return;  // a reconnect: the arena is the same
+  sceneMsg = msg;
+  document.getElementById("source").textContent = msg.source;
+  scene3 = new Arena3D(document.getElementById("view3d"), msg);
+  const rays = document.getElementById("rays");
+  for (const c of msg.cameras) {
+    camViews.set(c.id, new CameraView(c));
+    const o = el("option", `camera ${c.id} (${c.name})`);
+    o.value = String(c.id);
+    rays.append(o);
+  }
+}
+
+function onState(msg) {
+  stats.states++;
+  if (scene3) scene3.update(msg);
+  for (const v of msg.cameras || []) camViews.get(v.id)?.draw(v);  // every second update carries them
+  if (msg.replay) showReplay(msg.replay);
+}
+
+function connect() {
+  const url = new URL("ws", location.href);
+  url.protocol = location.protocol === "https:" ? "wss:" : "ws:";
+  if (token) url.searchParams.set("token", token);
+  ws = new WebSocket(url);
+  const conn = document.getElementById("conn");
+  ws.onopen = () => {
+    conn.textContent = "live"; conn.className = "ok";
+    const rays = document.getElementById("rays").value;
+    if (rays) send({ cmd: "rays", camera: Number(rays) });
+  };
+  ws.onclose = () => { conn.textContent = "disconnected, retrying..."; conn.className = "bad"; setTimeout(connect, 1000); };
+  ws.onmessage = e => {
+    const msg = JSON.parse(e.data);
+    if (msg.type === "scene") onScene(msg);
+    else if (msg.type === "state") onState(msg);
+    else if (msg.type === "health") showHealth(msg.health);
+    else if (msg.type === "replay") showReplay(msg);
+    else if (msg.type === "error") stats.errors.push(msg.error);
+  };
+}
+
+wireControls();
+connect();
