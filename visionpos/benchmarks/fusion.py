@@ -44,12 +44,14 @@ def replay(
     tick_hz: float = 100.0,
     order: str = "recv",
     raw_cb=None,
+    monitor=None,
 ) -> Replay:
     """Feed frames to a new pipeline in arrival order and tick it at tick_hz on the receive clock.
 
     order: 'recv' (what a server sees) or 'capture'. Each tick happens after
     every frame received before it; states are predicted to the tick time.
-    raw_cb(pipeline) is called after every push (for raw-pose collection).
+    raw_cb(pipeline) is called after every push (for raw-pose collection). monitor: a
+    fusion.camera_monitor.CameraMonitor fed as the server feeds it (its corrections applied).
     """
     pipe = FusionPipeline(arena, settings)
     if order == "recv":
@@ -74,8 +76,15 @@ def replay(
             pipe.push(fr[i])
             if raw_cb is not None:
                 raw_cb(pipe)
+            if monitor is not None:
+                monitor.observe_frame(fr[i])
             i += 1
-        for s in pipe.tick(int(tk)):
+        states = pipe.tick(int(tk))
+        if monitor is not None:
+            monitor.observe_states(states)
+            for c in monitor.step(int(tk)):
+                pipe.set_camera_pose(c.camera_id, c.camera)
+        for s in states:
             if s.tracked:
                 pos[s.name][k] = s.position
                 quat[s.name][k] = s.quaternion

@@ -29,7 +29,7 @@ from visionpos.camera.model import Camera
 from visionpos.config.arena import ArenaConfig
 from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, section
-from visionpos.geometry.triangulation import pixel_jacobians
+from visionpos.geometry.triangulation import CameraRig, pixel_jacobians, triangulate_pixels
 from visionpos.messages import BlobFrame, BodyState
 
 log = logging.getLogger(__name__)
@@ -80,46 +80,50 @@ class MonitorSettings:
 
 # ---------------------------------------------------------------------------------------------- math
 def pose_correction(camera: Camera, points_world: np.ndarray, pixels: np.ndarray, iterations: int = 4,
-                    huber_px: float = 1.0) -> tuple[np.ndarray, np.ndarray, float, float]:
+                    huber_px: float = 1.0, prior_rotation_rad: float = 0.05, prior_shift_m: float = 0.005
+                    ) -> tuple[np.ndarray, np.ndarray, float, float]:
     """Small correction of a camera's pose that best reprojects known world points onto observed pixels.
 
     points_world: (N, 3) m; pixels: (N, 2) observed (distorted) pixels. The corrected camera is
-    R' = exp([omega]) R, t' = t + tau (omega rad and tau m in the camera frame); returns (delta (6,) =
-    [omega, tau], information (6, 6) = J^T J / sigma^2, sigma (px, robust residual std after the fit), and
-    the RMS image displacement (px) the correction causes at these points). Robust: Huber weights at
-    huber_px x sigma.
+    R' = exp([omega]) R, t' = exp([omega]) t + tau (a turn about the camera's own centre, omega rad, then a
+    shift tau m, both in the camera frame). Points seen from one
+    camera in a small volume barely tell a turn from a shift (both move them across the image alike), so
+    the fit has a zero-mean prior on each (std prior_rotation_rad, prior_shift_m): a knock, mostly a turn,
+    comes out as a turn, and a shift only where the points' spread in depth shows it. Returns (delta (6,)
+    = [omega, tau], information (6, 6) of the data = J^T J / sigma^2, sigma (px, robust residual std after
+    the fit), the RMS image displacement (px) the correction causes at these points). Robust: Huber
+    weights at huber_px x 2 sigma.
     """
     X = np.asarray(points_world, float).reshape(-1, 3)
     u = np.asarray(pixels, float).reshape(-1, 2)
+    prior = np.diag([prior_rotation_rad ** -2] * 3 + [prior_shift_m ** -2] * 3)
     delta = np.zeros(6)
     cam = camera
     sigma = 1.0
     J = np.zeros((len(X), 2, 6))
     for _ in range(iterations):
-        pred = cam.project(X)
-        r = u - pred
+        r = u - cam.project(X)
         ok = np.isfinite(r).all(axis=1)
-        Jw = pixel_jacobians([cam], X, ok[:, None])[:, 0]  # (N, 2, 3) d pixel / d X_world
-        Jc = Jw @ cam.R.T  # d pixel / d X_camera
-        P = X @ cam.R.T  # R X: the part the rotation acts on
+        Jc = pixel_jacobians([cam], X, ok[:, None])[:, 0] @ cam.R.T  # d pixel / d X_camera (N, 2, 3)
+        P = X @ cam.R.T + cam.t  # the points in the camera frame, which the turn acts on
         skew = np.zeros((len(X), 3, 3))
         skew[:, 0, 1], skew[:, 0, 2] = -P[:, 2], P[:, 1]
         skew[:, 1, 0], skew[:, 1, 2] = P[:, 2], -P[:, 0]
         skew[:, 2, 0], skew[:, 2, 1] = -P[:, 1], P[:, 0]
         J = np.concatenate([-Jc @ skew, Jc], axis=2)  # d pixel / d [omega, tau]
-        rn = np.linalg.norm(np.where(ok[:, None], r, 0.0), axis=1)
+        r = np.where(ok[:, None], r, 0.0)
+        rn = np.linalg.norm(r, axis=1)
         sigma = max(1.4826 * float(np.median(rn[ok])) / np.sqrt(2.0), 0.02) if ok.any() else 1.0
-        k = huber_px * sigma * 2.0
-        w = np.where(ok, np.minimum(1.0, k / np.maximum(rn, 1e-12)), 0.0)
-        H = np.einsum("n,nia,nib->ab", w, J, J)
-        g = np.einsum("n,nia,ni->a", w, J, np.where(ok[:, None], r, 0.0))
+        w = np.where(ok, np.minimum(1.0, huber_px * 2.0 * sigma / np.maximum(rn, 1e-12)), 0.0) / sigma**2
+        H = np.einsum("n,nia,nib->ab", w, J, J) + prior
+        g = np.einsum("n,nia,ni->a", w, J, r) - prior @ delta
         try:
-            step = np.linalg.solve(H + 1e-12 * np.eye(6), g)
+            step = np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
             break
         delta += step
         cam = apply_correction(camera, delta)
-        if np.abs(step[:3]).max() < 1e-7 and np.abs(step[3:]).max() < 1e-7:
+        if np.abs(step).max() < 1e-8:
             break
     info = np.einsum("nia,nib->ab", J, J) / sigma**2
     disp = float(np.sqrt(np.mean(np.sum((J @ delta) ** 2, axis=1)))) if len(X) else 0.0
@@ -127,17 +131,19 @@ def pose_correction(camera: Camera, points_world: np.ndarray, pixels: np.ndarray
 
 
 def apply_correction(camera: Camera, delta: np.ndarray) -> Camera:
-    """The camera with R' = exp([omega]) R and t' = t + tau, delta = [omega (rad), tau (m)] (camera frame)."""
+    """The camera turned by omega about its own centre, then shifted by tau: R' = exp([omega]) R,
+    t' = exp([omega]) t + tau; delta = [omega (rad), tau (m)], camera frame."""
     dR = Rotation.from_rotvec(np.asarray(delta[:3], float)).as_matrix()
-    return camera.with_pose(dR @ camera.R, camera.t + np.asarray(delta[3:], float))
+    return camera.with_pose(dR @ camera.R, dR @ camera.t + np.asarray(delta[3:], float))
 
 
-def predict_markers(state: BodyState, markers_body: np.ndarray, at_ns: int) -> np.ndarray:
-    """A body's markers (M, 3) in the world at `at_ns`: the state moved by its velocity and body-frame
-    angular velocity over at_ns - state.time_ns."""
-    dt = (int(at_ns) - int(state.time_ns)) * 1e-9
-    rot = Rotation.from_quat(state.quaternion) * Rotation.from_rotvec(np.asarray(state.angular_velocity) * dt)
-    return rot.apply(markers_body) + (np.asarray(state.position) + np.asarray(state.velocity) * dt)
+def marker_motion(state: BodyState, markers_body: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(markers (M, 3) in the world at state.time_ns, their velocities (M, 3) m/s) from the state's pose,
+    velocity and body-frame angular velocity: X(t) ~ X + V (t - time_ns) over a frame's few milliseconds."""
+    R = Rotation.from_quat(state.quaternion).as_matrix()
+    lever = markers_body @ R.T
+    omega_world = R @ np.asarray(state.angular_velocity, float)
+    return lever + np.asarray(state.position, float), np.cross(omega_world, lever) + np.asarray(state.velocity, float)
 
 
 def pair_blobs(predicted_px: np.ndarray, blobs_px: np.ndarray, gate_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -194,30 +200,66 @@ class CameraMonitor:
         self.settings = settings or MonitorSettings.from_arena(arena)
         self.cams = {c.id: CameraWatch(c) for c in arena.cameras}
         self.markers = {b.name: np.asarray(b.markers, float) for b in arena.bodies}
-        self.states: list[BodyState] = []
+        self._motion: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._index = {c.id: i for i, c in enumerate(arena.cameras)}
+        self._rig = CameraRig(list(arena.cameras))
+        starts = np.cumsum([0] + [len(b.markers) for b in arena.bodies])
+        self._marker_rows = {b.name: np.arange(starts[i], starts[i + 1]) for i, b in enumerate(arena.bodies)}
+        # each camera's newest paired view of every marker: pixel (V, M, 2) and capture time (V, M)
+        self._last_px = np.full((len(arena.cameras), int(starts[-1]), 2), np.nan)
+        self._last_ns = np.full((len(arena.cameras), int(starts[-1])), -(1 << 62), np.int64)
+        self._fresh_ns = int(max(25e6, 2.5e9 / max(min(c.fps for c in arena.cameras), 1.0)))
         self._next_step_ns: int | None = None
         self.events: list[str] = []
 
     def observe_states(self, states: list[BodyState]) -> None:
-        self.states = [s for s in states if s.tracked and s.name in self.markers]
+        """The newest output states: their markers and marker velocities, for the frames that follow."""
+        moving = [(s, *marker_motion(s, self.markers[s.name])) for s in states
+                  if s.tracked and s.name in self.markers]
+        self._motion = None
+        if moving:
+            self._motion = (np.concatenate([np.full(len(m[1]), m[0].time_ns, np.int64) for m in moving]),
+                            np.concatenate([m[1] for m in moving]), np.concatenate([m[2] for m in moving]),
+                            np.concatenate([self._marker_rows[m[0].name] for m in moving]))
 
     def observe_frame(self, frame: BlobFrame) -> None:
-        w = self.cams.get(frame.camera_id)
-        if w is None or not self.states:
+        """Pair the frame's blobs with the tracked markers; for a sample of the frames, triangulate each
+        paired marker from the OTHER cameras' newest views (leave-one-out: the fused pose leans toward a
+        knocked camera, the other cameras' rays do not) and keep (that point, this blob)."""
+        v = self._index.get(frame.camera_id)
+        if v is None or self._motion is None:
             return
-        w.frames_seen += 1
-        if w.frames_seen % self.settings.sample_every:
-            return
+        w = self.cams[frame.camera_id]
         blobs = np.asarray(frame.blobs, float).reshape(-1, 4)[:, :2]
         if not len(blobs):
             return
-        X = np.concatenate([predict_markers(s, self.markers[s.name], frame.capture_ns) for s in self.states])
-        px = w.camera.project(X)
-        m, b = pair_blobs(px, blobs, self.settings.gate_px)
-        for k, j in zip(m, b):
+        t_ns, X0, V, rows = self._motion
+        X = X0 + V * ((frame.capture_ns - t_ns) * 1e-9)[:, None]
+        m, b = pair_blobs(w.camera.project(X), blobs, self.settings.gate_px)
+        if not len(m):
+            return
+        self._last_px[v, rows[m]] = blobs[b]
+        self._last_ns[v, rows[m]] = frame.capture_ns
+        w.frames_seen += 1
+        if w.frames_seen % self.settings.sample_every:
+            return
+        others = np.ones(len(self.cams), bool)
+        others[v] = False
+        r = rows[m]
+        age_ns = frame.capture_ns - self._last_ns[:, r].T  # (K, V)
+        fresh = others[None, :] & (np.abs(age_ns) < self._fresh_ns)
+        use = fresh.sum(axis=1) >= 2
+        if not use.any():
+            return
+        px = np.where(fresh[use][..., None], self._last_px[:, r[use]].transpose(1, 0, 2), np.nan)
+        # each other view saw the marker where it was at its own capture time
+        offsets = -V[m[use], None, :] * (age_ns[use] * 1e-9)[..., None]
+        tri = triangulate_pixels(self._rig, px, offsets=np.where(fresh[use][..., None], offsets, 0.0))
+        good = np.isfinite(tri.points).all(axis=1)
+        for Xk, u in zip(tri.points[good], blobs[b[use][good]]):
             w.times_ns.append(frame.capture_ns)
-            w.points.append(X[k])
-            w.pixels.append(blobs[j])
+            w.points.append(Xk)
+            w.pixels.append(u)
         while len(w.times_ns) > self.settings.max_pairs:
             w.times_ns.popleft()
             w.points.popleft()
@@ -246,42 +288,59 @@ class CameraMonitor:
                       "shift_mm": float(np.linalg.norm(delta[3:]) * 1e3)}
             fits[cid] = (delta, disp, chi2)
         out: list[Correction] = []
-        moved = [(disp, cid) for cid, (_, disp, chi2) in fits.items() if disp > st.flag_px and chi2 > st.chi2_min]
-        worst = max(moved) if moved else None
+        moved = sorted(((disp, cid) for cid, (_, disp, chi2) in fits.items() if chi2 > st.chi2_min), reverse=True)
+        worst = None
+        if moved and moved[0][0] > st.flag_px:
+            # the knocked camera dominates: the fused poses lean toward it, so the others show smaller corrections
+            runner_up = max((d for d, c in ((fits[c][1], c) for c in fits) if c != moved[0][1]), default=0.0)
+            if moved[0][0] > 2.0 * runner_up:
+                worst = moved[0]
+        window_full = {cid: bool(w.times_ns) and now_ns - w.times_ns[0] >= 0.8 * st.window_s * 1e9
+                       for cid, w in self.cams.items()}
+        if worst is not None and not self.cams[worst[1]].flagged:
+            w = self.cams[worst[1]]
+            w.flagged, w.flagged_since_ns = True, now_ns
+            msg = (f"camera {w.camera.name} (id {worst[1]}) has moved since calibration: its markers sit "
+                   f"{w.last['disp_px']:.1f} px off where the other cameras put them" +
+                   ("; re-fitting its pose while tracking goes on" if st.correct else
+                    "; recalibrate (visionpos calibrate wand)"))
+            self.events.append(msg)
+            log.warning(msg)
+            self._clear(w)  # the window mixes the old and the new pose: fit the new one on fresh pairs only
+            return out
         for cid, w in self.cams.items():
-            was = w.flagged
-            w.flagged = worst is not None and cid == worst[1]
-            if w.flagged and not was:
-                w.flagged_since_ns = now_ns
-                msg = (f"camera {w.camera.name} (id {cid}) has moved since calibration: its markers sit "
-                       f"{w.last['disp_px']:.1f} px off (rotation {w.last['rotation_deg']:.2f} deg, shift "
-                       f"{w.last['shift_mm']:.1f} mm)" + ("; correcting its pose while tracking" if st.correct else
-                                                          "; recalibrate (visionpos calibrate wand)"))
-                self.events.append(msg)
-                log.warning(msg)
-            elif was and not w.flagged and worst is None and cid in fits:
-                msg = f"camera {w.camera.name} (id {cid}) agrees with the tracked bodies again"
+            if not w.flagged or cid not in fits or not window_full[cid]:
+                continue
+            delta, disp, _ = fits[cid]
+            if disp < 0.5 * st.flag_px:
+                w.flagged, w.flagged_since_ns = False, None
+                msg = (f"camera {w.camera.name} (id {cid}) agrees with the other cameras again"
+                       + (f" after {w.corrections} pose correction(s)" if w.corrections else ""))
                 self.events.append(msg)
                 log.info(msg)
-                w.flagged_since_ns = None
-        if worst is not None and st.correct:
-            cid = worst[1]
-            w = self.cams[cid]
-            delta = fits[cid][0].copy()
-            rot = np.linalg.norm(delta[:3])
-            if rot > np.radians(st.max_step_deg):
-                delta[:3] *= np.radians(st.max_step_deg) / rot
-            shift = np.linalg.norm(delta[3:])
-            if shift > st.max_step_m:
-                delta[3:] *= st.max_step_m / shift
-            w.camera = apply_correction(w.camera, delta)
-            w.corrections += 1
-            w.times_ns.clear()
-            w.points.clear()
-            w.pixels.clear()
-            out.append(Correction(cid, w.camera, float(np.degrees(np.linalg.norm(delta[:3]))),
-                                  float(np.linalg.norm(delta[3:]))))
+            elif st.correct:
+                delta = delta.copy()
+                rot = np.linalg.norm(delta[:3])
+                if rot > np.radians(st.max_step_deg):
+                    delta[:3] *= np.radians(st.max_step_deg) / rot
+                shift = np.linalg.norm(delta[3:])
+                if shift > st.max_step_m:
+                    delta[3:] *= st.max_step_m / shift
+                w.camera = apply_correction(w.camera, delta)
+                self._rig = CameraRig([x.camera for x in self.cams.values()])
+                w.corrections += 1
+                self._clear(w)
+                log.info("camera %s (id %d): pose corrected by %.3f deg, %.1f mm", w.camera.name, cid,
+                         np.degrees(np.linalg.norm(delta[:3])), 1e3 * np.linalg.norm(delta[3:]))
+                out.append(Correction(cid, w.camera, float(np.degrees(np.linalg.norm(delta[:3]))),
+                                      float(np.linalg.norm(delta[3:]))))
         return out
+
+    @staticmethod
+    def _clear(w: CameraWatch) -> None:
+        w.times_ns.clear()
+        w.points.clear()
+        w.pixels.clear()
 
     def report(self) -> dict[int, dict[str, Any]]:
         """Per camera: pairs in the window, the last fit (px moved, chi-square, residual), flagged, corrections."""

@@ -70,6 +70,7 @@ from typing import Any
 
 import numpy as np
 
+from visionpos.camera.model import Camera
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.fusion.kernels import _finite_rows, _fuse_tracked, _observe_frame, _tracked_motion, pose_measurement_cov
 from visionpos.fusion.layout import (
@@ -548,6 +549,17 @@ class FusionPipeline:
                     )
                 )
         return out
+
+    def set_camera_pose(self, camera_id: int, camera: Camera) -> None:
+        """Replace a camera's pose while tracking goes on (the continuous calibration's correction,
+        fusion/camera_monitor.py): every array and cache that holds it is updated; the next frame uses it."""
+        i = self._cam_index[camera_id]
+        self.cameras[camera_id] = camera
+        self._R[i], self._t[i] = camera.R, camera.t
+        self._proj[camera_id] = Projector(camera)
+        self._camera_packed[i] = self._proj[camera_id].packed
+        self._view_cache.clear()
+        self.arena = self.arena.with_cameras([self.cameras[c.id] for c in self.arena.cameras])
 
     def stats(self) -> dict[str, Any]:
         """Counters: frames, fusions, measurements, rejections by reason, per-camera frames, per-body state."""

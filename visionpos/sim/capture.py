@@ -161,8 +161,15 @@ def window_frames(scenario: Scenario, camera_index: int, window: int, t0_ns: flo
     """Frames of one camera (index into scenario.cameras) with nominal exposure in [t0_ns, t1_ns) after
     the scenario start, generated on demand (a live trajectory: call it once the truth for the window is
     known). window: this window's index, which seeds its random draws (give each window its own)."""
-    cam, timing = scenario.cameras[camera_index], scenario.timings[camera_index]
+    cam, timing = _true_camera(scenario, scenario.cameras[camera_index], t0_ns), scenario.timings[camera_index]
     return _camera_chunk(scenario, cam, timing, window, float(t0_ns), float(t1_ns), None)
+
+
+def _true_camera(scenario: Scenario, cam, t0_ns: float):
+    """The camera as it really is from t0_ns (ns after the start) on: knocked (sim.cameras.ID.bump_*) or as
+    the arena file says."""
+    bump = scenario.bumps.get(cam.id)
+    return bump[1] if bump is not None and t0_ns >= bump[0] else cam
 
 
 # ------------------------------------------------------------------ internals
@@ -182,9 +189,7 @@ def _ordered(scenario: Scenario, duration_s: float, order: str, dropped: dict[in
         t0, t1 = c * CHUNK_S * 1e9, (c + 1) * CHUNK_S * 1e9
         last = t1 >= end_rel_ns
         for timing, cam in zip(scenario.timings, scenario.cameras):
-            bump = scenario.bumps.get(cam.id)
-            if bump is not None and t0 >= bump[0]:
-                cam = bump[1]  # knocked: the true pose differs from the arena file's from here on
+            cam = _true_camera(scenario, cam, t0)  # a knocked camera renders from its new pose
             for frame, truth in _camera_chunk(scenario, cam, timing, c, t0, min(t1, end_rel_ns), dropped):
                 key = frame.capture_ns if order == "capture" else frame.recv_ns
                 heapq.heappush(heap, (key, frame.camera_id, counter, frame, truth))

@@ -500,10 +500,10 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
         if co.has("bump_at_s"):
             from scipy.spatial.transform import Rotation
 
-            dR = Rotation.from_rotvec(np.radians(co.array("bump_rotation_deg", (3,)))).as_matrix()
+            dR = Rotation.from_rotvec(np.radians(SIM_CAMERA.read(co, "bump_rotation_deg"))).as_matrix()
             R_new = dR @ cam.R  # a turn about the camera's own axes
-            C_new = cam.center + co.array("bump_shift_m", (3,))
-            bumps[cam.id] = (int(round(co.number("bump_at_s", min=0.0) * 1e9)), cam.with_pose(R_new, -R_new @ C_new))
+            C_new = cam.center + SIM_CAMERA.read(co, "bump_shift_m")
+            bumps[cam.id] = (int(round(SIM_CAMERA.read(co, "bump_at_s") * 1e9)), cam.with_pose(R_new, -R_new @ C_new))
         timings.append(
             CameraTiming(
                 camera_id=cam.id,
