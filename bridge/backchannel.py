@@ -176,6 +176,8 @@ class Backchannel:
         self.identity_reason = "no attitude from the autopilot yet"
         self.identity_statistic = float("nan")
         self.identity_tripped = False
+        self.identity_tripped_after_s: float | None = None  # from the first optical pose to the mismatch
+        self._first_opt_ns = 0
         self._next_identity = 0
         # delay
         self.clock_lag_ns: float | None = None  # autopilot time less server stamp of one physical instant
@@ -366,6 +368,8 @@ class Backchannel:
         """One optical pose at its stamp: roll, pitch (rad), the filter's body rate (3,) rad/s FRD and the
         attitude (4,) xyzw."""
         self.opt.add(stamp_ns, (roll, pitch, rate_frd[0], rate_frd[1], rate_frd[2], *quat_ned_frd))
+        if not self._first_opt_ns:
+            self._first_opt_ns = stamp_ns
 
     def on_sent(self, send_ns: int, stamp_ns: int) -> None:
         """A pose went out; the delay measurement (milliseconds of numpy every DELAY_EVERY_NS) runs right
@@ -468,6 +472,7 @@ class Backchannel:
                 f"rates by {rate_rms:.2f} rad/s RMS over the last second: these poses are not this vehicle's "
                 "(swapped sysid or endpoint, another drone's autopilot, or a mirrored marker layout?)")
             self.identity_tripped = True
+            self.identity_tripped_after_s = (now - self._first_opt_ns) * 1e-9
             stop = self.cfg.identity_check == "stop"
             log.error("vehicle %s (sysid %d): identity check failed: %s%s", self.cfg.name, self.cfg.sysid,
                       self.identity_reason,
@@ -621,6 +626,7 @@ class Backchannel:
             "identity": self.identity,
             "identity_detail": self.identity_reason,
             "identity_statistic": self.identity_statistic if np.isfinite(self.identity_statistic) else None,
+            "identity_tripped_after_s": self.identity_tripped_after_s,
             "delay_ms": self.delay_ms,
             "delay_detail": self.delay_reason,
             "delay_advice": self.delay_advice(),
