@@ -16,6 +16,7 @@ GROUPS: dict[str, str] = {
     "calibration": "calibration",
     "replay": "replay",
     "robustness": "robustness",
+    "backchannel": "backchannel",
 }
 
 
@@ -73,6 +74,8 @@ GOALS: list[Goal] = [
          "tick; VRPN skips untracked ticks)"),
     Goal("bridge_outputs_mavlink_rate_ratio", ">=", 0.99, "MAVLink poses/s at the autopilot, outputs on / off "
          "(unchanged)"),
+    Goal("backchannel_delay_error_ms_max", "<=", 2.0, "capture-to-autopilot delay from the autopilot's gyro: "
+         "error (ms), added link delays 0/20/50 ms"),
     Goal("calib_thesis_center_err_mm_max", "<=", 2.0, "wand calibration, thesis: camera centre error (mm)"),
     Goal("calib_thesis_rot_err_deg_max", "<=", 0.05, "wand calibration, thesis: orientation error (deg)"),
     Goal("calib_thesis_wand_std_mm", "<=", 0.5, "wand calibration, thesis: wand-length std (mm)"),
