@@ -67,6 +67,7 @@ MAVLINK2_MAGIC = 0xFD
 WARN_INTERVAL_S = 10.0
 LATENCY_SAMPLES = 4096
 ORIGIN_UNCONFIRMED_INTERVAL_NS = 1_000_000_000  # origin resend period until the autopilot reports it back
+RX_BAD_WARN = 20  # undecodable packets before the log says so
 
 COUNTERS = (
     "sent",  # pose messages (VISION_POSITION_ESTIMATE or ODOMETRY) handed to the link
@@ -380,10 +381,11 @@ class VehicleLink:
             for m in msgs:
                 if m.get_type() == "BAD_DATA":
                     c["rx_bad"] += 1
-                    self._log_once("rx_bad", "vehicle %s: bytes on the link %s that are not MAVLink packets "
-                                   "(counted in rx_bad, ignored; logged once): check the autopilot port's baud "
-                                   "rate and that it speaks MAVLink2 (SERIALn_PROTOCOL=2)",
-                                   self.cfg.name, self.cfg.endpoint)
+                    if c["rx_bad"] >= RX_BAD_WARN:  # a few at connect are normal (a stream joined mid-packet)
+                        self._log_once("rx_bad", "vehicle %s: bytes on the link %s that are not MAVLink packets "
+                                       "(counted in rx_bad, ignored; logged once): check the autopilot port's "
+                                       "baud rate and that it speaks MAVLink2 (SERIALn_PROTOCOL=2)",
+                                       self.cfg.name, self.cfg.endpoint)
                     continue
                 c["rx_packets"] += 1
                 buf = m.get_msgbuf()
