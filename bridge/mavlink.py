@@ -94,7 +94,7 @@ COUNTERS = (
     "rx_unsigned",  # signed link: an unsigned (or MAVLink1) packet as the vehicle: dropped
     "rx_bad_signature",  # signed link: signature does not verify with the key: dropped
     "rx_replayed",  # signed link: timestamp not newer than its stream's last (or a stale new stream): dropped
-    "rx_wrong_source",  # udpin with autopilot_address: datagram from another address, dropped unread
+    "rx_wrong_source",  # udpin with autopilot_address, or unsigned udpout: from another address, dropped unread
     "peer_refused",  # udpin: a datagram or packet from an address other than the autopilot's that may not move it
 )
 
@@ -366,6 +366,13 @@ class VehicleLink:
         rx = self._rx
         learning = link.kind == "udpin" and not link.fixed
         for data, addr in link.read():
+            if link.kind == "udpout" and self._key is None and addr != link.peer:
+                # unsigned: only the address we send to speaks for the autopilot (what it says back can stop
+                # the poses or confirm an origin)
+                c["rx_wrong_source"] += 1
+                self._warn.warning("wrong_source", "vehicle %s: dropped a datagram from %s: the autopilot is "
+                                   "at %s on this unsigned link", self.cfg.name, _fmt_addr(addr), _fmt_addr(link.peer))
+                continue
             if link.kind == "udpin" and addr != link.peer:
                 if not learning:
                     c["rx_wrong_source"] += 1

@@ -426,6 +426,38 @@ def test_autopilot_reboot_mid_flight(caplog):
             ap.close()
 
 
+def test_forged_attitude_from_another_address_cannot_stop_an_unsigned_udpout_link():
+    # the autopilot (the address we send to) says nothing; another host sends ATTITUDE as sysid 1 with a
+    # 45 deg roll that the optics (level) would call a mismatch
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink.bind(("127.0.0.1", 0))
+    arena = arena_with_vehicles([{"body": "body1", "sysid": 1,
+                                  "endpoint": f"udpout:127.0.0.1:{sink.getsockname()[1]}"}])
+    bridge = Bridge(arena, {"report_interval_s": 0})
+    bridge.start()
+    forger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    mav = mavlink2.MAVLink(None, 1, 1)
+    sink.settimeout(2.0)
+    try:
+        _, bridge_addr = sink.recvfrom(2048)
+        level = T.Static(np.array([0.0, 0.0, 1.0]))
+        t_end = time.monotonic() + 2.0
+        while time.monotonic() < t_end:
+            now = time.monotonic_ns()
+            forger.sendto(mav.heartbeat_encode(2, 3, 0, 0, 4).pack(mav), bridge_addr)
+            forger.sendto(mav.attitude_encode(now // 1_000_000, 0.8, 0.0, 0.0, 0.0, 0.0, 0.0).pack(mav), bridge_addr)
+            bridge.publish([body_state(capture_ns=now, position=(0, 0, 1), quaternion=level(0).quaternions[0])])
+            time.sleep(0.01)
+        v = bridge.vehicles[0]
+        assert v.counters["rx_wrong_source"] > 100 and v.counters["rx_accepted"] == 0
+        assert v.bc.identity == "unknown" and v.bc.autopilot is None and not v.bc.blocks
+        assert v.counters["held_identity"] == 0 and v.counters["sent"] > 50
+    finally:
+        bridge.close()
+        sink.close()
+        forger.close()
+
+
 def test_imu_from_truth_reads_gravity_at_rest():
     tr = trajectory_truth(T.Static(np.array([0.0, 0.0, 1.0])), 0)(np.array([0]))
     gyro, acc = imu_from_truth(tr)
