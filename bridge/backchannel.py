@@ -185,6 +185,7 @@ class Backchannel:
         self.delay_correlation = float("nan")
         self.delay_reason = "no gyro from the autopilot yet"
         self._delays: collections.deque[float] = collections.deque(maxlen=5)
+        self._delay_said: float | None = None  # the delay last logged
         self._next_delay = 0
         self._delay_param_value: float | None = None
         self.delay_param_confirmed: float | None = None
@@ -203,6 +204,7 @@ class Backchannel:
         # what we asked for
         self._streams_due = 0
         self.link_up_ns = 0
+        self._origin_release_said = False
         self._att_recv_ns = self._gyro_recv_ns = 0
         self._next_timesync = 0
         self._silent_warned = False
@@ -316,6 +318,7 @@ class Backchannel:
         if not self.identity_tripped:
             self.identity, self.identity_reason = "unknown", "the autopilot rebooted; checking again"
         self.origin_confirmed = False
+        self._origin_release_said = False
         self.home_acked = False
         self.delay_param_confirmed = None
         self.ekf_flags = None
@@ -526,6 +529,9 @@ class Backchannel:
         d_ns = vision_delay_ns(sends[:, 0], np.zeros(len(ts)), ts[:, 0], fine.lag_ns)
         self._delays.append(d_ns * 1e-6)
         self.delay_ms = d_ns * 1e-6  # each estimate spans DELAY_WINDOW_NS already; the newest follows changes
+        if self._delay_said is None or abs(self.delay_ms - self._delay_said) >= DELAY_RESET_MS:
+            self._delay_said = self.delay_ms
+            log.warning("vehicle %s: %s", self.cfg.name, self.delay_advice())
         self.delay_reason = f"gyro/optical rate correlation {fine.correlation:.3f} ({self.gyro_source or 'ATTITUDE'})"
         return self.delay_ms
 
@@ -591,12 +597,24 @@ class Backchannel:
         if cfg.origin is None or not cfg.hold_until_origin or self.origin_confirmed:
             return False
         if self.autopilot is None:
-            return now - self.link_up_ns < ORIGIN_SILENT_GRACE_NS
+            if now - self.link_up_ns < ORIGIN_SILENT_GRACE_NS:
+                return True
+            return self._origin_released("the autopilot has said nothing")
         if now - self.last_heard_ns > TELEMETRY_STALE_NS:
-            return False
+            return self._origin_released("the autopilot has gone quiet")
         if cfg.origin_confirm_timeout_s > 0 and now - self.first_heard_ns > cfg.origin_confirm_timeout_s * 1e9:
-            return False
+            return self._origin_released(f"it did not report it in {cfg.origin_confirm_timeout_s:g} s "
+                                         "(origin_confirm_timeout_s)")
         return True
+
+    def _origin_released(self, why: str) -> bool:
+        """Poses go without a confirmed origin: say so once (False, for holds_for_origin)."""
+        if not self._origin_release_said:
+            self._origin_release_said = True
+            log.warning("vehicle %s: sending poses although the autopilot has not confirmed its origin: %s. If its "
+                        "EKF took vision before the origin, its height can stay centimetres off: then reboot the "
+                        "autopilot (the origin is resent until it is confirmed)", self.cfg.name, why)
+        return False
 
     def delay_advice(self) -> str:
         if self.delay_ms is None:

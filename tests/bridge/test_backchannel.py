@@ -323,6 +323,22 @@ def test_poses_wait_for_the_origin_and_the_origin_is_resent_until_confirmed():
         ap.close()
 
 
+def test_origin_never_confirmed_releases_the_poses_after_the_timeout(caplog):
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=1, origin_ready_s=1000.0, heartbeat_hz=5)  # never takes it
+    bridge = _pairs([{"origin": ORIGIN, "origin_confirm_timeout_s": 1.0}], [ap])
+    try:
+        with caplog.at_level(logging.WARNING, logger="visionpos.bridge"):
+            _stream(bridge, [FIG8], time.monotonic_ns(), 3.0)
+        v = bridge.vehicles[0]
+        assert v.counters["held_for_origin"] > 0 and len(ap.messages(VPE)) > 40
+        assert v.health()["origin"]["state"] == "unconfirmed" and ap.origin is None
+        assert ap.origin_dropped >= 2  # resent every second all along
+        assert _count_logged(caplog, "has not confirmed its origin: it did not report it in 1 s") == 1
+    finally:
+        bridge.close()
+        ap.close()
+
+
 # ------------------------------------------------------------------ bad input: poses go on
 def _count_logged(caplog, text):
     return sum(text in r.getMessage() for r in caplog.records)
@@ -350,6 +366,7 @@ def test_silent_autopilot_poses_go_on_and_it_is_said_once(caplog, monkeypatch):
         assert (h["identity"]["state"], h["ekf"]["state"], h["delay"]["measured_ms"]) == ("unknown", "unknown", None)
         assert h["origin"]["state"] == "unconfirmed"
         assert _count_logged(caplog, "has sent nothing back") == 1
+        assert _count_logged(caplog, "has not confirmed its origin: the autopilot has said nothing") == 1
     finally:
         bridge.close()
         sink.close()
