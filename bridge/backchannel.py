@@ -628,19 +628,19 @@ class Backchannel:
 
     def snapshot(self, now: int) -> dict:
         ekf, ekf_detail = self.ekf_state(now)
-        ts = self.timesync.since(np.iinfo(np.int64).min)[1]
+        rtts = [r[2] for r in list(self.timesync.d)]  # list() copies under the GIL: health() runs on other threads
         return {
             "autopilot": self.autopilot,
             "autopilot_heard_s_ago": (now - self.last_heard_ns) * 1e-9 if self.last_heard_ns else None,
             "autopilot_messages": self.messages,
             "reboots": self.reboots,
-            "timesync_rtt_ms": float(np.median(ts[:, 1])) * 1e-6 if len(ts) else None,
+            "timesync_rtt_ms": float(np.median(rtts)) * 1e-6 if rtts else None,
             "ekf": ekf,
             "ekf_detail": ekf_detail,
             "ekf_flags": self.ekf_flags,
             "ekf_test_ratios": dict(self.ekf_ratios),
             "ext_nav_statustext": self.ext_nav_text or None,
-            "statustexts": [t for _, t in self.statustexts],
+            "statustexts": [t for _, t in list(self.statustexts)],
             "identity": self.identity,
             "identity_detail": self.identity_reason,
             "identity_statistic": self.identity_statistic if np.isfinite(self.identity_statistic) else None,
