@@ -85,7 +85,8 @@ class StationAgent:
     ):
         self.cfg = cfg
         self.clock = clock or (time.monotonic_ns if cfg.clock_sync else time.time_ns)
-        self.source = source or make_source(cfg.source, self.clock, cfg.camera_id)
+        # a simulated camera renders the scenario at the capture time on the server clock (to_server)
+        self.source = source or make_source(cfg.source, self.clock, cfg.camera_id, to_shared=self.to_server)
         self.timebase = P.Timebase.SERVER if cfg.clock_sync else P.Timebase.REALTIME
         self.link = StationLink(cfg.station_id, cfg.camera_id)
         self.stats = AgentStats()

@@ -42,7 +42,7 @@ class SourceConfig:
     loop: restart files at their end. realtime: pace files/sim at fps.
     scenario: sim arena ('thesis', 'arena8' or a path). timestamp_offset_ms:
     subtracted from read-time stamps (opencv/video/images) to account for the
-    capture-to-read latency."""
+    mid-exposure-to-read latency."""
 
     kind: str
     device: str | int = 0

@@ -24,6 +24,7 @@ from stations.config import SourceConfig
 from visionpos.errors import VisionposError
 
 Clock = Callable[[], int]
+ToShared = Callable[[int], "int | None"]  # station-clock ns -> the shared (server) clock; None while unsynced
 IMAGE_SUFFIXES = (".png", ".pgm", ".bmp", ".jpg", ".jpeg", ".tif", ".tiff")
 
 
@@ -166,9 +167,18 @@ class OpenCVSource(FrameSource):
             self.cap = None
 
 
+def mid_exposure_offset_ns(exposure_us: float | None) -> int:
+    """Start of exposure -> mid-exposure: half the exposure time (µs, from the frame's metadata), in ns;
+    0 when the metadata has none."""
+    if exposure_us is None or not exposure_us > 0:
+        return 0
+    return int(round(float(exposure_us) * 500.0))
+
+
 class Picamera2Source(FrameSource):
     """Raspberry Pi camera through Picamera2/libcamera, manual exposure and
-    gain, stamped with the sensor's start-of-exposure timestamp."""
+    gain, stamped at mid-exposure: the sensor's start-of-exposure timestamp plus half the
+    frame's exposure time (a moving blob's centroid is where the marker was then)."""
 
     kind = "picamera2"
 
@@ -240,7 +250,8 @@ class Picamera2Source(FrameSource):
             raise SourceError(f"Pi camera capture failed: {e}") from None
         img = np.ascontiguousarray(yuv[: self.height, : self.width])  # the Y plane is the grey image
         ts = md.get("SensorTimestamp")
-        t = self._to_clock(int(ts)) if ts else self.clock() - self._offset_ns
+        t = self._to_clock(int(ts)) + mid_exposure_offset_ns(md.get("ExposureTime")) if ts \
+            else self.clock() - self._offset_ns
         return self._check_size(to_grey(img, "Pi camera"), "Pi camera"), t
 
     def close(self) -> None:
@@ -342,14 +353,30 @@ class SimSource(FrameSource):
     with this station's camera_id sees the scenario's markers at the time the
     frame is taken (scenario time loops over its duration).
 
-    last_truth: (N, 2) true marker centres of the last frame (NaN = unseen).
+    Realtime (the default), the scenario's time is a function of the frame's
+    capture time on the shared clock alone: scenario start + (shared ns mod
+    duration), the shared clock's 0 being the scenario's epoch. So station
+    processes started at different times, on hosts with different clocks,
+    render the same instant for the same capture time, as real cameras see
+    one world. to_shared maps the station clock to the shared one (the
+    agent's clock-sync estimate, StationAgent.to_server); without it the
+    station clock is taken as shared (one host, or PTP-disciplined clocks).
+    Until the clock is synced (to_shared gives None) a frame is rendered at
+    its station-clock time; the agent does not send such frames.
+    With realtime: false, scenario time advances one frame period per read.
+
+    last_truth: (N, 2) true marker centres of the last frame (NaN = unseen);
+    last_scenario_ns: the scenario time it shows.
     """
 
     kind = "sim"
 
-    def __init__(self, cfg: SourceConfig, clock: Clock = time.monotonic_ns, camera_id: int = 0):
+    def __init__(self, cfg: SourceConfig, clock: Clock = time.monotonic_ns, camera_id: int = 0,
+                 to_shared: ToShared | None = None):
         super().__init__(cfg, clock)
         self.camera_id = camera_id
+        self.to_shared = to_shared
+        self.last_scenario_ns = 0
         self.scenario = None
         self.camera = None
         self.last_truth = np.zeros((0, 2))
@@ -369,7 +396,6 @@ class SimSource(FrameSource):
         self.fps = self.cfg.fps or float(self.camera.fps or 30.0)
         self.pacer = _Pacer(self.fps if self.cfg.realtime else 0.0)
         self.rng = np.random.default_rng(self.cfg.seed)
-        self.t0 = self.clock()
         self.frame = 0
         self.name = f"sim {self.cfg.scenario} camera {self.camera_id}"
 
@@ -394,12 +420,14 @@ class SimSource(FrameSource):
         self.pacer.wait()
         t = self.clock()
         if self.cfg.realtime:
-            elapsed = t - self.t0
+            shared = self.to_shared(t) if self.to_shared is not None else t
+            elapsed = t if shared is None else shared
         else:  # as fast as possible: scenario time advances one frame period per read
             elapsed = int(self.frame * 1e9 / self.fps)
         self.frame += 1
         dur = max(int(self.scenario.duration_s * 1e9), 1)
         true_ns = self.scenario.start_ns + elapsed % dur
+        self.last_scenario_ns = true_ns
         pts, diam = self.markers_world(true_ns)
         img, centers = render_camera_frame(self.camera, pts, diam, self.rng, peak_at_1m=self.scenario.peak_at_1m)
         self.last_truth = centers
@@ -415,8 +443,9 @@ SOURCES: dict[str, type[FrameSource]] = {
 }
 
 
-def make_source(cfg: SourceConfig, clock: Clock = time.monotonic_ns, camera_id: int = 0) -> FrameSource:
-    """The source for cfg.kind (not opened yet)."""
+def make_source(cfg: SourceConfig, clock: Clock = time.monotonic_ns, camera_id: int = 0,
+                to_shared: ToShared | None = None) -> FrameSource:
+    """The source for cfg.kind (not opened yet). to_shared: station clock -> shared clock (SimSource)."""
     if cfg.kind == "sim":
-        return SimSource(cfg, clock, camera_id)
+        return SimSource(cfg, clock, camera_id, to_shared)
     return SOURCES[cfg.kind](cfg, clock)

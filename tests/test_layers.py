@@ -32,6 +32,7 @@ CORE_LAYERS: list[tuple[str, ...]] = [
     ("visionpos.camera",),
     ("visionpos.config",),  # parses the cameras of an arena with camera models
     ("visionpos.geometry",),
+    ("visionpos.foxglove",),  # the Foxglove channels of recordings: cameras, station packets, rotations
     ("visionpos.fusion", "visionpos.recording"),
     ("visionpos.sim", "visionpos.server"),  # sim writes recordings; the server fuses and records
     ("visionpos.calibration",),  # calibrates from recordings or simulated captures

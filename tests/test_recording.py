@@ -47,6 +47,7 @@ def _state(i: int, rng: np.random.Generator) -> BodyState:
         covariance=a @ a.T, velocity_covariance=np.diag(rng.uniform(size=3)),
         tracked=True, n_markers=4, n_cameras=3,
         residual_mm=float("nan") if i % 4 == 0 else float(rng.uniform()), reset_counter=i // 5,
+        update_kind=("pose", "views")[i % 2],
     )
 
 
@@ -86,8 +87,8 @@ def test_round_trip(tmp_path):
     got = list(r.states())
     assert len(got) == len(states)
     for a, b in zip(got, states):
-        assert (a.name, a.body_id, a.time_ns, a.capture_ns, a.tracked, a.reset_counter) == (
-            b.name, b.body_id, b.time_ns, b.capture_ns, b.tracked, b.reset_counter)
+        assert (a.name, a.body_id, a.time_ns, a.capture_ns, a.tracked, a.reset_counter, a.update_kind) == (
+            b.name, b.body_id, b.time_ns, b.capture_ns, b.tracked, b.reset_counter, b.update_kind)
         for f in ("position", "quaternion", "velocity", "angular_velocity", "covariance", "velocity_covariance"):
             np.testing.assert_array_equal(getattr(a, f), getattr(b, f))  # NaN == NaN here
         assert (np.isnan(a.residual_mm) and np.isnan(b.residual_mm)) or a.residual_mm == b.residual_mm
@@ -483,3 +484,12 @@ def test_disk_full_at_close_or_at_start(tmp_path, monkeypatch):
     disk.capacity = 10
     with pytest.raises(RecordingError, match=r"c2\.mcap: cannot write recording: No space left"):
         RecordingWriter(tmp_path / "c2.mcap", CONFIG)
+
+
+def test_states_recorded_before_update_kind_read_as_none():
+    from visionpos.recording import state_from_dict, state_to_dict
+
+    d = state_to_dict(_state(1, np.random.default_rng(2)))
+    assert d["update_kind"] == "views"
+    del d["update_kind"]  # a recording from before issue 15
+    assert state_from_dict(d).update_kind == ""

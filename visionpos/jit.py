@@ -18,11 +18,50 @@ import numpy as np
 
 F = TypeVar("F", bound=Callable)
 
+def _sources_stamp() -> str:
+    """A digest of every source file a kernel can inline (the visionpos, bridge and stations packages: names,
+    sizes, modification times)."""
+    import hashlib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    h = hashlib.sha1()
+    for pkg in ("visionpos", "bridge", "stations"):
+        for f in sorted((root / pkg).rglob("*.py")):
+            st = f.stat()
+            h.update(f"{f.relative_to(root)}:{st.st_size}:{st.st_mtime_ns};".encode())
+    return h.hexdigest()[:16]
+
+
+def _cache_dir() -> str:
+    """numba's cache for this exact source tree. numba keys a cached kernel on its own file only, so a kernel
+    that inlines a function from another module (most of them) would otherwise keep the old code after that
+    module changed, an upgrade included. Under $NUMBA_CACHE_DIR (else ~/.cache/visionpos/numba), one
+    folder per source stamp; older folders are removed, keeping the three newest."""
+    import shutil
+    from pathlib import Path
+
+    base = Path(os.environ.get("NUMBA_CACHE_DIR") or
+                Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "visionpos" / "numba")
+    here = base / _sources_stamp()
+    try:
+        here.mkdir(parents=True, exist_ok=True)
+        here.touch()
+        old = sorted((d for d in base.iterdir() if d.is_dir() and d != here), key=lambda d: d.stat().st_mtime)
+        for d in old[:-2]:
+            shutil.rmtree(d, ignore_errors=True)
+    except OSError:
+        pass  # not writable: numba says so when it tries, and the kernels compile uncached
+    return str(here)
+
+
 try:
     if os.environ.get("VISIONPOS_NO_JIT"):  # for testing the interpreted path
         raise ImportError("VISIONPOS_NO_JIT is set")
+    import numba
     from numba import njit as _njit
 
+    numba.config.CACHE_DIR = _cache_dir()
     COMPILED = True
 
     def njit(fn: F) -> F:

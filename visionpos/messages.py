@@ -65,6 +65,8 @@ class BodyState:
     velocity_covariance: (3, 3) m^2/s^2.
     time_ns: the instant the state is valid for (predicted to send time).
     capture_ns: capture time of the newest camera frame that contributed.
+    update_kind: which measurement last kept the body tracked: "pose" (triangulated, or the
+    identification), "views" (single-camera reprojection updates through occlusion), "" (none).
     """
 
     name: str
@@ -82,6 +84,7 @@ class BodyState:
     n_cameras: int = 0
     residual_mm: float = float("nan")
     reset_counter: int = 0
+    update_kind: str = ""
 
 
 @dataclass(frozen=True, slots=True)

@@ -14,6 +14,8 @@ Layout (MCAP profile "visionpos"):
     /fusion/states     json, schema visionpos.BodyState
     /fusion/markers    json {"points": [[x, y, z], ...], "residual_px": [...]}: loose markers (no body)
     /sim/truth         json, schema visionpos.Truth
+    /foxglove/...      protobuf, schemas foxglove.* (visionpos/foxglove/channels.py): the 3-D scene, the
+                       cameras' blobs and health as Foxglove and Lichtblick show them, at a bounded rate
     any other topic    json, no schema (write_json)
 
 Crash safety: the file is written *unchunked* (every record goes straight to the data
@@ -72,7 +74,10 @@ from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, IndexType, Writer
 
 from visionpos import __version__
+from visionpos.config.arena import parse_arena
 from visionpos.errors import VisionposError
+from visionpos.foxglove.channels import DEFAULT_RATE_HZ, TOPIC_PREFIX, FoxgloveChannels
+from visionpos.foxglove.protobuf import file_descriptor_set
 from visionpos.messages import BodyState
 
 log = logging.getLogger(__name__)
@@ -83,6 +88,8 @@ TOPIC_PACKETS = "/station/packets"
 TOPIC_STATES = "/fusion/states"
 TOPIC_TRUTH = "/sim/truth"
 TOPIC_MARKERS = "/fusion/markers"
+TOPIC_HEALTH = "/server/health"
+TOPIC_EVENTS = "/server/events"
 PACKET_ENCODING = "visionpos.station"
 FLUSH_INTERVAL_S = 0.25
 # senders with their own packet channel; the rest share one. Far above any arena's station
@@ -131,6 +138,9 @@ _STATE_SCHEMA = {
         "n_cameras": {"type": "integer"},
         "residual_mm": {"type": ["number", "null"]},
         "reset_counter": {"type": "integer"},
+        "update_kind": {"type": "string", "enum": ["", "pose", "views"],
+                        "description": "last measurement that kept the body tracked: triangulated pose or "
+                                       "single-camera views"},
     },
 }
 _TRUTH_SCHEMA = {
@@ -201,6 +211,7 @@ def state_to_dict(s: BodyState) -> dict[str, Any]:
         "n_cameras": int(s.n_cameras),
         "residual_mm": _num(float(s.residual_mm)),
         "reset_counter": int(s.reset_counter),
+        "update_kind": str(s.update_kind),
     }
 
 
@@ -227,12 +238,32 @@ def state_from_dict(d: dict[str, Any]) -> BodyState:
         n_cameras=int(d.get("n_cameras", 0)),
         residual_mm=float("nan") if res is None else float(res),
         reset_counter=int(d.get("reset_counter", 0)),
+        update_kind=str(d.get("update_kind", "")),  # recordings before issue 15 have none
     )
 
 
 def _dumps(obj: Any) -> bytes:
     # allow_nan=False: a NaN would make the file unreadable for strict JSON tools (Foxglove)
     return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
+
+
+def _realtime_minus_monotonic(meta: dict[str, Any]) -> int | None:
+    """The recording host's CLOCK_REALTIME - monotonic difference at the start, from its meta."""
+    wall, mono = meta.get("wall_start_unix_ns"), meta.get("monotonic_start_ns")
+    return wall - mono if isinstance(wall, int) and isinstance(mono, int) else None
+
+
+def _arena_cameras(config: Any) -> tuple[Any, ...]:
+    """The calibrated cameras of a recording's config: an ArenaConfig's, or parsed from the raw mapping
+    (a mapping that is no valid arena, as some tools record, has none)."""
+    cams = getattr(config, "cameras", None)
+    if cams is not None:
+        return tuple(cams)
+    try:
+        return parse_arena(getattr(config, "raw", config)).cameras
+    except (VisionposError, TypeError, ValueError) as e:
+        log.debug("recording config is no arena (%s): Foxglove channels without cameras", e)
+        return ()
 
 
 # ---------------------------------------------------------------- writer
@@ -269,13 +300,19 @@ class RecordingWriter:
     meta: free-form JSON-able facts (scenario, seed, command line ...). The writer adds
     version, host, wall-clock and monotonic start times.
     max_sources: senders that get their own packet channel; later ones share one.
+    foxglove_rate_hz: the Foxglove channels' update rate (visionpos/foxglove/channels.py); 0 or None:
+    no Foxglove channels. Cameras for them come from the config (an ArenaConfig, or a raw mapping
+    that parses as an arena; one that does not gets the channels without cameras).
+    realtime_minus_monotonic_ns: for the Foxglove blobs of realtime-stamped stations (None: the meta's
+    wall_start_unix_ns - monotonic_start_ns, this host's at the start unless meta gives them).
 
     All write_* methods are thread-safe; none does disk I/O on the caller's thread, and
     none raises because of the disk: after a write error they only count what they drop.
     """
 
     def __init__(self, path: str | Path, config: dict[str, Any] | Any, meta: dict[str, Any] | None = None,
-                 flush_interval_s: float = FLUSH_INTERVAL_S, max_sources: int = MAX_PACKET_SOURCES):
+                 flush_interval_s: float = FLUSH_INTERVAL_S, max_sources: int = MAX_PACKET_SOURCES,
+                 foxglove_rate_hz: float | None = DEFAULT_RATE_HZ, realtime_minus_monotonic_ns: int | None = None):
         self.path = Path(path)
         raw = getattr(config, "raw", config)
         if not isinstance(raw, dict):
@@ -324,6 +361,13 @@ class RecordingWriter:
         self._packet_channels: dict[tuple[str, int] | None, int] = {}
         self._topic_channels: dict[str, int] = {}
         self._seq = 0
+        self._fox_schemas: dict[str, int] = {}
+        self.foxglove: FoxgloveChannels | None = None
+        if foxglove_rate_hz:
+            rt = realtime_minus_monotonic_ns
+            if rt is None:  # the difference the recording states, as replay and foxglove_copy use it
+                rt = _realtime_minus_monotonic(full_meta)
+            self.foxglove = FoxgloveChannels(_arena_cameras(config), foxglove_rate_hz, rt)
         self._flush_to_disk()  # header + config on disk before any data arrives
         if self._write_error is not None:
             os.close(self._fd)
@@ -381,8 +425,27 @@ class RecordingWriter:
                         "their address", self.path, self._max_sources)
         return self._overflow_channel
 
+    def _add_foxglove(self, out: list[tuple[str, str, int, bytes]]) -> None:
+        """Foxglove messages (topic, schema name, log time, protobuf bytes); lock held."""
+        for topic, schema, t, data in out:
+            ch = self._topic_channels.get(topic)
+            if ch is None:
+                sid = self._fox_schemas.get(schema)
+                if sid is None:
+                    sid = self._fox_schemas[schema] = self._w.register_schema(schema, "protobuf",
+                                                                              file_descriptor_set(schema))
+                ch = self._channel_for(topic, "protobuf", sid)
+            self._add(ch, t, data, topic)
+
+    def _foxglove_out(self, out: list[tuple[str, str, int, bytes]]) -> None:
+        if out:
+            with self._lock:
+                if self._recording():
+                    self._add_foxglove(out)
+
     def write_packet(self, recv_ns: int, data: bytes, source: tuple[str, int] | None = None) -> None:
         """One received UDP payload, untouched, stamped with its receive time (server monotonic ns)."""
+        fox = self.foxglove.packet(recv_ns, data) if self.foxglove is not None else None
         with self._lock:
             if self._closed or self._write_error is not None:  # inline: this runs for every packet
                 self._recording()
@@ -391,6 +454,8 @@ class RecordingWriter:
             if ch is None:
                 ch = self._source_channel(source)
             self._add(ch, int(recv_ns), bytes(data), TOPIC_PACKETS)
+            if fox:
+                self._add_foxglove(fox)
 
     def write_state(self, state: BodyState) -> None:
         """One fused BodyState, logged at its time_ns."""
@@ -401,8 +466,11 @@ class RecordingWriter:
                 self._add(ch, int(state.time_ns), data, TOPIC_STATES)
 
     def write_states(self, states: list[BodyState]) -> None:
+        """One output tick's states (the Foxglove bodies are updated from ticks, so give them together)."""
         for s in states:
             self.write_state(s)
+        if self.foxglove is not None:
+            self._foxglove_out(self.foxglove.states(states))
 
     def publish(self, states: list[BodyState]) -> None:
         """Sink interface (server output tick): record the outputs."""
@@ -411,10 +479,13 @@ class RecordingWriter:
     def publish_markers(self, lp) -> None:
         """Sink interface: a new set of loose markers (LoosePoints), logged at its time_ns."""
         data = _dumps({"points": _plain(lp.points), "residual_px": _plain(lp.residual_px)})
+        fox = self.foxglove.markers(int(lp.time_ns), lp.points) if self.foxglove is not None else None
         with self._lock:
             if self._recording():
                 ch = self._channel_for(TOPIC_MARKERS, "json", 0)
                 self._add(ch, int(lp.time_ns), data, TOPIC_MARKERS)
+                if fox:
+                    self._add_foxglove(fox)
 
     def write_truth(self, time_ns: int, name: str, position: np.ndarray, quaternion: np.ndarray) -> None:
         """Simulator ground truth of body `name`: position (3,) m, quaternion (4,) xyzw."""
@@ -429,16 +500,24 @@ class RecordingWriter:
                 self._add(ch, int(time_ns), data, TOPIC_TRUTH)
 
     def write_json(self, topic: str, time_ns: int, obj: dict[str, Any]) -> None:
-        """Any JSON-able mapping on its own topic (events, camera truth, stats)."""
-        if topic in (TOPIC_PACKETS, TOPIC_STATES, TOPIC_TRUTH, TOPIC_MARKERS):
+        """Any JSON-able mapping on its own topic (events, camera truth, stats).
+
+        /server/health and /server/events also go to the Foxglove log.
+        """
+        if topic in (TOPIC_PACKETS, TOPIC_STATES, TOPIC_TRUTH, TOPIC_MARKERS) or topic.startswith(TOPIC_PREFIX):
             raise ValueError(
                 f"write_json: topic {topic!r} is reserved; use write_packet/write_state/write_truth/publish_markers"
             )
         data = _dumps(_plain(obj))
+        fox = None
+        if self.foxglove is not None and topic in (TOPIC_HEALTH, TOPIC_EVENTS):
+            fox = (self.foxglove.health if topic == TOPIC_HEALTH else self.foxglove.event)(int(time_ns), obj)
         with self._lock:
             if self._recording():
                 ch = self._channel_for(topic, "json", 0)
                 self._add(ch, int(time_ns), data, topic)
+                if fox:
+                    self._add_foxglove(fox)
 
     # -- disk
     def _pwrite_all(self, data: bytes, offset: int) -> None:
@@ -842,36 +921,136 @@ def recover(src: str | Path, dst: str | Path) -> dict[str, Any]:
     return report
 
 
-def _rewrite(reader: RecordingReader, f: Any) -> dict[str, Any]:
+META_FOXGLOVE_COPY = "visionpos.foxglove_copy"
+
+
+def foxglove_copy(src: str | Path, dst: str | Path, rate_hz: float = DEFAULT_RATE_HZ) -> dict[str, Any]:
+    """Write `dst`: the recording `src` with Foxglove channels (visionpos/foxglove/channels.py) built
+    from what it recorded (station packets, outputs, loose markers, health, events), so a recording
+    made before them opens in Foxglove or Lichtblick as a 3-D scene. Every record of src is kept;
+    Foxglove channels src already has are replaced. A damaged src is copied up to the damage.
+
+    Returns (and stores in dst as metadata "visionpos.foxglove_copy") {"from", "messages",
+    "messages_by_topic", "foxglove_messages", "damage", "was_complete"}.
+    """
+    src, dst = Path(src), Path(dst)
+    if dst.exists() and dst.resolve() == src.resolve():
+        raise RecordingError(f"{dst}: the Foxglove copy is a new file; give another output than the input")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RecordingDamagedWarning)  # reported in the result instead
+        reader = RecordingReader(src)
+        fox = FoxgloveChannels(_arena_cameras(reader.config), rate_hz, _realtime_minus_monotonic(reader.meta))
+        tmp = dst.with_name(dst.name + ".part")
+        try:
+            with open(tmp, "wb") as f:
+                report = _rewrite(reader, f, fox)
+            os.replace(tmp, dst)
+        except OSError as e:
+            tmp.unlink(missing_ok=True)
+            raise RecordingError(f"{dst}: cannot write the Foxglove copy: {e.strerror or e}") from None
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+    return report
+
+
+class _FoxgloveFeed:
+    """Feeds a recording's messages, in file order, to FoxgloveChannels; writes what they return."""
+
+    def __init__(self, w: Writer, fox: FoxgloveChannels) -> None:
+        self.w, self.fox = w, fox
+        self.schemas: dict[str, int] = {}
+        self.channels: dict[str, int] = {}
+        self.tick: list[BodyState] = []  # the states of one output tick (recorded together, one time_ns)
+        self.count = 0
+
+    def _emit(self, out: list[tuple[str, str, int, bytes]]) -> None:
+        for topic, schema, t, data in out:
+            ch = self.channels.get(topic)
+            if ch is None:
+                sid = self.schemas.get(schema)
+                if sid is None:
+                    sid = self.schemas[schema] = self.w.register_schema(schema, "protobuf",
+                                                                        file_descriptor_set(schema))
+                ch = self.channels[topic] = self.w.register_channel(topic, "protobuf", sid)
+            self.w.add_message(ch, t, data, t, 0)
+            self.count += 1
+
+    def _end_tick(self) -> None:
+        if self.tick:
+            self._emit(self.fox.states(self.tick))
+            self.tick = []
+
+    def message(self, topic: str, t: int, data: bytes) -> None:
+        if topic != TOPIC_STATES:  # the live writer updates the bodies right after the tick's states
+            self._end_tick()
+        if topic == TOPIC_PACKETS:
+            self._emit(self.fox.packet(t, data))
+            return
+        if topic not in (TOPIC_STATES, TOPIC_MARKERS, TOPIC_HEALTH, TOPIC_EVENTS):
+            return
+        try:
+            obj = json.loads(data)
+            if topic == TOPIC_STATES:
+                s = state_from_dict(obj)
+                if self.tick and self.tick[-1].time_ns != s.time_ns:
+                    self._end_tick()
+                self.tick.append(s)
+            elif topic == TOPIC_MARKERS:
+                pts = np.asarray(obj["points"], dtype=np.float64).reshape(-1, 3)  # null -> NaN
+                self._emit(self.fox.markers(t, pts[np.isfinite(pts).all(axis=1)]))
+            elif topic == TOPIC_HEALTH:
+                self._emit(self.fox.health(t, obj))
+            else:
+                self._emit(self.fox.event(t, obj))
+        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, ValueError, TypeError):
+            return  # a malformed side-channel message: nothing to show for it
+
+    def finish(self) -> None:
+        self._end_tick()
+
+
+def _rewrite(reader: RecordingReader, f: Any, fox: FoxgloveChannels | None = None) -> dict[str, Any]:
+    """Copy every record of reader to f with a summary; with fox, also the Foxglove channels (a
+    Foxglove copy: src's own /foxglove/ channels are left out, fox writes them anew)."""
     w = Writer(f, compression=CompressionType.NONE, use_chunking=False, index_types=IndexType.METADATA,
                enable_crcs=True)
     schemas: dict[int, int] = {}  # id in the input -> id in the output
     channels: dict[int, tuple[int, str]] = {}  # id in the input -> (id in the output, topic)
     by_topic: dict[str, int] = {}
     started = False
+    feed = None
     for rec in reader._records(message_records=True):
         if isinstance(rec, Message):
             ch = channels.get(rec.channel_id)
-            if ch is None:  # the reader has flagged it (damage); nothing to attach it to
+            if ch is None:  # the reader has flagged it (damage) or it is a replaced Foxglove channel
                 continue
             w.add_message(ch[0], rec.log_time, rec.data, rec.publish_time, rec.sequence)
             by_topic[ch[1]] = by_topic.get(ch[1], 0) + 1
+            if feed is not None:
+                feed.message(ch[1], rec.log_time, rec.data)
         elif isinstance(rec, Header):
             if not started:
                 w.start(profile=rec.profile, library=rec.library)
                 started = True
+                feed = None if fox is None else _FoxgloveFeed(w, fox)
         elif isinstance(rec, Schema):
             if rec.id not in schemas:  # a complete file repeats schemas and channels in its summary
                 schemas[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
         elif isinstance(rec, Channel):
+            if fox is not None and rec.topic.startswith(TOPIC_PREFIX):
+                continue
             if rec.id not in channels:
                 sid = schemas.get(rec.schema_id, 0)
                 channels[rec.id] = (w.register_channel(rec.topic, rec.message_encoding, sid, dict(rec.metadata)),
                                     rec.topic)
-        elif isinstance(rec, Metadata) and rec.name != META_RECOVERED:
+        elif isinstance(rec, Metadata) and rec.name not in (META_RECOVERED, META_FOXGLOVE_COPY):
             w.add_metadata(rec.name, dict(rec.metadata))
     report = {"from": str(reader.path), "messages": sum(by_topic.values()), "messages_by_topic": by_topic,
               "damage": reader.damage, "was_complete": reader.complete}
-    w.add_metadata(META_RECOVERED, {"json": json.dumps(report)})
+    if feed is not None:
+        feed.finish()
+        report["foxglove_messages"] = feed.count
+    w.add_metadata(META_FOXGLOVE_COPY if fox is not None else META_RECOVERED, {"json": json.dumps(report)})
     w.finish()
     return report

@@ -80,7 +80,9 @@ def test_tune_ranks_motion_compensation_first_on_aggressive_flight(aggressive_lo
 
 def test_tune_ranks_a_sane_residual_gate_above_one_that_rejects_real_markers(tmp_path, capsys):
     """Centroid noise 0.5 px: a 0.05 px residual gate throws away real markers and loses the
-    body; the default 2 px gate keeps them. The known best is 2.0 whatever the fusion tuning."""
+    body; the default 2 px gate keeps them. The known best is 2.0 whatever the fusion tuning.
+    (Single-camera updates are off here: with them a body whose triangulated markers all fail
+    the gate is still tracked from the views, test_tune_sweeps_the_single_view_path.)"""
     from visionpos.analysis.tune import sweep
     from visionpos.cli import main
 
@@ -90,7 +92,29 @@ def test_tune_ranks_a_sane_residual_gate_above_one_that_rejects_real_markers(tmp
     assert rc == 0
     capsys.readouterr()
     # two worker processes: results come back in completion order and must still rank the same
-    ranked = sweep(str(log), [("fusion.max_residual_px", [0.05, 2.0])], jobs=2, progress=False)
+    ranked = sweep(str(log), [("fusion.max_residual_px", [0.05, 2.0])], ["fusion.single_view.enabled=false"], jobs=2,
+                   progress=False)
     assert [t.point["fusion.max_residual_px"] for t in ranked] == [2.0, 0.05]
     assert ranked[0].has_truth and ranked[0].tracked_fraction > 0.9
     assert ranked[1].tracked_fraction < 0.9 * ranked[0].tracked_fraction
+
+
+def test_tune_sweeps_the_single_view_path(tmp_path, capsys):
+    """A flight where for 1 s only camera 1 sees the quad: with single-camera updates it stays tracked
+    (and the table says which share of its outputs the single views kept), without it is lost."""
+    from visionpos.cli import main
+
+    log = tmp_path / "occluded.mcap"
+    window = "[{body: quad, start_s: 1.0, end_s: 2.0, cameras: {1: all}}]"
+    rc = main(["sim", "--scenario", "thesis", "--duration", "3", "--seed", "3", "--set", f"sim.view_schedule={window}",
+               "--out", str(log)])
+    assert rc == 0
+    capsys.readouterr()
+    rc = main(["tune", str(log), "--grid", "fusion.single_view.enabled=true,false",
+               "--grid", "fusion.single_view.gate_nis_per_dof=6"])
+    assert rc == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines() if line[:1].isdigit()]
+    assert [r[1] for r in rows] == ["True", "False"]
+    tracked, views = float(rows[0][5]), float(rows[0][6])
+    assert tracked > 0.95 and 0.25 < views < 0.45  # about 1 s of the 2.5 s tracked
+    assert float(rows[1][5]) < 0.75 and float(rows[1][6]) == 0.0

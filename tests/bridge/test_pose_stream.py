@@ -233,3 +233,26 @@ def test_loose_markers_in_datagrams_of_their_own_json_and_binary():
         decode_markers_binary(b"VPS1" + second[4:])
     with pytest.raises(ValueError, match="truncated"):
         decode_markers_binary(second[:-8])
+
+
+def test_json_fast_path_reads_as_the_reference_encoding():
+    """The %-format line (all numbers finite) must parse to exactly what json.dumps(state_to_json) gives, for
+    values that round at every printed digit; a body with a NaN takes the reference path (NaN -> null)."""
+    from bridge.pose_stream import _json_line, state_to_json
+
+    rng = np.random.default_rng(7)
+    for k in range(200):
+        A = rng.normal(size=(6, 6)) * 10.0 ** rng.integers(-5, 0)
+        q = rng.normal(size=4)
+        st = body_state(f"quad \"{k}\"/ü", k, capture_ns=int(rng.integers(1, 2**62)), dt_ns=int(rng.integers(0, 10**7)),
+                        position=rng.normal(size=3) * 10.0 ** rng.integers(-8, 2), quaternion=q / np.linalg.norm(q),
+                        velocity=rng.normal(size=3), angular_velocity=rng.normal(size=3) * 5,
+                        covariance=A @ A.T, velocity_covariance=np.diag(rng.uniform(0, 1e-3, 3)),
+                        residual_mm=float(rng.uniform(0, 3)), n_markers=int(rng.integers(0, 9)),
+                        n_cameras=int(rng.integers(0, 9)), reset_counter=int(rng.integers(0, 1000)),
+                        tracked=bool(k % 3))
+        line = _json_line(st, 1234)
+        assert line.endswith(b"\n") and line.count(b"\n") == 1
+        assert json.loads(line) == json.loads(json.dumps(state_to_json(st, 1234)))
+    lost = states()[1]  # residual NaN
+    assert json.loads(_json_line(lost, 5))["residual_mm"] is None

@@ -363,6 +363,8 @@ def test_config_section():
 
 
 def test_serve_creates_the_sink_only_when_configured():
-    assert [type(s).__name__ for s in bridge_sinks(arena({"port": 0}))] == ["VrpnServer"]
+    sinks = bridge_sinks(arena({"port": 0}))
+    assert [type(s).__name__ for s in sinks] == ["OffLoopOutputs"]  # the network outputs run off the loop
+    assert [type(o).__name__ for o in sinks[0].outputs] == ["VrpnServer"]
     assert bridge_sinks(arena(None)) == []
     assert bridge_sinks(arena({"enabled": False})) == []

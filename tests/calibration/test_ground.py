@@ -89,8 +89,9 @@ def test_cli_wand_then_ground_on_the_simulator(tmp_path, capsys):
     assert "wand lengths" in out and "pi4" in out
     final = tmp_path / "final.yaml"
     rc = main(["calibrate", "ground", "--sim", "thesis", "--set", "sim.duration=1", "--config", str(cal),
-               "--x-marker", "2", "--out", str(final), "--no-progress"])
+               "--x-marker", "2", "--out", str(final), "--no-progress", "--plot", str(tmp_path / "ground.png")])
     assert rc == 0
+    assert (tmp_path / "ground.png").stat().st_size > 10_000
     from visionpos.config.arena import load_arena
 
     got = load_arena(final).cameras
@@ -128,3 +129,33 @@ def test_cli_wand_from_a_recording(tmp_path, capsys):
 
     ce, re, _ = compare_cameras(list(load_arena(out).cameras), list(sc.cameras))
     assert ce.max() < 4e-3 and re.max() < 0.08
+
+
+NEAR_ISO = np.array([[0.0, 0.0, 0.0], [0.157, 0.0, 0.0], [0.0, 0.152, 0.0]])  # legs differ by 5 mm
+
+
+def test_near_isosceles_frame_is_told_apart_by_its_leg_lengths():
+    true = ring_cameras(4, target=(0.0, 0.0, 0.5))
+    Rf = Rotation.from_euler("z", -50, degrees=True).as_matrix()
+    world = NEAR_ISO @ Rf.T + np.array([-0.2, 0.1, HEIGHT])
+    g = calibrate_ground(_static_frames(true, world, reflections=0), true, NEAR_ISO, origin=0, x_marker=1,
+                         marker_height=HEIGHT)
+    # the 157 mm leg is the x axis: a swapped leg would put marker 1 on y
+    np.testing.assert_allclose(g.markers, NEAR_ISO + [0, 0, HEIGHT], atol=2e-3)
+    assert g.marker_std.max() < 1e-3 and g.sigma_px > 0
+
+
+def test_isosceles_frame_is_refused_with_the_difference_it_needs():
+    iso = np.array([[0.0, 0.0, 0.0], [0.155, 0.0, 0.0], [0.0, 0.155, 0.0]])
+    with pytest.raises(CalibrationError, match=r"differ by 0\.0 mm.*more than \d+ mm"):
+        identify_layout(iso + 1.0, iso, point_std=np.full(3, 3e-4))
+
+
+def test_distance_tolerance_scales_with_how_well_points_are_measured():
+    measured = LFRAME * (1 + 0.04)  # every distance 4 % long: up to 16 mm off the layout
+    # points known to 6 mm (far cameras, a rough calibration) -> a 16 mm difference is inside 4 sigma
+    idx = identify_layout(measured, LFRAME, point_std=np.full(4, 6e-3))
+    np.testing.assert_array_equal(idx, [0, 1, 2, 3])
+    # known to 0.5 mm -> the same difference is not this frame
+    with pytest.raises(CalibrationError, match="within 4 sigma"):
+        identify_layout(measured, LFRAME, point_std=np.full(4, 5e-4))

@@ -105,7 +105,7 @@ def test_cli_intrinsics_writes_yaml_plot_and_rescaled_mode(chess_images, tmp_pat
         cv2.imwrite(str(d / name), img)
     out = tmp_path / "cam.yaml"
     plot = tmp_path / "cov.png"
-    rc = main(["calibrate", "intrinsics", "--images", str(d), "--board", "chessboard", "--cols", "9", "--rows", "7",
+    rc = main(["calibrate", "intrinsics", "--images", str(d), "--board", "chessboard", "--inner-corners", "8x6",
                "--square", "0.03", "--model", "pinhole", "--out", str(out), "--plot", str(plot),
                "--rescale", "240x180"])
     assert rc == 0
@@ -117,3 +117,85 @@ def test_cli_intrinsics_writes_yaml_plot_and_rescaled_mode(chess_images, tmp_pat
     assert abs(half.fx - m.fx / 2) < 1e-9
     assert plot.stat().st_size > 1000
     assert "RMS reprojection error" in capsys.readouterr().out
+
+
+@pytest.fixture(scope="module")
+def chess_dir(chess_images, tmp_path_factory):
+    d = tmp_path_factory.mktemp("chess")
+    for name, img in chess_images[1]:
+        cv2.imwrite(str(d / name), img)
+    return d
+
+
+@pytest.mark.parametrize("size", [["--squares", "9x7"], ["--cols", "9", "--rows", "7"]])
+def test_cli_board_size_as_squares_too(chess_dir, tmp_path, size):
+    from visionpos.cli import main
+
+    out = tmp_path / "cam.yaml"
+    assert main(["calibrate", "intrinsics", "--images", str(chess_dir), *size, "--square", "0.03",
+                 "--out", str(out), "--no-progress"]) == 0
+    assert abs(CameraModel.from_dict(yaml.safe_load(out.read_text())).fx / PINHOLE_TRUE.fx - 1) < 0.01
+
+
+def test_cli_squares_given_as_inner_corners_names_the_right_count(chess_dir, tmp_path, capsys):
+    from visionpos.cli import main
+
+    # the board has 9x7 squares = 8x6 inner corners; a user who counted squares types 9x7
+    rc = main(["calibrate", "intrinsics", "--images", str(chess_dir), "--inner-corners", "9x7", "--square", "0.03",
+               "--out", str(tmp_path / "cam.yaml"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "no chessboard with 9x7 inner corners" in err and "use --inner-corners 8x6" in err
+    assert not (tmp_path / "cam.yaml").exists()
+
+
+def test_cli_checks_rescale_before_the_solve(chess_dir, tmp_path, capsys, monkeypatch):
+    import visionpos.calibration.intrinsics as intr
+    from visionpos.cli import main
+
+    def never(*a, **k):
+        raise AssertionError("the solve ran before the options were checked")
+
+    monkeypatch.setattr(intr, "calibrate_images", never)
+    rc = main(["calibrate", "intrinsics", "--images", str(chess_dir), "--inner-corners", "8x6", "--square", "0.03",
+               "--out", str(tmp_path / "cam.yaml"), "--rescale", "240x120+0x0"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "changes the aspect ratio" in err and "the crop that keeps it is 0x60" in err
+
+
+def test_capture_mode_crops_to_keep_the_aspect_ratio():
+    from visionpos.calibration.intrinsics import CaptureMode, capture_mode
+
+    # the help text's example: 640x360 from 1280x960 images = resize to 640x480, crop 120 rows
+    assert capture_mode("640x360", (1280, 960)) == CaptureMode(640, 360, (0.0, 120.0))
+    assert capture_mode("640x360+0x120", (1280, 960)) == CaptureMode(640, 360, (0.0, 120.0))
+    assert capture_mode("640x480", (1280, 960)) == CaptureMode(640, 480, (0.0, 0.0))
+    m = capture_mode("640x360", (1280, 960)).apply(PINHOLE_TRUE.rescale(1280, 960))
+    assert (m.width, m.height) == (640, 360)
+    with pytest.raises(CalibrationError, match="expected WxH"):
+        capture_mode("640by480", (1280, 960))
+
+
+def test_warnings_for_a_fisheye_fit_of_a_narrow_lens(chess_images):
+    from visionpos.calibration.intrinsics import model_warnings
+
+    board, images = chess_images
+    fish = calibrate_images(images, board, "fisheye")
+    assert any("fisheye model" in w and "--model pinhole" in w for w in model_warnings(fish))
+    pin = calibrate_images(images, board, "pinhole")
+    assert not any("fisheye" in w for w in model_warnings(pin))
+
+
+def test_progress_without_a_terminal_prints_whole_lines():
+    import io
+
+    from visionpos.calibration.report import progress_printer
+
+    buf = io.StringIO()  # not a tty, like a log file
+    show = progress_printer(True, buf)
+    for i in range(1, 51):
+        show("corners", i, 50)
+    text = buf.getvalue()
+    assert "\r" not in text
+    lines = text.splitlines()
+    assert lines[0] == "corners: 1/50 (0 %)" and lines[-1] == "corners: 50/50 (100 %)" and len(lines) == 11

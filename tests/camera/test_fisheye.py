@@ -90,6 +90,16 @@ def test_compiled_forms_equal_vectorised_forms(name):
         np.testing.assert_allclose([ux, uy], back[i], rtol=1e-12, atol=1e-15)
 
 
+@pytest.mark.parametrize("name", MODELS)
+def test_compiled_jacobian_equals_the_vectorised_one(name):
+    k = MODELS[name]
+    xn = np.vstack([_points(np.random.default_rng(6), k, 100), [[0.0, 0.0], [1e-9, -2e-9]]])  # on the axis too
+    _, J = fisheye.distort_with_jacobian(xn, k)
+    for i, (x, y) in enumerate(xn):
+        np.testing.assert_allclose(np.reshape(fisheye.distort_jacobian_point(x, y, k), (2, 2)), J[i], rtol=1e-12,
+                                   atol=1e-12)
+
+
 def test_largest_angle_and_beyond_it():
     k = V2_NOIR_3
     theta = fisheye.max_angle(k)

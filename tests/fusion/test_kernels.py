@@ -35,7 +35,9 @@ def test_filter_bank_arrays_are_in_filter_arrays_order():
 
 def test_verdict_enum_and_kernel_constants_agree():
     assert [int(v) for v in L.Verdict] == [L.VERDICT_TOO_FEW, L.VERDICT_FIT_REJECTED, L.VERDICT_ACCEPTED,
-                                           L.VERDICT_GATED, L.VERDICT_RESET]
+                                           L.VERDICT_GATED, L.VERDICT_RESET, L.VERDICT_VIEWS,
+                                           L.VERDICT_VIEWS_UNCONSTRAINED, L.VERDICT_VIEWS_GATED]
+    assert [int(v) for v in L.UpdateKind] == [L.UPDATE_NONE, L.UPDATE_POSE, L.UPDATE_VIEWS]
     assert L.Verdict.ACCEPTED < L.Verdict.GATED < L.Verdict.RESET  # the pipeline counts v >= ACCEPTED as measured
 
 

@@ -174,7 +174,7 @@ def test_match_unlabeled_spurious_and_missing(rig):
         order = rng.permutation(len(allp))
         views.append(allp[order])
         truth.append(np.concatenate([ids, -np.ones(3, int)])[order])
-    P, idx, rms = match_unlabeled(views, R, t, f, max_ray_distance=0.01, max_residual_px=2.0)
+    P, idx, rms = match_unlabeled(views, R, t, f, ray_gate_px=3.0, max_residual_px=2.0)
     found = {}
     for q in range(len(P)):
         labels = {int(truth[v][idx[q, v]]) for v in range(4) if idx[q, v] >= 0}
@@ -189,3 +189,42 @@ def test_match_unlabeled_spurious_and_missing(rig):
     assert set(found) == {0, 1, 3, 4, 5, 6, 7}
     for k, p in found.items():
         assert np.linalg.norm(p - X[k]) < 0.003
+
+
+def _pinhole(look_at_camera, centers, target):
+    from visionpos.camera.model import CameraModel
+
+    model = CameraModel("pinhole", 960, 640, 740.0, 740.0, 480.0, 320.0, np.zeros(5))
+    cams = [look_at_camera(c, target, model, camera_id=i + 1) for i, c in enumerate(centers)]
+    R = np.array([c.R for c in cams])
+    t = np.array([c.t for c in cams])
+    return cams, R, t, np.array([740.0, 740.0])
+
+
+def test_acquisition_gate_scales_with_range_far_pair_accepted(look_at_camera):
+    # two cameras 3 m apart, a marker 8.5 m away; camera 2 is off by 1.3 px across the epipolar
+    # lines (calibration): its ray misses by 1.3 px x 11.5 mm/px = 15 mm, more than the old 10 mm
+    # gate, yet the pair triangulates to well under a pixel of RMS residual
+    X = np.array([[0.0, 8.0, 0.0]])
+    cams, R, t, f = _pinhole(look_at_camera, [(-1.5, 0.0, 2.6), (1.5, 0.0, 2.6)], X[0])
+    xn = _normalized(cams, X)
+    xn[0, 1, 1] += 1.3 / 740.0
+    r = np.linalg.norm(X[0] - np.array([1.5, 0.0, 2.6]))
+    assert 1.3 * r / 740.0 > 0.012  # the rays do pass more than 1 cm apart
+    P, idx, rms = match_unlabeled([xn[:, 0], xn[:, 1]], R, t, f, 3.0, 2.0)
+    assert len(P) == 1 and rms[0] < 1.0
+    assert np.linalg.norm(P[0] - X[0]) < 0.05
+
+
+def test_acquisition_gate_is_tighter_up_close(look_at_camera):
+    # cameras 1.1 m from a marker: a blob 8 mm above it in camera 2 (another marker) gives rays
+    # that pass ~8 mm apart, which the old 10 mm gate paired; 3 px at 1.1 m is ~6 mm
+    X = np.array([[0.0, 1.0, 1.0]])
+    cams, R, t, f = _pinhole(look_at_camera, [(-0.5, 0.0, 1.0), (0.5, 0.0, 1.0)], X[0])
+    right = _normalized(cams, X)
+    wrong = _normalized(cams, X + [0.0, 0.0, 0.008])
+    # a rough calibration's loose residual gate: the seed gate is what refuses the wrong pair
+    P, _, _ = match_unlabeled([right[:, 0], wrong[:, 1]], R, t, f, 3.0, 4.0)
+    assert len(P) == 0
+    P, _, rms = match_unlabeled([right[:, 0], right[:, 1]], R, t, f, 3.0, 4.0)
+    assert len(P) == 1 and rms[0] < 1e-6 and np.linalg.norm(P[0] - X[0]) < 1e-6

@@ -16,7 +16,13 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from visionpos.camera.model import Camera, CameraModel, look_at_rotation
-from visionpos.geometry.triangulation import CameraRig, triangulate_normalized, triangulate_pixels, triangulation_crb
+from visionpos.geometry.triangulation import (
+    CameraRig,
+    pose_crb,
+    triangulate_normalized,
+    triangulate_pixels,
+    triangulation_crb,
+)
 
 V2_NOIR = [  # thesis Table 4.1, V2 NoIR cameras 1-4 at 960x640
     CameraModel("fisheye", 960, 640, 720.313, 719.521, 481.014, 360.991, [0.396, 0.634, -2.417, 2.111]),
@@ -286,3 +292,73 @@ def test_refined_point_is_a_stationary_point_of_the_pixel_reprojection_error():
     # pre-undistorted input gives the same answer
     again = triangulate_pixels(CameraRig(cams), px, normalized=CameraRig(cams).undistort(px))
     np.testing.assert_allclose(again.points[ok], res.points[ok], atol=1e-9)
+
+
+def _pose_fixture():
+    from visionpos.sim import load_scenario
+
+    sc = load_scenario("thesis", session="hover", duration=0.1)
+    markers = np.array(sc.arena.bodies[0].markers, float)
+    R = Rotation.from_euler("zyx", [25, 4, -3], degrees=True).as_matrix()
+    p = np.array([0.2, -0.1, 0.8])
+    return list(sc.cameras), markers @ R.T + p, p
+
+
+def test_pose_crb_equals_the_triangulated_bound_when_every_marker_has_two_views():
+    """Marker by marker, the views' information is the triangulated point's (triangulation_crb): chained
+    through d marker / d pose the two bounds must agree."""
+    cams, mw, p = _pose_fixture()
+    visible = np.ones((len(mw), len(cams)), bool)
+    visible[0, 1] = visible[2, 3] = False
+    C_tri = triangulation_crb(cams, mw, 0.2, visible)
+    F = np.zeros((6, 6))
+    for Ci, x in zip(C_tri, mw):
+        r = x - p
+        G = np.hstack([np.eye(3), -np.array([[0, -r[2], r[1]], [r[2], 0, -r[0]], [-r[1], r[0], 0]])])
+        F += G.T @ np.linalg.inv(Ci) @ G
+    np.testing.assert_allclose(pose_crb(cams, mw, p, 0.2, visible), np.linalg.inv(F), rtol=1e-6)
+
+
+def test_pose_crb_of_one_camera():
+    cams, mw, p = _pose_fixture()
+    one = np.zeros((len(mw), len(cams)), bool)
+    one[:, 0] = True
+    C = pose_crb(cams, mw, p, 0.2, one)
+    assert np.isfinite(C).all() and np.allclose(C, C.T)
+    # four views determine it better than one; noise scales the bound by sigma^2
+    assert np.trace(C[:3, :3]) > 10 * np.trace(pose_crb(cams, mw, p, 0.2, np.ones_like(one))[:3, :3])
+    np.testing.assert_allclose(pose_crb(cams, mw, p, 0.4, one), 4 * C, rtol=1e-9)
+    # the uncertainty is mostly depth along camera 0's axis
+    axis = cams[0].R[2]
+    assert axis @ C[:3, :3] @ axis > 0.8 * np.trace(C[:3, :3])
+    # two markers in one camera, or one marker in two, leave the pose undetermined
+    two = np.zeros_like(one)
+    two[:2, 0] = True
+    assert np.isinf(pose_crb(cams, mw, p, 0.2, two)).all()
+    dual = np.zeros_like(one)
+    dual[0, :2] = True
+    assert np.isinf(pose_crb(cams, mw, p, 0.2, dual)).all()
+    with pytest.raises(ValueError, match="shape"):
+        pose_crb(cams, mw, p, 0.2, one[:, :2])
+
+
+def test_pose_crb_bounds_a_monte_carlo_pose_fit():
+    """The ML pose from one camera's noisy pixels (scipy least squares): its spread matches the bound."""
+    from scipy.optimize import least_squares
+
+    cams, mw, p = _pose_fixture()
+    cam = cams[0]
+    local = mw - p  # body frame = world-aligned at the true pose
+    sigma = 0.2
+    C = pose_crb([cam], mw, p, sigma, np.ones((len(mw), 1), bool))
+    rng = np.random.default_rng(3)
+    truth_px = cam.project(mw)
+
+    def residual(q, obs):
+        X = local @ Rotation.from_rotvec(q[3:]).as_matrix().T + p + q[:3]
+        return (cam.project(X) - obs).ravel()
+
+    est = np.array([least_squares(residual, np.zeros(6), args=(truth_px + rng.normal(0, sigma, truth_px.shape),),
+                                  x_scale=[0.01] * 3 + [0.01] * 3).x for _ in range(300)])
+    mse = (est[:, :3] ** 2).sum(1).mean()
+    assert 0.75 * np.trace(C[:3, :3]) < mse < 1.35 * np.trace(C[:3, :3])

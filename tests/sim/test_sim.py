@@ -346,6 +346,37 @@ def test_occlusion_by_disc_and_marker_normal():
     assert all(sorted(tr.marker.tolist()) == [0, 1, 2, 3] for tr in res.frame_truth)
 
 
+def test_view_schedule_hides_markers_from_cameras_during_its_window():
+    window = "[{body: quad, start_s: 0.3, end_s: 0.6, cameras: {1: [0, 2], 3: all}}]"
+    sc = load_scenario("thesis", ["sim.view_schedule=" + window], duration=0.9, seed=4)
+    plain = simulate(load_scenario("thesis", duration=0.9, seed=4))
+    res = simulate(sc)
+    t0, t1 = sc.start_ns + 300_000_000, sc.start_ns + 600_000_000
+    seen: dict[tuple[bool, int], set[int]] = {}
+    for f, tr, tp in zip(res.frames, res.frame_truth, plain.frame_truth):
+        quad = set(tr.marker[tr.body == 0].tolist())
+        during = t0 <= tr.true_ns < t1
+        seen.setdefault((during, f.camera_id), set()).update(quad)
+        if not during:  # outside the window nothing changes
+            assert quad == set(tp.marker[tp.body == 0].tolist())
+    assert seen[(True, 1)] == {0, 2} and seen[(True, 3)] == {0, 1, 2, 3}
+    assert seen[(True, 2)] == set() and seen[(True, 4)] == set()
+    assert all(seen[(False, c)] == {0, 1, 2, 3} for c in (1, 2, 3, 4))
+
+
+@pytest.mark.parametrize("window, key, match", [
+    ("[{body: drone, start_s: 1, end_s: 2}]", "body", "no body or prop 'drone'"),
+    ("[{body: quad, start_s: 2, end_s: 1}]", "end_s", "after start_s"),
+    ("[{body: quad, start_s: 1, end_s: 2, cameras: {9: all}}]", "cameras", "no simulated camera with id 9"),
+    ("[{body: quad, start_s: 1, end_s: 2, cameras: {1: [4]}}]", "cameras.1", "marker indices 0..3"),
+    ("[{body: quad, start_s: 1, end_s: 2, camera: {1: all}}]", "camera", "unknown key"),
+])
+def test_view_schedule_errors_name_the_key(window, key, match):
+    with pytest.raises(ConfigError, match=match) as e:
+        load_scenario("thesis", ["sim.view_schedule=" + window])
+    assert e.value.key == f"sim.view_schedule[0].{key}"
+
+
 def test_out_of_view_markers_absent():
     # a "body" of markers scattered over the whole arena, some outside some views
     rng = np.random.default_rng(4)

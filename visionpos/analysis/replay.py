@@ -19,6 +19,7 @@ metrics.json, a printed table and PNG plots (plots need matplotlib).
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -49,7 +50,9 @@ class BodyTrack:
     time_ns: (N,) the instant the state is valid for; capture_ns: (N,) newest
     contributing capture; position (N, 3) m; quaternion (N, 4) xyzw;
     velocity (N, 3) m/s; tracked (N,) bool; n_markers, n_cameras (N,) int;
-    residual_mm (N,).
+    residual_mm (N,); update_kind (N,) str: "pose", "views" (single-camera updates through
+    occlusion) or "" (BodyState.update_kind); position_sigma_mm (N,): root of the trace of the
+    reported position covariance (NaN when not tracked).
     """
 
     name: str
@@ -63,6 +66,8 @@ class BodyTrack:
     n_markers: np.ndarray
     n_cameras: np.ndarray
     residual_mm: np.ndarray
+    update_kind: np.ndarray
+    position_sigma_mm: np.ndarray
 
     @property
     def latency_ns(self) -> np.ndarray:
@@ -85,6 +90,9 @@ class BodyTrack:
             n_markers=np.array([int(s.n_markers) for s in states], dtype=np.int64),
             n_cameras=np.array([int(s.n_cameras) for s in states], dtype=np.int64),
             residual_mm=np.array([float(s.residual_mm) for s in states], dtype=np.float64),
+            update_kind=np.array([s.update_kind for s in states], dtype=str).reshape(n),
+            position_sigma_mm=np.array([math.sqrt(s.covariance[0, 0] + s.covariance[1, 1] + s.covariance[2, 2]) * 1e3
+                                        for s in states], dtype=np.float64),
         )
 
 
@@ -339,7 +347,8 @@ def replay_log(
 # ---------------------------------------------------------------- outputs
 
 CSV_HEADER = (
-    "body,tick_ns,time_ns,capture_ns,x,y,z,qx,qy,qz,qw,vx,vy,vz,tracked,n_markers,n_cameras,residual_mm\n"
+    "body,tick_ns,time_ns,capture_ns,x,y,z,qx,qy,qz,qw,vx,vy,vz,tracked,n_markers,n_cameras,residual_mm,"
+    "update_kind,position_sigma_mm\n"
 )
 
 
@@ -350,7 +359,7 @@ def _csv_rows(b: BodyTrack) -> Iterator[str]:
             f"{b.name},{b.tick_ns[i]},{b.time_ns[i]},{b.capture_ns[i]},"
             f"{p[0]:.6f},{p[1]:.6f},{p[2]:.6f},{q[0]:.8f},{q[1]:.8f},{q[2]:.8f},{q[3]:.8f},"
             f"{v[0]:.5f},{v[1]:.5f},{v[2]:.5f},{int(b.tracked[i])},{b.n_markers[i]},{b.n_cameras[i]},"
-            f"{b.residual_mm[i]:.4f}\n"
+            f"{b.residual_mm[i]:.4f},{b.update_kind[i]},{b.position_sigma_mm[i]:.4f}\n"
         )
 
 
@@ -377,12 +386,20 @@ METRIC_COLUMNS = [
 ]
 
 
+def views_fraction(b: BodyTrack) -> float:
+    """Share of a body's tracked outputs kept by single-camera updates (occlusion), 0 when never tracked."""
+    n = int(np.count_nonzero(b.tracked))
+    return float(np.count_nonzero(b.tracked & (b.update_kind == "views")) / n) if n else 0.0
+
+
 def metrics_rows(result: ReplayResult) -> list[dict]:
     rows = []
     for m in result.metrics():
         d = m.as_dict()
         d["latency_p50_ms"] = m.latency_ms["p50"]
         d["latency_p99_ms"] = m.latency_ms["p99"]
+        b = result.bodies[m.name]
+        d["views_fraction"] = views_fraction(b)
         rows.append(d)
     return rows
 

@@ -73,6 +73,7 @@ class TrialResult:
     latency_p99_ms: float
     wall_s: float
     error: str | None = None
+    views_fraction: float = 0.0  # share of tracked outputs kept by single-camera updates (occlusion)
 
 
 def _nanmean(xs: list[float]) -> float:
@@ -83,7 +84,7 @@ def _nanmean(xs: list[float]) -> float:
 
 def run_trial(log: str, point: dict[str, Any], base_overrides: list[str], config: str | None) -> TrialResult:
     """One replay of the log with the grid point's overrides; summarised over bodies."""
-    from visionpos.analysis.replay import replay_log
+    from visionpos.analysis.replay import replay_log, views_fraction
 
     try:
         res = replay_log(log, config, list(base_overrides) + _override_strings(point))
@@ -103,6 +104,7 @@ def run_trial(log: str, point: dict[str, Any], base_overrides: list[str], config
         latency_p50_ms=pct["p50"],
         latency_p99_ms=pct["p99"],
         wall_s=res.wall_s,
+        views_fraction=_nanmean([views_fraction(b) for b in res.bodies.values()]) if res.bodies else 0.0,
     )
 
 
@@ -243,6 +245,7 @@ def table(ranked: list[TrialResult]) -> str:
             rmse=t.position_rmse_mm,
             rot=t.rotation_rmse_deg,
             tracked=t.tracked_fraction,
+            views=t.views_fraction,
             jitter=t.jitter_mm,
             p50=t.latency_p50_ms,
             p99=t.latency_p99_ms,
@@ -255,6 +258,7 @@ def table(ranked: list[TrialResult]) -> str:
         cols += [("rmse", "pos RMSE mm", ".2f"), ("rot", "rot RMSE deg", ".3f")]
     cols += [
         ("tracked", "tracked", ".3f"),
+        ("views", "single-view", ".3f"),
         ("jitter", "jitter mm", ".3f"),
         ("p50", "lat p50 ms", ".2f"),
         ("p99", "lat p99 ms", ".2f"),

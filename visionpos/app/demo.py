@@ -33,7 +33,7 @@ import shutil
 import tempfile
 import time
 from collections import deque
-from typing import Any, Awaitable, Callable, TextIO
+from typing import Any, AsyncIterator, Awaitable, Callable, Protocol, TextIO
 
 import numpy as np
 
@@ -125,6 +125,7 @@ class SimStation:
         self.sent = 0
         self.send_errors = 0
         self.bad_replies = 0
+        self._next_hb = 0  # next heartbeat, server clock (set when streaming starts)
         # the last packets this station sent and the replies it believed, as a sniffer on the
         # network would see them (the robustness benchmark replays them)
         self.sniffed_sent: deque[bytes] = deque(maxlen=64)
@@ -220,32 +221,43 @@ class SimStation:
         )
 
     async def stream(self, stop_ns: int) -> None:
-        """Send every frame at its receive time (server clock), stamped via this station's own clock sync."""
-        next_hb = time.monotonic_ns()
+        """Send every frame at its receive time (server clock), stamped via this station's own clock sync.
+
+        self.frames: a list, or an async iterator of frames made live (run_demo's `live` source)."""
+        self._next_hb = time.monotonic_ns()
+        if hasattr(self.frames, "__aiter__"):
+            async for f in self.frames:
+                if f.recv_ns > stop_ns:
+                    break
+                await self._send_frame(f)
+            return
         for f in self.frames:
             if f.recv_ns > stop_ns:
                 break
-            wait = (f.recv_ns - time.monotonic_ns()) * 1e-9
-            if wait > 0:
-                await asyncio.sleep(wait)
-            now_local = self.station_clock()
-            if self.sync.due(now_local):
-                self._send(self.sync_request(now_local))
-            if time.monotonic_ns() >= next_hb:
-                self._send(self.heartbeat())
-                next_hb += 1_000_000_000
-            # the station reads the exposure on its own clock and converts it with its sync estimate
-            local = f.capture_ns + self.clock_offset_ns
-            est = self.sync.estimator.estimate
-            capture = est.to_server(local) if est is not None else f.capture_ns
-            try:
-                data = P.encode_frame(BlobFrame(f.camera_id, f.seq, capture, f.blobs, self.station_id, f.flags, 0,
-                                                self.session), self.key)
-                self.transport.sendto(data, self.server)
-                self.sniffed_sent.append(data)
-                self.sent += 1
-            except OSError:
-                self.send_errors += 1
+            await self._send_frame(f)
+
+    async def _send_frame(self, f: BlobFrame) -> None:
+        wait = (f.recv_ns - time.monotonic_ns()) * 1e-9
+        if wait > 0:
+            await asyncio.sleep(wait)
+        now_local = self.station_clock()
+        if self.sync.due(now_local):
+            self._send(self.sync_request(now_local))
+        if time.monotonic_ns() >= self._next_hb:
+            self._send(self.heartbeat())
+            self._next_hb += 1_000_000_000
+        # the station reads the exposure on its own clock and converts it with its sync estimate
+        local = f.capture_ns + self.clock_offset_ns
+        est = self.sync.estimator.estimate
+        capture = est.to_server(local) if est is not None else f.capture_ns
+        try:
+            data = P.encode_frame(BlobFrame(f.camera_id, f.seq, capture, f.blobs, self.station_id, f.flags, 0,
+                                            self.session), self.key)
+            self.transport.sendto(data, self.server)
+            self.sniffed_sent.append(data)
+            self.sent += 1
+        except OSError:
+            self.send_errors += 1
 
     def close(self) -> None:
         if self.transport is not None:
@@ -277,6 +289,19 @@ class Collector:
 # ---------------------------------------------------------------- the run
 
 
+class LiveSource(Protocol):
+    """An arena driven from outside (run_demo's `live`), e.g. by ArduPilot SITL's true pose."""
+
+    stopped_ns: int | None  # server clock when the streaming was told to stop; None while it runs
+
+    def prepare(self, scenario: Any) -> Any:
+        """The scenario to run: the given one with live trajectories in place of the simulated ones."""
+
+    def frames(self, camera_index: int, shift_ns: int) -> AsyncIterator[BlobFrame]:
+        """One camera's frames, made as the run goes; capture_ns/recv_ns on the server clock (sim time +
+        shift_ns). Ends when the run is told to stop."""
+
+
 @dataclasses.dataclass
 class DemoContext:
     """What a `during` observer of run_demo can see: the live parts of the running demo."""
@@ -291,7 +316,8 @@ class DemoContext:
 
 async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | None,
                    record: str | None = None,
-                   during: Callable[[DemoContext], Awaitable[None]] | None = None) -> dict[str, Any]:
+                   during: Callable[[DemoContext], Awaitable[None]] | None = None,
+                   live: "LiveSource | None" = None) -> dict[str, Any]:
     """Run everything for duration_s seconds of streaming; returns the summary dict.
 
     record: MCAP path; the server records every station packet and output, and the
@@ -299,6 +325,9 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     `visionpos tune` work on the demo's session.
     during: awaited alongside the streaming (it starts when the stations do), e.g. the
     robustness benchmark's attacker; the demo waits for both.
+    live: an externally driven arena (`visionpos sitl`): it replaces the scenario's trajectories
+    and makes each camera's frames while the run goes (nothing is simulated up front); the
+    streaming ends when it says so (its `stopped_ns`) or at the scenario's end.
     """
     from bridge import Bridge
     from bridge.fake_autopilot import FakeAutopilot, decode_pose, trajectory_truth
@@ -308,7 +337,9 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
 
     t_wall0 = time.perf_counter()
     sc = scenario_from_arena(arena)
-    sim = simulate(sc)
+    if live is not None:
+        sc = live.prepare(sc)
+    sim = simulate(sc) if live is None else None
     sim_s = time.perf_counter() - t_wall0
     names = [b.name for b in arena.bodies]
     tracked_names = [n for n in names if any(sb.name == n for sb in sc.bodies)]
@@ -331,12 +362,15 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     stations: list[SimStation] = []
     try:
         for v in bridge.vehicles:
+            if live is not None:  # a real autopilot is on the link: a fake one beside it would answer as it
+                autopilots[v.cfg.body] = (None, v)
+                continue
             ap = FakeAutopilot(f"udpout:127.0.0.1:{v.cfg.endpoint.port}", sysid=v.cfg.sysid,
                                signing_key=v.cfg.signing_key)
             autopilots[v.cfg.body] = (ap.start(), v)
 
         rng = random.Random(sc.seed)
-        by_cam = sim.frames_by_camera()
+        by_cam = sim.frames_by_camera() if sim is not None else {}
         timing = {t.camera_id: t for t in sc.timings}
         for cam in sc.cameras:
             sid = timing[cam.id].station_id
@@ -352,6 +386,9 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
         for s in stations:
             s.frames = [dataclasses.replace(f, capture_ns=f.capture_ns + shift, recv_ns=f.recv_ns + shift)
                         for f in sorted(s.frames, key=lambda f: f.recv_ns)]
+        if live is not None:
+            for i, s in enumerate(stations):
+                s.frames = live.frames(i, shift)
         t_start = sc.start_ns + shift
         t_stop = sc.end_ns + shift
         for body, (ap, _) in autopilots.items():  # the fake autopilots' sensors follow the simulated truth
@@ -364,6 +401,8 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
             tasks.append(asyncio.create_task(during(DemoContext(arena, server, stations, bridge, settings.key,
                                                                 duration_s))))
         await asyncio.gather(*tasks)
+        if live is not None and live.stopped_ns is not None:
+            t_stop = min(t_stop, live.stopped_ns)
         await asyncio.sleep(0.05)  # the last frames' ticks and sends
         status.cancel()
         try:
@@ -376,20 +415,22 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
         for s in stations:
             s.close()
         if recorder is not None and "shift" in locals():
-            _record_truth(recorder, sc, shift)
+            _record_truth(recorder, sc, shift, t_stop - shift if "t_stop" in locals() else sc.end_ns)
         await server.stop()
         for ap, _ in autopilots.values():
-            ap.close()
+            if ap is not None:
+                ap.close()
     wall = time.perf_counter() - t_wall0
 
     return _summary(arena, sc, shift, t_start, t_stop, collector, bridge, autopilots, stations, health,
                     tracked_names, wall, sim_s, decode_pose)
 
 
-def _record_truth(recorder, sc, shift: int) -> None:
-    """The simulator's truth at its truth rate, on the server clock (as `visionpos sim` records it)."""
+def _record_truth(recorder, sc, shift: int, end_ns: int) -> None:
+    """The simulator's truth at its truth rate up to end_ns (sim time), on the server clock (as `visionpos sim`
+    records it)."""
     step = int(round(1e9 / sc.truth_rate_hz))
-    times = np.arange(sc.start_ns, sc.end_ns + 1, step, dtype=np.int64)
+    times = np.arange(sc.start_ns, min(end_ns, sc.end_ns) + 1, step, dtype=np.int64)
     for b in sc.bodies:
         pos, quat = sc.truth_at(b.name, times)
         for ti, p, q in zip(times, pos, quat):
@@ -472,8 +513,8 @@ def _summary(arena, sc, shift, t_start, t_stop, collector: Collector, bridge, au
         }
         if name in autopilots:
             ap, link = autopilots[name]
-            poses = ap.messages(("VISION_POSITION_ESTIMATE", "ODOMETRY"))
-            rep = ap.report()
+            poses = ap.messages(("VISION_POSITION_ESTIMATE", "ODOMETRY")) if ap is not None else []
+            rep = ap.report() if ap is not None else {"rejected_signature": None}
             st = link.stats()
             d["mavlink_messages"] = len(poses)
             d["mavlink_signed"] = link.cfg.signing_key is not None

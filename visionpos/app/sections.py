@@ -5,8 +5,10 @@ renders docs/configuration.md; the core's config layer cannot import the stages 
 """
 
 import bridge.config  # noqa: F401  vehicles, pose_stream
+import bridge.foxglove_live  # noqa: F401  foxglove
 import bridge.natnet  # noqa: F401  natnet
 import bridge.vrpn  # noqa: F401  vrpn
+import visionpos.app.sitl  # noqa: F401  sitl
 import visionpos.fusion.settings  # noqa: F401  fusion
 import visionpos.server.settings  # noqa: F401  server
 import visionpos.sim.scenario  # noqa: F401  sim

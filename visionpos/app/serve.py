@@ -17,29 +17,48 @@ from visionpos.server.settings import ServerSettings
 
 
 def bridge_sinks(arena: ArenaConfig) -> list[Any]:
-    """The bridge (MAVLink per vehicle + pose stream), the VRPN and the NatNet servers, as the arena configures them."""
-    sinks: list[Any] = []
+    """The arena's outputs as sinks: the MAVLink bridge (one sender thread per vehicle) on the loop, and the
+    pose stream, VRPN, NatNet and Foxglove servers behind one off-loop dispatcher (bridge/outputs.py)."""
+    network: list[Any] = []
+    if arena.raw.get("pose_stream") is not None:
+        from bridge.config import parse_pose_stream
+        from bridge.pose_stream import PoseStream
+
+        ps = parse_pose_stream(arena)
+        if ps is not None:
+            network.append(PoseStream(ps))
     if arena.raw.get("vrpn") is not None:
         from bridge.vrpn import VrpnServer, parse_vrpn
 
         vrpn = parse_vrpn(arena)
         if vrpn is not None:
-            sinks.append(VrpnServer(vrpn))
+            network.append(VrpnServer(vrpn))
     if arena.raw.get("natnet") is not None:
         from bridge.natnet import NatNetServer
 
         natnet = NatNetServer.from_arena(arena)
         if natnet is not None:
-            sinks.append(natnet)
-    if not (arena.raw.get("vehicles") or arena.raw.get("pose_stream")):
-        return sinks
-    try:
-        from bridge import Bridge
-    except ImportError as e:
-        raise ConfigError(arena.source, "vehicles",
-                          f"the config asks for vehicle outputs but the bridge package cannot be imported ({e}); "
-                          "install visionpos completely or remove the vehicles/pose_stream sections") from None
-    return [Bridge(arena), *sinks]
+            network.append(natnet)
+    if arena.raw.get("foxglove") is not None:
+        from bridge.foxglove_live import FoxgloveServer
+
+        fox = FoxgloveServer.from_arena(arena)
+        if fox is not None:
+            network.append(fox)
+    sinks: list[Any] = []
+    if arena.raw.get("vehicles"):
+        try:
+            from bridge import Bridge
+        except ImportError as e:
+            raise ConfigError(arena.source, "vehicles",
+                              f"the config asks for vehicle outputs but the bridge package cannot be imported ({e}); "
+                              "install visionpos completely or remove the vehicles section") from None
+        sinks.append(Bridge(arena, {"pose_stream": False}))  # the pose stream goes off the loop with the others
+    if network:
+        from bridge.outputs import OffLoopOutputs
+
+        sinks.append(OffLoopOutputs(network))
+    return sinks
 
 
 async def serve(arena: ArenaConfig, settings: ServerSettings, host: str | None = None, record: str | Path | None = None,

@@ -16,6 +16,8 @@ GROUPS: dict[str, str] = {
     "calibration": "calibration",
     "replay": "replay",
     "robustness": "robustness",
+    "planner": "planner",
+    "sitl": "sitl",
     "backchannel": "backchannel",
 }
 
@@ -64,6 +66,34 @@ GOALS: list[Goal] = [
         "3 m/s: position RMSE (mm) vs naive grouping",
         "fusion_fast_pos_rmse_mm_naive",
     ),
+    Goal("fusion_flights_slalom_pos_over_crb", "<=", 1.2, "slalom flight: position RMSE / CRB along the path"),
+    Goal("fusion_flights_slalom_rot_over_crb", "<=", 1.0, "slalom flight: rotation RMSE / CRB along the path"),
+    Goal("fusion_flights_slalom_max_err_mm", "<=", 4.0, "slalom flight: maximum position error (mm)"),
+    Goal("fusion_flights_slalom_max_gap_periods", "<=", 2.0, "slalom flight: longest time with no accepted "
+         "measurement while >= 2 cameras see >= 3 markers (frame periods)"),
+    Goal("fusion_flights_dash_pos_over_crb", "<=", 1.2, "dash flight: position RMSE / CRB along the path"),
+    Goal("fusion_flights_dash_rot_over_crb", "<=", 1.0, "dash flight: rotation RMSE / CRB along the path"),
+    Goal("fusion_flights_dash_max_err_mm", "<=", 4.0, "dash flight: maximum position error (mm)"),
+    Goal("fusion_flights_dash_max_gap_periods", "<=", 2.0, "dash flight: longest time with no accepted "
+         "measurement while >= 2 cameras see >= 3 markers (frame periods)"),
+    Goal("fusion_occlusion_one_tracked_fraction", ">=", 1.0, "occlusion, one camera sees the body for 2 s: tracked "
+         "fraction"),
+    Goal("fusion_occlusion_one_rmse_over_crb", "<=", 1.5, "occlusion, one camera: position RMSE / its single-snapshot "
+         "Cramer-Rao bound"),
+    Goal("fusion_occlusion_one_swaps", "<=", 0, "occlusion, one camera: filter resets, losses, reacquisitions"),
+    Goal("fusion_occlusion_one_nees_over_hi", "<=", 1.0, "occlusion, one camera: position NEES / upper end of its "
+         "95 % chi-square interval"),
+    Goal("fusion_occlusion_one_nees_over_lo", ">=", 1.0, "occlusion, one camera: position NEES / lower end of its "
+         "95 % chi-square interval"),
+    Goal("fusion_occlusion_two_tracked_fraction", ">=", 1.0, "occlusion, two cameras see 2 different markers each: "
+         "tracked fraction"),
+    Goal("fusion_occlusion_two_rmse_over_crb", "<=", 1.5, "occlusion, two cameras x 2 markers: position RMSE / "
+         "their snapshot Cramer-Rao bound"),
+    Goal("fusion_occlusion_two_swaps", "<=", 0, "occlusion, two cameras x 2 markers: resets, losses, reacquisitions"),
+    Goal("fusion_occlusion_two_nees_over_hi", "<=", 1.0, "occlusion, two cameras x 2 markers: position NEES / upper "
+         "end of its 95 % interval"),
+    Goal("fusion_occlusion_two_nees_over_lo", ">=", 1.0, "occlusion, two cameras x 2 markers: position NEES / lower "
+         "end of its 95 % interval"),
     Goal("fusion_latency_p99_ms", "<=", 2.0, "processing latency per packet p99 (ms), 4 cams x 100 Hz x 2 bodies"),
     Goal("fusion_max_packets_per_s", ">=", 3000, "sustained packets/s on one core, 3 bodies"),
     Goal("bridge_rate_hz_min", ">=", 49.5, "MAVLink rate per vehicle (Hz), default 50"),
@@ -83,11 +113,28 @@ GOALS: list[Goal] = [
     Goal("calib_arena8_rot_err_deg_max", "<=", 0.05, "wand calibration, arena8: orientation error (deg)"),
     Goal("calib_arena8_wand_std_mm", "<=", 0.5, "wand calibration, arena8: wand-length std (mm)"),
     Goal("calib_ba_seconds_8cam_3000", "<=", 30.0, "bundle adjustment, 8 cameras x 3000 frames (CPU s)"),
+    Goal("calib_offsets_err_ms_max", "<=", 0.2, "wand calibration, thesis: clock offsets of +-20 and +-50 ms, "
+         "error (ms)"),
+    Goal("calib_offsets20_center_err_ratio", "<=", 1.1, "wand calibration, thesis: camera centre error with "
+         "+-20 ms clock offsets / without ('as accurate')"),
+    Goal("calib_offsets20_rot_err_ratio", "<=", 1.1, "wand calibration, thesis: orientation error with "
+         "+-20 ms clock offsets / without ('as accurate')"),
+    Goal("calib_wand_length_err_mm_max", "<=", 0.3, "wand check: measured AB, BC of a wand 1 mm off the "
+         "configured one (mm)"),
     Goal("replay_speed_x_cpu_thesis", ">=", 20.0, "replay speed, thesis arena (x real time)"),
+    Goal("planner_thesis_marker_ratio", "<=", 1.2, "planner, thesis: measured marker RMS / predicted bound"),
+    Goal("planner_thesis_marker_ratio", ">=", 0.8, "planner, thesis: measured marker RMS / predicted bound"),
+    Goal("planner_arena8_marker_ratio", "<=", 1.2, "planner, arena8: measured marker RMS / predicted bound"),
+    Goal("planner_arena8_marker_ratio", ">=", 0.8, "planner, arena8: measured marker RMS / predicted bound"),
+    Goal("planner_thesis_body_pos_ratio", "<=", 1.2, "planner, thesis quad: simulated pose RMS / predicted bound"),
+    Goal("planner_thesis_body_pos_ratio", ">=", 0.8, "planner, thesis quad: simulated pose RMS / predicted bound"),
     Goal("robustness_packets_thrown", ">=", 1_000_000, "hostile packets thrown at the live demo, all attacks"),
     Goal("robustness_cameras_blinded", "<=", 0, "cameras blinded under attack"),
     Goal("robustness_tracked_fraction_min", ">=", 0.99, "tracked fraction under the worst attack"),
     Goal("robustness_rmse_over_reference_max", "<=", 1.1, "position RMSE under attack / without (accuracy unchanged)"),
     Goal("robustness_rss_growth_mb_max", "<=", 10.0, "RSS growth under attack (MB)"),
     Goal("robustness_recording_growth_pct_max", "<=", 1.0, "recording size vs the run without attack (%)"),
+    Goal("sitl_flight_completed", ">=", 1, "ArduPilot SITL on visionpos: the scripted flight completes"),
+    Goal("sitl_ekf_horizontal_error_p99_mm", "<=", 20.0, "ArduPilot SITL: EKF horizontal position error p99 (mm)"),
+    Goal("sitl_failsafe_messages", "<=", 0, "ArduPilot SITL: failsafe / lane-switch messages, uncommanded modes"),
 ]

@@ -353,7 +353,7 @@ class _VrpnClient(_Listener):
                 del buf[:pos]
 
 
-SERVER_THREADS = ("mavlink-", "natnet-", "vrpn-server")  # the bridge's and the outputs' own threads
+SERVER_THREADS = ("mavlink-", "natnet-", "vrpn-server", "outputs-dispatch")  # the bridge's and the outputs' own threads
 
 
 def _server_threads_cpu_s() -> dict[int, float]:
@@ -378,11 +378,15 @@ async def _client_counts(proc) -> dict[str, float]:
 
 
 def _clients_main(pose_port: int, natnet_command_port: int, vrpn_port: int, body: str) -> None:
-    """The client process: one client per output; answers each line on stdin with the counts so far
-    (JSON), stops at end of input."""
-    clients = {"pose_stream": _PoseStreamListener(pose_port).start(),
-               "natnet": _NatNetClient(natnet_command_port).start(),
-               "vrpn": _VrpnClient(vrpn_port, body).start()}
+    """The client process: one client per output whose port is not 0; answers each line on stdin with
+    the counts so far (JSON), stops at end of input."""
+    clients = {}
+    if pose_port:
+        clients["pose_stream"] = _PoseStreamListener(pose_port).start()
+    if natnet_command_port:
+        clients["natnet"] = _NatNetClient(natnet_command_port).start()
+    if vrpn_port:
+        clients["vrpn"] = _VrpnClient(vrpn_port, body).start()
     print("ready", flush=True)
     for _ in sys.stdin:
         print(json.dumps({"t": time.perf_counter(), **{k: c.frames for k, c in clients.items()}}), flush=True)
@@ -397,11 +401,15 @@ def _output_overrides(pose_port: int, natnet_cmd: int, natnet_data: int) -> list
             "vrpn.host=127.0.0.1", "vrpn.port=0"]
 
 
-def _demo_run(arena, duration_s: float, outputs: bool) -> dict[str, Any]:
+ALL_OUTPUTS = ("pose_stream", "natnet", "vrpn")
+
+
+def _demo_run(arena, duration_s: float, outputs: tuple[str, ...]) -> dict[str, Any]:
     """One live demo run; measures on the server's loop thread between OUTPUT_SETTLE_S and OUTPUT_TAIL_S
     before the end: its CPU time per station packet, output ticks/s and, with outputs, each client's frames/s."""
     from bridge.config import parse_pose_stream
     from bridge.natnet import NatNetServer
+    from bridge.outputs import OffLoopOutputs
     from bridge.pose_stream import PoseStream
     from bridge.vrpn import VrpnServer, parse_vrpn
     from visionpos.app.demo import run_demo
@@ -413,17 +421,18 @@ def _demo_run(arena, duration_s: float, outputs: bool) -> dict[str, Any]:
         t_end = time.monotonic() + ctx.duration_s - OUTPUT_TAIL_S
         sinks, clients = [], None
         if outputs:
-            pose = PoseStream(parse_pose_stream(arena))
-            natnet = NatNetServer.from_arena(arena)
-            vrpn = VrpnServer(parse_vrpn(arena))
-            sinks = [pose, natnet, vrpn]
+            pose = PoseStream(parse_pose_stream(arena)) if "pose_stream" in outputs else None
+            natnet = NatNetServer.from_arena(arena) if "natnet" in outputs else None
+            vrpn = VrpnServer(parse_vrpn(arena)) if "vrpn" in outputs else None
+            sinks = [OffLoopOutputs([s for s in (pose, natnet, vrpn) if s is not None])]  # as app/serve.py does
             await asyncio.to_thread(lambda: [s.start() for s in sinks])  # off the loop: nothing may delay a tick
             # the server calls every sink in its list at each tick; added between two ticks (this is its loop)
             server.sinks[0:0] = sinks
             # the clients in a process of their own, as they would be: they must not share this one's GIL
             clients = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "visionpos.benchmarks.bridge", str(pose.cfg.destinations[0][1]),
-                str(natnet.command_port), str(vrpn.port), arena.bodies[0].name,
+                sys.executable, "-m", "visionpos.benchmarks.bridge",
+                str(pose.cfg.destinations[0][1] if pose else 0), str(natnet.command_port if natnet else 0),
+                str(vrpn.port if vrpn else 0), arena.bodies[0].name,
                 stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE)
             await clients.stdout.readline()  # "ready"
         try:
@@ -472,7 +481,7 @@ def bench_outputs(quick: bool) -> tuple[dict[str, float], list[dict]]:
     runs: dict[bool, list[dict]] = {False: [], True: []}
     for _ in range(pairs):
         for outputs in (False, True):
-            runs[outputs].append(_demo_run(arena, duration_s, outputs))
+            runs[outputs].append(_demo_run(arena, duration_s, ALL_OUTPUTS if outputs else ()))
     off, on = runs[False], runs[True]
     cost_off = float(np.median([r["cpu_us_per_packet"] for r in off]))
     cost_on = float(np.median([r["cpu_us_per_packet"] for r in on]))

@@ -9,6 +9,13 @@ calibrated cameras); the same triangulation with the *true* cameras gives its
 noise floor, and the excess sqrt(std^2 - floor^2) is what the calibration adds.
 Then the ground step on a simulated L-frame, compared with the truth with no
 alignment at all.
+
+Issue 18: the thesis wave again with cameras whose clocks are off by +-20 ms and by
++-50 ms (sim.cameras.ID.clock_error_ms): the estimated offsets against the true ones
+(the clock errors the simulator applied, averaged over the wave, against the reference
+camera's), and the camera poses against those of the same wave without offsets; and a
+wand whose middle marker sits 1 mm off the configured one (AB 55, BC 102 mm, AC 157 mm
+trusted) measured by the wand check.
 """
 
 from __future__ import annotations
@@ -20,14 +27,16 @@ import numpy as np
 from visionpos.benchmarks import BenchResult
 
 
-def _one(name: str, duration: float, align: str = "interpolate") -> tuple[dict[str, float], object, object]:
+def _one(name: str, duration: float, align: str = "interpolate", extra: tuple[str, ...] = (),
+         spec=None) -> tuple[dict[str, float], object, object]:
     from visionpos.calibration.bundle import calibrate_wand, compare_cameras, wand_lengths
+    from visionpos.calibration.wand import WandSpec
     from visionpos.sim import load_scenario, simulate
 
-    sc = load_scenario(name, [f"sim.duration={duration}", "sim.centroid_noise_px=0.2"], session="wand")
+    sc = load_scenario(name, [f"sim.duration={duration}", "sim.centroid_noise_px=0.2", *extra], session="wand")
     res = simulate(sc)
     t0 = time.perf_counter()
-    cal = calibrate_wand(res.frames, list(sc.cameras), align=align)
+    cal = calibrate_wand(res.frames, list(sc.cameras), spec or WandSpec(), align=align)
     total = time.perf_counter() - t0
     ce, re, scale = compare_cameras(cal.cameras, list(sc.cameras))
     L = cal.length_stats()
@@ -51,7 +60,44 @@ def _one(name: str, duration: float, align: str = "interpolate") -> tuple[dict[s
         "ba_wall_seconds": float(cal.timings["bundle_s"]),
         "total_seconds": float(total),
     }
+    # clock offsets against the truth: each camera's stamp error over the wave, minus the reference's
+    err = []
+    for v, cam in enumerate(sc.cameras):
+        t = cal.data.tracks[v][0]
+        err.append(float(np.mean(sc.clocks[cam.id].residual_ns(t))) if len(t) else 0.0)
+    err = np.array(err) - err[0]
+    m["offset_err_ms_max"] = float(np.abs(cal.offsets_ns - err).max() / 1e6)
     return m, cal, sc
+
+
+def _offsets(dur: float, base: dict[str, float]) -> tuple[dict[str, float], list[str]]:
+    """Clock offsets of +-20 and +-50 ms on the thesis wave; a wand with its middle marker 1 mm off."""
+    from visionpos.calibration.wand import WandSpec
+
+    out: dict[str, float] = {}
+    rows = []
+    for ms in (20, 50):
+        # cameras 2..4 off by +ms, -ms, +ms/2 against camera 1, which is off by -ms/2 itself
+        errs = {1: -ms / 2, 2: ms, 3: -ms, 4: ms / 2}
+        m, _, _ = _one("thesis", dur, extra=tuple(f"sim.cameras.{k}.clock_error_ms={v}" for k, v in errs.items()))
+        out[f"calib_offsets{ms}_err_ms_max"] = m["offset_err_ms_max"]
+        out[f"calib_offsets{ms}_center_err_mm_max"] = m["center_err_mm_max"]
+        out[f"calib_offsets{ms}_rot_err_deg_max"] = m["rot_err_deg_max"]
+        out[f"calib_offsets{ms}_center_err_ratio"] = m["center_err_mm_max"] / base["center_err_mm_max"]
+        out[f"calib_offsets{ms}_rot_err_ratio"] = m["rot_err_deg_max"] / base["rot_err_deg_max"]
+        rows.append(f"| +-{ms} ms | {m['offset_err_ms_max']:.3f} | {m['center_err_mm_max']:.2f} "
+                    f"({base['center_err_mm_max']:.2f}) | {m['rot_err_deg_max']:.4f} ({base['rot_err_deg_max']:.4f}) |")
+    out["calib_offsets_err_ms_max"] = max(out["calib_offsets20_err_ms_max"], out["calib_offsets50_err_ms_max"])
+    # the wand: true AB 55, BC 102 mm; configured 54 / 103 with AC (157 mm) the trusted length
+    _, cal, _ = _one("thesis", dur, extra=("sim.props.0.markers=[[0,0,0],[0.055,0,0],[0.157,0,0]]",),
+                     spec=WandSpec(0.054, 0.103, known="ac"))
+    got = cal.check.lengths["ac"]
+    out["calib_wand_length_err_mm_max"] = max(abs(got["ab"][0] - 0.055), abs(got["bc"][0] - 0.102)) * 1000
+    out["calib_wand_mismatch_reported"] = float(cal.check.mismatch)
+    rows.append(f"| wand AB 55 / BC 102 mm, configured 54 / 103 | measured AB {got['ab'][0] * 1000:.2f} +- "
+                f"{got['ab'][1] * 1000:.2f} mm, BC {got['bc'][0] * 1000:.2f} mm, mismatch "
+                f"{'reported' if cal.check.mismatch else 'not reported'} | | |")
+    return out, rows
 
 
 def wand_length_crb(cameras, pixels: np.ndarray, sigma_px: float) -> float:
@@ -108,6 +154,12 @@ def run(quick: bool = False) -> BenchResult:
         if key == "arena8":
             n = int(m["time_steps"])
             out.metrics[f"calib_ba_seconds_8cam_{int(round(n, -2))}"] = round(m["ba_seconds"], 3)
+    thesis_base = rows[0][1]
+    offs, off_rows = _offsets(dur, thesis_base)
+    out.metrics.update({k: round(v, 5) for k, v in offs.items()})
+    out.tables[f"Clock offsets and the wand check (thesis, {dur:.0f} s wave, 0.2 px noise)"] = "\n".join(
+        ["| clock offsets | offset error max (ms) | centre err max (mm) (no offsets) | rot err max (deg) "
+         "(no offsets) |", "|---|---|---|---|", *off_rows])
     # the effect of time alignment: nearest frame within 2 ms instead of interpolation
     m, _, _ = _one("thesis", dur, align="nearest")
     for k in ("center_err_mm_max", "rot_err_deg_max", "wand_std_mm", "rms_px_max"):

@@ -14,9 +14,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from visionpos.analysis.metrics import position_jitter
-from visionpos.benchmarks import BenchResult
+from visionpos.benchmarks import BenchResult, fusion_flights
+from visionpos.benchmarks.fusion_occlusion import run_occlusion
 from visionpos.config.arena import ArenaConfig
 from visionpos.fusion.pipeline import FusionPipeline
+from visionpos.geometry.triangulation import pose_crb
 from visionpos.messages import BlobFrame
 
 
@@ -100,29 +102,6 @@ def errors(rep: Replay, truth_at, name: str, skip_s: float = 0.5) -> dict[str, f
     }
 
 
-def pose_crb(
-    cameras, markers_world: np.ndarray, origin: np.ndarray, sigma_px: float, visible: np.ndarray
-) -> np.ndarray:
-    """Cramer-Rao bound (6, 6) of a rigid-body pose [p, world rotation vector] from one snapshot.
-
-    markers_world: (M, 3); origin: (3,) body origin; visible: (M, V) which
-    camera sees which marker. Per-marker information from
-    geometry.triangulation.triangulation_crb, chained through d marker / d pose =
-    [I, -skew(marker - origin)].
-    """
-    from visionpos.geometry.triangulation import triangulation_crb
-
-    C = triangulation_crb(list(cameras), markers_world, sigma_px, visible)  # (M, 3, 3)
-    F = np.zeros((6, 6))
-    for Ci, x, ok in zip(C, markers_world, visible.sum(1) >= 2):
-        if not ok or not np.isfinite(Ci).all():
-            continue
-        r = x - origin
-        J = np.hstack([np.eye(3), -np.array([[0, -r[2], r[1]], [r[2], 0, -r[0]], [-r[1], r[0], 0]])])
-        F += J.T @ np.linalg.inv(Ci) @ J
-    return np.linalg.inv(F)
-
-
 def _static(quick: bool, res: BenchResult) -> None:
     from visionpos.sim import load_scenario, simulate
 
@@ -151,7 +130,7 @@ def _static(quick: bool, res: BenchResult) -> None:
         for b, m in zip(tr.body, tr.marker):
             if b >= 0 and sc.bodies[b].name == "quad":
                 visible[m, v] = True
-    crb = pose_crb(sc.cameras, mw, p_true[0], sigma, visible)
+    crb = pose_crb(sc.cameras, mw, p_true[0], sigma, visible & (visible.sum(1) >= 2)[:, None])  # triangulated
     crb_pos_mm = float(np.sqrt(np.trace(crb[:3, :3])) * 1e3)
     crb_rot_deg = float(np.degrees(np.sqrt(np.trace(crb[3:, 3:]))))
     rows = []
@@ -439,7 +418,9 @@ def run(quick: bool = False) -> BenchResult:
     res = BenchResult()
     _static(quick, res)
     _fast(quick, res)
+    fusion_flights.run(quick, res)
     _arena8(quick, res)
+    run_occlusion(quick, res)
     _latency(quick, res)
     _throughput(quick, res)
     _ingest(quick, res)

@@ -82,7 +82,7 @@ def _sampson_distance(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarr
     num = np.sum(h2 * Ex1, axis=1)
     den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.abs(num) / np.sqrt(den)
+        return np.abs(num) / np.sqrt(den)  # same as wand.sampson_distance
 
 
 class DegenerateMotion(CalibrationError):
@@ -145,7 +145,9 @@ def pair_pose(
     good = np.isfinite(s) & (s > 0) & (z1 > 0).all(axis=1) & (z2 > 0).all(axis=1)
     good &= (np.nan_to_num(res, nan=np.inf) < 3 * threshold).all(axis=(1, 2))
     if good.sum() < 8:
-        raise CalibrationError("pair: too few consistent wand frames after the essential matrix")
+        raise CalibrationError(
+            f"only {int(good.sum())} of {n} shared wand frames agree with one relative pose (need 8)"
+        )
     med = np.median(s[good])
     good &= np.abs(s / med - 1) < 0.05  # thesis phase 3 dropped frames whose L_AC was off by > 1 %
     lam = float(np.mean(s[good]))  # Eq. 2.18
@@ -183,7 +185,8 @@ def undistort_wand(data: WandData) -> np.ndarray:
 
 
 def initial_poses(
-    data: WandData, spec: WandSpec, ref: int = 0, min_shared: int = 40, progress: ProgressFn = _no_progress
+    data: WandData, spec: WandSpec, ref: int = 0, min_shared: int = 40, progress: ProgressFn = _no_progress,
+    hint: str = "",
 ) -> tuple[np.ndarray, np.ndarray, list[PairPose]]:
     """Pairwise essential matrices + Eq. 2.18 scale, chained by a spanning tree.
 
@@ -238,6 +241,7 @@ def initial_poses(
                 raise CalibrationError(
                     f"degenerate wand motion: cameras {names[p.i]} and {names[p.j]} saw the wand markers in (nearly) "
                     "one plane; wave the wand through the whole volume, up and down as well as sideways, tilting it"
+                    + _other_causes(p.inliers, p.shared, hint)
                 )
             Rab, tab = (p.R, p.t) if p.i == a else (p.R.T, -p.R.T @ p.t)
             R[b] = Rab @ R[a]
@@ -253,6 +257,7 @@ def initial_poses(
                 raise CalibrationError(
                     "degenerate wand motion: " + "; ".join(degenerate) + ". Wave the wand through the whole "
                     "tracking volume, up and down as well as sideways, tilting and turning it"
+                    + _other_causes(None, None, hint)
                 )
             detail = "".join(
                 f"\n  {names[v]}: {int(shared[v, done].max())} wand frames shared with a connected camera"
@@ -262,10 +267,19 @@ def initial_poses(
             raise CalibrationError(
                 f"camera(s) {', '.join(names[v] for v in missing)} cannot be connected to "
                 f"{', '.join(names[v] for v in sorted(done))} (need >= {min_shared} wand frames seen together):"
-                f"{detail}{why}\nwave the wand where each of them and at least one connected camera "
-                "see it at the same time"
+                f"{detail}{why}\nlikely causes: too few frames where each of them and a connected camera see "
+                "the wand at the same time (wave it where their views overlap); wand lengths that do not match "
+                "the wand (calibration.wand, --ab/--bc); wrong intrinsics for the camera" + hint
             )
     return R, t, used
+
+
+def _other_causes(consistent: int | None, shared: int | None, hint: str) -> str:
+    """The causes besides the motion that make a pair's wand points look degenerate."""
+    frac = (f" (only {consistent} of {shared} shared frames were consistent)"
+            if consistent is not None and shared else "")
+    return (f"\nif the wand did sweep the volume{frac}, other likely causes: wand lengths that do not match the "
+            "wand (calibration.wand, --ab/--bc); wrong intrinsics" + hint)
 
 
 def initial_wand(
@@ -355,6 +369,8 @@ class _Problem:
         spec: WandSpec,
         ref: int,
         refine_intrinsics: bool,
+        velocity: np.ndarray | None = None,
+        estimate_ratio: bool = False,
     ):
         F, V = pixels.shape[:2]
         self.F, self.V, self.ref = F, V, ref
@@ -363,7 +379,10 @@ class _Problem:
         self.f_o, self.v_o, self.k_o = f_o, v_o, k_o
         self.uv = pixels[f_o, v_o, k_o]
         self.M = len(f_o)
-        self.L = spec.offsets[k_o]
+        self.spec = spec
+        self.estimate_ratio = estimate_ratio
+        # wand points move during a clock offset: X(t - eps) = X(t) - eps * velocity
+        self.vel = None if velocity is None else velocity[f_o, k_o]  # (M, 3) m/s
         self.R0 = R0.copy()
         self.u0 = u0.copy()
         self.e1, self.e2 = _complement(u0)
@@ -377,19 +396,25 @@ class _Problem:
         self.f_cam = np.array([[c.model.fx, c.model.fy] for c in cameras])
         self.c_cam = np.array([[c.model.cx, c.model.cy] for c in cameras])
         self.refine_intrinsics = refine_intrinsics
-        # parameter layout: [cams except ref: rotvec(3) t(3)] [intrinsics: fx fy cx cy] [frames: A(3) a b]
+        # parameter layout: [cams except ref: rotvec(3) t(3)] [intrinsics: fx fy cx cy] [clock offsets
+        # except ref (s)] [wand ratio AB/AC] [frames: A(3) a b]
         self.cam_index = np.full(V, -1)
         others = [v for v in range(V) if v != ref]
         self.cam_index[others] = np.arange(len(others))
         self.n_cam = 6 * len(others)
         self.n_intr = 4 * V if refine_intrinsics else 0
-        self.off_frames = self.n_cam + self.n_intr
+        self.off_offsets = self.n_cam + self.n_intr
+        self.n_off = len(others) if velocity is not None else 0
+        self.off_ratio = self.off_offsets + self.n_off
+        self.off_frames = self.off_ratio + (1 if estimate_ratio else 0)
         self.n = self.off_frames + 5 * F
         self.x0 = np.zeros(self.n)
         ci = self.cam_index >= 0
         self.x0[: self.n_cam] = np.column_stack([np.zeros((len(others), 3)), t0[ci]]).ravel()
         if refine_intrinsics:
-            self.x0[self.n_cam : self.off_frames] = np.column_stack([self.f_cam, self.c_cam]).ravel()
+            self.x0[self.n_cam : self.off_offsets] = np.column_stack([self.f_cam, self.c_cam]).ravel()
+        if estimate_ratio:
+            self.x0[self.off_ratio] = spec.ratio
         self.t_ref = t0[ref].copy()
         fr = np.zeros((F, 5))
         fr[:, :3] = A0
@@ -413,6 +438,13 @@ class _Problem:
             icols = self.n_cam + 4 * self.v_o[:, None] + np.arange(4)
             blocks_r.append(np.repeat(rows2[:, :, None], 4, axis=2))
             blocks_c.append(np.broadcast_to(icols[:, None, :], (M, 2, 4)))
+        if self.n_off:
+            ocols = self.off_offsets + self.cam_index[self.v_o[idx]]
+            blocks_r.append(rows2[idx])
+            blocks_c.append(np.broadcast_to(ocols[:, None], (len(idx), 2)))
+        if self.estimate_ratio:
+            blocks_r.append(rows2)
+            blocks_c.append(np.full((M, 2), self.off_ratio))
         self.cam_obs = idx
         self.jrows = np.concatenate([b.ravel() for b in blocks_r])
         self.jcols = np.concatenate([np.asarray(b).ravel() for b in blocks_c])
@@ -430,11 +462,25 @@ class _Problem:
         t[self.ref] = self.t_ref
         R = Rotation.from_rotvec(rv).as_matrix() @ self.R0
         if self.refine_intrinsics:
-            intr = x[self.n_cam : self.off_frames].reshape(V, 4)
+            intr = x[self.n_cam : self.off_offsets].reshape(V, 4)
             f, c = intr[:, :2], intr[:, 2:]
         else:
             f, c = self.f_cam, self.c_cam
         return R, t, rv, f, c
+
+    def offsets_from(self, x: np.ndarray) -> np.ndarray:
+        """(V,) clock offset (s) of each camera left after the grid's correction (ref: 0)."""
+        eps = np.zeros(self.V)
+        if self.n_off:
+            ci = self.cam_index >= 0
+            eps[ci] = x[self.off_offsets : self.off_ratio]
+        return eps
+
+    def lengths_from(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """(wand offsets (3,), d offsets / d ratio (3,), ratio AB/AC)."""
+        r = float(x[self.off_ratio]) if self.estimate_ratio else self.spec.ratio
+        offs, doffs = self.spec.offsets_for_ratio(r)
+        return offs, doffs, r
 
     def wand_from(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """A (F,3), u (F,3), n (F,3) un-normalised direction."""
@@ -449,7 +495,11 @@ class _Problem:
         R, t, rv, f, c = self.cameras_from(x)
         A, u, n = self.wand_from(x)
         fo, vo = self.f_o, self.v_o
+        offs, dL, _ = self.lengths_from(x)
+        self.L, self.dL = offs[self.k_o], dL[self.k_o]
         X = A[fo] + self.L[:, None] * u[fo]
+        if self.n_off:
+            X = X - self.offsets_from(x)[vo][:, None] * self.vel
         Rv = R[vo]
         Z = np.einsum("mij,mj->mi", Rv, X)
         Xc = Z + t[vo]
@@ -502,8 +552,69 @@ class _Problem:
             Ji[:, 0, 2] = 1.0
             Ji[:, 1, 3] = 1.0
             parts.append(Ji)
+        if self.n_off:
+            parts.append(-np.einsum("mij,mj->mi", GR[ci], self.vel[ci]))  # (Mc, 2)
+        if self.estimate_ratio:
+            parts.append(np.einsum("mij,mj->mi", GR, u[fo]) * self.dL[:, None])  # (M, 2)
         self.jdata = np.concatenate([p.ravel() for p in parts])
+        self._jframe = parts[0]
         self._jac_x = x
+
+    def covariance(self, x: np.ndarray) -> tuple[np.ndarray, float]:
+        """(covariance of the non-frame parameters (n_small, n_small), residual variance px^2) at x.
+
+        sigma^2 (J^T J)^-1 restricted to cameras, intrinsics, offsets and ratio: the wand-pose
+        blocks (5x5 per frame, block-diagonal) are eliminated by the Schur complement, so
+        nothing larger than n_small x n_small is inverted. An undetermined direction comes
+        out with a huge variance instead of being hidden.
+        """
+        self._jacobian(x)
+        J = self.jac(x).tocsc()
+        ns = self.off_frames
+        Jc, Jf = J[:, :ns], J[:, ns:]
+        U = (Jc.T @ Jc).toarray()
+        W = (Jc.T @ Jf).toarray().reshape(ns, self.F, 5)
+        Vb = np.zeros((self.F, 5, 5))
+        np.add.at(Vb, self.f_o, np.einsum("mai,maj->mij", self._jframe, self._jframe))
+        Vb += 1e-12 * np.eye(5) * np.trace(Vb, axis1=1, axis2=2)[:, None, None]
+        Vinv = np.linalg.inv(Vb)
+        S = U - np.einsum("afi,fij,bfj->ab", W, Vinv, W)
+        d = 1.0 / np.sqrt(np.maximum(np.diag(S), 1e-300))
+        Sn = S * d[:, None] * d[None, :]
+        cov_n = np.linalg.inv(Sn + 1e-13 * np.eye(ns))
+        dof = max(2 * self.M - self.n, 1)
+        sigma2 = float(np.sum(self.res**2) / dof)
+        return cov_n * d[:, None] * d[None, :] * sigma2, sigma2
+
+    def parameter_std(self, x: np.ndarray) -> dict:
+        """Standard deviations at x: per camera rot_deg (V,), center_m (V,) (RMS over the axes
+        of the camera centre), f_px (V, 2), c_px (V, 2) (refined intrinsics only), offset_s (V,)
+        (estimated offsets only); ratio (AB/AC, when estimated); sigma_px."""
+        cov, sigma2 = self.covariance(x)
+        V = self.V
+        R, t, rv, _, _ = self.cameras_from(x)
+        out: dict = {"sigma_px": float(np.sqrt(sigma2)), "rot_deg": np.zeros(V), "center_m": np.zeros(V)}
+        Jl = _left_jacobian(rv)
+        for v in range(V):
+            k = self.cam_index[v]
+            if k < 0:
+                continue
+            C6 = cov[6 * k : 6 * k + 6, 6 * k : 6 * k + 6]
+            out["rot_deg"][v] = float(np.degrees(np.sqrt(max(np.trace(Jl[v] @ C6[:3, :3] @ Jl[v].T), 0) / 3)))
+            # centre = -R^T t; a left rotation increment d moves it by R^T [t]x d
+            Jc = np.hstack([-R[v].T @ skew(t[v][None])[0] @ Jl[v], -R[v].T])
+            out["center_m"][v] = float(np.sqrt(max(np.trace(Jc @ C6 @ Jc.T), 0) / 3))
+        sd = np.sqrt(np.maximum(np.diag(cov), 0))
+        if self.refine_intrinsics:
+            intr = sd[self.n_cam : self.off_offsets].reshape(V, 4)
+            out["f_px"], out["c_px"] = intr[:, :2], intr[:, 2:]
+        if self.n_off:
+            off = np.zeros(V)
+            off[self.cam_index >= 0] = sd[self.off_offsets : self.off_ratio]
+            out["offset_s"] = off
+        if self.estimate_ratio:
+            out["ratio"] = float(sd[self.off_ratio])
+        return out
 
     def fun(self, x: np.ndarray) -> np.ndarray:
         self._evaluate(x)
@@ -528,16 +639,23 @@ def bundle_adjust(
     f_scale: float = 1.0,
     max_nfev: int = 50,
     progress: ProgressFn = _no_progress,
+    velocity: np.ndarray | None = None,
+    estimate_ratio: bool = False,
+    covariance: bool = False,
 ) -> tuple[list[Camera], np.ndarray, np.ndarray, np.ndarray, dict]:
     """One least-squares solve over all cameras and wand poses.
 
     pixels: (F, V, 3, 2) observations (NaN = missing); R (V,3,3), t (V,3) initial
     poses; A (F,3), u (F,3) initial wand. Camera `ref` keeps its pose (gauge);
     the wand lengths fix the scale.
+    velocity: (F, 3, 3) m/s of A, B, C: also estimate each camera's clock offset left
+    in the observations' times (camera `ref` keeps 0). estimate_ratio: also estimate the
+    wand's AB/AC with the spec's `known` segment fixed. covariance: add info['std']
+    (Problem.parameter_std).
     Returns refined cameras, A, u, residuals (F, V, 3, 2) px (NaN where unobserved)
-    and solver info.
+    and solver info (with offsets_s (V,) and ratio).
     """
-    prob = _Problem(pixels, cameras, R, t, A, u, spec, ref, refine_intrinsics)
+    prob = _Problem(pixels, cameras, R, t, A, u, spec, ref, refine_intrinsics, velocity, estimate_ratio)
     calls = [0]
 
     def fun(x: np.ndarray) -> np.ndarray:
@@ -572,7 +690,9 @@ def bundle_adjust(
             model = replace(model, fx=float(f[v, 0]), fy=float(f[v, 1]), cx=float(c[v, 0]), cy=float(c[v, 1]))
         out.append(replace(cam, model=model, R=Rn[v], t=tn[v]))
     info = {"nfev": int(sol.nfev), "cost": float(sol.cost), "message": str(sol.message), "n_params": prob.n,
-            "n_residuals": 2 * prob.M}
+            "n_residuals": 2 * prob.M, "offsets_s": prob.offsets_from(sol.x), "ratio": prob.lengths_from(sol.x)[2]}
+    if covariance:
+        info["std"] = prob.parameter_std(sol.x)
     return out, A2, u2, res, info
 
 
@@ -599,10 +719,15 @@ class WandCalibration:
     info: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     rejected_views: int = 0
+    offsets_ns: np.ndarray | None = None  # (V,) each camera's clock offset against the reference camera
+    offset_pairs: list = field(default_factory=list)
+    check: "WandCheck | None" = None
 
     def camera_stats(self) -> list[dict]:
-        """Per camera: name, id, views (frames used), rms_px, max_px, centre (3,)."""
+        """Per camera: name, id, views (frames used), rms_px, max_px, centre (3,), offset_ms and the
+        standard deviations center_std_mm, rot_std_deg, offset_std_ms (NaN where not estimated)."""
         out = []
+        std = self.info.get("std")
         r = np.linalg.norm(self.residuals, axis=-1)  # (F, V, 3)
         for v, c in enumerate(self.cameras):
             rv = r[:, v]
@@ -615,6 +740,10 @@ class WandCalibration:
                     "rms_px": float(np.sqrt(np.mean(rv[ok] ** 2))) if ok.any() else float("nan"),
                     "max_px": float(rv[ok].max()) if ok.any() else float("nan"),
                     "center": c.center,
+                    "offset_ms": float(self.offsets_ns[v] / 1e6) if self.offsets_ns is not None else 0.0,
+                    "center_std_mm": float(std["center_m"][v] * 1000) if std else float("nan"),
+                    "rot_std_deg": float(std["rot_deg"][v]) if std else float("nan"),
+                    "offset_std_ms": float(std["offset_s"][v] * 1000) if std and "offset_s" in std else float("nan"),
                 }
             )
         return out
@@ -648,6 +777,98 @@ def wand_lengths(cameras: list[Camera], pixels: np.ndarray) -> np.ndarray:
     )
 
 
+def wand_velocity(times_ns: np.ndarray, A: np.ndarray, u: np.ndarray, offsets: np.ndarray,
+                  max_dt_s: float = 0.1) -> np.ndarray:
+    """Velocity (F, 3, 3) m/s of the wand points A, B, C from neighbouring grid frames.
+
+    times_ns (F,) sorted; A, u (F, 3); offsets (3,) along the wand. Central differences
+    where both neighbours are within max_dt_s, one-sided where one is, else 0 (that frame
+    then says nothing about clock offsets).
+    """
+    P = A[:, None, :] + offsets[None, :, None] * u[:, None, :]
+    t = np.asarray(times_ns, np.float64) * 1e-9
+    F = len(t)
+    vel = np.zeros((F, 3, 3))
+    if F < 2:
+        return vel
+    dt = np.diff(t)
+    ok_step = (dt > 0) & (dt <= max_dt_s)
+    fwd = np.zeros((F, 3, 3))
+    fwd[:-1] = (P[1:] - P[:-1]) / np.where(ok_step, dt, 1.0)[:, None, None]
+    has_r = np.zeros(F, bool)
+    has_r[:-1] = ok_step
+    has_l = np.zeros(F, bool)
+    has_l[1:] = ok_step
+    bwd = np.zeros((F, 3, 3))
+    bwd[1:] = fwd[:-1]
+    both = has_l & has_r
+    vel[both] = 0.5 * (fwd[both] + bwd[both])
+    vel[has_r & ~has_l] = fwd[has_r & ~has_l]
+    vel[has_l & ~has_r] = bwd[has_l & ~has_r]
+    return vel
+
+
+@dataclass
+class WandCheck:
+    """The wand measured against the configured one.
+
+    ratio, ratio_std: AB/AC from the bundle adjustment and its standard deviation;
+    lengths: for each segment taken as known ('ab', 'bc', 'ac', at its configured length), the
+    three lengths (m) and their standard deviations (m) that the measured ratio implies;
+    mismatch: the configured ratio lies beyond the measured one's uncertainty.
+    """
+
+    spec: WandSpec
+    ratio: float
+    ratio_std: float
+    lengths: dict[str, dict[str, tuple[float, float]]]
+    mismatch: bool
+
+    @classmethod
+    def from_ratio(cls, spec: WandSpec, r: float, sr: float, floor_m: float = 1e-4) -> "WandCheck":
+        lengths: dict[str, dict[str, tuple[float, float]]] = {}
+        for k in ("ab", "bc", "ac"):
+            L = spec.length(k)
+            if k == "ac":
+                d = {"ab": (r * L, L * sr), "bc": ((1 - r) * L, L * sr), "ac": (L, 0.0)}
+            elif k == "ab":
+                d = {"ab": (L, 0.0), "bc": (L * (1 - r) / r, L * sr / r**2), "ac": (L / r, L * sr / r**2)}
+            else:
+                g = L * sr / (1 - r) ** 2
+                d = {"ab": (L * r / (1 - r), g), "bc": (L, 0.0), "ac": (L / (1 - r), g)}
+            lengths[k] = d
+        # a mismatch is a length off by more than 3 std and by more than floor_m (model errors
+        # of real markers: their centroids are not exactly their centres)
+        ref = lengths[spec.known]
+        mismatch = any(abs(ref[k][0] - spec.length(k)) > max(3 * ref[k][1], floor_m) for k in ("ab", "bc", "ac"))
+        return cls(spec, r, sr, lengths, mismatch)
+
+    def message(self) -> str:
+        """One paragraph: the measured ratio and lengths against the configured ones."""
+        s = self.spec
+        mm = {k: v * 1000 for k, v in (("ab", s.ab), ("bc", s.bc), ("ac", s.ac))}
+        ref = self.lengths[s.known]
+        meas = ", ".join(f"{k.upper()} {ref[k][0] * 1000:.2f} +- {ref[k][1] * 1000:.2f} mm (configured {mm[k]:.2f})"
+                         for k in ("ab", "bc", "ac") if k != s.known)
+        alt = "; ".join(
+            f"with {k.upper()} = {mm[k]:.2f} mm: " + ", ".join(
+                f"{q.upper()} {self.lengths[k][q][0] * 1000:.2f} mm" for q in ("ab", "bc", "ac") if q != k)
+            for k in ("ab", "bc", "ac") if k != s.known
+        )
+        head = "the wand does not match the configured one" if self.mismatch else "the wand matches the configured one"
+        return (f"{head}: measured AB/AC {self.ratio:.5f} +- {self.ratio_std:.5f} (configured {s.ratio:.5f}); "
+                f"with {s.known.upper()} = {mm[s.known]:.2f} mm as configured (calibration.wand.known): {meas}; "
+                f"{alt}" + (". Measure the wand (marker centre to centre) and set calibration.wand.ab/bc "
+                            "(or --ab/--bc)" if self.mismatch else ""))
+
+
+# limits of what the data must determine before a parameter is used (observability guards)
+MAX_FOCAL_STD_REL = 0.003  # focal length std / focal length
+MAX_CENTRE_STD_PX = 3.0  # principal point std (px)
+MAX_OFFSET_STD_S = 0.5e-3  # clock offset std
+MAX_CAMERA_CENTER_STD_M = 0.005  # camera position std (RMS over the axes)
+
+
 def calibrate_wand(
     frames,
     cameras: list[Camera],
@@ -659,26 +880,44 @@ def calibrate_wand(
     max_frames: int | None = None,
     progress: ProgressFn = _no_progress,
     align: str = "interpolate",
+    max_offset_ms: float = 60.0,
 ) -> WandCalibration:
-    """Wand extrinsics from BlobFrames of a wand wave.
+    """Wand extrinsics (and clock offsets) from BlobFrames of a wand wave.
 
     frames: iterable of BlobFrame (any order, any cameras; unknown camera ids are ignored).
     cameras: the arena's cameras with their intrinsics (poses are ignored).
-    ref: index of the camera that defines the world frame until the ground step.
+    ref: index of the camera that defines the world frame (and whose clock is the reference).
     max_frames: keep at most this many grid frames (evenly spread), None = all.
     align: how asynchronous cameras are brought to common times ('interpolate' or 'nearest').
+    max_offset_ms: largest clock offset of a camera searched for; 0 trusts the stamps.
+    refine_intrinsics: also fit fx, fy, cx, cy, kept only where the data determine them.
     Raises CalibrationError with what to capture when the input cannot give a calibration.
     """
-    from visionpos.calibration.wand import collect_wand
+    from visionpos.calibration.wand import align_tracks, estimate_offsets, label_all
 
     cameras = list(cameras)
     if len(cameras) < 2:
         raise CalibrationError(f"wand calibration needs at least 2 cameras, the config has {len(cameras)}")
+    names = [c.name for c in cameras]
     timings: dict[str, float] = {}
+    warnings: list[str] = []
     t0 = time.perf_counter()
-    data = collect_wand(frames, cameras, spec, rate_hz=rate_hz, min_labelled=min_frames, align=align)
-    if max_frames is not None and len(data.times_ns) > max_frames:
-        data = data.subset(np.linspace(0, len(data.times_ns) - 1, max_frames).round().astype(int))
+    tracks, stats = label_all(frames, cameras, spec, min_labelled=min_frames)
+    offsets_ns = np.zeros(len(cameras))
+    offset_pairs = []
+    if max_offset_ms > 0:
+        est = estimate_offsets(cameras, tracks, stats, max_offset_ms, ref=ref)
+        offsets_ns, offset_pairs = est.offsets_ns, est.pairs
+        warnings += est.problems
+    timings["offsets_s"] = time.perf_counter() - t0
+
+    def aligned(off: np.ndarray) -> WandData:
+        d = align_tracks(cameras, tracks, stats, off, rate_hz=rate_hz, align=align)
+        if max_frames is not None and len(d.times_ns) > max_frames:
+            d = d.subset(np.linspace(0, len(d.times_ns) - 1, max_frames).round().astype(int))
+        return d
+
+    data = aligned(offsets_ns)
     if len(data.times_ns) < min_frames:
         raise CalibrationError(
             f"only {len(data.times_ns)} time steps have the wand in two or more cameras at once (need {min_frames}); "
@@ -686,22 +925,44 @@ def calibrate_wand(
         )
     timings["label_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    R, t, pairs = initial_poses(data, spec, ref=ref, progress=progress)
+    hint = _offset_hint(offsets_ns, names, max_offset_ms, warnings)
+    R, t, pairs = initial_poses(data, spec, ref=ref, progress=progress, hint=hint)
     xn = undistort_wand(data)
     A, u, ok = initial_wand(xn, R, t, spec)
     if ok.sum() < min_frames:
         raise CalibrationError(
             f"only {int(ok.sum())} wand frames triangulate consistently after the pairwise step (need {min_frames}); "
-            "check the wand lengths (--ab/--bc) and the cameras' intrinsics"
+            "likely causes: wand lengths that do not match the wand (calibration.wand, --ab/--bc), wrong "
+            f"intrinsics{hint}"
         )
-    warnings = check_motion(A[ok], u[ok], spec)
+    warnings += check_motion(A[ok], u[ok], spec)
     data = data.subset(np.flatnonzero(ok))
     A, u = A[ok], u[ok]
     timings["init_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     c0 = time.process_time()
+    use_offsets = max_offset_ms > 0
+    offs = spec.offsets
+
+    def vel(d: WandData, A_: np.ndarray, u_: np.ndarray) -> np.ndarray | None:
+        return wand_velocity(d.times_ns, A_, u_, offs) if use_offsets else None
+
     # round 1: robust loss from the pairwise start
-    cams, A, u, res, info = bundle_adjust(data.pixels, cameras, R, t, A, u, spec, ref=ref, progress=progress)
+    cams, A, u, res, info = bundle_adjust(data.pixels, cameras, R, t, A, u, spec, ref=ref, progress=progress,
+                                          velocity=vel(data, A, u), estimate_ratio=True)
+    Rk = np.stack([c.R for c in cams])
+    tk = np.stack([c.t for c in cams])
+    if use_offsets:
+        # re-interpolate every camera at its corrected times and start again from the refined cameras
+        offsets_ns = offsets_ns + info["offsets_s"] * 1e9
+        data = aligned(offsets_ns)
+        A, u, ok = initial_wand(undistort_wand(data), Rk, tk, spec)
+        data = data.subset(np.flatnonzero(ok))
+        A, u = A[ok], u[ok]
+        cams, A, u, res, info = bundle_adjust(data.pixels, cams, Rk, tk, A, u, spec, ref=ref, progress=progress,
+                                              velocity=vel(data, A, u), estimate_ratio=True)
+        Rk = np.stack([c.R for c in cams])
+        tk = np.stack([c.t for c in cams])
     # drop whole views (all three markers of one camera at one time) with a large residual:
     # a mislabelled or merged blob, or a bad interpolation
     rn = np.linalg.norm(res, axis=-1)  # (F, V, 3)
@@ -710,22 +971,72 @@ def calibrate_wand(
     bad_view = np.nanmax(np.where(np.isfinite(rn), rn, 0.0), axis=2) > thr
     n_bad = int(bad_view.sum())
     pixels = data.pixels.copy()
-    if n_bad or refine_intrinsics:
-        pixels[bad_view] = np.nan
-        keep = np.isfinite(pixels).all(axis=(2, 3)).sum(axis=1) >= 2
-        data = WandData(data.cameras, data.times_ns[keep], pixels[keep], data.stats)
-        Rk = np.stack([c.R for c in cams])
-        tk = np.stack([c.t for c in cams])
-        cams, A, u, res, info = bundle_adjust(
-            data.pixels, cams, Rk, tk, A[keep], u[keep], spec, ref=ref,
-            refine_intrinsics=refine_intrinsics, progress=progress,
-        )
+    pixels[bad_view] = np.nan
+    keep = np.isfinite(pixels).all(axis=(2, 3)).sum(axis=1) >= 2
+    data = WandData(data.cameras, data.times_ns[keep], pixels[keep], data.stats, data.tracks, data.offsets_ns)
+    A, u = A[keep], u[keep]
+    final = bundle_adjust(data.pixels, cams, Rk, tk, A, u, spec, ref=ref, refine_intrinsics=refine_intrinsics,
+                          progress=progress, velocity=vel(data, A, u), estimate_ratio=True, covariance=True)
+    if refine_intrinsics:
+        refused = _undetermined_intrinsics(final[4]["std"], final[0], names)
+        if refused:
+            warnings.append("--refine-intrinsics refused, keeping the chessboard intrinsics: " + "; ".join(refused))
+            # same poses, the cameras' own intrinsics
+            kept = [replace(c, R=k.R, t=k.t) for c, k in zip(cameras, final[0])]
+            final = bundle_adjust(data.pixels, kept, np.stack([c.R for c in kept]), np.stack([c.t for c in kept]),
+                                  final[1], final[2], spec, ref=ref, progress=progress, velocity=vel(data, A, u),
+                                  estimate_ratio=True, covariance=True)
+            info_refused = True
+        else:
+            info_refused = False
+    cams, A, u, res, info = final
+    if refine_intrinsics:
+        info["intrinsics_refused"] = info_refused
     timings["bundle_s"] = time.perf_counter() - t0
     timings["bundle_cpu_s"] = time.process_time() - c0  # one core: the solver is single-threaded
+    std = info["std"]
+    offsets_ns = offsets_ns + info["offsets_s"] * 1e9
+    for v, name in enumerate(names):
+        if use_offsets and v != ref and std["offset_s"][v] > MAX_OFFSET_STD_S:
+            warnings.append(f"camera {name} clock offset: std {std['offset_s'][v] * 1e3:.2f} ms — the wand moved too "
+                            "little in its view to determine it; wave it faster")
+        if v != ref and std["center_m"][v] > MAX_CAMERA_CENTER_STD_M:
+            warnings.append(f"camera {name} position: std {std['center_m'][v] * 1000:.1f} mm — few wand frames "
+                            "constrain it; wave the wand more where it overlaps other cameras")
+    check = WandCheck.from_ratio(spec, info["ratio"], float(std.get("ratio", 0.0)))
+    if check.mismatch:
+        warnings.append(check.message())
     lengths = wand_lengths(cams, data.pixels)
     info["frames"] = len(data.times_ns)
     info["threshold_px"] = thr
-    return WandCalibration(cams, spec, data, res, lengths, pairs, A, u, timings, info, warnings, n_bad)
+    return WandCalibration(cams, spec, data, res, lengths, pairs, A, u, timings, info, warnings, n_bad,
+                           offsets_ns=offsets_ns - offsets_ns[ref], offset_pairs=offset_pairs, check=check)
+
+
+def _offset_hint(offsets_ns: np.ndarray, names: list[str], max_offset_ms: float, problems: list[str]) -> str:
+    """The clock part of a failure's likely causes."""
+    if max_offset_ms <= 0:
+        return ("; cameras' clocks that disagree (clock offsets were not estimated: give a maximum clock offset, "
+                "--max-clock-offset-ms)")
+    est = ", ".join(f"{n} {o / 1e6:+.1f} ms" for n, o in zip(names, offsets_ns))
+    more = ("; " + "; ".join(problems)) if problems else ""
+    return (f"; a clock offset beyond the search range (+-{max_offset_ms:.0f} ms; estimated offsets: {est}{more})")
+
+
+def _undetermined_intrinsics(std: dict, cams: list[Camera], names: list[str]) -> list[str]:
+    """Reasons (one per parameter) why refined intrinsics cannot be trusted: std beyond the guards."""
+    out = []
+    for v, (c, name) in enumerate(zip(cams, names)):
+        for k, axis in enumerate("xy"):
+            f = (c.model.fx, c.model.fy)[k]
+            sf = std["f_px"][v, k]
+            if not np.isfinite(sf) or sf > MAX_FOCAL_STD_REL * f:
+                out.append(f"camera {name} focal length f{axis}: std {sf:.1f} px ({100 * sf / f:.1f} %) — the data "
+                           "cannot determine it")
+            sc = std["c_px"][v, k]
+            if not np.isfinite(sc) or sc > MAX_CENTRE_STD_PX:
+                out.append(f"camera {name} principal point c{axis}: std {sc:.1f} px — the data cannot determine it")
+    return out
 
 
 def compare_cameras(

@@ -111,16 +111,47 @@ def match_static(
     return refined, np.array(sup)
 
 
+def static_point_std(cameras: list[Camera], points: np.ndarray, blobs: list[np.ndarray], max_px: float = 2.0,
+                     floor_px: float = 0.05) -> tuple[np.ndarray, float]:
+    """How well each static point is measured: (std (N,) m, the effective pixel error used).
+
+    The effective pixel error is the RMS distance between the points' projections and the cameras' static
+    blobs: it holds the blobs' noise and what the calibration gets wrong, which is what separates the points'
+    measured distances from the frame's. Each point's std is sqrt(trace/3) of its triangulation Cramér–Rao
+    bound at that pixel error in the cameras that see it.
+    """
+    from visionpos.geometry.triangulation import triangulation_crb
+
+    N, V = len(points), len(cameras)
+    seen = np.zeros((N, V), bool)
+    res = []
+    for v, cam in enumerate(cameras):
+        if len(blobs[v]) == 0 or N == 0:
+            continue
+        d = np.linalg.norm(cam.project(points)[:, None, :] - blobs[v][None], axis=2)
+        d = np.where(np.isfinite(d), d, np.inf).min(axis=1)
+        seen[:, v] = d < max_px
+        res.extend(d[seen[:, v]])
+    sigma_px = max(float(np.sqrt(np.mean(np.square(res)))) if res else floor_px, floor_px)
+    crb = triangulation_crb(cameras, points, sigma_px, seen)
+    return np.sqrt(np.trace(crb, axis1=1, axis2=2) / 3.0), sigma_px
+
+
 def identify_layout(
-    points: np.ndarray, layout: np.ndarray, support: np.ndarray | None = None, tol: float = 0.01
+    points: np.ndarray, layout: np.ndarray, support: np.ndarray | None = None, tol: float = 0.01,
+    point_std: np.ndarray | None = None, layout_std: float = 0.001, n_sigma: float = 4.0,
 ) -> np.ndarray:
     """Which measured point is which layout marker.
 
     points: (N, 3) measured; layout: (M, 3) known marker positions (M <= N);
     support: (N,) cameras behind each point (ties are broken towards more support).
-    Returns (M,) indices into points whose pairwise distances match the layout's
-    within tol (m); raises CalibrationError if none fits, or if the layout fits
-    the same points in two ways (a symmetric frame).
+    A pair of points matches a pair of layout markers when their distances differ by less than
+    n_sigma standard deviations of that difference, sqrt(std_i^2 + std_j^2 + layout_std^2), with
+    point_std (N,) m (`static_point_std`) and layout_std m (how well the frame's distances are known);
+    without point_std, by less than tol (m). Of the assignments that fit the same points, the one whose
+    distances agree best wins when the next one's chi-square is n_sigma^2 larger; otherwise the frame is
+    too symmetric for the noise and CalibrationError says by how much its distances must differ.
+    Returns (M,) indices into points.
     """
     M, N = len(layout), len(points)
     if N < M:
@@ -131,35 +162,51 @@ def identify_layout(
     sup = np.ones(N) if support is None else np.asarray(support, float)
     Dl = np.linalg.norm(layout[:, None] - layout[None], axis=2)
     Dp = np.linalg.norm(points[:, None] - points[None], axis=2)
+    if point_std is None:
+        S = np.full((N, N), tol / n_sigma)  # std of a distance difference
+    else:
+        sd = np.asarray(point_std, float)
+        S = np.sqrt(sd[:, None] ** 2 + sd[None] ** 2 + float(layout_std) ** 2)
+    gate = n_sigma * S
     sols: list[tuple[float, float, tuple[int, ...]]] = []
 
     def extend(assigned: list[int]) -> None:
         k = len(assigned)
         if k == M:
             p = np.array(assigned)
-            err = float(np.abs(Dp[np.ix_(p, p)] - Dl).max())
-            sols.append((-float(sup[p].sum()), err, tuple(assigned)))
+            iu = np.triu_indices(M, 1)
+            chi2 = float(np.sum(((Dp[np.ix_(p, p)] - Dl) / S[np.ix_(p, p)])[iu] ** 2))
+            sols.append((-float(sup[p].sum()), chi2, tuple(assigned)))
             return
         ok = np.ones(N, bool)
         ok[assigned] = False
         for j, a in enumerate(assigned):
-            ok &= np.abs(Dp[a] - Dl[k, j]) < tol
+            ok &= np.abs(Dp[a] - Dl[k, j]) < gate[a]
         for c in np.flatnonzero(ok):
             extend(assigned + [int(c)])
 
     extend([])
     if not sols:
+        within = (f"{n_sigma:g} sigma (about {1000 * float(np.median(gate)):.1f} mm)" if point_std is not None
+                  else f"{tol * 1000:.0f} mm")
         raise CalibrationError(
-            f"no {M} of the {N} static points match the ground frame's marker distances within {tol * 1000:.0f} mm; "
+            f"no {M} of the {N} static points match the ground frame's marker distances within {within}; "
             "check the frame's marker layout (and --marker-height) and that the cameras are calibrated"
         )
     sols.sort()
     best = sols[0]
     for other in sols[1:]:
-        if other[0] == best[0] and set(other[2]) == set(best[2]):
+        if other[0] == best[0] and set(other[2]) == set(best[2]) and other[1] - best[1] < n_sigma**2:
+            iu = np.triu_indices(M, 1)
+            dl = np.sort(Dl[iu])
+            closest = float(np.min(np.diff(dl))) if len(dl) > 1 else 0.0
+            noise = float(np.median(S[np.ix_(list(best[2]), list(best[2]))][iu]))
             raise CalibrationError(
-                "the ground frame's marker distances match the static points in more than one way; "
-                "use a frame whose marker distances all differ (an L with unequal arms or a scalene triangle)"
+                "the ground frame's marker distances match the static points in more than one way: its two closest "
+                f"distances differ by {closest * 1000:.1f} mm, and a measured distance is uncertain by about "
+                f"{noise * 1000:.1f} mm (1 sigma); use a frame whose distances all differ by more than "
+                f"{2 * n_sigma * noise * 1000:.0f} mm (an L with clearly unequal arms or a scalene triangle), or "
+                "calibrate the cameras better"
             )
         break
     return np.array(best[2])
@@ -171,6 +218,8 @@ class GroundResult:
 
     R (3,3), t (3,): old world -> new world (X_new = R X_old + t).
     markers: (M, 3) measured marker centres in the new world; fit_rms: layout fit (m).
+    static_points: (N, 3) every static point found, new world; marker_std: (M,) m, how well each
+    marker was measured; sigma_px: the effective pixel error behind marker_std.
     """
 
     cameras: list[Camera]
@@ -179,6 +228,9 @@ class GroundResult:
     markers: np.ndarray
     fit_rms: float
     n_static: int
+    static_points: np.ndarray | None = None
+    marker_std: np.ndarray | None = None
+    sigma_px: float = float("nan")
 
 
 def world_from_layout(
@@ -224,8 +276,11 @@ def calibrate_ground(
     origin: int = 0,
     x_marker: int = 1,
     marker_height: float = 0.0,
+    n_sigma: float = 4.0,
+    layout_std: float = 0.001,
 ) -> GroundResult:
-    """Ground plane step on BlobFrames of a static marker frame on the floor."""
+    """Ground plane step on BlobFrames of a static marker frame on the floor. n_sigma and layout_std (m):
+    the distance test of `identify_layout`, scaled to how well the points were measured."""
     cameras = list(cameras)
     layout = np.asarray(layout, float)
     if layout.ndim != 2 or layout.shape[1] != 3 or len(layout) < 3:
@@ -247,7 +302,8 @@ def calibrate_ground(
             "seen by at least two cameras: record a few seconds with it still and in view"
         )
     pts, support = match_static(cameras, blobs)
-    idx = identify_layout(pts, layout, support)
+    std, sigma_px = static_point_std(cameras, pts, blobs)
+    idx = identify_layout(pts, layout, support, point_std=std, layout_std=layout_std, n_sigma=n_sigma)
     measured = pts[idx]
     R, t, fit = world_from_layout(measured, layout, origin, x_marker, marker_height)
     new = apply_world(cameras, R, t)
@@ -256,4 +312,4 @@ def calibrate_ground(
             "after the ground step the cameras are below the floor: the frame's layout is mirrored "
             "(its markers are listed clockwise where they should be counter-clockwise seen from above); fix the layout"
         )
-    return GroundResult(new, R, t, measured @ R.T + t, fit, len(pts))
+    return GroundResult(new, R, t, measured @ R.T + t, fit, len(pts), pts @ R.T + t, std[idx], sigma_px)

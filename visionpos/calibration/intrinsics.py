@@ -240,6 +240,44 @@ def calibrate_intrinsics(
     )
 
 
+@dataclass(frozen=True)
+class CaptureMode:
+    """Another capture mode of the calibrated sensor: width x height pixels after resizing the full image and
+    cropping crop_px = (U, V) pixels in total, half from each side (CameraModel.rescale)."""
+
+    width: int
+    height: int
+    crop_px: tuple[float, float]
+
+    def apply(self, model: CameraModel) -> CameraModel:
+        return model.rescale(self.width, self.height, self.crop_px)
+
+
+def capture_mode(spec: str, native_size: tuple[int, int]) -> CaptureMode:
+    """'WxH' (the crop that keeps the aspect ratio, centred, as camera drivers crop) or 'WxH+UxV' (that crop,
+    which must keep the aspect ratio of the native_size (width, height) images); CalibrationError otherwise,
+    with the crop that would fit."""
+    size, plus, crop = spec.partition("+")
+    try:
+        w, h = (int(v) for v in size.lower().split("x"))
+        U, V = (float(v) for v in crop.lower().split("x")) if plus else (None, None)
+    except ValueError:
+        raise CalibrationError(f"--rescale '{spec}': expected WxH or WxH+UxV (pixels), e.g. 640x480 or "
+                               "640x360+0x120") from None
+    if w <= 0 or h <= 0:
+        raise CalibrationError(f"--rescale '{spec}': width and height must be positive")
+    W0, H0 = native_size
+    s = max(w / W0, h / H0)  # resize so the mode fits, then crop the excess
+    auto = (round(W0 * s - w, 6), round(H0 * s - h, 6))
+    if U is None:
+        return CaptureMode(w, h, auto)
+    if U < 0 or V < 0 or abs((w + U) / W0 - (h + V) / H0) > 1e-3 * (h + V) / H0:
+        raise CalibrationError(
+            f"--rescale '{spec}': from {W0}x{H0} images, {w}x{h} plus a {U:g}x{V:g} crop changes the aspect ratio; "
+            f"the crop that keeps it is {auto[0]:g}x{auto[1]:g} (give just {w}x{h} to use it)")
+    return CaptureMode(w, h, (U, V))
+
+
 def load_images(directory: str | Path) -> list[tuple[str, np.ndarray]]:
     """Grey images from a folder (sorted by name); raises CalibrationError if none can be read."""
     p = Path(directory)
@@ -266,14 +304,89 @@ def calibrate_images(
     images: Sequence[tuple[str, np.ndarray]], board: BoardSpec, kind: str = PINHOLE, max_views: int = 40,
     progress=None, fix_k3: bool = True,
 ) -> IntrinsicsResult:
-    """Detect the board in every (name, image) and calibrate."""
+    """Detect the board in every (name, image) and calibrate. A chessboard found in no image raises
+    CalibrationError naming the inner-corner count that was looked for and, when the images show a board
+    of another size, that size."""
     dets = []
     for k, (name, img) in enumerate(images):
         dets.append(detect_corners(img, board, name))
         if progress is not None:
             progress("corners", k + 1, len(images))
+    if board.kind == "chessboard" and not any(d is not None for d in dets):
+        nx, ny = board.pattern
+        msg = (f"no chessboard with {nx}x{ny} inner corners ({board.cols}x{board.rows} squares) was found in any of "
+               f"the {len(images)} images")
+        other = other_chessboard_size(images, board)
+        if other is not None:
+            msg += (f"; the images show one with {other[0]}x{other[1]} inner corners: use --inner-corners "
+                    f"{other[0]}x{other[1]} (OpenCV's pattern size counts inner corners, --squares counts squares)")
+        else:
+            msg += ("; check the counts (--inner-corners counts the corners where four squares meet, as OpenCV's "
+                    "pattern size; --squares counts squares), and that the whole board is in the image, sharp and "
+                    "evenly lit")
+        raise CalibrationError(msg)
     h, w = images[0][1].shape[:2]
     return calibrate_intrinsics(dets, board, (w, h), kind, max_views, fix_k3=fix_k3)
+
+
+def other_chessboard_size(images: Sequence[tuple[str, np.ndarray]], board: BoardSpec,
+                          max_images: int = 4) -> tuple[int, int] | None:
+    """Inner-corner counts (per row, per column), within one of the given ones or swapped, of a chessboard
+    found in one of the first `max_images` images; None when there is none."""
+    nx, ny = board.pattern
+    tries = [(nx + dx, ny + dy) for dx in (1, -1, 0) for dy in (1, -1, 0)] + [(ny, nx), (ny + 1, nx + 1)]
+    tries = [t for t in dict.fromkeys(tries) if t != (nx, ny) and min(t) >= 2]
+    for _, img in images[:max_images]:
+        grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        for t in tries:
+            if cv2.findChessboardCornersSB(grey, t)[0]:
+                return t
+    return None
+
+
+def model_warnings(res: IntrinsicsResult) -> list[str]:
+    """Plain-language doubts about a calibration result: a high residual, a principal point far from the
+    centre, unequal focal lengths, corners that left the image's edges unconstrained, a distortion that folds
+    back inside the image, and a fisheye model on a narrow lens."""
+    m = res.model
+    out = []
+    if res.rms_px > 1.0:
+        out.append(f"reprojection RMS {res.rms_px:.2f} px is high (good: below 0.5 px): blurred images, a board that "
+                   "is not flat, or the wrong --model")
+    dx, dy = m.cx - (m.width - 1) / 2, m.cy - (m.height - 1) / 2
+    if abs(dx) > 0.1 * m.width or abs(dy) > 0.1 * m.height:
+        out.append(f"the principal point ({m.cx:.0f}, {m.cy:.0f}) is {abs(dx):.0f}, {abs(dy):.0f} px from the image "
+                   "centre (more than 10 % of the image): the views probably did not cover the image evenly")
+    if abs(m.fx / m.fy - 1) > 0.03:
+        out.append(f"fx {m.fx:.1f} and fy {m.fy:.1f} differ by {100 * abs(m.fx / m.fy - 1):.1f} % (square pixels "
+                   "differ by well under 1 %): add views with the board tilted both ways")
+    px = np.concatenate(res.pixels) if res.pixels else np.zeros((0, 2))
+    if len(px):
+        hull = cv2.convexHull(px.astype(np.float32))
+        covered = float(cv2.contourArea(hull)) / (m.width * m.height)
+        if covered < 0.5:
+            out.append(f"the board's corners cover {100 * covered:.0f} % of the image: the distortion near the edges "
+                       "is extrapolated; add views with the board in the image's corners")
+    # the lens mapping must grow monotonically out to the image corners, or two directions share a pixel
+    corner_r = np.hypot(max(m.cx, m.width - 1 - m.cx) / m.fx, max(m.cy, m.height - 1 - m.cy) / m.fy)
+    r = np.linspace(0.0, 1.05 * corner_r, 200)
+    if m.kind == FISHEYE:
+        theta = np.arctan(r)
+        k = m.dist
+        rd = theta * (1 + k[0] * theta**2 + k[1] * theta**4 + k[2] * theta**6 + k[3] * theta**8)
+        fov_deg = 2 * np.degrees(np.arctan(corner_r))
+        if fov_deg < 100 or np.abs(k).max() > 1.0:
+            out.append(f"a fisheye model on a lens whose image diagonal spans {fov_deg:.0f} deg (coefficients "
+                       f"{', '.join(f'{v:.3g}' for v in k)}): below about 100 deg a pinhole model fits as well and "
+                       "extrapolates better; try --model pinhole")
+    else:
+        k = m.dist
+        r2 = r**2
+        rd = r * (1 + k[0] * r2 + k[1] * r2**2 + (k[4] if len(k) > 4 else 0.0) * r2**3)
+    if np.any(np.diff(rd) <= 0):
+        out.append("the fitted distortion folds back before the image corners (the coefficients are not physical "
+                   "there): add views near the image edges, or keep k3 fixed (no --free-k3)")
+    return out
 
 
 def render_board(

@@ -16,24 +16,38 @@ from visionpos.calibration.bundle import WandCalibration
 from visionpos.calibration.intrinsics import IntrinsicsResult
 
 
-def progress_printer(enabled: bool = True) -> Callable[[str, int, int], None]:
-    """A ProgressFn(stage, done, total) that draws one bar per stage (tqdm when installed)."""
+def progress_printer(enabled: bool = True, stream=None) -> Callable[[str, int, int], None]:
+    """A ProgressFn(stage, done, total): one bar per stage on a terminal (tqdm when installed); into a log
+    or a pipe, whole lines at each tenth of a stage (a carriage return there runs the updates together)."""
     if not enabled:
         return lambda stage, done, total: None
+    out = sys.stderr if stream is None else stream
+    if not (hasattr(out, "isatty") and out.isatty()):
+        shown: dict[str, int] = {}
+
+        def lines(stage: str, done: int, total: int) -> None:
+            tenth = 10 if done >= total else (10 * done) // max(total, 1)
+            if tenth > shown.get(stage, -1):
+                shown[stage] = tenth
+                print(f"{stage}: {done}/{total} ({10 * tenth} %)", file=out, flush=True)
+            if done >= total:
+                shown.pop(stage, None)
+
+        return lines
     bars: dict[str, object] = {}
     try:
         from tqdm import tqdm
-    except ImportError:  # plain counter
+    except ImportError:  # plain counter, redrawn in place
         def plain(stage: str, done: int, total: int) -> None:
             end = "\n" if done >= total else ""
-            print(f"\r{stage}: {done}/{total}", end=end, file=sys.stderr, flush=True)
+            print(f"\r{stage}: {done}/{total}", end=end, file=out, flush=True)
 
         return plain
 
     def bar(stage: str, done: int, total: int) -> None:
         b = bars.get(stage)
         if b is None:
-            b = bars[stage] = tqdm(total=total, desc=stage, leave=True, file=sys.stderr)
+            b = bars[stage] = tqdm(total=total, desc=stage, leave=True, file=out)
         b.n = done  # type: ignore[attr-defined]
         b.refresh()  # type: ignore[attr-defined]
         if done >= total:
@@ -54,14 +68,22 @@ def _table(header: list[str], rows: list[list[str]]) -> str:
 def wand_report(cal: WandCalibration, title: str = "wand calibration") -> str:
     """Terminal report: per-camera residuals and positions, wand-length errors (thesis Table 4.2)."""
     rows = []
+
+    def sd(v: float, fmt: str) -> str:
+        return format(v, fmt) if np.isfinite(v) else "-"
+
     for s in cal.camera_stats():
         c = s["center"]
         rows.append(
             [s["name"], str(s["id"]), str(s["views"]), f"{s['rms_px']:.3f}", f"{s['max_px']:.2f}",
-             f"{c[0]:+.4f}", f"{c[1]:+.4f}", f"{c[2]:+.4f}"]
+             f"{c[0]:+.4f}", f"{c[1]:+.4f}", f"{c[2]:+.4f}", sd(s["center_std_mm"], ".2f"),
+             sd(s["rot_std_deg"], ".4f"), f"{s['offset_ms']:+.2f}", sd(s["offset_std_ms"], ".3f")]
         )
     out = [f"== {title}: {len(cal.data.times_ns)} time steps, {len(cal.cameras)} cameras =="]
-    out.append(_table(["camera", "id", "views", "rms px", "max px", "x m", "y m", "z m"], rows))
+    out.append(_table(["camera", "id", "views", "rms px", "max px", "x m", "y m", "z m", "pos std mm",
+                       "rot std deg", "clock offset ms", "std ms"], rows))
+    out.append("(std: one standard deviation from the bundle adjustment's covariance; clock offsets against the "
+               "first camera's clock: its stamps read true time + offset)")
     L = cal.length_stats()
     out.append("")
     out.append("wand lengths, freely triangulated with the calibrated cameras (mean error, std):")
@@ -70,10 +92,12 @@ def wand_report(cal: WandCalibration, title: str = "wand calibration") -> str:
         out.append(
             f"  {name} {true * 100:6.2f} cm: {L[k + '_mean_err'] * 1000:+7.3f} mm, std {L[k + '_std'] * 1000:6.3f} mm"
         )
+    if cal.check is not None:
+        out.append("  " + cal.check.message())
     t = cal.timings
     out.append("")
     out.append(
-        f"labelling {t.get('label_s', 0):.1f} s, pairwise init {t.get('init_s', 0):.1f} s, "
+        f"labelling and clock offsets {t.get('label_s', 0):.1f} s, pairwise init {t.get('init_s', 0):.1f} s, "
         f"bundle adjustment {t.get('bundle_s', 0):.1f} s ({cal.info.get('nfev', 0)} evaluations); "
         f"{cal.rejected_views} views rejected (> {cal.info.get('threshold_px', 0):.2f} px)"
     )
@@ -162,6 +186,41 @@ def plot_wand(cal: WandCalibration, path: str | Path, truth: list | None = None)
     ax4.tick_params(axis="x", rotation=45)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def plot_ground(g, layout: np.ndarray, path: str | Path) -> None:
+    """PNG of the ground step (a calibration.ground.GroundResult) in the new world: cameras, every static point
+    found, the frame's markers as identified (numbered as in its layout) with the world axes, from above and
+    from the side."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.5))
+    C = np.array([c.center for c in g.cameras])
+    pts = g.static_points if g.static_points is not None else np.zeros((0, 3))
+    span = max(float(np.ptp(C[:, :2], axis=0).max()), 0.5)
+    for ax, (i, j), name in ((axes[0], (0, 1), "from above (x, y)"), (axes[1], (0, 2), "from the side (x, z)")):
+        ax.scatter(C[:, i], C[:, j], marker="^", c="k", s=50, label="cameras")
+        for c, p in zip(g.cameras, C):
+            ax.annotate(c.name, (p[i], p[j]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        if len(pts):
+            ax.scatter(pts[:, i], pts[:, j], c="0.6", s=12, label="static points")
+        ax.scatter(g.markers[:, i], g.markers[:, j], c="tab:red", s=30, label="frame markers")
+        for k, p in enumerate(g.markers):
+            ax.annotate(str(k), (p[i], p[j]), color="tab:red", fontsize=8, xytext=(4, -10), textcoords="offset points")
+        L = 0.15 * span
+        for axis, colour in ((0, "tab:red"), (1, "tab:green"), (2, "tab:blue")):
+            d = np.eye(3)[axis] * L
+            ax.annotate("", xy=(d[i], d[j]), xytext=(0, 0), arrowprops=dict(arrowstyle="->", color=colour, lw=2))
+        ax.set_title(name)
+        ax.set_xlabel("xyz"[i] + " (m)")
+        ax.set_ylabel("xyz"[j] + " (m)")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="best", fontsize=7)
+    std = "" if g.marker_std is None else f", markers measured to {1000 * float(np.max(g.marker_std)):.2f} mm"
+    fig.suptitle(f"ground frame: layout fit RMS {1000 * g.fit_rms:.2f} mm{std}; world axes x red, y green, z blue")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
     plt.close(fig)
 
 

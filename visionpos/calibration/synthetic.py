@@ -74,14 +74,18 @@ def wand_frames(
     planar: bool = False,
     extent=(1.2, 1.2, 0.6),
     center=(0.0, 0.0, 1.0),
+    clock_errors_s: np.ndarray | None = None,
 ) -> list[BlobFrame]:
     """BlobFrames of a wand wave seen by `cameras` (each at its own fps and time offset).
 
+    time_offsets_s: (V,) when each camera's first exposure happens (its phase; stamps are right);
+    clock_errors_s: (V,) error of each camera's clock: its stamps read true time + this.
     static_blobs: fixed extra blobs per camera (LED rings of other cameras).
     """
     rng = np.random.default_rng(seed + 1)
     if time_offsets_s is None:
         time_offsets_s = rng.uniform(0, 0.01, len(cameras))
+    errors = np.zeros(len(cameras)) if clock_errors_s is None else np.asarray(clock_errors_s, float)
     frames = []
     for ci, cam in enumerate(cameras):
         ts = np.arange(0.0, duration, 1.0 / cam.fps) + time_offsets_s[ci]
@@ -96,5 +100,5 @@ def wand_frames(
             if static_blobs:
                 xy = np.vstack([xy, fixed + rng.normal(0, 0.05, fixed.shape)])
             blobs = np.column_stack([xy, np.full(len(xy), 12.0), np.full(len(xy), 200.0)]).astype(np.float32)
-            frames.append(BlobFrame(cam.id, k, int(round(ts[k] * 1e9)), blobs))
+            frames.append(BlobFrame(cam.id, k, int(round((ts[k] + errors[ci]) * 1e9)), blobs))
     return frames

@@ -15,6 +15,15 @@ Cameras are asynchronous: every camera's labelled A/B/C pixel tracks are
 linearly interpolated to one common time grid (as the thesis did at 100 Hz);
 a grid time is used for a camera only when labelled frames sit on both sides
 of it within about one frame period.
+
+Their clocks may also disagree (a station whose clock sync is off by a few to
+tens of ms). `estimate_offsets` finds each camera's offset before the poses are
+known: for every camera pair and every candidate offset on a grid, one track is
+interpolated to the other's (shifted) frame times and a linear essential
+matrix is fitted; the wand is moving, so only the right offset makes all
+frames agree with one epipolar geometry (smallest Sampson residual). The pair
+offsets are then combined per camera by least squares; the bundle adjustment
+refines them (bundle.py).
 """
 
 from __future__ import annotations
@@ -34,14 +43,26 @@ class CalibrationError(VisionposError, ValueError):
     """Calibration input that cannot give a calibration; the message says what to capture or fix."""
 
 
+WAND_SEGMENTS = ("ab", "bc", "ac")
+
+
 @dataclass(frozen=True)
 class WandSpec:
-    """Collinear 3-marker wand: A and B are `ab` metres apart, B and C `bc` (A is nearer to B)."""
+    """Collinear 3-marker wand: A and B are `ab` metres apart, B and C `bc` (A is nearer to B).
+
+    known: the segment whose length is trusted (measured most precisely); it sets the scale
+    and the wand check derives the other two from the measured ratio.
+    """
 
     ab: float = 0.054
     bc: float = 0.103
+    known: str = "ac"
 
     def __post_init__(self) -> None:
+        if self.known not in WAND_SEGMENTS:
+            raise CalibrationError(
+                f"wand known length '{self.known}' is unknown; use one of {', '.join(WAND_SEGMENTS)}"
+            )
         if not (self.ab > 0 and self.bc > 0):
             raise CalibrationError(f"wand lengths must be positive, got AB={self.ab} BC={self.bc}")
         if abs(self.ab - self.bc) < 0.15 * (self.ab + self.bc):
@@ -65,6 +86,23 @@ class WandSpec:
     def ratio(self) -> float:
         """AB / AC."""
         return self.ab / self.ac
+
+    def length(self, segment: str) -> float:
+        """Configured length (m) of 'ab', 'bc' or 'ac'."""
+        return {"ab": self.ab, "bc": self.bc, "ac": self.ac}[segment]
+
+    def offsets_for_ratio(self, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+        """(offsets (3,) of A, B, C along the wand, d offsets / d ratio (3,)) for a wand with
+        AB/AC = ratio and the `known` segment at its configured length."""
+        r = float(ratio)
+        if self.known == "ac":
+            L = self.ac
+            return np.array([0.0, r * L, L]), np.array([0.0, L, 0.0])
+        if self.known == "ab":
+            L = self.ab
+            return np.array([0.0, L, L / r]), np.array([0.0, 0.0, -L / r**2])
+        L = self.bc
+        return np.array([0.0, L * r / (1 - r), L / (1 - r)]), np.array([0.0, L, L]) / (1 - r) ** 2
 
 
 # ------------------------------------------------------------------ labelling
@@ -304,12 +342,17 @@ class WandData:
 
     camera_ids: (V,) ids in the order of `cameras`; times_ns: (F,) grid times;
     pixels: (F, V, 3, 2) distorted pixel positions of A, B, C (NaN = not seen).
+    tracks: per camera its labelled frames (capture times (n,) int64, pixels (n, 3, 2)) as stamped;
+    offsets_ns: (V,) clock offset of each camera's stamps that the grid was corrected for
+    (a frame stamped s was captured at s - offset).
     """
 
     cameras: list[Camera]
     times_ns: np.ndarray
     pixels: np.ndarray
     stats: dict[int, CameraWandStats] = field(default_factory=dict)
+    tracks: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    offsets_ns: np.ndarray | None = None
 
     @property
     def seen(self) -> np.ndarray:
@@ -317,27 +360,14 @@ class WandData:
         return np.isfinite(self.pixels).all(axis=(2, 3))
 
     def subset(self, idx: np.ndarray) -> "WandData":
-        return WandData(self.cameras, self.times_ns[idx], self.pixels[idx], self.stats)
+        return WandData(self.cameras, self.times_ns[idx], self.pixels[idx], self.stats, self.tracks, self.offsets_ns)
 
 
-def collect_wand(
-    frames: Sequence[BlobFrame],
-    cameras: Sequence[Camera],
-    spec: WandSpec,
-    rate_hz: float = 50.0,
-    max_gap_periods: float = 1.6,
-    min_labelled: int = 100,
-    align: str = "interpolate",
-    max_skew_ns: int = 2_000_000,
-) -> WandData:
-    """BlobFrames of a wand wave -> WandData on a common time grid.
-
-    align: 'interpolate' (linear between the camera's labelled frames around each grid
-    time) or 'nearest' (the camera's closest labelled frame within max_skew_ns).
-    Raises CalibrationError naming any camera that saw too few wand frames.
-    """
-    if align not in ("interpolate", "nearest"):
-        raise CalibrationError(f"time alignment '{align}' is unknown; use interpolate or nearest")
+def label_all(
+    frames: Sequence[BlobFrame], cameras: Sequence[Camera], spec: WandSpec, min_labelled: int = 100
+) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict[int, CameraWandStats]]:
+    """Label the wand in every camera: per camera (times (n,), pixels (n, 3, 2)) and the counts.
+    Raises CalibrationError naming any camera that saw too few wand frames."""
     by_cam: dict[int, list[BlobFrame]] = {c.id: [] for c in cameras}
     for f in frames:
         if f.camera_id in by_cam:
@@ -358,16 +388,251 @@ def collect_wand(
         raise CalibrationError(
             "too few wand frames (need at least "
             f"{min_labelled} per camera):\n  " + "\n  ".join(lines) + "\nwave the wand longer inside the view of "
-            "these cameras, with all three markers visible and the wand across the view (not pointed at the camera)"
+            "these cameras, with all three markers visible and the wand across the view (not pointed at the camera); "
+            "a camera with frames but none labelled may have the wrong intrinsics, or a wand whose lengths "
+            "(calibration.wand) do not match"
         )
-    grid = common_grid([t for t, _ in tracks], rate_hz)
+    return tracks, stats
+
+
+def _period_ns(cam: Camera, st: CameraWandStats) -> int:
+    return st.frame_period_ns or int(1e9 / max(cam.fps, 1.0))
+
+
+def align_tracks(
+    cameras: Sequence[Camera],
+    tracks: list[tuple[np.ndarray, np.ndarray]],
+    stats: dict[int, CameraWandStats],
+    offsets_ns: np.ndarray | None = None,
+    rate_hz: float = 50.0,
+    max_gap_periods: float = 1.6,
+    align: str = "interpolate",
+    max_skew_ns: int = 2_000_000,
+) -> WandData:
+    """Labelled tracks -> WandData on a common time grid, each camera's stamps first corrected
+    by its clock offset (offsets_ns (V,), None = all 0)."""
+    if align not in ("interpolate", "nearest"):
+        raise CalibrationError(f"time alignment '{align}' is unknown; use interpolate or nearest")
     V = len(cameras)
+    off = np.zeros(V) if offsets_ns is None else np.asarray(offsets_ns, np.float64)
+    shifted = [(t - np.int64(round(off[v])), p) for v, (t, p) in enumerate(tracks)]
+    grid = common_grid([t for t, _ in shifted], rate_hz)
     pixels = np.full((len(grid), V, 3, 2), np.nan)
-    for v, (cam, (t, p)) in enumerate(zip(cameras, tracks)):
-        period = stats[cam.id].frame_period_ns or int(1e9 / max(cam.fps, 1.0))
+    for v, (cam, (t, p)) in enumerate(zip(cameras, shifted)):
         if align == "interpolate":
-            pixels[:, v] = interpolate_track(t, p, grid, int(max_gap_periods * period))
+            pixels[:, v] = interpolate_track(t, p, grid, int(max_gap_periods * _period_ns(cam, stats[cam.id])))
         else:
             pixels[:, v] = nearest_track(t, p, grid, max_skew_ns)
     keep = np.isfinite(pixels).all(axis=(2, 3)).sum(axis=1) >= 2
-    return WandData(list(cameras), grid[keep], pixels[keep], stats)
+    return WandData(list(cameras), grid[keep], pixels[keep], stats, list(tracks), off.copy())
+
+
+def collect_wand(
+    frames: Sequence[BlobFrame],
+    cameras: Sequence[Camera],
+    spec: WandSpec,
+    rate_hz: float = 50.0,
+    max_gap_periods: float = 1.6,
+    min_labelled: int = 100,
+    align: str = "interpolate",
+    max_skew_ns: int = 2_000_000,
+    offsets_ns: np.ndarray | None = None,
+) -> WandData:
+    """BlobFrames of a wand wave -> WandData on a common time grid.
+
+    align: 'interpolate' (linear between the camera's labelled frames around each grid
+    time) or 'nearest' (the camera's closest labelled frame within max_skew_ns).
+    offsets_ns: (V,) clock offsets the cameras' stamps are corrected for (None = 0).
+    Raises CalibrationError naming any camera that saw too few wand frames.
+    """
+    if align not in ("interpolate", "nearest"):
+        raise CalibrationError(f"time alignment '{align}' is unknown; use interpolate or nearest")
+    tracks, stats = label_all(frames, cameras, spec, min_labelled)
+    return align_tracks(cameras, tracks, stats, offsets_ns, rate_hz, max_gap_periods, align, max_skew_ns)
+
+
+# ------------------------------------------------------------- clock offsets
+def sampson_distance(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """First-order geometric error (N,) of correspondences x1, x2 (N, 2) under E (3, 3), normalised units."""
+    h1 = np.column_stack([x1, np.ones(len(x1))])
+    h2 = np.column_stack([x2, np.ones(len(x2))])
+    Ex1 = h1 @ E.T
+    Etx2 = h2 @ E
+    num = np.sum(h2 * Ex1, axis=1)
+    den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.abs(num) / np.sqrt(den)
+
+
+@dataclass
+class PairOffset:
+    """Clock offset of camera j minus camera i (ns) from their wand tracks.
+
+    frames: shared frames at that offset; residual: RMS Sampson distance there (normalised
+    units); contrast: that residual over the median one across the search (small = a clear
+    minimum); edge: the minimum lies at the end of the search range.
+    """
+
+    i: int
+    j: int
+    offset_ns: float
+    frames: int
+    residual: float
+    contrast: float
+    edge: bool
+
+    @property
+    def usable(self) -> bool:
+        return not self.edge and self.contrast < 0.5
+
+
+def _epipolar_cost(ti: np.ndarray, xi: np.ndarray, tj: np.ndarray, xj: np.ndarray, d_ns: float,
+                   max_gap_ns: int, min_frames: int) -> tuple[float, int]:
+    """(RMS Sampson distance of a linear essential-matrix fit, frames) with camera j's track read at
+    camera i's times + d_ns; inf when fewer than min_frames frames are shared."""
+    yj = interpolate_track(tj, xj, ti + np.int64(round(d_ns)), max_gap_ns)
+    ok = np.isfinite(yj).all(axis=(1, 2))
+    n = int(ok.sum())
+    if n < min_frames:
+        return float("inf"), n
+    p1 = xi[ok].reshape(-1, 2)
+    p2 = yj[ok].reshape(-1, 2)
+    # linear fit of x2^T E x1 = 0 (9 unknowns) by the normal equations: only compared across offsets,
+    # so neither Hartley normalisation (normalised coordinates are well scaled) nor rank 2 is needed
+    M = np.einsum("ni,nj->nij", np.column_stack([p2, np.ones(len(p2))]),
+                  np.column_stack([p1, np.ones(len(p1))])).reshape(-1, 9)
+    E = np.linalg.eigh(M.T @ M)[1][:, 0].reshape(3, 3)
+    s2 = np.sort(sampson_distance(E, p1, p2) ** 2)
+    # the few mislabelled frames must not decide: the best 90 %
+    return float(np.sqrt(s2[: max(1, int(0.9 * len(s2)))].mean())), n
+
+
+def pair_offset(
+    ti: np.ndarray, xi: np.ndarray, tj: np.ndarray, xj: np.ndarray, max_gap_ns: int, search_ns: float,
+    step_ns: float = 1e6, min_frames: int = 40, max_frames: int = 300,
+) -> PairOffset | None:
+    """Clock offset of camera j minus camera i within +-search_ns.
+
+    ti, tj: (n,) sorted stamps; xi, xj: (n, 3, 2) undistorted normalised A, B, C. A grid
+    search (step_ns), then a finer one (step_ns / 10) around its best, then a parabola.
+    Returns None when fewer than min_frames frames are shared at every offset.
+    """
+    if len(ti) > max_frames:  # camera i's frames only pick the times: a spread subset is plenty
+        sel = np.linspace(0, len(ti) - 1, max_frames).round().astype(int)
+        ti, xi = ti[sel], xi[sel]
+    grid = np.arange(-search_ns, search_ns + 0.5 * step_ns, step_ns)
+    cost = np.array([_epipolar_cost(ti, xi, tj, xj, d, max_gap_ns, min_frames)[0] for d in grid])
+    finite = np.isfinite(cost)
+    if not finite.any():
+        return None
+    b = int(np.argmin(np.where(finite, cost, np.inf)))
+    edge = b < 2 or b > len(grid) - 3
+    contrast = float(cost[b] / np.median(cost[finite])) if np.median(cost[finite]) > 0 else 1.0
+    fine_step = step_ns / 10
+    fine = grid[b] + np.arange(-15, 16) * fine_step
+    fc = np.array([_epipolar_cost(ti, xi, tj, xj, d, max_gap_ns, min_frames)[0] for d in fine])
+    k = int(np.argmin(fc))
+    best = float(fine[k])
+    if 0 < k < len(fine) - 1 and np.isfinite(fc[k - 1:k + 2]).all():
+        y0, y1, y2 = fc[k - 1] ** 2, fc[k] ** 2, fc[k + 1] ** 2
+        den = y0 - 2 * y1 + y2
+        if den > 0:
+            best += float(np.clip(0.5 * (y0 - y2) / den, -1, 1)) * fine_step
+    res, n = _epipolar_cost(ti, xi, tj, xj, best, max_gap_ns, min_frames)
+    return PairOffset(-1, -1, best, n, res, contrast, edge)
+
+
+@dataclass
+class OffsetEstimate:
+    """Per-camera clock offsets (V,) ns relative to camera `ref`, the pair estimates behind
+    them and, per camera not reached by a usable pair, why."""
+
+    offsets_ns: np.ndarray
+    pairs: list[PairOffset]
+    problems: list[str]
+
+
+def estimate_offsets(
+    cameras: Sequence[Camera],
+    tracks: list[tuple[np.ndarray, np.ndarray]],
+    stats: dict[int, CameraWandStats],
+    max_offset_ms: float,
+    ref: int = 0,
+    max_gap_periods: float = 1.6,
+    min_frames: int = 40,
+) -> OffsetEstimate:
+    """Each camera's clock offset (ns, camera `ref` = 0) from the wand tracks alone.
+
+    Every camera pair is searched over +-2 max_offset_ms (both may be off by max_offset_ms
+    in opposite directions); the usable pair offsets are combined by least squares, pairs
+    that disagree with the rest by more than 1 ms dropped one at a time.
+    """
+    V = len(cameras)
+    xn = [cam.model.undistort(p.reshape(-1, 2)).reshape(-1, 3, 2) if len(p) else p
+          for cam, (_, p) in zip(cameras, tracks)]
+    pairs: list[PairOffset] = []
+    problems: list[str] = []
+    search = 2 * max_offset_ms * 1e6
+    for i, j in itertools.combinations(range(V), 2):
+        ti, tj = tracks[i][0], tracks[j][0]
+        if len(ti) < min_frames or len(tj) < min_frames:
+            continue
+        gap = int(max_gap_periods * _period_ns(cameras[j], stats[cameras[j].id]))
+        po = pair_offset(ti, xn[i], tj, xn[j], gap, search, min_frames=min_frames)
+        if po is None:
+            continue
+        po.i, po.j = i, j
+        pairs.append(po)
+    names = [c.name for c in cameras]
+    use = [p for p in pairs if p.usable]
+    offsets = np.zeros(V)
+    while True:
+        reached = {ref}
+        changed = True
+        while changed:  # cameras connected to ref through usable pairs
+            changed = False
+            for p in use:
+                if (p.i in reached) != (p.j in reached):
+                    reached |= {p.i, p.j}
+                    changed = True
+        idx = {v: k for k, v in enumerate(v for v in range(V) if v != ref and v in reached)}
+        if not use or not idx:
+            break
+        rows = [p for p in use if p.i in reached and p.j in reached]
+        Amat = np.zeros((len(rows), len(idx)))
+        b = np.zeros(len(rows))
+        w = np.array([np.sqrt(p.frames) / max(p.residual, 1e-12) for p in rows])
+        for r, p in enumerate(rows):
+            if p.j in idx:
+                Amat[r, idx[p.j]] = 1.0
+            if p.i in idx:
+                Amat[r, idx[p.i]] = -1.0
+            b[r] = p.offset_ns
+        sol = np.linalg.lstsq(Amat * w[:, None], b * w, rcond=None)[0]
+        err = np.abs(Amat @ sol - b)
+        worst = int(np.argmax(err))
+        if err[worst] > 1e6 and len(rows) > len(idx):
+            use.remove(rows[worst])
+            continue
+        offsets[:] = 0.0
+        for v, k in idx.items():
+            offsets[v] = sol[k]
+        break
+    for v in range(V):
+        if v == ref or any(p.usable and v in (p.i, p.j) for p in use):
+            continue
+        mine = [p for p in pairs if v in (p.i, p.j)]
+        if not mine:
+            why = "it shares too few wand frames with any other camera"
+        elif all(p.edge for p in mine):
+            why = (f"its best match with every other camera lies at the end of the search range "
+                   f"(+-{2 * max_offset_ms:.0f} ms between two cameras): its clock may be off by more than "
+                   f"{max_offset_ms:.0f} ms (check the station's clock sync, or raise the maximum clock offset)")
+        else:
+            why = (f"no offset within the search range (+-{2 * max_offset_ms:.0f} ms between two cameras) makes its "
+                   "wand track agree with another camera's; likely causes: its clock off by more than "
+                   f"{max_offset_ms:.0f} ms (check the station's clock sync, or raise the maximum clock offset), too "
+                   "few frames shared with other cameras, the wand moving too little, wrong intrinsics, or blobs "
+                   "that are not the wand")
+        problems.append(f"camera {names[v]}: clock offset not estimated, kept at 0: {why}")
+    return OffsetEstimate(offsets, pairs, problems)

@@ -67,12 +67,18 @@ def capture_frames(recording: str | None, sim: str | None, session: str, overrid
     return frames, arena, truth
 
 
-def wand_spec(arena: ArenaConfig, ab: float | None = None, bc: float | None = None) -> WandSpec:
-    """The wand's A-B and B-C distances: given ones, else calibration.wand in the arena, else the defaults."""
-    sec = arena.section("calibration").sub("wand")
-    ab = ab if ab is not None else sec.number("ab", 0.054, min=0.005)
-    bc = bc if bc is not None else sec.number("bc", 0.103, min=0.005)
-    return WandSpec(ab, bc)
+def wand_settings(arena: ArenaConfig, ab: float | None = None, bc: float | None = None, known: str | None = None,
+                  max_clock_offset_ms: float | None = None) -> tuple[WandSpec, float]:
+    """(the wand, the largest clock offset to search for (ms)): given values, else calibration.wand in the
+    arena, else the defaults. Unknown keys and values out of bounds raise ConfigError naming the key."""
+    from visionpos.config.sections import CALIBRATION, WAND
+
+    sec = WAND.check(CALIBRATION.check(arena.section("calibration")).sub("wand"))
+    ab = ab if ab is not None else WAND.read(sec, "ab")
+    bc = bc if bc is not None else WAND.read(sec, "bc")
+    known = known if known is not None else WAND.read(sec, "known")
+    mx = max_clock_offset_ms if max_clock_offset_ms is not None else WAND.read(sec, "max_clock_offset_ms")
+    return WandSpec(ab, bc, known), float(mx)
 
 
 def write_arena(arena: ArenaConfig, cameras: Sequence[Any], out: str | Path, extra: dict[str, Any]) -> None:
@@ -89,8 +95,8 @@ def ground_layout(arena: ArenaConfig, frame: str | None = None, markers: str | N
                   marker_height: float | None = None) -> tuple[np.ndarray, float]:
     """(marker layout (M, 3) in m, marker centre height above the floor) of the ground frame.
 
-    markers: 'X,Y,Z;X,Y,Z;...' given by hand; else the body or sim prop named `frame` (or
-    the first of GROUND_FRAME_NAMES) in the arena.
+    markers: 'X,Y,Z;X,Y,Z;...' given by hand; else the body or sim prop named `frame`; else
+    calibration.lframe in the arena; else the first body or prop named one of GROUND_FRAME_NAMES.
     """
     if markers:
         try:
@@ -100,6 +106,17 @@ def ground_layout(arena: ArenaConfig, frame: str | None = None, markers: str | N
         if layout.ndim != 2 or layout.shape[1] != 3:
             raise CalibrationError(f"--markers '{markers}': every marker needs 3 numbers")
         return layout, 0.007 if marker_height is None else marker_height
+    if not frame:
+        from visionpos.config.sections import CALIBRATION, LFRAME
+
+        cal = CALIBRATION.check(arena.section("calibration"))
+        if cal.has("lframe"):
+            lf = LFRAME.check(cal.sub("lframe"))
+            layout = LFRAME.read(lf, "markers")
+            if len(layout) < 3:
+                raise lf.error("markers", "needs at least 3 markers")
+            h = marker_height if marker_height is not None else LFRAME.read(lf, "marker_diameter") / 2
+            return np.asarray(layout, float), h
     candidates = [frame] if frame else list(GROUND_FRAME_NAMES)
     entries: list[dict] = []
     for b in arena.raw.get("bodies") or []:
@@ -121,14 +138,3 @@ def ground_layout(arena: ArenaConfig, frame: str | None = None, markers: str | N
         f"{arena.source}: no ground frame named {' or '.join(candidates)} in bodies or sim.props; "
         "give --frame NAME or --markers X,Y,Z;..."
     )
-
-
-def rescaled_mode(model: Any, spec: str) -> dict[str, Any]:
-    """The intrinsics for another capture mode 'WxH' or 'WxH+UxV' (crop U x V pixels after resizing)."""
-    try:
-        size, _, crop = spec.partition("+")
-        w, h = (int(v) for v in size.lower().split("x"))
-        U, V = (float(v) for v in crop.lower().split("x")) if crop else (0.0, 0.0)
-    except ValueError:
-        raise CalibrationError(f"--rescale '{spec}': expected WxH or WxH+UxV, e.g. 640x480 or 640x480+0x60") from None
-    return model.rescale(w, h, (U, V)).to_dict()

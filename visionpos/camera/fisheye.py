@@ -11,7 +11,7 @@ for theta by Newton's method and scales back by tan(theta) / |xd|.
 As in camera/pinhole.py, vectorised numpy forms (`distort`,
 `distort_with_jacobian`, `undistort`; coefficients broadcast over cameras) and
 compiled per-point kernels for the hot path (`distort_point`,
-`undistort_point`) live side by side; `radius_from_angle` is one source for
+`distort_jacobian_point`, `undistort_point`) live side by side; `radius_from_angle` is one source for
 both (plain on arrays, compiled as `radius_from_angle_point`).
 """
 
@@ -118,6 +118,18 @@ def distort_point(x, y, k):
 
 
 @njit
+def distort_jacobian_point(x, y, k):
+    """Compiled: d (xd, yd) / d (x, y) at one point as (j00, j01, j10, j11); k (4,) float64
+    (as `distort_with_jacobian`: s I + x x^T (ds/dr) / r with s = r_d / r)."""
+    rr = max(x * x + y * y, 1e-300)
+    r = math.sqrt(rr)
+    rd, drd = radius_from_angle_point(math.atan(r), k)
+    s = rd / r
+    dsr = (drd / (1.0 + rr) - s) / rr
+    return s + x * x * dsr, x * y * dsr, x * y * dsr, s + y * y * dsr
+
+
+@njit
 def undistort_point(xd, yd, k):
     """Compiled: distorted normalised (xd, yd) -> (x, y, ok), k (4,) float64.
 
@@ -139,5 +151,5 @@ def undistort_point(xd, yd, k):
 
 __all__ = [
     "N_COEFFS", "radius_from_angle", "radius_from_angle_point", "distort", "distort_with_jacobian",
-    "undistort", "max_angle", "distort_point", "undistort_point",
+    "undistort", "max_angle", "distort_point", "distort_jacobian_point", "undistort_point",
 ]

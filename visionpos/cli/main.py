@@ -19,6 +19,7 @@ from visionpos.errors import VisionposError
 
 COMMANDS: dict[str, str] = {
     "demo": "run the whole chain on a simulated arena over loopback",
+    "sitl": "fly ArduPilot SITL closed loop on simulated cameras (the autopilot in the loop)",
     "serve": "start the fusion service for live stations",
     "record": "record live station traffic to an MCAP log (no outputs)",
     "keygen": "make the shared key that server and stations sign packets with",
@@ -27,6 +28,7 @@ COMMANDS: dict[str, str] = {
     "recover": "rewrite a recording cut short (writer killed, disk full) as a clean MCAP file",
     "tune": "sweep settings over a recording and rank them",
     "calibrate": "intrinsics, wand extrinsics, ground plane",
+    "plan": "camera coverage and accuracy bounds over a flight volume; where to add a camera",
     "bench": "run the benchmark suite",
 }
 

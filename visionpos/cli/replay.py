@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 from visionpos.analysis import metrics as M
 from visionpos.analysis.replay import METRIC_COLUMNS, metrics_rows, replay_log, summary, write_outputs
+from visionpos.errors import UsageError
 
 
 def parse_speed(s: str) -> float | None:
@@ -31,14 +33,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="1 = real time, N = N x real time, max = as fast as possible (default)")
     p.add_argument("--rate", type=float, default=None, metavar="HZ",
                    help="output tick rate (default: server.output_rate_hz or 100)")
-    p.add_argument("--out", default="replay_out", metavar="DIR", help="output folder (default ./replay_out)")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="output folder (default ./replay_out); with --foxglove the copy (default LOG.foxglove.mcap)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots (faster; no matplotlib needed)")
+    p.add_argument("--foxglove", action="store_true",
+                   help="instead of replaying, write a copy of LOG (to --out) with the Foxglove channels (3-D scene, "
+                        "blobs, health) built from what it recorded, for Foxglove or Lichtblick (docs/interop.md)")
+    p.add_argument("--force", action="store_true", help="with --foxglove: overwrite the copy if it exists")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.foxglove:
+        return foxglove(args)
+    if args.force:
+        raise UsageError("--force is for --foxglove (a replay's --out folder is always written into)")
     res = replay_log(args.log, args.config, args.set, speed=args.speed, rate_hz=args.rate)
-    written, note = write_outputs(res, args.out, plots=not args.no_plots)
+    written, note = write_outputs(res, args.out or "replay_out", plots=not args.no_plots)
     summ = summary(res)
     if args.json:
         print(json.dumps(summ, indent=2, sort_keys=True))
@@ -54,4 +65,29 @@ def run(args: argparse.Namespace) -> int:
     if note:
         print(f"note: {note}", file=sys.stderr)
     print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
+    return 0
+
+
+def foxglove(args: argparse.Namespace) -> int:
+    from visionpos.recording import TOPIC_STATES, foxglove_copy
+
+    if args.config or args.set or args.rate is not None or args.speed is not None or args.no_plots:
+        raise UsageError("--foxglove copies what LOG recorded; it takes no --config, --set, --rate, --speed or "
+                         "--no-plots")
+    log = Path(args.log)
+    out = Path(args.out) if args.out is not None else log.with_name(log.name.removesuffix(".mcap") + ".foxglove.mcap")
+    if out.exists() and not args.force:
+        raise UsageError(f"{out} exists; pass --force to overwrite it or --out to write elsewhere")
+    rep = foxglove_copy(log, out)
+    if args.json:
+        print(json.dumps(rep, indent=2, sort_keys=True))
+    else:
+        print(f"wrote {out}: {rep['messages']} messages of {log} and {rep['foxglove_messages']} "
+              "Foxglove messages (open it in Foxglove or Lichtblick)")
+    if rep["damage"]:
+        print(f"note: {args.log} is damaged ({rep['damage']}); copied everything before it", file=sys.stderr)
+    if not rep["messages_by_topic"].get(TOPIC_STATES):
+        print(f"note: {args.log} recorded no poses (a `visionpos record` file?): the copy shows cameras and blobs; "
+              "the bodies appear in recordings of `visionpos serve --record` or `visionpos demo --record`",
+              file=sys.stderr)
     return 0

@@ -186,9 +186,19 @@ class ArenaConfig:
     cameras: tuple[Camera, ...]
     bodies: tuple[BodyConfig, ...]
     raw: dict[str, Any]
+    unposed: tuple[int, ...] = ()  # ids of cameras whose entry has no pose yet (placeholder pose at the origin)
 
     def camera_by_id(self) -> dict[int, Camera]:
         return {c.id: c for c in self.cameras}
+
+    def require_poses(self, what: str) -> None:
+        """ConfigError naming the first camera without a pose, for a step that needs them all."""
+        if self.unposed:
+            i = next(k for k, c in enumerate(self.cameras) if c.id in self.unposed)
+            raise ConfigError(self.source, f"cameras[{i}].pose",
+                              f"{what} needs every camera's pose and camera {self.unposed[0]} has none (of "
+                              f"{len(self.unposed)} without); record a wand wave (`visionpos record`) and run "
+                              "`visionpos calibrate wand` to find them, or give rough ones (position and look_at)")
 
     def section(self, key: str) -> Section:
         return Section(self.raw.get(key), self.source, key)
@@ -205,14 +215,21 @@ def parse_arena(data: dict[str, Any], source: str = "<arena>") -> ArenaConfig:
 
     top = sections.TOP.check(Section(data, source, ""))
     cams: list[Camera] = []
+    unposed: list[int] = []
     for i, c in enumerate(top.items("cameras")):
         c = sections.CAMERA.check(c)
+        entry = c.data
         if isinstance(c.data.get("pose"), dict):
             sections.CAMERA_POSE.check(c.sub("pose"))
+        elif c.data.get("pose") is None:
+            # not calibrated yet: a placeholder pose, and the camera listed in ArenaConfig.unposed
+            entry = {**c.data, "pose": {"position": [0.0, 0.0, 0.0], "quaternion_xyzw": [0.0, 0.0, 0.0, 1.0]}}
         try:
-            cams.append(Camera.from_dict(c.data, where=f"cameras[{i}]"))
+            cams.append(Camera.from_dict(entry, where=f"cameras[{i}]"))
         except CameraModelError as e:
             raise ConfigError(source, f"cameras[{i}]", str(e)) from None
+        if entry is not c.data:
+            unposed.append(cams[-1].id)
     ids = [c.id for c in cams]
     if len(set(ids)) != len(ids):
         raise ConfigError(source, "cameras", f"camera ids must be unique, got {ids}")
@@ -239,7 +256,7 @@ def parse_arena(data: dict[str, Any], source: str = "<arena>") -> ArenaConfig:
     names = [b.name for b in bodies]
     if len(set(names)) != len(names):
         raise ConfigError(source, "bodies", f"body names must be unique, got {names}")
-    return ArenaConfig(source, tuple(cams), tuple(bodies), data)
+    return ArenaConfig(source, tuple(cams), tuple(bodies), data, tuple(unposed))
 
 
 def load_arena(path: str | Path) -> ArenaConfig:

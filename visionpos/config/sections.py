@@ -53,7 +53,9 @@ CAMERA = section(
     Setting("cy", "number", doc="principal point y (px)"),
     Setting("dist", "array", [], "distortion coefficients in OpenCV's order (see the lens models)",
             default_doc="[] (none)"),
-    Setting("pose", "section", doc="camera position and orientation", spec=CAMERA_POSE),
+    Setting("pose", "section", None, "camera position and orientation. Leave it out before the cameras are "
+            "calibrated: `visionpos record` records a wand wave without poses and `visionpos calibrate wand` finds "
+            "them; fusion, serving and planning need every pose", spec=CAMERA_POSE, default_doc="(not calibrated yet)"),
 )
 
 BODY_OCCLUSION = section(
@@ -80,16 +82,33 @@ BODY = section(
 
 WAND = section(
     "calibration.wand",
-    "The calibration wand: three collinear markers A, B, C (`visionpos calibrate extrinsics`); "
-    "the command line's --ab/--bc win.",
+    "The calibration wand: three collinear markers A, B, C, marker centre to centre, B off-centre "
+    "(AB clearly shorter than BC, e.g. 1:2, so A and C can be told apart); `visionpos calibrate wand`'s "
+    "--ab/--bc/--known/--max-clock-offset-ms win. See docs/calibration.md for building one.",
     Setting("ab", "number", 0.054, "distance A-B (m)", min=0.005),
     Setting("bc", "number", 0.103, "distance B-C (m)", min=0.005),
+    Setting("known", "text", "ac", "the segment measured most precisely: it sets the scale, the other two are "
+            "measured against it and a mismatch is reported", choices=("ab", "bc", "ac")),
+    Setting("max_clock_offset_ms", "number", 60.0, "largest clock offset of a camera the wand step searches for "
+            "(0: trust the stamps)", min=0.0, max=500.0),
+)
+
+LFRAME = section(
+    "calibration.lframe",
+    "The ground frame lying on the floor for `visionpos calibrate ground` (an L-frame or triangle): its "
+    "markers in its own frame, x-y plane on the floor. Used when --frame/--markers are not given; "
+    "otherwise a body or sim prop named lframe/ground/triangle/ground_frame.",
+    Setting("markers", "array", doc="marker centres (M, 3) in m, at least 3; legs of clearly different "
+            "lengths so the frame's orientation is unambiguous", shape=(None, 3)),
+    Setting("marker_diameter", "number", 0.014, "marker sphere diameter (m); the centres sit one radius above "
+            "the floor", min=0.001),
 )
 
 CALIBRATION = section(
     "calibration",
     "Calibration inputs, and the reports `visionpos calibrate` writes back into the arena it produces.",
-    Setting("wand", "section", doc="the wand's geometry", spec=WAND),
+    Setting("wand", "section", {}, "the wand's geometry", spec=WAND),
+    Setting("lframe", "section", None, "the ground frame's geometry", spec=LFRAME, default_doc="(bodies/props)"),
     Setting("extrinsics", "any", None, "report written by `calibrate extrinsics` (reference camera, "
             "residuals); read by nobody", default_doc="(written)"),
     Setting("ground", "any", None, "report written by `calibrate ground` (marker choice, fit residual); "
@@ -108,6 +127,8 @@ TOP = section(
     Setting("pose_stream", "section", None, "UDP pose stream", default_doc="(off)"),
     Setting("vrpn", "section", None, "VRPN server", default_doc="(off)"),
     Setting("natnet", "section", None, "NatNet server for OptiTrack clients", default_doc="(off)"),
+    Setting("foxglove", "section", None, "Foxglove WebSocket server (the [foxglove] extra)", default_doc="(off)"),
     Setting("sim", "section", {}, "the simulator's scenario"),
-    Setting("calibration", "section", {}, "calibration wand and reports", spec=CALIBRATION),
+    Setting("sitl", "section", {}, "ArduPilot SITL for `visionpos sitl`"),
+    Setting("calibration", "section", {}, "calibration wand, ground frame and reports", spec=CALIBRATION),
 )

@@ -30,9 +30,10 @@ POSE_P, POSE_ROT = slice(0, 3), slice(3, 6)
 POSE_ROT0 = 3
 
 # ---------------------------------------------------------------- FilterBank rows (tracking.py)
-# adapt (n, 5) float: process-noise scales and NIS averages
-ADAPT_SCALE_P, ADAPT_SCALE_R, ADAPT_NIS_P, ADAPT_NIS_R, ADAPT_NIS_IMG = range(5)
-N_ADAPT = 5
+# adapt (n, 6) float: process-noise scales and NIS averages (fused pose: position, rotation; image: the
+# translation and the rotation part of the residual)
+ADAPT_SCALE_P, ADAPT_SCALE_R, ADAPT_NIS_P, ADAPT_NIS_R, ADAPT_NIS_IMG, ADAPT_NIS_IMG_R = range(6)
+N_ADAPT = 6
 # clock (n, 3) int64: filter time ns, last image-NIS time ns, folds of the rotation error since the start
 CLOCK_T_NS, CLOCK_IMG_T_NS, CLOCK_FOLDS = range(3)
 N_CLOCK = 3
@@ -67,16 +68,21 @@ N_CAMERA = 28
 # ---------------------------------------------------------------- marker motion (3, M, 3) (kernels._tracked_motion)
 MOTION_POS, MOTION_VEL, MOTION_ACC = range(3)
 
-# ---------------------------------------------------------------- fusion params (6,) float (FusionPipeline)
+# ---------------------------------------------------------------- fusion params (12,) float (FusionPipeline)
+# then the single-view path (fusion.single_view): on (1.0) / off, its NIS gate per dof, the information
+# window (ns), the largest position / rotation variance (m^2, rad^2) the views' information may leave, and
+# the floor of the pixel variance (px^2)
 (PARAM_MAX_RESIDUAL_PX, PARAM_IDENTIFY_TOL_M, PARAM_COMPENSATE_MAX_VEL_VAR, PARAM_MIN_MARKERS,
- PARAM_MARKER_VAR_FLOOR, PARAM_RESET_AFTER_NS) = range(6)
-N_PARAMS = 6
+ PARAM_MARKER_VAR_FLOOR, PARAM_RESET_AFTER_NS, PARAM_SV_ENABLED, PARAM_SV_GATE_PER_DOF, PARAM_SV_WINDOW_NS,
+ PARAM_SV_MAX_POS_VAR, PARAM_SV_MAX_ROT_VAR, PARAM_SV_MIN_PX_VAR) = range(12)
+N_PARAMS = 12
 
 # ---------------------------------------------------------------- track rows, one per body (tracks._Track)
-# track_ints (bodies, 7) int64
+# track_ints (bodies, 9) int64; TRACK_UPDATE_KIND: UpdateKind of the last measurement that kept the track;
+# TRACK_VIEWS_T_NS: capture time of the newest frame in the single-view information (TrackRows.info)
 (TRACK_LAST_UPDATE_NS, TRACK_LAST_CAPTURE_NS, TRACK_N_MARKERS, TRACK_N_CAMERAS, TRACK_FIRST_REJECT_NS,
- TRACK_TRACKED, TRACK_RESETS) = range(7)
-N_TRACK_INTS = 7
+ TRACK_TRACKED, TRACK_RESETS, TRACK_UPDATE_KIND, TRACK_VIEWS_T_NS) = range(9)
+N_TRACK_INTS = 9
 NO_TIME = np.iinfo(np.int64).min  # TRACK_FIRST_REJECT_NS: nothing rejected since the last accepted measurement
 # track_floats (bodies, 3) float64
 TRACK_PX_VAR, TRACK_MARKER_VAR, TRACK_RESIDUAL_MM = range(3)
@@ -92,15 +98,30 @@ N_MEAS = 51
 class Verdict(IntEnum):
     """What one fusion did with a tracked body's measurement."""
 
-    TOO_FEW = 0  # fewer markers than a pose needs
+    TOO_FEW = 0  # fewer markers than a pose needs (and no single view used)
     FIT_REJECTED = 1  # the rigid fit residual is above its tolerance
     ACCEPTED = 2
     GATED = 3  # outside the filter's innovation gate
     RESET = 4  # gated for too long: the filter restarted at the measurement
+    VIEWS = 5  # no pose: single-view updates taken, and they constrain the pose (the track is kept)
+    VIEWS_UNCONSTRAINED = 6  # single-view updates taken, but their information leaves the pose unobservable
+    VIEWS_GATED = 7  # every single view was outside its innovation gate
 
 
 # the kernels' plain-int copies (numba reads module-level ints as constants)
-VERDICT_TOO_FEW, VERDICT_FIT_REJECTED, VERDICT_ACCEPTED, VERDICT_GATED, VERDICT_RESET = (int(v) for v in Verdict)
+(VERDICT_TOO_FEW, VERDICT_FIT_REJECTED, VERDICT_ACCEPTED, VERDICT_GATED, VERDICT_RESET, VERDICT_VIEWS,
+ VERDICT_VIEWS_UNCONSTRAINED, VERDICT_VIEWS_GATED) = (int(v) for v in Verdict)
+
+
+class UpdateKind(IntEnum):
+    """Which kind of measurement last kept a body tracked (TRACK_UPDATE_KIND, BodyState.update_kind)."""
+
+    NONE = 0  # not tracked yet
+    POSE = 1  # a triangulated pose (or the identification that started the track)
+    VIEWS = 2  # single-camera reprojection updates (fewer than min_markers triangulated)
+
+
+UPDATE_NONE, UPDATE_POSE, UPDATE_VIEWS = (int(v) for v in UpdateKind)
 
 
 # ---------------------------------------------------------------- argument groups of the kernels
@@ -136,6 +157,7 @@ class ViewSet(NamedTuple):
     R: np.ndarray  # (V, 3, 3) world -> camera rotations
     t: np.ndarray  # (V, 3) translations (m)
     focal_px: np.ndarray  # (V,) geometric-mean focal lengths (px)
+    packed: np.ndarray  # (V, N_CAMERA) the cameras packed as matching.Projector.packed (single-view path)
 
 
 class TrackRows(NamedTuple):
@@ -143,3 +165,5 @@ class TrackRows(NamedTuple):
 
     ints: np.ndarray  # (bodies, N_TRACK_INTS) int64, columns TRACK_* above
     floats: np.ndarray  # (bodies, N_TRACK_FLOATS) float64
+    view_ns: np.ndarray  # (bodies, cameras) int64: capture time of each camera's newest frame the body used
+    info: np.ndarray  # (bodies, 6, 6) pose information [p, rotation] of its recent single views (decaying)

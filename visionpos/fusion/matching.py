@@ -13,6 +13,12 @@ Two ways a blob gets its meaning:
    by (number of views, residual) so that every blob is used once
    (`match_unlabeled`). False blobs rarely find a consistent partner in a
    third view; missing markers just give fewer points.
+   The pair gate is in pixels, not metres: a pixel of camera v is an angle of
+   about 1/f_v, so at ranges r_a, r_b along the two rays a pixel error moves
+   the closest approach by up to r/f, and two rays of one marker pass within
+   gate_px * sqrt((r_a/f_a)^2 + (r_b/f_b)^2) of each other. A metric gate
+   is too tight far away (a marker 8 m off misses by > 1 cm per pixel) and
+   too loose up close.
 
 `triangulate` is the per-packet hot path: an iteratively re-weighted
 linear triangulation in normalised image coordinates. With the
@@ -339,16 +345,22 @@ def _world_rays(xn, R):
 
 
 @njit
-def ray_distances(c1: np.ndarray, d1: np.ndarray, c2: np.ndarray, d2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def ray_distances(c1: np.ndarray, d1: np.ndarray, c2: np.ndarray, d2: np.ndarray,
+                  px1: float = 0.0, px2: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Closest approach of two bundles of rays from two centres (compiled).
 
-    c1, c2: (3,) centres; d1 (N1, 3), d2 (N2, 3) unit directions. Returns
-    distance (N1, N2) in metres (inf where the closest point lies behind a
-    camera or the rays are parallel) and midpoints (N1, N2, 3).
+    c1, c2: (3,) centres; d1 (N1, 3), d2 (N2, 3) unit directions. px1, px2:
+    the angular size of a pixel of each camera (rad, 1/f); when given, the
+    distance is divided by sqrt((s px1)^2 + (u px2)^2), the metres one pixel of
+    error moves the closest approach at ranges s and u along the rays, so it
+    is in pixels. Returns distance (N1, N2) in metres, or pixels when scaled
+    (inf where the closest point lies behind a camera or the rays are
+    parallel), and midpoints (N1, N2, 3).
     """
     N1, N2 = d1.shape[0], d2.shape[0]
     dist = np.full((N1, N2), np.inf)
     mid = np.empty((N1, N2, 3))
+    scaled = px1 > 0.0 or px2 > 0.0
     w0 = c1 - c2
     for i in range(N1):
         dd = d1[i, 0] * w0[0] + d1[i, 1] * w0[1] + d1[i, 2] * w0[2]
@@ -366,6 +378,8 @@ def ray_distances(c1: np.ndarray, d1: np.ndarray, c2: np.ndarray, d2: np.ndarray
                 ss += (p1 - p2) * (p1 - p2)
             if den > 1e-10 and s > 0 and u > 0:
                 dist[i, j] = math.sqrt(ss)
+                if scaled:
+                    dist[i, j] /= math.sqrt((s * px1) ** 2 + (u * px2) ** 2)
     return dist, mid
 
 
@@ -374,14 +388,16 @@ def match_unlabeled(
     R: np.ndarray,
     t: np.ndarray,
     f: np.ndarray,
-    max_ray_distance: float,
+    ray_gate_px: float,
     max_residual_px: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cross-view matching and triangulation of unlabeled blobs.
 
     xn: per view v an (N_v, 2) array of normalised coordinates. R (V, 3, 3),
-    t (V, 3), f (V,) as in `triangulate`. max_ray_distance: pair gate (m).
-    max_residual_px: growth gate and final RMS gate.
+    t (V, 3), f (V,) as in `triangulate`. ray_gate_px: pair gate, pixels at
+    each ray's range (two rays pass within ray_gate_px * sqrt((r_a/f_a)^2 +
+    (r_b/f_b)^2) metres; module docstring). max_residual_px: growth gate and
+    final RMS gate.
     Returns points (Q, 3), blob index (Q, V) (-1 = not seen), rms (Q,) px;
     every blob is used by at most one point.
     """
@@ -391,11 +407,11 @@ def match_unlabeled(
     pts = np.concatenate([np.asarray(x, dtype=np.float64).reshape(-1, 2) for x in xn]) if V else np.zeros((0, 2))
     return _match_unlabeled(np.ascontiguousarray(pts), start, np.ascontiguousarray(R, dtype=np.float64),
                             np.ascontiguousarray(t, dtype=np.float64), np.ascontiguousarray(f, dtype=np.float64),
-                            float(max_ray_distance), float(max_residual_px))
+                            float(ray_gate_px), float(max_residual_px))
 
 
 @njit
-def _match_unlabeled(pts, start, R, t, f, max_ray_distance, max_residual_px):
+def _match_unlabeled(pts, start, R, t, f, ray_gate_px, max_residual_px):
     """Compiled core of match_unlabeled; view v's blobs are pts[start[v]:start[v + 1]] (N, 2)."""
     V = start.shape[0] - 1
     centres = np.empty((V, 3))
@@ -405,7 +421,7 @@ def _match_unlabeled(pts, start, R, t, f, max_ray_distance, max_residual_px):
     rays = np.empty((pts.shape[0], 3))
     for v in range(V):
         rays[start[v] : start[v + 1]] = _world_rays(pts[start[v] : start[v + 1]], R[v])
-    # 1. seed pairs: rays of two views that pass within max_ray_distance
+    # 1. seed pairs: rays of two views that pass within ray_gate_px at their ranges
     cap = 0
     for a in range(V):
         for b in range(a + 1, V):
@@ -420,11 +436,12 @@ def _match_unlabeled(pts, start, R, t, f, max_ray_distance, max_residual_px):
             if start[b + 1] == start[b]:
                 continue
             dist, mid = ray_distances(
-                centres[a], rays[start[a] : start[a + 1]], centres[b], rays[start[b] : start[b + 1]]
+                centres[a], rays[start[a] : start[a + 1]], centres[b], rays[start[b] : start[b + 1]],
+                1.0 / f[a], 1.0 / f[b],
             )
             for i in range(dist.shape[0]):
                 for j in range(dist.shape[1]):
-                    if dist[i, j] < max_ray_distance:
+                    if dist[i, j] < ray_gate_px:
                         idx[S, a], idx[S, b] = i, j
                         X0[S] = mid[i, j]
                         S += 1

@@ -17,6 +17,14 @@ marker, a weighted Kabsch pose per body, a gated Kalman update
 identification of lost bodies by marker geometry (rigidbody.py) and the
 loose points.
 
+Occlusion: a tracked body with fewer than min_markers markers triangulated in a
+fusion is updated instead from the 2-D markers each of the fusion's frames sees
+(kernels._single_views, tracking.filter_update_view: a reprojection measurement
+at the frame's own capture time, each frame used once, NIS-gated, only
+unambiguous associations). The track is kept only while the recent views' pose
+information bounds the pose; single views never acquire or re-identify.
+BodyState.update_kind says which kind of update last kept a body.
+
 Measurement covariance: from the rigid-body fit itself. The Kabsch residual
 gives the per-marker noise (sigma^2 = sum |r|^2 / (3n - 6), averaged per body
 over recent fusions, floored by `marker_sigma_m`); with the marker layout it
@@ -45,7 +53,9 @@ gets the same treatment, so the comparison is with a fair baseline.
 
 Outputs: tick() predicts each tracked body to now_ns (latency cancelled)
 with its covariance; a body not updated for max_prediction_ms or lost is
-tracked=False with a NaN pose (a stale pose is never sent).
+tracked=False with a NaN pose (a stale pose is never sent). Both timeouts are
+at least 2 and 3 measured frame intervals of the slowest live camera
+(timealign.py measures them), so stations slower than configured still track.
 reset_counter increments only when a tracked filter is restarted at a
 measurement it kept rejecting (a jump), not on a dropout or reacquisition.
 
@@ -72,6 +82,12 @@ from visionpos.fusion.layout import (
     PARAM_MAX_RESIDUAL_PX,
     PARAM_MIN_MARKERS,
     PARAM_RESET_AFTER_NS,
+    PARAM_SV_ENABLED,
+    PARAM_SV_GATE_PER_DOF,
+    PARAM_SV_MAX_POS_VAR,
+    PARAM_SV_MAX_ROT_VAR,
+    PARAM_SV_MIN_PX_VAR,
+    PARAM_SV_WINDOW_NS,
     TRACK_LAST_CAPTURE_NS,
     TRACK_LAST_UPDATE_NS,
     TRACK_N_CAMERAS,
@@ -79,7 +95,9 @@ from visionpos.fusion.layout import (
     TRACK_RESETS,
     TRACK_RESIDUAL_MM,
     TRACK_TRACKED,
+    TRACK_UPDATE_KIND,
     TrackedSet,
+    UpdateKind,
     Verdict,
     ViewSet,
 )
@@ -95,6 +113,11 @@ from visionpos.messages import BlobFrame, BodyState, LoosePoints
 # the image-space manoeuvre detector samples at most this often (capture clock)
 _IMAGE_NIS_INTERVAL_NS = 2_000_000
 
+# the output and lost timeouts are at least this many measured frame intervals of the slowest live camera
+# (max_prediction_ms and lost_timeout_ms are for cameras at their configured rate)
+_PREDICTION_PERIODS = 2
+_LOST_PERIODS = 3
+
 # motion compensation starts once the filter's velocity std is below this (m/s)
 _COMPENSATE_MAX_VEL_STD = 0.3
 
@@ -106,8 +129,13 @@ _VERDICT_COUNTERS = {
     Verdict.ACCEPTED: ("measurements",),
     Verdict.GATED: ("rejected_gate",),
     Verdict.RESET: ("rejected_gate", "measurements", "filter_resets"),
+    Verdict.VIEWS: ("view_updates",),
+    Verdict.VIEWS_UNCONSTRAINED: ("view_updates_unconstrained",),
+    Verdict.VIEWS_GATED: ("rejected_view_gate",),
 }
 _POSE_FITTED = frozenset((Verdict.ACCEPTED, Verdict.GATED, Verdict.RESET))
+# BodyState.update_kind by layout.UpdateKind
+_UPDATE_NAMES = {int(UpdateKind.NONE): "", int(UpdateKind.POSE): "pose", int(UpdateKind.VIEWS): "views"}
 
 
 class FusionPipeline:
@@ -115,6 +143,7 @@ class FusionPipeline:
 
     def __init__(self, arena: ArenaConfig, settings: dict[str, Any] | None = None, warm_up: bool = True):
         self.arena = arena
+        arena.require_poses("fusion")
         if len(arena.cameras) < 2:
             raise ConfigError(arena.source, "cameras", f"fusion needs at least 2 cameras, the arena has "
                               f"{len(arena.cameras)}; add the calibrated cameras "
@@ -144,6 +173,7 @@ class FusionPipeline:
         self._proj = {c.id: Projector(c) for c in arena.cameras}
         self._layout_cache: dict[tuple[int, ...], TrackedSet] = {}
         self._gate_px = float(st.match_gate_px)
+        self._unique_sigmas = float(st.single_view.unique_sigmas)
         self._kernel_params = np.empty(N_PARAMS)  # the fusion kernels' settings
         self._kernel_params[PARAM_MAX_RESIDUAL_PX] = st.max_residual_px
         self._kernel_params[PARAM_IDENTIFY_TOL_M] = st.identify_tolerance_m
@@ -151,6 +181,13 @@ class FusionPipeline:
         self._kernel_params[PARAM_MIN_MARKERS] = st.min_markers
         self._kernel_params[PARAM_MARKER_VAR_FLOOR] = st.kalman.marker_sigma_m**2
         self._kernel_params[PARAM_RESET_AFTER_NS] = st.kalman.reset_after_ns
+        sv = st.single_view
+        self._kernel_params[PARAM_SV_ENABLED] = float(sv.enabled)
+        self._kernel_params[PARAM_SV_GATE_PER_DOF] = sv.gate_nis_per_dof
+        self._kernel_params[PARAM_SV_WINDOW_NS] = sv.window_ns
+        self._kernel_params[PARAM_SV_MAX_POS_VAR] = sv.max_position_sigma_m**2
+        self._kernel_params[PARAM_SV_MAX_ROT_VAR] = np.radians(sv.max_rotation_sigma_deg) ** 2
+        self._kernel_params[PARAM_SV_MIN_PX_VAR] = sv.min_pixel_sigma_px**2
         self._view_cache: dict[tuple[int, ...], tuple] = {}  # ViewSets as plain tuples
         self.aligner = TimeAligner(
             st.time_alignment,
@@ -159,17 +196,21 @@ class FusionPipeline:
             st.max_clock_lead_ns,
             periods_ns={c.id: int(1e9 / c.fps) for c in arena.cameras if c.fps > 0},
             min_interval_ns=st.min_fusion_interval_ns,
+            auto_window=st.auto_window,
         )
         self._compensating = self.aligner.mode == TimeAlignment.MOTION_COMPENSATED
         self.obs: dict[int, Observation] = {}
         # each camera's newest observation of every marker (NaN = none); Observation.marker_xn is its row,
         # so a fusion reads its views without stacking them
         self._marker_xn = np.full((len(arena.cameras), self.n_markers, 2), np.nan)
+        # ... and whether that association is unambiguous (the single-view path uses only those)
+        self._marker_ok = np.zeros((len(arena.cameras), self.n_markers), dtype=np.bool_)
+        self._camera_packed = np.array([self._proj[c.id].packed for c in arena.cameras])
         self._capture_ns = np.zeros(len(arena.cameras), dtype=np.int64)  # each camera's newest frame
         # per-body state in arrays the kernels update in place; tracks[b] is a view of row b
         self.bank = FilterBank(len(self.models), st.kalman)
-        self._track_rows = new_track_rows(len(self.models))
-        self._track_ints, self._track_floats = self._track_rows
+        self._track_rows = new_track_rows(len(self.models), len(arena.cameras))
+        self._track_ints, self._track_floats, self._track_view_ns, self._track_info = self._track_rows
         self._track_rows_arg = tuple(self._track_rows)  # the kernels take argument groups as plain tuples
         self.tracks = [Track(fl, self._track_ints[b], self._track_floats[b]) for b, fl in enumerate(self.bank.filters)]
         self._motion: tuple[int, np.ndarray] | None = None  # see _motion_cache
@@ -198,6 +239,9 @@ class FusionPipeline:
             "acquisitions": 0,
             "lost": 0,
             "filter_resets": 0,
+            "view_updates": 0,
+            "view_updates_unconstrained": 0,
+            "rejected_view_gate": 0,
         }
         self._per_camera: dict[int, int] = {}
         if warm_up:
@@ -268,24 +312,27 @@ class FusionPipeline:
         marker_xn = self._marker_xn[v]  # this camera's row of the shared array
         if not self._tracked or not len(px):
             marker_xn[:] = np.nan
+            self._marker_ok[v] = False
             return Observation(t_ns, proj.undistort(px), np.full(len(px), -1, dtype=np.int64), marker_xn)
         t_c, motion = self._motion_cache()
         # the image-space manoeuvre detector: plenty often for a detector, and saves CPU
         image_nis = abs(t_ns - self._last_img_ns) >= _IMAGE_NIS_INTERVAL_NS
         if image_nis:
             self._last_img_ns = t_ns
-        xn, label = _observe_frame(px, (t_ns - t_c) * 1e-9, motion, self._tracked_set, marker_xn, proj.packed,
-                                   self._gate_px, image_nis, t_ns, self.bank.arrays, self._track_floats)
+        xn, label = _observe_frame(px, (t_ns - t_c) * 1e-9, motion, self._tracked_set, marker_xn, self._marker_ok[v],
+                                   proj.packed, self._gate_px, self._unique_sigmas, image_nis, t_ns, self.bank.arrays,
+                                   self._track_floats)
         return Observation(t_ns, xn, label, marker_xn)
 
     # ----------------------------------------------------------------- fusion
     def _views(self, cams: tuple[int, ...]) -> tuple:
-        """The ViewSet of `cams`: camera indices (V,), R (V, 3, 3), t (V, 3), focal_px (V,), as the plain
-        tuple the kernels take (cached per set)."""
+        """The ViewSet of `cams`: camera indices (V,), R (V, 3, 3), t (V, 3), focal_px (V,), packed cameras
+        (V, N_CAMERA), as the plain tuple the kernels take (cached per set)."""
         views = self._view_cache.get(cams)
         if views is None:
             index = np.array([self._cam_index[c] for c in cams], dtype=np.int64)
-            views = tuple(ViewSet(index, self._R[index], self._t[index], self._focal_px[index]))
+            views = tuple(ViewSet(index, self._R[index], self._t[index], self._focal_px[index],
+                                  self._camera_packed[index]))
             self._view_cache[cams] = views
         return views
 
@@ -307,11 +354,12 @@ class FusionPipeline:
         interval = st.acquire_interval_ns if lost else st.loose_points_interval_ns
         if (lost or st.loose_points) and (ref - self._last_acquire_ns >= interval or ref < self._last_acquire_ns):
             self._last_acquire_ns = ref
-            _, R, t, focal_px = views
-            self._acquire([obs[c] for c in cams], R, t, focal_px, ref)
+            cam_index, R, t, focal_px, _ = views
+            self._acquire([obs[c] for c in cams], cam_index, R, t, focal_px, ref)
         # lost-track bookkeeping on the capture clock
         track_ints = self._track_ints
-        gone = [b for b in self._tracked if ref - track_ints[b, TRACK_LAST_UPDATE_NS] > st.kalman.lost_timeout_ns]
+        lost_ns = max(st.kalman.lost_timeout_ns, _LOST_PERIODS * self.aligner.slowest_period_ns())
+        gone = [b for b in self._tracked if ref - track_ints[b, TRACK_LAST_UPDATE_NS] > lost_ns]
         if gone:
             track_ints[gone, TRACK_TRACKED] = 0
             self._stats["lost"] += len(gone)
@@ -334,11 +382,11 @@ class FusionPipeline:
     def _update_tracked(self, views: tuple, ref: int, compensate: bool) -> None:
         """One fusion of the tracked bodies (_fuse_tracked) from the ViewSet `views` at ref (ns)."""
         tracked = self._tracked
-        cameras, _, _, _ = views
+        cameras, _, _, _, _ = views
         reuse = min(len(cameras), self._max_reuse) if compensate else 1.0
         verdict, meas, refused, t_c, motion = _fuse_tracked(
-            self._marker_xn, self._capture_ns, views, ref, self._tracked_set, self._kernel_params, bool(compensate),
-            float(reuse), self.bank.arrays, self._track_rows_arg,
+            self._marker_xn, self._marker_ok, self._capture_ns, views, ref, self._tracked_set, self._kernel_params,
+            bool(compensate), float(reuse), self.bank.arrays, self._track_rows_arg,
         )
         # the filters moved: the next frames predict their markers from this fusion
         self._motion = (int(t_c), motion)
@@ -352,8 +400,10 @@ class FusionPipeline:
                 m = meas[i]
                 self.last_raw[b] = (ref, m[MEAS_POS], m[MEAS_ROT].reshape(3, 3))
 
-    def _acquire(self, obs: list[Observation], R: np.ndarray, t: np.ndarray, focal_px: np.ndarray, ref: int) -> None:
-        """Match leftover blobs across views; identify lost bodies; report loose points."""
+    def _acquire(self, obs: list[Observation], cam_index: np.ndarray, R: np.ndarray, t: np.ndarray,
+                 focal_px: np.ndarray, ref: int) -> None:
+        """Match leftover blobs across views (cam_index (V,): their cameras' indices); identify lost bodies;
+        report loose points."""
         st = self.settings
         lost = [b for b in range(len(self.tracks)) if b not in self._tracked]
         if not lost and not st.loose_points:
@@ -363,7 +413,7 @@ class FusionPipeline:
             self.loose_points = LoosePoints(ref, np.zeros((0, 3)), np.zeros(0))
             return
         xs = [o.xn[fr] for o, fr in zip(obs, free)]
-        pts, idx, rms = match_unlabeled(xs, R, t, focal_px, st.acquire_ray_distance_m, st.max_residual_px)
+        pts, idx, rms = match_unlabeled(xs, R, t, focal_px, st.acquire_ray_gate_px, st.max_residual_px)
         if not lost or len(pts) < 3:
             self.loose_points = LoosePoints(ref, pts, rms)
             return
@@ -378,6 +428,11 @@ class FusionPipeline:
                 ref, ident.t, ident.R, pose_measurement_cov(pts[ident.point_index[matched]], ident.t, tr.marker_var)
             )
             tr.tracked = True
+            tr.update_kind = UpdateKind.POSE
+            self._track_info[b] = 0.0
+            # the frames that identified it are in the filter: the single-view path must not count them again
+            self._track_view_ns[b, cam_index] = np.maximum(self._track_view_ns[b, cam_index],
+                                                           [o.capture_ns for o in obs])
             tr.first_reject_ns = None
             tr.last_update_ns = ref
             tr.last_capture_ns = max(o.capture_ns for o in obs)
@@ -410,10 +465,14 @@ class FusionPipeline:
         """
         st = self.settings
         out = []
+        # stations slower than configured: a body is updated about once per frame interval
+        slowest = self.aligner.slowest_period_ns()
+        max_prediction_ns = max(st.kalman.max_prediction_ns, _PREDICTION_PERIODS * slowest)
+        lost_ns = max(st.kalman.lost_timeout_ns, _LOST_PERIODS * slowest)
         for b, (model, tr) in enumerate(zip(self.models, self.tracks)):
             row = self._track_ints[b].tolist()  # Python ints, read once
             age = now_ns - row[TRACK_LAST_UPDATE_NS]
-            if row[TRACK_TRACKED] and age <= st.kalman.max_prediction_ns and age <= st.kalman.lost_timeout_ns:
+            if row[TRACK_TRACKED] and age <= max_prediction_ns and age <= lost_ns:
                 p, q, v, w_body, cov, vcov = tr.filter.output_at(now_ns)
                 out.append(
                     BodyState(
@@ -432,6 +491,7 @@ class FusionPipeline:
                         n_cameras=row[TRACK_N_CAMERAS],
                         residual_mm=float(self._track_floats[b, TRACK_RESIDUAL_MM]),
                         reset_counter=row[TRACK_RESETS],
+                        update_kind=_UPDATE_NAMES[row[TRACK_UPDATE_KIND]],
                     )
                 )
             else:

@@ -9,11 +9,18 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from visionpos.config.arena import ArenaConfig, Section
+from visionpos.config.arena import ArenaConfig, ConfigError, Section
 from visionpos.config.overrides import merge_section
 from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, ms_to_ns, section
 from visionpos.fusion.timealign import MODES, MOTION_COMPENSATED
+
+# keys that no longer exist and cannot be renamed (their unit changed): the error says what to write
+REMOVED = {
+    "acquire_ray_distance_m": "removed: a gate in metres was too tight far from the cameras and too loose close "
+    "to them; the acquisition gate is now in pixels at each ray's range: write `fusion.acquire_ray_gate_px` "
+    "(default 3) instead",
+}
 
 KALMAN = section(
     "fusion.kalman",
@@ -37,6 +44,30 @@ KALMAN = section(
             "re-identified", field="lost_timeout_ns", convert=ms_to_ns, min=1.0),
 )
 
+SINGLE_VIEW = section(
+    "fusion.single_view",
+    "Tracking through occlusion (kernels._single_views, tracking.filter_update_view): a tracked body that "
+    "cannot be triangulated (fewer than min_markers markers seen by 2 cameras) is updated from the 2-D "
+    "markers each camera frame sees, at the frame's capture time. It never acquires or re-identifies a "
+    "body; the track is kept only while the recent views' pose information bounds the pose.",
+    Setting("enabled", "boolean", True, "use single-camera reprojection updates for tracked bodies that "
+            "cannot be triangulated"),
+    Setting("gate_nis_per_dof", "number", 6.0, "a frame's reprojection innovation is refused when its "
+            "squared Mahalanobis distance over its 2n degrees of freedom exceeds this per degree", min=0.5),
+    Setting("unique_sigmas", "number", 4.0, "a marker's association is used only if no other blob lies within "
+            "this many predicted pixel std of its prediction (nor another marker's prediction near its blob); the "
+            "radius is at least 3 px and at most match_gate_px", min=1.0),
+    Setting("window_ms", "number", 50.0, "time constant of the decaying pose information of recent single "
+            "views (the observability check)", field="window_ns", convert=ms_to_ns, min=1.0),
+    Setting("max_position_sigma_m", "number", 0.05, "the views' pose information must bound the position "
+            "to this std (root of the covariance trace), else the updates do not keep the track (lost after "
+            "lost_timeout_ms)", min=1e-5),
+    Setting("max_rotation_sigma_deg", "number", 10.0, "likewise for the rotation (root of the trace)",
+            min=1e-3),
+    Setting("min_pixel_sigma_px", "number", 0.05, "floor of the per-axis pixel noise the updates assume (the "
+            "measured one comes from the triangulation residuals)", min=1e-4),
+)
+
 FUSION = section(
     "fusion",
     "Fusion (pipeline.py): which camera frames are fused together, association, triangulation, "
@@ -45,7 +76,8 @@ FUSION = section(
             "grouping on a fixed grid (the baseline)", choices=MODES),
     Setting("window_ms", "number", 0.0, "frames of other cameras captured within this of the newest are "
             "fused with it", field="window_ns", convert=ms_to_ns, min=0.0, max=1000.0,
-            auto="1.2 x the slowest camera's frame period"),
+            auto="1.2 x the slowest camera's measured frame interval (its configured fps until measured), so "
+            "stations that deliver fewer frames than configured are still fused"),
     Setting("naive_grid_hz", "number", 0.0, "naive grouping grid", field="grid_ns",
             convert=lambda hz: int(1e9 / hz), min=0.0, max=10000.0, auto="the fastest camera's rate"),
     Setting("max_clock_lead_ms", "number", 30.0, "a frame stamped this far ahead of all other cameras is a "
@@ -53,8 +85,10 @@ FUSION = section(
     Setting("match_gate_px", "number", 12.0, "predicted marker -> blob association radius", min=0.1),
     Setting("max_residual_px", "number", 2.0, "a triangulated marker with a larger RMS reprojection residual "
             "is dropped", min=0.01),
-    Setting("acquire_ray_distance_m", "number", 0.01, "acquisition: two rays closer than this may see the "
-            "same marker", min=1e-5),
+    Setting("acquire_ray_gate_px", "number", 3.0, "acquisition: two rays may see the same marker when they pass "
+            "within this many pixels of each other at their ranges (metres: this x sqrt((r1/f1)^2 + (r2/f2)^2), "
+            "r the range along each ray, f the focal length in px); the default is about sqrt(2) x max_residual_px: "
+            "a pair further apart triangulates to a larger RMS residual than that", min=0.05, max=100.0),
     Setting("identify_tolerance_m", "number", 0.008, "identification: marker distances and Kabsch RMS within "
             "this", min=1e-5),
     Setting("min_markers", "integer", 3, "fewest markers for a pose (tracking) and for identification", min=3),
@@ -68,6 +102,7 @@ FUSION = section(
     Setting("loose_points_interval_ms", "number", 50.0, "loose points are refreshed this often while every "
             "body is tracked", field="loose_points_interval_ns", convert=ms_to_ns, min=0.0),
     Setting("kalman", "section", {}, "the body filter", spec=KALMAN),
+    Setting("single_view", "section", {}, "single-camera updates through occlusion", spec=SINGLE_VIEW),
 )
 
 
@@ -93,16 +128,32 @@ class KalmanSettings:
 
 
 @dataclass(frozen=True)
+class SingleViewSettings:
+    """The single-view path (`fusion.single_view` in the YAML; SI units)."""
+
+    enabled: bool = SINGLE_VIEW["enabled"].field_default
+    gate_nis_per_dof: float = SINGLE_VIEW["gate_nis_per_dof"].field_default
+    unique_sigmas: float = SINGLE_VIEW["unique_sigmas"].field_default
+    window_ns: int = SINGLE_VIEW["window_ms"].field_default
+    max_position_sigma_m: float = SINGLE_VIEW["max_position_sigma_m"].field_default
+    max_rotation_sigma_deg: float = SINGLE_VIEW["max_rotation_sigma_deg"].field_default
+    min_pixel_sigma_px: float = SINGLE_VIEW["min_pixel_sigma_px"].field_default
+
+
+@dataclass(frozen=True)
 class FusionSettings:
-    """Validated `fusion:` section (SI units). window_ns and grid_ns are 0 until derived from the cameras."""
+    """Validated `fusion:` section (SI units). window_ns and grid_ns are 0 until derived from the cameras;
+    auto_window: window_ms was 0, so the window follows the cameras' measured frame intervals
+    (timealign.py) and window_ns is only its starting value."""
 
     time_alignment: str = FUSION["time_alignment"].field_default
     window_ns: int = FUSION["window_ms"].field_default
+    auto_window: bool = True
     grid_ns: int = FUSION["naive_grid_hz"].field_default
     max_clock_lead_ns: int = FUSION["max_clock_lead_ms"].field_default
     match_gate_px: float = FUSION["match_gate_px"].field_default
     max_residual_px: float = FUSION["max_residual_px"].field_default
-    acquire_ray_distance_m: float = FUSION["acquire_ray_distance_m"].field_default
+    acquire_ray_gate_px: float = FUSION["acquire_ray_gate_px"].field_default
     identify_tolerance_m: float = FUSION["identify_tolerance_m"].field_default
     min_markers: int = FUSION["min_markers"].field_default
     loose_points: bool = FUSION["loose_points"].field_default
@@ -110,6 +161,7 @@ class FusionSettings:
     min_fusion_interval_ns: int = FUSION["min_fusion_interval_ms"].field_default
     loose_points_interval_ns: int = FUSION["loose_points_interval_ms"].field_default
     kalman: KalmanSettings = field(default_factory=KalmanSettings)
+    single_view: SingleViewSettings = field(default_factory=SingleViewSettings)
 
 
 def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = None) -> FusionSettings:
@@ -119,10 +171,16 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
         arena.section("fusion")  # raises a ConfigError naming the key
     data = merge_section(base, settings, "fusion")
     source = f"{arena.source} (+ overrides)" if settings else arena.source
+    for key, message in REMOVED.items():
+        if key in data:
+            raise ConfigError(source, f"fusion.{key}", message)
     s = FUSION.check(Section(data, source, "fusion"))
     kalman = KALMAN.parse(s.sub("kalman"))
+    single_view = SINGLE_VIEW.parse(s.sub("single_view"))
     fps = [c.fps for c in arena.cameras] or [100.0]
     derived = {"window_ms": 1.2e3 / min(fps), "naive_grid_hz": max(fps)}
-    return FusionSettings(**FUSION.parse(s, derived), kalman=KalmanSettings(**kalman))
+    auto_window = FUSION["window_ms"].read(s) == 0
+    return FusionSettings(**FUSION.parse(s, derived), auto_window=auto_window, kalman=KalmanSettings(**kalman),
+                          single_view=SingleViewSettings(**single_view))
 
 register_section("fusion", FUSION)

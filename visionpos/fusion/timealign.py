@@ -23,6 +23,17 @@ naive
     bin arrives, at the mean capture time of its frames. This is the
     nearest-timestamp grouping baseline; it waits up to one grid period.
 
+Measured frame intervals: stations deliver what their host can, not what
+the arena says (15 fps on a loaded Pi configured for 100). Each camera's
+frame interval is the median of its last `_INTERVALS` capture-time
+intervals, refused frames included (lost frames, jitter and a clock jump
+do not move a median), the configured
+period until `_MIN_INTERVALS` are in. The automatic window (`auto_window`)
+is 1.2 x the slowest live camera's interval, the clock-jump lead is at
+least that window (a camera one frame ahead of slower ones is not a jump),
+and the rate limit predicts each camera's next frame from its interval; so
+cameras configured at 100 Hz that deliver 15 fps are still fused together.
+
 Both check the clocks: a frame stamped more than `max_lead` after the
 newest frame of the other cameras is a clock jump and is dropped (unless
 its camera is the only one still talking, or another camera's frame agrees
@@ -66,6 +77,11 @@ CLOCK_JUMP, LATE, REORDERED = Rejection.CLOCK_JUMP, Rejection.LATE, Rejection.RE
 # a forward jump is then a real gap, not a clock fault
 _SOLO_TRUST_NS = 200_000_000
 
+_INTERVALS = 16  # a camera's frame interval is the median of its last this many
+_MIN_INTERVALS = 8  # ... once it has this many; before, its configured period
+_MAX_INTERVAL_NS = 2_000_000_000  # a longer gap is an outage, not a frame interval
+WINDOW_PERIODS = 1.2  # the automatic window, in frame intervals of the slowest camera
+
 
 class Group(NamedTuple):
     """cameras: ids of the frames to fuse (their latest stored frames);
@@ -87,20 +103,32 @@ class TimeAligner:
         max_lead_ns: int,
         periods_ns: dict[int, int] | None = None,
         min_interval_ns: int = 0,
+        auto_window: bool = False,
+        max_window_ns: int = 1_000_000_000,
     ):
+        """periods_ns: each camera's configured frame period (until its interval is measured).
+        auto_window: the window follows the cameras' measured intervals (WINDOW_PERIODS x the
+        slowest live one, at most max_window_ns); else window_ns is fixed."""
         if mode not in MODES:
             raise ValueError(f"time alignment '{mode}' is unknown; use one of {MODES}")
         self.mode = TimeAlignment(mode)
         self._naive = self.mode == TimeAlignment.NAIVE  # read per frame: a bool is cheaper than an enum member
         self.window_ns = int(window_ns)
         self.grid_ns = int(grid_ns)
-        self.max_lead_ns = int(max_lead_ns)
+        self.max_lead_ns = self.configured_lead_ns = int(max_lead_ns)
+        self.auto_window = bool(auto_window)
+        self.max_window_ns = int(max_window_ns)
+        # camera -> [capture_ns of its previous frame (admitted or not), intervals seen, the last
+        # _INTERVALS of them (a ring)]: one lookup per frame
+        self._rate: dict[int, list] = {}
+        self.measured_ns: dict[int, int] = {}  # camera -> measured frame interval (median)
         self.latest: dict[int, int] = {}  # camera -> capture_ns of its stored frame
         self.newest_ns: int | None = None  # newest admitted capture time
         self._last_cam: int | None = None
         self._solo_start = 0
         self._ahead: dict[int, int] = {}  # camera -> capture_ns of its last frame refused as a clock jump
-        self.periods_ns = dict(periods_ns or {})
+        self.configured_ns = dict(periods_ns or {})
+        self.periods_ns = dict(self.configured_ns)  # camera -> interval in use: measured, else configured
         self.min_interval_ns = int(min_interval_ns)
         self.last_fused_ns: int | None = None
         self._bin: int | None = None  # naive: pending grid bin
@@ -110,6 +138,25 @@ class TimeAligner:
         """None if the frame may be used, else the reason it must be dropped."""
         prev_cam = self._last_cam
         self._last_cam = camera_id
+        # the interval is measured on every frame, refused ones too: a camera whose every frame is
+        # refused as a clock jump only because its real interval is longer than configured must not
+        # stay refused for want of a measurement (a real jump is one outlier of the median)
+        rate = self._rate.get(camera_id)
+        if rate is None:
+            self._rate[camera_id] = [capture_ns, 0, []]
+        else:
+            interval = capture_ns - rate[0]
+            rate[0] = capture_ns
+            if 0 < interval <= _MAX_INTERVAL_NS:  # longer: an outage, not a frame interval
+                n = rate[1]
+                if n < _INTERVALS:
+                    rate[2].append(interval)
+                else:
+                    rate[2][n % _INTERVALS] = interval
+                n += 1
+                rate[1] = n
+                if n >= _MIN_INTERVALS and not n & 3:  # the median every 4th frame: cheap, and fresh enough
+                    self._measured(camera_id, sorted(rate[2])[len(rate[2]) // 2])
         if prev_cam != camera_id:
             self._solo_start = capture_ns
         latest = self.latest
@@ -173,6 +220,30 @@ class TimeAligner:
             self.newest_ns = capture_ns if self.newest_ns is None else max(self.newest_ns, capture_ns)
         return before, after
 
+    def _measured(self, camera_id: int, interval_ns: int) -> None:
+        """A camera's new measured frame interval: the window and lead follow."""
+        self.measured_ns[camera_id] = self.periods_ns[camera_id] = interval_ns
+        self._refresh()
+
+    def period_ns(self, camera_id: int) -> int | None:
+        """The camera's frame interval: measured, else configured (None: neither)."""
+        return self.periods_ns.get(camera_id)
+
+    def slowest_period_ns(self) -> int:
+        """The longest frame interval among the cameras with a stored frame (0: none known)."""
+        periods = self.periods_ns
+        return max((periods.get(c, 0) for c in self.latest), default=0)
+
+    def _refresh(self) -> None:
+        """Window and clock-jump lead from the cameras' intervals."""
+        slowest = self.slowest_period_ns()
+        if not slowest:
+            return
+        window = min(int(WINDOW_PERIODS * slowest), self.max_window_ns)
+        if self.auto_window:
+            self.window_ns = window
+        self.max_lead_ns = max(self.configured_lead_ns, window)
+
     def _defer(self, camera_id: int, ref: int) -> bool:
         """Rate limit (min_interval_ns > 0): skip this fusion when one happened less than the
         interval ago *and* another camera's next frame is due within the interval, so the
@@ -197,9 +268,16 @@ class TimeAligner:
         return Group(cams, int(ref), False)
 
     def remove(self, camera_id: int) -> None:
-        """Forget a camera (its station vanished)."""
+        """Forget a camera (its station vanished); its interval is measured afresh when it is back."""
         self.latest.pop(camera_id, None)
         self._pending.pop(camera_id, None)
         self._ahead.pop(camera_id, None)
+        self._rate.pop(camera_id, None)
+        self.measured_ns.pop(camera_id, None)
+        if camera_id in self.configured_ns:
+            self.periods_ns[camera_id] = self.configured_ns[camera_id]
+        else:
+            self.periods_ns.pop(camera_id, None)
         if self._last_cam == camera_id:
             self._last_cam = None
+        self._refresh()

@@ -24,16 +24,29 @@ the noise is scaled by a running average of the normalised innovation
 squared (NIS, separately for position and orientation): while the model fits
 the measurements NIS/dof ~ 1 and the floor `jerk_psd` / `angular_accel_psd`
 smooths hard; a manoeuvre makes NIS grow and the process noise follows
-within a few updates (bounded by `max_noise_scale`). The position scale
-also listens to an image-space detector (report_image_nis): each new
-frame's markers predicted to its capture time against the blobs found. That
-view is uncompensated, so motion compensation (which uses this filter's own
-velocity) cannot pull it towards the prediction and hide a lag the way it
-can for the fused pose.
+within a few updates (bounded by `max_noise_scale`). Both scales also
+listen to an image-space detector (report_image_nis): each new frame's
+markers predicted to its capture time against the blobs found. That view is
+uncompensated, so motion compensation (which uses this filter's own velocity
+and angular rate) cannot pull it towards the prediction and hide a lag the
+way it can for the fused pose. Its residual is split: the markers' common
+shift is a position lag and raises the position noise, their spread about it
+is an orientation lag and raises the rotation noise. (Sending it all to the
+position noise, as before issue 15, left the orientation of a drone flicking
+its attitude at ~300 deg/s with its noise at the floor: its rate lagged by
+radians per second and the 6-dof gate refused every measurement for 30-40 ms.)
 
 The measurement is a 6-DoF pose [p, log(R_meas R_nom^T)] with a covariance
 given by the caller (pipeline.py estimates it from the rigid-body fit).
 Outliers are gated by the squared Mahalanobis distance of the innovation.
+
+Through occlusion (the body cannot be triangulated) the measurement is what
+one camera frame sees instead (filter_update_view): the pixels of n of the
+body's markers at the frame's capture time, h = lens(R_c X + t_c) with
+X = p + exp(dtheta) R_nom l, linearised with the lens model's analytic
+Jacobian (camera/pinhole.py, camera/fisheye.py) over position and rotation
+error. The same linear filter and Joseph update do the rest, so the
+covariance shows what one view cannot see (its depth).
 """
 
 from __future__ import annotations
@@ -42,13 +55,21 @@ import math
 
 import numpy as np
 
+from visionpos.camera import fisheye as fisheye_lens
+from visionpos.camera import pinhole as pinhole_lens
 from visionpos.fusion.layout import (
     ACC0,
     ADAPT_NIS_IMG,
+    ADAPT_NIS_IMG_R,
     ADAPT_NIS_P,
     ADAPT_NIS_R,
     ADAPT_SCALE_P,
     ADAPT_SCALE_R,
+    CAMERA_DIST,
+    CAMERA_FISHEYE,
+    CAMERA_INTRINSICS,
+    CAMERA_R,
+    CAMERA_T,
     CLOCK_FOLDS,
     CLOCK_IMG_T_NS,
     CLOCK_T_NS,
@@ -94,7 +115,7 @@ from visionpos.geometry.rotations import (
     quat_from_matrix_compiled,
     rotvec_from_matrix_compiled,
 )
-from visionpos.jit import matmul3, njit
+from visionpos.jit import matmul3, matvec3, njit
 
 _NIS_HIGH = 2.0  # averaged NIS/dof above this means the motion model lags
 _SCALE_DECAY_S = 0.2  # s, time constant of the process-noise scale's return to its floor
@@ -359,7 +380,7 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
                   gate: bool) -> tuple[bool, float]:
     """Predict one body filter to t_ns (int ns) and fuse a pose measurement, in place (compiled).
 
-    x (15,), P (15, 15), R_nom (3, 3), adapt (5,), clock (3,): the body's rows of a
+    x (15,), P (15, 15), R_nom (3, 3), adapt (6,), clock (3,): the body's rows of a
     FilterBank; params (8,) its settings (FilterBank.params). position (3,), R (3, 3) body->world,
     cov (6, 6) over [p, world rotation vector]; gate: apply the innovation gate.
     Returns (accepted, squared Mahalanobis distance); a gated measurement leaves
@@ -373,23 +394,201 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
     )
     clock[CLOCK_T_NS] = t_ns
     _count_folds(R_nom, clock, folds)
-    # NIS per block drives the process-noise scale (gated ones too, capped, so that a
-    # manoeuvre that starts outside the gate still opens it)
+    _adapt_noise(adapt, clock, params, t_ns, dt, nis_p, nis_r, True)
+    return accepted, d2
+
+
+@njit
+def _adapt_noise(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, dt: float, nis_p: float,
+                 nis_r: float, use_image_nis: bool) -> None:
+    """The NIS-driven process-noise adaptation after one update over dt (s), in place.
+
+    The NIS per block drives the process-noise scale (gated ones too, capped, so that a
+    manoeuvre that starts outside the gate still opens it); the image-space detector
+    (report_image_nis) sees lag the fused pose can hide. NIS/dof ~ 1 says nothing about q
+    while the measurement noise dominates the innovation (a hovering body), so only a clear
+    excess (> _NIS_HIGH) raises q: innovations k x too big -> q x k^3 per averaging time
+    (CA/CV scaling laws); otherwise q decays back to its floor. use_image_nis: False for the
+    single-view updates, whose own innovation is the image-space residual with the full
+    predicted covariance (the detector's expected size leaves out the rotation uncertainty,
+    which matters while only 1-2 markers per view constrain it).
+    """
     cap = params[KALMAN_GATE_CHI2] / 3.0
     alpha = 1.0 - math.exp(-dt / params[KALMAN_NIS_TAU_S]) if dt > 0.0 else 0.05
     adapt[ADAPT_NIS_P] += alpha * (min(nis_p, cap) - adapt[ADAPT_NIS_P])
     adapt[ADAPT_NIS_R] += alpha * (min(nis_r, cap) - adapt[ADAPT_NIS_R])
-    # the image-space detector (report_image_nis) sees lag the fused pose can hide
-    nis_img = adapt[ADAPT_NIS_IMG] if t_ns - clock[CLOCK_IMG_T_NS] < _IMG_NIS_FRESH_NS else 0.0
-    # NIS/dof ~ 1 says nothing about q while the measurement noise dominates the
-    # innovation (a hovering body), so only a clear excess (> _NIS_HIGH) raises q:
-    # innovations k x too big -> q x k^3 per averaging time (CA/CV scaling laws);
-    # otherwise q decays back to its floor
+    fresh = use_image_nis and t_ns - clock[CLOCK_IMG_T_NS] < _IMG_NIS_FRESH_NS
+    nis_img = adapt[ADAPT_NIS_IMG] if fresh else 0.0  # the markers' common shift: position lag
+    nis_img_r = adapt[ADAPT_NIS_IMG_R] if fresh else 0.0  # their spread about it: orientation lag
     decay = math.exp(-max(dt, 0.0) / _SCALE_DECAY_S)
     max_scale = params[KALMAN_MAX_SCALE]
     adapt[ADAPT_SCALE_P] = _adapt_scale(adapt[ADAPT_SCALE_P], max(adapt[ADAPT_NIS_P], nis_img), alpha, decay, max_scale)
-    adapt[ADAPT_SCALE_R] = _adapt_scale(adapt[ADAPT_SCALE_R], adapt[ADAPT_NIS_R], alpha, decay, max_scale)
-    return accepted, d2
+    adapt[ADAPT_SCALE_R] = _adapt_scale(adapt[ADAPT_SCALE_R], max(adapt[ADAPT_NIS_R], nis_img_r), alpha, decay,
+                                        max_scale)
+
+
+@njit
+def project_with_jacobian(Xc: np.ndarray, intrinsics: np.ndarray, dist: np.ndarray,
+                          fisheye: bool) -> tuple[float, float, np.ndarray]:
+    """Pixel (u, v) of a camera-frame point Xc (3,) (z > 0) and d (u, v) / d Xc (2, 3), through
+    the lens model's compiled distortion and its Jacobian (camera/pinhole.py, camera/fisheye.py)."""
+    iz = 1.0 / Xc[2]
+    x, y = Xc[0] * iz, Xc[1] * iz
+    if fisheye:
+        xd, yd = fisheye_lens.distort_point(x, y, dist)
+        j00, j01, j10, j11 = fisheye_lens.distort_jacobian_point(x, y, dist)
+    else:
+        xd, yd = pinhole_lens.distort_point(x, y, dist)
+        j00, j01, j10, j11 = pinhole_lens.distort_jacobian_point(x, y, dist)
+    fx, fy = intrinsics[0], intrinsics[1]
+    J = np.empty((2, 3))  # diag(fx, fy) (d xd / d xn) (d xn / d Xc), d xn / d Xc = [[1, 0, -x], [0, 1, -y]] / z
+    a00, a01, a10, a11 = fx * j00 * iz, fx * j01 * iz, fy * j10 * iz, fy * j11 * iz
+    J[0, 0], J[0, 1], J[0, 2] = a00, a01, -(a00 * x + a01 * y)
+    J[1, 0], J[1, 1], J[1, 2] = a10, a11, -(a10 * x + a11 * y)
+    return fx * xd + intrinsics[2], fy * yd + intrinsics[3], J
+
+
+@njit
+def _distorted_pixel(xn: float, yn: float, intrinsics: np.ndarray, dist: np.ndarray, fisheye: bool):
+    """Normalised (undistorted) coordinates -> pixel, the inverse of the pipeline's undistortion."""
+    if fisheye:
+        xd, yd = fisheye_lens.distort_point(xn, yn, dist)
+    else:
+        xd, yd = pinhole_lens.distort_point(xn, yn, dist)
+    return intrinsics[0] * xd + intrinsics[2], intrinsics[1] * yd + intrinsics[3]
+
+
+@njit
+def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.ndarray, clock: np.ndarray,
+                       params: np.ndarray, t_ns: int, local: np.ndarray, obs_xn: np.ndarray, camera: np.ndarray,
+                       var_px: float, gate_per_dof: float) -> tuple[bool, float, np.ndarray]:
+    """Fuse what ONE camera frame sees of one body: the reprojection measurement (compiled).
+
+    x, P, R_nom, adapt, clock, params: the body's FilterBank rows (as filter_update).
+    t_ns: the frame's capture time; local (n, 3): body-frame markers it sees, obs_xn (n, 2)
+    their undistorted normalised observations; camera (N_CAMERA,): packed as
+    matching.Projector.packed; var_px: per-axis pixel noise variance (px^2); gate_per_dof:
+    the squared Mahalanobis distance of the 2n-dof innovation may be at most 2n gate_per_dof.
+
+    The measurement is the n pixels, h = lens(R_c (p + exp(dtheta) R_nom l) + t_c) predicted
+    to t_ns, with its analytic Jacobian over the error state: position A, rotation error
+    -A [R l]x, and (for a frame older than the filter, dt < 0) velocity A dt, acceleration
+    A dt^2 / 2, angular rate -A [R l]x dt, A = d pixel / d world point. A newer frame
+    predicts the filter to t_ns first. Joseph-form update; the NIS per dof drives the noise
+    adaptation of both blocks (not the image-space detector: this innovation is one).
+    Returns (accepted, NIS per dof, the frame's pose information H^T H / var_px (6, 6) over
+    [p, rotation error]); a point behind the camera rejects it.
+    """
+    n = local.shape[0]
+    m = 2 * n
+    info = np.zeros((6, 6))
+    dt_f = (t_ns - clock[CLOCK_T_NS]) * 1e-9
+    dt = 0.0  # capture time - filter time after the prediction
+    if dt_f > 0.0:
+        folded = _kf_predict(x, P, R_nom, dt_f, params[KALMAN_JERK_PSD] * adapt[ADAPT_SCALE_P],
+                             params[KALMAN_ANG_ACC_PSD] * adapt[ADAPT_SCALE_R])
+        clock[CLOCK_T_NS] = t_ns
+        _count_folds(R_nom, clock, int(folded))
+    else:
+        dt = dt_f
+    Rc, tc = camera[CAMERA_R].reshape((3, 3)), camera[CAMERA_T]
+    intrinsics, dist, fisheye = camera[CAMERA_INTRINSICS], camera[CAMERA_DIST], camera[CAMERA_FISHEYE] != 0.0
+    p, Rb, _ = predict_mean(x, R_nom, dt)
+    y = np.empty(m)
+    H = np.zeros((m, N_STATE))
+    for k in range(n):
+        r = matvec3(Rb, local[k])  # lever arm, world
+        Xc = matvec3(Rc, p + r) + tc
+        if not Xc[2] > 1e-3:
+            return False, np.inf, info
+        u, v, J = project_with_jacobian(Xc, intrinsics, dist, fisheye)
+        uo, vo = _distorted_pixel(obs_xn[k, 0], obs_xn[k, 1], intrinsics, dist, fisheye)
+        y[2 * k], y[2 * k + 1] = uo - u, vo - v
+        A = np.empty((2, 3))  # d pixel / d world point
+        for i in range(2):
+            for j in range(3):
+                A[i, j] = J[i, 0] * Rc[0, j] + J[i, 1] * Rc[1, j] + J[i, 2] * Rc[2, j]
+        for i in range(2):
+            row = 2 * k + i
+            # d X / d dtheta = -[r]x (X = p + exp(dtheta) r), so the rotation columns are -A [r]x
+            ar0 = A[i, 2] * r[1] - A[i, 1] * r[2]
+            ar1 = A[i, 0] * r[2] - A[i, 2] * r[0]
+            ar2 = A[i, 1] * r[0] - A[i, 0] * r[1]
+            for j in range(3):
+                H[row, POS0 + j] = A[i, j]
+                H[row, VEL0 + j] = A[i, j] * dt
+                H[row, ACC0 + j] = A[i, j] * (0.5 * dt * dt)
+            H[row, ROT_ERR0], H[row, ROT_ERR0 + 1], H[row, ROT_ERR0 + 2] = ar0, ar1, ar2
+            H[row, RATE0], H[row, RATE0 + 1], H[row, RATE0 + 2] = ar0 * dt, ar1 * dt, ar2 * dt
+    for i in range(6):
+        for j in range(6):
+            acc = 0.0
+            for row in range(m):
+                acc += H[row, X_POSE[i]] * H[row, X_POSE[j]]
+            info[i, j] = acc / var_px
+    PHt = np.zeros((N_STATE, m))
+    for i in range(N_STATE):
+        for row in range(m):
+            acc = 0.0
+            for j in range(N_STATE):
+                acc += P[i, j] * H[row, j]
+            PHt[i, row] = acc
+    S = np.empty((m, m))
+    for a in range(m):
+        for c in range(m):
+            acc = 0.0
+            for j in range(N_STATE):
+                acc += H[a, j] * PHt[j, c]
+            S[a, c] = acc
+        S[a, a] += var_px
+    Sinv = _spd_inverse(S)
+    d2 = 0.0
+    for a in range(m):
+        for c in range(m):
+            d2 += y[a] * Sinv[a, c] * y[c]
+    nis = d2 / m
+    if not nis <= gate_per_dof:  # NaN too
+        return False, nis, info
+    K = np.zeros((N_STATE, m))
+    for i in range(N_STATE):
+        for c in range(m):
+            acc = 0.0
+            for a in range(m):
+                acc += PHt[i, a] * Sinv[a, c]
+            K[i, c] = acc
+    for i in range(N_STATE):
+        acc = 0.0
+        for a in range(m):
+            acc += K[i, a] * y[a]
+        x[i] += acc
+    # Joseph form (I - K H) P (I - K H)^T + var K K^T
+    IKH = np.zeros((N_STATE, N_STATE))
+    for i in range(N_STATE):
+        IKH[i, i] = 1.0
+        for j in range(N_STATE):
+            acc = 0.0
+            for a in range(m):
+                acc += K[i, a] * H[a, j]
+            IKH[i, j] -= acc
+    AP = np.zeros((N_STATE, N_STATE))
+    for i in range(N_STATE):
+        for j in range(N_STATE):
+            acc = 0.0
+            for k in range(N_STATE):
+                acc += IKH[i, k] * P[k, j]
+            AP[i, j] = acc
+    for i in range(N_STATE):
+        for j in range(i + 1):
+            acc = 0.0
+            for k in range(N_STATE):
+                acc += AP[i, k] * IKH[j, k]
+            kk = 0.0
+            for a in range(m):
+                kk += K[i, a] * K[j, a]
+            P[i, j] = P[j, i] = acc + var_px * kk
+    _count_folds(R_nom, clock, int(_fold(x, R_nom)))
+    _adapt_noise(adapt, clock, params, t_ns, max(dt_f, 0.0), nis, nis, False)
+    return True, nis, info
 
 
 @njit
@@ -416,20 +615,24 @@ def filter_initialize(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np
 
 
 @njit
-def report_image_nis(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, nis: float) -> None:
-    """Feed one body's manoeuvre detector (adapt (5,), clock (3,): its FilterBank rows)
-    with one camera frame's prediction residual nis at t_ns (see BodyFilter.report_image_nis)."""
+def report_image_nis(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, nis: float,
+                     nis_rot: float) -> None:
+    """Feed one body's manoeuvre detector (adapt (6,), clock (3,): its FilterBank rows)
+    with one camera frame's prediction residual at t_ns, its translation part nis and its
+    rotation part nis_rot (see BodyFilter.report_image_nis)."""
     dt = max((t_ns - clock[CLOCK_IMG_T_NS]) * 1e-9, 0.0)
     alpha = 1.0 - math.exp(-dt / params[KALMAN_NIS_TAU_S]) if clock[CLOCK_IMG_T_NS] != 0 else 1.0
-    adapt[ADAPT_NIS_IMG] += alpha * (min(nis, params[KALMAN_GATE_CHI2] / 3.0) - adapt[ADAPT_NIS_IMG])
+    cap = params[KALMAN_GATE_CHI2] / 3.0
+    adapt[ADAPT_NIS_IMG] += alpha * (min(nis, cap) - adapt[ADAPT_NIS_IMG])
+    adapt[ADAPT_NIS_IMG_R] += alpha * (min(nis_rot, cap) - adapt[ADAPT_NIS_IMG_R])
     clock[CLOCK_IMG_T_NS] = t_ns
 
 
 class FilterBank:
     """The states of n body filters, one row each, so that compiled kernels update them in place.
 
-    x (n, 15), P (n, 15, 15), R_nom (n, 3, 3); adapt (n, 5): process-noise scales
-    and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img]; clock (n, 3) int64:
+    x (n, 15), P (n, 15, 15), R_nom (n, 3, 3); adapt (n, 6): process-noise scales
+    and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img, nis_img_r]; clock (n, 3) int64:
     [filter time ns, last image-NIS time ns, folds]; params (8,): [jerk_psd,
     angular_accel_psd, max_noise_scale, nis_time_constant_s, gate_chi2, then the prior
     variances of velocity, acceleration and angular velocity at (re)initialisation].
@@ -529,16 +732,20 @@ class BodyFilter:
         )
         return bool(accepted), float(d2)
 
-    def report_image_nis(self, t_ns: int, nis: float) -> None:
+    def report_image_nis(self, t_ns: int, nis: float, nis_rot: float = 0.0) -> None:
         """Feed the manoeuvre detector with one camera frame's prediction residual.
 
-        nis: mean squared pixel distance between the markers predicted to the
-        frame's capture time and the blobs associated with them, over its
-        expected value, per degree of freedom (~1 while the model fits). It
-        comes from a single uncompensated view, so unlike the fused pose it
-        cannot be pulled towards the prediction by motion compensation.
+        The residuals are the pixel offsets between the markers predicted to the
+        frame's capture time and the blobs associated with them. nis: their mean
+        (the body's translation error) squared over its expected value; nis_rot:
+        their spread about that mean (the orientation error turns the markers
+        about the body) squared over its expected value; both per degree of
+        freedom (~1 while the model fits). They raise the position and the
+        rotation noise respectively. They come from a single uncompensated view,
+        so unlike the fused pose they cannot be pulled towards the prediction by
+        motion compensation (which uses this filter's own velocity and rate).
         """
-        report_image_nis(self._adapt, self._clock, self.bank.params, int(t_ns), float(nis))
+        report_image_nis(self._adapt, self._clock, self.bank.params, int(t_ns), float(nis), float(nis_rot))
 
     # -------------------------------------------------------------- read-outs
     def pose_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

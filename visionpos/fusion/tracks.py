@@ -26,6 +26,7 @@ from visionpos.fusion.layout import (
     TRACK_RESETS,
     TRACK_RESIDUAL_MM,
     TRACK_TRACKED,
+    TRACK_UPDATE_KIND,
     TrackRows,
 )
 from visionpos.fusion.tracking import BodyFilter, array_field
@@ -47,14 +48,16 @@ class Observation:
     marker_xn: np.ndarray
 
 
-def new_track_rows(n_bodies: int) -> TrackRows:
-    """Track rows of n_bodies untracked bodies: nothing rejected, the pixel-noise prior, no residual."""
+def new_track_rows(n_bodies: int, n_cameras: int = 0) -> TrackRows:
+    """Track rows of n_bodies untracked bodies seen by n_cameras: nothing rejected, the pixel-noise
+    prior, no residual, no frame used, no single-view information."""
     track_ints = np.zeros((n_bodies, N_TRACK_INTS), dtype=np.int64)
     track_ints[:, TRACK_FIRST_REJECT_NS] = NO_TIME
     track_floats = np.zeros((n_bodies, N_TRACK_FLOATS))
     track_floats[:, TRACK_PX_VAR] = PX_VAR_PRIOR
     track_floats[:, TRACK_RESIDUAL_MM] = np.nan
-    return TrackRows(track_ints, track_floats)
+    view_ns = np.full((n_bodies, n_cameras), NO_TIME, dtype=np.int64)
+    return TrackRows(track_ints, track_floats, view_ns, np.zeros((n_bodies, 6, 6)))
 
 
 class Track:
@@ -66,6 +69,7 @@ class Track:
     n_markers = array_field("ints", TRACK_N_MARKERS, int)
     n_cameras = array_field("ints", TRACK_N_CAMERAS, int)
     reset_counter = array_field("ints", TRACK_RESETS, int)
+    update_kind = array_field("ints", TRACK_UPDATE_KIND, int, "layout.UpdateKind of the last measurement kept")
     px_var = array_field("floats", TRACK_PX_VAR, float,
                          "running per-axis pixel noise variance (px^2) from triangulation residuals")
     marker_var = array_field("floats", TRACK_MARKER_VAR, float,

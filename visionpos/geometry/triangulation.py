@@ -1,4 +1,4 @@
-"""N-view triangulation of points seen by calibrated cameras, and its Cramer-Rao bound.
+"""N-view triangulation of points seen by calibrated cameras, and its Cramer-Rao bounds.
 
 Conventions (see visionpos/camera/model.py and docs/architecture.md):
 - A camera pose (R, t) maps world to camera: x_cam = R @ x_world + t.
@@ -21,7 +21,8 @@ import numpy as np
 from visionpos.camera import fisheye, pinhole
 from visionpos.camera.model import FISHEYE, PINHOLE, Camera
 
-__all__ = ["TriangulationResult", "CameraRig", "triangulate_normalized", "triangulate_pixels", "triangulation_crb"]
+__all__ = ["TriangulationResult", "CameraRig", "triangulate_normalized", "triangulate_pixels", "triangulation_crb",
+           "pose_crb"]
 
 
 class TriangulationResult(NamedTuple):
@@ -471,6 +472,20 @@ def triangulate_pixels(
 
 
 @np.errstate(divide="ignore", invalid="ignore")
+def pixel_jacobians(cameras: Sequence[Camera] | CameraRig, points: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """d pixel / d X (P, V, 2, 3), pixels per metre, through each camera's distortion; zero where a
+    point is not visible in a view or is behind it. points: (P, 3) world, finite; visible: (P, V) bool."""
+    rig = _as_rig(cameras)
+    X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    visible = np.asarray(visible, dtype=bool)
+    if visible.shape != (len(X), rig.V):
+        raise ValueError(f"visible must have shape (P, V) = ({len(X)}, {rig.V}), got {visible.shape}")
+    t = np.broadcast_to(rig.t, (len(X), rig.V, 3))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        _, J, _ = _residual_jac(X, rig.R, t, np.zeros((len(X), rig.V, 2)), visible, rig.distort)
+    return J
+
+
 def triangulation_crb(
     cameras: Sequence[Camera] | CameraRig,
     points: np.ndarray,
@@ -488,14 +503,10 @@ def triangulation_crb(
     X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if visible is None:
         visible = np.stack([c.visible(X) for c in rig.cameras], axis=1)
-    visible = np.asarray(visible, dtype=bool)
-    if visible.shape != (len(X), rig.V):
-        raise ValueError(f"visible must have shape (P, V) = ({len(X)}, {rig.V}), got {visible.shape}")
-    t = np.broadcast_to(rig.t, (len(X), rig.V, 3))
-    _, J, _ = _residual_jac(X, rig.R, t, np.zeros((len(X), rig.V, 2)), visible, rig.distort)
+    J = pixel_jacobians(rig, X, visible)
     F = np.einsum("pvia,pvib->pab", J, J) / float(sigma_px) ** 2
     out = np.full((len(X), 3, 3), np.nan)
-    ok = visible.sum(axis=1) >= 2
+    ok = np.asarray(visible, bool).sum(axis=1) >= 2
     if ok.any():
         cond = np.linalg.cond(F[ok])
         good = np.zeros(len(X), bool)
@@ -503,3 +514,35 @@ def triangulation_crb(
         if good.any():
             out[good] = np.linalg.inv(F[good])
     return out
+
+
+def pose_crb(
+    cameras: Sequence[Camera] | CameraRig,
+    markers_world: np.ndarray,
+    origin: np.ndarray,
+    sigma_px: float,
+    visible: np.ndarray,
+) -> np.ndarray:
+    """Cramer-Rao bound (6, 6) of a rigid body's pose [position (m), world rotation vector (rad)] from
+    one snapshot of its markers: every (marker, camera) pair in `visible` contributes its projection's
+    information, Fisher F = sum J^T J / sigma_px^2 with J = d pixel / d X (2x3) @ [I, -skew(X - origin)].
+
+    markers_world: (M, 3) m; origin: (3,) the body origin the position refers to; visible: (M, V)
+    bool: unlike a triangulated pose, a marker seen by one camera counts too, so this bounds what one
+    camera seeing >= 3 markers, or several cameras seeing 1-2 markers each, tell about the pose. All +inf
+    when F is singular (the views do not fix all six degrees of freedom, e.g. one camera seeing 1-2
+    markers). The position block's trace bounds the mean squared position error (m^2).
+    """
+    X = np.asarray(markers_world, dtype=np.float64).reshape(-1, 3)
+    J = pixel_jacobians(cameras, X, visible)  # (M, V, 2, 3)
+    r = X - np.asarray(origin, dtype=np.float64).reshape(3)
+    G = np.zeros((len(X), 3, 6))  # d X / d pose
+    G[:, :, :3] = np.eye(3)
+    G[:, 0, 4], G[:, 0, 5] = r[:, 2], -r[:, 1]  # -skew(r)
+    G[:, 1, 3], G[:, 1, 5] = -r[:, 2], r[:, 0]
+    G[:, 2, 3], G[:, 2, 4] = r[:, 1], -r[:, 0]
+    H = np.einsum("mvia,mab->mvib", J, G)  # (M, V, 2, 6)
+    F = np.einsum("mvia,mvib->ab", H, H) / float(sigma_px) ** 2
+    if not np.isfinite(F).all() or np.linalg.matrix_rank(F, tol=1e-9 * max(np.abs(F).max(), 1e-300)) < 6:
+        return np.full((6, 6), np.inf)
+    return np.linalg.inv(F)

@@ -36,8 +36,14 @@ Nothing from the network can raise out of handle(). Warnings are rate-limited
 and unknown_sources is a bounded LRU, so spoofed senders cannot grow any table.
 
 A camera that sends no accepted frame for `vanish_periods` frame periods (at least
-`vanish_min_s`) is reported and removed from the pipeline so fusion stops
-waiting for it; its next accepted frame brings it back.
+`vanish_min_s`; the period is its measured one when it delivers fewer frames than
+it announced) is reported and removed from the pipeline so fusion stops waiting
+for it; its next accepted frame brings it back.
+
+Frame rate: a camera that delivers less than LOW_RATE_FRACTION of its configured
+fps (cameras[i].fps) for LOW_RATE_AFTER_S is reported, once per episode, with what
+to do (lower the configured rate or the station's load); health() carries it as a
+structured warning (measured and configured fps, message) and status_line marks it.
 """
 
 from __future__ import annotations
@@ -74,6 +80,8 @@ COOKIE_BUCKET_NS = 10_000_000_000  # a cookie is valid in its 10 s bucket and th
 RETIRED_SESSIONS = 4  # replaced sessions kept per camera: a HELLO for one of them is a replay
 UNKNOWN_SOURCES_MAX = 64
 _COOKIE_FIELDS = struct.Struct("<HHIq")
+LOW_RATE_FRACTION = 0.8  # a camera delivering less than this fraction of its configured fps ...
+LOW_RATE_AFTER_S = 3.0  # ... for this long gets a health warning
 
 
 class ClockJump(StrEnum):
@@ -126,10 +134,12 @@ class CameraHealth:
 
     camera_id: int
     name: str
-    fps_nominal: float
+    fps_nominal: float  # announced by the station (its HELLO); the arena's fps until then
     width: int
     height: int
     required_station: int | None = None
+    fps_configured: float = 0.0  # the arena's cameras[i].fps, which the fusion was set up for
+    config_key: str = ""  # where fps_configured comes from, for messages ("cameras[1].fps")
     station_id: int | None = None
     session: int | None = None
     addr: Addr | None = None
@@ -175,6 +185,8 @@ class CameraHealth:
     # rates over the last ~1 s
     fps: float = 0.0
     loss_rate: float = 0.0
+    low_rate_since_ns: int = 0  # start of the run of 1 s buckets below LOW_RATE_FRACTION (0: none)
+    low_rate: bool = False  # that run is LOW_RATE_AFTER_S long: warned
     _bucket_start: int = 0
     _bucket_frames: int = 0
     _bucket_lost: int = 0
@@ -192,6 +204,20 @@ class CameraHealth:
         self.last_seq = None
         self.last_capture_ns = None
         self.jump_run = 0
+
+    def low_rate_message(self) -> str:
+        """What a camera that delivers too few frames is told (plain words, what to do)."""
+        return (f"camera {self.camera_id} ({self.name}) delivers {self.fps:.0f} fps but {self.config_key} says "
+                f"{self.fps_configured:g}: lower {self.config_key} to what the station can deliver, or reduce the "
+                "station's load (a lower resolution or frame rate in its source, fewer processes on its host); "
+                "fusion follows the measured rate meanwhile")
+
+    def warnings(self) -> list[dict[str, Any]]:
+        """Structured health warnings (for consoles): kind, the numbers, and the plain-language message."""
+        if not self.low_rate:
+            return []
+        return [{"kind": "low_frame_rate", "measured_fps": round(self.fps, 2), "configured_fps": self.fps_configured,
+                 "since_ns": self.low_rate_since_ns, "message": self.low_rate_message()}]
 
     def state(self, now_ns: int, timeout_ns: int) -> str:
         """streaming / dropping (frames arrive, none accepted) / gone / waiting."""
@@ -216,6 +242,9 @@ class CameraHealth:
             "last_drop_reason": self.drop_reason or None,
             "fps": round(self.fps, 2),
             "fps_nominal": self.fps_nominal,
+            "fps_configured": self.fps_configured,
+            "low_frame_rate": self.low_rate,
+            "warnings": self.warnings(),
             "frames": self.frames,
             "lost": self.lost,
             "loss": (self.lost / total) if total else 0.0,
@@ -303,7 +332,8 @@ class Ingest:
                     arena.source, f"cameras[{i}].station", f"expected the station id (integer), got {req!r}"
                 )
             self.cameras[cam.id] = CameraHealth(cam.id, cam.name, float(cam.fps), cam.model.width,
-                                                cam.model.height, req)
+                                                cam.model.height, req, fps_configured=float(cam.fps),
+                                                config_key=f"cameras[{i}].fps")
         self.start_ns = 0
         self.duration_ns = int(self.settings.duration_s * 1e9)
         self._future_ns = int(self.settings.max_future_ms * 1e6)
@@ -718,6 +748,7 @@ class Ingest:
                 cam.fps = cam._bucket_frames / span
                 exp = cam._bucket_frames + max(cam._bucket_lost, 0)
                 cam.loss_rate = max(cam._bucket_lost, 0) / exp if exp else 0.0
+                self._check_rate(cam, recv_ns)
             cam._bucket_start, cam._bucket_frames, cam._bucket_lost = recv_ns, 0, 0
         if not cam.online:
             cam.online = True
@@ -744,10 +775,29 @@ class Ingest:
                     log.exception("pipeline.push failed (%d times so far); frame dropped",
                                   self.counters.pipeline_errors)
 
+    def _check_rate(self, cam: CameraHealth, recv_ns: int) -> None:
+        """After each 1 s bucket: a run of buckets below LOW_RATE_FRACTION of the configured fps that
+        lasts LOW_RATE_AFTER_S is warned once; a bucket at the rate ends the run."""
+        if cam.fps_configured <= 0:
+            return
+        if cam.fps >= LOW_RATE_FRACTION * cam.fps_configured:
+            if cam.low_rate:
+                log.info("camera %d (%s) delivers %.0f fps again (configured %g)", cam.camera_id, cam.name,
+                         cam.fps, cam.fps_configured)
+            cam.low_rate_since_ns, cam.low_rate = 0, False
+            return
+        if not cam.low_rate_since_ns:
+            cam.low_rate_since_ns = cam._bucket_start  # the run starts with the bucket just measured
+        if not cam.low_rate and recv_ns - cam.low_rate_since_ns >= LOW_RATE_AFTER_S * 1e9:
+            cam.low_rate = True
+            self._warn(("low_rate", cam.camera_id), logging.WARNING, "%s", cam.low_rate_message())
+
     # ---------------------------------------------------------------- periodic
 
     def vanish_timeout_ns(self, cam: CameraHealth) -> int:
-        period = 1.0 / cam.fps_nominal if cam.fps_nominal > 0 else 0.1
+        # the measured rate when it is lower than announced: a slow station is slow, not gone
+        fps = min(cam.fps_nominal, cam.fps) if cam.fps > 0 else cam.fps_nominal
+        period = 1.0 / fps if fps > 0 else 0.1
         return int(max(self.settings.vanish_periods * period, self.settings.vanish_min_s) * 1e9)
 
     def check_vanished(self, now_ns: int) -> list[int]:
@@ -817,7 +867,8 @@ class Ingest:
                              else f"{cam.camera_id}:{state}")
                 continue
             off = "" if cam.clock_offset_ns is None else f" off{cam.clock_offset_ns * 1e-6:+.1f}ms"
-            parts.append(f"{cam.camera_id}:{cam.fps:.0f}fps loss{100 * cam.loss_rate:.1f}%"
+            low = f"(LOW, configured {cam.fps_configured:g})" if cam.low_rate else ""
+            parts.append(f"{cam.camera_id}:{cam.fps:.0f}fps{low} loss{100 * cam.loss_rate:.1f}%"
                          f" lat{cam.latency_ewma_ns * 1e-6:.1f}ms{off}")
         c = self.counters
         bad = f" bad {c.malformed}" if c.malformed else ""

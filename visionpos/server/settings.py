@@ -40,7 +40,8 @@ SERVER = section(
     Setting("output_rate_hz", "number", 100.0, "BodyState ticks per second", min=1.0, max=2000.0),
     Setting("start_delay_s", "number", 0.0, "trigger time = server start + this", min=0.0, max=3600.0),
     Setting("duration_s", "number", 0.0, "stop after this long (0 = run until stopped)", min=0.0),
-    Setting("vanish_periods", "number", 10.0, "frame periods of silence before a camera counts as gone", min=2.0),
+    Setting("vanish_periods", "number", 10.0, "frame periods of silence before a camera counts as gone (its "
+            "announced period, or its measured one when it delivers fewer frames)", min=2.0),
     Setting("vanish_min_s", "number", 0.1, "and at least this long", min=0.0),
     Setting("max_future_ms", "number", 50.0, "a frame captured more than this after its receive time is dropped",
             min=0.0),

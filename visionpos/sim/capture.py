@@ -156,6 +156,15 @@ def iter_frames(
         yield (frame, truth) if with_truth else frame
 
 
+def window_frames(scenario: Scenario, camera_index: int, window: int, t0_ns: float, t1_ns: float
+                  ) -> list[tuple[BlobFrame, FrameTruth]]:
+    """Frames of one camera (index into scenario.cameras) with nominal exposure in [t0_ns, t1_ns) after
+    the scenario start, generated on demand (a live trajectory: call it once the truth for the window is
+    known). window: this window's index, which seeds its random draws (give each window its own)."""
+    cam, timing = scenario.cameras[camera_index], scenario.timings[camera_index]
+    return _camera_chunk(scenario, cam, timing, window, float(t0_ns), float(t1_ns), None)
+
+
 # ------------------------------------------------------------------ internals
 def _ordered(scenario: Scenario, duration_s: float, order: str, dropped: dict[int, list[int]] | None):
     """Merge the per-chunk frames of all cameras into one exactly ordered stream.
@@ -362,6 +371,11 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
             inside = np.linalg.norm(x - pos[:, None, :], axis=2) < radius
             vis &= ~(hit & inside)
     vis &= ~drop[:, None]
+    for win in s.view_schedule:  # the occlusion schedule, on the true exposure time
+        during = (true_ns >= win.start_ns) & (true_ns < win.end_ns)
+        if during.any():
+            cols = b_idx_a == win.body
+            vis[np.ix_(during, cols)] &= win.mask(cam.id, int(cols.sum()))[None, :]
 
     fi, mi = np.nonzero(vis)  # frame index, marker column
     uv, dpx, rng_m = marker_geometry(cam, W[fi, mi], diam_m[mi])

@@ -84,6 +84,19 @@ SIM_CAMERA = section(
             default_doc="sim.drop_probability"),
     Setting("rolling_shutter_ms", "number", None, "readout time, at most a frame period", min=0.0,
             default_doc="sim.rolling_shutter_ms"),
+    Setting("clock_error_ms", "number", 0.0, "constant error of this camera's synced stamps (a station whose "
+            "clock sync is off, e.g. to test the wand calibration's clock-offset estimate)", min=-1000.0,
+            max=1000.0),
+)
+VIEW_WINDOW = section(
+    "sim.view_schedule[i]",
+    "One window of the occlusion schedule: while it lasts, only the listed cameras see the body, and each "
+    "only the listed markers (where the geometry and `sim.occlusion` let it see them at all).",
+    Setting("body", "text", doc="a body or prop of the session"),
+    Setting("start_s", "number", doc="window start, seconds after the scenario start", min=0.0),
+    Setting("end_s", "number", doc="window end (s), after start_s", min=0.0),
+    Setting("cameras", "any", {}, "{camera id: [marker indices] or 'all'}; cameras not listed see none of the "
+            "body's markers during the window"),
 )
 SIM = section(
     "sim",
@@ -114,6 +127,8 @@ SIM = section(
     Setting("latency_ms", "section", {}, "exposure -> receive latency", spec=LATENCY),
     Setting("spurious", "section", {}, "spurious blobs", spec=SPURIOUS),
     Setting("occlusion", "section", {}, "occlusion model", spec=SIM_OCCLUSION),
+    Setting("view_schedule", "list", [], "occlusion schedule: which cameras see which markers of a body, and "
+            "when (deterministic)", spec=VIEW_WINDOW),
     Setting("brightness", "section", {}, "blob brightness", spec=BRIGHTNESS),
     Setting("merge_blobs", "boolean", True, "markers whose images overlap become one blob"),
     Setting("max_blobs", "integer", 64, "a station sends at most this many blobs (FLAG_TRUNCATED); at most one "
@@ -200,6 +215,24 @@ class SimBody:
 
 
 @dataclass(frozen=True)
+class ViewWindow:
+    """One window of the occlusion schedule (sim.view_schedule): during [start_ns, end_ns) (server
+    clock, true exposure time) body `body` (index into Scenario.bodies) is seen only by the cameras
+    in `visible`, each only through the markers it lists (camera id -> marker indices)."""
+
+    body: int
+    start_ns: int
+    end_ns: int
+    visible: dict[int, frozenset[int]]
+
+    def mask(self, camera_id: int, n_markers: int) -> np.ndarray:
+        """(n_markers,) bool: which of the body's markers this camera may see during the window."""
+        m = np.zeros(n_markers, bool)
+        m[list(self.visible.get(camera_id, ()))] = True
+        return m
+
+
+@dataclass(frozen=True)
 class Scenario:
     """Everything the capture simulation needs; see the module docstring for the keys."""
 
@@ -226,6 +259,7 @@ class Scenario:
     merge_blobs: bool
     max_blobs: int
     raw: dict[str, Any] = field(default_factory=dict)
+    view_schedule: tuple[ViewWindow, ...] = ()
 
     @property
     def end_ns(self) -> int:
@@ -298,12 +332,45 @@ def _props(sim: Section, arena: ArenaConfig) -> list[tuple[BodyConfig, Section]]
     return out
 
 
+def _view_schedule(sim: Section, bodies: list[SimBody], camera_ids: list[int], start_ns: int) -> tuple[ViewWindow, ...]:
+    """Validate sim.view_schedule into ViewWindows (body names of the session, camera ids, marker indices)."""
+    names = [b.name for b in bodies]
+    out = []
+    for w in sim.items("view_schedule"):
+        w = VIEW_WINDOW.check(w)
+        name = VIEW_WINDOW.read(w, "body")
+        if name not in names:
+            raise w.error("body", f"no body or prop '{name}' in this session; it has {names}")
+        start, end = VIEW_WINDOW.read(w, "start_s"), VIEW_WINDOW.read(w, "end_s")
+        if not end > start:
+            raise w.error("end_s", f"must be after start_s ({start} s), got {end} s")
+        cams = w.data.get("cameras") or {}
+        if not isinstance(cams, dict):
+            raise w.error("cameras", "expected a mapping {camera id: [marker indices] or 'all'}")
+        n_markers = len(bodies[names.index(name)].markers)
+        visible: dict[int, frozenset[int]] = {}
+        for k, v in cams.items():
+            kid = int(k) if isinstance(k, str) and k.strip().isdigit() else k
+            if not isinstance(kid, int) or kid not in camera_ids:
+                raise w.error("cameras", f"no simulated camera with id {k!r}; camera ids are {camera_ids}")
+            if v == "all":
+                v = list(range(n_markers))
+            if not isinstance(v, list) or not all(isinstance(i, int) and 0 <= i < n_markers for i in v):
+                raise w.error(f"cameras.{k}", f"expected 'all' or a list of marker indices 0..{n_markers - 1}, "
+                              f"got {v!r}")
+            visible[kid] = frozenset(v)
+        out.append(ViewWindow(names.index(name), start_ns + int(round(start * 1e9)), start_ns + int(round(end * 1e9)),
+                              visible))
+    return tuple(out)
+
+
 def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overrides: Any) -> Scenario:
     """Resolve an arena's `sim` section into a Scenario.
 
     overrides: sim keys to replace (e.g. duration=5, seed=3, centroid_noise_px=0),
     applied before validation so bad values are reported like config errors.
     """
+    arena.require_poses("the simulator")
     raw_sim = dict(arena.raw.get("sim") or {})
     raw_sim.update(overrides)
     if session is not None:
@@ -407,7 +474,7 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
             station_id=station,
             offset_ns=int(round(crng.normal(0.0, offset_std))) if offset_std > 0 else 0,
             drift_ppm=drift,
-            bias_ns=float(crng.normal(0.0, resid_std / np.sqrt(2))),
+            bias_ns=float(crng.normal(0.0, resid_std / np.sqrt(2))) + co.number("clock_error_ms", 0.0) * 1e6,
             amp_ns=np.full(3, resid_std / np.sqrt(3)),
             freq_hz=crng.uniform(0.01, 0.2, 3),
             phase=crng.uniform(0, 2 * np.pi, 3),
@@ -437,6 +504,7 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
     if not cameras:
         raise sim.error("cameras", "every camera is disabled; enable at least one")
 
+    schedule = _view_schedule(sim, bodies, [c.id for c in cameras], start_ns)
     lat = LATENCY.check(sim.sub("latency_ms"))
     spur = SPURIOUS.check(sim.sub("spurious"))
     bright = BRIGHTNESS.check(sim.sub("brightness"))
@@ -466,6 +534,7 @@ def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overri
         merge_blobs=SIM.read(sim, "merge_blobs"),
         max_blobs=SIM.read(sim, "max_blobs"),
         raw=raw_sim,
+        view_schedule=schedule,
     )
 
 

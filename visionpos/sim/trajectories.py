@@ -15,6 +15,16 @@ Kinds (the `trajectory:` key of a session entry in the `sim` section):
               smooth legs between corners (stops at each corner)
   figure8     a lemniscate of Gerono, yaw along the path by default
   aggressive  a tilted circle at exactly `peak_speed` m/s peak with fast yaw
+  slalom      an indoor MAV weaving along x: Lissajous path at exactly
+              `peak_speed` m/s peak (default 2), lateral swings of ~5 m/s^2
+              (roll reversals of +-30 deg), height bob, yaw swinging at up to
+              `peak_yaw_rate_deg` deg/s (default 180)
+  dash        an indoor MAV flying point to point between `waypoints` the way
+              a multirotor does: acceleration ramped to `max_accel` (5 m/s^2)
+              within `ramp` (0.2 s), i.e. pitch/roll flicks of ~27 deg, coast
+              at `peak_speed` (2 m/s), brake as hard; the heading turns by up
+              to 180 deg per leg at up to `peak_yaw_rate_deg` (180 deg/s),
+              yaw rate ramped as fast; `pause` s of hover at each waypoint
   wand_wave   hand-waved calibration wand: smooth random 6-DoF motion sweeping
               a box, pointing in widely varied directions
   static      a fixed pose (L-frame on the floor, parked drone)
@@ -33,8 +43,9 @@ from visionpos.config.arena import Section
 
 GRAVITY = 9.80665
 _OMEGA_STEP_S = 1e-5  # central-difference step for the body rate
+_MAX_TILT_DEG = 70.0  # past ~70 deg a quadrotor cannot hold height; the flat attitude map is singular at 90
 
-KINDS = ("hover", "square", "figure8", "aggressive", "wand_wave", "static")
+KINDS = ("hover", "square", "figure8", "aggressive", "slalom", "dash", "wand_wave", "static")
 
 
 @dataclass(frozen=True)
@@ -273,6 +284,195 @@ class Aggressive(Trajectory):
 
 
 @dataclass(frozen=True)
+class Slalom(Trajectory):
+    """An indoor MAV weaving along x around `center`: x = a sin(wt),
+    y = b sin(3wt), z = h sin(2wt), yaw = yaw_amp sin(2wt + pi/2).
+
+    All three velocity terms peak together at t = 0 (cosines), so the speed
+    peaks at exactly `peak_speed`: w = peak_speed / sqrt(a^2 + 9 b^2 + 4 h^2).
+    The yaw amplitude is chosen so the yaw rate peaks at exactly
+    `peak_yaw_rate` rad/s (2 w yaw_amp). The lateral swing accelerates at up
+    to 9 b w^2 (5.6 m/s^2 with the defaults at 2 m/s: roll reversals of about
+    +-30 deg at 1 Hz, roll rates of ~200 deg/s); body rates are the sum of
+    the yaw and tilt rates."""
+
+    center: np.ndarray
+    length: float = 2.0
+    swing: float = 0.3
+    height_amp: float = 0.2
+    peak_speed: float = 2.0
+    peak_yaw_rate: float = np.pi
+
+    @property
+    def omega(self) -> float:
+        a, b, h = self.length / 2, self.swing, self.height_amp
+        return self.peak_speed / float(np.sqrt(a * a + 9 * b * b + 4 * h * h))
+
+    @property
+    def yaw_amp(self) -> float:
+        return self.peak_yaw_rate / (2 * self.omega)
+
+    @property
+    def max_tilt_deg(self) -> float:
+        """Upper bound of the tilt: the largest horizontal acceleration against g minus the largest drop."""
+        w2 = self.omega**2
+        horiz = w2 * np.hypot(self.length / 2, 9 * self.swing)
+        return float(np.degrees(np.arctan2(horiz, GRAVITY - 4 * self.height_amp * w2)))
+
+    def kinematics(self, t):
+        w, a, b, h = self.omega, self.length / 2, self.swing, self.height_amp
+        s1, c1 = np.sin(w * t), np.cos(w * t)
+        s2, c2 = np.sin(2 * w * t), np.cos(2 * w * t)
+        s3, c3 = np.sin(3 * w * t), np.cos(3 * w * t)
+        p = np.column_stack([a * s1, b * s3, h * s2]) + self.center
+        v = np.column_stack([a * w * c1, 3 * b * w * c3, 2 * h * w * c2])
+        acc = -w * w * np.column_stack([a * s1, 9 * b * s3, 4 * h * s2])
+        return p, v, acc
+
+    def attitude(self, t):
+        yaw = self.yaw_amp * np.cos(2 * self.omega * t)
+        return _flat_attitude(self.kinematics(t)[2], yaw)
+
+
+def _step_integrals(u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The septic step s(u) held at 0 before u = 0 and at 1 after u = 1, with its first and
+    second integrals from 0 (which keep growing past u = 1: u - 1/2 and so on)."""
+    c = np.clip(u, 0.0, 1.0)
+    over = np.maximum(u - 1.0, 0.0)
+    s = c**4 * (35 - 84 * c + 70 * c**2 - 20 * c**3)
+    i1 = c**5 * (7 - 14 * c + 10 * c**2 - 2.5 * c**3) + over
+    i2 = c**6 * (7 / 6 - 2 * c + 1.25 * c**2 - 2.5 / 9 * c**3) + 0.5 * over + 0.5 * over**2
+    return s, i1, i2
+
+
+@dataclass(frozen=True)
+class _BangCoastBang:
+    """A jerk-limited rest-to-rest move over `distance` (1-D): the second derivative
+    ramps to +`accel` over `ramp` s (septic step), holds, ramps back to 0, the
+    first derivative coasts at `speed`, then the mirror image brakes to rest.
+    Built from four shifted septic steps, so value, rate and acceleration are
+    exact and the jerk is continuous."""
+
+    accel: float
+    ramp: float
+    speed: float
+    distance: float
+
+    @staticmethod
+    def make(distance: float, speed: float, accel: float, ramp: float) -> "_BangCoastBang":
+        """Move `distance` at up to `speed`; lowers the speed when the move is too short to reach it."""
+        if distance < speed * (ramp + speed / accel):  # no coast: solve distance = v (ramp + v / accel)
+            speed = accel * (-ramp + np.sqrt(ramp * ramp + 4 * distance / accel)) / 2
+        return _BangCoastBang(accel, ramp, speed, distance)
+
+    @property
+    def hold(self) -> float:
+        return self.speed / self.accel - self.ramp
+
+    @property
+    def duration(self) -> float:
+        t_acc = self.ramp + self.speed / self.accel  # ramp up, hold, ramp down
+        return t_acc + self.distance / self.speed  # accelerating, coasting, braking
+
+    def eval(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """t (T,) s since the start -> value, rate, acceleration (T,) each."""
+        r, h = self.ramp, self.hold
+        brake = self.duration - 2 * r - h
+        x = np.zeros_like(t)
+        v = np.zeros_like(t)
+        a = np.zeros_like(t)
+        for start, sign in ((0.0, 1.0), (r + h, -1.0), (brake, -1.0), (brake + r + h, 1.0)):
+            s, i1, i2 = _step_integrals((t - start) / r)
+            a += sign * s
+            v += sign * r * i1
+            x += sign * r * r * i2
+        return x * self.accel, v * self.accel, a * self.accel
+
+
+@dataclass(frozen=True)
+class Dash(Trajectory):
+    """An indoor MAV dashing from waypoint to waypoint (a closed loop through
+    `waypoints` (K, 3), m world), hovering `pause` s at each.
+
+    Each leg is flown the way a multirotor does it: the acceleration ramps to
+    `max_accel` m/s^2 within `ramp` s (with the defaults the drone pitches/rolls
+    27 deg into the leg in 0.2 s), holds until `peak_speed` m/s, coasts upright,
+    then brakes as hard, tilting back the other way (_BangCoastBang:
+    jerk-limited, so the body rate is continuous but changes fast: tilt rates
+    of ~300 deg/s, angular accelerations of ~4000 deg/s^2).
+    Meanwhile the heading turns by up to 180 deg, left on even legs and right
+    on odd ones, with the yaw rate ramping to `peak_yaw_rate` rad/s within
+    `ramp` s."""
+
+    waypoints: np.ndarray
+    peak_speed: float = 2.0
+    max_accel: float = 5.0
+    ramp: float = 0.2
+    peak_yaw_rate: float = np.pi
+    pause: float = 0.3
+
+    @property
+    def legs(self) -> list[tuple[_BangCoastBang, _BangCoastBang | None, float]]:
+        """Per leg: its move, its heading turn (None when it turns by 0) and the turn's sign."""
+        d = np.linalg.norm(np.roll(self.waypoints, -1, axis=0) - self.waypoints, axis=1)
+        out = []
+        for k, dk in enumerate(d):
+            move = _BangCoastBang.make(float(dk), self.peak_speed, self.max_accel, self.ramp)
+            turn = min(self.peak_yaw_rate * (move.duration - 2 * self.ramp), np.pi)
+            yaw = None
+            if turn > 0 and self.peak_yaw_rate > 0:
+                yaw = _BangCoastBang.make(turn, self.peak_yaw_rate, self.peak_yaw_rate / self.ramp, self.ramp)
+            out.append((move, yaw, 1.0 if k % 2 == 0 else -1.0))
+        return out
+
+    def _phases(self, t: np.ndarray):
+        """Loop count (T,), leg index (T,), time into the leg (T,) and the leg starts (K + 1,)."""
+        legs = self.legs
+        starts = np.concatenate([[0.0], np.cumsum([m.duration + self.pause for m, _, _ in legs])])
+        loop = np.floor(t / starts[-1])
+        tm = t - loop * starts[-1]
+        k = np.clip(np.searchsorted(starts, tm, side="right") - 1, 0, len(legs) - 1)
+        return legs, loop, k, tm - starts[k]
+
+    def kinematics(self, t):
+        legs, _, k, tl = self._phases(t)
+        w = self.waypoints
+        d = np.roll(w, -1, axis=0) - w
+        unit = d / np.linalg.norm(d, axis=1, keepdims=True)
+        p, v, a = w[k].copy(), np.zeros((len(t), 3)), np.zeros((len(t), 3))
+        for j, (move, _, _) in enumerate(legs):
+            on = k == j
+            x, dx, ddx = move.eval(tl[on])
+            p[on] += unit[j] * x[:, None]
+            v[on] = unit[j] * dx[:, None]
+            a[on] = unit[j] * ddx[:, None]
+        return p, v, a
+
+    def attitude(self, t):
+        legs, loop, k, tl = self._phases(t)
+        turns = np.array([sign * (yaw.distance if yaw is not None else 0.0) for _, yaw, sign in legs])
+        heading = np.concatenate([[0.0], np.cumsum(turns)])  # heading[-1]: the net turn of one loop
+        yaw = loop * heading[-1] + heading[k]
+        for j, (_, turn, sign) in enumerate(legs):
+            on = k == j
+            if turn is not None:
+                yaw[on] += sign * turn.eval(tl[on])[0]
+        return _flat_attitude(self.kinematics(t)[2], yaw)
+
+    @property
+    def max_tilt_deg(self) -> float:
+        """Largest tilt: the horizontal part of max_accel against g minus its downward part, over the legs."""
+        d = np.roll(self.waypoints, -1, axis=0) - self.waypoints
+        frac = d / np.linalg.norm(d, axis=1, keepdims=True)
+        horiz = self.max_accel * np.linalg.norm(frac[:, :2], axis=1)
+        down = self.max_accel * np.abs(frac[:, 2])
+        return float(np.degrees(np.max(np.arctan2(horiz, np.maximum(GRAVITY - down, 1e-6)))))
+
+
+DASH_WAYPOINTS = ((-0.9, -0.8, 0.8), (0.9, -0.5, 1.2), (0.5, 0.9, 0.7), (-0.8, 0.6, 1.3))
+
+
+@dataclass(frozen=True)
 class WandWave(Trajectory):
     """A calibration wand waved by hand: position sweeps the box `center` +-
     extent/2 with smooth random sinusoids (0.03-0.25 Hz), and the attitude is
@@ -331,6 +531,9 @@ def from_config(s: Section, rng: np.random.Generator) -> Trajectory:
       square:     center, side, edge_time, pause, yaw_deg
       figure8:    center, size [x, y], period, heading (bool), yaw_deg
       aggressive: center, radius, peak_speed, height_amp, yaw_rate (rad/s)
+      slalom:     center, length, swing, height_amp (m), peak_speed (m/s), peak_yaw_rate_deg (deg/s)
+      dash:       waypoints [[x, y, z], ...] (m, at least 2), peak_speed (m/s), max_accel (m/s^2), ramp (s),
+                  peak_yaw_rate_deg (deg/s), pause (s)
       wand_wave:  center, extent [x, y, z] (m, full size of the swept box), max_angle_deg
       static:     position (or center), yaw_deg or quaternion_xyzw
     rng seeds the random parts (hover drift, wand motion).
@@ -377,13 +580,57 @@ def from_config(s: Section, rng: np.random.Generator) -> Trajectory:
             s.number("height_amp", 0.3, min=0.0),
             s.number("yaw_rate", 3.0),
         )
-        if out.max_tilt_deg > 70.0:
-            # past ~70 deg a quadrotor cannot hold height, and the flat attitude
-            # map becomes singular at 90 deg
+        if out.max_tilt_deg > _MAX_TILT_DEG:
             raise s.error(
                 "peak_speed",
                 f"{out.peak_speed} m/s on a {out.radius} m circle (height_amp {out.height_amp} m) would tilt "
                 f"the drone {out.max_tilt_deg:.0f} deg; lower peak_speed or height_amp, or raise radius",
+            )
+    elif kind == "slalom":
+        known |= {"length", "swing", "height_amp", "peak_speed", "peak_yaw_rate_deg"}
+        out = Slalom(
+            center,
+            s.number("length", 2.0, min=0.0),
+            s.number("swing", 0.3, min=0.0),
+            s.number("height_amp", 0.2, min=0.0),
+            s.number("peak_speed", 2.0, min=0.01, max=50.0),
+            np.radians(s.number("peak_yaw_rate_deg", 180.0, min=0.0, max=3600.0)),
+        )
+        if out.length + out.swing + out.height_amp <= 0:
+            raise s.error("length", "length, swing and height_amp are all 0: the path is a point")
+        if out.max_tilt_deg > _MAX_TILT_DEG:
+            raise s.error(
+                "peak_speed",
+                f"{out.peak_speed} m/s would tilt the drone up to {out.max_tilt_deg:.0f} deg; lower peak_speed "
+                f"or swing, or raise length",
+            )
+    elif kind == "dash":
+        known |= {"waypoints", "peak_speed", "max_accel", "ramp", "peak_yaw_rate_deg", "pause"}
+        wp = s.array("waypoints", (None, 3), DASH_WAYPOINTS)
+        if len(wp) < 2:
+            raise s.error("waypoints", f"need at least 2 waypoints, got {len(wp)}")
+        legs = np.linalg.norm(np.roll(wp, -1, axis=0) - wp, axis=1)
+        if np.any(legs < 1e-3):
+            raise s.error("waypoints", f"waypoint {int(np.argmin(legs))} repeats the next one (legs must be > 1 mm)")
+        out = Dash(
+            wp,
+            s.number("peak_speed", 2.0, min=0.01, max=50.0),
+            s.number("max_accel", 5.0, min=0.01, max=100.0),
+            s.number("ramp", 0.2, min=0.005, max=10.0),
+            np.radians(s.number("peak_yaw_rate_deg", 180.0, min=0.0, max=3600.0)),
+            s.number("pause", 0.3, min=0.0),
+        )
+        if out.ramp * out.max_accel > out.peak_speed:
+            raise s.error("ramp", f"ramping to {out.max_accel} m/s^2 over {out.ramp} s overshoots peak_speed "
+                          f"{out.peak_speed} m/s; shorten ramp or lower max_accel")
+        short = float(legs.min())
+        if short < 2 * out.max_accel * out.ramp**2:
+            raise s.error("waypoints", f"the shortest leg ({short:.3f} m) is too short to ramp the acceleration "
+                          f"up and down (needs {2 * out.max_accel * out.ramp**2:.3f} m); space the waypoints out")
+        if out.max_tilt_deg > _MAX_TILT_DEG:
+            raise s.error(
+                "peak_speed",
+                f"{out.max_accel} m/s^2 would tilt the drone {out.max_tilt_deg:.0f} deg; lower max_accel",
             )
     elif kind == "wand_wave":
         known |= {"extent", "max_angle_deg"}

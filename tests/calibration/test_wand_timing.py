@@ -1,0 +1,135 @@
+"""Clock offsets, the wand check and the observability guards of the wand calibration (issue 18)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from visionpos.calibration.bundle import calibrate_wand, compare_cameras
+from visionpos.calibration.synthetic import ring_cameras, wand_frames
+from visionpos.calibration.wand import CalibrationError, WandSpec, estimate_offsets, label_all
+from visionpos.calibration.workflow import ground_layout, wand_settings
+from visionpos.config.arena import ConfigError, parse_arena
+
+# the cameras' clock errors (s): stamps read true time + error; +-20 and +-50 ms
+ERRORS_S = np.array([0.020, -0.020, 0.050, -0.050])
+
+
+@pytest.fixture(scope="module")
+def with_and_without_offsets():
+    cams = ring_cameras(4)
+    out = {}
+    for key, err in (("offsets", ERRORS_S), ("none", np.zeros(4))):
+        frames = wand_frames(cams, 20.0, noise_px=0.2, seed=3, clock_errors_s=err)
+        out[key] = calibrate_wand(frames, cams, WandSpec())
+    return cams, out
+
+
+def test_clock_offsets_of_20_and_50_ms_are_recovered_within_0p2_ms(with_and_without_offsets):
+    _, cal = with_and_without_offsets
+    truth_ms = (ERRORS_S - ERRORS_S[0]) * 1e3  # against the reference (first) camera
+    got_ms = cal["offsets"].offsets_ns / 1e6
+    assert np.abs(got_ms - truth_ms).max() < 0.2, (got_ms, truth_ms)
+    # the reported std is an honest size of the error
+    std = np.array([s["offset_std_ms"] for s in cal["offsets"].camera_stats()])
+    assert np.all(std[1:] < 0.2) and np.all(std[1:] > 0.005)
+
+
+def test_poses_with_clock_offsets_as_accurate_as_without(with_and_without_offsets):
+    cams, cal = with_and_without_offsets
+    ce_off, re_off, _ = compare_cameras(cal["offsets"].cameras, cams)
+    ce_none, re_none, _ = compare_cameras(cal["none"].cameras, cams)
+    assert ce_off.max() <= 1.25 * ce_none.max() + 0.2e-3, (ce_off, ce_none)
+    assert re_off.max() <= 1.25 * re_none.max() + 0.005, (re_off, re_none)
+    # and without the estimate, a 20-50 ms offset is what ruins the calibration (or the attempt fails)
+    frames = wand_frames(cams, 20.0, noise_px=0.2, seed=3, clock_errors_s=ERRORS_S)
+    try:
+        bad = calibrate_wand(frames, cams, WandSpec(), max_offset_ms=0, max_frames=400)
+    except CalibrationError as e:
+        assert "clock" in str(e)
+    else:
+        ce_bad, _, _ = compare_cameras(bad.cameras, cams)
+        assert ce_bad.max() > 3 * ce_off.max()
+
+
+def test_offset_beyond_the_search_range_is_named():
+    cams = ring_cameras(3)
+    frames = wand_frames(cams, 15.0, noise_px=0.2, seed=4, clock_errors_s=np.array([0.0, 0.0, 0.300]))
+    tracks, stats = label_all(frames, cams, WandSpec())
+    est = estimate_offsets(cams, tracks, stats, max_offset_ms=50.0)
+    assert est.offsets_ns[1] == pytest.approx(0.0, abs=2e6)  # the coarse search; the bundle adjustment refines it
+    assert est.offsets_ns[2] == 0.0
+    assert len(est.problems) == 1
+    assert "cam3" in est.problems[0] and "search range" in est.problems[0] and "50 ms" in est.problems[0]
+
+
+def test_wand_lengths_1mm_off_are_reported_with_the_measured_lengths():
+    # the middle marker sits 1 mm off: AB 55, BC 102 (AC 157 as configured, the trusted length)
+    cams = ring_cameras(4)
+    frames = wand_frames(cams, 15.0, noise_px=0.2, seed=5, spec=WandSpec(0.055, 0.102))
+    cal = calibrate_wand(frames, cams, WandSpec(0.054, 0.103, known="ac"))
+    assert cal.check.mismatch
+    got = cal.check.lengths["ac"]
+    assert got["ab"][0] == pytest.approx(0.055, abs=0.3e-3)
+    assert got["bc"][0] == pytest.approx(0.102, abs=0.3e-3)
+    msg = [w for w in cal.warnings if "does not match" in w]
+    assert len(msg) == 1 and "calibration.wand" in msg[0]
+    assert f"AB {got['ab'][0] * 1000:.2f}" in msg[0] and f"BC {got['bc'][0] * 1000:.2f}" in msg[0]
+    # the right wand: no warning
+    ok = calibrate_wand(frames, cams, WandSpec(0.055, 0.102, known="ac"))
+    assert not ok.check.mismatch and not any("does not match" in w for w in ok.warnings)
+
+
+def test_refine_intrinsics_refused_for_two_cameras_applied_for_four():
+    cams = ring_cameras(4)
+    true_fx = cams[0].model.fx
+    frames = wand_frames(cams, 20.0, noise_px=0.2, seed=6)
+    two = [c for c in cams[:2]]
+    cal2 = calibrate_wand([f for f in frames if f.camera_id in (1, 2)], two, WandSpec(), refine_intrinsics=True)
+    assert cal2.info["intrinsics_refused"]
+    w = [x for x in cal2.warnings if "--refine-intrinsics refused" in x]
+    assert len(w) == 1 and "focal length" in w[0] and "cannot determine" in w[0]
+    assert all(c.model.fx == true_fx for c in cal2.cameras)  # the chessboard intrinsics kept
+    # four cameras and a wave through a larger volume determine them
+    frames = wand_frames(cams, 20.0, noise_px=0.2, seed=6, extent=(2.0, 2.0, 1.2))
+    cal4 = calibrate_wand(frames, cams, WandSpec(), refine_intrinsics=True)
+    assert not cal4.info["intrinsics_refused"]
+    assert not any("refused" in x for x in cal4.warnings)
+    fx = np.array([c.model.fx for c in cal4.cameras])
+    assert np.all(fx != true_fx) and np.abs(fx / true_fx - 1).max() < 0.01
+
+
+def test_wand_and_lframe_from_the_arena_yaml():
+    base = {"cameras": [c.to_dict() for c in ring_cameras(2)], "bodies": []}
+    arena = parse_arena({**base, "calibration": {
+        "wand": {"ab": 0.05, "bc": 0.11, "known": "ab", "max_clock_offset_ms": 80},
+        "lframe": {"markers": [[0, 0, 0], [0.3, 0, 0], [0, 0.2, 0]], "marker_diameter": 0.01}}}, "a.yaml")
+    spec, mx = wand_settings(arena)
+    assert (spec.ab, spec.bc, spec.known, mx) == (0.05, 0.11, "ab", 80.0)
+    spec, mx = wand_settings(arena, ab=0.06, known="ac", max_clock_offset_ms=0)  # the command line wins
+    assert (spec.ab, spec.bc, spec.known, mx) == (0.06, 0.11, "ac", 0.0)
+    layout, h = ground_layout(arena)
+    assert layout.shape == (3, 3) and layout[1, 0] == 0.3 and h == 0.005
+    bad = parse_arena({**base, "calibration": {"wand": {"abb": 0.05}}}, "a.yaml")
+    with pytest.raises(ConfigError, match=r"a.yaml.*calibration.wand.*abb"):
+        wand_settings(bad)
+    bad = parse_arena({**base, "calibration": {"wand": {"known": "cd"}}}, "a.yaml")
+    with pytest.raises(ConfigError, match="known"):
+        wand_settings(bad)
+
+
+def test_cli_reports_clock_offsets_and_writes_them(tmp_path, capsys):
+    import yaml
+
+    from visionpos.cli.main import main
+
+    out = tmp_path / "arena.yaml"
+    rc = main(["calibrate", "wand", "--sim", "thesis", "--set", "sim.duration=10", "--set",
+               "sim.cameras.2.clock_error_ms=30", "--max-clock-offset-ms", "40", "--out", str(out), "--no-progress"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "clock offset ms" in text and "+30." in text
+    cal = yaml.safe_load(out.read_text())["calibration"]
+    assert cal["wand"]["max_clock_offset_ms"] == 40
+    offsets = cal["extrinsics"]["clock_offset_ms"]
+    assert abs(offsets["pi2"] - 30) < 1 and abs(offsets["pi3"]) < 1

@@ -1,0 +1,204 @@
+"""Fusion benchmark: realistic flights (issue 15 item 2).
+
+Two indoor-MAV flights on the thesis arena (sessions `slalom` and `dash`,
+visionpos/sim/trajectories.py: up to 2 m/s, 180 deg/s of yaw, the roll/pitch
+flicks a multirotor makes to accelerate at several m/s^2), run through
+FusionPipeline as the server runs it, against four goals per flight:
+
+- position RMSE <= 1.2 x and rotation RMSE <= 1.0 x the body's single-snapshot
+  Cramer-Rao bound along the path. The bound is evaluated at the true pose of
+  every output tick (every 5th, enough for a smooth path) with the cameras that
+  see each marker then (simulator truth); the RMSE is a root mean square over
+  ticks, so the bound it is held against is the root mean square of the
+  per-tick bounds, sqrt(mean_t trace CRB(t)) (the RMSE an efficient estimator
+  of each snapshot alone would have);
+- maximum position error <= 4 mm;
+- no gap between accepted filter measurements longer than 2 frame periods
+  while 2 or more cameras see 3 or more of the body's markers (the output
+  stall of issue 15: measurements refused while the body is plainly seen).
+
+Called from benchmarks/fusion.py (`visionpos bench --only fusion`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from visionpos.benchmarks import BenchResult
+
+# (session of the thesis arena, what it flies)
+FLIGHTS = (
+    ("slalom", "weaving along x at 2 m/s, roll reversals of +-34 deg, yaw swinging at up to 180 deg/s"),
+    ("dash", "waypoint dashes at 2 m/s, 5 m/s^2 reached in 0.2 s (27 deg pitch/roll flicks), 180 deg yaw turns "
+             "at up to 180 deg/s"),
+)
+SKIP_S = 0.5  # acquisition and the filter's first convergence are not judged
+CRB_EVERY = 5  # evaluate the bound at every 5th output tick
+
+
+def seeing_cameras(frames, frame_truth, body_index: int, times_ns: np.ndarray, min_markers: int = 3) -> np.ndarray:
+    """How many cameras see at least min_markers markers of body `body_index` at each time (T,).
+
+    A camera sees what its newest frame captured at or before t shows (simulator truth,
+    counting each marker blob once), for one frame period after its capture; a dropped
+    frame is a camera that does not see.
+    """
+    per_cam: dict[int, tuple[list[int], list[int]]] = {}
+    for f, tr in zip(frames, frame_truth):
+        caps, counts = per_cam.setdefault(int(f.camera_id), ([], []))
+        caps.append(int(f.capture_ns))
+        counts.append(len(set(tr.marker[tr.body == body_index].tolist())))
+    out = np.zeros(len(times_ns), dtype=np.int64)
+    for caps_l, counts_l in per_cam.values():
+        order = np.argsort(caps_l)
+        caps, counts = np.asarray(caps_l, np.int64)[order], np.asarray(counts_l)[order]
+        period = int(np.median(np.diff(caps))) if len(caps) > 1 else 0
+        k = np.searchsorted(caps, times_ns, side="right") - 1
+        ok = k >= 0
+        kk = np.maximum(k, 0)
+        out += ok & (counts[kk] >= min_markers) & (times_ns - caps[kk] < 1.5 * period)
+    return out
+
+
+def longest_stall_ns(accepted_ns: np.ndarray, seen: np.ndarray, times_ns: np.ndarray) -> int:
+    """The longest time (ns) without an accepted measurement while `seen` (T,) holds
+    continuously on the grid times_ns (T,): at each grid time t where it holds, the time
+    since the later of the last accepted measurement and the start of the current stretch."""
+    acc = np.sort(np.asarray(accepted_ns, np.int64))
+    k = np.searchsorted(acc, times_ns, side="right") - 1
+    last = np.where(k >= 0, acc[np.maximum(k, 0)], np.iinfo(np.int64).min)
+    worst = 0
+    start = None
+    for i in range(len(times_ns)):
+        if not seen[i]:
+            start = None
+            continue
+        if start is None:
+            start = times_ns[i]
+        worst = max(worst, int(times_ns[i] - max(last[i], start)))
+    return worst
+
+
+def path_crb(sc, sim, body_name: str, times_ns: np.ndarray) -> tuple[float, float]:
+    """RMS over times_ns of the single-snapshot Cramer-Rao bound of the body's pose: position (mm), rotation (deg).
+
+    At each time: the true pose, and which camera sees which marker in its newest frame (simulator truth).
+    """
+    from visionpos.geometry.triangulation import pose_crb
+
+    b = [x.name for x in sc.bodies].index(body_name)
+    body = sc.body(body_name)
+    cam_ids = [c.id for c in sc.cameras]
+    caps = {c: [] for c in cam_ids}
+    seen: dict[int, list[np.ndarray]] = {c: [] for c in cam_ids}
+    for f, tr in zip(sim.frames, sim.frame_truth):
+        caps[f.camera_id].append(int(f.capture_ns))
+        seen[f.camera_id].append(np.unique(tr.marker[tr.body == b]))
+    caps_a = {c: np.asarray(v, np.int64) for c, v in caps.items()}
+    p_true, q_true = sc.truth_at(body_name, times_ns)
+    pos_var, rot_var = [], []
+    for t, p, q in zip(times_ns, p_true, q_true):
+        visible = np.zeros((len(body.markers), len(cam_ids)), bool)
+        for v, c in enumerate(cam_ids):
+            k = int(np.searchsorted(caps_a[c], t, side="right")) - 1
+            if k >= 0:
+                visible[seen[c][k], v] = True
+        if (visible.sum(1) >= 2).sum() < 3:
+            continue  # no pose from this snapshot: no bound either
+        mw = Rotation.from_quat(q).apply(body.markers) + p
+        # the bound of the triangulated pose: markers that two or more cameras see
+        crb = pose_crb(sc.cameras, mw, p, sc.centroid_noise_px, visible & (visible.sum(1) >= 2)[:, None])
+        pos_var.append(np.trace(crb[:3, :3]))
+        rot_var.append(np.trace(crb[3:, 3:]))
+    return float(np.sqrt(np.mean(pos_var)) * 1e3), float(np.degrees(np.sqrt(np.mean(rot_var))))
+
+
+def fly(session: str, duration_s: float, seed: int, settings: dict | None = None,
+        overrides: list[str] | None = None) -> dict[str, float]:
+    """One flight of the thesis arena's `session` through the pipeline: errors, bound, stall (see the module).
+
+    settings: fusion settings for the pipeline; overrides: `--set` style changes of the arena file."""
+    from visionpos.benchmarks.fusion import replay
+    from visionpos.sim import load_scenario, simulate
+
+    sc = load_scenario("thesis", overrides, session=session, duration=duration_s, seed=seed)
+    sim = simulate(sc)
+    name = sc.arena.bodies[0].name
+    accepted: list[int] = []
+
+    def watch(pipe):  # after every frame: the reference time of the body's last accepted measurement
+        tr = pipe.tracks[0]
+        if tr.tracked and (not accepted or tr.last_update_ns != accepted[-1]):
+            accepted.append(tr.last_update_ns)
+
+    rep = replay(sc.arena, sim.frames, settings, raw_cb=watch)
+    t = rep.times_ns
+    keep = t >= sc.start_ns + int(SKIP_S * 1e9)
+    ok = rep.tracked[name] & keep
+    p_true, q_true = sc.truth_at(name, t[ok])
+    dp = np.linalg.norm(rep.positions[name][ok] - p_true, axis=1)
+    dr = (Rotation.from_quat(rep.quaternions[name][ok]) * Rotation.from_quat(q_true).inv()).magnitude()
+    crb_pos_mm, crb_rot_deg = path_crb(sc, sim, name, t[keep][::CRB_EVERY])
+    period_ns = int(1e9 / min(c.fps for c in sc.arena.cameras))
+    grid = np.arange(sc.start_ns + int(SKIP_S * 1e9), int(t[-1]), 250_000, dtype=np.int64)
+    seen = seeing_cameras(sim.frames, sim.frame_truth, 0, grid) >= 2
+    stall_ns = longest_stall_ns(np.asarray(accepted, np.int64), seen, grid)
+    return {
+        "pos_rmse_mm": float(np.sqrt((dp**2).mean()) * 1e3),
+        "rot_rmse_deg": float(np.degrees(np.sqrt((dr**2).mean()))),
+        "max_err_mm": float(dp.max() * 1e3),
+        "crb_pos_mm": crb_pos_mm,
+        "crb_rot_deg": crb_rot_deg,
+        "max_gap_ms": stall_ns / 1e6,
+        "max_gap_periods": stall_ns / period_ns,
+        "tracked_fraction": float(ok.sum() / keep.sum()),
+        "gated": float(rep.pipeline.stats()["rejected_gate"]),
+    }
+
+
+def run(quick: bool, res: BenchResult) -> None:
+    """The realistic-flights section of the fusion group: metrics fusion_flights_<session>_*."""
+    dur = 4.0 if quick else 10.0
+    seeds = [1] if quick else [1, 2]
+    tbl = [
+        "| flight | position RMSE (mm) | bound (mm) | RMSE / bound | rotation RMSE (deg) | bound (deg) "
+        "| RMSE / bound | max error (mm) | longest stall (frame periods) | gated | tracked |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for session, what in FLIGHTS:
+        runs = [fly(session, dur, s) for s in seeds]
+
+        def rms(key, runs=runs):
+            return float(np.sqrt(np.mean([r[key] ** 2 for r in runs])))
+
+        m = {
+            "pos_rmse_mm": rms("pos_rmse_mm"),
+            "rot_rmse_deg": rms("rot_rmse_deg"),
+            "crb_pos_mm": rms("crb_pos_mm"),
+            "crb_rot_deg": rms("crb_rot_deg"),
+            "max_err_mm": max(r["max_err_mm"] for r in runs),
+            "max_gap_periods": max(r["max_gap_periods"] for r in runs),
+            "tracked_fraction": min(r["tracked_fraction"] for r in runs),
+            "gated": sum(r["gated"] for r in runs),
+        }
+        m["pos_over_crb"] = m["pos_rmse_mm"] / m["crb_pos_mm"]
+        m["rot_over_crb"] = m["rot_rmse_deg"] / m["crb_rot_deg"]
+        for k, v in m.items():
+            res.metrics[f"fusion_flights_{session}_{k}"] = v
+        tbl.append(
+            f"| {session}: {what} | {m['pos_rmse_mm']:.2f} | {m['crb_pos_mm']:.2f} | {m['pos_over_crb']:.2f} | "
+            f"{m['rot_rmse_deg']:.3f} | {m['crb_rot_deg']:.3f} | {m['rot_over_crb']:.2f} | {m['max_err_mm']:.2f} | "
+            f"{m['max_gap_periods']:.2f} | {m['gated']:.0f} | {100 * m['tracked_fraction']:.1f} % |"
+        )
+    tbl += [
+        "",
+        "Bound: the single-snapshot Cramer-Rao bound of the pose (0.2 px centroid noise, the cameras that see each "
+        "marker) at the true pose of every 5th output tick, root mean square over the path. Longest stall: the "
+        "longest time without an accepted filter measurement while 2 or more cameras see 3 or more markers, in "
+        "frame periods (10 ms). Gated: measurements the filter's innovation gate refused.",
+    ]
+    res.tables[
+        f"Fusion: realistic flights (thesis arena, 4 cameras at 100 Hz; {len(seeds)} seed(s) x {dur:.0f} s each, "
+        f"output at 100 Hz vs truth, first {SKIP_S} s not judged)"
+    ] = "\n".join(tbl)

@@ -1,0 +1,42 @@
+"""`visionpos sitl`: fly ArduPilot SITL on visionpos alone, closed loop (visionpos.app.sitl)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from visionpos.app.sitl import FlightPlan, find_sitl_binary, format_flight, run_sitl, sitl_arena
+from visionpos.errors import UsageError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sitl", metavar="PATH", help="ArduPilot's arducopter SITL binary (default: the arena's "
+                   "sitl.binary, $VISIONPOS_SITL, or ../shared/sitl/arducopter beside the checkout)")
+    p.add_argument("--scenario", default="thesis", help="arena: thesis (default), arena8 or a YAML path")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--altitude", type=float, default=1.0, help="take-off height (m; default 1)")
+    p.add_argument("--side", type=float, default=1.0, help="side of the square flown (m; default 1)")
+    p.add_argument("--no-square", action="store_true", help="take off, hold and land only")
+    p.add_argument("--hold", type=float, default=4.0, help="hover before the square (s; default 4)")
+    p.add_argument("--cut", type=float, default=0.0, metavar="S",
+                   help="hide the vehicle from every camera for S seconds mid-hover (e.g. 1)")
+    p.add_argument("--timeout", type=float, default=240.0, help="give up after this many seconds (default 240)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    if not 0.3 <= args.altitude <= 3.0:
+        raise UsageError(f"--altitude {args.altitude}: give 0.3 to 3 m (the arena's cameras look at 0-2 m)")
+    if not 0.1 <= args.side <= 2.0:
+        raise UsageError(f"--side {args.side}: give 0.1 to 2 m")
+    if not 0 <= args.cut <= 5:
+        raise UsageError(f"--cut {args.cut}: give 0 to 5 s")
+    plan = FlightPlan(args.altitude, args.side, args.hold, not args.no_square, args.cut, args.timeout)
+    arena = sitl_arena(args.scenario, args.set, args.timeout + 60.0)
+    binary = find_sitl_binary(args.sitl, arena)
+    out = sys.stderr if args.json else sys.stdout
+    out.write(f"visionpos sitl: {binary} with {len(arena.cameras)} simulated cameras on 127.0.0.1\n")
+    summary = run_sitl(arena, binary, plan, out)
+    print(json.dumps(summary, indent=2) if args.json else format_flight(summary))
+    return 0 if summary["ok"] else 1
