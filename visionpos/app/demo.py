@@ -392,7 +392,7 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
         t_start = sc.start_ns + shift
         t_stop = sc.end_ns + shift
         for body, (ap, _) in autopilots.items():  # the fake autopilots' sensors follow the simulated truth
-            if any(sb.name == body for sb in sc.bodies):
+            if ap is not None and any(sb.name == body for sb in sc.bodies):
                 ap.truth = trajectory_truth(sc.body(body).trajectory, sc.start_ns + shift)
         tasks = [asyncio.create_task(s.stream(t_stop), name=f"station-{s.station_id}") for s in stations]
         status = asyncio.create_task(_status_loop(server, bridge, collector, stations, sc, shift, t_start,
@@ -540,7 +540,8 @@ def _summary(arena, sc, shift, t_start, t_stop, collector: Collector, bridge, au
             d["bridge"] = {k: st[k] for k in ("sent", "rate_limited", "not_tracked", "dropped_stale", "no_link",
                                                 "frozen", "timesync_answered", "held_for_origin", "held_identity")}
             d["autopilot_says"] = {"identity": st["identity"], "ekf": st["ekf"], "delay_ms": st["delay_ms"],
-                                   "delay_detail": st["delay_detail"], "true_delay_ms": ap.true_delay_ms()}
+                                   "delay_detail": st["delay_detail"],
+                                   "true_delay_ms": ap.true_delay_ms() if ap is not None else None}
         bodies.append(d)
     send = np.concatenate(all_send_lat) if all_send_lat else np.zeros(0)
     aplat = np.concatenate(all_ap_lat) if all_ap_lat else np.zeros(0)
@@ -620,7 +621,8 @@ def format_summary(s: dict[str, Any]) -> str:
                          f"99th percentile {fmt(lat.get('p99'))} ms")
         if "autopilot_says" in b:
             a = b["autopilot_says"]
-            measured = (f"{fmt(a['delay_ms'], '.1f')} ms (its true value {fmt(a['true_delay_ms'], '.1f')} ms)"
+            true = "" if a["true_delay_ms"] is None else f" (its true value {fmt(a['true_delay_ms'], '.1f')} ms)"
+            measured = (f"{fmt(a['delay_ms'], '.1f')} ms{true}"
                         if a["delay_ms"] is not None else f"not measured ({a['delay_detail']})")
             lines.append(f"  the autopilot's view: identity check {a['identity']}, EKF {a['ekf']}; "
                          f"capture-to-autopilot delay measured from its gyro {measured}")
