@@ -92,6 +92,21 @@ VEHICLE = section(
             default_doc="max(5, reconnect_min_s)"),
     Setting("link_timeout_s", "number", 3.0, "no message from the autopilot for this long: the link is down",
             min=0.1),
+    Setting("hold_until_origin", "boolean", True, "with an origin: send no pose while the autopilot is heard but "
+            "has not reported the origin back (GPS_GLOBAL_ORIGIN); an EKF that takes vision first settles "
+            "centimetres off in height"),
+    Setting("origin_confirm_timeout_s", "number", 30.0, "send the poses anyway (with a warning) when the origin is "
+            "not confirmed this long after the autopilot was first heard (0 = wait for ever)", min=0.0),
+    Setting("telemetry_rate_hz", "number", 50.0, "ask the autopilot for its attitude and IMU at this rate "
+            "(SET_MESSAGE_INTERVAL) for the identity check and the delay measurement; 0 = ask for nothing",
+            min=0.0, max=400.0),
+    Setting("identity_check", "text", "stop", "the autopilot's roll, pitch and body rates against the optical "
+            "body's: stop = stop sending on a mismatch (e.g. swapped sysids), warn = only say so, off",
+            choices=("stop", "warn", "off")),
+    Setting("identity_tolerance_deg", "number", 3.0, "noise of the roll/pitch comparison (1 sigma, deg); a "
+            "mismatch is a 1 s window more than 3 sigma off on average", min=0.5, max=30.0),
+    Setting("set_delay", "boolean", False, "write the measured delay to the autopilot (PARAM_SET VISO_DELAY_MS "
+            "on ArduPilot, EKF2_EV_DELAY on PX4)"),
 )
 
 POSE_STREAM = section(
@@ -220,6 +235,12 @@ class VehicleConfig:
     reconnect_min_s: float = VEHICLE["reconnect_min_s"].field_default
     reconnect_max_s: float = VEHICLE["reconnect_max_s"].field_default
     link_timeout_s: float = VEHICLE["link_timeout_s"].field_default
+    hold_until_origin: bool = VEHICLE["hold_until_origin"].field_default
+    origin_confirm_timeout_s: float = VEHICLE["origin_confirm_timeout_s"].field_default
+    telemetry_rate_hz: float = VEHICLE["telemetry_rate_hz"].field_default
+    identity_check: str = VEHICLE["identity_check"].field_default
+    identity_tolerance_deg: float = VEHICLE["identity_tolerance_deg"].field_default
+    set_delay: bool = VEHICLE["set_delay"].field_default
 
     @property
     def period_ns(self) -> int:
@@ -336,6 +357,12 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                 reconnect_min_s=rmin,
                 reconnect_max_s=V.read(v, "reconnect_max_s", default=max(5.0, rmin), min=rmin),
                 link_timeout_s=V.read(v, "link_timeout_s"),
+                hold_until_origin=V.read(v, "hold_until_origin"),
+                origin_confirm_timeout_s=V.read(v, "origin_confirm_timeout_s"),
+                telemetry_rate_hz=V.read(v, "telemetry_rate_hz"),
+                identity_check=V.read(v, "identity_check"),
+                identity_tolerance_deg=V.read(v, "identity_tolerance_deg"),
+                set_delay=V.read(v, "set_delay"),
             )
         )
         if out[-1].message == "odometry" and out[-1].vision_speed:

@@ -6,10 +6,27 @@ It plays the vehicle's side of one bridge endpoint:
 - 'udpin:HOST:PORT' listens for a bridge configured with udpout (port 0
   picks a free port: read .port after start());
 - 'tcpin:HOST:PORT' listens for a bridge configured with tcp.
-It sends HEARTBEAT as an autopilot and TIMESYNC requests (like PX4), signs
-and verifies MAVLink2 signatures when given a key, and records every
+It sends HEARTBEAT as an autopilot and TIMESYNC requests (like PX4), answers
+TIMESYNC requests with its boot clock at the packet's arrival (like ArduPilot),
+signs and verifies MAVLink2 signatures when given a key, and records every
 VISION_POSITION_ESTIMATE, ODOMETRY and VISION_SPEED_ESTIMATE with its
 receive time. report() says what an EKF would see.
+
+Given the vehicle's true motion (`truth`, e.g. `trajectory_truth` of a
+simulated body), it also plays the autopilot's sensors and EKF on the streams
+asked for with SET_MESSAGE_INTERVAL (or `telemetry_hz` from the start):
+ATTITUDE, ATTITUDE_QUATERNION, HIGHRES_IMU (gyro from the true body rate, accel
+from the true acceleration less gravity, FRD), RAW_IMU (ArduPilot's mrad/s and
+mG), LOCAL_POSITION_NED and EKF_STATUS_REPORT, stamped on its own boot clock.
+It keeps an origin set with SET_GPS_GLOBAL_ORIGIN (once `origin_ready_s` after
+boot: an EKF not yet running drops it, as ArduPilot's does) and reports it
+(GPS_GLOBAL_ORIGIN, also on MAV_CMD_REQUEST_MESSAGE); takes MAV_CMD_DO_SET_HOME
+(refused before the origin, as ArduPilot does; ArduPilot ignores
+SET_HOME_POSITION); answers PARAM_SET with PARAM_VALUE; says "EKF3 IMU0 is
+using external nav data" on its first accepted pose (STATUSTEXT). delay_ms
+holds every received packet that long before handling it (a slow link or
+autopilot: the pose reaches its EKF that much later); reboot() restarts its
+clock and forgets origin, home and streams.
 
     with FakeAutopilot("udpout:127.0.0.1:14561", sysid=1) as ap:
         ...
@@ -18,20 +35,71 @@ receive time. report() says what an EKF would see.
 
 from __future__ import annotations
 
+import collections
+import math
 import selectors
 import socket
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
-from pymavlink.dialects.v20 import common as mavlink2
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # common + EKF_STATUS_REPORT
 from scipy.spatial.transform import Rotation
 
+from visionpos.geometry.frames import quat_world_body_to_ned_frd
+from visionpos.server.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
+
 POSE_TYPES = ("VISION_POSITION_ESTIMATE", "ODOMETRY")
-RECORDED = POSE_TYPES + ("VISION_SPEED_ESTIMATE", "HEARTBEAT", "TIMESYNC", "SET_GPS_GLOBAL_ORIGIN", "SET_HOME_POSITION")
+RECORDED = POSE_TYPES + ("VISION_SPEED_ESTIMATE", "HEARTBEAT", "TIMESYNC", "SET_GPS_GLOBAL_ORIGIN", "SET_HOME_POSITION",
+                         "COMMAND_LONG", "COMMAND_INT", "PARAM_SET")
 AUTOPILOTS = {"ardupilot": mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, "px4": mavlink2.MAV_AUTOPILOT_PX4}
 SIGNING_EPOCH_S = 1420070400
+GRAVITY = 9.80665
+TELEMETRY = {30: "ATTITUDE", 31: "ATTITUDE_QUATERNION", 105: "HIGHRES_IMU", 27: "RAW_IMU", 32: "LOCAL_POSITION_NED",
+             193: "EKF_STATUS_REPORT"}
+EKF_USING_VISION = 1 | 2 | 4 | 8 | 32  # attitude, velocities, relative horizontal and vertical position
+EKF_NO_POSITION = 1 | 128  # attitude only, constant position mode
+EXT_NAV_TEXT = "EKF3 IMU0 is using external nav data"
+MAV_CMD_DO_SET_HOME = 179
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+MAV_CMD_REQUEST_MESSAGE = 512
+MSG_GPS_GLOBAL_ORIGIN = 49
+
+
+@dataclass(frozen=True)
+class Truth:
+    """A vehicle's true motion at some times: position (T, 3) m world z-up, quaternion (T, 4) xyzw body FLU ->
+    world, velocity (T, 3) m/s world, angular_velocity (T, 3) rad/s body FLU, acceleration (T, 3) m/s^2 world."""
+
+    position: np.ndarray
+    quaternion: np.ndarray
+    velocity: np.ndarray
+    angular_velocity: np.ndarray
+    acceleration: np.ndarray
+
+
+def trajectory_truth(trajectory, start_ns: int) -> Callable[[np.ndarray], Truth]:
+    """A `truth` for FakeAutopilot from a visionpos.sim trajectory whose time 0 is start_ns on the server clock."""
+
+    def truth(times_ns: np.ndarray) -> Truth:
+        t = (np.asarray(times_ns, dtype=np.int64) - np.int64(start_ns)).astype(np.float64) * 1e-9
+        m = trajectory(t)
+        _, _, acc = trajectory.kinematics(t)
+        return Truth(m.positions, m.quaternions, m.velocities, m.angular_velocities, acc)
+
+    return truth
+
+
+def imu_from_truth(tr: Truth) -> tuple[np.ndarray, np.ndarray]:
+    """What a perfect IMU reads: gyro (T, 3) rad/s FRD and accelerometer (T, 3) m/s^2 FRD (specific force:
+    the acceleration less gravity, so a vehicle at rest reads -g on z down)."""
+    R = Rotation.from_quat(tr.quaternion)
+    f_world = np.asarray(tr.acceleration, float) + np.array([0.0, 0.0, GRAVITY])
+    f_flu = R.inv().apply(f_world)
+    flip = np.array([1.0, -1.0, -1.0])
+    return np.asarray(tr.angular_velocity, float) * flip, f_flu * flip
 
 
 @dataclass
@@ -82,7 +150,11 @@ class FakeAutopilot:
 
     def __init__(self, endpoint: str, sysid: int = 1, *, autopilot: str = "ardupilot",
                  signing_key: bytes | None = None, heartbeat_hz: float = 1.0, timesync_hz: float = 1.0,
-                 duration_s: float | None = None, clock_ns=time.monotonic_ns, source_port: int = 0):
+                 duration_s: float | None = None, clock_ns=time.monotonic_ns, source_port: int = 0,
+                 truth: Callable[[np.ndarray], Truth] | None = None, telemetry_hz: float = 0.0,
+                 delay_ms: float = 0.0, boot_ns: int | None = None, origin_ready_s: float = 0.0,
+                 ekf: str = "accept", gyro_noise_rad_s: float = 0.003, attitude_noise_deg: float = 0.2,
+                 seed: int | None = None):
         kind, _, rest = endpoint.partition(":")
         host, _, port = rest.rpartition(":")
         if kind not in ("udpout", "udpin", "tcpin") or not host or not port.isdigit():
@@ -105,6 +177,30 @@ class FakeAutopilot:
             s.secret_key, s.sign_outgoing, s.link_id = signing_key, True, 1
             s.allow_unsigned_callback = None
             s.timestamp = int((time.time() - SIGNING_EPOCH_S) * 1e5)
+        if ekf not in ("accept", "reject"):
+            raise ValueError(f"ekf {ekf!r}: 'accept' or 'reject'")
+        self.truth = truth
+        self.delay_ns = int(round(delay_ms * 1e6))
+        self.boot_ns = boot_ns  # server-clock time of its boot (None: at start())
+        self.origin_ready_ns = int(origin_ready_s * 1e9)
+        self.ekf = ekf
+        self.gyro_noise = gyro_noise_rad_s
+        self.attitude_noise = math.radians(attitude_noise_deg)
+        self.rng = np.random.default_rng(sysid if seed is None else seed)
+        self.gyro_bias = self.rng.normal(0.0, gyro_noise_rad_s, 3)
+        self._telemetry_default_ns = int(1e9 / telemetry_hz) if telemetry_hz > 0 else 0
+        self.intervals_ns: dict[int, int] = {}  # message id -> interval (SET_MESSAGE_INTERVAL)
+        self._next_tx: dict[int, int] = {}
+        self.origin: tuple[int, int, int] | None = None  # lat, lon (1e7 deg), alt (mm)
+        self.origin_dropped = 0  # SET_GPS_GLOBAL_ORIGIN before origin_ready_s: dropped
+        self.home: tuple[int, int, float] | None = None
+        self.params: dict[str, float] = {}
+        self.statustexts: list[str] = []
+        self.timesync_requests_answered = 0
+        self._said_ext_nav = False
+        self._last_pose_ns = 0
+        self._pending: collections.deque[tuple[int, bytes]] = collections.deque()  # (due ns, datagram)
+        self._kernel_stamps = False
         self.received: list[Received] = []
         self.timesync_samples: list[tuple[int, int]] = []  # (rtt_ns, offset_ns: bridge clock - ours)
         self.rejected_signature = 0
@@ -119,6 +215,9 @@ class FakeAutopilot:
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> "FakeAutopilot":
+        if self.boot_ns is None:
+            self.boot_ns = self.clock_ns()
+        self._reset_streams()
         if self.kind == "tcpin":
             ls = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             ls.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -137,6 +236,9 @@ class FakeAutopilot:
                 self._peer = (socket.gethostbyname(self.host), self.port)
             s.setblocking(False)
             self._sock = s
+            # arrival on the kernel's stamp (as ArduPilot stamps a packet's first byte): a busy test machine
+            # then delays when we get round to a packet, not when it counts as arrived
+            self._kernel_stamps = self.clock_ns is time.monotonic_ns and enable_kernel_stamps(s)
         self._thread = threading.Thread(target=self._run, name=f"fake-autopilot-{self.sysid}", daemon=True)
         self._thread.start()
         return self
@@ -150,6 +252,35 @@ class FakeAutopilot:
             if s is not None:
                 s.close()
         self._sock = self._listen = None
+
+    def boot_time_ns(self, now_ns: int | None = None) -> int:
+        """Its own clock: ns since its boot."""
+        return (self.clock_ns() if now_ns is None else now_ns) - self.boot_ns
+
+    def reboot(self) -> None:
+        """Restart its clock; forget the origin, home and the streams asked for (as a real reboot does)."""
+        self.boot_ns = self.clock_ns()
+        self.origin = None
+        self.home = None
+        self._said_ext_nav = False
+        self._reset_streams()
+
+    def _reset_streams(self) -> None:
+        self.intervals_ns = {}
+        if self._telemetry_default_ns:
+            for mid in TELEMETRY:
+                self.intervals_ns[mid] = self._telemetry_default_ns if mid != 193 else 500_000_000
+        self._next_tx = {}
+
+    def true_delay_ms(self, window_s: float | None = None) -> float:
+        """Median delay from a pose's stamp to its arrival here, with the added delay (the stamps are on the
+        server clock); over the poses of the last window_s seconds (None: all)."""
+        poses = self.messages(POSE_TYPES)
+        if window_s is not None and poses:
+            poses = [p for p in poses if p.recv_ns >= poses[-1].recv_ns - window_s * 1e9]
+        if not poses:
+            return float("nan")
+        return float(np.median([p.recv_ns - decode_pose(p)["usec"] * 1000 for p in poses])) * 1e-6
 
     def __enter__(self) -> "FakeAutopilot":
         return self.start()
@@ -183,6 +314,10 @@ class FakeAutopilot:
                 now = self.clock_ns()
                 if t_end is not None and now >= t_end:
                     break
+                while self._pending and self._pending[0][0] <= now:
+                    self._handle(*reversed(self._pending.popleft()))
+                if self._peer is not None and self._sock is not None and self.truth is not None:
+                    self._telemetry(now)
                 if self._peer is not None and self._sock is not None:
                     if self.heartbeat_hz > 0 and now >= next_hb:
                         self.mav.send(self.mav.heartbeat_encode(
@@ -193,7 +328,12 @@ class FakeAutopilot:
                         self._ts_sent.add(ts1)
                         self.mav.send(self.mav.timesync_encode(0, ts1))
                         next_ts = now + int(1e9 / self.timesync_hz)
-                for key, _ in sel.select(0.02):
+                wake = [now + 20_000_000]
+                if self._pending:
+                    wake.append(self._pending[0][0])
+                if self.truth is not None and self._next_tx:
+                    wake.append(min(self._next_tx.values()))
+                for key, _ in sel.select(max(0.0, (min(wake) - self.clock_ns()) * 1e-9)):
                     if key.data == "listen":
                         self._accept(sel)
                     else:
@@ -223,6 +363,10 @@ class FakeAutopilot:
                         self._sock.close()
                         self._sock = self._peer = None
                         return
+                elif self._kernel_stamps:
+                    data, anc, _, addr = self._sock.recvmsg(65535, ANC_SIZE)
+                    stamp = kernel_stamp_ns(anc)
+                    arrived = stamp - (time.time_ns() - time.monotonic_ns()) if stamp else self.clock_ns()
                 else:
                     data, addr = self._sock.recvfrom(65535)
             except (BlockingIOError, InterruptedError):
@@ -231,10 +375,15 @@ class FakeAutopilot:
                 return
             if self.kind == "udpin":
                 self._peer = addr  # answer the bridge where it sends from
-            self._handle(data)
+            if not self._kernel_stamps or self.kind == "tcpin":
+                arrived = self.clock_ns()
+            if self.delay_ns > 0:
+                self._pending.append((arrived + self.delay_ns, data))
+            else:
+                self._handle(data, arrived)
 
-    def _handle(self, data: bytes) -> None:
-        now = self.clock_ns()
+    def _handle(self, data: bytes, now: int) -> None:
+        """Handle a datagram as arrived at now (its arrival plus the added delay)."""
         for m in self.mav.parse_buffer(data) or []:
             t = m.get_type()
             if t == "BAD_DATA":
@@ -243,12 +392,123 @@ class FakeAutopilot:
                 else:
                     self.bad_packets += 1
                 continue
-            if t == "TIMESYNC" and m.tc1 != 0 and m.ts1 in self._ts_sent:
-                self._ts_sent.discard(m.ts1)
-                self.timesync_samples.append((now - m.ts1, m.tc1 - (m.ts1 + now) // 2))
+            if t == "TIMESYNC":
+                if m.tc1 == 0:  # a request: our clock at its arrival (ArduPilot stamps the receive time)
+                    self.timesync_requests_answered += 1
+                    self.mav.send(self.mav.timesync_encode(self.boot_time_ns(now), m.ts1))
+                    continue
+                if m.ts1 in self._ts_sent:
+                    self._ts_sent.discard(m.ts1)
+                    self.timesync_samples.append((now - m.ts1, m.tc1 - (m.ts1 + now) // 2))
+            elif t in POSE_TYPES:
+                self._on_pose(now)
+            elif t == "SET_GPS_GLOBAL_ORIGIN" and m.target_system == self.sysid:
+                if self.boot_time_ns(now) < self.origin_ready_ns:
+                    self.origin_dropped += 1  # the EKF is not running yet
+                elif self.origin is None:  # kept once set, as ArduPilot does
+                    self.origin = (m.latitude, m.longitude, m.altitude)
+                    self._send_origin()
+            elif t in ("COMMAND_LONG", "COMMAND_INT") and m.target_system == self.sysid:
+                self._command(m, t)
+            elif t == "SET_HOME_POSITION" and self.autopilot == "px4" and m.target_system == self.sysid:
+                self.home = (m.latitude, m.longitude, m.altitude * 1e-3)
+            elif t == "PARAM_SET" and m.target_system == self.sysid:
+                pid = m.param_id.rstrip("\0") if isinstance(m.param_id, str) else str(m.param_id)
+                self.params[pid] = float(m.param_value)
+                self.mav.send(self.mav.param_value_encode(pid.encode(), m.param_value, m.param_type, 1, 0))
             if t in RECORDED:
                 self.received.append(Received(t, now, m.get_srcSystem(), m.get_srcComponent(),
                                               bool(m.get_signed()), m.to_dict()))
+
+    def _on_pose(self, now: int) -> None:
+        self._last_pose_ns = now
+        if self.ekf == "accept" and not self._said_ext_nav:
+            self._said_ext_nav = True
+            self._statustext(mavlink2.MAV_SEVERITY_INFO, EXT_NAV_TEXT)
+
+    def _statustext(self, severity: int, text: str) -> None:
+        self.statustexts.append(text)
+        self.mav.send(self.mav.statustext_encode(severity, text.encode()))
+
+    def _send_origin(self) -> None:
+        if self.origin is not None:
+            lat, lon, alt = self.origin
+            self.mav.send(self.mav.gps_global_origin_encode(lat, lon, alt, self.boot_time_ns() // 1000))
+
+    def _command(self, m, kind: str) -> None:
+        cmd = m.command
+        result = mavlink2.MAV_RESULT_UNSUPPORTED
+        if cmd == MAV_CMD_SET_MESSAGE_INTERVAL:
+            mid, us = int(m.param1), float(m.param2)
+            if mid in TELEMETRY:
+                if us > 0:
+                    self.intervals_ns[mid] = int(us * 1000)
+                else:
+                    self.intervals_ns.pop(mid, None)
+                result = mavlink2.MAV_RESULT_ACCEPTED
+        elif cmd == MAV_CMD_REQUEST_MESSAGE and int(m.param1) == MSG_GPS_GLOBAL_ORIGIN:
+            result = mavlink2.MAV_RESULT_ACCEPTED if self.origin is not None else mavlink2.MAV_RESULT_FAILED
+            self._send_origin()
+        elif cmd == MAV_CMD_DO_SET_HOME:
+            if self.origin is None and self.autopilot == "ardupilot":
+                result = mavlink2.MAV_RESULT_FAILED  # ArduPilot needs its origin first
+            else:
+                if kind == "COMMAND_INT":
+                    self.home = (m.x, m.y, float(m.z))
+                else:
+                    self.home = (int(round(m.param5 * 1e7)), int(round(m.param6 * 1e7)), float(m.param7))
+                result = mavlink2.MAV_RESULT_ACCEPTED
+        self.mav.send(self.mav.command_ack_encode(cmd, result))
+
+    def _telemetry(self, now: int) -> None:
+        """Send the streams that are due, from the truth at now (server clock), stamped on our clock."""
+        due = [mid for mid, iv in self.intervals_ns.items() if now >= self._next_tx.get(mid, 0)]
+        if not due:
+            return
+        for mid in due:
+            iv = self.intervals_ns[mid]
+            nxt = self._next_tx.get(mid, now) + iv
+            self._next_tx[mid] = nxt if nxt > now else now + iv
+        tr = self.truth(np.array([now], dtype=np.int64))
+        t_boot = self.boot_time_ns(now)
+        gyro, acc = imu_from_truth(tr)
+        gyro = gyro[0] + self.gyro_bias + self.rng.normal(0.0, self.gyro_noise, 3)
+        acc = acc[0] + self.rng.normal(0.0, 0.02, 3)
+        q_nf = quat_world_body_to_ned_frd(tr.quaternion[0])
+        att_err = Rotation.from_rotvec(self.rng.normal(0.0, self.attitude_noise, 3))
+        r_nf = Rotation.from_quat(q_nf) * att_err
+        yaw, pitch, roll = r_nf.as_euler("ZYX")
+        x, y, z, w = r_nf.as_quat()
+        ms = t_boot // 1_000_000
+        for mid in due:
+            if mid == 30:
+                msg = self.mav.attitude_encode(ms, roll, pitch, yaw, *gyro)
+            elif mid == 31:
+                msg = self.mav.attitude_quaternion_encode(ms, w, x, y, z, *gyro)
+            elif mid == 105:
+                msg = self.mav.highres_imu_encode(t_boot // 1000, *acc, *gyro, 0.0, 0.0, 0.0, 1013.0, 0.0, 0.0, 20.0,
+                                                  0x3F)
+            elif mid == 27:
+                mg = np.clip(np.round(acc / GRAVITY * 1000), -32768, 32767).astype(int)
+                mrad = np.clip(np.round(gyro * 1000), -32768, 32767).astype(int)
+                msg = self.mav.raw_imu_encode(t_boot // 1000, *mg, *mrad, 0, 0, 0)
+            elif mid == 32:
+                p = tr.position[0] * np.array([1.0, -1.0, -1.0])
+                v = tr.velocity[0] * np.array([1.0, -1.0, -1.0])
+                msg = self.mav.local_position_ned_encode(ms, *p, *v)
+            else:
+                msg = self._ekf_status(now)
+            self.mav.send(msg)
+
+    def _ekf_status(self, now: int):
+        fresh = now - self._last_pose_ns < 500_000_000
+        if self.ekf == "accept" and fresh:
+            flags, ratio = EKF_USING_VISION, 0.05
+        elif self.ekf == "reject" and fresh:
+            flags, ratio = EKF_NO_POSITION, 2.5
+        else:
+            flags, ratio = EKF_NO_POSITION, 0.0
+        return self.mav.ekf_status_report_encode(flags, ratio, ratio, ratio, 0.0, 0.0)
 
     # ------------------------------------------------------------ queries
     def messages(self, type_: str | tuple[str, ...]) -> list[Received]:

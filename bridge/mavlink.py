@@ -5,9 +5,21 @@ tick. publish only drops the newest state into each vehicle's single-slot
 mailbox and pokes the vehicle's thread through a pipe: it never waits on a
 socket. The thread owns the link (reads, writes, reconnects), stamps the poses
 on an even 1/rate_hz grid of capture time, drops stale or frozen poses,
-answers TIMESYNC and sends the HEARTBEAT, origin and home.
+answers TIMESYNC and sends the HEARTBEAT, origin and home. It also reads what
+the autopilot sends back (bridge/backchannel.py: its attitude and gyro for the
+identity check and the measured delay, the EKF's state, the origin it reports),
+from the vehicle's sysid and the authenticated peer only.
 
-MAVLink2 is forced: each link has its own pymavlink v2 MAVLink objects (never
+Origin and home: SET_GPS_GLOBAL_ORIGIN, resent every second until the
+autopilot reports it back (GPS_GLOBAL_ORIGIN) and every origin_interval_s
+after; home with MAV_CMD_DO_SET_HOME (COMMAND_INT: ArduCopter 4.3 and later
+has no SET_HOME_POSITION handler), repeated until acknowledged, plus
+SET_HOME_POSITION for other autopilots. While an autopilot that talks to us has
+not confirmed the origin, no pose goes to it (hold_until_origin): an EKF that
+starts on vision before its origin settles centimetres off in height.
+
+MAVLink2 is forced: each link has its own pymavlink v2 MAVLink objects (the
+parser in the ardupilotmega dialect, a superset of common) (never
 mavutil's process-wide dialect, which switches v1 -> v2 on the first v2
 packet and loses a signing setup in the switch): one encodes and signs what we
 send, one only parses what we receive. Incoming signatures are checked here
@@ -34,8 +46,10 @@ import time
 from typing import Callable
 
 import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega
 from pymavlink.dialects.v20 import common as mavlink2
 
+from bridge.backchannel import MAV_CMD_DO_SET_HOME, MAV_COMP_ID_AUTOPILOT1, Backchannel
 from bridge.config import VehicleConfig, parse_pose_stream, parse_vehicles, pivot_array
 from bridge.convert import convert_state, odometry_fields, vision_position_fields, vision_speed_fields
 from bridge.transport import Link, LinkDown, make_link
@@ -52,6 +66,8 @@ SIGNATURE_BLOCK_LEN = 13  # link id (1), timestamp (6, LE, 10 us), signature (6)
 MAVLINK2_MAGIC = 0xFD
 WARN_INTERVAL_S = 10.0
 LATENCY_SAMPLES = 4096
+ORIGIN_UNCONFIRMED_INTERVAL_NS = 1_000_000_000  # origin resend period until the autopilot reports it back
+RX_BAD_WARN = 20  # undecodable packets before the log says so
 
 COUNTERS = (
     "sent",  # pose messages (VISION_POSITION_ESTIMATE or ODOMETRY) handed to the link
@@ -64,6 +80,9 @@ COUNTERS = (
     "not_tracked",
     "dropped_stale",  # older than max_age_ms when the sender took it
     "no_link",  # link down or (udpin) no autopilot heard yet
+    "held_for_origin",  # the autopilot is heard but has not confirmed the origin yet (hold_until_origin)
+    "held_identity",  # the identity check found these poses are not this vehicle's (identity_check: stop)
+    "home_sent",
     "tx_dropped",  # stream buffer full (slow serial)
     "link_errors",
     "reconnects",
@@ -71,10 +90,11 @@ COUNTERS = (
     "rx_packets",
     "rx_bad",  # CRC / framing errors
     "rx_foreign",  # from another sysid: ignored, not answered, not learned as peer
+    "rx_accepted",  # passed every check and went to the back-channel
     "rx_unsigned",  # signed link: an unsigned (or MAVLink1) packet as the vehicle: dropped
     "rx_bad_signature",  # signed link: signature does not verify with the key: dropped
     "rx_replayed",  # signed link: timestamp not newer than its stream's last (or a stale new stream): dropped
-    "rx_wrong_source",  # udpin with autopilot_address: datagram from another address, dropped unread
+    "rx_wrong_source",  # udpin with autopilot_address, or unsigned udpout: from another address, dropped unread
     "peer_refused",  # udpin: a datagram or packet from an address other than the autopilot's that may not move it
 )
 
@@ -139,7 +159,7 @@ class VehicleLink:
         self.base_offset_ns = (time.time_ns() - clock_ns()) if cfg.time_base == "epoch" else 0
         # self.mav encodes (and signs) what we send; self._rx only parses, signatures are checked in _verify
         self.mav = mavlink2.MAVLink(self, srcSystem=cfg.sysid, srcComponent=MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY)
-        self._rx = mavlink2.MAVLink(None)
+        self._rx = ardupilotmega.MAVLink(None)  # common + ArduPilot's own (EKF_STATUS_REPORT)
         self._rx.robust_parsing = True
         self._key = cfg.signing_key
         # signing clock: wall time at start, then the monotonic clock (never steps back with NTP)
@@ -179,6 +199,12 @@ class VehicleLink:
         self._next_origin = 0
         self._origin_done = False
         self._last_write_ok = False
+        self._logged_once: set[str] = set()
+        self.sent_times = _LatencyRing()  # send times (server clock) for the recent rate
+        self._write_ns = 0  # the clock just before the last write to the link
+        self.bc = Backchannel(cfg, clock_ns, self.mav, self._send, self._warn.warning, self.base_offset_ns,
+                              write_ns=lambda: self._write_ns)
+        self._bc_reboots = 0
 
     # ---------------------------------------------------------------- server side
     def offer(self, state: BodyState) -> None:
@@ -311,6 +337,7 @@ class VehicleLink:
         self._next_hb = self.clock_ns()
         self._origin_done = False
         self._next_origin = self.clock_ns()
+        self.bc.on_link_up(self.clock_ns())
 
     def _announce(self) -> None:
         """Say once at start who the poses go to and how that is authenticated."""
@@ -325,6 +352,11 @@ class VehicleLink:
             log.warning("vehicle %s: MAVLink link %s is not signed: the autopilot cannot tell our poses from "
                         "forged ones; set up signing (docs/autopilot-setup.md, Signing)", cfg.name, cfg.endpoint)
 
+    def _log_once(self, kind: str, msg: str, *args) -> None:
+        if kind not in self._logged_once:
+            self._logged_once.add(kind)
+            log.warning(msg, *args)
+
     def _peer_known(self) -> bool:
         return self.link is not None and self.link.peer is not None
 
@@ -334,6 +366,13 @@ class VehicleLink:
         rx = self._rx
         learning = link.kind == "udpin" and not link.fixed
         for data, addr in link.read():
+            if link.kind == "udpout" and self._key is None and addr != link.peer:
+                # unsigned: only the address we send to speaks for the autopilot (what it says back can stop
+                # the poses or confirm an origin)
+                c["rx_wrong_source"] += 1
+                self._warn.warning("wrong_source", "vehicle %s: dropped a datagram from %s: the autopilot is "
+                                   "at %s on this unsigned link", self.cfg.name, _fmt_addr(addr), _fmt_addr(link.peer))
+                continue
             if link.kind == "udpin" and addr != link.peer:
                 if not learning:
                     c["rx_wrong_source"] += 1
@@ -349,6 +388,11 @@ class VehicleLink:
             for m in msgs:
                 if m.get_type() == "BAD_DATA":
                     c["rx_bad"] += 1
+                    if c["rx_bad"] >= RX_BAD_WARN:  # a few at connect are normal (a stream joined mid-packet)
+                        self._log_once("rx_bad", "vehicle %s: bytes on the link %s that are not MAVLink packets "
+                                       "(counted in rx_bad, ignored; logged once): check the autopilot port's "
+                                       "baud rate and that it speaks MAVLink2 (SERIALn_PROTOCOL=2)",
+                                       self.cfg.name, self.cfg.endpoint)
                     continue
                 c["rx_packets"] += 1
                 buf = m.get_msgbuf()
@@ -356,6 +400,10 @@ class VehicleLink:
                 sysid, compid = (buf[5], buf[6]) if v2 else (buf[3], buf[4])
                 if sysid != self.cfg.sysid:
                     c["rx_foreign"] += 1
+                    self._log_once("rx_foreign", "vehicle %s: packets from sysid %d on the link of sysid %d are "
+                                   "ignored (counted in rx_foreign; logged once): if that is this vehicle's "
+                                   "autopilot, set its sysid in the vehicles section (or SYSID_THISMAV / "
+                                   "MAV_SYS_ID on the autopilot)", self.cfg.name, sysid, self.cfg.sysid)
                     continue
                 ts, newest_before = -1, self._newest_ts
                 if self._key is not None:
@@ -369,10 +417,17 @@ class VehicleLink:
                                            "autopilot's newest; not moving the poses there", self.cfg.name, *addr)
                         continue
                     self._learn_peer(addr)
-                self.last_rx_ns = self.clock_ns()
-                if m.get_type() == "TIMESYNC" and m.tc1 == 0 and self.cfg.timesync:
-                    c["timesync_answered"] += 1  # before sending: the reply can arrive before we return
-                    self._send(self.mav.timesync_encode(self.now_base_ns(), m.ts1))
+                now = self.last_rx_ns = self.clock_ns()
+                c["rx_accepted"] += 1
+                if m.get_type() == "TIMESYNC":
+                    if m.tc1 == 0:
+                        if self.cfg.timesync:
+                            c["timesync_answered"] += 1  # before sending: the reply can arrive before we return
+                            self._send(self.mav.timesync_encode(self.now_base_ns(), m.ts1))
+                    else:
+                        self.bc.on_timesync_reply(m.ts1, m.tc1, now)
+                    continue
+                self.bc.handle(m, compid, now)
 
     def _verify(self, buf: bytearray, v2: bool, compid: int, addr: tuple | None) -> int:
         """The packet's signing timestamp if it is signed with the vehicle's key and newer than the last
@@ -427,12 +482,20 @@ class VehicleLink:
             if now >= self._next_hb:
                 self._send_heartbeat()
                 self._next_hb = now + int(1e9 / self.cfg.heartbeat_hz)
+            bc = self.bc
+            if bc.reboots != self._bc_reboots:  # a rebooted autopilot has lost its origin and home
+                self._bc_reboots = bc.reboots
+                self._origin_done = False
+                self._next_origin = now
             if self.cfg.origin is not None and not self._origin_done and now >= self._next_origin:
                 self._send_origin()
-                if self.cfg.origin_interval_s > 0:
+                if not bc.origin_confirmed:
+                    self._next_origin = now + ORIGIN_UNCONFIRMED_INTERVAL_NS
+                elif self.cfg.origin_interval_s > 0:
                     self._next_origin = now + int(self.cfg.origin_interval_s * 1e9)
                 else:
                     self._origin_done = True
+            bc.service(now)
         else:
             self._next_hb = max(self._next_hb, now + int(1e9 / self.cfg.heartbeat_hz))
         with self._lock:
@@ -463,16 +526,32 @@ class VehicleLink:
         if now - st.capture_ns > self.cfg.max_age_ms * 1e6:
             c["dropped_stale"] += 1
             return
+        conv = convert_state(st, self.pivot, self.yaw_offset_rad, at_ns=stamp)
+        bc = self.bc
+        euler, rate = conv["euler"], conv["angular_velocity_frd"]
+        bc.on_optical(stamp, euler[0], euler[1], rate, conv["quaternion_ned_frd"])  # also while held
         if not self._peer_known():
             c["no_link"] += 1
             return
-        conv = convert_state(st, self.pivot, self.yaw_offset_rad, at_ns=stamp)
+        if bc.blocks:
+            c["held_identity"] += 1
+            return
+        if bc.holds_for_origin(now):
+            c["held_for_origin"] += 1
+            self._warn.warning("origin_wait", "vehicle %s: holding the poses until the autopilot confirms its "
+                               "origin (GPS_GLOBAL_ORIGIN); %s", self.cfg.name,
+                               "resending it every second" + (
+                                   f", for at most {self.cfg.origin_confirm_timeout_s:.0f} s"
+                                   if self.cfg.origin_confirm_timeout_s > 0 else ""))
+            return
         usec = (stamp + self.base_offset_ns) // 1000
         reset = (int(st.reset_counter) + self.local_resets) % 256
         if self.cfg.message == "odometry":
             ok = self._send(self.mav.odometry_encode(**odometry_fields(conv, usec, reset, self.cfg.quality)))
+            t_write = self._write_ns
         else:
             ok = self._send(self.mav.vision_position_estimate_encode(**vision_position_fields(conv, usec, reset)))
+            t_write = self._write_ns
             if ok and self.cfg.vision_speed:
                 if self._send(self.mav.vision_speed_estimate_encode(**vision_speed_fields(conv, usec, reset))):
                     c["sent_speed"] += 1
@@ -481,6 +560,8 @@ class VehicleLink:
             self._last_stamp = stamp
             c["sent"] += 1
             t = self.clock_ns()
+            bc.on_sent(t_write, stamp)
+            self.sent_times.add(t)
             self.lat_capture.add(t - st.capture_ns)
             self.lat_stamp.add(t - stamp)
             self.lat_bridge.add(t - offered_ns)
@@ -518,6 +599,7 @@ class VehicleLink:
 
     # mav.send() writes here
     def write(self, buf: bytes) -> None:
+        self._write_ns = self.clock_ns()
         ok = self.link is not None and self.link.write(buf)
         if not ok:
             self.counters["tx_dropped" if self.link is not None and self.link.peer is not None else "no_link"] += 1
@@ -535,13 +617,22 @@ class VehicleLink:
         o = self.cfg.origin
         lat, lon, alt = int(round(o.lat * 1e7)), int(round(o.lon * 1e7)), int(round(o.alt * 1000))
         t_usec = self.now_base_ns() // 1000
+        bc = self.bc
         ok = self._send(self.mav.set_gps_global_origin_encode(self.cfg.sysid, lat, lon, alt, t_usec))
-        if self.cfg.set_home:
-            ok = self._send(self.mav.set_home_position_encode(
-                self.cfg.sysid, lat, lon, alt, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, t_usec
-            )) and ok
         if ok:
             self.counters["origin_sent"] += 1
+        if not bc.origin_confirmed:
+            bc.request_origin()
+        if self.cfg.set_home and not bc.home_acked:
+            # DO_SET_HOME needs the origin first on ArduPilot (refused before): repeated until acknowledged
+            if self._send(self.mav.command_int_encode(
+                self.cfg.sysid, MAV_COMP_ID_AUTOPILOT1, mavlink2.MAV_FRAME_GLOBAL, MAV_CMD_DO_SET_HOME, 0, 0,
+                0.0, 0.0, 0.0, float("nan"), lat, lon, float(o.alt),
+            )):
+                self.counters["home_sent"] += 1
+            if bc.autopilot != "ardupilot":
+                self._send(self.mav.set_home_position_encode(
+                    self.cfg.sysid, lat, lon, alt, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, t_usec))
 
     # ---------------------------------------------------------------- reporting
     def stats(self) -> dict:
@@ -565,8 +656,76 @@ class VehicleLink:
             latency_bridge_ms_p50=_percentile_ms(lb, 50),
             latency_bridge_ms_p99=_percentile_ms(lb, 99),
             latency_samples=len(lc),
+            rate_hz_recent=self._recent_rate_hz(),
         )
+        out.update(self.bc.snapshot(self.clock_ns()))
         return out
+
+    def _recent_rate_hz(self, window_ns: int = 2_000_000_000) -> float:
+        t = self.sent_times.values()
+        now = self.clock_ns()
+        return float(np.count_nonzero(t > now - window_ns)) / (window_ns * 1e-9)
+
+    def health(self) -> dict:
+        """One structured snapshot of this vehicle's health (for a console or the logs): link, what was sent
+        and at what rate, TIMESYNC round trip, signing, the EKF's state, the identity check, the measured
+        delay, the origin. Read from any thread (values may be a few packets apart)."""
+        now = self.clock_ns()
+        c = self.counters
+        bc = self.bc.snapshot(now)
+        return {
+            "vehicle": self.cfg.name, "body": self.cfg.body, "sysid": self.cfg.sysid,
+            "link": {"endpoint": str(self.cfg.endpoint), "up": self._peer_known(),
+                     "peer": _fmt_addr(self.link.peer) if self._peer_known() else None,
+                     "last_error": self.last_error or None, "signed": self._key is not None,
+                     "autopilot": bc["autopilot"], "autopilot_heard_s_ago": bc["autopilot_heard_s_ago"],
+                     "reboots": bc["reboots"], "timesync_rtt_ms": bc["timesync_rtt_ms"],
+                     "rx_accepted": c["rx_accepted"], "rx_refused": c["rx_bad"] + c["rx_foreign"] + c["rx_unsigned"]
+                     + c["rx_bad_signature"] + c["rx_replayed"] + c["rx_wrong_source"]},
+            "output": {"message": self.cfg.message, "sent": c["sent"], "rate_hz": self._recent_rate_hz(),
+                       "rate_hz_configured": self.cfg.rate_hz, "held_for_origin": c["held_for_origin"],
+                       "held_identity": c["held_identity"],
+                       "latency_capture_ms_p50": _percentile_ms(self.lat_capture.values(), 50)},
+            "sending": self.sending_state(now),
+            "ekf": {"state": bc["ekf"], "detail": bc["ekf_detail"], "flags": bc["ekf_flags"],
+                    "test_ratios": bc["ekf_test_ratios"], "ext_nav_statustext": bc["ext_nav_statustext"],
+                    "statustexts": bc["statustexts"]},
+            "identity": {"state": bc["identity"], "detail": bc["identity_detail"],
+                         "statistic": bc["identity_statistic"], "action": self.cfg.identity_check,
+                         "tripped_after_s": bc["identity_tripped_after_s"]},
+            "delay": {"measured_ms": bc["delay_ms"], "detail": bc["delay_detail"], "advice": bc["delay_advice"],
+                      "param_set": bc["delay_param_set"]},
+            "origin": {"state": bc["origin"], "home_acked": bc["home_acked"]},
+        }
+
+    def sending_state(self, now: int | None = None) -> str:
+        """'sending', 'no link', 'stopped: identity mismatch', 'waiting for the origin' or 'idle'."""
+        now = self.clock_ns() if now is None else now
+        if not self._peer_known():
+            return "no link"
+        if self.bc.blocks:
+            return "stopped: identity mismatch"
+        if self.bc.holds_for_origin(now):
+            return "waiting for the autopilot to confirm its origin"
+        return "sending" if self._recent_rate_hz() > 0 else "idle"
+
+    def status_part(self, with_name: bool = True) -> str:
+        """The vehicle's part of a status line: what is sent, and what the autopilot says about it."""
+        now = self.clock_ns()
+        bc = self.bc
+        ekf, _ = bc.ekf_state(now)
+        parts = [(f"{self.cfg.name}: " if with_name else "") + f"{self.sending_state(now)} "
+                 f"{self._recent_rate_hz():.0f}Hz"]
+        if bc.autopilot is None:
+            parts.append("autopilot silent")
+        else:
+            parts.append(f"EKF {ekf}")
+            parts.append(f"identity {bc.identity}")
+            if bc.delay_ms is not None:
+                parts.append(f"delay {bc.delay_ms:.1f}ms")
+        if self.cfg.origin is not None:
+            parts.append(f"origin {bc.origin_state(now)}")
+        return ", ".join(parts)
 
 
 def delay_advice(stats: dict) -> str:
@@ -577,6 +736,9 @@ def delay_advice(stats: dict) -> str:
         return f"{stats['body']} (sysid {stats['sysid']}): no pose sent yet"
     age = stats["latency_stamp_ms_p50"]
     d = int(round(age))
+    if stats.get("delay_ms") is not None:
+        return (f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms; "
+                f"{stats['delay_advice']}")
     return (
         f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms; "
         f"pose stamp->send p50 {age:.1f} ms (bridge adds p50 {stats['latency_bridge_ms_p50']:.2f} ms) -> "
@@ -653,6 +815,14 @@ class Bridge:
                 return True
             time.sleep(0.0005)
         return not any(v.pending() for v in self.vehicles)
+
+    def status_line(self) -> str:
+        """Every vehicle's part of the server's status line."""
+        return " | ".join(v.status_part() for v in self.vehicles)
+
+    def health(self) -> dict:
+        """{vehicle name: VehicleLink.health()}."""
+        return {v.cfg.name: v.health() for v in self.vehicles}
 
     def latency_report(self) -> str:
         return "\n".join("bridge: " + delay_advice(v.stats()) for v in self.vehicles)

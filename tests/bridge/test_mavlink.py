@@ -344,7 +344,9 @@ def test_signing_key_file_forms(tmp_path):
 
 
 def test_origin_and_home_target_the_vehicle():
-    bridge, ap = start_pair(sysid=3, origin={"lat": 47.397742, "lon": 8.545594, "alt": 488.0})
+    # PX4 takes SET_HOME_POSITION; ArduPilot gets MAV_CMD_DO_SET_HOME (test_backchannel)
+    bridge, ap = start_pair(sysid=3, origin={"lat": 47.397742, "lon": 8.545594, "alt": 488.0},
+                            ap_kw={"autopilot": "px4"})
     try:
         assert ap.wait_for("SET_GPS_GLOBAL_ORIGIN", 1) and ap.wait_for("SET_HOME_POSITION", 1)
         o = ap.messages("SET_GPS_GLOBAL_ORIGIN")[0].fields

@@ -333,7 +333,7 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     once it listens.
     """
     from bridge import Bridge
-    from bridge.fake_autopilot import FakeAutopilot, decode_pose
+    from bridge.fake_autopilot import FakeAutopilot, decode_pose, trajectory_truth
     from visionpos.server.service import FusionServer
     from visionpos.server.settings import ServerSettings
     from visionpos.sim import scenario_from_arena, simulate
@@ -401,6 +401,9 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
                 s.frames = live.frames(i, shift)
         t_start = sc.start_ns + shift
         t_stop = sc.end_ns + shift
+        for body, (ap, _) in autopilots.items():  # the fake autopilots' sensors follow the simulated truth
+            if ap is not None and any(sb.name == body for sb in sc.bodies):
+                ap.truth = trajectory_truth(sc.body(body).trajectory, sc.start_ns + shift)
         tasks = [asyncio.create_task(s.stream(t_stop), name=f"station-{s.station_id}") for s in stations]
         status = asyncio.create_task(_status_loop(server, bridge, collector, stations, sc, shift, t_start,
                                                   status_out))
@@ -481,6 +484,7 @@ async def _status_loop(server, bridge, collector: Collector, stations: list[SimS
                     if np.isfinite(lat)
                     else " | nothing sent yet"
                 )
+                state += " | " + bridge.vehicle(b.name).status_part(with_name=False)
             except KeyError:
                 pass
             parts.append(f"{b.name}: {state}")
@@ -546,7 +550,10 @@ def _summary(arena, sc, shift, t_start, t_stop, collector: Collector, bridge, au
                     d["mavlink_position_rmse_mm"] = M.rms(e)
                     d["mavlink_position_max_mm"] = float(e.max())
             d["bridge"] = {k: st[k] for k in ("sent", "rate_limited", "not_tracked", "dropped_stale", "no_link",
-                                                "frozen", "timesync_answered")}
+                                                "frozen", "timesync_answered", "held_for_origin", "held_identity")}
+            d["autopilot_says"] = {"identity": st["identity"], "ekf": st["ekf"], "delay_ms": st["delay_ms"],
+                                   "delay_detail": st["delay_detail"],
+                                   "true_delay_ms": ap.true_delay_ms() if ap is not None else None}
         bodies.append(d)
     send = np.concatenate(all_send_lat) if all_send_lat else np.zeros(0)
     aplat = np.concatenate(all_ap_lat) if all_ap_lat else np.zeros(0)
@@ -624,6 +631,13 @@ def format_summary(s: dict[str, Any]) -> str:
                          f"autopilot; position error of what it got: RMS {fmt(b.get('mavlink_position_rmse_mm'))} mm")
             lines.append(f"  latency from camera exposure to MAVLink send: median {fmt(lat.get('p50'))} ms, "
                          f"99th percentile {fmt(lat.get('p99'))} ms")
+        if "autopilot_says" in b:
+            a = b["autopilot_says"]
+            true = "" if a["true_delay_ms"] is None else f" (its true value {fmt(a['true_delay_ms'], '.1f')} ms)"
+            measured = (f"{fmt(a['delay_ms'], '.1f')} ms{true}"
+                        if a["delay_ms"] is not None else f"not measured ({a['delay_detail']})")
+            lines.append(f"  the autopilot's view: identity check {a['identity']}, EKF {a['ekf']}; "
+                         f"capture-to-autopilot delay measured from its gyro {measured}")
     lat = s["latency_ms"]
     server = s["server"]
     shed = server.get("frames_shed")

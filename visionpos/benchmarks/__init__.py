@@ -19,6 +19,7 @@ GROUPS: dict[str, str] = {
     "planner": "planner",
     "sitl": "sitl",
     "console": "console",
+    "backchannel": "backchannel",
 }
 
 
@@ -106,6 +107,8 @@ GOALS: list[Goal] = [
          "(unchanged)"),
     Goal("console_cost_ratio", "<=", 1.05, "server loop CPU per packet, console with one client / no console"),
     Goal("console_client_updates_hz", ">=", 30.0, "updates/s the console's WebSocket client receives"),
+    Goal("backchannel_delay_error_ms_max", "<=", 2.0, "capture-to-autopilot delay from the autopilot's gyro: "
+         "error (ms), added link delays 0/20/50 ms"),
     Goal("calib_thesis_center_err_mm_max", "<=", 2.0, "wand calibration, thesis: camera centre error (mm)"),
     Goal("calib_thesis_rot_err_deg_max", "<=", 0.05, "wand calibration, thesis: orientation error (deg)"),
     Goal("calib_thesis_wand_std_mm", "<=", 0.5, "wand calibration, thesis: wand-length std (mm)"),

@@ -243,8 +243,11 @@ class FusionServer:
             parts.append(f"{b.name}:{'-' if rate is None else f'{rate:.0f}Hz'} tracked")
             self._body_counts_prev[b.name] = n
         self._status_prev_ns = now
+        # sinks that report per-vehicle state (the bridge: what each autopilot says about our poses)
+        extra = "".join(" | " + s.status_line() for s in self.sinks
+                        if callable(getattr(s, "status_line", None)) and getattr(s, "vehicles", None))
         return (insecure_prefix(self.settings) + self.ingest.status_line() + " | bodies: "
-                + (" ".join(parts) or "none"))
+                + (" ".join(parts) or "none") + extra)
 
     # ---------------------------------------------------------------- observability
 

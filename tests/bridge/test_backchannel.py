@@ -1,0 +1,482 @@
+"""The back-channel: what the autopilot sends back, and the checks built on it.
+
+Live tests run the bridge against fake autopilots whose sensors follow a
+simulated trajectory (bridge.fake_autopilot), with the optical poses made from
+the same (or, for a swap, the other) trajectory. The long ones (ten minutes of
+flight) drive the Backchannel object directly with MAVLink messages on a
+simulated clock. Expected values come from the simulation's set-up (its delay,
+its clock offset, its truth), never from the code under test.
+"""
+
+import logging
+import math
+import socket
+import time
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+from scipy.spatial.transform import Rotation
+
+from bridge import Bridge
+from bridge.backchannel import DELAY_WINDOW_NS, Backchannel
+from bridge.config import parse_vehicles
+from bridge.fake_autopilot import EXT_NAV_TEXT, FakeAutopilot, imu_from_truth, trajectory_truth
+from visionpos.analysis.autopilot import estimate_lag, vision_delay_ns
+from visionpos.benchmarks.factories import arena_with_vehicles, body_state
+from visionpos.geometry.frames import euler_ned_frd, flu_to_frd, quat_world_body_to_ned_frd
+from visionpos.sim import trajectories as T
+
+FIG8 = T.Figure8(np.array([0.0, 0.0, 1.0]))
+AGGRESSIVE = T.Aggressive(np.array([0.0, 0.0, 1.5]))
+ORIGIN = {"lat": 47.397742, "lon": 8.545594, "alt": 488.0}
+VPE = "VISION_POSITION_ESTIMATE"
+
+
+# ------------------------------------------------------------------ pure math
+def test_estimate_lag_finds_a_known_lag_on_a_large_clock():
+    t_ref = np.arange(0, 10e9, 10e6)  # optical: 100 Hz, server clock
+    t_sig = np.arange(0, 10.5e9, 20e6)  # gyro: 50 Hz
+    rates = lambda t: flu_to_frd(AGGRESSIVE(t * 1e-9).angular_velocities)  # noqa: E731
+    offset = 123_456.789e9  # the autopilot's clock is far from ours
+    for lag_ms in (0.0, 3.3, 20.0, 50.0):
+        est = estimate_lag(t_ref, rates(t_ref), t_sig + offset + lag_ms * 1e6, rates(t_sig), offset, 250e6)
+        assert (est.lag_ns - offset) * 1e-6 == pytest.approx(lag_ms, abs=0.05)
+        assert est.correlation > 0.99
+
+
+def test_estimate_lag_refuses_too_little_data():
+    t = np.arange(10) * 1e7
+    assert estimate_lag(t, np.ones((10, 3)), t, np.ones((10, 3)), 0.0, 1e8) is None
+
+
+def test_vision_delay_cancels_the_clock_offset():
+    # poses leave 4 ms after their stamp; the link takes 7 ms one way; the autopilot's clock is 1000 s ahead
+    offset, fwd = 1000e9, 7e6
+    s1 = np.array([0.0, 1e9, 2e9])
+    tc1 = s1 + offset + fwd
+    assert vision_delay_ns(np.full(5, 4e6), s1, tc1, offset) == pytest.approx(11e6)
+
+
+# ------------------------------------------------------------------ identity, simulated clock
+def _cfg(**kw):
+    v = {"body": "body1", "sysid": 1, "endpoint": "udpout:127.0.0.1:9", **kw}
+    return parse_vehicles(arena_with_vehicles([v]))[0]
+
+
+def _fly(traj_ap, traj_opt, duration_s, seed=0, delay_ms=0.0):
+    """A Backchannel fed for duration_s of simulated flight: ATTITUDE and HIGHRES_IMU at 50 Hz from traj_ap
+    (the autopilot's own sensors, its clock 7 s ahead, 0.5 deg attitude and 5 mrad/s gyro noise), optical
+    poses at 100 Hz from traj_opt (attitude noise 0.03 deg; the filter's rate 5 ms late, 0.03 rad/s noise:
+    the delay must not take that lag for link delay), TIMESYNC every 0.5 s over
+    a link that takes 2 ms + delay_ms forward. Returns (backchannel, [(t_s, identity state)])."""
+    now = [0]
+    bc = Backchannel(_cfg(), lambda: now[0], mavlink2.MAVLink(None, 1, 197), lambda m: True, lambda *a: None)
+    rng = np.random.default_rng(seed)
+    off = 7_000_000_000
+    ts = np.arange(0, int(duration_s * 1e9), 10_000_000)
+    t_s = ts * 1e-9
+    ma, mo, mo_late = traj_ap(t_s), traj_opt(t_s), traj_opt(t_s - 0.005)
+    e_ap, e_op = euler_ned_frd(ma.quaternions), euler_ned_frd(mo.quaternions)
+    g_ap, g_op = flu_to_frd(ma.angular_velocities), flu_to_frd(mo_late.angular_velocities)
+    bias = rng.normal(0, 0.005, 3)
+    states = []
+    q_op = (Rotation.from_quat(quat_world_body_to_ned_frd(mo.quaternions))
+            * Rotation.from_rotvec(rng.normal(0, 0.0005, (len(ts), 3)))).as_quat()
+    for i, t in enumerate(ts):
+        t = int(t)
+        now[0] = t
+        bc.on_optical(t, e_op[i, 0] + rng.normal(0, 0.002), e_op[i, 1] + rng.normal(0, 0.002),
+                      g_op[i] + rng.normal(0, 0.03, 3), q_op[i])
+        if i % 2 == 0:
+            bc.on_sent(t + 2_000_000, t)
+            r = e_ap[i] + rng.normal(0, math.radians(0.5), 3)
+            g = g_ap[i] + bias + rng.normal(0, 0.005, 3)
+            bc.handle(mavlink2.MAVLink_attitude_message((t + off) // 1_000_000, *r, *g), 1, t + 3_000_000)
+            bc.handle(mavlink2.MAVLink_highres_imu_message((t + off) // 1000, 0, 0, -9.8, *g, 0, 0, 0, 0, 0, 0, 0, 0),
+                      1, t + 3_000_000)
+        if i % 50 == 0:
+            bc._ts_pending[t] = t  # as service() records a request it sent
+            bc.on_timesync_reply(t, t + off + 2_000_000 + int(delay_ms * 1e6), t + 4_000_000)
+        if i % 25 == 0:
+            states.append((t * 1e-9, bc.check_identity(t + 3_000_000)))
+    return bc, states
+
+
+@pytest.mark.parametrize("traj", [FIG8, AGGRESSIVE], ids=["figure8", "aggressive"])
+def test_identity_never_trips_in_ten_minutes_of_correct_wiring(traj):
+    _, states = _fly(traj, traj, 600.0)
+    verdicts = [s for _, s in states]
+    assert "mismatch" not in verdicts
+    assert verdicts.count("consistent") > 0.99 * len(verdicts)
+
+
+@pytest.mark.parametrize("ap_traj,opt_traj", [(FIG8, AGGRESSIVE), (AGGRESSIVE, FIG8)], ids=["a-gets-b", "b-gets-a"])
+def test_identity_catches_swapped_vehicles_within_two_seconds(ap_traj, opt_traj):
+    bc, states = _fly(ap_traj, opt_traj, 3.0)
+    first = next(t for t, s in states if s == "mismatch")
+    assert first <= 2.0
+    assert bc.blocks and "not this vehicle's" in bc.identity_reason
+
+
+def test_identity_catches_a_mirrored_layout():
+    # the optics see the body mirrored left-right: roll and the roll and yaw rates change sign
+    mirror = T.Figure8(np.array([0.0, 0.0, 1.0]), size=(1.6, -1.0))
+    bc, states = _fly(FIG8, mirror, 6.0)
+    assert any(s == "mismatch" for _, s in states)
+
+
+def test_delay_measured_on_a_simulated_clock():
+    for delay_ms in (0.0, 20.0, 50.0):
+        bc, _ = _fly(AGGRESSIVE, AGGRESSIVE, 25.0, delay_ms=delay_ms)
+        # 2 ms from stamp to send, 2 ms + delay over the link
+        assert bc.delay_ms == pytest.approx(4.0 + delay_ms, abs=2.0)
+
+
+def test_silent_autopilot_leaves_every_check_unknown():
+    now = [0]
+    bc = Backchannel(_cfg(), lambda: now[0], mavlink2.MAVLink(None, 1, 197), lambda m: True, lambda *a: None)
+    for i in range(500):
+        now[0] = i * 10_000_000
+        bc.on_optical(now[0], 0.1, 0.0, np.array([0.5, 0.0, 0.0]), np.array([0.0, 0.0, 0.0, 1.0]))
+        bc.on_sent(now[0], now[0])
+        bc.service(now[0])
+    snap = bc.snapshot(now[0])
+    assert (snap["identity"], snap["ekf"], snap["delay_ms"]) == ("unknown", "unknown", None)
+    assert not bc.blocks and not bc.holds_for_origin(now[0])
+
+
+# ------------------------------------------------------------------ live: bridge + fake autopilots
+def _pairs(vehicles, aps):
+    """Fake autopilots listening on free ports (udpin), and a started bridge whose vehicles (udpout) point at
+    them; vehicles[i] goes to aps[i]."""
+    for ap in aps:
+        ap.start()
+    vs = [{"sysid": i + 1, "body": f"body{i + 1}", "endpoint": f"udpout:127.0.0.1:{ap.port}", **v}
+          for i, (v, ap) in enumerate(zip(vehicles, aps))]
+    bridge = Bridge(arena_with_vehicles(vs), {"report_interval_s": 0})
+    bridge.start()
+    return bridge
+
+
+def _stream(bridge, trajs, t0_ns, duration_s, until=None, rate_hz=100.0, seed=0):
+    """Publish each body's pose from its trajectory in real time (the optical side: truth + rate noise) for
+    duration_s or until until() is true; returns the seconds it ran."""
+    rng = np.random.default_rng(seed)
+    period = int(1e9 / rate_hz)
+    start = time.monotonic_ns()
+    nxt = start
+    while True:
+        now = time.monotonic_ns()
+        if now - start > duration_s * 1e9 or (until is not None and until()):
+            return (now - start) * 1e-9
+        states = []
+        for i, traj in enumerate(trajs):
+            m = traj(np.array([(now - t0_ns) * 1e-9]))
+            states.append(body_state(f"body{i + 1}", i + 1, capture_ns=now, position=m.positions[0],
+                                     quaternion=m.quaternions[0], velocity=m.velocities[0],
+                                     angular_velocity=m.angular_velocities[0] + rng.normal(0, 0.02, 3)))
+        bridge.publish(states)
+        nxt += period
+        time.sleep(max(0.0, (nxt - time.monotonic_ns()) * 1e-9))
+
+
+def test_swapped_endpoints_are_caught_and_stopped_live():
+    t0 = time.monotonic_ns()
+    trajs = [FIG8, AGGRESSIVE]
+    # each autopilot's sensors follow its own vehicle; the endpoints are swapped: body1's poses go to
+    # vehicle 2's autopilot and the other way round
+    aps = [FakeAutopilot("udpin:127.0.0.1:0", sysid=1, truth=trajectory_truth(trajs[1], t0), telemetry_hz=50),
+           FakeAutopilot("udpin:127.0.0.1:0", sysid=2, truth=trajectory_truth(trajs[0], t0), telemetry_hz=50)]
+    bridge = _pairs([{}, {}], aps)
+    try:
+        links = bridge.vehicles
+        ran = _stream(bridge, trajs, t0, 4.0, until=lambda: all(v.bc.identity == "mismatch" for v in links))
+        assert all(v.bc.identity == "mismatch" for v in links), [v.bc.identity_reason for v in links]
+        assert ran < 4.0
+        # caught within 2 s of the first pose (on the bridge's clock: a busy machine may start it late)
+        assert all(v.health()["identity"]["tripped_after_s"] <= 2.0 for v in links), [
+            (v.health()["identity"], v.bc.att.n, v.bc.opt.n) for v in links]
+        before = [len(ap.messages(VPE)) for ap in aps]
+        _stream(bridge, trajs, t0, 0.5)
+        assert [len(ap.messages(VPE)) for ap in aps] == before  # stopped
+        for v in links:
+            h = v.health()
+            assert h["identity"]["state"] == "mismatch" and h["sending"] == "stopped: identity mismatch"
+            assert h["output"]["held_identity"] > 0
+            assert "identity mismatch" in bridge.status_line()
+    finally:
+        bridge.close()
+        for ap in aps:
+            ap.close()
+
+
+def test_correct_wiring_sends_and_reads_back_live():
+    t0 = time.monotonic_ns()
+    trajs = [FIG8, AGGRESSIVE]
+    aps = [FakeAutopilot("udpin:127.0.0.1:0", sysid=i + 1, truth=trajectory_truth(trajs[i], t0)) for i in range(2)]
+    bridge = _pairs([{}, {}], aps)  # telemetry only as the bridge asks for it (SET_MESSAGE_INTERVAL)
+    try:
+        _stream(bridge, trajs, t0, 4.0)
+        for ap, v in zip(aps, bridge.vehicles):
+            assert v.bc.identity == "consistent", v.bc.identity_reason
+            assert 30 in ap.intervals_ns and 105 in ap.intervals_ns or 27 in ap.intervals_ns
+            h = v.health()
+            assert h["ekf"]["state"] == "using vision" and h["ekf"]["ext_nav_statustext"] == EXT_NAV_TEXT
+            assert h["link"]["autopilot"] == "ardupilot" and h["link"]["timesync_rtt_ms"] is not None
+            assert h["output"]["rate_hz"] > 20 and h["sending"] == "sending"
+            assert "EKF using vision" in v.status_part() and "identity consistent" in v.status_part()
+    finally:
+        bridge.close()
+        for ap in aps:
+            ap.close()
+
+
+def test_measured_delay_matches_the_added_link_delay_live():
+    t0 = time.monotonic_ns()
+    delays = (0.0, 20.0, 50.0)
+    aps = [FakeAutopilot("udpin:127.0.0.1:0", sysid=i + 1, truth=trajectory_truth(AGGRESSIVE, t0), delay_ms=d,
+                         boot_ns=t0 - int((i + 1) * 3.7e9)) for i, d in enumerate(delays)]
+    bridge = _pairs([{"set_delay": i == 2} for i in range(3)], aps)
+    try:
+        _stream(bridge, [AGGRESSIVE] * 3, t0, 25.0, rate_hz=50.0,
+                until=lambda: all(len(v.bc._delays) >= 3 for v in bridge.vehicles) and "VISO_DELAY_MS" in aps[2].params)
+        # stamp to arrival in the fake, with its added delay, over the window the bridge measures on
+        true_ms = [ap.true_delay_ms(window_s=DELAY_WINDOW_NS * 1e-9) for ap in aps]
+        for v, d, true in zip(bridge.vehicles, delays, true_ms):
+            assert true > d  # the added delay is in it (with the bridge's own, which the load moves about)
+            assert v.bc.delay_ms == pytest.approx(true, abs=2.0), (v.bc.delay_reason, true_ms,
+                                                                   [u.bc.delay_ms for u in bridge.vehicles])
+        assert aps[2].params["VISO_DELAY_MS"] == pytest.approx(round(bridge.vehicles[2].bc.delay_ms), abs=1.0)
+        assert "VISO_DELAY_MS=" in bridge.latency_report()
+    finally:
+        bridge.close()
+        for ap in aps:
+            ap.close()
+
+
+def test_ekf_rejecting_the_vision_is_said_in_plain_words(caplog):
+    t0 = time.monotonic_ns()
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=1, truth=trajectory_truth(FIG8, t0), ekf="reject")
+    bridge = _pairs([{}], [ap])
+    try:
+        with caplog.at_level(logging.WARNING, logger="visionpos.bridge"):
+            _stream(bridge, [FIG8], t0, 6.0, until=lambda: bridge.vehicles[0].health()["ekf"]["state"]
+                    == "rejecting vision")
+        h = bridge.vehicles[0].health()
+        assert h["ekf"]["state"] == "rejecting vision"
+        assert any("EKF rejects the vision" in r.getMessage() for r in caplog.records)
+        assert "EKF rejecting vision" in bridge.status_line()
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_home_is_set_with_do_set_home_on_ardupilot():
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=3)
+    bridge = _pairs([{"origin": ORIGIN, "sysid": 3}], [ap])
+    try:
+        _stream(bridge, [FIG8], time.monotonic_ns(), 5.0, until=lambda: ap.home is not None)
+        assert ap.origin == (473977420, 85455940, 488000)
+        assert ap.home == (473977420, 85455940, pytest.approx(488.0))  # ArduCopter ignores SET_HOME_POSITION
+        assert bridge.vehicles[0].health()["origin"] == {"state": "confirmed", "home_acked": True}
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_home_on_px4_also_gets_set_home_position():
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=3, autopilot="px4")
+    bridge = _pairs([{"origin": ORIGIN, "sysid": 3}], [ap])
+    try:
+        assert ap.wait_for("SET_HOME_POSITION", 1, 5.0)
+        h = ap.messages("SET_HOME_POSITION")[0].fields
+        assert (h["target_system"], h["latitude"], h["longitude"], h["altitude"]) == (3, 473977420, 85455940, 488000)
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_poses_wait_for_the_origin_and_the_origin_is_resent_until_confirmed():
+    # the autopilot's EKF drops origins that arrive in its first 1.5 s (not running yet)
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=1, origin_ready_s=1.5, heartbeat_hz=5)
+    bridge = _pairs([{"origin": ORIGIN, "origin_interval_s": 30}], [ap])
+    v = bridge.vehicles[0]
+    try:
+        seen = set()
+        t0 = time.monotonic_ns()
+
+        def note():
+            seen.add(v.sending_state())
+            return ap.origin is not None and len(ap.messages(VPE)) > 10
+
+        _stream(bridge, [FIG8], t0, 6.0, until=note)
+        assert ap.origin_dropped >= 1 and ap.origin is not None  # lost, then resent within the second
+        assert "waiting for the autopilot to confirm its origin" in seen
+        first_pose = ap.messages(VPE)[0].recv_ns
+        origin_at = min(m.recv_ns for m in ap.messages("SET_GPS_GLOBAL_ORIGIN")
+                        if m.recv_ns - ap.boot_ns >= ap.origin_ready_ns)
+        assert first_pose > origin_at  # no vision before the EKF had its origin
+        assert v.counters["held_for_origin"] > 0
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_origin_never_confirmed_releases_the_poses_after_the_timeout(caplog):
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=1, origin_ready_s=1000.0, heartbeat_hz=5)  # never takes it
+    bridge = _pairs([{"origin": ORIGIN, "origin_confirm_timeout_s": 1.0}], [ap])
+    try:
+        with caplog.at_level(logging.WARNING, logger="visionpos.bridge"):
+            _stream(bridge, [FIG8], time.monotonic_ns(), 3.0)
+        v = bridge.vehicles[0]
+        assert v.counters["held_for_origin"] > 0 and len(ap.messages(VPE)) > 40
+        assert v.health()["origin"]["state"] == "unconfirmed" and ap.origin is None
+        assert ap.origin_dropped >= 2  # resent every second all along
+        assert _count_logged(caplog, "has not confirmed its origin: it did not report it in 1 s") == 1
+    finally:
+        bridge.close()
+        ap.close()
+
+
+# ------------------------------------------------------------------ bad input: poses go on
+def _count_logged(caplog, text):
+    return sum(text in r.getMessage() for r in caplog.records)
+
+
+def test_silent_autopilot_poses_go_on_and_it_is_said_once(caplog, monkeypatch):
+    import bridge.backchannel as bcmod
+
+    monkeypatch.setattr(bcmod, "SILENT_WARN_NS", 500_000_000)
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink.bind(("127.0.0.1", 0))
+    sink.settimeout(0.0)
+    arena = arena_with_vehicles([{"body": "body1", "sysid": 1, "origin": ORIGIN,
+                                  "endpoint": f"udpout:127.0.0.1:{sink.getsockname()[1]}"}])
+    bridge = Bridge(arena, {"report_interval_s": 0})
+    bridge.start()
+    try:
+        with caplog.at_level(logging.WARNING, logger="visionpos.bridge"):
+            _stream(bridge, [FIG8], time.monotonic_ns(), 3.5)
+        v = bridge.vehicles[0]
+        # an origin to confirm: the poses wait 2 s for the autopilot's first word, then go unconfirmed
+        assert v.counters["sent"] > 40 and v.counters["held_for_origin"] > 0
+        assert v.sending_state() == "sending"
+        h = v.health()
+        assert (h["identity"]["state"], h["ekf"]["state"], h["delay"]["measured_ms"]) == ("unknown", "unknown", None)
+        assert h["origin"]["state"] == "unconfirmed"
+        assert _count_logged(caplog, "has sent nothing back") == 1
+        assert _count_logged(caplog, "has not confirmed its origin: the autopilot has said nothing") == 1
+    finally:
+        bridge.close()
+        sink.close()
+
+
+def test_garbage_from_the_autopilot_poses_go_on_and_it_is_said_once(caplog):
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink.bind(("127.0.0.1", 0))
+    sink.settimeout(2.0)
+    arena = arena_with_vehicles([{"body": "body1", "sysid": 1,
+                                  "endpoint": f"udpout:127.0.0.1:{sink.getsockname()[1]}"}])
+    bridge = Bridge(arena, {"report_interval_s": 0})
+    bridge.start()
+    rng = np.random.default_rng(5)
+    try:
+        _, bridge_addr = sink.recvfrom(2048)  # the bridge's heartbeat: where it sends from
+        with caplog.at_level(logging.WARNING, logger="visionpos.bridge"):
+            for _ in range(20):
+                sink.sendto(bytes([0xFD]) + rng.integers(0, 256, 60, dtype=np.uint8).tobytes(), bridge_addr)
+                sink.sendto(rng.integers(0, 256, 40, dtype=np.uint8).tobytes(), bridge_addr)
+            _stream(bridge, [FIG8], time.monotonic_ns(), 1.0)
+        v = bridge.vehicles[0]
+        assert v.counters["rx_bad"] > 0 and v.counters["sent"] > 30
+        assert v.health()["identity"]["state"] == "unknown"
+        assert _count_logged(caplog, "not MAVLink packets") == 1
+    finally:
+        bridge.close()
+        sink.close()
+
+
+def test_autopilot_of_another_sysid_is_ignored_and_said_once(caplog):
+    t0 = time.monotonic_ns()
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=9, truth=trajectory_truth(AGGRESSIVE, t0), telemetry_hz=50)
+    bridge = _pairs([{}], [ap])  # the bridge's vehicle is sysid 1
+    try:
+        with caplog.at_level(logging.WARNING, logger="visionpos.bridge"):
+            _stream(bridge, [FIG8], t0, 2.0)
+        v = bridge.vehicles[0]
+        assert v.counters["rx_foreign"] > 50 and v.counters["sent"] > 50
+        assert v.bc.identity == "unknown" and v.bc.autopilot is None  # nothing from sysid 9 was used
+        assert _count_logged(caplog, "from sysid 9 on the link of sysid 1") == 1
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_autopilot_reboot_mid_flight(caplog):
+    t0 = time.monotonic_ns()
+    aps = [FakeAutopilot("udpin:127.0.0.1:0", sysid=1, truth=trajectory_truth(FIG8, t0)),
+           FakeAutopilot("udpin:127.0.0.1:0", sysid=2, truth=trajectory_truth(AGGRESSIVE, t0))]
+    bridge = _pairs([{}, {"origin": ORIGIN}], aps)
+    try:
+        _stream(bridge, [FIG8, AGGRESSIVE], t0, 3.0)
+        assert all(v.bc.identity == "consistent" for v in bridge.vehicles)
+        with caplog.at_level(logging.WARNING, logger="visionpos.bridge"):
+            for ap in aps:
+                ap.reboot()
+            t_reboot = time.monotonic_ns()
+            _stream(bridge, [FIG8, AGGRESSIVE], t0, 4.0)
+        v1, v2 = bridge.vehicles
+        assert v1.bc.reboots == 1 and v2.bc.reboots == 1
+        assert _count_logged(caplog, "the autopilot rebooted") == 2  # once per vehicle
+        # no origin: the poses never paused
+        recv = np.array([m.recv_ns for m in aps[0].messages(VPE)])
+        assert np.diff(recv[recv > t_reboot - 500_000_000]).max() < 100e6
+        # with an origin: set again, confirmed, and the poses flow again
+        assert aps[1].origin is not None and v2.bc.origin_confirmed
+        assert sum(m.recv_ns > t_reboot + 2e9 for m in aps[1].messages(VPE)) > 50
+        # the streams were asked for again and the checks came back
+        assert 30 in aps[0].intervals_ns and v1.bc.identity == "consistent"
+    finally:
+        bridge.close()
+        for ap in aps:
+            ap.close()
+
+
+def test_forged_attitude_from_another_address_cannot_stop_an_unsigned_udpout_link():
+    # the autopilot (the address we send to) says nothing; another host sends ATTITUDE as sysid 1 with a
+    # 45 deg roll that the optics (level) would call a mismatch
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink.bind(("127.0.0.1", 0))
+    arena = arena_with_vehicles([{"body": "body1", "sysid": 1,
+                                  "endpoint": f"udpout:127.0.0.1:{sink.getsockname()[1]}"}])
+    bridge = Bridge(arena, {"report_interval_s": 0})
+    bridge.start()
+    forger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    mav = mavlink2.MAVLink(None, 1, 1)
+    sink.settimeout(2.0)
+    try:
+        _, bridge_addr = sink.recvfrom(2048)
+        level = T.Static(np.array([0.0, 0.0, 1.0]))
+        t_end = time.monotonic() + 2.0
+        while time.monotonic() < t_end:
+            now = time.monotonic_ns()
+            forger.sendto(mav.heartbeat_encode(2, 3, 0, 0, 4).pack(mav), bridge_addr)
+            forger.sendto(mav.attitude_encode(now // 1_000_000, 0.8, 0.0, 0.0, 0.0, 0.0, 0.0).pack(mav), bridge_addr)
+            bridge.publish([body_state(capture_ns=now, position=(0, 0, 1), quaternion=level(0).quaternions[0])])
+            time.sleep(0.01)
+        v = bridge.vehicles[0]
+        assert v.counters["rx_wrong_source"] > 100 and v.counters["rx_accepted"] == 0
+        assert v.bc.identity == "unknown" and v.bc.autopilot is None and not v.bc.blocks
+        assert v.counters["held_identity"] == 0 and v.counters["sent"] > 50
+    finally:
+        bridge.close()
+        sink.close()
+        forger.close()
+
+
+def test_imu_from_truth_reads_gravity_at_rest():
+    tr = trajectory_truth(T.Static(np.array([0.0, 0.0, 1.0])), 0)(np.array([0]))
+    gyro, acc = imu_from_truth(tr)
+    assert gyro[0] == pytest.approx([0, 0, 0], abs=1e-9)
+    assert acc[0] == pytest.approx([0, 0, -9.80665], abs=1e-9)  # FRD: specific force points up = -z

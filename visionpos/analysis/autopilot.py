@@ -1,0 +1,195 @@
+"""What an autopilot's own sensors say about the poses we send it: pure math, no I/O.
+
+Two questions, both answered from the autopilot's telemetry (its gyro and its
+attitude estimate, stamped on its own boot clock) against the optical body
+(stamped on the server clock):
+
+- Is it the same vehicle? (`identity_statistic`) Roll, pitch and the body rates
+  do not depend on how the arena's yaw is aligned to north, so a wrong pairing
+  (swapped sysids, drone A's pose sent to drone B, a mirrored marker layout)
+  shows as residuals far outside the noise of the two estimates.
+- How late does a pose reach the autopilot? (`estimate_lag`, `vision_delay_ns`)
+  Cross-correlating the two angular rates gives the autopilot-clock time of the
+  instant the optics stamped at a given server time (the clock offset, plus any
+  bias of the optical stamps); TIMESYNC answers give the autopilot-clock time
+  at which a packet sent at a known server time arrived. Their difference is the
+  capture-to-autopilot delay on the vehicle's clock, which is what ArduPilot's
+  VISO_DELAY_MS and PX4's EKF2_EV_DELAY want, whatever the link adds one way.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation
+
+__all__ = ["LagEstimate", "estimate_lag", "body_rates_from_attitudes", "vision_delay_ns", "identity_residuals",
+           "identity_statistic", "wrap_angle"]
+
+
+class LagEstimate(NamedTuple):
+    """lag_ns: x_sig(t + lag) best matches x_ref(t); correlation: the normalised correlation at that lag
+    (1 = identical shapes); samples: reference samples used."""
+
+    lag_ns: float
+    correlation: float
+    samples: int
+
+
+def _correlation_at(lags_ns: np.ndarray, q_ns: np.ndarray, xr: np.ndarray, nr: float, ts: np.ndarray,
+                    x_sig: np.ndarray) -> np.ndarray:
+    """Normalised correlation of the mean-free reference xr (n, K) (norm nr) with x_sig interpolated at
+    q_ns + lag, for each lag in lags_ns (L,). The interpolation is a cubic spline: a linear one is exact at
+    the samples only, which pulls the peak towards lags that put the reference on them."""
+    q = q_ns[None, :] + lags_ns[:, None]  # (L, n)
+    spline = CubicSpline(ts, x_sig, axis=0)(q.ravel()).reshape(q.shape + (x_sig.shape[1],))
+    corr = np.zeros(len(lags_ns))
+    ns = np.zeros(len(lags_ns))
+    for j in range(x_sig.shape[1]):
+        s = spline[..., j]
+        s = s - s.mean(axis=1, keepdims=True)
+        corr += s @ xr[:, j]
+        ns += (s * s).sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return corr / (nr * np.sqrt(ns))
+
+
+def estimate_lag(t_ref_ns: np.ndarray, x_ref: np.ndarray, t_sig_ns: np.ndarray, x_sig: np.ndarray,
+                 lag0_ns: float, max_lag_ns: float, step_ns: float = 1e6) -> LagEstimate | None:
+    """The lag between two sampled vector signals by normalised cross-correlation.
+
+    t_ref_ns (N,), x_ref (N, K): the reference (optical angular rate, server clock);
+    t_sig_ns (M,), x_sig (M, K): the other signal (the autopilot's gyro, its clock);
+    both time arrays increasing. Finds the lag in lag0_ns +- max_lag_ns at which
+    x_sig(t + lag) best matches x_ref(t): first on a uniform grid of step_ns by FFT
+    (both signals resampled), then with the signal interpolated at the reference's own
+    times around that peak, refined by a parabola through the best lag and its
+    neighbours a quarter step apart. Returns None when fewer than 20 reference samples
+    overlap the signal at every lag tried, or a signal has no variation.
+    """
+    t_ref = np.asarray(t_ref_ns, dtype=np.float64)
+    t_sig = np.asarray(t_sig_ns, dtype=np.float64)
+    x_ref = np.asarray(x_ref, dtype=np.float64).reshape(len(t_ref), -1)
+    x_sig = np.asarray(x_sig, dtype=np.float64).reshape(len(t_sig), -1)
+    if len(t_sig) < 4 or len(t_ref) < 20:
+        return None
+    # times relative to t_sig[0]: float64 keeps sub-microsecond resolution on large clocks
+    base = t_sig[0]
+    ts = t_sig - base
+    tr = t_ref - base + lag0_ns  # reference times moved onto the signal's clock
+    keep = (tr - max_lag_ns >= ts[0]) & (tr + max_lag_ns <= ts[-1])
+    if keep.sum() < 20:
+        return None
+    tr, xr = tr[keep], x_ref[keep] - x_ref[keep].mean(axis=0)
+    nr = float(np.sqrt((xr * xr).sum()))
+    if nr == 0:
+        return None
+    # coarse: both on a uniform grid, every lag at once
+    k = int(np.ceil(max_lag_ns / step_ns))
+    g_ref = np.arange(tr[0], tr[-1], step_ns)
+    g_sig = g_ref[0] - k * step_ns + step_ns * np.arange(len(g_ref) + 2 * k)
+    m = len(g_ref)
+    num = np.zeros(2 * k + 1)
+    den = np.zeros(2 * k + 1)
+    nfft = 1 << (len(g_sig) + m - 1).bit_length()
+    for j in range(x_ref.shape[1]):
+        a = np.interp(g_ref, tr, xr[:, j])
+        a = a - a.mean()
+        b = np.interp(g_sig, ts, x_sig[:, j])
+        c = np.fft.irfft(np.fft.rfft(b, nfft) * np.conj(np.fft.rfft(a, nfft)), nfft)
+        num += c[: 2 * k + 1]  # c[i] = sum_m b[m + i] a[m]: lag (i - k) steps
+        # the signal's variance over each lag's window (a is mean-free, so its mean drops out of num)
+        c1 = np.concatenate([[0.0], np.cumsum(b)])
+        c2 = np.concatenate([[0.0], np.cumsum(b * b)])
+        s1 = c1[m: m + 2 * k + 1] - c1[: 2 * k + 1]
+        s2 = c2[m: m + 2 * k + 1] - c2[: 2 * k + 1]
+        den += s2 - s1 * s1 / m
+    full = num / np.sqrt(np.maximum(den, 1e-300))
+    i = int(np.argmax(full))
+    # fine: the signal's spline at the reference times, a quarter step apart around the peak (moved along
+    # while the best is at an edge: the resampled coarse peak can be a step or two off)
+    h = step_ns / 4
+    centre = (i - k) * step_ns
+    for _ in range(8):
+        lags = centre + h * np.arange(-4, 5)
+        corr = _correlation_at(lags, tr, xr, nr, ts, x_sig)
+        if not np.all(np.isfinite(corr)):
+            return None
+        j = int(np.argmax(corr))
+        if 0 < j < len(lags) - 1 or abs(lags[j]) + h > max_lag_ns:
+            break
+        centre = lags[j]
+    lag = lags[j]
+    if 0 < j < len(lags) - 1:
+        a_, b_, c_ = corr[j - 1], corr[j], corr[j + 1]
+        den = a_ - 2 * b_ + c_
+        if den < 0:
+            lag += 0.5 * (a_ - c_) / den * h
+    lag += lag0_ns
+    return LagEstimate(float(lag), float(corr[j]), int(keep.sum()))
+
+
+def body_rates_from_attitudes(t_ns: np.ndarray, quaternions: np.ndarray, span: int = 2,
+                              max_gap_ns: float = 100e6) -> tuple[np.ndarray, np.ndarray]:
+    """Body rates from an attitude series by symmetric differences, so they lag nothing.
+
+    t_ns (N,) increasing; quaternions (N, 4) xyzw body -> frame. The rate between samples i and
+    i + 2*span is the rotation vector of R_i^T R_(i+2 span) over their time apart, in the body
+    frame, stamped at their mid-time (a Kalman filter's own rate estimate trails the motion when
+    it accelerates; its attitude does not). Pairs further apart than max_gap_ns are dropped.
+    Returns (t_mid_ns (M,) float64, rates (M, 3) rad/s).
+    """
+    t = np.asarray(t_ns, dtype=np.float64)
+    k = 2 * span
+    if len(t) <= k:
+        return np.zeros(0), np.zeros((0, 3))
+    R = Rotation.from_quat(np.asarray(quaternions, dtype=np.float64))
+    dt = t[k:] - t[:-k]
+    ok = (dt > 0) & (dt <= max_gap_ns)
+    rv = (R[:-k].inv() * R[k:]).as_rotvec()
+    return (0.5 * (t[k:] + t[:-k]))[ok], rv[ok] / (dt[ok, None] * 1e-9)
+
+
+def vision_delay_ns(send_minus_stamp_ns: np.ndarray, timesync_s1_ns: np.ndarray, timesync_tc1_ns: np.ndarray,
+                    clock_lag_ns: float) -> float:
+    """Capture-to-autopilot delay (ns) on the autopilot's clock.
+
+    send_minus_stamp_ns (N,): for each sent pose, its send time less its stamp (server clock);
+    timesync_s1_ns (M,), timesync_tc1_ns (M,): our TIMESYNC requests' send times (server clock)
+    and the autopilot's receive times of them (its clock), so tc1 - s1 is the forward link's
+    latency plus the clock offset; clock_lag_ns: the autopilot-clock time less the server
+    stamp of one physical instant (estimate_lag on the angular rates). The clock offset
+    cancels: delay = median(send - stamp) + median(tc1 - s1) - clock_lag.
+    """
+    fwd = np.asarray(timesync_tc1_ns, dtype=np.float64) - np.asarray(timesync_s1_ns, dtype=np.float64)
+    return float(np.median(send_minus_stamp_ns) + np.median(fwd) - clock_lag_ns)
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Angles (rad, any shape) wrapped into [-pi, pi)."""
+    return (np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
+
+
+def identity_residuals(att_ap: np.ndarray, rate_ap: np.ndarray, att_opt: np.ndarray, rate_opt: np.ndarray,
+                       sigma_att_rad: float, sigma_rate_rad_s: float, rate_rel: float) -> np.ndarray:
+    """Normalised residuals (N, 5) between the autopilot and the optical body at the same instants.
+
+    att_ap, att_opt (N, 2): roll, pitch rad (FRD in NED); rate_ap, rate_opt (N, 3): body rates
+    rad/s FRD. Noise model per sample: sigma_att_rad for roll and pitch; for each rate axis
+    sigma_rate_rad_s + rate_rel * |rate_opt| (gyro noise and bias, plus the rate error of a
+    timing mismatch, which grows with the motion).
+    """
+    ra = wrap_angle(np.asarray(att_ap, float) - np.asarray(att_opt, float)) / sigma_att_rad
+    ro = np.asarray(rate_opt, float)
+    sr = sigma_rate_rad_s + rate_rel * np.linalg.norm(ro, axis=1, keepdims=True)
+    rr = (np.asarray(rate_ap, float) - ro) / sr
+    return np.hstack([ra, rr])
+
+
+def identity_statistic(residuals: np.ndarray) -> float:
+    """Mean squared normalised residual of a window (N, K): about 1 (and under it for a noise model
+    that is generous) when the two are the same vehicle; NaN for an empty window."""
+    r = np.asarray(residuals, float)
+    return float(np.mean(r * r)) if r.size else float("nan")
