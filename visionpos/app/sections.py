@@ -10,6 +10,7 @@ import bridge.natnet  # noqa: F401  natnet
 import bridge.vrpn  # noqa: F401  vrpn
 import console.settings  # noqa: F401  console
 import visionpos.app.sitl  # noqa: F401  sitl
+import visionpos.fusion.camera_monitor  # noqa: F401  camera_monitor
 import visionpos.fusion.settings  # noqa: F401  fusion
 import visionpos.server.settings  # noqa: F401  server
 import visionpos.sim.scenario  # noqa: F401  sim

@@ -20,6 +20,7 @@ GROUPS: dict[str, str] = {
     "sitl": "sitl",
     "console": "console",
     "backchannel": "backchannel",
+    "camera_monitor": "camera_monitor",
 }
 
 
@@ -131,6 +132,13 @@ GOALS: list[Goal] = [
     Goal("planner_arena8_marker_ratio", ">=", 0.8, "planner, arena8: measured marker RMS / predicted bound"),
     Goal("planner_thesis_body_pos_ratio", "<=", 1.2, "planner, thesis quad: simulated pose RMS / predicted bound"),
     Goal("planner_thesis_body_pos_ratio", ">=", 0.8, "planner, thesis quad: simulated pose RMS / predicted bound"),
+    Goal("monitor_rotation_flag_s", "<=", 10.0, "camera knocked by 0.5 deg mid-flight: flagged after (s)"),
+    Goal("monitor_shift_flag_s", "<=", 10.0, "camera moved by 5 mm mid-flight: flagged after (s)"),
+    Goal("monitor_rotation_after_over_before", "<=", 1.1, "0.5 deg knock: position RMSE 60-70 s after / before"),
+    Goal("monitor_shift_after_over_before", "<=", 1.1, "5 mm move: position RMSE 60-70 s after / before"),
+    Goal("monitor_rotation_other_cameras_flagged", "<=", 0, "0.5 deg knock: cameras flagged that did not move"),
+    Goal("monitor_shift_other_cameras_flagged", "<=", 0, "5 mm move: cameras flagged that did not move"),
+    Goal("monitor_unmoved_flags", "<=", 0, "no camera moved, 10-minute flight: cameras flagged"),
     Goal("robustness_packets_thrown", ">=", 1_000_000, "hostile packets thrown at the live demo, all attacks"),
     Goal("robustness_cameras_blinded", "<=", 0, "cameras blinded under attack"),
     Goal("robustness_tracked_fraction_min", ">=", 0.99, "tracked fraction under the worst attack"),

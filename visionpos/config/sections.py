@@ -122,6 +122,7 @@ TOP = section(
     Setting("cameras", "list", [], "the cameras", spec=CAMERA),
     Setting("bodies", "list", [], "the rigid bodies to track", spec=BODY),
     Setting("fusion", "section", {}, "fusion: time alignment, matching, tracking"),
+    Setting("camera_monitor", "section", {}, "continuous calibration: moved cameras flagged and corrected"),
     Setting("server", "section", {}, "the fusion server's network and timing"),
     Setting("vehicles", "list", [], "autopilots the MAVLink bridge feeds"),
     Setting("pose_stream", "section", None, "UDP pose stream", default_doc="(off)"),

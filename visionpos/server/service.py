@@ -86,7 +86,16 @@ class FusionServer:
         self.host = self.settings.bind if host is None else host
         self._port_req = self.settings.port if port is None else int(port)
         self.clock = clock
-        self.ingest = Ingest(arena, self.settings, pipeline, recorder, clock=clock, events=self._on_event)
+        self.monitor = None  # continuous calibration (fusion/camera_monitor.py), on a real pipeline only
+        feed = pipeline
+        if hasattr(pipeline, "set_camera_pose"):
+            from visionpos.fusion.camera_monitor import CameraMonitor, MonitorSettings
+
+            monitor_settings = MonitorSettings.from_arena(arena)
+            if monitor_settings.enabled:
+                self.monitor = CameraMonitor(arena, monitor_settings)
+                feed = _MonitoredFeed(pipeline, self.monitor)
+        self.ingest = Ingest(arena, self.settings, feed, recorder, clock=clock, events=self._on_event)
         self.period_ns = int(round(1e9 / self.settings.output_rate_hz))
         self.ticks = 0
         self.late_ticks = 0
@@ -179,6 +188,8 @@ class FusionServer:
             if s.tracked:
                 self._body_tracked[s.name] = self._body_tracked.get(s.name, 0) + 1
         self.last_states = states
+        if self.monitor is not None:
+            self._monitor_step(states, now_ns)
         for sink in self.sinks:
             self._to_sink(sink, sink.publish, states, type(sink).__name__)
         lp = getattr(self.pipeline, "loose_points", None)
@@ -192,6 +203,20 @@ class FusionServer:
         if cost > self.tick_cost_ns_max:
             self.tick_cost_ns_max = cost
         return states
+
+    def _monitor_step(self, states: list[BodyState], now_ns: int) -> None:
+        """The camera monitor sees the tick's states; about once a second it fits each camera, and a moved
+        camera's corrected pose goes into the pipeline (and the recording, as an event)."""
+        try:
+            self.monitor.observe_states(states)
+            for c in self.monitor.step(now_ns):
+                self.pipeline.set_camera_pose(c.camera_id, c.camera)
+                self._on_event("camera_pose_corrected", {"camera_id": c.camera_id, "rotation_deg": c.rotation_deg,
+                                                          "shift_m": c.shift_m, "pose": c.camera.to_dict()["pose"]})
+        except Exception:  # the monitor must never stop the outputs
+            self.sink_errors["camera_monitor"] = self.sink_errors.get("camera_monitor", 0) + 1
+            if self.sink_errors["camera_monitor"] in (1, 100, 10_000):
+                log.exception("camera monitor failed")
 
     def _to_sink(self, sink: Any, method: Any, arg: Any, name: str) -> None:
         """method(arg); a failure is counted under `name` and logged at the 1st, 100th, 10000th time."""
@@ -265,6 +290,8 @@ class FusionServer:
         h["tick_cost_max_ms"] = self.tick_cost_ns_max * 1e-6
         h["sink_errors"] = dict(self.sink_errors)
         h["bodies_tracked_ticks"] = dict(self._body_tracked)
+        if self.monitor is not None:
+            h["camera_monitor"] = {"cameras": self.monitor.report(), "events": self.monitor.events[-10:]}
         try:
             h["pipeline"] = dict(self.pipeline.stats())
         except Exception as e:
@@ -278,6 +305,23 @@ class FusionServer:
                     sinks[type(s).__name__] = {"error": repr(e)}
         h["sinks"] = sinks
         return h
+
+
+class _MonitoredFeed:
+    """What Ingest pushes frames into: the pipeline, then the camera monitor (which only reads the frame)."""
+
+    def __init__(self, pipeline: Any, monitor: Any):
+        self.pipeline, self.monitor = pipeline, monitor
+
+    def push(self, frame: Any) -> None:
+        self.pipeline.push(frame)
+        try:
+            self.monitor.observe_frame(frame)
+        except Exception:  # a monitor bug must not cost the frame its fusion (it is fused above)
+            log.debug("camera monitor: frame not observed", exc_info=True)
+
+    def remove_camera(self, camera_id: int) -> None:
+        self.pipeline.remove_camera(camera_id)
 
 
 def insecure_prefix(settings: ServerSettings) -> str:
