@@ -38,7 +38,8 @@ log = logging.getLogger(__name__)
 # the others still hold its rays, so they show a share of its error (measured: a 5 mm move showed 1.6x).
 DOMINANCE = 1.4
 # A flagged camera is re-fitted until its correction moves its markers by less than this part of flag_px.
-SETTLED = 0.2
+SETTLED = 0.1
+MAX_FIT_PAIRS = 1000  # a fit uses at most this many of a camera's newest pairs: a few ms on the loop
 
 MONITOR = section(
     "camera_monitor",
@@ -54,8 +55,8 @@ MONITOR = section(
             min=1.0),
     Setting("gate_px", "number", 15.0, "a blob pairs with a predicted marker within this (px), when no other "
             "blob or marker is within twice the distance", min=1.0, max=200.0),
-    Setting("sample_every", "integer", 2, "pair one frame in this many of each camera (cost per packet)",
-            min=1, max=100),
+    Setting("sample_every", "integer", 2, "keep the pairs of one frame in this many of each camera (the "
+            "cost per packet)", min=1, max=100),
     Setting("min_pairs", "integer", 200, "fewest pairs in a camera's window for a fit", min=20),
     Setting("max_pairs", "integer", 4000, "most pairs kept per camera (the oldest go first)", min=100),
     Setting("max_step_deg", "number", 2.0, "largest rotation applied per correction step (deg)", min=0.01),
@@ -85,7 +86,7 @@ class MonitorSettings:
 
 
 # ---------------------------------------------------------------------------------------------- math
-def pose_correction(camera: Camera, points_world: np.ndarray, pixels: np.ndarray, iterations: int = 4,
+def pose_correction(camera: Camera, points_world: np.ndarray, pixels: np.ndarray, iterations: int = 3,
                     huber_px: float = 1.0, prior_rotation_rad: float = 0.05, prior_shift_m: float = 0.005
                     ) -> tuple[np.ndarray, np.ndarray, float, float]:
     """Small correction of a camera's pose that best reprojects known world points onto observed pixels.
@@ -155,23 +156,19 @@ def marker_motion(state: BodyState, markers_body: np.ndarray) -> tuple[np.ndarra
 def pair_blobs(predicted_px: np.ndarray, blobs_px: np.ndarray, gate_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Unambiguous pairs (marker index (K,), blob index (K,)): the nearest blob within gate_px of a predicted
     marker, when no other blob is within twice that distance of the marker and no other marker within twice
-    that distance of the blob."""
+    that distance of the blob (at least 2 px either way)."""
     if len(predicted_px) == 0 or len(blobs_px) == 0:
         return np.zeros(0, int), np.zeros(0, int)
     d = np.linalg.norm(predicted_px[:, None, :] - blobs_px[None, :, :], axis=2)
     d = np.where(np.isfinite(d), d, np.inf)
-    m_idx, b_idx = [], []
-    for m in range(len(predicted_px)):
-        b = int(np.argmin(d[m]))
-        dm = d[m, b]
-        if not dm < gate_px:
-            continue
-        limit = max(2.0 * dm, 2.0)
-        if np.sum(d[m] < limit) > 1 or np.sum(d[:, b] < limit) > 1:
-            continue
-        m_idx.append(m)
-        b_idx.append(b)
-    return np.array(m_idx, int), np.array(b_idx, int)
+    b = np.argmin(d, axis=1)
+    m = np.arange(len(d))
+    dm = d[m, b]
+    limit = np.maximum(2.0 * dm, 2.0)
+    lone_blob = (d < limit[:, None]).sum(axis=1) == 1
+    lone_marker = (d[:, b] < limit[None, :]).sum(axis=0) == 1
+    ok = (dm < gate_px) & lone_blob & lone_marker
+    return m[ok], b[ok]
 
 
 # ---------------------------------------------------------------------------------------------- state
@@ -183,6 +180,7 @@ class CameraWatch:
     times_ns: deque = field(default_factory=deque)
     points: deque = field(default_factory=deque)  # (3,) world
     pixels: deque = field(default_factory=deque)  # (2,)
+    pending: list = field(default_factory=list)  # frames' pairs waiting for their batch triangulation
     frames_seen: int = 0
     flagged: bool = False
     flagged_since_ns: int | None = None
@@ -216,6 +214,9 @@ class CameraMonitor:
         self._last_ns = np.full((len(arena.cameras), int(starts[-1])), -(1 << 62), np.int64)
         self._fresh_ns = int(max(25e6, 2.5e9 / max(min(c.fps for c in arena.cameras), 1.0)))
         self._next_step_ns: int | None = None
+        self._turn = 0
+        self._round_end_ns = 0
+        self._fits: dict[int, tuple[np.ndarray, float, float]] = {}  # each camera's latest fit
         self.events: list[str] = []
 
     def observe_states(self, states: list[BodyState]) -> None:
@@ -260,39 +261,64 @@ class CameraMonitor:
         px = np.where(fresh[use][..., None], self._last_px[:, r[use]].transpose(1, 0, 2), np.nan)
         # each other view saw the marker where it was at its own capture time
         offsets = -V[m[use], None, :] * (age_ns[use] * 1e-9)[..., None]
-        tri = triangulate_pixels(self._rig, px, offsets=np.where(fresh[use][..., None], offsets, 0.0))
+        # triangulated in one batch per camera at the next step(): per frame only this bookkeeping
+        w.pending.append((frame.capture_ns, px, np.where(fresh[use][..., None], offsets, 0.0), blobs[b[use]]))
+
+    def _triangulate_pending(self, w: CameraWatch) -> None:
+        """The leave-one-out points of a camera's pending pairs, in one triangulation."""
+        if not w.pending:
+            return
+        px = np.concatenate([p[1] for p in w.pending])
+        offsets = np.concatenate([p[2] for p in w.pending])
+        blobs = np.concatenate([p[3] for p in w.pending])
+        times = np.concatenate([np.full(len(p[3]), p[0], np.int64) for p in w.pending])
+        w.pending.clear()
+        tri = triangulate_pixels(self._rig, px, offsets=offsets)
         good = np.isfinite(tri.points).all(axis=1)
-        for Xk, u in zip(tri.points[good], blobs[b[use][good]]):
-            w.times_ns.append(frame.capture_ns)
-            w.points.append(Xk)
-            w.pixels.append(u)
+        w.times_ns.extend(times[good].tolist())
+        w.points.extend(tri.points[good])
+        w.pixels.extend(blobs[good])
         while len(w.times_ns) > self.settings.max_pairs:
             w.times_ns.popleft()
             w.points.popleft()
             w.pixels.popleft()
 
     def step(self, now_ns: int) -> list[Correction]:
-        """Fit every camera's correction (at most once per step_s); flag the moved camera and, with correct,
-        return its corrected pose (the caller applies it, e.g. FusionPipeline.set_camera_pose)."""
+        """Fit one camera's correction per call (cameras in turn, each about once per step_s, so one call
+        costs one small fit on the server's loop); flag the moved camera from every camera's latest fit and,
+        with correct, return its corrected pose (the caller applies it: FusionPipeline.set_camera_pose)."""
         st = self.settings
         if self._next_step_ns is not None and now_ns < self._next_step_ns:
             return []
-        self._next_step_ns = now_ns + int(st.step_s * 1e9)
-        fits: dict[int, tuple[np.ndarray, float, float]] = {}
-        for cid, w in self.cams.items():
-            while w.times_ns and w.times_ns[0] < now_ns - st.window_s * 1e9:
-                w.times_ns.popleft()
-                w.points.popleft()
-                w.pixels.popleft()
-            if len(w.times_ns) < st.min_pairs:
-                w.last = {"pairs": float(len(w.times_ns))}
-                continue
-            delta, info, sigma, disp = pose_correction(w.camera, np.array(w.points), np.array(w.pixels))
+        ids = list(self.cams)
+        self._next_step_ns = now_ns + int(st.step_s * 1e9 / len(ids))
+        if self._turn % len(ids) == 0:
+            self._round_end_ns = now_ns  # every fit of this round uses the pairs up to here: one moment
+        cid = ids[self._turn % len(ids)]
+        self._turn += 1
+        w = self.cams[cid]
+        self._triangulate_pending(w)
+        while w.times_ns and w.times_ns[0] < now_ns - st.window_s * 1e9:
+            w.times_ns.popleft()
+            w.points.popleft()
+            w.pixels.popleft()
+        self._fits.pop(cid, None)
+        times = np.fromiter(w.times_ns, np.int64, len(w.times_ns))
+        upto = int(np.searchsorted(times, self._round_end_ns, side="right"))
+        if upto < st.min_pairs:
+            w.last = {"pairs": float(upto)}
+        else:
+            lo = max(0, upto - MAX_FIT_PAIRS)  # the newest up to the round's moment; bounds the fit's cost
+            pts, pix = np.array(list(w.points)[lo:upto]), np.array(list(w.pixels)[lo:upto])
+            delta, info, sigma, disp = pose_correction(w.camera, pts, pix)
             chi2 = float(delta @ info @ delta)
             w.last = {"pairs": float(len(w.times_ns)), "disp_px": disp, "chi2": chi2, "sigma_px": sigma,
                       "rotation_deg": float(np.degrees(np.linalg.norm(delta[:3]))),
                       "shift_mm": float(np.linalg.norm(delta[3:]) * 1e3)}
-            fits[cid] = (delta, disp, chi2)
+            self._fits[cid] = (delta, disp, chi2)
+        if self._turn % len(ids):
+            return []  # judge once every camera has a fit from this round: a stale fit would skew the comparison
+        fits = self._fits
         out: list[Correction] = []
         moved = sorted(((disp, cid) for cid, (_, disp, chi2) in fits.items() if chi2 > st.chi2_min), reverse=True)
         worst = None
@@ -319,7 +345,7 @@ class CameraMonitor:
             if not w.flagged or cid not in fits or not window_full[cid]:
                 continue
             delta, disp, chi2 = fits[cid]
-            if disp < SETTLED * st.flag_px or chi2 < st.chi2_min:
+            if disp < SETTLED * st.flag_px:
                 w.flagged, w.flagged_since_ns = False, None
                 msg = (f"camera {w.camera.name} (id {cid}) agrees with the other cameras again"
                        + (f" after {w.corrections} pose correction(s)" if w.corrections else ""))
@@ -343,8 +369,9 @@ class CameraMonitor:
                                       float(np.linalg.norm(delta[3:]))))
         return out
 
-    @staticmethod
-    def _clear(w: CameraWatch) -> None:
+    def _clear(self, w: CameraWatch) -> None:
+        self._fits.pop(w.camera.id, None)
+        w.pending.clear()
         w.times_ns.clear()
         w.points.clear()
         w.pixels.clear()
