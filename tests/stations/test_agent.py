@@ -93,8 +93,12 @@ class LoopbackServer:
                 known = self.sessions.get((msg.station_id, msg.camera_id)) == msg.session
                 out = P.make_hello_ack(msg, self.start_ns, self.clock(), P.ACK_OK if known else P.ACK_UNKNOWN_SESSION)
             elif isinstance(msg, P.SyncRequest):
-                self.syncs += 1
-                out = P.make_sync_reply(msg, recv, self.clock())
+                # like the real server (Ingest._control): no clock for a session it does not know; answering
+                # one would let the station move to this clock before it re-registers, and its first frame
+                # on the new clock (FLAG_RESYNC) would be refused as unregistered
+                if self.sessions.get((msg.station_id, msg.camera_id)) == msg.session:
+                    self.syncs += 1
+                    out = P.make_sync_reply(msg, recv, self.clock())
             if out is not None:
                 self.sock.sendto(P.encode(out, self.key), addr)
 

@@ -55,8 +55,8 @@ MONITOR = section(
             min=1.0),
     Setting("gate_px", "number", 15.0, "a blob pairs with a predicted marker within this (px), when no other "
             "blob or marker is within twice the distance", min=1.0, max=200.0),
-    Setting("sample_every", "integer", 2, "keep the pairs of one frame in this many of each camera (the "
-            "cost per packet)", min=1, max=100),
+    Setting("sample_every", "integer", 2, "look at one frame in this many of each camera (the cost per "
+            "packet)", min=1, max=100),
     Setting("min_pairs", "integer", 200, "fewest pairs in a camera's window for a fit", min=20),
     Setting("max_pairs", "integer", 4000, "most pairs kept per camera (the oldest go first)", min=100),
     Setting("max_step_deg", "number", 2.0, "largest rotation applied per correction step (deg)", min=0.01),
@@ -212,7 +212,10 @@ class CameraMonitor:
         # each camera's newest paired view of every marker: pixel (V, M, 2) and capture time (V, M)
         self._last_px = np.full((len(arena.cameras), int(starts[-1]), 2), np.nan)
         self._last_ns = np.full((len(arena.cameras), int(starts[-1])), -(1 << 62), np.int64)
-        self._fresh_ns = int(max(25e6, 2.5e9 / max(min(c.fps for c in arena.cameras), 1.0)))
+        # another camera's view is used while younger than this (motion-compensated): sampled frames come
+        # sample_every periods apart
+        self._fresh_ns = int(max(25e6, (self.settings.sample_every + 0.5) * 1e9 / max(min(c.fps for c in
+                                                                                      arena.cameras), 1.0)))
         self._next_step_ns: int | None = None
         self._turn = 0
         self._round_end_ns = 0
@@ -230,13 +233,17 @@ class CameraMonitor:
                             np.concatenate([self._marker_rows[m[0].name] for m in moving]))
 
     def observe_frame(self, frame: BlobFrame) -> None:
-        """Pair the frame's blobs with the tracked markers; for a sample of the frames, triangulate each
-        paired marker from the OTHER cameras' newest views (leave-one-out: the fused pose leans toward a
-        knocked camera, the other cameras' rays do not) and keep (that point, this blob)."""
+        """For one frame in sample_every of each camera: pair its blobs with the tracked markers, note them as
+        this camera's newest views, and queue each paired marker for triangulation from the OTHER cameras'
+        newest views (leave-one-out: the fused pose leans toward a knocked camera, the other cameras' rays do
+        not) with this blob. The other frames cost a counter."""
         v = self._index.get(frame.camera_id)
         if v is None or self._motion is None:
             return
         w = self.cams[frame.camera_id]
+        w.frames_seen += 1
+        if w.frames_seen % self.settings.sample_every:
+            return
         blobs = np.asarray(frame.blobs, float).reshape(-1, 4)[:, :2]
         if not len(blobs):
             return
@@ -247,9 +254,6 @@ class CameraMonitor:
             return
         self._last_px[v, rows[m]] = blobs[b]
         self._last_ns[v, rows[m]] = frame.capture_ns
-        w.frames_seen += 1
-        if w.frames_seen % self.settings.sample_every:
-            return
         others = np.ones(len(self.cams), bool)
         others[v] = False
         r = rows[m]
