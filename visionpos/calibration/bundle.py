@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from visionpos.calibration.wand import CalibrationError, WandData, WandSpec
 from visionpos.camera.model import Camera, CameraModel
-from visionpos.geometry.epipolar import decompose_essential, essential_from_points
+from visionpos.geometry.epipolar import decompose_essential, essential_from_points, sampson_distance
 from visionpos.geometry.rotations import skew
 from visionpos.geometry.triangulation import CameraRig, triangulate_normalized
 
@@ -71,18 +71,6 @@ def wand_scale(points: np.ndarray, spec: WandSpec) -> np.ndarray:
             + spec.ab / np.linalg.norm(A - B, axis=1)
             + spec.bc / np.linalg.norm(B - C, axis=1)
         ) / 3.0
-
-
-def _sampson_distance(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """First-order geometric error (N,) of correspondences x1, x2 (N, 2) under E (3, 3), normalised units."""
-    h1 = np.column_stack([x1, np.ones(len(x1))])
-    h2 = np.column_stack([x2, np.ones(len(x2))])
-    Ex1 = h1 @ E.T
-    Etx2 = h2 @ E
-    num = np.sum(h2 * Ex1, axis=1)
-    den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.abs(num) / np.sqrt(den)  # same as wand.sampson_distance
 
 
 class DegenerateMotion(CalibrationError):
@@ -128,7 +116,7 @@ def pair_pose(
     # RANSAC over minimal 8-point samples can settle on a poor model when the wand cloud is
     # compact (near bas-relief ambiguity); the linear fit on all points is then often better
     E_all, _ = essential_from_points(p1, p2)
-    inl_all = _sampson_distance(E_all, p1, p2) < threshold
+    inl_all = sampson_distance(E_all, p1, p2) < threshold
     if inl_all.sum() > inl.sum():
         E, inl = essential_from_points(p1[inl_all], p2[inl_all])[0], inl_all
     R, t_unit, front = decompose_essential(E, p1[inl], p2[inl])

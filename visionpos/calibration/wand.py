@@ -36,6 +36,7 @@ import numpy as np
 
 from visionpos.camera.model import Camera
 from visionpos.errors import VisionposError
+from visionpos.geometry.epipolar import sampson_distance
 from visionpos.messages import BlobFrame
 
 
@@ -452,18 +453,6 @@ def collect_wand(
 
 
 # ------------------------------------------------------------- clock offsets
-def sampson_distance(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """First-order geometric error (N,) of correspondences x1, x2 (N, 2) under E (3, 3), normalised units."""
-    h1 = np.column_stack([x1, np.ones(len(x1))])
-    h2 = np.column_stack([x2, np.ones(len(x2))])
-    Ex1 = h1 @ E.T
-    Etx2 = h2 @ E
-    num = np.sum(h2 * Ex1, axis=1)
-    den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.abs(num) / np.sqrt(den)
-
-
 @dataclass
 class PairOffset:
     """Clock offset of camera j minus camera i (ns) from their wand tracks.

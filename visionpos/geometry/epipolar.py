@@ -52,16 +52,21 @@ def _eight_point(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     return E / np.linalg.norm(E, axis=(1, 2), keepdims=True)
 
 
-def _sampson(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """Sampson distance (first-order geometric error, normalised units) for E (B,3,3) -> (B, N)."""
+def sampson_distance(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Sampson distance (first-order geometric error, normalised units) of correspondences x1, x2 (N, 2)
+    under an essential matrix E (3, 3) -> (N,), or under a batch E (B, 3, 3) -> (B, N)."""
+    Eb = np.asarray(E, dtype=np.float64)
+    single = Eb.ndim == 2
+    Eb = Eb[None] if single else Eb
     h1 = np.concatenate([x1, np.ones((len(x1), 1))], axis=1)
     h2 = np.concatenate([x2, np.ones((len(x2), 1))], axis=1)
-    Ex1 = np.einsum("bij,nj->bni", E, h1)
-    Etx2 = np.einsum("bji,nj->bni", E, h2)
+    Ex1 = np.einsum("bij,nj->bni", Eb, h1)
+    Etx2 = np.einsum("bji,nj->bni", Eb, h2)
     num = np.einsum("ni,bni->bn", h2, Ex1)
     den = Ex1[..., 0] ** 2 + Ex1[..., 1] ** 2 + Etx2[..., 0] ** 2 + Etx2[..., 1] ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.abs(num) / np.sqrt(den)
+        d = np.abs(num) / np.sqrt(den)
+    return d[0] if single else d
 
 
 def essential_from_points(
@@ -101,7 +106,7 @@ def essential_from_points(
     while done < min(needed, max_iters):
         samples = np.stack([gen.choice(idx, 8, replace=False) for _ in range(batch)])
         Es = _eight_point(x1[samples], x2[samples])
-        d = _sampson(Es, x1, x2)
+        d = sampson_distance(Es, x1, x2)
         inl = (d < threshold) & ok
         counts = inl.sum(axis=1)
         b = int(np.argmax(counts))
@@ -116,7 +121,7 @@ def essential_from_points(
     if best_n < 8:
         raise ValueError(f"RANSAC found only {best_n} inliers at threshold {threshold}; raise the threshold")
     E = _eight_point(x1[best_inl][None], x2[best_inl][None])[0]
-    inl = (_sampson(E[None], x1, x2)[0] < threshold) & ok
+    inl = (sampson_distance(E[None], x1, x2)[0] < threshold) & ok
     if inl.sum() >= 8 and inl.sum() >= best_n:
         E = _eight_point(x1[inl][None], x2[inl][None])[0]
         best_inl = inl
