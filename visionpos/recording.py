@@ -430,11 +430,7 @@ class RecordingWriter:
         for topic, schema, t, data in out:
             ch = self._topic_channels.get(topic)
             if ch is None:
-                sid = self._fox_schemas.get(schema)
-                if sid is None:
-                    sid = self._fox_schemas[schema] = self._w.register_schema(schema, "protobuf",
-                                                                              file_descriptor_set(schema))
-                ch = self._channel_for(topic, "protobuf", sid)
+                ch = self._channel_for(topic, "protobuf", _protobuf_schema(self._w, self._fox_schemas, schema))
             self._add(ch, t, data, topic)
 
     def _foxglove_out(self, out: list[tuple[str, str, int, bytes]]) -> None:
@@ -954,6 +950,14 @@ def foxglove_copy(src: str | Path, dst: str | Path, rate_hz: float = DEFAULT_RAT
     return report
 
 
+def _protobuf_schema(w: Writer, registered: dict[str, int], schema: str) -> int:
+    """The id of a Foxglove protobuf schema in writer w, registered on first use (registered: name -> id)."""
+    sid = registered.get(schema)
+    if sid is None:
+        sid = registered[schema] = w.register_schema(schema, "protobuf", file_descriptor_set(schema))
+    return sid
+
+
 class _FoxgloveFeed:
     """Feeds a recording's messages, in file order, to FoxgloveChannels; writes what they return."""
 
@@ -968,11 +972,8 @@ class _FoxgloveFeed:
         for topic, schema, t, data in out:
             ch = self.channels.get(topic)
             if ch is None:
-                sid = self.schemas.get(schema)
-                if sid is None:
-                    sid = self.schemas[schema] = self.w.register_schema(schema, "protobuf",
-                                                                        file_descriptor_set(schema))
-                ch = self.channels[topic] = self.w.register_channel(topic, "protobuf", sid)
+                ch = self.channels[topic] = self.w.register_channel(topic, "protobuf",
+                                                                    _protobuf_schema(self.w, self.schemas, schema))
             self.w.add_message(ch, t, data, t, 0)
             self.count += 1
 

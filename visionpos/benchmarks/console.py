@@ -29,6 +29,7 @@ from visionpos.benchmarks.bridge import (
     OUTPUT_PAIRS_QUICK,
     OUTPUT_SETTLE_S,
     OUTPUT_TAIL_S,
+    _client_counts,
 )
 
 # above the 30 updates/s the goal asks for, so that the client's count over a window (+- one update) clears it
@@ -57,14 +58,6 @@ async def _client_main(url: str) -> None:
             task.cancel()
 
 
-async def _counts(proc) -> dict[str, float]:
-    if proc is None:
-        return {}
-    proc.stdin.write(b"count\n")
-    await proc.stdin.drain()
-    return json.loads(await proc.stdout.readline())
-
-
 def _demo_run(arena, duration_s: float, console: bool) -> dict[str, Any]:
     from console.settings import ConsoleSettings
     from visionpos.app.demo import run_demo
@@ -85,11 +78,11 @@ def _demo_run(arena, duration_s: float, console: bool) -> dict[str, Any]:
             await asyncio.sleep(OUTPUT_SETTLE_S)
             cpu0, pk0, tk0, t0 = time.thread_time(), server.ingest.counters.packets, server.ticks, time.perf_counter()
             own0 = views[0].cpu_ns if views else 0
-            c0 = await _counts(client)
+            c0 = await _client_counts(client)
             await asyncio.sleep(max(0.5, t_end - time.monotonic()))
             cpu1, pk1, tk1, t1 = time.thread_time(), server.ingest.counters.packets, server.ticks, time.perf_counter()
             own1 = views[0].cpu_ns if views else 0
-            c1 = await _counts(client)
+            c1 = await _client_counts(client)
         finally:
             if client is not None:
                 client.stdin.close()
