@@ -106,3 +106,23 @@ def test_short_closed_loop_flight_on_real_sitl():
     assert s["completed"], (s["error"], s["statustext"])
     assert s["ekf_horizontal_error_mm"]["p99"] <= 20.0
     assert s["failsafe_or_lane_switch"] == [] and s["mode_changes_not_ours"] == []
+
+
+def test_truth_track_smooths_the_centimetre_altitude():
+    """SIM_STATE's altitude comes in whole centimetres (ArduPilot's Location): a climb at 0.25 m/s read
+    raw is a staircase of 1 cm steps every 40 ms, which the cameras would see as a body jumping. The
+    track must follow the climb itself: smooth steps, and within the quantisation of the true height."""
+    track = S.TruthTrack(HOME)
+    t0, dt_ns, climb = 10_000_000_000, 5_000_000, 0.25
+    for k in range(600):
+        t = k * dt_ns * 1e-9
+        up = 0.5 + climb * t
+        m = _sim_state(0.0, 0.0, 0.0, (0.0, 0.0, -climb), (1.0, 0.0, 0.0, 0.0))
+        m.alt = HOME[2] + round(up * 100.0) / 100.0  # what SITL sends
+        track.add(t0 + k * dt_ns, m)
+    times = t0 + np.arange(300, 599) * dt_ns
+    z = track.sample(times)[0][:, 2]
+    true_z = 0.5 + climb * (times - t0) * 1e-9
+    assert np.abs(z - true_z).max() < 0.006  # the raw steps are off by up to 5 mm plus the 1 cm jump
+    steps = np.diff(z)
+    assert np.abs(steps - climb * dt_ns * 1e-9).max() < 0.0005  # no 1 cm jumps: each 5 ms step ~ 1.25 mm

@@ -242,7 +242,7 @@ def test_motioncapture_optitrack_multicast_on_loopback(up):
             proc.poll() is not None else "no answer"
         sent = []
         drive(srv, 0.2, sent=sent)
-        t0 = time.monotonic()
+        n_warm = len(sent)
         drive(srv, 1.0, sent=sent)
         end = time.monotonic() + 5.0
         while proc.poll() is None and time.monotonic() < end:  # lost until the client has seen it and quit
@@ -250,8 +250,17 @@ def test_motioncapture_optitrack_multicast_on_loopback(up):
         proc.wait(timeout=5)
         reader.join(timeout=2)
         frames = [json.loads(x) for x in lines[1:]]
-        in_window = [f for t, f in frames if t0 + 0.02 <= t < t0 + 1.0]
-        assert len(in_window) >= 0.85 * RATE_HZ, f"{len(in_window)} frames in 1 s at {RATE_HZ} Hz"
+        # the frames of the measured second, recognised by their pose (cf1's x grows 0.1 m/s from 1.25 m in
+        # every drive; past 0.2 s of it no warm-up or lost pose has that x), not by the client's read times,
+        # which a busy 2-core machine delays and bunches; a frame lost is still missing
+        x_sent = np.array([st[0].position[0] for st in sent[n_warm:]])
+        beyond = 1.25 + 0.1 * 0.2 + 1e-4
+        got = {int(np.argmin(np.abs(x_sent - f["cf1"][0][0]))) for _, f in frames
+               if "cf1" in f and f["cf1"][0][0] > beyond and np.abs(x_sent - f["cf1"][0][0]).min() < 1e-5}
+        expected_n = int((x_sent > beyond).sum())
+        assert expected_n >= 0.7 * RATE_HZ
+        assert len(got) >= 0.85 * expected_n, f"{len(got)} of the {expected_n} frames sent"
+        in_window = [f for _, f in frames if "cf1" in f and f["cf1"][0][0] > beyond]
         for body in in_window[-20:]:
             assert set(body) == {"cf1", "drone_b"}
         last = in_window[-1]

@@ -23,10 +23,11 @@ start: a vision stream that reaches EKF3 before its origin leaves the height off
 for the whole flight. The origin is the SITL home, so EKF NED = the arena's world turned by
 visionpos/geometry/frames.py (N = x, E = -y, D = -z).
 
-Truth: SIM_STATE carries the vehicle's attitude (quaternion), NED velocity, body rates and
-altitude at full precision, but latitude/longitude only in 1e-7 degrees (about 1.1 cm), so the
-horizontal position is the integral of the velocity, pulled slowly (TRUTH_BLEND_S) towards the
-quantised one. Samples are stamped with their arrival time (loopback, well under a millisecond
+Truth: SIM_STATE carries the vehicle's attitude (quaternion), NED velocity and body rates at
+full precision, but latitude/longitude only in 1e-7 degrees (about 1.1 cm) and the altitude in
+whole centimetres (ArduPilot's Location), so the position is the integral of the velocity, pulled
+slowly (TRUTH_BLEND_S) towards the quantised one: cameras rendering the raw steps would see a body
+jump 1 cm in one frame. Samples are stamped with their arrival time (loopback, well under a millisecond
 after SITL's physics step, plus the reader thread's wake-up). Cameras expose at their own times:
 the body's pose there is interpolated between samples (cubic Hermite in position with the
 velocities, slerp in attitude) or, for the newest few milliseconds, extrapolated with the last
@@ -115,7 +116,7 @@ MODE_NAMES = {v: k for k, v in COPTER_MODES.items()}
 
 TRUTH_RATE_HZ = 100.0
 TELEMETRY_RATE_HZ = 50.0
-TRUTH_BLEND_S = 1.0  # time constant pulling the integrated horizontal truth to the 1e-7 deg one
+TRUTH_BLEND_S = 1.0  # time constant pulling the integrated truth to the quantised position
 LATLON_TO_M = 0.011131884502145034  # ArduPilot's metres per 1e-7 degree of latitude
 LIVE_WINDOW_NS = 40_000_000  # cameras' frames are made 40 ms at a time (a call's cost is mostly fixed) ...
 LIVE_MAKE_AT = (0.25, 0.75)  # ... between a quarter and three quarters into the window, cameras spread over it
@@ -303,8 +304,7 @@ class TruthTrack:
         else:
             dt = max((recv_ns - int(self._t[self.n - 1])) * 1e-9, 0.0)
             ned = self._ned_prev + 0.5 * (self._v_prev + v_ned) * dt
-            ned[:2] += (meas[:2] - ned[:2]) * min(1.0, dt / TRUTH_BLEND_S)
-            ned[2] = meas[2]  # alt is a float in metres: exact to 0.1 mm
+            ned += (meas - ned) * min(1.0, dt / TRUTH_BLEND_S)
         self._ned_prev, self._v_prev = ned, v_ned
         q = quat_ned_frd_to_world_body(np.array([m.q2, m.q3, m.q4, m.q1], dtype=float))
         row = np.concatenate([ned_to_world(ned), ned_to_world(v_ned), q,

@@ -388,7 +388,16 @@ def _tracked_measurements(marker_xn: np.ndarray, views: tuple, tracked: tuple, d
     Returns per body: R (B, 3, 3), t (B, 3), markers used (B,), fit residual sum
     of squares (B,), cameras seeing it (B,), pixel-variance sample (B,), unit-variance
     pose covariance (B, 6, 6), motion variance added to position / rotation (B,),
-    fit tolerance (B,); and the number of points refused by the residual gate.
+    fit tolerance (B,); the number of points refused by the residual gate; and per body
+    h_t (B, 2): the mean over its fitted observations of dt and dt^2 / 2 (s, s^2) when
+    its views were motion-compensated, else 0.
+
+    A compensated pose is where the body was at the views' times moved to the reference
+    with the filter's own velocity, acceleration and rate, so it measures p + h_t[0] (v -
+    v_est) + h_t[1] (a - a_est) (and the rotation likewise with the rate): the filter update
+    must see those columns (tracking._kf_update), or the views older than the reference
+    feed the velocity error back into the velocity (an oscillation that grows once a
+    manoeuvre has raised the process noise).
     """
     cameras, R, t, f, _ = views
     _, rows, sizes, _, local = tracked
@@ -421,12 +430,14 @@ def _tracked_measurements(marker_xn: np.ndarray, views: tuple, tracked: tuple, d
     gate = np.empty(n_bodies)
     fit_tol = np.empty(n_bodies)
     moving = False
+    compensated = np.zeros(n_bodies, dtype=np.bool_)
     for b in range(n_bodies):
         x = states[b, STATE_X]
         sv2, sw2 = states[b, STATE_VEL_VAR], states[b, STATE_RATE_VAR]
         w = x[X_RATE]
         p, Rb[b], v = predict_mean(x, states[b, STATE_R_NOM].reshape((3, 3)), states[b, STATE_DT_S])
         if compensate and sv2 < compensate_max_vel_var:
+            compensated[b] = True
             vel[b], acc[b], rate[b] = v, x[X_ACC], w
             moving = moving or np.any(v != 0.0) or np.any(x[X_ACC] != 0.0) or np.any(w != 0.0)
             var_p[b], var_r[b] = dt2_mean * sv2, dt2_mean * sw2
@@ -474,15 +485,24 @@ def _tracked_measurements(marker_xn: np.ndarray, views: tuple, tracked: tuple, d
     n_cams = np.zeros(n_bodies, dtype=np.int64)
     px_var = np.zeros(n_bodies)
     cov = np.full((n_bodies, 6, 6), np.nan)
+    h_t = np.zeros((n_bodies, 2))
     k = 0
     for b in range(n_bodies):
         s = slice(k, k + sizes[b])
         Rk[b], tk[b] = kabsch_horn_compiled(local[s], X[s], w_fit[s])
+        n_obs = 0
         for v in range(n_views):
+            seen = False
             for q in range(k, k + sizes[b]):
                 if not np.isnan(xn[q, v, 0]):
-                    n_cams[b] += 1
-                    break
+                    seen = True
+                    if w_fit[q] > 0 and has_offsets and compensated[b]:
+                        h_t[b, 0] += dt[v]
+                        h_t[b, 1] += 0.5 * dt[v] * dt[v]
+                        n_obs += 1
+            n_cams[b] += seen
+        if n_obs:
+            h_t[b] /= n_obs
         fitted = np.empty((sizes[b], 3))
         n = 0
         for q in range(k, k + sizes[b]):
@@ -498,7 +518,7 @@ def _tracked_measurements(marker_xn: np.ndarray, views: tuple, tracked: tuple, d
             px_var[b] /= n
             cov[b] = pose_measurement_cov(fitted[:n], tk[b], 1.0)
         k += sizes[b]
-    return Rk, tk, count, res2, n_cams, px_var, cov, var_p, var_r, fit_tol, refused
+    return Rk, tk, count, res2, n_cams, px_var, cov, var_p, var_r, fit_tol, refused, h_t
 
 
 @njit
@@ -639,7 +659,7 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
     for v in range(n_views):
         dt[v] = (capture_ns[cameras[v]] - ref_ns) * 1e-9
         newest_capture_ns = max(newest_capture_ns, capture_ns[cameras[v]])
-    Rk, tk, counts, res2, n_cams, px_var, cov_unit, var_p, var_r, fit_tol, refused = _tracked_measurements(
+    Rk, tk, counts, res2, n_cams, px_var, cov_unit, var_p, var_r, fit_tol, refused, h_t = _tracked_measurements(
         marker_xn, views, tracked, dt, _pack_states(bank, bodies, ref_ns), compensate, params)
     n_bodies = bodies.shape[0]
     verdict = np.full(n_bodies, VERDICT_TOO_FEW, dtype=np.int64)
@@ -676,7 +696,8 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
         marker_var = max(track_floats[b, TRACK_MARKER_VAR], params[PARAM_MARKER_VAR_FLOOR]) * reuse
         cov = _scaled_pose_cov(cov_unit[i], marker_var, var_p[i], var_r[i])
         meas[i, MEAS_COV] = cov.ravel()
-        accepted, _ = filter_update(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i], cov, True)
+        accepted, _ = filter_update(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i], cov, True,
+                                    h_t[i, 0], h_t[i, 1])
         if accepted:
             verdict[i] = VERDICT_ACCEPTED
         else:

@@ -202,25 +202,38 @@ def _kf_update(
     R: np.ndarray,
     cov: np.ndarray,
     gate_chi2: float,
+    h_vel: float,
+    h_acc: float,
 ) -> tuple[bool, float, float, float]:
     """Fuse a pose measurement into x (15,), P (15, 15), R_nom (3, 3) in place (Joseph form).
 
     position (3,), R (3, 3) body->world, cov (6, 6) over [p, world rotation
-    vector]. gate_chi2 <= 0 disables the gate. Returns (accepted, squared
-    Mahalanobis distance, position NIS / 3, rotation NIS / 3).
+    vector]. gate_chi2 <= 0 disables the gate. h_vel (s), h_acc (s^2): how much
+    of the velocity (and rate) and of the acceleration error the measurement
+    carries, the columns of H beside the pose's own (0, 0: a plain pose; see
+    kernels._tracked_measurements: a motion-compensated one). Returns (accepted,
+    squared Mahalanobis distance, position NIS / 3, rotation NIS / 3).
     """
     z = np.empty(6)
     z[POSE_P] = position
     z[POSE_ROT] = rotvec_from_matrix_compiled(matmul3(R, R_nom.T))
+    # H row j: 1 at X_POSE[j], h_vel at the velocity (rate) column, h_acc at the acceleration one
+    c_rate = np.empty(6, dtype=np.int64)
+    c_acc = np.empty(6, dtype=np.int64)
+    w_acc = np.empty(6)
+    for k in range(3):
+        c_rate[k], c_acc[k], w_acc[k] = VEL0 + k, ACC0 + k, h_acc
+        c_rate[3 + k], c_acc[3 + k], w_acc[3 + k] = RATE0 + k, RATE0 + k, 0.0
     S = np.empty((6, 6))
     y = np.empty(6)
-    PHt = np.empty((N_STATE, 6))  # P H^T: the measured columns
+    PHt = np.empty((N_STATE, 6))  # P H^T
     for j in range(6):
-        y[j] = z[j] - x[X_POSE[j]]
+        y[j] = z[j] - x[X_POSE[j]]  # the compensation already took H's other columns at the estimate
         for i in range(N_STATE):
-            PHt[i, j] = P[i, X_POSE[j]]
-        for i in range(6):
-            S[i, j] = P[X_POSE[i], X_POSE[j]] + cov[i, j]
+            PHt[i, j] = P[i, X_POSE[j]] + h_vel * P[i, c_rate[j]] + w_acc[j] * P[i, c_acc[j]]
+    for i in range(6):
+        for j in range(6):
+            S[i, j] = PHt[X_POSE[i], j] + h_vel * PHt[c_rate[i], j] + w_acc[i] * PHt[c_acc[i], j] + cov[i, j]
     Sinv = _spd_inverse(S)
     d2 = 0.0
     for i in range(6):
@@ -240,14 +253,22 @@ def _kf_update(
     for i in range(N_STATE):
         for j in range(6):
             x[i] += K[i, j] * y[j]
-    # Joseph form (I - K H) P (I - K H)^T + K C K^T, with H selecting the X_POSE states
+    # Joseph form (I - K H) P (I - K H)^T + K C K^T
+    HP = np.empty((6, N_STATE))
+    for m in range(6):
+        for j in range(N_STATE):
+            HP[m, j] = P[X_POSE[m], j] + h_vel * P[c_rate[m], j] + w_acc[m] * P[c_acc[m], j]
     AP = P.copy()
     for i in range(N_STATE):
         for j in range(N_STATE):
             acc = 0.0
             for m in range(6):
-                acc += K[i, m] * P[X_POSE[m], j]
+                acc += K[i, m] * HP[m, j]
             AP[i, j] -= acc
+    APHt = np.empty((N_STATE, 6))
+    for i in range(N_STATE):
+        for m in range(6):
+            APHt[i, m] = AP[i, X_POSE[m]] + h_vel * AP[i, c_rate[m]] + w_acc[m] * AP[i, c_acc[m]]
     KC = np.zeros((N_STATE, 6))
     for i in range(N_STATE):
         for j in range(6):
@@ -257,8 +278,11 @@ def _kf_update(
         for j in range(N_STATE):
             acc = AP[i, j]
             for m in range(6):
-                acc += -AP[i, X_POSE[m]] * K[j, m] + KC[i, m] * K[j, m]
+                acc += -APHt[i, m] * K[j, m] + KC[i, m] * K[j, m]
             P[i, j] = acc
+    for i in range(N_STATE):  # rounding leaves P a little asymmetric; left alone that grows
+        for j in range(i):
+            P[i, j] = P[j, i] = 0.5 * (P[i, j] + P[j, i])
     _fold(x, R_nom)
     return True, d2, nis_p, nis_r
 
@@ -266,13 +290,13 @@ def _kf_update(
 @njit
 def _kf_predict_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: float, qw: float,
                        position: np.ndarray, R: np.ndarray, cov: np.ndarray,
-                       gate_chi2: float) -> tuple[int, bool, float, float, float]:
+                       gate_chi2: float, h_vel: float, h_acc: float) -> tuple[int, bool, float, float, float]:
     """_kf_predict over dt (when dt != 0) then _kf_update, in one call; returns
     (folds done, accepted, squared Mahalanobis distance, position NIS / 3, rotation NIS / 3)."""
     folds = 0
     if dt != 0.0 and _kf_predict(x, P, R_nom, dt, qj, qw):
         folds += 1
-    accepted, d2, nis_p, nis_r = _kf_update(x, P, R_nom, position, R, cov, gate_chi2)
+    accepted, d2, nis_p, nis_r = _kf_update(x, P, R_nom, position, R, cov, gate_chi2, h_vel, h_acc)
     if accepted:
         folds += 1
     return folds, accepted, d2, nis_p, nis_r
@@ -377,12 +401,14 @@ def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: flo
 @njit
 def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.ndarray, clock: np.ndarray,
                   params: np.ndarray, t_ns: int, position: np.ndarray, R: np.ndarray, cov: np.ndarray,
-                  gate: bool) -> tuple[bool, float]:
+                  gate: bool, h_vel: float, h_acc: float) -> tuple[bool, float]:
     """Predict one body filter to t_ns (int ns) and fuse a pose measurement, in place (compiled).
 
     x (15,), P (15, 15), R_nom (3, 3), adapt (6,), clock (3,): the body's rows of a
     FilterBank; params (8,) its settings (FilterBank.params). position (3,), R (3, 3) body->world,
-    cov (6, 6) over [p, world rotation vector]; gate: apply the innovation gate.
+    cov (6, 6) over [p, world rotation vector]; gate: apply the innovation gate; h_vel (s),
+    h_acc (s^2): the velocity (rate) and acceleration columns of H (_kf_update; 0 for a pose
+    measured at t_ns).
     Returns (accepted, squared Mahalanobis distance); a gated measurement leaves
     the state predicted only. Then adapts the process-noise scales to the NIS.
     """
@@ -390,7 +416,7 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
     folds, accepted, d2, nis_p, nis_r = _kf_predict_update(
         x, P, R_nom, dt,
         params[KALMAN_JERK_PSD] * adapt[ADAPT_SCALE_P], params[KALMAN_ANG_ACC_PSD] * adapt[ADAPT_SCALE_R],
-        position, R, cov, params[KALMAN_GATE_CHI2] if gate else 0.0,
+        position, R, cov, params[KALMAN_GATE_CHI2] if gate else 0.0, h_vel, h_acc,
     )
     clock[CLOCK_T_NS] = t_ns
     _count_folds(R_nom, clock, folds)
@@ -728,7 +754,7 @@ class BodyFilter:
         accepted, d2 = filter_update(
             self.x, self.P, self.R_nom, self._adapt, self._clock, self.bank.params, int(t_ns),
             np.asarray(position, dtype=np.float64), np.ascontiguousarray(R, dtype=np.float64),
-            np.ascontiguousarray(meas_cov, dtype=np.float64), bool(gate),
+            np.ascontiguousarray(meas_cov, dtype=np.float64), bool(gate), 0.0, 0.0,
         )
         return bool(accepted), float(d2)
 
