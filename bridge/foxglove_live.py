@@ -116,6 +116,7 @@ class FoxgloveServer:
         self._gate: _ClientGate | None = None
         self.port = 0
         self.counters = {"updates": 0, "messages": 0, "replaced": 0, "errors": 0}
+        self.messages_by_topic: dict[str, int] = {}  # handed to the SDK (the bench compares a client's count)
 
     @classmethod
     def from_arena(cls, arena: ArenaConfig) -> "FoxgloveServer | None":
@@ -207,6 +208,7 @@ class FoxgloveServer:
                 try:
                     self._channel(topic, schema).log(data, log_time=t)
                     self.counters["messages"] += 1
+                    self.messages_by_topic[topic] = self.messages_by_topic.get(topic, 0) + 1
                 except Exception:  # the SDK failing must not end the thread: count, log once per burst
                     self.counters["errors"] += 1
                     if self.counters["errors"] == 1:
