@@ -454,6 +454,12 @@ class _ClientGate:
 
     def _close_link(self, link: _Link) -> None:
         self._links.remove(link)
+        for s, pending in ((link.up, link.to_up), (link.down, link.to_down)):
+            if pending:  # e.g. the client's close frame, read just before its end of stream
+                try:
+                    s.send(pending)
+                except OSError:
+                    pass
         for s in (link.down, link.up):
             if link.events[s]:
                 self._sel.unregister(s)
