@@ -9,6 +9,7 @@ Foxglove's official protobuf classes. Skipped with the reason when the extra is 
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import struct
 import time
@@ -21,11 +22,13 @@ ws_client = pytest.importorskip("websockets.sync.client", reason="websockets (th
 fox_pb = pytest.importorskip("foxglove_schemas_protobuf.SceneUpdate_pb2",
                              reason="foxglove-schemas-protobuf (the [test] extra) parses the messages")
 from google.protobuf import descriptor_pb2  # noqa: E402  (after the skips: protobuf comes with them)
+from websockets.exceptions import InvalidStatus  # noqa: E402
 
+from bridge import foxglove_live  # noqa: E402
 from bridge.foxglove_live import FoxgloveConfig, FoxgloveServer, parse_foxglove  # noqa: E402
 from visionpos.config.arena import ConfigError, load_arena, parse_arena  # noqa: E402
 from visionpos.foxglove import channels as C  # noqa: E402
-from visionpos.messages import BodyState  # noqa: E402
+from visionpos.messages import BodyState, LoosePoints  # noqa: E402
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 
@@ -132,6 +135,13 @@ def test_section_is_checked_and_the_extra_named(arena_yaml):
     y["foxglove"] = {"port": 70000}
     with pytest.raises(ConfigError, match="port"):
         parse_foxglove(parse_arena(y, "a.yaml"))
+    for key, bad in (("max_clients", 0), ("max_clients", 257), ("handshake_timeout_s", 0.0)):
+        y["foxglove"] = {key: bad}
+        with pytest.raises(ConfigError, match=key):
+            parse_foxglove(parse_arena(y, "a.yaml"))
+    y["foxglove"] = {"max_clients": 3, "handshake_timeout_s": 0.5}
+    cfg = parse_foxglove(parse_arena(y, "a.yaml"))
+    assert (cfg.max_clients, cfg.handshake_timeout_s) == (3, 0.5)
     y["foxglove"] = {"enabled": False}
     assert parse_foxglove(parse_arena(y, "a.yaml")) is None
     y["foxglove"] = {}
@@ -158,3 +168,128 @@ def test_serve_adds_the_server_only_when_the_section_asks(arena_yaml):
     y["foxglove"] = {"port": 8799}
     (srv,) = [s for s in outputs(y) if isinstance(s, FoxgloveServer)]
     assert srv.cfg.port == 8799 and srv.cfg.host == "127.0.0.1"  # not started: serve starts its sinks
+
+
+# ---------------------------------------------------------------- client limit, stalls (issue 16)
+
+def _started(**cfg) -> FoxgloveServer:
+    srv = FoxgloveServer(FoxgloveConfig(port=0, **cfg), load_arena("thesis").cameras)
+    srv.start()
+    srv.publish([_state(10**9, True, 0.5)])  # creates the channels
+    srv.publish_markers(LoosePoints(10**9, np.zeros((1, 3))))
+    deadline = time.monotonic() + 5
+    while srv.counters["messages"] < 4 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return srv
+
+
+def _connect(port: int, **kw):
+    return ws_client.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], open_timeout=5, **kw)
+
+
+def _subscribe(ws, topic: str, sub_id: int) -> None:
+    chans = {c["topic"]: c["id"] for c in _recv_json(ws, "advertise")["channels"]}
+    ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": sub_id, "channelId": chans[topic]}]}))
+
+
+def _next_data(ws, timeout_s: float = 5.0) -> tuple[int, int, bytes]:
+    """(subscription id, log time, payload) of the next message frame."""
+    end = time.monotonic() + timeout_s
+    while True:
+        m = ws.recv(timeout=max(0.01, end - time.monotonic()))
+        if isinstance(m, bytes):
+            _, sub, log_time = struct.unpack_from("<BIQ", m)
+            return sub, log_time, m[13:]
+
+
+def test_clients_beyond_max_clients_are_refused_and_the_admitted_served(caplog):
+    srv = _started(max_clients=4)
+    admitted: list = []
+    refused = []
+    clients = contextlib.ExitStack()
+    try:
+        with caplog.at_level("WARNING", logger=foxglove_live.__name__):
+            for _ in range(40):
+                try:
+                    admitted.append(clients.enter_context(_connect(srv.port)))
+                except InvalidStatus as e:  # the HTTP answer to the upgrade request
+                    refused.append(e.response)
+        assert len(admitted) == 4 and len(refused) == 36
+        assert {r.status_code for r in refused} == {503}
+        assert all(b"client limit (4) reached" in r.body for r in refused)
+        assert srv.stats()["dropped"] == {"too many clients": 36} and srv.stats()["clients"] == 4
+        assert len([r for r in caplog.records if "too many clients" in r.getMessage()]) == 1  # once per cause
+
+        for i, ws in enumerate(admitted):
+            _subscribe(ws, C.TOPIC_BODIES, 100 + i)
+        time.sleep(0.2)  # the subscriptions reach the SDK before the first update
+        t = 10**9
+        for k in range(5):  # every admitted client gets every update (50 ms apart: past the 30 Hz limit)
+            t += 50_000_000
+            srv.publish([_state(t, True, float(k))])
+            for i, ws in enumerate(admitted):
+                assert _next_data(ws)[:2] == (100 + i, t)
+
+        admitted.pop().close()  # a slot frees up: the next client is admitted
+        deadline = time.monotonic() + 5
+        while srv.stats()["clients"] == 4 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        admitted.append(clients.enter_context(_connect(srv.port)))
+        assert srv.stats()["clients"] == 4
+        with pytest.raises(InvalidStatus), _connect(srv.port):
+            pass
+    finally:
+        clients.close()
+        srv.close()
+
+
+def test_a_stalled_client_does_not_slow_the_others():
+    """A client that subscribes and never reads: the relay holds a bounded amount for it and the
+    reading client still gets every update at once."""
+    srv = _started(max_clients=4, backlog=16)
+    clients = contextlib.ExitStack()
+    try:
+        stalled = clients.enter_context(_connect(srv.port, max_queue=1, close_timeout=0.5))  # reads 1 frame
+        reader = clients.enter_context(_connect(srv.port))
+        _subscribe(stalled, C.TOPIC_MARKERS, 1)
+        _subscribe(reader, C.TOPIC_MARKERS, 2)
+        time.sleep(0.2)
+        rng = np.random.default_rng(1)
+        pts = rng.uniform(-2, 2, (2000, 3))  # some 200 kB per update: more than the kernel buffers in 30
+        t = 10**9
+        slowest = 0.0
+        for k in range(30):
+            t += 50_000_000
+            t0 = time.monotonic()
+            srv.publish_markers(LoosePoints(t, pts + k))
+            while True:  # the reader sees this update (not an older one) promptly
+                sub, log_time, payload = _next_data(reader, timeout_s=2.0)
+                if log_time == t:
+                    break
+            assert sub == 2 and len(payload) > 150_000
+            slowest = max(slowest, time.monotonic() - t0)
+        st = srv.stats()
+        assert slowest < 1.0, f"an update took {slowest:.2f} s to reach the reading client"
+        # the stalled client's buffer reached its bound (one read past it at most) and stayed there
+        assert foxglove_live.RELAY_BUFFER_B <= st["buffered_b_max"] <= foxglove_live.RELAY_BUFFER_B + 65536
+        assert st["clients"] == 2 or st["dropped"].get("closed by the server") == 1  # the SDK may drop it
+    finally:
+        clients.close()
+        srv.close()
+
+
+def test_a_connection_without_a_handshake_is_closed_and_its_slot_freed():
+    import socket
+
+    srv = _started(max_clients=1, handshake_timeout_s=0.3)
+    s = socket.create_connection(("127.0.0.1", srv.port), timeout=5)
+    try:
+        t0 = time.monotonic()
+        assert s.recv(100) == b""  # closed by the server, not by the 5 s socket timeout
+        assert time.monotonic() - t0 < 3.0
+        assert srv.stats()["dropped"] == {"handshake timeout": 1}
+        with _connect(srv.port) as ws:  # the one slot is free again
+            assert _recv_json(ws, "advertise")["channels"]
+    finally:
+        s.close()
+        srv.close()

@@ -11,11 +11,14 @@ the bridge reports publish->send latency (time the state waited in the mailbox
 plus conversion and the send call).
 
 Outputs (issue 16): the demo's live chain on the thesis arena, same seed and duration, alternately
-without and with the pose stream, NatNet (unicast) and VRPN (TCP) on loopback, one client each in a
-separate process. Per run: the server's event-loop thread CPU time per received station packet, the
-CPU of its sender threads (MAVLink, NatNet, VRPN), output ticks/s, MAVLink poses/s at the fake
-autopilot and each client's frames/s. Goal: loop cost ratio <= 1.10, rates unchanged. Foxglove is
-not implemented yet and not measured.
+without and with all the outputs: the pose stream, NatNet (unicast), VRPN (TCP) and the live Foxglove
+WebSocket server, on loopback, one client each in a separate process (the Foxglove client subscribes
+to every channel the server advertises). Per run: the server's event-loop thread CPU time per received
+station packet, the CPU of its Python sender threads (MAVLink, NatNet, VRPN, Foxglove's encoder and
+client gate), output ticks/s, MAVLink poses/s at the fake autopilot and each client's frames/s; for
+Foxglove the client's `/foxglove/bodies` messages/s against the server's over the same window. Goal:
+loop cost ratio <= 1.10, rates unchanged. Without foxglove-sdk (the [foxglove] extra) or websockets
+the runs leave Foxglove out and the notes say so.
 """
 
 from __future__ import annotations
@@ -353,7 +356,59 @@ class _VrpnClient(_Listener):
                 del buf[:pos]
 
 
-SERVER_THREADS = ("mavlink-", "natnet-", "vrpn-server", "outputs-dispatch")  # the bridge's and the outputs' own threads
+class _FoxgloveClient(_Listener):
+    """A Foxglove WebSocket client (ws-protocol foxglove.sdk.v1 over the `websockets` library): subscribes
+    to every channel the server advertises (channels appear as the server first logs on them) and counts
+    the message frames: `frames` on /foxglove/bodies, `messages` on all."""
+
+    SUBPROTOCOL = "foxglove.sdk.v1"
+    POSES = "/foxglove/bodies"
+
+    def __init__(self, port: int):
+        super().__init__("foxglove")
+        from websockets.sync.client import connect
+
+        self.ws = connect(f"ws://127.0.0.1:{port}", subprotocols=[self.SUBPROTOCOL], open_timeout=5.0,
+                          close_timeout=1.0)
+        self.messages = 0
+
+    def _run(self) -> None:
+        from websockets.exceptions import ConnectionClosed
+
+        subscribed: dict[int, str] = {}  # subscription id (= channel id) -> topic
+        with self.ws as ws:
+            while not self._stop.is_set():
+                try:
+                    m = ws.recv(timeout=0.1)
+                except TimeoutError:
+                    continue
+                except ConnectionClosed:
+                    return
+                if isinstance(m, bytes):
+                    if len(m) >= 13 and m[0] == 1:  # message data: opcode, subscription id u32, log time u64
+                        self.messages += 1
+                        if subscribed.get(int.from_bytes(m[1:5], "little")) == self.POSES:
+                            self.frames += 1
+                    continue
+                msg = json.loads(m)
+                if msg.get("op") == "advertise":
+                    new = [c for c in msg["channels"] if c["id"] not in subscribed]
+                    subscribed.update((c["id"], c["topic"]) for c in new)
+                    if new:
+                        ws.send(json.dumps({"op": "subscribe",
+                                            "subscriptions": [{"id": c["id"], "channelId": c["id"]} for c in new]}))
+
+
+def _foxglove_missing() -> str:
+    """Why the bench cannot run the live Foxglove server here ("" when it can)."""
+    import importlib.util
+
+    missing = [p for p, mod in (("foxglove-sdk", "foxglove"), ("websockets", "websockets"))
+               if importlib.util.find_spec(mod) is None]
+    return " and ".join(missing)
+
+
+SERVER_THREADS = ("mavlink-", "natnet-", "vrpn-server", "outputs-dispatch", "foxglove-")  # the outputs' threads
 
 
 def _server_threads_cpu_s() -> dict[int, float]:
@@ -377,7 +432,7 @@ async def _client_counts(proc) -> dict[str, float]:
     return json.loads(await proc.stdout.readline())
 
 
-def _clients_main(pose_port: int, natnet_command_port: int, vrpn_port: int, body: str) -> None:
+def _clients_main(pose_port: int, natnet_command_port: int, vrpn_port: int, foxglove_port: int, body: str) -> None:
     """The client process: one client per output whose port is not 0; answers each line on stdin with
     the counts so far (JSON), stops at end of input."""
     clients = {}
@@ -387,21 +442,28 @@ def _clients_main(pose_port: int, natnet_command_port: int, vrpn_port: int, body
         clients["natnet"] = _NatNetClient(natnet_command_port).start()
     if vrpn_port:
         clients["vrpn"] = _VrpnClient(vrpn_port, body).start()
+    if foxglove_port:
+        clients["foxglove"] = _FoxgloveClient(foxglove_port).start()
     print("ready", flush=True)
     for _ in sys.stdin:
-        print(json.dumps({"t": time.perf_counter(), **{k: c.frames for k, c in clients.items()}}), flush=True)
+        counts = {k: c.frames for k, c in clients.items()}
+        if "foxglove" in clients:
+            counts["foxglove_all"] = clients["foxglove"].messages
+        print(json.dumps({"t": time.perf_counter(), **counts}), flush=True)
     for c in clients.values():
         c.stop()
 
 
-def _output_overrides(pose_port: int, natnet_cmd: int, natnet_data: int) -> list[str]:
+def _output_overrides(pose_port: int, natnet_cmd: int, natnet_data: int, foxglove_port: int) -> list[str]:
     return [f"pose_stream.destination=127.0.0.1:{pose_port}",
             "natnet.transmission=unicast", "natnet.interface=127.0.0.1",
             f"natnet.command_port={natnet_cmd}", f"natnet.data_port={natnet_data}",
-            "vrpn.host=127.0.0.1", "vrpn.port=0"]
+            "vrpn.host=127.0.0.1", "vrpn.port=0",
+            "foxglove.host=127.0.0.1", f"foxglove.port={foxglove_port}"]
 
 
-ALL_OUTPUTS = ("pose_stream", "natnet", "vrpn")
+ALL_OUTPUTS = ("pose_stream", "natnet", "vrpn", "foxglove")
+ONE_PER_TICK = ("pose_stream", "natnet", "vrpn")  # clients that get a frame per output tick (Foxglove: rate_hz)
 
 
 def _demo_run(arena, duration_s: float, outputs: tuple[str, ...]) -> dict[str, Any]:
@@ -419,12 +481,16 @@ def _demo_run(arena, duration_s: float, outputs: tuple[str, ...]) -> dict[str, A
     async def during(ctx) -> None:
         server = ctx.server
         t_end = time.monotonic() + ctx.duration_s - OUTPUT_TAIL_S
-        sinks, clients = [], None
+        sinks, clients, fox = [], None, None
         if outputs:
             pose = PoseStream(parse_pose_stream(arena)) if "pose_stream" in outputs else None
             natnet = NatNetServer.from_arena(arena) if "natnet" in outputs else None
             vrpn = VrpnServer(parse_vrpn(arena)) if "vrpn" in outputs else None
-            sinks = [OffLoopOutputs([s for s in (pose, natnet, vrpn) if s is not None])]  # as app/serve.py does
+            if "foxglove" in outputs:
+                from bridge.foxglove_live import FoxgloveServer
+
+                fox = FoxgloveServer.from_arena(arena)
+            sinks = [OffLoopOutputs([s for s in (pose, natnet, vrpn, fox) if s is not None])]  # as app/serve.py does
             await asyncio.to_thread(lambda: [s.start() for s in sinks])  # off the loop: nothing may delay a tick
             # the server calls every sink in its list at each tick; added between two ticks (this is its loop)
             server.sinks[0:0] = sinks
@@ -432,17 +498,19 @@ def _demo_run(arena, duration_s: float, outputs: tuple[str, ...]) -> dict[str, A
             clients = await asyncio.create_subprocess_exec(
                 sys.executable, "-m", "visionpos.benchmarks.bridge",
                 str(pose.cfg.destinations[0][1] if pose else 0), str(natnet.command_port if natnet else 0),
-                str(vrpn.port if vrpn else 0), arena.bodies[0].name,
+                str(vrpn.port if vrpn else 0), str(fox.port if fox else 0), arena.bodies[0].name,
                 stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE)
             await clients.stdout.readline()  # "ready"
         try:
             await asyncio.sleep(OUTPUT_SETTLE_S)
             cpu0, pk0, tk0 = time.thread_time(), server.ingest.counters.packets, server.ticks
             side0, t0 = _server_threads_cpu_s(), time.perf_counter()
+            fox0 = fox.messages_by_topic.get(_FoxgloveClient.POSES, 0) if fox else 0
             fr0 = await _client_counts(clients)
             await asyncio.sleep(max(0.5, t_end - time.monotonic()))
             cpu1, pk1, tk1 = time.thread_time(), server.ingest.counters.packets, server.ticks
             side1, t1 = _server_threads_cpu_s(), time.perf_counter()
+            fox1 = fox.messages_by_topic.get(_FoxgloveClient.POSES, 0) if fox else 0
             fr1 = await _client_counts(clients)
         finally:
             for s in sinks:
@@ -454,6 +522,7 @@ def _demo_run(arena, duration_s: float, outputs: tuple[str, ...]) -> dict[str, A
         side_s = sum(side1[k] - side0[k] for k in side1 if k in side0)
         got.update(cpu_s=cpu1 - cpu0, side_cpu_s=side_s, packets=pk1 - pk0, ticks_hz=(tk1 - tk0) / (t1 - t0),
                    clients_hz={k: (fr1[k] - fr0[k]) / (fr1["t"] - fr0["t"]) for k in fr1 if k != "t"},
+                   foxglove_sent_hz=(fox1 - fox0) / (t1 - t0),
                    sink_stats={type(s).__name__: s.stats() for s in sinks})
 
     summary = asyncio.run(run_demo(arena, duration_s, None, during=during))
@@ -465,23 +534,27 @@ def _demo_run(arena, duration_s: float, outputs: tuple[str, ...]) -> dict[str, A
     return got
 
 
-def bench_outputs(quick: bool) -> tuple[dict[str, float], list[dict]]:
-    """The thesis arena's demo without the outputs and with pose stream, NatNet and VRPN on, one client each."""
+def bench_outputs(quick: bool) -> tuple[dict[str, float], list[dict], str]:
+    """The thesis arena's demo without the outputs and with all of them on (pose stream, NatNet, VRPN and,
+    when installed, Foxglove), one client each. Returns the metrics, the runs and what kept Foxglove out."""
     from visionpos.app.demo import demo_arena
     from visionpos.app.ports import free_port
 
     duration_s = OUTPUT_DURATION_S_QUICK if quick else OUTPUT_DURATION_S_FULL
     pairs = OUTPUT_PAIRS_QUICK if quick else OUTPUT_PAIRS_FULL
-    cmd = free_port()
-    data = free_port()
-    while data == cmd:
-        data = free_port()
+    ports: list[int] = []
+    while len(ports) < 4:  # pose stream, NatNet command and data, Foxglove: four different ports
+        p = free_port()
+        if p not in ports:
+            ports.append(p)
     # the demo ignores these sections (its bridge runs MAVLink only); the runs with outputs start them
-    arena = demo_arena("thesis", duration_s, 1, _output_overrides(free_port(), cmd, data))
+    arena = demo_arena("thesis", duration_s, 1, _output_overrides(*ports))
+    missing = _foxglove_missing()
+    outputs_on = tuple(o for o in ALL_OUTPUTS if o != "foxglove" or not missing)
     runs: dict[bool, list[dict]] = {False: [], True: []}
     for _ in range(pairs):
         for outputs in (False, True):
-            runs[outputs].append(_demo_run(arena, duration_s, ALL_OUTPUTS if outputs else ()))
+            runs[outputs].append(_demo_run(arena, duration_s, outputs_on if outputs else ()))
     off, on = runs[False], runs[True]
     cost_off = float(np.median([r["cpu_us_per_packet"] for r in off]))
     cost_on = float(np.median([r["cpu_us_per_packet"] for r in on]))
@@ -503,41 +576,58 @@ def bench_outputs(quick: bool) -> tuple[dict[str, float], list[dict]]:
     }
     for ratio, hz in (("output_rate_ratio", "output_rate_hz"), ("mavlink_rate_ratio", "mavlink_hz")):
         metrics[f"bridge_outputs_{ratio}"] = metrics[f"bridge_outputs_{hz}_on"] / metrics[f"bridge_outputs_{hz}_off"]
-    for k in ("pose_stream", "natnet", "vrpn"):
+    for k in outputs_on:
         metrics[f"bridge_outputs_{k}_client_hz"] = float(np.median([r["clients_hz"][k] for r in on]))
     metrics["bridge_outputs_client_rate_ratio_min"] = (
-        min(metrics[f"bridge_outputs_{k}_client_hz"] for k in ("pose_stream", "natnet", "vrpn"))
-        / metrics["bridge_outputs_tick_hz_on"])
+        min(metrics[f"bridge_outputs_{k}_client_hz"] for k in ONE_PER_TICK) / metrics["bridge_outputs_tick_hz_on"])
+    if "foxglove" in outputs_on:
+        metrics["bridge_outputs_foxglove_all_client_hz"] = float(np.median([r["clients_hz"]["foxglove_all"]
+                                                                            for r in on]))
+        metrics["bridge_outputs_foxglove_sent_hz"] = float(np.median([r["foxglove_sent_hz"] for r in on]))
+        # what the client got of what the server sent, poses, same window (rate_hz caps both, not a tick each)
+        metrics["bridge_outputs_foxglove_delivery_ratio"] = float(np.median(
+            [r["clients_hz"]["foxglove"] / r["foxglove_sent_hz"] for r in on]))
     rows = [dict(r, outputs=o) for o in (False, True) for r in runs[o]]
-    return metrics, rows
+    return metrics, rows, missing
 
 
 def _report_outputs(res: BenchResult, quick: bool) -> None:
-    m, rows = bench_outputs(quick)
+    m, rows, missing = bench_outputs(quick)
     res.metrics.update(m)
     lines = ["| outputs | loop CPU µs / station packet | sender threads CPU µs / packet | output ticks/s "
              "| MAVLink poses/s | pose stream client /s | NatNet client frames/s | VRPN client reports/s "
-             "| tracked |", "|---|---|---|---|---|---|---|---|---|"]
+             "| Foxglove server / client poses/s | Foxglove client messages/s | tracked |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         c = r["clients_hz"]
         cell = lambda k: f"{c[k]:.1f}" if k in c else "-"  # noqa: E731
-        lines.append(f"| {'all three' if r['outputs'] else 'none'} | {r['cpu_us_per_packet']:.1f} "
+        fox = f"{r['foxglove_sent_hz']:.1f} / {c['foxglove']:.1f}" if "foxglove" in c else "-"
+        lines.append(f"| {'all' if r['outputs'] else 'none'} | {r['cpu_us_per_packet']:.1f} "
                      f"| {r['side_cpu_us_per_packet']:.1f} | {r['output_rate_hz']:.1f} | {r['mavlink_hz']:.1f} "
-                     f"| {cell('pose_stream')} | {cell('natnet')} | {cell('vrpn')} | {r['tracked_fraction']:.4f} |")
+                     f"| {cell('pose_stream')} | {cell('natnet')} | {cell('vrpn')} | {fox} | {cell('foxglove_all')} "
+                     f"| {r['tracked_fraction']:.4f} |")
     dur = OUTPUT_DURATION_S_QUICK if quick else OUTPUT_DURATION_S_FULL
+    which = "NatNet (unicast), VRPN (TCP)" + (" and Foxglove (WebSocket)" if not missing else "")
     res.tables[f"Outputs on the live demo: thesis arena, {dur:.0f} s per run, without and with the pose stream, "
-               "NatNet (unicast) and VRPN (TCP), one client each"] = "\n".join(lines)
+               f"{which}, one client each"] = "\n".join(lines)
+    fox_note = (f" Foxglove is left out: {missing} is not installed (`pip install visionpos[foxglove,test]`)."
+                if missing else
+                f" Foxglove: the server logged {m['bridge_outputs_foxglove_sent_hz']:.1f} pose updates/s "
+                "(`/foxglove/bodies`, capped by its rate_hz on the output ticks' times), its client received "
+                f"{m['bridge_outputs_foxglove_client_hz']:.1f}/s "
+                f"(delivery {m['bridge_outputs_foxglove_delivery_ratio']:.3f}) "
+                f"and {m['bridge_outputs_foxglove_all_client_hz']:.1f} messages/s on all channels; the SDK's own "
+                "(Rust) sending threads are not in the sender threads' CPU, its encoder and client gate are.")
     res.notes.append(
-        f"Outputs: per-packet cost with all three outputs / without: {m['bridge_outputs_cost_ratio']:.3f} on the "
+        f"Outputs: per-packet cost with all outputs / without: {m['bridge_outputs_cost_ratio']:.3f} on the "
         f"server's event-loop thread (median over runs; {m['bridge_outputs_loop_cpu_us_per_packet_off']:.1f} -> "
         f"{m['bridge_outputs_loop_cpu_us_per_packet_on']:.1f} µs), {m['bridge_outputs_total_cost_ratio']:.3f} "
-        "counting the MAVLink, NatNet and VRPN sender threads too. Loop CPU is time.thread_time on the loop over the "
+        "counting the outputs' Python threads too. Loop CPU is time.thread_time on the loop over the "
         "window, divided by the station packets the server received; in the demo the loop also runs the four "
         "simulated stations' sends, the same in both runs. Output ticks/s and MAVLink poses/s (at the fake "
-        "autopilot) are over the whole run; client rates over the measuring window. Foxglove (issue 16) is not "
-        "implemented yet, so it is not measured."
+        "autopilot) are over the whole run; client rates over the measuring window." + fox_note
     )
 
 
 if __name__ == "__main__":  # the clients of bench_outputs: python -m visionpos.benchmarks.bridge PORTS... BODY
-    _clients_main(int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4])
+    _clients_main(int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5])
