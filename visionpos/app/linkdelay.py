@@ -12,8 +12,8 @@ The autopilot side follows the newest sender on 127.0.0.1 (SITL's udpclient port
 reboots; the socket is bound to loopback only). Replies go to that sender. Only the bridge's address
 is taken on the bridge side.
 
-holds_ns: for each datagram sent on towards the bridge or towards the autopilot, how long it was held
-(send time less read time, time.monotonic_ns): D plus the thread's lateness, the figure the SITL
+holds: for each datagram sent on towards the bridge or towards the autopilot, (send time, how long it was
+held: send time less read time), time.monotonic_ns: D plus the thread's lateness, the figure the SITL
 delay benchmark adds to the bridge's own stamp-to-send time.
 """
 
@@ -49,7 +49,7 @@ class DelayRelay:
         self.ap_peer: tuple[str, int] | None = None
         self._to_bridge: collections.deque[tuple[int, bytes]] = collections.deque()
         self._to_ap: collections.deque[tuple[int, bytes]] = collections.deque()
-        self.holds_ns: dict[str, list[int]] = {"to_bridge": [], "to_autopilot": []}
+        self.holds: dict[str, list[tuple[int, int]]] = {"to_bridge": [], "to_autopilot": []}
         self.unsent = 0  # datagrams to the autopilot before it had sent anything (no address yet)
         self.send_errors = 0
         self._stop = threading.Event()
@@ -129,4 +129,10 @@ class DelayRelay:
                 except OSError:
                     self.send_errors += 1
                     continue
-                self.holds_ns[name].append(time.monotonic_ns() - due + self.delay_ns)
+                sent = time.monotonic_ns()
+                self.holds[name].append((sent, sent - due + self.delay_ns))
+
+    def hold_ms_median(self, direction: str, since_ns: int = 0) -> float | None:
+        """Median hold (ms) of the datagrams sent on in direction ('to_bridge', 'to_autopilot') since since_ns."""
+        h = [d for t, d in list(self.holds[direction]) if t >= since_ns]  # list(): a copy under the GIL
+        return float(sorted(h)[len(h) // 2]) * 1e-6 if h else None
