@@ -847,7 +847,7 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
         await asyncio.sleep(plan.cut_s)
     await _hold(gcs, plan, x0, y0, plan.hold_s / 2)
     if relay is not None:
-        record["link_delay"] = delay_record(link.bc, relay, plan.link_delay_ms or 0.0)
+        record["link_delay"] = delay_record(link.bc, relay, plan.link_delay_ms or 0.0, gcs.truth)
         d = record["link_delay"]
         say(f"link delay {d['added_ms']:g} ms: back-channel measured {_fmt(d['measured_ms'])} ms, true "
             f"{_fmt(d['true_ms'])} ms ({d['detail']})")
@@ -886,29 +886,54 @@ def _fmt(v: float | None) -> str:
     return "-" if v is None else f"{v:.2f}"
 
 
-def delay_record(bc: Any, relay: Any, added_ms: float, window_ns: int | None = None) -> dict[str, Any]:
+def delay_record(bc: Any, relay: Any, added_ms: float, truth: TruthTrack | None = None,
+                 window_ns: int | None = None) -> dict[str, Any]:
     """The back-channel's measured capture-to-autopilot delay against the true one, for a link through relay.
 
-    True delay: when a pose reaches SITL less the time it stands for (its stamp, on the server clock),
-    per pose = (the bridge's write to the socket - the stamp) + (the relay's hold of the datagrams to SITL),
-    each the median over the back-channel's measurement window (the newest window_ns, DELAY_WINDOW_NS),
-    loopback adding microseconds. What it leaves out, common to every added delay: SITL reads its
-    socket on its own loop (up to a few ms later), and the truth the cameras render is SIM_STATE stamped
-    at its arrival here (sub-millisecond on loopback TCP, plus SITL's wait to send it)."""
+    True delay: when a pose reaches SITL's socket less its stamp (the capture time it stands for), on the
+    server clock: (the bridge's write to its socket - the stamp) + (the relay's hold of the datagrams to
+    SITL), each the median over the back-channel's measurement window (the newest window_ns,
+    DELAY_WINDOW_NS); loopback adds microseconds. Left out, the same for every added delay (so the change
+    of the difference with the added delay is free of them): SITL's wait to read its socket (its loop,
+    which also stamps TIMESYNC); SIM_STATE's latency to its arrival stamp here (SITL's wait to send it,
+    loopback TCP, our reader thread's wake-up: the cameras render the truth as of its arrival, so a pose
+    shows motion that much older than its stamp), less RAW_IMU's (ArduPilot stamps it when sent, not when
+    sampled). optical_lag_ms, for diagnosis: how far the poses' body rates trail SIM_STATE's as stamped
+    here (the fusion's lag; not in the true delay)."""
     from bridge.backchannel import DELAY_WINDOW_NS
 
     now = time.monotonic_ns()
     since = now - (window_ns if window_ns is not None else DELAY_WINDOW_NS)
     sends = np.array([r[1] for r in list(bc.sends.d) if r[0] >= since], dtype=float)  # list(): copied under the GIL
     hold_ms = relay.hold_ms_median("to_autopilot", since)
+    lag_ms = _optical_lag_ms(bc, truth, since) if truth is not None else None
     true_ms = float(np.median(sends)) * 1e-6 + hold_ms if len(sends) and hold_ms is not None else None
     measured = bc.delay_ms
     return {"added_ms": float(added_ms), "measured_ms": measured, "true_ms": true_ms,
             "error_ms": measured - true_ms if measured is not None and true_ms is not None else None,
             "send_minus_stamp_ms_p50": float(np.median(sends)) * 1e-6 if len(sends) else None,
             "relay_hold_ms_p50": hold_ms, "relay_hold_back_ms_p50": relay.hold_ms_median("to_bridge", since),
+            "optical_lag_ms": lag_ms,
             "correlation": float(bc.delay_correlation) if np.isfinite(bc.delay_correlation) else None,
             "gyro_source": bc.gyro_source or None, "detail": bc.delay_reason}
+
+
+def _optical_lag_ms(bc: Any, truth: TruthTrack, since_ns: int) -> float | None:
+    """How far the bridge's poses trail SITL's truth (ms, server clock): the lag of the body rates from the
+    poses' attitudes (as the back-channel derives them) behind SIM_STATE's body rates, since since_ns;
+    None without enough rotation to correlate."""
+    from visionpos.analysis.autopilot import body_rates_from_attitudes, estimate_lag
+    from visionpos.geometry.frames import flu_to_frd
+
+    rows = [r for r in list(bc.opt.d) if r[0] >= since_ns]
+    t_true, x = truth.snapshot()
+    keep = t_true >= since_ns
+    if len(rows) < 50 or keep.sum() < 50:
+        return None
+    to, rates = body_rates_from_attitudes(np.array([r[0] for r in rows], dtype=np.int64),
+                                          np.array([r[6:10] for r in rows], dtype=float))
+    est = estimate_lag(t_true[keep], flu_to_frd(x[keep, 10:13]), to, rates, 0.0, 50e6, step_ns=1e6)
+    return est.lag_ns * 1e-6 if est is not None and est.correlation > 0.8 else None
 
 
 def truth_now(truth: TruthTrack) -> tuple[int, np.ndarray]:
@@ -1039,7 +1064,8 @@ def format_flight(s: dict[str, Any]) -> str:
         lines.append(f"  link delay {d['added_ms']:g} ms each way: capture->autopilot delay measured by the "
                      f"back-channel {_fmt(d['measured_ms'])} ms, true {_fmt(d['true_ms'])} ms (send-stamp "
                      f"{_fmt(d['send_minus_stamp_ms_p50'])} + relay {_fmt(d['relay_hold_ms_p50'])}), difference "
-                     f"{_fmt(d['error_ms'])} ms; {d['detail']}")
+                     f"{_fmt(d['error_ms'])} ms; poses behind SITL's truth {_fmt(d['optical_lag_ms'])} ms; "
+                     f"{d['detail']}")
     lines.append(f"  failsafe / lane switch messages: {s['failsafe_or_lane_switch'] or 'none'}; "
                  f"mode changes not commanded: {s['mode_changes_not_ours'] or 'none'}")
     lines.append("  STATUSTEXT: " + " | ".join(s["statustext"]))
