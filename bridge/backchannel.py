@@ -17,7 +17,13 @@ From them it keeps:
 And it decides (pure math in visionpos.analysis.autopilot):
 - identity: roll, pitch and body rates against the optical body's, over a 1 s
   window; a mismatch latches (the poses are someone else's until restarted);
-- the measured capture-to-autopilot delay (gyro against optical rate).
+- the measured capture-to-autopilot delay (gyro against optical rate). ArduPilot's
+  reported gyro (RAW_IMU, ATTITUDE's rates) has been through its INS_GYRO_FILTER
+  low-pass (a 2-pole Butterworth, 20 Hz on a copter): it trails the motion by the
+  filter's group delay, sqrt(2) / (2 pi fc), 11.3 ms at 20 Hz, while its EKF runs
+  on the unfiltered IMU. The correlation's lag is corrected by it, so the delay is
+  measured against the motion itself; INS_GYRO_FILTER is read from the autopilot
+  (PARAM_REQUEST_READ) and the delay stays unknown until it has answered.
 
 Every check is "unknown" while its data is missing: nothing here ever holds a
 pose back for want of telemetry. Only a positive finding does (a mismatch,
@@ -84,6 +90,14 @@ MSG_GPS_GLOBAL_ORIGIN = 49
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_CMD_REQUEST_MESSAGE = 512
 MAV_CMD_DO_SET_HOME = 179
+GYRO_FILTER_PARAM = "INS_GYRO_FILTER"  # ArduPilot: the cutoff (Hz) of the low-pass on the gyro it reports
+
+
+def gyro_filter_lag_ns(cutoff_hz: float) -> float:
+    """Group delay (ns) of a 2-pole Butterworth low-pass at cutoff_hz for motion well below it (ArduPilot's
+    LowPassFilter2p; its sample rate moves it by under 0.1 ms at 400 Hz and up): sqrt(2) / (2 pi fc). 0 for a
+    filter turned off (cutoff 0)."""
+    return math.sqrt(2.0) / (2.0 * math.pi * cutoff_hz) * 1e9 if cutoff_hz > 0 else 0.0
 
 
 class _Ring:
@@ -187,6 +201,8 @@ class Backchannel:
         self._delays: collections.deque[float] = collections.deque(maxlen=5)
         self._delay_said: float | None = None  # the delay last logged
         self._next_delay = 0
+        self.gyro_filter_hz: float | None = None  # ArduPilot's INS_GYRO_FILTER, once it has answered
+        self._next_filter_request = 0
         self._delay_param_value: float | None = None
         self.delay_param_confirmed: float | None = None
         self._next_param = 0
@@ -268,6 +284,8 @@ class Backchannel:
                               "retrying", self.cfg.name, m.result)
         elif t == "PARAM_VALUE":
             pid = m.param_id.rstrip("\0") if isinstance(m.param_id, str) else ""
+            if pid == GYRO_FILTER_PARAM and self.autopilot == "ardupilot" and 0.0 <= m.param_value < 1e4:
+                self.gyro_filter_hz = float(m.param_value)
             if pid == self._delay_param_name() and self._delay_param_value is not None \
                     and abs(m.param_value - self._delay_param_value) < 0.5:
                 if self.delay_param_confirmed != self._delay_param_value:
@@ -321,6 +339,7 @@ class Backchannel:
         self._origin_release_said = False
         self.home_acked = False
         self.delay_param_confirmed = None
+        self.gyro_filter_hz = None  # read again: it may have been changed for this boot
         self.ekf_flags = None
         self.ekf_ratios = {}
         self.ext_nav_text = ""
@@ -396,6 +415,10 @@ class Backchannel:
             self._streams_due = now + STREAM_RETRY_NS
             if now - self._att_recv_ns > TELEMETRY_STALE_NS or now - self._gyro_recv_ns > TELEMETRY_STALE_NS:
                 self._request_streams()
+        if self.autopilot == "ardupilot" and self.gyro_filter_hz is None and now >= self._next_filter_request:
+            self._next_filter_request = now + PARAM_RETRY_NS
+            self.send(self.mav.param_request_read_encode(self.cfg.sysid, MAV_COMP_ID_AUTOPILOT1,
+                                                         GYRO_FILTER_PARAM.encode(), -1))
         if self.cfg.timesync and now >= self._next_timesync:
             self._next_timesync = now + TIMESYNC_EVERY_NS
             ts1 = self.clock_ns() + self.base_offset_ns  # an identifier; the send time is taken at the write
@@ -518,7 +541,12 @@ class Backchannel:
                                  + ("" if fine is None else f" (peak {fine.correlation:.2f})")
                                  + ": the vehicle turns too little, or they are not the same vehicle")
             return self.delay_ms
-        self.clock_lag_ns = fine.lag_ns
+        gyro_lag_ns = self.gyro_lag_ns()
+        if gyro_lag_ns is None:
+            self.delay_reason = (f"waiting for {GYRO_FILTER_PARAM} from the autopilot (its gyro filter delays the "
+                                 "rates it reports)")
+            return self.delay_ms
+        self.clock_lag_ns = fine.lag_ns - gyro_lag_ns  # the motion's instant, not the filtered gyro's
         self.delay_correlation = fine.correlation
         _, ts = self.timesync.since(int(to[0]) - DELAY_WINDOW_NS)
         _, sends = self.sends.since(int(to[0]))
@@ -526,14 +554,24 @@ class Backchannel:
             self.delay_reason = "waiting for TIMESYNC answers from the autopilot" if len(ts) < 3 else \
                 "waiting for poses to be sent"
             return self.delay_ms
-        d_ns = vision_delay_ns(sends[:, 0], np.zeros(len(ts)), ts[:, 0], fine.lag_ns)
+        d_ns = vision_delay_ns(sends[:, 0], np.zeros(len(ts)), ts[:, 0], self.clock_lag_ns)
         self._delays.append(d_ns * 1e-6)
         self.delay_ms = d_ns * 1e-6  # each estimate spans DELAY_WINDOW_NS already; the newest follows changes
         if self._delay_said is None or abs(self.delay_ms - self._delay_said) >= DELAY_RESET_MS:
             self._delay_said = self.delay_ms
             log.warning("vehicle %s: %s", self.cfg.name, self.delay_advice())
-        self.delay_reason = f"gyro/optical rate correlation {fine.correlation:.3f} ({self.gyro_source or 'ATTITUDE'})"
+        source = self.gyro_source or "ATTITUDE"
+        self.delay_reason = f"gyro/optical rate correlation {fine.correlation:.3f} ({source}" + (
+            f"; its {self.gyro_filter_hz:g} Hz filter's {gyro_lag_ns * 1e-6:.1f} ms lag removed)" if gyro_lag_ns
+            else ")")
         return self.delay_ms
+
+    def gyro_lag_ns(self) -> float | None:
+        """How far the reported gyro trails the motion (ns): ArduPilot's INS_GYRO_FILTER group delay, None until
+        it has answered; 0 for others (PX4's HIGHRES_IMU carries the unfiltered, integrated gyro)."""
+        if self.autopilot != "ardupilot":
+            return 0.0
+        return None if self.gyro_filter_hz is None else gyro_filter_lag_ns(self.gyro_filter_hz)
 
     def _delay_param_name(self) -> str:
         return "EKF2_EV_DELAY" if self.autopilot == "px4" else "VISO_DELAY_MS"
@@ -652,5 +690,6 @@ class Backchannel:
             "origin": self.origin_state(now),
             "home_acked": self.home_acked,
             "gyro_source": self.gyro_source or None,
+            "gyro_filter_hz": self.gyro_filter_hz,
             "local_position_ned": list(self.local_position) if self.local_position else None,
         }

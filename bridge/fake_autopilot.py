@@ -22,11 +22,13 @@ It keeps an origin set with SET_GPS_GLOBAL_ORIGIN (once `origin_ready_s` after
 boot: an EKF not yet running drops it, as ArduPilot's does) and reports it
 (GPS_GLOBAL_ORIGIN, also on MAV_CMD_REQUEST_MESSAGE); takes MAV_CMD_DO_SET_HOME
 (refused before the origin, as ArduPilot does; ArduPilot ignores
-SET_HOME_POSITION); answers PARAM_SET with PARAM_VALUE; says "EKF3 IMU0 is
+SET_HOME_POSITION); answers PARAM_SET and PARAM_REQUEST_READ with PARAM_VALUE; says "EKF3 IMU0 is
 using external nav data" on its first accepted pose (STATUSTEXT). delay_ms
 holds every received packet that long before handling it (a slow link or
 autopilot: the pose reaches its EKF that much later); reboot() restarts its
-clock and forgets origin, home and streams.
+clock and forgets origin, home and streams. gyro_filter_hz plays ArduPilot's
+INS_GYRO_FILTER (reported as that parameter): the gyro and the ATTITUDE rates it
+sends trail the motion by the group delay of that 2-pole low-pass.
 
     with FakeAutopilot("udpout:127.0.0.1:14561", sysid=1) as ap:
         ...
@@ -154,7 +156,7 @@ class FakeAutopilot:
                  truth: Callable[[np.ndarray], Truth] | None = None, telemetry_hz: float = 0.0,
                  delay_ms: float = 0.0, boot_ns: int | None = None, origin_ready_s: float = 0.0,
                  ekf: str = "accept", gyro_noise_rad_s: float = 0.003, attitude_noise_deg: float = 0.2,
-                 seed: int | None = None):
+                 seed: int | None = None, gyro_filter_hz: float = 0.0):
         kind, _, rest = endpoint.partition(":")
         host, _, port = rest.rpartition(":")
         if kind not in ("udpout", "udpin", "tcpin") or not host or not port.isdigit():
@@ -194,7 +196,9 @@ class FakeAutopilot:
         self.origin: tuple[int, int, int] | None = None  # lat, lon (1e7 deg), alt (mm)
         self.origin_dropped = 0  # SET_GPS_GLOBAL_ORIGIN before origin_ready_s: dropped
         self.home: tuple[int, int, float] | None = None
-        self.params: dict[str, float] = {}
+        self.params: dict[str, float] = {"INS_GYRO_FILTER": float(gyro_filter_hz)} if autopilot == "ardupilot" else {}
+        # the filter's group delay at low frequency, sqrt(2) / (2 pi fc) (no filter: 0)
+        self.gyro_lag_ns = int(math.sqrt(2.0) / (2.0 * math.pi * gyro_filter_hz) * 1e9) if gyro_filter_hz > 0 else 0
         self.statustexts: list[str] = []
         self.timesync_requests_answered = 0
         self._said_ext_nav = False
@@ -416,6 +420,11 @@ class FakeAutopilot:
                 pid = m.param_id.rstrip("\0") if isinstance(m.param_id, str) else str(m.param_id)
                 self.params[pid] = float(m.param_value)
                 self.mav.send(self.mav.param_value_encode(pid.encode(), m.param_value, m.param_type, 1, 0))
+            elif t == "PARAM_REQUEST_READ" and m.target_system == self.sysid:
+                pid = m.param_id.rstrip("\0") if isinstance(m.param_id, str) else str(m.param_id)
+                if pid in self.params:
+                    self.mav.send(self.mav.param_value_encode(pid.encode(), self.params[pid],
+                                                              mavlink2.MAV_PARAM_TYPE_REAL32, len(self.params), 0))
             if t in RECORDED:
                 self.received.append(Received(t, now, m.get_srcSystem(), m.get_srcComponent(),
                                               bool(m.get_signed()), m.to_dict()))
@@ -472,6 +481,8 @@ class FakeAutopilot:
         tr = self.truth(np.array([now], dtype=np.int64))
         t_boot = self.boot_time_ns(now)
         gyro, acc = imu_from_truth(tr)
+        if self.gyro_lag_ns:  # the filtered gyro: the motion of gyro_lag_ns ago
+            gyro, _ = imu_from_truth(self.truth(np.array([now - self.gyro_lag_ns], dtype=np.int64)))
         gyro = gyro[0] + self.gyro_bias + self.rng.normal(0.0, self.gyro_noise, 3)
         acc = acc[0] + self.rng.normal(0.0, 0.02, 3)
         q_nf = quat_world_body_to_ned_frd(tr.quaternion[0])

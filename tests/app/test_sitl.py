@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 import types
 
 import numpy as np
@@ -126,3 +127,31 @@ def test_truth_track_smooths_the_centimetre_altitude():
     assert np.abs(z - true_z).max() < 0.006  # the raw steps are off by up to 5 mm plus the 1 cm jump
     steps = np.diff(z)
     assert np.abs(steps - climb * dt_ns * 1e-9).max() < 0.0005  # no 1 cm jumps: each 5 ms step ~ 1.25 mm
+
+
+def test_delay_record_compares_the_measurement_with_stamp_to_send_plus_the_relay_hold():
+    """True delay = median(bridge write - stamp) + median(relay hold towards SITL) over the window; the
+    poses' lag behind SITL's truth (a yaw swing seen 3 ms late) is reported beside it, not in it."""
+    import collections
+
+    now = time.monotonic_ns()
+    t = now - np.arange(1500)[::-1] * 10_000_000  # the last 15 s of poses, 100 Hz
+    sends = collections.deque((int(ti) + 16_000_000, (16_000_000 + (i % 3) * 1_000_000,)) for i, ti in enumerate(t))
+    yaw = lambda ts: 0.3 * np.sin(2 * np.pi * (ts - now) * 1e-9 / 2.0)  # noqa: E731
+    # the optical attitudes (NED <- FRD, yaw about down) 3 ms behind the truth
+    q_opt = Rotation.from_euler("z", yaw(t - 3_000_000)[:, None]).as_quat()
+    opt = collections.deque((int(ti), 0.0, 0.0, 0.0, 0.0, 0.0, *q) for ti, q in zip(t, q_opt))
+    bc = types.SimpleNamespace(sends=types.SimpleNamespace(d=sends), opt=types.SimpleNamespace(d=opt),
+                               delay_ms=41.0, delay_correlation=0.97, gyro_source="RAW_IMU", delay_reason="ok")
+    holds = {"to_autopilot": 20.4, "to_bridge": 20.6}
+    relay = types.SimpleNamespace(hold_ms_median=lambda direction, since: holds[direction])
+    truth = S.TruthTrack(HOME)
+    for ti in t:  # SIM_STATE: yaw rate about down (FRD z) is d(yaw)/dt
+        rate = 0.3 * 2 * np.pi / 2.0 * np.cos(2 * np.pi * (ti - now) * 1e-9 / 2.0)
+        a = float(yaw(ti))
+        truth.add(int(ti), _sim_state(0.0, 0.0, 1.0, (0.0, 0.0, 0.0), (math.cos(a / 2), 0.0, 0.0, math.sin(a / 2)),
+                                      (0.0, 0.0, rate)))
+    d = S.delay_record(bc, relay, 20.0, truth)
+    assert d["true_ms"] == pytest.approx(17.0 + 20.4, abs=1e-6)  # medians: 17 ms and the relay's 20.4 ms
+    assert d["error_ms"] == pytest.approx(41.0 - 37.4, abs=1e-6)
+    assert d["optical_lag_ms"] == pytest.approx(3.0, abs=0.3)

@@ -64,21 +64,33 @@ def _cfg(**kw):
     return parse_vehicles(arena_with_vehicles([v]))[0]
 
 
-def _fly(traj_ap, traj_opt, duration_s, seed=0, delay_ms=0.0):
+def _fly(traj_ap, traj_opt, duration_s, seed=0, delay_ms=0.0, return_ms=0.0, gyro_filter_hz=None, sent=None,
+         filter_answered=True):
     """A Backchannel fed for duration_s of simulated flight: ATTITUDE and HIGHRES_IMU at 50 Hz from traj_ap
     (the autopilot's own sensors, its clock 7 s ahead, 0.5 deg attitude and 5 mrad/s gyro noise), optical
     poses at 100 Hz from traj_opt (attitude noise 0.03 deg; the filter's rate 5 ms late, 0.03 rad/s noise:
     the delay must not take that lag for link delay), TIMESYNC every 0.5 s over
-    a link that takes 2 ms + delay_ms forward. Returns (backchannel, [(t_s, identity state)])."""
+    a link that takes 2 ms + delay_ms forward and 1 ms + return_ms back. gyro_filter_hz: the autopilot is
+    ArduPilot (HEARTBEAT), its RAW_IMU and ATTITUDE rates lag the motion by the group delay of that
+    2-pole filter (the analog Butterworth's, computed here), and it answers INS_GYRO_FILTER with it.
+    filter_answered=False: the request for INS_GYRO_FILTER is never answered.
+    sent: a list that gets every message the back-channel sends. Returns (backchannel, [(t_s, identity state)])."""
     now = [0]
-    bc = Backchannel(_cfg(), lambda: now[0], mavlink2.MAVLink(None, 1, 197), lambda m: True, lambda *a: None)
+    out = sent if sent is not None else []
+    bc = Backchannel(_cfg(), lambda: now[0], mavlink2.MAVLink(None, 1, 197), lambda m: out.append(m) or True,
+                     lambda *a: None)
     rng = np.random.default_rng(seed)
     off = 7_000_000_000
+    back_ns = 1_000_000 + int(return_ms * 1e6)
     ts = np.arange(0, int(duration_s * 1e9), 10_000_000)
     t_s = ts * 1e-9
+    # group delay of H(s) = 1 / (s^2/w^2 + sqrt(2) s/w + 1) at DC: -d(phase)/d(omega) = sqrt(2)/w
+    lag_s = math.sqrt(2.0) / (2 * math.pi * gyro_filter_hz) if gyro_filter_hz else 0.0
     ma, mo, mo_late = traj_ap(t_s), traj_opt(t_s), traj_opt(t_s - 0.005)
     e_ap, e_op = euler_ned_frd(ma.quaternions), euler_ned_frd(mo.quaternions)
-    g_ap, g_op = flu_to_frd(ma.angular_velocities), flu_to_frd(mo_late.angular_velocities)
+    g_ap, g_op = flu_to_frd(traj_ap(t_s - lag_s).angular_velocities), flu_to_frd(mo_late.angular_velocities)
+    if gyro_filter_hz is not None:
+        bc.handle(mavlink2.MAVLink_heartbeat_message(2, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 3, 3), 1, 0)
     bias = rng.normal(0, 0.005, 3)
     states = []
     q_op = (Rotation.from_quat(quat_world_body_to_ned_frd(mo.quaternions))
@@ -92,12 +104,22 @@ def _fly(traj_ap, traj_opt, duration_s, seed=0, delay_ms=0.0):
             bc.on_sent(t + 2_000_000, t)
             r = e_ap[i] + rng.normal(0, math.radians(0.5), 3)
             g = g_ap[i] + bias + rng.normal(0, 0.005, 3)
-            bc.handle(mavlink2.MAVLink_attitude_message((t + off) // 1_000_000, *r, *g), 1, t + 3_000_000)
-            bc.handle(mavlink2.MAVLink_highres_imu_message((t + off) // 1000, 0, 0, -9.8, *g, 0, 0, 0, 0, 0, 0, 0, 0),
-                      1, t + 3_000_000)
+            bc.handle(mavlink2.MAVLink_attitude_message((t + off) // 1_000_000, *r, *g), 1, t + back_ns)
+            if gyro_filter_hz is None:
+                bc.handle(mavlink2.MAVLink_highres_imu_message((t + off) // 1000, 0, 0, -9.8, *g, 0, 0, 0, 0, 0, 0,
+                                                               0, 0), 1, t + back_ns)
+            else:  # ArduPilot's: mrad/s
+                bc.handle(mavlink2.MAVLink_raw_imu_message((t + off) // 1000, 0, 0, -1000, *np.round(g * 1000), 0, 0,
+                                                           0), 1, t + back_ns)
         if i % 50 == 0:
             bc._ts_pending[t] = t  # as service() records a request it sent
-            bc.on_timesync_reply(t, t + off + 2_000_000 + int(delay_ms * 1e6), t + 4_000_000)
+            fwd_ns = 2_000_000 + int(delay_ms * 1e6)
+            bc.on_timesync_reply(t, t + off + fwd_ns, t + fwd_ns + back_ns)
+            bc.service(t)
+            asked = [m for m in out if m.get_type() == "PARAM_REQUEST_READ"]
+            if gyro_filter_hz is not None and filter_answered and asked and bc.gyro_filter_hz is None:
+                answer = mavlink2.MAVLink_param_value_message(asked[-1].param_id.encode(), gyro_filter_hz, 9, 900, 0)
+                bc.handle(answer, 1, t + fwd_ns + back_ns)  # over the link
         if i % 25 == 0:
             states.append((t * 1e-9, bc.check_identity(t + 3_000_000)))
     return bc, states
@@ -131,6 +153,39 @@ def test_delay_measured_on_a_simulated_clock():
         bc, _ = _fly(AGGRESSIVE, AGGRESSIVE, 25.0, delay_ms=delay_ms)
         # 2 ms from stamp to send, 2 ms + delay over the link
         assert bc.delay_ms == pytest.approx(4.0 + delay_ms, abs=2.0)
+
+
+def test_delay_is_not_biased_by_a_slow_return_link():
+    """The link delayed both ways (SITL through `visionpos sitl --link-delay-ms`): the gyro comes back late,
+    but it carries the autopilot's own stamps, and TIMESYNC's forward half is the autopilot's receive time;
+    the delay is the forward one only."""
+    for delay_ms in (20.0, 50.0):
+        bc, _ = _fly(AGGRESSIVE, AGGRESSIVE, 25.0, delay_ms=delay_ms, return_ms=delay_ms)
+        assert bc.delay_ms == pytest.approx(4.0 + delay_ms, abs=2.0)
+
+
+def test_ardupilot_gyro_filter_lag_is_not_taken_for_link_delay():
+    """ArduPilot reports its gyro after its INS_GYRO_FILTER low-pass (20 Hz on a copter): 11.3 ms behind the
+    motion. Taken at face value the delay came out 11 ms short (as it did against SITL); the back-channel asks
+    for INS_GYRO_FILTER and measures against the motion itself."""
+    for delay_ms in (0.0, 20.0, 50.0):
+        sent: list = []
+        bc, _ = _fly(AGGRESSIVE, AGGRESSIVE, 25.0, delay_ms=delay_ms, gyro_filter_hz=20.0, sent=sent)
+        assert any(m.get_type() == "PARAM_REQUEST_READ" and m.param_id == "INS_GYRO_FILTER" for m in sent)
+        assert bc.gyro_filter_hz == 20.0 and bc.gyro_source == "RAW_IMU"
+        assert bc.delay_ms == pytest.approx(4.0 + delay_ms, abs=2.0), bc.delay_reason
+        assert "lag removed" in bc.delay_reason
+
+
+def test_ardupilot_delay_waits_for_its_gyro_filter():
+    """An ArduPilot that has not said its INS_GYRO_FILTER: the delay stays unknown (not 11 ms short), and the
+    reason says what it waits for."""
+    sent: list = []
+    bc, _ = _fly(AGGRESSIVE, AGGRESSIVE, 12.0, gyro_filter_hz=20.0, sent=sent, filter_answered=False)
+    assert bc.delay_ms is None and "INS_GYRO_FILTER" in bc.delay_reason, bc.delay_reason
+    assert sum(m.get_type() == "PARAM_REQUEST_READ" for m in sent) >= 3  # asked again every 2 s
+    bc2, _ = _fly(AGGRESSIVE, AGGRESSIVE, 12.0)  # the same flight from an autopilot of unknown kind: measured
+    assert bc2.delay_ms is not None
 
 
 def test_silent_autopilot_leaves_every_check_unknown():
@@ -235,8 +290,9 @@ def test_correct_wiring_sends_and_reads_back_live():
 def test_measured_delay_matches_the_added_link_delay_live():
     t0 = time.monotonic_ns()
     delays = (0.0, 20.0, 50.0)
+    # ArduPilot copters' INS_GYRO_FILTER (20 Hz): their gyro 11.3 ms behind the motion
     aps = [FakeAutopilot("udpin:127.0.0.1:0", sysid=i + 1, truth=trajectory_truth(AGGRESSIVE, t0), delay_ms=d,
-                         boot_ns=t0 - int((i + 1) * 3.7e9)) for i, d in enumerate(delays)]
+                         boot_ns=t0 - int((i + 1) * 3.7e9), gyro_filter_hz=20.0) for i, d in enumerate(delays)]
     bridge = _pairs([{"set_delay": i == 2} for i in range(3)], aps)
     try:
         _stream(bridge, [AGGRESSIVE] * 3, t0, 25.0, rate_hz=50.0,

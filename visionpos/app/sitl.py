@@ -654,6 +654,11 @@ class FlightPlan:
     square: bool = True
     cut_s: float = 0.0  # vision hidden this long mid-hover (0: no cut)
     timeout_s: float = 240.0
+    # the vision link through a DelayRelay holding each direction this long (None: SERIAL1 straight to the bridge)
+    link_delay_ms: float | None = None
+    # yaw rate swung sinusoidally (rad/s amplitude, YAW_SWING_PERIOD_S) during the hold: the rotation the
+    # back-channel's gyro/optical correlation needs to measure the delay (0: hold still)
+    yaw_swing_rad_s: float = 0.0
 
 
 def _vehicle_cfg(arena: ArenaConfig) -> dict[str, Any]:
@@ -661,7 +666,23 @@ def _vehicle_cfg(arena: ArenaConfig) -> dict[str, Any]:
 
 
 def run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | None) -> dict[str, Any]:
-    """Start SITL, set it up for vision-only flight, fly the plan on the live arena; the summary dict."""
+    """Start SITL, set it up for vision-only flight, fly the plan on the live arena; the summary dict.
+
+    With plan.link_delay_ms, SITL's SERIAL1 talks to a DelayRelay (visionpos/app/linkdelay.py) that holds
+    each datagram that long each way on its way to and from the bridge, and the summary's "link_delay"
+    compares the back-channel's measured capture-to-autopilot delay with the true one (delay_record)."""
+    from visionpos.app.linkdelay import DelayRelay
+
+    if plan.link_delay_ms is None:
+        return _run_sitl(arena, binary, plan, out, None)
+    veh = _vehicle_cfg(_one_vehicle(arena))
+    vision_port = int(str(veh["endpoint"]).rsplit(":", 1)[1])
+    with DelayRelay(("127.0.0.1", vision_port), plan.link_delay_ms, lifetime_s=plan.timeout_s + 180.0) as relay:
+        return _run_sitl(arena, binary, plan, out, relay)
+
+
+def _run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | None,
+              relay: Any) -> dict[str, Any]:
     from bridge.config import load_signing_key
     from visionpos.app.demo import run_demo
 
@@ -678,11 +699,14 @@ def run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | N
     t0 = time.monotonic()
     old_switch = sys.getswitchinterval()
     sys.setswitchinterval(0.001)  # the GCS reader stamps truth on arrival: let it run promptly
-    with SitlProcess(cfg, instance, f"udpclient:127.0.0.1:{vision_port}") as proc:
+    serial1_port = vision_port if relay is None else relay.port
+    with SitlProcess(cfg, instance, f"udpclient:127.0.0.1:{serial1_port}") as proc:
         gcs = Gcs(proc.gcs_port, truth, on_text=lambda text: say(f"  SITL: {text}"))
         try:
             say(f"SITL instance {proc.instance} in {proc.folder}: GCS on SERIAL0 tcp:127.0.0.1:{proc.gcs_port}, "
-                f"SERIAL1 udpclient:127.0.0.1:{vision_port} -> the bridge ({veh['endpoint']}, signed)")
+                f"SERIAL1 udpclient:127.0.0.1:{serial1_port} -> "
+                + ("" if relay is None else f"a relay holding each direction {plan.link_delay_ms:g} ms -> ")
+                + f"the bridge ({veh['endpoint']}, signed)")
             gcs.connect(30.0, proc)
             params = vision_parameters(cfg, veh.get("message", "vision_position_estimate"),
                                        bool(veh.get("vision_speed", False)))
@@ -706,7 +730,7 @@ def run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | N
 
             async def during(ctx: Any) -> None:
                 try:
-                    await fly(ctx, gcs, live, plan, cfg, body, record, say)
+                    await fly(ctx, gcs, live, plan, cfg, body, record, say, relay)
                 except SitlError as e:  # the flight failed: still summarise what happened (and why)
                     record["error"] = str(e)
                     say(f"flight failed: {e}")
@@ -718,6 +742,8 @@ def run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | N
             gcs.close()
             sys.setswitchinterval(old_switch)
     summary = flight_summary(gcs, truth, demo, record, plan, time.monotonic() - t0)
+    if "link_delay" in record:
+        summary["link_delay"] = record["link_delay"]
     made = max(live.frames_made, 1)
     summary["real_time"] = {"frames_made": live.frames_made, "frames_late_fraction": live.frames_late / made,
                             "frames_not_fused_fraction": (summary["vision"]["frames_not_fused"] or 0) / made}
@@ -768,8 +794,9 @@ def _set_origin(gcs: Gcs, cfg: SitlSettings, say: Callable[[str], None]) -> None
 
 
 async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSettings, body: str,
-              record: dict[str, Any], say: Callable[[str], None]) -> None:
-    """The scripted flight: EKF on vision, VISO_DELAY_MS, GUIDED, arm, take off, hold (cut), square, land."""
+              record: dict[str, Any], say: Callable[[str], None], relay: Any = None) -> None:
+    """The scripted flight: EKF on vision, VISO_DELAY_MS, GUIDED, arm, take off, hold (cut, yaw swing),
+    square, land. With a relay, record["link_delay"] gets delay_record at the end of the hold."""
     end = time.monotonic() + plan.timeout_s
     left = lambda: max(1.0, end - time.monotonic())  # noqa: E731
     await Gcs.until(gcs.ekf_using_vision, min(60.0, left()), f"STATUSTEXT '{EXTNAV_TEXT}'")
@@ -777,11 +804,11 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
     link = ctx.bridge.vehicle(body)
     if cfg.viso_delay_ms is None:
         await asyncio.sleep(2.0)  # a couple of seconds of poses for the latency figure
-        delay = link.stats()["latency_stamp_ms_p50"]
+        delay = link.stats()["latency_stamp_ms_p50"] + (plan.link_delay_ms or 0.0)
         delay_ms = int(round(delay)) if np.isfinite(delay) else 10
         await gcs.set_params_async({"VISO_DELAY_MS": delay_ms})
-        say(f"EKF3 uses the vision; VISO_DELAY_MS = {delay_ms} (the bridge's pose stamp -> send p50; loopback adds "
-            "nothing)")
+        say(f"EKF3 uses the vision; VISO_DELAY_MS = {delay_ms} (the bridge's pose stamp -> send p50"
+            + (f" + the relay's {plan.link_delay_ms:g} ms" if plan.link_delay_ms else "") + "; loopback adds nothing)")
     record["viso_delay_ms"] = gcs.params.get("VISO_DELAY_MS")
     await gcs.command_async(MAV_CMD_DO_SET_MODE, 1, COPTER_MODES["GUIDED"], what="GUIDED mode")
     arm_end = time.monotonic() + min(45.0, left())
@@ -809,15 +836,21 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
     await Gcs.until(lambda: height() >= plan.altitude_m - 0.05, min(30.0, left()), f"climb to {plan.altitude_m} m")
     record["airborne_ns"] = time.monotonic_ns()
     x0, y0, z0 = gcs.local[-1][1:4]
-    say(f"at {height():.2f} m; holding")
-    await asyncio.sleep(plan.hold_s / 2)
+    say(f"at {height():.2f} m; holding" + (f", yaw swinging +-{plan.yaw_swing_rad_s:g} rad/s"
+                                             if plan.yaw_swing_rad_s > 0 else ""))
+    await _hold(gcs, plan, x0, y0, plan.hold_s / 2)
     if plan.cut_s > 0:
         now = time.monotonic_ns()
         live.cut(now, now + int(plan.cut_s * 1e9))
         record["cut"] = (now, now + int(plan.cut_s * 1e9), (x0, y0, z0))
         say(f"vision cut for {plan.cut_s:g} s (the body hidden from every camera)")
         await asyncio.sleep(plan.cut_s)
-    await asyncio.sleep(plan.hold_s / 2)
+    await _hold(gcs, plan, x0, y0, plan.hold_s / 2)
+    if relay is not None:
+        record["link_delay"] = delay_record(link.bc, relay, plan.link_delay_ms or 0.0, gcs.truth)
+        d = record["link_delay"]
+        say(f"link delay {d['added_ms']:g} ms: back-channel measured {_fmt(d['measured_ms'])} ms, true "
+            f"{_fmt(d['true_ms'])} ms ({d['detail']})")
     if plan.square:
         s = plan.side_m
         for dx, dy in ((s, 0.0), (s, s), (0.0, s), (0.0, 0.0)):
@@ -830,6 +863,77 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
     record["disarmed_ns"] = time.monotonic_ns()
     record["completed"] = True
     say("landed and disarmed")
+
+
+YAW_SWING_PERIOD_S = 2.0
+
+
+async def _hold(gcs: Gcs, plan: FlightPlan, north: float, east: float, duration_s: float) -> None:
+    """Hold the position for duration_s: still, or (plan.yaw_swing_rad_s) turning back and forth about the
+    vertical with a sinusoidal yaw rate (SET_POSITION_TARGET_LOCAL_NED: position and yaw rate)."""
+    if plan.yaw_swing_rad_s <= 0:
+        await asyncio.sleep(duration_s)
+        return
+    t0 = time.monotonic()
+    while (t := time.monotonic() - t0) < duration_s:
+        rate = plan.yaw_swing_rad_s * math.sin(2 * math.pi * t / YAW_SWING_PERIOD_S)
+        gcs.conn.mav.set_position_target_local_ned_send(0, 1, 1, 1, 0b0000_0101_1111_1000, north, east,
+                                                        -plan.altitude_m, 0, 0, 0, 0, 0, 0, 0, rate)
+        await asyncio.sleep(0.05)
+
+
+def _fmt(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2f}"
+
+
+def delay_record(bc: Any, relay: Any, added_ms: float, truth: TruthTrack | None = None,
+                 window_ns: int | None = None) -> dict[str, Any]:
+    """The back-channel's measured capture-to-autopilot delay against the true one, for a link through relay.
+
+    True delay: when a pose reaches SITL's socket less its stamp (the capture time it stands for), on the
+    server clock: (the bridge's write to its socket - the stamp) + (the relay's hold of the datagrams to
+    SITL), each the median over the back-channel's measurement window (the newest window_ns,
+    DELAY_WINDOW_NS); loopback adds microseconds. Left out, the same for every added delay (so the change
+    of the difference with the added delay is free of them): SITL's wait to read its socket (its loop,
+    which also stamps TIMESYNC); SIM_STATE's latency to its arrival stamp here (SITL's wait to send it,
+    loopback TCP, our reader thread's wake-up: the cameras render the truth as of its arrival, so a pose
+    shows motion that much older than its stamp), less RAW_IMU's (ArduPilot stamps it when sent, not when
+    sampled). optical_lag_ms, for diagnosis: how far the poses' body rates trail SIM_STATE's as stamped
+    here (the fusion's lag; not in the true delay)."""
+    from bridge.backchannel import DELAY_WINDOW_NS
+
+    now = time.monotonic_ns()
+    since = now - (window_ns if window_ns is not None else DELAY_WINDOW_NS)
+    sends = np.array([r[1] for r in list(bc.sends.d) if r[0] >= since], dtype=float)  # list(): copied under the GIL
+    hold_ms = relay.hold_ms_median("to_autopilot", since)
+    lag_ms = _optical_lag_ms(bc, truth, since) if truth is not None else None
+    true_ms = float(np.median(sends)) * 1e-6 + hold_ms if len(sends) and hold_ms is not None else None
+    measured = bc.delay_ms
+    return {"added_ms": float(added_ms), "measured_ms": measured, "true_ms": true_ms,
+            "error_ms": measured - true_ms if measured is not None and true_ms is not None else None,
+            "send_minus_stamp_ms_p50": float(np.median(sends)) * 1e-6 if len(sends) else None,
+            "relay_hold_ms_p50": hold_ms, "relay_hold_back_ms_p50": relay.hold_ms_median("to_bridge", since),
+            "optical_lag_ms": lag_ms,
+            "correlation": float(bc.delay_correlation) if np.isfinite(bc.delay_correlation) else None,
+            "gyro_source": bc.gyro_source or None, "detail": bc.delay_reason}
+
+
+def _optical_lag_ms(bc: Any, truth: TruthTrack, since_ns: int) -> float | None:
+    """How far the bridge's poses trail SITL's truth (ms, server clock): the lag of the body rates from the
+    poses' attitudes (as the back-channel derives them) behind SIM_STATE's body rates, since since_ns;
+    None without enough rotation to correlate."""
+    from visionpos.analysis.autopilot import body_rates_from_attitudes, estimate_lag
+    from visionpos.geometry.frames import flu_to_frd
+
+    rows = [r for r in list(bc.opt.d) if r[0] >= since_ns]
+    t_true, x = truth.snapshot()
+    keep = t_true >= since_ns
+    if len(rows) < 50 or keep.sum() < 50:
+        return None
+    to, rates = body_rates_from_attitudes(np.array([r[0] for r in rows], dtype=np.int64),
+                                          np.array([r[6:10] for r in rows], dtype=float))
+    est = estimate_lag(t_true[keep], flu_to_frd(x[keep, 10:13]), to, rates, 0.0, 50e6, step_ns=1e6)
+    return est.lag_ns * 1e-6 if est is not None and est.correlation > 0.8 else None
 
 
 def truth_now(truth: TruthTrack) -> tuple[int, np.ndarray]:
@@ -955,6 +1059,13 @@ def format_flight(s: dict[str, Any]) -> str:
         e = c.get("ekf_horizontal_error_1_to_3_s_after_mm") or {}
         lines.append(f"  vision cut {c['seconds']:g} s: true drift from the hold point max "
                      f"{f(c['max_drift_from_hold_mm'])} mm; EKF error 1-3 s after: p99 {f(e.get('p99'))} mm")
+    if "link_delay" in s:
+        d = s["link_delay"]
+        lines.append(f"  link delay {d['added_ms']:g} ms each way: capture->autopilot delay measured by the "
+                     f"back-channel {_fmt(d['measured_ms'])} ms, true {_fmt(d['true_ms'])} ms (send-stamp "
+                     f"{_fmt(d['send_minus_stamp_ms_p50'])} + relay {_fmt(d['relay_hold_ms_p50'])}), difference "
+                     f"{_fmt(d['error_ms'])} ms; poses behind SITL's truth {_fmt(d['optical_lag_ms'])} ms; "
+                     f"{d['detail']}")
     lines.append(f"  failsafe / lane switch messages: {s['failsafe_or_lane_switch'] or 'none'}; "
                  f"mode changes not commanded: {s['mode_changes_not_ours'] or 'none'}")
     lines.append("  STATUSTEXT: " + " | ".join(s["statustext"]))

@@ -18,6 +18,7 @@ GROUPS: dict[str, str] = {
     "robustness": "robustness",
     "planner": "planner",
     "sitl": "sitl",
+    "sitl_delay": "sitl_delay",
     "console": "console",
     "backchannel": "backchannel",
     "camera_monitor": "camera_monitor",
@@ -151,4 +152,12 @@ GOALS: list[Goal] = [
     Goal("sitl_flight_completed", ">=", 1, "ArduPilot SITL on visionpos: the scripted flight completes"),
     Goal("sitl_ekf_horizontal_error_p99_mm", "<=", 20.0, "ArduPilot SITL: EKF horizontal position error p99 (mm)"),
     Goal("sitl_failsafe_messages", "<=", 0, "ArduPilot SITL: failsafe / lane-switch messages, uncommanded modes"),
+    Goal("sitl_delay_error_ms_max", "<=", 2.0, "ArduPilot SITL, vision link delayed 0/20/50 ms each way: measured "
+         "capture-to-autopilot delay - true (ms)"),
+    Goal("sitl_delay_slope_error_ms_abs", "<=", 2.0, "ArduPilot SITL: measured delay at 50 ms added link delay "
+         "less at 0 ms, against the same change of the true delay (ms)"),
+    Goal("sitl_delay_flights_completed_min", ">=", 1, "ArduPilot SITL, link delayed 0/20/50 ms: every hover "
+         "flight completes"),
+    Goal("sitl_delay_ekf_horizontal_error_p99_mm_max", "<=", 20.0, "ArduPilot SITL, link delayed 0/20/50 ms: EKF "
+         "horizontal position error p99 (mm), worst flight"),
 ]

@@ -21,6 +21,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hold", type=float, default=4.0, help="hover before the square (s; default 4)")
     p.add_argument("--cut", type=float, default=0.0, metavar="S",
                    help="hide the vehicle from every camera for S seconds mid-hover (e.g. 1)")
+    p.add_argument("--link-delay-ms", type=float, default=None, metavar="D",
+                   help="put a relay in the vision link (SITL's SERIAL1 <-> the bridge) holding each direction D ms, "
+                        "and compare the back-channel's measured capture-to-autopilot delay with the true one")
+    p.add_argument("--yaw-swing", type=float, default=None, metavar="RAD_S",
+                   help="swing the yaw rate +-RAD_S (2 s period) during the hold: the rotation the delay measurement "
+                        "correlates (default 1 with --link-delay-ms, else 0)")
     p.add_argument("--timeout", type=float, default=240.0, help="give up after this many seconds (default 240)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
@@ -32,7 +38,13 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--side {args.side}: give 0.1 to 2 m")
     if not 0 <= args.cut <= 5:
         raise UsageError(f"--cut {args.cut}: give 0 to 5 s")
-    plan = FlightPlan(args.altitude, args.side, args.hold, not args.no_square, args.cut, args.timeout)
+    if args.link_delay_ms is not None and not 0 <= args.link_delay_ms <= 200:
+        raise UsageError(f"--link-delay-ms {args.link_delay_ms}: give 0 to 200 ms")
+    swing = args.yaw_swing if args.yaw_swing is not None else (1.0 if args.link_delay_ms is not None else 0.0)
+    if not 0 <= swing <= 3:
+        raise UsageError(f"--yaw-swing {swing}: give 0 to 3 rad/s")
+    plan = FlightPlan(args.altitude, args.side, args.hold, not args.no_square, args.cut, args.timeout,
+                      args.link_delay_ms, swing)
     arena = sitl_arena(args.scenario, args.set, args.timeout + 60.0)
     binary = find_sitl_binary(args.sitl, arena)
     out = sys.stderr if args.json else sys.stdout
