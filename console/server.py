@@ -308,12 +308,10 @@ class ConsoleServer:
         # a watch that falls due in between waits for the next of them (it reads the same views)
         cameras = self.counters["updates"] % CAMERA_EVERY == 0
         self._watch_due |= watch
-        state = self.view.state(now, self._watch_due and cameras, rays, cameras=cameras)
+        text = self.view.state_json(now, self._watch_due and cameras, rays, cameras=cameras,
+                                    extra=self.extra() if self.extra is not None else None)
         if cameras:
             self._watch_due = False
-        if self.extra is not None:
-            state.update(self.extra())
-        text = json.dumps(state)
         self.counters["updates"] += 1
         for c in self.clients:
             c.offer(text)
@@ -337,7 +335,7 @@ class ConsoleServer:
                 if self.clients:
                     self.publish_once(watch)
                 elif watch:
-                    self.view.camera_states(self.clock(), watch=True)
+                    self.view.state(self.clock(), watch=True, cameras=False)
                 if now_s >= next_health:  # also without clients: the rates of /api/health need samples
                     next_health = now_s + HEALTH_PERIOD_S
                     h = self.health()
