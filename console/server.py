@@ -9,7 +9,8 @@
                          may send {"cmd": ...} (replay controls, console/replay.py)
 
 One update task: once per tick it builds the state (only when a client is connected), encodes it
-ONCE and puts the text in each client's queue of QUEUE_UPDATES; a full queue drops its oldest
+ONCE (a camera's view only when that camera sent something new: console/view.py) and puts the text
+in each client's queue of QUEUE_UPDATES; a full queue drops its oldest
 update (counted), so a slow or stalled browser loses updates and never holds up fusion or the
 other clients. Each client's sender task awaits the socket; nothing else does.
 
