@@ -54,15 +54,13 @@ def _age_ms(now_ns: int, capture_ns: int | None) -> float | None:
 
 @dataclass(frozen=True)
 class _CameraView:
-    """One camera's built view: what it was built from (key), its blobs/pred/rays (data) and the same as JSON
-    members without braces (text), encoded once per build."""
+    """One camera's built view: what it was built from (key) and its blobs, pred and rays (data)."""
 
     key: tuple
     data: dict[str, Any]
-    text: str
 
 
-_EMPTY_VIEW = _CameraView((), {"blobs": [], "pred": []}, '"blobs": [], "pred": []')
+_EMPTY_VIEW = _CameraView((), {"blobs": [], "pred": []})
 
 
 def scene(arena: Any) -> dict[str, Any]:
@@ -158,7 +156,7 @@ class ConsoleView:
     def _views(self, now_ns: int, watch: bool, rays: frozenset[int]) -> list[tuple[int, int | None, _CameraView]]:
         """(camera, capture_ns or None, its view) per camera. A camera's view is built only when something it
         shows changed since its last build (its frame, the frame's labels, the tracked bodies, its rays) or a
-        watch wants a frame it has not seen; otherwise the last one is reused, encoded text and all (a camera
+        watch wants a frame it has not seen; otherwise the last one is reused (a camera
         slower than the updates, a stalled one, a paused replay cost nothing). The cameras to build are built
         together: a few numpy calls for all of them, not per camera."""
         pipe = self.source.pipeline
@@ -212,7 +210,7 @@ class ConsoleView:
                 xn = np.asarray(o.xn, dtype=float).reshape(-1, 2)
                 good = np.isfinite(xn).all(axis=1)
                 d["rays"] = np.rint(xn[good] * 1e5).astype(np.int64).tolist()
-            out[cid] = self._built[cid] = _CameraView(key, d, json.dumps(d)[1:-1])
+            out[cid] = self._built[cid] = _CameraView(key, d)
             self.builds[cid] += 1
             if watch:
                 lab = np.asarray(o.label)
@@ -226,12 +224,6 @@ class ConsoleView:
         cameras in `rays` also each blob's undistorted coordinates [x, y] x 1e5 (its ray). watch: also
         update the residual and static-blob watches (a few times a second is plenty)."""
         return [{"id": cid, **v.data, "age_ms": _age_ms(now_ns, t)} for cid, t, v in self._views(now_ns, watch, rays)]
-
-    def cameras_json(self, now_ns: int, watch: bool = False, rays: frozenset[int] = frozenset()) -> str:
-        """camera_states as JSON text, from each view's text encoded when it was built."""
-        parts = [f'{{"id": {cid}, "age_ms": {json.dumps(_age_ms(now_ns, t))}, {v.text}}}'
-                 for cid, t, v in self._views(now_ns, watch, rays)]
-        return "[" + ", ".join(parts) + "]"
 
     def _watch(self, cid: int, o: Any, px: np.ndarray, label: np.ndarray, ok: np.ndarray,
                pred: tuple | None, uv: np.ndarray | None, now_ns: int) -> None:
@@ -330,11 +322,7 @@ class ConsoleView:
 
     def state_json(self, now_ns: int, watch: bool = False, rays: frozenset[int] = frozenset(),
                    cameras: bool = True, extra: dict[str, Any] | None = None) -> str:
-        """state (with `extra`'s members) as JSON text; the camera views from their cached text (cameras_json)."""
-        out = self.state(now_ns, watch and not cameras, cameras=False)
+        """state with `extra`'s members, as JSON text (one encoder call for the whole message)."""
+        out = self.state(now_ns, watch, rays, cameras)
         out.update(extra or {})
-        text = json.dumps(out)
-        if not cameras:
-            return text
-        return f'{text[:-1]}, "cameras": {self.cameras_json(now_ns, watch, rays)}}}'
-
+        return json.dumps(out)
