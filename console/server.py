@@ -6,10 +6,12 @@
     GET /ws              WebSocket: {"type": "scene"} once, then {"type": "state"} at update_rate_hz (the
                          camera views in every second one),
                          {"type": "health"} twice a second, {"type": "replay"} in a replay; the client
-                         may send {"cmd": ...} (replay controls, console/replay.py)
+                         may send {"cmd": ...}: "rays" (a camera's blob rays), "views" (on: false while the
+                         tab is hidden: no camera views for it), "health", replay controls (console/replay.py)
 
 One update task: once per tick it builds the state (only when a client is connected), encodes it
-ONCE and puts the text in each client's queue of QUEUE_UPDATES; a full queue drops its oldest
+ONCE (a camera's view only when that camera sent something new: console/view.py) and puts the text
+in each client's queue of QUEUE_UPDATES; a full queue drops its oldest
 update (counted), so a slow or stalled browser loses updates and never holds up fusion or the
 other clients. Each client's sender task awaits the socket; nothing else does.
 
@@ -61,6 +63,7 @@ class Client:
         self.sent = 0
         self.dropped = 0
         self.rays: int | None = None  # the camera whose blob rays this tab draws
+        self.views = True  # it shows the camera views (a hidden tab says no: none are built for it)
 
     def offer(self, text: str) -> None:
         """Queue one update; a full queue loses its oldest (the browser is behind)."""
@@ -269,6 +272,11 @@ class ConsoleServer:
                 return await self._bad(client, "rays", f"rays: camera {cam!r} is none of {sorted(self.view.cameras)}")
             client.rays = cam
             return
+        if msg["cmd"] == "views":
+            if not isinstance(msg.get("on"), bool):
+                return await self._bad(client, "views", 'views: expected {"cmd": "views", "on": true or false}')
+            client.views = msg["on"]
+            return
         if self.controls is None:
             return await self._bad(client, "cmd", f"unknown command {msg['cmd']!r} (replay controls need "
                                                   "`visionpos replay LOG --view`)")
@@ -300,23 +308,30 @@ class ConsoleServer:
     # ---------------------------------------------------------------- updates
 
     def publish_once(self, watch: bool = False) -> None:
-        """One update tick: build, encode once, offer to every client (the update loop's body). watch: also
-        run the view's residual and static-blob watches."""
+        """One update tick: build, encode once (twice when some tabs want the camera views and some not), offer
+        to every client (the update loop's body). watch: also run the view's residual and static-blob watches."""
         now = self.clock()
-        rays = frozenset(c.rays for c in self.clients if c.rays is not None)
-        # the camera views in every CAMERA_EVERY-th update: plenty for the eye, and half the update's cost;
-        # a watch that falls due in between waits for the next of them (it reads the same views)
-        cameras = self.counters["updates"] % CAMERA_EVERY == 0
+        rays = frozenset(c.rays for c in self.clients if c.views and c.rays is not None)
+        viewers = sum(c.views for c in self.clients)
+        # the camera views in every CAMERA_EVERY-th update, and only when a tab shows them: plenty for the eye,
+        # and half the update's cost; a watch that falls due in between waits for the next of them (it reads
+        # the same views), or runs at once when no tab shows them
+        cameras = viewers > 0 and self.counters["updates"] % CAMERA_EVERY == 0
         self._watch_due |= watch
-        state = self.view.state(now, self._watch_due and cameras, rays, cameras=cameras)
-        if cameras:
+        watch_now = self._watch_due and (cameras or viewers == 0)
+        state = self.view.state(now, watch_now, rays, cameras=cameras)
+        if watch_now:
             self._watch_due = False
         if self.extra is not None:
             state.update(self.extra())
         text = json.dumps(state)
+        plain = text
+        if cameras and viewers < len(self.clients):
+            state.pop("cameras")
+            plain = json.dumps(state)
         self.counters["updates"] += 1
         for c in self.clients:
-            c.offer(text)
+            c.offer(text if c.views else plain)
 
     async def _update_loop(self) -> None:
         period_s = 1.0 / self.settings.update_rate_hz
@@ -337,7 +352,7 @@ class ConsoleServer:
                 if self.clients:
                     self.publish_once(watch)
                 elif watch:
-                    self.view.camera_states(self.clock(), watch=True)
+                    self.view.state(self.clock(), watch=True, cameras=False)
                 if now_s >= next_health:  # also without clients: the rates of /api/health need samples
                     next_health = now_s + HEALTH_PERIOD_S
                     h = self.health()

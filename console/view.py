@@ -12,8 +12,10 @@ per console update (30 Hz), never per packet.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, field
+from math import isfinite
 from typing import Any
 
 import numpy as np
@@ -35,13 +37,30 @@ def _r(x: float, nd: int) -> float | None:
     return round(float(x), nd) if math.isfinite(x) else None
 
 
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) of a unit quaternion (x, y, z, w) (scipy's from_quat costs more than this whole
-    update's arithmetic)."""
-    x, y, z, w = q / np.linalg.norm(q)
+def _quat_matrix(q: list[float]) -> np.ndarray:
+    """Rotation matrix (3, 3) of a unit quaternion [x, y, z, w] (scipy's from_quat costs more than this whole
+    update's arithmetic; plain floats cost less than numpy scalars)."""
+    x, y, z, w = q
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def _age_ms(now_ns: int, capture_ns: int | None) -> float | None:
+    return None if capture_ns is None else _r((now_ns - capture_ns) * 1e-6, 1)
+
+
+@dataclass(frozen=True)
+class _CameraView:
+    """One camera's built view: what it was built from (key) and its blobs, pred and rays (data)."""
+
+    key: tuple
+    data: dict[str, Any]
+
+
+_EMPTY_VIEW = _CameraView((), {"blobs": [], "pred": []})
 
 
 def scene(arena: Any) -> dict[str, Any]:
@@ -108,19 +127,94 @@ class ConsoleView:
         self.marker_start = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
         self.body_markers = [np.asarray(b.markers, dtype=float).reshape(-1, 3) for b in arena.bodies]
         self.watch = {c.id: CameraWatch() for c in arena.cameras}
+        self._body_of_label_list = self.marker_body.tolist()
+        self._built: dict[int, _CameraView] = {}
+        self.builds = {c.id: 0 for c in arena.cameras}  # camera views built, per camera (the rest were reused)
 
     # ---------------------------------------------------------------- per camera
 
-    def _predicted(self, pipe: Any, t_ns: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
-        """(body, markers (M, 3) in the world at t_ns, velocity (3,)) of each tracked body, from its filter:
-        one prediction per body and update; each camera shifts it to its own capture time."""
-        out = []
+    def _predicted(self, pipe: Any, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]] | None:
+        """The tracked bodies' markers from their filters, stacked: world positions (K, 3) at t_ns, each
+        marker's body velocity (K, 3), its body (K,), and the bodies; None when no body is tracked. One
+        prediction per body and update; each camera shifts it to its own capture time."""
+        bodies, world, vel = [], [], []
         for b, tr in enumerate(pipe.tracks):
             if not tr.tracked or b >= len(self.body_markers):
                 continue
             p, q, v = tr.filter.output_at(t_ns)[:3]
-            if np.all(np.isfinite(p)) and np.all(np.isfinite(q)) and np.all(np.isfinite(v)):
-                out.append((b, self.body_markers[b] @ _quat_matrix(q).T + p, v))
+            q, v = q.tolist(), v.tolist()
+            if isfinite(sum(q) + sum(v) + float(p.sum())):  # NaN or inf in any of them
+                bodies.append(b)
+                world.append(self.body_markers[b] @ _quat_matrix(q).T + p)
+                vel.append(v)
+        if not bodies:
+            return None
+        counts = [len(self.body_markers[b]) for b in bodies]
+        return (np.concatenate(world), np.repeat(np.array(vel), counts, axis=0),
+                [b for b, n in zip(bodies, counts) for _ in range(n)], bodies)
+
+    def _views(self, now_ns: int, watch: bool, rays: frozenset[int]) -> list[tuple[int, int | None, _CameraView]]:
+        """(camera, capture_ns or None, its view) per camera. A camera's view is built only when something it
+        shows changed since its last build (its frame, the frame's labels, the tracked bodies, its rays) or a
+        watch wants a frame it has not seen; otherwise the last one is reused (a camera
+        slower than the updates, a stalled one, a paused replay cost nothing). The cameras to build are built
+        together: a few numpy calls for all of them, not per camera."""
+        pipe = self.source.pipeline
+        obs_all = getattr(pipe, "obs", {})
+        px_all = getattr(pipe, "last_px", {})
+        tracked = tuple(bool(tr.tracked) for tr in pipe.tracks)
+        out: list[tuple[int, int | None, _CameraView]] = []
+        build: list[tuple[int, Any, np.ndarray, tuple]] = []
+        newest = None
+        for cid in self.cameras:
+            o, px = obs_all.get(cid), px_all.get(cid)
+            if o is None or px is None or len(px) != len(o.label):
+                out.append((cid, None, _EMPTY_VIEW))
+                continue
+            t = int(o.capture_ns)
+            newest = t if newest is None or t > newest else newest
+            key = (t, id(o), id(px), np.asarray(o.label).tobytes(), tracked, cid in rays)
+            old = self._built.get(cid)
+            if old is None or old.key != key or (watch and self.watch[cid].last_capture_ns != t):
+                build.append((cid, o, px, key))
+                out.append((cid, t, _EMPTY_VIEW))  # filled below
+            else:
+                out.append((cid, t, old))
+        if build:
+            built = self._build(build, newest, now_ns, watch, rays)
+            out = [(cid, t, built.get(cid, v)) for cid, t, v in out]
+        return out
+
+    def _build(self, todo: list[tuple[int, Any, np.ndarray, tuple]], newest: int, now_ns: int, watch: bool,
+               rays: frozenset[int]) -> dict[int, _CameraView]:
+        """The views of the cameras in todo. A frame has a few dozen blobs at most: plain Python over
+        their lists costs less than the fixed price of the numpy calls it replaces (the numpy version of
+        this was slower), and numpy stays where it pays (the filter's prediction, the projection)."""
+        pipe = self.source.pipeline
+        n_markers = len(self.marker_body)
+        body_of = self._body_of_label_list
+        pred = self._predicted(pipe, newest)
+        out: dict[int, _CameraView] = {}
+        for cid, o, px, key in todo:
+            label = o.label.tolist() if isinstance(o.label, np.ndarray) else list(o.label)
+            blobs = [[round(u * 10.0), round(v * 10.0), body_of[lb] if 0 <= lb < n_markers else -1]
+                     for (u, v, *_), lb in zip(px.tolist(), label) if isfinite(u) and isfinite(v)]
+            d: dict[str, Any] = {"blobs": blobs, "pred": []}
+            uv = None
+            if pred is not None:
+                world, vel, pbody, _ = pred
+                uv = self.projectors[cid].project(world + vel * ((int(o.capture_ns) - newest) * 1e-9))
+                d["pred"] = [[round(u * 10.0), round(v * 10.0), b] for (u, v), b in zip(uv.tolist(), pbody)
+                             if isfinite(u) and isfinite(v)]
+            if cid in rays:
+                xn = np.asarray(o.xn, dtype=float).reshape(-1, 2)
+                good = np.isfinite(xn).all(axis=1)
+                d["rays"] = np.rint(xn[good] * 1e5).astype(np.int64).tolist()
+            out[cid] = self._built[cid] = _CameraView(key, d)
+            self.builds[cid] += 1
+            if watch:
+                lab = np.asarray(o.label)
+                self._watch(cid, o, px, lab, (lab >= 0) & (lab < n_markers), pred, uv, now_ns)
         return out
 
     def camera_states(self, now_ns: int, watch: bool = False, rays: frozenset[int] = frozenset()
@@ -129,56 +223,18 @@ class ConsoleView:
         the frame's capture time, pixels in tenths (integers encode fastest), the frame's age; for the
         cameras in `rays` also each blob's undistorted coordinates [x, y] x 1e5 (its ray). watch: also
         update the residual and static-blob watches (a few times a second is plenty)."""
-        pipe = self.source.pipeline
-        obs_all = getattr(pipe, "obs", {})
-        px_all = getattr(pipe, "last_px", {})
-        frames = [(cid, obs_all.get(cid), px_all.get(cid)) for cid in self.cameras]
-        newest = max((int(o.capture_ns) for _, o, _ in frames if o is not None), default=now_ns)
-        predicted = self._predicted(pipe, newest)
-        n_markers = len(self.marker_body)
-        out = []
-        for cid, o, px in frames:
-            if o is None or px is None or len(px) != len(o.label):
-                out.append({"id": cid, "blobs": [], "pred": [], "age_ms": None})
-                continue
-            label = np.asarray(o.label)
-            ok = (label >= 0) & (label < n_markers)
-            fin = np.isfinite(px[:, :2]).all(axis=1)
-            rows = np.empty((len(px), 3), dtype=np.int64)
-            rows[fin, :2] = np.rint(px[fin, :2] * 10.0)
-            rows[:, 2] = -1
-            rows[ok, 2] = self.marker_body[label[ok]]
-            d: dict[str, Any] = {"id": cid, "blobs": rows[fin].tolist(), "pred": [],
-                                 "age_ms": _r((now_ns - int(o.capture_ns)) * 1e-6, 1)}
-            if cid in rays:
-                xn = np.asarray(o.xn, dtype=float).reshape(-1, 2)
-                good = np.isfinite(xn).all(axis=1)
-                d["rays"] = np.rint(xn[good] * 1e5).astype(np.int64).tolist()
-            uv = None
-            if predicted:
-                dt_s = (int(o.capture_ns) - newest) * 1e-9
-                world = np.concatenate([m + v * dt_s for _, m, v in predicted])
-                uv = self.projectors[cid].project(world)
-                seen = np.isfinite(uv).all(axis=1)
-                pr = np.empty((int(seen.sum()), 3), dtype=np.int64)
-                pr[:, :2] = np.rint(uv[seen] * 10.0)
-                pr[:, 2] = np.concatenate([np.full(len(m), b, dtype=np.int64) for b, m, _ in predicted])[seen]
-                d["pred"] = pr.tolist()
-            if watch:
-                self._watch(cid, o, px, label, ok, predicted, uv, now_ns)
-            out.append(d)
-        return out
+        return [{"id": cid, **v.data, "age_ms": _age_ms(now_ns, t)} for cid, t, v in self._views(now_ns, watch, rays)]
 
-    def _watch(self, cid: int, o: Any, px: np.ndarray, label: np.ndarray, ok: np.ndarray, predicted: list,
-               uv: np.ndarray | None, now_ns: int) -> None:
+    def _watch(self, cid: int, o: Any, px: np.ndarray, label: np.ndarray, ok: np.ndarray,
+               pred: tuple | None, uv: np.ndarray | None, now_ns: int) -> None:
         """The residual of each matched blob against the prediction of its own marker; the static leftovers."""
         w = self.watch[cid]
         if o.capture_ns == w.last_capture_ns:
             return
         w.last_capture_ns = int(o.capture_ns)
-        if uv is not None:
-            rows_of = np.concatenate([np.arange(self.marker_start[b], self.marker_start[b] + len(m))
-                                      for b, m, _ in predicted])
+        if uv is not None and pred is not None:
+            bodies = pred[3]
+            rows_of = np.concatenate([np.arange(self.marker_start[b], self.marker_start[b + 1]) for b in bodies])
             index = np.full(len(self.marker_body) + 1, -1, dtype=np.int64)
             index[rows_of] = np.arange(len(rows_of))
             j = np.flatnonzero(ok)
@@ -236,7 +292,8 @@ class ConsoleView:
         for i, s in enumerate(self.source.last_states or []):
             d: dict[str, Any] = {"name": s.name, "id": s.body_id, "tracked": bool(s.tracked)}
             if s.tracked:
-                d.update(p=[_r(v, 5) for v in s.position], q=[_r(v, 6) for v in s.quaternion],
+                d.update(p=[_r(v, 5) for v in np.asarray(s.position).tolist()],
+                         q=[_r(v, 6) for v in np.asarray(s.quaternion).tolist()],
                          n_markers=int(s.n_markers), n_cameras=int(s.n_cameras), residual_mm=_r(s.residual_mm, 3))
             elif i < len(pipe.tracks) and pipe.tracks[i].tracked:  # the filter has it, but no fresh measurement
                 d["why"] = ("no measurement within fusion.max_prediction_ms: its cameras' frames are late or "
@@ -250,7 +307,7 @@ class ConsoleView:
         lp = getattr(self.source.pipeline, "loose_points", None)
         if lp is None:
             return []
-        return [[_r(v, 4) for v in p] for p in np.asarray(lp.points).reshape(-1, 3)]
+        return [[_r(v, 4) for v in p] for p in np.asarray(lp.points).reshape(-1, 3).tolist()]
 
     def state(self, now_ns: int, watch: bool = False, rays: frozenset[int] = frozenset(),
               cameras: bool = True) -> dict[str, Any]:
@@ -260,5 +317,12 @@ class ConsoleView:
         if cameras:
             out["cameras"] = self.camera_states(now_ns, watch, rays)
         elif watch:
-            self.camera_states(now_ns, watch=True)
+            self._views(now_ns, True, frozenset())
         return out
+
+    def state_json(self, now_ns: int, watch: bool = False, rays: frozenset[int] = frozenset(),
+                   cameras: bool = True, extra: dict[str, Any] | None = None) -> str:
+        """state with `extra`'s members, as JSON text (one encoder call for the whole message)."""
+        out = self.state(now_ns, watch, rays, cameras)
+        out.update(extra or {})
+        return json.dumps(out)

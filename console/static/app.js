@@ -344,6 +344,7 @@ function connect() {
     conn.textContent = "live"; conn.className = "ok";
     const rays = document.getElementById("rays").value;
     if (rays) send({ cmd: "rays", camera: Number(rays) });
+    if (document.hidden) send({ cmd: "views", on: false });
   };
   ws.onclose = () => { conn.textContent = "disconnected, retrying..."; conn.className = "bad"; setTimeout(connect, 1000); };
   ws.onmessage = e => {
@@ -357,4 +358,6 @@ function connect() {
 }
 
 wireControls();
+// a hidden tab draws nothing: the server builds no camera views for it until it is shown again
+document.addEventListener("visibilitychange", () => send({ cmd: "views", on: !document.hidden }));
 connect();

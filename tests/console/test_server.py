@@ -261,3 +261,64 @@ def test_a_tab_closed_mid_stream_leaves_the_others_served(arena):
 
     n, left, update_errors = run(main())
     assert n == 5 and left == 1 and update_errors == 0
+
+
+class _FreshFrames(dict):
+    """obs of a camera that sends a new frame before every read (each read could build its view)."""
+
+    def get(self, cid, default=None):
+        o = dict.get(self, cid, default)
+        if o is None:
+            return default
+        o = Observation(o.capture_ns + 1_000_000, o.xn, o.label, o.marker_xn)
+        self[cid] = o
+        return o
+
+
+def test_a_hidden_tab_gets_no_camera_views_and_none_are_built_for_it(arena):
+    import aiohttp
+
+    async def states(ws, n):
+        out = []
+        while len(out) < n:
+            m = json.loads((await ws.receive(timeout=5)).data)
+            if m["type"] in ("state", "error"):
+                out.append(m)
+        return out
+
+    async def main():
+        console, source = await _serve(arena)
+        source.pipeline.obs = _FreshFrames(source.pipeline.obs)
+        base = f"http://127.0.0.1:{console.port}"
+        cam = arena.cameras[0].id
+        out = {}
+        try:
+            async with aiohttp.ClientSession() as http:
+                hidden = await http.ws_connect(base + "/ws")
+                await hidden.send_str('{"cmd": "views", "on": "no"}')  # refused: the tab still shows the views
+                out["bad"] = [m for m in await states(hidden, 6) if m["type"] == "error"]
+                out["bad_views"] = sum("cameras" in m for m in await states(hidden, 6))
+                await hidden.send_str('{"cmd": "views", "on": false}')
+                await states(hidden, 3)  # updates already queued before the command
+                builds = console.view.builds[cam]
+                out["hidden"] = sum("cameras" in m for m in await states(hidden, 20))
+                out["built_hidden"] = console.view.builds[cam] - builds
+                shown = await http.ws_connect(base + "/ws")  # a second, visible tab
+                await states(shown, 3)
+                builds = console.view.builds[cam]
+                out["shown"] = sum("cameras" in m for m in await states(shown, 20))
+                out["built_shown"] = console.view.builds[cam] - builds
+                out["hidden_beside"] = sum("cameras" in m for m in await states(hidden, 8))
+                await hidden.close()
+                await shown.close()
+        finally:
+            await console.stop()
+        return out
+
+    out = run(main())
+    assert len(out["bad"]) == 1 and "views" in out["bad"][0]["error"]
+    assert out["bad_views"] >= 2
+    assert out["hidden"] == 0
+    # 20 updates at 50/s: the views of every second one for a visible tab, only the watch's (5/s) for none
+    assert out["built_hidden"] <= 3 and out["shown"] >= 9 and out["built_shown"] >= 9
+    assert out["hidden_beside"] == 0

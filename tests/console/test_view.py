@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import copy
+import json
 
 import numpy as np
+import pytest
 
 from console.replay import ReplaySession
 from console.view import STATIC_BLOB_S, CameraWatch, ConsoleView
@@ -75,3 +77,65 @@ def test_a_blob_that_stays_put_is_reported_with_the_mask_that_removes_it():
     # gone for longer than the gap: forgotten
     view._watch_static(w, np.zeros((0, 2)), t + 2_000_000_000)
     assert view.static_blobs(t + 2_000_000_000) == {}
+
+
+class _CountingProjector:
+    """A camera's projector that counts its calls: one per camera view the console builds with predictions."""
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.calls = 0
+
+    def project(self, points, margin=0.0):
+        self.calls += 1
+        return self.inner.project(points, margin)
+
+
+def _replay_view(thesis_log, at_s):
+    r = RecordingReader(thesis_log)
+    s = ReplaySession(parse_arena(r.config, "recording config"), list(r.packets_with_source()))
+    s.advance_to(s.t0_ns + int(at_s * 1e9))
+    view = ConsoleView(s)
+    view.projectors = {cid: _CountingProjector(p) for cid, p in view.projectors.items()}
+    return s, view
+
+
+def test_a_camera_view_is_built_again_only_when_its_camera_sent_something_new(thesis_log):
+    s, view = _replay_view(thesis_log, 1.5)
+    calls = lambda: {cid: p.calls for cid, p in view.projectors.items()}  # noqa: E731
+    first = view.state(s.clock())
+    assert calls() == {c.id: 1 for c in s.arena.cameras}
+    # a paused replay: no camera sent anything; the views are the same, only their frames' age grew
+    later = view.state(s.clock() + 40_000_000)
+    assert calls() == {c.id: 1 for c in s.arena.cameras}
+    for a, b in zip(first["cameras"], later["cameras"]):
+        assert (a["blobs"], a["pred"]) == (b["blobs"], b["pred"]) and len(a["pred"]) == 4
+        assert b["age_ms"] == pytest.approx(a["age_ms"] + 40.0, abs=0.11)
+    # a tab asks for camera 2's rays: only that view is built again
+    view.state(s.clock(), rays=frozenset({2}))
+    assert calls() == {c.id: 1 + (c.id == 2) for c in s.arena.cameras}
+    # new frames from every camera: every view is built again
+    s.advance_to(s.clock() + 50_000_000)
+    view.state(s.clock(), rays=frozenset({2}))
+    assert calls() == {c.id: 2 + (c.id == 2) for c in s.arena.cameras}
+
+
+def test_a_camera_view_is_built_again_when_its_frames_labels_change(thesis_log):
+    s, view = _replay_view(thesis_log, 1.5)
+    cam = s.arena.cameras[0].id
+    before = view.state(s.clock())["cameras"][0]
+    o = s.pipeline.obs[cam]
+    o.label[:] = -1  # fusion relabels a stored frame when it acquires a body
+    after = view.state(s.clock())["cameras"][0]
+    assert view.projectors[cam].calls == 2
+    assert any(b[2] == 0 for b in before["blobs"]) and all(b[2] == -1 for b in after["blobs"])
+
+
+def test_the_state_text_is_the_state(thesis_log):
+    s, view = _replay_view(thesis_log, 1.5)
+    for cameras in (True, False):
+        text = view.state_json(s.clock(), rays=frozenset({3}), cameras=cameras, extra={"replay": {"speed": 2.0}})
+        assert text.startswith('{"type": "state"')
+        want = view.state(s.clock(), rays=frozenset({3}), cameras=cameras)
+        want["replay"] = {"speed": 2.0}
+        assert json.loads(text) == want
