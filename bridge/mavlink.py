@@ -124,8 +124,20 @@ def _fmt_addr(addr: tuple | None) -> str:
     return ":".join(str(x) for x in addr) if addr else "?"
 
 
-def _percentile_ms(samples: np.ndarray, q: float) -> float:
-    return float(np.percentile(samples, q)) * 1e-6 if len(samples) else float("nan")
+def _percentiles_ms(samples: np.ndarray, qs: tuple[float, ...]) -> tuple[float, ...]:
+    """Percentiles qs (0-100) of latencies samples (ns) in ms, numpy's linear interpolation; NaN when empty.
+    One sort for all of them: np.percentile costs ~35 us a call, and the console reads these at 2 Hz."""
+    n = len(samples)
+    if not n:
+        return tuple(float("nan") for _ in qs)
+    s = np.sort(samples)
+    out = []
+    for q in qs:
+        h = (n - 1) * q / 100.0
+        i = int(h)
+        lo = float(s[i])
+        out.append((lo + (float(s[min(i + 1, n - 1)]) - lo) * (h - i)) * 1e-6)
+    return tuple(out)
 
 
 class _LatencyRing:
@@ -638,6 +650,7 @@ class VehicleLink:
     def stats(self) -> dict:
         out: dict = dict(self.counters)
         lc, ls, lb = self.lat_capture.values(), self.lat_stamp.values(), self.lat_bridge.values()
+        lc_p, ls_p, lb_p = (_percentiles_ms(v, (50, 99)) for v in (lc, ls, lb))
         out.update(
             sysid=self.cfg.sysid,
             body=self.cfg.body,
@@ -649,12 +662,12 @@ class VehicleLink:
             signed=self._key is not None,
             last_error=self.last_error,
             autopilot_heard_s_ago=((self.clock_ns() - self.last_rx_ns) * 1e-9 if self.last_rx_ns else None),
-            latency_capture_ms_p50=_percentile_ms(lc, 50),
-            latency_capture_ms_p99=_percentile_ms(lc, 99),
-            latency_stamp_ms_p50=_percentile_ms(ls, 50),
-            latency_stamp_ms_p99=_percentile_ms(ls, 99),
-            latency_bridge_ms_p50=_percentile_ms(lb, 50),
-            latency_bridge_ms_p99=_percentile_ms(lb, 99),
+            latency_capture_ms_p50=lc_p[0],
+            latency_capture_ms_p99=lc_p[1],
+            latency_stamp_ms_p50=ls_p[0],
+            latency_stamp_ms_p99=ls_p[1],
+            latency_bridge_ms_p50=lb_p[0],
+            latency_bridge_ms_p99=lb_p[1],
             latency_samples=len(lc),
             rate_hz_recent=self._recent_rate_hz(),
         )
@@ -685,7 +698,7 @@ class VehicleLink:
             "output": {"message": self.cfg.message, "sent": c["sent"], "rate_hz": self._recent_rate_hz(),
                        "rate_hz_configured": self.cfg.rate_hz, "held_for_origin": c["held_for_origin"],
                        "held_identity": c["held_identity"],
-                       "latency_capture_ms_p50": _percentile_ms(self.lat_capture.values(), 50)},
+                       "latency_capture_ms_p50": _percentiles_ms(self.lat_capture.values(), (50,))[0]},
             "sending": self.sending_state(now),
             "ekf": {"state": bc["ekf"], "detail": bc["ekf_detail"], "flags": bc["ekf_flags"],
                     "test_ratios": bc["ekf_test_ratios"], "ext_nav_statustext": bc["ext_nav_statustext"],
