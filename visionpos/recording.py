@@ -897,20 +897,30 @@ def recover(src: str | Path, dst: str | Path) -> dict[str, Any]:
     Returns what was done (also stored in dst as metadata "visionpos.recovered"):
     {"from", "messages", "messages_by_topic", "damage" (None or what ended the read), "was_complete"}.
     """
+    return _rewrite_file(src, dst, "recover writes a new file", "the recovered recording", None)
+
+
+def _rewrite_file(src: str | Path, dst: str | Path, same_file: str, what: str,
+                  fox_rate_hz: float | None) -> dict[str, Any]:
+    """_rewrite of the recording src into dst through dst.part (src never written; a failed write leaves
+    no dst). same_file, what: the error wording (dst is src; writing dst failed); fox_rate_hz: build the
+    Foxglove channels at this rate (None: copy the records only)."""
     src, dst = Path(src), Path(dst)
     if dst.exists() and dst.resolve() == src.resolve():
-        raise RecordingError(f"{dst}: recover writes a new file; give another output than the input")
+        raise RecordingError(f"{dst}: {same_file}; give another output than the input")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RecordingDamagedWarning)  # reported in the result instead
         reader = RecordingReader(src)
+        fox = (None if fox_rate_hz is None else
+               FoxgloveChannels(_arena_cameras(reader.config), fox_rate_hz, _realtime_minus_monotonic(reader.meta)))
         tmp = dst.with_name(dst.name + ".part")
         try:
             with open(tmp, "wb") as f:
-                report = _rewrite(reader, f)
+                report = _rewrite(reader, f, fox)
             os.replace(tmp, dst)
         except OSError as e:
             tmp.unlink(missing_ok=True)
-            raise RecordingError(f"{dst}: cannot write the recovered recording: {e.strerror or e}") from None
+            raise RecordingError(f"{dst}: cannot write {what}: {e.strerror or e}") from None
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
@@ -929,25 +939,7 @@ def foxglove_copy(src: str | Path, dst: str | Path, rate_hz: float = DEFAULT_RAT
     Returns (and stores in dst as metadata "visionpos.foxglove_copy") {"from", "messages",
     "messages_by_topic", "foxglove_messages", "damage", "was_complete"}.
     """
-    src, dst = Path(src), Path(dst)
-    if dst.exists() and dst.resolve() == src.resolve():
-        raise RecordingError(f"{dst}: the Foxglove copy is a new file; give another output than the input")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RecordingDamagedWarning)  # reported in the result instead
-        reader = RecordingReader(src)
-        fox = FoxgloveChannels(_arena_cameras(reader.config), rate_hz, _realtime_minus_monotonic(reader.meta))
-        tmp = dst.with_name(dst.name + ".part")
-        try:
-            with open(tmp, "wb") as f:
-                report = _rewrite(reader, f, fox)
-            os.replace(tmp, dst)
-        except OSError as e:
-            tmp.unlink(missing_ok=True)
-            raise RecordingError(f"{dst}: cannot write the Foxglove copy: {e.strerror or e}") from None
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-    return report
+    return _rewrite_file(src, dst, "the Foxglove copy is a new file", "the Foxglove copy", rate_hz)
 
 
 def _protobuf_schema(w: Writer, registered: dict[str, int], schema: str) -> int:
