@@ -194,6 +194,20 @@ def _quad3(S: np.ndarray, y: np.ndarray) -> float:
 
 
 @njit
+def _kalman_gain(PHt: np.ndarray, Sinv: np.ndarray) -> np.ndarray:
+    """K = P H^T S^-1 (N_STATE, m) from P H^T (N_STATE, m) and S^-1 (m, m)."""
+    m = Sinv.shape[0]
+    K = np.zeros((N_STATE, m))
+    for i in range(N_STATE):
+        for c in range(m):
+            acc = 0.0
+            for a in range(m):
+                acc += PHt[i, a] * Sinv[a, c]
+            K[i, c] = acc
+    return K
+
+
+@njit
 def _kf_update(
     x: np.ndarray,
     P: np.ndarray,
@@ -243,13 +257,7 @@ def _kf_update(
     nis_r = _quad3(S[POSE_ROT, POSE_ROT], y[POSE_ROT]) / 3.0
     if gate_chi2 > 0.0 and d2 > gate_chi2:
         return False, d2, nis_p, nis_r
-    K = np.zeros((N_STATE, 6))  # P H^T S^-1
-    for i in range(N_STATE):
-        for j in range(6):
-            acc = 0.0
-            for m in range(6):
-                acc += PHt[i, m] * Sinv[m, j]
-            K[i, j] = acc
+    K = _kalman_gain(PHt, Sinv)
     for i in range(N_STATE):
         for j in range(6):
             x[i] += K[i, j] * y[j]
@@ -575,13 +583,7 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
     nis = d2 / m
     if not nis <= gate_per_dof:  # NaN too
         return False, nis, info
-    K = np.zeros((N_STATE, m))
-    for i in range(N_STATE):
-        for c in range(m):
-            acc = 0.0
-            for a in range(m):
-                acc += PHt[i, a] * Sinv[a, c]
-            K[i, c] = acc
+    K = _kalman_gain(PHt, Sinv)
     for i in range(N_STATE):
         acc = 0.0
         for a in range(m):
