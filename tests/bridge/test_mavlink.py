@@ -461,7 +461,8 @@ def test_udpin_relearns_the_autopilot_address():
     port = bridge.vehicles[0].cfg.endpoint.port
     ap2 = None
     try:
-        feed(bridge, [body_state(position=(1, 0, 0))])
+        # captured 200 ms ago, so the next pose is never inside the 50 Hz rate limit however fast ap2 starts
+        feed(bridge, [body_state(position=(1, 0, 0), capture_ns=time.monotonic_ns() - 200_000_000)])
         assert ap1.wait_for(VPE, 1)
         ap1.close()  # the companion restarts and comes back from another source port
         ap2 = FakeAutopilot(f"udpout:127.0.0.1:{port}", sysid=1, timesync_hz=0, signing_key=KEY).start()
