@@ -3,14 +3,15 @@
 Off unless the arena has a `foxglove:` section; needs the optional extra (`pip install
 visionpos[foxglove]`: foxglove-sdk, Foxglove's maintained server). The channels and their
 messages are the recordings' (visionpos/foxglove/channels.py): the transforms, the arena scene
-(frusta, floor, world axes) and the camera calibrations, the tracked bodies and the loose markers.
-The cameras' blobs and the health log are in recordings only (sinks get poses and markers, not
-packets or health).
+(frusta, floor, world axes) and the camera calibrations, the tracked bodies, the loose markers,
+each camera's blobs as image annotations, and the health snapshots and server events as log lines.
 
 publish() and publish_markers() (on the server's loop) only put the newest states or markers in
-a one-slot mailbox; a sender thread encodes them and hands them to the SDK, whose server queues
-at most `backlog` messages per client and drops the oldest for a client that does not keep up.
-Nothing a client does reaches fusion.
+a one-slot mailbox; the packet tap (each accepted station packet, from Ingest) keeps the newest
+frame of each camera, publish_health() the newest snapshot and publish_event() the last
+EVENT_BACKLOG events. A sender thread encodes them (the blobs at most rate_hz per camera) and hands
+them to the SDK, whose server queues at most `backlog` messages per client and drops the oldest for
+a client that does not keep up. Nothing a client does reaches fusion.
 
 Clients: the SDK (0.30) has no client limit and no hook on a connection (its ServerListener hears
 subscriptions, not connects, and cannot close a client), so the SDK listens on a free loopback port
@@ -29,11 +30,13 @@ import selectors
 import socket
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from visionpos import protocol as P
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, section
@@ -43,6 +46,9 @@ from visionpos.logutil import RateLimitedLog
 from visionpos.messages import BodyState, LoosePoints
 
 log = logging.getLogger(__name__)
+
+EVENT_BACKLOG = 64  # server events held for the sender; beyond, the oldest are dropped (counted)
+_CAMERA_ID_AT = 10  # header offset of the camera id (u16, little endian; docs/protocol.md)
 
 FOXGLOVE = section(
     "foxglove",
@@ -98,7 +104,7 @@ def _sdk(source: str) -> Any:
 
 class FoxgloveServer:
     """Sink: FoxgloveServer(cfg, cameras) or FoxgloveServer.from_arena(arena); start(), publish(states),
-    publish_markers(lp), stats(), close()."""
+    publish_markers(lp), packet_taps(), publish_health(t, health), publish_event(t, info), stats(), close()."""
 
     def __init__(self, cfg: FoxgloveConfig, cameras: Any, source: str = "<arena>"):
         self.cfg = cfg
@@ -107,6 +113,9 @@ class FoxgloveServer:
         self._lock = threading.Lock()  # the mailbox
         self._states: list[BodyState] | None = None
         self._markers: LoosePoints | None = None
+        self._frames: dict[tuple[int, int], tuple[int, bytes]] = {}  # (camera, type) -> newest (recv_ns, packet)
+        self._health: tuple[int, dict[str, Any]] | None = None
+        self._events: deque[tuple[int, dict[str, Any]]] = deque(maxlen=EVENT_BACKLOG)
         self._wake = threading.Event()
         self._running = False
         self._thread: threading.Thread | None = None
@@ -115,7 +124,8 @@ class FoxgloveServer:
         self._channels: dict[str, Any] = {}
         self._gate: _ClientGate | None = None
         self.port = 0
-        self.counters = {"updates": 0, "messages": 0, "replaced": 0, "errors": 0}
+        self.counters = {"updates": 0, "messages": 0, "replaced": 0, "errors": 0, "packets": 0,
+                         "events_dropped": 0}
         self.messages_by_topic: dict[str, int] = {}  # handed to the SDK (the bench compares a client's count)
 
     @classmethod
@@ -174,6 +184,36 @@ class FoxgloveServer:
             self._markers = lp
         self._wake.set()
 
+    def packet_taps(self) -> list[Any]:
+        return [self.packet]
+
+    def packet(self, recv_ns: int, data: bytes) -> None:
+        """An accepted station packet (Ingest's tap, per packet): the newest frame and hello of each camera
+        are kept for the sender; no wake-up here (the next output tick wakes it)."""
+        if not self._running or len(data) < P.HEADER_BYTES:
+            return
+        mtype = data[5]
+        if mtype == P.MSG_FRAME or mtype == P.MSG_HELLO:
+            key = (data[_CAMERA_ID_AT] | data[_CAMERA_ID_AT + 1] << 8, mtype)
+            with self._lock:
+                self._frames[key] = (recv_ns, data)
+
+    def publish_health(self, time_ns: int, health: dict[str, Any]) -> None:
+        if not self._running:
+            return
+        with self._lock:
+            self._health = (int(time_ns), health)
+        self._wake.set()
+
+    def publish_event(self, time_ns: int, info: dict[str, Any]) -> None:
+        if not self._running:
+            return
+        with self._lock:
+            if len(self._events) == EVENT_BACKLOG:
+                self.counters["events_dropped"] += 1
+            self._events.append((int(time_ns), dict(info)))
+        self._wake.set()
+
     def stats(self) -> dict[str, Any]:
         gate = self._gate.stats() if self._gate is not None else {}
         return dict(self.counters, port=self.port, **gate)
@@ -196,7 +236,19 @@ class FoxgloveServer:
             with self._lock:
                 states, self._states = self._states, None
                 markers, self._markers = self._markers, None
+                frames, self._frames = self._frames, {}
+                health, self._health = self._health, None
+                events = list(self._events)
+                self._events.clear()
             out = []
+            # hellos first: they say which cameras stamp frames on CLOCK_REALTIME
+            for (_, mtype), (recv_ns, data) in sorted(frames.items(), key=lambda kv: kv[0][1] != P.MSG_HELLO):
+                self.counters["packets"] += 1
+                out += self._fox.packet(recv_ns, data)
+            if health is not None:
+                out += self._fox.health(*health)
+            for t, info in events:
+                out += self._fox.event(t, info)
             if states is not None:
                 out += self._fox.states(states)
             if markers is not None:

@@ -73,13 +73,26 @@ class OffLoopOutputs:
                 self.counters["ticks"] += 1
                 self._call("publish", states)
 
-    def _call(self, method: str, arg: Any) -> None:
+    def packet_taps(self) -> list[Any]:
+        """The outputs' packet taps (Ingest calls them with each accepted packet, on the loop); each is a
+        mailbox store, so they need no hand-over to this thread."""
+        return [tap for o in self.outputs if hasattr(o, "packet_taps") for tap in o.packet_taps()]
+
+    def publish_health(self, time_ns: int, health: dict[str, Any]) -> None:
+        """A health snapshot (every status period): straight to the outputs that show it (mailbox stores)."""
+        self._call("publish_health", time_ns, health)
+
+    def publish_event(self, time_ns: int, info: dict[str, Any]) -> None:
+        """A server event (rare): straight to the outputs that show events (mailbox stores)."""
+        self._call("publish_event", time_ns, info)
+
+    def _call(self, method: str, *args: Any) -> None:
         for o in self.outputs:
             fn = getattr(o, method, None)
             if fn is None:
                 continue
             try:
-                fn(arg)
+                fn(*args)
             except Exception as e:  # one output's bug must not silence the others
                 self.counters["errors"] += 1
                 name = f"{type(o).__name__}.{method}"

@@ -293,3 +293,128 @@ def test_a_connection_without_a_handshake_is_closed_and_its_slot_freed():
     finally:
         s.close()
         srv.close()
+
+
+# ---------------------------------------------------------------- fed by a running fusion server (issue 16)
+
+def _collect(ws, want: set[str], timeout_s: float) -> dict[str, list[tuple[int, bytes]]]:
+    """Subscribe to the topics in `want` as they are advertised; (log time, payload) per topic until each
+    topic has a message or the time is up."""
+    got: dict[str, list[tuple[int, bytes]]] = {t: [] for t in want}
+    subs: dict[int, str] = {}
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end and not all(got.values()):
+        try:
+            m = ws.recv(timeout=0.1)
+        except TimeoutError:
+            continue
+        if isinstance(m, str):
+            msg = json.loads(m)
+            if msg.get("op") == "advertise":
+                new = [c for c in msg["channels"] if c["topic"] in want and c["topic"] not in subs.values()]
+                for c in new:
+                    subs[1000 + c["id"]] = c["topic"]
+                if new:
+                    ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                        {"id": 1000 + c["id"], "channelId": c["id"]} for c in new]}))
+        else:
+            _, sub, log_time = struct.unpack_from("<BIQ", m)
+            if sub in subs:
+                got[subs[sub]].append((log_time, m[13:]))
+    return got
+
+
+def test_a_running_server_streams_each_cameras_blobs_and_its_health(arena_yaml):
+    """The server's accepted packets and health snapshots reach a live client: camera 2's blobs as
+    ImageAnnotations at the pixels the station sent, and the health as a Log naming the camera."""
+    import asyncio
+    import socket
+    import threading
+
+    from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+
+    from visionpos import protocol as P
+    from visionpos.app.ports import free_port
+    from visionpos.app.serve import bridge_sinks
+    from visionpos.messages import BlobFrame
+    from visionpos.server.service import FusionServer
+    from visionpos.server.settings import ServerSettings
+
+    y = arena_yaml("thesis")
+    fox_port = free_port(socket.SOCK_STREAM)
+    y["foxglove"] = {"port": fox_port}
+    y["server"] = {"insecure": True, "status_period_s": 0.2, "start_delay_s": 0.0}
+    arena = parse_arena(y, "a.yaml")
+    sinks = bridge_sinks(arena)
+    server = FusionServer(arena, ServerSettings.from_arena(arena), sinks, host="127.0.0.1", port=0)
+    loop = asyncio.new_event_loop()
+    started = threading.Event()
+    stop: asyncio.Event | None = None
+
+    async def run():
+        nonlocal stop
+        stop = asyncio.Event()
+        await server.start()
+        started.set()
+        await stop.wait()
+        await server.stop()
+
+    th = threading.Thread(target=loop.run_until_complete, args=(run(),), daemon=True)
+    th.start()
+    assert started.wait(10), "the server did not start"
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.settimeout(2.0)
+    addr = ("127.0.0.1", server.port)
+    cam = 2
+    try:
+        def hello(cookie, counter):
+            return P.encode(P.Hello(cam, cam, 9, 960, 640, 30.0, "fisheye", "pi", "test", P.TIMEBASE_SERVER,
+                                    counter, cookie))
+
+        sock.sendto(hello(P.NO_COOKIE, 1), addr)
+        challenge = P.decode(sock.recv(2048))
+        sock.sendto(hello(challenge.cookie, 2), addr)
+        ack = P.decode(sock.recv(2048))
+        assert ack.status == P.ACK_OK
+        time.sleep(max(0.0, (ack.start_ns - time.monotonic_ns()) * 1e-9) + 0.01)
+        blobs = np.array([[101.25, 202.5, 30.0, 200.0], [640.0, 17.75, 12.0, 180.0]])
+        stop_frames = threading.Event()
+
+        def frames():  # 30 fps until the client has what it waits for
+            seq = 0
+            while not stop_frames.is_set():
+                seq += 1
+                f = BlobFrame(cam, seq, time.monotonic_ns() - 3_000_000, blobs, cam, 0, 0, 9)
+                sock.sendto(P.encode_frame(f), addr)
+                time.sleep(1 / 30)
+
+        sender = threading.Thread(target=frames, daemon=True)
+        sender.start()
+        try:
+            # the first frames may wait for the fusion kernels' compilation (a cold numba cache: a minute or
+            # more) and then be refused as stale; wait until frames are flowing
+            deadline = time.monotonic() + 300
+            while server.ingest.counters.frames_accepted < 30 and time.monotonic() < deadline:
+                time.sleep(0.1)
+            with _connect(fox_port) as ws:
+                got = _collect(ws, {C.blobs_topic(cam), C.TOPIC_LOG}, timeout_s=20.0)
+        finally:
+            stop_frames.set()
+            sender.join(2)
+        fox = [o for s in sinks for o in getattr(s, "outputs", []) if isinstance(o, FoxgloveServer)][0]
+        assert got[C.blobs_topic(cam)], ("no blob annotations arrived", fox.stats(), fox.messages_by_topic,
+                                         {k: len(v) for k, v in got.items()}, server.ingest.health()["cameras"][cam])
+        ann = ImageAnnotations.FromString(got[C.blobs_topic(cam)][-1][1])
+        centres = sorted((c.position.x, c.position.y) for c in ann.circles)
+        # Foxglove puts the top-left pixel's centre at (0.5, 0.5); visionpos at (0, 0)
+        assert centres == [(101.75, 203.0), (640.5, 18.25)]
+        logs = [Log.FromString(p) for _, p in got[C.TOPIC_LOG]]
+        assert any(lg.name == "visionpos.health" and "camera 2 " in lg.message and "streaming" in lg.message
+                   for lg in logs), [lg.message for lg in logs]
+        stats = [o.stats() for s in sinks for o in getattr(s, "outputs", []) if isinstance(o, FoxgloveServer)][0]
+        assert stats["packets"] > 0 and stats["errors"] == 0
+    finally:
+        sock.close()
+        loop.call_soon_threadsafe(stop.set)
+        th.join(10)

@@ -630,3 +630,25 @@ def test_per_sender_tables_and_logs_are_bounded(caplog):
     assert "1099/1099" in h["unknown_sources"] and "100/100" not in h["unknown_sources"]  # the newest kept
     assert len([r for r in caplog.records if "not in the arena config" in r.getMessage()]) == 1
     assert len(ing.rlog) <= 2
+
+
+def test_taps_get_the_accepted_packets_only_and_a_failing_tap_changes_nothing():
+    """Live outputs' taps see each accepted packet (hello and frames), never a refused one; a tap that
+    raises is counted, and the frame is still fused."""
+    seen: list[tuple[int, bytes]] = []
+
+    def broken(recv_ns, data):
+        raise RuntimeError("output bug")
+
+    pipe = Collector()
+    ing = Ingest(_arena({"start_delay_s": 0.0}), pipeline=pipe, clock=Clock(T0),
+                 taps=[lambda t, d: seen.append((t, d)), broken])
+    _send(ing, _hello(1), T0)
+    good = P.encode_frame(_frame(1, 1, T0 + 10 * MS))
+    ing.handle(good, ADDR, T0 + 12 * MS)
+    ing.handle(P.encode_frame(_frame(1, 2, T0 + 9 * MS)), ADDR, T0 + 13 * MS)  # older than seq 1: refused
+    ing.handle(P.encode_frame(_frame(3, 1, T0 + 10 * MS)), ADDR, T0 + 14 * MS)  # camera 3 not registered
+    assert [f.seq for f in pipe.frames] == [1]
+    types = [d[5] for _, d in seen]
+    assert types == [P.MSG_HELLO, P.MSG_FRAME] and seen[-1] == (T0 + 12 * MS, good)
+    assert ing.health()["tap_errors"] == 2  # the hello and the frame

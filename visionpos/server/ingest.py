@@ -58,6 +58,7 @@ import socket
 import struct
 import time
 from collections import OrderedDict, deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, Protocol
@@ -299,6 +300,7 @@ class IngestCounters:
     by_type: dict[str, int] = field(default_factory=dict)
     malformed_reasons: dict[str, int] = field(default_factory=dict)
     not_recorded: dict[str, int] = field(default_factory=dict)  # with a recorder: packets refused, by reason
+    tap_errors: int = 0  # packet taps (live outputs) that raised
 
 
 class Ingest:
@@ -311,13 +313,17 @@ class Ingest:
 
     def __init__(self, arena: ArenaConfig, settings: ServerSettings | None = None, pipeline: PipelineLike | None = None,
                  recorder: RecorderLike | None = None, clock=time.monotonic_ns, events=None, *,
-                 verify_cookies: bool = True, authenticate: bool = True):
+                 verify_cookies: bool = True, authenticate: bool = True,
+                 taps: Sequence[Callable[[int, bytes], None]] = ()):
         self.arena = arena
         self.settings = settings or ServerSettings.from_arena(arena)
         self.pipeline = pipeline
         self.recorder = recorder
         self.clock = clock
         self.events = events  # optional callable(kind: str, info: dict) for the recorder/demo
+        # tap(recv_ns, data) for each accepted packet, after the recorder (live outputs: the Foxglove
+        # server's blob annotations); each must cost about a dictionary store
+        self.taps = tuple(taps)
         self.key = self.settings.key
         self._decode_key = self.key if authenticate else None
         self.verify_cookies = verify_cookies
@@ -380,6 +386,19 @@ class Ingest:
     def _record(self, data: bytes, addr: Addr, recv_ns: int) -> None:
         if self.recorder is not None:
             self.recorder.write_packet(recv_ns, data, (str(addr[0]), int(addr[1])) if addr else None)
+        if self.taps:
+            self._tap(data, recv_ns)
+
+    def _tap(self, data: bytes, recv_ns: int) -> None:
+        """Hand an accepted packet to the taps; a failing tap is counted and logged, never raised."""
+        for tap in self.taps:
+            try:
+                tap(recv_ns, data)
+            except Exception as e:
+                self.counters.tap_errors += 1
+                name = getattr(tap, "__qualname__", repr(tap))
+                self._warn(("tap", name), logging.WARNING, "packet tap %s failed: %r (%d failures so far)", name, e,
+                           self.counters.tap_errors)
 
     # ---------------------------------------------------------------- per packet
 
@@ -719,6 +738,8 @@ class Ingest:
         # accepted: now the state moves
         if self.recorder is not None:
             self.recorder.write_packet(recv_ns, data, (str(addr[0]), int(addr[1])) if addr else None)
+        if self.taps:
+            self._tap(data, recv_ns)
         if d > 1:
             if d < _SEQ_RESTART:
                 cam.lost += d - 1
@@ -850,6 +871,7 @@ class Ingest:
             "not_recorded": dict(c.not_recorded),
             "log_suppressed": self.rlog.suppressed,
             "pipeline_errors": c.pipeline_errors,
+            "tap_errors": c.tap_errors,
             "replies": c.replies,
             "send_errors": c.send_errors,
             "by_type": dict(c.by_type),

@@ -10,7 +10,11 @@ every output tick, and optionally `publish_markers(points: LoosePoints)`, called
 tick after the pipeline triangulated a new set of loose markers (points of no body).
 Neither may block (queue internally; the recorder only appends to memory). Optional
 `start()`, `close()` (plain or async) and `stats()` are used when present. A sink that raises is logged and
-keeps being called. The server knows no concrete output: visionpos.app.serve composes it with the bridge.
+keeps being called. Sinks that show more than poses may also have `packet_taps()` (callables
+tap(recv_ns, data) that Ingest calls with every accepted packet, on the loop: each must cost about a
+dictionary store), `publish_health(time_ns, health)` (every status period) and
+`publish_event(time_ns, info)` (camera registered, vanished, clock jump ...).
+The server knows no concrete output: visionpos.app.serve composes it with the bridge.
 
 Programmatic use (demo, tests):
 
@@ -95,7 +99,10 @@ class FusionServer:
             if monitor_settings.enabled:
                 self.monitor = CameraMonitor(arena, monitor_settings)
                 feed = _MonitoredFeed(pipeline, self.monitor)
-        self.ingest = Ingest(arena, self.settings, feed, recorder, clock=clock, events=self._on_event)
+        taps = [tap for s in self.sinks if s is not recorder and hasattr(s, "packet_taps") for tap in s.packet_taps()]
+        self._health_sinks = [s for s in self.sinks if s is not recorder and hasattr(s, "publish_health")]
+        self._event_sinks = [s for s in self.sinks if s is not recorder and hasattr(s, "publish_event")]
+        self.ingest = Ingest(arena, self.settings, feed, recorder, clock=clock, events=self._on_event, taps=taps)
         self.period_ns = int(round(1e9 / self.settings.output_rate_hz))
         self.ticks = 0
         self.late_ticks = 0
@@ -252,11 +259,18 @@ class FusionServer:
         while self._running:
             await asyncio.sleep(self.settings.status_period_s)
             status_log.info("%s", self.status_line())
+            if self.recorder is None and not self._health_sinks:
+                continue
+            now = self.clock()
+            health = self.health()
             if self.recorder is not None:  # health history in the log, for post-mortems
                 try:
-                    self.recorder.write_json("/server/health", self.clock(), self.health())
+                    self.recorder.write_json("/server/health", now, health)
                 except Exception:
                     log.exception("could not record health")
+            for sink in self._health_sinks:
+                self._to_sink(sink, lambda h, sink=sink: sink.publish_health(now, h), health,
+                              type(sink).__name__ + ".publish_health")
 
     def status_line(self) -> str:
         now = self.clock()
@@ -277,8 +291,13 @@ class FusionServer:
     # ---------------------------------------------------------------- observability
 
     def _on_event(self, kind: str, info: dict[str, Any]) -> None:
+        event = {"kind": kind, **info}
+        now = self.clock()
         if self.recorder is not None:
-            self.recorder.write_json("/server/events", self.clock(), {"kind": kind, **info})
+            self.recorder.write_json("/server/events", now, event)
+        for sink in self._event_sinks:
+            self._to_sink(sink, lambda e, sink=sink: sink.publish_event(now, e), event,
+                          type(sink).__name__ + ".publish_event")
 
     def health(self) -> dict[str, Any]:
         h = self.ingest.health()
