@@ -39,3 +39,27 @@ def test_forged_packets_fail_authentication_with_the_real_key():
     for _, p in packets:
         with pytest.raises(P.ProtocolError, match="unsigned|signature"):
             P.decode(p, b"k" * 32)
+
+
+def test_kernel_drops_of_a_flooded_socket_are_read():
+    """The robustness bench's 'dropped by the kernel' column: a socket with a small receive buffer that
+    is never read loses datagrams, and the host's counter rises by at least the ones that cannot fit."""
+    import socket
+
+    from visionpos.benchmarks.robustness import udp_receive_buffer_drops
+
+    if udp_receive_buffer_drops() is None:
+        pytest.skip("no /proc/net/snmp (not Linux): the column reads n/a")
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # the kernel doubles it: a few datagrams fit
+        rx.bind(("127.0.0.1", 0))
+        before = udp_receive_buffer_drops()
+        for _ in range(500):
+            tx.sendto(b"x" * 1000, rx.getsockname())
+        after = udp_receive_buffer_drops()
+        assert after - before >= 400, (before, after)
+    finally:
+        rx.close()
+        tx.close()

@@ -6,7 +6,10 @@ the server, the stations or the autopilot links for the whole streaming time. On
 is the reference. Reported per attack:
 
 - packets thrown (the attacker's count) and counted (what the server, stations and bridge counted as
-  rejected, by their own counters);
+  rejected, by their own counters), and the UDP datagrams the kernel dropped on the host during the
+  run because a socket's receive buffer was full (Linux /proc/net/snmp RcvbufErrors: a flood that
+  outpaces a reader loses packets before any program sees them, so thrown - counted should be
+  about that);
 - tracking: the fraction of output ticks with the body tracked, and the position RMS against the
   simulator's truth, next to the reference run's;
 - cameras blinded: cameras whose accepted frames fell below 90 % of what their station sent, or that
@@ -151,7 +154,7 @@ def run(quick: bool = False) -> BenchResult:
         base_size = base_rec.stat().st_size
         base_rms = max(b["position_rmse_mm"] for b in base["bodies"])
         rss_start = _rss_bytes()
-        rows.append(("none (reference)", 0, 0, base["bodies"][0]["tracked_fraction"], base_rms, "-", 0.0, 0.0))
+        rows.append(("none (reference)", 0, 0, 0, base["bodies"][0]["tracked_fraction"], base_rms, "-", 0.0, 0.0))
         for kind in ATTACKS:
             holder: dict[str, Any] = {}
 
@@ -160,7 +163,10 @@ def run(quick: bool = False) -> BenchResult:
                 holder.update(await _attack(ctx, kind, per_attack, tmp, old))
 
             rec = tmp / f"{kind}.mcap"
+            drops0 = udp_receive_buffer_drops()
             summary = asyncio.run(run_demo(arena, duration_s, None, record=str(rec), during=during))
+            drops1 = udp_receive_buffer_drops()
+            kernel_dropped = drops1 - drops0 if drops0 is not None and drops1 is not None else -1
             rep = holder.get("report", {"sent": 0})
             thrown = int(rep.get("sent", 0))
             total_thrown += thrown
@@ -176,10 +182,11 @@ def run(quick: bool = False) -> BenchResult:
             blinded_total += len(blinded)
             rss_growth_max = max(rss_growth_max, rss_mb)
             rec_growth_max = max(rec_growth_max, rec_growth)
-            rows.append((kind, thrown, counted, tracked, rms, ",".join(map(str, blinded)) or "0", rss_mb,
-                         100.0 * rec_growth))
+            rows.append((kind, thrown, counted, kernel_dropped, tracked, rms, ",".join(map(str, blinded)) or "0",
+                         rss_mb, 100.0 * rec_growth))
             res.metrics[f"robustness_{kind}_thrown"] = thrown
             res.metrics[f"robustness_{kind}_counted"] = counted
+            res.metrics[f"robustness_{kind}_kernel_dropped"] = kernel_dropped
             res.metrics[f"robustness_{kind}_tracked_fraction"] = tracked
             res.metrics[f"robustness_{kind}_pos_rmse_mm"] = rms
         rss_total_mb = (_rss_bytes() - rss_start) / 2**20
@@ -193,17 +200,20 @@ def run(quick: bool = False) -> BenchResult:
         "robustness_rss_growth_mb_all_runs": rss_total_mb,
         "robustness_recording_growth_pct_max": 100.0 * rec_growth_max,
     })
-    lines = ["| attack | packets thrown | counted as refused | tracked | position RMSE (mm) | cameras blinded | "
-             "RSS growth (MB) | recording vs reference (%) |", "|---|---|---|---|---|---|---|---|"]
-    for kind, thrown, counted, tracked, rms, blinded, rss_mb, rec_pct in rows:
-        lines.append(f"| {kind} | {thrown} | {counted} | {tracked:.4f} | {rms:.3f} | {blinded} | {rss_mb:.1f} | "
-                     f"{rec_pct:+.2f} |")
+    lines = ["| attack | packets thrown | counted as refused | dropped by the kernel (buffer full) | tracked | "
+             "position RMSE (mm) | cameras blinded | RSS growth (MB) | recording vs reference (%) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for kind, thrown, counted, dropped, tracked, rms, blinded, rss_mb, rec_pct in rows:
+        lines.append(f"| {kind} | {thrown} | {counted} | {dropped if dropped >= 0 else 'n/a'} | {tracked:.4f} | "
+                     f"{rms:.3f} | {blinded} | {rss_mb:.1f} | {rec_pct:+.2f} |")
     res.tables["Under attack: the thesis arena's demo, authenticated, with a hostile sender "
                f"({RATE_PPS:.0f} packets/s)"] = "\n".join(lines)
     res.notes.append("Attacks: " + "; ".join(f"{k}: {v}" for k, v in ATTACKS.items()) + ". Counted as refused: "
                      "the server's not_recorded counts (every refused packet, by reason) for attacks on the server, "
                      "the stations' refused replies for spoof_replies, the bridge's refused MAVLink packets for "
-                     "mavlink_spoof. Recording growth is against the reference run's file (same scenario, seed "
+                     "mavlink_spoof. Dropped by the kernel: UDP datagrams the host dropped during the run because "
+                     "a receive buffer was full (/proc/net/snmp RcvbufErrors, all sockets of the host), lost before "
+                     "any counter could see them. Recording growth is against the reference run's file (same scenario, seed "
                      "and authenticated traffic). RSS growth is the process's resident memory at the end of each "
                      "attack minus at its start (same demo run); robustness_rss_growth_mb_all_runs is after the "
                      "last run minus after the reference run, across eight more demo runs (each simulates its "
@@ -215,6 +225,18 @@ def _mavlink_refused(bridge) -> int:
     """MAVLink packets the bridge refused: unsigned, bad signature, replayed, from the wrong address."""
     keys = ("rx_unsigned", "rx_bad_signature", "rx_replayed", "rx_wrong_source")
     return int(sum(v.counters.get(k, 0) for v in bridge.vehicles for k in keys))
+
+
+def udp_receive_buffer_drops() -> int | None:
+    """The host's UDP datagrams dropped for a full receive buffer since boot (Linux: /proc/net/snmp
+    RcvbufErrors); None where that is not available."""
+    try:
+        with open("/proc/net/snmp") as f:
+            rows = [line.split() for line in f if line.startswith("Udp:")]
+        names, values = rows[0], rows[1]
+        return int(values[names.index("RcvbufErrors")])
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 def _counted(kind: str, holder: dict, summary: dict) -> int:
