@@ -230,7 +230,8 @@ def test_calibration_panel_in_chromium_fills_in_and_shows_the_solve(tmp_path):
                 source.push(f)
             await browser.wait_for("window.visionposConsole.calib.enough === true")
             found["pairs"] = await browser.evaluate(
-                "[...document.querySelectorAll('#calib-pairs tbody tr')].map(r => [...r.cells].map(c => c.textContent))")
+                "[...document.querySelectorAll('#calib-pairs tbody tr')].map(r => "
+                "[...r.cells].map(c => c.textContent))")
             found["cells"] = await browser.evaluate("window.visionposConsole.calib.heatCells")
             await browser.evaluate("document.getElementById('calib-solve').click()")
             await browser.wait_for("document.querySelectorAll('#calib-result-table tbody tr').length === 4", 120)

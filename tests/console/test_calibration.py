@@ -149,10 +149,9 @@ def test_solve_is_refused_where_there_is_no_assistant_and_default_out_sits_besid
 
 def test_replay_view_feeds_the_assistant_and_a_seek_back_starts_it_again(tmp_path):
     from console.replay import ReplaySession
-    from visionpos.sim.write import write_recording
-
     from visionpos.config.arena import parse_arena
     from visionpos.recording import RecordingReader
+    from visionpos.sim.write import write_recording
 
     log = tmp_path / "wave.mcap"
     write_recording("thesis", log, duration_s=3.0, session="wand")
