@@ -56,6 +56,7 @@ class CalibrationAssistant:
         self._task: asyncio.Task | None = None
         self._solving: asyncio.Task | None = None
         self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+        self._refreshing = asyncio.Lock()
 
     # ---------------------------------------------------------------- feed (per packet)
 
@@ -103,20 +104,21 @@ class CalibrationAssistant:
     async def refresh(self, loop: asyncio.AbstractEventLoop | None = None) -> None:
         """Label the frames that came since the last refresh and recount, in a worker thread."""
         loop = loop or asyncio.get_running_loop()
-        n = len(self.frames)
-        if n == self._done:
-            return
-        chunk, gen, cov = self.frames[self._done:n], self._generation, self._cov
-        try:
-            summary = await loop.run_in_executor(None, _label_and_count, cov, chunk)
-        except Exception:
-            log.exception("calibration assistant: counting the wand frames failed")
-            return
-        if gen != self._generation:  # reset meanwhile
-            return
-        self._done = n
-        self._summary = summary
-        self.version += 1
+        async with self._refreshing:  # one at a time: a chunk is counted once (the loop's and a solve's)
+            n = len(self.frames)
+            if n == self._done:
+                return
+            chunk, gen, cov = self.frames[self._done:n], self._generation, self._cov
+            try:
+                summary = await loop.run_in_executor(None, _label_and_count, cov, chunk)
+            except Exception:
+                log.exception("calibration assistant: counting the wand frames failed")
+                return
+            if gen != self._generation:  # reset meanwhile
+                return
+            self._done = n
+            self._summary = summary
+            self.version += 1
 
     # ---------------------------------------------------------------- the console's face
 

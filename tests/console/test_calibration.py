@@ -171,3 +171,28 @@ def test_replay_view_feeds_the_assistant_and_a_seek_back_starts_it_again(tmp_pat
         await assistant.stop()
 
     asyncio.run(main())
+
+
+def test_concurrent_refreshes_count_each_frame_once(wave, tmp_path):
+    arena, frames = wave
+    assistant = CalibrationAssistant(arena, tmp_path / "a.yaml", SIM_THRESHOLDS)
+
+    async def main():
+        for f in frames[:800]:
+            assistant.push(f)
+        await asyncio.gather(assistant.refresh(), assistant.refresh(), assistant.refresh())
+        return assistant.state()
+
+    s = asyncio.run(main())
+    assert sum(c["frames"] for c in s["cameras"]) == 800
+
+
+def test_calibrate_out_without_the_console_is_refused(tmp_path, capsys):
+    from visionpos.cli.main import main
+
+    rec = tmp_path / "wave.mcap"
+    rc = main(["record", "--out", str(rec), "--config", "thesis", "--set", "server.insecure=true", "--no-console",
+               "--calibrate-out",
+               str(tmp_path / "a.yaml"), "--duration", "0.1"])
+    assert rc != 0 and "--calibrate-out" in capsys.readouterr().err
+    assert not rec.exists()

@@ -53,6 +53,9 @@ def run(args: argparse.Namespace) -> int:
         announce_listening("record", settings, port, f", recording to {out}")
 
     console = console_settings(arena, args)
+    if console is None and args.calibrate_out is not None:
+        raise UsageError("--calibrate-out says where the console's Solve writes; it needs the console (leave out "
+                         "--no-console and keep console.enabled)")
     source = None
     on_ingest = None
     if console is not None:
