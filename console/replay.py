@@ -32,10 +32,11 @@ SPEEDS = (0.1, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 
 class ReplaySession:
     """A recording's packets replayed on demand; the console's source (arena, pipeline, last_states,
-    health(), clock()) and its controls (command())."""
+    health(), clock()) and its controls (command()). calibration: an object with push(BlobFrame) and
+    reset() (console/calibration.py) that gets every accepted frame; it is reset with the pipeline."""
 
     def __init__(self, arena: ArenaConfig, packets: Sequence[tuple], rate_hz: float | None = None,
-                 realtime_minus_monotonic_ns: int | None = None):
+                 realtime_minus_monotonic_ns: int | None = None, calibration: Any = None):
         if not packets:
             raise ValueError("the recording holds no station packets; record with stations streaming")
         self.arena = arena
@@ -49,12 +50,17 @@ class ReplaySession:
         self.speed = 1.0
         self.finished = False
         self._seeking = False
+        self.calibration = calibration
         self._reset()
 
     def _reset(self) -> None:
         self.pipeline = FusionPipeline(self.arena, self.arena.raw.get("fusion"))
         self._now = self.t0_ns
-        self.ingest = Ingest(self.arena, self.settings, self.pipeline, None, clock=lambda: self._now,
+        fed: Any = self.pipeline
+        if self.calibration is not None:
+            self.calibration.reset()
+            fed = _Tee(self.pipeline, self.calibration)
+        self.ingest = Ingest(self.arena, self.settings, fed, None, clock=lambda: self._now,
                              verify_cookies=False, authenticate=False)
         self.ingest.set_start(-(1 << 62))
         if self.rt_ns is not None:
@@ -175,3 +181,18 @@ class ReplaySession:
                 await asyncio.sleep(0)
         finally:
             self._seeking = False
+
+
+class _Tee:
+    """What the ingest pushes into: the pipeline, and every frame also to the calibration assistant."""
+
+    def __init__(self, pipeline: FusionPipeline, calibration: Any):
+        self.pipeline = pipeline
+        self.calibration = calibration
+
+    def push(self, frame: Any) -> None:
+        self.pipeline.push(frame)
+        self.calibration.push(frame)
+
+    def remove_camera(self, camera_id: int) -> None:
+        self.pipeline.remove_camera(camera_id)

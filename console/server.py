@@ -5,9 +5,11 @@
     GET /api/scene       cameras and bodies (console/view.py scene)
     GET /ws              WebSocket: {"type": "scene"} once, then {"type": "state"} at update_rate_hz (the
                          camera views in every second one),
-                         {"type": "health"} twice a second, {"type": "replay"} in a replay; the client
+                         {"type": "health"} twice a second, {"type": "replay"} in a replay, {"type": "calib"}
+                         when the calibration assistant's counts or solve changed; the client
                          may send {"cmd": ...}: "rays" (a camera's blob rays), "views" (on: false while the
-                         tab is hidden: no camera views for it), "health", replay controls (console/replay.py)
+                         tab is hidden: no camera views for it), "health", replay controls (console/replay.py),
+                         "solve" (the wand solve: console/calibration.py)
 
 One update task: once per tick it builds the state (only when a client is connected), encodes it
 ONCE (a camera's view only when that camera sent something new: console/view.py) and puts the text
@@ -80,16 +82,21 @@ class ConsoleServer:
     play/pause/seek/speed); without it such messages are answered with an error.
     extra: optional callable() -> dict merged into every state message (the replay's position).
     masks: camera id -> {"rois", "ignore", "mask_png"} (visionpos.app.console.station_masks), shown in the views.
+    calibration: optional console.calibration.CalibrationAssistant: its state goes to every client when it
+    changes, and it answers "solve".
     """
 
     def __init__(self, settings: ConsoleSettings, source: Any, clock: Callable[[], int] = time.monotonic_ns,
                  controls: Callable[[dict[str, Any]], Awaitable[dict[str, Any] | None]] | None = None,
-                 extra: Callable[[], dict[str, Any]] | None = None, masks: dict[int, dict[str, Any]] | None = None):
+                 extra: Callable[[], dict[str, Any]] | None = None, masks: dict[int, dict[str, Any]] | None = None,
+                 calibration: Any = None):
         self.settings = settings
         self.source = source
         self.clock = clock
         self.controls = controls
         self.extra = extra
+        self.calibration = calibration
+        self._calib_version = -1
         self.view = ConsoleView(source)
         for cam in self.view.scene["cameras"]:
             cam["mask"] = (masks or {}).get(cam["id"])
@@ -128,6 +135,8 @@ class ConsoleServer:
         await site.start()
         self.port = self._runner.addresses[0][1]
         self._task = asyncio.get_running_loop().create_task(self._update_loop(), name="visionpos-console")
+        if self.calibration is not None:
+            self.calibration.start()
         log.info("console on %s", self.url)
 
     async def stop(self) -> None:
@@ -138,6 +147,8 @@ class ConsoleServer:
             except (asyncio.CancelledError, Exception):
                 pass
             self._task = None
+        if self.calibration is not None:
+            await self.calibration.stop()
         for c in list(self.clients):
             await c.ws.close()
         for t in list(self._senders):
@@ -231,6 +242,8 @@ class ConsoleServer:
         try:
             await ws.send_str(self._scene_text)
             client.offer(json.dumps({"type": "health", "health": self.health()}))
+            if self.calibration is not None:
+                client.offer(self._calib_text())
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
                     await self._command(client, msg.data)
@@ -276,6 +289,19 @@ class ConsoleServer:
             if not isinstance(msg.get("on"), bool):
                 return await self._bad(client, "views", 'views: expected {"cmd": "views", "on": true or false}')
             client.views = msg["on"]
+            return
+        if msg["cmd"] == "solve":
+            if self.calibration is None:
+                return await self._bad(client, "solve", "solve: no calibration assistant here (it runs in the "
+                                                        "console of `visionpos record` and `replay --view`)")
+            try:
+                reply = await self.calibration.command(msg)
+            except ValueError as e:
+                return await self._bad(client, "solve", str(e))
+            try:
+                await client.ws.send_str(json.dumps({"type": "calib_reply", **reply}))
+            except (ConnectionError, RuntimeError):
+                pass
             return
         if self.controls is None:
             return await self._bad(client, "cmd", f"unknown command {msg['cmd']!r} (replay controls need "
@@ -333,6 +359,10 @@ class ConsoleServer:
         for c in self.clients:
             c.offer(text if c.views else plain)
 
+    def _calib_text(self) -> str:
+        self._calib_version = self.calibration.version
+        return json.dumps({"type": "calib", "calib": self.calibration.state()})
+
     async def _update_loop(self) -> None:
         period_s = 1.0 / self.settings.update_rate_hz
         next_health = next_watch = 0.0
@@ -351,6 +381,10 @@ class ConsoleServer:
                     next_watch = now_s + WATCH_PERIOD_S
                 if self.clients:
                     self.publish_once(watch)
+                    if self.calibration is not None and self.calibration.version != self._calib_version:
+                        text = self._calib_text()
+                        for c in self.clients:
+                            c.offer(text)
                 elif watch:
                     self.view.state(self.clock(), watch=True, cameras=False)
                 if now_s >= next_health:  # also without clients: the rates of /api/health need samples
@@ -360,6 +394,10 @@ class ConsoleServer:
                         text = json.dumps({"type": "health", "health": h})
                         for c in self.clients:
                             c.offer(text)
+                        if self.calibration is not None:  # again: an update queue may have dropped the last one
+                            text = self._calib_text()
+                            for c in self.clients:
+                                c.offer(text)
             except Exception:
                 self.counters["update_errors"] += 1
                 if self.counters["update_errors"] in (1, 100, 10_000):

@@ -2,6 +2,7 @@
 // Messages (console/server.py): scene (once), state (update_rate_hz), health (2 Hz), replay, error.
 import * as THREE from "three";
 import { OrbitControls } from "./vendor/OrbitControls.js";
+import { calibMessage } from "./calib.js";
 
 const BODY_COLORS = [0x44ccff, 0xff66cc, 0x88ee66, 0xffdd44, 0xaa88ff, 0xff8844];
 const LEFT_COLOR = "#ffaa44";
@@ -354,6 +355,7 @@ function connect() {
     else if (msg.type === "health") showHealth(msg.health);
     else if (msg.type === "replay") showReplay(msg);
     else if (msg.type === "error") stats.errors.push(msg.error);
+    if (msg.type === "calib" || msg.type === "calib_reply" || msg.type === "error") calibMessage(msg, send);
   };
 }
 

@@ -198,3 +198,62 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
     h = found["health"]
     assert {b["name"]: b["tracked"] for b in h["bodies"]} == {"quad": True, "ghost": False}
     assert any(w.startswith("body ghost is not tracked:") for w in h["warnings"])
+
+
+@pytest.mark.slow
+def test_calibration_panel_in_chromium_fills_in_and_shows_the_solve(tmp_path):
+    """`visionpos record`'s console with a simulated wand wave fed in: the panel's heat maps, pairs and ENOUGH, then
+    Solve clicked and the per-camera residuals shown."""
+    from console.calibration import CalibrationAssistant
+    from console.settings import ConsoleSettings
+    from visionpos.app.console import RecordSource, open_console
+    from visionpos.calibration.coverage import Thresholds
+    from visionpos.sim import load_scenario, simulate
+
+    sc = load_scenario("thesis", ["sim.duration=8"], session="wand")
+    frames = sorted(simulate(sc).frames, key=lambda f: f.recv_ns)
+    shots = Path(os.environ.get("VISIONPOS_SCREENSHOTS") or tempfile.mkdtemp(prefix="visionpos-console-"))
+    shots.mkdir(parents=True, exist_ok=True)
+    found: dict = {}
+
+    async def main():
+        # the simulated wave stays in the middle of the volume: 8 to 12 % of each image
+        source = RecordSource(sc.arena, CalibrationAssistant(sc.arena, tmp_path / "arena.yaml",
+                                                             Thresholds(min_coverage=0.05)))
+        console = await open_console(ConsoleSettings(port=0), source)
+        browser = Browser(console.url, tmp_path / "profile")
+        try:
+            await browser.connect()
+            await browser.wait_for("window.visionposConsole && window.visionposConsole.calib")
+            found["before"] = await browser.evaluate("document.getElementById('calib-verdict').textContent")
+            for f in frames:
+                source.push(f)
+            await browser.wait_for("window.visionposConsole.calib.enough === true")
+            found["pairs"] = await browser.evaluate(
+                "[...document.querySelectorAll('#calib-pairs tbody tr')].map(r => "
+                "[...r.cells].map(c => c.textContent))")
+            found["cells"] = await browser.evaluate("window.visionposConsole.calib.heatCells")
+            await browser.evaluate("document.getElementById('calib-solve').click()")
+            await browser.wait_for("document.querySelectorAll('#calib-result-table tbody tr').length === 4", 120)
+            found["result"] = await browser.evaluate(
+                "[...document.querySelectorAll('#calib-result-table tbody tr')].map(r => "
+                "[...r.cells].map(c => c.textContent))")
+            found["wand"] = await browser.evaluate("document.querySelector('.calib-wand').textContent")
+            await browser.evaluate("document.getElementById('calib').scrollIntoView()")
+            found["dpr"] = await browser.evaluate("window.devicePixelRatio")
+            found["rheat"] = await browser.evaluate(JS_RECT.format(sel="#calib-heat canvas"))
+            found["img"] = await browser.screenshot(shots / "calibration.png")
+        finally:
+            await browser.close()
+            await console.stop()
+
+    asyncio.run(asyncio.wait_for(main(), 240))
+    print(f"screenshots in {shots}")
+    assert found["before"] == "not yet"
+    assert len(found["pairs"]) == 6 and all(int(r[1]) >= 100 for r in found["pairs"])
+    assert found["cells"] > 0
+    assert [r[0] for r in found["result"]] == [c.name for c in sc.arena.cameras]
+    assert all(0.1 < float(r[1]) < 0.4 for r in found["result"]), found["result"]
+    assert found["wand"].startswith("wand length A-C: error")
+    # the heat map draws its lit cells (background #0d0f12, empty cells #1a1d22)
+    assert _drawn(found["img"], _rect(found["rheat"], found["dpr"] or 1.0), (0x22, 0x1d, 0x1a)) > 0.01

@@ -2,7 +2,8 @@
 
 console_settings() applies the command line to the arena's `console:` section; open_console()
 starts the console for a source on the running loop. For `record`, which fuses nothing,
-RecordSource stands in for the server: the cameras' newest blobs and their health, no bodies.
+RecordSource stands in for the server: the cameras' newest blobs and their health, no bodies. `record` and
+`replay --view` feed every accepted frame to the calibration assistant (console/calibration.py).
 """
 
 from __future__ import annotations
@@ -28,6 +29,12 @@ def add_console_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--console-bind", default=None, metavar="ADDRESS",
                    help="address of the web console (default console.bind, 127.0.0.1; another needs the token)")
     p.add_argument("--no-console", action="store_true", help="no web console")
+
+
+def add_calibrate_out_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--calibrate-out", default=None, metavar="YAML",
+                   help="where the console's wand solve (Solve in its Calibration panel) writes the calibrated arena "
+                        "(default: beside the recording, WAVE.mcap -> WAVE.calibrated.yaml)")
 
 
 def console_settings(arena: ArenaConfig, args: argparse.Namespace) -> ConsoleSettings | None:
@@ -111,7 +118,8 @@ def port_in_use(settings: ConsoleSettings) -> bool:
 async def open_console(settings: ConsoleSettings, source: Any, **kw: Any) -> ConsoleServer:
     """A started ConsoleServer for source, with the stations' masks of console.stations (an OSError, such as
     the port in use, propagates)."""
-    console = ConsoleServer(settings, source, masks=station_masks(source.arena, settings.stations), **kw)
+    console = ConsoleServer(settings, source, masks=station_masks(source.arena, settings.stations),
+                            calibration=getattr(source, "calibration", None), **kw)
     await console.start()
     return console
 
@@ -127,10 +135,12 @@ class _Seen:
 
 class RecordSource:
     """`visionpos record`'s stand-in for the fusion server: its Ingest's pipeline (push, remove_camera)
-    keeps each camera's newest blobs, undistorted for the rays; no body is tracked."""
+    keeps each camera's newest blobs, undistorted for the rays, and feeds the calibration assistant
+    (`calibration`, a console.calibration.CalibrationAssistant, or None); no body is tracked."""
 
-    def __init__(self, arena: ArenaConfig):
+    def __init__(self, arena: ArenaConfig, calibration: Any = None):
         self.arena = arena
+        self.calibration = calibration
         self.pipeline = self  # what Ingest pushes frames into, and what the console reads
         self.ingest: Any = None  # set once record_traffic made it
         self.obs: dict[int, _Seen] = {}
@@ -147,6 +157,8 @@ class RecordSource:
         blobs = np.asarray(frame.blobs, dtype=float)
         if cam is None or blobs.ndim != 2 or blobs.shape[1] < 2:
             return
+        if self.calibration is not None:
+            self.calibration.push(frame)
         px = blobs[:, :2]
         self.last_px[cam.id] = px
         self.obs[cam.id] = _Seen(int(frame.capture_ns), cam.model.undistort(px), np.full(len(px), -1))
@@ -164,12 +176,14 @@ class RecordSource:
 
 async def replay_view(log: str, config: str | None, overrides: list[str], rate_hz: float | None,
                       settings: ConsoleSettings, on_console: Any = None, duration_s: float | None = None,
-                      paused: bool = False) -> Any:
+                      paused: bool = False, calibrate_out: str | None = None) -> Any:
     """Serve the console for a recording (`visionpos replay LOG --view`) until a signal (or duration_s); returns
-    the ReplaySession."""
+    the ReplaySession. The calibration assistant counts the recording's wand frames as it plays; its solve writes
+    to calibrate_out (default: beside the recording)."""
     import asyncio
     from pathlib import Path
 
+    from console.calibration import CalibrationAssistant, default_out
     from console.replay import ReplaySession
     from visionpos.analysis.replay import load_settings
     from visionpos.config.arena import ConfigError
@@ -185,7 +199,8 @@ async def replay_view(log: str, config: str | None, overrides: list[str], rate_h
     rt = None
     if isinstance(meta.get("wall_start_unix_ns"), int) and isinstance(meta.get("monotonic_start_ns"), int):
         rt = meta["wall_start_unix_ns"] - meta["monotonic_start_ns"]
-    session = ReplaySession(arena, list(reader.packets_with_source()), rate_hz, rt)
+    session = ReplaySession(arena, list(reader.packets_with_source()), rate_hz, rt,
+                            calibration=CalibrationAssistant(arena, calibrate_out or default_out(log)))
     session.playing = not paused
     view = await open_console(settings, session, clock=session.clock, controls=session.command,
                               extra=session.position)

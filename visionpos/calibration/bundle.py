@@ -27,7 +27,14 @@ import scipy.sparse as sp
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from visionpos.calibration.wand import CalibrationError, WandData, WandSpec
+from visionpos.calibration.wand import (
+    GRID_RATE_HZ,
+    MIN_SHARED_FRAMES,
+    MIN_WAND_FRAMES,
+    CalibrationError,
+    WandData,
+    WandSpec,
+)
 from visionpos.camera.model import Camera, CameraModel
 from visionpos.geometry.epipolar import decompose_essential, essential_from_points, sampson_distance
 from visionpos.geometry.rotations import skew
@@ -173,7 +180,8 @@ def undistort_wand(data: WandData) -> np.ndarray:
 
 
 def initial_poses(
-    data: WandData, spec: WandSpec, ref: int = 0, min_shared: int = 40, progress: ProgressFn = _no_progress,
+    data: WandData, spec: WandSpec, ref: int = 0, min_shared: int = MIN_SHARED_FRAMES,
+    progress: ProgressFn = _no_progress,
     hint: str = "",
 ) -> tuple[np.ndarray, np.ndarray, list[PairPose]]:
     """Pairwise essential matrices + Eq. 2.18 scale, chained by a spanning tree.
@@ -862,9 +870,9 @@ def calibrate_wand(
     cameras: list[Camera],
     spec: WandSpec = WandSpec(),
     ref: int = 0,
-    rate_hz: float = 50.0,
+    rate_hz: float = GRID_RATE_HZ,
     refine_intrinsics: bool = False,
-    min_frames: int = 100,
+    min_frames: int = MIN_WAND_FRAMES,
     max_frames: int | None = None,
     progress: ProgressFn = _no_progress,
     align: str = "interpolate",

@@ -45,6 +45,11 @@ class CalibrationError(VisionposError, ValueError):
 
 
 WAND_SEGMENTS = ("ab", "bc", "ac")
+# the wand solve's minimums (calibrate_wand, initial_poses) and its time grid; the console's
+# calibration assistant (visionpos/calibration/coverage.py) judges a live wave against them
+MIN_WAND_FRAMES = 100  # labelled frames per camera, and time steps with the wand in >= 2 cameras
+MIN_SHARED_FRAMES = 40  # time steps a camera pair must share for its relative pose
+GRID_RATE_HZ = 50.0  # the common time grid the cameras' tracks are brought to
 
 
 @dataclass(frozen=True)
@@ -365,7 +370,7 @@ class WandData:
 
 
 def label_all(
-    frames: Sequence[BlobFrame], cameras: Sequence[Camera], spec: WandSpec, min_labelled: int = 100
+    frames: Sequence[BlobFrame], cameras: Sequence[Camera], spec: WandSpec, min_labelled: int = MIN_WAND_FRAMES
 ) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict[int, CameraWandStats]]:
     """Label the wand in every camera: per camera (times (n,), pixels (n, 3, 2)) and the counts.
     Raises CalibrationError naming any camera that saw too few wand frames."""
@@ -405,7 +410,7 @@ def align_tracks(
     tracks: list[tuple[np.ndarray, np.ndarray]],
     stats: dict[int, CameraWandStats],
     offsets_ns: np.ndarray | None = None,
-    rate_hz: float = 50.0,
+    rate_hz: float = GRID_RATE_HZ,
     max_gap_periods: float = 1.6,
     align: str = "interpolate",
     max_skew_ns: int = 2_000_000,
@@ -432,9 +437,9 @@ def collect_wand(
     frames: Sequence[BlobFrame],
     cameras: Sequence[Camera],
     spec: WandSpec,
-    rate_hz: float = 50.0,
+    rate_hz: float = GRID_RATE_HZ,
     max_gap_periods: float = 1.6,
-    min_labelled: int = 100,
+    min_labelled: int = MIN_WAND_FRAMES,
     align: str = "interpolate",
     max_skew_ns: int = 2_000_000,
     offsets_ns: np.ndarray | None = None,

@@ -91,6 +91,57 @@ def write_arena(arena: ArenaConfig, cameras: Sequence[Any], out: str | Path, ext
     dump_yaml(raw, out)
 
 
+def wand_section(cal: Any, max_offset_ms: float, ref: int = 0) -> dict[str, Any]:
+    """The `calibration:` keys a wand solve (a bundle.WandCalibration) writes into the arena: the wand and the
+    extrinsics' figures of merit (residuals px, wand length error mm, clock offsets ms, warnings)."""
+    spec = cal.spec
+    L = cal.length_stats()
+    stats = cal.camera_stats()
+    return {
+        "wand": {"ab": spec.ab, "bc": spec.bc, "known": spec.known, "max_clock_offset_ms": max_offset_ms},
+        "extrinsics": {
+            "frame": f"camera {cal.cameras[ref].name}",
+            "time_steps": len(cal.data.times_ns),
+            "rms_px": {s["name"]: round(s["rms_px"], 4) for s in stats},
+            "wand_ac_std_mm": round(L["ac_std"] * 1000, 4),
+            "wand_ac_mean_err_mm": round(L["ac_mean_err"] * 1000, 4),
+            "clock_offset_ms": {s["name"]: round(s["offset_ms"], 4) for s in stats},
+            "wand_ratio_measured": round(cal.check.ratio, 6) if cal.check else None,
+            "warnings": list(cal.warnings),
+        },
+    }
+
+
+def solve_wand_to_file(frames: Sequence[BlobFrame], arena: ArenaConfig, spec: WandSpec, max_offset_ms: float,
+                       out: str | Path) -> dict[str, Any]:
+    """The wand solve of `frames` (a wand wave) with the arena's intrinsics, written as a calibrated copy of the
+    arena to `out`; returns what the console shows (JSON-ready): {"out", "time_steps", "cameras": [{"id", "name",
+    "rms_px", "max_px", "views", "offset_ms"}], "wand_ac_mean_err_mm", "wand_ac_std_mm", "warnings", "seconds"}.
+    Raises CalibrationError (what to capture or fix) when the frames cannot give a calibration."""
+    import time
+
+    from visionpos.calibration.bundle import calibrate_wand
+
+    t0 = time.perf_counter()
+    cal = calibrate_wand(frames, list(arena.cameras), spec, max_offset_ms=max_offset_ms)
+    write_arena(arena, cal.cameras, out, wand_section(cal, max_offset_ms))
+    L = cal.length_stats()
+
+    def num(x: float, nd: int) -> float | None:
+        return round(float(x), nd) if np.isfinite(x) else None
+
+    return {
+        "out": str(out),
+        "time_steps": len(cal.data.times_ns),
+        "cameras": [{"id": s["id"], "name": s["name"], "rms_px": num(s["rms_px"], 3), "max_px": num(s["max_px"], 3),
+                     "views": s["views"], "offset_ms": num(s["offset_ms"], 3)} for s in cal.camera_stats()],
+        "wand_ac_mean_err_mm": num(L["ac_mean_err"] * 1000, 3),
+        "wand_ac_std_mm": num(L["ac_std"] * 1000, 3),
+        "warnings": list(cal.warnings),
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
+
+
 def ground_layout(arena: ArenaConfig, frame: str | None = None, markers: str | None = None,
                   marker_height: float | None = None) -> tuple[np.ndarray, float]:
     """(marker layout (M, 3) in m, marker centre height above the floor) of the ground frame.

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import yaml
 
-from visionpos.calibration.workflow import capture_frames, ground_layout, wand_settings, write_arena
+from visionpos.calibration.workflow import capture_frames, ground_layout, wand_section, wand_settings, write_arena
 from visionpos.errors import UsageError
 
 
@@ -193,21 +193,7 @@ def _run_wand(args) -> int:
         ce, re, s = compare_cameras(cal.cameras, truth)
         print(f"\nagainst the simulator's cameras (after a similarity alignment, scale {s:.5f}): "
               f"centre error max {ce.max() * 1000:.2f} mm, orientation error max {re.max():.4f} deg")
-    L = cal.length_stats()
-    stats = cal.camera_stats()
-    write_arena(arena, cal.cameras, args.out, {
-        "wand": {"ab": spec.ab, "bc": spec.bc, "known": spec.known, "max_clock_offset_ms": max_offset_ms},
-        "extrinsics": {
-            "frame": f"camera {cal.cameras[ref].name}",
-            "time_steps": len(cal.data.times_ns),
-            "rms_px": {s["name"]: round(s["rms_px"], 4) for s in stats},
-            "wand_ac_std_mm": round(L["ac_std"] * 1000, 4),
-            "wand_ac_mean_err_mm": round(L["ac_mean_err"] * 1000, 4),
-            "clock_offset_ms": {s["name"]: round(s["offset_ms"], 4) for s in stats},
-            "wand_ratio_measured": round(cal.check.ratio, 6) if cal.check else None,
-            "warnings": list(cal.warnings),
-        },
-    })
+    write_arena(arena, cal.cameras, args.out, wand_section(cal, max_offset_ms, ref))
     print(f"wrote {args.out} (world = camera {cal.cameras[ref].name}; run `visionpos calibrate ground` next)")
     if args.report:
         plot_wand(cal, args.report)

@@ -5,7 +5,12 @@ from __future__ import annotations
 import argparse
 import sys
 
-from visionpos.app.console import add_console_arguments, announce_console, console_settings
+from visionpos.app.console import (
+    add_calibrate_out_argument,
+    add_console_arguments,
+    announce_console,
+    console_settings,
+)
 from visionpos.cli.serve import announce_listening, live_settings, run_listening
 from visionpos.errors import UsageError
 from visionpos.server.service import record_traffic
@@ -22,6 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: until Ctrl-C)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
     add_console_arguments(p)
+    add_calibrate_out_argument(p)
 
 
 def output_path(args: argparse.Namespace) -> str:
@@ -47,12 +53,16 @@ def run(args: argparse.Namespace) -> int:
         announce_listening("record", settings, port, f", recording to {out}")
 
     console = console_settings(arena, args)
+    if console is None and args.calibrate_out is not None:
+        raise UsageError("--calibrate-out says where the console's Solve writes; it needs the console (leave out "
+                         "--no-console and keep console.enabled)")
     source = None
     on_ingest = None
     if console is not None:
+        from console.calibration import CalibrationAssistant, default_out
         from visionpos.app.console import RecordSource, open_console
 
-        source = RecordSource(arena)
+        source = RecordSource(arena, CalibrationAssistant(arena, args.calibrate_out or default_out(out)))
 
         async def on_ingest(ingest):
             source.ingest = ingest

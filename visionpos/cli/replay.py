@@ -9,7 +9,7 @@ from pathlib import Path
 
 from visionpos.analysis import metrics as M
 from visionpos.analysis.replay import METRIC_COLUMNS, metrics_rows, replay_log, summary, write_outputs
-from visionpos.app.console import add_console_arguments, announce_console
+from visionpos.app.console import add_calibrate_out_argument, add_console_arguments, announce_console
 from visionpos.errors import UsageError
 
 
@@ -47,6 +47,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "writes no outputs")
     p.add_argument("--duration", type=float, default=None, help="--view: stop after this many seconds")
     add_console_arguments(p)
+    add_calibrate_out_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -120,7 +121,8 @@ def view(args: argparse.Namespace) -> int:
     settings = ConsoleSettings.from_arena(arena).with_address(args.console_bind, args.console_port)
     try:
         asyncio.run(replay_view(args.log, args.config, args.set, args.rate, settings,
-                                lambda v: announce_console("replay", v), args.duration))
+                                lambda v: announce_console("replay", v), args.duration,
+                                calibrate_out=args.calibrate_out))
     except OSError as e:
         raise UsageError(f"{e.strerror or e}; pick another --console-port") from None
     return 0

@@ -1,0 +1,148 @@
+// The calibration assistant's panel (console/calibration.py): while a wand wave is recorded, each camera's
+// image coverage as a heat map and the frames each camera pair shares, ENOUGH or what is missing, and the
+// Solve button with the wand solve's result. Messages: calib (the state), calib_reply (a solve started),
+// error (a refused solve: "solve: ..."). The panel is made on the first calib message: consoles without the
+// assistant (serve, demo) never show it.
+
+const HEAT_WIDTH_PX = 200;
+let panel = null;
+let sendFn = null;
+
+function el(tag, text, cls) {
+  const e = document.createElement(tag);
+  if (text !== undefined) e.textContent = text;
+  if (cls) e.className = cls;
+  return e;
+}
+
+function num(x, d) { return x === null || x === undefined ? "-" : Number(x).toFixed(d); }
+
+function stats() {
+  const s = window.visionposConsole || (window.visionposConsole = {});
+  if (!s.calib) s.calib = { messages: 0, enough: null, cameras: 0, pairs: 0, heatCells: 0, solve: null, refused: [] };
+  return s.calib;
+}
+
+function build() {
+  const sec = el("section");
+  sec.id = "calib";
+  sec.innerHTML = `
+    <div class="bar">Calibration (wand wave)
+      <span id="calib-verdict" class="calib-verdict">-</span>
+      <button id="calib-solve" title="run the wand solve on the frames gathered so far">Solve</button>
+      <span id="calib-out" class="calib-note"></span>
+    </div>
+    <ul id="calib-missing"></ul>
+    <div id="calib-heat"></div>
+    <h2>Camera pairs: time steps seeing the wand together</h2>
+    <table id="calib-pairs"><thead><tr><th>pair</th><th>shared</th></tr></thead><tbody></tbody></table>
+    <div id="calib-result"></div>`;
+  document.querySelector("main").append(sec);
+  sec.querySelector("#calib-solve").onclick = () => sendFn && sendFn({ cmd: "solve" });
+  return sec;
+}
+
+function heat(cam, th) {
+  const box = el("div", undefined, "calib-cam");
+  const cover = Math.round(100 * cam.coverage);
+  const ok = cam.labelled >= th.camera_frames && cam.coverage >= th.coverage;
+  box.append(el("div", `${cam.name}: ${cam.labelled} wand frames, ${cover} % covered`, ok ? "good" : "warn"));
+  const c = el("canvas");
+  c.width = HEAT_WIDTH_PX;
+  c.height = Math.round(HEAT_WIDTH_PX * cam.height / cam.width);
+  const g = c.getContext("2d");
+  const rows = cam.grid.length, cols = cam.grid[0].length;
+  const w = c.width / cols, h = c.height / rows;
+  let lit = 0;
+  for (let r = 0; r < rows; r++) {
+    for (let k = 0; k < cols; k++) {
+      const n = cam.grid[r][k];
+      // a cell turns green once it counts; before that it warms up from dark
+      if (n >= th.cell_markers) {
+        const a = Math.min(1, 0.35 + 0.65 * Math.log10(n) / 3);
+        g.fillStyle = `rgba(90, 220, 110, ${a})`;
+        lit++;
+      } else g.fillStyle = n > 0 ? "#6a5520" : "#1a1d22";
+      g.fillRect(k * w + 1, r * h + 1, w - 2, h - 2);
+    }
+  }
+  stats().heatCells += lit;
+  box.append(c);
+  return box;
+}
+
+function showResult(div, solve) {
+  div.replaceChildren();
+  if (solve.running) { div.append(el("p", `solving ${solve.frames} frames...`, "warn")); return; }
+  if (solve.error) {
+    div.append(el("h2", "Solve failed"));
+    div.append(el("pre", solve.error, "badv"));
+    return;
+  }
+  const r = solve.result;
+  if (!r) return;
+  div.append(el("h2", `Result: written to ${r.out} (${r.time_steps} time steps, ${num(r.seconds, 1)} s)`));
+  const t = el("table");
+  t.id = "calib-result-table";
+  t.innerHTML = "<thead><tr><th>camera</th><th>rms px</th><th>max px</th><th>views</th>" +
+    "<th>clock offset ms</th></tr></thead>";
+  const body = el("tbody");
+  for (const c of r.cameras) {
+    const tr = el("tr");
+    for (const v of [c.name, num(c.rms_px, 3), num(c.max_px, 2), c.views, num(c.offset_ms, 2)]) tr.append(el("td", String(v)));
+    body.append(tr);
+  }
+  t.append(body);
+  div.append(t);
+  div.append(el("p", `wand length A-C: error ${num(r.wand_ac_mean_err_mm, 3)} mm, std ${num(r.wand_ac_std_mm, 3)} mm`,
+    "calib-wand"));
+  const warn = el("ul", undefined, "calib-warnings");
+  for (const w of r.warnings) warn.append(el("li", w));
+  if (r.warnings.length) div.append(warn);
+}
+
+function show(s) {
+  if (!panel) panel = build();
+  const st = stats();
+  st.messages++;
+  st.enough = s.enough;
+  st.cameras = s.cameras.length;
+  st.pairs = s.pairs.length;
+  st.heatCells = 0;
+  st.solve = s.solve;
+  const v = panel.querySelector("#calib-verdict");
+  v.textContent = s.enough ? "ENOUGH" : "not yet";
+  v.className = "calib-verdict " + (s.enough ? "enough" : "notyet");
+  const solve = panel.querySelector("#calib-solve");
+  solve.disabled = s.solve.running || !s.solvable;
+  solve.title = s.solvable ? "run the wand solve on the frames gathered so far"
+    : "not yet: the solver needs 100 wand frames per camera and 100 time steps in two cameras";
+  const full = s.frames_over ? `; full: ${s.frames_over} later frames not kept` : "";
+  panel.querySelector("#calib-out").textContent = `${s.frames_kept} frames, ${s.steps} time steps; ` +
+    `Solve writes ${s.out}${full}`;
+  const missing = panel.querySelector("#calib-missing");
+  missing.replaceChildren(...s.missing.map(m => el("li", m)));
+  const th = s.thresholds;
+  panel.querySelector("#calib-heat").replaceChildren(...s.cameras.map(c => heat(c, th)));
+  const names = new Map(s.cameras.map(c => [c.id, c.name]));
+  panel.querySelector("#calib-pairs tbody").replaceChildren(...s.pairs.map(p => {
+    const tr = el("tr");
+    tr.append(el("td", `${names.get(p.a)} - ${names.get(p.b)}`));
+    tr.append(el("td", String(p.frames), p.frames >= th.pair_frames ? "good" : "warn"));
+    return tr;
+  }));
+  showResult(panel.querySelector("#calib-result"), s.solve);
+}
+
+// app.js hands every calib, calib_reply and error message here, with its send()
+export function calibMessage(msg, send) {
+  sendFn = send;
+  if (msg.type === "calib") show(msg.calib);
+  else if (msg.type === "error" && typeof msg.error === "string" && msg.error.startsWith("solve:")) {
+    stats().refused.push(msg.error);
+    if (panel) {
+      const div = panel.querySelector("#calib-result");
+      div.replaceChildren(el("p", msg.error, "badv"));
+    }
+  }
+}
