@@ -208,16 +208,17 @@ def run(quick: bool = False) -> BenchResult:
                      f"{rms:.3f} | {blinded} | {rss_mb:.1f} | {rec_pct:+.2f} |")
     res.tables["Under attack: the thesis arena's demo, authenticated, with a hostile sender "
                f"({RATE_PPS:.0f} packets/s)"] = "\n".join(lines)
-    res.notes.append("Attacks: " + "; ".join(f"{k}: {v}" for k, v in ATTACKS.items()) + ". Counted as refused: "
-                     "the server's not_recorded counts (every refused packet, by reason) for attacks on the server, "
-                     "the stations' refused replies for spoof_replies, the bridge's refused MAVLink packets for "
-                     "mavlink_spoof. Dropped by the kernel: UDP datagrams the host dropped during the run because "
-                     "a receive buffer was full (/proc/net/snmp RcvbufErrors, all sockets of the host), lost before "
-                     "any counter could see them. Recording growth is against the reference run's file (same scenario, seed "
-                     "and authenticated traffic). RSS growth is the process's resident memory at the end of each "
-                     "attack minus at its start (same demo run); robustness_rss_growth_mb_all_runs is after the "
-                     "last run minus after the reference run, across eight more demo runs (each simulates its "
-                     "scenario anew), an upper bound that includes the allocator's high-water mark.")
+    res.notes.append(
+        "Attacks: " + "; ".join(f"{k}: {v}" for k, v in ATTACKS.items()) + ". Counted as refused: "
+        "the server's not_recorded counts (every refused packet, by reason) for attacks on the server, the "
+        "stations' refused replies for spoof_replies, the bridge's refused MAVLink packets for mavlink_spoof. "
+        "Dropped by the kernel: UDP datagrams the host dropped during the run because a receive buffer was full "
+        "(/proc/net/snmp RcvbufErrors, all sockets of the host), lost before any counter could see them. "
+        "Recording growth is against the reference run's file (same scenario, seed and authenticated traffic). "
+        "RSS growth is the process's resident memory at the end of each attack minus at its start (same demo "
+        "run); robustness_rss_growth_mb_all_runs is after the last run minus after the reference run, across "
+        "eight more demo runs (each simulates its scenario anew), an upper bound that includes the allocator's "
+        "high-water mark.")
     return res
 
 
