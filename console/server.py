@@ -7,7 +7,8 @@
                          camera views in every second one),
                          {"type": "health"} twice a second, {"type": "replay"} in a replay; the client
                          may send {"cmd": ...}: "rays" (a camera's blob rays), "views" (on: false while the
-                         tab is hidden: no camera views for it), "health", replay controls (console/replay.py)
+                         tab is hidden: no camera views for it), "health", replay controls (console/replay.py),
+                         "still" and "mask" (a station's still image, its mask saved back: console/stills.py)
 
 One update task: once per tick it builds the state (only when a client is connected), encodes it
 ONCE (a camera's view only when that camera sent something new: console/view.py) and puts the text
@@ -37,6 +38,7 @@ from aiohttp import WSMsgType, web
 
 from console.health import HealthView
 from console.settings import ConsoleSettings
+from console.stills import StationCommands
 from console.view import ConsoleView
 from visionpos.logutil import RateLimitedLog
 
@@ -105,6 +107,11 @@ class ConsoleServer:
         self._task: asyncio.Task | None = None
         self._senders: set[asyncio.Task] = set()
         self._watch_due = False
+        self.stations = StationCommands(self)
+
+    def scene_changed(self) -> None:
+        """The scene (a camera's mask) changed: tabs that connect from now on get the new one."""
+        self._scene_text = json.dumps(self.view.scene)
 
     # ---------------------------------------------------------------- lifecycle
 
@@ -142,6 +149,7 @@ class ConsoleServer:
             await c.ws.close()
         for t in list(self._senders):
             t.cancel()
+        self.stations.cancel()
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
@@ -276,6 +284,12 @@ class ConsoleServer:
             if not isinstance(msg.get("on"), bool):
                 return await self._bad(client, "views", 'views: expected {"cmd": "views", "on": true or false}')
             client.views = msg["on"]
+            return
+        if msg["cmd"] in ("still", "mask"):
+            try:
+                self.stations.start(client, msg)
+            except ValueError as e:
+                return await self._bad(client, msg["cmd"], str(e))
             return
         if self.controls is None:
             return await self._bad(client, "cmd", f"unknown command {msg['cmd']!r} (replay controls need "
