@@ -148,8 +148,10 @@ class SimStation:
         self.stills = StillLimiter(image_min_interval_s)
         self._rng = np.random.default_rng(session)
         self.last_blobs: np.ndarray = np.zeros((0, 4), np.float32)  # the newest frame's blobs as sent
+        self.last_raw_blobs: np.ndarray = self.last_blobs  # ... and as simulated, before ignore/rois
         self.last_capture_ns = 0
-        self.last_still: np.ndarray | None = None  # the newest still image rendered (tests read it)
+        self.last_still: np.ndarray | None = None  # the newest still image rendered, and its blobs (tests read them)
+        self.last_still_blobs: np.ndarray = self.last_blobs
         self.mask_acks: list[Any] = []
 
     def _load_rects(self, path: str) -> None:
@@ -195,7 +197,7 @@ class SimStation:
         if not self.stills.allow(time.monotonic_ns()):
             return
         img = self.render_still()
-        self.last_still = img
+        self.last_still, self.last_still_blobs = img, self.last_blobs
         jpeg, w, h = encode_still(img, req.max_width, req.quality)
         for chunk in image_chunks(req, jpeg, self.last_capture_ns, w, h, background_level(img, self.last_blobs)):
             self._send(chunk)
@@ -351,7 +353,7 @@ class SimStation:
         est = self.sync.estimator.estimate
         capture = est.to_server(local) if est is not None else f.capture_ns
         blobs = self.searched(f.blobs)
-        self.last_blobs, self.last_capture_ns = blobs, capture
+        self.last_raw_blobs, self.last_blobs, self.last_capture_ns = f.blobs, blobs, capture
         try:
             data = P.encode_frame(BlobFrame(f.camera_id, f.seq, capture, blobs, self.station_id, f.flags, 0,
                                             self.session), self.key)
