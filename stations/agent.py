@@ -12,10 +12,10 @@ talking to the server (heartbeats say camera not OK).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import select
 import socket
-import dataclasses
 import threading
 import time
 from dataclasses import dataclass

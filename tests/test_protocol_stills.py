@@ -135,3 +135,16 @@ def test_truncated_fixed_parts_are_refused():
         cut = cut[:12] + struct.pack("<H", 10) + cut[14:]
         with pytest.raises(P.ProtocolError):
             P.decode(cut)
+
+
+def test_mask_statuses_and_flags_are_the_documented_values():
+    import re
+    from pathlib import Path
+
+    doc = (Path(__file__).parents[1] / "docs" / "protocol.md").read_text()
+    status = re.search(r"^\| 24 \| u8 \| status \| (.*`SAVED`.*)\|$", doc, re.MULTILINE).group(1)
+    assert {n: int(v) for v, n in re.findall(r"(\d+) `(\w+)`", status)} == {m.name: m.value for m in P.MaskStatus}
+    flags = re.search(r"^\| 28 \| u16 \| flags \| (.*)\|$", doc, re.MULTILINE).group(1)
+    assert {n: 1 << int(b) for b, n in re.findall(r"bit (\d+) `(\w+)`", flags)} == {m.name: m.value
+                                                                                   for m in P.MaskFlag}
+    assert f"chunks of {P.IMAGE_CHUNK_BYTES}" in doc.replace("\n", " ")

@@ -16,7 +16,9 @@ fresh: frames carry the session and their own seq; station -> server control
 messages (HELLO, HEARTBEAT, SYNC_REQUEST, BYE) carry a per-session counter
 that must strictly increase; HELLO carries the server's cookie (a stateless
 challenge); replies echo the session and the counter they answer. All of it
-is inside the HMAC. `decode_v1` reads version-1 packets (recordings made
+is inside the HMAC. On request only, the server asks a station for a still image (IMAGE_REQUEST,
+answered by IMAGE_CHUNKs of the JPEG) or sets its mask (MASK_UPDATE, answered by MASK_ACK);
+stations/still.py and visionpos/server/images.py are the two sides. `decode_v1` reads version-1 packets (recordings made
 before version 2) for replay only.
 
 Server-side helpers (pure, no I/O): `make_hello_ack`, `make_sync_reply`,

@@ -115,10 +115,9 @@ class SimStation:
     def __init__(self, camera, station_id: int, frames: list[BlobFrame], clock_offset_ns: int, server_port: int,
                  session: int, key: bytes | None = None, config_path: str | None = None,
                  image_min_interval_s: float = 1.0):
-        from stations.still import StillLimiter
-
         from stations.clocksync import ClockSync
         from stations.session import StationLink
+        from stations.still import StillLimiter
 
         self.camera = camera
         self.station_id = station_id
