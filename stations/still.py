@@ -62,11 +62,16 @@ def blob_mask(shape: tuple[int, int], blobs: np.ndarray) -> np.ndarray:
 
 
 def background_level(image: np.ndarray, blobs: np.ndarray) -> float:
-    """The 99th percentile of the grey levels (0..255) of image (H, W) uint8 outside blobs (N, 4)."""
+    """The 99th percentile (numpy's linear rule) of the grey levels (0..255) of image (H, W) uint8 outside
+    blobs (N, 4), from the histogram: no sort of the whole frame."""
     outside = image[~blob_mask(image.shape, blobs)] if len(blobs) else image.ravel()
     if outside.size == 0:
         return 0.0
-    return float(np.percentile(outside, BACKGROUND_PERCENTILE))
+    cdf = np.cumsum(np.bincount(outside, minlength=256))
+    rank = BACKGROUND_PERCENTILE / 100.0 * (outside.size - 1)
+    lo = int(rank)
+    v_lo, v_hi = np.searchsorted(cdf, [lo, min(lo + 1, outside.size - 1)], side="right")
+    return float(v_lo + (rank - lo) * (v_hi - v_lo))
 
 
 def encode_still(image: np.ndarray, max_width: int, quality: int) -> tuple[bytes, int, int]:

@@ -152,6 +152,7 @@ class SimStation:
         self.last_still: np.ndarray | None = None  # the newest still image rendered, and its blobs (tests read them)
         self.last_still_blobs: np.ndarray = self.last_blobs
         self.mask_acks: list[Any] = []
+        self._still_tasks: set[asyncio.Task] = set()
 
     def _load_rects(self, path: str) -> None:
         from stations.config import _rects
@@ -178,28 +179,38 @@ class SimStation:
             keep &= inside(self.rois)
         return blobs[keep]
 
-    def render_still(self) -> np.ndarray:
-        """The newest frame as a camera would see it: (H, W) uint8, noisy dark background, marker discs."""
+    def render_still(self, blobs: np.ndarray) -> np.ndarray:
+        """A frame with these blobs as a camera would see it: (H, W) uint8, noisy dark background, marker discs."""
         import cv2
 
         m = self.camera.model
-        img = self._rng.normal(STILL_BACKGROUND_DN, STILL_NOISE_DN, (m.height, m.width))
-        img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
-        for x, y, area, _peak in np.asarray(self.last_blobs, dtype=float):
+        noise = self._rng.standard_normal((m.height, m.width), dtype=np.float32)
+        img = np.clip(np.rint(noise * STILL_NOISE_DN + STILL_BACKGROUND_DN), 0, 255).astype(np.uint8)
+        for x, y, area, _peak in np.asarray(blobs, dtype=float):
             r = max(2, int(round(np.sqrt(max(area, 1.0) / np.pi))))
             cv2.circle(img, (int(round(x)), int(round(y))), r, STILL_MARKER_DN, -1, lineType=cv2.LINE_AA)
         return img
 
     def _on_image_request(self, req: P.ImageRequest) -> None:
-        from stations.still import background_level, encode_still, image_chunks
-
         if not self.stills.allow(time.monotonic_ns()):
             return
-        img = self.render_still()
-        self.last_still, self.last_still_blobs = img, self.last_blobs
-        jpeg, w, h = encode_still(img, req.max_width, req.quality)
-        for chunk in image_chunks(req, jpeg, self.last_capture_ns, w, h, background_level(img, self.last_blobs)):
-            self._send(chunk)
+        # rendered and encoded off the loop: the demo's server shares it, and fusion must not wait
+        task = asyncio.get_running_loop().create_task(self._still(req, self.last_blobs, self.last_capture_ns))
+        self._still_tasks.add(task)
+        task.add_done_callback(self._still_tasks.discard)
+
+    async def _still(self, req: P.ImageRequest, blobs: np.ndarray, capture_ns: int) -> None:
+        from stations.still import background_level, encode_still, image_chunks
+
+        def make():
+            img = self.render_still(blobs)
+            return img, encode_still(img, req.max_width, req.quality), background_level(img, blobs)
+
+        img, (jpeg, w, h), bg = await asyncio.to_thread(make)
+        self.last_still, self.last_still_blobs = img, blobs
+        if self.transport is not None:
+            for chunk in image_chunks(req, jpeg, capture_ns, w, h, bg):
+                self._send(chunk)
 
     def _on_mask_update(self, msg: P.MaskUpdate) -> None:
         from stations.still import check_rects, save_mask
@@ -363,6 +374,8 @@ class SimStation:
             self.send_errors += 1
 
     def close(self) -> None:
+        for t in list(self._still_tasks):
+            t.cancel()
         if self.transport is not None:
             self._send(self.link.bye())
             self.transport.close()
