@@ -31,6 +31,7 @@ from stations.session import LinkEvent, StationLink
 from stations.sources import EndOfStream, FrameSource, SourceError, make_source
 from stations.still import StillLimiter, background_level, check_rects, encode_still, image_chunks, save_mask
 from visionpos import protocol as P
+from visionpos.config.arena import ConfigError
 from visionpos.logutil import RateLimitedLog
 from visionpos.messages import FLAG_RESYNC, FLAG_TRUNCATED, BlobFrame
 from visionpos.server.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
@@ -252,7 +253,11 @@ class StationAgent:
         if image is None or blobs is None or not self.stills.allow(self.clock()):
             self.stats.images_refused += 1
             return
-        jpeg, w, h = encode_still(image, req.max_width, req.quality)
+        try:
+            jpeg, w, h = encode_still(image, req.max_width, req.quality)
+        except ValueError as e:  # OpenCV could not encode it: the server's request times out
+            self._log_once("jpeg", logging.WARNING, "cannot send a still image: %s", e)
+            return
         t = self.to_server(self._last_t)
         bg = background_level(image, blobs)
         for chunk in image_chunks(req, jpeg, self._last_t if t is None else t, w, h, bg):
@@ -276,7 +281,7 @@ class StationAgent:
         cfg = dataclasses.replace(self.cfg, ignore=tuple(ignore), rois=tuple(rois))
         try:
             mask = build_mask(cfg, w, h)
-        except Exception as e:  # the mask image went missing since start
+        except ConfigError as e:  # the mask image went missing or changed since start
             return ack(P.MaskStatus.REFUSED, str(e))
         self.detector.mask = mask
         self.cfg = cfg

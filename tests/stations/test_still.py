@@ -206,3 +206,25 @@ def test_save_mask_sets_the_key_whatever_the_file_shape(tmp_path, text):
         if k != "ignore":
             assert data["detector"][k] == v
     assert [f for f in Path(tmp_path).iterdir()] == [p]  # no temporary file left
+
+
+def test_commands_are_believed_in_echo_then_request_order_only():
+    from stations.session import StationLink
+
+    server = ("127.0.0.1", 5600)
+    link = StationLink(2, 3, session=0xAB)
+    for _ in range(3):
+        link.heartbeat()  # counters 1..3
+
+    def cmd(echo, rid, session=0xAB):
+        return P.ImageRequest(2, 3, session, echo, rid)
+
+    assert link.believe_command(cmd(2, 10), server, server)
+    assert not link.believe_command(cmd(2, 10), server, server)  # the same again: a replay
+    assert not link.believe_command(cmd(2, 9), server, server)  # older request of the same echo
+    assert not link.believe_command(cmd(1, 11), server, server)  # older echo
+    assert link.believe_command(cmd(3, 1), server, server)  # a newer echo (a restarted server counts from 1)
+    assert not link.believe_command(cmd(3, 2), ("127.0.0.1", 5601), server)  # not from the server
+    assert not link.believe_command(cmd(3, 2, session=0xAC), server, server)
+    assert not link.believe_command(cmd(4, 2), server, server)  # a counter never sent
+    assert link.refused_replies == 6
