@@ -9,7 +9,8 @@
                          when the calibration assistant's counts or solve changed; the client
                          may send {"cmd": ...}: "rays" (a camera's blob rays), "views" (on: false while the
                          tab is hidden: no camera views for it), "health", replay controls (console/replay.py),
-                         "solve" (the wand solve: console/calibration.py)
+                         "solve" (the wand solve: console/calibration.py),
+                         "still" and "mask" (a station's still image, its mask saved back: console/stills.py)
 
 One update task: once per tick it builds the state (only when a client is connected), encodes it
 ONCE (a camera's view only when that camera sent something new: console/view.py) and puts the text
@@ -39,6 +40,7 @@ from aiohttp import WSMsgType, web
 
 from console.health import HealthView
 from console.settings import ConsoleSettings
+from console.stills import StationCommands
 from console.view import ConsoleView
 from visionpos.logutil import RateLimitedLog
 
@@ -112,6 +114,11 @@ class ConsoleServer:
         self._task: asyncio.Task | None = None
         self._senders: set[asyncio.Task] = set()
         self._watch_due = False
+        self.stations = StationCommands(self)
+
+    def scene_changed(self) -> None:
+        """The scene (a camera's mask) changed: tabs that connect from now on get the new one."""
+        self._scene_text = json.dumps(self.view.scene)
 
     # ---------------------------------------------------------------- lifecycle
 
@@ -153,6 +160,7 @@ class ConsoleServer:
             await c.ws.close()
         for t in list(self._senders):
             t.cancel()
+        self.stations.cancel()
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
@@ -302,6 +310,11 @@ class ConsoleServer:
                 await client.ws.send_str(json.dumps({"type": "calib_reply", **reply}))
             except (ConnectionError, RuntimeError):
                 pass
+        if msg["cmd"] in ("still", "mask"):
+            try:
+                self.stations.start(client, msg)
+            except ValueError as e:
+                return await self._bad(client, msg["cmd"], str(e))
             return
         if self.controls is None:
             return await self._bad(client, "cmd", f"unknown command {msg['cmd']!r} (replay controls need "

@@ -12,6 +12,7 @@ talking to the server (heartbeats say camera not OK).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import select
 import socket
@@ -28,7 +29,9 @@ from stations.config import StationConfig, build_mask, load_background
 from stations.detector import Detector
 from stations.session import LinkEvent, StationLink
 from stations.sources import EndOfStream, FrameSource, SourceError, make_source
+from stations.still import StillLimiter, background_level, check_rects, encode_still, image_chunks, save_mask
 from visionpos import protocol as P
+from visionpos.config.arena import ConfigError
 from visionpos.logutil import RateLimitedLog
 from visionpos.messages import FLAG_RESYNC, FLAG_TRUNCATED, BlobFrame
 from visionpos.server.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
@@ -59,6 +62,9 @@ class AgentStats:
     registrations: int = 0
     bad_packets: int = 0  # undecodable or unauthenticated
     refused_replies: int = 0  # decoded, but not from the server / session / a recent request of ours
+    images_sent: int = 0  # still images sent on the server's request
+    images_refused: int = 0  # image requests inside image_min_interval_s (answered by nothing) or with no frame yet
+    mask_updates: int = 0  # MASK_UPDATEs answered (applied or refused)
 
 
 def read_temperature() -> float | None:
@@ -102,6 +108,11 @@ class StationAgent:
         self._last_heard: int | None = None
         self._estimate_seen = None
         self._size: tuple[int, int] | None = None
+        # the newest frame and its blobs, kept by reference (no copy per frame) for a still image on request
+        self._last_image: np.ndarray | None = None
+        self._last_blobs: np.ndarray | None = None
+        self._last_t = 0
+        self.stills = StillLimiter(cfg.image_min_interval_s)
         self.rlog = RateLimitedLog(log)
         self._addr: tuple | None = None
         self._next_resolve = 0.0
@@ -207,6 +218,15 @@ class StationAgent:
                 self.stats.bad_packets += 1
                 self._log_once(f"bad {str(e)[:24]}", logging.WARNING, "dropping packets from %s: %s", src, e)
                 continue
+            if isinstance(msg, (P.ImageRequest, P.MaskUpdate)):
+                if self.link.believe_command(msg, src, self._addr):
+                    self._last_heard = t4
+                    self._on_command(msg)
+                else:
+                    self.stats.refused_replies += 1
+                    self._log_once("refused command", logging.WARNING, "ignoring a %s from %s: not from the server "
+                                   "%s for this station's session, or replayed", type(msg).__name__, src, self._addr)
+                continue
             if not isinstance(msg, (P.HelloAck, P.SyncReply)) or not self.link.believe(msg, src, self._addr):
                 self.stats.refused_replies += 1
                 self._log_once("refused", logging.WARNING, "ignoring a %s from %s: not an answer from the server "
@@ -217,6 +237,68 @@ class StationAgent:
                 self._on_ack(msg, t4)
             elif self.sync is not None:
                 self.sync.reply(msg, t4)
+
+    # ------------------------------------------------------------ server commands (on request only)
+
+    def _on_command(self, msg: P.ImageRequest | P.MaskUpdate) -> None:
+        if isinstance(msg, P.ImageRequest):
+            self._send_still(msg)
+        else:
+            self.stats.mask_updates += 1
+            self._send(P.encode(self.apply_mask(msg), self.cfg.key))
+
+    def _send_still(self, req: P.ImageRequest) -> None:
+        """The newest frame as a JPEG in IMAGE_CHUNKs, at most one per image_min_interval_s."""
+        image, blobs = self._last_image, self._last_blobs
+        if image is None or blobs is None or not self.stills.allow(self.clock()):
+            self.stats.images_refused += 1
+            return
+        try:
+            jpeg, w, h = encode_still(image, req.max_width, req.quality)
+        except ValueError as e:  # OpenCV could not encode it: the server's request times out
+            self._log_once("jpeg", logging.WARNING, "cannot send a still image: %s", e)
+            return
+        t = self.to_server(self._last_t)
+        bg = background_level(image, blobs)
+        for chunk in image_chunks(req, jpeg, self._last_t if t is None else t, w, h, bg):
+            self._send(P.encode(chunk, self.cfg.key))
+        self.stats.images_sent += 1
+
+    def apply_mask(self, msg: P.MaskUpdate) -> P.MaskAck:
+        """Check a MASK_UPDATE against the image size, put it on the running detector, save it to the
+        station's config file; the MASK_ACK saying which of these happened."""
+        def ack(status: P.MaskStatus, text: str) -> P.MaskAck:
+            return P.MaskAck(self.cfg.station_id, self.cfg.camera_id, self.session, msg.request_id, status, text)
+
+        if self.detector is None or self._size is None:
+            return ack(P.MaskStatus.REFUSED, "the camera is not open yet")
+        w, h = self._size
+        ignore = msg.ignore if msg.flags & P.MaskFlag.IGNORE else self.cfg.ignore
+        rois = msg.rois if msg.flags & P.MaskFlag.ROIS else self.cfg.rois
+        why = check_rects(ignore + rois, w, h)
+        if why is not None:
+            return ack(P.MaskStatus.REFUSED, why)
+        cfg = dataclasses.replace(self.cfg, ignore=tuple(ignore), rois=tuple(rois))
+        try:
+            mask = build_mask(cfg, w, h)
+        except ConfigError as e:  # the mask image went missing or changed since start
+            return ack(P.MaskStatus.REFUSED, str(e))
+        self.detector.mask = mask
+        self.cfg = cfg
+        values = {}
+        if msg.flags & P.MaskFlag.IGNORE:
+            values["ignore"] = ignore
+        if msg.flags & P.MaskFlag.ROIS:
+            values["rois"] = rois
+        if not Path(self.cfg.source_file).is_file():
+            return ack(P.MaskStatus.APPLIED, "applied; no config file to save it in")
+        try:
+            save_mask(self.cfg.source_file, values)
+        except (OSError, ValueError) as e:
+            log.warning("mask applied but not saved to %s: %s", self.cfg.source_file, e)
+            return ack(P.MaskStatus.APPLIED, f"not saved: {e}")
+        log.info("mask from the server applied and saved to %s: %s", self.cfg.source_file, values)
+        return ack(P.MaskStatus.SAVED, f"saved to {Path(self.cfg.source_file).name}")
 
     def _on_ack(self, ack: P.HelloAck, now: int) -> None:
         event = self.link.on_ack(ack)
@@ -354,6 +436,7 @@ class StationAgent:
         seq = self._seq
         self._seq = (self._seq + 1) & 0xFFFFFFFF
         blobs, flags = self.detector.detect(image)
+        self._last_image, self._last_blobs, self._last_t = image, blobs, t_local
         if flags & FLAG_TRUNCATED:
             self.stats.truncated_frames += 1
         if len(blobs) > P.MAX_BLOBS_PER_PACKET:  # detector cap is validated <= this; defensive

@@ -75,6 +75,7 @@ class StationConfig:
     heartbeat_s: float = 1.0
     link_timeout_s: float = 3.5
     retry_max_s: float = 30.0
+    image_min_interval_s: float = 1.0
     mask_path: str = ""
     rois: tuple[tuple[int, int, int, int], ...] = ()
     ignore: tuple[tuple[int, int, int, int], ...] = ()
@@ -103,7 +104,7 @@ def parse_station(data: dict[str, Any], source: str = "<station>", base_dir: str
     """Validate a station mapping. base_dir resolves relative file paths."""
     top = Section(data, source, "")
     _only(top, {"station_id", "camera_id", "server", "key_file", "insecure", "source", "camera", "detector",
-                "clock", "heartbeat_s", "link_timeout_s", "retry_max_s"})
+                "clock", "heartbeat_s", "link_timeout_s", "retry_max_s", "image_min_interval_s"})
     base = Path(base_dir)
     srv = top.sub("server")
     _only(srv, {"host", "port"})
@@ -187,6 +188,7 @@ def parse_station(data: dict[str, Any], source: str = "<station>", base_dir: str
         heartbeat_s=top.number("heartbeat_s", 1.0, min=0.05, max=60.0),
         link_timeout_s=top.number("link_timeout_s", 3.5, min=0.2, max=600.0),
         retry_max_s=top.number("retry_max_s", 30.0, min=0.1, max=3600.0),
+        image_min_interval_s=top.number("image_min_interval_s", 1.0, min=0.1, max=3600.0),
         mask_path=str(base / mask_path) if mask_path and not Path(mask_path).is_absolute() else mask_path,
         rois=_rects(det, "rois"),
         ignore=_rects(det, "ignore"),

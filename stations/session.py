@@ -7,6 +7,9 @@ believed: it must come from the server address the station sends to, name
 this station, camera and session, and echo a counter the station sent recently
 that is newer than the last accepted reply's. Anything else is ignored and
 counted, so an unsigned or replayed UNKNOWN_SESSION cannot knock a station out.
+Server commands (IMAGE_REQUEST, MASK_UPDATE) pass `believe_command`: the same source and
+names, an echo of a recent counter, and (echo, request_id) newer than the last command's, so
+a captured command replayed later does nothing.
 Used by stations/agent.py and the demo's simulated stations (app/demo.py).
 """
 
@@ -51,6 +54,7 @@ class StationLink:
         self._sent: deque[int] = deque(maxlen=RECENT_COUNTERS)
         self._last_echo: int | None = None
         self._cookie_sent = P.NO_COOKIE
+        self._last_command: tuple[int, int] | None = None  # (echo, request_id) of the newest believed command
 
     def _next(self) -> int:
         self.counter = (self.counter + 1) & _U32
@@ -87,6 +91,23 @@ class StationLink:
             self.refused_replies += 1
             return False
         self._last_echo = echo
+        return True
+
+    def believe_command(self, msg: P.ImageRequest | P.MaskUpdate, src: Any, server: Any) -> bool:
+        """True if a server command comes from the server we send to, names this station, camera and session,
+        echoes a counter we sent recently, and is newer than the last believed command (echo first, then the
+        server's request id): a replayed or reordered one is refused and counted."""
+        if (src != server or msg.station_id != self.station_id or msg.camera_id != self.camera_id
+                or msg.session != self.session or msg.echo not in self._sent):
+            self.refused_replies += 1
+            return False
+        last = self._last_command
+        if last is not None:
+            d_echo = P.seq_delta(msg.echo, last[0])
+            if d_echo < 0 or (d_echo == 0 and P.seq_delta(msg.request_id, last[1]) <= 0):
+                self.refused_replies += 1
+                return False
+        self._last_command = (msg.echo, msg.request_id)
         return True
 
     def on_ack(self, ack: P.HelloAck) -> LinkEvent:

@@ -155,7 +155,7 @@ def test_full_signed_frame_fits_one_datagram():
         (lambda d: d[:4] + b"\x03" + d[5:], "protocol version 3 unsupported.*upgrade"),
         (lambda d: d[:4] + b"\x01" + d[5:], "protocol version 1 unsupported.*upgrade the sender"),
         (lambda d: d[:4] + b"\x00" + d[5:], "protocol version 0 unsupported"),
-        (lambda d: d[:5] + b"\x09" + d[6:], "unknown message type 9"),
+        (lambda d: d[:5] + b"\x0c" + d[6:], "unknown message type 12"),
         (lambda d: d[:34] + struct.pack("<H", 5) + d[36:], "blob count 5 does not match"),
     ],
 )
@@ -262,7 +262,7 @@ def _members(enum) -> dict[str, int]:
 
 def test_message_types_are_the_documented_bytes():
     rows = re.findall(r"^\|\s*(\d+)\s*\|\s*([A-Z_]+)\s*\|\s*(?:station|server) →", _DOC, re.MULTILINE)
-    assert len(rows) == 7
+    assert len(rows) == 11
     assert _members(P.MsgType) == {name: int(n) for n, name in rows}
     assert P.MSG_HELLO_ACK is P.MsgType.HELLO_ACK  # the old names are the members
 

@@ -16,7 +16,9 @@ fresh: frames carry the session and their own seq; station -> server control
 messages (HELLO, HEARTBEAT, SYNC_REQUEST, BYE) carry a per-session counter
 that must strictly increase; HELLO carries the server's cookie (a stateless
 challenge); replies echo the session and the counter they answer. All of it
-is inside the HMAC. `decode_v1` reads version-1 packets (recordings made
+is inside the HMAC. On request only, the server asks a station for a still image (IMAGE_REQUEST,
+answered by IMAGE_CHUNKs of the JPEG) or sets its mask (MASK_UPDATE, answered by MASK_ACK);
+stations/still.py and visionpos/server/images.py are the two sides. `decode_v1` reads version-1 packets (recordings made
 before version 2) for replay only.
 
 Server-side helpers (pure, no I/O): `make_hello_ack`, `make_sync_reply`,
@@ -64,6 +66,10 @@ class MsgType(IntEnum):
     SYNC_REQUEST = 5
     SYNC_REPLY = 6
     BYE = 7
+    IMAGE_REQUEST = 8
+    IMAGE_CHUNK = 9
+    MASK_UPDATE = 10
+    MASK_ACK = 11
 
 
 class HeaderFlag(IntFlag):
@@ -80,6 +86,21 @@ class AckStatus(IntEnum):
     REJECTED = 2  # camera id not configured on the server, or resolution mismatch: fix config
     CHALLENGE = 3  # Hello without a valid cookie: send it again carrying HelloAck.cookie
     RESYNC = 4  # heartbeat accepted, but the frames' capture times are off: restart clock sync
+
+
+class MaskStatus(IntEnum):
+    """MaskAck.status."""
+
+    SAVED = 0  # applied to the running detector and written to the station's config file
+    APPLIED = 1  # applied, but not saved (the station has no config file, or writing it failed: see text)
+    REFUSED = 2  # not applied: a rectangle outside the image, or nothing to set (see text)
+
+
+class MaskFlag(IntFlag):
+    """MaskUpdate.flags: which lists the update replaces."""
+
+    IGNORE = 0x01  # detector.ignore := the update's ignore rectangles
+    ROIS = 0x02  # detector.rois := the update's rois
 
 
 class Timebase(IntEnum):
@@ -116,6 +137,10 @@ MSG_HEARTBEAT = MsgType.HEARTBEAT
 MSG_SYNC_REQUEST = MsgType.SYNC_REQUEST
 MSG_SYNC_REPLY = MsgType.SYNC_REPLY
 MSG_BYE = MsgType.BYE
+MSG_IMAGE_REQUEST = MsgType.IMAGE_REQUEST
+MSG_IMAGE_CHUNK = MsgType.IMAGE_CHUNK
+MSG_MASK_UPDATE = MsgType.MASK_UPDATE
+MSG_MASK_ACK = MsgType.MASK_ACK
 HF_SIGNED = HeaderFlag.SIGNED.value
 ACK_OK = AckStatus.OK
 ACK_UNKNOWN_SESSION = AckStatus.UNKNOWN_SESSION
@@ -143,11 +168,24 @@ _HEARTBEAT = struct.Struct("<IIHhIIIi4xqqq")  # 56 bytes
 _SYNC_REQUEST = struct.Struct("<IIq")  # 16 bytes
 _SYNC_REPLY = struct.Struct("<IIqqq")  # 32 bytes
 _BYE = struct.Struct("<II")  # 8 bytes
+_IMAGE_REQUEST = struct.Struct("<IIIHBx")  # 16 bytes
+_IMAGE_CHUNK = struct.Struct("<IIHHIqHHf")  # 32 bytes, then the chunk's JPEG bytes
+_MASK_UPDATE = struct.Struct("<IIIHBB")  # 16 bytes, then (n_ignore + n_rois) x 4 x u16
+_MASK_RECT = struct.Struct("<HHHH")
+_MASK_ACK = struct.Struct("<IIB3x64s")  # 76 bytes
 _BLOB_DTYPE = np.dtype("<f4")
 _BLOB0 = HEADER_BYTES + FRAME_FIXED_BYTES
 
 assert _HEADER.size == HEADER_BYTES and _FRAME_HEAD.size == _BLOB0
 assert HEADER_BYTES + FRAME_FIXED_BYTES + MAX_BLOBS_PER_PACKET * BLOB_BYTES + TAG_BYTES <= MAX_PACKET_BYTES
+
+# Still images (IMAGE_CHUNK): every chunk but the last carries exactly IMAGE_CHUNK_BYTES of the JPEG, so a
+# signed chunk is one datagram; an image is at most MAX_IMAGE_BYTES (count <= MAX_IMAGE_CHUNKS).
+IMAGE_CHUNK_BYTES = MAX_PACKET_BYTES - HEADER_BYTES - 32 - TAG_BYTES  # 1408
+MAX_IMAGE_BYTES = 512 * 1024
+MAX_IMAGE_CHUNKS = -(-MAX_IMAGE_BYTES // IMAGE_CHUNK_BYTES)
+MAX_MASK_RECTS = 64  # per list in a MASK_UPDATE: 16 + 16 + 128 x 8 + 16 <= 1472
+MASK_TEXT_BYTES = 64
 
 _U16 = 0xFFFF
 _U32 = 0xFFFFFFFF
@@ -266,7 +304,79 @@ class Bye:
     counter: int = 0
 
 
-Message = BlobFrame | Hello | HelloAck | Heartbeat | SyncRequest | SyncReply | Bye
+@dataclass(frozen=True, slots=True)
+class ImageRequest:
+    """Server -> station: send one still image of the camera (docs/protocol.md, "Still images").
+
+    session: the station's session. echo: the newest control counter the server accepted from it (the
+    station believes only an echo of a counter it sent recently). request_id: the server's, increasing
+    (with echo, the station's replay guard). max_width: downscale the image to at most this many pixels
+    wide (0 = full size). quality: JPEG quality 1..100.
+    """
+
+    station_id: int
+    camera_id: int
+    session: int
+    echo: int
+    request_id: int
+    max_width: int = 640
+    quality: int = 80
+
+
+@dataclass(frozen=True, slots=True)
+class ImageChunk:
+    """Station -> server: one slice of the JPEG answering ImageRequest request_id.
+
+    index/count: this chunk and how many make the image; total_bytes: the JPEG's length. capture_ns: the
+    frame's capture time (station clock converted to the server's when synced, else the station clock).
+    width/height: the JPEG's size in pixels. background: the station's background level of that frame
+    (grey levels 0..255, see stations/still.py). data: bytes [index * IMAGE_CHUNK_BYTES, ...) of the JPEG.
+    """
+
+    station_id: int
+    camera_id: int
+    session: int
+    request_id: int
+    index: int
+    count: int
+    total_bytes: int
+    capture_ns: int
+    width: int
+    height: int
+    background: float
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class MaskUpdate:
+    """Server -> station: replace the detector's ignore rectangles and/or rois ([x0, y0, x1, y1] px, x1 > x0,
+    y1 > y0) and save them to the station's config. flags: MaskFlag bits saying which list is set (an empty
+    list with its flag clears it). session/echo/request_id: as ImageRequest."""
+
+    station_id: int
+    camera_id: int
+    session: int
+    echo: int
+    request_id: int
+    flags: int
+    ignore: tuple[tuple[int, int, int, int], ...] = ()
+    rois: tuple[tuple[int, int, int, int], ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class MaskAck:
+    """Station -> server: the answer to MaskUpdate request_id; status a MaskStatus, text why (UTF-8, 64 bytes)."""
+
+    station_id: int
+    camera_id: int
+    session: int
+    request_id: int
+    status: int
+    text: str = ""
+
+
+Message = (BlobFrame | Hello | HelloAck | Heartbeat | SyncRequest | SyncReply | Bye | ImageRequest | ImageChunk
+           | MaskUpdate | MaskAck)
 
 
 # ---------------------------------------------------------------- helpers
@@ -417,7 +527,79 @@ def encode(msg: Message, key: bytes | None = None) -> bytes:
     if isinstance(msg, Bye):
         body = _BYE.pack(_check_range("session", msg.session, 0, _U32), _check_range("counter", msg.counter, 0, _U32))
         return _finish(MSG_BYE, msg.station_id, msg.camera_id, body, key)
+    if isinstance(msg, ImageRequest):
+        body = _IMAGE_REQUEST.pack(
+            _check_range("session", msg.session, 0, _U32),
+            _check_range("echo", msg.echo, 0, _U32),
+            _check_range("request_id", msg.request_id, 0, _U32),
+            _check_range("max_width", msg.max_width, 0, _U16),
+            _check_range("quality", msg.quality, 1, 100),
+        )
+        return _finish(MSG_IMAGE_REQUEST, msg.station_id, msg.camera_id, body, key)
+    if isinstance(msg, ImageChunk):
+        data = bytes(msg.data)
+        _check_chunk(msg.index, msg.count, msg.total_bytes, len(data), msg.width, msg.height, msg.background)
+        body = _IMAGE_CHUNK.pack(
+            _check_range("session", msg.session, 0, _U32),
+            _check_range("request_id", msg.request_id, 0, _U32),
+            msg.index, msg.count, msg.total_bytes,
+            _check_range("capture_ns", msg.capture_ns, _I64_MIN, _I64_MAX),
+            msg.width, msg.height, float(msg.background),
+        ) + data
+        return _finish(MSG_IMAGE_CHUNK, msg.station_id, msg.camera_id, body, key)
+    if isinstance(msg, MaskUpdate):
+        flags = _check_range("flags", msg.flags, 0, int(MaskFlag.IGNORE | MaskFlag.ROIS))
+        rects = []
+        for name, lst in (("ignore", msg.ignore), ("rois", msg.rois)):
+            if len(lst) > MAX_MASK_RECTS:
+                raise ProtocolError(f"mask update has {len(lst)} {name} rectangles; at most {MAX_MASK_RECTS} fit")
+            for r in lst:
+                rects.append(_MASK_RECT.pack(*_check_rect(name, r)))
+        body = _MASK_UPDATE.pack(
+            _check_range("session", msg.session, 0, _U32),
+            _check_range("echo", msg.echo, 0, _U32),
+            _check_range("request_id", msg.request_id, 0, _U32),
+            flags, len(msg.ignore), len(msg.rois),
+        ) + b"".join(rects)
+        return _finish(MSG_MASK_UPDATE, msg.station_id, msg.camera_id, body, key)
+    if isinstance(msg, MaskAck):
+        text = msg.text.encode("utf-8")[:MASK_TEXT_BYTES].decode("utf-8", errors="ignore").encode("utf-8")
+        body = _MASK_ACK.pack(
+            _check_range("session", msg.session, 0, _U32),
+            _check_range("request_id", msg.request_id, 0, _U32),
+            _check_range("status", msg.status, 0, len(MaskStatus) - 1),
+            text,
+        )
+        return _finish(MSG_MASK_ACK, msg.station_id, msg.camera_id, body, key)
     raise ProtocolError(f"cannot encode {type(msg).__name__}: not a protocol message")
+
+
+def _check_chunk(index: int, count: int, total: int, n: int, width: int, height: int, background: float) -> None:
+    """The chunking rule (every chunk but the last is IMAGE_CHUNK_BYTES long) and the header's ranges."""
+    if not 0 < total <= MAX_IMAGE_BYTES:
+        raise ProtocolError(f"image chunk total_bytes {total} out of range (0, {MAX_IMAGE_BYTES}]")
+    if count != -(-total // IMAGE_CHUNK_BYTES):
+        raise ProtocolError(f"image chunk count {count} does not fit total_bytes {total} "
+                            f"({IMAGE_CHUNK_BYTES} bytes a chunk)")
+    if not 0 <= index < count:
+        raise ProtocolError(f"image chunk index {index} out of range [0, {count})")
+    want = IMAGE_CHUNK_BYTES if index < count - 1 else total - index * IMAGE_CHUNK_BYTES
+    if n != want:
+        raise ProtocolError(f"image chunk {index} of {count} carries {n} bytes, expected {want}")
+    if not (0 < width <= _U16 and 0 < height <= _U16):
+        raise ProtocolError(f"image chunk size {width}x{height}: width and height must be in 1..65535")
+    if not 0.0 <= background <= 255.0:  # false for NaN too
+        raise ProtocolError(f"image chunk background {background} out of range [0, 255]")
+
+
+def _check_rect(name: str, r: object) -> tuple[int, int, int, int]:
+    try:
+        x0, y0, x1, y1 = (int(v) for v in r)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise ProtocolError(f"{name} rectangle {r!r} is not [x0, y0, x1, y1]") from None
+    if not (0 <= x0 < x1 <= _U16 and 0 <= y0 < y1 <= _U16):
+        raise ProtocolError(f"{name} rectangle {[x0, y0, x1, y1]} needs 0 <= x0 < x1 <= 65535, 0 <= y0 < y1")
+    return x0, y0, x1, y1
 
 
 # ---------------------------------------------------------------- decode
@@ -430,6 +612,8 @@ _BODY_SIZES = {
     MSG_SYNC_REQUEST: _SYNC_REQUEST.size,
     MSG_SYNC_REPLY: _SYNC_REPLY.size,
     MSG_BYE: _BYE.size,
+    MSG_IMAGE_REQUEST: _IMAGE_REQUEST.size,
+    MSG_MASK_ACK: _MASK_ACK.size,
 }
 _TYPE_NAMES = {t: t.name.lower().replace("_", "-") for t in MsgType}  # "hello-ack", ... (error messages)
 
@@ -524,7 +708,36 @@ def decode(data: bytes, key: bytes | None = None, recv_ns: int = 0) -> Message:
     return BlobFrame(cid, seq, capture_ns, blobs, sid, flags, recv_ns, session)
 
 
+def _decode_variable(data: bytes, mtype: int, sid: int, cid: int, body_len: int) -> Message:
+    """IMAGE_CHUNK and MASK_UPDATE: a fixed part, then a checked number of bytes/rectangles."""
+    if mtype == MSG_IMAGE_CHUNK:
+        if body_len < _IMAGE_CHUNK.size:
+            raise ProtocolError(f"image-chunk body is {body_len} bytes, less than its fixed {_IMAGE_CHUNK.size}")
+        session, rid, index, count, total, cap, w, h, bg = _IMAGE_CHUNK.unpack_from(data, HEADER_BYTES)
+        start = HEADER_BYTES + _IMAGE_CHUNK.size
+        chunk = data[start:HEADER_BYTES + body_len]
+        _check_chunk(index, count, total, len(chunk), w, h, bg)
+        return ImageChunk(sid, cid, session, rid, index, count, total, cap, w, h, bg, chunk)
+    if body_len < _MASK_UPDATE.size:
+        raise ProtocolError(f"mask-update body is {body_len} bytes, less than its fixed {_MASK_UPDATE.size}")
+    session, echo, rid, flags, n_ignore, n_rois = _MASK_UPDATE.unpack_from(data, HEADER_BYTES)
+    if flags & ~int(MaskFlag.IGNORE | MaskFlag.ROIS) or not flags:
+        raise ProtocolError(f"mask update flags {flags:#x}: expected IGNORE (1) and/or ROIS (2)")
+    if n_ignore > MAX_MASK_RECTS or n_rois > MAX_MASK_RECTS:
+        raise ProtocolError(f"mask update has {n_ignore} ignore and {n_rois} roi rectangles; at most "
+                            f"{MAX_MASK_RECTS} each")
+    if body_len != _MASK_UPDATE.size + (n_ignore + n_rois) * _MASK_RECT.size:
+        raise ProtocolError(f"mask update of {n_ignore} + {n_rois} rectangles does not match body length {body_len}")
+    rects = []
+    for i in range(n_ignore + n_rois):
+        r = _MASK_RECT.unpack_from(data, HEADER_BYTES + _MASK_UPDATE.size + i * _MASK_RECT.size)
+        rects.append(_check_rect("ignore" if i < n_ignore else "rois", r))
+    return MaskUpdate(sid, cid, session, echo, rid, flags, tuple(rects[:n_ignore]), tuple(rects[n_ignore:]))
+
+
 def _decode_control(data: bytes, mtype: int, sid: int, cid: int, body_len: int) -> Message:
+    if mtype == MSG_IMAGE_CHUNK or mtype == MSG_MASK_UPDATE:
+        return _decode_variable(data, mtype, sid, cid, body_len)
     size = _BODY_SIZES.get(mtype)
     if size is None:
         raise ProtocolError(f"unknown message type {mtype} (station and server versions differ?)")
@@ -550,6 +763,16 @@ def _decode_control(data: bytes, mtype: int, sid: int, cid: int, body_len: int) 
     if mtype == MSG_SYNC_REPLY:
         session, echo, t1, t2, t3 = _SYNC_REPLY.unpack_from(data, HEADER_BYTES)
         return SyncReply(sid, cid, t1, t2, t3, echo, session)
+    if mtype == MSG_IMAGE_REQUEST:
+        session, echo, rid, max_width, quality = _IMAGE_REQUEST.unpack_from(data, HEADER_BYTES)
+        if not 1 <= quality <= 100:
+            raise ProtocolError(f"image request quality {quality} out of range [1, 100]")
+        return ImageRequest(sid, cid, session, echo, rid, max_width, quality)
+    if mtype == MSG_MASK_ACK:
+        session, rid, status, text = _MASK_ACK.unpack_from(data, HEADER_BYTES)
+        if status >= len(MaskStatus):
+            raise ProtocolError(f"mask ack status {status} unknown (expected 0..{len(MaskStatus) - 1})")
+        return MaskAck(sid, cid, session, rid, status, _untext(text))
     session, counter = _BYE.unpack_from(data, HEADER_BYTES)
     return Bye(sid, cid, session, counter)
 

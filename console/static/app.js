@@ -3,6 +3,7 @@
 import * as THREE from "three";
 import { OrbitControls } from "./vendor/OrbitControls.js";
 import { calibMessage } from "./calib.js";
+import { drawStationLayer, initStationTools, onStationMessage, stationTools } from "./stills.js";
 
 const BODY_COLORS = [0x44ccff, 0xff66cc, 0x88ee66, 0xffdd44, 0xaa88ff, 0xff8844];
 const LEFT_COLOR = "#ffaa44";
@@ -172,6 +173,7 @@ class CameraView {
     this.canvas.width = Math.round(c.width * this.scale);
     this.canvas.height = Math.round(c.height * this.scale);
     box.append(this.title, this.canvas);
+    stationTools(this, box);  // still image and mask (stills.js)
     document.getElementById("camgrid").append(box);
     this.mask = null;
     if (c.mask && c.mask.mask_png) {
@@ -187,6 +189,7 @@ class CameraView {
     g.fillRect(0, 0, this.canvas.width, this.canvas.height);
     g.strokeStyle = "#2c323a";
     g.strokeRect(0.5, 0.5, this.canvas.width - 1, this.canvas.height - 1);
+    drawStationLayer(this, g);
     this.drawMask(g, s);
     let matched = 0, left = 0;
     const s10 = s / 10;  // pixels arrive in tenths
@@ -354,12 +357,14 @@ function connect() {
     else if (msg.type === "state") onState(msg);
     else if (msg.type === "health") showHealth(msg.health);
     else if (msg.type === "replay") showReplay(msg);
-    else if (msg.type === "error") stats.errors.push(msg.error);
+    else if (msg.type === "still" || msg.type === "mask") onStationMessage(msg, camViews);
+    else if (msg.type === "error") { stats.errors.push(msg.error); onStationMessage(msg, camViews); }
     if (msg.type === "calib" || msg.type === "calib_reply" || msg.type === "error") calibMessage(msg, send);
   };
 }
 
 wireControls();
+initStationTools(send, stats);
 // a hidden tab draws nothing: the server builds no camera views for it until it is shown again
 document.addEventListener("visibilitychange", () => send({ cmd: "views", on: !document.hidden }));
 connect();

@@ -171,6 +171,11 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             found["r3d"] = await browser.evaluate(JS_RECT.format(sel="#view3d"))
             found["rcam"] = await browser.evaluate(JS_RECT.format(sel="#camgrid canvas"))
             found["img"] = await browser.screenshot(shots / "console.png")
+            # the first camera's "still image" button: the station's image shows under the blobs, read out
+            await browser.evaluate("document.querySelector('#camgrid .stationtools button').click()")
+            await browser.wait_for("Object.values(window.visionposConsole.stills || {}).some(s => s.loaded)")
+            found["still"] = await browser.evaluate("document.querySelector('#camgrid .stationtools span').textContent")
+            found["img_still"] = await browser.screenshot(shots / "console-still.png")
         finally:
             await browser.close()
 
@@ -194,6 +199,9 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
     assert rows["ghost"][1] == "NO"
     assert rows["ghost"][6] and rows["ghost"][6] != "not seen yet", rows["ghost"]
     assert found["errors"] == []
+    # the still image: read out, and drawn (the simulated image's noise and discs change the view's pixels)
+    assert found["still"].startswith("background "), found["still"]
+    assert not np.array_equal(found["img_still"], found["img"])
     # /api/health says the same
     h = found["health"]
     assert {b["name"]: b["tracked"] for b in h["bodies"]} == {"quad": True, "ghost": False}

@@ -47,6 +47,9 @@ from visionpos.messages import BlobFrame, BodyState
 log = logging.getLogger(__name__)
 
 REGISTER_TIMEOUT_S = 5.0
+STILL_BACKGROUND_DN = 8.0  # a simulated still image: dark background of this mean grey level ...
+STILL_NOISE_DN = 3.0  # ... with this much noise (sigma), and marker discs ...
+STILL_MARKER_DN = 230  # ... of this grey level where the blobs are
 STREAM_LEAD_S = 0.3  # first exposure this long after every station is registered and synced
 
 
@@ -103,12 +106,18 @@ class SimStation:
     frames: this camera's BlobFrames with capture_ns and recv_ns already on the
     server clock (true exposure stamp and simulated network arrival time).
     clock_offset_ns: this station's raw clock minus the server clock. key: the server's HMAC key.
+    config_path: the station YAML file (console.stations) whose detector ignore/rois this station applies
+    to its blobs and where a MASK_UPDATE is saved; None: in memory only.
+    Still images on request: a synthetic IR image of the newest frame (dark noisy background, bright discs
+    where its blobs are), at most one per image_min_interval_s.
     """
 
     def __init__(self, camera, station_id: int, frames: list[BlobFrame], clock_offset_ns: int, server_port: int,
-                 session: int, key: bytes | None = None):
+                 session: int, key: bytes | None = None, config_path: str | None = None,
+                 image_min_interval_s: float = 1.0):
         from stations.clocksync import ClockSync
         from stations.session import StationLink
+        from stations.still import StillLimiter
 
         self.camera = camera
         self.station_id = station_id
@@ -130,6 +139,101 @@ class SimStation:
         # network would see them (the robustness benchmark replays them)
         self.sniffed_sent: deque[bytes] = deque(maxlen=64)
         self.sniffed_received: deque[bytes] = deque(maxlen=16)
+        self.config_path = config_path
+        self.ignore: tuple[tuple[int, int, int, int], ...] = ()
+        self.rois: tuple[tuple[int, int, int, int], ...] = ()
+        if config_path is not None:
+            self._load_rects(config_path)
+        self.stills = StillLimiter(image_min_interval_s)
+        self._rng = np.random.default_rng(session)
+        self.last_blobs: np.ndarray = np.zeros((0, 4), np.float32)  # the newest frame's blobs as sent
+        self.last_raw_blobs: np.ndarray = self.last_blobs  # ... and as simulated, before ignore/rois
+        self.last_capture_ns = 0
+        self.last_still: np.ndarray | None = None  # the newest still image rendered, and its blobs (tests read them)
+        self.last_still_blobs: np.ndarray = self.last_blobs
+        self.mask_acks: list[Any] = []
+        self._still_tasks: set[asyncio.Task] = set()
+
+    def _load_rects(self, path: str) -> None:
+        from stations.config import _rects
+        from visionpos.config.arena import Section
+
+        det = Section((load_yaml(path) or {}).get("detector") or {}, path, "detector")
+        self.ignore, self.rois = _rects(det, "ignore"), _rects(det, "rois")
+
+    def searched(self, blobs: np.ndarray) -> np.ndarray:
+        """blobs whose centre the station's detector would search (inside a roi if any, outside every
+        ignore rectangle), as a detector with that mask finds them."""
+        if not (self.ignore or self.rois) or len(blobs) == 0:
+            return blobs
+        x, y = blobs[:, 0], blobs[:, 1]
+
+        def inside(rects):
+            hit = np.zeros(len(blobs), bool)
+            for x0, y0, x1, y1 in rects:
+                hit |= (x >= x0) & (x < x1) & (y >= y0) & (y < y1)
+            return hit
+
+        keep = ~inside(self.ignore)
+        if self.rois:
+            keep &= inside(self.rois)
+        return blobs[keep]
+
+    def render_still(self, blobs: np.ndarray) -> np.ndarray:
+        """A frame with these blobs as a camera would see it: (H, W) uint8, noisy dark background, marker discs."""
+        import cv2
+
+        m = self.camera.model
+        noise = self._rng.standard_normal((m.height, m.width), dtype=np.float32)
+        img = np.clip(np.rint(noise * STILL_NOISE_DN + STILL_BACKGROUND_DN), 0, 255).astype(np.uint8)
+        for x, y, area, _peak in np.asarray(blobs, dtype=float):
+            r = max(2, int(round(np.sqrt(max(area, 1.0) / np.pi))))
+            cv2.circle(img, (int(round(x)), int(round(y))), r, STILL_MARKER_DN, -1, lineType=cv2.LINE_AA)
+        return img
+
+    def _on_image_request(self, req: P.ImageRequest) -> None:
+        if not self.stills.allow(time.monotonic_ns()):
+            return
+        # rendered and encoded off the loop: the demo's server shares it, and fusion must not wait
+        task = asyncio.get_running_loop().create_task(self._still(req, self.last_blobs, self.last_capture_ns))
+        self._still_tasks.add(task)
+        task.add_done_callback(self._still_tasks.discard)
+
+    async def _still(self, req: P.ImageRequest, blobs: np.ndarray, capture_ns: int) -> None:
+        from stations.still import background_level, encode_still, image_chunks
+
+        def make():
+            img = self.render_still(blobs)
+            return img, encode_still(img, req.max_width, req.quality), background_level(img, blobs)
+
+        img, (jpeg, w, h), bg = await asyncio.to_thread(make)
+        self.last_still, self.last_still_blobs = img, blobs
+        if self.transport is not None:
+            for chunk in image_chunks(req, jpeg, capture_ns, w, h, bg):
+                self._send(chunk)
+
+    def _on_mask_update(self, msg: P.MaskUpdate) -> None:
+        from stations.still import check_rects, save_mask
+
+        m = self.camera.model
+        ignore = msg.ignore if msg.flags & P.MaskFlag.IGNORE else self.ignore
+        rois = msg.rois if msg.flags & P.MaskFlag.ROIS else self.rois
+        why = check_rects(ignore + rois, m.width, m.height)
+        status, text = P.MaskStatus.REFUSED, why or ""
+        if why is None:
+            self.ignore, self.rois = tuple(ignore), tuple(rois)
+            values = {k: v for k, v, bit in (("ignore", ignore, P.MaskFlag.IGNORE), ("rois", rois, P.MaskFlag.ROIS))
+                      if msg.flags & bit}
+            status, text = P.MaskStatus.APPLIED, "applied; this simulated station has no config file"
+            if self.config_path is not None:
+                try:
+                    save_mask(self.config_path, values)
+                    status, text = P.MaskStatus.SAVED, f"saved to {os.path.basename(self.config_path)}"
+                except (OSError, ValueError) as e:
+                    text = f"not saved: {e}"
+        ack = P.MaskAck(self.station_id, self.camera.id, self.session, msg.request_id, status, text)
+        self.mask_acks.append(ack)
+        self._send(ack)
 
     def station_clock(self) -> int:
         return time.monotonic_ns() + self.clock_offset_ns
@@ -142,6 +246,14 @@ class SimStation:
             msg = P.decode(data, self.key)
         except P.ProtocolError:
             self.bad_replies += 1
+            return
+        if isinstance(msg, (P.ImageRequest, P.MaskUpdate)):
+            if not self.link.believe_command(msg, addr, self.server):
+                self.bad_replies += 1
+            elif isinstance(msg, P.ImageRequest):
+                self._on_image_request(msg)
+            else:
+                self._on_mask_update(msg)
             return
         if not isinstance(msg, (P.SyncReply, P.HelloAck)) or not self.link.believe(msg, addr, self.server):
             self.bad_replies += 1
@@ -250,8 +362,10 @@ class SimStation:
         local = f.capture_ns + self.clock_offset_ns
         est = self.sync.estimator.estimate
         capture = est.to_server(local) if est is not None else f.capture_ns
+        blobs = self.searched(f.blobs)
+        self.last_raw_blobs, self.last_blobs, self.last_capture_ns = f.blobs, blobs, capture
         try:
-            data = P.encode_frame(BlobFrame(f.camera_id, f.seq, capture, f.blobs, self.station_id, f.flags, 0,
+            data = P.encode_frame(BlobFrame(f.camera_id, f.seq, capture, blobs, self.station_id, f.flags, 0,
                                             self.session), self.key)
             self.transport.sendto(data, self.server)
             self.sniffed_sent.append(data)
@@ -260,6 +374,8 @@ class SimStation:
             self.send_errors += 1
 
     def close(self) -> None:
+        for t in list(self._still_tasks):
+            t.cancel()
         if self.transport is not None:
             self._send(self.link.bye())
             self.transport.close()
@@ -380,13 +496,14 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
             autopilots[v.cfg.body] = (ap.start(), v)
 
         rng = random.Random(sc.seed)
+        files = _station_files(console.stations if console is not None else ())
         by_cam = sim.frames_by_camera() if sim is not None else {}
         timing = {t.camera_id: t for t in sc.timings}
         for cam in sc.cameras:
             sid = timing[cam.id].station_id
             clock = sc.clocks.get(sid)
             st = SimStation(cam, sid, by_cam.get(cam.id, []), clock.offset_ns if clock is not None else 0,
-                            server.port, rng.randrange(1, 1 << 32), settings.key)
+                            server.port, rng.randrange(1, 1 << 32), settings.key, files.get(cam.id))
             await st.open()
             stations.append(st)
         await asyncio.gather(*(s.register_and_sync() for s in stations))
@@ -436,6 +553,17 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
 
     return _summary(arena, sc, shift, t_start, t_stop, collector, bridge, autopilots, stations, health,
                     tracked_names, wall, sim_s, decode_pose)
+
+
+def _station_files(paths: tuple[str, ...]) -> dict[int, str]:
+    """Camera id -> the station YAML of console.stations naming it (the simulated station uses its mask)."""
+    out = {}
+    for path in paths:
+        data = load_yaml(path)
+        cid = data.get("camera_id") if isinstance(data, dict) else None
+        if isinstance(cid, int) and not isinstance(cid, bool):
+            out[cid] = path
+    return out
 
 
 def _record_truth(recorder, sc, shift: int, end_ns: int) -> None:

@@ -21,6 +21,9 @@ nowhere else), then by type (docs/protocol.md has the rules byte by byte):
                asked for a clock resync); an unknown session -> UNKNOWN_SESSION
   SyncRequest  same checks; answered SyncReply (t2 = receive stamp, t3 = send stamp)
   Bye          same checks; the camera leaves now: pipeline.remove_camera()
+  ImageChunk,  answers to the server's IMAGE_REQUEST / MASK_UPDATE (server/images.py, `self.images`):
+  MaskAck      kept only when they match a pending request from that camera's registered station,
+               session and address; never recorded, never answered
   BlobFrame    from the registered station, session and address; seq newer (loss,
                duplicate, reordered, replayed); capture time sane (in the future /
                too old / going backwards = clock jump). Only then does any state
@@ -67,6 +70,7 @@ from visionpos import protocol as P
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.logutil import RateLimitedLog
 from visionpos.messages import FLAG_RESYNC, BlobFrame
+from visionpos.server.images import StationImages
 from visionpos.server.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
 from visionpos.server.settings import ServerSettings
 
@@ -359,6 +363,7 @@ class Ingest:
         self._drained_ns = 0  # when the socket was last read empty
         self._loop: asyncio.AbstractEventLoop | None = None
         self.port: int | None = None
+        self.images = StationImages(self)  # still images and mask updates on request (the console)
         self.set_start()
 
     # ---------------------------------------------------------------- run control
@@ -450,7 +455,13 @@ class Ingest:
                 replies, refusal = self._heartbeat(msg, addr, recv_ns)
             elif isinstance(msg, P.Bye):
                 replies, refusal = self._bye(msg, addr, recv_ns)
-            else:  # HelloAck / SyncReply are server -> station; a station sending them is confused
+            elif isinstance(msg, P.ImageChunk):  # not recorded: a replay needs none of it
+                self.images.on_chunk(msg, addr, recv_ns)
+                return []
+            elif isinstance(msg, P.MaskAck):
+                self.images.on_mask_ack(msg, addr)
+                return []
+            else:  # HelloAck, SyncReply, ImageRequest, MaskUpdate go server -> station: the sender is confused
                 c.malformed += 1
                 self._refused(Refusal.WRONG_DIRECTION)
                 self._warn(("dir", name), logging.WARNING,
@@ -877,6 +888,7 @@ class Ingest:
             "by_type": dict(c.by_type),
             "start_ns": self.start_ns,
             "authenticated": self.key is not None,
+            "images": self.images.stats(),
         }
 
     def status_line(self, now_ns: int | None = None) -> str:
