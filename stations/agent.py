@@ -253,14 +253,21 @@ class StationAgent:
         if image is None or blobs is None or not self.stills.allow(self.clock()):
             self.stats.images_refused += 1
             return
+        t = self.to_server(self._last_t)
+        stamp = self._last_t if t is None else t
+        # encoding takes 40-70 ms on a Pi: a thread of its own, so the capture loop drops no frame for it; on
+        # a copy, because a camera source may reuse its buffer for the next frame
+        threading.Thread(target=self._encode_still, args=(req, image.copy(), np.array(blobs), stamp),
+                         name="still-image", daemon=True).start()
+
+    def _encode_still(self, req: P.ImageRequest, image: np.ndarray, blobs: np.ndarray, stamp_ns: int) -> None:
         try:
             jpeg, w, h = encode_still(image, req.max_width, req.quality)
         except ValueError as e:  # OpenCV could not encode it: the server's request times out
             self._log_once("jpeg", logging.WARNING, "cannot send a still image: %s", e)
             return
-        t = self.to_server(self._last_t)
         bg = background_level(image, blobs)
-        for chunk in image_chunks(req, jpeg, self._last_t if t is None else t, w, h, bg):
+        for chunk in image_chunks(req, jpeg, stamp_ns, w, h, bg):
             self._send(P.encode(chunk, self.cfg.key))
         self.stats.images_sent += 1
 
