@@ -310,6 +310,7 @@ class ConsoleServer:
                 await client.ws.send_str(json.dumps({"type": "calib_reply", **reply}))
             except (ConnectionError, RuntimeError):
                 pass
+            return
         if msg["cmd"] in ("still", "mask"):
             try:
                 self.stations.start(client, msg)
