@@ -73,13 +73,13 @@ from visionpos.camera import fisheye as fisheye_lens
 from visionpos.camera import pinhole as pinhole_lens
 from visionpos.fusion.layout import (
     ACC0,
-    ANG_ACC0,
     ADAPT_NIS_IMG,
     ADAPT_NIS_IMG_R,
     ADAPT_NIS_P,
     ADAPT_NIS_R,
     ADAPT_SCALE_P,
     ADAPT_SCALE_R,
+    ANG_ACC0,
     CAMERA_DIST,
     CAMERA_FISHEYE,
     CAMERA_INTRINSICS,
