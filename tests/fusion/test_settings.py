@@ -32,5 +32,7 @@ def test_unknown_fusion_key(settings, close):
 def test_every_field_declared():
     declared = {s.field_name for s in FUSION.settings} | {s.field_name for s in KALMAN.settings}
     internal = {"init_velocity_sigma_m_s", "init_acceleration_sigma_m_s2", "init_angular_velocity_sigma_rad_s",
+                "init_angular_acceleration_sigma_rad_s2",
                 "auto_window"}  # window_ms was 0
     assert set(FusionSettings.__dataclass_fields__) | set(KalmanSettings.__dataclass_fields__) == declared | internal
+

@@ -88,6 +88,7 @@ from visionpos.fusion.layout import (
     VERDICT_VIEWS_GATED,
     VERDICT_VIEWS_UNCONSTRAINED,
     X_ACC,
+    X_ANG_ACC,
     X_RATE,
 )
 from visionpos.fusion.matching import associate_blobs, project_points, triangulate_irls
@@ -157,7 +158,7 @@ def _marker_motion(
 
     states (B, N_STATE_COLS): filter states as _pack_states packs them, predicted
     by their STATE_DT_S; sizes (B,): marker counts; local (M, 3): body-frame
-    markers, body by body. Includes the rotation's w x r and w x (w x r) terms.
+    markers, body by body. Includes the rotation's w x r, dw/dt x r and w x (w x r) terms.
     """
     n_markers = local.shape[0]
     X0 = np.empty((n_markers, 3))
@@ -166,14 +167,15 @@ def _marker_motion(
     q = 0
     for b in range(sizes.shape[0]):
         x = states[b, STATE_X]
-        w = x[X_RATE]
-        p, Rb, v = predict_mean(x, states[b, STATE_R_NOM].reshape((3, 3)), states[b, STATE_DT_S])
+        dt = states[b, STATE_DT_S]
+        w = x[X_RATE] + x[X_ANG_ACC] * dt
+        p, Rb, v = predict_mean(x, states[b, STATE_R_NOM].reshape((3, 3)), dt)
         for _ in range(sizes[b]):
             r = matvec3(Rb, local[q])  # lever arm, world
             wxr = cross3(w, r)
             X0[q] = p + r
             V[q] = v + wxr
-            A[q] = x[X_ACC] + cross3(w, wxr)
+            A[q] = x[X_ACC] + cross3(x[X_ANG_ACC], r) + cross3(w, wxr)
             q += 1
     return X0, V, A
 
@@ -394,7 +396,8 @@ def _tracked_measurements(marker_xn: np.ndarray, views: tuple, tracked: tuple, d
 
     A compensated pose is where the body was at the views' times moved to the reference
     with the filter's own velocity, acceleration and rate, so it measures p + h_t[0] (v -
-    v_est) + h_t[1] (a - a_est) (and the rotation likewise with the rate): the filter update
+    v_est) + h_t[1] (a - a_est) (and the rotation likewise with the rate and the angular
+    acceleration): the filter update
     must see those columns (tracking._kf_update), or the views older than the reference
     feed the velocity error back into the velocity (an oscillation that grows once a
     manoeuvre has raised the process noise).
@@ -424,6 +427,7 @@ def _tracked_measurements(marker_xn: np.ndarray, views: tuple, tracked: tuple, d
     vel = np.zeros((n_bodies, 3))
     acc = np.zeros((n_bodies, 3))
     rate = np.zeros((n_bodies, 3))
+    ang_acc = np.zeros((n_bodies, 3))
     Rb = np.empty((n_bodies, 3, 3))
     var_p = np.empty(n_bodies)
     var_r = np.empty(n_bodies)
@@ -434,12 +438,13 @@ def _tracked_measurements(marker_xn: np.ndarray, views: tuple, tracked: tuple, d
     for b in range(n_bodies):
         x = states[b, STATE_X]
         sv2, sw2 = states[b, STATE_VEL_VAR], states[b, STATE_RATE_VAR]
-        w = x[X_RATE]
+        w = x[X_RATE] + x[X_ANG_ACC] * states[b, STATE_DT_S]
         p, Rb[b], v = predict_mean(x, states[b, STATE_R_NOM].reshape((3, 3)), states[b, STATE_DT_S])
         if compensate and sv2 < compensate_max_vel_var:
             compensated[b] = True
-            vel[b], acc[b], rate[b] = v, x[X_ACC], w
-            moving = moving or np.any(v != 0.0) or np.any(x[X_ACC] != 0.0) or np.any(w != 0.0)
+            vel[b], acc[b], rate[b], ang_acc[b] = v, x[X_ACC], w, x[X_ANG_ACC]
+            moving = moving or np.any(v != 0.0) or np.any(x[X_ACC] != 0.0) or np.any(w != 0.0) or np.any(
+                x[X_ANG_ACC] != 0.0)
             var_p[b], var_r[b] = dt2_mean * sv2, dt2_mean * sw2
             spread = 2.0 * math.sqrt(sv2)
         else:
@@ -466,7 +471,7 @@ def _tracked_measurements(marker_xn: np.ndarray, views: tuple, tracked: tuple, d
             r = matvec3(Rb[b], local[q])  # lever arm, world
             wxr = cross3(rate[b], r)
             u1 = vel[b] + wxr
-            u2 = 0.5 * (acc[b] + cross3(rate[b], wxr))
+            u2 = 0.5 * (acc[b] + cross3(ang_acc[b], r) + cross3(rate[b], wxr))
             for v in range(n_views):  # marker displacement from ref to the view's capture time (2nd order)
                 offsets[q, v] = u1 * dt[v] + u2 * (dt[v] * dt[v])
     X, rms, nv = triangulate_irls(xn, R, t, f, offsets, has_offsets, 2)

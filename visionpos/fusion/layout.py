@@ -16,12 +16,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-# ---------------------------------------------------------------- filter state x (15,)
-# [p (3) m, v (3) m/s, a (3) m/s^2, dtheta (3) rad, w (3) rad/s], world frame (tracking.py)
-N_STATE = 15
-POS0, VEL0, ACC0, ROT_ERR0, RATE0 = 0, 3, 6, 9, 12  # first index of each 3-vector block
+# ---------------------------------------------------------------- filter state x (18,)
+# [p (3) m, v (3) m/s, a (3) m/s^2, dtheta (3) rad, w (3) rad/s, dw/dt (3) rad/s^2], world frame (tracking.py)
+N_STATE = 18
+POS0, VEL0, ACC0, ROT_ERR0, RATE0, ANG_ACC0 = 0, 3, 6, 9, 12, 15  # first index of each 3-vector block
 X_POS, X_VEL, X_ACC = slice(POS0, POS0 + 3), slice(VEL0, VEL0 + 3), slice(ACC0, ACC0 + 3)
-X_ROT_ERR, X_RATE = slice(ROT_ERR0, ROT_ERR0 + 3), slice(RATE0, RATE0 + 3)
+X_ROT_ERR, X_RATE, X_ANG_ACC = slice(ROT_ERR0, ROT_ERR0 + 3), slice(RATE0, RATE0 + 3), slice(ANG_ACC0, ANG_ACC0 + 3)
 X_POSE = (0, 1, 2, 9, 10, 11)  # the measured states: position, rotation error
 
 # ---------------------------------------------------------------- pose measurement (6,) and its covariance (6, 6)
@@ -37,10 +37,10 @@ N_ADAPT = 6
 # clock (n, 3) int64: filter time ns, last image-NIS time ns, folds of the rotation error since the start
 CLOCK_T_NS, CLOCK_IMG_T_NS, CLOCK_FOLDS = range(3)
 N_CLOCK = 3
-# params (8,) float: the KalmanSettings the kernels read
-(KALMAN_JERK_PSD, KALMAN_ANG_ACC_PSD, KALMAN_MAX_SCALE, KALMAN_NIS_TAU_S, KALMAN_GATE_CHI2,
- KALMAN_INIT_VEL_VAR, KALMAN_INIT_ACC_VAR, KALMAN_INIT_RATE_VAR) = range(8)
-N_KALMAN_PARAMS = 8
+# params (10,) float: the KalmanSettings the kernels read
+(KALMAN_JERK_PSD, KALMAN_ANG_ACC_PSD, KALMAN_ANG_JERK_PSD, KALMAN_MAX_SCALE, KALMAN_NIS_TAU_S, KALMAN_GATE_CHI2,
+ KALMAN_INIT_VEL_VAR, KALMAN_INIT_ACC_VAR, KALMAN_INIT_RATE_VAR, KALMAN_INIT_ANG_ACC_VAR) = range(10)
+N_KALMAN_PARAMS = 10
 
 # ---------------------------------------------------------------- filter output row (58,) (tracking._output_at)
 OUT_POS, OUT_QUAT_XYZW, OUT_VEL, OUT_RATE_BODY = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13)
@@ -48,14 +48,14 @@ OUT_QUAT0, OUT_RATE_BODY0, OUT_POSE_COV0, OUT_VEL_COV0 = 3, 10, 13, 49  # first 
 OUT_POSE_COV, OUT_VEL_COV = slice(13, 49), slice(49, 58)  # (6, 6) and (3, 3), row-major
 N_OUT = 58
 
-# ---------------------------------------------------------------- packed body states (B, 27) (kernels._pack_states)
+# ---------------------------------------------------------------- packed body states (B, 30) (kernels._pack_states)
 STATE_X = slice(0, N_STATE)  # the filter state x
-STATE_R_NOM = slice(15, 24)  # nominal rotation (3, 3), row-major
-STATE_R_NOM0 = 15
-STATE_DT_S = 24  # reference time - filter time (s): how far to predict
-STATE_VEL_VAR = 25  # mean velocity variance (m^2/s^2)
-STATE_RATE_VAR = 26  # mean angular-rate variance (rad^2/s^2)
-N_STATE_COLS = 27
+STATE_R_NOM0 = N_STATE
+STATE_R_NOM = slice(STATE_R_NOM0, STATE_R_NOM0 + 9)  # nominal rotation (3, 3), row-major
+STATE_DT_S = STATE_R_NOM0 + 9  # reference time - filter time (s): how far to predict
+STATE_VEL_VAR = STATE_DT_S + 1  # mean velocity variance (m^2/s^2)
+STATE_RATE_VAR = STATE_DT_S + 2  # mean angular-rate variance (rad^2/s^2)
+N_STATE_COLS = STATE_DT_S + 3
 
 # ---------------------------------------------------------------- packed camera (28,) (matching.Projector.packed)
 CAMERA_R, CAMERA_T = slice(0, 9), slice(9, 12)  # world -> camera rotation (3, 3) row-major, translation

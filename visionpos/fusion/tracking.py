@@ -1,10 +1,15 @@
 """Kalman filter/predictor for one rigid body, error-state in orientation.
 
-State (15,): [p (3) m, v (3) m/s, a (3) m/s^2, dtheta (3) rad, w (3) rad/s],
-world frame. Position is a constant-acceleration model driven by white jerk;
-orientation is a *multiplicative* error state: a nominal rotation R_nom
-(body->world) plus a small world-frame rotation-vector error dtheta, driven
-by a constant angular rate w with white angular-acceleration noise.
+State (18,): [p (3) m, v (3) m/s, a (3) m/s^2, dtheta (3) rad, w (3) rad/s,
+dw/dt (3) rad/s^2], world frame. Position is a constant-acceleration model
+driven by white jerk; orientation is a *multiplicative* error state: a nominal
+rotation R_nom (body->world) plus a small world-frame rotation-vector error
+dtheta, driven by a constant angular rate with white angular-acceleration
+noise (angular_accel_psd) and, when angular_jerk_psd > 0, by a constant
+angular acceleration dw/dt with white angular-jerk noise as well (the same
+third-order model as the position). With angular_jerk_psd = 0 (the default)
+dw/dt starts at zero with zero variance and nothing drives it: it stays zero
+and the filter is the constant-rate one.
 
 Why error-state: a rotation has 3 degrees of freedom but no global minimal
 parameterisation without singularities; keeping the nominal rotation outside
@@ -12,17 +17,26 @@ the linear filter and estimating only a small error keeps the filter linear
 (a plain linear Kalman filter does the work) and singularity-free. After
 every predict/update the error is folded into the nominal rotation and reset
 to zero, so dtheta always stays small. Prediction uses the same mechanism:
-x = F x makes dtheta = w dt, which the fold turns into
-R_nom <- exp(w dt) R_nom.
+x = F x makes dtheta = w dt + dw/dt dt^2 / 2, which the fold turns into
+R_nom <- exp(dtheta) R_nom.
 
 Why constant acceleration plus adaptive process noise: a drone's
 acceleration is smooth, so a constant-acceleration model predicts it well
 (a constant-velocity model lags in every turn and must be given a large
-process noise, which then lets static jitter through). A fixed process
+process noise, which then lets static jitter through). Its attitude is
+the same: a multirotor tilts to accelerate and ramps its yaw rate, so the
+angular rate changes steadily over tenths of a second; with a constant-rate
+model the rotation error of the issue-15 slalom flight followed the angular
+acceleration (it explained half of the error's square), a lag the
+angular-acceleration state removes (slalom rotation RMSE 1.38 -> 1.08 x the
+bound at angular_jerk_psd 100). It is not the default: it smooths a hovering
+or smoothly flying body less (static rotation 0.30 -> 0.31-0.39 deg for
+100-2000), and on the dash's sharp pitch flicks, below about 2000, its noise
+adapts too slowly and the gate refuses measurements (tests/fusion/test_stall.py). A fixed process
 noise is still a compromise between a hovering and a manoeuvring body, so
 the noise is scaled by a running average of the normalised innovation
 squared (NIS, separately for position and orientation): while the model fits
-the measurements NIS/dof ~ 1 and the floor `jerk_psd` / `angular_accel_psd`
+the measurements NIS/dof ~ 1 and the floor `jerk_psd` / `angular_jerk_psd`
 smooths hard; a manoeuvre makes NIS grow and the process noise follows
 within a few updates (bounded by `max_noise_scale`). Both scales also
 listen to an image-space detector (report_image_nis): each new frame's
@@ -65,6 +79,7 @@ from visionpos.fusion.layout import (
     ADAPT_NIS_R,
     ADAPT_SCALE_P,
     ADAPT_SCALE_R,
+    ANG_ACC0,
     CAMERA_DIST,
     CAMERA_FISHEYE,
     CAMERA_INTRINSICS,
@@ -74,8 +89,10 @@ from visionpos.fusion.layout import (
     CLOCK_IMG_T_NS,
     CLOCK_T_NS,
     KALMAN_ANG_ACC_PSD,
+    KALMAN_ANG_JERK_PSD,
     KALMAN_GATE_CHI2,
     KALMAN_INIT_ACC_VAR,
+    KALMAN_INIT_ANG_ACC_VAR,
     KALMAN_INIT_RATE_VAR,
     KALMAN_INIT_VEL_VAR,
     KALMAN_JERK_PSD,
@@ -102,6 +119,7 @@ from visionpos.fusion.layout import (
     ROT_ERR0,
     VEL0,
     X_ACC,
+    X_ANG_ACC,
     X_POS,
     X_POSE,
     X_RATE,
@@ -124,40 +142,44 @@ _SCALE_DECAY_S = 0.2  # s, time constant of the process-noise scale's return to 
 
 
 @njit
-def _add_process_noise(P: np.ndarray, dt: float, qj: float, qw: float) -> None:
-    """P (15, 15) += discrete Q over |dt|: white jerk on (p, v, a), white angular acceleration on (dtheta, w)."""
+def _add_process_noise(P: np.ndarray, dt: float, qj: float, qw: float, qaj: float) -> None:
+    """P (18, 18) += discrete Q over |dt|: white jerk qj on (p, v, a); on the rotation white angular
+    acceleration qw on (dtheta, w) plus white angular jerk qaj on (dtheta, w, dw/dt)."""
     a = abs(dt)
     a2 = a * a
     a3, a4 = a2 * a, a2 * a2
     a5 = a2 * a3
-    cj = np.array([[a5 / 20.0, a4 / 8.0, a3 / 6.0], [a4 / 8.0, a3 / 3.0, a2 / 2.0], [a3 / 6.0, a2 / 2.0, a]]) * qj
-    cw = np.array([[a3 / 3.0, a2 / 2.0], [a2 / 2.0, a]]) * qw
+    c = np.array([[a5 / 20.0, a4 / 8.0, a3 / 6.0], [a4 / 8.0, a3 / 3.0, a2 / 2.0], [a3 / 6.0, a2 / 2.0, a]])
     for k in range(3):
         for i in range(3):
             for j in range(3):
-                P[POS0 + i * 3 + k, POS0 + j * 3 + k] += cj[i, j]  # blocks p, v, a
-        for i in range(2):
-            for j in range(2):
-                P[ROT_ERR0 + i * 3 + k, ROT_ERR0 + j * 3 + k] += cw[i, j]  # blocks dtheta, w
+                P[POS0 + i * 3 + k, POS0 + j * 3 + k] += c[i, j] * qj  # blocks p, v, a
+                P[ROT_ERR0 + i * 3 + k, ROT_ERR0 + j * 3 + k] += c[i, j] * qaj  # blocks dtheta, w, dw/dt
+        P[ROT_ERR0 + k, ROT_ERR0 + k] += qw * a3 / 3.0
+        P[ROT_ERR0 + k, RATE0 + k] += qw * a2 / 2.0
+        P[RATE0 + k, ROT_ERR0 + k] += qw * a2 / 2.0
+        P[RATE0 + k, RATE0 + k] += qw * a
 
 
 @njit
-def _predicted_cov(P: np.ndarray, dt: float, qj: float, qw: float) -> np.ndarray:
-    """F P F^T + Q (15, 15) over dt, with F's sparsity written out (a 15x15 product costs more)."""
+def _predicted_cov(P: np.ndarray, dt: float, qj: float, qw: float, qaj: float) -> np.ndarray:
+    """F P F^T + Q (18, 18) over dt, with F's sparsity written out (an 18x18 product costs more)."""
     h = 0.5 * dt * dt
     FP = P.copy()
     for k in range(3):  # rows: F P
         for j in range(N_STATE):
             FP[POS0 + k, j] = P[POS0 + k, j] + dt * P[VEL0 + k, j] + h * P[ACC0 + k, j]
             FP[VEL0 + k, j] = P[VEL0 + k, j] + dt * P[ACC0 + k, j]
-            FP[ROT_ERR0 + k, j] = P[ROT_ERR0 + k, j] + dt * P[RATE0 + k, j]
+            FP[ROT_ERR0 + k, j] = P[ROT_ERR0 + k, j] + dt * P[RATE0 + k, j] + h * P[ANG_ACC0 + k, j]
+            FP[RATE0 + k, j] = P[RATE0 + k, j] + dt * P[ANG_ACC0 + k, j]
     Pn = FP.copy()
     for k in range(3):  # columns: (F P) F^T
         for i in range(N_STATE):
             Pn[i, POS0 + k] = FP[i, POS0 + k] + dt * FP[i, VEL0 + k] + h * FP[i, ACC0 + k]
             Pn[i, VEL0 + k] = FP[i, VEL0 + k] + dt * FP[i, ACC0 + k]
-            Pn[i, ROT_ERR0 + k] = FP[i, ROT_ERR0 + k] + dt * FP[i, RATE0 + k]
-    _add_process_noise(Pn, dt, qj, qw)
+            Pn[i, ROT_ERR0 + k] = FP[i, ROT_ERR0 + k] + dt * FP[i, RATE0 + k] + h * FP[i, ANG_ACC0 + k]
+            Pn[i, RATE0 + k] = FP[i, RATE0 + k] + dt * FP[i, ANG_ACC0 + k]
+    _add_process_noise(Pn, dt, qj, qw, qaj)
     return Pn
 
 
@@ -172,13 +194,15 @@ def _fold(x: np.ndarray, R_nom: np.ndarray) -> bool:
 
 
 @njit
-def _kf_predict(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: float, qw: float) -> bool:
-    """Advance state x (15,), covariance P (15, 15) and R_nom (3, 3) in place by dt; True if it folded."""
+def _kf_predict(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: float, qw: float,
+                qaj: float) -> bool:
+    """Advance state x (18,), covariance P (18, 18) and R_nom (3, 3) in place by dt; True if it folded."""
     for k in range(3):
         x[POS0 + k] += x[VEL0 + k] * dt + x[ACC0 + k] * (0.5 * dt * dt)
         x[VEL0 + k] += x[ACC0 + k] * dt
-        x[ROT_ERR0 + k] += x[RATE0 + k] * dt
-    P[:, :] = _predicted_cov(P, dt, qj, qw)
+        x[ROT_ERR0 + k] += x[RATE0 + k] * dt + x[ANG_ACC0 + k] * (0.5 * dt * dt)
+        x[RATE0 + k] += x[ANG_ACC0 + k] * dt
+    P[:, :] = _predicted_cov(P, dt, qj, qw, qaj)
     return _fold(x, R_nom)
 
 
@@ -219,25 +243,25 @@ def _kf_update(
     h_vel: float,
     h_acc: float,
 ) -> tuple[bool, float, float, float]:
-    """Fuse a pose measurement into x (15,), P (15, 15), R_nom (3, 3) in place (Joseph form).
+    """Fuse a pose measurement into x (18,), P (18, 18), R_nom (3, 3) in place (Joseph form).
 
     position (3,), R (3, 3) body->world, cov (6, 6) over [p, world rotation
     vector]. gate_chi2 <= 0 disables the gate. h_vel (s), h_acc (s^2): how much
-    of the velocity (and rate) and of the acceleration error the measurement
-    carries, the columns of H beside the pose's own (0, 0: a plain pose; see
+    of the velocity (and rate) and of the acceleration (and angular acceleration)
+    error the measurement carries, the columns of H beside the pose's own (0, 0: a plain pose; see
     kernels._tracked_measurements: a motion-compensated one). Returns (accepted,
     squared Mahalanobis distance, position NIS / 3, rotation NIS / 3).
     """
     z = np.empty(6)
     z[POSE_P] = position
     z[POSE_ROT] = rotvec_from_matrix_compiled(matmul3(R, R_nom.T))
-    # H row j: 1 at X_POSE[j], h_vel at the velocity (rate) column, h_acc at the acceleration one
+    # H row j: 1 at X_POSE[j], h_vel at the velocity (rate) column, h_acc at the (angular) acceleration one
     c_rate = np.empty(6, dtype=np.int64)
     c_acc = np.empty(6, dtype=np.int64)
     w_acc = np.empty(6)
     for k in range(3):
         c_rate[k], c_acc[k], w_acc[k] = VEL0 + k, ACC0 + k, h_acc
-        c_rate[3 + k], c_acc[3 + k], w_acc[3 + k] = RATE0 + k, RATE0 + k, 0.0
+        c_rate[3 + k], c_acc[3 + k], w_acc[3 + k] = RATE0 + k, ANG_ACC0 + k, h_acc
     S = np.empty((6, 6))
     y = np.empty(6)
     PHt = np.empty((N_STATE, 6))  # P H^T
@@ -296,13 +320,13 @@ def _kf_update(
 
 
 @njit
-def _kf_predict_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: float, qw: float,
+def _kf_predict_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: float, qw: float, qaj: float,
                        position: np.ndarray, R: np.ndarray, cov: np.ndarray,
                        gate_chi2: float, h_vel: float, h_acc: float) -> tuple[int, bool, float, float, float]:
     """_kf_predict over dt (when dt != 0) then _kf_update, in one call; returns
     (folds done, accepted, squared Mahalanobis distance, position NIS / 3, rotation NIS / 3)."""
     folds = 0
-    if dt != 0.0 and _kf_predict(x, P, R_nom, dt, qj, qw):
+    if dt != 0.0 and _kf_predict(x, P, R_nom, dt, qj, qw, qaj):
         folds += 1
     accepted, d2, nis_p, nis_r = _kf_update(x, P, R_nom, position, R, cov, gate_chi2, h_vel, h_acc)
     if accepted:
@@ -345,19 +369,21 @@ def _spd_inverse(S: np.ndarray) -> np.ndarray:
 
 @njit
 def predict_mean(x: np.ndarray, R_nom: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The mean of state x (15,) with nominal rotation R_nom (3, 3) predicted by dt (s):
+    """The mean of state x (18,) with nominal rotation R_nom (3, 3) predicted by dt (s):
     position (3,), rotation body->world (3, 3), velocity (3,)."""
     p = x[X_POS] + x[X_VEL] * dt + x[X_ACC] * (0.5 * dt * dt)
-    return p, matmul3(matrix_from_rotvec_compiled(x[X_RATE] * dt), R_nom), x[X_VEL] + x[X_ACC] * dt
+    R = matmul3(matrix_from_rotvec_compiled(x[X_RATE] * dt + x[X_ANG_ACC] * (0.5 * dt * dt)), R_nom)
+    return p, R, x[X_VEL] + x[X_ACC] * dt
 
 
 @njit
-def _output_at(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: float, qw: float) -> np.ndarray:
+def _output_at(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: float, qw: float,
+               qaj: float) -> np.ndarray:
     """Prediction by dt for the outputs, packed in one array (N_OUT,) (columns OUT_*): position (3,),
     quaternion xyzw (4,), velocity (3,), body-frame angular rate (3,), pose covariance (6, 6) over
     [p, rotation vector] and velocity covariance (3, 3), row-major (see BodyFilter.output_at)."""
-    Pn = _predicted_cov(P, dt, qj, qw)
-    w = x[X_RATE]
+    Pn = _predicted_cov(P, dt, qj, qw, qaj)
+    w = x[X_RATE] + x[X_ANG_ACC] * dt
     p, R, v = predict_mean(x, R_nom, dt)
     out = np.empty(N_OUT)
     out[OUT_POS] = p
@@ -412,8 +438,8 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
                   gate: bool, h_vel: float, h_acc: float) -> tuple[bool, float]:
     """Predict one body filter to t_ns (int ns) and fuse a pose measurement, in place (compiled).
 
-    x (15,), P (15, 15), R_nom (3, 3), adapt (6,), clock (3,): the body's rows of a
-    FilterBank; params (8,) its settings (FilterBank.params). position (3,), R (3, 3) body->world,
+    x (18,), P (18, 18), R_nom (3, 3), adapt (6,), clock (3,): the body's rows of a
+    FilterBank; params (10,) its settings (FilterBank.params). position (3,), R (3, 3) body->world,
     cov (6, 6) over [p, world rotation vector]; gate: apply the innovation gate; h_vel (s),
     h_acc (s^2): the velocity (rate) and acceleration columns of H (_kf_update; 0 for a pose
     measured at t_ns).
@@ -424,6 +450,7 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
     folds, accepted, d2, nis_p, nis_r = _kf_predict_update(
         x, P, R_nom, dt,
         params[KALMAN_JERK_PSD] * adapt[ADAPT_SCALE_P], params[KALMAN_ANG_ACC_PSD] * adapt[ADAPT_SCALE_R],
+        params[KALMAN_ANG_JERK_PSD] * adapt[ADAPT_SCALE_R],
         position, R, cov, params[KALMAN_GATE_CHI2] if gate else 0.0, h_vel, h_acc,
     )
     clock[CLOCK_T_NS] = t_ns
@@ -507,7 +534,8 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
     The measurement is the n pixels, h = lens(R_c (p + exp(dtheta) R_nom l) + t_c) predicted
     to t_ns, with its analytic Jacobian over the error state: position A, rotation error
     -A [R l]x, and (for a frame older than the filter, dt < 0) velocity A dt, acceleration
-    A dt^2 / 2, angular rate -A [R l]x dt, A = d pixel / d world point. A newer frame
+    A dt^2 / 2, angular rate -A [R l]x dt, angular acceleration -A [R l]x dt^2 / 2,
+    A = d pixel / d world point. A newer frame
     predicts the filter to t_ns first. Joseph-form update; the NIS per dof drives the noise
     adaptation of both blocks (not the image-space detector: this innovation is one).
     Returns (accepted, NIS per dof, the frame's pose information H^T H / var_px (6, 6) over
@@ -520,7 +548,8 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
     dt = 0.0  # capture time - filter time after the prediction
     if dt_f > 0.0:
         folded = _kf_predict(x, P, R_nom, dt_f, params[KALMAN_JERK_PSD] * adapt[ADAPT_SCALE_P],
-                             params[KALMAN_ANG_ACC_PSD] * adapt[ADAPT_SCALE_R])
+                             params[KALMAN_ANG_ACC_PSD] * adapt[ADAPT_SCALE_R],
+                             params[KALMAN_ANG_JERK_PSD] * adapt[ADAPT_SCALE_R])
         clock[CLOCK_T_NS] = t_ns
         _count_folds(R_nom, clock, int(folded))
     else:
@@ -554,6 +583,8 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
                 H[row, ACC0 + j] = A[i, j] * (0.5 * dt * dt)
             H[row, ROT_ERR0], H[row, ROT_ERR0 + 1], H[row, ROT_ERR0 + 2] = ar0, ar1, ar2
             H[row, RATE0], H[row, RATE0 + 1], H[row, RATE0 + 2] = ar0 * dt, ar1 * dt, ar2 * dt
+            h = 0.5 * dt * dt
+            H[row, ANG_ACC0], H[row, ANG_ACC0 + 1], H[row, ANG_ACC0 + 2] = ar0 * h, ar1 * h, ar2 * h
     for i in range(6):
         for j in range(6):
             acc = 0.0
@@ -636,6 +667,7 @@ def filter_initialize(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np
         P[VEL0 + k, VEL0 + k] = params[KALMAN_INIT_VEL_VAR]
         P[ACC0 + k, ACC0 + k] = params[KALMAN_INIT_ACC_VAR]
         P[RATE0 + k, RATE0 + k] = params[KALMAN_INIT_RATE_VAR]
+        P[ANG_ACC0 + k, ANG_ACC0 + k] = params[KALMAN_INIT_ANG_ACC_VAR]
     R_nom[:, :] = R
     adapt[:] = 1.0
     clock[CLOCK_T_NS] = t_ns
@@ -659,11 +691,12 @@ def report_image_nis(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t
 class FilterBank:
     """The states of n body filters, one row each, so that compiled kernels update them in place.
 
-    x (n, 15), P (n, 15, 15), R_nom (n, 3, 3); adapt (n, 6): process-noise scales
+    x (n, 18), P (n, 18, 18), R_nom (n, 3, 3); adapt (n, 6): process-noise scales
     and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img, nis_img_r]; clock (n, 3) int64:
-    [filter time ns, last image-NIS time ns, folds]; params (8,): [jerk_psd,
-    angular_accel_psd, max_noise_scale, nis_time_constant_s, gate_chi2, then the prior
-    variances of velocity, acceleration and angular velocity at (re)initialisation].
+    [filter time ns, last image-NIS time ns, folds]; params (10,): [jerk_psd,
+    angular_accel_psd, angular_jerk_psd, max_noise_scale, nis_time_constant_s, gate_chi2, then the prior
+    variances of velocity, acceleration, angular velocity and angular acceleration at
+    (re)initialisation].
     filters[i] is the BodyFilter over row i.
     """
 
@@ -673,10 +706,12 @@ class FilterBank:
         self.R_nom = np.tile(np.eye(3), (n, 1, 1))
         self.adapt = np.ones((n, N_ADAPT))
         self.clock = np.zeros((n, N_CLOCK), dtype=np.int64)
-        self.params = np.array([settings.jerk_psd, settings.angular_accel_psd, settings.max_noise_scale,
-                                settings.nis_time_constant_s, settings.gate_chi2, settings.init_velocity_sigma_m_s**2,
-                                settings.init_acceleration_sigma_m_s2**2,
-                                settings.init_angular_velocity_sigma_rad_s**2])
+        # no angular jerk: the angular acceleration is not modelled (held at zero with no variance)
+        ang_acc_var = settings.init_angular_acceleration_sigma_rad_s2**2 if settings.angular_jerk_psd > 0 else 0.0
+        self.params = np.array([settings.jerk_psd, settings.angular_accel_psd, settings.angular_jerk_psd,
+                                settings.max_noise_scale, settings.nis_time_constant_s, settings.gate_chi2,
+                                settings.init_velocity_sigma_m_s**2, settings.init_acceleration_sigma_m_s2**2,
+                                settings.init_angular_velocity_sigma_rad_s**2, ang_acc_var])
         # the kernels' argument (layout.FilterArrays as a plain tuple: cheaper for numba to dispatch)
         self.arrays = tuple(FilterArrays(self.x, self.P, self.R_nom, self.adapt, self.clock, self.params))
         self.filters = [BodyFilter(settings, self, i) for i in range(n)] if make_filters else []
@@ -699,7 +734,7 @@ def array_field(row: str, col, kind, doc: str = "") -> property:
 class BodyFilter:
     """Error-state Kalman filter of one body; times are int64 ns (capture clock).
 
-    State x (15,) and covariance P (15, 15) as in the module docstring, plus
+    State x (18,) and covariance P (18, 18) as in the module docstring, plus
     the nominal rotation R_nom (3, 3) body->world and the NIS-driven noise
     scales. They live in a row of a FilterBank (a bank of one when none is
     given). The linear algebra is in compiled kernels (visionpos.jit): the
@@ -707,8 +742,8 @@ class BodyFilter:
     KalmanFilter in the tests.
     """
 
-    x = array_field("_x", ..., np.asarray, "state (15,)")
-    P = array_field("_P", ..., np.asarray, "covariance (15, 15)")
+    x = array_field("_x", ..., np.asarray, "state (18,)")
+    P = array_field("_P", ..., np.asarray, "covariance (18, 18)")
     R_nom = array_field("_R_nom", ..., np.asarray, "nominal rotation (3, 3) body->world")
     t_ns = array_field("_clock", CLOCK_T_NS, int, "filter time, ns")
     scale_p = array_field("_adapt", ADAPT_SCALE_P, float, "process-noise scale of the position block")
@@ -739,7 +774,7 @@ class BodyFilter:
         dt = (int(t_ns) - self.t_ns) * 1e-9
         if dt != 0.0:
             folded = _kf_predict(self.x, self.P, self.R_nom, dt, self.s.jerk_psd * self.scale_p,
-                                 self.s.angular_accel_psd * self.scale_r)
+                                 self.s.angular_accel_psd * self.scale_r, self.s.angular_jerk_psd * self.scale_r)
             _count_folds(self.R_nom, self._clock, int(folded))
             self.t_ns = int(t_ns)
 
@@ -778,8 +813,9 @@ class BodyFilter:
     # -------------------------------------------------------------- read-outs
     def pose_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Non-mutating mean prediction: position (3,), R (3, 3), velocity (3,), world angular rate (3,)."""
-        p, R, v = predict_mean(self.x, self.R_nom, (int(t_ns) - self.t_ns) * 1e-9)
-        return p, R, v, self.x[X_RATE].copy()
+        dt = (int(t_ns) - self.t_ns) * 1e-9
+        p, R, v = predict_mean(self.x, self.R_nom, dt)
+        return p, R, v, self.x[X_RATE] + self.x[X_ANG_ACC] * dt
 
     def output_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Non-mutating prediction for the outputs: position (3,), quaternion xyzw (4,),
@@ -787,6 +823,7 @@ class BodyFilter:
         [p, world rotation vector] and velocity covariance (3, 3)."""
         a = self._adapt
         o = _output_at(self._x, self._P, self._R_nom, (int(t_ns) - int(self._clock[CLOCK_T_NS])) * 1e-9,
-                       self.s.jerk_psd * a[ADAPT_SCALE_P], self.s.angular_accel_psd * a[ADAPT_SCALE_R])
+                       self.s.jerk_psd * a[ADAPT_SCALE_P], self.s.angular_accel_psd * a[ADAPT_SCALE_R],
+                       self.s.angular_jerk_psd * a[ADAPT_SCALE_R])
         return (o[OUT_POS], o[OUT_QUAT_XYZW], o[OUT_VEL], o[OUT_RATE_BODY], o[OUT_POSE_COV].reshape(6, 6),
                 o[OUT_VEL_COV].reshape(3, 3))
