@@ -50,6 +50,7 @@ REGISTER_TIMEOUT_S = 5.0
 STILL_BACKGROUND_DN = 8.0  # a simulated still image: dark background of this mean grey level ...
 STILL_NOISE_DN = 3.0  # ... with this much noise (sigma), and marker discs ...
 STILL_MARKER_DN = 230  # ... of this grey level where the blobs are
+STILL_MIN_DIAMETER_PX = 4.0  # a one-pixel blob still shows as a disc
 STREAM_LEAD_S = 0.3  # first exposure this long after every station is registered and synced
 
 
@@ -180,16 +181,15 @@ class SimStation:
         return blobs[keep]
 
     def render_still(self, blobs: np.ndarray) -> np.ndarray:
-        """A frame with these blobs as a camera would see it: (H, W) uint8, noisy dark background, marker discs."""
-        import cv2
+        """A frame with these blobs as a camera would see it: (H, W) uint8, noisy dark background, marker discs
+        (the simulator's renderer, visionpos.sim.render)."""
+        from visionpos.sim.render import render_blobs
 
         m = self.camera.model
-        noise = self._rng.standard_normal((m.height, m.width), dtype=np.float32)
-        img = np.clip(np.rint(noise * STILL_NOISE_DN + STILL_BACKGROUND_DN), 0, 255).astype(np.uint8)
-        for x, y, area, _peak in np.asarray(blobs, dtype=float):
-            r = max(2, int(round(np.sqrt(max(area, 1.0) / np.pi))))
-            cv2.circle(img, (int(round(x)), int(round(y))), r, STILL_MARKER_DN, -1, lineType=cv2.LINE_AA)
-        return img
+        b = np.asarray(blobs, dtype=float).reshape(-1, 4)
+        diameters_px = np.maximum(2.0 * np.sqrt(np.maximum(b[:, 2], 1.0) / np.pi), STILL_MIN_DIAMETER_PX)
+        return render_blobs(m.width, m.height, b[:, :2], diameters_px, STILL_MARKER_DN - STILL_BACKGROUND_DN,
+                            self._rng, background=STILL_BACKGROUND_DN, read_noise_dn=STILL_NOISE_DN)
 
     def _on_image_request(self, req: P.ImageRequest) -> None:
         if not self.stills.allow(time.monotonic_ns()):

@@ -747,10 +747,7 @@ class Ingest:
             return self._drop(cam, Refusal.BEFORE_START, recv_ns)
 
         # accepted: now the state moves
-        if self.recorder is not None:
-            self.recorder.write_packet(recv_ns, data, (str(addr[0]), int(addr[1])) if addr else None)
-        if self.taps:
-            self._tap(data, recv_ns)
+        self._record(data, addr, recv_ns)
         if d > 1:
             if d < _SEQ_RESTART:
                 cam.lost += d - 1

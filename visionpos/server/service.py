@@ -198,14 +198,14 @@ class FusionServer:
         if self.monitor is not None:
             self._monitor_step(states, now_ns)
         for sink in self.sinks:
-            self._to_sink(sink, sink.publish, states, type(sink).__name__)
+            self._to_sink(type(sink).__name__, sink.publish, states)
         lp = getattr(self.pipeline, "loose_points", None)
         if lp is not None and lp.time_ns != self._markers_ns:
             self._markers_ns = lp.time_ns
             self.loose_markers = len(lp.points)
             for sink in self.sinks:
                 if hasattr(sink, "publish_markers"):
-                    self._to_sink(sink, sink.publish_markers, lp, type(sink).__name__ + ".publish_markers")
+                    self._to_sink(type(sink).__name__ + ".publish_markers", sink.publish_markers, lp)
         cost = time.perf_counter_ns() - t0
         if cost > self.tick_cost_ns_max:
             self.tick_cost_ns_max = cost
@@ -225,10 +225,10 @@ class FusionServer:
             if self.sink_errors["camera_monitor"] in (1, 100, 10_000):
                 log.exception("camera monitor failed")
 
-    def _to_sink(self, sink: Any, method: Any, arg: Any, name: str) -> None:
-        """method(arg); a failure is counted under `name` and logged at the 1st, 100th, 10000th time."""
+    def _to_sink(self, name: str, method: Any, *args: Any) -> None:
+        """method(*args); a failure is counted under `name` and logged at the 1st, 100th, 10000th time."""
         try:
-            method(arg)
+            method(*args)
         except Exception:
             self.sink_errors[name] = self.sink_errors.get(name, 0) + 1
             if self.sink_errors[name] in (1, 100, 10_000):
@@ -269,8 +269,7 @@ class FusionServer:
                 except Exception:
                     log.exception("could not record health")
             for sink in self._health_sinks:
-                self._to_sink(sink, lambda h, sink=sink: sink.publish_health(now, h), health,
-                              type(sink).__name__ + ".publish_health")
+                self._to_sink(type(sink).__name__ + ".publish_health", sink.publish_health, now, health)
 
     def status_line(self) -> str:
         now = self.clock()
@@ -296,8 +295,7 @@ class FusionServer:
         if self.recorder is not None:
             self.recorder.write_json("/server/events", now, event)
         for sink in self._event_sinks:
-            self._to_sink(sink, lambda e, sink=sink: sink.publish_event(now, e), event,
-                          type(sink).__name__ + ".publish_event")
+            self._to_sink(type(sink).__name__ + ".publish_event", sink.publish_event, now, event)
 
     def health(self) -> dict[str, Any]:
         h = self.ingest.health()
