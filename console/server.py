@@ -48,8 +48,7 @@ log = logging.getLogger(__name__)
 
 STATIC = Path(__file__).with_name("static")
 QUEUE_UPDATES = 2  # per client: updates waiting to be sent; more drop the oldest
-HEALTH_PERIOD_S = 0.5
-CAMERA_EVERY = 2  # the camera views go with every second update (15 per second at the default 30 Hz)
+HEALTH_PERIOD_S = 1.0  # the health table and /api/health's rates: once a second, as the status lines
 WATCH_PERIOD_S = 0.2  # the residual and static-blob watches run this often, with or without clients
 MAX_MESSAGE_BYTES = 4096  # from a client: commands are small
 COOKIE = "visionpos_console"
@@ -114,6 +113,8 @@ class ConsoleServer:
         self._task: asyncio.Task | None = None
         self._senders: set[asyncio.Task] = set()
         self._watch_due = False
+        self._camera_share = min(settings.camera_view_rate_hz / settings.update_rate_hz, 1.0)
+        self._camera_credit = 1.0  # the first update carries them
         self.stations = StationCommands(self)
 
     def scene_changed(self) -> None:
@@ -353,10 +354,13 @@ class ConsoleServer:
         now = self.clock()
         rays = frozenset(c.rays for c in self.clients if c.views and c.rays is not None)
         viewers = sum(c.views for c in self.clients)
-        # the camera views in every CAMERA_EVERY-th update, and only when a tab shows them: plenty for the eye,
-        # and half the update's cost; a watch that falls due in between waits for the next of them (it reads
-        # the same views), or runs at once when no tab shows them
-        cameras = viewers > 0 and self.counters["updates"] % CAMERA_EVERY == 0
+        # the camera views ride on camera_view_rate_hz of the updates, and only when a tab shows them; a watch
+        # that falls due in between waits for the next of them (it reads the same views), or runs at once when no
+        # tab shows them
+        self._camera_credit = min(self._camera_credit + self._camera_share, 1.0)
+        cameras = viewers > 0 and self._camera_credit >= 1.0 - 1e-9
+        if cameras:
+            self._camera_credit -= 1.0
         self._watch_due |= watch
         watch_now = self._watch_due and (cameras or viewers == 0)
         state = self.view.state(now, watch_now, rays, cameras=cameras)

@@ -32,6 +32,9 @@ CONSOLE = section(
     Setting("max_clients", "integer", 4, "browser tabs connected at once; more are refused", min=1, max=64),
     Setting("update_rate_hz", "number", 30.0, "live updates sent to each browser per second", min=1.0,
             max=120.0),
+    Setting("camera_view_rate_hz", "number", 10.0, "of those, how many per second carry the camera views (blobs "
+            "and predicted markers of every camera: most of an update's cost); at most update_rate_hz", min=1.0,
+            max=120.0),
     Setting("stations", "any", [], "station YAML files (relative to the arena file) whose detector `mask`, `rois` "
             "and `ignore` the camera views show, matched to cameras by their camera_id", default_doc="[] (none)"),
     Setting("token", "text", None, f"access token (at least {MIN_TOKEN_CHARS} characters) for a console bound "
@@ -52,6 +55,7 @@ class ConsoleSettings:
     port: int = DEFAULT_PORT
     max_clients: int = 4
     update_rate_hz: float = 30.0
+    camera_view_rate_hz: float = 10.0
     token: str | None = None
     token_generated: bool = False
     stations: tuple[str, ...] = ()  # station YAML paths, resolved against the arena file
@@ -65,6 +69,10 @@ class ConsoleSettings:
         except ValueError:
             raise s.error("bind", f"{values['bind']!r} is no IP address; give 127.0.0.1 (this computer only), "
                                   "this host's address on the lab network, or 0.0.0.0 for every interface") from None
+        if values["camera_view_rate_hz"] > values["update_rate_hz"]:
+            raise s.error("camera_view_rate_hz", f"{values['camera_view_rate_hz']:g} camera views per second "
+                          f"cannot ride on {values['update_rate_hz']:g} updates per second; give at most "
+                          "update_rate_hz, or raise update_rate_hz")
         token = values["token"]
         if token is not None and (len(token) < MIN_TOKEN_CHARS or not token.isprintable() or " " in token):
             raise s.error("token", f"give at least {MIN_TOKEN_CHARS} printable characters without spaces (e.g. "

@@ -334,7 +334,7 @@ function onScene(msg) {
 function onState(msg) {
   stats.states++;
   if (scene3) scene3.update(msg);
-  for (const v of msg.cameras || []) camViews.get(v.id)?.draw(v);  // every second update carries them
+  for (const v of msg.cameras || []) camViews.get(v.id)?.draw(v);  // camera_view_rate_hz of the updates carry them
   if (msg.replay) showReplay(msg.replay);
 }
 

@@ -163,6 +163,31 @@ def test_console_config_keys_are_checked(arena_yaml):
     data["console"] = {"max_client": 3}
     with pytest.raises(ConfigError, match="max_clients"):
         ConsoleSettings.from_arena(parse_arena(data, "a.yaml"))
+    data["console"] = {"update_rate_hz": 20, "camera_view_rate_hz": 25}
+    with pytest.raises(ConfigError, match="console.camera_view_rate_hz.*at most update_rate_hz"):
+        ConsoleSettings.from_arena(parse_arena(data, "a.yaml"))
+    assert ConsoleSettings.from_arena(parse_arena(arena_yaml("thesis"), "a.yaml")).camera_view_rate_hz == 10.0
+
+
+def test_the_camera_views_ride_on_camera_view_rate_hz_of_the_updates(arena):
+    async def main():
+        console, source = await _serve(arena)  # 50 updates/s, camera views at the default 10/s
+        source.pipeline.obs = _FreshFrames(source.pipeline.obs)
+        client = Client(None, "test")
+        console.clients.add(client)
+        carried = []
+        try:
+            for _ in range(30):
+                console.publish_once()
+                carried.append("cameras" in json.loads(client.queue.get_nowait()))
+        finally:
+            console.clients.discard(client)
+            await console.stop()
+        return carried
+
+    carried = run(main())
+    # the first update carries them, then every fifth: 10 of 50 per second
+    assert carried == [i % 5 == 0 for i in range(30)]
 
 
 def test_bad_messages_cross_site_sockets_and_extra_clients_are_answered_or_refused(arena, caplog):
@@ -287,7 +312,7 @@ def test_a_hidden_tab_gets_no_camera_views_and_none_are_built_for_it(arena):
         return out
 
     async def main():
-        console, source = await _serve(arena)
+        console, source = await _serve(arena, camera_view_rate_hz=25.0)  # every second update
         source.pipeline.obs = _FreshFrames(source.pipeline.obs)
         base = f"http://127.0.0.1:{console.port}"
         cam = arena.cameras[0].id
