@@ -5,9 +5,9 @@ The source is any object with the FusionServer's observable parts (duck-typed, r
 last_verdict), `last_states` (the newest tick's BodyStates), `health()` and `clock()`. A replay
 session (console/replay.py) offers the same.
 
-Nothing here changes the source; reading a camera's newest observation and predicting the
-tracked bodies to its capture time (the filter's non-mutating output_at) is all it does, once
-per console update (30 Hz), never per packet.
+Nothing here changes the source: it reads each camera's newest observation (its blobs, their
+labels, and where fusion predicted the tracked markers when it matched the frame), once per
+console update (30 Hz), never per packet.
 """
 
 from __future__ import annotations
@@ -19,8 +19,6 @@ from math import isfinite
 from typing import Any
 
 import numpy as np
-
-from visionpos.fusion.matching import Projector
 
 # a leftover blob that stays within one cell this long, seen in most updates, looks like a reflection
 STATIC_BLOB_S = 5.0
@@ -46,6 +44,13 @@ def _quat_matrix(q: list[float]) -> np.ndarray:
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def _rounded(values: list[float], nd: int) -> list[float | None]:
+    """_r over a list: one finiteness check for the whole list (the usual case), per value only when it fails."""
+    if isfinite(sum(values)):
+        return [round(v, nd) for v in values]
+    return [_r(v, nd) for v in values]
 
 
 def _age_ms(now_ns: int, capture_ns: int | None) -> float | None:
@@ -121,11 +126,8 @@ class ConsoleView:
         arena = source.arena
         self.scene = scene(arena)
         self.cameras = {c.id: c for c in arena.cameras}
-        self.projectors = {c.id: Projector(c) for c in arena.cameras}  # compiled, as fusion projects
         sizes = [len(b.markers) for b in arena.bodies]
         self.marker_body = np.repeat(np.arange(len(sizes)), sizes).astype(np.int64)
-        self.marker_start = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-        self.body_markers = [np.asarray(b.markers, dtype=float).reshape(-1, 3) for b in arena.bodies]
         self.watch = {c.id: CameraWatch() for c in arena.cameras}
         self._body_of_label_list = self.marker_body.tolist()
         self._built: dict[int, _CameraView] = {}
@@ -133,47 +135,23 @@ class ConsoleView:
 
     # ---------------------------------------------------------------- per camera
 
-    def _predicted(self, pipe: Any, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]] | None:
-        """The tracked bodies' markers from their filters, stacked: world positions (K, 3) at t_ns, each
-        marker's body velocity (K, 3), its body (K,), and the bodies; None when no body is tracked. One
-        prediction per body and update; each camera shifts it to its own capture time."""
-        bodies, world, vel = [], [], []
-        for b, tr in enumerate(pipe.tracks):
-            if not tr.tracked or b >= len(self.body_markers):
-                continue
-            p, q, v = tr.filter.output_at(t_ns)[:3]
-            q, v = q.tolist(), v.tolist()
-            if isfinite(sum(q) + sum(v) + float(p.sum())):  # NaN or inf in any of them
-                bodies.append(b)
-                world.append(self.body_markers[b] @ _quat_matrix(q).T + p)
-                vel.append(v)
-        if not bodies:
-            return None
-        counts = [len(self.body_markers[b]) for b in bodies]
-        return (np.concatenate(world), np.repeat(np.array(vel), counts, axis=0),
-                [b for b, n in zip(bodies, counts) for _ in range(n)], bodies)
-
     def _views(self, now_ns: int, watch: bool, rays: frozenset[int]) -> list[tuple[int, int | None, _CameraView]]:
         """(camera, capture_ns or None, its view) per camera. A camera's view is built only when something it
-        shows changed since its last build (its frame, the frame's labels, the tracked bodies, its rays) or a
-        watch wants a frame it has not seen; otherwise the last one is reused (a camera
-        slower than the updates, a stalled one, a paused replay cost nothing). The cameras to build are built
-        together: a few numpy calls for all of them, not per camera."""
+        shows changed since its last build (its frame, the frame's labels, its rays) or a watch wants a frame it
+        has not seen; otherwise the last one is reused (a camera slower than the updates, a stalled one, a
+        paused replay cost nothing)."""
         pipe = self.source.pipeline
         obs_all = getattr(pipe, "obs", {})
         px_all = getattr(pipe, "last_px", {})
-        tracked = tuple(bool(tr.tracked) for tr in pipe.tracks)
         out: list[tuple[int, int | None, _CameraView]] = []
         build: list[tuple[int, Any, np.ndarray, tuple]] = []
-        newest = None
         for cid in self.cameras:
             o, px = obs_all.get(cid), px_all.get(cid)
             if o is None or px is None or len(px) != len(o.label):
                 out.append((cid, None, _EMPTY_VIEW))
                 continue
             t = int(o.capture_ns)
-            newest = t if newest is None or t > newest else newest
-            key = (t, id(o), id(px), np.asarray(o.label).tobytes(), tracked, cid in rays)
+            key = (t, id(o), id(px), np.asarray(o.label).tobytes(), cid in rays)
             old = self._built.get(cid)
             if old is None or old.key != key or (watch and self.watch[cid].last_capture_ns != t):
                 build.append((cid, o, px, key))
@@ -181,31 +159,30 @@ class ConsoleView:
             else:
                 out.append((cid, t, old))
         if build:
-            built = self._build(build, newest, now_ns, watch, rays)
+            built = self._build(build, now_ns, watch, rays)
             out = [(cid, t, built.get(cid, v)) for cid, t, v in out]
         return out
 
-    def _build(self, todo: list[tuple[int, Any, np.ndarray, tuple]], newest: int, now_ns: int, watch: bool,
-               rays: frozenset[int]) -> dict[int, _CameraView]:
-        """The views of the cameras in todo. A frame has a few dozen blobs at most: plain Python over
-        their lists costs less than the fixed price of the numpy calls it replaces (the numpy version of
-        this was slower), and numpy stays where it pays (the filter's prediction, the projection)."""
-        pipe = self.source.pipeline
+    def _build(self, todo: list[tuple[int, Any, np.ndarray, tuple]], now_ns: int, watch: bool, rays: frozenset[int]
+               ) -> dict[int, _CameraView]:
+        """The views of the cameras in todo. The predicted markers are fusion's own (Observation.pred_px: where
+        the filters expected the markers when the frame was matched), so nothing is predicted or projected here.
+        A frame has a few dozen blobs at most: plain Python over their lists costs less than the fixed price of
+        the numpy calls it replaces (the numpy version of this was slower)."""
         n_markers = len(self.marker_body)
         body_of = self._body_of_label_list
-        pred = self._predicted(pipe, newest)
         out: dict[int, _CameraView] = {}
         for cid, o, px, key in todo:
             label = o.label.tolist() if isinstance(o.label, np.ndarray) else list(o.label)
             blobs = [[round(u * 10.0), round(v * 10.0), body_of[lb] if 0 <= lb < n_markers else -1]
                      for (u, v, *_), lb in zip(px.tolist(), label) if isfinite(u) and isfinite(v)]
-            d: dict[str, Any] = {"blobs": blobs, "pred": []}
-            uv = None
-            if pred is not None:
-                world, vel, pbody, _ = pred
-                uv = self.projectors[cid].project(world + vel * ((int(o.capture_ns) - newest) * 1e-9))
-                d["pred"] = [[round(u * 10.0), round(v * 10.0), b] for (u, v), b in zip(uv.tolist(), pbody)
-                             if isfinite(u) and isfinite(v)]
+            pred_px, pred_rows = getattr(o, "pred_px", None), getattr(o, "pred_rows", None)
+            pred: list[tuple[float, float, int]] = []
+            if pred_px is not None and pred_rows is not None:
+                pred = [(u, v, r) for (u, v), r in zip(pred_px.tolist(), pred_rows.tolist())
+                        if isfinite(u) and isfinite(v) and 0 <= r < n_markers]
+            d: dict[str, Any] = {"blobs": blobs,
+                                 "pred": [[round(u * 10.0), round(v * 10.0), body_of[r]] for u, v, r in pred]}
             if cid in rays:
                 xn = np.asarray(o.xn, dtype=float).reshape(-1, 2)
                 good = np.isfinite(xn).all(axis=1)
@@ -213,8 +190,7 @@ class ConsoleView:
             out[cid] = self._built[cid] = _CameraView(key, d)
             self.builds[cid] += 1
             if watch:
-                lab = np.asarray(o.label)
-                self._watch(cid, o, px, lab, (lab >= 0) & (lab < n_markers), pred, uv, now_ns)
+                self._watch(cid, o, px, label, pred, now_ns)
         return out
 
     def camera_states(self, now_ns: int, watch: bool = False, rays: frozenset[int] = frozenset()
@@ -222,30 +198,30 @@ class ConsoleView:
         """Per camera: blobs [u, v, body (-1 = left over)] and the filter's predicted markers [u, v, body] at
         the frame's capture time, pixels in tenths (integers encode fastest), the frame's age; for the
         cameras in `rays` also each blob's undistorted coordinates [x, y] x 1e5 (its ray). watch: also
-        update the residual and static-blob watches (a few times a second is plenty)."""
+        update the residual and static-blob watches (twice a second is plenty)."""
         return [{"id": cid, **v.data, "age_ms": _age_ms(now_ns, t)} for cid, t, v in self._views(now_ns, watch, rays)]
 
-    def _watch(self, cid: int, o: Any, px: np.ndarray, label: np.ndarray, ok: np.ndarray,
-               pred: tuple | None, uv: np.ndarray | None, now_ns: int) -> None:
-        """The residual of each matched blob against the prediction of its own marker; the static leftovers."""
+    def _watch(self, cid: int, o: Any, px: np.ndarray, label: list[int], pred: list[tuple[float, float, int]],
+               now_ns: int) -> None:
+        """The residual of each matched blob against fusion's prediction of its own marker (pred: [(u, v, marker
+        row)]); the static leftovers."""
         w = self.watch[cid]
         if o.capture_ns == w.last_capture_ns:
             return
         w.last_capture_ns = int(o.capture_ns)
-        if uv is not None and pred is not None:
-            bodies = pred[3]
-            rows_of = np.concatenate([np.arange(self.marker_start[b], self.marker_start[b + 1]) for b in bodies])
-            index = np.full(len(self.marker_body) + 1, -1, dtype=np.int64)
-            index[rows_of] = np.arange(len(rows_of))
-            j = np.flatnonzero(ok)
-            k = index[label[j]]
-            keep = k >= 0
-            d = px[j[keep], :2] - uv[k[keep]]
-            d = d[np.isfinite(d).all(axis=1)]
-            if len(d):
-                rms = math.sqrt(float((d * d).sum()) / len(d))
-                w.residual_px = rms if w.residual_px is None else w.residual_px + RESIDUAL_EWMA * (rms - w.residual_px)
-        self._watch_static(w, px[label < 0], now_ns)
+        where = {r: (u, v) for u, v, r in pred}
+        sq, n = 0.0, 0
+        for (u, v, *_), lb in zip(px.tolist(), label):
+            p = where.get(lb)
+            if p is not None:
+                du, dv = u - p[0], v - p[1]
+                if isfinite(du) and isfinite(dv):
+                    sq += du * du + dv * dv
+                    n += 1
+        if n:
+            rms = math.sqrt(sq / n)
+            w.residual_px = rms if w.residual_px is None else w.residual_px + RESIDUAL_EWMA * (rms - w.residual_px)
+        self._watch_static(w, px[np.asarray(label) < 0], now_ns)
 
     def _watch_static(self, w: CameraWatch, left: np.ndarray, now_ns: int) -> None:
         gap_ns = int(STATIC_GAP_S * 1e9)
@@ -292,8 +268,8 @@ class ConsoleView:
         for i, s in enumerate(self.source.last_states or []):
             d: dict[str, Any] = {"name": s.name, "id": s.body_id, "tracked": bool(s.tracked)}
             if s.tracked:
-                d.update(p=[_r(v, 5) for v in np.asarray(s.position).tolist()],
-                         q=[_r(v, 6) for v in np.asarray(s.quaternion).tolist()],
+                d.update(p=_rounded(np.asarray(s.position).tolist(), 5),
+                         q=_rounded(np.asarray(s.quaternion).tolist(), 6),
                          n_markers=int(s.n_markers), n_cameras=int(s.n_cameras), residual_mm=_r(s.residual_mm, 3))
             elif i < len(pipe.tracks) and pipe.tracks[i].tracked:  # the filter has it, but no fresh measurement
                 d["why"] = ("no measurement within fusion.max_prediction_ms: its cameras' frames are late or "
@@ -307,7 +283,7 @@ class ConsoleView:
         lp = getattr(self.source.pipeline, "loose_points", None)
         if lp is None:
             return []
-        return [[_r(v, 4) for v in p] for p in np.asarray(lp.points).reshape(-1, 3).tolist()]
+        return [_rounded(p, 4) for p in np.asarray(lp.points).reshape(-1, 3).tolist()]
 
     def state(self, now_ns: int, watch: bool = False, rays: frozenset[int] = frozenset(),
               cameras: bool = True) -> dict[str, Any]:

@@ -344,6 +344,6 @@ def test_a_hidden_tab_gets_no_camera_views_and_none_are_built_for_it(arena):
     assert len(out["bad"]) == 1 and "views" in out["bad"][0]["error"]
     assert out["bad_views"] >= 2
     assert out["hidden"] == 0
-    # 20 updates at 50/s: the views of every second one for a visible tab, only the watch's (5/s) for none
+    # 20 updates at 50/s: the views of every second one for a visible tab, only the watch's (2/s) for none
     assert out["built_hidden"] <= 3 and out["shown"] >= 9 and out["built_shown"] >= 9
     assert out["hidden_beside"] == 0

@@ -141,8 +141,9 @@ def test_a_second_blob_in_the_gate_makes_the_association_ambiguous(look_at_camer
     marker_xn = np.full((4, 2), np.nan)
     marker_ok = np.ones(4, dtype=np.bool_)
     track_floats = np.array([[0.04, 1e-8, 0.0]])
-    xn, label = _observe_frame(blobs, 0.0, motion, tracked, marker_xn, marker_ok, proj.packed, 12.0, 4.0, False, 0,
-                               bank.arrays, track_floats)
+    xn, label, pred_px = _observe_frame(blobs, 0.0, motion, tracked, marker_xn, marker_ok, proj.packed, 12.0, 4.0,
+                                        False, 0, bank.arrays, track_floats)
+    assert np.allclose(pred_px, px)  # the prediction it matched against: the markers where they are
     assert np.isfinite(marker_xn).all()  # every marker is associated (Hungarian)...
     assert marker_ok.tolist() == [True, True, False, True]  # ...but marker 2's association is not unique
     blobs_clean = np.vstack([px, [[100.0, 100.0]]])

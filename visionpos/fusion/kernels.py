@@ -232,7 +232,7 @@ _UNIQUE_MIN_PX = 3.0  # px: the single-view path's uniqueness radius is never sm
 @njit
 def _observe_frame(px: np.ndarray, dt_s: float, motion: np.ndarray, tracked: tuple, marker_xn: np.ndarray,
                    marker_ok: np.ndarray, camera: np.ndarray, gate_px: float, unique_sigmas: float, image_nis: bool,
-                   t_ns: int, bank: tuple, track_floats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                   t_ns: int, bank: tuple, track_floats: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One camera frame against the tracked bodies' predicted markers (compiled).
 
     px (N, 2) blob pixels; motion (3, M, 3): the tracked markers' positions, velocities and
@@ -245,7 +245,9 @@ def _observe_frame(px: np.ndarray, dt_s: float, motion: np.ndarray, tracked: tup
     uniqueness radius and no other tracked marker is predicted within that radius of the
     blob. The radius is unique_sigmas predicted pixel std (pixel noise plus the body's
     position uncertainty at the marker's depth), at least _UNIQUE_MIN_PX, at most gate_px.
-    Returns normalised blobs xn (N, 2) and blob labels (N,) (global marker row or -1).
+    Returns normalised blobs xn (N, 2), blob labels (N,) (global marker row or -1) and the
+    tracked markers' predicted pixels (M, 2) (rows of `tracked`; NaN off the sensor), which the
+    console draws.
 
     image_nis: also feed each tracked body's manoeuvre detector (tracking.report_image_nis)
     with this frame's prediction residual over its expected size (_image_nis); bank:
@@ -303,7 +305,7 @@ def _observe_frame(px: np.ndarray, dt_s: float, motion: np.ndarray, tracked: tup
             if n[i] >= 2:
                 b = bodies[i]
                 report_image_nis(adapt[b], clock[b], kalman, t_ns, nis[i], nis_rot[i])
-    return xn, label
+    return xn, label, pred
 
 
 @njit

@@ -333,10 +333,10 @@ class FusionPipeline:
         image_nis = abs(t_ns - self._last_img_ns) >= _IMAGE_NIS_INTERVAL_NS
         if image_nis:
             self._last_img_ns = t_ns
-        xn, label = _observe_frame(px, (t_ns - t_c) * 1e-9, motion, self._tracked_set, marker_xn, self._marker_ok[v],
-                                   proj.packed, self._gate_px, self._unique_sigmas, image_nis, t_ns, self.bank.arrays,
-                                   self._track_floats)
-        return Observation(t_ns, xn, label, marker_xn)
+        xn, label, pred_px = _observe_frame(px, (t_ns - t_c) * 1e-9, motion, self._tracked_set, marker_xn,
+                                            self._marker_ok[v], proj.packed, self._gate_px, self._unique_sigmas,
+                                            image_nis, t_ns, self.bank.arrays, self._track_floats)
+        return Observation(t_ns, xn, label, marker_xn, pred_px, self._tracked_set[1])
 
     # ----------------------------------------------------------------- fusion
     def _views(self, cams: tuple[int, ...]) -> tuple:

@@ -39,13 +39,18 @@ class Observation:
     """Newest frame of one camera after association.
 
     xn: (N, 2) normalised coordinates; label: (N,) global marker index or -1;
-    marker_xn: (all markers, 2) observation of every configured marker (NaN = none).
+    marker_xn: (all markers, 2) observation of every configured marker (NaN = none);
+    pred_px: (M, 2) pixels where the filters predicted the tracked markers at capture_ns,
+    the prediction this frame was matched against (NaN off the sensor), and pred_rows (M,)
+    their global marker rows; None while no body is tracked.
     """
 
     capture_ns: int
     xn: np.ndarray
     label: np.ndarray
     marker_xn: np.ndarray
+    pred_px: np.ndarray | None = None
+    pred_rows: np.ndarray | None = None
 
 
 def new_track_rows(n_bodies: int, n_cameras: int = 0) -> TrackRows:
