@@ -45,6 +45,8 @@ from console.view import ConsoleView
 from visionpos.logutil import RateLimitedLog
 
 log = logging.getLogger(__name__)
+# the updates are trees of plain values: the encoder's cycle check only costs time (a quarter of the encoding)
+_encode = json.JSONEncoder(check_circular=False).encode
 
 STATIC = Path(__file__).with_name("static")
 QUEUE_UPDATES = 2  # per client: updates waiting to be sent; more drop the oldest
@@ -368,11 +370,11 @@ class ConsoleServer:
             self._watch_due = False
         if self.extra is not None:
             state.update(self.extra())
-        text = json.dumps(state)
+        text = _encode(state)
         plain = text
         if cameras and viewers < len(self.clients):
             state.pop("cameras")
-            plain = json.dumps(state)
+            plain = _encode(state)
         self.counters["updates"] += 1
         for c in self.clients:
             c.offer(text if c.views else plain)
@@ -409,7 +411,7 @@ class ConsoleServer:
                     next_health = now_s + HEALTH_PERIOD_S
                     h = self.health()
                     if self.clients:
-                        text = json.dumps({"type": "health", "health": h})
+                        text = _encode({"type": "health", "health": h})
                         for c in self.clients:
                             c.offer(text)
                         if self.calibration is not None:  # again: an update queue may have dropped the last one
