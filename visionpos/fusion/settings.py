@@ -63,7 +63,9 @@ SINGLE_VIEW = section(
             "triangulated; always: a tracked body whose triangulated pose fits its layout is updated from each "
             "camera frame's markers at that frame's capture time instead of from the motion-compensated pose "
             "(identification, the fit check and the gate-and-restart rule stay on the triangulated pose; "
-            "needs enabled)", choices=SV_MODES),
+            "needs enabled). The views' innovations do not open the position noise enough in a manoeuvre: "
+            "raise kalman.jerk_psd with it (20 took the slalom to 1.12x / 1.04x the bound, but a still body "
+            "loses its smoothing; see docs/architecture.md)", choices=SV_MODES),
     Setting("gate_nis_per_dof", "number", 6.0, "a frame's reprojection innovation is refused when its "
             "squared Mahalanobis distance over its 2n degrees of freedom exceeds this per degree", min=0.5),
     Setting("unique_sigmas", "number", 4.0, "a marker's association is used only if no other blob lies within "
