@@ -65,6 +65,7 @@ from visionpos.fusion.layout import (
     STATE_RATE_VAR,
     STATE_VEL_VAR,
     STATE_X,
+    SV_PARAM_ALWAYS,
     TRACK_FIRST_REJECT_NS,
     TRACK_LAST_CAPTURE_NS,
     TRACK_LAST_UPDATE_NS,
@@ -703,8 +704,18 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
         marker_var = max(track_floats[b, TRACK_MARKER_VAR], params[PARAM_MARKER_VAR_FLOOR]) * reuse
         cov = _scaled_pose_cov(cov_unit[i], marker_var, var_p[i], var_r[i])
         meas[i, MEAS_COV] = cov.ravel()
-        accepted, _ = filter_update(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i], cov, True,
-                                    h_t[i, 0], h_t[i, 1])
+        kind = UPDATE_POSE
+        sv_verdict = VERDICT_TOO_FEW
+        if params[PARAM_SV_ENABLED] == SV_PARAM_ALWAYS:
+            # mode `always`: each frame's own markers at its capture time instead of the compensated pose
+            s = slice(first, first + sizes[i])
+            sv_verdict = _single_views(b, local[s], rows[s], marker_xn, marker_ok, capture_ns, views, params, bank,
+                                       tracks)[0]
+        if sv_verdict == VERDICT_TOO_FEW:  # no frame with an unambiguous marker: the pose
+            accepted, _ = filter_update(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i], cov,
+                                        True, h_t[i, 0], h_t[i, 1])
+        else:
+            accepted, kind = sv_verdict != VERDICT_VIEWS_GATED, UPDATE_VIEWS
         if accepted:
             verdict[i] = VERDICT_ACCEPTED
         else:
@@ -716,10 +727,12 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
             # persistently inconsistent: believe the measurements, restart the filter there
             filter_initialize(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i], cov)
             track_ints[b, TRACK_RESETS] += 1
+            kind = UPDATE_POSE
             verdict[i] = VERDICT_RESET
         _track_measured(track_ints[b], track_floats[b], ref_ns, newest_capture_ns, n, n_cams[i], fit)
-        track_ints[b, TRACK_UPDATE_KIND] = UPDATE_POSE
-        info[b] = 0.0  # the single-view information starts afresh when the pose is lost again
+        track_ints[b, TRACK_UPDATE_KIND] = kind
+        if kind == UPDATE_POSE:
+            info[b] = 0.0  # the single-view information starts afresh when the pose is lost again
         for v in range(n_views):
             view_ns[b, cameras[v]] = max(view_ns[b, cameras[v]], capture_ns[cameras[v]])
     t_c, motion = _tracked_motion(bank, tracked)

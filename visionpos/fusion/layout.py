@@ -69,13 +69,15 @@ N_CAMERA = 28
 MOTION_POS, MOTION_VEL, MOTION_ACC = range(3)
 
 # ---------------------------------------------------------------- fusion params (12,) float (FusionPipeline)
-# then the single-view path (fusion.single_view): on (1.0) / off, its NIS gate per dof, the information
+# then the single-view path (fusion.single_view): off (0.0), on through occlusion (SV_PARAM_OCCLUSION) or
+# for every frame of a triangulated body too (SV_PARAM_ALWAYS, mode `always`), its NIS gate per dof, the information
 # window (ns), the largest position / rotation variance (m^2, rad^2) the views' information may leave, and
 # the floor of the pixel variance (px^2)
 (PARAM_MAX_RESIDUAL_PX, PARAM_IDENTIFY_TOL_M, PARAM_COMPENSATE_MAX_VEL_VAR, PARAM_MIN_MARKERS,
  PARAM_MARKER_VAR_FLOOR, PARAM_RESET_AFTER_NS, PARAM_SV_ENABLED, PARAM_SV_GATE_PER_DOF, PARAM_SV_WINDOW_NS,
  PARAM_SV_MAX_POS_VAR, PARAM_SV_MAX_ROT_VAR, PARAM_SV_MIN_PX_VAR) = range(12)
 N_PARAMS = 12
+SV_PARAM_OCCLUSION, SV_PARAM_ALWAYS = 1.0, 2.0  # values of PARAM_SV_ENABLED
 
 # ---------------------------------------------------------------- track rows, one per body (tracks._Track)
 # track_ints (bodies, 9) int64; TRACK_UPDATE_KIND: UpdateKind of the last measurement that kept the track;

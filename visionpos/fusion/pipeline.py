@@ -89,6 +89,8 @@ from visionpos.fusion.layout import (
     PARAM_SV_MAX_ROT_VAR,
     PARAM_SV_MIN_PX_VAR,
     PARAM_SV_WINDOW_NS,
+    SV_PARAM_ALWAYS,
+    SV_PARAM_OCCLUSION,
     TRACK_LAST_CAPTURE_NS,
     TRACK_LAST_UPDATE_NS,
     TRACK_N_CAMERAS,
@@ -104,7 +106,7 @@ from visionpos.fusion.layout import (
 )
 from visionpos.fusion.matching import Projector, match_unlabeled
 from visionpos.fusion.rigidbody import BodyModel, identify, layout_ambiguities
-from visionpos.fusion.settings import parse_fusion_settings
+from visionpos.fusion.settings import SV_ALWAYS, parse_fusion_settings
 from visionpos.fusion.timealign import Group, TimeAligner, TimeAlignment
 from visionpos.fusion.tracking import FilterBank
 from visionpos.fusion.tracks import Observation, Track, new_track_rows
@@ -189,7 +191,8 @@ class FusionPipeline:
         self._kernel_params[PARAM_MARKER_VAR_FLOOR] = st.kalman.marker_sigma_m**2
         self._kernel_params[PARAM_RESET_AFTER_NS] = st.kalman.reset_after_ns
         sv = st.single_view
-        self._kernel_params[PARAM_SV_ENABLED] = float(sv.enabled)
+        self._kernel_params[PARAM_SV_ENABLED] = (
+            0.0 if not sv.enabled else SV_PARAM_ALWAYS if sv.mode == SV_ALWAYS else SV_PARAM_OCCLUSION)
         self._kernel_params[PARAM_SV_GATE_PER_DOF] = sv.gate_nis_per_dof
         self._kernel_params[PARAM_SV_WINDOW_NS] = sv.window_ns
         self._kernel_params[PARAM_SV_MAX_POS_VAR] = sv.max_position_sigma_m**2

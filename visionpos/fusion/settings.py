@@ -15,6 +15,10 @@ from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, ms_to_ns, section
 from visionpos.fusion.timealign import MODES, MOTION_COMPENSATED
 
+# fusion.single_view.mode: when the single-view updates are used (kernels._fuse_tracked)
+SV_OCCLUSION, SV_ALWAYS = "occlusion", "always"
+SV_MODES = (SV_OCCLUSION, SV_ALWAYS)
+
 # keys that no longer exist and cannot be renamed (their unit changed): the error says what to write
 REMOVED = {
     "acquire_ray_distance_m": "removed: a gate in metres was too tight far from the cameras and too loose close "
@@ -55,6 +59,13 @@ SINGLE_VIEW = section(
     "body; the track is kept only while the recent views' pose information bounds the pose.",
     Setting("enabled", "boolean", True, "use single-camera reprojection updates for tracked bodies that "
             "cannot be triangulated"),
+    Setting("mode", "text", SV_OCCLUSION, "occlusion: the single views update a body only while it cannot be "
+            "triangulated; always: a tracked body whose triangulated pose fits its layout is updated from each "
+            "camera frame's markers at that frame's capture time instead of from the motion-compensated pose "
+            "(identification, the fit check and the gate-and-restart rule stay on the triangulated pose; "
+            "needs enabled). The views' innovations do not open the position noise enough in a manoeuvre: "
+            "raise kalman.jerk_psd with it (20 took the slalom to 1.12x / 1.04x the bound, but a still body "
+            "loses its smoothing; see docs/architecture.md)", choices=SV_MODES),
     Setting("gate_nis_per_dof", "number", 6.0, "a frame's reprojection innovation is refused when its "
             "squared Mahalanobis distance over its 2n degrees of freedom exceeds this per degree", min=0.5),
     Setting("unique_sigmas", "number", 4.0, "a marker's association is used only if no other blob lies within "
@@ -137,6 +148,7 @@ class SingleViewSettings:
     """The single-view path (`fusion.single_view` in the YAML; SI units)."""
 
     enabled: bool = SINGLE_VIEW["enabled"].field_default
+    mode: str = SINGLE_VIEW["mode"].field_default
     gate_nis_per_dof: float = SINGLE_VIEW["gate_nis_per_dof"].field_default
     unique_sigmas: float = SINGLE_VIEW["unique_sigmas"].field_default
     window_ns: int = SINGLE_VIEW["window_ms"].field_default
@@ -182,6 +194,9 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
     s = FUSION.check(Section(data, source, "fusion"))
     kalman = KALMAN.parse(s.sub("kalman"))
     single_view = SINGLE_VIEW.parse(s.sub("single_view"))
+    if single_view["mode"] == SV_ALWAYS and not single_view["enabled"]:
+        raise ConfigError(source, "fusion.single_view.mode", "`always` needs the single-view path: "
+                          "`fusion.single_view.enabled` is false")
     fps = [c.fps for c in arena.cameras] or [100.0]
     derived = {"window_ms": 1.2e3 / min(fps), "naive_grid_hz": max(fps)}
     auto_window = FUSION["window_ms"].read(s) == 0
