@@ -29,6 +29,7 @@ from visionpos.fusion.layout import (
     CLOCK_T_NS,
     INTRINSICS_FX,
     INTRINSICS_FY,
+    KALMAN_NIS_UNSPLIT_COV,
     MEAS_COV,
     MEAS_FIT_RMS_M,
     MEAS_N_CAMERAS,
@@ -702,7 +703,7 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
         cov = _scaled_pose_cov(cov_unit[i], marker_var, var_p[i], var_r[i])
         meas[i, MEAS_COV] = cov.ravel()
         accepted, _ = filter_update(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i], cov, True,
-                                    h_t[i, 0], h_t[i, 1])
+                                    h_t[i, 0], h_t[i, 1], 1.0 / reuse if kalman[KALMAN_NIS_UNSPLIT_COV] != 0.0 else 1.0)
         if accepted:
             verdict[i] = VERDICT_ACCEPTED
         else:

@@ -98,6 +98,7 @@ from visionpos.fusion.layout import (
     KALMAN_JERK_PSD,
     KALMAN_MAX_SCALE,
     KALMAN_NIS_TAU_S,
+    KALMAN_NIS_THRESHOLD,
     N_ADAPT,
     N_CLOCK,
     N_OUT,
@@ -135,7 +136,6 @@ from visionpos.geometry.rotations import (
 )
 from visionpos.jit import matmul3, matvec3, njit
 
-_NIS_HIGH = 2.0  # averaged NIS/dof above this means the motion model lags
 _SCALE_DECAY_S = 0.2  # s, time constant of the process-noise scale's return to its floor
 
 
@@ -242,6 +242,7 @@ def _kf_update(
     gate_chi2: float,
     h_vel: float,
     h_acc: float,
+    nis_cov_scale: float = 1.0,
 ) -> tuple[bool, float, float, float]:
     """Fuse a pose measurement into x (18,), P (18, 18), R_nom (3, 3) in place (Joseph form).
 
@@ -277,8 +278,13 @@ def _kf_update(
     for i in range(6):
         for j in range(6):
             d2 += y[i] * Sinv[i, j] * y[j]
-    nis_p = _quad3(S[POSE_P, POSE_P], y[POSE_P]) / 3.0
-    nis_r = _quad3(S[POSE_ROT, POSE_ROT], y[POSE_ROT]) / 3.0
+    if nis_cov_scale == 1.0:
+        nis_p = _quad3(S[POSE_P, POSE_P], y[POSE_P]) / 3.0
+        nis_r = _quad3(S[POSE_ROT, POSE_ROT], y[POSE_ROT]) / 3.0
+    else:
+        Sn = S - (1.0 - nis_cov_scale) * cov
+        nis_p = _quad3(Sn[POSE_P, POSE_P], y[POSE_P]) / 3.0
+        nis_r = _quad3(Sn[POSE_ROT, POSE_ROT], y[POSE_ROT]) / 3.0
     if gate_chi2 > 0.0 and d2 > gate_chi2:
         return False, d2, nis_p, nis_r
     K = _kalman_gain(PHt, Sinv)
@@ -322,13 +328,14 @@ def _kf_update(
 @njit
 def _kf_predict_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: float, qw: float, qaj: float,
                        position: np.ndarray, R: np.ndarray, cov: np.ndarray,
-                       gate_chi2: float, h_vel: float, h_acc: float) -> tuple[int, bool, float, float, float]:
+                       gate_chi2: float, h_vel: float, h_acc: float,
+                       nis_cov_scale: float = 1.0) -> tuple[int, bool, float, float, float]:
     """_kf_predict over dt (when dt != 0) then _kf_update, in one call; returns
     (folds done, accepted, squared Mahalanobis distance, position NIS / 3, rotation NIS / 3)."""
     folds = 0
     if dt != 0.0 and _kf_predict(x, P, R_nom, dt, qj, qw, qaj):
         folds += 1
-    accepted, d2, nis_p, nis_r = _kf_update(x, P, R_nom, position, R, cov, gate_chi2, h_vel, h_acc)
+    accepted, d2, nis_p, nis_r = _kf_update(x, P, R_nom, position, R, cov, gate_chi2, h_vel, h_acc, nis_cov_scale)
     if accepted:
         folds += 1
     return folds, accepted, d2, nis_p, nis_r
@@ -424,9 +431,9 @@ def _count_folds(R_nom: np.ndarray, clock: np.ndarray, folds: int) -> None:
 
 
 @njit
-def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: float) -> float:
-    if nis > _NIS_HIGH:
-        scale *= (nis / _NIS_HIGH) ** (3.0 * alpha)
+def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: float, nis_high: float) -> float:
+    if nis > nis_high:
+        scale *= (nis / nis_high) ** (3.0 * alpha)
     else:
         scale *= decay
     return min(smax, max(1.0, scale))
@@ -435,7 +442,7 @@ def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: flo
 @njit
 def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.ndarray, clock: np.ndarray,
                   params: np.ndarray, t_ns: int, position: np.ndarray, R: np.ndarray, cov: np.ndarray,
-                  gate: bool, h_vel: float, h_acc: float) -> tuple[bool, float]:
+                  gate: bool, h_vel: float, h_acc: float, nis_cov_scale: float = 1.0) -> tuple[bool, float]:
     """Predict one body filter to t_ns (int ns) and fuse a pose measurement, in place (compiled).
 
     x (18,), P (18, 18), R_nom (3, 3), adapt (6,), clock (3,): the body's rows of a
@@ -451,7 +458,7 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
         x, P, R_nom, dt,
         params[KALMAN_JERK_PSD] * adapt[ADAPT_SCALE_P], params[KALMAN_ANG_ACC_PSD] * adapt[ADAPT_SCALE_R],
         params[KALMAN_ANG_JERK_PSD] * adapt[ADAPT_SCALE_R],
-        position, R, cov, params[KALMAN_GATE_CHI2] if gate else 0.0, h_vel, h_acc,
+        position, R, cov, params[KALMAN_GATE_CHI2] if gate else 0.0, h_vel, h_acc, nis_cov_scale,
     )
     clock[CLOCK_T_NS] = t_ns
     _count_folds(R_nom, clock, folds)
@@ -482,10 +489,11 @@ def _adapt_noise(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns:
     nis_img = adapt[ADAPT_NIS_IMG] if fresh else 0.0  # the markers' common shift: position lag
     nis_img_r = adapt[ADAPT_NIS_IMG_R] if fresh else 0.0  # their spread about it: orientation lag
     decay = math.exp(-max(dt, 0.0) / _SCALE_DECAY_S)
-    max_scale = params[KALMAN_MAX_SCALE]
-    adapt[ADAPT_SCALE_P] = _adapt_scale(adapt[ADAPT_SCALE_P], max(adapt[ADAPT_NIS_P], nis_img), alpha, decay, max_scale)
+    max_scale, nis_high = params[KALMAN_MAX_SCALE], params[KALMAN_NIS_THRESHOLD]
+    adapt[ADAPT_SCALE_P] = _adapt_scale(adapt[ADAPT_SCALE_P], max(adapt[ADAPT_NIS_P], nis_img), alpha, decay, max_scale,
+                                        nis_high)
     adapt[ADAPT_SCALE_R] = _adapt_scale(adapt[ADAPT_SCALE_R], max(adapt[ADAPT_NIS_R], nis_img_r), alpha, decay,
-                                        max_scale)
+                                        max_scale, nis_high)
 
 
 @njit
@@ -711,7 +719,9 @@ class FilterBank:
         self.params = np.array([settings.jerk_psd, settings.angular_accel_psd, settings.angular_jerk_psd,
                                 settings.max_noise_scale, settings.nis_time_constant_s, settings.gate_chi2,
                                 settings.init_velocity_sigma_m_s**2, settings.init_acceleration_sigma_m_s2**2,
-                                settings.init_angular_velocity_sigma_rad_s**2, ang_acc_var])
+                                settings.init_angular_velocity_sigma_rad_s**2, ang_acc_var, settings.nis_threshold,
+                                float(settings.nis_unsplit_cov)])
+
         # the kernels' argument (layout.FilterArrays as a plain tuple: cheaper for numba to dispatch)
         self.arrays = tuple(FilterArrays(self.x, self.P, self.R_nom, self.adapt, self.clock, self.params))
         self.filters = [BodyFilter(settings, self, i) for i in range(n)] if make_filters else []
