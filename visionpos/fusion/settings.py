@@ -47,6 +47,11 @@ KALMAN = section(
     Setting("marker_sigma_m", "number", 0.0001, "floor of the per-marker 3D noise used for the measurement "
             "covariance", min=1e-7),
     Setting("gate_chi2", "number", 40.0, "Mahalanobis^2 gate on the 6-dof innovation (chi2 with 6 dof)", min=1.0),
+    Setting("gate_retest", "boolean", False, "a pose the gate refuses is tried again with the lagging block's "
+            "process noise over its prediction raised 10, 100, ... times (up to max_noise_scale); the first that "
+            "passes the gate is taken and the adaptation goes on from its scale (follows sudden manoeuvres the "
+            "model lags, e.g. a flick's end under angular_jerk_psd, instead of refusing measurements for tens of "
+            "ms; an outlier fits none)"),
     Setting("reset_after_ms", "number", 60.0, "measurements gated out for this long: the filter restarts at "
             "the measurement", field="reset_after_ns", convert=ms_to_ns, min=0.0),
     Setting("max_prediction_ms", "number", 50.0, "tick() predicts at most this far past the last update, "
@@ -133,6 +138,7 @@ class KalmanSettings:
     nis_unsplit_cov: bool = KALMAN["nis_unsplit_cov"].field_default
     marker_sigma_m: float = KALMAN["marker_sigma_m"].field_default
     gate_chi2: float = KALMAN["gate_chi2"].field_default
+    gate_retest: bool = KALMAN["gate_retest"].field_default
     reset_after_ns: int = KALMAN["reset_after_ms"].field_default
     max_prediction_ns: int = KALMAN["max_prediction_ms"].field_default
     lost_timeout_ns: int = KALMAN["lost_timeout_ms"].field_default

@@ -91,6 +91,7 @@ from visionpos.fusion.layout import (
     KALMAN_ANG_ACC_PSD,
     KALMAN_ANG_JERK_PSD,
     KALMAN_GATE_CHI2,
+    KALMAN_GATE_RETEST,
     KALMAN_INIT_ACC_VAR,
     KALMAN_INIT_ANG_ACC_VAR,
     KALMAN_INIT_RATE_VAR,
@@ -439,6 +440,55 @@ def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: flo
     return min(smax, max(1.0, scale))
 
 
+_RETEST_STEP = 10.0  # the manoeuvre hypotheses' process-noise scales grow by this factor
+
+
+@njit
+def _manoeuvre_retest(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.ndarray, params: np.ndarray,
+                      dt: float, x0: np.ndarray, P0: np.ndarray, R0: np.ndarray, nis_p: float, nis_r: float,
+                      position: np.ndarray, R: np.ndarray, cov: np.ndarray, h_vel: float, h_acc: float,
+                      nis_cov_scale: float, folds: int) -> tuple[int, bool, float, float, float]:
+    """A pose measurement the gate refused, tried again under manoeuvre hypotheses (fusion.kalman.gate_retest).
+
+    x0, P0, R0: the state before the prediction over dt (s); x, P, R_nom hold the refused
+    attempt; nis_p, nis_r its NIS per block. The process noise of the lagging block(s) (NIS
+    above the threshold; both when neither is) is raised _RETEST_STEP, _RETEST_STEP^2, ... times
+    up to max_noise_scale over this prediction; the first hypothesis the gate admits is taken
+    and its scales kept (the adaptation decays them from there). Why: a model that lags a
+    sudden manoeuvre (a flick that ends while the angular acceleration is extrapolated) is
+    refused by the gate, and a refused measurement leaves the prediction running away, so the
+    NIS average alone takes tens of ms to reopen the gate. An outlier fits no hypothesis: then
+    the state is the refused attempt's prediction, as without the retest.
+    Returns _kf_predict_update's (folds, accepted, d2, position NIS / 3, rotation NIS / 3).
+    """
+    smax = params[KALMAN_MAX_SCALE]
+    raise_p, raise_r = nis_p > params[KALMAN_NIS_THRESHOLD], nis_r > params[KALMAN_NIS_THRESHOLD]
+    if not (raise_p or raise_r):
+        raise_p = raise_r = True
+    xr, Pr, Rr = x.copy(), P.copy(), R_nom.copy()
+    factor = _RETEST_STEP
+    while True:
+        sp = min(adapt[ADAPT_SCALE_P] * factor, smax) if raise_p else adapt[ADAPT_SCALE_P]
+        sr = min(adapt[ADAPT_SCALE_R] * factor, smax) if raise_r else adapt[ADAPT_SCALE_R]
+        x[:] = x0
+        P[:, :] = P0
+        R_nom[:, :] = R0
+        f, ok, d2, np_, nr = _kf_predict_update(x, P, R_nom, dt, params[KALMAN_JERK_PSD] * sp,
+                                                params[KALMAN_ANG_ACC_PSD] * sr, params[KALMAN_ANG_JERK_PSD] * sr,
+                                                position, R, cov, params[KALMAN_GATE_CHI2], h_vel, h_acc,
+                                                nis_cov_scale)
+        if ok:
+            adapt[ADAPT_SCALE_P], adapt[ADAPT_SCALE_R] = sp, sr
+            return f, ok, d2, np_, nr
+        if (not raise_p or sp >= smax) and (not raise_r or sr >= smax):
+            break
+        factor *= _RETEST_STEP
+    x[:] = xr
+    P[:, :] = Pr
+    R_nom[:, :] = Rr
+    return folds, False, d2, nis_p, nis_r
+
+
 @njit
 def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.ndarray, clock: np.ndarray,
                   params: np.ndarray, t_ns: int, position: np.ndarray, R: np.ndarray, cov: np.ndarray,
@@ -454,12 +504,18 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
     the state predicted only. Then adapts the process-noise scales to the NIS.
     """
     dt = (t_ns - clock[CLOCK_T_NS]) * 1e-9
+    retest = gate and params[KALMAN_GATE_RETEST] != 0.0 and dt > 0.0
+    if retest:
+        x0, P0, R0 = x.copy(), P.copy(), R_nom.copy()
     folds, accepted, d2, nis_p, nis_r = _kf_predict_update(
         x, P, R_nom, dt,
         params[KALMAN_JERK_PSD] * adapt[ADAPT_SCALE_P], params[KALMAN_ANG_ACC_PSD] * adapt[ADAPT_SCALE_R],
         params[KALMAN_ANG_JERK_PSD] * adapt[ADAPT_SCALE_R],
         position, R, cov, params[KALMAN_GATE_CHI2] if gate else 0.0, h_vel, h_acc, nis_cov_scale,
     )
+    if retest and not accepted:
+        folds, accepted, d2, nis_p, nis_r = _manoeuvre_retest(x, P, R_nom, adapt, params, dt, x0, P0, R0, nis_p, nis_r,
+                                                              position, R, cov, h_vel, h_acc, nis_cov_scale, folds)
     clock[CLOCK_T_NS] = t_ns
     _count_folds(R_nom, clock, folds)
     _adapt_noise(adapt, clock, params, t_ns, dt, nis_p, nis_r, True)
@@ -720,7 +776,7 @@ class FilterBank:
                                 settings.max_noise_scale, settings.nis_time_constant_s, settings.gate_chi2,
                                 settings.init_velocity_sigma_m_s**2, settings.init_acceleration_sigma_m_s2**2,
                                 settings.init_angular_velocity_sigma_rad_s**2, ang_acc_var, settings.nis_threshold,
-                                float(settings.nis_unsplit_cov)])
+                                float(settings.nis_unsplit_cov), float(settings.gate_retest)])
 
         # the kernels' argument (layout.FilterArrays as a plain tuple: cheaper for numba to dispatch)
         self.arrays = tuple(FilterArrays(self.x, self.P, self.R_nom, self.adapt, self.clock, self.params))
