@@ -440,7 +440,8 @@ def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: flo
     return min(smax, max(1.0, scale))
 
 
-_RETEST_STEP = 10.0  # the manoeuvre hypotheses' process-noise scales grow by this factor
+_RETEST_STEP = 10.0  # the manoeuvre hypotheses' process-noise scales grow by this factor ...
+_RETEST_MAX_FACTOR = 1000.0  # ... up to this (10^4 would admit a 17 deg jump within 10 ms of a hover)
 
 
 @njit
@@ -452,8 +453,8 @@ def _manoeuvre_retest(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np
 
     x0, P0, R0: the state before the prediction over dt (s); x, P, R_nom hold the refused
     attempt; nis_p, nis_r its NIS per block. The process noise of the lagging block(s) (NIS
-    above the threshold; both when neither is) is raised _RETEST_STEP, _RETEST_STEP^2, ... times
-    up to max_noise_scale over this prediction; the first hypothesis the gate admits is taken
+    above the threshold; both when neither is) is raised _RETEST_STEP, ... up to _RETEST_MAX_FACTOR
+    times (and at most to max_noise_scale) over this prediction; the first hypothesis the gate admits is taken
     and its scales kept (the adaptation decays them from there). Why: a model that lags a
     sudden manoeuvre (a flick that ends while the angular acceleration is extrapolated) is
     refused by the gate, and a refused measurement leaves the prediction running away, so the
@@ -480,7 +481,7 @@ def _manoeuvre_retest(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np
         if ok:
             adapt[ADAPT_SCALE_P], adapt[ADAPT_SCALE_R] = sp, sr
             return f, ok, d2, np_, nr
-        if (not raise_p or sp >= smax) and (not raise_r or sr >= smax):
+        if factor >= _RETEST_MAX_FACTOR or ((not raise_p or sp >= smax) and (not raise_r or sr >= smax)):
             break
         factor *= _RETEST_STEP
     x[:] = xr
