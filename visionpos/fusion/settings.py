@@ -48,10 +48,10 @@ KALMAN = section(
             "covariance", min=1e-7),
     Setting("gate_chi2", "number", 40.0, "Mahalanobis^2 gate on the 6-dof innovation (chi2 with 6 dof)", min=1.0),
     Setting("gate_retest", "boolean", False, "a pose the gate refuses is tried again with the lagging block's "
-            "process noise over its prediction raised 10, 100 or 1000 times (at most to max_noise_scale); the first that "
-            "passes the gate is taken and the adaptation goes on from its scale (follows sudden manoeuvres the "
-            "model lags, e.g. a flick's end under angular_jerk_psd, instead of refusing measurements for tens of "
-            "ms; an outlier fits none)"),
+            "process noise over its prediction raised 10, 100 or 1000 times (at most to max_noise_scale); the "
+            "first that passes the gate is taken and the adaptation goes on from its scale (follows sudden "
+            "manoeuvres the model lags, e.g. a flick's end under angular_jerk_psd, instead of refusing "
+            "measurements for tens of ms; an outlier fits none)"),
     Setting("reset_after_ms", "number", 60.0, "measurements gated out for this long: the filter restarts at "
             "the measurement", field="reset_after_ns", convert=ms_to_ns, min=0.0),
     Setting("max_prediction_ms", "number", 50.0, "tick() predicts at most this far past the last update, "
