@@ -31,14 +31,23 @@ acceleration (it explained half of the error's square), a lag the
 angular-acceleration state removes (slalom rotation RMSE 1.38 -> 1.08 x the
 bound at angular_jerk_psd 100). It is not the default: it smooths a hovering
 or smoothly flying body less (static rotation 0.30 -> 0.31-0.39 deg for
-100-2000), and on the dash's sharp pitch flicks, below about 2000, its noise
-adapts too slowly and the gate refuses measurements (tests/fusion/test_stall.py). A fixed process
+100-2000), and on the dash's sharp pitch flicks, below about 2000, the gate
+refuses measurements (tests/fusion/test_stall.py): at a flick's end the filter
+still extrapolates its angular acceleration, the floor noise does not cover
+that, and a refused pose leaves the prediction running on while the NIS average
+takes tens of ms to open the gate. `gate_retest` (_manoeuvre_retest) tries such
+a pose again under raised process noise and keeps the first scale that fits
+(tests/fusion/test_manoeuvre.py). A fixed process
 noise is still a compromise between a hovering and a manoeuvring body, so
 the noise is scaled by a running average of the normalised innovation
 squared (NIS, separately for position and orientation): while the model fits
 the measurements NIS/dof ~ 1 and the floor `jerk_psd` / `angular_jerk_psd`
 smooths hard; a manoeuvre makes NIS grow and the process noise follows
-within a few updates (bounded by `max_noise_scale`). Both scales also
+within a few updates (above `nis_threshold`, bounded by `max_noise_scale`).
+The fused pose's NIS is computed with its covariance as the filter takes it,
+split over the fusions that share its frames (about 0.28 per dof while the
+model fits, so lags barely show); `nis_unsplit_cov` uses the pose's own
+covariance for the adaptation's NIS instead. Both scales also
 listen to an image-space detector (report_image_nis): each new frame's
 markers predicted to its capture time against the blobs found. That view is
 uncompensated, so motion compensation (which uses this filter's own velocity
