@@ -260,8 +260,10 @@ def _kf_update(
     vector]. gate_chi2 <= 0 disables the gate. h_vel (s), h_acc (s^2): how much
     of the velocity (and rate) and of the acceleration (and angular acceleration)
     error the measurement carries, the columns of H beside the pose's own (0, 0: a plain pose; see
-    kernels._tracked_measurements: a motion-compensated one). Returns (accepted,
-    squared Mahalanobis distance, position NIS / 3, rotation NIS / 3).
+    kernels._tracked_measurements: a motion-compensated one). nis_cov_scale: the NIS per block
+    (not the gate's distance) is taken with cov times this (1 / reuse: the pose's own covariance,
+    fusion.kalman.nis_unsplit_cov). Returns (accepted, squared Mahalanobis distance, position
+    NIS / 3, rotation NIS / 3).
     """
     z = np.empty(6)
     z[POSE_P] = position
@@ -506,12 +508,13 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
     """Predict one body filter to t_ns (int ns) and fuse a pose measurement, in place (compiled).
 
     x (18,), P (18, 18), R_nom (3, 3), adapt (6,), clock (3,): the body's rows of a
-    FilterBank; params (10,) its settings (FilterBank.params). position (3,), R (3, 3) body->world,
+    FilterBank; params (N_KALMAN_PARAMS,) its settings (FilterBank.params). position (3,), R (3, 3) body->world,
     cov (6, 6) over [p, world rotation vector]; gate: apply the innovation gate; h_vel (s),
     h_acc (s^2): the velocity (rate) and acceleration columns of H (_kf_update; 0 for a pose
-    measured at t_ns).
+    measured at t_ns); nis_cov_scale: as _kf_update.
     Returns (accepted, squared Mahalanobis distance); a gated measurement leaves
-    the state predicted only. Then adapts the process-noise scales to the NIS.
+    the state predicted only (retried first under manoeuvre hypotheses when
+    params say gate_retest: _manoeuvre_retest). Then adapts the process-noise scales to the NIS.
     """
     dt = (t_ns - clock[CLOCK_T_NS]) * 1e-9
     retest = gate and params[KALMAN_GATE_RETEST] != 0.0 and dt > 0.0
@@ -767,10 +770,10 @@ class FilterBank:
 
     x (n, 18), P (n, 18, 18), R_nom (n, 3, 3); adapt (n, 6): process-noise scales
     and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img, nis_img_r]; clock (n, 3) int64:
-    [filter time ns, last image-NIS time ns, folds]; params (10,): [jerk_psd,
+    [filter time ns, last image-NIS time ns, folds]; params (13,): [jerk_psd,
     angular_accel_psd, angular_jerk_psd, max_noise_scale, nis_time_constant_s, gate_chi2, then the prior
     variances of velocity, acceleration, angular velocity and angular acceleration at
-    (re)initialisation].
+    (re)initialisation, nis_threshold, nis_unsplit_cov and gate_retest (1.0 = on)].
     filters[i] is the BodyFilter over row i.
     """
 
