@@ -29,6 +29,7 @@ from visionpos.fusion.layout import (
     CLOCK_T_NS,
     INTRINSICS_FX,
     INTRINSICS_FY,
+    KALMAN_NIS_UNSPLIT_COV,
     MEAS_COV,
     MEAS_FIT_RMS_M,
     MEAS_N_CAMERAS,
@@ -713,7 +714,8 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
                                        tracks)[0]
         if sv_verdict == VERDICT_TOO_FEW:  # no frame with an unambiguous marker: the pose
             accepted, _ = filter_update(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i], cov,
-                                        True, h_t[i, 0], h_t[i, 1])
+                                        True, h_t[i, 0], h_t[i, 1],
+                                        1.0 / reuse if kalman[KALMAN_NIS_UNSPLIT_COV] != 0.0 else 1.0)
         else:
             accepted, kind = sv_verdict != VERDICT_VIEWS_GATED, UPDATE_VIEWS
         if accepted:

@@ -37,10 +37,11 @@ N_ADAPT = 6
 # clock (n, 3) int64: filter time ns, last image-NIS time ns, folds of the rotation error since the start
 CLOCK_T_NS, CLOCK_IMG_T_NS, CLOCK_FOLDS = range(3)
 N_CLOCK = 3
-# params (10,) float: the KalmanSettings the kernels read
+# params (13,) float: the KalmanSettings the kernels read
 (KALMAN_JERK_PSD, KALMAN_ANG_ACC_PSD, KALMAN_ANG_JERK_PSD, KALMAN_MAX_SCALE, KALMAN_NIS_TAU_S, KALMAN_GATE_CHI2,
- KALMAN_INIT_VEL_VAR, KALMAN_INIT_ACC_VAR, KALMAN_INIT_RATE_VAR, KALMAN_INIT_ANG_ACC_VAR) = range(10)
-N_KALMAN_PARAMS = 10
+ KALMAN_INIT_VEL_VAR, KALMAN_INIT_ACC_VAR, KALMAN_INIT_RATE_VAR, KALMAN_INIT_ANG_ACC_VAR, KALMAN_NIS_THRESHOLD,
+ KALMAN_NIS_UNSPLIT_COV, KALMAN_GATE_RETEST) = range(13)
+N_KALMAN_PARAMS = 13
 
 # ---------------------------------------------------------------- filter output row (58,) (tracking._output_at)
 OUT_POS, OUT_QUAT_XYZW, OUT_VEL, OUT_RATE_BODY = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13)

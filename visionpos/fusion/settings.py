@@ -38,11 +38,24 @@ KALMAN = section(
             "smooths less and can gate sharp flicks; see tracking.py)", min=0.0),
     Setting("max_noise_scale", "number", 1e4, "the innovation-driven (NIS) adaptation may raise both "
             "densities by up to this factor", min=1.0),
+    Setting("nis_threshold", "number", 2.0, "the averaged NIS per degree of freedom above which the adaptation "
+            "raises the process noise (below it the noise decays to its floor); ~1 while the model fits, so "
+            "lower values react to smaller lags and smooth less (1.5 with nis_unsplit_cov took the slalom and "
+            "dash rotation error from 1.38 and 1.87 to 1.27 and 1.53 x the bound)", min=1.0),
+    Setting("nis_unsplit_cov", "boolean", False, "the fused pose's NIS that drives the adaptation uses the "
+            "pose's own covariance, not the one split over the fusions that share its frames (the filter's "
+            "update still uses the split one): its mean is then ~1 per dof while the model fits (0.28 split, "
+            "which hid lags from the adaptation)"),
     Setting("nis_time_constant_ms", "number", 15.0, "averaging time of the NIS that drives the adaptation",
             field="nis_time_constant_s", convert=lambda ms: ms * 1e-3, min=0.1),
     Setting("marker_sigma_m", "number", 0.0001, "floor of the per-marker 3D noise used for the measurement "
             "covariance", min=1e-7),
     Setting("gate_chi2", "number", 40.0, "Mahalanobis^2 gate on the 6-dof innovation (chi2 with 6 dof)", min=1.0),
+    Setting("gate_retest", "boolean", False, "a pose the gate refuses is tried again with the lagging block's "
+            "process noise over its prediction raised 10, 100 or 1000 times (at most to max_noise_scale); the "
+            "first that passes the gate is taken and the adaptation goes on from its scale (follows sudden "
+            "manoeuvres the model lags, e.g. a flick's end under angular_jerk_psd, instead of refusing "
+            "measurements for tens of ms; an outlier fits none)"),
     Setting("reset_after_ms", "number", 60.0, "measurements gated out for this long: the filter restarts at "
             "the measurement", field="reset_after_ns", convert=ms_to_ns, min=0.0),
     Setting("max_prediction_ms", "number", 50.0, "tick() predicts at most this far past the last update, "
@@ -132,8 +145,11 @@ class KalmanSettings:
     angular_jerk_psd: float = KALMAN["angular_jerk_psd"].field_default
     max_noise_scale: float = KALMAN["max_noise_scale"].field_default
     nis_time_constant_s: float = KALMAN["nis_time_constant_ms"].field_default
+    nis_threshold: float = KALMAN["nis_threshold"].field_default
+    nis_unsplit_cov: bool = KALMAN["nis_unsplit_cov"].field_default
     marker_sigma_m: float = KALMAN["marker_sigma_m"].field_default
     gate_chi2: float = KALMAN["gate_chi2"].field_default
+    gate_retest: bool = KALMAN["gate_retest"].field_default
     reset_after_ns: int = KALMAN["reset_after_ms"].field_default
     max_prediction_ns: int = KALMAN["max_prediction_ms"].field_default
     lost_timeout_ns: int = KALMAN["lost_timeout_ms"].field_default

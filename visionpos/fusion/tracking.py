@@ -31,14 +31,23 @@ acceleration (it explained half of the error's square), a lag the
 angular-acceleration state removes (slalom rotation RMSE 1.38 -> 1.08 x the
 bound at angular_jerk_psd 100). It is not the default: it smooths a hovering
 or smoothly flying body less (static rotation 0.30 -> 0.31-0.39 deg for
-100-2000), and on the dash's sharp pitch flicks, below about 2000, its noise
-adapts too slowly and the gate refuses measurements (tests/fusion/test_stall.py). A fixed process
+100-2000), and on the dash's sharp pitch flicks, below about 2000, the gate
+refuses measurements (tests/fusion/test_stall.py): at a flick's end the filter
+still extrapolates its angular acceleration, the floor noise does not cover
+that, and a refused pose leaves the prediction running on while the NIS average
+takes tens of ms to open the gate. `gate_retest` (_manoeuvre_retest) tries such
+a pose again under raised process noise and keeps the first scale that fits
+(tests/fusion/test_manoeuvre.py). A fixed process
 noise is still a compromise between a hovering and a manoeuvring body, so
 the noise is scaled by a running average of the normalised innovation
 squared (NIS, separately for position and orientation): while the model fits
 the measurements NIS/dof ~ 1 and the floor `jerk_psd` / `angular_jerk_psd`
 smooths hard; a manoeuvre makes NIS grow and the process noise follows
-within a few updates (bounded by `max_noise_scale`). Both scales also
+within a few updates (above `nis_threshold`, bounded by `max_noise_scale`).
+The fused pose's NIS is computed with its covariance as the filter takes it,
+split over the fusions that share its frames (about 0.28 per dof while the
+model fits, so lags barely show); `nis_unsplit_cov` uses the pose's own
+covariance for the adaptation's NIS instead. Both scales also
 listen to an image-space detector (report_image_nis): each new frame's
 markers predicted to its capture time against the blobs found. That view is
 uncompensated, so motion compensation (which uses this filter's own velocity
@@ -91,6 +100,7 @@ from visionpos.fusion.layout import (
     KALMAN_ANG_ACC_PSD,
     KALMAN_ANG_JERK_PSD,
     KALMAN_GATE_CHI2,
+    KALMAN_GATE_RETEST,
     KALMAN_INIT_ACC_VAR,
     KALMAN_INIT_ANG_ACC_VAR,
     KALMAN_INIT_RATE_VAR,
@@ -98,6 +108,7 @@ from visionpos.fusion.layout import (
     KALMAN_JERK_PSD,
     KALMAN_MAX_SCALE,
     KALMAN_NIS_TAU_S,
+    KALMAN_NIS_THRESHOLD,
     N_ADAPT,
     N_CLOCK,
     N_OUT,
@@ -135,7 +146,6 @@ from visionpos.geometry.rotations import (
 )
 from visionpos.jit import matmul3, matvec3, njit
 
-_NIS_HIGH = 2.0  # averaged NIS/dof above this means the motion model lags
 _SCALE_DECAY_S = 0.2  # s, time constant of the process-noise scale's return to its floor
 
 
@@ -242,6 +252,7 @@ def _kf_update(
     gate_chi2: float,
     h_vel: float,
     h_acc: float,
+    nis_cov_scale: float = 1.0,
 ) -> tuple[bool, float, float, float]:
     """Fuse a pose measurement into x (18,), P (18, 18), R_nom (3, 3) in place (Joseph form).
 
@@ -249,8 +260,10 @@ def _kf_update(
     vector]. gate_chi2 <= 0 disables the gate. h_vel (s), h_acc (s^2): how much
     of the velocity (and rate) and of the acceleration (and angular acceleration)
     error the measurement carries, the columns of H beside the pose's own (0, 0: a plain pose; see
-    kernels._tracked_measurements: a motion-compensated one). Returns (accepted,
-    squared Mahalanobis distance, position NIS / 3, rotation NIS / 3).
+    kernels._tracked_measurements: a motion-compensated one). nis_cov_scale: the NIS per block
+    (not the gate's distance) is taken with cov times this (1 / reuse: the pose's own covariance,
+    fusion.kalman.nis_unsplit_cov). Returns (accepted, squared Mahalanobis distance, position
+    NIS / 3, rotation NIS / 3).
     """
     z = np.empty(6)
     z[POSE_P] = position
@@ -277,8 +290,13 @@ def _kf_update(
     for i in range(6):
         for j in range(6):
             d2 += y[i] * Sinv[i, j] * y[j]
-    nis_p = _quad3(S[POSE_P, POSE_P], y[POSE_P]) / 3.0
-    nis_r = _quad3(S[POSE_ROT, POSE_ROT], y[POSE_ROT]) / 3.0
+    if nis_cov_scale == 1.0:
+        nis_p = _quad3(S[POSE_P, POSE_P], y[POSE_P]) / 3.0
+        nis_r = _quad3(S[POSE_ROT, POSE_ROT], y[POSE_ROT]) / 3.0
+    else:
+        Sn = S - (1.0 - nis_cov_scale) * cov
+        nis_p = _quad3(Sn[POSE_P, POSE_P], y[POSE_P]) / 3.0
+        nis_r = _quad3(Sn[POSE_ROT, POSE_ROT], y[POSE_ROT]) / 3.0
     if gate_chi2 > 0.0 and d2 > gate_chi2:
         return False, d2, nis_p, nis_r
     K = _kalman_gain(PHt, Sinv)
@@ -322,13 +340,14 @@ def _kf_update(
 @njit
 def _kf_predict_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: float, qw: float, qaj: float,
                        position: np.ndarray, R: np.ndarray, cov: np.ndarray,
-                       gate_chi2: float, h_vel: float, h_acc: float) -> tuple[int, bool, float, float, float]:
+                       gate_chi2: float, h_vel: float, h_acc: float,
+                       nis_cov_scale: float = 1.0) -> tuple[int, bool, float, float, float]:
     """_kf_predict over dt (when dt != 0) then _kf_update, in one call; returns
     (folds done, accepted, squared Mahalanobis distance, position NIS / 3, rotation NIS / 3)."""
     folds = 0
     if dt != 0.0 and _kf_predict(x, P, R_nom, dt, qj, qw, qaj):
         folds += 1
-    accepted, d2, nis_p, nis_r = _kf_update(x, P, R_nom, position, R, cov, gate_chi2, h_vel, h_acc)
+    accepted, d2, nis_p, nis_r = _kf_update(x, P, R_nom, position, R, cov, gate_chi2, h_vel, h_acc, nis_cov_scale)
     if accepted:
         folds += 1
     return folds, accepted, d2, nis_p, nis_r
@@ -424,35 +443,92 @@ def _count_folds(R_nom: np.ndarray, clock: np.ndarray, folds: int) -> None:
 
 
 @njit
-def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: float) -> float:
-    if nis > _NIS_HIGH:
-        scale *= (nis / _NIS_HIGH) ** (3.0 * alpha)
+def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: float, nis_high: float) -> float:
+    if nis > nis_high:
+        scale *= (nis / nis_high) ** (3.0 * alpha)
     else:
         scale *= decay
     return min(smax, max(1.0, scale))
 
 
+_RETEST_STEP = 10.0  # the manoeuvre hypotheses' process-noise scales grow by this factor ...
+_RETEST_MAX_FACTOR = 1000.0  # ... up to this (10^4 would admit a 17 deg jump within 10 ms of a hover)
+
+
+@njit
+def _manoeuvre_retest(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.ndarray, params: np.ndarray,
+                      dt: float, x0: np.ndarray, P0: np.ndarray, R0: np.ndarray, nis_p: float, nis_r: float,
+                      position: np.ndarray, R: np.ndarray, cov: np.ndarray, h_vel: float, h_acc: float,
+                      nis_cov_scale: float, folds: int) -> tuple[int, bool, float, float, float]:
+    """A pose measurement the gate refused, tried again under manoeuvre hypotheses (fusion.kalman.gate_retest).
+
+    x0, P0, R0: the state before the prediction over dt (s); x, P, R_nom hold the refused
+    attempt; nis_p, nis_r its NIS per block. The process noise of the lagging block(s) (NIS
+    above the threshold; both when neither is) is raised _RETEST_STEP, ... up to _RETEST_MAX_FACTOR
+    times (and at most to max_noise_scale) over this prediction; the first hypothesis the gate admits is taken
+    and its scales kept (the adaptation decays them from there). Why: a model that lags a
+    sudden manoeuvre (a flick that ends while the angular acceleration is extrapolated) is
+    refused by the gate, and a refused measurement leaves the prediction running away, so the
+    NIS average alone takes tens of ms to reopen the gate. An outlier fits no hypothesis: then
+    the state is the refused attempt's prediction, as without the retest.
+    Returns _kf_predict_update's (folds, accepted, d2, position NIS / 3, rotation NIS / 3).
+    """
+    smax = params[KALMAN_MAX_SCALE]
+    raise_p, raise_r = nis_p > params[KALMAN_NIS_THRESHOLD], nis_r > params[KALMAN_NIS_THRESHOLD]
+    if not (raise_p or raise_r):
+        raise_p = raise_r = True
+    xr, Pr, Rr = x.copy(), P.copy(), R_nom.copy()
+    factor = _RETEST_STEP
+    while True:
+        sp = min(adapt[ADAPT_SCALE_P] * factor, smax) if raise_p else adapt[ADAPT_SCALE_P]
+        sr = min(adapt[ADAPT_SCALE_R] * factor, smax) if raise_r else adapt[ADAPT_SCALE_R]
+        x[:] = x0
+        P[:, :] = P0
+        R_nom[:, :] = R0
+        f, ok, d2, np_, nr = _kf_predict_update(x, P, R_nom, dt, params[KALMAN_JERK_PSD] * sp,
+                                                params[KALMAN_ANG_ACC_PSD] * sr, params[KALMAN_ANG_JERK_PSD] * sr,
+                                                position, R, cov, params[KALMAN_GATE_CHI2], h_vel, h_acc,
+                                                nis_cov_scale)
+        if ok:
+            adapt[ADAPT_SCALE_P], adapt[ADAPT_SCALE_R] = sp, sr
+            return f, ok, d2, np_, nr
+        if factor >= _RETEST_MAX_FACTOR or ((not raise_p or sp >= smax) and (not raise_r or sr >= smax)):
+            break
+        factor *= _RETEST_STEP
+    x[:] = xr
+    P[:, :] = Pr
+    R_nom[:, :] = Rr
+    return folds, False, d2, nis_p, nis_r
+
+
 @njit
 def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.ndarray, clock: np.ndarray,
                   params: np.ndarray, t_ns: int, position: np.ndarray, R: np.ndarray, cov: np.ndarray,
-                  gate: bool, h_vel: float, h_acc: float) -> tuple[bool, float]:
+                  gate: bool, h_vel: float, h_acc: float, nis_cov_scale: float = 1.0) -> tuple[bool, float]:
     """Predict one body filter to t_ns (int ns) and fuse a pose measurement, in place (compiled).
 
     x (18,), P (18, 18), R_nom (3, 3), adapt (6,), clock (3,): the body's rows of a
-    FilterBank; params (10,) its settings (FilterBank.params). position (3,), R (3, 3) body->world,
+    FilterBank; params (N_KALMAN_PARAMS,) its settings (FilterBank.params). position (3,), R (3, 3) body->world,
     cov (6, 6) over [p, world rotation vector]; gate: apply the innovation gate; h_vel (s),
     h_acc (s^2): the velocity (rate) and acceleration columns of H (_kf_update; 0 for a pose
-    measured at t_ns).
+    measured at t_ns); nis_cov_scale: as _kf_update.
     Returns (accepted, squared Mahalanobis distance); a gated measurement leaves
-    the state predicted only. Then adapts the process-noise scales to the NIS.
+    the state predicted only (retried first under manoeuvre hypotheses when
+    params say gate_retest: _manoeuvre_retest). Then adapts the process-noise scales to the NIS.
     """
     dt = (t_ns - clock[CLOCK_T_NS]) * 1e-9
+    retest = gate and params[KALMAN_GATE_RETEST] != 0.0 and dt > 0.0
+    if retest:
+        x0, P0, R0 = x.copy(), P.copy(), R_nom.copy()
     folds, accepted, d2, nis_p, nis_r = _kf_predict_update(
         x, P, R_nom, dt,
         params[KALMAN_JERK_PSD] * adapt[ADAPT_SCALE_P], params[KALMAN_ANG_ACC_PSD] * adapt[ADAPT_SCALE_R],
         params[KALMAN_ANG_JERK_PSD] * adapt[ADAPT_SCALE_R],
-        position, R, cov, params[KALMAN_GATE_CHI2] if gate else 0.0, h_vel, h_acc,
+        position, R, cov, params[KALMAN_GATE_CHI2] if gate else 0.0, h_vel, h_acc, nis_cov_scale,
     )
+    if retest and not accepted:
+        folds, accepted, d2, nis_p, nis_r = _manoeuvre_retest(x, P, R_nom, adapt, params, dt, x0, P0, R0, nis_p, nis_r,
+                                                              position, R, cov, h_vel, h_acc, nis_cov_scale, folds)
     clock[CLOCK_T_NS] = t_ns
     _count_folds(R_nom, clock, folds)
     _adapt_noise(adapt, clock, params, t_ns, dt, nis_p, nis_r, True)
@@ -482,10 +558,11 @@ def _adapt_noise(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns:
     nis_img = adapt[ADAPT_NIS_IMG] if fresh else 0.0  # the markers' common shift: position lag
     nis_img_r = adapt[ADAPT_NIS_IMG_R] if fresh else 0.0  # their spread about it: orientation lag
     decay = math.exp(-max(dt, 0.0) / _SCALE_DECAY_S)
-    max_scale = params[KALMAN_MAX_SCALE]
-    adapt[ADAPT_SCALE_P] = _adapt_scale(adapt[ADAPT_SCALE_P], max(adapt[ADAPT_NIS_P], nis_img), alpha, decay, max_scale)
+    max_scale, nis_high = params[KALMAN_MAX_SCALE], params[KALMAN_NIS_THRESHOLD]
+    adapt[ADAPT_SCALE_P] = _adapt_scale(adapt[ADAPT_SCALE_P], max(adapt[ADAPT_NIS_P], nis_img), alpha, decay, max_scale,
+                                        nis_high)
     adapt[ADAPT_SCALE_R] = _adapt_scale(adapt[ADAPT_SCALE_R], max(adapt[ADAPT_NIS_R], nis_img_r), alpha, decay,
-                                        max_scale)
+                                        max_scale, nis_high)
 
 
 @njit
@@ -693,10 +770,10 @@ class FilterBank:
 
     x (n, 18), P (n, 18, 18), R_nom (n, 3, 3); adapt (n, 6): process-noise scales
     and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img, nis_img_r]; clock (n, 3) int64:
-    [filter time ns, last image-NIS time ns, folds]; params (10,): [jerk_psd,
+    [filter time ns, last image-NIS time ns, folds]; params (13,): [jerk_psd,
     angular_accel_psd, angular_jerk_psd, max_noise_scale, nis_time_constant_s, gate_chi2, then the prior
     variances of velocity, acceleration, angular velocity and angular acceleration at
-    (re)initialisation].
+    (re)initialisation, nis_threshold, nis_unsplit_cov and gate_retest (1.0 = on)].
     filters[i] is the BodyFilter over row i.
     """
 
@@ -711,7 +788,9 @@ class FilterBank:
         self.params = np.array([settings.jerk_psd, settings.angular_accel_psd, settings.angular_jerk_psd,
                                 settings.max_noise_scale, settings.nis_time_constant_s, settings.gate_chi2,
                                 settings.init_velocity_sigma_m_s**2, settings.init_acceleration_sigma_m_s2**2,
-                                settings.init_angular_velocity_sigma_rad_s**2, ang_acc_var])
+                                settings.init_angular_velocity_sigma_rad_s**2, ang_acc_var, settings.nis_threshold,
+                                float(settings.nis_unsplit_cov), float(settings.gate_retest)])
+
         # the kernels' argument (layout.FilterArrays as a plain tuple: cheaper for numba to dispatch)
         self.arrays = tuple(FilterArrays(self.x, self.P, self.R_nom, self.adapt, self.clock, self.params))
         self.filters = [BodyFilter(settings, self, i) for i in range(n)] if make_filters else []
