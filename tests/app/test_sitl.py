@@ -129,9 +129,63 @@ def test_truth_track_smooths_the_centimetre_altitude():
     assert np.abs(steps - climb * dt_ns * 1e-9).max() < 0.0005  # no 1 cm jumps: each 5 ms step ~ 1.25 mm
 
 
+def _sitl_clock(now: int, offset_ns: int, age_ns: int, wait_ns: int) -> "S.SitlClock":
+    """A SitlClock fed as the GCS reader feeds it: SITL's clock = ours + offset_ns; each SIM_STATE arrives
+    age_ns after the physics step it reports (SYSTEM_TIME and RAW_IMU of its bucket just before it), and each
+    TIMESYNC request is read wait_ns after we send it."""
+    clock = S.SitlClock()
+    now = now // 1000 * 1000  # SITL stamps whole microseconds
+    for k in range(1000):  # 100 Hz over the last 10 s
+        step = now - 10_000_000_000 + k * 10_000_000 + offset_ns  # SITL ns
+        arrive = step - offset_ns + age_ns + (k % 5) * 100_000  # a little jitter: the median is taken
+        clock.on_raw_imu(arrive - 10_000, step // 1000)
+        clock.on_sim_state(arrive)
+        clock.on_system_time(arrive + 10_000, step // 1_000_000)
+    for k in range(40):
+        s1 = now - 10_000_000_000 + k * 250_000_000
+        clock.pending[s1] = s1
+        clock.on_timesync(s1 + offset_ns + wait_ns + (k % 3) * 200_000, s1)
+    return clock
+
+
+def test_sitl_clock_sums_the_truth_age_and_the_read_wait_free_of_both_clock_offsets():
+    """SIM_STATE 2.5 ms old on arrival (+ jitter 0..0.4 ms, median 0.2) and a 1.0 ms read wait (+ 0..0.4 ms,
+    median 0.2): 3.9 ms on SITL's clock whatever the offset between SITL's clock and ours."""
+    now = 50_000_000_000
+    for offset in (-7_000_000_000, 123_456_000):  # SITL stamps microseconds
+        c = _sitl_clock(now, offset, 2_500_000, 1_000_000).summary(now - 20_000_000_000)
+        assert c["sitl_term_ms"] == pytest.approx(2.7 + 1.2, abs=1e-6)
+        assert c["truth_pairs"] == 1000 and c["timesyncs"] == 40
+        assert c["bucket_mismatch_fraction"] == 0.0  # SYSTEM_TIME's ms is RAW_IMU's
+        # split with the fastest TIMESYNC as the offset: 1.0 ms of the wait counts as age
+        assert c["truth_age_ms"] == pytest.approx(3.7, abs=1e-6)
+        assert c["read_wait_ms"] == pytest.approx(0.2, abs=1e-6)
+
+
+def test_sitl_clock_pairs_sim_state_only_with_the_stamp_of_its_own_bucket():
+    """A RAW_IMU that arrived 5 ms before SIM_STATE is another bucket's: no pair (its time would make the truth
+    look 5 ms older); a SYSTEM_TIME whose millisecond is not RAW_IMU's is counted as a mismatch; a TIMESYNC
+    answer to a request that is not ours (SITL's own, tc1 = 0) is ignored."""
+    c = S.SitlClock()
+    c.on_raw_imu(1_000_000_000, 7_000_000)
+    c.on_sim_state(1_005_000_000)
+    assert c.truth == []
+    c.on_raw_imu(2_000_100_000, 7_999_900)
+    c.on_sim_state(2_000_200_000)
+    c.on_system_time(2_000_300_000, 8_000)  # not RAW_IMU's millisecond (7 999)
+    assert c.truth == [(2_000_200_000, 7_999_900_000)]
+    assert (c.bucket_checks, c.bucket_mismatches) == (1, 1)
+    c.on_sim_state(2_000_300_000)  # a second SIM_STATE without a stamp of its own
+    assert len(c.truth) == 1
+    c.on_timesync(0, 5)
+    c.on_timesync(123, 5)
+    assert c.timesync == []
+
+
 def test_delay_record_compares_the_measurement_with_stamp_to_send_plus_the_relay_hold():
-    """True delay = median(bridge write - stamp) + median(relay hold towards SITL) over the window; the
-    poses' lag behind SITL's truth (a yaw swing seen 3 ms late) is reported beside it, not in it."""
+    """True delay = median(bridge write - stamp) + median(relay hold towards SITL) + SITL's truth age and read
+    wait (SitlClock) over the window; the poses' lag behind SITL's truth (a yaw swing seen 3 ms late) is
+    reported beside it, not in it."""
     import collections
 
     now = time.monotonic_ns()
@@ -151,7 +205,10 @@ def test_delay_record_compares_the_measurement_with_stamp_to_send_plus_the_relay
         a = float(yaw(ti))
         truth.add(int(ti), _sim_state(0.0, 0.0, 1.0, (0.0, 0.0, 0.0), (math.cos(a / 2), 0.0, 0.0, math.sin(a / 2)),
                                       (0.0, 0.0, rate)))
-    d = S.delay_record(bc, relay, 20.0, truth)
-    assert d["true_ms"] == pytest.approx(17.0 + 20.4, abs=1e-6)  # medians: 17 ms and the relay's 20.4 ms
-    assert d["error_ms"] == pytest.approx(41.0 - 37.4, abs=1e-6)
+    assert S.delay_record(bc, relay, 20.0, truth)["true_ms"] is None  # without SITL's clock: not known
+    d = S.delay_record(bc, relay, 20.0, truth, clock=_sitl_clock(now, 3_000_000_000, 2_500_000, 1_000_000))
+    # medians: 17 ms, the relay's 20.4 ms, SIM_STATE's 2.7 ms age and SITL's 1.2 ms read wait
+    assert d["true_ms"] == pytest.approx(17.0 + 20.4 + 3.9, abs=1e-6)
+    assert d["sitl_clock_ms"] == pytest.approx(3.9, abs=1e-6)
+    assert d["error_ms"] == pytest.approx(41.0 - 41.3, abs=1e-6)
     assert d["optical_lag_ms"] == pytest.approx(3.0, abs=0.3)

@@ -111,6 +111,8 @@ MAV_CMD_DO_SET_MODE = 176
 MAV_CMD_COMPONENT_ARM_DISARM = 400
 MAV_CMD_NAV_TAKEOFF = 22
 MSG_SIM_STATE = 108
+MSG_SYSTEM_TIME = 2
+MSG_RAW_IMU = 27
 COPTER_MODES = {"STABILIZE": 0, "GUIDED": 4, "LOITER": 5, "RTL": 6, "LAND": 9}
 MODE_NAMES = {v: k for k, v in COPTER_MODES.items()}
 
@@ -450,6 +452,73 @@ class LiveArena:
 # ---------------------------------------------------------------- the GCS link
 
 
+class SitlClock:
+    """SITL's clock against ours, measured on the GCS link (SERIAL0) by the reader thread; thread-safe appends.
+
+    SITL's clock is its simulation time, stopped at each physics step while its loop runs (AP_HAL_SITL), so
+    everything it stamps in one loop carries that step's time. Two records:
+    - truth: (arrival here, SITL time) for each SIM_STATE, the SITL time being RAW_IMU's time_usec sent in the
+      same message bucket (both asked for at TRUTH_RATE_HZ; SITL sends RAW_IMU, then SIM_STATE, then
+      SYSTEM_TIME, together; RAW_IMU is stamped when sent, to the microsecond, which is the physics step
+      SIM_STATE reports; SYSTEM_TIME's time_boot_ms, whole milliseconds, only cross-checks the bucket);
+    - timesync: (our send time s1, SITL's tc1) for our TIMESYNC requests: tc1 is the step of the loop that read
+      the request, as for any datagram it reads (a vision pose included).
+    median(arrival - SITL time) + median(tc1 - s1) = how old SIM_STATE's physics is when it arrives here plus how
+    long a datagram sent now waits to be taken in on SITL's clock: the two clock offsets cancel."""
+
+    TIMESYNC_EVERY_NS = 250_000_000
+    BUCKET_NS = 1_000_000  # messages of one bucket arrive together (one TCP write)
+
+    def __init__(self) -> None:
+        self.truth: list[tuple[int, int]] = []
+        self.timesync: list[tuple[int, int]] = []
+        self.pending: dict[int, int] = {}
+        self.bucket_checks = 0
+        self.bucket_mismatches = 0  # SYSTEM_TIME ms != floor(RAW_IMU us / 1000): not one bucket
+        self._imu: tuple[int, int] | None = None  # (arrival, SITL ns) of the last RAW_IMU
+        self._last_imu: tuple[int, int] | None = None  # the same, for the SYSTEM_TIME check
+
+    def on_system_time(self, now: int, time_boot_ms: int) -> None:
+        """SITL sends it after RAW_IMU and SIM_STATE in their bucket: it checks the RAW_IMU before it."""
+        imu = self._last_imu
+        if imu is not None and now - imu[0] < self.BUCKET_NS:
+            self.bucket_checks += 1
+            self.bucket_mismatches += int(int(time_boot_ms) != imu[1] // 1_000_000)
+            self._last_imu = None
+
+    def on_raw_imu(self, now: int, time_usec: int) -> None:
+        self._imu = self._last_imu = (now, int(time_usec) * 1000)
+
+    def on_sim_state(self, now: int) -> None:
+        imu = self._imu
+        if imu is not None and now - imu[0] < self.BUCKET_NS:
+            self.truth.append((now, imu[1]))
+        self._imu = None  # one pair per bucket
+
+    def on_timesync(self, tc1: int, ts1: int) -> None:
+        s1 = self.pending.pop(ts1, None)
+        if s1 is not None and tc1 > 0:
+            self.timesync.append((s1, tc1))
+
+    def summary(self, since_ns: int) -> dict[str, Any]:
+        """The records since since_ns (our clock), in ms: sitl_term (the sum the true delay gains), and for
+        diagnosis its two parts split with the fastest TIMESYNC as the offset (biased by that one's own wait,
+        a fraction of SITL's loop period): truth_age (SIM_STATE's physics to its arrival here) and read_wait."""
+        tr = np.array([r for r in list(self.truth) if r[0] >= since_ns], dtype=np.int64).reshape(-1, 2)
+        ts = np.array([r for r in list(self.timesync) if r[0] >= since_ns], dtype=np.int64).reshape(-1, 2)
+        out: dict[str, Any] = {"truth_pairs": len(tr), "timesyncs": len(ts), "sitl_term_ms": None,
+                               "truth_age_ms": None, "read_wait_ms": None,
+                               "bucket_mismatch_fraction": self.bucket_mismatches / max(1, self.bucket_checks)}
+        if len(tr) < 10 or len(ts) < 5:
+            return out
+        age = (tr[:, 0] - tr[:, 1]).astype(np.float64)  # offset-laden: our arrival less SITL's time
+        fwd = (ts[:, 1] - ts[:, 0]).astype(np.float64)  # offset-laden: SITL's read less our send
+        out["sitl_term_ms"] = float(np.median(age) + np.median(fwd)) * 1e-6
+        out["truth_age_ms"] = float(np.median(age) + fwd.min()) * 1e-6
+        out["read_wait_ms"] = float(np.median(fwd) - fwd.min()) * 1e-6
+        return out
+
+
 class Gcs:
     """Our ground-station link to SITL's SERIAL0 (tcp), with a reader thread keeping what SITL reports.
 
@@ -473,6 +542,7 @@ class Gcs:
         self.modes: list[tuple[int, int]] = []  # (recv_ns, custom_mode) at each change
         self.origin: tuple[int, Any] | None = None
         self.heartbeats = 0
+        self.clock = SitlClock()
 
     # -- connection
     def connect(self, timeout_s: float = 30.0, proc: SitlProcess | None = None) -> None:
@@ -515,8 +585,16 @@ class Gcs:
 
     def _read(self) -> None:
         conn = self.conn
+        next_ts = 0
         while not self._stop.is_set():
             try:
+                if time.monotonic_ns() >= next_ts:
+                    next_ts = time.monotonic_ns() + SitlClock.TIMESYNC_EVERY_NS
+                    s1 = time.monotonic_ns()
+                    self.clock.pending[s1] = s1  # ts1 is our send time: SITL echoes it
+                    if len(self.clock.pending) > 64:
+                        self.clock.pending.pop(next(iter(self.clock.pending)))
+                    conn.mav.timesync_send(0, s1)
                 msg = conn.recv_match(blocking=True, timeout=0.1)
             except (OSError, ConnectionError):
                 return  # SITL rebooted or exited; connect() again
@@ -527,6 +605,13 @@ class Gcs:
         kind = m.get_type()
         if kind == "SIM_STATE":
             self.truth.add(now, m)
+            self.clock.on_sim_state(now)
+        elif kind == "RAW_IMU":
+            self.clock.on_raw_imu(now, m.time_usec)
+        elif kind == "SYSTEM_TIME":
+            self.clock.on_system_time(now, m.time_boot_ms)
+        elif kind == "TIMESYNC":
+            self.clock.on_timesync(m.tc1, m.ts1)
         elif kind == "LOCAL_POSITION_NED":
             self.local.append((now, m.x, m.y, m.z))
         elif kind == "ATTITUDE":
@@ -552,7 +637,9 @@ class Gcs:
             self.origin = (now, m)
 
     def request_streams(self) -> None:
-        for msg_id, rate in ((MSG_SIM_STATE, TRUTH_RATE_HZ), (32, TELEMETRY_RATE_HZ), (30, TELEMETRY_RATE_HZ),
+        # SYSTEM_TIME and RAW_IMU at SIM_STATE's rate share its message bucket: they stamp it (SitlClock)
+        for msg_id, rate in ((MSG_SIM_STATE, TRUTH_RATE_HZ), (MSG_SYSTEM_TIME, TRUTH_RATE_HZ),
+                             (MSG_RAW_IMU, TRUTH_RATE_HZ), (32, TELEMETRY_RATE_HZ), (30, TELEMETRY_RATE_HZ),
                              (193, 10.0), (49, 1.0)):  # LOCAL_POSITION_NED, ATTITUDE, EKF_STATUS_REPORT, ORIGIN
             self.conn.mav.command_long_send(1, 1, MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 1e6 / rate,
                                             0, 0, 0, 0, 0)
@@ -847,7 +934,7 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
         await asyncio.sleep(plan.cut_s)
     await _hold(gcs, plan, x0, y0, plan.hold_s / 2)
     if relay is not None:
-        record["link_delay"] = delay_record(link.bc, relay, plan.link_delay_ms or 0.0, gcs.truth)
+        record["link_delay"] = delay_record(link.bc, relay, plan.link_delay_ms or 0.0, gcs.truth, clock=gcs.clock)
         d = record["link_delay"]
         say(f"link delay {d['added_ms']:g} ms: back-channel measured {_fmt(d['measured_ms'])} ms, true "
             f"{_fmt(d['true_ms'])} ms ({d['detail']})")
@@ -887,19 +974,23 @@ def _fmt(v: float | None) -> str:
 
 
 def delay_record(bc: Any, relay: Any, added_ms: float, truth: TruthTrack | None = None,
-                 window_ns: int | None = None) -> dict[str, Any]:
+                 window_ns: int | None = None, clock: SitlClock | None = None) -> dict[str, Any]:
     """The back-channel's measured capture-to-autopilot delay against the true one, for a link through relay.
 
-    True delay: when a pose reaches SITL's socket less its stamp (the capture time it stands for), on the
-    server clock: (the bridge's write to its socket - the stamp) + (the relay's hold of the datagrams to
-    SITL), each the median over the back-channel's measurement window (the newest window_ns,
-    DELAY_WINDOW_NS); loopback adds microseconds. Left out, the same for every added delay (so the change
-    of the difference with the added delay is free of them): SITL's wait to read its socket (its loop,
-    which also stamps TIMESYNC); SIM_STATE's latency to its arrival stamp here (SITL's wait to send it,
-    loopback TCP, our reader thread's wake-up: the cameras render the truth as of its arrival, so a pose
-    shows motion that much older than its stamp), less RAW_IMU's (ArduPilot stamps it when sent, not when
-    sampled). optical_lag_ms, for diagnosis: how far the poses' body rates trail SIM_STATE's as stamped
-    here (the fusion's lag; not in the true delay)."""
+    True delay, on SITL's clock (the one VISO_DELAY_MS is on): the SITL time at which SITL takes in a pose,
+    less the SITL time of the physics the pose shows. Its parts, each the median over the back-channel's
+    measurement window (the newest window_ns, DELAY_WINDOW_NS):
+    - the bridge's write to its socket less the pose's stamp (our clock);
+    - the relay's hold of the datagrams towards SITL (our clock; loopback adds microseconds);
+    - with clock (SitlClock, measured on the GCS link): SIM_STATE's age, our arrival time less its SITL time
+      (the cameras render the truth as of its arrival, so a pose stamped t shows SITL's physics of that much
+      earlier), plus SITL's wait to take in a datagram (TIMESYNC's tc1 less our send time): their sum cancels
+      both clocks' offsets. It assumes SERIAL1 takes datagrams in as SERIAL0 does (both read on SITL's loop).
+    Without clock (or too few records) the last part is missing and true_ms is None.
+    Left out: RAW_IMU's own timing (stamped when sent, at the step of its loop, which is the instant its gyro
+    describes, bar the gyro filter's lag that the back-channel removes). optical_lag_ms, for diagnosis: how far
+    the poses' body rates trail SIM_STATE's as stamped here (the fusion's lag; a bias of the optics, which the
+    measurement sees and the true delay does not)."""
     from bridge.backchannel import DELAY_WINDOW_NS
 
     now = time.monotonic_ns()
@@ -907,12 +998,19 @@ def delay_record(bc: Any, relay: Any, added_ms: float, truth: TruthTrack | None 
     sends = np.array([r[1] for r in list(bc.sends.d) if r[0] >= since], dtype=float)  # list(): copied under the GIL
     hold_ms = relay.hold_ms_median("to_autopilot", since)
     lag_ms = _optical_lag_ms(bc, truth, since) if truth is not None else None
-    true_ms = float(np.median(sends)) * 1e-6 + hold_ms if len(sends) and hold_ms is not None else None
+    sitl = clock.summary(since) if clock is not None else {}
+    sitl_ms = sitl.get("sitl_term_ms")
+    true_ms = (float(np.median(sends)) * 1e-6 + hold_ms + sitl_ms
+               if len(sends) and hold_ms is not None and sitl_ms is not None else None)
     measured = bc.delay_ms
     return {"added_ms": float(added_ms), "measured_ms": measured, "true_ms": true_ms,
             "error_ms": measured - true_ms if measured is not None and true_ms is not None else None,
             "send_minus_stamp_ms_p50": float(np.median(sends)) * 1e-6 if len(sends) else None,
             "relay_hold_ms_p50": hold_ms, "relay_hold_back_ms_p50": relay.hold_ms_median("to_bridge", since),
+            "sitl_clock_ms": sitl_ms, "truth_age_ms": sitl.get("truth_age_ms"),
+            "sitl_read_wait_ms": sitl.get("read_wait_ms"), "sitl_clock_records": (sitl.get("truth_pairs"),
+                                                                                  sitl.get("timesyncs")),
+            "sitl_bucket_mismatch_fraction": sitl.get("bucket_mismatch_fraction"),
             "optical_lag_ms": lag_ms,
             "correlation": float(bc.delay_correlation) if np.isfinite(bc.delay_correlation) else None,
             "gyro_source": bc.gyro_source or None, "detail": bc.delay_reason}
@@ -1063,7 +1161,8 @@ def format_flight(s: dict[str, Any]) -> str:
         d = s["link_delay"]
         lines.append(f"  link delay {d['added_ms']:g} ms each way: capture->autopilot delay measured by the "
                      f"back-channel {_fmt(d['measured_ms'])} ms, true {_fmt(d['true_ms'])} ms (send-stamp "
-                     f"{_fmt(d['send_minus_stamp_ms_p50'])} + relay {_fmt(d['relay_hold_ms_p50'])}), difference "
+                     f"{_fmt(d['send_minus_stamp_ms_p50'])} + relay {_fmt(d['relay_hold_ms_p50'])} + SITL's truth "
+                     f"age and read wait {_fmt(d.get('sitl_clock_ms'))}), difference "
                      f"{_fmt(d['error_ms'])} ms; poses behind SITL's truth {_fmt(d['optical_lag_ms'])} ms; "
                      f"{d['detail']}")
     lines.append(f"  failsafe / lane switch messages: {s['failsafe_or_lane_switch'] or 'none'}; "

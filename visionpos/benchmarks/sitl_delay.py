@@ -54,6 +54,7 @@ def run(quick: bool = False) -> BenchResult:
             f"sitl_delay_measured_ms_{tag}": ld.get("measured_ms"),
             f"sitl_delay_true_ms_{tag}": ld.get("true_ms"),
             f"sitl_delay_error_ms_{tag}": ld.get("error_ms"),
+            f"sitl_delay_sitl_clock_ms_{tag}": ld.get("sitl_clock_ms"),
             f"sitl_delay_flight_completed_{tag}": 1.0 if s["completed"] else 0.0,
             f"sitl_delay_ekf_horizontal_error_p99_mm_{tag}": (s.get("ekf_horizontal_error_mm") or {}).get("p99"),
             f"sitl_delay_frames_late_fraction_{tag}": s["real_time"]["frames_late_fraction"],
@@ -80,13 +81,16 @@ def run(quick: bool = False) -> BenchResult:
                                                            - (last["true_ms"] - first["true_ms"]))
     fmt = (lambda x, spec=".2f": "-" if x is None else format(x, spec))  # noqa: E731
     lines = ["| added link delay ms (each way) | true capture->SITL ms | measured ms | difference ms | bridge "
-             "send-stamp ms | relay hold ms | poses behind SITL's truth ms | gyro/optical correlation | EKF "
-             "horizontal p99 mm | flight | frames late / not fused |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "send-stamp ms | relay hold ms | SITL truth age + read wait ms (truth age / read wait) | poses behind "
+             "SITL's truth ms | gyro/optical correlation | EKF horizontal p99 mm | flight | frames late / not fused |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for d, s, ld in rows:
         rt = s["real_time"]
         lines.append(f"| {d:.0f} | {fmt(ld.get('true_ms'))} | {fmt(ld.get('measured_ms'))} | "
                      f"{fmt(ld.get('error_ms'))} | {fmt(ld.get('send_minus_stamp_ms_p50'))} | "
-                     f"{fmt(ld.get('relay_hold_ms_p50'))} | {fmt(ld.get('optical_lag_ms'))} | "
+                     f"{fmt(ld.get('relay_hold_ms_p50'))} | {fmt(ld.get('sitl_clock_ms'))} "
+                     f"({fmt(ld.get('truth_age_ms'))} / {fmt(ld.get('sitl_read_wait_ms'))}) | "
+                     f"{fmt(ld.get('optical_lag_ms'))} | "
                      f"{fmt(ld.get('correlation'), '.3f')} | "
                      f"{fmt((s.get('ekf_horizontal_error_mm') or {}).get('p99'), '.1f')} | "
                      f"{'completed' if s['completed'] else 'NOT completed'} | "
