@@ -129,10 +129,11 @@ def test_truth_track_smooths_the_centimetre_altitude():
     assert np.abs(steps - climb * dt_ns * 1e-9).max() < 0.0005  # no 1 cm jumps: each 5 ms step ~ 1.25 mm
 
 
-def _sitl_clock(now: int, offset_ns: int, age_ns: int, wait_ns: int) -> "S.SitlClock":
-    """A SitlClock fed as the GCS reader feeds it: SITL's clock = ours + offset_ns; each SIM_STATE arrives
-    age_ns after the physics step it reports (SYSTEM_TIME and RAW_IMU of its bucket just before it), and each
-    TIMESYNC request is read wait_ns after we send it."""
+def _sitl_clock(now: int, offset_ns: int, age_ns: int, wait_ns: int, gcs_wait_ns: int = 400_000) -> "S.SitlClock":
+    """A SitlClock fed as the GCS reader and the intake probe feed it: SITL's clock = ours + offset_ns; each
+    SIM_STATE arrives age_ns after the physics step it reports (RAW_IMU of its bucket just before it, SYSTEM_TIME
+    just after), each TIMESYNC the probe sends into the vision port is taken in wait_ns later, and each one on
+    the GCS link gcs_wait_ns later."""
     clock = S.SitlClock()
     now = now // 1000 * 1000  # SITL stamps whole microseconds
     for k in range(1000):  # 100 Hz over the last 10 s
@@ -143,23 +144,27 @@ def _sitl_clock(now: int, offset_ns: int, age_ns: int, wait_ns: int) -> "S.SitlC
         clock.on_system_time(arrive + 10_000, step // 1_000_000)
     for k in range(40):
         s1 = now - 10_000_000_000 + k * 250_000_000
+        clock.intake.append((s1, s1 + offset_ns + wait_ns + (k % 3) * 200_000))
         clock.pending[s1] = s1
-        clock.on_timesync(s1 + offset_ns + wait_ns + (k % 3) * 200_000, s1)
+        clock.on_timesync(s1 + offset_ns + gcs_wait_ns, s1)
     return clock
 
 
-def test_sitl_clock_sums_the_truth_age_and_the_read_wait_free_of_both_clock_offsets():
-    """SIM_STATE 2.5 ms old on arrival (+ jitter 0..0.4 ms, median 0.2) and a 1.0 ms read wait (+ 0..0.4 ms,
-    median 0.2): 3.9 ms on SITL's clock whatever the offset between SITL's clock and ours."""
+def test_sitl_clock_sums_the_truth_age_and_the_intake_free_of_both_clock_offsets():
+    """SIM_STATE 2.5 ms old on arrival (+ jitter 0..0.4 ms, median 0.2) and the vision port's datagrams taken in
+    1.0 ms late (+ 0..0.4 ms, median 0.2): 3.9 ms on SITL's clock whatever the offset between SITL's clock and
+    ours; the GCS link's intake (0.4 ms) only for comparison: 3.1 ms."""
     now = 50_000_000_000
     for offset in (-7_000_000_000, 123_456_000):  # SITL stamps microseconds
         c = _sitl_clock(now, offset, 2_500_000, 1_000_000).summary(now - 20_000_000_000)
         assert c["sitl_term_ms"] == pytest.approx(2.7 + 1.2, abs=1e-6)
-        assert c["truth_pairs"] == 1000 and c["timesyncs"] == 40
+        assert c["sitl_term_serial0_ms"] == pytest.approx(2.7 + 0.4, abs=1e-6)
+        assert (c["truth_pairs"], c["intake_timesyncs"], c["gcs_timesyncs"]) == (1000, 40, 40)
         assert c["bucket_mismatch_fraction"] == 0.0  # SYSTEM_TIME's ms is RAW_IMU's
-        # split with the fastest TIMESYNC as the offset: 1.0 ms of the wait counts as age
-        assert c["truth_age_ms"] == pytest.approx(3.7, abs=1e-6)
-        assert c["read_wait_ms"] == pytest.approx(0.2, abs=1e-6)
+    # without the vision port's intake the term is unknown, not the GCS link's
+    c = _sitl_clock(now, 0, 2_500_000, 1_000_000)
+    c.intake.clear()
+    assert c.summary(now - 20_000_000_000)["sitl_term_ms"] is None
 
 
 def test_sitl_clock_pairs_sim_state_only_with_the_stamp_of_its_own_bucket():
@@ -212,3 +217,67 @@ def test_delay_record_compares_the_measurement_with_stamp_to_send_plus_the_relay
     assert d["sitl_clock_ms"] == pytest.approx(3.9, abs=1e-6)
     assert d["error_ms"] == pytest.approx(41.0 - 41.3, abs=1e-6)
     assert d["optical_lag_ms"] == pytest.approx(3.0, abs=0.3)
+    # on SITL's clock the poses show motion 2.7 ms (SIM_STATE's age) + 3 ms (their lag) older than their stamps,
+    # and SITL takes the poses in 1.2 ms after the relay sends them: 17 + 20.4 + 1.2 + 5.7 ms
+    assert d["true_motion_ms"] == pytest.approx(44.3, abs=0.3)
+    assert d["error_motion_ms"] == pytest.approx(41.0 - 44.3, abs=0.3)
+
+
+def test_intake_probe_times_the_vision_ports_intake_through_the_relay():
+    """IntakeProbe sends signed TIMESYNC requests from the relay's socket into the autopilot's port and picks
+    the answers out of the relay's datagrams towards the bridge: a fake SITL on loopback whose clock is ours
+    + 7 s and which stamps its intake 3 ms late gives tc1 - s1 = 7 s + 3 ms (less the relay's send, which
+    is after the identifier is taken)."""
+    import socket
+    import threading
+
+    from pymavlink.dialects.v20 import ardupilotmega as mav2
+
+    from visionpos.app.linkdelay import DelayRelay
+
+    key = bytes(range(32))
+    bridge = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    bridge.bind(("127.0.0.1", 0))
+    sitl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sitl.bind(("127.0.0.1", 0))
+    sitl.settimeout(0.05)
+    seen = {"signed_ok": 0, "other": 0}
+    stop = threading.Event()
+
+    def fake_sitl(relay_port: int) -> None:
+        rx = mav2.MAVLink(None)
+        rx.signing.secret_key = key  # signatures checked: a request signed otherwise is refused
+        tx = mav2.MAVLink(None, srcSystem=1, srcComponent=1)
+        end = time.monotonic() + 10.0
+        sitl.sendto(tx.heartbeat_encode(2, 3, 0, 0, 4).pack(tx), ("127.0.0.1", relay_port))
+        while not stop.is_set() and time.monotonic() < end:
+            try:
+                data = sitl.recv(65535)
+            except socket.timeout:
+                continue
+            for m in rx.parse_buffer(data) or []:
+                if m.get_type() == "TIMESYNC" and m.tc1 == 0:
+                    seen["signed_ok"] += 1
+                    tc1 = m.ts1 + 7_000_000_000 + 3_000_000
+                    sitl.sendto(tx.heartbeat_encode(2, 3, 0, 0, 4).pack(tx) + tx.timesync_encode(tc1, m.ts1).pack(tx),
+                                ("127.0.0.1", relay_port))
+                elif m.get_type() == "BAD_DATA":
+                    seen["other"] += 1
+
+    clock = S.SitlClock()
+    with DelayRelay(bridge.getsockname(), 0.0, lifetime_s=10.0) as relay:
+        t = threading.Thread(target=fake_sitl, args=(relay.port,), daemon=True)
+        t.start()
+        try:
+            with S.IntakeProbe(relay, key, clock):
+                end = time.monotonic() + 5.0
+                while len(clock.intake) < 3 and time.monotonic() < end:
+                    time.sleep(0.05)
+        finally:
+            stop.set()
+            t.join(2.0)
+    bridge.close()
+    sitl.close()
+    assert len(clock.intake) >= 3 and seen["signed_ok"] >= 3 and seen["other"] == 0
+    for s1, tc1 in clock.intake:
+        assert 7_000_000_000 + 2_000_000 < tc1 - s1 <= 7_000_000_000 + 3_000_000

@@ -453,24 +453,29 @@ class LiveArena:
 
 
 class SitlClock:
-    """SITL's clock against ours, measured on the GCS link (SERIAL0) by the reader thread; thread-safe appends.
+    """SITL's clock against ours; thread-safe appends (the GCS reader, the intake probe's threads).
 
     SITL's clock is its simulation time, stopped at each physics step while its loop runs (AP_HAL_SITL), so
-    everything it stamps in one loop carries that step's time. Two records:
+    everything it stamps in one loop carries that step's time. Three records:
     - truth: (arrival here, SITL time) for each SIM_STATE, the SITL time being RAW_IMU's time_usec sent in the
-      same message bucket (both asked for at TRUTH_RATE_HZ; SITL sends RAW_IMU, then SIM_STATE, then
-      SYSTEM_TIME, together; RAW_IMU is stamped when sent, to the microsecond, which is the physics step
-      SIM_STATE reports; SYSTEM_TIME's time_boot_ms, whole milliseconds, only cross-checks the bucket);
-    - timesync: (our send time s1, SITL's tc1) for our TIMESYNC requests: tc1 is the step of the loop that read
-      the request, as for any datagram it reads (a vision pose included).
-    median(arrival - SITL time) + median(tc1 - s1) = how old SIM_STATE's physics is when it arrives here plus how
-    long a datagram sent now waits to be taken in on SITL's clock: the two clock offsets cancel."""
+      same message bucket (both asked for at TRUTH_RATE_HZ on the GCS link; SITL sends RAW_IMU, SIM_STATE,
+      SYSTEM_TIME together; RAW_IMU is stamped when sent, to the microsecond, i.e. the physics step SIM_STATE
+      reports; SYSTEM_TIME's time_boot_ms, whole milliseconds, only cross-checks the bucket);
+    - intake: (our send time s1, SITL's tc1) for TIMESYNC requests sent into the vision link's port (SERIAL1)
+      from the relay's socket (IntakeProbe): tc1 is SITL's receive time of the datagram (the UART's receive
+      timestamp, which ArduPilot also gives a vision message), so tc1 - s1 is how late on SITL's clock a
+      datagram the relay sends now is taken in;
+    - timesync: the same on the GCS link (SERIAL0), for comparison.
+    median(arrival - SITL time) + median(tc1 - s1) = how old SIM_STATE's physics is when it arrives here plus
+    how late SITL takes a datagram in, on SITL's clock: the two clocks' offset cancels."""
 
     TIMESYNC_EVERY_NS = 250_000_000
     BUCKET_NS = 1_000_000  # messages of one bucket arrive together (one TCP write)
+    MIN_TIMESYNCS = 5
 
     def __init__(self) -> None:
         self.truth: list[tuple[int, int]] = []
+        self.intake: list[tuple[int, int]] = []
         self.timesync: list[tuple[int, int]] = []
         self.pending: dict[int, int] = {}
         self.bucket_checks = 0
@@ -496,27 +501,91 @@ class SitlClock:
         self._imu = None  # one pair per bucket
 
     def on_timesync(self, tc1: int, ts1: int) -> None:
+        """A TIMESYNC answer on the GCS link (ts1: our request's send time)."""
         s1 = self.pending.pop(ts1, None)
         if s1 is not None and tc1 > 0:
             self.timesync.append((s1, tc1))
 
     def summary(self, since_ns: int) -> dict[str, Any]:
-        """The records since since_ns (our clock), in ms: sitl_term (the sum the true delay gains), and for
-        diagnosis its two parts split with the fastest TIMESYNC as the offset (biased by that one's own wait,
-        a fraction of SITL's loop period): truth_age (SIM_STATE's physics to its arrival here) and read_wait."""
-        tr = np.array([r for r in list(self.truth) if r[0] >= since_ns], dtype=np.int64).reshape(-1, 2)
-        ts = np.array([r for r in list(self.timesync) if r[0] >= since_ns], dtype=np.int64).reshape(-1, 2)
-        out: dict[str, Any] = {"truth_pairs": len(tr), "timesyncs": len(ts), "sitl_term_ms": None,
-                               "truth_age_ms": None, "read_wait_ms": None,
+        """The records since since_ns (our clock), in ms: sitl_term (SIM_STATE's age plus SITL's intake of the
+        vision link's datagrams, the term the true delay gains; None with too few records) and
+        sitl_term_serial0 (the same with the GCS link's intake, for comparison)."""
+        def rows(records: list) -> np.ndarray:
+            return np.array([r for r in list(records) if r[0] >= since_ns], dtype=np.int64).reshape(-1, 2)
+
+        tr, ts1, ts0 = rows(self.truth), rows(self.intake), rows(self.timesync)
+        out: dict[str, Any] = {"truth_pairs": len(tr), "intake_timesyncs": len(ts1), "gcs_timesyncs": len(ts0),
+                               "sitl_term_ms": None, "sitl_term_serial0_ms": None, "intake_ms": None,
                                "bucket_mismatch_fraction": self.bucket_mismatches / max(1, self.bucket_checks)}
-        if len(tr) < 10 or len(ts) < 5:
+        if len(tr) < 10:
             return out
-        age = (tr[:, 0] - tr[:, 1]).astype(np.float64)  # offset-laden: our arrival less SITL's time
-        fwd = (ts[:, 1] - ts[:, 0]).astype(np.float64)  # offset-laden: SITL's read less our send
-        out["sitl_term_ms"] = float(np.median(age) + np.median(fwd)) * 1e-6
-        out["truth_age_ms"] = float(np.median(age) + fwd.min()) * 1e-6
-        out["read_wait_ms"] = float(np.median(fwd) - fwd.min()) * 1e-6
+        if len(ts1) >= self.MIN_TIMESYNCS:
+            out["intake_ms"] = float(np.median(ts1[:, 1] - ts1[:, 0])) * 1e-6  # offset-laden
+        age = float(np.median(tr[:, 0] - tr[:, 1]))  # offset-laden: our arrival less SITL's time
+        for key, ts in (("sitl_term_ms", ts1), ("sitl_term_serial0_ms", ts0)):
+            if len(ts) >= self.MIN_TIMESYNCS:  # offset-laden the other way: SITL's intake less our send
+                out[key] = (age + float(np.median(ts[:, 1] - ts[:, 0]))) * 1e-6
         return out
+
+
+class IntakeProbe:
+    """TIMESYNC requests into SITL's vision port (SERIAL1) from the relay's own socket, every
+    SitlClock.TIMESYNC_EVERY_NS on a thread of its own, signed with the vehicle's key (SITL takes only signed
+    messages there) on a link id of its own; the answers are picked out of the relay's datagrams from SITL
+    (DelayRelay.tap) into clock.intake."""
+
+    LINK_ID = 7
+
+    def __init__(self, relay: Any, key: bytes, clock: SitlClock):
+        from pymavlink.dialects.v20 import ardupilotmega as mav2
+
+        self.relay = relay
+        self.clock = clock
+        self.enc = mav2.MAVLink(None, srcSystem=255, srcComponent=191)
+        self.enc.signing.secret_key = key
+        self.enc.signing.link_id = self.LINK_ID
+        self.enc.signing.sign_outgoing = True
+        self.enc.signing.timestamp = int((time.time() - 1420070400) * 1e5)  # 10 us since 2015-01-01
+        self.rx = mav2.MAVLink(None)
+        self.rx.robust_parsing = True
+        self._pending: dict[int, int] = {}
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="sitl-intake-probe", daemon=True)
+
+    def __enter__(self) -> "IntakeProbe":
+        self.relay.tap = self.tap
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.relay.tap = None
+
+    def _run(self) -> None:
+        while not self._stop.wait(SitlClock.TIMESYNC_EVERY_NS * 1e-9):
+            ts1 = time.monotonic_ns()  # an identifier: the send time is the relay's clock read at its write
+            s1 = self.relay.send_to_autopilot(self.enc.timesync_encode(0, ts1).pack(self.enc))
+            if s1 is not None:
+                with self._lock:
+                    self._pending[ts1] = s1
+                    while len(self._pending) > 64:
+                        self._pending.pop(next(iter(self._pending)))
+
+    def tap(self, read_ns: int, data: bytes) -> None:
+        if b"\x6f\x00\x00" not in data:  # TIMESYNC's message id (111, 3 bytes): parse only those datagrams
+            return
+        try:
+            msgs = self.rx.parse_buffer(data) or []
+        except Exception:  # noqa: BLE001  a datagram that is not MAVLink: not ours
+            return
+        for m in msgs:
+            if m.get_type() == "TIMESYNC" and m.tc1 > 0:
+                with self._lock:
+                    s1 = self._pending.pop(m.ts1, None)
+                if s1 is not None:
+                    self.clock.intake.append((s1, int(m.tc1)))
 
 
 class Gcs:
@@ -789,6 +858,7 @@ def _run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | 
     serial1_port = vision_port if relay is None else relay.port
     with SitlProcess(cfg, instance, f"udpclient:127.0.0.1:{serial1_port}") as proc:
         gcs = Gcs(proc.gcs_port, truth, on_text=lambda text: say(f"  SITL: {text}"))
+        probe: IntakeProbe | None = None
         try:
             say(f"SITL instance {proc.instance} in {proc.folder}: GCS on SERIAL0 tcp:127.0.0.1:{proc.gcs_port}, "
                 f"SERIAL1 udpclient:127.0.0.1:{serial1_port} -> "
@@ -811,6 +881,8 @@ def _run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | 
             gcs.set_params(noise)
             _setup_signing(gcs, key)
             _set_origin(gcs, cfg, say)
+            if relay is not None:  # SITL's intake of the vision link's datagrams, for the true delay
+                probe = IntakeProbe(relay, key, gcs.clock).__enter__()
             say(f"set-up done in {time.monotonic() - t0:.1f} s; cameras start")
             live = LiveArena(body, truth)
             record: dict[str, Any] = {}
@@ -826,6 +898,8 @@ def _run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | 
 
             demo = asyncio.run(run_demo(arena, plan.timeout_s + 60.0, None, during=during, live=live))
         finally:
+            if probe is not None:
+                probe.__exit__()
             gcs.close()
             sys.setswitchinterval(old_switch)
     summary = flight_summary(gcs, truth, demo, record, plan, time.monotonic() - t0)
@@ -982,11 +1056,16 @@ def delay_record(bc: Any, relay: Any, added_ms: float, truth: TruthTrack | None 
     measurement window (the newest window_ns, DELAY_WINDOW_NS):
     - the bridge's write to its socket less the pose's stamp (our clock);
     - the relay's hold of the datagrams towards SITL (our clock; loopback adds microseconds);
-    - with clock (SitlClock, measured on the GCS link): SIM_STATE's age, our arrival time less its SITL time
-      (the cameras render the truth as of its arrival, so a pose stamped t shows SITL's physics of that much
-      earlier), plus SITL's wait to take in a datagram (TIMESYNC's tc1 less our send time): their sum cancels
-      both clocks' offsets. It assumes SERIAL1 takes datagrams in as SERIAL0 does (both read on SITL's loop).
-    Without clock (or too few records) the last part is missing and true_ms is None.
+    - with clock (SitlClock): SIM_STATE's age, our arrival time less its SITL time (the cameras render the
+      truth as of its arrival, so a pose stamped t shows SITL's physics of that much earlier), plus how late
+      SITL takes in a datagram the relay sends on the vision link (its receive time in TIMESYNC's tc1 less the
+      relay's send time; IntakeProbe): their sum cancels both clocks' offsets.
+    Without clock (or too few records) the last part is missing and true_ms is None. Not in it: the
+    bridge's write to the relay's read (loopback and the relay thread's wake-up, a median under 0.1 ms), and
+    the poses' own lag behind the motion they render (the fusion's), which the back-channel counts.
+    true_motion_ms counts it: the SITL time of the intake less the SITL time of the motion the poses show
+    (their body rates correlated with SIM_STATE's at the SITL times of its buckets), so error_motion_ms is
+    the back-channel's own error (its gyro filter model and TIMESYNC).
     Left out: RAW_IMU's own timing (stamped when sent, at the step of its loop, which is the instant its gyro
     describes, bar the gyro filter's lag that the back-channel removes). optical_lag_ms, for diagnosis: how far
     the poses' body rates trail SIM_STATE's as stamped here (the fusion's lag; a bias of the optics, which the
@@ -1003,17 +1082,42 @@ def delay_record(bc: Any, relay: Any, added_ms: float, truth: TruthTrack | None 
     true_ms = (float(np.median(sends)) * 1e-6 + hold_ms + sitl_ms
                if len(sends) and hold_ms is not None and sitl_ms is not None else None)
     measured = bc.delay_ms
+    shown_ms = _shown_lag_ms(bc, truth, clock, since) if truth is not None and clock is not None else None
+    motion_ms = (true_ms - sitl_ms + sitl["intake_ms"] - shown_ms
+                 if true_ms is not None and shown_ms is not None and sitl.get("intake_ms") is not None else None)
     return {"added_ms": float(added_ms), "measured_ms": measured, "true_ms": true_ms,
+            "true_motion_ms": motion_ms,
+            "error_motion_ms": measured - motion_ms if measured is not None and motion_ms is not None else None,
             "error_ms": measured - true_ms if measured is not None and true_ms is not None else None,
             "send_minus_stamp_ms_p50": float(np.median(sends)) * 1e-6 if len(sends) else None,
             "relay_hold_ms_p50": hold_ms, "relay_hold_back_ms_p50": relay.hold_ms_median("to_bridge", since),
-            "sitl_clock_ms": sitl_ms, "truth_age_ms": sitl.get("truth_age_ms"),
-            "sitl_read_wait_ms": sitl.get("read_wait_ms"), "sitl_clock_records": (sitl.get("truth_pairs"),
-                                                                                  sitl.get("timesyncs")),
+            "sitl_clock_ms": sitl_ms, "sitl_clock_serial0_ms": sitl.get("sitl_term_serial0_ms"),
+            "sitl_clock_records": (sitl.get("truth_pairs"), sitl.get("intake_timesyncs"), sitl.get("gcs_timesyncs")),
             "sitl_bucket_mismatch_fraction": sitl.get("bucket_mismatch_fraction"),
             "optical_lag_ms": lag_ms,
             "correlation": float(bc.delay_correlation) if np.isfinite(bc.delay_correlation) else None,
             "gyro_source": bc.gyro_source or None, "detail": bc.delay_reason}
+
+
+def _shown_lag_ms(bc: Any, truth: TruthTrack, clock: SitlClock, since_ns: int) -> float | None:
+    """The SITL time of the motion a pose shows less the pose's stamp (ms, offset-laden like SitlClock's
+    records): the poses' body rates (from their attitudes) correlated with SIM_STATE's body rates at the SITL
+    times of their buckets; None without enough rotation or records."""
+    from visionpos.analysis.autopilot import body_rates_from_attitudes, estimate_lag
+    from visionpos.geometry.frames import flu_to_frd
+
+    pairs = np.array([r for r in list(clock.truth) if r[0] >= since_ns], dtype=np.int64).reshape(-1, 2)
+    rows = [r for r in list(bc.opt.d) if r[0] >= since_ns]
+    t_true, x = truth.snapshot()
+    keep = t_true >= since_ns
+    if len(rows) < 50 or len(pairs) < 50 or keep.sum() < 50:
+        return None
+    off = pairs[:, 1] - pairs[:, 0]  # SITL time less arrival, per SIM_STATE: interpolated onto the track's
+    t_sitl = t_true[keep] + np.round(np.interp(t_true[keep], pairs[:, 0], off)).astype(np.int64)
+    to, rates = body_rates_from_attitudes(np.array([r[0] for r in rows], dtype=np.int64),
+                                          np.array([r[6:10] for r in rows], dtype=float))
+    est = estimate_lag(to, rates, t_sitl, flu_to_frd(x[keep, 10:13]), float(np.median(off)), 60e6, step_ns=1e6)
+    return est.lag_ns * 1e-6 if est is not None and est.correlation > 0.8 else None
 
 
 def _optical_lag_ms(bc: Any, truth: TruthTrack, since_ns: int) -> float | None:
@@ -1162,7 +1266,7 @@ def format_flight(s: dict[str, Any]) -> str:
         lines.append(f"  link delay {d['added_ms']:g} ms each way: capture->autopilot delay measured by the "
                      f"back-channel {_fmt(d['measured_ms'])} ms, true {_fmt(d['true_ms'])} ms (send-stamp "
                      f"{_fmt(d['send_minus_stamp_ms_p50'])} + relay {_fmt(d['relay_hold_ms_p50'])} + SITL's truth "
-                     f"age and read wait {_fmt(d.get('sitl_clock_ms'))}), difference "
+                     f"age and intake {_fmt(d.get('sitl_clock_ms'))}), difference "
                      f"{_fmt(d['error_ms'])} ms; poses behind SITL's truth {_fmt(d['optical_lag_ms'])} ms; "
                      f"{d['detail']}")
     lines.append(f"  failsafe / lane switch messages: {s['failsafe_or_lane_switch'] or 'none'}; "
