@@ -47,6 +47,7 @@ from visionpos.analysis.autopilot import (
     identity_residuals,
     identity_statistic,
     vision_delay_ns,
+    weighted_time_ns,
 )
 
 log = logging.getLogger("visionpos.bridge")
@@ -548,13 +549,16 @@ class Backchannel:
             return self.delay_ms
         self.clock_lag_ns = fine.lag_ns - gyro_lag_ns  # the motion's instant, not the filtered gyro's
         self.delay_correlation = fine.correlation
-        _, ts = self.timesync.since(int(to[0]) - DELAY_WINDOW_NS)
+        ts_t, ts = self.timesync.since(int(to[0]) - DELAY_WINDOW_NS)
         _, sends = self.sends.since(int(to[0]))
         if len(ts) < 3 or len(sends) < 10:
             self.delay_reason = "waiting for TIMESYNC answers from the autopilot" if len(ts) < 3 else \
                 "waiting for poses to be sent"
             return self.delay_ms
-        d_ns = vision_delay_ns(sends[:, 0], np.zeros(len(ts)), ts[:, 0], self.clock_lag_ns)
+        # the forward link's TIMESYNC at the instant the correlation stands for (where the vehicle turned
+        # most): the two clocks drift apart over the window
+        at_ns = weighted_time_ns(to, rates)
+        d_ns = vision_delay_ns(sends[:, 0], ts_t, ts_t + ts[:, 0], self.clock_lag_ns, at_ns=at_ns)
         self._delays.append(d_ns * 1e-6)
         self.delay_ms = d_ns * 1e-6  # each estimate spans DELAY_WINDOW_NS already; the newest follows changes
         if self._delay_said is None or abs(self.delay_ms - self._delay_said) >= DELAY_RESET_MS:

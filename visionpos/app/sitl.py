@@ -1071,6 +1071,7 @@ def delay_record(bc: Any, relay: Any, added_ms: float, truth: TruthTrack | None 
     the poses' body rates trail SIM_STATE's as stamped here (the fusion's lag; a bias of the optics, which the
     measurement sees and the true delay does not)."""
     from bridge.backchannel import DELAY_WINDOW_NS
+    from visionpos.analysis.autopilot import theil_sen_at
 
     now = time.monotonic_ns()
     since = now - (window_ns if window_ns is not None else DELAY_WINDOW_NS)
@@ -1082,11 +1083,17 @@ def delay_record(bc: Any, relay: Any, added_ms: float, truth: TruthTrack | None 
     true_ms = (float(np.median(sends)) * 1e-6 + hold_ms + sitl_ms
                if len(sends) and hold_ms is not None and sitl_ms is not None else None)
     measured = bc.delay_ms
-    shown_ms = _shown_lag_ms(bc, truth, clock, since) if truth is not None and clock is not None else None
-    motion_ms = (true_ms - sitl_ms + sitl["intake_ms"] - shown_ms
-                 if true_ms is not None and shown_ms is not None and sitl.get("intake_ms") is not None else None)
+    shown = _shown_lag_ms(bc, truth, clock, since) if truth is not None and clock is not None else None
+    intake = np.array([r for r in list(clock.intake) if r[0] >= since], dtype=np.int64).reshape(-1, 2) \
+        if clock is not None else np.zeros((0, 2), np.int64)
+    motion_ms = None
+    if true_ms is not None and shown is not None and len(intake) >= SitlClock.MIN_TIMESYNCS:
+        # the intake at the instant the correlation stands for: SITL's clock drifts from ours
+        fwd_ms = theil_sen_at(intake[:, 0], (intake[:, 1] - intake[:, 0]).astype(float), shown[1]) * 1e-6
+        motion_ms = true_ms - sitl_ms + fwd_ms - shown[0]
+    shown_ms = shown[0] if shown is not None else None
     return {"added_ms": float(added_ms), "measured_ms": measured, "true_ms": true_ms,
-            "true_motion_ms": motion_ms,
+            "true_motion_ms": motion_ms, "shown_lag_ms": shown_ms,
             "error_motion_ms": measured - motion_ms if measured is not None and motion_ms is not None else None,
             "error_ms": measured - true_ms if measured is not None and true_ms is not None else None,
             "send_minus_stamp_ms_p50": float(np.median(sends)) * 1e-6 if len(sends) else None,
@@ -1099,11 +1106,12 @@ def delay_record(bc: Any, relay: Any, added_ms: float, truth: TruthTrack | None 
             "gyro_source": bc.gyro_source or None, "detail": bc.delay_reason}
 
 
-def _shown_lag_ms(bc: Any, truth: TruthTrack, clock: SitlClock, since_ns: int) -> float | None:
+def _shown_lag_ms(bc: Any, truth: TruthTrack, clock: SitlClock, since_ns: int) -> tuple[float, float] | None:
     """The SITL time of the motion a pose shows less the pose's stamp (ms, offset-laden like SitlClock's
-    records): the poses' body rates (from their attitudes) correlated with SIM_STATE's body rates at the SITL
-    times of their buckets; None without enough rotation or records."""
-    from visionpos.analysis.autopilot import body_rates_from_attitudes, estimate_lag
+    records), and the instant (server clock, ns) it stands for: the poses' body rates (from their attitudes)
+    correlated with SIM_STATE's body rates at the SITL times of their buckets; None without enough rotation
+    or records."""
+    from visionpos.analysis.autopilot import body_rates_from_attitudes, estimate_lag, weighted_time_ns
     from visionpos.geometry.frames import flu_to_frd
 
     pairs = np.array([r for r in list(clock.truth) if r[0] >= since_ns], dtype=np.int64).reshape(-1, 2)
@@ -1117,7 +1125,9 @@ def _shown_lag_ms(bc: Any, truth: TruthTrack, clock: SitlClock, since_ns: int) -
     to, rates = body_rates_from_attitudes(np.array([r[0] for r in rows], dtype=np.int64),
                                           np.array([r[6:10] for r in rows], dtype=float))
     est = estimate_lag(to, rates, t_sitl, flu_to_frd(x[keep, 10:13]), float(np.median(off)), 60e6, step_ns=1e6)
-    return est.lag_ns * 1e-6 if est is not None and est.correlation > 0.8 else None
+    if est is None or est.correlation <= 0.8:
+        return None
+    return est.lag_ns * 1e-6, weighted_time_ns(to, rates)
 
 
 def _optical_lag_ms(bc: Any, truth: TruthTrack, since_ns: int) -> float | None:
