@@ -23,7 +23,9 @@ And it decides (pure math in visionpos.analysis.autopilot):
   filter's group delay, sqrt(2) / (2 pi fc), 11.3 ms at 20 Hz, while its EKF runs
   on the unfiltered IMU. The correlation's lag is corrected by it, so the delay is
   measured against the motion itself; INS_GYRO_FILTER is read from the autopilot
-  (PARAM_REQUEST_READ) and the delay stays unknown until it has answered.
+  (PARAM_REQUEST_READ) and the delay stays unknown until it has answered. TIMESYNC's
+  forward latency is taken at the instant the correlation stands for (where the
+  vehicle turned most), on a line through the answers: the two clocks drift apart.
 
 Every check is "unknown" while its data is missing: nothing here ever holds a
 pose back for want of telemetry. Only a positive finding does (a mismatch,

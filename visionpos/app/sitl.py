@@ -27,8 +27,8 @@ Truth: SIM_STATE carries the vehicle's attitude (quaternion), NED velocity and b
 full precision, but latitude/longitude only in 1e-7 degrees (about 1.1 cm) and the altitude in
 whole centimetres (ArduPilot's Location), so the position is the integral of the velocity, pulled
 slowly (TRUTH_BLEND_S) towards the quantised one: cameras rendering the raw steps would see a body
-jump 1 cm in one frame. Samples are stamped with their arrival time (loopback, well under a millisecond
-after SITL's physics step, plus the reader thread's wake-up). Cameras expose at their own times:
+jump 1 cm in one frame. Samples are stamped with their arrival time (SITL's wait to send them, loopback,
+the reader thread's wake-up); SitlClock measures that age on SITL's own clock for the delay benchmark. Cameras expose at their own times:
 the body's pose there is interpolated between samples (cubic Hermite in position with the
 velocities, slerp in attitude) or, for the newest few milliseconds, extrapolated with the last
 velocity and body rate.
