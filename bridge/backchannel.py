@@ -200,6 +200,7 @@ class Backchannel:
         self.clock_lag_ns: float | None = None  # autopilot time less server stamp of one physical instant
         self.delay_ms: float | None = None
         self.delay_correlation = float("nan")
+        self.delay_window_ns: tuple[int, int] | None = None  # server clock: the optical span of the last figure
         self.delay_reason = "no gyro from the autopilot yet"
         self._delays: collections.deque[float] = collections.deque(maxlen=5)
         self._delay_said: float | None = None  # the delay last logged
@@ -561,6 +562,7 @@ class Backchannel:
         # most): the two clocks drift apart over the window
         at_ns = weighted_time_ns(to, rates)
         d_ns = vision_delay_ns(sends[:, 0], ts_t, ts_t + ts[:, 0], self.clock_lag_ns, at_ns=at_ns)
+        self.delay_window_ns = (int(to[0]), int(to[-1]))
         self._delays.append(d_ns * 1e-6)
         self.delay_ms = d_ns * 1e-6  # each estimate spans DELAY_WINDOW_NS already; the newest follows changes
         if self._delay_said is None or abs(self.delay_ms - self._delay_said) >= DELAY_RESET_MS:

@@ -28,7 +28,8 @@ full precision, but latitude/longitude only in 1e-7 degrees (about 1.1 cm) and t
 whole centimetres (ArduPilot's Location), so the position is the integral of the velocity, pulled
 slowly (TRUTH_BLEND_S) towards the quantised one: cameras rendering the raw steps would see a body
 jump 1 cm in one frame. Samples are stamped with their arrival time (SITL's wait to send them, loopback,
-the reader thread's wake-up); SitlClock measures that age on SITL's own clock for the delay benchmark. Cameras expose at their own times:
+the reader thread's wake-up); SitlClock measures that age on SITL's own clock for the delay benchmark.
+Cameras expose at their own times:
 the body's pose there is interpolated between samples (cubic Hermite in position with the
 velocities, slerp in attitude) or, for the newest few milliseconds, extrapolated with the last
 velocity and body rate.
@@ -506,12 +507,13 @@ class SitlClock:
         if s1 is not None and tc1 > 0:
             self.timesync.append((s1, tc1))
 
-    def summary(self, since_ns: int) -> dict[str, Any]:
+    def summary(self, since_ns: int, until_ns: int | None = None) -> dict[str, Any]:
         """The records since since_ns (our clock), in ms: sitl_term (SIM_STATE's age plus SITL's intake of the
         vision link's datagrams, the term the true delay gains; None with too few records) and
         sitl_term_serial0 (the same with the GCS link's intake, for comparison)."""
         def rows(records: list) -> np.ndarray:
-            return np.array([r for r in list(records) if r[0] >= since_ns], dtype=np.int64).reshape(-1, 2)
+            end = until_ns if until_ns is not None else np.iinfo(np.int64).max
+            return np.array([r for r in list(records) if since_ns <= r[0] <= end], dtype=np.int64).reshape(-1, 2)
 
         tr, ts1, ts0 = rows(self.truth), rows(self.intake), rows(self.timesync)
         out: dict[str, Any] = {"truth_pairs": len(tr), "intake_timesyncs": len(ts1), "gcs_timesyncs": len(ts0),
@@ -1053,7 +1055,8 @@ def delay_record(bc: Any, relay: Any, added_ms: float, truth: TruthTrack | None 
 
     True delay, on SITL's clock (the one VISO_DELAY_MS is on): the SITL time at which SITL takes in a pose,
     less the SITL time of the physics the pose shows. Its parts, each the median over the back-channel's
-    measurement window (the newest window_ns, DELAY_WINDOW_NS):
+    measurement window (the optical span of its last figure, bc.delay_window_ns; else the newest window_ns,
+    DELAY_WINDOW_NS):
     - the bridge's write to its socket less the pose's stamp (our clock);
     - the relay's hold of the datagrams towards SITL (our clock; loopback adds microseconds);
     - with clock (SitlClock): SIM_STATE's age, our arrival time less its SITL time (the cameras render the
@@ -1075,10 +1078,16 @@ def delay_record(bc: Any, relay: Any, added_ms: float, truth: TruthTrack | None 
 
     now = time.monotonic_ns()
     since = now - (window_ns if window_ns is not None else DELAY_WINDOW_NS)
-    sends = np.array([r[1] for r in list(bc.sends.d) if r[0] >= since], dtype=float)  # list(): copied under the GIL
-    hold_ms = relay.hold_ms_median("to_autopilot", since)
+    until = now
+    win = getattr(bc, "delay_window_ns", None)
+    if window_ns is None and win is not None:  # the span the measurement used: the link's figures drift
+        since, until = win
+    sends = np.array([r[1] for r in list(bc.sends.d) if since <= r[0] <= until], dtype=float)  # list(): a copy
+    holds = [h for t, h in list(relay.holds["to_autopilot"]) if since <= t <= until] \
+        if hasattr(relay, "holds") else []
+    hold_ms = float(np.median(holds)) * 1e-6 if holds else relay.hold_ms_median("to_autopilot", since)
     lag_ms = _optical_lag_ms(bc, truth, since) if truth is not None else None
-    sitl = clock.summary(since) if clock is not None else {}
+    sitl = clock.summary(since, until) if clock is not None else {}
     sitl_ms = sitl.get("sitl_term_ms")
     true_ms = (float(np.median(sends)) * 1e-6 + hold_ms + sitl_ms
                if len(sends) and hold_ms is not None and sitl_ms is not None else None)
