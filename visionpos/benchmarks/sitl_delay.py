@@ -9,7 +9,8 @@ vision link (SITL's SERIAL1 <-> the bridge) through a relay holding each directi
 (visionpos/app/linkdelay.py). At the end of the hold, the delay the back-channel measured (the
 autopilot's RAW_IMU gyro correlated with the optical rate, TIMESYNC for the forward link) is compared with
 the true one (visionpos.app.sitl.delay_record), on SITL's clock: the SITL time at which SITL takes a pose in
-less the SITL time of the physics it was rendered from, i.e. medians over the measurement's 20 s window of
+less the SITL time of the physics it was rendered from, i.e. medians over the measurement's own span (the
+optical samples behind its last figure, about 20 s) of
 the bridge's write - the pose's stamp, the relay's hold towards SITL, and (SitlClock, both measured per run)
 SIM_STATE's age when it reaches the cameras (its arrival less its SITL time: RAW_IMU of its bucket) plus how
 late SITL takes in a datagram on the vision port (TIMESYNC sent from the relay's own socket: SITL's receive
