@@ -23,7 +23,9 @@ And it decides (pure math in visionpos.analysis.autopilot):
   filter's group delay, sqrt(2) / (2 pi fc), 11.3 ms at 20 Hz, while its EKF runs
   on the unfiltered IMU. The correlation's lag is corrected by it, so the delay is
   measured against the motion itself; INS_GYRO_FILTER is read from the autopilot
-  (PARAM_REQUEST_READ) and the delay stays unknown until it has answered.
+  (PARAM_REQUEST_READ) and the delay stays unknown until it has answered. TIMESYNC's
+  forward latency is taken at the instant the correlation stands for (where the
+  vehicle turned most), on a line through the answers: the two clocks drift apart.
 
 Every check is "unknown" while its data is missing: nothing here ever holds a
 pose back for want of telemetry. Only a positive finding does (a mismatch,
@@ -47,6 +49,7 @@ from visionpos.analysis.autopilot import (
     identity_residuals,
     identity_statistic,
     vision_delay_ns,
+    weighted_time_ns,
 )
 
 log = logging.getLogger("visionpos.bridge")
@@ -197,6 +200,7 @@ class Backchannel:
         self.clock_lag_ns: float | None = None  # autopilot time less server stamp of one physical instant
         self.delay_ms: float | None = None
         self.delay_correlation = float("nan")
+        self.delay_window_ns: tuple[int, int] | None = None  # server clock: the optical span of the last figure
         self.delay_reason = "no gyro from the autopilot yet"
         self._delays: collections.deque[float] = collections.deque(maxlen=5)
         self._delay_said: float | None = None  # the delay last logged
@@ -548,13 +552,17 @@ class Backchannel:
             return self.delay_ms
         self.clock_lag_ns = fine.lag_ns - gyro_lag_ns  # the motion's instant, not the filtered gyro's
         self.delay_correlation = fine.correlation
-        _, ts = self.timesync.since(int(to[0]) - DELAY_WINDOW_NS)
+        ts_t, ts = self.timesync.since(int(to[0]) - DELAY_WINDOW_NS)
         _, sends = self.sends.since(int(to[0]))
         if len(ts) < 3 or len(sends) < 10:
             self.delay_reason = "waiting for TIMESYNC answers from the autopilot" if len(ts) < 3 else \
                 "waiting for poses to be sent"
             return self.delay_ms
-        d_ns = vision_delay_ns(sends[:, 0], np.zeros(len(ts)), ts[:, 0], self.clock_lag_ns)
+        # the forward link's TIMESYNC at the instant the correlation stands for (where the vehicle turned
+        # most): the two clocks drift apart over the window
+        at_ns = weighted_time_ns(to, rates)
+        d_ns = vision_delay_ns(sends[:, 0], ts_t, ts_t + ts[:, 0], self.clock_lag_ns, at_ns=at_ns)
+        self.delay_window_ns = (int(to[0]), int(to[-1]))
         self._delays.append(d_ns * 1e-6)
         self.delay_ms = d_ns * 1e-6  # each estimate spans DELAY_WINDOW_NS already; the newest follows changes
         if self._delay_said is None or abs(self.delay_ms - self._delay_said) >= DELAY_RESET_MS:

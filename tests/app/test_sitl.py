@@ -129,9 +129,68 @@ def test_truth_track_smooths_the_centimetre_altitude():
     assert np.abs(steps - climb * dt_ns * 1e-9).max() < 0.0005  # no 1 cm jumps: each 5 ms step ~ 1.25 mm
 
 
+def _sitl_clock(now: int, offset_ns: int, age_ns: int, wait_ns: int, gcs_wait_ns: int = 400_000) -> "S.SitlClock":
+    """A SitlClock fed as the GCS reader and the intake probe feed it: SITL's clock = ours + offset_ns; each
+    SIM_STATE arrives age_ns after the physics step it reports (RAW_IMU of its bucket just before it, SYSTEM_TIME
+    just after), each TIMESYNC the probe sends into the vision port is taken in wait_ns later, and each one on
+    the GCS link gcs_wait_ns later."""
+    clock = S.SitlClock()
+    now = now // 1000 * 1000  # SITL stamps whole microseconds
+    for k in range(1000):  # 100 Hz over the last 10 s
+        step = now - 10_000_000_000 + k * 10_000_000 + offset_ns  # SITL ns
+        arrive = step - offset_ns + age_ns + (k % 5) * 100_000  # a little jitter: the median is taken
+        clock.on_raw_imu(arrive - 10_000, step // 1000)
+        clock.on_sim_state(arrive)
+        clock.on_system_time(arrive + 10_000, step // 1_000_000)
+    for k in range(40):
+        s1 = now - 10_000_000_000 + k * 250_000_000
+        clock.intake.append((s1, s1 + offset_ns + wait_ns + (k % 3) * 200_000))
+        clock.pending[s1] = s1
+        clock.on_timesync(s1 + offset_ns + gcs_wait_ns, s1)
+    return clock
+
+
+def test_sitl_clock_sums_the_truth_age_and_the_intake_free_of_both_clock_offsets():
+    """SIM_STATE 2.5 ms old on arrival (+ jitter 0..0.4 ms, median 0.2) and the vision port's datagrams taken in
+    1.0 ms late (+ 0..0.4 ms, median 0.2): 3.9 ms on SITL's clock whatever the offset between SITL's clock and
+    ours; the GCS link's intake (0.4 ms) only for comparison: 3.1 ms."""
+    now = 50_000_000_000
+    for offset in (-7_000_000_000, 123_456_000):  # SITL stamps microseconds
+        c = _sitl_clock(now, offset, 2_500_000, 1_000_000).summary(now - 20_000_000_000)
+        assert c["sitl_term_ms"] == pytest.approx(2.7 + 1.2, abs=1e-6)
+        assert c["sitl_term_serial0_ms"] == pytest.approx(2.7 + 0.4, abs=1e-6)
+        assert (c["truth_pairs"], c["intake_timesyncs"], c["gcs_timesyncs"]) == (1000, 40, 40)
+        assert c["bucket_mismatch_fraction"] == 0.0  # SYSTEM_TIME's ms is RAW_IMU's
+    # without the vision port's intake the term is unknown, not the GCS link's
+    c = _sitl_clock(now, 0, 2_500_000, 1_000_000)
+    c.intake.clear()
+    assert c.summary(now - 20_000_000_000)["sitl_term_ms"] is None
+
+
+def test_sitl_clock_pairs_sim_state_only_with_the_stamp_of_its_own_bucket():
+    """A RAW_IMU that arrived 5 ms before SIM_STATE is another bucket's: no pair (its time would make the truth
+    look 5 ms older); a SYSTEM_TIME whose millisecond is not RAW_IMU's is counted as a mismatch; a TIMESYNC
+    answer to a request that is not ours (SITL's own, tc1 = 0) is ignored."""
+    c = S.SitlClock()
+    c.on_raw_imu(1_000_000_000, 7_000_000)
+    c.on_sim_state(1_005_000_000)
+    assert c.truth == []
+    c.on_raw_imu(2_000_100_000, 7_999_900)
+    c.on_sim_state(2_000_200_000)
+    c.on_system_time(2_000_300_000, 8_000)  # not RAW_IMU's millisecond (7 999)
+    assert c.truth == [(2_000_200_000, 7_999_900_000)]
+    assert (c.bucket_checks, c.bucket_mismatches) == (1, 1)
+    c.on_sim_state(2_000_300_000)  # a second SIM_STATE without a stamp of its own
+    assert len(c.truth) == 1
+    c.on_timesync(0, 5)
+    c.on_timesync(123, 5)
+    assert c.timesync == []
+
+
 def test_delay_record_compares_the_measurement_with_stamp_to_send_plus_the_relay_hold():
-    """True delay = median(bridge write - stamp) + median(relay hold towards SITL) over the window; the
-    poses' lag behind SITL's truth (a yaw swing seen 3 ms late) is reported beside it, not in it."""
+    """True delay = median(bridge write - stamp) + median(relay hold towards SITL) + SITL's truth age and read
+    wait (SitlClock) over the window; the poses' lag behind SITL's truth (a yaw swing seen 3 ms late) is
+    reported beside it, not in it."""
     import collections
 
     now = time.monotonic_ns()
@@ -151,7 +210,74 @@ def test_delay_record_compares_the_measurement_with_stamp_to_send_plus_the_relay
         a = float(yaw(ti))
         truth.add(int(ti), _sim_state(0.0, 0.0, 1.0, (0.0, 0.0, 0.0), (math.cos(a / 2), 0.0, 0.0, math.sin(a / 2)),
                                       (0.0, 0.0, rate)))
-    d = S.delay_record(bc, relay, 20.0, truth)
-    assert d["true_ms"] == pytest.approx(17.0 + 20.4, abs=1e-6)  # medians: 17 ms and the relay's 20.4 ms
-    assert d["error_ms"] == pytest.approx(41.0 - 37.4, abs=1e-6)
+    assert S.delay_record(bc, relay, 20.0, truth)["true_ms"] is None  # without SITL's clock: not known
+    d = S.delay_record(bc, relay, 20.0, truth, clock=_sitl_clock(now, 3_000_000_000, 2_500_000, 1_000_000))
+    # medians: 17 ms, the relay's 20.4 ms, SIM_STATE's 2.7 ms age and SITL's 1.2 ms read wait
+    assert d["true_ms"] == pytest.approx(17.0 + 20.4 + 3.9, abs=1e-6)
+    assert d["sitl_clock_ms"] == pytest.approx(3.9, abs=1e-6)
+    assert d["error_ms"] == pytest.approx(41.0 - 41.3, abs=1e-6)
     assert d["optical_lag_ms"] == pytest.approx(3.0, abs=0.3)
+    # on SITL's clock the poses show motion 2.7 ms (SIM_STATE's age) + 3 ms (their lag) older than their stamps,
+    # and SITL takes the poses in 1.2 ms after the relay sends them: 17 + 20.4 + 1.2 + 5.7 ms
+    assert d["true_motion_ms"] == pytest.approx(44.3, abs=0.3)
+    assert d["error_motion_ms"] == pytest.approx(41.0 - 44.3, abs=0.3)
+
+
+def test_intake_probe_times_the_vision_ports_intake_through_the_relay():
+    """IntakeProbe sends signed TIMESYNC requests from the relay's socket into the autopilot's port and picks
+    the answers out of the relay's datagrams towards the bridge: a fake SITL on loopback whose clock is ours
+    + 7 s and which stamps its intake 3 ms late gives tc1 - s1 = 7 s + 3 ms (less the relay's send, which
+    is after the identifier is taken)."""
+    import socket
+    import threading
+
+    from pymavlink.dialects.v20 import ardupilotmega as mav2
+
+    from visionpos.app.linkdelay import DelayRelay
+
+    key = bytes(range(32))
+    bridge = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    bridge.bind(("127.0.0.1", 0))
+    sitl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sitl.bind(("127.0.0.1", 0))
+    sitl.settimeout(0.05)
+    seen = {"signed_ok": 0, "other": 0}
+    stop = threading.Event()
+
+    def fake_sitl(relay_port: int) -> None:
+        rx = mav2.MAVLink(None)
+        rx.signing.secret_key = key  # signatures checked: a request signed otherwise is refused
+        tx = mav2.MAVLink(None, srcSystem=1, srcComponent=1)
+        end = time.monotonic() + 10.0
+        sitl.sendto(tx.heartbeat_encode(2, 3, 0, 0, 4).pack(tx), ("127.0.0.1", relay_port))
+        while not stop.is_set() and time.monotonic() < end:
+            try:
+                data = sitl.recv(65535)
+            except socket.timeout:
+                continue
+            for m in rx.parse_buffer(data) or []:
+                if m.get_type() == "TIMESYNC" and m.tc1 == 0:
+                    seen["signed_ok"] += 1
+                    tc1 = m.ts1 + 7_000_000_000 + 3_000_000
+                    sitl.sendto(tx.heartbeat_encode(2, 3, 0, 0, 4).pack(tx) + tx.timesync_encode(tc1, m.ts1).pack(tx),
+                                ("127.0.0.1", relay_port))
+                elif m.get_type() == "BAD_DATA":
+                    seen["other"] += 1
+
+    clock = S.SitlClock()
+    with DelayRelay(bridge.getsockname(), 0.0, lifetime_s=10.0) as relay:
+        t = threading.Thread(target=fake_sitl, args=(relay.port,), daemon=True)
+        t.start()
+        try:
+            with S.IntakeProbe(relay, key, clock):
+                end = time.monotonic() + 5.0
+                while len(clock.intake) < 3 and time.monotonic() < end:
+                    time.sleep(0.05)
+        finally:
+            stop.set()
+            t.join(2.0)
+    bridge.close()
+    sitl.close()
+    assert len(clock.intake) >= 3 and seen["signed_ok"] >= 3 and seen["other"] == 0
+    for s1, tc1 in clock.intake:
+        assert 7_000_000_000 + 2_000_000 < tc1 - s1 <= 7_000_000_000 + 3_000_000

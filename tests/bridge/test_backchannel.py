@@ -65,7 +65,7 @@ def _cfg(**kw):
 
 
 def _fly(traj_ap, traj_opt, duration_s, seed=0, delay_ms=0.0, return_ms=0.0, gyro_filter_hz=None, sent=None,
-         filter_answered=True):
+         filter_answered=True, drift_ppm=0.0):
     """A Backchannel fed for duration_s of simulated flight: ATTITUDE and HIGHRES_IMU at 50 Hz from traj_ap
     (the autopilot's own sensors, its clock 7 s ahead, 0.5 deg attitude and 5 mrad/s gyro noise), optical
     poses at 100 Hz from traj_opt (attitude noise 0.03 deg; the filter's rate 5 ms late, 0.03 rad/s noise:
@@ -74,13 +74,15 @@ def _fly(traj_ap, traj_opt, duration_s, seed=0, delay_ms=0.0, return_ms=0.0, gyr
     ArduPilot (HEARTBEAT), its RAW_IMU and ATTITUDE rates lag the motion by the group delay of that
     2-pole filter (the analog Butterworth's, computed here), and it answers INS_GYRO_FILTER with it.
     filter_answered=False: the request for INS_GYRO_FILTER is never answered.
-    sent: a list that gets every message the back-channel sends. Returns (backchannel, [(t_s, identity state)])."""
+    sent: a list that gets every message the back-channel sends. drift_ppm: the autopilot's clock runs that
+    much slow (a SITL behind real time). Returns (backchannel, [(t_s, identity state)])."""
     now = [0]
     out = sent if sent is not None else []
     bc = Backchannel(_cfg(), lambda: now[0], mavlink2.MAVLink(None, 1, 197), lambda m: out.append(m) or True,
                      lambda *a: None)
     rng = np.random.default_rng(seed)
     off = 7_000_000_000
+    ap = lambda t: t + off - int(t * drift_ppm * 1e-6)  # noqa: E731  the autopilot's clock at server time t
     back_ns = 1_000_000 + int(return_ms * 1e6)
     ts = np.arange(0, int(duration_s * 1e9), 10_000_000)
     t_s = ts * 1e-9
@@ -104,17 +106,17 @@ def _fly(traj_ap, traj_opt, duration_s, seed=0, delay_ms=0.0, return_ms=0.0, gyr
             bc.on_sent(t + 2_000_000, t)
             r = e_ap[i] + rng.normal(0, math.radians(0.5), 3)
             g = g_ap[i] + bias + rng.normal(0, 0.005, 3)
-            bc.handle(mavlink2.MAVLink_attitude_message((t + off) // 1_000_000, *r, *g), 1, t + back_ns)
+            bc.handle(mavlink2.MAVLink_attitude_message(ap(t) // 1_000_000, *r, *g), 1, t + back_ns)
             if gyro_filter_hz is None:
-                bc.handle(mavlink2.MAVLink_highres_imu_message((t + off) // 1000, 0, 0, -9.8, *g, 0, 0, 0, 0, 0, 0,
+                bc.handle(mavlink2.MAVLink_highres_imu_message(ap(t) // 1000, 0, 0, -9.8, *g, 0, 0, 0, 0, 0, 0,
                                                                0, 0), 1, t + back_ns)
             else:  # ArduPilot's: mrad/s
-                bc.handle(mavlink2.MAVLink_raw_imu_message((t + off) // 1000, 0, 0, -1000, *np.round(g * 1000), 0, 0,
+                bc.handle(mavlink2.MAVLink_raw_imu_message(ap(t) // 1000, 0, 0, -1000, *np.round(g * 1000), 0, 0,
                                                            0), 1, t + back_ns)
         if i % 50 == 0:
             bc._ts_pending[t] = t  # as service() records a request it sent
             fwd_ns = 2_000_000 + int(delay_ms * 1e6)
-            bc.on_timesync_reply(t, t + off + fwd_ns, t + fwd_ns + back_ns)
+            bc.on_timesync_reply(t, ap(t + fwd_ns), t + fwd_ns + back_ns)
             bc.service(t)
             asked = [m for m in out if m.get_type() == "PARAM_REQUEST_READ"]
             if gyro_filter_hz is not None and filter_answered and asked and bc.gyro_filter_hz is None:
@@ -153,6 +155,27 @@ def test_delay_measured_on_a_simulated_clock():
         bc, _ = _fly(AGGRESSIVE, AGGRESSIVE, 25.0, delay_ms=delay_ms)
         # 2 ms from stamp to send, 2 ms + delay over the link
         assert bc.delay_ms == pytest.approx(4.0 + delay_ms, abs=2.0)
+
+
+def test_delay_is_not_biased_by_the_autopilots_clock_drifting():
+    """SITL's clock ran 0.07-0.18 ms/s behind ours in the SITL delay runs. The correlation gives the clock offset
+    where the vehicle turned (the newest 20 s), while the TIMESYNC answers span the last 32 s: their median is the
+    offset of an older instant, 6 s x 0.5 ms/s = 3 ms off at 500 ppm. The forward latency must be taken at the
+    correlation's instant."""
+    bc, _ = _fly(AGGRESSIVE, AGGRESSIVE, 60.0, delay_ms=20.0, drift_ppm=500.0)
+    assert bc.delay_ms == pytest.approx(4.0 + 20.0, abs=0.7), bc.delay_reason
+
+
+def test_vision_delay_takes_the_forward_latency_at_the_correlations_instant():
+    # the autopilot's clock 1000 s ahead and losing 0.2 ms/s; 7 ms forward; one answer 30 ms late (a stall)
+    s1 = np.arange(0.0, 20e9, 0.5e9)
+    tc1 = s1 + 1000e9 - 2e-4 * s1 + 7e6
+    tc1[5] += 30e6
+    at = 15e9
+    lag = 1000e9 - 2e-4 * at  # the correlation's clock offset, at 15 s
+    assert vision_delay_ns(np.full(5, 4e6), s1, tc1, lag, at_ns=at) == pytest.approx(11e6, abs=1e3)
+    # their median stands for 10 s: 1 ms off
+    assert vision_delay_ns(np.full(5, 4e6), s1, tc1, lag) == pytest.approx(12e6, abs=0.1e6)
 
 
 def test_delay_is_not_biased_by_a_slow_return_link():

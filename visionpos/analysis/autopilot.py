@@ -25,8 +25,8 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation
 
-__all__ = ["LagEstimate", "estimate_lag", "body_rates_from_attitudes", "vision_delay_ns", "identity_residuals",
-           "identity_statistic", "wrap_angle"]
+__all__ = ["LagEstimate", "estimate_lag", "body_rates_from_attitudes", "vision_delay_ns", "theil_sen_at",
+           "weighted_time_ns", "identity_residuals", "identity_statistic", "wrap_angle"]
 
 
 class LagEstimate(NamedTuple):
@@ -153,7 +153,7 @@ def body_rates_from_attitudes(t_ns: np.ndarray, quaternions: np.ndarray, span: i
 
 
 def vision_delay_ns(send_minus_stamp_ns: np.ndarray, timesync_s1_ns: np.ndarray, timesync_tc1_ns: np.ndarray,
-                    clock_lag_ns: float) -> float:
+                    clock_lag_ns: float, at_ns: float | None = None) -> float:
     """Capture-to-autopilot delay (ns) on the autopilot's clock.
 
     send_minus_stamp_ns (N,): for each sent pose, its send time less its stamp (server clock);
@@ -161,10 +161,41 @@ def vision_delay_ns(send_minus_stamp_ns: np.ndarray, timesync_s1_ns: np.ndarray,
     and the autopilot's receive times of them (its clock), so tc1 - s1 is the forward link's
     latency plus the clock offset; clock_lag_ns: the autopilot-clock time less the server
     stamp of one physical instant (estimate_lag on the angular rates). The clock offset
-    cancels: delay = median(send - stamp) + median(tc1 - s1) - clock_lag.
+    cancels: delay = median(send - stamp) + (tc1 - s1) - clock_lag, with tc1 - s1 taken at at_ns
+    (server clock: the instant clock_lag stands for, `weighted_time_ns`) on a robust line through
+    the answers, as the two clocks drift apart (a simulator behind real time, a crystal's ppm: 0.1 ms/s
+    is 1 ms over 10 s), or their median without at_ns or with fewer than 3 answers.
     """
-    fwd = np.asarray(timesync_tc1_ns, dtype=np.float64) - np.asarray(timesync_s1_ns, dtype=np.float64)
-    return float(np.median(send_minus_stamp_ns) + np.median(fwd) - clock_lag_ns)
+    s1 = np.asarray(timesync_s1_ns, dtype=np.float64)
+    fwd = np.asarray(timesync_tc1_ns, dtype=np.float64) - s1
+    f = np.median(fwd) if at_ns is None else theil_sen_at(s1, fwd, at_ns)
+    return float(np.median(send_minus_stamp_ns) + f - clock_lag_ns)
+
+
+def theil_sen_at(t: np.ndarray, y: np.ndarray, at: float) -> float:
+    """The Theil-Sen line through (t, y) (the median of the pairwise slopes; the intercept the median of the
+    residuals: a few late answers do not move it) evaluated at `at`; the median of y for fewer than 3 points
+    or no spread of t."""
+    t = np.asarray(t, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    if len(t) < 3 or np.ptp(t) <= 0:
+        return float(np.median(y))
+    i, j = np.triu_indices(len(t), 1)
+    dt = t[j] - t[i]
+    ok = dt != 0
+    slope = float(np.median((y[j] - y[i])[ok] / dt[ok]))
+    t0 = float(np.median(t))
+    return float(np.median(y - slope * (t - t0)) + slope * (at - t0))
+
+
+def weighted_time_ns(t_ns: np.ndarray, x: np.ndarray) -> float:
+    """The instant a correlation of x (N, K) sampled at t_ns (N,) stands for: the mean time weighted by the
+    signal's power (mean-free squares summed over the axes), where the correlation gets its lag from."""
+    t = np.asarray(t_ns, dtype=np.float64)
+    x = np.asarray(x, dtype=np.float64).reshape(len(t), -1)
+    w = ((x - x.mean(axis=0)) ** 2).sum(axis=1)
+    sw = float(w.sum())
+    return float((w * t).sum() / sw) if sw > 0 else float(np.median(t))
 
 
 def wrap_angle(a: np.ndarray) -> np.ndarray:

@@ -24,6 +24,7 @@ import selectors
 import socket
 import threading
 import time
+from typing import Callable
 
 RECV_BYTES = 65535
 
@@ -52,6 +53,9 @@ class DelayRelay:
         self.holds: dict[str, list[tuple[int, int]]] = {"to_bridge": [], "to_autopilot": []}
         self.unsent = 0  # datagrams to the autopilot before it had sent anything (no address yet)
         self.send_errors = 0
+        # tap(read_ns, datagram): sees each datagram from the autopilot as it is read (on the relay's thread;
+        # keep it cheap); the SITL harness reads its own TIMESYNC answers there
+        self.tap: Callable[[int, bytes], None] | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -110,6 +114,8 @@ class DelayRelay:
                     continue
                 self.ap_peer = addr
                 self._to_bridge.append((now + self.delay_ns, data))
+                if self.tap is not None:
+                    self.tap(now, data)
             else:
                 if addr != self.target:
                     continue
@@ -131,6 +137,19 @@ class DelayRelay:
                     continue
                 sent = time.monotonic_ns()
                 self.holds[name].append((sent, sent - due + self.delay_ns))
+
+    def send_to_autopilot(self, data: bytes) -> int | None:
+        """Send a datagram of our own to the autopilot now, unheld (any thread); the clock read just before the
+        write, or None without an autopilot address yet or on an error."""
+        peer = self.ap_peer
+        if peer is None:
+            return None
+        t = time.monotonic_ns()
+        try:
+            self.ap_sock.sendto(data, peer)
+        except OSError:
+            return None
+        return t
 
     def hold_ms_median(self, direction: str, since_ns: int = 0) -> float | None:
         """Median hold (ms) of the datagrams sent on in direction ('to_bridge', 'to_autopilot') since since_ns."""

@@ -27,8 +27,9 @@ Truth: SIM_STATE carries the vehicle's attitude (quaternion), NED velocity and b
 full precision, but latitude/longitude only in 1e-7 degrees (about 1.1 cm) and the altitude in
 whole centimetres (ArduPilot's Location), so the position is the integral of the velocity, pulled
 slowly (TRUTH_BLEND_S) towards the quantised one: cameras rendering the raw steps would see a body
-jump 1 cm in one frame. Samples are stamped with their arrival time (loopback, well under a millisecond
-after SITL's physics step, plus the reader thread's wake-up). Cameras expose at their own times:
+jump 1 cm in one frame. Samples are stamped with their arrival time (SITL's wait to send them, loopback,
+the reader thread's wake-up); SitlClock measures that age on SITL's own clock for the delay benchmark.
+Cameras expose at their own times:
 the body's pose there is interpolated between samples (cubic Hermite in position with the
 velocities, slerp in attitude) or, for the newest few milliseconds, extrapolated with the last
 velocity and body rate.
@@ -111,6 +112,8 @@ MAV_CMD_DO_SET_MODE = 176
 MAV_CMD_COMPONENT_ARM_DISARM = 400
 MAV_CMD_NAV_TAKEOFF = 22
 MSG_SIM_STATE = 108
+MSG_SYSTEM_TIME = 2
+MSG_RAW_IMU = 27
 COPTER_MODES = {"STABILIZE": 0, "GUIDED": 4, "LOITER": 5, "RTL": 6, "LAND": 9}
 MODE_NAMES = {v: k for k, v in COPTER_MODES.items()}
 
@@ -450,6 +453,143 @@ class LiveArena:
 # ---------------------------------------------------------------- the GCS link
 
 
+class SitlClock:
+    """SITL's clock against ours; thread-safe appends (the GCS reader, the intake probe's threads).
+
+    SITL's clock is its simulation time, stopped at each physics step while its loop runs (AP_HAL_SITL), so
+    everything it stamps in one loop carries that step's time. Three records:
+    - truth: (arrival here, SITL time) for each SIM_STATE, the SITL time being RAW_IMU's time_usec sent in the
+      same message bucket (both asked for at TRUTH_RATE_HZ on the GCS link; SITL sends RAW_IMU, SIM_STATE,
+      SYSTEM_TIME together; RAW_IMU is stamped when sent, to the microsecond, i.e. the physics step SIM_STATE
+      reports; SYSTEM_TIME's time_boot_ms, whole milliseconds, only cross-checks the bucket);
+    - intake: (our send time s1, SITL's tc1) for TIMESYNC requests sent into the vision link's port (SERIAL1)
+      from the relay's socket (IntakeProbe): tc1 is SITL's receive time of the datagram (the UART's receive
+      timestamp, which ArduPilot also gives a vision message), so tc1 - s1 is how late on SITL's clock a
+      datagram the relay sends now is taken in;
+    - timesync: the same on the GCS link (SERIAL0), for comparison.
+    median(arrival - SITL time) + median(tc1 - s1) = how old SIM_STATE's physics is when it arrives here plus
+    how late SITL takes a datagram in, on SITL's clock: the two clocks' offset cancels."""
+
+    TIMESYNC_EVERY_NS = 250_000_000
+    BUCKET_NS = 1_000_000  # messages of one bucket arrive together (one TCP write)
+    MIN_TIMESYNCS = 5
+
+    def __init__(self) -> None:
+        self.truth: list[tuple[int, int]] = []
+        self.intake: list[tuple[int, int]] = []
+        self.timesync: list[tuple[int, int]] = []
+        self.pending: dict[int, int] = {}
+        self.bucket_checks = 0
+        self.bucket_mismatches = 0  # SYSTEM_TIME ms != floor(RAW_IMU us / 1000): not one bucket
+        self._imu: tuple[int, int] | None = None  # (arrival, SITL ns) of the last RAW_IMU
+        self._last_imu: tuple[int, int] | None = None  # the same, for the SYSTEM_TIME check
+
+    def on_system_time(self, now: int, time_boot_ms: int) -> None:
+        """SITL sends it after RAW_IMU and SIM_STATE in their bucket: it checks the RAW_IMU before it."""
+        imu = self._last_imu
+        if imu is not None and now - imu[0] < self.BUCKET_NS:
+            self.bucket_checks += 1
+            self.bucket_mismatches += int(int(time_boot_ms) != imu[1] // 1_000_000)
+            self._last_imu = None
+
+    def on_raw_imu(self, now: int, time_usec: int) -> None:
+        self._imu = self._last_imu = (now, int(time_usec) * 1000)
+
+    def on_sim_state(self, now: int) -> None:
+        imu = self._imu
+        if imu is not None and now - imu[0] < self.BUCKET_NS:
+            self.truth.append((now, imu[1]))
+        self._imu = None  # one pair per bucket
+
+    def on_timesync(self, tc1: int, ts1: int) -> None:
+        """A TIMESYNC answer on the GCS link (ts1: our request's send time)."""
+        s1 = self.pending.pop(ts1, None)
+        if s1 is not None and tc1 > 0:
+            self.timesync.append((s1, tc1))
+
+    def summary(self, since_ns: int, until_ns: int | None = None) -> dict[str, Any]:
+        """The records since since_ns (our clock), in ms: sitl_term (SIM_STATE's age plus SITL's intake of the
+        vision link's datagrams, the term the true delay gains; None with too few records) and
+        sitl_term_serial0 (the same with the GCS link's intake, for comparison)."""
+        def rows(records: list) -> np.ndarray:
+            end = until_ns if until_ns is not None else np.iinfo(np.int64).max
+            return np.array([r for r in list(records) if since_ns <= r[0] <= end], dtype=np.int64).reshape(-1, 2)
+
+        tr, ts1, ts0 = rows(self.truth), rows(self.intake), rows(self.timesync)
+        out: dict[str, Any] = {"truth_pairs": len(tr), "intake_timesyncs": len(ts1), "gcs_timesyncs": len(ts0),
+                               "sitl_term_ms": None, "sitl_term_serial0_ms": None, "intake_ms": None,
+                               "bucket_mismatch_fraction": self.bucket_mismatches / max(1, self.bucket_checks)}
+        if len(tr) < 10:
+            return out
+        if len(ts1) >= self.MIN_TIMESYNCS:
+            out["intake_ms"] = float(np.median(ts1[:, 1] - ts1[:, 0])) * 1e-6  # offset-laden
+        age = float(np.median(tr[:, 0] - tr[:, 1]))  # offset-laden: our arrival less SITL's time
+        for key, ts in (("sitl_term_ms", ts1), ("sitl_term_serial0_ms", ts0)):
+            if len(ts) >= self.MIN_TIMESYNCS:  # offset-laden the other way: SITL's intake less our send
+                out[key] = (age + float(np.median(ts[:, 1] - ts[:, 0]))) * 1e-6
+        return out
+
+
+class IntakeProbe:
+    """TIMESYNC requests into SITL's vision port (SERIAL1) from the relay's own socket, every
+    SitlClock.TIMESYNC_EVERY_NS on a thread of its own, signed with the vehicle's key (SITL takes only signed
+    messages there) on a link id of its own; the answers are picked out of the relay's datagrams from SITL
+    (DelayRelay.tap) into clock.intake."""
+
+    LINK_ID = 7
+
+    def __init__(self, relay: Any, key: bytes, clock: SitlClock):
+        from pymavlink.dialects.v20 import ardupilotmega as mav2
+
+        self.relay = relay
+        self.clock = clock
+        self.enc = mav2.MAVLink(None, srcSystem=255, srcComponent=191)
+        self.enc.signing.secret_key = key
+        self.enc.signing.link_id = self.LINK_ID
+        self.enc.signing.sign_outgoing = True
+        self.enc.signing.timestamp = int((time.time() - 1420070400) * 1e5)  # 10 us since 2015-01-01
+        self.rx = mav2.MAVLink(None)
+        self.rx.robust_parsing = True
+        self._pending: dict[int, int] = {}
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="sitl-intake-probe", daemon=True)
+
+    def __enter__(self) -> "IntakeProbe":
+        self.relay.tap = self.tap
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.relay.tap = None
+
+    def _run(self) -> None:
+        while not self._stop.wait(SitlClock.TIMESYNC_EVERY_NS * 1e-9):
+            ts1 = time.monotonic_ns()  # an identifier: the send time is the relay's clock read at its write
+            s1 = self.relay.send_to_autopilot(self.enc.timesync_encode(0, ts1).pack(self.enc))
+            if s1 is not None:
+                with self._lock:
+                    self._pending[ts1] = s1
+                    while len(self._pending) > 64:
+                        self._pending.pop(next(iter(self._pending)))
+
+    def tap(self, read_ns: int, data: bytes) -> None:
+        if b"\x6f\x00\x00" not in data:  # TIMESYNC's message id (111, 3 bytes): parse only those datagrams
+            return
+        try:
+            msgs = self.rx.parse_buffer(data) or []
+        except Exception:  # noqa: BLE001  a datagram that is not MAVLink: not ours
+            return
+        for m in msgs:
+            if m.get_type() == "TIMESYNC" and m.tc1 > 0:
+                with self._lock:
+                    s1 = self._pending.pop(m.ts1, None)
+                if s1 is not None:
+                    self.clock.intake.append((s1, int(m.tc1)))
+
+
 class Gcs:
     """Our ground-station link to SITL's SERIAL0 (tcp), with a reader thread keeping what SITL reports.
 
@@ -473,6 +613,7 @@ class Gcs:
         self.modes: list[tuple[int, int]] = []  # (recv_ns, custom_mode) at each change
         self.origin: tuple[int, Any] | None = None
         self.heartbeats = 0
+        self.clock = SitlClock()
 
     # -- connection
     def connect(self, timeout_s: float = 30.0, proc: SitlProcess | None = None) -> None:
@@ -515,8 +656,16 @@ class Gcs:
 
     def _read(self) -> None:
         conn = self.conn
+        next_ts = 0
         while not self._stop.is_set():
             try:
+                if time.monotonic_ns() >= next_ts:
+                    next_ts = time.monotonic_ns() + SitlClock.TIMESYNC_EVERY_NS
+                    s1 = time.monotonic_ns()
+                    self.clock.pending[s1] = s1  # ts1 is our send time: SITL echoes it
+                    if len(self.clock.pending) > 64:
+                        self.clock.pending.pop(next(iter(self.clock.pending)))
+                    conn.mav.timesync_send(0, s1)
                 msg = conn.recv_match(blocking=True, timeout=0.1)
             except (OSError, ConnectionError):
                 return  # SITL rebooted or exited; connect() again
@@ -527,6 +676,13 @@ class Gcs:
         kind = m.get_type()
         if kind == "SIM_STATE":
             self.truth.add(now, m)
+            self.clock.on_sim_state(now)
+        elif kind == "RAW_IMU":
+            self.clock.on_raw_imu(now, m.time_usec)
+        elif kind == "SYSTEM_TIME":
+            self.clock.on_system_time(now, m.time_boot_ms)
+        elif kind == "TIMESYNC":
+            self.clock.on_timesync(m.tc1, m.ts1)
         elif kind == "LOCAL_POSITION_NED":
             self.local.append((now, m.x, m.y, m.z))
         elif kind == "ATTITUDE":
@@ -552,7 +708,9 @@ class Gcs:
             self.origin = (now, m)
 
     def request_streams(self) -> None:
-        for msg_id, rate in ((MSG_SIM_STATE, TRUTH_RATE_HZ), (32, TELEMETRY_RATE_HZ), (30, TELEMETRY_RATE_HZ),
+        # SYSTEM_TIME and RAW_IMU at SIM_STATE's rate share its message bucket: they stamp it (SitlClock)
+        for msg_id, rate in ((MSG_SIM_STATE, TRUTH_RATE_HZ), (MSG_SYSTEM_TIME, TRUTH_RATE_HZ),
+                             (MSG_RAW_IMU, TRUTH_RATE_HZ), (32, TELEMETRY_RATE_HZ), (30, TELEMETRY_RATE_HZ),
                              (193, 10.0), (49, 1.0)):  # LOCAL_POSITION_NED, ATTITUDE, EKF_STATUS_REPORT, ORIGIN
             self.conn.mav.command_long_send(1, 1, MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 1e6 / rate,
                                             0, 0, 0, 0, 0)
@@ -702,6 +860,7 @@ def _run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | 
     serial1_port = vision_port if relay is None else relay.port
     with SitlProcess(cfg, instance, f"udpclient:127.0.0.1:{serial1_port}") as proc:
         gcs = Gcs(proc.gcs_port, truth, on_text=lambda text: say(f"  SITL: {text}"))
+        probe: IntakeProbe | None = None
         try:
             say(f"SITL instance {proc.instance} in {proc.folder}: GCS on SERIAL0 tcp:127.0.0.1:{proc.gcs_port}, "
                 f"SERIAL1 udpclient:127.0.0.1:{serial1_port} -> "
@@ -724,6 +883,8 @@ def _run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | 
             gcs.set_params(noise)
             _setup_signing(gcs, key)
             _set_origin(gcs, cfg, say)
+            if relay is not None:  # SITL's intake of the vision link's datagrams, for the true delay
+                probe = IntakeProbe(relay, key, gcs.clock).__enter__()
             say(f"set-up done in {time.monotonic() - t0:.1f} s; cameras start")
             live = LiveArena(body, truth)
             record: dict[str, Any] = {}
@@ -739,6 +900,8 @@ def _run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | 
 
             demo = asyncio.run(run_demo(arena, plan.timeout_s + 60.0, None, during=during, live=live))
         finally:
+            if probe is not None:
+                probe.__exit__()
             gcs.close()
             sys.setswitchinterval(old_switch)
     summary = flight_summary(gcs, truth, demo, record, plan, time.monotonic() - t0)
@@ -847,7 +1010,7 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
         await asyncio.sleep(plan.cut_s)
     await _hold(gcs, plan, x0, y0, plan.hold_s / 2)
     if relay is not None:
-        record["link_delay"] = delay_record(link.bc, relay, plan.link_delay_ms or 0.0, gcs.truth)
+        record["link_delay"] = delay_record(link.bc, relay, plan.link_delay_ms or 0.0, gcs.truth, clock=gcs.clock)
         d = record["link_delay"]
         say(f"link delay {d['added_ms']:g} ms: back-channel measured {_fmt(d['measured_ms'])} ms, true "
             f"{_fmt(d['true_ms'])} ms ({d['detail']})")
@@ -887,35 +1050,93 @@ def _fmt(v: float | None) -> str:
 
 
 def delay_record(bc: Any, relay: Any, added_ms: float, truth: TruthTrack | None = None,
-                 window_ns: int | None = None) -> dict[str, Any]:
+                 window_ns: int | None = None, clock: SitlClock | None = None) -> dict[str, Any]:
     """The back-channel's measured capture-to-autopilot delay against the true one, for a link through relay.
 
-    True delay: when a pose reaches SITL's socket less its stamp (the capture time it stands for), on the
-    server clock: (the bridge's write to its socket - the stamp) + (the relay's hold of the datagrams to
-    SITL), each the median over the back-channel's measurement window (the newest window_ns,
-    DELAY_WINDOW_NS); loopback adds microseconds. Left out, the same for every added delay (so the change
-    of the difference with the added delay is free of them): SITL's wait to read its socket (its loop,
-    which also stamps TIMESYNC); SIM_STATE's latency to its arrival stamp here (SITL's wait to send it,
-    loopback TCP, our reader thread's wake-up: the cameras render the truth as of its arrival, so a pose
-    shows motion that much older than its stamp), less RAW_IMU's (ArduPilot stamps it when sent, not when
-    sampled). optical_lag_ms, for diagnosis: how far the poses' body rates trail SIM_STATE's as stamped
-    here (the fusion's lag; not in the true delay)."""
+    True delay, on SITL's clock (the one VISO_DELAY_MS is on): the SITL time at which SITL takes in a pose,
+    less the SITL time of the physics the pose shows. Its parts, each the median over the back-channel's
+    measurement window (the optical span of its last figure, bc.delay_window_ns; else the newest window_ns,
+    DELAY_WINDOW_NS):
+    - the bridge's write to its socket less the pose's stamp (our clock);
+    - the relay's hold of the datagrams towards SITL (our clock; loopback adds microseconds);
+    - with clock (SitlClock): SIM_STATE's age, our arrival time less its SITL time (the cameras render the
+      truth as of its arrival, so a pose stamped t shows SITL's physics of that much earlier), plus how late
+      SITL takes in a datagram the relay sends on the vision link (its receive time in TIMESYNC's tc1 less the
+      relay's send time; IntakeProbe): their sum cancels both clocks' offsets.
+    Without clock (or too few records) the last part is missing and true_ms is None. Not in it: the
+    bridge's write to the relay's read (loopback and the relay thread's wake-up, a median under 0.1 ms), and
+    the poses' own lag behind the motion they render (the fusion's), which the back-channel counts.
+    true_motion_ms counts it: the SITL time of the intake less the SITL time of the motion the poses show
+    (their body rates correlated with SIM_STATE's at the SITL times of its buckets), so error_motion_ms is
+    the back-channel's own error (its gyro filter model and TIMESYNC).
+    Left out: RAW_IMU's own timing (stamped when sent, at the step of its loop, which is the instant its gyro
+    describes, bar the gyro filter's lag that the back-channel removes). optical_lag_ms, for diagnosis: how far
+    the poses' body rates trail SIM_STATE's as stamped here (the fusion's lag; a bias of the optics, which the
+    measurement sees and the true delay does not)."""
     from bridge.backchannel import DELAY_WINDOW_NS
+    from visionpos.analysis.autopilot import theil_sen_at
 
     now = time.monotonic_ns()
     since = now - (window_ns if window_ns is not None else DELAY_WINDOW_NS)
-    sends = np.array([r[1] for r in list(bc.sends.d) if r[0] >= since], dtype=float)  # list(): copied under the GIL
-    hold_ms = relay.hold_ms_median("to_autopilot", since)
+    until = now
+    win = getattr(bc, "delay_window_ns", None)
+    if window_ns is None and win is not None:  # the span the measurement used: the link's figures drift
+        since, until = win
+    sends = np.array([r[1] for r in list(bc.sends.d) if since <= r[0] <= until], dtype=float)  # list(): a copy
+    holds = [h for t, h in list(relay.holds["to_autopilot"]) if since <= t <= until] \
+        if hasattr(relay, "holds") else []
+    hold_ms = float(np.median(holds)) * 1e-6 if holds else relay.hold_ms_median("to_autopilot", since)
     lag_ms = _optical_lag_ms(bc, truth, since) if truth is not None else None
-    true_ms = float(np.median(sends)) * 1e-6 + hold_ms if len(sends) and hold_ms is not None else None
+    sitl = clock.summary(since, until) if clock is not None else {}
+    sitl_ms = sitl.get("sitl_term_ms")
+    true_ms = (float(np.median(sends)) * 1e-6 + hold_ms + sitl_ms
+               if len(sends) and hold_ms is not None and sitl_ms is not None else None)
     measured = bc.delay_ms
+    shown = _shown_lag_ms(bc, truth, clock, since) if truth is not None and clock is not None else None
+    intake = np.array([r for r in list(clock.intake) if r[0] >= since], dtype=np.int64).reshape(-1, 2) \
+        if clock is not None else np.zeros((0, 2), np.int64)
+    motion_ms = None
+    if true_ms is not None and shown is not None and len(intake) >= SitlClock.MIN_TIMESYNCS:
+        # the intake at the instant the correlation stands for: SITL's clock drifts from ours
+        fwd_ms = theil_sen_at(intake[:, 0], (intake[:, 1] - intake[:, 0]).astype(float), shown[1]) * 1e-6
+        motion_ms = true_ms - sitl_ms + fwd_ms - shown[0]
+    shown_ms = shown[0] if shown is not None else None
     return {"added_ms": float(added_ms), "measured_ms": measured, "true_ms": true_ms,
+            "true_motion_ms": motion_ms, "shown_lag_ms": shown_ms,
+            "error_motion_ms": measured - motion_ms if measured is not None and motion_ms is not None else None,
             "error_ms": measured - true_ms if measured is not None and true_ms is not None else None,
             "send_minus_stamp_ms_p50": float(np.median(sends)) * 1e-6 if len(sends) else None,
             "relay_hold_ms_p50": hold_ms, "relay_hold_back_ms_p50": relay.hold_ms_median("to_bridge", since),
+            "sitl_clock_ms": sitl_ms, "sitl_clock_serial0_ms": sitl.get("sitl_term_serial0_ms"),
+            "sitl_clock_records": (sitl.get("truth_pairs"), sitl.get("intake_timesyncs"), sitl.get("gcs_timesyncs")),
+            "sitl_bucket_mismatch_fraction": sitl.get("bucket_mismatch_fraction"),
             "optical_lag_ms": lag_ms,
             "correlation": float(bc.delay_correlation) if np.isfinite(bc.delay_correlation) else None,
             "gyro_source": bc.gyro_source or None, "detail": bc.delay_reason}
+
+
+def _shown_lag_ms(bc: Any, truth: TruthTrack, clock: SitlClock, since_ns: int) -> tuple[float, float] | None:
+    """The SITL time of the motion a pose shows less the pose's stamp (ms, offset-laden like SitlClock's
+    records), and the instant (server clock, ns) it stands for: the poses' body rates (from their attitudes)
+    correlated with SIM_STATE's body rates at the SITL times of their buckets; None without enough rotation
+    or records."""
+    from visionpos.analysis.autopilot import body_rates_from_attitudes, estimate_lag, weighted_time_ns
+    from visionpos.geometry.frames import flu_to_frd
+
+    pairs = np.array([r for r in list(clock.truth) if r[0] >= since_ns], dtype=np.int64).reshape(-1, 2)
+    rows = [r for r in list(bc.opt.d) if r[0] >= since_ns]
+    t_true, x = truth.snapshot()
+    keep = t_true >= since_ns
+    if len(rows) < 50 or len(pairs) < 50 or keep.sum() < 50:
+        return None
+    off = pairs[:, 1] - pairs[:, 0]  # SITL time less arrival, per SIM_STATE: interpolated onto the track's
+    t_sitl = t_true[keep] + np.round(np.interp(t_true[keep], pairs[:, 0], off)).astype(np.int64)
+    to, rates = body_rates_from_attitudes(np.array([r[0] for r in rows], dtype=np.int64),
+                                          np.array([r[6:10] for r in rows], dtype=float))
+    est = estimate_lag(to, rates, t_sitl, flu_to_frd(x[keep, 10:13]), float(np.median(off)), 60e6, step_ns=1e6)
+    if est is None or est.correlation <= 0.8:
+        return None
+    return est.lag_ns * 1e-6, weighted_time_ns(to, rates)
 
 
 def _optical_lag_ms(bc: Any, truth: TruthTrack, since_ns: int) -> float | None:
@@ -1063,7 +1284,8 @@ def format_flight(s: dict[str, Any]) -> str:
         d = s["link_delay"]
         lines.append(f"  link delay {d['added_ms']:g} ms each way: capture->autopilot delay measured by the "
                      f"back-channel {_fmt(d['measured_ms'])} ms, true {_fmt(d['true_ms'])} ms (send-stamp "
-                     f"{_fmt(d['send_minus_stamp_ms_p50'])} + relay {_fmt(d['relay_hold_ms_p50'])}), difference "
+                     f"{_fmt(d['send_minus_stamp_ms_p50'])} + relay {_fmt(d['relay_hold_ms_p50'])} + SITL's truth "
+                     f"age and intake {_fmt(d.get('sitl_clock_ms'))}), difference "
                      f"{_fmt(d['error_ms'])} ms; poses behind SITL's truth {_fmt(d['optical_lag_ms'])} ms; "
                      f"{d['detail']}")
     lines.append(f"  failsafe / lane switch messages: {s['failsafe_or_lane_switch'] or 'none'}; "
