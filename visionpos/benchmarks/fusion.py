@@ -111,10 +111,13 @@ def errors(rep: Replay, truth_at, name: str, skip_s: float = 0.5) -> dict[str, f
     }
 
 
-def _static(quick: bool, res: BenchResult) -> None:
+STATIC_SIGMA_PX = 0.2
+
+
+def static_flight(quick: bool):
+    """The static body of the thesis arena (scenario, simulation): 0.2 px centroid noise, 3 or 10 s."""
     from visionpos.sim import load_scenario, simulate
 
-    sigma = 0.2
     sc = load_scenario(
         "thesis",
         [
@@ -124,9 +127,37 @@ def _static(quick: bool, res: BenchResult) -> None:
         ],
         session="static",
         duration=3.0 if quick else 10.0,
-        centroid_noise_px=sigma,
+        centroid_noise_px=STATIC_SIGMA_PX,
     )
-    sim = simulate(sc)
+    return sc, simulate(sc)
+
+
+def static_poses(sc, sim, settings: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, Replay]:
+    """The static flight through the pipeline with fusion `settings`: the raw poses' times (T,) ns from
+    0.5 s after the first, positions (T, 3) m and rotations (T, 3, 3), and the replay (its outputs)."""
+    raws: dict[int, tuple] = {}
+
+    def cb(p):
+        r = p.last_raw.get(0)
+        if r is not None:
+            raws[r[0]] = r
+
+    rep = replay(sc.arena, sim.frames, settings, raw_cb=cb)
+    t = np.array(sorted(raws))
+    t = t[t >= t[0] + 500_000_000]
+    return t, np.array([raws[k][1] for k in t]), np.array([raws[k][2] for k in t]), rep
+
+
+def static_jitter(t: np.ndarray, P: np.ndarray, rep: Replay) -> tuple[float, float]:
+    """(raw, output) position jitter (mm per axis) of static_poses' results: second differences of the raw poses
+    and of the tracked outputs from the first raw pose on."""
+    ok = rep.tracked["quad"] & (rep.times_ns >= t[0])
+    return position_jitter(t, P) * 1e3, position_jitter(rep.times_ns[ok], rep.positions["quad"][ok]) * 1e3
+
+
+def _static(quick: bool, res: BenchResult) -> None:
+    sigma = STATIC_SIGMA_PX
+    sc, sim = static_flight(quick)
     body = sc.body("quad")
     p_true, q_true = sc.truth_at("quad", [sc.start_ns])
     Rt = Rotation.from_quat(q_true[0]).as_matrix()
@@ -144,18 +175,7 @@ def _static(quick: bool, res: BenchResult) -> None:
     crb_rot_deg = float(np.degrees(np.sqrt(np.trace(crb[3:, 3:]))))
     rows = []
     for mode in ("motion_compensated", "naive"):
-        raws: dict[int, tuple] = {}
-
-        def cb(p, raws=raws):
-            r = p.last_raw.get(0)
-            if r is not None:
-                raws[r[0]] = r
-
-        rep = replay(sc.arena, sim.frames, {"time_alignment": mode}, raw_cb=cb)
-        t = np.array(sorted(raws))
-        t = t[t >= t[0] + 500_000_000]
-        P = np.array([raws[k][1] for k in t])
-        R = np.array([raws[k][2] for k in t])
+        t, P, R, rep = static_poses(sc, sim, {"time_alignment": mode})
         raw_pos = float(np.sqrt(((P - p_true[0]) ** 2).sum(1).mean()) * 1e3)
         raw_rot = float(
             np.degrees(
@@ -164,9 +184,7 @@ def _static(quick: bool, res: BenchResult) -> None:
         )
         e = errors(rep, sc.truth_at, "quad")
         # jitter: high-frequency noise per axis (second differences), raw poses vs outputs
-        ok = rep.tracked["quad"] & (rep.times_ns >= t[0])
-        raw_jit = position_jitter(t, P) * 1e3
-        out_jit = position_jitter(rep.times_ns[ok], rep.positions["quad"][ok]) * 1e3
+        raw_jit, out_jit = static_jitter(t, P, rep)
         raw_std = raw_pos / float(np.sqrt(3.0))  # static body: all of the raw error is noise
         rows.append((mode, raw_pos, e["pos_rmse_mm"], raw_rot, e["rot_rmse_deg"], raw_std, raw_jit, out_jit))
         if mode == "motion_compensated":
@@ -428,6 +446,7 @@ def run(quick: bool = False) -> BenchResult:
     _static(quick, res)
     _fast(quick, res)
     fusion_flights.run(quick, res)
+    fusion_flights.run_alternatives(quick, res)
     _arena8(quick, res)
     run_occlusion(quick, res)
     _latency(quick, res)

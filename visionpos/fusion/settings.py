@@ -34,8 +34,7 @@ KALMAN = section(
             min=1e-12),
     Setting("angular_jerk_psd", "number", 0.0, "floor of the white angular-jerk density (rad^2/s^5); above 0 the "
             "filter also estimates the angular acceleration (constant-angular-acceleration model: follows steady "
-            "attitude ramps without lag, 100 took the slalom's rotation error from 1.38 to 1.08 x the bound, but "
-            "smooths less and can gate sharp flicks; see tracking.py)", min=0.0),
+            "attitude ramps without lag, but smooths less and can gate sharp flicks; see tracking.py)", min=0.0),
     Setting("max_noise_scale", "number", 1e4, "the innovation-driven (NIS) adaptation may raise both "
             "densities by up to this factor", min=1.0),
     Setting("nis_threshold", "number", 2.0, "the averaged NIS per degree of freedom above which the adaptation "
@@ -77,8 +76,8 @@ SINGLE_VIEW = section(
             "camera frame's markers at that frame's capture time instead of from the motion-compensated pose "
             "(identification, the fit check and the gate-and-restart rule stay on the triangulated pose; "
             "needs enabled). The views' innovations do not open the position noise enough in a manoeuvre: "
-            "raise kalman.jerk_psd with it (20 took the slalom to 1.12x / 1.04x the bound, but a still body "
-            "loses its smoothing; see docs/architecture.md)", choices=SV_MODES),
+            "raise kalman.jerk_psd with it, and a still body loses its smoothing (docs/benchmarks.md: the issue-15 "
+            "filter settings)", choices=SV_MODES),
     Setting("gate_nis_per_dof", "number", 6.0, "a frame's reprojection innovation is refused when its "
             "squared Mahalanobis distance over its 2n degrees of freedom exceeds this per degree", min=0.5),
     Setting("unique_sigmas", "number", 4.0, "a marker's association is used only if no other blob lies within "
