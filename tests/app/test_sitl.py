@@ -226,8 +226,8 @@ def test_delay_record_compares_the_measurement_with_stamp_to_send_plus_the_relay
 def test_intake_probe_times_the_vision_ports_intake_through_the_relay():
     """IntakeProbe sends signed TIMESYNC requests from the relay's socket into the autopilot's port and picks
     the answers out of the relay's datagrams towards the bridge: a fake SITL on loopback whose clock is ours
-    + 7 s and which stamps its intake 3 ms late gives tc1 - s1 = 7 s + 3 ms (less the relay's send, which
-    is after the identifier is taken)."""
+    + 7 s and which stamps its intake 3 ms late gives tc1 - s1 = 7 s + 3 ms (less the gap between taking the
+    identifier and the relay's send)."""
     import socket
     import threading
 
@@ -279,5 +279,5 @@ def test_intake_probe_times_the_vision_ports_intake_through_the_relay():
     bridge.close()
     sitl.close()
     assert len(clock.intake) >= 3 and seen["signed_ok"] >= 3 and seen["other"] == 0
-    for s1, tc1 in clock.intake:
-        assert 7_000_000_000 + 2_000_000 < tc1 - s1 <= 7_000_000_000 + 3_000_000
+    for s1, tc1 in clock.intake:  # the relay's send lags the identifier by microseconds, by ms on a loaded host
+        assert 7_000_000_000 + 3_000_000 - 20_000_000 < tc1 - s1 <= 7_000_000_000 + 3_000_000

@@ -270,9 +270,12 @@ def test_a_stalled_client_does_not_slow_the_others():
             slowest = max(slowest, time.monotonic() - t0)
         st = srv.stats()
         assert slowest < 1.0, f"an update took {slowest:.2f} s to reach the reading client"
-        # the stalled client's buffer reached its bound (one read past it at most) and stayed there
-        assert foxglove_live.RELAY_BUFFER_B <= st["buffered_b_max"] <= foxglove_live.RELAY_BUFFER_B + 65536
-        assert st["clients"] == 2 or st["dropped"].get("closed by the server") == 1  # the SDK may drop it
+        # the stalled client's buffer stayed within its bound (one read past it at most), and reached it unless
+        # the SDK dropped the client first (on a loaded host its own queue can overflow before the relay's fills)
+        dropped = st["dropped"].get("closed by the server") == 1
+        assert st["buffered_b_max"] <= foxglove_live.RELAY_BUFFER_B + 65536
+        assert dropped or st["buffered_b_max"] >= foxglove_live.RELAY_BUFFER_B
+        assert st["clients"] == 2 or dropped
     finally:
         clients.close()
         srv.close()
