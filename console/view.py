@@ -35,17 +35,6 @@ def _r(x: float, nd: int) -> float | None:
     return round(float(x), nd) if math.isfinite(x) else None
 
 
-def _quat_matrix(q: list[float]) -> np.ndarray:
-    """Rotation matrix (3, 3) of a unit quaternion [x, y, z, w] (scipy's from_quat costs more than this whole
-    update's arithmetic; plain floats cost less than numpy scalars)."""
-    x, y, z, w = q
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
 def _rounded(values: list[float], nd: int) -> list[float | None]:
     """_r over a list: one finiteness check for the whole list (the usual case), per value only when it fails."""
     if isfinite(sum(values)):

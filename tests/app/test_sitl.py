@@ -203,7 +203,7 @@ def test_delay_record_compares_the_measurement_with_stamp_to_send_plus_the_relay
     bc = types.SimpleNamespace(sends=types.SimpleNamespace(d=sends), opt=types.SimpleNamespace(d=opt),
                                delay_ms=41.0, delay_correlation=0.97, gyro_source="RAW_IMU", delay_reason="ok")
     holds = {"to_autopilot": 20.4, "to_bridge": 20.6}
-    relay = types.SimpleNamespace(hold_ms_median=lambda direction, since: holds[direction])
+    relay = types.SimpleNamespace(hold_ms_median=lambda direction, since, until=None: holds[direction])
     truth = S.TruthTrack(HOME)
     for ti in t:  # SIM_STATE: yaw rate about down (FRD z) is d(yaw)/dt
         rate = 0.3 * 2 * np.pi / 2.0 * np.cos(2 * np.pi * (ti - now) * 1e-9 / 2.0)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import collections
 import selectors
 import socket
+import statistics
 import threading
 import time
 from typing import Callable
@@ -151,7 +152,9 @@ class DelayRelay:
             return None
         return t
 
-    def hold_ms_median(self, direction: str, since_ns: int = 0) -> float | None:
-        """Median hold (ms) of the datagrams sent on in direction ('to_bridge', 'to_autopilot') since since_ns."""
-        h = [d for t, d in list(self.holds[direction]) if t >= since_ns]  # list(): a copy under the GIL
-        return float(sorted(h)[len(h) // 2]) * 1e-6 if h else None
+    def hold_ms_median(self, direction: str, since_ns: int = 0, until_ns: int | None = None) -> float | None:
+        """Median hold (ms) of the datagrams sent on in direction ('to_bridge', 'to_autopilot') between since_ns
+        and until_ns (send times; no end when None)."""
+        end = until_ns if until_ns is not None else float("inf")
+        h = [d for t, d in list(self.holds[direction]) if since_ns <= t <= end]  # list(): a copy under the GIL
+        return statistics.median(h) * 1e-6 if h else None

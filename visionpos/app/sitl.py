@@ -1083,9 +1083,7 @@ def delay_record(bc: Any, relay: Any, added_ms: float, truth: TruthTrack | None 
     if window_ns is None and win is not None:  # the span the measurement used: the link's figures drift
         since, until = win
     sends = np.array([r[1] for r in list(bc.sends.d) if since <= r[0] <= until], dtype=float)  # list(): a copy
-    holds = [h for t, h in list(relay.holds["to_autopilot"]) if since <= t <= until] \
-        if hasattr(relay, "holds") else []
-    hold_ms = float(np.median(holds)) * 1e-6 if holds else relay.hold_ms_median("to_autopilot", since)
+    hold_ms = relay.hold_ms_median("to_autopilot", since, until)
     lag_ms = _optical_lag_ms(bc, truth, since) if truth is not None else None
     sitl = clock.summary(since, until) if clock is not None else {}
     sitl_ms = sitl.get("sitl_term_ms")

@@ -195,13 +195,14 @@ def _flights(session: str, dur: float, seeds: list[int], settings: dict | None =
     return m
 
 
-def run_alternatives(quick: bool, res: BenchResult) -> None:
-    """The ALTERNATIVES on the slalom, the dash and the static body: metrics fusion_alt_<name>_*."""
-    from visionpos.benchmarks.fusion import static_flight, static_jitter, static_poses
+def run_alternatives(quick: bool, res: BenchResult, static: tuple) -> None:
+    """The ALTERNATIVES on the slalom, the dash and the static body (static: benchmarks.fusion.static_flight's
+    scenario and simulation): metrics fusion_alt_<name>_*."""
+    from visionpos.benchmarks.fusion import static_jitter, static_poses
 
     dur = 4.0 if quick else 10.0
     seeds = [1] if quick else [1, 2]
-    sc, sim = static_flight(quick)
+    sc, sim = static
     tbl = [
         "| settings | slalom position / rotation (x bound) | dash position / rotation (x bound) | max error (mm) "
         "| gated | static body: output jitter / raw |",

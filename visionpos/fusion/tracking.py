@@ -790,7 +790,6 @@ class FilterBank:
                                 settings.init_velocity_sigma_m_s**2, settings.init_acceleration_sigma_m_s2**2,
                                 settings.init_angular_velocity_sigma_rad_s**2, ang_acc_var, settings.nis_threshold,
                                 float(settings.nis_unsplit_cov), float(settings.gate_retest)])
-
         # the kernels' argument (layout.FilterArrays as a plain tuple: cheaper for numba to dispatch)
         self.arrays = tuple(FilterArrays(self.x, self.P, self.R_nom, self.adapt, self.clock, self.params))
         self.filters = [BodyFilter(settings, self, i) for i in range(n)] if make_filters else []
