@@ -66,7 +66,8 @@ class BodyState:
     time_ns: the instant the state is valid for (predicted to send time).
     capture_ns: capture time of the newest camera frame that contributed.
     update_kind: which measurement last kept the body tracked: "pose" (triangulated, or the
-    identification), "views" (single-camera reprojection updates through occlusion), "" (none).
+    identification; in fusion.single_view.mode always the filter took the triangulated frames' views),
+    "views" (single-camera reprojection updates through occlusion), "" (none).
     """
 
     name: str

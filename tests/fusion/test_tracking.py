@@ -182,9 +182,9 @@ def test_spin_up_at_constant_angular_acceleration_is_followed_without_lag():
 
 
 def test_without_angular_jerk_the_angular_acceleration_stays_unmodelled():
-    """angular_jerk_psd = 0 (the default) is the constant-rate model: the angular acceleration is
-    held at zero with no variance, so a spin-up lags (the figure the test above removes)."""
-    f = BodyFilter(KalmanSettings())
+    """angular_jerk_psd = 0 is the constant-rate model: the angular acceleration is held at zero with
+    no variance, so a spin-up lags (the figure the test above removes)."""
+    f = BodyFilter(KalmanSettings(angular_jerk_psd=0.0))
     axis = np.array([0.0, 0.6, 0.8])
     f.initialize(0, np.zeros(3), np.eye(3), _cov())
     for k in range(1, 60):

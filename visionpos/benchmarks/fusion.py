@@ -45,6 +45,7 @@ def replay(
     order: str = "recv",
     raw_cb=None,
     monitor=None,
+    tick_cb=None,
 ) -> Replay:
     """Feed frames to a new pipeline in arrival order and tick it at tick_hz on the receive clock.
 
@@ -52,6 +53,7 @@ def replay(
     every frame received before it; states are predicted to the tick time.
     raw_cb(pipeline) is called after every push (for raw-pose collection). monitor: a
     fusion.camera_monitor.CameraMonitor fed as the server feeds it (its corrections applied).
+    tick_cb(tick_ns, states) is called after every tick with its BodyStates.
     """
     pipe = FusionPipeline(arena, settings)
     if order == "recv":
@@ -80,6 +82,8 @@ def replay(
                 monitor.observe_frame(fr[i])
             i += 1
         states = pipe.tick(int(tk))
+        if tick_cb is not None:
+            tick_cb(int(tk), states)
         if monitor is not None:
             monitor.observe_states(states)
             for c in monitor.step(int(tk)):

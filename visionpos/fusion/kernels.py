@@ -29,6 +29,7 @@ from visionpos.fusion.layout import (
     CLOCK_T_NS,
     INTRINSICS_FX,
     INTRINSICS_FY,
+    KALMAN_GATE_CHI2,
     KALMAN_NIS_UNSPLIT_COV,
     MEAS_COV,
     MEAS_FIT_RMS_M,
@@ -96,9 +97,11 @@ from visionpos.fusion.layout import (
 from visionpos.fusion.matching import associate_blobs, project_points, triangulate_irls
 from visionpos.fusion.tracking import (
     _spd_inverse,
+    adapt_to_pose,
     filter_initialize,
     filter_update,
     filter_update_view,
+    pose_nis,
     predict_mean,
     report_image_nis,
 )
@@ -572,7 +575,7 @@ def _pose_observable(info: np.ndarray, max_pos_var: float, max_rot_var: float) -
 @njit
 def _single_views(b: int, local: np.ndarray, body_rows: np.ndarray, marker_xn: np.ndarray,
                   marker_ok: np.ndarray, capture_ns: np.ndarray, views: tuple, params: np.ndarray, bank: tuple,
-                  tracks: tuple) -> tuple[int, int, int, int]:
+                  tracks: tuple, adapt_noise: bool = True) -> tuple[int, int, int, int]:
     """The single-view path of one body b that could not be triangulated (compiled): each frame of the
     fusion's views that b has not used yet, oldest first, that sees >= 1 of its markers unambiguously
     (marker_ok) is one reprojection update (tracking.filter_update_view) at its own capture time.
@@ -615,7 +618,8 @@ def _single_views(b: int, local: np.ndarray, body_rows: np.ndarray, marker_xn: n
                 seen[k] = True
                 n += 1
         ok, _, frame_info = filter_update_view(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, t_v, sel_local,
-                                               sel_xn, packed[v], var_px, params[PARAM_SV_GATE_PER_DOF])
+                                               sel_xn, packed[v], var_px, params[PARAM_SV_GATE_PER_DOF],
+                                               adapt_noise)
         if not ok:
             n_gated += 1
             continue
@@ -710,14 +714,25 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
         if params[PARAM_SV_ENABLED] == SV_PARAM_ALWAYS:
             # mode `always`: each frame's own markers at its capture time instead of the compensated pose
             s = slice(first, first + sizes[i])
-            sv_verdict = _single_views(b, local[s], rows[s], marker_xn, marker_ok, capture_ns, views, params, bank,
-                                       tracks)[0]
-        if sv_verdict == VERDICT_TOO_FEW:  # no frame with an unambiguous marker: the pose
+            d2, nis_p, nis_r = pose_nis(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i],
+                                        cov, h_t[i, 0], h_t[i, 1],
+                                        1.0 / reuse if kalman[KALMAN_NIS_UNSPLIT_COV] != 0.0 else 1.0)
+            t_before = clock[b, CLOCK_T_NS]
+            # a pose outside the gate: the prediction the views were matched against is off (a manoeuvre
+            # the model lags), so their labels may be too; the pose path below decides
+            if d2 <= kalman[KALMAN_GATE_CHI2]:
+                sv_verdict = _single_views(b, local[s], rows[s], marker_xn, marker_ok, capture_ns, views, params,
+                                           bank, tracks, False)[0]
+            if sv_verdict == VERDICT_VIEWS or sv_verdict == VERDICT_VIEWS_UNCONSTRAINED:  # the views were taken
+                adapt_to_pose(adapt[b], clock[b], kalman, (clock[b, CLOCK_T_NS] - t_before) * 1e-9, nis_p, nis_r)
+        if sv_verdict == VERDICT_TOO_FEW or sv_verdict == VERDICT_VIEWS_GATED:
+            # no frame with an unambiguous marker, or the gate refused every view (a manoeuvre the model
+            # lags): the pose, as in mode occlusion (and its retest under manoeuvre hypotheses)
             accepted, _ = filter_update(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i], cov,
                                         True, h_t[i, 0], h_t[i, 1],
                                         1.0 / reuse if kalman[KALMAN_NIS_UNSPLIT_COV] != 0.0 else 1.0)
-        else:
-            accepted, kind = sv_verdict != VERDICT_VIEWS_GATED, UPDATE_VIEWS
+        else:  # the views of a triangulated body: its kind stays "pose" (UPDATE_VIEWS says occlusion)
+            accepted = True
         if accepted:
             verdict[i] = VERDICT_ACCEPTED
         else:

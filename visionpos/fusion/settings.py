@@ -32,11 +32,13 @@ KALMAN = section(
             min=1e-12),
     Setting("angular_accel_psd", "number", 1.0, "floor of the white angular-acceleration density (rad^2/s^3)",
             min=1e-12),
-    Setting("angular_jerk_psd", "number", 0.0, "floor of the white angular-jerk density (rad^2/s^5); above 0 the "
-            "filter also estimates the angular acceleration (constant-angular-acceleration model: follows steady "
-            "attitude ramps without lag, but smooths less and can gate sharp flicks; see tracking.py)", min=0.0),
-    Setting("max_noise_scale", "number", 1e4, "the innovation-driven (NIS) adaptation may raise both "
-            "densities by up to this factor", min=1.0),
+    Setting("angular_jerk_psd", "number", 100.0, "floor of the white angular-jerk density (rad^2/s^5); above 0 "
+            "the filter also estimates the angular acceleration (constant-angular-acceleration model: follows a "
+            "multirotor's attitude ramps without lag; 0: the constant-rate model, which lags them; see tracking.py)",
+            min=0.0),
+    Setting("max_noise_scale", "number", 1000.0, "the innovation-driven (NIS) adaptation may raise both "
+            "densities by up to this factor (higher: the rates it estimates in a manoeuvre get noisy, and so does "
+            "the output predicted ahead with them)", min=1.0),
     Setting("nis_threshold", "number", 2.0, "the averaged NIS per degree of freedom above which the adaptation "
             "raises the process noise (below it the noise decays to its floor); ~1 while the model fits, so "
             "lower values react to smaller lags and smooth less (docs/benchmarks.md: the issue-15 filter "
@@ -50,7 +52,7 @@ KALMAN = section(
     Setting("marker_sigma_m", "number", 0.0001, "floor of the per-marker 3D noise used for the measurement "
             "covariance", min=1e-7),
     Setting("gate_chi2", "number", 40.0, "Mahalanobis^2 gate on the 6-dof innovation (chi2 with 6 dof)", min=1.0),
-    Setting("gate_retest", "boolean", False, "a pose the gate refuses is tried again with the lagging block's "
+    Setting("gate_retest", "boolean", True, "a pose the gate refuses is tried again with the lagging block's "
             "process noise over its prediction raised 10, 100 or 1000 times (at most to max_noise_scale); the "
             "first that passes the gate is taken and the adaptation goes on from its scale (follows sudden "
             "manoeuvres the model lags, e.g. a flick's end under angular_jerk_psd, instead of refusing "
@@ -71,13 +73,12 @@ SINGLE_VIEW = section(
     "body; the track is kept only while the recent views' pose information bounds the pose.",
     Setting("enabled", "boolean", True, "use single-camera reprojection updates for tracked bodies that "
             "cannot be triangulated"),
-    Setting("mode", "text", SV_OCCLUSION, "occlusion: the single views update a body only while it cannot be "
-            "triangulated; always: a tracked body whose triangulated pose fits its layout is updated from each "
-            "camera frame's markers at that frame's capture time instead of from the motion-compensated pose "
-            "(identification, the fit check and the gate-and-restart rule stay on the triangulated pose; "
-            "needs enabled). The views' innovations do not open the position noise enough in a manoeuvre: "
-            "raise kalman.jerk_psd with it, and a still body loses its smoothing (docs/benchmarks.md: the issue-15 "
-            "filter settings)", choices=SV_MODES),
+    Setting("mode", "text", SV_ALWAYS, "always: a tracked body whose triangulated pose fits its layout is "
+            "updated from each camera frame's markers at that frame's capture time instead of from the "
+            "motion-compensated pose, which carries the compensation's error (identification, the fit check, the "
+            "gate-and-restart rule and the process-noise adaptation stay on the triangulated pose; needs enabled); "
+            "occlusion: the single views update a body only while it cannot be triangulated (docs/benchmarks.md: "
+            "other filter settings on the flights)", choices=SV_MODES),
     Setting("gate_nis_per_dof", "number", 6.0, "a frame's reprojection innovation is refused when its "
             "squared Mahalanobis distance over its 2n degrees of freedom exceeds this per degree", min=0.5),
     Setting("unique_sigmas", "number", 4.0, "a marker's association is used only if no other blob lies within "
@@ -209,7 +210,9 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
     s = FUSION.check(Section(data, source, "fusion"))
     kalman = KALMAN.parse(s.sub("kalman"))
     single_view = SINGLE_VIEW.parse(s.sub("single_view"))
-    if single_view["mode"] == SV_ALWAYS and not single_view["enabled"]:
+    sv_raw = data.get("single_view")
+    explicit_always = isinstance(sv_raw, dict) and sv_raw.get("mode") == SV_ALWAYS
+    if explicit_always and not single_view["enabled"]:  # the default mode simply has no effect then
         raise ConfigError(source, "fusion.single_view.mode", "`always` needs the single-view path: "
                           "`fusion.single_view.enabled` is false")
     fps = [c.fps for c in arena.cameras] or [100.0]

@@ -5,11 +5,11 @@ dw/dt (3) rad/s^2], world frame. Position is a constant-acceleration model
 driven by white jerk; orientation is a *multiplicative* error state: a nominal
 rotation R_nom (body->world) plus a small world-frame rotation-vector error
 dtheta, driven by a constant angular rate with white angular-acceleration
-noise (angular_accel_psd) and, when angular_jerk_psd > 0, by a constant
-angular acceleration dw/dt with white angular-jerk noise as well (the same
-third-order model as the position). With angular_jerk_psd = 0 (the default)
-dw/dt starts at zero with zero variance and nothing drives it: it stays zero
-and the filter is the constant-rate one.
+noise (angular_accel_psd) and, when angular_jerk_psd > 0 (the default), by a
+constant angular acceleration dw/dt with white angular-jerk noise as well (the
+same third-order model as the position). With angular_jerk_psd = 0 dw/dt
+starts at zero with zero variance and nothing drives it: it stays zero and the
+filter is the constant-rate one.
 
 Why error-state: a rotation has 3 degrees of freedom but no global minimal
 parameterisation without singularities; keeping the nominal rotation outside
@@ -28,15 +28,12 @@ the same: a multirotor tilts to accelerate and ramps its yaw rate, so the
 angular rate changes steadily over tenths of a second; with a constant-rate
 model the rotation error of the issue-15 slalom flight followed the angular
 acceleration (it explained half of the error's square), a lag the
-angular-acceleration state removes (slalom rotation RMSE 1.38 -> 1.08 x the
-bound at angular_jerk_psd 100). It is not the default: it smooths a hovering
-or smoothly flying body less (static rotation 0.30 -> 0.31-0.39 deg for
-100-2000), and on the dash's sharp pitch flicks, below about 2000, the gate
-refuses measurements (tests/fusion/test_stall.py): at a flick's end the filter
-still extrapolates its angular acceleration, the floor noise does not cover
-that, and a refused pose leaves the prediction running on while the NIS average
-takes tens of ms to open the gate. `gate_retest` (_manoeuvre_retest) tries such
-a pose again under raised process noise and keeps the first scale that fits
+angular-acceleration state removes. On a sharp pitch flick the filter at the
+flick's end still extrapolates its angular acceleration, the floor noise does
+not cover that, and a refused pose would leave the prediction running on while
+the NIS average takes tens of ms to open the gate (tests/fusion/test_stall.py):
+`gate_retest` (_manoeuvre_retest, on by default) tries such a pose again under
+raised process noise and keeps the first scale that fits
 (tests/fusion/test_manoeuvre.py). A fixed process
 noise is still a compromise between a hovering and a manoeuvring body, so
 the noise is scaled by a running average of the normalised innovation
@@ -63,8 +60,19 @@ The measurement is a 6-DoF pose [p, log(R_meas R_nom^T)] with a covariance
 given by the caller (pipeline.py estimates it from the rigid-body fit).
 Outliers are gated by the squared Mahalanobis distance of the innovation.
 
-Through occlusion (the body cannot be triangulated) the measurement is what
-one camera frame sees instead (filter_update_view): the pixels of n of the
+By default (fusion.single_view.mode always) a triangulated body is not updated
+from its motion-compensated pose but from what each camera frame sees at its own
+capture time (filter_update_view, below): compensating the frames' different
+capture times with this filter's own rates carries the filter's rate error into
+the pose (on the issue-15 flights that pose was ~1.2x its snapshot bound). The
+triangulated pose still identifies the body, decides the gate (a pose outside it
+means the prediction the views were labelled against is off: the pose path and
+its retest decide instead) and drives the noise adaptation (pose_nis,
+adapt_to_pose): its NIS separates position from rotation lag, which one view's
+innovation cannot (driven by the views' own NIS, a still body needed a 200x
+higher jerk floor, and lost its smoothing, for the flights' lags to show).
+Through occlusion (the body cannot be triangulated) the measurement is likewise
+what one camera frame sees (filter_update_view): the pixels of n of the
 body's markers at the frame's capture time, h = lens(R_c X + t_c) with
 X = p + exp(dtheta) R_nom l, linearised with the lens model's analytic
 Jacobian (camera/pinhole.py, camera/fisheye.py) over position and rotation
@@ -566,6 +574,31 @@ def _adapt_noise(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns:
 
 
 @njit
+def adapt_to_pose(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, dt: float, nis_p: float,
+                  nis_r: float) -> None:
+    """The NIS-driven adaptation after dt (s) of single-view updates, from the NIS per block of the
+    triangulated pose of the same frames (pose_nis, taken before the views), in place."""
+    _adapt_noise(adapt, clock, params, int(clock[CLOCK_T_NS]), dt, nis_p, nis_r, True)
+
+
+@njit
+def pose_nis(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.ndarray, clock: np.ndarray,
+             params: np.ndarray, t_ns: int, position: np.ndarray, R: np.ndarray, cov: np.ndarray, h_vel: float,
+             h_acc: float, nis_cov_scale: float) -> tuple[float, float, float]:
+    """A pose measurement (as filter_update takes it) against the filter predicted to t_ns: the squared
+    Mahalanobis distance of its innovation and its NIS per dof per block (position, rotation); the
+    filter is left as it is."""
+    xc, Pc, Rc = x.copy(), P.copy(), R_nom.copy()
+    dt = (t_ns - clock[CLOCK_T_NS]) * 1e-9
+    # a gate no innovation passes: _kf_update returns after the NIS, before the update
+    _, _, d2, nis_p, nis_r = _kf_predict_update(
+        xc, Pc, Rc, dt, params[KALMAN_JERK_PSD] * adapt[ADAPT_SCALE_P],
+        params[KALMAN_ANG_ACC_PSD] * adapt[ADAPT_SCALE_R], params[KALMAN_ANG_JERK_PSD] * adapt[ADAPT_SCALE_R],
+        position, R, cov, 1e-300, h_vel, h_acc, nis_cov_scale)
+    return d2, nis_p, nis_r
+
+
+@njit
 def project_with_jacobian(Xc: np.ndarray, intrinsics: np.ndarray, dist: np.ndarray,
                           fisheye: bool) -> tuple[float, float, np.ndarray]:
     """Pixel (u, v) of a camera-frame point Xc (3,) (z > 0) and d (u, v) / d Xc (2, 3), through
@@ -599,7 +632,7 @@ def _distorted_pixel(xn: float, yn: float, intrinsics: np.ndarray, dist: np.ndar
 @njit
 def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.ndarray, clock: np.ndarray,
                        params: np.ndarray, t_ns: int, local: np.ndarray, obs_xn: np.ndarray, camera: np.ndarray,
-                       var_px: float, gate_per_dof: float) -> tuple[bool, float, np.ndarray]:
+                       var_px: float, gate_per_dof: float, adapt_noise: bool = True) -> tuple[bool, float, np.ndarray]:
     """Fuse what ONE camera frame sees of one body: the reprojection measurement (compiled).
 
     x, P, R_nom, adapt, clock, params: the body's FilterBank rows (as filter_update).
@@ -723,7 +756,8 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
                 kk += K[i, a] * K[j, a]
             P[i, j] = P[j, i] = acc + var_px * kk
     _count_folds(R_nom, clock, int(_fold(x, R_nom)))
-    _adapt_noise(adapt, clock, params, t_ns, max(dt_f, 0.0), nis, nis, False)
+    if adapt_noise:
+        _adapt_noise(adapt, clock, params, t_ns, max(dt_f, 0.0), nis, nis, False)
     return True, nis, info
 
 
