@@ -41,8 +41,7 @@ KALMAN = section(
             "the output predicted ahead with them)", min=1.0),
     Setting("nis_threshold", "number", 2.0, "the averaged NIS per degree of freedom above which the adaptation "
             "raises the process noise (below it the noise decays to its floor); ~1 while the model fits, so "
-            "lower values react to smaller lags and smooth less (docs/benchmarks.md: the issue-15 filter "
-            "settings)", min=1.0),
+            "lower values react to smaller lags and smooth less (tests/fusion/test_manoeuvre.py)", min=1.0),
     Setting("nis_unsplit_cov", "boolean", False, "the fused pose's NIS that drives the adaptation uses the "
             "pose's own covariance, not the one split over the fusions that share its frames (the filter's "
             "update still uses the split one): its mean is then ~1 per dof while the model fits (0.28 split, "
