@@ -139,6 +139,14 @@ def path_crb(sc, sim, body_name: str, times_ns: np.ndarray) -> tuple[float, floa
     return float(np.sqrt(np.mean(pos_var)) * 1e3), float(np.degrees(np.sqrt(np.mean(rot_var))))
 
 
+def _pose_errors(sc, name: str, times_ns: np.ndarray, positions: np.ndarray,
+                 quaternions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position (T,) m and rotation (T,) rad errors of poses (T, 3), (T, 4) xyzw against the truth at times_ns (T,)."""
+    p_true, q_true = sc.truth_at(name, times_ns)
+    dr = (Rotation.from_quat(quaternions) * Rotation.from_quat(q_true).inv()).magnitude()
+    return np.linalg.norm(positions - p_true, axis=1), dr
+
+
 def fly(session: str, duration_s: float, seed: int, settings: dict | None = None,
         overrides: list[str] | None = None) -> dict[str, float]:
     """One flight of the thesis arena's `session` through the pipeline: errors, bound, stall (see the module).
@@ -157,7 +165,7 @@ def fly(session: str, duration_s: float, seed: int, settings: dict | None = None
         if tr.tracked and (not accepted or tr.last_update_ns != accepted[-1]):
             accepted.append(tr.last_update_ns)
 
-    sent: list[tuple] = []  # per tracked tick: (capture ns, position, quaternion) as the bridge sends it
+    sent: list[tuple] = []  # per tracked tick: (tick ns, capture ns, position, quaternion) as the bridge sends it
 
     def at_capture(tick_ns, states):
         st = states[0]
@@ -168,19 +176,16 @@ def fly(session: str, duration_s: float, seed: int, settings: dict | None = None
 
     rep = replay(sc.arena, sim.frames, settings, raw_cb=watch, tick_cb=at_capture)
     t = rep.times_ns
-    keep = t >= sc.start_ns + int(SKIP_S * 1e9)
+    judged_from_ns = sc.start_ns + int(SKIP_S * 1e9)
+    keep = t >= judged_from_ns
     ok = rep.tracked[name] & keep
-    p_true, q_true = sc.truth_at(name, t[ok])
-    dp_tick = np.linalg.norm(rep.positions[name][ok] - p_true, axis=1)
-    dr_tick = (Rotation.from_quat(rep.quaternions[name][ok]) * Rotation.from_quat(q_true).inv()).magnitude()
-    sent = [x for x in sent if x[0] >= sc.start_ns + int(SKIP_S * 1e9)]
-    cap = np.array([x[1] for x in sent], np.int64)
-    p_cap, q_cap = sc.truth_at(name, cap)
-    dp = np.linalg.norm(np.array([x[2] for x in sent]) - p_cap, axis=1)
-    dr = (Rotation.from_quat(np.array([x[3] for x in sent])) * Rotation.from_quat(q_cap).inv()).magnitude()
+    dp_tick, dr_tick = _pose_errors(sc, name, t[ok], rep.positions[name][ok], rep.quaternions[name][ok])
+    sent = [x for x in sent if x[0] >= judged_from_ns]
+    dp, dr = _pose_errors(sc, name, np.array([x[1] for x in sent], np.int64), np.array([x[2] for x in sent]),
+                          np.array([x[3] for x in sent]))
     crb_pos_mm, crb_rot_deg = path_crb(sc, sim, name, t[keep][::CRB_EVERY])
     period_ns = int(1e9 / min(c.fps for c in sc.arena.cameras))
-    grid = np.arange(sc.start_ns + int(SKIP_S * 1e9), int(t[-1]), 250_000, dtype=np.int64)
+    grid = np.arange(judged_from_ns, int(t[-1]), 250_000, dtype=np.int64)
     seen = seeing_cameras(sim.frames, sim.frame_truth, 0, grid) >= 2
     stall_ns = longest_stall_ns(np.asarray(accepted, np.int64), seen, grid)
     return {

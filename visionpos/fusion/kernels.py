@@ -711,12 +711,12 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
         meas[i, MEAS_COV] = cov.ravel()
         kind = UPDATE_POSE
         sv_verdict = VERDICT_TOO_FEW
+        nis_cov_scale = 1.0 / reuse if kalman[KALMAN_NIS_UNSPLIT_COV] != 0.0 else 1.0
         if params[PARAM_SV_ENABLED] == SV_PARAM_ALWAYS:
             # mode `always`: each frame's own markers at its capture time instead of the compensated pose
             s = slice(first, first + sizes[i])
             d2, nis_p, nis_r = pose_nis(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i],
-                                        cov, h_t[i, 0], h_t[i, 1],
-                                        1.0 / reuse if kalman[KALMAN_NIS_UNSPLIT_COV] != 0.0 else 1.0)
+                                        cov, h_t[i, 0], h_t[i, 1], nis_cov_scale)
             t_before = clock[b, CLOCK_T_NS]
             # a pose outside the gate: the prediction the views were matched against is off (a manoeuvre
             # the model lags), so their labels may be too; the pose path below decides
@@ -726,11 +726,10 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
             if sv_verdict == VERDICT_VIEWS or sv_verdict == VERDICT_VIEWS_UNCONSTRAINED:  # the views were taken
                 adapt_to_pose(adapt[b], clock[b], kalman, (clock[b, CLOCK_T_NS] - t_before) * 1e-9, nis_p, nis_r)
         if sv_verdict == VERDICT_TOO_FEW or sv_verdict == VERDICT_VIEWS_GATED:
-            # no frame with an unambiguous marker, or the gate refused every view (a manoeuvre the model
-            # lags): the pose, as in mode occlusion (and its retest under manoeuvre hypotheses)
+            # mode occlusion; or no frame with an unambiguous marker, the pose outside the gate, or the gate
+            # refused every view (a manoeuvre the model lags): the pose (and its retest under manoeuvre hypotheses)
             accepted, _ = filter_update(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i], cov,
-                                        True, h_t[i, 0], h_t[i, 1],
-                                        1.0 / reuse if kalman[KALMAN_NIS_UNSPLIT_COV] != 0.0 else 1.0)
+                                        True, h_t[i, 0], h_t[i, 1], nis_cov_scale)
         else:  # the views of a triangulated body: its kind stays "pose" (UPDATE_VIEWS says occlusion)
             accepted = True
         if accepted:
