@@ -310,13 +310,22 @@ def _static_spurious(s: Scenario, cam: Camera) -> tuple[np.ndarray, np.ndarray, 
     return uv, rng.uniform(6.0, 40.0, n), rng.uniform(120.0, 255.0, n)
 
 
-def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: float, t1: float, dropped):
-    """Frames of one camera with nominal exposure in [t0, t1) ns after start: [(BlobFrame, FrameTruth)]."""
-    k = _frame_range(t, t0, t1)
+@dataclass(slots=True)
+class _Exposures:
+    """One chunk's K frames of a camera: indices k (K,), exact exposure, reported capture, receive and raw
+    station times (K,) int64 ns, and which frames the station drops (K,) bool."""
+
+    k: np.ndarray
+    true_ns: np.ndarray
+    capture_ns: np.ndarray
+    recv_ns: np.ndarray
+    station_ns: np.ndarray
+    drop: np.ndarray
+
+
+def _exposures(s: Scenario, t: CameraTiming, k: np.ndarray, rng: np.random.Generator) -> _Exposures:
+    """Exposure jitter, drops, the station's stamp (sync residual + noise) and the network latency of frames k."""
     K = len(k)
-    if K == 0:
-        return []
-    rng = rng_for(s.seed, TAG_FRAMES, cam.id, chunk)
     clock = s.clocks[t.station_id]
     jit = np.clip(rng.standard_normal(K), -4, 4) * t.jitter_ns
     true_ns = s.start_ns + np.round(t.phase_ns + k * t.period_ns + jit).astype(np.int64)
@@ -329,10 +338,29 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
     else:
         lat = np.full(K, s.latency_mean_ns)
     recv_ns = true_ns + np.round(np.clip(lat, 0, s.latency_max_ns)).astype(np.int64)
-    station_ns = clock.raw_ns(true_ns)
+    return _Exposures(k, true_ns, capture_ns, recv_ns, clock.raw_ns(true_ns), drop)
 
-    # ---- markers of every body at every exposure: (K, Mtot, ...)
-    C = cam.center
+
+@dataclass(slots=True)
+class _Markers:
+    """Every body's markers at each of K exposures, Mt columns (bodies' markers side by side).
+
+    world, normals (K, Mt, 3) m / unit; diameter_m, body, marker, cutoff_cos (Mt,); row_dt_ns (K, Mt) the
+    rolling shutter's delay of each marker's row; discs [(position (K, 3), disc normal (K, 3), radius m)]."""
+
+    world: np.ndarray
+    normals: np.ndarray
+    diameter_m: np.ndarray
+    body: np.ndarray
+    marker: np.ndarray
+    cutoff_cos: np.ndarray
+    row_dt_ns: np.ndarray
+    discs: list
+
+
+def _markers_at(s: Scenario, cam: Camera, t: CameraTiming, true_ns: np.ndarray) -> _Markers:
+    """The bodies' markers at the exposures true_ns (K,), moved on to their row's time with a rolling shutter."""
+    K = len(true_ns)
     world, normals, diam, b_idx, m_idx, cutoff = [], [], [], [], [], []
     discs = []
     for bi, b in enumerate(s.bodies):
@@ -358,18 +386,24 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
         diam_m = np.zeros(0)
         b_idx_a = m_idx_a = np.zeros(0, int)
         cut = np.zeros(0)
-    Mt = W.shape[1]
-    row_dt = np.zeros((K, Mt))
-    if t.readout_ns > 0 and Mt:
+    row_dt = np.zeros((K, W.shape[1]))
+    if t.readout_ns > 0 and W.shape[1]:
         W, N, row_dt = _rolling_shutter(s, cam, t.readout_ns, true_ns, W, N)
-    flatW = W.reshape(-1, 3)
-    vis = cam.visible(flatW).reshape(K, Mt)
+    return _Markers(W, N, diam_m, b_idx_a, m_idx_a, cut, row_dt, discs)
+
+
+def _visible(s: Scenario, cam: Camera, m: _Markers, ex: _Exposures) -> np.ndarray:
+    """(K, Mt) bool: in the field of view, facing the camera, behind no body's disc, in a frame not dropped and
+    not hidden by the occlusion schedule (on the true exposure time)."""
+    K, Mt = m.world.shape[:2]
+    W = m.world
+    vis = cam.visible(W.reshape(-1, 3)).reshape(K, Mt)
     if s.occlusion and Mt:
-        to_cam = C[None, None, :] - W
+        to_cam = cam.center[None, None, :] - W
         dist = np.linalg.norm(to_cam, axis=2)
-        facing = np.einsum("kmi,kmi->km", N, to_cam) / np.maximum(dist, 1e-12)
-        vis &= facing >= cut[None, :] - 1e-12
-        for pos, nz, radius in discs:
+        facing = np.einsum("kmi,kmi->km", m.normals, to_cam) / np.maximum(dist, 1e-12)
+        vis &= facing >= m.cutoff_cos[None, :] - 1e-12
+        for pos, nz, radius in m.discs:
             denom = np.einsum("kmi,ki->km", to_cam, nz)
             num = np.einsum("kmi,ki->km", pos[:, None, :] - W, nz)
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -378,88 +412,124 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
             x = W + sc[..., None] * to_cam
             inside = np.linalg.norm(x - pos[:, None, :], axis=2) < radius
             vis &= ~(hit & inside)
-    vis &= ~drop[:, None]
-    for win in s.view_schedule:  # the occlusion schedule, on the true exposure time
-        during = (true_ns >= win.start_ns) & (true_ns < win.end_ns)
+    vis &= ~ex.drop[:, None]
+    for win in s.view_schedule:
+        during = (ex.true_ns >= win.start_ns) & (ex.true_ns < win.end_ns)
         if during.any():
-            cols = b_idx_a == win.body
+            cols = m.body == win.body
             vis[np.ix_(during, cols)] &= win.mask(cam.id, int(cols.sum()))[None, :]
+    return vis
 
+
+class _BlobColumns:
+    """The blobs of a chunk's frames as parallel columns, gathered part by part (markers, mirror images,
+    reflections, glints) and joined once: frame index, measured and true pixel (N, 2), area px^2, peak,
+    diameter px, body and marker (truth labels), row delay ns."""
+
+    NAMES = ("frame", "xy", "true_xy", "area", "peak", "diameter_px", "body", "marker", "row_dt_ns")
+
+    def __init__(self) -> None:
+        self.parts: list[tuple[np.ndarray, ...]] = []
+
+    def add(self, frame, xy, true_xy, area, peak, diameter_px, body, marker, row_dt_ns) -> None:
+        self.parts.append((frame, xy, true_xy, area, peak, diameter_px, body, marker, row_dt_ns))
+
+    def joined(self) -> dict[str, np.ndarray]:
+        cols = {}
+        for i, name in enumerate(self.NAMES):
+            arrays = [p[i] for p in self.parts]
+            cols[name] = np.vstack(arrays) if arrays[0].ndim == 2 else np.concatenate(arrays)
+        return cols
+
+
+def _add_marker_blobs(s: Scenario, cam: Camera, m: _Markers, vis: np.ndarray, rng, blobs: _BlobColumns) -> None:
+    """The visible markers' blobs, with centroid noise."""
     fi, mi = np.nonzero(vis)  # frame index, marker column
-    uv, dpx, rng_m = marker_geometry(cam, W[fi, mi], diam_m[mi])
+    uv, dpx, rng_m = marker_geometry(cam, m.world[fi, mi], m.diameter_m[mi])
     area, peak = blob_photometry(s, dpx, rng_m)
-    true_xy = uv
     xy = uv + rng.normal(0.0, s.centroid_noise_px, uv.shape) if s.centroid_noise_px > 0 else uv.copy()
-    body_col, marker_col = b_idx_a[mi], m_idx_a[mi]
-    dt_col = row_dt[fi, mi]
+    blobs.add(fi, xy, uv, area, peak, dpx, m.body[mi], m.marker[mi], m.row_dt_ns[fi, mi])
 
-    # ---- glossy floor: every marker above it also shows as a dimmer mirror image
-    if s.floor_mirror > 0 and Mt:
-        Wm = W * np.array([1.0, 1.0, -1.0])
-        vis_m = cam.visible(Wm.reshape(-1, 3)).reshape(K, Mt) & (W[:, :, 2] > 0) & ~drop[:, None]
-        fm, mm = np.nonzero(vis_m)
-        if len(fm):
-            uv_m, d_m, r_m = marker_geometry(cam, Wm[fm, mm], diam_m[mm])
-            a_m, p_m = blob_photometry(s, d_m, r_m)
-            noise_m = rng.normal(0.0, s.centroid_noise_px, uv_m.shape) if s.centroid_noise_px > 0 else 0.0
-            fi = np.concatenate([fi, fm])
-            dt_col = np.concatenate([dt_col, row_dt[fm, mm]])
-            true_xy = np.vstack([true_xy, uv_m])
-            xy = np.vstack([xy, uv_m + noise_m])
-            area = np.concatenate([area, a_m])
-            peak = np.concatenate([peak, np.maximum(p_m * s.floor_mirror, 1.0)])
-            dpx = np.concatenate([dpx, d_m])
-            body_col = np.concatenate([body_col, np.full(len(fm), -1)])
-            marker_col = np.concatenate([marker_col, np.full(len(fm), SPURIOUS_MIRROR)])
 
-    # ---- spurious blobs: static reflections in every frame, Poisson glints
-    keep = np.nonzero(~drop)[0]
+def _add_mirror_blobs(s: Scenario, cam: Camera, m: _Markers, ex: _Exposures, rng, blobs: _BlobColumns) -> None:
+    """Glossy floor: every marker above it also shows as a dimmer mirror image."""
+    K, Mt = m.world.shape[:2]
+    if s.floor_mirror <= 0 or not Mt:
+        return
+    Wm = m.world * np.array([1.0, 1.0, -1.0])
+    vis_m = cam.visible(Wm.reshape(-1, 3)).reshape(K, Mt) & (m.world[:, :, 2] > 0) & ~ex.drop[:, None]
+    fm, mm = np.nonzero(vis_m)
+    if not len(fm):
+        return
+    uv_m, d_m, r_m = marker_geometry(cam, Wm[fm, mm], m.diameter_m[mm])
+    a_m, p_m = blob_photometry(s, d_m, r_m)
+    noise_m = rng.normal(0.0, s.centroid_noise_px, uv_m.shape) if s.centroid_noise_px > 0 else 0.0
+    blobs.add(fm, uv_m + noise_m, uv_m, a_m, np.maximum(p_m * s.floor_mirror, 1.0), d_m,
+              np.full(len(fm), -1), np.full(len(fm), SPURIOUS_MIRROR), m.row_dt_ns[fm, mm])
+
+
+def _add_spurious_blobs(s: Scenario, cam: Camera, ex: _Exposures, rng, blobs: _BlobColumns) -> None:
+    """Static reflections in every frame the station keeps, and Poisson glints."""
+    K = len(ex.k)
+    keep = np.nonzero(~ex.drop)[0]
     suv, sarea, speak = _static_spurious(s, cam)
     S = len(suv)
     if S:
         sf = np.repeat(keep, S)
         s_true = np.tile(suv, (len(keep), 1))
         s_xy = s_true + (rng.normal(0.0, s.centroid_noise_px, s_true.shape) if s.centroid_noise_px > 0 else 0.0)
-        fi = np.concatenate([fi, sf])
-        dt_col = np.concatenate([dt_col, np.zeros(len(sf))])
-        true_xy = np.vstack([true_xy, s_true])
-        xy = np.vstack([xy, s_xy])
-        area = np.concatenate([area, np.tile(sarea, len(keep))])
-        peak = np.concatenate([peak, np.tile(speak, len(keep))])
-        dpx = np.concatenate([dpx, np.tile(2 * np.sqrt(sarea / np.pi), len(keep))])
-        body_col = np.concatenate([body_col, np.full(len(sf), -1)])
-        marker_col = np.concatenate([marker_col, np.full(len(sf), SPURIOUS_STATIC)])
-    n_rand = rng.poisson(s.random_spurious_per_frame, K) * (~drop)
+        blobs.add(sf, s_xy, s_true, np.tile(sarea, len(keep)), np.tile(speak, len(keep)),
+                  np.tile(2 * np.sqrt(sarea / np.pi), len(keep)), np.full(len(sf), -1),
+                  np.full(len(sf), SPURIOUS_STATIC), np.zeros(len(sf)))
+    n_rand = rng.poisson(s.random_spurious_per_frame, K) * (~ex.drop)
     if n_rand.sum():
         rf = np.repeat(np.arange(K), n_rand)
         nr = len(rf)
         r_xy = np.column_stack([rng.uniform(0, cam.model.width - 1, nr), rng.uniform(0, cam.model.height - 1, nr)])
         r_area = rng.uniform(1.0, 12.0, nr)
-        fi = np.concatenate([fi, rf])
-        dt_col = np.concatenate([dt_col, np.zeros(nr)])
-        true_xy = np.vstack([true_xy, r_xy])
-        xy = np.vstack([xy, r_xy])
-        area = np.concatenate([area, r_area])
-        peak = np.concatenate([peak, rng.uniform(40.0, 255.0, nr)])
-        dpx = np.concatenate([dpx, 2 * np.sqrt(r_area / np.pi)])
-        body_col = np.concatenate([body_col, np.full(nr, -1)])
-        marker_col = np.concatenate([marker_col, np.full(nr, SPURIOUS_RANDOM)])
+        blobs.add(rf, r_xy, r_xy, r_area, rng.uniform(40.0, 255.0, nr), 2 * np.sqrt(r_area / np.pi),
+                  np.full(nr, -1), np.full(nr, SPURIOUS_RANDOM), np.zeros(nr))
 
-    # a noisy centroid pushed off the sensor is not detected
-    inside = cam.model.in_image(xy)
+
+def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: float, t1: float, dropped):
+    """Frames of one camera with nominal exposure in [t0, t1) ns after start: [(BlobFrame, FrameTruth)].
+
+    The random draws happen in a fixed order (exposures, marker noise, mirror images, reflections, glints,
+    the shuffle), so a chunk is the same for the same seed however it is reached."""
+    k = _frame_range(t, t0, t1)
+    if len(k) == 0:
+        return []
+    rng = rng_for(s.seed, TAG_FRAMES, cam.id, chunk)
+    ex = _exposures(s, t, k, rng)
+    m = _markers_at(s, cam, t, ex.true_ns)
+    blobs = _BlobColumns()
+    _add_marker_blobs(s, cam, m, _visible(s, cam, m, ex), rng, blobs)
+    _add_mirror_blobs(s, cam, m, ex, rng, blobs)
+    _add_spurious_blobs(s, cam, ex, rng, blobs)
+    return _frames(s, cam, t, ex, blobs.joined(), rng, dropped)
+
+
+def _frames(s: Scenario, cam: Camera, t: CameraTiming, ex: _Exposures, c: dict[str, np.ndarray], rng,
+            dropped) -> list:
+    """The chunk's frames from its blob columns: off-sensor centroids removed, each frame's blobs shuffled,
+    overlapping blobs merged, the station's blob cap applied; dropped frames noted in `dropped`."""
+    K = len(ex.k)
+    inside = cam.model.in_image(c["xy"])  # a noisy centroid pushed off the sensor is not detected
     sel = np.nonzero(inside)[0]
     # shuffle within each frame: random key, then stable sort by frame
-    order = sel[np.lexsort((rng.random(len(sel)), fi[sel]))]
-    fi, xy, true_xy, area, peak, dpx = fi[order], xy[order], true_xy[order], area[order], peak[order], dpx[order]
-    body_col, marker_col, dt_col = body_col[order], marker_col[order], np.round(dt_col[order]).astype(np.int64)
+    order = sel[np.lexsort((rng.random(len(sel)), c["frame"][sel]))]
+    fi, xy, true_xy = c["frame"][order], c["xy"][order], c["true_xy"][order]
+    area, peak, dpx = c["area"][order], c["peak"][order], c["diameter_px"][order]
+    body_col, marker_col = c["body"][order], c["marker"][order]
+    dt_col = np.round(c["row_dt_ns"][order]).astype(np.int64)
     bounds = np.searchsorted(fi, np.arange(K + 1))
     needs_merge = _touching_frames(xy, dpx, bounds) if s.merge_blobs else np.zeros(K, bool)
 
     out = []
     for j in range(K):
-        if drop[j]:
+        if ex.drop[j]:
             if dropped is not None:
-                dropped[cam.id].append(int(k[j]))
+                dropped[cam.id].append(int(ex.k[j]))
             continue
         a, b = bounds[j], bounds[j + 1]
         fxy, ftrue, farea, fpeak = xy[a:b], true_xy[a:b], area[a:b], peak[a:b]
@@ -484,17 +554,17 @@ def _camera_chunk(s: Scenario, cam: Camera, t: CameraTiming, chunk: int, t0: flo
         blobs[:, 3] = fpeak
         frame = BlobFrame(
             camera_id=cam.id,
-            seq=int(k[j]),
-            capture_ns=int(capture_ns[j]),
+            seq=int(ex.k[j]),
+            capture_ns=int(ex.capture_ns[j]),
             blobs=blobs,
             station_id=t.station_id,
             flags=flags,
-            recv_ns=int(recv_ns[j]),
+            recv_ns=int(ex.recv_ns[j]),
         )
         truth = FrameTruth(
-            cam.id, int(k[j]), int(true_ns[j]), int(station_ns[j]),
+            cam.id, int(ex.k[j]), int(ex.true_ns[j]), int(ex.station_ns[j]),
             fbody.astype(np.int64), fmark.astype(np.int64), np.asarray(ftrue, np.float64), merged,
-            int(true_ns[j]) + np.asarray(fdt, np.int64),
+            int(ex.true_ns[j]) + np.asarray(fdt, np.int64),
         )  # fmt: skip
         out.append((frame, truth))
     return out
