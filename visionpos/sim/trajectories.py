@@ -34,7 +34,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -540,116 +540,142 @@ def from_config(s: Section, rng: np.random.Generator) -> Trajectory:
     """
     kind = s.string("trajectory", choices=KINDS)
     center = s.array("center", (3,), [0.0, 0.0, 0.8])
-    known = {"trajectory", "center"}
-    if kind == "hover":
-        known |= {"yaw_deg", "drift", "yaw_wobble_deg"}
-        out: Trajectory = hover(
-            center,
-            s.number("yaw_deg", 0.0),
-            s.number("drift", 0.02, min=0.0, max=1.0),
-            s.number("yaw_wobble_deg", 3.0, min=0.0, max=90.0),
-            rng,
-        )
-    elif kind == "square":
-        known |= {"side", "edge_time", "pause", "yaw_deg"}
-        out = Square(
-            center,
-            s.number("side", 0.5, min=0.01),
-            s.number("edge_time", 2.5, min=0.1),
-            s.number("pause", 0.5, min=0.0),
-            np.radians(s.number("yaw_deg", 0.0)),
-        )
-    elif kind == "figure8":
-        known |= {"size", "period", "heading", "yaw_deg"}
-        size = s.array("size", (2,), [1.6, 1.0])
-        if np.any(size <= 0):
-            raise s.error("size", f"both sizes must be positive, got {size.tolist()}")
-        out = Figure8(
-            center,
-            (float(size[0]), float(size[1])),
-            s.number("period", 8.0, min=0.5),
-            s.boolean("heading", True),
-            np.radians(s.number("yaw_deg", 0.0)),
-        )
-    elif kind == "aggressive":
-        known |= {"radius", "peak_speed", "height_amp", "yaw_rate"}
-        out = Aggressive(
-            center,
-            s.number("radius", 1.0, min=0.05),
-            s.number("peak_speed", 3.0, min=0.01, max=50.0),
-            s.number("height_amp", 0.3, min=0.0),
-            s.number("yaw_rate", 3.0),
-        )
-        if out.max_tilt_deg > _MAX_TILT_DEG:
-            raise s.error(
-                "peak_speed",
-                f"{out.peak_speed} m/s on a {out.radius} m circle (height_amp {out.height_amp} m) would tilt "
-                f"the drone {out.max_tilt_deg:.0f} deg; lower peak_speed or height_amp, or raise radius",
-            )
-    elif kind == "slalom":
-        known |= {"length", "swing", "height_amp", "peak_speed", "peak_yaw_rate_deg"}
-        out = Slalom(
-            center,
-            s.number("length", 2.0, min=0.0),
-            s.number("swing", 0.3, min=0.0),
-            s.number("height_amp", 0.2, min=0.0),
-            s.number("peak_speed", 2.0, min=0.01, max=50.0),
-            np.radians(s.number("peak_yaw_rate_deg", 180.0, min=0.0, max=3600.0)),
-        )
-        if out.length + out.swing + out.height_amp <= 0:
-            raise s.error("length", "length, swing and height_amp are all 0: the path is a point")
-        if out.max_tilt_deg > _MAX_TILT_DEG:
-            raise s.error(
-                "peak_speed",
-                f"{out.peak_speed} m/s would tilt the drone up to {out.max_tilt_deg:.0f} deg; lower peak_speed "
-                f"or swing, or raise length",
-            )
-    elif kind == "dash":
-        known |= {"waypoints", "peak_speed", "max_accel", "ramp", "peak_yaw_rate_deg", "pause"}
-        wp = s.array("waypoints", (None, 3), DASH_WAYPOINTS)
-        if len(wp) < 2:
-            raise s.error("waypoints", f"need at least 2 waypoints, got {len(wp)}")
-        legs = np.linalg.norm(np.roll(wp, -1, axis=0) - wp, axis=1)
-        if np.any(legs < 1e-3):
-            raise s.error("waypoints", f"waypoint {int(np.argmin(legs))} repeats the next one (legs must be > 1 mm)")
-        out = Dash(
-            wp,
-            s.number("peak_speed", 2.0, min=0.01, max=50.0),
-            s.number("max_accel", 5.0, min=0.01, max=100.0),
-            s.number("ramp", 0.2, min=0.005, max=10.0),
-            np.radians(s.number("peak_yaw_rate_deg", 180.0, min=0.0, max=3600.0)),
-            s.number("pause", 0.3, min=0.0),
-        )
-        if out.ramp * out.max_accel > out.peak_speed:
-            raise s.error("ramp", f"ramping to {out.max_accel} m/s^2 over {out.ramp} s overshoots peak_speed "
-                          f"{out.peak_speed} m/s; shorten ramp or lower max_accel")
-        short = float(legs.min())
-        if short < 2 * out.max_accel * out.ramp**2:
-            raise s.error("waypoints", f"the shortest leg ({short:.3f} m) is too short to ramp the acceleration "
-                          f"up and down (needs {2 * out.max_accel * out.ramp**2:.3f} m); space the waypoints out")
-        if out.max_tilt_deg > _MAX_TILT_DEG:
-            raise s.error(
-                "peak_speed",
-                f"{out.max_accel} m/s^2 would tilt the drone {out.max_tilt_deg:.0f} deg; lower max_accel",
-            )
-    elif kind == "wand_wave":
-        known |= {"extent", "max_angle_deg"}
-        ext = s.array("extent", (3,), [1.4, 1.4, 0.7])
-        if np.any(ext < 0):
-            raise s.error("extent", f"sizes must be >= 0, got {ext.tolist()}")
-        out = wand_wave(center, ext, rng, s.number("max_angle_deg", 170.0, min=0.0, max=180.0))
-    else:
-        known |= {"position", "yaw_deg", "quaternion_xyzw"}
-        pos = s.array("position", (3,), center)
-        if s.has("quaternion_xyzw"):
-            q = s.array("quaternion_xyzw", (4,))
-            if np.linalg.norm(q) < 1e-9:
-                raise s.error("quaternion_xyzw", "must not be all zero")
-            q = q / np.linalg.norm(q)
-        else:
-            q = Rotation.from_euler("z", s.number("yaw_deg", 0.0), degrees=True).as_quat()
-        out = Static(pos, q)
+    build, keys = _FROM_CONFIG[kind]
+    out = build(s, center, rng)
+    known = {"trajectory", "center"} | keys
     extra = sorted(set(s.data) - known - {"occlusion"})
     if extra:
         raise s.error(extra[0], f"unknown key for a '{kind}' trajectory; known keys: {sorted(known)}")
     return out
+
+
+def _hover_from(s: Section, center: np.ndarray, rng: np.random.Generator) -> Trajectory:
+    return hover(
+        center,
+        s.number("yaw_deg", 0.0),
+        s.number("drift", 0.02, min=0.0, max=1.0),
+        s.number("yaw_wobble_deg", 3.0, min=0.0, max=90.0),
+        rng,
+    )
+
+
+def _square_from(s: Section, center: np.ndarray, rng: np.random.Generator) -> Trajectory:
+    return Square(
+        center,
+        s.number("side", 0.5, min=0.01),
+        s.number("edge_time", 2.5, min=0.1),
+        s.number("pause", 0.5, min=0.0),
+        np.radians(s.number("yaw_deg", 0.0)),
+    )
+
+
+def _figure8_from(s: Section, center: np.ndarray, rng: np.random.Generator) -> Trajectory:
+    size = s.array("size", (2,), [1.6, 1.0])
+    if np.any(size <= 0):
+        raise s.error("size", f"both sizes must be positive, got {size.tolist()}")
+    return Figure8(
+        center,
+        (float(size[0]), float(size[1])),
+        s.number("period", 8.0, min=0.5),
+        s.boolean("heading", True),
+        np.radians(s.number("yaw_deg", 0.0)),
+    )
+
+
+def _aggressive_from(s: Section, center: np.ndarray, rng: np.random.Generator) -> Trajectory:
+    out = Aggressive(
+        center,
+        s.number("radius", 1.0, min=0.05),
+        s.number("peak_speed", 3.0, min=0.01, max=50.0),
+        s.number("height_amp", 0.3, min=0.0),
+        s.number("yaw_rate", 3.0),
+    )
+    if out.max_tilt_deg > _MAX_TILT_DEG:
+        raise s.error(
+            "peak_speed",
+            f"{out.peak_speed} m/s on a {out.radius} m circle (height_amp {out.height_amp} m) would tilt "
+            f"the drone {out.max_tilt_deg:.0f} deg; lower peak_speed or height_amp, or raise radius",
+        )
+    return out
+
+
+def _slalom_from(s: Section, center: np.ndarray, rng: np.random.Generator) -> Trajectory:
+    out = Slalom(
+        center,
+        s.number("length", 2.0, min=0.0),
+        s.number("swing", 0.3, min=0.0),
+        s.number("height_amp", 0.2, min=0.0),
+        s.number("peak_speed", 2.0, min=0.01, max=50.0),
+        np.radians(s.number("peak_yaw_rate_deg", 180.0, min=0.0, max=3600.0)),
+    )
+    if out.length + out.swing + out.height_amp <= 0:
+        raise s.error("length", "length, swing and height_amp are all 0: the path is a point")
+    if out.max_tilt_deg > _MAX_TILT_DEG:
+        raise s.error(
+            "peak_speed",
+            f"{out.peak_speed} m/s would tilt the drone up to {out.max_tilt_deg:.0f} deg; lower peak_speed "
+            f"or swing, or raise length",
+        )
+    return out
+
+
+def _dash_from(s: Section, center: np.ndarray, rng: np.random.Generator) -> Trajectory:
+    wp = s.array("waypoints", (None, 3), DASH_WAYPOINTS)
+    if len(wp) < 2:
+        raise s.error("waypoints", f"need at least 2 waypoints, got {len(wp)}")
+    legs = np.linalg.norm(np.roll(wp, -1, axis=0) - wp, axis=1)
+    if np.any(legs < 1e-3):
+        raise s.error("waypoints", f"waypoint {int(np.argmin(legs))} repeats the next one (legs must be > 1 mm)")
+    out = Dash(
+        wp,
+        s.number("peak_speed", 2.0, min=0.01, max=50.0),
+        s.number("max_accel", 5.0, min=0.01, max=100.0),
+        s.number("ramp", 0.2, min=0.005, max=10.0),
+        np.radians(s.number("peak_yaw_rate_deg", 180.0, min=0.0, max=3600.0)),
+        s.number("pause", 0.3, min=0.0),
+    )
+    if out.ramp * out.max_accel > out.peak_speed:
+        raise s.error("ramp", f"ramping to {out.max_accel} m/s^2 over {out.ramp} s overshoots peak_speed "
+                      f"{out.peak_speed} m/s; shorten ramp or lower max_accel")
+    short = float(legs.min())
+    if short < 2 * out.max_accel * out.ramp**2:
+        raise s.error("waypoints", f"the shortest leg ({short:.3f} m) is too short to ramp the acceleration "
+                      f"up and down (needs {2 * out.max_accel * out.ramp**2:.3f} m); space the waypoints out")
+    if out.max_tilt_deg > _MAX_TILT_DEG:
+        raise s.error(
+            "peak_speed",
+            f"{out.max_accel} m/s^2 would tilt the drone {out.max_tilt_deg:.0f} deg; lower max_accel",
+        )
+    return out
+
+
+def _wand_wave_from(s: Section, center: np.ndarray, rng: np.random.Generator) -> Trajectory:
+    ext = s.array("extent", (3,), [1.4, 1.4, 0.7])
+    if np.any(ext < 0):
+        raise s.error("extent", f"sizes must be >= 0, got {ext.tolist()}")
+    return wand_wave(center, ext, rng, s.number("max_angle_deg", 170.0, min=0.0, max=180.0))
+
+
+def _static_from(s: Section, center: np.ndarray, rng: np.random.Generator) -> Trajectory:
+    pos = s.array("position", (3,), center)
+    if s.has("quaternion_xyzw"):
+        q = s.array("quaternion_xyzw", (4,))
+        if np.linalg.norm(q) < 1e-9:
+            raise s.error("quaternion_xyzw", "must not be all zero")
+        q = q / np.linalg.norm(q)
+    else:
+        q = Rotation.from_euler("z", s.number("yaw_deg", 0.0), degrees=True).as_quat()
+    return Static(pos, q)
+
+
+# each kind's builder and the keys it reads (beside trajectory and center)
+_FROM_CONFIG: dict[str, tuple[Callable[[Section, np.ndarray, np.random.Generator], Trajectory], set[str]]] = {
+    "hover": (_hover_from, {"yaw_deg", "drift", "yaw_wobble_deg"}),
+    "square": (_square_from, {"side", "edge_time", "pause", "yaw_deg"}),
+    "figure8": (_figure8_from, {"size", "period", "heading", "yaw_deg"}),
+    "aggressive": (_aggressive_from, {"radius", "peak_speed", "height_amp", "yaw_rate"}),
+    "slalom": (_slalom_from, {"length", "swing", "height_amp", "peak_speed", "peak_yaw_rate_deg"}),
+    "dash": (_dash_from, {"waypoints", "peak_speed", "max_accel", "ramp", "peak_yaw_rate_deg", "pause"}),
+    "wand_wave": (_wand_wave_from, {"extent", "max_angle_deg"}),
+    "static": (_static_from, {"position", "yaw_deg", "quaternion_xyzw"}),
+}
