@@ -192,99 +192,116 @@ def run_pipeline(
     CLOCK_REALTIME - monotonic difference (from the recording's meta), used
     for stations that stamp in TIMEBASE_REALTIME instead of this host's clocks.
     """
-    from visionpos.fusion.pipeline import FusionPipeline
-    from visionpos.server.ingest import Ingest
-    from visionpos.server.service import VANISH_CHECK_S
-    from visionpos.server.settings import ServerSettings
+    loop = _ReplayLoop(arena, rate_hz, speed, realtime_minus_monotonic_ns)
+    for item in packets:
+        loop.feed(item)
+    return loop.result()
 
-    settings = ServerSettings.for_replay(arena)  # recordings are trusted: no key file needed
-    rate = float(rate_hz or settings.output_rate_hz)
-    period = int(round(1e9 / rate))
-    check_ns = int(VANISH_CHECK_S * 1e9)
-    pipe = FusionPipeline(arena, arena.raw.get("fusion"))
-    now = [0]
-    # the recording holds only what a live server accepted: trust its registrations, need no key
-    ingest = Ingest(arena, settings, pipe, None, clock=lambda: now[0], verify_cookies=False, authenticate=False)
-    upgrade = V1Upgrade()
-    # the recording holds only what stations sent after their trigger: accept all of it
-    ingest.set_start(-(1 << 62))
-    if realtime_minus_monotonic_ns is not None:
-        # live, Ingest converts realtime-stamped frames with this host's clocks; a replay must use
-        # the recording host's difference
-        ingest.realtime_minus_monotonic_ns = int(realtime_minus_monotonic_ns)
-    names: list[str] = [b.name for b in arena.bodies]
-    per_body: dict[str, tuple[list[int], list[BodyState]]] = {}
-    ticks: list[int] = []
-    t0 = next_tick = last = first_frame = None
-    next_check = 0
-    wall0 = time.perf_counter()
-    cpu0 = time.process_time()
 
-    def do_tick(t: int) -> None:
-        nonlocal next_check
-        now[0] = t
-        if t >= next_check:
-            next_check = t + check_ns
-            ingest.check_vanished(t)
-        ticks.append(t)
-        for s in pipe.tick(t):
-            tk, st = per_body.setdefault(s.name, ([], []))
+class _ReplayLoop:
+    """run_pipeline's state: the server's Ingest and a fresh pipeline on the recording's clock, the tick grid,
+    and each body's outputs at its ticks."""
+
+    def __init__(self, arena: ArenaConfig, rate_hz: float | None, speed: float | None,
+                 realtime_minus_monotonic_ns: int | None) -> None:
+        from visionpos.fusion.pipeline import FusionPipeline
+        from visionpos.server.ingest import Ingest
+        from visionpos.server.service import VANISH_CHECK_S
+        from visionpos.server.settings import ServerSettings
+
+        self.arena = arena
+        settings = ServerSettings.for_replay(arena)  # recordings are trusted: no key file needed
+        self.period_ns = int(round(1e9 / float(rate_hz or settings.output_rate_hz)))
+        self.check_ns = int(VANISH_CHECK_S * 1e9)
+        self.speed = speed
+        self.pipe = FusionPipeline(arena, arena.raw.get("fusion"))
+        self.now_ns = 0
+        # the recording holds only what a live server accepted: trust its registrations, need no key
+        self.ingest = Ingest(arena, settings, self.pipe, None, clock=lambda: self.now_ns, verify_cookies=False,
+                             authenticate=False)
+        self.upgrade = V1Upgrade()
+        # the recording holds only what stations sent after their trigger: accept all of it
+        self.ingest.set_start(-(1 << 62))
+        if realtime_minus_monotonic_ns is not None:
+            # live, Ingest converts realtime-stamped frames with this host's clocks; a replay must use
+            # the recording host's difference
+            self.ingest.realtime_minus_monotonic_ns = int(realtime_minus_monotonic_ns)
+        self.per_body: dict[str, tuple[list[int], list[BodyState]]] = {}
+        self.ticks: list[int] = []
+        self.t0 = self.next_tick = self.last = self.first_frame = None
+        self.next_check = 0
+        self.wall0 = time.perf_counter()
+        self.cpu0 = time.process_time()
+
+    def feed(self, item: tuple) -> None:
+        """One recorded datagram: the ticks due before it, then the datagram through Ingest."""
+        recv_ns, data = int(item[0]), item[1]
+        if len(data) > 4 and data[4] == 1 and data[:4] == P.MAGIC:
+            data = self.upgrade(data)
+        addr = item[2] if len(item) > 2 and item[2] is not None else ("replay", 0)
+        if self.t0 is None:
+            self.t0 = recv_ns
+            self.next_tick = recv_ns + self.period_ns
+        while self.next_tick <= recv_ns:
+            self._pace(self.next_tick)
+            self._tick(self.next_tick)
+            self.next_tick += self.period_ns
+        self.last = recv_ns
+        self.now_ns = recv_ns
+        self.ingest.handle(data, addr, recv_ns)
+        if self.first_frame is None and self.ingest.counters.frames_accepted:
+            self.first_frame = recv_ns
+
+    def _tick(self, t: int) -> None:
+        self.now_ns = t
+        if t >= self.next_check:
+            self.next_check = t + self.check_ns
+            self.ingest.check_vanished(t)
+        self.ticks.append(t)
+        for s in self.pipe.tick(t):
+            tk, st = self.per_body.setdefault(s.name, ([], []))
             tk.append(t)
             st.append(s)
 
-    def pace(t: int) -> None:
-        if speed:
-            ahead = (t - t0) * 1e-9 / speed - (time.perf_counter() - wall0)
+    def _pace(self, t: int) -> None:
+        if self.speed:
+            ahead = (t - self.t0) * 1e-9 / self.speed - (time.perf_counter() - self.wall0)
             if ahead > 0:
                 time.sleep(ahead)
 
-    for item in packets:
-        recv_ns, data = int(item[0]), item[1]
-        if len(data) > 4 and data[4] == 1 and data[:4] == P.MAGIC:
-            data = upgrade(data)
-        addr = item[2] if len(item) > 2 and item[2] is not None else ("replay", 0)
-        if t0 is None:
-            t0 = recv_ns
-            next_tick = t0 + period
-        while next_tick <= recv_ns:
-            pace(next_tick)
-            do_tick(next_tick)
-            next_tick += period
-        last = recv_ns
-        now[0] = recv_ns
-        ingest.handle(data, addr, recv_ns)
-        if first_frame is None and ingest.counters.frames_accepted:
-            first_frame = recv_ns
-    wall = time.perf_counter() - wall0
-    cpu = time.process_time() - cpu0
-    if t0 is None:
-        raise ValueError("the recording holds no station packets; record with stations streaming")
-    order = names + sorted(set(per_body) - set(names))
-    bodies = {n: BodyTrack.from_states(n, *per_body[n]) for n in order if n in per_body}
-    try:
-        stats = dict(pipe.stats())
-    except Exception as e:  # stats are informative only; never fail a replay on them
-        stats = {"error": str(e)}
-    c = ingest.counters
-    reasons = dict(c.malformed_reasons)
-    for k in ("auth_failed", "unknown", "pipeline_errors"):
-        if getattr(c, k):
-            reasons[k] = getattr(c, k)
-    return ReplayResult(
-        arena=arena,
-        ticks_ns=np.asarray(ticks, dtype=np.int64),
-        bodies=bodies,
-        truth={},
-        n_packets=c.packets,
-        n_frames=c.frames_accepted,
-        n_bad=c.malformed + c.auth_failed,
-        bad_reasons=reasons,
-        span_ns=int(last - t0),
-        first_frame_ns=first_frame,
-        wall_s=wall,
-        cpu_s=cpu,
-        pipeline_stats=stats,
-    )
+    def result(self) -> ReplayResult:
+        """The replay's outputs and counters (the recording must have held station packets)."""
+        wall = time.perf_counter() - self.wall0
+        cpu = time.process_time() - self.cpu0
+        if self.t0 is None:
+            raise ValueError("the recording holds no station packets; record with stations streaming")
+        names = [b.name for b in self.arena.bodies]
+        order = names + sorted(set(self.per_body) - set(names))
+        bodies = {n: BodyTrack.from_states(n, *self.per_body[n]) for n in order if n in self.per_body}
+        try:
+            stats = dict(self.pipe.stats())
+        except Exception as e:  # stats are informative only; never fail a replay on them
+            stats = {"error": str(e)}
+        c = self.ingest.counters
+        reasons = dict(c.malformed_reasons)
+        for k in ("auth_failed", "unknown", "pipeline_errors"):
+            if getattr(c, k):
+                reasons[k] = getattr(c, k)
+        return ReplayResult(
+            arena=self.arena,
+            ticks_ns=np.asarray(self.ticks, dtype=np.int64),
+            bodies=bodies,
+            truth={},
+            n_packets=c.packets,
+            n_frames=c.frames_accepted,
+            n_bad=c.malformed + c.auth_failed,
+            bad_reasons=reasons,
+            span_ns=int(self.last - self.t0),
+            first_frame_ns=self.first_frame,
+            wall_s=wall,
+            cpu_s=cpu,
+            pipeline_stats=stats,
+        )
 
 
 class V1Upgrade:
