@@ -195,8 +195,8 @@ def test_sequence_loss_duplicates_reordering_replay():
     assert got == [100, 101, 102, 105, 106, 107] + list(range(108, 301))
     h = ing.health()["cameras"][1]
     assert h["duplicates"] == 1
-    assert h["reordered"] == 1  # 103 came late: dropped, and no longer counted as lost
-    assert h["lost"] == 1  # 104 never came
+    assert h["reordered"] == 1  # 103 came late: dropped
+    assert h["lost"] == 2  # 103 and 104 were never accepted (loss counts what was accepted)
     assert h["replayed"] == 2  # 150 and 20 are far older than 299
     assert h["frames"] == len(got)
     assert all(f.recv_ns == T0 + i * 10 * MS + 4 * MS for i, f in zip(range(3), pipe.frames))
@@ -206,6 +206,29 @@ def test_sequence_loss_duplicates_reordering_replay():
         t = T0 + i * 10 * MS
         _send(ing, _frame(2, s, t), t + 4 * MS)
     assert ing.health()["cameras"][2]["lost"] == 0 and ing.health()["cameras"][2]["frames"] == 4
+
+
+def test_replayed_frames_inside_the_reorder_window_do_not_hide_loss():
+    # an attacker resends frames it saw, a few seqs old: refused as reordered, and `lost` does not move
+    ing, pipe, _ = _ingest()
+    _send(ing, _hello(1), T0)
+    sent = {}
+    for i, s in enumerate([10, 11, 12, 20]):  # 13..19 lost on the network: 7 frames
+        t = T0 + i * 10 * MS
+        sent[s] = P.encode(_frame(1, s, t))
+        ing.handle(sent[s], ADDR, t + 4 * MS)
+    assert ing.health()["cameras"][1]["lost"] == 7
+    for k, s in enumerate([10, 11, 12, 12, 11, 10] * 3):  # inside the 64-frame window
+        ing.handle(sent[s], ADDR, T0 + 40 * MS + k * MS)
+    h = ing.health()["cameras"][1]
+    assert h["reordered"] + h["duplicates"] == 18 and h["lost"] == 7
+    # real loss after the replays is still counted: 21 accepted, 22..24 lost
+    for i, s in enumerate([21, 25]):
+        t = T0 + 100 * MS + i * 10 * MS
+        ing.handle(P.encode(_frame(1, s, t)), ADDR, t + 4 * MS)
+    h = ing.health()["cameras"][1]
+    assert h["lost"] == 10 and h["frames"] == 6 and [f.seq for f in pipe.frames] == [10, 11, 12, 20, 21, 25]
+    assert h["loss"] == pytest.approx(10 / 16)
 
 
 def test_new_session_restarts_sequence():

@@ -710,9 +710,9 @@ class Ingest:
                     cam.duplicates += 1
                     return self._drop(cam, Refusal.DUPLICATE, recv_ns)
                 if d >= -_REORDER_WINDOW:
+                    # refused, so it stays lost: loss counts the seqs never accepted (a replayed old frame
+                    # must not hide real loss)
                     cam.reordered += 1
-                    cam.lost -= 1  # it was counted lost when the gap opened; it came, late
-                    cam._bucket_lost -= 1
                     return self._drop(cam, Refusal.REORDERED, recv_ns)
                 cam.replayed += 1
                 self._warn(("replay", cam.camera_id), logging.WARNING,
@@ -775,8 +775,8 @@ class Ingest:
             if cam._bucket_start:
                 span = (recv_ns - cam._bucket_start) * 1e-9
                 cam.fps = cam._bucket_frames / span
-                exp = cam._bucket_frames + max(cam._bucket_lost, 0)
-                cam.loss_rate = max(cam._bucket_lost, 0) / exp if exp else 0.0
+                exp = cam._bucket_frames + cam._bucket_lost
+                cam.loss_rate = cam._bucket_lost / exp if exp else 0.0
                 self._check_rate(cam, recv_ns)
             cam._bucket_start, cam._bucket_frames, cam._bucket_lost = recv_ns, 0, 0
         if not cam.online:
