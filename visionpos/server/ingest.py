@@ -148,7 +148,7 @@ class CameraHealth:
     station_id: int | None = None
     session: int | None = None
     addr: Addr | None = None
-    timebase: int = P.TIMEBASE_SERVER
+    timebase: int = P.Timebase.SERVER
     registered: bool = False
     software: str = ""
     last_counter: int = 0  # the registered session's newest control counter
@@ -282,7 +282,7 @@ class CameraHealth:
             "station_frames_dropped": self.station_frames_dropped,
             "station_send_errors": self.station_send_errors,
             "temperature_c": self.temperature_c,
-            "timebase": "realtime" if self.timebase == P.TIMEBASE_REALTIME else "server",
+            "timebase": "realtime" if self.timebase == P.Timebase.REALTIME else "server",
         }
 
 
@@ -355,7 +355,7 @@ class Ingest:
         self.unknown_sources: OrderedDict[tuple[int, int], int] = OrderedDict()
         self._rt_minus_mono = 0
         self._rt_update_ns = 0
-        # CLOCK_REALTIME - server clock for TIMEBASE_REALTIME stations; None = read the host clocks
+        # CLOCK_REALTIME - server clock for Timebase.REALTIME stations; None = read the host clocks
         # (live). A replay sets it from the recording's meta (wall_start_unix_ns - monotonic_start_ns).
         self.realtime_minus_monotonic_ns: int | None = None
         self.sock: socket.socket | None = None
@@ -526,18 +526,18 @@ class Ingest:
         cam = self._camera(msg.station_id, msg.camera_id, addr, "registration")
         if cam is None:
             self.counters.rejected_hello += 1
-            return [self._ack(msg, P.ACK_REJECTED)], Refusal.UNKNOWN_CAMERA
+            return [self._ack(msg, P.AckStatus.REJECTED)], Refusal.UNKNOWN_CAMERA
         if (msg.width, msg.height) != (cam.width, cam.height):
             self.counters.rejected_hello += 1
             self._warn(("res", msg.camera_id), logging.WARNING,
                        "refusing camera %d (%s) at %s: it streams %dx%d but the arena calibration is for %dx%d; "
                        "set the station's resolution or recalibrate", msg.camera_id, cam.name, _fmt(addr),
                        msg.width, msg.height, cam.width, cam.height)
-            return [self._ack(msg, P.ACK_REJECTED)], Refusal.REJECTED
+            return [self._ack(msg, P.AckStatus.REJECTED)], Refusal.REJECTED
         if self.verify_cookies and not self._cookie_ok(msg, addr, recv_ns):
             # stateless: the answer goes to the claimed sender only, and is no bigger than the HELLO
             self.counters.challenges += 1
-            return [self._ack(msg, P.ACK_CHALLENGE, self.cookie(msg, addr, recv_ns // COOKIE_BUCKET_NS))], \
+            return [self._ack(msg, P.AckStatus.CHALLENGE, self.cookie(msg, addr, recv_ns // COOKIE_BUCKET_NS))], \
                 Refusal.CHALLENGED
         if msg.session in cam.retired:
             cam.stale_control += 1
@@ -556,7 +556,7 @@ class Ingest:
                        "refusing camera %d from station %d at %s: station %d is already streaming it; "
                        "two stations are configured with the same camera id", msg.camera_id, msg.station_id,
                        _fmt(addr), cam.station_id)
-            return [self._ack(msg, P.ACK_REJECTED)], Refusal.REJECTED
+            return [self._ack(msg, P.AckStatus.REJECTED)], Refusal.REJECTED
         else:
             if cam.session is not None:
                 cam.retired.append(cam.session)
@@ -573,7 +573,7 @@ class Ingest:
         cam.timebase, cam.software = msg.timebase, msg.software
         cam.fps_nominal = float(msg.fps)
         cam.last_seen_ns = recv_ns
-        return [self._ack(msg, P.ACK_OK)], None
+        return [self._ack(msg, P.AckStatus.OK)], None
 
     def _control(self, msg: P.Heartbeat | P.SyncRequest | P.Bye, addr: Addr,
                  what: str) -> tuple[CameraHealth | None, str | None]:
@@ -600,11 +600,11 @@ class Ingest:
         cam, refusal = self._control(msg, addr, "heartbeat")
         if refusal is not None:
             if refusal == Refusal.UNKNOWN_CAMERA:
-                return [self._ack(msg, P.ACK_REJECTED)], refusal
+                return [self._ack(msg, P.AckStatus.REJECTED)], refusal
             if refusal == Refusal.STALE_COUNTER:
                 return [], refusal
             # unknown session (the server restarted), or a new address: the station registers (again)
-            return [self._ack(msg, P.ACK_UNKNOWN_SESSION)], refusal
+            return [self._ack(msg, P.AckStatus.UNKNOWN_SESSION)], refusal
         cam.last_counter = msg.counter
         cam.last_seen_ns = recv_ns
         cam.clock_offset_ns = msg.clock_offset_ns
@@ -617,8 +617,8 @@ class Ingest:
         cam.temperature_c = msg.temperature_c
         if cam.resync_pending:
             cam.resync_pending = False
-            return [self._ack(msg, P.ACK_RESYNC)], None
-        return [self._ack(msg, P.ACK_OK)], None
+            return [self._ack(msg, P.AckStatus.RESYNC)], None
+        return [self._ack(msg, P.AckStatus.OK)], None
 
     def _sync(self, msg: P.SyncRequest, addr: Addr, recv_ns: int) -> tuple[list[bytes], str | None]:
         cam, refusal = self._control(msg, addr, "clock sync")
@@ -722,7 +722,7 @@ class Ingest:
 
         # time: capture must be on the server clock, a little before receive, and move forward
         capture = f.capture_ns
-        if cam.timebase == P.TIMEBASE_REALTIME:
+        if cam.timebase == P.Timebase.REALTIME:
             if self.realtime_minus_monotonic_ns is not None:  # replay: the recording's offset
                 rt = self.realtime_minus_monotonic_ns
             else:
