@@ -109,6 +109,8 @@ def test_read_refuses_another_type():
         P.Hello.read(P.Bye(2, 3, 4, 5).write())
     with pytest.raises(P.ProtocolError, match="a frame packet where a bye was expected"):
         P.Bye.read(P.encode_frame(_frame()))
+    with pytest.raises(P.ProtocolError, match="a type 12 packet where a bye was expected"):
+        P.Bye.read(P.Bye(2, 3, 4, 5).write()[:5] + b"\x0c" + P.Bye(2, 3, 4, 5).write()[6:])
 
 
 blob_arrays = st.integers(0, P.MAX_BLOBS_PER_PACKET).flatmap(

@@ -19,6 +19,8 @@ from visionpos.protocol.wire import (
     MASK_TEXT_BYTES,
     MAX_IMAGE_BYTES,
     MAX_MASK_RECTS,
+    MAX_PACKET_BYTES,
+    TAG_BYTES,
     U16,
     U32,
     MaskFlag,
@@ -38,7 +40,7 @@ _MASK_RECT = struct.Struct("<HHHH")
 _MASK_ACK = struct.Struct("<IIB3x64s")  # 76 bytes
 _MASK_FLAGS = int(MaskFlag.IGNORE | MaskFlag.ROIS)
 
-assert HEADER_BYTES + _IMAGE_CHUNK.size + IMAGE_CHUNK_BYTES == 1472 - 16  # a signed full chunk is one datagram
+assert HEADER_BYTES + _IMAGE_CHUNK.size + IMAGE_CHUNK_BYTES + TAG_BYTES == MAX_PACKET_BYTES  # a signed full chunk
 
 
 def check_chunk(index: int, count: int, total: int, n: int, width: int, height: int, background: float) -> None:

@@ -266,8 +266,12 @@ class WireMessage:
 
         With `key` set, packets without a tag or with a wrong tag are rejected; without one, a tag is skipped.
         """
-        mtype, sid, cid, body_len, _end = read_header(bytes(data), key, PROTOCOL_VERSION)
+        data = bytes(data)
+        mtype, sid, cid, body_len, _end = read_header(data, key, PROTOCOL_VERSION)
         if mtype != cls.TYPE:
-            got = MsgType(mtype).label if mtype in MsgType._value2member_map_ else f"type {mtype}"
+            try:
+                got = MsgType(mtype).label
+            except ValueError:
+                got = f"type {mtype}"
             raise ProtocolError(f"a {got} packet where a {cls.TYPE.label} was expected")
-        return cls.read_body(bytes(data), sid, cid, body_len)
+        return cls.read_body(data, sid, cid, body_len)
