@@ -193,7 +193,7 @@ class FoxgloveServer:
         if not self._running or len(data) < P.HEADER_BYTES:
             return
         mtype = data[5]
-        if mtype == P.MSG_FRAME or mtype == P.MSG_HELLO:
+        if mtype == P.MsgType.FRAME or mtype == P.MsgType.HELLO:
             key = (data[_CAMERA_ID_AT] | data[_CAMERA_ID_AT + 1] << 8, mtype)
             with self._lock:
                 self._frames[key] = (recv_ns, data)
@@ -242,7 +242,7 @@ class FoxgloveServer:
                 self._events.clear()
             out = []
             # hellos first: they say which cameras stamp frames on CLOCK_REALTIME
-            for (_, mtype), (recv_ns, data) in sorted(frames.items(), key=lambda kv: kv[0][1] != P.MSG_HELLO):
+            for (_, mtype), (recv_ns, data) in sorted(frames.items(), key=lambda kv: kv[0][1] != P.MsgType.HELLO):
                 self.counters["packets"] += 1
                 out += self._fox.packet(recv_ns, data)
             if health is not None:

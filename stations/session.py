@@ -64,7 +64,7 @@ class StationLink:
     # ------------------------------------------------------------ station -> server
 
     def hello(self, width: int, height: int, fps: float, camera_kind: str = "unknown", camera_name: str = "",
-              software: str = "", timebase: int = P.TIMEBASE_SERVER) -> P.Hello:
+              software: str = "", timebase: int = P.Timebase.SERVER) -> P.Hello:
         self._cookie_sent = self.cookie
         return P.Hello(self.station_id, self.camera_id, self.session, int(width), int(height), float(fps),
                        camera_kind, camera_name, software, timebase, self._next(), self.cookie)
@@ -113,24 +113,24 @@ class StationLink:
     def on_ack(self, ack: P.HelloAck) -> LinkEvent:
         """A believed HelloAck -> what the station does next."""
         status = ack.status
-        if status == P.ACK_OK:
+        if status == P.AckStatus.OK:
             self.start_ns, self.duration_ns = ack.start_ns, ack.duration_ns
             self.rejected = False
             if self.registered:
                 return LinkEvent.KEPT
             self.registered = True
             return LinkEvent.REGISTERED
-        if status == P.ACK_CHALLENGE:
+        if status == P.AckStatus.CHALLENGE:
             self.cookie = ack.cookie
             return LinkEvent.CHALLENGED
-        if status == P.ACK_UNKNOWN_SESSION:
+        if status == P.AckStatus.UNKNOWN_SESSION:
             self.registered = False
             return LinkEvent.LOST
-        if status == P.ACK_REJECTED:
+        if status == P.AckStatus.REJECTED:
             self.registered = False
             self.rejected = True
             return LinkEvent.REJECTED
-        if status == P.ACK_RESYNC:
+        if status == P.AckStatus.RESYNC:
             self.start_ns, self.duration_ns = ack.start_ns, ack.duration_ns
             return LinkEvent.RESYNC
         return LinkEvent.IGNORED

@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 
 from visionpos import protocol as P
 from visionpos.messages import FLAG_RESYNC, FLAG_TRUNCATED, BlobFrame, FrameFlag
+from visionpos.protocol.wire import SIGNED_BIT
 
 KEY = b"0123456789abcdef-shared"
 
@@ -48,12 +49,12 @@ def test_frame_bytes_match_the_documented_layout():
 def test_control_bytes_match_the_documented_layout():
     """HELLO and HELLO_ACK by hand with struct: session and counter first, cookie where the tables say."""
     cookie = bytes(range(16))
-    hello = P.Hello(2, 3, 0x12345678, 960, 640, 100.0, "fisheye", "pi", "vp", P.TIMEBASE_SERVER, 9, cookie)
+    hello = P.Hello(2, 3, 0x12345678, 960, 640, 100.0, "fisheye", "pi", "vp", P.Timebase.SERVER, 9, cookie)
     expect = b"VPOS" + bytes([2, 2, 0, 0]) + struct.pack("<HHHH", 2, 3, 84, 0)
     expect += struct.pack("<IIHHfBB2x", 0x12345678, 9, 960, 640, 100.0, 2, 0) + cookie
     expect += b"pi" + bytes(30) + b"vp" + bytes(14)
     assert P.encode(hello) == expect
-    ack = P.HelloAck(2, 3, 0x12345678, 5, 6, P.ACK_CHALLENGE, 7, 9, cookie)
+    ack = P.HelloAck(2, 3, 0x12345678, 5, 6, P.AckStatus.CHALLENGE, 7, 9, cookie)
     expect = b"VPOS" + bytes([2, 3, 0, 0]) + struct.pack("<HHHH", 2, 3, 56, 0)
     expect += struct.pack("<IIB7xqqq", 0x12345678, 9, 3, 5, 6, 7) + cookie
     assert P.encode(ack) == expect
@@ -63,6 +64,53 @@ def test_control_bytes_match_the_documented_layout():
     assert struct.unpack_from("<IIqqq", P.encode(P.SyncReply(2, 3, 1, 2, 3, 12, 0x12345678)), 16) == (
         0x12345678, 12, 1, 2, 3)
     assert struct.unpack_from("<II", P.encode(P.Bye(2, 3, 0x12345678, 13)), 16) == (0x12345678, 13)
+
+
+def _le(v: int, n: int, signed: bool = False) -> bytes:
+    return v.to_bytes(n, "little", signed=signed)
+
+
+def _header(mtype: int, body: bytes, sid: int = 2, cid: int = 3) -> bytes:
+    """docs/protocol.md's common header, field by field: magic, version 2, type, hflags 0, 0, ids, length, 0."""
+    return b"VPOS" + bytes([2, mtype, 0, 0]) + _le(sid, 2) + _le(cid, 2) + _le(len(body), 2) + _le(0, 2) + body
+
+
+S = 0x12345678  # a session in every hand-written body
+HAND_WRITTEN = [  # (message, its datagram written from the offset tables of docs/protocol.md)
+    (P.Hello(2, 3, S, 960, 640, 100.0, "pinhole", "cam0", "vp 1", P.Timebase.REALTIME, 9, bytes(range(16))),
+     _header(2, _le(S, 4) + _le(9, 4) + _le(960, 2) + _le(640, 2) + struct.pack("<f", 100.0) + bytes([1, 1, 0, 0])
+             + bytes(range(16)) + b"cam0".ljust(32, b"\0") + b"vp 1".ljust(16, b"\0"))),
+    (P.HelloAck(2, 3, S, -5, 6, P.AckStatus.RESYNC, 7, 8, bytes(range(16, 32))),
+     _header(3, _le(S, 4) + _le(8, 4) + bytes([4]) + bytes(7) + _le(-5, 8, True) + _le(6, 8, True) + _le(7, 8, True)
+             + bytes(range(16, 32)))),
+    (P.Heartbeat(2, 3, 11, S, 0b1011, 1000, 3, 2, -4_000, 250, -12, 41.25, 10**15),
+     _header(4, _le(S, 4) + _le(11, 4) + _le(0b1011, 2) + _le(4125, 2, True) + _le(1000, 4) + _le(3, 4) + _le(2, 4)
+             + _le(-12, 4, True) + bytes(4) + _le(-4_000, 8, True) + _le(250, 8, True) + _le(10**15, 8, True))),
+    (P.Heartbeat(2, 3, 12, S),  # no temperature sensor, uncertainty unknown
+     _header(4, _le(S, 4) + _le(12, 4) + _le(0, 2) + _le(-32768, 2, True) + bytes(16) + bytes(4)
+             + bytes(8) + _le(-1, 8, True) + bytes(8))),
+    (P.SyncRequest(2, 3, -5, 12, S), _header(5, _le(S, 4) + _le(12, 4) + _le(-5, 8, True))),
+    (P.SyncReply(2, 3, 1, 2, 3, 12, S), _header(6, _le(S, 4) + _le(12, 4) + _le(1, 8) + _le(2, 8) + _le(3, 8))),
+    (P.Bye(2, 3, S, 13), _header(7, _le(S, 4) + _le(13, 4))),
+]
+
+
+@pytest.mark.parametrize("msg, data", HAND_WRITTEN, ids=lambda v: type(v).__name__ if not isinstance(v, bytes) else "")
+def test_each_message_writes_and_reads_its_documented_bytes(msg, data):
+    assert msg.write() == data and P.encode(msg) == data
+    assert type(msg).read(data) == msg and P.decode(data) == msg
+    signed = msg.write(KEY)
+    assert signed[:6] == data[:6] and signed[6] == P.HeaderFlag.SIGNED and signed[7:-16] == data[7:]
+    assert type(msg).read(signed, KEY) == msg
+
+
+def test_read_refuses_another_type():
+    with pytest.raises(P.ProtocolError, match="a bye packet where a hello was expected"):
+        P.Hello.read(P.Bye(2, 3, 4, 5).write())
+    with pytest.raises(P.ProtocolError, match="a frame packet where a bye was expected"):
+        P.Bye.read(P.encode_frame(_frame()))
+    with pytest.raises(P.ProtocolError, match="a type 12 packet where a bye was expected"):
+        P.Bye.read(P.Bye(2, 3, 4, 5).write()[:5] + b"\x0c" + P.Bye(2, 3, 4, 5).write()[6:])
 
 
 blob_arrays = st.integers(0, P.MAX_BLOBS_PER_PACKET).flatmap(
@@ -103,7 +151,7 @@ u16p = st.integers(1, 0xFFFF)
 cookies = st.binary(min_size=16, max_size=16)
 messages = st.one_of(
     st.builds(P.Hello, u16, u16, u32, u16p, u16p, st.floats(0.5, 1000, width=32), st.sampled_from(P.CAMERA_KINDS),
-              text, text, st.sampled_from([P.TIMEBASE_SERVER, P.TIMEBASE_REALTIME]), u32, cookies),
+              text, text, st.sampled_from([P.Timebase.SERVER, P.Timebase.REALTIME]), u32, cookies),
     st.builds(P.HelloAck, u16, u16, u32, i64, i64, st.sampled_from(list(P.AckStatus)), st.integers(0, 2**63 - 1),
               u32, cookies),
     st.builds(P.Heartbeat, u16, u16, u32, u32, u16, u32, u32, u32, i64, st.integers(-1, 2**63 - 1),
@@ -214,7 +262,7 @@ def test_server_helpers():
     assert rep == P.SyncReply(4, 5, 1000, 2000, 2100, 17, 0xABC)  # echoes the request's counter and session
     hello = P.Hello(4, 5, 0xDEADBEEF, 960, 640, 100.0, counter=33)
     ack = P.make_hello_ack(hello, start_ns=10**12, server_ns=10**12 + 5)
-    assert (ack.session, ack.start_ns, ack.status, ack.echo) == (0xDEADBEEF, 10**12, P.ACK_OK, 33)
+    assert (ack.session, ack.start_ns, ack.status, ack.echo) == (0xDEADBEEF, 10**12, P.AckStatus.OK, 33)
     assert P.seq_delta(5, 4) == 1
     assert P.seq_delta(0, 2**32 - 1) == 1  # wrap-around
     assert P.seq_delta(4, 5) == -1
@@ -264,7 +312,10 @@ def test_message_types_are_the_documented_bytes():
     rows = re.findall(r"^\|\s*(\d+)\s*\|\s*([A-Z_]+)\s*\|\s*(?:station|server) →", _DOC, re.MULTILINE)
     assert len(rows) == 11
     assert _members(P.MsgType) == {name: int(n) for n, name in rows}
-    assert P.MSG_HELLO_ACK is P.MsgType.HELLO_ACK  # the old names are the members
+    # every other type reads and writes itself: one class each, keyed by its byte
+    assert sorted(P.MESSAGE_CLASSES) == [t for t in P.MsgType if t != P.MsgType.FRAME]
+    assert all(cls.TYPE == t for t, cls in P.MESSAGE_CLASSES.items())
+    assert not hasattr(P, "MSG_HELLO_ACK") and not hasattr(P, "ACK_OK")  # the enums only
 
 
 def test_statuses_and_kinds_are_the_documented_values():
@@ -279,9 +330,9 @@ def test_flag_bits_are_the_documented_bits():
     assert _members(P.HeaderFlag) == _doc_bits(_doc_cell("Common header", "hflags"))
     assert _members(FrameFlag) == _doc_bits(_doc_cell("FRAME", "flags"))
     assert _members(P.HeartbeatStatus) == _doc_bits(_doc_cell("HEARTBEAT", "status"))
-    # the old names stay plain ints: `int & IntFlag` would build an IntFlag per packet
+    # the per-packet tests use plain ints: `int & IntFlag` would build an IntFlag per packet
     assert type(FLAG_RESYNC) is int and FLAG_RESYNC == FrameFlag.RESYNC
-    assert type(P.HF_SIGNED) is int and P.HF_SIGNED == P.HeaderFlag.SIGNED
+    assert type(SIGNED_BIT) is int and SIGNED_BIT == P.HeaderFlag.SIGNED
 
 
 def test_worked_example_header_bytes_are_the_enums():

@@ -7,6 +7,7 @@ import struct
 import pytest
 
 from visionpos import protocol as P
+from visionpos.protocol.wire import tag
 
 KEY = b"k" * 32
 N = P.IMAGE_CHUNK_BYTES
@@ -55,13 +56,47 @@ def test_wire_layout_of_an_image_request():
     assert struct.unpack_from("<IIIHB", data, 16) == (0x11223344, 5, 6, 640, 80)
 
 
+def _le(v: int, n: int, signed: bool = False) -> bytes:
+    return v.to_bytes(n, "little", signed=signed)
+
+
+def _header(mtype: int, body: bytes) -> bytes:
+    """docs/protocol.md's common header, field by field: station 1, camera 2."""
+    return b"VPOS" + bytes([2, mtype, 0, 0]) + _le(1, 2) + _le(2, 2) + _le(len(body), 2) + _le(0, 2) + body
+
+
+JPEG = bytes(range(256)) * 6  # 1536 bytes: two chunks, the second 128 bytes
+HAND_WRITTEN = [  # (message, its datagram written from the offset tables of docs/protocol.md)
+    (P.ImageRequest(1, 2, 0x11223344, 5, 6, 320, 90),
+     _header(8, _le(0x11223344, 4) + _le(5, 4) + _le(6, 4) + _le(320, 2) + bytes([90, 0]))),
+    (P.ImageChunk(1, 2, 3, 4, 1, 2, 1536, -7, 640, 480, 12.5, JPEG[1408:]),
+     _header(9, _le(3, 4) + _le(4, 4) + _le(1, 2) + _le(2, 2) + _le(1536, 4) + _le(-7, 8, True) + _le(640, 2)
+             + _le(480, 2) + struct.pack("<f", 12.5) + JPEG[1408:])),
+    (P.MaskUpdate(1, 2, 3, 4, 5, 3, ((1, 2, 30, 40),), ((0, 0, 640, 480), (7, 8, 9, 10))),
+     _header(10, _le(3, 4) + _le(4, 4) + _le(5, 4) + _le(3, 2) + bytes([1, 2])
+             + b"".join(_le(v, 2) for v in (1, 2, 30, 40, 0, 0, 640, 480, 7, 8, 9, 10)))),
+    (P.MaskAck(1, 2, 3, 4, 1, "applied, not saved"),
+     _header(11, _le(3, 4) + _le(4, 4) + bytes([1, 0, 0, 0]) + b"applied, not saved".ljust(64, b"\0"))),
+]
+
+
+@pytest.mark.parametrize("msg, data", HAND_WRITTEN, ids=lambda v: type(v).__name__ if not isinstance(v, bytes) else "")
+def test_each_message_writes_and_reads_its_documented_bytes(msg, data):
+    assert msg.write() == data and P.encode(msg) == data
+    assert type(msg).read(data) == msg and P.decode(data) == msg
+    signed = msg.write(KEY)
+    assert signed[:6] == data[:6] and signed[6] == P.HeaderFlag.SIGNED and signed[7:-16] == data[7:]
+    assert type(msg).read(signed, KEY) == msg
+
+
 def _body_edit(msg, offset, fmt, value, key=None):
     """msg encoded, one body field overwritten (unsigned, or re-signed with key)."""
     data = bytearray(P.encode(msg))
     struct.pack_into(fmt, data, P.HEADER_BYTES + offset, value)
     data = bytes(data)
     if key is not None:
-        data = bytes([*data[:6], P.HF_SIGNED, *data[7:]]) + P._tag(key, bytes([*data[:6], P.HF_SIGNED, *data[7:]]))
+        data = bytes([*data[:6], P.HeaderFlag.SIGNED, *data[7:]])
+        data += tag(key, data)
     return data
 
 

@@ -17,7 +17,6 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from scipy.spatial.transform import Rotation
 
-from visionpos import recording
 from visionpos.messages import BodyState
 from visionpos.recording import (
     MAX_PACKET_SOURCES,
@@ -28,6 +27,7 @@ from visionpos.recording import (
     RecordingReader,
     RecordingWriter,
     recover,
+    writer,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -366,7 +366,7 @@ class _FullDisk:
 def test_disk_full_stops_the_recording_and_keeps_it_readable(tmp_path, monkeypatch, caplog):
     path = tmp_path / "full.mcap"
     disk = _FullDisk(20_000)
-    monkeypatch.setattr(recording.os, "pwrite", disk)
+    monkeypatch.setattr(writer.os, "pwrite", disk)
     w = RecordingWriter(path, CONFIG, flush_interval_s=60.0)  # flushes only when the test says
     sent = 0
     on_disk_before_error = 0
@@ -470,7 +470,7 @@ def test_packet_channels_are_bounded(tmp_path):
 def test_disk_full_at_close_or_at_start(tmp_path, monkeypatch):
     path = tmp_path / "c.mcap"
     disk = _FullDisk(10**9)
-    monkeypatch.setattr(recording.os, "pwrite", disk)
+    monkeypatch.setattr(writer.os, "pwrite", disk)
     w = RecordingWriter(path, CONFIG, flush_interval_s=60.0)
     for i in range(30):
         w.write_packet(i, _packet(i))

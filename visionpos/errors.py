@@ -3,7 +3,7 @@
 A `VisionposError` is a problem with the user's input or environment (a config key, a packet,
 a recording, a calibration, a camera model): the CLI prints it as one line and exits 2. Any
 other exception is a bug and shows its traceback. Subclasses live beside the code that raises
-them (ConfigError in config/, ProtocolError in protocol.py, ...).
+them (ConfigError in config/, ProtocolError in protocol/, ...).
 """
 
 from __future__ import annotations

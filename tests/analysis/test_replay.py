@@ -211,7 +211,7 @@ def test_replay_of_realtime_stamped_stations_uses_the_recording_hosts_clocks(the
         for recv_ns, data, source in src.packets_with_source():
             msg = P.decode(data)
             if isinstance(msg, P.Hello):
-                data = P.encode(dataclass_replace(msg, timebase=P.TIMEBASE_REALTIME))
+                data = P.encode(dataclass_replace(msg, timebase=P.Timebase.REALTIME))
             elif isinstance(msg, BlobFrame):
                 data = P.encode_frame(dataclass_replace(msg, capture_ns=msg.capture_ns + rt_minus_mono))
             w.write_packet(recv_ns, data, source)

@@ -377,14 +377,14 @@ def test_a_running_server_streams_each_cameras_blobs_and_its_health(arena_yaml):
     cam = 2
     try:
         def hello(cookie, counter):
-            return P.encode(P.Hello(cam, cam, 9, 960, 640, 30.0, "fisheye", "pi", "test", P.TIMEBASE_SERVER,
+            return P.encode(P.Hello(cam, cam, 9, 960, 640, 30.0, "fisheye", "pi", "test", P.Timebase.SERVER,
                                     counter, cookie))
 
         sock.sendto(hello(P.NO_COOKIE, 1), addr)
         challenge = P.decode(sock.recv(2048))
         sock.sendto(hello(challenge.cookie, 2), addr)
         ack = P.decode(sock.recv(2048))
-        assert ack.status == P.ACK_OK
+        assert ack.status == P.AckStatus.OK
         time.sleep(max(0.0, (ack.start_ns - time.monotonic_ns()) * 1e-9) + 0.01)
         blobs = np.array([[101.25, 202.5, 30.0, 200.0], [640.0, 17.75, 12.0, 180.0]])
         stop_frames = threading.Event()

@@ -192,7 +192,7 @@ def test_blob_annotations_are_the_recorded_frames_on_the_capture_clock(demo_log)
     Foxglove's pixel origin is the corner of the first pixel), at most rate_hz per camera."""
     frames = {}
     for _, data in RecordingReader(demo_log).packets():
-        if data[5] == P.MSG_FRAME:
+        if data[5] == P.MsgType.FRAME:
             f = P.decode(data)
             frames[(f.camera_id, f.capture_ns)] = f
     n = defaultdict(list)
@@ -296,7 +296,7 @@ def test_realtime_stamped_frames_are_put_on_the_capture_clock():
     cam = Camera(7, "c", CameraModel("pinhole", 640, 480, 500.0, 500.0, 319.5, 239.5), np.eye(3), np.zeros(3))
     fox = C.FoxgloveChannels([cam], rate_hz=30, realtime_minus_monotonic_ns=rt)
     hello = P.encode(P.Hello(station_id=1, camera_id=7, session=99, width=640, height=480, fps=100.0,
-                             timebase=P.TIMEBASE_REALTIME, counter=1))
+                             timebase=P.Timebase.REALTIME, counter=1))
     assert fox.packet(10, hello) == []
     blobs = np.array([[10.0, 20.0, 12.0, 200.0]], dtype=np.float32)
     frame = P.encode_frame(BlobFrame(7, 1, rt + 5_000_000_000, blobs, 1, 0, 0, 99))
@@ -325,7 +325,7 @@ def test_recording_puts_realtime_frames_on_the_clock_its_meta_states(tmp_path):
     cam = arena.cameras[0].id
     with RecordingWriter(path, arena.raw, meta) as w:
         hello = P.Hello(station_id=1, camera_id=cam, session=9, width=640, height=480, fps=100.0,
-                        timebase=P.TIMEBASE_REALTIME, counter=1)
+                        timebase=P.Timebase.REALTIME, counter=1)
         w.write_packet(1, P.encode(hello))
         blobs = np.array([[100.0, 50.0, 9.0, 200.0]], dtype=np.float32)
         w.write_packet(6_000_000_000, P.encode_frame(BlobFrame(cam, 1, rt + 5_990_000_000, blobs, 1, 0, 0, 9)))

@@ -32,7 +32,7 @@ def _rig():
     ing = Ingest(_arena({}), clock=clock)
     ing.sock = Sock()
     (ack,) = _send(ing, _hello(1), T0)
-    assert ack.status == P.ACK_OK
+    assert ack.status == P.AckStatus.OK
     return ing, clock
 
 

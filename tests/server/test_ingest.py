@@ -73,7 +73,7 @@ def _frame(cam: int, seq: int, capture_ns: int, station: int = None, flags: int 
     return BlobFrame(cam, seq, capture_ns, blobs, cam if station is None else station, flags, 0, session)
 
 
-def _hello(cam, session=7, station=None, w=960, h=640, timebase=P.TIMEBASE_SERVER, counter=0, cookie=P.NO_COOKIE):
+def _hello(cam, session=7, station=None, w=960, h=640, timebase=P.Timebase.SERVER, counter=0, cookie=P.NO_COOKIE):
     return P.Hello(cam if station is None else station, cam, session, w, h, 100.0, "fisheye", f"pi{cam}", "test",
                    timebase, counter, cookie)
 
@@ -87,7 +87,8 @@ def _send(ing, msg, recv_ns, key=None, addr=ADDR):
             msg = dataclasses.replace(msg, counter=last + 1)
         ing._test_counter = max(last, msg.counter)
     replies = [P.decode(r, key) for r in ing.handle(P.encode(msg, key), addr, recv_ns)]
-    if isinstance(msg, P.Hello) and msg.cookie == P.NO_COOKIE and [r.status for r in replies] == [P.ACK_CHALLENGE]:
+    if (isinstance(msg, P.Hello) and msg.cookie == P.NO_COOKIE
+            and [r.status for r in replies] == [P.AckStatus.CHALLENGE]):
         return _send(ing, dataclasses.replace(msg, counter=0, cookie=replies[0].cookie), recv_ns, key, addr)
     return replies
 
@@ -97,12 +98,13 @@ def test_registration_and_trigger_time():
     assert ing.start_ns == T0 + 2_000 * MS
     (ack,) = _send(ing, _hello(1), T0)
     assert isinstance(ack, P.HelloAck)
-    assert (ack.status, ack.session, ack.camera_id, ack.start_ns, ack.server_ns) == (P.ACK_OK, 7, 1, T0 + 2000 * MS, T0)
+    assert (ack.status, ack.session, ack.camera_id, ack.start_ns, ack.server_ns) == (P.AckStatus.OK, 7, 1,
+                                                                                     T0 + 2000 * MS, T0)
     h = ing.health()["cameras"][1]
     assert h["registered"] and h["station_id"] == 1 and h["addr"] == "127.0.0.1:40000"
     # resolution that does not match the calibration: refused with the reason
     (ack,) = _send(ing, _hello(2, w=640, h=480), T0)
-    assert ack.status == P.ACK_REJECTED
+    assert ack.status == P.AckStatus.REJECTED
     assert not ing.health()["cameras"][2]["registered"]
 
 
@@ -120,7 +122,7 @@ def test_unknown_station_refused_and_logged_once(caplog):
     with caplog.at_level(logging.WARNING, logger="visionpos.server.ingest"):
         for i in range(5):
             (ack,) = _send(ing, _hello(9), T0 + i)
-            assert ack.status == P.ACK_REJECTED
+            assert ack.status == P.AckStatus.REJECTED
         for i in range(5):
             assert _send(ing, _frame(9, i, T0 + i * 10 * MS), T0 + i * 10 * MS + 3 * MS) == []
         assert _send(ing, P.SyncRequest(9, 9, 123, 1), T0) == []
@@ -137,9 +139,9 @@ def test_station_id_pinned_in_config():
     data["server"]["insecure"] = True
     ing = Ingest(parse_arena(data, "a.yaml"), pipeline=Collector(), clock=Clock(T0))
     (ack,) = _send(ing, _hello(1, station=12), T0)
-    assert ack.status == P.ACK_REJECTED
+    assert ack.status == P.AckStatus.REJECTED
     (ack,) = _send(ing, _hello(1, station=11), T0)
-    assert ack.status == P.ACK_OK
+    assert ack.status == P.AckStatus.OK
 
 
 def test_clock_sync_reply_stamps():
@@ -153,13 +155,13 @@ def test_clock_sync_reply_stamps():
 
 def test_heartbeat_records_station_clock():
     ing, _, _ = _ingest()
-    hb = P.Heartbeat(1, 1, 0, session=7, status=P.HB_CLOCK_SYNCED, frames_captured=500, frames_dropped=2,
+    hb = P.Heartbeat(1, 1, 0, session=7, status=P.HeartbeatStatus.CLOCK_SYNCED, frames_captured=500, frames_dropped=2,
                      clock_offset_ns=-1_234_567, clock_uncertainty_ns=40_000, drift_ppb=-15000, temperature_c=51.5)
     (ack,) = _send(ing, hb, T0)
-    assert ack.status == P.ACK_UNKNOWN_SESSION  # not registered yet: register again
+    assert ack.status == P.AckStatus.UNKNOWN_SESSION  # not registered yet: register again
     _send(ing, _hello(1), T0)
     (ack,) = _send(ing, hb, T0 + MS)
-    assert ack.status == P.ACK_OK and ack.session == 7
+    assert ack.status == P.AckStatus.OK and ack.session == 7
     h = ing.health()["cameras"][1]
     assert h["clock_offset_ms"] == pytest.approx(-1.234567)
     assert h["clock_uncertainty_us"] == pytest.approx(40.0)
@@ -177,7 +179,7 @@ def test_hmac_wrong_key_and_unsigned_dropped(tmp_path, caplog):
     assert pipe.frames == [] and ing.health()["auth_failed"] == 3
     assert any("authentication" in r.getMessage() for r in caplog.records)
     (ack,) = _send(ing, _hello(1), T0, key=good)  # replies are signed with the key
-    assert ack.status == P.ACK_OK
+    assert ack.status == P.AckStatus.OK
     with pytest.raises(P.ProtocolError):
         P.decode(ing.handle(P.encode(_hello(1), good), ADDR, T0)[0], bad)
     _send(ing, _frame(1, 2, T0 + 10 * MS), T0 + 13 * MS, key=good)
@@ -195,8 +197,8 @@ def test_sequence_loss_duplicates_reordering_replay():
     assert got == [100, 101, 102, 105, 106, 107] + list(range(108, 301))
     h = ing.health()["cameras"][1]
     assert h["duplicates"] == 1
-    assert h["reordered"] == 1  # 103 came late: dropped, and no longer counted as lost
-    assert h["lost"] == 1  # 104 never came
+    assert h["reordered"] == 1  # 103 came late: dropped
+    assert h["lost"] == 2  # 103 and 104 were never accepted (loss counts what was accepted)
     assert h["replayed"] == 2  # 150 and 20 are far older than 299
     assert h["frames"] == len(got)
     assert all(f.recv_ns == T0 + i * 10 * MS + 4 * MS for i, f in zip(range(3), pipe.frames))
@@ -206,6 +208,29 @@ def test_sequence_loss_duplicates_reordering_replay():
         t = T0 + i * 10 * MS
         _send(ing, _frame(2, s, t), t + 4 * MS)
     assert ing.health()["cameras"][2]["lost"] == 0 and ing.health()["cameras"][2]["frames"] == 4
+
+
+def test_replayed_frames_inside_the_reorder_window_do_not_hide_loss():
+    # an attacker resends frames it saw, a few seqs old: refused as reordered, and `lost` does not move
+    ing, pipe, _ = _ingest()
+    _send(ing, _hello(1), T0)
+    sent = {}
+    for i, s in enumerate([10, 11, 12, 20]):  # 13..19 lost on the network: 7 frames
+        t = T0 + i * 10 * MS
+        sent[s] = P.encode(_frame(1, s, t))
+        ing.handle(sent[s], ADDR, t + 4 * MS)
+    assert ing.health()["cameras"][1]["lost"] == 7
+    for k, s in enumerate([10, 11, 12, 12, 11, 10] * 3):  # inside the 64-frame window
+        ing.handle(sent[s], ADDR, T0 + 40 * MS + k * MS)
+    h = ing.health()["cameras"][1]
+    assert h["reordered"] + h["duplicates"] == 18 and h["lost"] == 7
+    # real loss after the replays is still counted: 21 accepted, 22..24 lost
+    for i, s in enumerate([21, 25]):
+        t = T0 + 100 * MS + i * 10 * MS
+        ing.handle(P.encode(_frame(1, s, t)), ADDR, t + 4 * MS)
+    h = ing.health()["cameras"][1]
+    assert h["lost"] == 10 and h["frames"] == 6 and [f.seq for f in pipe.frames] == [10, 11, 12, 20, 21, 25]
+    assert h["loss"] == pytest.approx(10 / 16)
 
 
 def test_new_session_restarts_sequence():
@@ -271,9 +296,9 @@ def test_clock_jumps_dropped_then_resync():
     assert h["resync_requests"] == 1 and h["registered"]
     assert len(pipe.frames) == 4
     (ack,) = _send(ing, P.Heartbeat(1, 1, 0, session=7), t)
-    assert ack.status == P.ACK_RESYNC and ack.session == 7
+    assert ack.status == P.AckStatus.RESYNC and ack.session == 7
     (ack,) = _send(ing, P.Heartbeat(1, 1, 0, session=7), t)
-    assert ack.status == P.ACK_OK  # asked once
+    assert ack.status == P.AckStatus.OK  # asked once
     # the station resyncs; one that flags its own resync may step back a little
     assert send(0) == []
     assert send(-8, flags=FLAG_RESYNC) == []
@@ -282,7 +307,7 @@ def test_clock_jumps_dropped_then_resync():
 
 def test_realtime_timebase_converted():
     ing, pipe, _ = _ingest()
-    _send(ing, _hello(1, timebase=P.TIMEBASE_REALTIME), T0)
+    _send(ing, _hello(1, timebase=P.Timebase.REALTIME), T0)
     mono, real = time.monotonic_ns(), time.time_ns()
     ing.handle(P.encode(_frame(1, 0, real - 4 * MS)), ADDR, mono)
     (f,) = pipe.frames
@@ -290,7 +315,7 @@ def test_realtime_timebase_converted():
     assert f.recv_ns == mono
     # replay: the offset comes from the recording, not from today's clocks
     ing.realtime_minus_monotonic_ns = 1_700_000_000 * 10**9
-    _send(ing, _hello(1, session=8, timebase=P.TIMEBASE_REALTIME), T0)  # a new run on another clock
+    _send(ing, _hello(1, session=8, timebase=P.Timebase.REALTIME), T0)  # a new run on another clock
     ing.handle(P.encode(_frame(1, 1, 1_700_000_000 * 10**9 + T0 + 20 * MS, session=8)), ADDR, T0 + 25 * MS)
     assert pipe.frames[-1].capture_ns == T0 + 20 * MS
 
@@ -551,15 +576,15 @@ def test_frames_only_from_the_registered_session_and_address():
 def test_hello_needs_the_cookie_of_its_own_address_and_time():
     ing, pipe, _ = _ingest()
     (ch,) = [P.decode(r) for r in ing.handle(P.encode(_hello(1, counter=1)), ADDR, T0)]
-    assert ch.status == P.ACK_CHALLENGE and ch.echo == 1 and ch.cookie != P.NO_COOKIE
+    assert ch.status == P.AckStatus.CHALLENGE and ch.echo == 1 and ch.cookie != P.NO_COOKIE
     assert not ing.health()["cameras"][1]["registered"]  # a challenge changes no state
     wrong_addr = ing.handle(P.encode(_hello(1, counter=2, cookie=ch.cookie)), ("127.0.0.1", 40001), T0)
-    assert P.decode(wrong_addr[0]).status == P.ACK_CHALLENGE  # the cookie was for another source port
+    assert P.decode(wrong_addr[0]).status == P.AckStatus.CHALLENGE  # the cookie was for another source port
     late = ing.handle(P.encode(_hello(1, counter=2, cookie=ch.cookie)), ADDR, T0 + 20_001 * MS)
-    assert P.decode(late[0]).status == P.ACK_CHALLENGE  # two 10 s buckets later: expired
+    assert P.decode(late[0]).status == P.AckStatus.CHALLENGE  # two 10 s buckets later: expired
     assert not ing.health()["cameras"][1]["registered"]
     ok = ing.handle(P.encode(_hello(1, counter=2, cookie=ch.cookie)), ADDR, T0 + 9_000 * MS)
-    assert P.decode(ok[0]).status == P.ACK_OK and ing.health()["cameras"][1]["registered"]
+    assert P.decode(ok[0]).status == P.AckStatus.OK and ing.health()["cameras"][1]["registered"]
 
 
 def test_replayed_signed_hello_and_heartbeat_change_nothing(tmp_path):
@@ -569,9 +594,9 @@ def test_replayed_signed_hello_and_heartbeat_change_nothing(tmp_path):
     ing, pipe, _ = _ingest({"key_file": "key.bin"}, tmp_path)
     (ch,) = [P.decode(r, key) for r in ing.handle(P.encode(_hello(1, session=1, counter=1), key), ADDR, T0)]
     old_hello = P.encode(_hello(1, session=1, counter=2, cookie=ch.cookie), key)  # what an attacker captures
-    assert P.decode(ing.handle(old_hello, ADDR, T0)[0], key).status == P.ACK_OK
+    assert P.decode(ing.handle(old_hello, ADDR, T0)[0], key).status == P.AckStatus.OK
     hb = P.encode(P.Heartbeat(1, 1, 3, session=1, clock_offset_ns=5), key)
-    assert P.decode(ing.handle(hb, ADDR, T0 + MS)[0], key).status == P.ACK_OK
+    assert P.decode(ing.handle(hb, ADDR, T0 + MS)[0], key).status == P.AckStatus.OK
     # replays of the current session: stale counters, no answer, no state change
     assert ing.handle(old_hello, ADDR, T0 + 2 * MS) == []
     assert ing.handle(hb, ADDR, T0 + 2 * MS) == []
@@ -596,7 +621,7 @@ def test_resync_is_asked_in_the_next_heartbeat_reply_never_in_answer_to_frames()
     assert replies == [[]] * 6
     assert ing.health()["cameras"][1]["resync_requests"] == 1  # once pending, not asked again per frame
     (ack,) = _send(ing, P.Heartbeat(1, 1, 0, session=7), t + 10 * MS)
-    assert ack.status == P.ACK_RESYNC
+    assert ack.status == P.AckStatus.RESYNC
     assert ing.health()["cameras"][1]["registered"]  # the station keeps its registration and seq
 
 
@@ -650,5 +675,5 @@ def test_taps_get_the_accepted_packets_only_and_a_failing_tap_changes_nothing():
     ing.handle(P.encode_frame(_frame(3, 1, T0 + 10 * MS)), ADDR, T0 + 14 * MS)  # camera 3 not registered
     assert [f.seq for f in pipe.frames] == [1]
     types = [d[5] for _, d in seen]
-    assert types == [P.MSG_HELLO, P.MSG_FRAME] and seen[-1] == (T0 + 12 * MS, good)
+    assert types == [P.MsgType.HELLO, P.MsgType.FRAME] and seen[-1] == (T0 + 12 * MS, good)
     assert ing.health()["tap_errors"] == 2  # the hello and the frame

@@ -80,18 +80,18 @@ async def _recv(loop, sock, timeout=2.0):
 
 
 def _hello(c, session, cookie=P.NO_COOKIE, counter=1):
-    return P.Hello(c, c, session, 960, 640, 30.0, "fisheye", f"pi{c}", "test", P.TIMEBASE_SERVER, counter, cookie)
+    return P.Hello(c, c, session, 960, 640, 30.0, "fisheye", f"pi{c}", "test", P.Timebase.SERVER, counter, cookie)
 
 
 async def _register(loop, sock, c, session, key=None) -> bytes:
     """HELLO, CHALLENGE, HELLO with the cookie, OK: as a station registers. Returns the accepted HELLO."""
     sock.send(P.encode(_hello(c, session), key))
     challenge = P.decode(await _recv(loop, sock), key)
-    assert challenge.status == P.ACK_CHALLENGE and challenge.echo == 1
+    assert challenge.status == P.AckStatus.CHALLENGE and challenge.echo == 1
     hello = P.encode(_hello(c, session, challenge.cookie, 2), key)
     sock.send(hello)
     ack = P.decode(await _recv(loop, sock), key)
-    assert isinstance(ack, P.HelloAck) and ack.status == P.ACK_OK and ack.session == session and ack.echo == 2
+    assert isinstance(ack, P.HelloAck) and ack.status == P.AckStatus.OK and ack.session == session and ack.echo == 2
     return hello
 
 
@@ -103,7 +103,7 @@ def _register_blocking(sock, addr, c, session, key=None) -> bytes:
     hello = P.encode(_hello(c, session, challenge.cookie, 2), key)
     sock.sendto(hello, addr)
     ack = P.decode(sock.recv(2048), key)
-    assert ack.status == P.ACK_OK
+    assert ack.status == P.AckStatus.OK
     time.sleep(max(0.0, (ack.start_ns + 10 * MS - time.monotonic_ns()) * 1e-9))  # frames are stamped 3 ms back
     return hello
 
@@ -225,7 +225,7 @@ def test_bad_traffic_over_udp(tmp_path):
             send(P.encode(_hello(1, 5)))  # unsigned
             send(P.encode(P.Hello(7, 42, 5, 960, 640, 100.0), key))  # unknown camera
             ack = P.decode(await _recv(loop, s), key)
-            assert ack.camera_id == 42 and ack.status == P.ACK_REJECTED
+            assert ack.camera_id == 42 and ack.status == P.AckStatus.REJECTED
             sent.append(await _register(loop, s, 1, 5, key))
             now = time.monotonic_ns()
             frames = {}

@@ -83,7 +83,7 @@ class LoopbackServer:
                     self.unregistered_frames += 1
             elif isinstance(msg, P.Hello):
                 if msg.cookie != COOKIE:  # the protocol's challenge round trip
-                    out = P.make_hello_ack(msg, self.start_ns, self.clock(), P.ACK_CHALLENGE, cookie=COOKIE)
+                    out = P.make_hello_ack(msg, self.start_ns, self.clock(), P.AckStatus.CHALLENGE, cookie=COOKIE)
                 else:
                     self.hellos.append(msg)
                     self.sessions[(msg.station_id, msg.camera_id)] = msg.session
@@ -91,7 +91,8 @@ class LoopbackServer:
             elif isinstance(msg, P.Heartbeat):
                 self.heartbeats.append(msg)
                 known = self.sessions.get((msg.station_id, msg.camera_id)) == msg.session
-                out = P.make_hello_ack(msg, self.start_ns, self.clock(), P.ACK_OK if known else P.ACK_UNKNOWN_SESSION)
+                status = P.AckStatus.OK if known else P.AckStatus.UNKNOWN_SESSION
+                out = P.make_hello_ack(msg, self.start_ns, self.clock(), status)
             elif isinstance(msg, P.SyncRequest):
                 # like the real server (Ingest._control): no clock for a session it does not know; answering
                 # one would let the station move to this clock before it re-registers, and its first frame
@@ -184,7 +185,7 @@ def test_station_registers_syncs_streams_and_survives_a_server_restart():
         assert wait_for(lambda: len(server.frames) >= 40), f"no frames; hellos={len(server.hellos)}"
         h = server.hellos[0]
         assert (h.station_id, h.camera_id, h.width, h.height, h.camera_kind) == (3, 5, W, H, "pinhole")
-        assert h.timebase == P.TIMEBASE_SERVER and h.session == agent.session
+        assert h.timebase == P.Timebase.SERVER and h.session == agent.session
         assert server.syncs >= 4
         frames = list(server.frames)
         # capture times are on the server clock: station stamp + 7 s, to loopback precision
@@ -208,7 +209,7 @@ def test_station_registers_syncs_streams_and_survives_a_server_restart():
             assert f.flags & FLAG_TRUNCATED and len(f.blobs) == 20
         assert wait_for(lambda: len(server.heartbeats) >= 2)
         hb = server.heartbeats[-1]
-        assert hb.status & P.HB_CLOCK_SYNCED and hb.status & P.HB_CAMERA_OK
+        assert hb.status & P.HeartbeatStatus.CLOCK_SYNCED and hb.status & P.HeartbeatStatus.CAMERA_OK
         assert abs(hb.clock_offset_ns - SERVER_OFFSET_NS) < 10_000_000
         assert hb.frames_captured > 0 and 0 <= hb.clock_uncertainty_ns < 10_000_000
         assert not server.errors
@@ -387,7 +388,7 @@ def test_agent_and_real_ingest_shrug_off_forged_and_replayed_packets(tmp_path: P
         assert wait_for(lambda: cam.frames >= 30), ing.health()
         station_addr = ("127.0.0.1", agent.sock.getsockname()[1])
         for echo in range(0, 200, 4):
-            forged = P.HelloAck(3, 5, agent.session, 0, 0, P.ACK_UNKNOWN_SESSION, 0, echo)
+            forged = P.HelloAck(3, 5, agent.session, 0, 0, P.AckStatus.UNKNOWN_SESSION, 0, echo)
             attacker.sendto(P.encode(forged, KEY), station_addr)  # signed, from the wrong address
             attacker.sendto(P.encode(dataclass_replace(forged, session=0)), station_addr)  # v1-style, unsigned
             seq = cam.last_seq + 1_000_000

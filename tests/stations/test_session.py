@@ -8,7 +8,7 @@ from visionpos import protocol as P
 SERVER = ("127.0.0.1", 5600)
 
 
-def _ack(link, echo, status=P.ACK_OK, session=None, cookie=P.NO_COOKIE):
+def _ack(link, echo, status=P.AckStatus.OK, session=None, cookie=P.NO_COOKIE):
     return P.HelloAck(link.station_id, link.camera_id, link.session if session is None else session, 10, 20, status,
                       0, echo, cookie)
 
@@ -22,8 +22,8 @@ def test_counters_increase_over_every_control_message_and_hello_carries_the_cook
     assert [h1.counter, hb.counter, sr.counter, bye.counter] == [1, 2, 3, 4]
     assert {h1.session, hb.session, sr.session, bye.session} == {0xABC}
     assert h1.cookie == P.NO_COOKIE
-    assert link.believe(_ack(link, 1, P.ACK_CHALLENGE, cookie=b"c" * 16), SERVER, SERVER)
-    assert link.on_ack(_ack(link, 1, P.ACK_CHALLENGE, cookie=b"c" * 16)) is LinkEvent.CHALLENGED
+    assert link.believe(_ack(link, 1, P.AckStatus.CHALLENGE, cookie=b"c" * 16), SERVER, SERVER)
+    assert link.on_ack(_ack(link, 1, P.AckStatus.CHALLENGE, cookie=b"c" * 16)) is LinkEvent.CHALLENGED
     assert link.cookie_is_new
     h2 = link.hello(960, 640, 100.0)
     assert h2.cookie == b"c" * 16 and h2.counter == 5 and not link.cookie_is_new
@@ -54,7 +54,7 @@ def test_ack_statuses_drive_registration():
     assert not link.registered
     assert link.on_ack(_ack(link, 1)) is LinkEvent.REGISTERED and link.registered and link.start_ns == 10
     assert link.on_ack(_ack(link, 2)) is LinkEvent.KEPT
-    assert link.on_ack(_ack(link, 3, P.ACK_RESYNC)) is LinkEvent.RESYNC and link.registered
-    assert link.on_ack(_ack(link, 4, P.ACK_UNKNOWN_SESSION)) is LinkEvent.LOST and not link.registered
-    assert link.on_ack(_ack(link, 5, P.ACK_REJECTED)) is LinkEvent.REJECTED and link.rejected
+    assert link.on_ack(_ack(link, 3, P.AckStatus.RESYNC)) is LinkEvent.RESYNC and link.registered
+    assert link.on_ack(_ack(link, 4, P.AckStatus.UNKNOWN_SESSION)) is LinkEvent.LOST and not link.registered
+    assert link.on_ack(_ack(link, 5, P.AckStatus.REJECTED)) is LinkEvent.REJECTED and link.rejected
     assert link.on_ack(_ack(link, 6, 77)) is LinkEvent.IGNORED

@@ -190,7 +190,7 @@ def run_pipeline(
     speed: None = as fast as possible, else sleep so recording time runs at
     speed x wall time. realtime_minus_monotonic_ns: the recording host's
     CLOCK_REALTIME - monotonic difference (from the recording's meta), used
-    for stations that stamp in TIMEBASE_REALTIME instead of this host's clocks.
+    for stations that stamp in Timebase.REALTIME instead of this host's clocks.
     """
     loop = _ReplayLoop(arena, rate_hz, speed, realtime_minus_monotonic_ns)
     for item in packets:

@@ -324,7 +324,8 @@ class SimStation:
 
     def heartbeat(self) -> P.Heartbeat:
         est = self.sync.estimator.estimate
-        status = P.HB_CAMERA_OK | P.HB_STREAMING | (P.HB_CLOCK_SYNCED if est is not None else 0)
+        hb = P.HeartbeatStatus
+        status = int(hb.CAMERA_OK | hb.STREAMING | (hb.CLOCK_SYNCED if est is not None else 0))
         return self.link.heartbeat(
             status=status, frames_captured=self.sent, frames_dropped=0, send_errors=self.send_errors,
             clock_offset_ns=0 if est is None else est.offset_ns,

@@ -172,7 +172,7 @@ def build(spec: dict) -> tuple[list[tuple[str, int]], list[tuple[int, bytes]], i
                 continue
             session = 0 if k == 0 else cam["session"]
             ack = P.HelloAck(cam["station_id"], cam["camera_id"], session, 0, time.monotonic_ns(),
-                             P.ACK_UNKNOWN_SESSION, 0, seq_guess(i))
+                             P.AckStatus.UNKNOWN_SESSION, 0, seq_guess(i))
             packets.append((d, P.encode(ack, None if k < 2 else WRONG_KEY)))
         return dests, packets, 0
     if kind == "mavlink_spoof":

@@ -115,11 +115,11 @@ class FoxgloveChannels:
         if len(data) < P.HEADER_BYTES:
             return []
         mtype = data[5]
-        if mtype == P.MSG_FRAME:
+        if mtype == P.MsgType.FRAME:
             cid = data[10] | data[11] << 8
             if recv_ns < self._next_blobs.get(cid, -(1 << 62)) or cid not in self.cameras:
                 return []
-        elif mtype == P.MSG_HELLO:
+        elif mtype == P.MsgType.HELLO:
             return self._hello(data)
         else:
             return []
@@ -143,7 +143,7 @@ class FoxgloveChannels:
         except P.ProtocolError:
             return []
         with self._lock:
-            if h.timebase == P.TIMEBASE_REALTIME:
+            if h.timebase == P.Timebase.REALTIME:
                 self._realtime.add(h.camera_id)
             else:
                 self._realtime.discard(h.camera_id)

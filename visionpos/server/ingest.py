@@ -2,9 +2,10 @@
 
 `Ingest.handle(data, addr, recv_ns)` is the whole per-packet path and does no I/O
 of its own (it returns the replies to send), so tests and replays can drive it
-with chosen receive times; `Ingest.start()` puts it on a UDP socket read by the
-running asyncio loop (every waiting datagram per wake-up, at most ~2 ms of work
-per batch so output ticks stay on time).
+with chosen receive times; `Ingest.start()` (endpoint.py) puts it on a UDP socket
+read by the running asyncio loop (every waiting datagram per wake-up, at most ~2 ms
+of work per batch so output ticks stay on time). camera_health.py holds what it
+knows and counts (CameraHealth, IngestCounters) and the reasons it names.
 
 Everything from the network is hostile until it passes every check, and a
 packet that fails one changes no state but its rejection counters (and the
@@ -51,77 +52,45 @@ structured warning (measured and configured fps, message) and status_line marks 
 
 from __future__ import annotations
 
-import asyncio
 import hashlib
 import hmac
 import logging
 import re
 import secrets
-import socket
 import struct
 import time
-from collections import OrderedDict, deque
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from enum import StrEnum
 from typing import Any, Protocol
 
 from visionpos import protocol as P
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.logutil import RateLimitedLog
 from visionpos.messages import FLAG_RESYNC, BlobFrame
+from visionpos.server.camera_health import (
+    LOW_RATE_AFTER_S,
+    LOW_RATE_FRACTION,
+    Addr,
+    CameraHealth,
+    ClockJump,
+    IngestCounters,
+    IngestEvent,
+    Refusal,
+    fmt_addr,
+)
+from visionpos.server.endpoint import UdpEndpoint
 from visionpos.server.images import StationImages
-from visionpos.server.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
 from visionpos.server.settings import ServerSettings
 
 log = logging.getLogger(__name__)
 
-Addr = tuple[Any, ...]
 _REORDER_WINDOW = 64  # a frame this many seqs late is "reordered"; older is a replay
 _SEQ_RESTART = 1 << 20  # a forward seq jump this big is a restart, not 1M lost frames
 _REASON = re.compile(r"[A-Za-z][A-Za-z -]*")  # the words of a ProtocolError message, its drop reason
 _U32 = 0xFFFFFFFF
 COOKIE_BUCKET_NS = 10_000_000_000  # a cookie is valid in its 10 s bucket and the next one
-RETIRED_SESSIONS = 4  # replaced sessions kept per camera: a HELLO for one of them is a replay
 UNKNOWN_SOURCES_MAX = 64
 _COOKIE_FIELDS = struct.Struct("<HHIq")
-LOW_RATE_FRACTION = 0.8  # a camera delivering less than this fraction of its configured fps ...
-LOW_RATE_AFTER_S = 3.0  # ... for this long gets a health warning
-
-
-class ClockJump(StrEnum):
-    """Why a frame's capture time was refused; the value is the log's wording."""
-
-    FUTURE = "in the future"  # counted in clock_jumps_future
-    STALE = "too old"  # clock_jumps_stale
-    BACKWARDS = "going backwards"  # clock_jumps_backwards
-
-
-class Refusal(StrEnum):
-    """Why a packet that decoded was not accepted: counters.not_recorded keys, cameras' drop reasons."""
-
-    UNKNOWN_CAMERA = "unknown camera"
-    NOT_REGISTERED = "not registered"
-    WRONG_SESSION = "wrong session"
-    WRONG_ADDRESS = "wrong address"
-    STALE_COUNTER = "stale counter"  # control message replayed (or reordered)
-    RETIRED_SESSION = "retired session"  # HELLO of a session already replaced on this camera
-    CHALLENGED = "no valid cookie"
-    REJECTED = "rejected"  # resolution mismatch, camera of another station
-    DUPLICATE = "duplicate seq"
-    REORDERED = "reordered"
-    REPLAYED = "replayed seq"
-    BEFORE_START = "before start"
-    WRONG_DIRECTION = "server message"
-
-
-class IngestEvent(StrEnum):
-    """Kinds handed to the `events` observer; the value is the "kind" recorded on /server/events."""
-
-    REGISTERED = "registered"
-    CAMERA_LOST = "camera_lost"
-    CAMERA_BACK = "camera_back"
-    RESYNC_REQUEST = "resync_request"
 
 
 class PipelineLike(Protocol):
@@ -133,181 +102,7 @@ class RecorderLike(Protocol):
     def write_packet(self, recv_ns: int, data: bytes, source: tuple[str, int] | None = None) -> None: ...
 
 
-@dataclass
-class CameraHealth:
-    """Everything the server knows about one configured camera's station."""
-
-    camera_id: int
-    name: str
-    fps_nominal: float  # announced by the station (its HELLO); the arena's fps until then
-    width: int
-    height: int
-    required_station: int | None = None
-    fps_configured: float = 0.0  # the arena's cameras[i].fps, which the fusion was set up for
-    config_key: str = ""  # where fps_configured comes from, for messages ("cameras[1].fps")
-    station_id: int | None = None
-    session: int | None = None
-    addr: Addr | None = None
-    timebase: int = P.TIMEBASE_SERVER
-    registered: bool = False
-    software: str = ""
-    last_counter: int = 0  # the registered session's newest control counter
-    retired: deque = field(default_factory=lambda: deque(maxlen=RETIRED_SESSIONS))
-    resync_pending: bool = False  # tell the station at its next heartbeat
-    # sequence / time state
-    last_seq: int | None = None
-    last_capture_ns: int | None = None
-    last_seen_ns: int = 0  # any accepted packet
-    last_frame_ns: int = 0  # accepted frame (receive time)
-    online: bool = False
-    jump_run: int = 0
-    # the newest refused frame: shows "dropping (reason)" while no frame gets through
-    drop_reason: str = ""
-    last_drop_ns: int = 0
-    # counters since start
-    frames: int = 0
-    lost: int = 0
-    duplicates: int = 0
-    reordered: int = 0
-    replayed: int = 0
-    seq_restarts: int = 0
-    clock_jumps: int = 0
-    future: int = 0
-    stale: int = 0
-    backwards: int = 0
-    before_start: int = 0
-    unregistered: int = 0  # frames while no HELLO was accepted
-    wrong_session: int = 0  # frames or control messages of another session / station
-    wrong_address: int = 0  # ... of the registered session from another address
-    stale_control: int = 0  # control messages whose counter was not newer (replays)
-    shed: int = 0  # accepted but not fused: it queued too long in the server (load shedding)
-    resync_requests: int = 0
-    vanished: int = 0
-    # latency (recv - capture) running stats, ns
-    latency_ewma_ns: float = 0.0
-    latency_min_ns: int = 0
-    latency_max_ns: int = 0
-    # rates over the last ~1 s
-    fps: float = 0.0
-    loss_rate: float = 0.0
-    low_rate_since_ns: int = 0  # start of the run of 1 s buckets below LOW_RATE_FRACTION (0: none)
-    low_rate: bool = False  # that run is LOW_RATE_AFTER_S long: warned
-    _bucket_start: int = 0
-    _bucket_frames: int = 0
-    _bucket_lost: int = 0
-    # from heartbeats
-    clock_offset_ns: int | None = None
-    clock_uncertainty_ns: int | None = None
-    drift_ppb: int | None = None
-    station_status: int = 0
-    station_frames_captured: int = 0
-    station_frames_dropped: int = 0
-    station_send_errors: int = 0
-    temperature_c: float | None = None
-
-    def reset_sequence(self) -> None:
-        self.last_seq = None
-        self.last_capture_ns = None
-        self.jump_run = 0
-
-    def low_rate_message(self) -> str:
-        """What a camera that delivers too few frames is told (plain words, what to do)."""
-        return (f"camera {self.camera_id} ({self.name}) delivers {self.fps:.0f} fps but {self.config_key} says "
-                f"{self.fps_configured:g}: lower {self.config_key} to what the station can deliver, or reduce the "
-                "station's load (a lower resolution or frame rate in its source, fewer processes on its host); "
-                "fusion follows the measured rate meanwhile")
-
-    def warnings(self) -> list[dict[str, Any]]:
-        """Structured health warnings (for consoles): kind, the numbers, and the plain-language message."""
-        if not self.low_rate:
-            return []
-        return [{"kind": "low_frame_rate", "measured_fps": round(self.fps, 2), "configured_fps": self.fps_configured,
-                 "since_ns": self.low_rate_since_ns, "message": self.low_rate_message()}]
-
-    def state(self, now_ns: int, timeout_ns: int) -> str:
-        """streaming / dropping (frames arrive, none accepted) / gone / waiting."""
-        if self.online:
-            return "streaming"
-        if self.last_drop_ns and now_ns - self.last_drop_ns <= timeout_ns:
-            return "dropping"
-        return "gone" if self.vanished else "waiting"
-
-    def snapshot(self, now_ns: int, timeout_ns: int) -> dict[str, Any]:
-        total = self.frames + self.lost
-        state = self.state(now_ns, timeout_ns)
-        return {
-            "camera_id": self.camera_id,
-            "name": self.name,
-            "station_id": self.station_id,
-            "addr": None if self.addr is None else f"{self.addr[0]}:{self.addr[1]}",
-            "registered": self.registered,
-            "online": self.online,
-            "state": state,
-            "dropping": self.drop_reason if state == "dropping" else None,
-            "last_drop_reason": self.drop_reason or None,
-            "fps": round(self.fps, 2),
-            "fps_nominal": self.fps_nominal,
-            "fps_configured": self.fps_configured,
-            "low_frame_rate": self.low_rate,
-            "warnings": self.warnings(),
-            "frames": self.frames,
-            "lost": self.lost,
-            "loss": (self.lost / total) if total else 0.0,
-            "loss_recent": round(self.loss_rate, 4),
-            "duplicates": self.duplicates,
-            "reordered": self.reordered,
-            "replayed": self.replayed,
-            "seq_restarts": self.seq_restarts,
-            "clock_jumps": self.clock_jumps,
-            "clock_jumps_future": self.future,
-            "clock_jumps_stale": self.stale,
-            "clock_jumps_backwards": self.backwards,
-            "before_start": self.before_start,
-            "unregistered": self.unregistered,
-            "wrong_session": self.wrong_session,
-            "wrong_address": self.wrong_address,
-            "stale_control": self.stale_control,
-            "shed": self.shed,
-            "resync_requests": self.resync_requests,
-            "vanished": self.vanished,
-            "latency_ms": self.latency_ewma_ns * 1e-6 if self.frames else None,
-            "latency_min_ms": self.latency_min_ns * 1e-6 if self.frames else None,
-            "latency_max_ms": self.latency_max_ns * 1e-6 if self.frames else None,
-            "last_seen_s_ago": (now_ns - self.last_seen_ns) * 1e-9 if self.last_seen_ns else None,
-            "clock_offset_ms": None if self.clock_offset_ns is None else self.clock_offset_ns * 1e-6,
-            "clock_uncertainty_us": (None if self.clock_uncertainty_ns is None or self.clock_uncertainty_ns < 0
-                                     else self.clock_uncertainty_ns * 1e-3),
-            "drift_ppb": self.drift_ppb,
-            "station_frames_captured": self.station_frames_captured,
-            "station_frames_dropped": self.station_frames_dropped,
-            "station_send_errors": self.station_send_errors,
-            "temperature_c": self.temperature_c,
-            "timebase": "realtime" if self.timebase == P.TIMEBASE_REALTIME else "server",
-        }
-
-
-@dataclass
-class IngestCounters:
-    packets: int = 0
-    bytes: int = 0
-    frames_accepted: int = 0
-    frames_shed: int = 0
-    malformed: int = 0
-    auth_failed: int = 0
-    unknown: int = 0
-    unknown_sources_evicted: int = 0
-    rejected_hello: int = 0
-    challenges: int = 0
-    pipeline_errors: int = 0
-    replies: int = 0
-    send_errors: int = 0
-    by_type: dict[str, int] = field(default_factory=dict)
-    malformed_reasons: dict[str, int] = field(default_factory=dict)
-    not_recorded: dict[str, int] = field(default_factory=dict)  # with a recorder: packets refused, by reason
-    tap_errors: int = 0  # packet taps (live outputs) that raised
-
-
-class Ingest:
+class Ingest(UdpEndpoint):
     """Server side of the station protocol for one arena. Not thread-safe: run on one loop.
 
     verify_cookies=False and authenticate=False are for replays of recordings (which hold only
@@ -355,14 +150,10 @@ class Ingest:
         self.unknown_sources: OrderedDict[tuple[int, int], int] = OrderedDict()
         self._rt_minus_mono = 0
         self._rt_update_ns = 0
-        # CLOCK_REALTIME - server clock for TIMEBASE_REALTIME stations; None = read the host clocks
+        # CLOCK_REALTIME - server clock for Timebase.REALTIME stations; None = read the host clocks
         # (live). A replay sets it from the recording's meta (wall_start_unix_ns - monotonic_start_ns).
         self.realtime_minus_monotonic_ns: int | None = None
-        self.sock: socket.socket | None = None
-        self._kernel_stamps = False
-        self._drained_ns = 0  # when the socket was last read empty
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self.port: int | None = None
+        self._init_endpoint()
         self.images = StationImages(self)  # still images and mask updates on request (the console)
         self.set_start()
 
@@ -418,32 +209,42 @@ class Ingest:
         try:
             msg = P.decode(data, self._decode_key, recv_ns)
         except P.ProtocolError as e:
-            text = str(e)
-            if self._decode_key is not None and (text.startswith("bad signature") or text.startswith("unsigned")):
-                c.auth_failed += 1
-                self._refused("unauthenticated")
-                self._warn(("auth",), logging.WARNING, "dropping packets that fail authentication (last from %s): %s",
-                           _fmt(addr), text)
-            else:
-                c.malformed += 1
-                self._refused("undecodable")
-                # the reason's fixed words only: packet bytes in the text must not grow the dict
-                m = _REASON.match(text)
-                reason = m.group(0).removesuffix(" b").strip() if m else "undecodable"
-                c.malformed_reasons[reason] = c.malformed_reasons.get(reason, 0) + 1
-                self._warn(("bad", reason), logging.WARNING, "dropping malformed packet (last from %s): %s",
-                           _fmt(addr), text)
+            self._undecodable(str(e), addr)
             return []
         except Exception as e:  # decode must not fail otherwise, but a packet never takes the server down
             c.malformed += 1
             self._refused("undecodable")
             self._warn(("crash", type(e).__name__), logging.ERROR, "decoder failed on a packet from %s: %r",
-                       _fmt(addr), e)
+                       fmt_addr(addr), e)
             return []
         if type(msg) is BlobFrame:
             c.by_type["frame"] = c.by_type.get("frame", 0) + 1
             self._frame(msg, data, addr, recv_ns, backlog_ns)
             return []  # never an answer to a frame: no amplification
+        return self._message(msg, data, addr, recv_ns)
+
+    def _undecodable(self, text: str, addr: Addr) -> None:
+        """A packet that failed decode (text: the ProtocolError's): counted as unauthenticated or as
+        malformed by reason."""
+        c = self.counters
+        if self._decode_key is not None and (text.startswith("bad signature") or text.startswith("unsigned")):
+            c.auth_failed += 1
+            self._refused("unauthenticated")
+            self._warn(("auth",), logging.WARNING, "dropping packets that fail authentication (last from %s): %s",
+                       fmt_addr(addr), text)
+            return
+        c.malformed += 1
+        self._refused("undecodable")
+        # the reason's fixed words only: packet bytes in the text must not grow the dict
+        m = _REASON.match(text)
+        reason = m.group(0).removesuffix(" b").strip() if m else "undecodable"
+        c.malformed_reasons[reason] = c.malformed_reasons.get(reason, 0) + 1
+        self._warn(("bad", reason), logging.WARNING, "dropping malformed packet (last from %s): %s",
+                   fmt_addr(addr), text)
+
+    def _message(self, msg: P.Message, data: bytes, addr: Addr, recv_ns: int) -> list[bytes]:
+        """Every message but a frame, by type; an accepted one is recorded. Returns the replies."""
+        c = self.counters
         name = type(msg).__name__
         c.by_type[name] = c.by_type.get(name, 0) + 1
         try:
@@ -465,12 +266,12 @@ class Ingest:
                 c.malformed += 1
                 self._refused(Refusal.WRONG_DIRECTION)
                 self._warn(("dir", name), logging.WARNING,
-                           "dropping %s from %s: that message goes server -> station", name, _fmt(addr))
+                           "dropping %s from %s: that message goes server -> station", name, fmt_addr(addr))
                 return []
         except P.ProtocolError as e:  # a reply field out of range: drop
             c.malformed += 1
             self._refused("undecodable")
-            self._warn(("reply", name), logging.WARNING, "cannot answer %s from %s: %s", name, _fmt(addr), e)
+            self._warn(("reply", name), logging.WARNING, "cannot answer %s from %s: %s", name, fmt_addr(addr), e)
             return []
         if refusal is None:
             self._record(data, addr, recv_ns)
@@ -494,11 +295,11 @@ class Ingest:
                 self._warn(("unknown",), logging.WARNING,
                            "refusing %s from station %d camera %d at %s: camera %d is not in the arena config "
                            "(%s); add it under `cameras` or fix the station's camera id", what, station_id,
-                           camera_id, _fmt(addr), camera_id, self.arena.source)
+                           camera_id, fmt_addr(addr), camera_id, self.arena.source)
             else:
                 self._warn(("unknown", camera_id), logging.WARNING,
                            "refusing %s from station %d camera %d at %s: the config says camera %d belongs to "
-                           "station %d", what, station_id, camera_id, _fmt(addr), camera_id, cam.required_station)
+                           "station %d", what, station_id, camera_id, fmt_addr(addr), camera_id, cam.required_station)
             return None
         return cam
 
@@ -526,27 +327,36 @@ class Ingest:
         cam = self._camera(msg.station_id, msg.camera_id, addr, "registration")
         if cam is None:
             self.counters.rejected_hello += 1
-            return [self._ack(msg, P.ACK_REJECTED)], Refusal.UNKNOWN_CAMERA
+            return [self._ack(msg, P.AckStatus.REJECTED)], Refusal.UNKNOWN_CAMERA
+        refused = self._hello_refused(cam, msg, addr, recv_ns)
+        if refused is not None:
+            return refused
+        self._register(cam, msg, addr, recv_ns)
+        return [self._ack(msg, P.AckStatus.OK)], None
+
+    def _hello_refused(self, cam: CameraHealth, msg: P.Hello, addr: Addr,
+                       recv_ns: int) -> tuple[list[bytes], str] | None:
+        """The checks a HELLO for a configured camera passes before it changes anything: None, or the
+        replies and the refusal."""
         if (msg.width, msg.height) != (cam.width, cam.height):
             self.counters.rejected_hello += 1
             self._warn(("res", msg.camera_id), logging.WARNING,
                        "refusing camera %d (%s) at %s: it streams %dx%d but the arena calibration is for %dx%d; "
-                       "set the station's resolution or recalibrate", msg.camera_id, cam.name, _fmt(addr),
+                       "set the station's resolution or recalibrate", msg.camera_id, cam.name, fmt_addr(addr),
                        msg.width, msg.height, cam.width, cam.height)
-            return [self._ack(msg, P.ACK_REJECTED)], Refusal.REJECTED
+            return [self._ack(msg, P.AckStatus.REJECTED)], Refusal.REJECTED
         if self.verify_cookies and not self._cookie_ok(msg, addr, recv_ns):
             # stateless: the answer goes to the claimed sender only, and is no bigger than the HELLO
             self.counters.challenges += 1
-            return [self._ack(msg, P.ACK_CHALLENGE, self.cookie(msg, addr, recv_ns // COOKIE_BUCKET_NS))], \
+            return [self._ack(msg, P.AckStatus.CHALLENGE, self.cookie(msg, addr, recv_ns // COOKIE_BUCKET_NS))], \
                 Refusal.CHALLENGED
         if msg.session in cam.retired:
             cam.stale_control += 1
             self._warn(("retired", cam.camera_id), logging.WARNING,
                        "camera %d (%s): refusing a HELLO from %s for session %08x, which a newer session replaced "
-                       "(a replay)", cam.camera_id, cam.name, _fmt(addr), msg.session)
+                       "(a replay)", cam.camera_id, cam.name, fmt_addr(addr), msg.session)
             return [], Refusal.RETIRED_SESSION
-        same = cam.registered and cam.session == msg.session and cam.station_id == msg.station_id
-        if same:
+        if _same_session(cam, msg):
             if P.seq_delta(msg.counter, cam.last_counter) <= 0:
                 cam.stale_control += 1
                 return [], Refusal.STALE_COUNTER
@@ -555,16 +365,21 @@ class Ingest:
             self._warn(("dupcam", msg.camera_id), logging.WARNING,
                        "refusing camera %d from station %d at %s: station %d is already streaming it; "
                        "two stations are configured with the same camera id", msg.camera_id, msg.station_id,
-                       _fmt(addr), cam.station_id)
-            return [self._ack(msg, P.ACK_REJECTED)], Refusal.REJECTED
-        else:
+                       fmt_addr(addr), cam.station_id)
+            return [self._ack(msg, P.AckStatus.REJECTED)], Refusal.REJECTED
+        return None
+
+    def _register(self, cam: CameraHealth, msg: P.Hello, addr: Addr, recv_ns: int) -> None:
+        """An accepted HELLO registers the camera to its station, session and address (a new session
+        restarts the sequence and retires the old one), or refreshes the registration."""
+        if not _same_session(cam, msg):
             if cam.session is not None:
                 cam.retired.append(cam.session)
                 log.info("camera %d (%s): station %d restarted (new session)", cam.camera_id, cam.name,
                          msg.station_id)
             else:
                 log.info("camera %d (%s) registered from station %d at %s (%s, %.0f fps, %s)", cam.camera_id,
-                         cam.name, msg.station_id, _fmt(addr), msg.software or "?", msg.fps, msg.camera_kind)
+                         cam.name, msg.station_id, fmt_addr(addr), msg.software or "?", msg.fps, msg.camera_kind)
             cam.reset_sequence()
             cam.resync_pending = False
             self._event(IngestEvent.REGISTERED, camera_id=cam.camera_id, station_id=msg.station_id, session=msg.session)
@@ -573,7 +388,6 @@ class Ingest:
         cam.timebase, cam.software = msg.timebase, msg.software
         cam.fps_nominal = float(msg.fps)
         cam.last_seen_ns = recv_ns
-        return [self._ack(msg, P.ACK_OK)], None
 
     def _control(self, msg: P.Heartbeat | P.SyncRequest | P.Bye, addr: Addr,
                  what: str) -> tuple[CameraHealth | None, str | None]:
@@ -589,7 +403,7 @@ class Ingest:
             cam.stale_control += 1
             self._warn(("stale", cam.camera_id), logging.WARNING,
                        "camera %d (%s): dropping a %s from %s whose counter %d is not newer than %d (replayed)",
-                       cam.camera_id, cam.name, what, _fmt(addr), msg.counter, cam.last_counter)
+                       cam.camera_id, cam.name, what, fmt_addr(addr), msg.counter, cam.last_counter)
             return cam, Refusal.STALE_COUNTER
         if addr != cam.addr:
             cam.wrong_address += 1
@@ -600,11 +414,11 @@ class Ingest:
         cam, refusal = self._control(msg, addr, "heartbeat")
         if refusal is not None:
             if refusal == Refusal.UNKNOWN_CAMERA:
-                return [self._ack(msg, P.ACK_REJECTED)], refusal
+                return [self._ack(msg, P.AckStatus.REJECTED)], refusal
             if refusal == Refusal.STALE_COUNTER:
                 return [], refusal
             # unknown session (the server restarted), or a new address: the station registers (again)
-            return [self._ack(msg, P.ACK_UNKNOWN_SESSION)], refusal
+            return [self._ack(msg, P.AckStatus.UNKNOWN_SESSION)], refusal
         cam.last_counter = msg.counter
         cam.last_seen_ns = recv_ns
         cam.clock_offset_ns = msg.clock_offset_ns
@@ -617,8 +431,8 @@ class Ingest:
         cam.temperature_c = msg.temperature_c
         if cam.resync_pending:
             cam.resync_pending = False
-            return [self._ack(msg, P.ACK_RESYNC)], None
-        return [self._ack(msg, P.ACK_OK)], None
+            return [self._ack(msg, P.AckStatus.RESYNC)], None
+        return [self._ack(msg, P.AckStatus.OK)], None
 
     def _sync(self, msg: P.SyncRequest, addr: Addr, recv_ns: int) -> tuple[list[bytes], str | None]:
         cam, refusal = self._control(msg, addr, "clock sync")
@@ -672,57 +486,83 @@ class Ingest:
             self._event(IngestEvent.RESYNC_REQUEST, camera_id=cam.camera_id)
 
     def _frame(self, f: BlobFrame, data: bytes, addr: Addr, recv_ns: int, backlog_ns: int = 0) -> None:
+        """A frame is checked completely (sender, sequence, capture time) before any state moves; a refused
+        one changes only its counters and the camera's drop reason. Then it is recorded and fused."""
+        cam = self._frame_sender(f, addr, recv_ns)
+        if cam is None:
+            return
+        d = self._frame_seq_delta(cam, f, addr, recv_ns)
+        if d is None:
+            return
+        timed = self._frame_time(cam, f, addr, recv_ns)
+        if timed is None:
+            return
+        f, capture, lat = timed
+        # accepted: now the state moves
+        self._record(data, addr, recv_ns)
+        self._advance_sequence(cam, f.seq, d, capture, recv_ns)
+        self._frame_health(cam, lat, recv_ns)
+        self._fuse(cam, f, recv_ns, backlog_ns)
+
+    def _frame_sender(self, f: BlobFrame, addr: Addr, recv_ns: int) -> CameraHealth | None:
+        """Who: only the registered station, session and address; the camera, or None (refused)."""
         cam = self.cameras.get(f.camera_id)
         if cam is None or (cam.required_station is not None and cam.required_station != f.station_id):
             self._camera(f.station_id, f.camera_id, addr, "frames")
             self._refused(Refusal.UNKNOWN_CAMERA)
-            return
-        # who: only the registered station, session and address; nothing changes before every check passed
+            return None
         if not cam.registered:
             cam.unregistered += 1
             self._warn(("unreg", cam.camera_id), logging.WARNING,
                        "camera %d (%s): dropping frames from %s: the camera has not registered (no HELLO accepted)",
-                       cam.camera_id, cam.name, _fmt(addr))
+                       cam.camera_id, cam.name, fmt_addr(addr))
             return self._drop(cam, Refusal.NOT_REGISTERED, recv_ns)
         if f.session != cam.session or f.station_id != cam.station_id:
             cam.wrong_session += 1
             self._warn(("session", cam.camera_id), logging.WARNING,
                        "camera %d (%s): dropping frames from %s of station %d session %08x: registered is station %d "
-                       "session %08x", cam.camera_id, cam.name, _fmt(addr), f.station_id, f.session,
+                       "session %08x", cam.camera_id, cam.name, fmt_addr(addr), f.station_id, f.session,
                        cam.station_id, cam.session)
             return self._drop(cam, Refusal.WRONG_SESSION, recv_ns)
         if addr != cam.addr:
             cam.wrong_address += 1
             self._warn(("addr", cam.camera_id), logging.WARNING,
                        "camera %d (%s): dropping frames from %s: the station registered from %s",
-                       cam.camera_id, cam.name, _fmt(addr), _fmt(cam.addr))
+                       cam.camera_id, cam.name, fmt_addr(addr), fmt_addr(cam.addr))
             return self._drop(cam, Refusal.WRONG_ADDRESS, recv_ns)
+        return cam
 
-        # sequence: later only; gaps are loss, older is duplicate / reordered / replayed
+    def _frame_seq_delta(self, cam: CameraHealth, f: BlobFrame, addr: Addr, recv_ns: int) -> int | None:
+        """Sequence: later only (seqs after the last accepted one, wrap-around aware: > 0, 1 = the next);
+        None when refused: older is a duplicate, reordered (within _REORDER_WINDOW) or replayed."""
         last_seq = cam.last_seq
-        d = 1
-        if last_seq is not None:
-            d = (f.seq - last_seq) & _U32
-            if d >= 0x80000000:
-                d -= 0x100000000
-            if d <= 0:
-                if d == 0:
-                    cam.duplicates += 1
-                    return self._drop(cam, Refusal.DUPLICATE, recv_ns)
-                if d >= -_REORDER_WINDOW:
-                    cam.reordered += 1
-                    cam.lost -= 1  # it was counted lost when the gap opened; it came, late
-                    cam._bucket_lost -= 1
-                    return self._drop(cam, Refusal.REORDERED, recv_ns)
-                cam.replayed += 1
-                self._warn(("replay", cam.camera_id), logging.WARNING,
-                           "camera %d (%s): dropping frame seq %d from %s, older than the last accepted %d "
-                           "(replayed)", cam.camera_id, cam.name, f.seq, _fmt(addr), last_seq)
-                return self._drop(cam, Refusal.REPLAYED, recv_ns)
+        if last_seq is None:
+            return 1
+        d = (f.seq - last_seq) & _U32
+        if d >= 0x80000000:
+            d -= 0x100000000
+        if d > 0:
+            return d
+        if d == 0:
+            cam.duplicates += 1
+            return self._drop(cam, Refusal.DUPLICATE, recv_ns)
+        if d >= -_REORDER_WINDOW:
+            # refused, so it stays lost: loss counts the seqs never accepted (a replayed old frame
+            # must not hide real loss)
+            cam.reordered += 1
+            return self._drop(cam, Refusal.REORDERED, recv_ns)
+        cam.replayed += 1
+        self._warn(("replay", cam.camera_id), logging.WARNING,
+                   "camera %d (%s): dropping frame seq %d from %s, older than the last accepted %d "
+                   "(replayed)", cam.camera_id, cam.name, f.seq, fmt_addr(addr), last_seq)
+        return self._drop(cam, Refusal.REPLAYED, recv_ns)
 
-        # time: capture must be on the server clock, a little before receive, and move forward
+    def _frame_time(self, cam: CameraHealth, f: BlobFrame, addr: Addr,
+                    recv_ns: int) -> tuple[BlobFrame, int, int] | None:
+        """Time: capture must be on the server clock, a little before receive, and move forward.
+        (the frame with its capture time on the server clock, capture_ns, latency ns), or None (refused)."""
         capture = f.capture_ns
-        if cam.timebase == P.TIMEBASE_REALTIME:
+        if cam.timebase == P.Timebase.REALTIME:
             if self.realtime_minus_monotonic_ns is not None:  # replay: the recording's offset
                 rt = self.realtime_minus_monotonic_ns
             else:
@@ -745,21 +585,25 @@ class Ingest:
         if capture < self.start_ns:
             cam.before_start += 1
             return self._drop(cam, Refusal.BEFORE_START, recv_ns)
+        return f, capture, lat
 
-        # accepted: now the state moves
-        self._record(data, addr, recv_ns)
+    def _advance_sequence(self, cam: CameraHealth, seq: int, d: int, capture: int, recv_ns: int) -> None:
+        """An accepted frame's seq (d after the last accepted) and capture time become the camera's; the
+        seqs skipped are lost (a jump of _SEQ_RESTART or more is a station restart, not loss)."""
         if d > 1:
             if d < _SEQ_RESTART:
                 cam.lost += d - 1
                 cam._bucket_lost += d - 1
             else:
                 cam.seq_restarts += 1
-        cam.last_seq = f.seq
+        cam.last_seq = seq
         cam.jump_run = 0
         cam.last_capture_ns = capture
         cam.last_seen_ns = recv_ns
 
-        # health
+    def _frame_health(self, cam: CameraHealth, lat: int, recv_ns: int) -> None:
+        """An accepted frame's latency (recv - capture, ns) and the camera's 1 s rate bucket; the camera is
+        online (back, if it had vanished)."""
         cam.frames += 1
         cam.last_frame_ns = recv_ns
         if cam.frames == 1:
@@ -775,8 +619,8 @@ class Ingest:
             if cam._bucket_start:
                 span = (recv_ns - cam._bucket_start) * 1e-9
                 cam.fps = cam._bucket_frames / span
-                exp = cam._bucket_frames + max(cam._bucket_lost, 0)
-                cam.loss_rate = max(cam._bucket_lost, 0) / exp if exp else 0.0
+                exp = cam._bucket_frames + cam._bucket_lost
+                cam.loss_rate = cam._bucket_lost / exp if exp else 0.0
                 self._check_rate(cam, recv_ns)
             cam._bucket_start, cam._bucket_frames, cam._bucket_lost = recv_ns, 0, 0
         if not cam.online:
@@ -785,6 +629,10 @@ class Ingest:
                 log.warning("camera %d (%s) is back", cam.camera_id, cam.name)
                 self._event(IngestEvent.CAMERA_BACK, camera_id=cam.camera_id)
         self.counters.frames_accepted += 1
+
+    def _fuse(self, cam: CameraHealth, f: BlobFrame, recv_ns: int, backlog_ns: int) -> None:
+        """Hand an accepted frame to the pipeline, unless it queued longer than server.shed_backlog_ms
+        (load shedding: counted, not fused)."""
         if self._shed_ns is not None and backlog_ns > self._shed_ns:
             cam.shed += 1
             self.counters.frames_shed += 1
@@ -907,109 +755,7 @@ class Ingest:
         unk = f" unknown {c.unknown}" if c.unknown else ""
         return "stations: " + " ".join(parts) + bad + auth + unk
 
-    # ---------------------------------------------------------------- asyncio endpoint
 
-    async def start(self, host: str = "127.0.0.1", port: int | None = None) -> None:
-        """Listen on udp host:port (port 0: any free port, see .port)."""
-        loop = asyncio.get_running_loop()
-        port = self.settings.port if port is None else port
-        try:
-            family, _, _, _, sockaddr = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
-            sock = socket.socket(family, socket.SOCK_DGRAM)
-        except OSError as e:
-            raise OSError(getattr(e, "errno", None), f"cannot listen on udp {host}:{port}: {e}") from None
-        try:
-            # a deep receive buffer rides out loop stalls (a GC pause, a slow fusion step) without loss
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 * 2**20)
-            sock.bind(sockaddr)
-            # kernel arrival stamps show how long a datagram queued here (load shedding)
-            self._kernel_stamps = enable_kernel_stamps(sock)
-        except OSError as e:
-            sock.close()
-            raise OSError(e.errno, f"cannot listen on udp {host}:{port}: {e.strerror}; "
-                                   "is another server running? pick another port with --port") from None
-        sock.setblocking(False)
-        self.sock = sock
-        self._rx_buf = bytearray(P.MAX_PACKET_BYTES + 1)
-        self._rx_view = memoryview(self._rx_buf)
-        self.port = sock.getsockname()[1]
-        self._loop = loop
-        loop.add_reader(sock.fileno(), self._readable)
-        self.set_start()
-
-    def _readable(self) -> None:
-        """Drain the socket: one loop wake-up handles every datagram that is waiting (asyncio's own
-        datagram transport reads one per wake-up, which costs ~4x more per packet under load)."""
-        sock = self.sock
-        if sock is None:
-            return
-        handle = self.handle
-        clock = time.monotonic_ns
-        deadline = clock() + 2_000_000
-        stamps = self._kernel_stamps
-        rt_minus_mono = time.time_ns() - clock() if stamps else 0  # kernel stamps are CLOCK_REALTIME
-        backlog = 0
-        # one receive buffer for every datagram: a longer datagram is cut to MAX_PACKET_BYTES + 1 and refused
-        # as oversize, and junk of 64 KB costs no 64 KB allocation each (a flood of it grew the heap)
-        buf = self._rx_buf
-        view = self._rx_view
-        for _ in range(512):  # bounded in count and time, so output ticks run on time during a flood
-            try:
-                if stamps:
-                    n, anc, _, addr = sock.recvmsg_into((buf,), ANC_SIZE)
-                else:
-                    n, addr = sock.recvfrom_into(buf)
-                data = bytes(view[:n])
-            except (BlockingIOError, InterruptedError):
-                self._drained_ns = clock()
-                return
-            except OSError as e:  # ICMP errors from stations that went away surface here
-                log.debug("udp receive error: %s", e)
-                continue
-            recv_ns = clock()  # first thing: this stamp is t2 of the clock sync
-            if stamps:
-                k = kernel_stamp_ns(anc)
-                backlog = recv_ns - (k - rt_minus_mono) if k else 0
-                if not 0 <= backlog < 5_000_000_000:  # the realtime clock was stepped: no measure
-                    backlog = 0
-            if recv_ns > deadline:
-                self._readable_again(data, addr, recv_ns, backlog)
-                return
-            try:
-                replies = handle(data, addr, recv_ns, backlog)
-            except Exception:  # handle() guards itself; this is the last line of defence
-                self.counters.malformed += 1
-                log.exception("ingest failed on a packet from %s", _fmt(addr))
-                continue
-            for r in replies:
-                try:
-                    sock.sendto(r, addr)
-                except OSError as e:  # full send buffer or unreachable: the station will ask again
-                    self.counters.send_errors += 1
-                    log.debug("udp send to %s failed: %s", _fmt(addr), e)
-
-    def _readable_again(self, data: bytes, addr: Addr, recv_ns: int, backlog_ns: int) -> None:
-        """Out of time in this wake-up: handle this datagram first thing next loop iteration."""
-        def later() -> None:
-            try:
-                for r in self.handle(data, addr, recv_ns, backlog_ns):
-                    if self.sock is not None:
-                        self.sock.sendto(r, addr)
-            except Exception:
-                log.exception("ingest failed on a packet from %s", _fmt(addr))
-        self._loop.call_soon(later)
-
-    def close(self) -> None:
-        if self.sock is not None:
-            try:
-                self._loop.remove_reader(self.sock.fileno())
-            except Exception:
-                pass
-            self.sock.close()
-            self.sock = None
-
-
-def _fmt(addr: Addr | None) -> str:
-    if not addr:
-        return "?"
-    return f"{addr[0]}:{addr[1]}"
+def _same_session(cam: CameraHealth, msg: P.Hello) -> bool:
+    """The HELLO is of the camera's registered station and session (a refresh, not a new registration)."""
+    return cam.registered and cam.session == msg.session and cam.station_id == msg.station_id
