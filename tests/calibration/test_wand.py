@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from tests.support.calibration import ring_cameras, wand_frames
-from visionpos.calibration.initial_poses import initial_poses, pair_pose, undistort_wand
+from visionpos.calibration.pairwise import initial_poses, pair_pose, undistort_wand
 from visionpos.calibration.wand import (
     CalibrationError,
     WandSpec,
@@ -93,7 +93,7 @@ def test_interpolate_track_linear_motion_and_gaps():
 @pytest.mark.parametrize("seed", [4, 5])
 def test_pair_pose_recovers_relative_pose_up_to_the_noise(seed):
     from visionpos.calibration.bundle import bundle_adjust
-    from visionpos.calibration.initial_poses import initial_wand
+    from visionpos.calibration.pairwise import initial_wand
     from visionpos.camera.model import Camera, CameraModel
 
     cams = ring_cameras(4)

@@ -9,8 +9,8 @@
 
 from visionpos.calibration.bundle import bundle_adjust
 from visionpos.calibration.ground import GroundResult, apply_world, calibrate_ground
-from visionpos.calibration.initial_poses import initial_poses, pair_pose
 from visionpos.calibration.intrinsics import BoardSpec, IntrinsicsResult, calibrate_images, calibrate_intrinsics
+from visionpos.calibration.pairwise import initial_poses, pair_pose
 from visionpos.calibration.wand import CalibrationError, WandData, WandSpec, collect_wand, label_triples
 from visionpos.calibration.wand_solve import WandCalibration, calibrate_wand, compare_cameras, wand_lengths
 

@@ -5,7 +5,7 @@ robust loss) refines all camera poses (optionally fx, fy, cx, cy), each camera's
 clock offset, the wand's AB/AC ratio and one wand pose per frame. The wand is
 parametrised as its A position plus a direction, so B = A + AB u and C = A + AC u
 hold exactly: the wand lengths fix the scale and the wand's straightness is enforced.
-The start comes from calibration/initial_poses.py; calibration/wand_solve.py runs
+The start comes from calibration/pairwise.py; calibration/wand_solve.py runs
 the whole step (rounds, outlier views, observability guards).
 
 Pose convention: x_cam = R x_world + t; the world is the reference camera's frame

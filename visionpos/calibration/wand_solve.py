@@ -2,7 +2,7 @@
 
 calibrate_wand runs the stages in order (each a function below): label the wand in
 every camera and estimate the clock offsets, align the tracks on a common grid,
-chain the pairwise poses (calibration/initial_poses.py), solve (calibration/bundle.py)
+chain the pairwise poses (calibration/pairwise.py), solve (calibration/bundle.py)
 from them, re-align at the corrected clock offsets and solve again, drop views with a
 large residual, then the final solve with the covariance; parameters the data cannot
 determine are refused or warned about (observability guards). compare_cameras measures
@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from visionpos.calibration.bundle import ProgressFn, bundle_adjust, no_progress
-from visionpos.calibration.initial_poses import (
+from visionpos.calibration.pairwise import (
     PairPose,
     check_motion,
     initial_poses,
