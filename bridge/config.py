@@ -251,7 +251,7 @@ class VehicleConfig:
     def min_interval_ns(self) -> int:
         """Capture time after the last sent stamp from which the next pose goes out: 1/rate_hz
         less the tolerance (camera capture times jitter by microseconds around an exact
-        2-frame spacing); the pose is then stamped on the grid (mavlink.VehicleLink._next_stamp)."""
+        2-frame spacing); the pose is then stamped on the grid (vehicle_link.VehicleLink._next_stamp)."""
         return int(round(1e9 / self.rate_hz - self.rate_tolerance_ms * 1e6))
 
 

@@ -7,7 +7,7 @@ import pytest
 from bridge.transport import LinkDown
 from stations.sources import EndOfStream, SourceError
 from visionpos.analysis.plots import PlotsUnavailable
-from visionpos.calibration.bundle import DegenerateMotion
+from visionpos.calibration.pairwise import DegenerateMotion
 from visionpos.calibration.wand import CalibrationError
 from visionpos.camera.model import CameraModelError
 from visionpos.config.arena import ConfigError, parse_arena
@@ -21,7 +21,7 @@ USER_FACING = {
     ConfigError: ValueError,  # visionpos/cli.py: `except ValueError`
     ProtocolError: ValueError,
     RecordingError: ValueError,
-    CalibrationError: ValueError,  # calibration/bundle.py: `except (CalibrationError, ValueError)`
+    CalibrationError: ValueError,  # calibration/pairwise.py: `except (CalibrationError, ValueError)`
     DegenerateMotion: CalibrationError,
     CameraModelError: ValueError,  # config/arena.py re-raises it as a ConfigError
     SourceError: RuntimeError,

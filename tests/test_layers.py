@@ -1,7 +1,9 @@
 """Imports go one way: application -> edges -> core, and inside the core from higher layers to lower.
 
     application  visionpos.app, visionpos.benchmarks, visionpos.cli (compose everything; only
-                 `python -m visionpos` imports the CLI)
+                 `python -m visionpos` imports the CLI). The benchmarks belong here, not in the
+                 core: they run the demo and SITL apps (`visionpos bench`: robustness, bridge,
+                 console, sitl) and nothing below the application may import them.
     edges        bridge/, stations/, console/ (use the core; never the application, never each other)
     core         every other visionpos package, in the layers of CORE_LAYERS
 
@@ -139,9 +141,68 @@ def test_imports_go_one_way():
     ("console.health", "visionpos.app.serve", False),
     ("visionpos.server.service", "console.server", False),
     ("visionpos.app.console", "console.server", True),
+    ("visionpos.benchmarks.robustness", "visionpos.app.demo", True),
+    ("visionpos.benchmarks.sitl", "visionpos.app.sitl", True),
+    ("visionpos.analysis.replay", "visionpos.benchmarks.fusion_replay", False),
+    ("bridge.mavlink", "visionpos.benchmarks.factories", False),
 ])
 def test_the_rules_themselves(importer, imported, allowed):
     assert (violation(importer, imported) is None) == allowed
+
+
+def _cycles(package: str) -> list[list[str]]:
+    """The import cycles among the modules of `package` (function-level imports count)."""
+    graph = {module_name(p): set() for p in all_modules() if module_name(p).startswith(package)}
+    for path in all_modules():
+        name = module_name(path)
+        if name in graph:
+            graph[name] = {m for m in imported_modules(path) if m in graph and m != name}
+    return cycles_of(graph)
+
+
+def cycles_of(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one node of {node: nodes it points to}, each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:  # Tarjan
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                found.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+@pytest.mark.parametrize("package", ["visionpos.benchmarks", "visionpos.app", "visionpos.calibration", "bridge"])
+def test_no_import_cycles_inside(package):
+    """Modules of these packages import one way among themselves too (a shared module where two need the
+    same thing: benchmarks/fusion_replay.py for fusion.py and fusion_flights.py)."""
+    assert _cycles(package) == []
+
+
+def test_the_cycle_finder_itself():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a", "e"}, "e": {"d"}, "f": {"a"}, "g": set()}
+    assert sorted(cycles_of(graph)) == [["a", "b", "c"], ["d", "e"]]
+    assert cycles_of({"a": {"b"}, "b": set()}) == []
 
 
 def test_a_station_loads_the_simulator_only_when_configured_to():

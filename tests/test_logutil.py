@@ -28,3 +28,16 @@ def test_key_table_is_an_lru_with_an_eviction_count():
     assert len(rl) == 4 and rl.evicted == 6
     assert not rl.log(9, logging.DEBUG, "k")  # still known: suppressed
     assert rl.log(0, logging.DEBUG, "k")  # evicted: logged again
+
+
+def test_warning_is_log_at_warning_level_under_the_same_limit(caplog):
+    now = [0.0]
+    rl = RateLimitedLog(logging.getLogger("t.rl3"), interval_s=10.0, clock=lambda: now[0])
+    with caplog.at_level(logging.DEBUG, logger="t.rl3"):
+        assert rl.warning("stale", "vehicle %s: stale", "v1")
+        now[0] = 9.9
+        assert not rl.warning("stale", "vehicle %s: stale", "v1")
+        now[0] = 10.0
+        assert rl.warning("stale", "vehicle %s: stale", "v1")
+    assert [r.levelno for r in caplog.records] == [logging.WARNING, logging.WARNING]
+    assert caplog.records[1].getMessage() == "vehicle v1: stale (1 more like this in the last 10 s)"

@@ -4,7 +4,7 @@
 per key per `interval_s`, saying how many were suppressed since the last line.
 Its key table is an LRU of at most `max_keys` entries (`evicted` counts those
 pushed out), so spoofed senders cannot grow it. Used by the server's ingest,
-the station agent and the bridge.
+the station agent and the bridge (each vehicle's link and its back-channel).
 """
 
 from __future__ import annotations
@@ -50,6 +50,10 @@ class RateLimitedLog:
         entry[0], entry[1] = now, 0
         self.logger.log(level, msg, *args)
         return True
+
+    def warning(self, key: Hashable, msg: str, *args: object) -> bool:
+        """log(key, logging.WARNING, ...): the form callers that only warn pass around as a callable."""
+        return self.log(key, logging.WARNING, msg, *args)
 
     def __len__(self) -> int:
         return len(self._keys)

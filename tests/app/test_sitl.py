@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from visionpos.app import sitl as S
+from visionpos.app.sitl import binary as sitl_binary
 from visionpos.errors import UsageError
 
 HOME = (-35.363261, 149.165230, 584.0)
@@ -23,7 +24,7 @@ def test_no_binary_is_a_clear_error(monkeypatch, tmp_path):
     with pytest.raises(UsageError, match="--sitl"):
         S.find_sitl_binary(str(tmp_path / "nope"))
     monkeypatch.delenv(S.SITL_ENV)
-    monkeypatch.setattr(S, "SHARED_BINARY", tmp_path / "shared" / "arducopter")
+    monkeypatch.setattr(sitl_binary, "SHARED_BINARY", tmp_path / "shared" / "arducopter")
     with pytest.raises(UsageError, match="--sitl PATH.*sitl.binary.*VISIONPOS_SITL"):
         S.find_sitl_binary(None)
     assert S.default_sitl_binary() is None

@@ -481,11 +481,11 @@ def test_udpin_relearns_the_autopilot_address():
 
 
 def test_latency_percentiles_are_numpys():
-    from bridge.mavlink import _percentiles_ms
+    from bridge.link_stats import percentiles_ms
 
     rng = np.random.default_rng(5)
     for n in (1, 2, 7, 4096):
         lat_ns = rng.integers(0, 50_000_000, n)
-        assert np.allclose(_percentiles_ms(lat_ns, (0, 50, 99, 100)), np.percentile(lat_ns, [0, 50, 99, 100]) * 1e-6,
+        assert np.allclose(percentiles_ms(lat_ns, (0, 50, 99, 100)), np.percentile(lat_ns, [0, 50, 99, 100]) * 1e-6,
                            rtol=1e-12, atol=0)
-    assert all(np.isnan(_percentiles_ms(np.zeros(0, np.int64), (50, 99))))
+    assert all(np.isnan(percentiles_ms(np.zeros(0, np.int64), (50, 99))))

@@ -302,3 +302,27 @@ def test_demo_runs_signed():
         assert b["mavlink_signed"] is True
         assert b["mavlink_messages"] > 10  # only poses whose signature verified are recorded
         assert b["mavlink_rejected_signature"] == 0
+
+
+def test_signature_check_passes_only_signed_newer_packets_and_says_why():
+    """bridge/signing.py against packets signed by pymavlink's own signing (third-party)."""
+    from bridge.signing import NEW_STREAM_WINDOW_TICKS, SignatureCheck
+
+    def packet(key, link_id=1, timestamp=10_000_000, v2=True):
+        mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+        if key is not None:
+            s = mav.signing
+            s.secret_key, s.sign_outgoing, s.link_id, s.timestamp = key, True, link_id, timestamp
+        return bytearray(mav.heartbeat_encode(2, 3, 0, 0, 4).pack(mav))
+
+    check = SignatureCheck(KEY)
+    assert check.check(packet(None), True, 1) == (-1, "unsigned")
+    assert check.check(packet(OTHER_KEY), True, 1) == (-1, "bad signature")
+    assert check.newest_ts == -1  # a refused packet changes nothing
+    ts, why = check.check(packet(KEY, timestamp=10_000_000), True, 1)
+    assert (why, check.newest_ts) == ("", ts) and ts >= 10_000_000
+    assert check.check(packet(KEY, timestamp=ts), True, 1) == (-1, "replayed")  # same stream, not newer
+    assert check.check(packet(KEY, timestamp=ts + 1), True, 1)[1] == ""
+    # a new stream (link id 2) may start behind the newest, but not by more than the window
+    assert check.check(packet(KEY, link_id=2, timestamp=ts - NEW_STREAM_WINDOW_TICKS - 5), True, 1) == (-1, "replayed")
+    assert check.check(packet(KEY, link_id=3, timestamp=ts - 100), True, 1)[1] == ""

@@ -7,10 +7,10 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from visionpos.calibration.bundle import compare_cameras
+from tests.support.calibration import ring_cameras
 from visionpos.calibration.ground import apply_world, calibrate_ground, identify_layout, world_from_layout
-from visionpos.calibration.synthetic import ring_cameras
 from visionpos.calibration.wand import CalibrationError
+from visionpos.calibration.wand_solve import compare_cameras
 from visionpos.messages import BlobFrame
 
 LFRAME = np.array([[0.0, 0.0, 0.0], [0.10, 0.0, 0.0], [0.40, 0.0, 0.0], [0.0, 0.20, 0.0]])

@@ -6,14 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from visionpos.calibration.bundle import (
-    calibrate_wand,
-    compare_cameras,
-    initial_poses,
-    pair_pose,
-    undistort_wand,
-)
-from visionpos.calibration.synthetic import ring_cameras, wand_frames
+from tests.support.calibration import ring_cameras, wand_frames
+from visionpos.calibration.pairwise import initial_poses, pair_pose, undistort_wand
 from visionpos.calibration.wand import (
     CalibrationError,
     WandSpec,
@@ -24,6 +18,7 @@ from visionpos.calibration.wand import (
     nearest_track,
     static_blob_mask,
 )
+from visionpos.calibration.wand_solve import calibrate_wand, compare_cameras
 from visionpos.messages import BlobFrame
 
 SPEC = WandSpec(0.054, 0.103)
@@ -97,7 +92,8 @@ def test_interpolate_track_linear_motion_and_gaps():
 
 @pytest.mark.parametrize("seed", [4, 5])
 def test_pair_pose_recovers_relative_pose_up_to_the_noise(seed):
-    from visionpos.calibration.bundle import bundle_adjust, initial_wand
+    from visionpos.calibration.bundle import bundle_adjust
+    from visionpos.calibration.pairwise import initial_wand
     from visionpos.camera.model import Camera, CameraModel
 
     cams = ring_cameras(4)

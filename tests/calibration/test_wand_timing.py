@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from visionpos.calibration.bundle import calibrate_wand, compare_cameras
-from visionpos.calibration.synthetic import ring_cameras, wand_frames
+from tests.support.calibration import ring_cameras, wand_frames
 from visionpos.calibration.wand import CalibrationError, WandSpec, estimate_offsets, label_all
+from visionpos.calibration.wand_solve import calibrate_wand, compare_cameras
 from visionpos.calibration.workflow import ground_layout, wand_settings
 from visionpos.config.arena import ConfigError, parse_arena
 

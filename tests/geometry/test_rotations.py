@@ -11,6 +11,8 @@ from visionpos.geometry.rotations import (
     euler_rate_matrix,
     euler_rate_matrix_inverse,
     euler_zyx_from_matrix,
+    left_jacobian_SO3,
+    left_jacobian_SO3_inv,
     matrix_from_quat,
     matrix_from_rotvec,
     matrix_from_rotvec_compiled,
@@ -120,3 +122,51 @@ def test_average_rotations_weights_pick_the_rotation():
     np.testing.assert_allclose(average_rotations(Rs, weights=[0.0, 1.0]), Rs[1], atol=1e-12)
     with pytest.raises(ValueError, match="weights"):
         average_rotations(Rs, weights=[-1.0, 1.0])
+
+
+def _numerical_left_jacobian(rotvec: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    """d/dd log(exp(rotvec + d) exp(rotvec)^-1) at d = 0 by central differences of scipy's exponential map."""
+    R0inv = Rotation.from_rotvec(rotvec).inv()
+    J = np.zeros((3, 3))
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = h
+        plus = (Rotation.from_rotvec(rotvec + d) * R0inv).as_rotvec()
+        minus = (Rotation.from_rotvec(rotvec - d) * R0inv).as_rotvec()
+        J[:, k] = (plus - minus) / (2 * h)
+    return J
+
+
+def _numerical_left_jacobian_inv(rotvec: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    """d/dd log(exp(d) exp(rotvec)) at d = 0: how the rotation vector moves when the rotation turns on the left."""
+    R0 = Rotation.from_rotvec(rotvec)
+    J = np.zeros((3, 3))
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = h
+        plus = (Rotation.from_rotvec(d) * R0).as_rotvec()
+        minus = (Rotation.from_rotvec(-d) * R0).as_rotvec()
+        J[:, k] = (plus - minus) / (2 * h)
+    return J
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-8, 1e-4, 0.3, 1.5, 3.0])
+def test_left_jacobian_matches_finite_differences_of_the_exponential_map(angle):
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        axis = rng.normal(size=3)
+        rv = axis / np.linalg.norm(axis) * angle
+        assert np.allclose(left_jacobian_SO3(rv), _numerical_left_jacobian(rv), atol=1e-7)
+        assert np.allclose(left_jacobian_SO3_inv(rv), _numerical_left_jacobian_inv(rv), atol=1e-7)
+
+
+def test_left_jacobian_batches_and_its_inverse_inverts_it():
+    rng = np.random.default_rng(8)
+    rvs = rng.normal(size=(4, 5, 3))
+    rvs *= (rng.uniform(0.0, 3.1, size=(4, 5)) / np.linalg.norm(rvs, axis=-1))[..., None]
+    J, Jinv = left_jacobian_SO3(rvs), left_jacobian_SO3_inv(rvs)
+    assert J.shape == Jinv.shape == (4, 5, 3, 3)
+    assert np.allclose(J @ Jinv, np.eye(3), atol=1e-12)
+    assert np.allclose(J[2, 3], left_jacobian_SO3(rvs[2, 3]))
+    # the left Jacobian turns the rotation vector itself into itself (rotations about one axis commute)
+    assert np.allclose(np.einsum("abij,abj->abi", J, rvs), rvs)

@@ -29,8 +29,8 @@ from visionpos.benchmarks import BenchResult
 
 def _one(name: str, duration: float, align: str = "interpolate", extra: tuple[str, ...] = (),
          spec=None) -> tuple[dict[str, float], object, object]:
-    from visionpos.calibration.bundle import calibrate_wand, compare_cameras, wand_lengths
     from visionpos.calibration.wand import WandSpec
+    from visionpos.calibration.wand_solve import calibrate_wand, compare_cameras, wand_lengths
     from visionpos.sim import load_scenario, simulate
 
     sc = load_scenario(name, [f"sim.duration={duration}", "sim.centroid_noise_px=0.2", *extra], session="wand")
@@ -125,8 +125,8 @@ def wand_length_crb(cameras, pixels: np.ndarray, sigma_px: float) -> float:
 
 
 def _ground(name: str, cal) -> dict[str, float]:
-    from visionpos.calibration.bundle import compare_cameras
     from visionpos.calibration.ground import calibrate_ground
+    from visionpos.calibration.wand_solve import compare_cameras
     from visionpos.sim import load_scenario, simulate
 
     sc = load_scenario(name, ["sim.duration=2"], session="ground")

@@ -25,7 +25,7 @@ KNOCKS = {"rotation": "sim.cameras.2.bump_rotation_deg=[0.3, 0.4, 0.0]",  # 0.5 
 
 
 def _flight(overrides: list[str], duration_s: float, seed: int):
-    from visionpos.benchmarks.fusion import replay
+    from visionpos.benchmarks.fusion_replay import replay
     from visionpos.fusion.camera_monitor import CameraMonitor
     from visionpos.sim import load_scenario, simulate
 

@@ -152,7 +152,7 @@ def fly(session: str, duration_s: float, seed: int, settings: dict | None = None
     """One flight of the thesis arena's `session` through the pipeline: errors, bound, stall (see the module).
 
     settings: fusion settings for the pipeline; overrides: `--set` style changes of the arena file."""
-    from visionpos.benchmarks.fusion import replay
+    from visionpos.benchmarks.fusion_replay import replay
     from visionpos.sim import load_scenario, simulate
 
     sc = load_scenario("thesis", overrides, session=session, duration=duration_s, seed=seed)
@@ -232,9 +232,9 @@ def _flights(session: str, dur: float, seeds: list[int], settings: dict | None =
 
 
 def run_alternatives(quick: bool, res: BenchResult, static: tuple) -> None:
-    """The ALTERNATIVES on the slalom, the dash and the static body (static: benchmarks.fusion.static_flight's
+    """The ALTERNATIVES on the slalom, the dash and the static body (static: benchmarks.fusion_replay.static_flight's
     scenario and simulation): metrics fusion_alt_<name>_*."""
-    from visionpos.benchmarks.fusion import static_jitter, static_poses
+    from visionpos.benchmarks.fusion_replay import static_jitter, static_poses
 
     dur = 4.0 if quick else 10.0
     seeds = [1] if quick else [1, 2]

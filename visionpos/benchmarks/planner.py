@@ -59,7 +59,7 @@ def body_check(n_points: int, duration_s: float, seed: int = 1) -> tuple[dict[st
     from scipy.spatial.transform import Rotation
 
     from visionpos.analysis.planner import body_bounds, default_volume
-    from visionpos.benchmarks.fusion import replay
+    from visionpos.benchmarks.fusion_replay import replay
     from visionpos.config.arena import load_arena
     from visionpos.sim import load_scenario, simulate
 

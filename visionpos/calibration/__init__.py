@@ -7,18 +7,12 @@
 `visionpos calibrate intrinsics|wand|ground` (visionpos/cli/calibrate.py; session steps in workflow.py) wraps these.
 """
 
-from visionpos.calibration.bundle import (
-    WandCalibration,
-    bundle_adjust,
-    calibrate_wand,
-    compare_cameras,
-    initial_poses,
-    pair_pose,
-    wand_lengths,
-)
+from visionpos.calibration.bundle import bundle_adjust
 from visionpos.calibration.ground import GroundResult, apply_world, calibrate_ground
 from visionpos.calibration.intrinsics import BoardSpec, IntrinsicsResult, calibrate_images, calibrate_intrinsics
+from visionpos.calibration.pairwise import initial_poses, pair_pose
 from visionpos.calibration.wand import CalibrationError, WandData, WandSpec, collect_wand, label_triples
+from visionpos.calibration.wand_solve import WandCalibration, calibrate_wand, compare_cameras, wand_lengths
 
 __all__ = [
     "BoardSpec",

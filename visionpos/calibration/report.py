@@ -12,8 +12,8 @@ from typing import Callable
 
 import numpy as np
 
-from visionpos.calibration.bundle import WandCalibration
 from visionpos.calibration.intrinsics import IntrinsicsResult
+from visionpos.calibration.wand_solve import WandCalibration
 
 
 def progress_printer(enabled: bool = True, stream=None) -> Callable[[str, int, int], None]:

@@ -120,7 +120,7 @@ def solve_wand_to_file(frames: Sequence[BlobFrame], arena: ArenaConfig, spec: Wa
     Raises CalibrationError (what to capture or fix) when the frames cannot give a calibration."""
     import time
 
-    from visionpos.calibration.bundle import calibrate_wand
+    from visionpos.calibration.wand_solve import calibrate_wand
 
     t0 = time.perf_counter()
     cal = calibrate_wand(frames, list(arena.cameras), spec, max_offset_ms=max_offset_ms)

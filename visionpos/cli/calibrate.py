@@ -169,8 +169,8 @@ def _run_intrinsics(args) -> int:
 
 
 def _run_wand(args) -> int:
-    from visionpos.calibration.bundle import calibrate_wand, compare_cameras
     from visionpos.calibration.report import plot_wand, progress_printer, wand_report
+    from visionpos.calibration.wand_solve import calibrate_wand, compare_cameras
 
     frames, arena, truth = capture_frames(args.recording, args.sim, "wand", args.set, args.config)
     if args.max_clock_offset_ms is not None and not 0 <= args.max_clock_offset_ms <= 500:
@@ -202,8 +202,8 @@ def _run_wand(args) -> int:
 
 
 def _run_ground(args) -> int:
-    from visionpos.calibration.bundle import compare_cameras
     from visionpos.calibration.ground import calibrate_ground
+    from visionpos.calibration.wand_solve import compare_cameras
 
     if args.config is None:
         raise UsageError("ground needs --config: the arena YAML written by `visionpos calibrate wand`")

@@ -24,6 +24,8 @@ from visionpos.jit import njit
 
 __all__ = [
     "skew",
+    "left_jacobian_SO3",
+    "left_jacobian_SO3_inv",
     "matrix_from_rotvec_compiled",
     "quat_from_matrix_compiled",
     "rotvec_from_matrix_compiled",
@@ -51,6 +53,42 @@ def skew(v: np.ndarray) -> np.ndarray:
     S[..., 2, 0] = -v[..., 1]
     S[..., 2, 1] = v[..., 0]
     return S
+
+
+SMALL_ANGLE_RAD = 1e-6  # below it the Jacobians' coefficients take their Taylor series (0/0 otherwise)
+
+
+def left_jacobian_SO3(rotvec: np.ndarray) -> np.ndarray:
+    """Left Jacobian of SO(3): rotation vectors (..., 3) (rad) -> (..., 3, 3).
+
+    exp(rotvec + d) ~= exp(J d) exp(rotvec) for a small d: how a change of the rotation vector
+    turns the rotation on the left (in the fixed frame). J = I + (1 - cos t)/t^2 K + (t - sin t)/t^3 K^2
+    with t = |rotvec|, K = skew(rotvec) (Barfoot, State Estimation for Robotics, eq. 7.77a).
+    """
+    rotvec = np.asarray(rotvec, dtype=np.float64)
+    th = np.linalg.norm(rotvec, axis=-1)
+    K = skew(rotvec)
+    K2 = K @ K
+    small = th < SMALL_ANGLE_RAD
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 0.5 - th**2 / 24, (1 - np.cos(ths)) / ths**2)
+    b = np.where(small, 1.0 / 6 - th**2 / 120, (ths - np.sin(ths)) / ths**3)
+    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * K2
+
+
+def left_jacobian_SO3_inv(rotvec: np.ndarray) -> np.ndarray:
+    """Inverse of left_jacobian_SO3: rotation vectors (..., 3) (rad, |rotvec| < 2 pi) -> (..., 3, 3).
+
+    log(exp(d) exp(rotvec)) ~= rotvec + J^-1 d: J^-1 = I - K/2 + (1 - (t/2) cot(t/2))/t^2 K^2
+    (Barfoot, eq. 7.77b), finite up to t = pi and beyond (its pole is at 2 pi).
+    """
+    rotvec = np.asarray(rotvec, dtype=np.float64)
+    th = np.linalg.norm(rotvec, axis=-1)
+    K = skew(rotvec)
+    small = th < SMALL_ANGLE_RAD
+    ths = np.where(small, 1.0, th)
+    c = np.where(small, 1.0 / 12 + th**2 / 720, (1 - 0.5 * ths / np.tan(0.5 * ths)) / ths**2)
+    return np.eye(3) - 0.5 * K + c[..., None, None] * (K @ K)
 
 
 # --------------------------------------------------------------- compiled (hot path)

@@ -1,0 +1,155 @@
+"""The scripted flight on the live arena: EKF on vision, VISO_DELAY_MS, GUIDED, arm, take off, hold (a
+vision cut, a yaw swing), the square, land.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import math
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from visionpos.app.sitl.delay import delay_record, fmt_ms
+from visionpos.app.sitl.gcs import (
+    COPTER_MODES,
+    EXTNAV_TEXT,
+    MAV_CMD_COMPONENT_ARM_DISARM,
+    MAV_CMD_DO_SET_MODE,
+    MAV_CMD_NAV_TAKEOFF,
+    Gcs,
+)
+from visionpos.app.sitl.settings import SitlError, SitlSettings
+from visionpos.app.sitl.truth import LATE_NS, LiveArena, truth_now
+from visionpos.geometry.frames import ned_to_world
+
+
+@dataclasses.dataclass
+class FlightPlan:
+    altitude_m: float = 1.0
+    side_m: float = 1.0
+    hold_s: float = 4.0
+    square: bool = True
+    cut_s: float = 0.0  # vision hidden this long mid-hover (0: no cut)
+    timeout_s: float = 240.0
+    # the vision link through a DelayRelay holding each direction this long (None: SERIAL1 straight to the bridge)
+    link_delay_ms: float | None = None
+    # yaw rate swung sinusoidally (rad/s amplitude, YAW_SWING_PERIOD_S) during the hold: the rotation the
+    # back-channel's gyro/optical correlation needs to measure the delay (0: hold still)
+    yaw_swing_rad_s: float = 0.0
+
+
+async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSettings, body: str,
+              record: dict[str, Any], say: Callable[[str], None], relay: Any = None) -> None:
+    """The scripted flight: EKF on vision, VISO_DELAY_MS, GUIDED, arm, take off, hold (cut, yaw swing),
+    square, land. With a relay, record["link_delay"] gets delay_record at the end of the hold."""
+    end = time.monotonic() + plan.timeout_s
+    left = lambda: max(1.0, end - time.monotonic())  # noqa: E731
+    await Gcs.until(gcs.ekf_using_vision, min(60.0, left()), f"STATUSTEXT '{EXTNAV_TEXT}'")
+    record["extnav_ns"] = time.monotonic_ns()
+    link = ctx.bridge.vehicle(body)
+    if cfg.viso_delay_ms is None:
+        await asyncio.sleep(2.0)  # a couple of seconds of poses for the latency figure
+        delay = link.stats()["latency_stamp_ms_p50"] + (plan.link_delay_ms or 0.0)
+        delay_ms = int(round(delay)) if np.isfinite(delay) else 10
+        await gcs.set_params_async({"VISO_DELAY_MS": delay_ms})
+        say(f"EKF3 uses the vision; VISO_DELAY_MS = {delay_ms} (the bridge's pose stamp -> send p50"
+            + (f" + the relay's {plan.link_delay_ms:g} ms" if plan.link_delay_ms else "") + "; loopback adds nothing)")
+    record["viso_delay_ms"] = gcs.params.get("VISO_DELAY_MS")
+    await gcs.command_async(MAV_CMD_DO_SET_MODE, 1, COPTER_MODES["GUIDED"], what="GUIDED mode")
+    arm_end = time.monotonic() + min(45.0, left())
+    while True:  # pre-arm checks pass once the EKF has settled on the vision
+        gcs.command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        try:
+            await Gcs.until(lambda: gcs.armed, 1.5, "arming")
+            break
+        except SitlError:
+            if time.monotonic() > arm_end:
+                late = live.frames_late / max(1, live.frames_made)
+                raise SitlError("SITL would not arm; last messages: " + "; ".join(t for _, _, t in gcs.texts[-5:])
+                                + f". {100 * late:.0f}% of the camera frames so far were made more than "
+                                f"{LATE_NS // 1_000_000} ms late" + (": this host is not keeping real time, and "
+                                "'VisOdom: not healthy' means gaps of over 300 ms in the vision" if late > 0.02
+                                else ""))
+    record["armed_ns"] = time.monotonic_ns()
+    say("armed in GUIDED")
+    await gcs.command_async(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, plan.altitude_m, what="takeoff")
+
+    def height() -> float:
+        t, x = truth_now(gcs.truth)
+        return x[2] if t else 0.0
+
+    await Gcs.until(lambda: height() >= plan.altitude_m - 0.05, min(30.0, left()), f"climb to {plan.altitude_m} m")
+    record["airborne_ns"] = time.monotonic_ns()
+    x0, y0, z0 = gcs.local[-1][1:4]
+    say(f"at {height():.2f} m; holding" + (f", yaw swinging +-{plan.yaw_swing_rad_s:g} rad/s"
+                                             if plan.yaw_swing_rad_s > 0 else ""))
+    await _hold(gcs, plan, x0, y0, plan.hold_s / 2)
+    if plan.cut_s > 0:
+        now = time.monotonic_ns()
+        live.cut(now, now + int(plan.cut_s * 1e9))
+        record["cut"] = (now, now + int(plan.cut_s * 1e9), (x0, y0, z0))
+        say(f"vision cut for {plan.cut_s:g} s (the body hidden from every camera)")
+        await asyncio.sleep(plan.cut_s)
+    await _hold(gcs, plan, x0, y0, plan.hold_s / 2)
+    if relay is not None:
+        record["link_delay"] = delay_record(link.bc, relay, plan.link_delay_ms or 0.0, gcs.truth, clock=gcs.clock)
+        d = record["link_delay"]
+        say(f"link delay {d['added_ms']:g} ms: back-channel measured {fmt_ms(d['measured_ms'])} ms, true "
+            f"{fmt_ms(d['true_ms'])} ms ({d['detail']})")
+    if plan.square:
+        s = plan.side_m
+        for dx, dy in ((s, 0.0), (s, s), (0.0, s), (0.0, 0.0)):
+            await _goto(gcs, x0 + dx, y0 + dy, -plan.altitude_m, min(20.0, left()))
+            say(f"  corner N {dx:+.1f} E {dy:+.1f} m reached")
+            await asyncio.sleep(1.0)
+    record["land_ns"] = time.monotonic_ns()
+    await gcs.command_async(MAV_CMD_DO_SET_MODE, 1, COPTER_MODES["LAND"], what="LAND mode")
+    await Gcs.until(lambda: not gcs.armed, min(40.0, left()), "landing and disarm")
+    record["disarmed_ns"] = time.monotonic_ns()
+    record["completed"] = True
+    say("landed and disarmed")
+
+
+YAW_SWING_PERIOD_S = 2.0
+
+
+async def _hold(gcs: Gcs, plan: FlightPlan, north: float, east: float, duration_s: float) -> None:
+    """Hold the position for duration_s: still, or (plan.yaw_swing_rad_s) turning back and forth about the
+    vertical with a sinusoidal yaw rate (SET_POSITION_TARGET_LOCAL_NED: position and yaw rate)."""
+    if plan.yaw_swing_rad_s <= 0:
+        await asyncio.sleep(duration_s)
+        return
+    t0 = time.monotonic()
+    while (t := time.monotonic() - t0) < duration_s:
+        rate = plan.yaw_swing_rad_s * math.sin(2 * math.pi * t / YAW_SWING_PERIOD_S)
+        gcs.conn.mav.set_position_target_local_ned_send(0, 1, 1, 1, 0b0000_0101_1111_1000, north, east,
+                                                        -plan.altitude_m, 0, 0, 0, 0, 0, 0, 0, rate)
+        await asyncio.sleep(0.05)
+
+
+async def _goto(gcs: Gcs, north: float, east: float, down: float, timeout_s: float) -> None:
+    """SET_POSITION_TARGET_LOCAL_NED (position only) until the true position is within 5 cm of it."""
+    target_world = ned_to_world(np.array([north, east, down]))
+    end = time.monotonic() + timeout_s
+    ok_since = None
+    while True:
+        gcs.conn.mav.set_position_target_local_ned_send(0, 1, 1, 1, 0b0000_1111_1111_1000, north, east, down,
+                                                        0, 0, 0, 0, 0, 0, 0, 0)
+        for _ in range(5):
+            await asyncio.sleep(0.05)
+            _, x = truth_now(gcs.truth)
+            if np.linalg.norm(x[:3] - target_world) < 0.05:
+                ok_since = ok_since or time.monotonic()
+                if time.monotonic() - ok_since > 0.5:
+                    return
+            else:
+                ok_since = None
+        if time.monotonic() > end:
+            raise SitlError(f"the vehicle did not reach N {north:.2f} E {east:.2f} D {down:.2f} within "
+                            f"{timeout_s:g} s (true position {x[:3].round(3).tolist()} in the world frame)")
+
+
+# ---------------------------------------------------------------- the summary

@@ -1,0 +1,84 @@
+"""Setting SITL up for vision-only flight, before the cameras start.
+
+Order of the set-up, which matters to EKF3 (see docs/autopilot-setup.md):
+parameters (GPS and compass off, external nav on) -> reboot -> signing key -> EKF origin sent
+until SITL reports GPS_GLOBAL_ORIGIN, and home (MAV_CMD_DO_SET_HOME) -> only then the cameras
+start: a vision stream that reaches EKF3 before its origin leaves the height off by centimetres
+for the whole flight. The origin is the SITL home, so EKF NED = the arena's world turned by
+visionpos/geometry/frames.py (N = x, E = -y, D = -z).
+
+Each step is a function below; prepare_vehicle runs them in that order.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+from visionpos.app.sitl.gcs import MAV_CMD_DO_SET_HOME, MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, Gcs
+from visionpos.app.sitl.process import SitlProcess
+from visionpos.app.sitl.settings import SitlError, SitlSettings
+
+
+def vision_parameters(cfg: SitlSettings, message: str, vision_speed: bool) -> dict[str, float]:
+    """The vision-only parameters of docs/autopilot-setup.md (GPS and compass off, external nav on)."""
+    vel = 6.0 if (message == "odometry" or vision_speed) else 0.0
+    return {
+        "VISO_TYPE": 1, "SERIAL1_PROTOCOL": 2, "SERIAL1_BAUD": 921,
+        "EK3_SRC1_POSXY": 6, "EK3_SRC1_POSZ": 6, "EK3_SRC1_VELXY": vel, "EK3_SRC1_VELZ": vel, "EK3_SRC1_YAW": 6,
+        "GPS1_TYPE": 0, "COMPASS_USE": 0, "COMPASS_USE2": 0, "COMPASS_USE3": 0, "COMPASS_ENABLE": 0,
+    }
+
+
+def _setup_signing(gcs: Gcs, key: bytes) -> None:
+    """Install the vision link's key with SETUP_SIGNING on SERIAL0 (channel 0, which ArduPilot lets through
+    unsigned): SITL then signs on SERIAL1 and takes only signed vision there, as a real signed set-up, and
+    the bridge's udpin endpoint learns SITL's address from signed packets only."""
+    stamp = int((time.time() - 1420070400) * 1e5)  # 10 us since 2015-01-01
+    gcs.conn.mav.setup_signing_send(1, 1, key, stamp)
+
+
+def _set_origin(gcs: Gcs, cfg: SitlSettings, say: Callable[[str], None]) -> None:
+    """SET_GPS_GLOBAL_ORIGIN until SITL reports GPS_GLOBAL_ORIGIN (EKF3 drops it until it runs), then
+    MAV_CMD_DO_SET_HOME at the same place (ArduCopter 4.3+ ignores SET_HOME_POSITION)."""
+    lat, lon, alt, _ = cfg.home
+    end = time.monotonic() + 60.0
+    while gcs.origin is None:
+        if time.monotonic() > end:
+            raise SitlError("SITL never reported GPS_GLOBAL_ORIGIN: EKF3 did not take the origin")
+        gcs.conn.mav.set_gps_global_origin_send(1, int(lat * 1e7), int(lon * 1e7), int(alt * 1000),
+                                                int(time.time() * 1e6))
+        for _ in range(50):
+            if gcs.origin is not None:
+                break
+            time.sleep(0.02)
+    m = gcs.origin[1]
+    say(f"EKF origin confirmed by SITL: {m.latitude * 1e-7:.7f}, {m.longitude * 1e-7:.7f}, {m.altitude * 1e-3:.2f} m")
+    gcs.command(MAV_CMD_DO_SET_HOME, 0, 0, 0, 0, lat, lon, alt)
+    gcs.wait(lambda: MAV_CMD_DO_SET_HOME in gcs.acks, 5.0, "COMMAND_ACK for MAV_CMD_DO_SET_HOME")
+    if gcs.acks[MAV_CMD_DO_SET_HOME][0] != 0:
+        say(f"note: SITL refused MAV_CMD_DO_SET_HOME (MAV_RESULT {gcs.acks[MAV_CMD_DO_SET_HOME][0]}); it sets home "
+            "itself when it arms")
+
+
+def prepare_vehicle(gcs: Gcs, proc: SitlProcess, cfg: SitlSettings, veh: dict[str, Any], key: bytes,
+                    say: Callable[[str], None]) -> None:
+    """The whole set-up, in its order: connect, the vision-only parameters (read back), reboot, reconnect,
+    the noise floors (and VISO_DELAY_MS when configured), the signing key, the EKF origin and home."""
+    gcs.connect(30.0, proc)
+    params = vision_parameters(cfg, veh.get("message", "vision_position_estimate"),
+                               bool(veh.get("vision_speed", False)))
+    gcs.set_params(params)
+    say(f"parameters set and read back ({len(params)}); rebooting SITL")
+    gcs.command(MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1)
+    time.sleep(0.1)
+    gcs.close()
+    time.sleep(2.0)
+    gcs.connect(30.0, proc)
+    noise = {"VISO_POS_M_NSE": cfg.viso_pos_m_nse, "VISO_YAW_M_NSE": cfg.viso_yaw_m_nse,
+             "VISO_VEL_M_NSE": cfg.viso_vel_m_nse}
+    if cfg.viso_delay_ms is not None:
+        noise["VISO_DELAY_MS"] = round(cfg.viso_delay_ms)
+    gcs.set_params(noise)
+    _setup_signing(gcs, key)
+    _set_origin(gcs, cfg, say)

@@ -1,0 +1,87 @@
+"""ArduPilot SITL as a child process: a free instance (-I) whose ports are free, a fresh temporary
+working directory (its eeprom.bin, logs), killed when the run ends, however it ends.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from visionpos.app.sitl.settings import SitlError, SitlSettings
+
+
+def _ports_free(instance: int) -> bool:
+    for port in (5760, 5762, 5763, 5501):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port + 10 * instance))
+            except OSError:
+                return False
+    return True
+
+
+def free_instance() -> int:
+    for i in range(1, 200):
+        if _ports_free(i):
+            return i
+    raise SitlError("no free SITL instance: ports 5770-7763 are all taken")
+
+
+class SitlProcess:
+    """ArduPilot SITL in a fresh temporary working directory; close() kills it and removes the folder."""
+
+    def __init__(self, cfg: SitlSettings, instance: int, serial1: str | None = None):
+        self.instance = instance
+        self.gcs_port = 5760 + 10 * self.instance
+        self.folder = tempfile.mkdtemp(prefix="visionpos-sitl-")
+        lat, lon, alt, hdg = cfg.home
+        # --speedup 1: the cameras, the fusion and the bridge run on the wall clock
+        self.args = [str(cfg.binary), "--model", cfg.model, "--speedup", "1", "-I", str(self.instance),
+                     "--home", f"{lat:.7f},{lon:.7f},{alt:.2f},{hdg:g}"]
+        if serial1 is not None:  # e.g. udpclient:HOST:PORT (SITL's own syntax; MAVProxy's --out is not one)
+            self.args.append(f"--serial1={serial1}")
+        if cfg.defaults is not None:
+            self.args += ["--defaults", str(cfg.defaults.resolve())]
+        self.log_path = os.path.join(self.folder, "sitl.log")
+        self._log = open(self.log_path, "wb")
+        try:
+            self.proc = subprocess.Popen(self.args, cwd=self.folder, stdout=self._log, stderr=subprocess.STDOUT,
+                                         stdin=subprocess.DEVNULL, start_new_session=True)
+        except OSError as e:
+            self.close()
+            raise SitlError(f"could not start {cfg.binary}: {e}") from e
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def log_tail(self, n: int = 15) -> str:
+        try:
+            return "\n".join(Path(self.log_path).read_text(errors="replace").splitlines()[-n:])
+        except OSError:
+            return ""
+
+    def close(self) -> None:
+        proc = getattr(self, "proc", None)
+        if proc is not None and proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(3.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(3.0)
+        self._log.close()
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+    def __enter__(self) -> "SitlProcess":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+# ---------------------------------------------------------------- the true pose

@@ -1,0 +1,130 @@
+"""The flight's summary: the EKF and the vision against SITL's truth, test ratios, texts, failsafes;
+format_flight prints it.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from visionpos.app.sitl.delay import fmt_ms
+from visionpos.app.sitl.flight import FlightPlan
+from visionpos.app.sitl.gcs import COPTER_MODES, MODE_NAMES, Gcs
+from visionpos.app.sitl.truth import LATE_NS, TruthTrack
+from visionpos.geometry.frames import euler_ned_frd, ned_to_world, world_to_ned
+
+
+def _pcts(v: np.ndarray) -> dict[str, float | None]:
+    if len(v) == 0:
+        return {"p50": None, "p99": None, "max": None}
+    return {"p50": float(np.percentile(v, 50)), "p99": float(np.percentile(v, 99)), "max": float(v.max())}
+
+
+FAILSAFE_WORDS = ("failsafe", "ekf variance", "lane switch", "ekf primary changed", "position lost", "crash")
+
+
+def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: dict[str, Any], plan: FlightPlan,
+                   wall_s: float) -> dict[str, Any]:
+    """EKF and vision against SITL's truth, EKF test ratios, every STATUSTEXT, failsafes."""
+    a = record.get("armed_ns")
+    b = record.get("disarmed_ns") or time.monotonic_ns()
+    out: dict[str, Any] = {"completed": bool(record.get("completed")), "error": record.get("error"), "wall_s": wall_s,
+                           "viso_delay_ms": record.get("viso_delay_ms")}
+    if a is not None:
+        loc = np.array([r for r in gcs.local if a <= r[0] <= b], dtype=float).reshape(-1, 4)
+        if len(loc):
+            p, _, _, _ = truth.sample(loc[:, 0].astype(np.int64))
+            ned_true = world_to_ned(p)
+            err = loc[:, 1:4] - ned_true
+            out["ekf_horizontal_error_mm"] = _pcts(np.hypot(err[:, 0], err[:, 1]) * 1e3)
+            out["ekf_vertical_error_mm"] = _pcts(np.abs(err[:, 2]) * 1e3)
+        att = np.array([r for r in gcs.attitude if a <= r[0] <= b], dtype=float).reshape(-1, 4)
+        if len(att):
+            _, _, _, rot = truth.sample(att[:, 0].astype(np.int64))
+            yaw_true = euler_ned_frd(rot.as_quat())[:, 2]
+            dyaw = np.angle(np.exp(1j * (att[:, 3] - yaw_true)))
+            out["ekf_yaw_error_deg"] = _pcts(np.degrees(np.abs(dyaw)))
+        ekf = np.array([r for r in gcs.ekf if a <= r[0] <= b], dtype=float).reshape(-1, 6)
+        if len(ekf):
+            out["ekf_test_ratios"] = {name: {"max": float(ekf[:, k].max()), "p99": float(np.percentile(ekf[:, k], 99))}
+                                      for k, name in ((2, "velocity"), (3, "position_horizontal"),
+                                                      (4, "position_vertical"), (5, "compass"))}
+        if "cut" in record:
+            c0, c1, hold = record["cut"]
+            t, x = truth.snapshot()
+            sel = (t >= c0) & (t <= c1 + 2_000_000_000)
+            hold_world = ned_to_world(np.array(hold))
+            dev = np.linalg.norm(x[sel, :2] - hold_world[:2], axis=1) * 1e3 if sel.any() else np.zeros(0)
+            out["cut"] = {"seconds": plan.cut_s, "max_drift_from_hold_mm": float(dev.max()) if len(dev) else None}
+            after = loc[(loc[:, 0] >= c1 + 1_000_000_000) & (loc[:, 0] <= c1 + 3_000_000_000)] if len(loc) else loc
+            if len(after):
+                p, _, _, _ = truth.sample(after[:, 0].astype(np.int64))
+                e = np.hypot(*(after[:, 1:3] - world_to_ned(p)[:, :2]).T) * 1e3
+                out["cut"]["ekf_horizontal_error_1_to_3_s_after_mm"] = _pcts(e)
+    texts = [t for _, _, t in gcs.texts]
+    out["statustext"] = texts
+    out["failsafe_or_lane_switch"] = [t for t in texts if any(w in t.lower() for w in FAILSAFE_WORDS)]
+    ours = {COPTER_MODES["GUIDED"], COPTER_MODES["LAND"]}
+    out["mode_changes_not_ours"] = [MODE_NAMES.get(m, m) for t, m in gcs.modes
+                                    if a is not None and a <= t <= b and m not in ours]
+    vb = next((x for x in demo.get("bodies", [])), {})
+    out["vision"] = {k: vb.get(k) for k in ("position_rmse_mm", "position_max_mm", "rotation_rmse_deg",
+                                            "tracked_fraction", "latency_ms")}
+    sent = (vb.get("bridge") or {}).get("sent") or 0
+    out["vision"]["poses_sent"] = sent
+    out["vision"]["poses_per_s"] = sent / demo["duration_s"] if demo.get("duration_s") else None
+    out["vision"]["frames_not_fused"] = (demo.get("server") or {}).get("frames_shed")
+    out["truth_samples"] = truth.n
+    h = out.get("ekf_horizontal_error_mm", {})
+    out["ok"] = bool(out["completed"] and h.get("p99") is not None and h["p99"] <= 20.0
+                     and not out["failsafe_or_lane_switch"] and not out["mode_changes_not_ours"])
+    return out
+
+
+def format_flight(s: dict[str, Any]) -> str:
+    f = lambda v, spec=".1f": "-" if v is None else format(v, spec)  # noqa: E731
+    h = s.get("ekf_horizontal_error_mm", {})
+    v = s.get("ekf_vertical_error_mm", {})
+    y = s.get("ekf_yaw_error_deg", {})
+    vis = s["vision"]
+    lines = [
+        f"visionpos sitl: flight {'completed' if s['completed'] else 'NOT completed'} "
+        f"({s['wall_s']:.0f} s wall, VISO_DELAY_MS {f(s.get('viso_delay_ms'), '.0f')})"
+        + (f": {s['error']}" if s.get("error") else ""),
+        f"  EKF position vs SITL truth (armed to disarmed): horizontal p50 {f(h.get('p50'))} mm, p99 {f(h.get('p99'))}"
+        f" mm, max {f(h.get('max'))} mm; vertical p99 {f(v.get('p99'))} mm",
+        f"  EKF yaw vs truth: p50 {f(y.get('p50'), '.2f')} deg, p99 {f(y.get('p99'), '.2f')} deg, "
+        f"max {f(y.get('max'), '.2f')} deg",
+        f"  vision (fusion output) vs truth: RMS {f(vis.get('position_rmse_mm'), '.2f')} mm, max "
+        f"{f(vis.get('position_max_mm'), '.2f')} mm, rotation RMS {f(vis.get('rotation_rmse_deg'), '.3f')} deg; "
+        f"{vis['poses_sent']} poses sent to SITL ({f(vis.get('poses_per_s'))} per s); "
+        f"{vis.get('frames_not_fused') or 0} camera frames queued too long to fuse",
+    ]
+    for name, r in (s.get("ekf_test_ratios") or {}).items():
+        lines.append(f"  EKF test ratio {name}: max {r['max']:.2f}, p99 {r['p99']:.2f}")
+    if "cut" in s:
+        c = s["cut"]
+        e = c.get("ekf_horizontal_error_1_to_3_s_after_mm") or {}
+        lines.append(f"  vision cut {c['seconds']:g} s: true drift from the hold point max "
+                     f"{f(c['max_drift_from_hold_mm'])} mm; EKF error 1-3 s after: p99 {f(e.get('p99'))} mm")
+    if "link_delay" in s:
+        d = s["link_delay"]
+        lines.append(f"  link delay {d['added_ms']:g} ms each way: capture->autopilot delay measured by the "
+                     f"back-channel {fmt_ms(d['measured_ms'])} ms, true {fmt_ms(d['true_ms'])} ms (send-stamp "
+                     f"{fmt_ms(d['send_minus_stamp_ms_p50'])} + relay {fmt_ms(d['relay_hold_ms_p50'])} + SITL's truth "
+                     f"age and intake {fmt_ms(d.get('sitl_clock_ms'))}), difference "
+                     f"{fmt_ms(d['error_ms'])} ms; poses behind SITL's truth {fmt_ms(d['optical_lag_ms'])} ms; "
+                     f"{d['detail']}")
+    lines.append(f"  failsafe / lane switch messages: {s['failsafe_or_lane_switch'] or 'none'}; "
+                 f"mode changes not commanded: {s['mode_changes_not_ours'] or 'none'}")
+    lines.append("  STATUSTEXT: " + " | ".join(s["statustext"]))
+    rt = s.get("real_time") or {}
+    if rt:
+        lines.append(f"  real time: {rt['frames_made']} camera frames made, {100 * rt['frames_late_fraction']:.1f}% "
+                     f"more than {LATE_NS // 1_000_000} ms late, {100 * rt['frames_not_fused_fraction']:.1f}% not "
+                     "fused (queued too long): above a few % this host could not keep up, and the figures above "
+                     "measure the host, not the EKF")
+    lines.append(f"  target (EKF horizontal p99 <= 20 mm, no failsafe): {'met' if s['ok'] else 'NOT met'}")
+    return "\n".join(lines)

@@ -1,0 +1,70 @@
+"""The arena file's `sitl:` section, read into SitlSettings, and the error every part of `visionpos sitl` raises."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from visionpos.config.arena import ArenaConfig, ConfigError, Section
+from visionpos.config.schema import register_section
+from visionpos.config.settings import Setting, section
+from visionpos.errors import VisionposError
+
+SITL = section(
+    "sitl",
+    "ArduPilot SITL for `visionpos sitl` (docs/autopilot-setup.md, \"Try it in SITL first\").",
+    Setting("binary", "text", None, "the arducopter SITL binary (relative to the arena file)",
+            default_doc="--sitl PATH, else $VISIONPOS_SITL, else ../shared/sitl/arducopter beside the checkout"),
+    Setting("defaults", "text", None, "SITL parameter defaults file (--defaults)",
+            default_doc="copter.parm beside the binary, when there"),
+    Setting("model", "text", "+", "SITL frame model (--model)"),
+    Setting("instance", "integer", None, "SITL instance (-I): ports 5760 + 10*I ...", min=0, max=200,
+            default_doc="the first whose ports are free from 1"),
+    Setting("home", "array", [-35.363261, 149.165230, 584.0, 0.0], "SITL home and EKF origin: lat, lon (deg), "
+            "alt (m AMSL), heading (deg)", shape=(4,)),
+    Setting("viso_delay_ms", "number", None, "VISO_DELAY_MS to set", min=0.0, max=250.0,
+            default_doc="measured: the bridge's pose stamp -> send p50 once the vision flows"),
+    Setting("viso_pos_m_nse", "number", 0.01, "VISO_POS_M_NSE: ArduPilot's floor on the position noise (m)",
+            min=0.001, max=10.0),
+    Setting("viso_yaw_m_nse", "number", 0.02, "VISO_YAW_M_NSE: floor on the yaw noise (rad)", min=0.001, max=1.0),
+    Setting("viso_vel_m_nse", "number", 0.05, "VISO_VEL_M_NSE: floor on the velocity noise (m/s; ODOMETRY and "
+            "VISION_SPEED_ESTIMATE)", min=0.001, max=5.0),
+)
+register_section("sitl", SITL)
+
+
+class SitlError(VisionposError):
+    """SITL did not start, did not answer, or refused what the run needs."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SitlSettings:
+    binary: Path
+    defaults: Path | None
+    model: str
+    instance: int | None
+    home: tuple[float, float, float, float]
+    viso_delay_ms: float | None
+    viso_pos_m_nse: float
+    viso_yaw_m_nse: float
+    viso_vel_m_nse: float
+
+    @classmethod
+    def from_arena(cls, arena: ArenaConfig, binary: Path) -> "SitlSettings":
+        sec = SITL.check(Section(dict(arena.raw.get("sitl") or {}), arena.source, "sitl"))
+        defaults = SITL.read(sec, "defaults")
+        if defaults:
+            dp = Path(defaults)
+            dp = dp if dp.is_absolute() else Path(arena.source).resolve().parent / dp
+            if not dp.is_file():
+                raise ConfigError(arena.source, "sitl.defaults", f"{defaults!r}: no file at {dp}")
+        else:
+            dp = binary.parent / "copter.parm"
+            dp = dp if dp.is_file() else None
+        home = tuple(float(x) for x in SITL.read(sec, "home"))
+        if not (-90 <= home[0] <= 90 and -180 <= home[1] <= 180):
+            raise ConfigError(arena.source, "sitl.home", f"{list(home)}: give [lat (-90..90), lon (-180..180), "
+                              "alt m, heading deg]")
+        return cls(binary, dp, SITL.read(sec, "model"), SITL.read(sec, "instance"),
+                   home, SITL.read(sec, "viso_delay_ms"), SITL.read(sec, "viso_pos_m_nse"),
+                   SITL.read(sec, "viso_yaw_m_nse"), SITL.read(sec, "viso_vel_m_nse"))
