@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import difflib
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, make_dataclass
+from dataclasses import field as dc_field
 from typing import Any, Callable, Iterable
 
 from visionpos.config.arena import ConfigError, Section
@@ -189,3 +190,28 @@ def section(path: str, doc: str, *settings: Setting, extra_keys: str = "") -> Sp
 def ms_to_ns(ms: float) -> int:
     """The ms -> int ns conversion every `*_ms` setting has always used (truncation, not rounding)."""
     return int(ms * 1e6)
+
+
+_FIELD_TYPES = {"number": float, "integer": int, "text": str, "boolean": bool}
+
+
+def settings_dataclass(name: str, spec: Spec, doc: str, module: str, *, nested: dict[str, type] | None = None,
+                       extra: Iterable[tuple[str, type, Any]] = ()) -> type:
+    """The frozen dataclass of one Spec: a field per scalar setting (name `Setting.field_name`, default
+    `Setting.field_default`), in declaration order, then a field per `section` setting whose class is
+    in `nested` (default: that class's defaults), then `extra` (name, type, default): fields the YAML
+    does not set. `Spec.parse` fills it: a setting added to the Spec is a field here with no other edit.
+    """
+    fields: list[tuple[str, Any, Any]] = []
+    for st in spec.settings:
+        if st.kind == "section" and nested and st.key in nested:
+            fields.append((st.field_name, nested[st.key], dc_field(default_factory=nested[st.key])))
+        elif st.kind in _FIELD_TYPES:
+            default = st.field_default
+            kind = type(default) if st.convert or st.auto else _FIELD_TYPES[st.kind]
+            fields.append((st.field_name, kind, dc_field(default=default)))
+    for key, kind, default in extra:
+        fields.append((key, kind, dc_field(default=default)))
+    cls = make_dataclass(name, fields, frozen=True)
+    cls.__doc__, cls.__module__ = doc, module
+    return cls
