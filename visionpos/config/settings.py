@@ -99,6 +99,32 @@ class Setting:
             return s.array(self.key, self.shape or (None,), default)
         return s.data.get(self.key, default)
 
+    def validate(self, s: Section, key: str) -> None:
+        """ConfigError naming the key if the value at `key` (present, not null) is not of this kind."""
+        if self.kind == "number":
+            s.number(key)
+        elif self.kind == "integer":
+            s.integer(key)
+        elif self.kind == "text":
+            s.string(key, choices=self.choices)
+        elif self.kind == "boolean":
+            s.boolean(key, False)
+        elif self.kind == "array":
+            s.array(key, self.shape or (None,))
+        elif self.kind == "section":
+            sub = s.sub(key)  # raises unless a mapping
+            if self.spec is not None:
+                self.spec.validate(sub)
+        elif self.kind == "list":
+            for item in s.items(key):  # raises unless a list; each item a mapping
+                if self.spec is not None:
+                    self.spec.validate(item)
+        elif self.kind == "map":
+            sub = s.sub(key)
+            for k in sub.data:
+                if sub.data[k] is not None and self.spec is not None:
+                    self.spec.validate(sub.sub(k))
+
 
 @dataclass(frozen=True)
 class Spec:
@@ -155,6 +181,21 @@ class Spec:
 
     def read(self, s: Section, key: str, **bounds: Any) -> Any:
         return self[key].read(s, **bounds)
+
+    def validate(self, s: Section) -> None:
+        """Check a whole mapping at load, nested sections and list items too: every key declared (an
+        unknown one fails with a did-you-mean), every value given of its declared kind (a number, an
+        integer, text, true/false, an array of its shape, a mapping, a list). Bounds and required keys
+        are the parsers' (a caller may narrow them); an old spelling is checked here and warned about
+        by the parser that reads it. A null value is left to the parser (for most keys: an error)."""
+        if self.extra_keys:
+            return
+        for key in s.data:
+            new = self.new_key(str(key))
+            if new is None:
+                raise self.unknown_key_error(s.source, s._key(str(key)), str(key))
+            if s.data[key] is not None:
+                self[new].validate(s, key)
 
     def parse(self, s: Section, auto: dict[str, Any] | None = None) -> dict[str, Any]:
         """Check the keys, read every scalar setting: {field name: converted value}.
