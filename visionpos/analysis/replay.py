@@ -201,7 +201,7 @@ def run_pipeline(
     rate = float(rate_hz or settings.output_rate_hz)
     period = int(round(1e9 / rate))
     check_ns = int(VANISH_CHECK_S * 1e9)
-    pipe = FusionPipeline(arena, arena.raw.get("fusion"))
+    pipe = FusionPipeline(arena)
     now = [0]
     # the recording holds only what a live server accepted: trust its registrations, need no key
     ingest = Ingest(arena, settings, pipe, None, clock=lambda: now[0], verify_cookies=False, authenticate=False)

@@ -55,7 +55,7 @@ from typing import Any, AsyncIterator, Callable, TextIO
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from visionpos.config.arena import ArenaConfig, ConfigError, Section
+from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, section
 from visionpos.errors import UsageError, VisionposError
@@ -102,7 +102,6 @@ SITL = section(
     Setting("viso_vel_m_nse", "number", 0.05, "VISO_VEL_M_NSE: floor on the velocity noise (m/s; ODOMETRY and "
             "VISION_SPEED_ESTIMATE)", min=0.001, max=5.0),
 )
-register_section("sitl", SITL)
 
 # mavlink ids used here (ardupilotmega dialect)
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
@@ -151,7 +150,7 @@ def find_sitl_binary(cli_path: str | None, arena: ArenaConfig | None = None) -> 
             raise UsageError(f"--sitl {cli_path}: no executable file there")
         return p
     if arena is not None:
-        sec = SITL.check(Section(dict(arena.raw.get("sitl") or {}), arena.source, "sitl"))
+        sec = SITL.check(arena.section("sitl"))
         configured = SITL.read(sec, "binary")
         if configured:
             p = Path(configured)
@@ -186,25 +185,29 @@ class SitlSettings:
     viso_yaw_m_nse: float
     viso_vel_m_nse: float
 
-    @classmethod
-    def from_arena(cls, arena: ArenaConfig, binary: Path) -> "SitlSettings":
-        sec = SITL.check(Section(dict(arena.raw.get("sitl") or {}), arena.source, "sitl"))
-        defaults = SITL.read(sec, "defaults")
-        if defaults:
-            dp = Path(defaults)
-            dp = dp if dp.is_absolute() else Path(arena.source).resolve().parent / dp
-            if not dp.is_file():
-                raise ConfigError(arena.source, "sitl.defaults", f"{defaults!r}: no file at {dp}")
-        else:
-            dp = binary.parent / "copter.parm"
-            dp = dp if dp.is_file() else None
-        home = tuple(float(x) for x in SITL.read(sec, "home"))
-        if not (-90 <= home[0] <= 90 and -180 <= home[1] <= 180):
-            raise ConfigError(arena.source, "sitl.home", f"{list(home)}: give [lat (-90..90), lon (-180..180), "
-                              "alt m, heading deg]")
-        return cls(binary, dp, SITL.read(sec, "model"), SITL.read(sec, "instance"),
-                   home, SITL.read(sec, "viso_delay_ms"), SITL.read(sec, "viso_pos_m_nse"),
-                   SITL.read(sec, "viso_yaw_m_nse"), SITL.read(sec, "viso_vel_m_nse"))
+
+def parse_sitl(arena: ArenaConfig, binary: Path) -> SitlSettings:
+    """The validated `sitl:` section; binary: the SITL executable (find_sitl_binary)."""
+    sec = SITL.check(arena.section("sitl"))
+    defaults = SITL.read(sec, "defaults")
+    if defaults:
+        dp = Path(defaults)
+        dp = dp if dp.is_absolute() else Path(arena.source).resolve().parent / dp
+        if not dp.is_file():
+            raise ConfigError(arena.source, "sitl.defaults", f"{defaults!r}: no file at {dp}")
+    else:
+        dp = binary.parent / "copter.parm"
+        dp = dp if dp.is_file() else None
+    home = tuple(float(x) for x in SITL.read(sec, "home"))
+    if not (-90 <= home[0] <= 90 and -180 <= home[1] <= 180):
+        raise ConfigError(arena.source, "sitl.home", f"{list(home)}: give [lat (-90..90), lon (-180..180), "
+                          "alt m, heading deg]")
+    return SitlSettings(binary, dp, SITL.read(sec, "model"), SITL.read(sec, "instance"),
+                        home, SITL.read(sec, "viso_delay_ms"), SITL.read(sec, "viso_pos_m_nse"),
+                        SITL.read(sec, "viso_yaw_m_nse"), SITL.read(sec, "viso_vel_m_nse"))
+
+
+register_section("sitl", SITL, parse_sitl)
 
 
 def _ports_free(instance: int) -> bool:
@@ -819,8 +822,15 @@ class FlightPlan:
     yaw_swing_rad_s: float = 0.0
 
 
-def _vehicle_cfg(arena: ArenaConfig) -> dict[str, Any]:
-    return dict(arena.raw["vehicles"][0])
+def _vehicle_cfg(arena: ArenaConfig) -> Any:
+    """The arena's first vehicle (bridge.config.VehicleConfig), signed: SITL flies over a signed link."""
+    from bridge.config import parse_vehicles
+
+    vehicles = parse_vehicles(arena)
+    if vehicles[0].signing_key is None:
+        raise ConfigError(arena.source, "vehicles[0].signing", "SITL flies over a signed link: give "
+                          "signing: {key_file: ...}")
+    return vehicles[0]
 
 
 def run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | None) -> dict[str, Any]:
@@ -833,25 +843,20 @@ def run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | N
 
     if plan.link_delay_ms is None:
         return _run_sitl(arena, binary, plan, out, None)
-    veh = _vehicle_cfg(_one_vehicle(arena))
-    vision_port = int(str(veh["endpoint"]).rsplit(":", 1)[1])
+    vision_port = _vehicle_cfg(_one_vehicle(arena)).endpoint.port
     with DelayRelay(("127.0.0.1", vision_port), plan.link_delay_ms, lifetime_s=plan.timeout_s + 180.0) as relay:
         return _run_sitl(arena, binary, plan, out, relay)
 
 
 def _run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | None,
               relay: Any) -> dict[str, Any]:
-    from bridge.config import load_signing_key
     from visionpos.app.demo import run_demo
 
-    cfg = SitlSettings.from_arena(arena, binary)
+    cfg = parse_sitl(arena, binary)
     instance = cfg.instance if cfg.instance is not None else free_instance()
     arena = _one_vehicle(arena)
     veh = _vehicle_cfg(arena)
-    body = veh["body"]
-    key_path = veh["signing"]["key_file"]
-    key = load_signing_key(key_path if os.path.isabs(key_path) else Path(arena.source).resolve().parent / key_path)
-    vision_port = int(str(veh["endpoint"]).rsplit(":", 1)[1])
+    body, key, vision_port = veh.body, veh.signing_key, veh.endpoint.port
     say = (lambda text: (out.write(text + "\n"), out.flush())) if out is not None else (lambda text: None)
     truth = TruthTrack(cfg.home[:3])
     t0 = time.monotonic()
@@ -865,7 +870,7 @@ def _run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | 
             say(f"SITL instance {proc.instance} in {proc.folder}: GCS on SERIAL0 tcp:127.0.0.1:{proc.gcs_port}, "
                 f"SERIAL1 udpclient:127.0.0.1:{serial1_port} -> "
                 + ("" if relay is None else f"a relay holding each direction {plan.link_delay_ms:g} ms -> ")
-                + f"the bridge ({veh['endpoint']}, signed)")
+                + f"the bridge ({veh.endpoint}, signed)")
             gcs.connect(30.0, proc)
             params = vision_parameters(cfg, veh.get("message", "vision_position_estimate"),
                                        bool(veh.get("vision_speed", False)))
@@ -917,8 +922,10 @@ def _one_vehicle(arena: ArenaConfig) -> ArenaConfig:
     """The arena with its first vehicle only (SITL is one copter, system 1)."""
     from visionpos.config.arena import parse_arena
 
-    data = dict(arena.raw)
-    vehicles = [dict(v) for v in data["vehicles"]]
+    data = arena.to_dict()
+    vehicles = data.get("vehicles") or []
+    if not vehicles:
+        raise ConfigError(arena.source, "vehicles", "SITL flies the first vehicle: add one (docs/autopilot-setup.md)")
     if int(vehicles[0].get("sysid", 1)) != 1:
         raise UsageError(f"vehicles[0].sysid {vehicles[0].get('sysid')}: SITL is system 1; fly a body with sysid 1")
     data["vehicles"] = vehicles[:1]

@@ -9,6 +9,7 @@ would be right.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -230,7 +231,26 @@ class ArenaConfig:
                               "`visionpos calibrate wand` to find them, or give rough ones (position and look_at)")
 
     def section(self, key: str) -> Section:
+        """The top-level section `key` for its parser to read (an absent or null one is empty)."""
         return Section(self.raw.get(key), self.source, key)
+
+    def items(self, key: str) -> list[Section]:
+        """The items of the top-level list section `key` (`vehicles`), each for its parser to read."""
+        return Section(self.raw, self.source, "").items(key)
+
+    def given(self, key: str) -> bool:
+        """Whether the file has the top-level section `key` (not null): the optional servers (pose_stream,
+        vrpn, natnet, foxglove) run only then."""
+        return self.raw.get(key) is not None
+
+    def camera_stations(self) -> dict[int, int | None]:
+        """Camera id -> the station id expected to send its frames (`cameras[i].station`; None: any)."""
+        entries = self.raw.get("cameras") or []
+        return {c.id: entries[i].get("station") if i < len(entries) else None for i, c in enumerate(self.cameras)}
+
+    def to_dict(self) -> dict[str, Any]:
+        """A deep copy of the file's mapping: what a recording stores, what a rewritten arena file starts from."""
+        return copy.deepcopy(self.raw)
 
     def with_cameras(self, cameras: list[Camera]) -> "ArenaConfig":
         raw = dict(self.raw)

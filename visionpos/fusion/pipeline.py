@@ -91,7 +91,7 @@ from visionpos.fusion.layout import (
 )
 from visionpos.fusion.matching import Projector, match_unlabeled
 from visionpos.fusion.rigidbody import BodyModel, identify, layout_ambiguities
-from visionpos.fusion.settings import FUSION_PARAMS, pack_params, parse_fusion_settings
+from visionpos.fusion.settings import FUSION_PARAMS, pack_params, parse_fusion
 from visionpos.fusion.timealign import Group, TimeAligner, TimeAlignment
 from visionpos.fusion.tracking import FilterBank
 from visionpos.fusion.tracks import Observation, Track, new_track_rows
@@ -139,7 +139,7 @@ class FusionPipeline:
             raise ConfigError(arena.source, "cameras", f"fusion needs at least 2 cameras, the arena has "
                               f"{len(arena.cameras)}; add the calibrated cameras "
                               "(`visionpos calibrate wand` writes them)")
-        self.settings = parse_fusion_settings(arena, settings)
+        self.settings = parse_fusion(arena, settings)
         st = self.settings
         self.models = [BodyModel(b.name, b.id, np.asarray(b.markers, float)) for b in arena.bodies]
         # layouts the geometry cannot tell apart would be swapped or flipped: refuse them

@@ -219,11 +219,9 @@ def pack_params(table: tuple[Param, ...], settings: Any) -> np.ndarray:
     return np.array([float(p.get(settings)) for p in table], dtype=np.float64)
 
 
-def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = None) -> FusionSettings:
+def parse_fusion(arena: ArenaConfig, settings: dict[str, Any] | None = None) -> FusionSettings:
     """Read `fusion:` from the arena, overridden by `settings` (nested, dotted or {'fusion': {...}})."""
-    base = arena.raw.get("fusion") or {}
-    if not isinstance(base, dict):
-        arena.section("fusion")  # raises a ConfigError naming the key
+    base = arena.section("fusion").data  # a ConfigError naming the key unless a mapping
     data = merge_section(base, settings, "fusion")
     source = f"{arena.source} (+ overrides)" if settings else arena.source
     for key, message in REMOVED.items():
@@ -243,4 +241,5 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
     return FusionSettings(**FUSION.parse(s, derived), auto_window=auto_window, kalman=KalmanSettings(**kalman),
                           single_view=SingleViewSettings(**single_view))
 
-register_section("fusion", FUSION)
+
+register_section("fusion", FUSION, parse_fusion)
