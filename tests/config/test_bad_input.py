@@ -132,3 +132,13 @@ def test_a_misspelt_key_keeps_its_did_you_mean(tmp_path, thesis, capsys, where, 
     assert main(["plan", str(path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"did you mean `{close}`" in err
+
+
+def test_a_removed_key_says_what_to_write_instead_at_load_and_in_set(tmp_path, thesis):
+    path = _write(tmp_path, _set(thesis, ("fusion", "acquire_ray_distance_m"), 0.01))
+    with pytest.raises(ConfigError, match="fusion.acquire_ray_distance_m: removed: .*acquire_ray_gate_px"):
+        load_arena(path)
+    from visionpos.config.arena import apply_overrides
+
+    with pytest.raises(ConfigError, match="fusion.acquire_ray_distance_m: removed: "):
+        apply_overrides(thesis, ["fusion.acquire_ray_distance_m=0.01"])

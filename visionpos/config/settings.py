@@ -134,6 +134,7 @@ class Spec:
     doc: str
     settings: tuple[Setting, ...]
     extra_keys: str = ""  # doc: keys not listed here are allowed (free-form), and what they are
+    removed: tuple[tuple[str, str], ...] = ()  # (key, what to write instead): keys that no longer exist
 
     def __post_init__(self) -> None:
         keys = [k for s in self.settings for k in (s.key, *s.old_keys)]
@@ -158,6 +159,9 @@ class Spec:
         return None
 
     def unknown_key_error(self, source: str, key_path: str, key: str) -> ConfigError:
+        for old, message in self.removed:
+            if key == old:
+                return ConfigError(source, key_path, message)
         return ConfigError(source, key_path, f"unknown key{suggestion(key, self.keys)}; "
                                              f"`{self.path}` takes {', '.join(self.keys)}")
 
@@ -224,8 +228,9 @@ def suggestion(key: str, known: Iterable[str]) -> str:
     return f" (did you mean `{close[0]}`?)" if close else ""
 
 
-def section(path: str, doc: str, *settings: Setting, extra_keys: str = "") -> Spec:
-    return Spec(path, doc, tuple(settings), extra_keys)
+def section(path: str, doc: str, *settings: Setting, extra_keys: str = "",
+            removed: dict[str, str] | None = None) -> Spec:
+    return Spec(path, doc, tuple(settings), extra_keys, tuple((removed or {}).items()))
 
 
 def ms_to_ns(ms: float) -> int:

@@ -130,6 +130,7 @@ FUSION = section(
             "body is tracked", field="loose_points_interval_ns", convert=ms_to_ns, min=0.0),
     Setting("kalman", "section", {}, "the body filter", spec=KALMAN),
     Setting("single_view", "section", {}, "single-camera updates through occlusion", spec=SINGLE_VIEW),
+    removed=REMOVED,
 )
 
 
@@ -224,9 +225,6 @@ def parse_fusion(arena: ArenaConfig, settings: dict[str, Any] | None = None) -> 
     base = arena.section("fusion").data  # a ConfigError naming the key unless a mapping
     data = merge_section(base, settings, "fusion")
     source = f"{arena.source} (+ overrides)" if settings else arena.source
-    for key, message in REMOVED.items():
-        if key in data:
-            raise ConfigError(source, f"fusion.{key}", message)
     s = FUSION.check(Section(data, source, "fusion"))
     kalman = KALMAN.parse(s.sub("kalman"))
     single_view = SINGLE_VIEW.parse(s.sub("single_view"))
