@@ -287,11 +287,10 @@ def is_multicast(host: str) -> bool:
 
 def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
     """Validate `vehicles:` against the arena's bodies. Empty list when absent."""
-    top = Section(arena.raw, arena.source, "")
     bodies = {b.name: b for b in arena.bodies}
     out: list[VehicleConfig] = []
     V = VEHICLE
-    for v in top.items("vehicles"):
+    for v in arena.items("vehicles"):
         v = V.check(v)
         body = V.read(v, "body")
         if body not in bodies:
@@ -372,11 +371,11 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
             )
         if endpoint.kind == "udpin" and key is None and autopilot_address is None:
             raise v.error("endpoint", UDPIN_UNAUTHENTICATED.format(port=endpoint.port))
-    _check_unique(top, out)
+    _check_unique(arena.source, out)
     return out
 
 
-def _check_unique(top: Section, vehicles: list[VehicleConfig]) -> None:
+def _check_unique(source: str, vehicles: list[VehicleConfig]) -> None:
     seen: dict[object, int] = {}
     for i, v in enumerate(vehicles):
         for what, key in (
@@ -387,7 +386,7 @@ def _check_unique(top: Section, vehicles: list[VehicleConfig]) -> None:
         ):
             if key in seen:
                 raise ConfigError(
-                    top.source,
+                    source,
                     f"vehicles[{i}].{what}",
                     f"same {what} as vehicles[{seen[key]}]; every vehicle needs its own {what} "
                     "(one endpoint and one sysid per vehicle, so no pose goes out on another's link)",
@@ -397,7 +396,7 @@ def _check_unique(top: Section, vehicles: list[VehicleConfig]) -> None:
             port_key = ("udpin-port", v.endpoint.port)
             if port_key in seen:
                 raise ConfigError(
-                    top.source,
+                    source,
                     f"vehicles[{i}].endpoint",
                     f"udpin port {v.endpoint.port} is already used by vehicles[{seen[port_key]}]",
                 )
@@ -406,7 +405,7 @@ def _check_unique(top: Section, vehicles: list[VehicleConfig]) -> None:
 
 def parse_pose_stream(arena: ArenaConfig) -> PoseStreamConfig | None:
     """Validate `pose_stream:`; None when absent or `enabled: false`."""
-    if "pose_stream" not in arena.raw:
+    if not arena.given("pose_stream"):
         return None
     s = POSE_STREAM.check(arena.section("pose_stream"))
     P = POSE_STREAM
@@ -445,5 +444,5 @@ def parse_pose_stream(arena: ArenaConfig) -> PoseStreamConfig | None:
 def pivot_array(cfg: VehicleConfig) -> np.ndarray:
     return np.asarray(cfg.pivot_offset, dtype=np.float64)
 
-register_section("vehicles", VEHICLE)
-register_section("pose_stream", POSE_STREAM)
+register_section("vehicles", VEHICLE, parse_vehicles)
+register_section("pose_stream", POSE_STREAM, parse_pose_stream)

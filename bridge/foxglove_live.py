@@ -65,7 +65,6 @@ FOXGLOVE = section(
     Setting("handshake_timeout_s", "number", 5.0, "a connection whose WebSocket handshake is not done by then is "
             "closed", min=0.1, max=60.0),
 )
-register_section("foxglove", FOXGLOVE)
 
 
 @dataclass(frozen=True)
@@ -82,7 +81,7 @@ class FoxgloveConfig:
 
 def parse_foxglove(arena: ArenaConfig) -> FoxgloveConfig | None:
     """Validate `foxglove:`; None when absent or `enabled: false`."""
-    if "foxglove" not in arena.raw:
+    if not arena.given("foxglove"):
         return None
     s = FOXGLOVE.check(arena.section("foxglove"))
     F = FOXGLOVE
@@ -91,6 +90,9 @@ def parse_foxglove(arena: ArenaConfig) -> FoxgloveConfig | None:
     return FoxgloveConfig(host=F.read(s, "host"), port=F.read(s, "port"), rate_hz=F.read(s, "rate_hz"),
                           backlog=F.read(s, "backlog"), max_clients=F.read(s, "max_clients"),
                           handshake_timeout_s=F.read(s, "handshake_timeout_s"))
+
+
+register_section("foxglove", FOXGLOVE, parse_foxglove)
 
 
 def _sdk(source: str) -> Any:

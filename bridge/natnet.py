@@ -70,7 +70,6 @@ NATNET = section(
             "send keep-alives)", min=0.5, max=86400.0),
     Setting("markers", "boolean", True, "also stream labelled (model-solved body) and unlabelled markers"),
 )
-register_section("natnet", NATNET)
 
 
 @dataclass(frozen=True)
@@ -97,7 +96,7 @@ class NatNetConfig:
 
 def parse_natnet(arena: ArenaConfig) -> NatNetConfig | None:
     """Validate `natnet:`; None when absent or `enabled: false`."""
-    if "natnet" not in arena.raw:
+    if not arena.given("natnet"):
         return None
     s = NATNET.check(arena.section("natnet"))
     N = NATNET
@@ -131,6 +130,9 @@ def parse_natnet(arena: ArenaConfig) -> NatNetConfig | None:
         bitstream=(major, minor), rate_hz=N.read(s, "rate_hz"), max_clients=N.read(s, "max_clients"),
         client_timeout_s=N.read(s, "client_timeout_s"), markers=N.read(s, "markers"),
     )
+
+
+register_section("natnet", NATNET, parse_natnet)
 
 
 def to_stream_axes(points: np.ndarray, up_axis: str) -> np.ndarray:

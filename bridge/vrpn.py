@@ -111,7 +111,7 @@ class VrpnConfig:
 
 def parse_vrpn(arena: ArenaConfig) -> VrpnConfig | None:
     """Validate `vrpn:`; None when absent or `enabled: false`."""
-    if arena.raw.get("vrpn") is None:
+    if not arena.given("vrpn"):
         return None
     s = VRPN.check(arena.section("vrpn"))
     if not VRPN.read(s, "enabled"):
@@ -695,4 +695,4 @@ def _parse_lob(data: bytes) -> int | None:
 
 _HOST_CHARS = frozenset(b"abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789.")
 
-register_section("vrpn", VRPN)
+register_section("vrpn", VRPN, parse_vrpn)

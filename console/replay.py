@@ -54,7 +54,7 @@ class ReplaySession:
         self._reset()
 
     def _reset(self) -> None:
-        self.pipeline = FusionPipeline(self.arena, self.arena.raw.get("fusion"))
+        self.pipeline = FusionPipeline(self.arena)
         self._now = self.t0_ns
         fed: Any = self.pipeline
         if self.calibration is not None:

@@ -60,30 +60,6 @@ class ConsoleSettings:
     token_generated: bool = False
     stations: tuple[str, ...] = ()  # station YAML paths, resolved against the arena file
 
-    @classmethod
-    def from_arena(cls, arena: ArenaConfig) -> "ConsoleSettings":
-        s = CONSOLE.check(arena.section("console"))
-        values = CONSOLE.parse(s)
-        try:
-            ipaddress.ip_address(values["bind"])
-        except ValueError:
-            raise s.error("bind", f"{values['bind']!r} is no IP address; give 127.0.0.1 (this computer only), "
-                                  "this host's address on the lab network, or 0.0.0.0 for every interface") from None
-        if values["camera_view_rate_hz"] > values["update_rate_hz"]:
-            raise s.error("camera_view_rate_hz", f"{values['camera_view_rate_hz']:g} camera views per second "
-                          f"cannot ride on {values['update_rate_hz']:g} updates per second; give at most "
-                          "update_rate_hz, or raise update_rate_hz")
-        token = values["token"]
-        if token is not None and (len(token) < MIN_TOKEN_CHARS or not token.isprintable() or " " in token):
-            raise s.error("token", f"give at least {MIN_TOKEN_CHARS} printable characters without spaces (e.g. "
-                                   "the output of `python -c \"import secrets; print(secrets.token_urlsafe())\"`)")
-        stations = s.data.get("stations", [])
-        if not isinstance(stations, list) or not all(isinstance(p, str) and p for p in stations):
-            raise s.error("stations", "give a list of station YAML paths, e.g. [station1.yaml, station2.yaml]")
-        base = Path(arena.source).parent
-        values["stations"] = tuple(str(p if Path(p).is_absolute() else base / p) for p in stations)
-        return cls(**values).with_token()
-
     def with_address(self, bind: str | None = None, port: int | None = None) -> "ConsoleSettings":
         """--console-bind / --console-port applied (UsageError for a bad address or port)."""
         out = self
@@ -111,4 +87,29 @@ class ConsoleSettings:
         return ipaddress.ip_address(self.bind).is_loopback
 
 
-register_section("console", CONSOLE)
+def parse_console(arena: ArenaConfig) -> ConsoleSettings:
+    """The validated `console:` section (station paths resolved against the arena file)."""
+    s = CONSOLE.check(arena.section("console"))
+    values = CONSOLE.parse(s)
+    try:
+        ipaddress.ip_address(values["bind"])
+    except ValueError:
+        raise s.error("bind", f"{values['bind']!r} is no IP address; give 127.0.0.1 (this computer only), "
+                              "this host's address on the lab network, or 0.0.0.0 for every interface") from None
+    if values["camera_view_rate_hz"] > values["update_rate_hz"]:
+        raise s.error("camera_view_rate_hz", f"{values['camera_view_rate_hz']:g} camera views per second "
+                      f"cannot ride on {values['update_rate_hz']:g} updates per second; give at most "
+                      "update_rate_hz, or raise update_rate_hz")
+    token = values["token"]
+    if token is not None and (len(token) < MIN_TOKEN_CHARS or not token.isprintable() or " " in token):
+        raise s.error("token", f"give at least {MIN_TOKEN_CHARS} printable characters without spaces (e.g. "
+                               "the output of `python -c \"import secrets; print(secrets.token_urlsafe())\"`)")
+    stations = s.data.get("stations", [])
+    if not isinstance(stations, list) or not all(isinstance(p, str) and p for p in stations):
+        raise s.error("stations", "give a list of station YAML paths, e.g. [station1.yaml, station2.yaml]")
+    base = Path(arena.source).parent
+    values["stations"] = tuple(str(p if Path(p).is_absolute() else base / p) for p in stations)
+    return ConsoleSettings(**values).with_token()
+
+
+register_section("console", CONSOLE, parse_console)

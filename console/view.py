@@ -61,16 +61,15 @@ def scene(arena: Any) -> dict[str, Any]:
     """The static part: each camera's intrinsics and pose (camera->world), each body's markers, the
     calibration's residuals. Sent once per client."""
     cams = []
-    raw_cams = arena.raw.get("cameras") or []
-    for i, c in enumerate(arena.cameras):
+    stations = arena.camera_stations()
+    for c in arena.cameras:
         m = c.model
         R_c2w = np.asarray(c.R).T
         centre = -R_c2w @ np.asarray(c.t)
-        raw = raw_cams[i] if i < len(raw_cams) and isinstance(raw_cams[i], dict) else {}
         cams.append({
             "id": c.id, "name": c.name, "width": m.width, "height": m.height, "fx": m.fx, "fy": m.fy,
             "cx": m.cx, "cy": m.cy, "fps": float(c.fps), "position": [round(float(v), 5) for v in centre],
-            "R_c2w": [[round(float(v), 6) for v in row] for row in R_c2w], "station": raw.get("station"),
+            "R_c2w": [[round(float(v), 6) for v in row] for row in R_c2w], "station": stations[c.id],
         })
     bodies = [{"name": b.name, "id": b.id, "markers": [[round(float(v), 5) for v in p] for p in b.markers]}
               for b in arena.bodies]
@@ -80,8 +79,7 @@ def scene(arena: Any) -> dict[str, Any]:
 
 def calibration_residuals(arena: Any) -> dict[str, float]:
     """Camera name -> reprojection RMS (px) of the wand calibration, where the arena carries its report."""
-    cal = arena.raw.get("calibration") or {}
-    ext = cal.get("extrinsics") if isinstance(cal, dict) else None
+    ext = arena.section("calibration").data.get("extrinsics")  # the report `calibrate extrinsics` wrote
     rms = ext.get("rms_px") if isinstance(ext, dict) else None
     if not isinstance(rms, dict):
         return {}

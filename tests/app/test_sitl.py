@@ -38,12 +38,12 @@ def test_sitl_section_in_the_arena_file_is_read_and_checked(tmp_path):
     binary.chmod(0o755)
     arena = S.sitl_arena("thesis", [f"sitl.binary={binary}", "sitl.viso_pos_m_nse=0.02"], 60.0)
     assert S.find_sitl_binary(None, arena) == binary
-    cfg = S.SitlSettings.from_arena(arena, binary)
+    cfg = S.parse_sitl(arena, binary)
     assert cfg.viso_pos_m_nse == 0.02 and cfg.home[:2] == (-35.363261, 149.16523)
     with pytest.raises(ConfigError, match="sitl.binary"):
         S.find_sitl_binary(None, S.sitl_arena("thesis", [f"sitl.binary={tmp_path / 'none'}"], 60.0))
     with pytest.raises(ConfigError, match="sitl.*viso_delay"):
-        S.SitlSettings.from_arena(S.sitl_arena("thesis", ["sitl.viso_delay=5"], 60.0), binary)
+        S.parse_sitl(S.sitl_arena("thesis", ["sitl.viso_delay=5"], 60.0), binary)
 
 
 def _sim_state(north: float, east: float, up: float, v_ned, q_wxyz, gyro_frd=(0.0, 0.0, 0.0)):

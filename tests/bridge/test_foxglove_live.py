@@ -347,7 +347,7 @@ def test_a_running_server_streams_each_cameras_blobs_and_its_health(arena_yaml):
     from visionpos.app.serve import bridge_sinks
     from visionpos.messages import BlobFrame
     from visionpos.server.service import FusionServer
-    from visionpos.server.settings import ServerSettings
+    from visionpos.server.settings import parse_server
 
     y = arena_yaml("thesis")
     fox_port = free_port(socket.SOCK_STREAM)
@@ -355,7 +355,7 @@ def test_a_running_server_streams_each_cameras_blobs_and_its_health(arena_yaml):
     y["server"] = {"insecure": True, "status_period_s": 0.2, "start_delay_s": 0.0}
     arena = parse_arena(y, "a.yaml")
     sinks = bridge_sinks(arena)
-    server = FusionServer(arena, ServerSettings.from_arena(arena), sinks, host="127.0.0.1", port=0)
+    server = FusionServer(arena, parse_server(arena), sinks, host="127.0.0.1", port=0)
     loop = asyncio.new_event_loop()
     started = threading.Event()
     stop: asyncio.Event | None = None

@@ -110,12 +110,11 @@ def test_wand_and_lframe_from_the_arena_yaml():
     assert (spec.ab, spec.bc, spec.known, mx) == (0.06, 0.11, "ac", 0.0)
     layout, h = ground_layout(arena)
     assert layout.shape == (3, 3) and layout[1, 0] == 0.3 and h == 0.005
-    bad = parse_arena({**base, "calibration": {"wand": {"abb": 0.05}}}, "a.yaml")
+    # a misspelt or invalid key fails as the arena loads
     with pytest.raises(ConfigError, match=r"a.yaml.*calibration.wand.*abb"):
-        wand_settings(bad)
-    bad = parse_arena({**base, "calibration": {"wand": {"known": "cd"}}}, "a.yaml")
+        parse_arena({**base, "calibration": {"wand": {"abb": 0.05}}}, "a.yaml")
     with pytest.raises(ConfigError, match="known"):
-        wand_settings(bad)
+        parse_arena({**base, "calibration": {"wand": {"known": "cd"}}}, "a.yaml")
 
 
 def test_cli_reports_clock_offsets_and_writes_them(tmp_path, capsys):

@@ -30,7 +30,7 @@ def test_keygen_writes_32_bytes_mode_0600_and_refuses_to_overwrite(tmp_path, cap
 
 def test_keygen_default_place_is_the_one_the_configs_read(tmp_path, monkeypatch, capsys):
     from visionpos.config.arena import parse_arena
-    from visionpos.server.settings import ServerSettings
+    from visionpos.server.settings import parse_server
 
     monkeypatch.delenv("VISIONPOS_KEY_FILE")
     monkeypatch.setenv("HOME", str(tmp_path))
@@ -38,7 +38,7 @@ def test_keygen_default_place_is_the_one_the_configs_read(tmp_path, monkeypatch,
     path = tmp_path / ".config" / "visionpos" / "key"
     assert len(path.read_bytes()) == 32 and _mode(path) == 0o600
     assert "default place" in capsys.readouterr().out
-    s = ServerSettings.from_arena(parse_arena({"cameras": [], "bodies": []}, str(tmp_path / "arena.yaml")))
+    s = parse_server(parse_arena({"cameras": [], "bodies": []}, str(tmp_path / "arena.yaml")))
     assert s.key == path.read_bytes()
     # $VISIONPOS_KEY_FILE moves the default for both
     monkeypatch.setenv("VISIONPOS_KEY_FILE", str(tmp_path / "elsewhere.key"))

@@ -3,7 +3,7 @@ import copy
 import pytest
 
 from visionpos.config.arena import ConfigError, load_yaml, parse_arena, resolve_config_path
-from visionpos.sim.scenario import scenario_from_arena
+from visionpos.sim.scenario import parse_sim
 
 
 @pytest.fixture(scope="module")
@@ -37,4 +37,4 @@ def test_unknown_sim_key(raw, sub, key, close):
         node = node.setdefault(w, {})
     node[key] = 1
     with pytest.raises(ConfigError, match=f"did you mean `{close}`"):
-        scenario_from_arena(parse_arena(data, "a.yaml"))
+        parse_sim(parse_arena(data, "a.yaml"))

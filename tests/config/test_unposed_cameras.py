@@ -5,7 +5,7 @@ import asyncio
 import pytest
 
 from visionpos.config.arena import ConfigError, load_yaml, parse_arena, resolve_config_path
-from visionpos.server.settings import ServerSettings
+from visionpos.server.settings import parse_server
 
 
 def _unposed_thesis(tmp_path, keep_first_pose=False):
@@ -25,14 +25,14 @@ def test_cameras_without_pose_load_and_are_listed(tmp_path):
 
 def test_fusion_simulator_and_planner_refuse_them_naming_the_fix(tmp_path):
     from visionpos.fusion.pipeline import FusionPipeline
-    from visionpos.sim.scenario import scenario_from_arena
+    from visionpos.sim.scenario import parse_sim
 
     arena = _unposed_thesis(tmp_path)
     with pytest.raises(ConfigError, match=r"arena.yaml: cameras\[0\].pose: fusion needs every camera's pose.*"
                                           r"visionpos calibrate wand"):
         FusionPipeline(arena)
     with pytest.raises(ConfigError, match="the simulator needs every camera's pose"):
-        scenario_from_arena(arena)
+        parse_sim(arena)
 
 
 def test_record_runs_without_poses(tmp_path):
@@ -40,7 +40,7 @@ def test_record_runs_without_poses(tmp_path):
 
     arena = _unposed_thesis(tmp_path)
     out = tmp_path / "wave.mcap"
-    asyncio.run(record_traffic(arena, ServerSettings.from_arena(arena), out, duration_s=0.2))
+    asyncio.run(record_traffic(arena, parse_server(arena), out, duration_s=0.2))
     assert out.stat().st_size > 0
 
 

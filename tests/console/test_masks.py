@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from console.settings import ConsoleSettings
+from console.settings import parse_console
 from visionpos.app.console import station_masks
 from visionpos.config.arena import ConfigError, parse_arena
 
@@ -34,7 +34,7 @@ def test_station_files_give_each_camera_its_rois_ignore_and_mask(tmp_path, arena
     (tmp_path / "st2.yaml").write_text(yaml.safe_dump({"camera_id": cam["id"], "detector": {"mask": "mask2.png"}}))
     data["console"] = {"stations": ["st1.yaml", "st2.yaml"]}
     arena = parse_arena(data, str(tmp_path / "arena.yaml"))
-    settings = ConsoleSettings.from_arena(arena)
+    settings = parse_console(arena)
     masks = station_masks(arena, settings.stations)
     first, second = masks[data["cameras"][0]["id"]], masks[cam["id"]]
     assert first["rois"] == [[10, 20, 400, 300]] and first["ignore"] == [[50, 60, 70, 80]]
@@ -52,7 +52,7 @@ def test_a_station_file_of_no_arena_camera_is_refused(tmp_path, arena_yaml):
     data["console"] = {"stations": ["st9.yaml"]}
     arena = parse_arena(data, str(tmp_path / "arena.yaml"))
     with pytest.raises(ConfigError, match="camera_id"):
-        station_masks(arena, ConsoleSettings.from_arena(arena).stations)
+        station_masks(arena, parse_console(arena).stations)
     data["console"] = {"stations": "st9.yaml"}
     with pytest.raises(ConfigError, match="console.stations"):
-        ConsoleSettings.from_arena(parse_arena(data, str(tmp_path / "arena.yaml")))
+        parse_console(parse_arena(data, str(tmp_path / "arena.yaml")))

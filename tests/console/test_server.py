@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from console.server import QUEUE_UPDATES, Client, ConsoleServer
-from console.settings import ConsoleSettings
+from console.settings import ConsoleSettings, parse_console
 from visionpos.config.arena import ConfigError, parse_arena
 from visionpos.fusion.tracks import Observation
 from visionpos.messages import BodyState
@@ -156,17 +156,17 @@ def test_console_config_keys_are_checked(arena_yaml):
     data = arena_yaml("thesis")
     data["console"] = {"token": "short"}
     with pytest.raises(ConfigError, match="console.token"):
-        ConsoleSettings.from_arena(parse_arena(data, "a.yaml"))
+        parse_console(parse_arena(data, "a.yaml"))
     data["console"] = {"bind": "localhost"}
     with pytest.raises(ConfigError, match="console.bind"):
-        ConsoleSettings.from_arena(parse_arena(data, "a.yaml"))
+        parse_console(parse_arena(data, "a.yaml"))
     data["console"] = {"max_client": 3}
     with pytest.raises(ConfigError, match="max_clients"):
-        ConsoleSettings.from_arena(parse_arena(data, "a.yaml"))
+        parse_console(parse_arena(data, "a.yaml"))
     data["console"] = {"update_rate_hz": 20, "camera_view_rate_hz": 25}
     with pytest.raises(ConfigError, match="console.camera_view_rate_hz.*at most update_rate_hz"):
-        ConsoleSettings.from_arena(parse_arena(data, "a.yaml"))
-    assert ConsoleSettings.from_arena(parse_arena(arena_yaml("thesis"), "a.yaml")).camera_view_rate_hz == 10.0
+        parse_console(parse_arena(data, "a.yaml"))
+    assert parse_console(parse_arena(arena_yaml("thesis"), "a.yaml")).camera_view_rate_hz == 10.0
 
 
 def test_the_camera_views_ride_on_camera_view_rate_hz_of_the_updates(arena):

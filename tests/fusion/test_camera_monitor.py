@@ -8,7 +8,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from visionpos.config.arena import ConfigError, load_arena
-from visionpos.fusion.camera_monitor import CameraMonitor, MonitorSettings, apply_correction, pose_correction
+from visionpos.fusion.camera_monitor import (
+    CameraMonitor,
+    MonitorSettings,
+    apply_correction,
+    parse_camera_monitor,
+    pose_correction,
+)
 
 
 def _angle_deg(Ra, Rb):
@@ -80,10 +86,10 @@ def test_settings_are_checked_and_the_server_reports_the_monitor(tmp_path):
     from visionpos.server.service import FusionServer, load_config_with_overrides
 
     arena = load_config_with_overrides("thesis", ["server.insecure=true", "camera_monitor.flag_px=0.3"])
-    assert MonitorSettings.from_arena(arena).flag_px == 0.3
+    assert parse_camera_monitor(arena).flag_px == 0.3
     server = FusionServer(arena, port=0)
     assert set(server.health()["camera_monitor"]["cameras"]) == {c.id for c in arena.cameras}
     with pytest.raises(ConfigError, match="camera_monitor.flag_px"):
-        MonitorSettings.from_arena(load_config_with_overrides("thesis", ["camera_monitor.flag_px=-1"]))
+        parse_camera_monitor(load_config_with_overrides("thesis", ["camera_monitor.flag_px=-1"]))
     off = load_config_with_overrides("thesis", ["server.insecure=true", "camera_monitor.enabled=false"])
     assert FusionServer(off, port=0).monitor is None

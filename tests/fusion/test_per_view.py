@@ -9,7 +9,7 @@ import pytest
 from visionpos.benchmarks.fusion_flights import fly
 from visionpos.config.arena import ConfigError, load_arena
 from visionpos.fusion.pipeline import FusionPipeline
-from visionpos.fusion.settings import parse_fusion_settings
+from visionpos.fusion.settings import parse_fusion
 from visionpos.sim import load_scenario, simulate
 
 ALWAYS = {"single_view": {"mode": "always"}}
@@ -17,12 +17,12 @@ ALWAYS = {"single_view": {"mode": "always"}}
 
 def test_mode_is_declared_and_checked():
     arena = load_arena("thesis")
-    assert parse_fusion_settings(arena, {}).single_view.mode == "always"
-    assert parse_fusion_settings(arena, {"single_view.mode": "occlusion"}).single_view.mode == "occlusion"
+    assert parse_fusion(arena, {}).single_view.mode == "always"
+    assert parse_fusion(arena, {"single_view.mode": "occlusion"}).single_view.mode == "occlusion"
     with pytest.raises(ConfigError, match="fusion.single_view.mode"):
-        parse_fusion_settings(arena, {"single_view.mode": "every"})
+        parse_fusion(arena, {"single_view.mode": "every"})
     with pytest.raises(ConfigError, match="needs the single-view path"):
-        parse_fusion_settings(arena, {"single_view": {"mode": "always", "enabled": False}})
+        parse_fusion(arena, {"single_view": {"mode": "always", "enabled": False}})
 
 
 def test_a_triangulated_body_is_kept_by_per_view_updates():

@@ -21,7 +21,7 @@ from visionpos import protocol as P
 from visionpos.config.arena import ConfigError, load_arena, load_yaml, parse_arena, resolve_config_path
 from visionpos.messages import FLAG_RESYNC, BlobFrame
 from visionpos.server.ingest import ClockJump, Ingest, IngestEvent
-from visionpos.server.settings import ServerSettings
+from visionpos.server.settings import ServerSettings, parse_server
 
 ADDR = ("127.0.0.1", 40000)
 MS = 1_000_000
@@ -429,14 +429,14 @@ def test_recorder_gets_only_accepted_packets():
 ])
 def test_config_errors_name_the_key(server, key, what, tmp_path):
     with pytest.raises(ConfigError) as ei:
-        ServerSettings.from_arena(_arena(server, tmp_path))
+        parse_server(_arena(server, tmp_path))
     assert ei.value.key == key and what in str(ei.value) and "arena.yaml" in str(ei.value)
 
 
 def test_empty_key_file_refused(tmp_path):
     (tmp_path / "k").write_bytes(b"")
     with pytest.raises(ConfigError, match="server.key_file.*empty"):
-        ServerSettings.from_arena(_arena({"key_file": "k"}, tmp_path))
+        parse_server(_arena({"key_file": "k"}, tmp_path))
 
 
 def test_builtin_config_defaults():

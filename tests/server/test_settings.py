@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from visionpos.config.arena import ConfigError, parse_arena
-from visionpos.server.settings import SERVER, ServerSettings
+from visionpos.server.settings import SERVER, ServerSettings, parse_server
 
 ROOT = Path(__file__).resolve().parents[2]
 KEY = bytes(range(32))
@@ -22,21 +22,21 @@ def _arena(server, tmp_path=None, **extra):
 
 
 def test_defaults_equal_the_declared_ones():
-    s = ServerSettings.from_arena(_arena({"insecure": True}))
+    s = parse_server(_arena({"insecure": True}))
     assert s == ServerSettings(insecure=True)
     assert s.port == SERVER["port"].default and s.shed_backlog_ms == 15.0 and s.bind == "127.0.0.1"
 
 
 def test_unknown_server_key():
     with pytest.raises(ConfigError, match=r"server.outptu_rate_hz: unknown key \(did you mean `output_rate_hz`"):
-        ServerSettings.from_arena(_arena({"outptu_rate_hz": 50}))
+        parse_server(_arena({"outptu_rate_hz": 50}))
 
 
 def test_no_key_and_not_insecure_is_an_error_naming_file_key_and_fix(tmp_path, monkeypatch):
     missing = tmp_path / "nowhere" / "key"
     monkeypatch.setenv("VISIONPOS_KEY_FILE", str(missing))
     with pytest.raises(ConfigError) as ei:
-        ServerSettings.from_arena(_arena({}, tmp_path))
+        parse_server(_arena({}, tmp_path))
     e = ei.value
     assert e.source == str(tmp_path / "arena.yaml") and e.key == "server.key_file"
     assert str(missing) in e.message and "visionpos keygen" in e.message and "every station" in e.message
@@ -46,22 +46,22 @@ def test_no_key_and_not_insecure_is_an_error_naming_file_key_and_fix(tmp_path, m
 def test_default_key_file_env_then_home(tmp_path, monkeypatch):
     (tmp_path / "k").write_bytes(KEY)
     monkeypatch.setenv("VISIONPOS_KEY_FILE", str(tmp_path / "k"))
-    s = ServerSettings.from_arena(_arena({}, tmp_path))
+    s = parse_server(_arena({}, tmp_path))
     assert s.key == KEY and s.key_file == str(tmp_path / "k") and not s.insecure
     monkeypatch.delenv("VISIONPOS_KEY_FILE")
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     (tmp_path / "home" / ".config" / "visionpos").mkdir(parents=True)
     (tmp_path / "home" / ".config" / "visionpos" / "key").write_bytes(KEY[::-1])
-    assert ServerSettings.from_arena(_arena({}, tmp_path)).key == KEY[::-1]
+    assert parse_server(_arena({}, tmp_path)).key == KEY[::-1]
 
 
 def test_key_file_relative_to_the_arena_and_in_memory_key(tmp_path):
     (tmp_path / "lab.key").write_bytes(KEY)
-    assert ServerSettings.from_arena(_arena({"key_file": "lab.key"}, tmp_path)).key == KEY
+    assert parse_server(_arena({"key_file": "lab.key"}, tmp_path)).key == KEY
     # the demo's in-memory key replaces the default file, never a configured choice
-    assert ServerSettings.from_arena(_arena({}, tmp_path), key=b"m" * 32).key == b"m" * 32
-    assert ServerSettings.from_arena(_arena({"key_file": "lab.key"}, tmp_path), key=b"m" * 32).key == KEY
-    assert ServerSettings.from_arena(_arena({"insecure": True}, tmp_path), key=b"m" * 32).key is None
+    assert parse_server(_arena({}, tmp_path), key=b"m" * 32).key == b"m" * 32
+    assert parse_server(_arena({"key_file": "lab.key"}, tmp_path), key=b"m" * 32).key == KEY
+    assert parse_server(_arena({"insecure": True}, tmp_path), key=b"m" * 32).key is None
 
 
 @pytest.mark.parametrize("server, key, what", [
@@ -74,7 +74,7 @@ def test_key_and_bind_config_errors(server, key, what, tmp_path):
     (tmp_path / "lab.key").write_bytes(KEY)
     (tmp_path / "short.key").write_bytes(b"password")
     with pytest.raises(ConfigError) as ei:
-        ServerSettings.from_arena(_arena(server, tmp_path))
+        parse_server(_arena(server, tmp_path))
     assert ei.value.key == key and what in ei.value.message
 
 
@@ -153,7 +153,7 @@ def test_listening_socket_binds_to_server_bind(command, tmp_path, monkeypatch):
 
     arena = load_config_with_overrides("thesis", ["server.insecure=true", "server.port=0",
                                                   "server.status_period_s=0"])
-    settings = ServerSettings.from_arena(arena)
+    settings = parse_server(arena)
     assert settings.bind == "127.0.0.1"
     bound = []
     real_bind = socket.socket.bind

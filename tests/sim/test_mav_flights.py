@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from visionpos.config.arena import ConfigError, Section, load_yaml, parse_arena, resolve_config_path
-from visionpos.sim import load_scenario, scenario_from_arena, simulate
+from visionpos.sim import load_scenario, parse_sim, simulate
 from visionpos.sim import trajectories as T
 
 
@@ -103,7 +103,7 @@ def _arena_with_session(entry: dict):
 )
 def test_mav_trajectory_config_errors_name_the_key(entry, key, match):
     with pytest.raises(ConfigError, match=match) as e:
-        scenario_from_arena(_arena_with_session(entry), session="f")
+        parse_sim(_arena_with_session(entry), session="f")
     assert e.value.key == f"sim.sessions.f.quad.{key}"
 
 

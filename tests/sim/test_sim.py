@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from visionpos.config.arena import ConfigError, load_arena, load_yaml, parse_arena, resolve_config_path
 from visionpos.messages import FLAG_TRUNCATED
-from visionpos.sim import iter_frames, load_scenario, scenario_from_arena, simulate
+from visionpos.sim import iter_frames, load_scenario, parse_sim, simulate
 from visionpos.sim import trajectories as T
 from visionpos.sim.capture import SPURIOUS_MIRROR, SPURIOUS_RANDOM, SPURIOUS_STATIC
 
@@ -129,23 +129,23 @@ def test_hover_stays_close_and_wand_sweeps_volume():
 def test_trajectory_config_errors_name_the_key():
     arena = _arena_with({"sessions": {"f": {"quad": {"trajectory": "loop"}}}})
     with pytest.raises(ConfigError) as e:
-        scenario_from_arena(arena)
+        parse_sim(arena)
     assert e.value.key == "sim.sessions.f.quad.trajectory" and "square" in str(e.value)
     arena = _arena_with({"sessions": {"f": {"quad": {"trajectory": "square", "side": -1}}}})
     with pytest.raises(ConfigError) as e:
-        scenario_from_arena(arena)
+        parse_sim(arena)
     assert e.value.key == "sim.sessions.f.quad.side"
     arena = _arena_with({"sessions": {"f": {"quad": {"trajectory": "square", "speed": 2}}}})
     with pytest.raises(ConfigError, match="unknown key") as e:
-        scenario_from_arena(arena)
+        parse_sim(arena)
     assert e.value.key == "sim.sessions.f.quad.speed"
     arena = _arena_with({"sessions": {"f": {"quad": {"trajectory": "aggressive", "radius": 0.3, "peak_speed": 3}}}})
     with pytest.raises(ConfigError, match="tilt") as e:  # 30 m/s^2 centripetal: no quadrotor does that
-        scenario_from_arena(arena)
+        parse_sim(arena)
     assert e.value.key == "sim.sessions.f.quad.peak_speed"
     arena = _arena_with({"sessions": {"f": {"drone9": {"trajectory": "hover"}}}})
     with pytest.raises(ConfigError, match="no body or prop named 'drone9'"):
-        scenario_from_arena(arena)
+        parse_sim(arena)
 
 
 def test_sim_section_errors_name_the_key():
@@ -286,7 +286,7 @@ def test_noiseless_blobs_reproject_exactly_from_truth():
 def test_frame_timing_drops_and_jitter_statistics():
     sim = dict(QUIET, duration=20.0, drop_probability=0.1, timing_jitter_us=30, sync_residual_us=80)
     sim["latency_ms"] = {"mean": 5.0, "std": 1.0, "max": 9.0}
-    sc = scenario_from_arena(_arena_with(sim))
+    sc = parse_sim(_arena_with(sim))
     res = simulate(sc)
     by_cam = {}
     for f, tr in zip(res.frames, res.frame_truth):
@@ -325,14 +325,14 @@ def test_occlusion_by_disc_and_marker_normal():
     sim = dict(QUIET, sessions={"s": {"probe": {"trajectory": "static", "position": [0.0, 0.0, 0.8]}}})
     # a 20 cm disc between the lower marker and every (higher) camera; no normal cut
     sim["occlusion"] = {"disc_radius": 0.2, "normal_cutoff_deg": 180}
-    res = simulate(scenario_from_arena(_arena_with(sim, bodies)))
+    res = simulate(parse_sim(_arena_with(sim, bodies)))
     for tr in res.frame_truth:
         assert sorted(tr.marker.tolist()) == [0, 2, 3]
     # normal cut: markers 0 and 1 sit on the body axis and face straight up;
     # every camera is ~61 deg off vertical from here
     for cutoff, want in ((55, []), (70, [0, 1])):
         sim["occlusion"] = {"disc_radius": 0.0, "normal_cutoff_deg": cutoff}
-        res = simulate(scenario_from_arena(_arena_with(sim, bodies)))
+        res = simulate(parse_sim(_arena_with(sim, bodies)))
         elev = [
             np.degrees(np.arccos((c.center - [0, 0, 0.8])[2] / np.linalg.norm(c.center - [0, 0, 0.8])))
             for c in res.scenario.cameras
@@ -342,7 +342,7 @@ def test_occlusion_by_disc_and_marker_normal():
             # markers 2 and 3 are off-axis (normals lean outward): check 0 and 1 only
             assert sorted(set(tr.marker.tolist()) & {0, 1}) == want
     sim["occlusion"] = {"enabled": False}
-    res = simulate(scenario_from_arena(_arena_with(sim, bodies)))
+    res = simulate(parse_sim(_arena_with(sim, bodies)))
     assert all(sorted(tr.marker.tolist()) == [0, 1, 2, 3] for tr in res.frame_truth)
 
 
@@ -384,7 +384,7 @@ def test_out_of_view_markers_absent():
     bodies = [{"name": "cloud", "id": 1, "markers": pts.tolist()}]
     sim = dict(QUIET, duration=0.2, sessions={"s": {"cloud": {"trajectory": "static", "position": [0, 0, 0]}}})
     sim["occlusion"] = {"enabled": False}
-    res = simulate(scenario_from_arena(_arena_with(sim, bodies)))
+    res = simulate(parse_sim(_arena_with(sim, bodies)))
     cams = res.scenario.arena.camera_by_id()
     some_hidden = False
     for f, tr in zip(res.frames, res.frame_truth):
@@ -402,7 +402,7 @@ def test_out_of_view_markers_absent():
 
 def test_spurious_blobs_at_configured_rate():
     sim = dict(QUIET, duration=10.0, spurious={"static_per_camera": 3, "random_per_frame": 0.5})
-    res = simulate(scenario_from_arena(_arena_with(sim)))
+    res = simulate(parse_sim(_arena_with(sim)))
     n_static = np.array([np.count_nonzero(tr.marker == SPURIOUS_STATIC) for tr in res.frame_truth])
     n_rand = np.array([np.count_nonzero(tr.marker == SPURIOUS_RANDOM) for tr in res.frame_truth])
     assert (n_static == 3).all()
@@ -423,7 +423,7 @@ def test_spurious_blobs_at_configured_rate():
 
 def test_floor_mirror_images_and_blob_cap():
     sim = dict(QUIET, duration=1.0, spurious={"static_per_camera": 0, "random_per_frame": 0.0, "floor_mirror": 0.3})
-    sc = scenario_from_arena(_arena_with(sim))
+    sc = parse_sim(_arena_with(sim))
     res = simulate(sc)
     quad = sc.bodies[0]
     n = 0
@@ -442,17 +442,17 @@ def test_floor_mirror_images_and_blob_cap():
     assert n > 100
     # a detector cap: at most max_blobs per frame, flagged as truncated
     sim = dict(QUIET, duration=0.5, max_blobs=10, spurious={"static_per_camera": 0, "random_per_frame": 30.0})
-    res = simulate(scenario_from_arena(_arena_with(sim)))
+    res = simulate(parse_sim(_arena_with(sim)))
     assert all(len(f.blobs) <= 10 for f in res.frames)
     assert sum(bool(f.flags & FLAG_TRUNCATED) for f in res.frames) > 0.9 * len(res.frames)
     with pytest.raises(ConfigError) as e:
-        scenario_from_arena(_arena_with(dict(QUIET, max_blobs=500)))
+        parse_sim(_arena_with(dict(QUIET, max_blobs=500)))
     assert e.value.key == "sim.max_blobs"
 
 
 def test_centroid_noise_matches_sigma():
     sim = dict(QUIET, duration=3.0, centroid_noise_px=0.3)
-    res = simulate(scenario_from_arena(_arena_with(sim)))
+    res = simulate(parse_sim(_arena_with(sim)))
     d = np.vstack([f.blobs[:, :2] - tr.true_xy for f, tr in zip(res.frames, res.frame_truth)])
     assert len(d) > 2000
     assert np.std(d) == pytest.approx(0.3, rel=0.05) and abs(d.mean()) < 0.02
@@ -527,7 +527,7 @@ def test_sim_cli_writes_a_replayable_recording(tmp_path, capsys):
 
 def test_per_camera_overrides_and_endless_stream():
     sim = dict(QUIET, duration=1.0, cameras={2: {"fps": 50, "phase_ms": 3.0}, "4": {"enabled": False}})
-    sc = scenario_from_arena(_arena_with(sim))
+    sc = parse_sim(_arena_with(sim))
     assert [t.camera_id for t in sc.timings] == [1, 2, 3]
     t2 = sc.timings[1]
     assert t2.fps == 50 and t2.phase_ns == 3e6
@@ -546,7 +546,7 @@ def test_per_camera_overrides_and_endless_stream():
 def test_rolling_shutter_rows_expose_later():
     sim = dict(QUIET, duration=0.5, rolling_shutter_ms=8.0)
     sim["sessions"] = {"s": {"quad": {"trajectory": "aggressive", "center": [0.0, 0.0, 1.0], "radius": 0.8}}}
-    sc = scenario_from_arena(_arena_with(sim))
+    sc = parse_sim(_arena_with(sim))
     res = simulate(sc)
     quad = sc.bodies[0]
     n = 0
@@ -566,7 +566,7 @@ def test_rolling_shutter_rows_expose_later():
         n += len(rows)
     assert n > 500
     # without a rolling shutter every blob is exposed at the frame time
-    res = simulate(scenario_from_arena(_arena_with(dict(sim, rolling_shutter_ms=0.0))))
+    res = simulate(parse_sim(_arena_with(dict(sim, rolling_shutter_ms=0.0))))
     assert all((tr.exposure_ns == tr.true_ns).all() for tr in res.frame_truth)
 
 
@@ -576,7 +576,7 @@ def test_overlapping_markers_merge_into_one_blob():
                "markers": [[0.0, 0.0, 0.0], [0.012, 0.0, 0.0], [0.3, 0.0, 0.0]]}]  # fmt: skip
     sim = dict(QUIET, duration=0.05, merge_blobs=True, occlusion={"enabled": False})
     sim["sessions"] = {"s": {"pair": {"trajectory": "static", "position": [0.0, 0.0, 1.0]}}}
-    res = simulate(scenario_from_arena(_arena_with(sim, bodies)))
+    res = simulate(parse_sim(_arena_with(sim, bodies)))
     assert res.frames
     for f, tr in zip(res.frames, res.frame_truth):
         cam = res.scenario.arena.camera_by_id()[f.camera_id]

@@ -214,7 +214,7 @@ class _ReplayLoop:
         self.period_ns = int(round(1e9 / float(rate_hz or settings.output_rate_hz)))
         self.check_ns = int(VANISH_CHECK_S * 1e9)
         self.speed = speed
-        self.pipe = FusionPipeline(arena, arena.raw.get("fusion"))
+        self.pipe = FusionPipeline(arena)
         self.now_ns = 0
         # the recording holds only what a live server accepted: trust its registrations, need no key
         self.ingest = Ingest(arena, settings, self.pipe, None, clock=lambda: self.now_ns, verify_cookies=False,

@@ -173,7 +173,7 @@ def check_sweep(log: str, grid: list[tuple[str, list[Any]]], base_overrides: Seq
     to the sweep, which reports those trials as failed.
     """
     from visionpos.analysis.replay import load_settings
-    from visionpos.fusion.settings import parse_fusion_settings
+    from visionpos.fusion.settings import parse_fusion
     from visionpos.recording import RecordingReader
     from visionpos.server.settings import ServerSettings
 
@@ -183,7 +183,7 @@ def check_sweep(log: str, grid: list[tuple[str, list[Any]]], base_overrides: Seq
 
     def validate(overrides: list[str]) -> None:
         arena = load_settings(recorded, config, overrides)
-        parse_fusion_settings(arena)
+        parse_fusion(arena)
         ServerSettings.for_replay(arena)
 
     validate(list(base_overrides))

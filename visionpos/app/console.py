@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from console.server import ConsoleServer
-from console.settings import ConsoleSettings
+from console.settings import ConsoleSettings, parse_console
 from visionpos.config.arena import ArenaConfig
 from visionpos.messages import BlobFrame
 
@@ -39,7 +39,7 @@ def add_calibrate_out_argument(p: argparse.ArgumentParser) -> None:
 
 def console_settings(arena: ArenaConfig, args: argparse.Namespace) -> ConsoleSettings | None:
     """The arena's console settings with --console-bind/--console-port; None when turned off."""
-    s = ConsoleSettings.from_arena(arena)
+    s = parse_console(arena)
     if getattr(args, "no_console", False) or not s.enabled:
         return None
     return s.with_address(getattr(args, "console_bind", None), getattr(args, "console_port", None))

@@ -452,11 +452,11 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     from bridge import Bridge
     from bridge.fake_autopilot import FakeAutopilot, decode_pose, trajectory_truth
     from visionpos.server.service import FusionServer
-    from visionpos.server.settings import ServerSettings
-    from visionpos.sim import scenario_from_arena, simulate
+    from visionpos.server.settings import parse_server
+    from visionpos.sim import parse_sim, simulate
 
     t_wall0 = time.perf_counter()
-    sc = scenario_from_arena(arena)
+    sc = parse_sim(arena)
     if live is not None:
         sc = live.prepare(sc)
     sim = simulate(sc) if live is None else None
@@ -466,7 +466,7 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
 
     # a fresh key in memory, shared by the in-process stations and the server: signed like a real
     # set-up, and no key file needed (unless the arena names one, or says insecure: true)
-    settings = dataclasses.replace(ServerSettings.from_arena(arena, key=secrets.token_bytes(KEY_BYTES)),
+    settings = dataclasses.replace(parse_server(arena, key=secrets.token_bytes(KEY_BYTES)),
                                    status_period_s=0.0)
     bridge = Bridge(arena, {"pose_stream": False, "report_interval_s": 0})
     collector = Collector(names)
@@ -474,7 +474,7 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     if record is not None:
         from visionpos.recording import RecordingWriter
 
-        recorder = RecordingWriter(record, arena.raw, {"command": "demo", "scenario": arena.source,
+        recorder = RecordingWriter(record, arena.to_dict(), {"command": "demo", "scenario": arena.source,
                                                        "session": sc.session, "seed": sc.seed})
     server = FusionServer(arena, settings, sinks=[bridge, collector], host="127.0.0.1", port=0, recorder=recorder)
     await server.start()

@@ -20,33 +20,34 @@ def bridge_sinks(arena: ArenaConfig) -> list[Any]:
     """The arena's outputs as sinks: the MAVLink bridge (one sender thread per vehicle) on the loop, and the
     pose stream, VRPN, NatNet and Foxglove servers behind one off-loop dispatcher (bridge/outputs.py)."""
     network: list[Any] = []
-    if arena.raw.get("pose_stream") is not None:
+    # each bridge module is imported only for an output the arena asks for
+    if arena.given("pose_stream"):
         from bridge.config import parse_pose_stream
         from bridge.pose_stream import PoseStream
 
         ps = parse_pose_stream(arena)
         if ps is not None:
             network.append(PoseStream(ps))
-    if arena.raw.get("vrpn") is not None:
+    if arena.given("vrpn"):
         from bridge.vrpn import VrpnServer, parse_vrpn
 
         vrpn = parse_vrpn(arena)
         if vrpn is not None:
             network.append(VrpnServer(vrpn))
-    if arena.raw.get("natnet") is not None:
+    if arena.given("natnet"):
         from bridge.natnet import NatNetServer
 
         natnet = NatNetServer.from_arena(arena)
         if natnet is not None:
             network.append(natnet)
-    if arena.raw.get("foxglove") is not None:
+    if arena.given("foxglove"):
         from bridge.foxglove_live import FoxgloveServer
 
         fox = FoxgloveServer.from_arena(arena)
         if fox is not None:
             network.append(fox)
     sinks: list[Any] = []
-    if arena.raw.get("vehicles"):
+    if arena.items("vehicles"):
         try:
             from bridge import Bridge
         except ImportError as e:
@@ -78,7 +79,7 @@ async def serve(arena: ArenaConfig, settings: ServerSettings, host: str | None =
     if record is not None:
         from visionpos.recording import RecordingWriter
 
-        recorder = RecordingWriter(record, arena.raw, {"command": "serve", "config_path": arena.source})
+        recorder = RecordingWriter(record, arena.to_dict(), {"command": "serve", "config_path": arena.source})
     server = FusionServer(arena, settings, sinks, host=host, port=settings.port, recorder=recorder)
     try:
         await server.start()

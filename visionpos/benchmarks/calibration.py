@@ -128,14 +128,15 @@ def _ground(name: str, cal) -> dict[str, float]:
     from visionpos.calibration.ground import calibrate_ground
     from visionpos.calibration.wand_solve import compare_cameras
     from visionpos.sim import load_scenario, simulate
+    from visionpos.sim.scenario import sim_props
 
     sc = load_scenario(name, ["sim.duration=2"], session="ground")
     res = simulate(sc)
-    frame = next(p for p in sc.arena.raw["sim"]["props"] if p["name"] == "lframe")
-    layout = np.asarray(frame["markers"], float)
+    frame = next(p for p in sim_props(sc.arena) if p.name == "lframe")
+    layout = np.asarray(frame.markers, float)
     # x towards the far end of the long arm; marker centres one radius above the floor
     g = calibrate_ground(res.frames, cal.cameras, layout, origin=0, x_marker=2,
-                         marker_height=float(frame["marker_diameter"]) / 2)
+                         marker_height=frame.marker_diameter / 2)
     ce, re, _ = compare_cameras(g.cameras, list(sc.cameras), similarity=False)
     return {"ground_center_err_mm_max": float(ce.max() * 1000), "ground_rot_err_deg_max": float(re.max()),
             "ground_fit_rms_mm": float(g.fit_rms * 1000)}

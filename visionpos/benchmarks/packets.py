@@ -64,7 +64,7 @@ def measure_packet_cost(n: int = 20000, blobs: int = 8, key: bytes | None = None
 
     rec = None
     if record is not None:
-        rec = RecordingWriter(record, arena.raw)
+        rec = RecordingWriter(record, arena.to_dict())
     ing = Ingest(arena, settings, pipeline=None, recorder=rec)
     ing.set_start(t0)
     recv = [t0 + i * step + 3_000_000 for i in range(n)]

@@ -7,7 +7,6 @@ line, and the calibrated cameras written back into a copy of the arena.
 
 from __future__ import annotations
 
-import copy
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -83,7 +82,7 @@ def wand_settings(arena: ArenaConfig, ab: float | None = None, bc: float | None 
 
 def write_arena(arena: ArenaConfig, cameras: Sequence[Any], out: str | Path, extra: dict[str, Any]) -> None:
     """A copy of the arena with these cameras and `extra` merged into its calibration section."""
-    raw = copy.deepcopy(arena.raw)
+    raw = arena.to_dict()
     raw["cameras"] = [c.to_dict() for c in cameras]
     cal = raw.get("calibration") if isinstance(raw.get("calibration"), dict) else {}
     cal.update(extra)
@@ -169,22 +168,13 @@ def ground_layout(arena: ArenaConfig, frame: str | None = None, markers: str | N
             h = marker_height if marker_height is not None else LFRAME.read(lf, "marker_diameter") / 2
             return np.asarray(layout, float), h
     candidates = [frame] if frame else list(GROUND_FRAME_NAMES)
-    entries: list[dict] = []
-    for b in arena.raw.get("bodies") or []:
-        if isinstance(b, dict):
-            entries.append(b)
-    sim = arena.raw.get("sim") if isinstance(arena.raw.get("sim"), dict) else {}
-    for b in sim.get("props") or []:
-        if isinstance(b, dict):
-            entries.append(b)
+    from visionpos.sim.scenario import sim_props
+
+    entries = [*arena.bodies, *sim_props(arena)]
     for name in candidates:
         for e in entries:
-            if e.get("name") == name:
-                layout = np.asarray(e.get("markers"), float)
-                h = marker_height
-                if h is None:
-                    h = float(e.get("marker_diameter", 0.014)) / 2
-                return layout, h
+            if e.name == name:
+                return np.asarray(e.markers, float), e.marker_diameter / 2 if marker_height is None else marker_height
     raise CalibrationError(
         f"{arena.source}: no ground frame named {' or '.join(candidates)} in bodies or sim.props; "
         "give --frame NAME or --markers X,Y,Z;..."

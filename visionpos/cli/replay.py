@@ -105,7 +105,7 @@ def view(args: argparse.Namespace) -> int:
     """`replay LOG --view`: the console for the recording until Ctrl-C."""
     import asyncio
 
-    from console.settings import ConsoleSettings
+    from console.settings import parse_console
     from visionpos.app.console import replay_view
 
     if args.no_console:
@@ -118,7 +118,7 @@ def view(args: argparse.Namespace) -> int:
         arena = load_settings(RecordingReader(args.log).config, args.config, args.set)
     except FileNotFoundError:
         raise UsageError(f"{args.log}: no such recording") from None
-    settings = ConsoleSettings.from_arena(arena).with_address(args.console_bind, args.console_port)
+    settings = parse_console(arena).with_address(args.console_bind, args.console_port)
     try:
         asyncio.run(replay_view(args.log, args.config, args.set, args.rate, settings,
                                 lambda v: announce_console("replay", v), args.duration,

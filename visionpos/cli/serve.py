@@ -12,7 +12,7 @@ from visionpos.app.serve import serve
 from visionpos.config.arena import ArenaConfig
 from visionpos.errors import UsageError
 from visionpos.server.service import load_config_with_overrides, loopback_note, status_log
-from visionpos.server.settings import ServerSettings
+from visionpos.server.settings import ServerSettings, parse_server
 
 T = TypeVar("T")
 
@@ -34,7 +34,7 @@ def live_settings(args: argparse.Namespace) -> tuple[ArenaConfig, ServerSettings
     if status_log.level == logging.NOTSET:
         status_log.setLevel(logging.INFO)
     arena = load_config_with_overrides(args.config, args.set)
-    settings = ServerSettings.from_arena(arena)
+    settings = parse_server(arena)
     if args.port is not None:
         settings = settings.with_port(args.port)
     if args.host is not None:

@@ -9,6 +9,7 @@ would be right.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,8 +47,40 @@ def resolve_config_path(name_or_path: str | Path) -> Path:
     )
 
 
+def _refuse_duplicate_keys(node: yaml.Node | None, path: str, source: str, seen: set[int]) -> None:
+    """ConfigError for the first mapping key given twice under `node` (a composed YAML node tree)."""
+    if node is None or id(node) in seen:  # an alias is checked where its anchor is
+        return
+    seen.add(id(node))
+    if isinstance(node, yaml.MappingNode):
+        lines: dict[tuple[str, str], int] = {}
+        for key_node, value_node in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge" or not isinstance(key_node, yaml.ScalarNode):
+                continue
+            key = f"{path}.{key_node.value}" if path else str(key_node.value)
+            line = key_node.start_mark.line + 1
+            first = lines.setdefault((key_node.tag, key_node.value), line)
+            if first != line:
+                raise ConfigError(source, key, f"given twice (line {first} and line {line}); keep one "
+                                               "(YAML would silently take the last)")
+            _refuse_duplicate_keys(value_node, key, source, seen)
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            _refuse_duplicate_keys(item, f"{path}[{i}]", source, seen)
+
+
+def parse_yaml_text(text: str, source: str) -> Any:
+    """YAML text -> Python data (safe types only). A key given twice in one mapping is refused with a
+    ConfigError naming `source`, the key and both lines; PyYAML would keep the last without a word."""
+    try:
+        _refuse_duplicate_keys(yaml.compose(text, Loader=yaml.SafeLoader), "", source, set())
+        return yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ConfigError(source, "(syntax)", f"not valid YAML: {e}") from None
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping; raises ConfigError naming the file on any problem."""
+    """Read a YAML mapping; raises ConfigError naming the file on any problem (a key given twice too)."""
     p = Path(path)
     try:
         text = p.read_bytes().decode("utf-8")
@@ -57,10 +90,7 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
         line = p.read_bytes()[: e.start].count(b"\n") + 1
         raise ConfigError(str(p), "(file)", f"not UTF-8 text (byte {e.start}, line {line}); "
                                             "save the file as UTF-8") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise ConfigError(str(p), "(syntax)", f"not valid YAML: {e}") from None
+    data = parse_yaml_text(text, str(p))
     if data is None:
         data = {}
     if not isinstance(data, dict):
@@ -201,7 +231,26 @@ class ArenaConfig:
                               "`visionpos calibrate wand` to find them, or give rough ones (position and look_at)")
 
     def section(self, key: str) -> Section:
+        """The top-level section `key` for its parser to read (an absent or null one is empty)."""
         return Section(self.raw.get(key), self.source, key)
+
+    def items(self, key: str) -> list[Section]:
+        """The items of the top-level list section `key` (`vehicles`), each for its parser to read."""
+        return Section(self.raw, self.source, "").items(key)
+
+    def given(self, key: str) -> bool:
+        """Whether the file has the top-level section `key` (not null): the optional servers (pose_stream,
+        vrpn, natnet, foxglove) run only then."""
+        return self.raw.get(key) is not None
+
+    def camera_stations(self) -> dict[int, int | None]:
+        """Camera id -> the station id expected to send its frames (`cameras[i].station`; None: any)."""
+        entries = self.raw.get("cameras") or []
+        return {c.id: entries[i].get("station") if i < len(entries) else None for i, c in enumerate(self.cameras)}
+
+    def to_dict(self) -> dict[str, Any]:
+        """A deep copy of the file's mapping: what a recording stores, what a rewritten arena file starts from."""
+        return copy.deepcopy(self.raw)
 
     def with_cameras(self, cameras: list[Camera]) -> "ArenaConfig":
         raw = dict(self.raw)
@@ -212,7 +261,11 @@ class ArenaConfig:
 def parse_arena(data: dict[str, Any], source: str = "<arena>") -> ArenaConfig:
     """Validate a parsed arena mapping."""
     from visionpos.config import sections  # sections imports this module
+    from visionpos.config.schema import arena_schema
 
+    # every key and the kind of every value, in every registered section (the CLI registers them all),
+    # before any stage reads one: a wrong type is a ConfigError naming the key, not a traceback later
+    arena_schema().validate(Section(data, source, ""))
     top = sections.TOP.check(Section(data, source, ""))
     cams: list[Camera] = []
     unposed: list[int] = []

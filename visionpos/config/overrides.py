@@ -14,7 +14,7 @@ from typing import Any
 import yaml
 
 from visionpos.config.arena import ConfigError
-from visionpos.config.settings import Spec, suggestion, warn_old_key
+from visionpos.config.settings import Spec, warn_old_key
 
 
 def apply_overrides(data: dict[str, Any], overrides: list[str], source: str = "--set",
@@ -62,8 +62,7 @@ def set_path(data: dict[str, Any], parts: list[str], value: Any, schema: Spec | 
         elif mode == "mapping" and spec is not None and not spec.extra_keys:
             new = spec.new_key(part)
             if new is None:
-                raise ConfigError(source, where, f"unknown key{suggestion(part, spec.keys)}; "
-                                                 f"`{spec.path}` takes {', '.join(spec.keys)}")
+                raise spec.unknown_key_error(source, where, part)
             if new != part:
                 warn_old_key(source, where, new)
                 if part in node:

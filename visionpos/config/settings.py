@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import difflib
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, make_dataclass
+from dataclasses import field as dc_field
 from typing import Any, Callable, Iterable
 
 from visionpos.config.arena import ConfigError, Section
@@ -98,6 +99,32 @@ class Setting:
             return s.array(self.key, self.shape or (None,), default)
         return s.data.get(self.key, default)
 
+    def validate(self, s: Section, key: str) -> None:
+        """ConfigError naming the key if the value at `key` (present, not null) is not of this kind."""
+        if self.kind == "number":
+            s.number(key)
+        elif self.kind == "integer":
+            s.integer(key)
+        elif self.kind == "text":
+            s.string(key, choices=self.choices)
+        elif self.kind == "boolean":
+            s.boolean(key, False)
+        elif self.kind == "array":
+            s.array(key, self.shape or (None,))
+        elif self.kind == "section":
+            sub = s.sub(key)  # raises unless a mapping
+            if self.spec is not None:
+                self.spec.validate(sub)
+        elif self.kind == "list":
+            for item in s.items(key):  # raises unless a list; each item a mapping
+                if self.spec is not None:
+                    self.spec.validate(item)
+        elif self.kind == "map":
+            sub = s.sub(key)
+            for k in sub.data:
+                if sub.data[k] is not None and self.spec is not None:
+                    self.spec.validate(sub.sub(k))
+
 
 @dataclass(frozen=True)
 class Spec:
@@ -107,6 +134,7 @@ class Spec:
     doc: str
     settings: tuple[Setting, ...]
     extra_keys: str = ""  # doc: keys not listed here are allowed (free-form), and what they are
+    removed: tuple[tuple[str, str], ...] = ()  # (key, what to write instead): keys that no longer exist
 
     def __post_init__(self) -> None:
         keys = [k for s in self.settings for k in (s.key, *s.old_keys)]
@@ -131,6 +159,9 @@ class Spec:
         return None
 
     def unknown_key_error(self, source: str, key_path: str, key: str) -> ConfigError:
+        for old, message in self.removed:
+            if key == old:
+                return ConfigError(source, key_path, message)
         return ConfigError(source, key_path, f"unknown key{suggestion(key, self.keys)}; "
                                              f"`{self.path}` takes {', '.join(self.keys)}")
 
@@ -154,6 +185,21 @@ class Spec:
 
     def read(self, s: Section, key: str, **bounds: Any) -> Any:
         return self[key].read(s, **bounds)
+
+    def validate(self, s: Section) -> None:
+        """Check a whole mapping at load, nested sections and list items too: every key declared (an
+        unknown one fails with a did-you-mean), every value given of its declared kind (a number, an
+        integer, text, true/false, an array of its shape, a mapping, a list). Bounds and required keys
+        are the parsers' (a caller may narrow them); an old spelling is checked here and warned about
+        by the parser that reads it. A null value is left to the parser (for most keys: an error)."""
+        if self.extra_keys:
+            return
+        for key in s.data:
+            new = self.new_key(str(key))
+            if new is None:
+                raise self.unknown_key_error(s.source, s._key(str(key)), str(key))
+            if s.data[key] is not None:
+                self[new].validate(s, key)
 
     def parse(self, s: Section, auto: dict[str, Any] | None = None) -> dict[str, Any]:
         """Check the keys, read every scalar setting: {field name: converted value}.
@@ -182,10 +228,36 @@ def suggestion(key: str, known: Iterable[str]) -> str:
     return f" (did you mean `{close[0]}`?)" if close else ""
 
 
-def section(path: str, doc: str, *settings: Setting, extra_keys: str = "") -> Spec:
-    return Spec(path, doc, tuple(settings), extra_keys)
+def section(path: str, doc: str, *settings: Setting, extra_keys: str = "",
+            removed: dict[str, str] | None = None) -> Spec:
+    return Spec(path, doc, tuple(settings), extra_keys, tuple((removed or {}).items()))
 
 
 def ms_to_ns(ms: float) -> int:
     """The ms -> int ns conversion every `*_ms` setting has always used (truncation, not rounding)."""
     return int(ms * 1e6)
+
+
+_FIELD_TYPES = {"number": float, "integer": int, "text": str, "boolean": bool}
+
+
+def settings_dataclass(name: str, spec: Spec, doc: str, module: str, *, nested: dict[str, type] | None = None,
+                       extra: Iterable[tuple[str, type, Any]] = ()) -> type:
+    """The frozen dataclass of one Spec: a field per scalar setting (name `Setting.field_name`, default
+    `Setting.field_default`), in declaration order, then a field per `section` setting whose class is
+    in `nested` (default: that class's defaults), then `extra` (name, type, default): fields the YAML
+    does not set. `Spec.parse` fills it: a setting added to the Spec is a field here with no other edit.
+    """
+    fields: list[tuple[str, Any, Any]] = []
+    for st in spec.settings:
+        if st.kind == "section" and nested and st.key in nested:
+            fields.append((st.field_name, nested[st.key], dc_field(default_factory=nested[st.key])))
+        elif st.kind in _FIELD_TYPES:
+            default = st.field_default
+            kind = type(default) if st.convert or st.auto else _FIELD_TYPES[st.kind]
+            fields.append((st.field_name, kind, dc_field(default=default)))
+    for key, kind, default in extra:
+        fields.append((key, kind, dc_field(default=default)))
+    cls = make_dataclass(name, fields, frozen=True)
+    cls.__doc__, cls.__module__ = doc, module
+    return cls

@@ -62,7 +62,6 @@ MONITOR = section(
     Setting("max_step_deg", "number", 2.0, "largest rotation applied per correction step (deg)", min=0.01),
     Setting("max_step_m", "number", 0.05, "largest shift applied per correction step (m)", min=0.0001),
 )
-register_section("camera_monitor", MONITOR)
 
 
 @dataclass(frozen=True)
@@ -80,9 +79,13 @@ class MonitorSettings:
     max_step_deg: float = 2.0
     max_step_m: float = 0.05
 
-    @classmethod
-    def from_arena(cls, arena: ArenaConfig) -> "MonitorSettings":
-        return cls(**MONITOR.parse(MONITOR.check(arena.section("camera_monitor"))))
+
+def parse_camera_monitor(arena: ArenaConfig) -> MonitorSettings:
+    """The validated `camera_monitor:` section."""
+    return MonitorSettings(**MONITOR.parse(MONITOR.check(arena.section("camera_monitor"))))
+
+
+register_section("camera_monitor", MONITOR, parse_camera_monitor)
 
 
 # ---------------------------------------------------------------------------------------------- math
@@ -201,7 +204,7 @@ class CameraMonitor:
     returns the cameras to re-pose. report() is the per-camera health."""
 
     def __init__(self, arena: ArenaConfig, settings: MonitorSettings | None = None):
-        self.settings = settings or MonitorSettings.from_arena(arena)
+        self.settings = settings or parse_camera_monitor(arena)
         self.cams = {c.id: CameraWatch(c) for c in arena.cameras}
         self.markers = {b.name: np.asarray(b.markers, float) for b in arena.bodies}
         self._motion: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None

@@ -16,6 +16,14 @@ from typing import NamedTuple
 
 import numpy as np
 
+from visionpos.fusion.settings import (  # noqa: F401  (SV_PARAM_*: the kernels import them from here)
+    FUSION_PARAMS,
+    KALMAN_PARAMS,
+    SV_PARAM_ALWAYS,
+    SV_PARAM_OCCLUSION,
+    SV_PARAM_OFF,
+)
+
 # ---------------------------------------------------------------- filter state x (18,)
 # [p (3) m, v (3) m/s, a (3) m/s^2, dtheta (3) rad, w (3) rad/s, dw/dt (3) rad/s^2], world frame (tracking.py)
 N_STATE = 18
@@ -37,11 +45,7 @@ N_ADAPT = 6
 # clock (n, 3) int64: filter time ns, last image-NIS time ns, folds of the rotation error since the start
 CLOCK_T_NS, CLOCK_IMG_T_NS, CLOCK_FOLDS = range(3)
 N_CLOCK = 3
-# params (13,) float: the KalmanSettings the kernels read
-(KALMAN_JERK_PSD, KALMAN_ANG_ACC_PSD, KALMAN_ANG_JERK_PSD, KALMAN_MAX_SCALE, KALMAN_NIS_TAU_S, KALMAN_GATE_CHI2,
- KALMAN_INIT_VEL_VAR, KALMAN_INIT_ACC_VAR, KALMAN_INIT_RATE_VAR, KALMAN_INIT_ANG_ACC_VAR, KALMAN_NIS_THRESHOLD,
- KALMAN_NIS_UNSPLIT_COV, KALMAN_GATE_RETEST) = range(13)
-N_KALMAN_PARAMS = 13
+# params (N_KALMAN_PARAMS,) float: the KalmanSettings the kernels read; the KALMAN_* indices below
 
 # ---------------------------------------------------------------- filter output row (58,) (tracking._output_at)
 OUT_POS, OUT_QUAT_XYZW, OUT_VEL, OUT_RATE_BODY = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13)
@@ -69,16 +73,17 @@ N_CAMERA = 28
 # ---------------------------------------------------------------- marker motion (3, M, 3) (kernels._tracked_motion)
 MOTION_POS, MOTION_VEL, MOTION_ACC = range(3)
 
-# ---------------------------------------------------------------- fusion params (12,) float (FusionPipeline)
-# then the single-view path (fusion.single_view): off (0.0), on through occlusion (SV_PARAM_OCCLUSION) or
-# for every frame of a triangulated body too (SV_PARAM_ALWAYS, mode `always`), its NIS gate per dof, the information
-# window (ns), the largest position / rotation variance (m^2, rad^2) the views' information may leave, and
-# the floor of the pixel variance (px^2)
-(PARAM_MAX_RESIDUAL_PX, PARAM_IDENTIFY_TOL_M, PARAM_COMPENSATE_MAX_VEL_VAR, PARAM_MIN_MARKERS,
- PARAM_MARKER_VAR_FLOOR, PARAM_RESET_AFTER_NS, PARAM_SV_ENABLED, PARAM_SV_GATE_PER_DOF, PARAM_SV_WINDOW_NS,
- PARAM_SV_MAX_POS_VAR, PARAM_SV_MAX_ROT_VAR, PARAM_SV_MIN_PX_VAR) = range(12)
-N_PARAMS = 12
-SV_PARAM_OCCLUSION, SV_PARAM_ALWAYS = 1.0, 2.0  # values of PARAM_SV_ENABLED
+# ---------------------------------------------------------------- kernel parameter vectors
+# FilterBank.params (N_KALMAN_PARAMS,) and the fusion kernels' params (N_PARAMS,) (FusionPipeline): each
+# entry's index constant (KALMAN_GATE_CHI2, PARAM_SV_WINDOW_NS, ...) is made here from its row in
+# fusion/settings.py's KALMAN_PARAMS / FUSION_PARAMS, where its value and meaning are declared; a
+# module-level int, so numba freezes it as a constant. Values of PARAM_SV_ENABLED: SV_PARAM_*.
+KALMAN_PARAM_INDEX = {p.name: i for i, p in enumerate(KALMAN_PARAMS)}
+FUSION_PARAM_INDEX = {p.name: i for i, p in enumerate(FUSION_PARAMS)}
+globals().update(KALMAN_PARAM_INDEX)
+globals().update(FUSION_PARAM_INDEX)
+N_KALMAN_PARAMS = len(KALMAN_PARAMS)
+N_PARAMS = len(FUSION_PARAMS)
 
 # ---------------------------------------------------------------- track rows, one per body (tracks._Track)
 # track_ints (bodies, 9) int64; TRACK_UPDATE_KIND: UpdateKind of the last measurement that kept the track;

@@ -76,21 +76,6 @@ from visionpos.fusion.kernels import _finite_rows, _fuse_tracked, _observe_frame
 from visionpos.fusion.layout import (
     MEAS_POS,
     MEAS_ROT,
-    N_PARAMS,
-    PARAM_COMPENSATE_MAX_VEL_VAR,
-    PARAM_IDENTIFY_TOL_M,
-    PARAM_MARKER_VAR_FLOOR,
-    PARAM_MAX_RESIDUAL_PX,
-    PARAM_MIN_MARKERS,
-    PARAM_RESET_AFTER_NS,
-    PARAM_SV_ENABLED,
-    PARAM_SV_GATE_PER_DOF,
-    PARAM_SV_MAX_POS_VAR,
-    PARAM_SV_MAX_ROT_VAR,
-    PARAM_SV_MIN_PX_VAR,
-    PARAM_SV_WINDOW_NS,
-    SV_PARAM_ALWAYS,
-    SV_PARAM_OCCLUSION,
     TRACK_LAST_CAPTURE_NS,
     TRACK_LAST_UPDATE_NS,
     TRACK_N_CAMERAS,
@@ -106,7 +91,7 @@ from visionpos.fusion.layout import (
 )
 from visionpos.fusion.matching import Projector, match_unlabeled
 from visionpos.fusion.rigidbody import BodyModel, identify, layout_ambiguities
-from visionpos.fusion.settings import SV_ALWAYS, parse_fusion_settings
+from visionpos.fusion.settings import FUSION_PARAMS, pack_params, parse_fusion
 from visionpos.fusion.timealign import Group, TimeAligner, TimeAlignment
 from visionpos.fusion.tracking import FilterBank
 from visionpos.fusion.tracks import Observation, Track, new_track_rows
@@ -120,9 +105,6 @@ _IMAGE_NIS_INTERVAL_NS = 2_000_000
 # (max_prediction_ms and lost_timeout_ms are for cameras at their configured rate)
 _PREDICTION_PERIODS = 2
 _LOST_PERIODS = 3
-
-# motion compensation starts once the filter's velocity std is below this (m/s)
-_COMPENSATE_MAX_VEL_STD = 0.3
 
 # per fusion verdict, the stats counters it increments, and the verdicts with a fitted pose (last_raw);
 # tables, because reading an enum member off its class costs ~0.15 us in the per-fusion loop
@@ -157,7 +139,7 @@ class FusionPipeline:
             raise ConfigError(arena.source, "cameras", f"fusion needs at least 2 cameras, the arena has "
                               f"{len(arena.cameras)}; add the calibrated cameras "
                               "(`visionpos calibrate wand` writes them)")
-        self.settings = parse_fusion_settings(arena, settings)
+        self.settings = parse_fusion(arena, settings)
         st = self.settings
         self.models = [BodyModel(b.name, b.id, np.asarray(b.markers, float)) for b in arena.bodies]
         # layouts the geometry cannot tell apart would be swapped or flipped: refuse them
@@ -183,21 +165,7 @@ class FusionPipeline:
         self._layout_cache: dict[tuple[int, ...], TrackedSet] = {}
         self._gate_px = float(st.match_gate_px)
         self._unique_sigmas = float(st.single_view.unique_sigmas)
-        self._kernel_params = np.empty(N_PARAMS)  # the fusion kernels' settings
-        self._kernel_params[PARAM_MAX_RESIDUAL_PX] = st.max_residual_px
-        self._kernel_params[PARAM_IDENTIFY_TOL_M] = st.identify_tolerance_m
-        self._kernel_params[PARAM_COMPENSATE_MAX_VEL_VAR] = _COMPENSATE_MAX_VEL_STD**2
-        self._kernel_params[PARAM_MIN_MARKERS] = st.min_markers
-        self._kernel_params[PARAM_MARKER_VAR_FLOOR] = st.kalman.marker_sigma_m**2
-        self._kernel_params[PARAM_RESET_AFTER_NS] = st.kalman.reset_after_ns
-        sv = st.single_view
-        self._kernel_params[PARAM_SV_ENABLED] = (
-            0.0 if not sv.enabled else SV_PARAM_ALWAYS if sv.mode == SV_ALWAYS else SV_PARAM_OCCLUSION)
-        self._kernel_params[PARAM_SV_GATE_PER_DOF] = sv.gate_nis_per_dof
-        self._kernel_params[PARAM_SV_WINDOW_NS] = sv.window_ns
-        self._kernel_params[PARAM_SV_MAX_POS_VAR] = sv.max_position_sigma_m**2
-        self._kernel_params[PARAM_SV_MAX_ROT_VAR] = np.radians(sv.max_rotation_sigma_deg) ** 2
-        self._kernel_params[PARAM_SV_MIN_PX_VAR] = sv.min_pixel_sigma_px**2
+        self._kernel_params = pack_params(FUSION_PARAMS, st)  # the fusion kernels' settings (fusion/settings.py)
         self._view_cache: dict[tuple[int, ...], tuple] = {}  # ViewSets as plain tuples
         self.aligner = TimeAligner(
             st.time_alignment,

@@ -6,13 +6,14 @@ docs/configuration.md (generated from these declarations).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable, NamedTuple
+
+import numpy as np
 
 from visionpos.config.arena import ArenaConfig, ConfigError, Section
 from visionpos.config.overrides import merge_section
 from visionpos.config.schema import register_section
-from visionpos.config.settings import Setting, ms_to_ns, section
+from visionpos.config.settings import Setting, ms_to_ns, section, settings_dataclass
 from visionpos.fusion.timealign import MODES, MOTION_COMPENSATED
 
 # fusion.single_view.mode: when the single-view updates are used (kernels._fuse_tracked)
@@ -129,83 +130,101 @@ FUSION = section(
             "body is tracked", field="loose_points_interval_ns", convert=ms_to_ns, min=0.0),
     Setting("kalman", "section", {}, "the body filter", spec=KALMAN),
     Setting("single_view", "section", {}, "single-camera updates through occlusion", spec=SINGLE_VIEW),
+    removed=REMOVED,
 )
 
 
-@dataclass(frozen=True)
-class KalmanSettings:
-    """Noise, adaptation, gating and timeouts of the body filter (SI units; `fusion.kalman` in the YAML).
+# (name, type, value): the filter's priors at (re)initialisation, not configurable
+KALMAN_PRIORS = (
+    ("init_velocity_sigma_m_s", float, 2.0),
+    ("init_acceleration_sigma_m_s2", float, 10.0),
+    ("init_angular_velocity_sigma_rad_s", float, 6.0),
+    ("init_angular_acceleration_sigma_rad_s2", float, 30.0),
+)
 
-    init_*: prior std of the unmeasured derivatives at (re)initialisation (not configurable).
-    """
-
-    jerk_psd: float = KALMAN["jerk_psd"].field_default
-    angular_accel_psd: float = KALMAN["angular_accel_psd"].field_default
-    angular_jerk_psd: float = KALMAN["angular_jerk_psd"].field_default
-    max_noise_scale: float = KALMAN["max_noise_scale"].field_default
-    nis_time_constant_s: float = KALMAN["nis_time_constant_ms"].field_default
-    nis_threshold: float = KALMAN["nis_threshold"].field_default
-    nis_unsplit_cov: bool = KALMAN["nis_unsplit_cov"].field_default
-    marker_sigma_m: float = KALMAN["marker_sigma_m"].field_default
-    gate_chi2: float = KALMAN["gate_chi2"].field_default
-    gate_retest: bool = KALMAN["gate_retest"].field_default
-    reset_after_ns: int = KALMAN["reset_after_ms"].field_default
-    max_prediction_ns: int = KALMAN["max_prediction_ms"].field_default
-    lost_timeout_ns: int = KALMAN["lost_timeout_ms"].field_default
-    init_velocity_sigma_m_s: float = 2.0
-    init_acceleration_sigma_m_s2: float = 10.0
-    init_angular_velocity_sigma_rad_s: float = 6.0
-    init_angular_acceleration_sigma_rad_s2: float = 30.0
+# The settings dataclasses come from the declarations above: a field per setting (the converted
+# unit's name, e.g. window_ns), its default the declared one.
+KalmanSettings = settings_dataclass(
+    "KalmanSettings", KALMAN, "Noise, adaptation, gating and timeouts of the body filter (SI units; "
+    "`fusion.kalman` in the YAML). init_*: prior std of the unmeasured derivatives at (re)initialisation "
+    "(not configurable).", __name__, extra=KALMAN_PRIORS)
+SingleViewSettings = settings_dataclass(
+    "SingleViewSettings", SINGLE_VIEW, "The single-view path (`fusion.single_view` in the YAML; SI units).",
+    __name__)
+FusionSettings = settings_dataclass(
+    "FusionSettings", FUSION, "Validated `fusion:` section (SI units). window_ns and grid_ns are 0 until "
+    "derived from the cameras; auto_window: window_ms was 0, so the window follows the cameras' measured "
+    "frame intervals (timealign.py) and window_ns is only its starting value.", __name__,
+    nested={"kalman": KalmanSettings, "single_view": SingleViewSettings}, extra=(("auto_window", bool, True),))
 
 
-@dataclass(frozen=True)
-class SingleViewSettings:
-    """The single-view path (`fusion.single_view` in the YAML; SI units)."""
+class Param(NamedTuple):
+    """One entry of a kernel parameter vector: `name` is its index constant in fusion/layout.py (a
+    module-level int the compiled kernels read as a constant), `get` reads its value (a float) from
+    the settings object the vector is packed from."""
 
-    enabled: bool = SINGLE_VIEW["enabled"].field_default
-    mode: str = SINGLE_VIEW["mode"].field_default
-    gate_nis_per_dof: float = SINGLE_VIEW["gate_nis_per_dof"].field_default
-    unique_sigmas: float = SINGLE_VIEW["unique_sigmas"].field_default
-    window_ns: int = SINGLE_VIEW["window_ms"].field_default
-    max_position_sigma_m: float = SINGLE_VIEW["max_position_sigma_m"].field_default
-    max_rotation_sigma_deg: float = SINGLE_VIEW["max_rotation_sigma_deg"].field_default
-    min_pixel_sigma_px: float = SINGLE_VIEW["min_pixel_sigma_px"].field_default
+    name: str
+    get: Callable[[Any], float]
 
 
-@dataclass(frozen=True)
-class FusionSettings:
-    """Validated `fusion:` section (SI units). window_ns and grid_ns are 0 until derived from the cameras;
-    auto_window: window_ms was 0, so the window follows the cameras' measured frame intervals
-    (timealign.py) and window_ns is only its starting value."""
+# motion compensation starts once the filter's velocity std is below this (m/s)
+COMPENSATE_MAX_VEL_STD = 0.3
 
-    time_alignment: str = FUSION["time_alignment"].field_default
-    window_ns: int = FUSION["window_ms"].field_default
-    auto_window: bool = True
-    grid_ns: int = FUSION["naive_grid_hz"].field_default
-    max_clock_lead_ns: int = FUSION["max_clock_lead_ms"].field_default
-    match_gate_px: float = FUSION["match_gate_px"].field_default
-    max_residual_px: float = FUSION["max_residual_px"].field_default
-    acquire_ray_gate_px: float = FUSION["acquire_ray_gate_px"].field_default
-    identify_tolerance_m: float = FUSION["identify_tolerance_m"].field_default
-    min_markers: int = FUSION["min_markers"].field_default
-    loose_points: bool = FUSION["loose_points"].field_default
-    acquire_interval_ns: int = FUSION["acquire_interval_ms"].field_default
-    min_fusion_interval_ns: int = FUSION["min_fusion_interval_ms"].field_default
-    loose_points_interval_ns: int = FUSION["loose_points_interval_ms"].field_default
-    kalman: KalmanSettings = field(default_factory=KalmanSettings)
-    single_view: SingleViewSettings = field(default_factory=SingleViewSettings)
+# The vectors the kernels read their settings from, in order: an entry's index is its position here
+# (layout.py makes the constants). Adding a parameter is adding its row. Each vector is packed by
+# pack_params from the object named above it.
+
+# FilterBank.params, from KalmanSettings (tracking.py)
+KALMAN_PARAMS: tuple[Param, ...] = (
+    Param("KALMAN_JERK_PSD", lambda k: k.jerk_psd),
+    Param("KALMAN_ANG_ACC_PSD", lambda k: k.angular_accel_psd),
+    Param("KALMAN_ANG_JERK_PSD", lambda k: k.angular_jerk_psd),
+    Param("KALMAN_MAX_SCALE", lambda k: k.max_noise_scale),
+    Param("KALMAN_NIS_TAU_S", lambda k: k.nis_time_constant_s),
+    Param("KALMAN_GATE_CHI2", lambda k: k.gate_chi2),
+    Param("KALMAN_INIT_VEL_VAR", lambda k: k.init_velocity_sigma_m_s**2),
+    Param("KALMAN_INIT_ACC_VAR", lambda k: k.init_acceleration_sigma_m_s2**2),
+    Param("KALMAN_INIT_RATE_VAR", lambda k: k.init_angular_velocity_sigma_rad_s**2),
+    # no angular jerk: the angular acceleration is not modelled (held at zero with no variance)
+    Param("KALMAN_INIT_ANG_ACC_VAR",
+          lambda k: k.init_angular_acceleration_sigma_rad_s2**2 if k.angular_jerk_psd > 0 else 0.0),
+    Param("KALMAN_NIS_THRESHOLD", lambda k: k.nis_threshold),
+    Param("KALMAN_NIS_UNSPLIT_COV", lambda k: float(k.nis_unsplit_cov)),
+    Param("KALMAN_GATE_RETEST", lambda k: float(k.gate_retest)),
+)
+
+# values of PARAM_SV_ENABLED: the single-view path off, on through occlusion, or for every frame of a
+# triangulated body too (mode `always`)
+SV_PARAM_OFF, SV_PARAM_OCCLUSION, SV_PARAM_ALWAYS = 0.0, 1.0, 2.0
+
+# the fusion kernels' parameters (FusionPipeline), from FusionSettings: variances in m^2, rad^2, px^2
+FUSION_PARAMS: tuple[Param, ...] = (
+    Param("PARAM_MAX_RESIDUAL_PX", lambda f: f.max_residual_px),
+    Param("PARAM_IDENTIFY_TOL_M", lambda f: f.identify_tolerance_m),
+    Param("PARAM_COMPENSATE_MAX_VEL_VAR", lambda f: COMPENSATE_MAX_VEL_STD**2),
+    Param("PARAM_MIN_MARKERS", lambda f: f.min_markers),
+    Param("PARAM_MARKER_VAR_FLOOR", lambda f: f.kalman.marker_sigma_m**2),
+    Param("PARAM_RESET_AFTER_NS", lambda f: f.kalman.reset_after_ns),
+    Param("PARAM_SV_ENABLED", lambda f: SV_PARAM_OFF if not f.single_view.enabled
+          else SV_PARAM_ALWAYS if f.single_view.mode == SV_ALWAYS else SV_PARAM_OCCLUSION),
+    Param("PARAM_SV_GATE_PER_DOF", lambda f: f.single_view.gate_nis_per_dof),
+    Param("PARAM_SV_WINDOW_NS", lambda f: f.single_view.window_ns),
+    Param("PARAM_SV_MAX_POS_VAR", lambda f: f.single_view.max_position_sigma_m**2),
+    Param("PARAM_SV_MAX_ROT_VAR", lambda f: np.radians(f.single_view.max_rotation_sigma_deg) ** 2),
+    Param("PARAM_SV_MIN_PX_VAR", lambda f: f.single_view.min_pixel_sigma_px**2),
+)
 
 
-def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = None) -> FusionSettings:
+def pack_params(table: tuple[Param, ...], settings: Any) -> np.ndarray:
+    """(len(table),) float64: each entry's value read from `settings`, at its index."""
+    return np.array([float(p.get(settings)) for p in table], dtype=np.float64)
+
+
+def parse_fusion(arena: ArenaConfig, settings: dict[str, Any] | None = None) -> FusionSettings:
     """Read `fusion:` from the arena, overridden by `settings` (nested, dotted or {'fusion': {...}})."""
-    base = arena.raw.get("fusion") or {}
-    if not isinstance(base, dict):
-        arena.section("fusion")  # raises a ConfigError naming the key
+    base = arena.section("fusion").data  # a ConfigError naming the key unless a mapping
     data = merge_section(base, settings, "fusion")
     source = f"{arena.source} (+ overrides)" if settings else arena.source
-    for key, message in REMOVED.items():
-        if key in data:
-            raise ConfigError(source, f"fusion.{key}", message)
     s = FUSION.check(Section(data, source, "fusion"))
     kalman = KALMAN.parse(s.sub("kalman"))
     single_view = SINGLE_VIEW.parse(s.sub("single_view"))
@@ -220,4 +239,5 @@ def parse_fusion_settings(arena: ArenaConfig, settings: dict[str, Any] | None = 
     return FusionSettings(**FUSION.parse(s, derived), auto_window=auto_window, kalman=KalmanSettings(**kalman),
                           single_view=SingleViewSettings(**single_view))
 
-register_section("fusion", FUSION)
+
+register_section("fusion", FUSION, parse_fusion)

@@ -146,7 +146,7 @@ from visionpos.fusion.layout import (
     X_VEL,
     FilterArrays,
 )
-from visionpos.fusion.settings import KalmanSettings
+from visionpos.fusion.settings import KALMAN_PARAMS, KalmanSettings, pack_params
 from visionpos.geometry.rotations import (
     matrix_from_rotvec_compiled,
     quat_from_matrix_compiled,
@@ -804,10 +804,8 @@ class FilterBank:
 
     x (n, 18), P (n, 18, 18), R_nom (n, 3, 3); adapt (n, 6): process-noise scales
     and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img, nis_img_r]; clock (n, 3) int64:
-    [filter time ns, last image-NIS time ns, folds]; params (13,): [jerk_psd,
-    angular_accel_psd, angular_jerk_psd, max_noise_scale, nis_time_constant_s, gate_chi2, then the prior
-    variances of velocity, acceleration, angular velocity and angular acceleration at
-    (re)initialisation, nis_threshold, nis_unsplit_cov and gate_retest (1.0 = on)].
+    [filter time ns, last image-NIS time ns, folds]; params (N_KALMAN_PARAMS,): the settings
+    the kernels read, packed as fusion/settings.py's KALMAN_PARAMS declares (layout.KALMAN_* indices).
     filters[i] is the BodyFilter over row i.
     """
 
@@ -817,13 +815,7 @@ class FilterBank:
         self.R_nom = np.tile(np.eye(3), (n, 1, 1))
         self.adapt = np.ones((n, N_ADAPT))
         self.clock = np.zeros((n, N_CLOCK), dtype=np.int64)
-        # no angular jerk: the angular acceleration is not modelled (held at zero with no variance)
-        ang_acc_var = settings.init_angular_acceleration_sigma_rad_s2**2 if settings.angular_jerk_psd > 0 else 0.0
-        self.params = np.array([settings.jerk_psd, settings.angular_accel_psd, settings.angular_jerk_psd,
-                                settings.max_noise_scale, settings.nis_time_constant_s, settings.gate_chi2,
-                                settings.init_velocity_sigma_m_s**2, settings.init_acceleration_sigma_m_s2**2,
-                                settings.init_angular_velocity_sigma_rad_s**2, ang_acc_var, settings.nis_threshold,
-                                float(settings.nis_unsplit_cov), float(settings.gate_retest)])
+        self.params = pack_params(KALMAN_PARAMS, settings)  # fusion/settings.py declares its entries
         # the kernels' argument (layout.FilterArrays as a plain tuple: cheaper for numba to dispatch)
         self.arrays = tuple(FilterArrays(self.x, self.P, self.R_nom, self.adapt, self.clock, self.params))
         self.filters = [BodyFilter(settings, self, i) for i in range(n)] if make_filters else []

@@ -64,7 +64,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
 from visionpos import protocol as P
-from visionpos.config.arena import ArenaConfig, ConfigError
+from visionpos.config.arena import ArenaConfig
 from visionpos.logutil import RateLimitedLog
 from visionpos.messages import FLAG_RESYNC, BlobFrame
 from visionpos.server.camera_health import (
@@ -80,7 +80,7 @@ from visionpos.server.camera_health import (
 )
 from visionpos.server.endpoint import UdpEndpoint
 from visionpos.server.images import StationImages
-from visionpos.server.settings import ServerSettings
+from visionpos.server.settings import ServerSettings, parse_server
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +115,7 @@ class Ingest(UdpEndpoint):
                  verify_cookies: bool = True, authenticate: bool = True,
                  taps: Sequence[Callable[[int, bytes], None]] = ()):
         self.arena = arena
-        self.settings = settings or ServerSettings.from_arena(arena)
+        self.settings = settings or parse_server(arena)
         self.pipeline = pipeline
         self.recorder = recorder
         self.clock = clock
@@ -129,13 +129,9 @@ class Ingest(UdpEndpoint):
         self._secret = secrets.token_bytes(32)  # cookie key: this process only
         self.counters = IngestCounters()
         self.cameras: dict[int, CameraHealth] = {}
+        stations = arena.camera_stations()  # checked at load: integers or None
         for i, cam in enumerate(arena.cameras):
-            raw = arena.raw.get("cameras", [{}] * len(arena.cameras))[i]
-            req = raw.get("station") if isinstance(raw, dict) else None
-            if req is not None and (isinstance(req, bool) or not isinstance(req, int)):
-                raise ConfigError(
-                    arena.source, f"cameras[{i}].station", f"expected the station id (integer), got {req!r}"
-                )
+            req = stations[cam.id]
             self.cameras[cam.id] = CameraHealth(cam.id, cam.name, float(cam.fps), cam.model.width,
                                                 cam.model.height, req, fps_configured=float(cam.fps),
                                                 config_key=f"cameras[{i}].fps")

@@ -38,7 +38,7 @@ from typing import Any
 from visionpos.config.arena import ArenaConfig, apply_overrides, load_yaml, parse_arena, resolve_config_path
 from visionpos.messages import BodyState
 from visionpos.server.ingest import Ingest
-from visionpos.server.settings import ServerSettings
+from visionpos.server.settings import ServerSettings, parse_server
 
 log = logging.getLogger(__name__)
 # the periodic status line: INFO, but `serve` and `record` turn this logger on by default
@@ -67,7 +67,7 @@ class FusionServer:
 
     arena: validated ArenaConfig. settings: ServerSettings (default: the arena's `server:`
     section). sinks: objects with publish(states). pipeline: a FusionPipeline-like object
-    (default: visionpos.fusion.pipeline.FusionPipeline(arena, arena.raw.get('fusion'))).
+    (default: visionpos.fusion.pipeline.FusionPipeline(arena)).
     recorder: a RecordingWriter; it gets every packet, events and health snapshots, is added to the
     sinks, and is closed by stop() (the server owns it from then on).
     host: None = settings.bind. port: None = settings.port; 0 = any free port (see .port after start()).
@@ -77,11 +77,11 @@ class FusionServer:
                  host: str | None = None, port: int | None = None, pipeline: Any = None, recorder: Any = None,
                  clock: Callable[[], int] = time.monotonic_ns):
         self.arena = arena
-        self.settings = settings or ServerSettings.from_arena(arena)
+        self.settings = settings or parse_server(arena)
         if pipeline is None:
             from visionpos.fusion.pipeline import FusionPipeline
 
-            pipeline = FusionPipeline(arena, arena.raw.get("fusion"))
+            pipeline = FusionPipeline(arena)
         self.pipeline = pipeline
         self.recorder = recorder
         self.sinks: list[Any] = list(sinks)
@@ -93,9 +93,9 @@ class FusionServer:
         self.monitor = None  # continuous calibration (fusion/camera_monitor.py), on a real pipeline only
         feed = pipeline
         if hasattr(pipeline, "set_camera_pose"):
-            from visionpos.fusion.camera_monitor import CameraMonitor, MonitorSettings
+            from visionpos.fusion.camera_monitor import CameraMonitor, parse_camera_monitor
 
-            monitor_settings = MonitorSettings.from_arena(arena)
+            monitor_settings = parse_camera_monitor(arena)
             if monitor_settings.enabled:
                 self.monitor = CameraMonitor(arena, monitor_settings)
                 feed = _MonitoredFeed(pipeline, self.monitor)
@@ -412,7 +412,7 @@ async def record_traffic(arena: ArenaConfig, settings: ServerSettings, out: str 
     """
     from visionpos.recording import TOPIC_PACKETS, RecordingWriter
 
-    with RecordingWriter(out, arena.raw, {"command": "record"}) as rec:
+    with RecordingWriter(out, arena.to_dict(), {"command": "record"}) as rec:
         ingest = Ingest(arena, settings, pipeline=pipeline, recorder=rec,
                         events=lambda kind, info: rec.write_json("/server/events", time.monotonic_ns(),
                                                                  {"kind": kind, **info}))

@@ -87,26 +87,12 @@ class ServerSettings:
             raise ValueError("ServerSettings with a key and insecure=True: give one of them")
 
     @classmethod
-    def from_arena(cls, arena: ArenaConfig, key: bytes | None = None) -> "ServerSettings":
-        """The validated `server:` section with its key read (visionpos.config.keys.resolve_key).
-
-        key: used instead of the default key file when the section names neither key_file nor
-        insecure (the demo's in-memory key). Raises ConfigError naming the file, the key and the fix.
-        """
-        s = SERVER.check(arena.section("server"))
-        values = SERVER.parse(s)
-        _check_bind(s, values["bind"])
-        base = Path(arena.source).parent if Path(arena.source).parent.exists() else None
-        values["key"], values["key_file"] = resolve_key(s, base, key, insecure_hint="server.insecure: true")
-        return cls(**values)
-
-    @classmethod
     def for_replay(cls, arena: ArenaConfig) -> "ServerSettings":
         """Settings to re-run recorded packets, which are trusted local files: signatures are checked
         only with a key_file the arena names (as the live server did); no default key file is needed."""
         s = SERVER.check(arena.section("server"))
         if s.has("key_file") and not s.data.get("insecure"):
-            return cls.from_arena(arena)
+            return parse_server(arena)
         values = SERVER.parse(s)
         values.update(key=None, key_file=None, insecure=True)
         return cls(**values)
@@ -129,6 +115,20 @@ class ServerSettings:
         return ipaddress.ip_address(self.bind).is_loopback
 
 
+def parse_server(arena: ArenaConfig, key: bytes | None = None) -> ServerSettings:
+    """The validated `server:` section with its key read (visionpos.config.keys.resolve_key).
+
+    key: used instead of the default key file when the section names neither key_file nor
+    insecure (the demo's in-memory key). Raises ConfigError naming the file, the key and the fix.
+    """
+    s = SERVER.check(arena.section("server"))
+    values = SERVER.parse(s)
+    _check_bind(s, values["bind"])
+    base = Path(arena.source).parent if Path(arena.source).parent.exists() else None
+    values["key"], values["key_file"] = resolve_key(s, base, key, insecure_hint="server.insecure: true")
+    return ServerSettings(**values)
+
+
 def _check_bind(s: Section, address: str) -> None:
     try:
         ipaddress.ip_address(address)
@@ -138,4 +138,4 @@ def _check_bind(s: Section, address: str) -> None:
                               "interface") from None
 
 
-register_section("server", SERVER)
+register_section("server", SERVER, parse_server)

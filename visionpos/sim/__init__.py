@@ -38,7 +38,7 @@ from visionpos.sim.scenario import (
     SimBody,
     StationClock,
     load_scenario,
-    scenario_from_arena,
+    parse_sim,
 )
 from visionpos.sim.trajectories import Motion, Trajectory
 
@@ -58,6 +58,6 @@ __all__ = [
     "iter_frames",
     "load_scenario",
     "marker_geometry",
-    "scenario_from_arena",
+    "parse_sim",
     "simulate",
 ]

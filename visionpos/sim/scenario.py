@@ -340,6 +340,11 @@ def _props(sim: Section, arena: ArenaConfig) -> list[tuple[BodyConfig, Section]]
     return out
 
 
+def sim_props(arena: ArenaConfig) -> list[BodyConfig]:
+    """The arena's `sim.props`, checked: simulated bodies fusion does not track (calibration tools)."""
+    return [b for b, _ in _props(SIM.check(arena.section("sim")), arena)]
+
+
 def _view_schedule(sim: Section, bodies: list[SimBody], camera_ids: list[int], start_ns: int) -> tuple[ViewWindow, ...]:
     """Validate sim.view_schedule into ViewWindows (body names of the session, camera ids, marker indices)."""
     names = [b.name for b in bodies]
@@ -372,14 +377,14 @@ def _view_schedule(sim: Section, bodies: list[SimBody], camera_ids: list[int], s
     return tuple(out)
 
 
-def scenario_from_arena(arena: ArenaConfig, session: str | None = None, **overrides: Any) -> Scenario:
-    """Resolve an arena's `sim` section into a Scenario.
+def parse_sim(arena: ArenaConfig, session: str | None = None, **overrides: Any) -> Scenario:
+    """The arena's `sim` section, checked and resolved into a Scenario.
 
     overrides: sim keys to replace (e.g. duration=5, seed=3, centroid_noise_px=0),
     applied before validation so bad values are reported like config errors.
     """
     arena.require_poses("the simulator")
-    raw_sim = dict(arena.raw.get("sim") or {})
+    raw_sim = dict(arena.section("sim").data)
     raw_sim.update(overrides)
     if session is not None:
         raw_sim["session"] = session
@@ -571,6 +576,6 @@ def load_scenario(
     if overrides:
         data = apply_overrides(data, list(overrides))
     arena = parse_arena(data, str(path))
-    return scenario_from_arena(arena, session=session, **sim_overrides)
+    return parse_sim(arena, session=session, **sim_overrides)
 
-register_section("sim", SIM)
+register_section("sim", SIM, parse_sim)

@@ -22,7 +22,7 @@ import numpy as np
 
 from visionpos.config.arena import apply_overrides, load_yaml, parse_arena, resolve_config_path
 from visionpos.sim.capture import iter_frames
-from visionpos.sim.scenario import Scenario, scenario_from_arena
+from visionpos.sim.scenario import Scenario, parse_sim
 
 TOPIC_FRAME_TRUTH = "/sim/frame_truth"
 TOPIC_SIM_INFO = "/sim/info"
@@ -60,7 +60,7 @@ def write_recording(scenario: str | Path, out: str | Path, *, duration_s: float 
         sim_over.append(f"sim.session={session}")
     data = apply_overrides(data, list(overrides) + sim_over)
     arena = parse_arena(data, str(path))
-    sc = scenario_from_arena(arena)
+    sc = parse_sim(arena)
 
     out = Path(out)
     meta = {

@@ -39,7 +39,7 @@ from visionpos.app.sitl.preflight import vision_parameters
 from visionpos.app.sitl.process import SitlProcess
 from visionpos.app.sitl.report import flight_summary, format_flight
 from visionpos.app.sitl.run import run_sitl, sitl_arena
-from visionpos.app.sitl.settings import SITL, SitlError, SitlSettings
+from visionpos.app.sitl.settings import SITL, SitlError, SitlSettings, parse_sitl
 from visionpos.app.sitl.truth import LATLON_TO_M, LiveArena, TruthTrack
 
 __all__ = [
@@ -56,6 +56,7 @@ __all__ = [
     "SitlError",
     "SitlProcess",
     "SitlSettings",
+    "parse_sitl",
     "TruthTrack",
     "default_sitl_binary",
     "delay_record",

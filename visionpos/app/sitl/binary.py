@@ -8,7 +8,7 @@ import os
 from pathlib import Path
 
 from visionpos.app.sitl.settings import SITL
-from visionpos.config.arena import ArenaConfig, ConfigError, Section
+from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.errors import UsageError
 
 SITL_ENV = "VISIONPOS_SITL"
@@ -45,7 +45,7 @@ def find_sitl_binary(cli_path: str | None, arena: ArenaConfig | None = None) -> 
             raise UsageError(f"--sitl {cli_path}: no executable file there")
         return p
     if arena is not None:
-        sec = SITL.check(Section(dict(arena.raw.get("sitl") or {}), arena.source, "sitl"))
+        sec = SITL.check(arena.section("sitl"))
         configured = SITL.read(sec, "binary")
         if configured:
             p = Path(configured)

@@ -13,11 +13,14 @@ Each step is a function below; prepare_vehicle runs them in that order.
 from __future__ import annotations
 
 import time
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Callable
 
 from visionpos.app.sitl.gcs import MAV_CMD_DO_SET_HOME, MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, Gcs
 from visionpos.app.sitl.process import SitlProcess
 from visionpos.app.sitl.settings import SitlError, SitlSettings
+
+if TYPE_CHECKING:
+    from bridge.config import VehicleConfig
 
 
 def vision_parameters(cfg: SitlSettings, message: str, vision_speed: bool) -> dict[str, float]:
@@ -61,13 +64,12 @@ def _set_origin(gcs: Gcs, cfg: SitlSettings, say: Callable[[str], None]) -> None
             "itself when it arms")
 
 
-def prepare_vehicle(gcs: Gcs, proc: SitlProcess, cfg: SitlSettings, veh: dict[str, Any], key: bytes,
+def prepare_vehicle(gcs: Gcs, proc: SitlProcess, cfg: SitlSettings, veh: VehicleConfig, key: bytes,
                     say: Callable[[str], None]) -> None:
     """The whole set-up, in its order: connect, the vision-only parameters (read back), reboot, reconnect,
     the noise floors (and VISO_DELAY_MS when configured), the signing key, the EKF origin and home."""
     gcs.connect(30.0, proc)
-    params = vision_parameters(cfg, veh.get("message", "vision_position_estimate"),
-                               bool(veh.get("vision_speed", False)))
+    params = vision_parameters(cfg, veh.message, veh.vision_speed)
     gcs.set_params(params)
     say(f"parameters set and read back ({len(params)}); rebooting SITL")
     gcs.command(MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1)

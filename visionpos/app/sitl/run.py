@@ -5,11 +5,10 @@ live arena, the summary.
 from __future__ import annotations
 
 import asyncio
-import os
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, TextIO
+from typing import TYPE_CHECKING, Any, Callable, TextIO
 
 from visionpos.app.sitl.clock import IntakeProbe
 from visionpos.app.sitl.flight import FlightPlan, fly
@@ -17,10 +16,13 @@ from visionpos.app.sitl.gcs import Gcs
 from visionpos.app.sitl.preflight import prepare_vehicle
 from visionpos.app.sitl.process import SitlProcess, free_instance
 from visionpos.app.sitl.report import flight_summary
-from visionpos.app.sitl.settings import SitlError, SitlSettings
+from visionpos.app.sitl.settings import SitlError, SitlSettings, parse_sitl
 from visionpos.app.sitl.truth import LiveArena, TruthTrack
-from visionpos.config.arena import ArenaConfig
+from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.errors import UsageError
+
+if TYPE_CHECKING:
+    from bridge.config import VehicleConfig
 
 
 def sitl_arena(scenario: str, overrides: list[str], max_duration_s: float) -> ArenaConfig:
@@ -32,8 +34,15 @@ def sitl_arena(scenario: str, overrides: list[str], max_duration_s: float) -> Ar
     return arena
 
 
-def _vehicle_cfg(arena: ArenaConfig) -> dict[str, Any]:
-    return dict(arena.raw["vehicles"][0])
+def _vehicle_cfg(arena: ArenaConfig) -> VehicleConfig:
+    """The arena's first vehicle, signed: SITL flies over a signed link."""
+    from bridge.config import parse_vehicles
+
+    vehicles = parse_vehicles(arena)
+    if vehicles[0].signing_key is None:
+        raise ConfigError(arena.source, "vehicles[0].signing", "SITL flies over a signed link: give "
+                          "signing: {key_file: ...}")
+    return vehicles[0]
 
 
 def run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | None) -> dict[str, Any]:
@@ -46,8 +55,7 @@ def run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | N
 
     if plan.link_delay_ms is None:
         return _run_sitl(arena, binary, plan, out, None)
-    veh = _vehicle_cfg(_one_vehicle(arena))
-    vision_port = int(str(veh["endpoint"]).rsplit(":", 1)[1])
+    vision_port = _vehicle_cfg(_one_vehicle(arena)).endpoint.port
     with DelayRelay(("127.0.0.1", vision_port), plan.link_delay_ms, lifetime_s=plan.timeout_s + 180.0) as relay:
         return _run_sitl(arena, binary, plan, out, relay)
 
@@ -55,15 +63,14 @@ def run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | N
 def _run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | None,
               relay: Any) -> dict[str, Any]:
     """SITL started, set up (preflight.py), the plan flown on the demo's live arena, the summary."""
-    cfg = SitlSettings.from_arena(arena, binary)
+    cfg = parse_sitl(arena, binary)
     instance = cfg.instance if cfg.instance is not None else free_instance()
     arena = _one_vehicle(arena)
     veh = _vehicle_cfg(arena)
-    key = _signing_key(arena, veh)
-    vision_port = int(str(veh["endpoint"]).rsplit(":", 1)[1])
+    key, vision_port = veh.signing_key, veh.endpoint.port
     say = (lambda text: (out.write(text + "\n"), out.flush())) if out is not None else (lambda text: None)
     truth = TruthTrack(cfg.home[:3])
-    live = LiveArena(veh["body"], truth)
+    live = LiveArena(veh.body, truth)
     record: dict[str, Any] = {}
     t0 = time.monotonic()
     old_switch = sys.getswitchinterval()
@@ -76,26 +83,18 @@ def _run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | 
             say(f"SITL instance {proc.instance} in {proc.folder}: GCS on SERIAL0 tcp:127.0.0.1:{proc.gcs_port}, "
                 f"SERIAL1 udpclient:127.0.0.1:{serial1_port} -> "
                 + ("" if relay is None else f"a relay holding each direction {plan.link_delay_ms:g} ms -> ")
-                + f"the bridge ({veh['endpoint']}, signed)")
+                + f"the bridge ({veh.endpoint}, signed)")
             prepare_vehicle(gcs, proc, cfg, veh, key, say)
             if relay is not None:  # SITL's intake of the vision link's datagrams, for the true delay
                 probe = IntakeProbe(relay, key, gcs.clock).__enter__()
             say(f"set-up done in {time.monotonic() - t0:.1f} s; cameras start")
-            demo = _fly_live(arena, gcs, live, plan, cfg, veh["body"], record, say, relay)
+            demo = _fly_live(arena, gcs, live, plan, cfg, veh.body, record, say, relay)
         finally:
             if probe is not None:
                 probe.__exit__()
             gcs.close()
             sys.setswitchinterval(old_switch)
     return _summary(gcs, truth, live, demo, record, plan, time.monotonic() - t0)
-
-
-def _signing_key(arena: ArenaConfig, veh: dict[str, Any]) -> bytes:
-    """The vehicle's signing key (its key_file, relative to the arena file)."""
-    from bridge.config import load_signing_key
-
-    key_path = veh["signing"]["key_file"]
-    return load_signing_key(key_path if os.path.isabs(key_path) else Path(arena.source).resolve().parent / key_path)
 
 
 def _fly_live(arena: ArenaConfig, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSettings, body: str,
@@ -132,8 +131,10 @@ def _one_vehicle(arena: ArenaConfig) -> ArenaConfig:
     """The arena with its first vehicle only (SITL is one copter, system 1)."""
     from visionpos.config.arena import parse_arena
 
-    data = dict(arena.raw)
-    vehicles = [dict(v) for v in data["vehicles"]]
+    data = arena.to_dict()
+    vehicles = data.get("vehicles") or []
+    if not vehicles:
+        raise ConfigError(arena.source, "vehicles", "SITL flies the first vehicle: add one (docs/autopilot-setup.md)")
     if int(vehicles[0].get("sysid", 1)) != 1:
         raise UsageError(f"vehicles[0].sysid {vehicles[0].get('sysid')}: SITL is system 1; fly a body with sysid 1")
     data["vehicles"] = vehicles[:1]

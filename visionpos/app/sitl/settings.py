@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from visionpos.config.arena import ArenaConfig, ConfigError, Section
+from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, section
 from visionpos.errors import VisionposError
@@ -30,7 +30,6 @@ SITL = section(
     Setting("viso_vel_m_nse", "number", 0.05, "VISO_VEL_M_NSE: floor on the velocity noise (m/s; ODOMETRY and "
             "VISION_SPEED_ESTIMATE)", min=0.001, max=5.0),
 )
-register_section("sitl", SITL)
 
 
 class SitlError(VisionposError):
@@ -49,22 +48,26 @@ class SitlSettings:
     viso_yaw_m_nse: float
     viso_vel_m_nse: float
 
-    @classmethod
-    def from_arena(cls, arena: ArenaConfig, binary: Path) -> "SitlSettings":
-        sec = SITL.check(Section(dict(arena.raw.get("sitl") or {}), arena.source, "sitl"))
-        defaults = SITL.read(sec, "defaults")
-        if defaults:
-            dp = Path(defaults)
-            dp = dp if dp.is_absolute() else Path(arena.source).resolve().parent / dp
-            if not dp.is_file():
-                raise ConfigError(arena.source, "sitl.defaults", f"{defaults!r}: no file at {dp}")
-        else:
-            dp = binary.parent / "copter.parm"
-            dp = dp if dp.is_file() else None
-        home = tuple(float(x) for x in SITL.read(sec, "home"))
-        if not (-90 <= home[0] <= 90 and -180 <= home[1] <= 180):
-            raise ConfigError(arena.source, "sitl.home", f"{list(home)}: give [lat (-90..90), lon (-180..180), "
-                              "alt m, heading deg]")
-        return cls(binary, dp, SITL.read(sec, "model"), SITL.read(sec, "instance"),
-                   home, SITL.read(sec, "viso_delay_ms"), SITL.read(sec, "viso_pos_m_nse"),
-                   SITL.read(sec, "viso_yaw_m_nse"), SITL.read(sec, "viso_vel_m_nse"))
+
+def parse_sitl(arena: ArenaConfig, binary: Path) -> SitlSettings:
+    """The validated `sitl:` section; binary: the SITL executable (binary.find_sitl_binary)."""
+    sec = SITL.check(arena.section("sitl"))
+    defaults = SITL.read(sec, "defaults")
+    if defaults:
+        dp = Path(defaults)
+        dp = dp if dp.is_absolute() else Path(arena.source).resolve().parent / dp
+        if not dp.is_file():
+            raise ConfigError(arena.source, "sitl.defaults", f"{defaults!r}: no file at {dp}")
+    else:
+        dp = binary.parent / "copter.parm"
+        dp = dp if dp.is_file() else None
+    home = tuple(float(x) for x in SITL.read(sec, "home"))
+    if not (-90 <= home[0] <= 90 and -180 <= home[1] <= 180):
+        raise ConfigError(arena.source, "sitl.home", f"{list(home)}: give [lat (-90..90), lon (-180..180), "
+                          "alt m, heading deg]")
+    return SitlSettings(binary, dp, SITL.read(sec, "model"), SITL.read(sec, "instance"),
+                        home, SITL.read(sec, "viso_delay_ms"), SITL.read(sec, "viso_pos_m_nse"),
+                        SITL.read(sec, "viso_yaw_m_nse"), SITL.read(sec, "viso_vel_m_nse"))
+
+
+register_section("sitl", SITL, parse_sitl)
