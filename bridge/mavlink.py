@@ -55,6 +55,7 @@ from bridge.convert import convert_state, odometry_fields, vision_position_field
 from bridge.transport import Link, LinkDown, make_link
 from visionpos.config.arena import ArenaConfig
 from visionpos.messages import BodyState
+from visionpos.server.sinks import Sink
 
 log = logging.getLogger("visionpos.bridge")
 
@@ -760,7 +761,7 @@ def delay_advice(stats: dict) -> str:
     )
 
 
-class Bridge:
+class Bridge(Sink):
     """Every configured vehicle's MAVLink link plus the optional UDP pose stream.
 
     settings (runtime, not YAML): clock_ns (callable -> int ns; default

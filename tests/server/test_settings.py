@@ -129,6 +129,8 @@ def test_signed_server_status_line_has_no_insecure_mark():
 
 
 class _NoFusion:
+    loose_points = None
+
     def push(self, frame):
         pass
 
