@@ -343,8 +343,8 @@ def test_a_running_server_streams_each_cameras_blobs_and_its_health(arena_yaml):
     from foxglove_schemas_protobuf.Log_pb2 import Log
 
     from visionpos import protocol as P
-    from visionpos.app.ports import free_port
     from visionpos.app.outputs import build_outputs
+    from visionpos.app.ports import free_port
     from visionpos.messages import BlobFrame
     from visionpos.server.service import FusionServer
     from visionpos.server.settings import ServerSettings

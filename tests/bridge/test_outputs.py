@@ -3,8 +3,8 @@
 import threading
 
 from bridge.outputs import OffLoopOutputs
-from visionpos.server.sinks import Sink
 from visionpos.benchmarks.factories import body_state
+from visionpos.server.sinks import Sink
 
 
 class Recording(Sink):

@@ -3,6 +3,8 @@
     simulated stations (one asyncio task per camera, own UDP socket, own clock)
         --Hello / SyncRequest / Heartbeat / frames (the real protocol)--> FusionServer
         --> Bridge (MAVLink, one udpin endpoint per vehicle) --> FakeAutopilot per body
+        --> every other output section of the arena (pose stream, VRPN, NatNet, Foxglove), as `serve`
+            builds them (app/outputs.py): `--set vrpn.port=3883` serves VRPN clients
 
 Every socket is on 127.0.0.1. The simulator renders the scenario's frames up
 front (so generating them never stalls the event loop); each station then
