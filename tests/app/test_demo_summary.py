@@ -89,8 +89,9 @@ def test_the_collectors_memory_does_not_grow_with_the_poses():
     ticks, states = _states(20_000)
 
     def held_after(n: int) -> int:
+        head_ticks, head_states = ticks[:n], states[:n]  # the inputs, made before the tracing starts
         tracemalloc.start()
-        c = _collect(ticks[:n], states[:n], ticks[-1])
+        c = _collect(head_ticks, head_states, ticks[-1])
         size = tracemalloc.get_traced_memory()[0]
         tracemalloc.stop()
         assert c.ticks > 0
