@@ -21,8 +21,8 @@ def test_growth_is_the_slope_after_start_up_in_mb_per_minute():
 
 @pytest.mark.slow
 def test_a_short_demo_is_sampled_every_second():
-    m = measure(4.0)
-    assert 3 <= len(m["rss_bytes"]) <= 6
+    m = measure(8.0)  # the growth is fitted over the second half: 4 samples
+    assert 7 <= len(m["rss_bytes"]) <= 10
     assert (m["rss_bytes"] > 50e6).all()  # a demo with numpy, scipy and numba loaded
     assert np.isfinite(m["growth_mb_per_min"])
     assert m["tracked_fraction"] > 0.8
