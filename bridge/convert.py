@@ -10,6 +10,8 @@ roll/pitch/yaw (ZYX Euler) through the Euler-rate matrix.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from visionpos.geometry.frames import (
@@ -57,18 +59,36 @@ def nan_covariance(n: int) -> list[float]:
     return [float("nan")] + [0.0] * (n - 1)
 
 
-def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: float, at_ns: int | None = None) -> dict:
+@dataclass(slots=True)
+class MavlinkState:
+    """A BodyState in MAVLink's frames (local NED, body FRD) at one time: what the messages carry.
+
+    position_ned: (3,) m of the vehicle's reference point. quaternion_ned_frd: (4,) x y z w, body FRD ->
+    NED (w >= 0). euler: (3,) roll, pitch, yaw rad (ZYX). velocity_ned: (3,) m/s of the reference point;
+    velocity_frd: (3,) the same in the body frame. angular_velocity_frd: (3,) rad/s, body frame.
+    pose_cov: (6, 6) over [x y z roll pitch yaw] (m^2, rad^2), None when unknown. velocity_cov_ned,
+    velocity_cov_frd: (3, 3) m^2/s^2, None when unknown.
+    """
+
+    position_ned: np.ndarray
+    quaternion_ned_frd: np.ndarray
+    euler: np.ndarray
+    velocity_ned: np.ndarray
+    velocity_frd: np.ndarray
+    angular_velocity_frd: np.ndarray
+    pose_cov: np.ndarray | None
+    velocity_cov_ned: np.ndarray | None
+    velocity_cov_frd: np.ndarray | None
+
+
+def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: float,
+                  at_ns: int | None = None) -> MavlinkState:
     """BodyState -> NED / FRD quantities at time at_ns (default: the state's capture time).
 
     The state is valid at time_ns; the message's usec carries at_ns, so the
     pose is moved back to at_ns with the state's velocities first, then
     shifted to the vehicle reference point (pivot_offset (3,) m, body FLU) and
     turned into NED / FRD.
-
-    Returns dict: position_ned (3,), quaternion_ned_frd (4,) xyzw, euler (3,)
-    roll pitch yaw rad, velocity_ned (3,), velocity_frd (3,) (body),
-    angular_velocity_frd (3,), pose_cov (6, 6) [x y z roll pitch yaw] or None,
-    velocity_cov_ned (3, 3) or None, velocity_cov_frd (3, 3) or None.
     """
     dt = (state.time_ns - (state.capture_ns if at_ns is None else at_ns)) * 1e-9
     w_body = np.asarray(state.angular_velocity, float)
@@ -107,31 +127,21 @@ def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: fl
     if Cv.shape == (3, 3) and np.isfinite(Cv).all():
         vcov_ned = J @ Cv @ J.T
         vcov_frd = R_nf.T @ vcov_ned @ R_nf
-    return {
-        "position_ned": p_ned,
-        "quaternion_ned_frd": q_nf,
-        "euler": euler,
-        "velocity_ned": v_ned,
-        "velocity_frd": v_frd,
-        "angular_velocity_frd": flu_to_frd(w_body),
-        "pose_cov": pose_cov,
-        "velocity_cov_ned": vcov_ned,
-        "velocity_cov_frd": vcov_frd,
-    }
+    return MavlinkState(p_ned, q_nf, euler, v_ned, v_frd, flu_to_frd(w_body), pose_cov, vcov_ned, vcov_frd)
 
 
-def vision_position_fields(c: dict, usec: int, reset_counter: int) -> dict:
-    """Fields of VISION_POSITION_ESTIMATE from convert_state output."""
-    cov = nan_covariance(21) if c["pose_cov"] is None else mavlink_upper_triangle(c["pose_cov"]).tolist()
-    x, y, z = (float(a) for a in c["position_ned"])
-    roll, pitch, yaw = (float(a) for a in c["euler"])
+def vision_position_fields(c: MavlinkState, usec: int, reset_counter: int) -> dict:
+    """Fields of VISION_POSITION_ESTIMATE."""
+    cov = nan_covariance(21) if c.pose_cov is None else mavlink_upper_triangle(c.pose_cov).tolist()
+    x, y, z = (float(a) for a in c.position_ned)
+    roll, pitch, yaw = (float(a) for a in c.euler)
     return dict(usec=usec, x=x, y=y, z=z, roll=roll, pitch=pitch, yaw=yaw, covariance=cov, reset_counter=reset_counter)
 
 
-def vision_speed_fields(c: dict, usec: int, reset_counter: int) -> dict:
+def vision_speed_fields(c: MavlinkState, usec: int, reset_counter: int) -> dict:
     """Fields of VISION_SPEED_ESTIMATE (NED velocity, full 3x3 row-major covariance)."""
-    cov = nan_covariance(9) if c["velocity_cov_ned"] is None else c["velocity_cov_ned"].ravel().tolist()
-    x, y, z = (float(a) for a in c["velocity_ned"])
+    cov = nan_covariance(9) if c.velocity_cov_ned is None else c.velocity_cov_ned.ravel().tolist()
+    x, y, z = (float(a) for a in c.velocity_ned)
     return dict(usec=usec, x=x, y=y, z=z, covariance=cov, reset_counter=reset_counter)
 
 
@@ -140,21 +150,21 @@ MAV_FRAME_BODY_FRD = 12
 MAV_ESTIMATOR_TYPE_VISION = 2
 
 
-def odometry_fields(c: dict, usec: int, reset_counter: int, quality: int) -> dict:
+def odometry_fields(c: MavlinkState, usec: int, reset_counter: int, quality: int) -> dict:
     """Fields of ODOMETRY: pose in LOCAL_FRD (our NED), velocities in BODY_FRD, q w-first."""
-    pose_cov = nan_covariance(21) if c["pose_cov"] is None else mavlink_upper_triangle(c["pose_cov"]).tolist()
-    if c["velocity_cov_frd"] is None:
+    pose_cov = nan_covariance(21) if c.pose_cov is None else mavlink_upper_triangle(c.pose_cov).tolist()
+    if c.velocity_cov_frd is None:
         vel_cov = nan_covariance(21)
     else:
         # angular-rate variances are not estimated: NaN there, linear block known
         V = np.full((6, 6), np.nan)
-        V[:3, :3] = c["velocity_cov_frd"]
+        V[:3, :3] = c.velocity_cov_frd
         V[:3, 3:] = np.nan
         vel_cov = mavlink_upper_triangle(V).tolist()
-    qx, qy, qz, qw = (float(a) for a in c["quaternion_ned_frd"])
-    x, y, z = (float(a) for a in c["position_ned"])
-    vx, vy, vz = (float(a) for a in c["velocity_frd"])
-    wr, wp, wy = (float(a) for a in c["angular_velocity_frd"])
+    qx, qy, qz, qw = (float(a) for a in c.quaternion_ned_frd)
+    x, y, z = (float(a) for a in c.position_ned)
+    vx, vy, vz = (float(a) for a in c.velocity_frd)
+    wr, wp, wy = (float(a) for a in c.angular_velocity_frd)
     return dict(
         time_usec=usec, frame_id=MAV_FRAME_LOCAL_FRD, child_frame_id=MAV_FRAME_BODY_FRD,
         x=x, y=y, z=z, q=[qw, qx, qy, qz], vx=vx, vy=vy, vz=vz,

@@ -44,6 +44,7 @@ from visionpos.foxglove.channels import FoxgloveChannels
 from visionpos.foxglove.protobuf import file_descriptor_set
 from visionpos.logutil import RateLimitedLog
 from visionpos.messages import BodyState, LoosePoints
+from visionpos.server.sinks import PacketTap, Sink
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +105,7 @@ def _sdk(source: str) -> Any:
     return foxglove
 
 
-class FoxgloveServer:
+class FoxgloveServer(Sink):
     """Sink: FoxgloveServer(cfg, cameras) or FoxgloveServer.from_arena(arena); start(), publish(states),
     publish_markers(lp), packet_taps(), publish_health(t, health), publish_event(t, info), stats(), close()."""
 
@@ -134,6 +135,9 @@ class FoxgloveServer:
     def from_arena(cls, arena: ArenaConfig) -> "FoxgloveServer | None":
         cfg = parse_foxglove(arena)
         return None if cfg is None else cls(cfg, arena.cameras, arena.source)
+
+    def opens(self) -> dict[str, Any]:
+        return {"foxglove.host": self.cfg.host, "foxglove.port": self.cfg.port}
 
     def start(self) -> None:
         """Listen (RuntimeError from the SDK when the port is taken) and start the sender thread."""
@@ -186,7 +190,7 @@ class FoxgloveServer:
             self._markers = lp
         self._wake.set()
 
-    def packet_taps(self) -> list[Any]:
+    def packet_taps(self) -> list[PacketTap]:
         return [self.packet]
 
     def packet(self, recv_ns: int, data: bytes) -> None:

@@ -18,11 +18,12 @@ from bridge.link_stats import delay_advice
 from bridge.vehicle_link import VehicleLink
 from visionpos.config.arena import ArenaConfig
 from visionpos.messages import BodyState
+from visionpos.server.sinks import Sink
 
 __all__ = ["Bridge", "VehicleLink", "delay_advice"]
 
 
-class Bridge:
+class Bridge(Sink):
     """Every configured vehicle's MAVLink link plus the optional UDP pose stream.
 
     settings (runtime, not YAML): clock_ns (callable -> int ns; default

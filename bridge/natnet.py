@@ -24,7 +24,7 @@ import struct
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -36,6 +36,7 @@ from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, section
 from visionpos.geometry.rotations import matrix_from_quat
 from visionpos.messages import BodyState, LoosePoints
+from visionpos.server.sinks import Sink
 
 log = logging.getLogger(__name__)
 
@@ -179,7 +180,7 @@ class _Client:
     last_ns: int
 
 
-class NatNetServer:
+class NatNetServer(Sink):
     """Sink: NatNetServer(cfg, bodies) or NatNetServer.from_arena(arena); start(), publish(states),
     publish_markers(points), stats(), close(). Timestamps are on clock_ns (the server's monotonic clock,
     the one BodyState times are on), sent as ticks of 1 ns."""
@@ -220,6 +221,10 @@ class NatNetServer:
         return None if cfg is None else cls(cfg, arena.bodies, clock_ns)
 
     # ---- lifecycle -------------------------------------------------------------------------------
+
+    def opens(self) -> dict[str, Any]:
+        return {"natnet.interface": self.cfg.interface, "natnet.command_port": self.cfg.command_port,
+                "natnet.data_port": self.cfg.data_port}
 
     def start(self) -> None:
         """Open both sockets (OSError when a port is taken) and start the command and sender threads."""

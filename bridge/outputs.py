@@ -17,16 +17,16 @@ from typing import Any
 
 from visionpos.logutil import RateLimitedLog
 from visionpos.messages import BodyState, LoosePoints
+from visionpos.server.sinks import PacketTap, Sink, start_sink
 
 log = logging.getLogger(__name__)
 
 
-class OffLoopOutputs:
-    """A sink (publish / publish_markers / start / stats / close) that forwards to `outputs` from a
-    thread of its own. outputs: objects with publish(states), optionally publish_markers(points),
-    start(), stats(), close()."""
+class OffLoopOutputs(Sink):
+    """A sink that forwards poses and markers to `outputs` (sinks too) from a thread of its own; packet
+    taps, health and events go to them straight (each is a mailbox store)."""
 
-    def __init__(self, outputs: Sequence[Any]):
+    def __init__(self, outputs: Sequence[Sink]):
         self.outputs = list(outputs)
         self._cond = threading.Condition()
         self._states: list[BodyState] | None = None
@@ -37,9 +37,15 @@ class OffLoopOutputs:
         self._log = RateLimitedLog(log)
 
     def start(self) -> None:
-        for o in self.outputs:
-            if hasattr(o, "start"):
-                o.start()
+        started: list[Sink] = []
+        try:
+            for o in self.outputs:
+                start_sink(o)
+                started.append(o)
+        except BaseException:  # one output could not open (a port taken): close the others again
+            for o in started:
+                o.close()
+            raise
         self._running = True
         self._thread = threading.Thread(target=self._run, name="outputs-dispatch", daemon=True)
         self._thread.start()
@@ -73,10 +79,10 @@ class OffLoopOutputs:
                 self.counters["ticks"] += 1
                 self._call("publish", states)
 
-    def packet_taps(self) -> list[Any]:
+    def packet_taps(self) -> list[PacketTap]:
         """The outputs' packet taps (Ingest calls them with each accepted packet, on the loop); each is a
         mailbox store, so they need no hand-over to this thread."""
-        return [tap for o in self.outputs if hasattr(o, "packet_taps") for tap in o.packet_taps()]
+        return [tap for o in self.outputs for tap in o.packet_taps()]
 
     def publish_health(self, time_ns: int, health: dict[str, Any]) -> None:
         """A health snapshot (every status period): straight to the outputs that show it (mailbox stores)."""
@@ -88,11 +94,8 @@ class OffLoopOutputs:
 
     def _call(self, method: str, *args: Any) -> None:
         for o in self.outputs:
-            fn = getattr(o, method, None)
-            if fn is None:
-                continue
             try:
-                fn(*args)
+                getattr(o, method)(*args)
             except Exception as e:  # one output's bug must not silence the others
                 self.counters["errors"] += 1
                 name = f"{type(o).__name__}.{method}"
@@ -101,8 +104,9 @@ class OffLoopOutputs:
     def stats(self) -> dict:
         out: dict[str, Any] = {"dispatch": dict(self.counters)}
         for o in self.outputs:
-            if hasattr(o, "stats"):
-                out[type(o).__name__] = o.stats()
+            st = o.stats()
+            if st:
+                out[o.name] = st
         return out
 
     def close(self) -> None:
@@ -114,5 +118,4 @@ class OffLoopOutputs:
             self._thread.join(timeout=5.0)
             self._thread = None
         for o in self.outputs:
-            if hasattr(o, "close"):
-                o.close()
+            o.close()

@@ -19,13 +19,14 @@ import json
 import math
 import socket
 import time
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
 from bridge.config import PoseStreamConfig, is_multicast
 from bridge.transport import RateGrid, pack_datagrams
 from visionpos.messages import BodyState, LoosePoints
+from visionpos.server.sinks import Sink
 
 MAGIC = b"VPS1"
 VERSION = 1
@@ -250,7 +251,7 @@ def upper_to_full(ut: np.ndarray, n: int) -> np.ndarray:
     return m
 
 
-class PoseStream:
+class PoseStream(Sink):
     """Sends every body's state to the configured destinations.
 
     PoseStream(cfg) with a PoseStreamConfig, or PoseStream.to("127.0.0.1:5005", format="json").
@@ -276,6 +277,9 @@ class PoseStream:
             dests.append((host, int(port)))
         clock = kw.pop("clock_ns", time.monotonic_ns)
         return cls(PoseStreamConfig(tuple(dests), format=format, rate_hz=rate_hz, **kw), clock_ns=clock)
+
+    def opens(self) -> dict[str, Any]:
+        return {"pose_stream.destinations": ", ".join(f"{h}:{p}" for h, p in self.cfg.destinations)}
 
     def start(self) -> None:
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

@@ -457,8 +457,8 @@ class VehicleLink:
             return
         conv = convert_state(st, self.pivot, self.yaw_offset_rad, at_ns=stamp)
         bc = self.bc
-        euler, rate = conv["euler"], conv["angular_velocity_frd"]
-        bc.on_optical(stamp, euler[0], euler[1], rate, conv["quaternion_ned_frd"])  # also while held
+        euler, rate = conv.euler, conv.angular_velocity_frd
+        bc.on_optical(stamp, euler[0], euler[1], rate, conv.quaternion_ned_frd)  # also while held
         if not self._peer_known():
             c["no_link"] += 1
             return

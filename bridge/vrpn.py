@@ -39,7 +39,7 @@ import struct
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -50,6 +50,7 @@ from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, section
 from visionpos.geometry.rotations import matrix_from_quat, quat_from_rotvec
 from visionpos.messages import BodyState
+from visionpos.server.sinks import Sink
 
 log = logging.getLogger("visionpos.bridge.vrpn")
 
@@ -260,7 +261,7 @@ class _Client:
         self.target = target  # callback clients: the (address, port) we connected to
 
 
-class VrpnServer:
+class VrpnServer(Sink):
     """A sink serving every body as a VRPN tracker (module docstring; docs/interop.md).
 
     VrpnServer(cfg) with a VrpnConfig; start() binds the port and starts the thread; publish(states)
@@ -295,6 +296,9 @@ class VrpnServer:
         self._wake_w: socket.socket | None = None
 
     # ---------------------------------------------------------------- fusion side
+
+    def opens(self) -> dict[str, Any]:
+        return {"vrpn.host": self.cfg.host, "vrpn.port": self.cfg.port}
 
     def start(self) -> None:
         """Bind TCP and UDP on cfg.host:cfg.port (0: one free port for both) and start the thread."""

@@ -1,9 +1,10 @@
 """What the console shows, read from a running fusion server (or a replay): the scene once, the live state per update.
 
-The source is any object with the FusionServer's observable parts (duck-typed, read only):
-`arena`, `pipeline` (FusionPipeline: obs, last_px, tracks, models, loose_points, untracked_why,
-last_verdict), `last_states` (the newest tick's BodyStates), `health()` and `clock()`. A replay
-session (console/replay.py) offers the same.
+The source is any object with the FusionServer's observable parts (read only): `arena`,
+`pipeline.snapshot()` (a visionpos.fusion.snapshot.FusionSnapshot: each camera's newest frame as
+fused, which body the filters hold and why one is not tracked, the loose markers), `last_states`
+(the newest tick's BodyStates), `health()` and `clock()`. A replay session (console/replay.py) and
+`visionpos record`'s stand-in (app/console.py RecordSource) offer the same.
 
 Nothing here changes the source: it reads each camera's newest observation (its blobs, their
 labels, and where fusion predicted the tracked markers when it matched the frame), once per
@@ -19,6 +20,8 @@ from math import isfinite
 from typing import Any
 
 import numpy as np
+
+from visionpos.fusion.snapshot import CameraFrame
 
 # a leftover blob that stays within one cell this long, seen in most updates, looks like a reflection
 STATIC_BLOB_S = 5.0
@@ -127,18 +130,17 @@ class ConsoleView:
         shows changed since its last build (its frame, the frame's labels, its rays) or a watch wants a frame it
         has not seen; otherwise the last one is reused (a camera slower than the updates, a stalled one, a
         paused replay cost nothing)."""
-        pipe = self.source.pipeline
-        obs_all = getattr(pipe, "obs", {})
-        px_all = getattr(pipe, "last_px", {})
+        frames = self.source.pipeline.snapshot().cameras
         out: list[tuple[int, int | None, _CameraView]] = []
-        build: list[tuple[int, Any, np.ndarray, tuple]] = []
+        build: list[tuple[int, CameraFrame, np.ndarray, tuple]] = []
         for cid in self.cameras:
-            o, px = obs_all.get(cid), px_all.get(cid)
-            if o is None or px is None or len(px) != len(o.label):
+            o = frames.get(cid)
+            px = None if o is None else o.px
+            if o is None or len(px) != len(o.label):
                 out.append((cid, None, _EMPTY_VIEW))
                 continue
             t = int(o.capture_ns)
-            key = (t, id(o), id(px), np.asarray(o.label).tobytes(), cid in rays)
+            key = (t, id(o.label), id(px), np.asarray(o.label).tobytes(), cid in rays)
             old = self._built.get(cid)
             if old is None or old.key != key or (watch and self.watch[cid].last_capture_ns != t):
                 build.append((cid, o, px, key))
@@ -150,9 +152,9 @@ class ConsoleView:
             out = [(cid, t, built.get(cid, v)) for cid, t, v in out]
         return out
 
-    def _build(self, todo: list[tuple[int, Any, np.ndarray, tuple]], now_ns: int, watch: bool, rays: frozenset[int]
-               ) -> dict[int, _CameraView]:
-        """The views of the cameras in todo. The predicted markers are fusion's own (Observation.pred_px: where
+    def _build(self, todo: list[tuple[int, CameraFrame, np.ndarray, tuple]], now_ns: int, watch: bool,
+               rays: frozenset[int]) -> dict[int, _CameraView]:
+        """The views of the cameras in todo. The predicted markers are fusion's own (CameraFrame.pred_px: where
         the filters expected the markers when the frame was matched), so nothing is predicted or projected here.
         A frame has a few dozen blobs at most: plain Python over their lists costs less than the fixed price of
         the numpy calls it replaces (the numpy version of this was slower)."""
@@ -163,7 +165,7 @@ class ConsoleView:
             label = o.label.tolist() if isinstance(o.label, np.ndarray) else list(o.label)
             blobs = [[round(u * 10.0), round(v * 10.0), body_of[lb] if 0 <= lb < n_markers else -1]
                      for (u, v, *_), lb in zip(px.tolist(), label) if isfinite(u) and isfinite(v)]
-            pred_px, pred_rows = getattr(o, "pred_px", None), getattr(o, "pred_rows", None)
+            pred_px, pred_rows = o.pred_px, o.pred_rows
             pred: list[tuple[float, float, int]] = []
             if pred_px is not None and pred_rows is not None:
                 pred = [(u, v, r) for (u, v), r in zip(pred_px.tolist(), pred_rows.tolist())
@@ -188,7 +190,7 @@ class ConsoleView:
         update the residual and static-blob watches (twice a second is plenty)."""
         return [{"id": cid, **v.data, "age_ms": _age_ms(now_ns, t)} for cid, t, v in self._views(now_ns, watch, rays)]
 
-    def _watch(self, cid: int, o: Any, px: np.ndarray, label: list[int], pred: list[tuple[float, float, int]],
+    def _watch(self, cid: int, o: CameraFrame, px: np.ndarray, label: list[int], pred: list[tuple[float, float, int]],
                now_ns: int) -> None:
         """The residual of each matched blob against fusion's prediction of its own marker (pred: [(u, v, marker
         row)]); the static leftovers."""
@@ -249,8 +251,7 @@ class ConsoleView:
     # ---------------------------------------------------------------- whole state
 
     def bodies(self) -> list[dict[str, Any]]:
-        pipe = self.source.pipeline
-        why = getattr(pipe, "untracked_why", {})
+        snap = self.source.pipeline.snapshot()
         out = []
         for i, s in enumerate(self.source.last_states or []):
             d: dict[str, Any] = {"name": s.name, "id": s.body_id, "tracked": bool(s.tracked)}
@@ -258,16 +259,16 @@ class ConsoleView:
                 d.update(p=_rounded(np.asarray(s.position).tolist(), 5),
                          q=_rounded(np.asarray(s.quaternion).tolist(), 6),
                          n_markers=int(s.n_markers), n_cameras=int(s.n_cameras), residual_mm=_r(s.residual_mm, 3))
-            elif i < len(pipe.tracks) and pipe.tracks[i].tracked:  # the filter has it, but no fresh measurement
+            elif i < len(snap.filter_tracked) and snap.filter_tracked[i]:  # the filter has it, no fresh measurement
                 d["why"] = ("no measurement within fusion.max_prediction_ms: its cameras' frames are late or "
                             "missing (see the cameras' state and frame age)")
             else:
-                d["why"] = why.get(i, "not seen yet")
+                d["why"] = snap.untracked_why.get(i, "not seen yet")
             out.append(d)
         return out
 
     def loose_markers(self) -> list[list[float | None]]:
-        lp = getattr(self.source.pipeline, "loose_points", None)
+        lp = self.source.pipeline.snapshot().loose_points
         if lp is None:
             return []
         return [_rounded(p, 4) for p in np.asarray(lp.points).reshape(-1, 3).tolist()]

@@ -51,3 +51,79 @@ def test_demo_json_summary_is_sane_and_its_recording_replays(capsys, tmp_path):
     assert res.n_frames == s["server"]["frames_accepted"]
     m = res.metrics()[0]
     assert m.name == "quad" and m.tracked_fraction > 0.8 and m.position_rmse_mm < 10.0
+
+
+def _held_tcp_port():
+    """A listening TCP socket on 127.0.0.1 (its port is taken for anyone else)."""
+    import socket
+
+    s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    s.bind(("127.0.0.1", 0))
+    s.listen(1)
+    return s
+
+
+@pytest.mark.slow
+def test_the_demo_serves_its_vrpn_and_pose_stream_sections_to_real_clients():
+    """`--set vrpn.port=...` and `--set pose_stream.destination=...` open what they say: a libmotioncapture client
+    gets the body from the demo's VRPN server, a UDP socket gets the pose stream."""
+    import asyncio
+    import socket
+    import sys
+
+    from tests.bridge.test_vrpn import CLIENT, HAVE_MC
+    from visionpos.app.demo import demo_arena, run_demo
+    from visionpos.app.ports import free_port
+
+    vrpn_port = free_port()
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listener.bind(("127.0.0.1", 0))
+    listener.settimeout(0.0)
+    sets = ["vrpn.host=127.0.0.1", f"vrpn.port={vrpn_port}", f"pose_stream.destination=127.0.0.1:"
+            f"{listener.getsockname()[1]}", "pose_stream.format=json"]
+    arena = demo_arena("thesis", 4.0, 3, sets)
+    lines: list[bytes] = []
+
+    async def during(ctx) -> None:
+        assert [o.opens() for o in ctx.outputs[-1].outputs] == [
+            {"pose_stream.destinations": f"127.0.0.1:{listener.getsockname()[1]}"},
+            {"vrpn.host": "127.0.0.1", "vrpn.port": vrpn_port}]
+        if not HAVE_MC:
+            return
+        await asyncio.sleep(0.5)  # tracking
+        client = await asyncio.create_subprocess_exec(sys.executable, "-c", CLIENT, f"127.0.0.1:{vrpn_port}", "2.0",
+                                                      stdout=asyncio.subprocess.PIPE)
+        out, _ = await client.communicate()
+        lines.extend(out.splitlines())
+
+    summary = asyncio.run(run_demo(arena, 4.0, None, during=during))
+    assert summary["bodies"][0]["tracked_fraction"] > 0.8
+    datagrams = []
+    while True:
+        try:
+            datagrams.append(listener.recv(65536))
+        except BlockingIOError:
+            break
+    listener.close()
+    assert len(datagrams) > 100  # about one per output tick for 4 s (the socket's buffer holds a few hundred)
+    assert any(b'"quad"' in d for d in datagrams[-50:])
+    if HAVE_MC:
+        frames = [json.loads(x) for x in lines]
+        seen = [f for f in frames if "quad" in f["bodies"]]
+        assert len(seen) > 50, frames[:3]  # 2 s of poses
+
+
+@pytest.mark.slow
+def test_a_taken_output_port_stops_the_demo_at_start_with_one_line_naming_the_key(capsys):
+    from visionpos.cli import main
+
+    held = _held_tcp_port()
+    port = held.getsockname()[1]
+    try:
+        rc = main(["demo", "--duration", "1", "--quiet", "--no-console", "--set", "vrpn.host=127.0.0.1",
+                   "--set", f"vrpn.port={port}"])
+    finally:
+        held.close()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2
+    assert len(err) == 1 and f"vrpn.port={port}" in err[0] and "in use" in err[0], err

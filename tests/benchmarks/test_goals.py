@@ -34,4 +34,4 @@ def test_every_goal_names_a_metric_prefix_of_a_bench_group():
         )
         assert (g.target is None) == (g.versus is not None)
     assert set(GROUPS) == {"geometry", "detector", "fusion", "bridge", "calibration", "replay", "robustness", "planner",
-                           "sitl", "sitl_delay", "console", "backchannel", "camera_monitor"}
+                           "sitl", "sitl_delay", "console", "backchannel", "camera_monitor", "demo_memory"}

@@ -27,27 +27,27 @@ def conv(st, pivot=(0, 0, 0), yaw_offset_deg=0.0):
 
 def test_position_and_yaw_to_ned():
     c = conv(body_state(position=(1, 2, 3), quaternion=YAW_LEFT_90))
-    np.testing.assert_allclose(c["position_ned"], [1, -2, -3], atol=1e-12)
-    np.testing.assert_allclose(c["euler"], [0, 0, -math.pi / 2], atol=1e-12)  # facing world +y = west of north x
-    np.testing.assert_allclose(c["quaternion_ned_frd"], [0, 0, -S45, S45], atol=1e-12)
+    np.testing.assert_allclose(c.position_ned, [1, -2, -3], atol=1e-12)
+    np.testing.assert_allclose(c.euler, [0, 0, -math.pi / 2], atol=1e-12)  # facing world +y = west of north x
+    np.testing.assert_allclose(c.quaternion_ned_frd, [0, 0, -S45, S45], atol=1e-12)
 
 
 def test_roll_pitch_signs():
     # nose up 10 deg in FLU is a rotation of -10 deg about body y (left); in FRD pitch +10 deg
     q = Rotation.from_euler("y", -10, degrees=True).as_quat()
-    np.testing.assert_allclose(conv(body_state(quaternion=q))["euler"], [0, math.radians(10), 0], atol=1e-12)
+    np.testing.assert_allclose(conv(body_state(quaternion=q)).euler, [0, math.radians(10), 0], atol=1e-12)
     # right wing down: rotation +10 deg about forward x in FLU (y axis goes up) -> FRD roll +10 deg
     q = Rotation.from_euler("x", 10, degrees=True).as_quat()
-    np.testing.assert_allclose(conv(body_state(quaternion=q))["euler"], [math.radians(10), 0, 0], atol=1e-12)
+    np.testing.assert_allclose(conv(body_state(quaternion=q)).euler, [math.radians(10), 0, 0], atol=1e-12)
 
 
 def test_odometry_body_velocities():
     st = body_state(position=(1, 2, 3), quaternion=YAW_LEFT_90, velocity=(1, 0, 0), angular_velocity=(0.1, 0.2, 0.3))
     c = conv(st)
     # facing world +y, moving along world +x = moving to its right: FRD (0, 1, 0)
-    np.testing.assert_allclose(c["velocity_frd"], [0, 1, 0], atol=1e-12)
-    np.testing.assert_allclose(c["velocity_ned"], [1, 0, 0], atol=1e-12)
-    np.testing.assert_allclose(c["angular_velocity_frd"], [0.1, -0.2, -0.3], atol=1e-12)
+    np.testing.assert_allclose(c.velocity_frd, [0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(c.velocity_ned, [1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(c.angular_velocity_frd, [0.1, -0.2, -0.3], atol=1e-12)
     f = odometry_fields(c, usec=123, reset_counter=4, quality=100)
     assert (f["frame_id"], f["child_frame_id"], f["estimator_type"]) == (20, 12, 2)
     np.testing.assert_allclose(f["q"], [S45, 0, 0, -S45], atol=1e-12)  # w first
@@ -59,24 +59,24 @@ def test_back_propagation_to_capture_time():
     # state valid 20 ms after capture, moving 1 m/s along x, turning 0.5 rad/s left
     st = body_state(position=(1, 2, 3), velocity=(1, 0, 0), angular_velocity=(0, 0, 0.5), dt_ns=20_000_000)
     c = conv(st)
-    np.testing.assert_allclose(c["position_ned"], [0.98, -2, -3], atol=1e-12)
-    np.testing.assert_allclose(c["euler"][2], -(-0.5 * 0.02), atol=1e-12)  # world yaw -0.01 rad -> NED yaw +0.01
+    np.testing.assert_allclose(c.position_ned, [0.98, -2, -3], atol=1e-12)
+    np.testing.assert_allclose(c.euler[2], -(-0.5 * 0.02), atol=1e-12)  # world yaw -0.01 rad -> NED yaw +0.01
 
 
 def test_pivot_and_yaw_offset():
     # reference point 0.1 m ahead of the marker centroid; vehicle faces world +y
     c = conv(body_state(position=(1, 2, 3), quaternion=YAW_LEFT_90), pivot=(0.1, 0, 0))
-    np.testing.assert_allclose(c["position_ned"], [1, -2.1, -3], atol=1e-12)
+    np.testing.assert_allclose(c.position_ned, [1, -2.1, -3], atol=1e-12)
     # world +x is due east (heading 90): world (1, 0, 0) is (N 0, E 1); facing +x is yaw +90
     c = conv(body_state(position=(1, 0, 0)), yaw_offset_deg=90)
-    np.testing.assert_allclose(c["position_ned"], [0, 1, 0], atol=1e-12)
-    np.testing.assert_allclose(c["euler"], [0, 0, math.pi / 2], atol=1e-12)
+    np.testing.assert_allclose(c.position_ned, [0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(c.euler, [0, 0, math.pi / 2], atol=1e-12)
 
 
 def test_pivot_velocity_from_rotation():
     # turning left at 1 rad/s with the reference point 0.2 m ahead: it moves left at 0.2 m/s
     c = conv(body_state(angular_velocity=(0, 0, 1.0)), pivot=(0.2, 0, 0))
-    np.testing.assert_allclose(c["velocity_ned"], [0, -0.2, 0], atol=1e-12)  # world +y = NED -E
+    np.testing.assert_allclose(c.velocity_ned, [0, -0.2, 0], atol=1e-12)  # world +y = NED -E
 
 
 def test_covariance_layout_and_signs():
@@ -98,7 +98,7 @@ def test_covariance_layout_and_signs():
 def test_attitude_covariance_follows_heading():
     # facing world +y: error about world y is roll, about world x is pitch
     C = np.diag([1e-6, 1e-6, 1e-6, 1e-4, 4e-4, 9e-4])
-    P = conv(body_state(quaternion=YAW_LEFT_90, covariance=C))["pose_cov"]
+    P = conv(body_state(quaternion=YAW_LEFT_90, covariance=C)).pose_cov
     np.testing.assert_allclose(np.diag(P)[3:], [4e-4, 1e-4, 9e-4], rtol=1e-12)
 
 

@@ -158,10 +158,10 @@ def test_without_the_extra_the_error_names_it(monkeypatch):
 
 
 def test_serve_adds_the_server_only_when_the_section_asks(arena_yaml):
-    from visionpos.app.serve import bridge_sinks
+    from visionpos.app.outputs import build_outputs
 
     def outputs(y):  # the network outputs sit behind the off-loop dispatcher
-        return [o for s in bridge_sinks(parse_arena(y, "a.yaml")) for o in getattr(s, "outputs", [s])]
+        return [o for s in build_outputs(parse_arena(y, "a.yaml")) for o in getattr(s, "outputs", [s])]
 
     y = arena_yaml("thesis")
     assert not any(isinstance(s, FoxgloveServer) for s in outputs(y))
@@ -343,8 +343,8 @@ def test_a_running_server_streams_each_cameras_blobs_and_its_health(arena_yaml):
     from foxglove_schemas_protobuf.Log_pb2 import Log
 
     from visionpos import protocol as P
+    from visionpos.app.outputs import build_outputs
     from visionpos.app.ports import free_port
-    from visionpos.app.serve import bridge_sinks
     from visionpos.messages import BlobFrame
     from visionpos.server.service import FusionServer
     from visionpos.server.settings import parse_server
@@ -354,7 +354,7 @@ def test_a_running_server_streams_each_cameras_blobs_and_its_health(arena_yaml):
     y["foxglove"] = {"port": fox_port}
     y["server"] = {"insecure": True, "status_period_s": 0.2, "start_delay_s": 0.0}
     arena = parse_arena(y, "a.yaml")
-    sinks = bridge_sinks(arena)
+    sinks = build_outputs(arena)
     server = FusionServer(arena, parse_server(arena), sinks, host="127.0.0.1", port=0)
     loop = asyncio.new_event_loop()
     started = threading.Event()

@@ -373,8 +373,8 @@ def test_config_errors_name_file_key_and_fix():
 
 
 def test_serve_creates_the_natnet_sink_from_the_arena():
-    from visionpos.app.serve import bridge_sinks
+    from visionpos.app.outputs import build_outputs
 
-    sinks = bridge_sinks(arena({"interface": "127.0.0.1", "command_port": free_port(), "data_port": free_port()}))
+    sinks = build_outputs(arena({"interface": "127.0.0.1", "command_port": free_port(), "data_port": free_port()}))
     assert [type(s).__name__ for s in sinks] == ["OffLoopOutputs"]
     assert [type(o).__name__ for o in sinks[0].outputs] == ["NatNetServer"]

@@ -4,9 +4,10 @@ import threading
 
 from bridge.outputs import OffLoopOutputs
 from visionpos.benchmarks.factories import body_state
+from visionpos.server.sinks import Sink
 
 
-class Recording:
+class Recording(Sink):
     """An output that records what it got and on which thread; `gate` holds its first publish."""
 
     def __init__(self, gate: threading.Event | None = None):
@@ -42,7 +43,7 @@ class Recording:
         self.closed = True
 
 
-class Broken:
+class Broken(Sink):
     def publish(self, states):
         raise RuntimeError("bug")
 

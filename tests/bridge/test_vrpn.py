@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from bridge.vrpn import VrpnConfig, VrpnServer, parse_vrpn
-from visionpos.app.serve import bridge_sinks
+from visionpos.app.outputs import build_outputs
 from visionpos.benchmarks.factories import arena_with_vehicles, body_state
 from visionpos.config.arena import ConfigError, parse_arena
 
@@ -363,8 +363,8 @@ def test_config_section():
 
 
 def test_serve_creates_the_sink_only_when_configured():
-    sinks = bridge_sinks(arena({"port": 0}))
+    sinks = build_outputs(arena({"port": 0}))
     assert [type(s).__name__ for s in sinks] == ["OffLoopOutputs"]  # the network outputs run off the loop
     assert [type(o).__name__ for o in sinks[0].outputs] == ["VrpnServer"]
-    assert bridge_sinks(arena(None)) == []
-    assert bridge_sinks(arena({"enabled": False})) == []
+    assert build_outputs(arena(None)) == []
+    assert build_outputs(arena({"enabled": False})) == []

@@ -13,10 +13,20 @@ import pytest
 from console.server import QUEUE_UPDATES, Client, ConsoleServer
 from console.settings import ConsoleSettings, parse_console
 from visionpos.config.arena import ConfigError, parse_arena
-from visionpos.fusion.tracks import Observation
+from visionpos.fusion.snapshot import CameraFrame, FusionSnapshot
 from visionpos.messages import BodyState
 
 TOKEN = "s3cret-token-0123456789"
+
+
+class FakePipeline:
+    """What the console reads of a pipeline: its snapshot (frames: camera id -> CameraFrame)."""
+
+    def __init__(self, frames, untracked_why):
+        self.frames, self.untracked_why = frames, untracked_why
+
+    def snapshot(self):
+        return FusionSnapshot(self.frames, (), self.untracked_why)
 
 
 class FakeSource:
@@ -26,9 +36,8 @@ class FakeSource:
         self.arena = arena
         cam = arena.cameras[0]
         px = np.array([[100.0, 200.0], [300.0, 40.0]])
-        obs = Observation(5_000_000, cam.model.undistort(px), np.array([-1, -1]), np.zeros((0, 2)))
-        self.pipeline = SimpleNamespace(obs={cam.id: obs}, last_px={cam.id: px}, tracks=[], loose_points=None,
-                                        untracked_why={0: "not seen by enough cameras: 1 of 4 see blobs"})
+        frame = CameraFrame(5_000_000, px, cam.model.undistort(px), np.array([-1, -1]))
+        self.pipeline = FakePipeline({cam.id: frame}, {0: "not seen by enough cameras: 1 of 4 see blobs"})
         self.last_states = [BodyState(name=b.name, body_id=b.id, time_ns=0, capture_ns=0, position=np.full(3, np.nan),
                                       quaternion=np.full(4, np.nan), velocity=np.full(3, np.nan),
                                       angular_velocity=np.full(3, np.nan), covariance=np.full((6, 6), np.nan),
@@ -172,7 +181,7 @@ def test_console_config_keys_are_checked(arena_yaml):
 def test_the_camera_views_ride_on_camera_view_rate_hz_of_the_updates(arena):
     async def main():
         console, source = await _serve(arena)  # 50 updates/s, camera views at the default 10/s
-        source.pipeline.obs = _FreshFrames(source.pipeline.obs)
+        source.pipeline.frames = _FreshFrames(source.pipeline.frames)
         client = Client(None, "test")
         console.clients.add(client)
         carried = []
@@ -289,13 +298,13 @@ def test_a_tab_closed_mid_stream_leaves_the_others_served(arena):
 
 
 class _FreshFrames(dict):
-    """obs of a camera that sends a new frame before every read (each read could build its view)."""
+    """The frames of a camera that sends a new frame before every read (each read could build its view)."""
 
     def get(self, cid, default=None):
         o = dict.get(self, cid, default)
         if o is None:
             return default
-        o = Observation(o.capture_ns + 1_000_000, o.xn, o.label, o.marker_xn)
+        o = CameraFrame(o.capture_ns + 1_000_000, o.px, o.xn, o.label)
         self[cid] = o
         return o
 
@@ -313,7 +322,7 @@ def test_a_hidden_tab_gets_no_camera_views_and_none_are_built_for_it(arena):
 
     async def main():
         console, source = await _serve(arena, camera_view_rate_hz=25.0)  # every second update
-        source.pipeline.obs = _FreshFrames(source.pipeline.obs)
+        source.pipeline.frames = _FreshFrames(source.pipeline.frames)
         base = f"http://127.0.0.1:{console.port}"
         cam = arena.cameras[0].id
         out = {}

@@ -74,7 +74,7 @@ def test_still_image_and_mask_save_in_a_running_demo(tmp_path, arena_yaml):
             await ws.send_json({"cmd": "still", "camera": cam.id})
             found["second"] = await _reply(ws, "still", 6.0)
             # the mask: a rectangle around the blob nearest the image centre
-            px = ctx.server.pipeline.last_px[cam.id]
+            px = ctx.server.pipeline.snapshot().cameras[cam.id].px
             found["before"] = px.copy()
             x, y = px[np.argmin(np.hypot(px[:, 0] - cam.model.width / 2, px[:, 1] - cam.model.height / 2))]
             rect = [max(0, int(x) - 40), max(0, int(y) - 40), min(cam.model.width, int(x) + 40),
@@ -89,7 +89,7 @@ def test_still_image_and_mask_save_in_a_running_demo(tmp_path, arena_yaml):
                 r = np.asarray(station.last_raw_blobs, float)
                 raw_inside += int(((r[:, 0] >= rect[0]) & (r[:, 0] < rect[2]) & (r[:, 1] >= rect[1])
                                    & (r[:, 1] < rect[3])).sum()) if len(r) else 0
-                p = ctx.server.pipeline.last_px[cam.id]
+                p = ctx.server.pipeline.snapshot().cameras[cam.id].px
                 sent_inside += int(((p[:, 0] >= rect[0]) & (p[:, 0] < rect[2]) & (p[:, 1] >= rect[1])
                                     & (p[:, 1] < rect[3])).sum())
             found["raw_inside"], found["sent_inside"] = raw_inside, sent_inside

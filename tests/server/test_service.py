@@ -20,10 +20,11 @@ import numpy as np
 import pytest
 
 from visionpos import protocol as P
-from visionpos.app.serve import bridge_sinks
+from visionpos.app.outputs import build_outputs
 from visionpos.messages import BlobFrame
 from visionpos.recording import RecordingDamagedWarning, RecordingReader, RecordingWriter
 from visionpos.server.service import FusionServer, load_config_with_overrides
+from visionpos.server.sinks import Sink
 
 ROOT = Path(__file__).resolve().parents[2]
 MS = 1_000_000
@@ -34,7 +35,7 @@ SERVER_SET = ["server.vanish_min_s=0.6", "server.max_age_ms=3000", "server.statu
 INSECURE = "server.insecure=true"  # the tests' stations send unsigned packets, and say so
 
 
-class Collect:
+class Collect(Sink):
     """A sink that keeps what the server published (and checks it is called with lists)."""
 
     def __init__(self):
@@ -142,7 +143,7 @@ def test_tracking_continues_after_station_vanishes():
     async def main():
         loop = asyncio.get_running_loop()
         sink = Collect()
-        server = FusionServer(arena, sinks=[sink, *bridge_sinks(arena)], port=0, pipeline=pipe)
+        server = FusionServer(arena, sinks=[sink, *build_outputs(arena)], port=0, pipeline=pipe)
         await server.start()
         try:
             socks = await _station_sockets(loop, server.port, [1, 2, 3, 4])
@@ -263,7 +264,7 @@ def test_sink_errors_do_not_stop_outputs():
     pytest.importorskip("visionpos.fusion.pipeline")
     arena = load_config_with_overrides("thesis", ["server.status_period_s=0", "server.output_rate_hz=200", INSECURE])
 
-    class Broken:
+    class Broken(Sink):
         def publish(self, states):
             raise RuntimeError("sink bug")
 
@@ -464,7 +465,7 @@ def test_loose_markers_reach_sinks_and_the_recording(tmp_path):
     sc = load_scenario("thesis", ["sim.duration=1.0", "sim.spurious.random_per_frame=0", INSECURE], session="wand")
     sim = simulate(sc)
 
-    class Markers:
+    class Markers(Sink):
         def __init__(self):
             self.sets = []
 
@@ -520,6 +521,8 @@ def test_backlogged_frames_are_shed_over_a_real_socket():
 
         def stats(self):
             return {}
+
+        loose_points = None
 
     pipe = Frames()
 

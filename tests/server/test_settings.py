@@ -104,7 +104,7 @@ def test_replay_needs_no_key_file_but_checks_a_named_one(tmp_path):
 def test_insecure_server_warns_at_start_and_in_its_status_line(caplog):
     from visionpos.server.service import FusionServer
 
-    arena = _arena({"insecure": True, "status_period_s": 0})
+    arena = _arena({"insecure": True, "status_period_s": 0}, camera_monitor=NO_MONITOR)
 
     async def main():
         server = FusionServer(arena, pipeline=_NoFusion(), port=0)
@@ -124,11 +124,16 @@ def test_insecure_server_warns_at_start_and_in_its_status_line(caplog):
 def test_signed_server_status_line_has_no_insecure_mark():
     from visionpos.server.service import FusionServer
 
-    server = FusionServer(_arena({}), ServerSettings(key=KEY), pipeline=_NoFusion())
+    server = FusionServer(_arena({}, camera_monitor=NO_MONITOR), ServerSettings(key=KEY), pipeline=_NoFusion())
     assert "INSECURE" not in server.status_line()
 
 
+NO_MONITOR = {"enabled": False}  # an arena without cameras has none to watch
+
+
 class _NoFusion:
+    loose_points = None
+
     def push(self, frame):
         pass
 

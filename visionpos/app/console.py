@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -20,6 +19,7 @@ import numpy as np
 from console.server import ConsoleServer
 from console.settings import ConsoleSettings, parse_console
 from visionpos.config.arena import ArenaConfig
+from visionpos.fusion.snapshot import CameraFrame, FusionSnapshot
 from visionpos.messages import BlobFrame
 
 
@@ -124,15 +124,6 @@ async def open_console(settings: ConsoleSettings, source: Any, **kw: Any) -> Con
     return console
 
 
-@dataclass
-class _Seen:
-    """One camera's newest frame as the console's view reads a pipeline's observation."""
-
-    capture_ns: int
-    xn: np.ndarray
-    label: np.ndarray
-
-
 class RecordSource:
     """`visionpos record`'s stand-in for the fusion server: its Ingest's pipeline (push, remove_camera)
     keeps each camera's newest blobs, undistorted for the rays, and feeds the calibration assistant
@@ -141,14 +132,10 @@ class RecordSource:
     def __init__(self, arena: ArenaConfig, calibration: Any = None):
         self.arena = arena
         self.calibration = calibration
-        self.pipeline = self  # what Ingest pushes frames into, and what the console reads
+        self.pipeline = self  # what Ingest pushes frames into, and what the console reads (snapshot())
         self.ingest: Any = None  # set once record_traffic made it
-        self.obs: dict[int, _Seen] = {}
-        self.last_px: dict[int, np.ndarray] = {}
-        self.tracks: list = []
-        self.untracked_why: dict[int, str] = {i: "not fused: `visionpos record` only records"
-                                              for i in range(len(arena.bodies))}
-        self.loose_points = None
+        self.frames: dict[int, CameraFrame] = {}
+        self._untracked_why = {i: "not fused: `visionpos record` only records" for i in range(len(arena.bodies))}
         self.last_states: list = []
         self._cams = {c.id: c for c in arena.cameras}
 
@@ -160,12 +147,14 @@ class RecordSource:
         if self.calibration is not None:
             self.calibration.push(frame)
         px = blobs[:, :2]
-        self.last_px[cam.id] = px
-        self.obs[cam.id] = _Seen(int(frame.capture_ns), cam.model.undistort(px), np.full(len(px), -1))
+        self.frames[cam.id] = CameraFrame(int(frame.capture_ns), px, cam.model.undistort(px), np.full(len(px), -1))
 
     def remove_camera(self, camera_id: int) -> None:
-        self.obs.pop(camera_id, None)
-        self.last_px.pop(camera_id, None)
+        self.frames.pop(camera_id, None)
+
+    def snapshot(self) -> FusionSnapshot:
+        """The console's view of it: each camera's newest blobs, every blob of no body, no body tracked."""
+        return FusionSnapshot(dict(self.frames), (False,) * len(self.arena.bodies), self._untracked_why)
 
     def clock(self) -> int:
         return time.monotonic_ns()

@@ -3,6 +3,8 @@
     simulated stations (one asyncio task per camera, own UDP socket, own clock)
         --Hello / SyncRequest / Heartbeat / frames (the real protocol)--> FusionServer
         --> Bridge (MAVLink, one udpin endpoint per vehicle) --> FakeAutopilot per body
+        --> every other output section of the arena (pose stream, VRPN, NatNet, Foxglove), as `serve`
+            builds them (app/outputs.py): `--set vrpn.port=3883` serves VRPN clients
 
 Every socket is on 127.0.0.1. The simulator renders the scenario's frames up
 front (so generating them never stalls the event loop); each station then
@@ -33,16 +35,23 @@ import shutil
 import tempfile
 import time
 from collections import deque
-from typing import Any, AsyncIterator, Awaitable, Callable, Protocol, TextIO
+from typing import TYPE_CHECKING, Any, AsyncIterator, Awaitable, Callable, Protocol, TextIO
 
 import numpy as np
 
 from visionpos import protocol as P
 from visionpos.analysis import metrics as M
+from visionpos.app.demo_summary import Collector
+from visionpos.app.outputs import bridge_of, build_outputs
 from visionpos.app.ports import free_port
 from visionpos.config.arena import ArenaConfig, apply_overrides, load_yaml, parse_arena, resolve_config_path
 from visionpos.config.keys import KEY_BYTES
-from visionpos.messages import BlobFrame, BodyState
+from visionpos.messages import BlobFrame
+from visionpos.server.sinks import Sink
+
+if TYPE_CHECKING:
+    from bridge import Bridge
+    from visionpos.server.service import FusionServer
 
 log = logging.getLogger(__name__)
 
@@ -383,26 +392,6 @@ class SimStation:
             self.transport = None
 
 
-# ---------------------------------------------------------------- output collector
-
-
-class Collector:
-    """Server sink: keeps every published state (tick time = the server clock at publish)."""
-
-    def __init__(self, names: list[str]):
-        self.names = names
-        self.ticks: list[int] = []
-        self.states: dict[str, list[tuple[int, BodyState]]] = {n: [] for n in names}
-        self.last: dict[str, BodyState] = {}
-
-    def publish(self, states: list[BodyState]) -> None:
-        now = time.monotonic_ns()
-        self.ticks.append(now)
-        for s in states:
-            self.states.setdefault(s.name, []).append((now, s))
-            self.last[s.name] = s
-
-
 # ---------------------------------------------------------------- the run
 
 
@@ -424,11 +413,33 @@ class DemoContext:
     """What a `during` observer of run_demo can see: the live parts of the running demo."""
 
     arena: ArenaConfig
-    server: Any  # FusionServer
+    server: FusionServer
     stations: list["SimStation"]
-    bridge: Any  # bridge.Bridge
+    bridge: Bridge
     key: bytes | None
     duration_s: float
+    outputs: list[Sink] = dataclasses.field(default_factory=list)  # build_outputs' sinks (the bridge's among them)
+
+
+@dataclasses.dataclass
+class _Run:
+    """The parts of one demo run, filled stage by stage (run_demo)."""
+
+    arena: ArenaConfig
+    sc: Any  # visionpos.sim.Scenario
+    sim: Any  # its simulated frames (None: a live source makes them)
+    sim_s: float  # wall time the simulation took
+    server: FusionServer
+    outputs: list[Sink]
+    bridge: Bridge
+    collector: Collector
+    key: bytes | None
+    autopilots: dict[str, tuple[Any, Any]] = dataclasses.field(default_factory=dict)  # body -> (FakeAutopilot, link)
+    stations: list[SimStation] = dataclasses.field(default_factory=list)
+    shift: int = 0  # sim time + shift = server clock
+    t_start: int = 0  # the streaming window, server clock
+    t_stop: int = 0
+    streaming: bool = False  # the window is set (so truth can be recorded)
 
 
 async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | None,
@@ -448,112 +459,151 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
     streaming ends when it says so (its `stopped_ns`) or at the scenario's end.
     console: ConsoleSettings of the web console (None: none), on the same loop; on_console(ConsoleServer)
     once it listens.
+    Every output section of the arena is served (build_outputs); one that cannot open its address stops
+    the start with a SinkStartError naming its keys.
+    Stages: _simulate, _start_server (outputs, collector, recording), _start_autopilots, _start_stations,
+    _stream, _stop, _summary.
     """
-    from bridge import Bridge
-    from bridge.fake_autopilot import FakeAutopilot, decode_pose, trajectory_truth
-    from visionpos.server.service import FusionServer
-    from visionpos.server.settings import parse_server
+    t_wall0 = time.perf_counter()
+    sc, sim, sim_s = _simulate(arena, live)
+    run = await _start_server(arena, sc, sim, sim_s, record)
+    view = None
+    try:
+        if console is not None:
+            from visionpos.app.console import open_console
+
+            view = await open_console(console, run.server)
+            if on_console is not None:
+                on_console(view)
+        _start_autopilots(run, live)
+        await _start_stations(run, console.stations if console is not None else ())
+        await _stream(run, live, during, duration_s, status_out)
+        health = run.server.health()
+    finally:
+        await _stop(run, view)
+    return _summary(run, health, time.perf_counter() - t_wall0)
+
+
+def _simulate(arena: ArenaConfig, live: LiveSource | None) -> tuple[Any, Any, float]:
+    """The scenario (a live source's in its place) and its frames rendered up front; the seconds it took."""
     from visionpos.sim import parse_sim, simulate
 
-    t_wall0 = time.perf_counter()
+    t0 = time.perf_counter()
     sc = parse_sim(arena)
     if live is not None:
         sc = live.prepare(sc)
     sim = simulate(sc) if live is None else None
-    sim_s = time.perf_counter() - t_wall0
-    names = [b.name for b in arena.bodies]
-    tracked_names = [n for n in names if any(sb.name == n for sb in sc.bodies)]
+    return sc, sim, time.perf_counter() - t0
+
+
+async def _start_server(arena: ArenaConfig, sc: Any, sim: Any, sim_s: float, record: str | None) -> _Run:
+    """The server listening on a free loopback port, with every output of the arena, the collector and the
+    recording (closed again when the start fails)."""
+    from visionpos.server.service import FusionServer
+    from visionpos.server.settings import parse_server
 
     # a fresh key in memory, shared by the in-process stations and the server: signed like a real
     # set-up, and no key file needed (unless the arena names one, or says insecure: true)
     settings = dataclasses.replace(parse_server(arena, key=secrets.token_bytes(KEY_BYTES)),
                                    status_period_s=0.0)
-    bridge = Bridge(arena, {"pose_stream": False, "report_interval_s": 0})
-    collector = Collector(names)
+    outputs = build_outputs(arena, report_interval_s=0)
+    bridge = bridge_of(outputs)
+    collector = Collector([b.name for b in arena.bodies])
     recorder = None
     if record is not None:
         from visionpos.recording import RecordingWriter
 
         recorder = RecordingWriter(record, arena.to_dict(), {"command": "demo", "scenario": arena.source,
                                                        "session": sc.session, "seed": sc.seed})
-    server = FusionServer(arena, settings, sinks=[bridge, collector], host="127.0.0.1", port=0, recorder=recorder)
-    await server.start()
-    autopilots = {}
-    stations: list[SimStation] = []
-    view = None
+    server = FusionServer(arena, settings, sinks=[*outputs, collector], host="127.0.0.1", port=0, recorder=recorder)
     try:
-        if console is not None:
-            from visionpos.app.console import open_console
+        await server.start()
+    except BaseException:
+        if recorder is not None:
+            recorder.close()
+        raise
+    return _Run(arena, sc, sim, sim_s, server, outputs, bridge, collector, settings.key)
 
-            view = await open_console(console, server)
-            if on_console is not None:
-                on_console(view)
-        for v in bridge.vehicles:
-            if live is not None:  # a real autopilot is on the link: a fake one beside it would answer as it
-                autopilots[v.cfg.body] = (None, v)
-                continue
-            ap = FakeAutopilot(f"udpout:127.0.0.1:{v.cfg.endpoint.port}", sysid=v.cfg.sysid,
-                               signing_key=v.cfg.signing_key)
-            autopilots[v.cfg.body] = (ap.start(), v)
 
-        rng = random.Random(sc.seed)
-        files = _station_files(console.stations if console is not None else ())
-        by_cam = sim.frames_by_camera() if sim is not None else {}
-        timing = {t.camera_id: t for t in sc.timings}
-        for cam in sc.cameras:
-            sid = timing[cam.id].station_id
-            clock = sc.clocks.get(sid)
-            st = SimStation(cam, sid, by_cam.get(cam.id, []), clock.offset_ns if clock is not None else 0,
-                            server.port, rng.randrange(1, 1 << 32), settings.key, files.get(cam.id))
-            await st.open()
-            stations.append(st)
-        await asyncio.gather(*(s.register_and_sync() for s in stations))
+def _start_autopilots(run: _Run, live: LiveSource | None) -> None:
+    """A fake autopilot on each vehicle's link (none beside a live source's real one)."""
+    from bridge.fake_autopilot import FakeAutopilot
 
-        # sim time -> server clock: the scenario starts STREAM_LEAD_S from now
-        shift = time.monotonic_ns() + int(STREAM_LEAD_S * 1e9) - sc.start_ns
-        for s in stations:
-            s.frames = [dataclasses.replace(f, capture_ns=f.capture_ns + shift, recv_ns=f.recv_ns + shift)
-                        for f in sorted(s.frames, key=lambda f: f.recv_ns)]
-        if live is not None:
-            for i, s in enumerate(stations):
-                s.frames = live.frames(i, shift)
-        t_start = sc.start_ns + shift
-        t_stop = sc.end_ns + shift
-        for body, (ap, _) in autopilots.items():  # the fake autopilots' sensors follow the simulated truth
-            if ap is not None and any(sb.name == body for sb in sc.bodies):
-                ap.truth = trajectory_truth(sc.body(body).trajectory, sc.start_ns + shift)
-        tasks = [asyncio.create_task(s.stream(t_stop), name=f"station-{s.station_id}") for s in stations]
-        status = asyncio.create_task(_status_loop(server, bridge, collector, stations, sc, shift, t_start,
-                                                  status_out))
-        if during is not None:
-            tasks.append(asyncio.create_task(during(DemoContext(arena, server, stations, bridge, settings.key,
-                                                                duration_s))))
-        await asyncio.gather(*tasks)
-        if live is not None and live.stopped_ns is not None:
-            t_stop = min(t_stop, live.stopped_ns)
-        await asyncio.sleep(0.05)  # the last frames' ticks and sends
-        status.cancel()
-        try:
-            await status
-        except asyncio.CancelledError:
-            pass
-        bridge.flush(0.5)
-        health = server.health()
-    finally:
-        for s in stations:
-            s.close()
-        if recorder is not None and "shift" in locals():
-            _record_truth(recorder, sc, shift, t_stop - shift if "t_stop" in locals() else sc.end_ns)
-        if view is not None:
-            await view.stop()
-        await server.stop()
-        for ap, _ in autopilots.values():
-            if ap is not None:
-                ap.close()
-    wall = time.perf_counter() - t_wall0
+    for v in run.bridge.vehicles:
+        if live is not None:  # a real autopilot is on the link: a fake one beside it would answer as it
+            run.autopilots[v.cfg.body] = (None, v)
+            continue
+        ap = FakeAutopilot(f"udpout:127.0.0.1:{v.cfg.endpoint.port}", sysid=v.cfg.sysid,
+                           signing_key=v.cfg.signing_key)
+        run.autopilots[v.cfg.body] = (ap.start(), v)
 
-    return _summary(arena, sc, shift, t_start, t_stop, collector, bridge, autopilots, stations, health,
-                    tracked_names, wall, sim_s, decode_pose)
+
+async def _start_stations(run: _Run, station_files: tuple[str, ...]) -> None:
+    """One simulated station per camera, registered and clock-synced."""
+    sc = run.sc
+    rng = random.Random(sc.seed)
+    files = _station_files(station_files)
+    by_cam = run.sim.frames_by_camera() if run.sim is not None else {}
+    timing = {t.camera_id: t for t in sc.timings}
+    for cam in sc.cameras:
+        sid = timing[cam.id].station_id
+        clock = sc.clocks.get(sid)
+        st = SimStation(cam, sid, by_cam.get(cam.id, []), clock.offset_ns if clock is not None else 0,
+                        run.server.port, rng.randrange(1, 1 << 32), run.key, files.get(cam.id))
+        await st.open()
+        run.stations.append(st)
+    await asyncio.gather(*(s.register_and_sync() for s in run.stations))
+
+
+async def _stream(run: _Run, live: LiveSource | None, during: Callable[[DemoContext], Awaitable[None]] | None,
+                  duration_s: float, status_out: TextIO | None) -> None:
+    """Every station sends its frames at their times (the scenario starts STREAM_LEAD_S from now), with the
+    live status and the `during` observer alongside; returns once the last frames' ticks are out."""
+    from bridge.fake_autopilot import trajectory_truth
+
+    sc = run.sc
+    run.shift = shift = time.monotonic_ns() + int(STREAM_LEAD_S * 1e9) - sc.start_ns
+    for s in run.stations:
+        s.frames = [dataclasses.replace(f, capture_ns=f.capture_ns + shift, recv_ns=f.recv_ns + shift)
+                    for f in sorted(s.frames, key=lambda f: f.recv_ns)]
+    if live is not None:
+        for i, s in enumerate(run.stations):
+            s.frames = live.frames(i, shift)
+    run.t_start, run.t_stop, run.streaming = sc.start_ns + shift, sc.end_ns + shift, True
+    run.collector.start_window(run.t_start, run.t_stop, lambda name, t: sc.truth_at(name, t - shift))
+    for body, (ap, _) in run.autopilots.items():  # the fake autopilots' sensors follow the simulated truth
+        if ap is not None and any(sb.name == body for sb in sc.bodies):
+            ap.truth = trajectory_truth(sc.body(body).trajectory, sc.start_ns + shift)
+    tasks = [asyncio.create_task(s.stream(run.t_stop), name=f"station-{s.station_id}") for s in run.stations]
+    status = asyncio.create_task(_status_loop(run, status_out))
+    if during is not None:
+        tasks.append(asyncio.create_task(during(DemoContext(run.arena, run.server, run.stations, run.bridge,
+                                                            run.key, duration_s, run.outputs))))
+    await asyncio.gather(*tasks)
+    if live is not None and live.stopped_ns is not None:
+        run.t_stop = min(run.t_stop, live.stopped_ns)
+    await asyncio.sleep(0.05)  # the last frames' ticks and sends
+    status.cancel()
+    try:
+        await status
+    except asyncio.CancelledError:
+        pass
+    run.bridge.flush(0.5)
+
+
+async def _stop(run: _Run, view: Any) -> None:
+    """Stations, the truth into the recording, the console, the server (its outputs and recording), the
+    fake autopilots."""
+    for s in run.stations:
+        s.close()
+    if run.server.recorder is not None and run.streaming:
+        _record_truth(run.server.recorder, run.sc, run.shift, run.t_stop - run.shift)
+    if view is not None:
+        await view.stop()
+    await run.server.stop()
+    for ap, _ in run.autopilots.values():
+        if ap is not None:
+            ap.close()
 
 
 def _station_files(paths: tuple[str, ...]) -> dict[int, str]:
@@ -578,10 +628,13 @@ def _record_truth(recorder, sc, shift: int, end_ns: int) -> None:
             recorder.write_truth(int(ti + shift), b.name, p, q)
 
 
-async def _status_loop(server, bridge, collector: Collector, stations: list[SimStation], sc, shift: int,
-                       t_start: int, out: TextIO | None) -> None:
+async def _status_loop(run: _Run, out: TextIO | None) -> None:
+    """Once a second: each camera's accepted frames per second, each body's error against the truth and its
+    MAVLink link."""
     if out is None:
         return
+    server, bridge, collector, sc, shift = run.server, run.bridge, run.collector, run.sc, run.shift
+    t_start = run.t_start
     prev: dict[int, int] = {}
     prev_t = time.monotonic_ns()
     while True:
@@ -621,37 +674,21 @@ async def _status_loop(server, bridge, collector: Collector, stations: list[SimS
         out.flush()
 
 
-def _summary(arena, sc, shift, t_start, t_stop, collector: Collector, bridge, autopilots, stations, health,
-             tracked_names, wall, sim_s, decode_pose) -> dict[str, Any]:
-    ticks = np.asarray(collector.ticks, dtype=np.int64)
-    in_run = (ticks >= t_start) & (ticks <= t_stop)
-    n_ticks = int(in_run.sum())
+def _summary(run: _Run, health: dict[str, Any], wall: float) -> dict[str, Any]:
+    """The run's figures: per body against the truth (the collector's running statistics) and what its
+    autopilot got, per station, the server's counters."""
+    from bridge.fake_autopilot import decode_pose
+
+    arena, sc, shift, t_start, t_stop = run.arena, run.sc, run.shift, run.t_start, run.t_stop
+    autopilots, stations = run.autopilots, run.stations
+    body_stats = run.collector.finish(t_stop)
+    n_ticks = run.collector.ticks
     span = t_stop - t_start
     all_send_lat = []
     all_ap_lat = []
     bodies = []
-    for name in tracked_names:
-        rows = [(tk, s) for tk, s in collector.states.get(name, []) if t_start <= tk <= t_stop]
-        t = np.array([s.time_ns for _, s in rows], dtype=np.int64)
-        tick_t = np.array([tk for tk, _ in rows], dtype=np.int64)
-        cap = np.array([s.capture_ns for _, s in rows], dtype=np.int64)
-        trk = np.array([bool(s.tracked) for _, s in rows], dtype=bool)
-        pos = np.array([s.position for _, s in rows], dtype=float).reshape(-1, 3)
-        quat = np.array([s.quaternion for _, s in rows], dtype=float).reshape(-1, 4)
-        tt = np.arange(t_start - shift, t_stop - shift + 1, 5_000_000, dtype=np.int64)
-        tp, tq = sc.truth_at(name, tt)
-        m = M.body_metrics(name, t, trk, pos, quat, tick_t - cap, (tt + shift, tp, tq), n_ticks=n_ticks,
-                           span_ns=span)
-        d = {
-            "name": name,
-            "position_rmse_mm": m.position_rmse_mm,
-            "position_max_mm": m.position_max_mm,
-            "rotation_rmse_deg": m.rotation_rmse_deg,
-            "tracked_fraction": m.tracked_fraction,
-            "rate_hz": m.rate_hz,
-            "jitter_mm": m.position_jitter_mm,
-            "pipeline_latency_ms": m.latency_ms,
-        }
+    for name in [b.name for b in arena.bodies if any(sb.name == b.name for sb in sc.bodies)]:
+        d = {"name": name, **body_stats[name].metrics(n_ticks, span)}
         if name in autopilots:
             ap, link = autopilots[name]
             poses = ap.messages(("VISION_POSITION_ESTIMATE", "ODOMETRY")) if ap is not None else []
@@ -703,7 +740,7 @@ def _summary(arena, sc, shift, t_start, t_stop, collector: Collector, bridge, au
         "seed": sc.seed,
         "duration_s": span * 1e-9,
         "wall_s": wall,
-        "simulate_s": sim_s,
+        "simulate_s": run.sim_s,
         "output_rate_hz": n_ticks / (span * 1e-9) if span > 0 else 0.0,
         "ticks": n_ticks,
         "late_ticks": health.get("late_ticks"),
@@ -730,55 +767,3 @@ def _json_safe(x: Any) -> Any:
     if isinstance(x, np.bool_):
         return bool(x)
     return x
-
-
-def _plural(n: int, word: str) -> str:
-    return f"{n} {word}" if n == 1 else f"{n} {word}s"
-
-
-def format_summary(s: dict[str, Any]) -> str:
-    """The summary in words: every figure says what it measures and in which unit."""
-    fmt = lambda v, spec=".2f": "-" if v is None else format(v, spec)  # noqa: E731
-    fps = ", ".join(f"camera {x['camera_id']} {x['fps']:.0f}" for x in s["stations"])
-    lines = [
-        f"visionpos demo on {s['scenario']} (session {s['session']}, seed {s['seed']}): "
-        f"{_plural(len(s['stations']), 'simulated station')} streamed {s['duration_s']:.1f} s of camera frames "
-        f"(frames per second: {fps}); the server published {s['ticks']} pose updates",
-    ]
-    for b in s["bodies"]:
-        lat = b.get("latency_ms") or {}
-        tracked = b["tracked_fraction"]
-        lines += [
-            f"{b['name']}:",
-            f"  tracked in {fmt(None if tracked is None else 100 * tracked, '.1f')}% of the pose updates, "
-            f"at {fmt(b['rate_hz'], '.1f')} poses per second",
-            f"  position error against the simulator's truth: RMS {fmt(b['position_rmse_mm'])} mm, "
-            f"largest {fmt(b['position_max_mm'])} mm; rotation error RMS {fmt(b['rotation_rmse_deg'], '.3f')} deg",
-        ]
-        if "mavlink_rate_hz" in b:
-            lines.append(f"  MAVLink: {fmt(b['mavlink_rate_hz'], '.1f')} pose messages per second reached the "
-                         f"autopilot; position error of what it got: RMS {fmt(b.get('mavlink_position_rmse_mm'))} mm")
-            lines.append(f"  latency from camera exposure to MAVLink send: median {fmt(lat.get('p50'))} ms, "
-                         f"99th percentile {fmt(lat.get('p99'))} ms")
-        if "autopilot_says" in b:
-            a = b["autopilot_says"]
-            true = "" if a["true_delay_ms"] is None else f" (its true value {fmt(a['true_delay_ms'], '.1f')} ms)"
-            measured = (f"{fmt(a['delay_ms'], '.1f')} ms{true}"
-                        if a["delay_ms"] is not None else f"not measured ({a['delay_detail']})")
-            lines.append(f"  the autopilot's view: identity check {a['identity']}, EKF {a['ekf']}; "
-                         f"capture-to-autopilot delay measured from its gyro {measured}")
-    lat = s["latency_ms"]
-    server = s["server"]
-    shed = server.get("frames_shed")
-    lines += [
-        f"latency from camera exposure to MAVLink send, all bodies: median {fmt(lat['p50'])} ms, "
-        f"99th percentile {fmt(lat['p99'])} ms; from a pose's timestamp to its arrival at the autopilot: "
-        f"median {fmt(s['latency_to_autopilot_ms']['p50'])} ms (set ArduPilot VISO_DELAY_MS / PX4 EKF2_EV_DELAY "
-        "to about this)",
-        f"server: accepted {server['frames_accepted']} camera frames"
-        + (f" ({shed} not fused: they queued too long)" if shed else "")
-        + f", {_plural(server['malformed'] or 0, 'malformed packet')}, "
-        f"{_plural(s['late_ticks'] or 0, 'output tick')} late; the demo ran for {s['wall_s']:.1f} s of "
-        f"wall-clock time, of which simulating the camera frames took {s['simulate_s']:.1f} s",
-    ]
-    return "\n".join(lines)

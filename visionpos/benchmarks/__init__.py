@@ -22,6 +22,7 @@ GROUPS: dict[str, str] = {
     "console": "console",
     "backchannel": "backchannel",
     "camera_monitor": "camera_monitor",
+    "demo_memory": "demo_memory",
 }
 
 

@@ -466,34 +466,27 @@ ALL_OUTPUTS = ("pose_stream", "natnet", "vrpn", "foxglove")
 ONE_PER_TICK = ("pose_stream", "natnet", "vrpn")  # clients that get a frame per output tick (Foxglove: rate_hz)
 
 
-def _demo_run(arena, duration_s: float, outputs: tuple[str, ...]) -> dict[str, Any]:
-    """One live demo run; measures on the server's loop thread between OUTPUT_SETTLE_S and OUTPUT_TAIL_S
-    before the end: its CPU time per station packet, output ticks/s and, with outputs, each client's frames/s."""
-    from bridge.config import parse_pose_stream
+def _demo_run(arena, duration_s: float) -> dict[str, Any]:
+    """One live demo run with the arena's outputs (the demo serves its sections, app/outputs.py); measures on
+    the server's loop thread between OUTPUT_SETTLE_S and OUTPUT_TAIL_S before the end: its CPU time per station
+    packet, output ticks/s and, with outputs, each client's frames/s."""
+    from bridge.foxglove_live import FoxgloveServer
     from bridge.natnet import NatNetServer
-    from bridge.outputs import OffLoopOutputs
     from bridge.pose_stream import PoseStream
-    from bridge.vrpn import VrpnServer, parse_vrpn
+    from bridge.vrpn import VrpnServer
     from visionpos.app.demo import run_demo
+    from visionpos.app.outputs import network_of
 
     got: dict[str, Any] = {}
 
     async def during(ctx) -> None:
         server = ctx.server
         t_end = time.monotonic() + ctx.duration_s - OUTPUT_TAIL_S
-        sinks, clients, fox = [], None, None
-        if outputs:
-            pose = PoseStream(parse_pose_stream(arena)) if "pose_stream" in outputs else None
-            natnet = NatNetServer.from_arena(arena) if "natnet" in outputs else None
-            vrpn = VrpnServer(parse_vrpn(arena)) if "vrpn" in outputs else None
-            if "foxglove" in outputs:
-                from bridge.foxglove_live import FoxgloveServer
-
-                fox = FoxgloveServer.from_arena(arena)
-            sinks = [OffLoopOutputs([s for s in (pose, natnet, vrpn, fox) if s is not None])]  # as app/serve.py does
-            await asyncio.to_thread(lambda: [s.start() for s in sinks])  # off the loop: nothing may delay a tick
-            # the server calls every sink in its list at each tick; added between two ticks (this is its loop)
-            server.sinks[0:0] = sinks
+        network = network_of(ctx.outputs)
+        clients = None
+        pose, natnet, vrpn, fox = (next((o for o in network if isinstance(o, cls)), None)
+                                   for cls in (PoseStream, NatNetServer, VrpnServer, FoxgloveServer))
+        if network:
             # the clients in a process of their own, as they would be: they must not share this one's GIL
             clients = await asyncio.create_subprocess_exec(
                 sys.executable, "-m", "visionpos.benchmarks.bridge",
@@ -513,17 +506,14 @@ def _demo_run(arena, duration_s: float, outputs: tuple[str, ...]) -> dict[str, A
             fox1 = fox.messages_by_topic.get(_FoxgloveClient.POSES, 0) if fox else 0
             fr1 = await _client_counts(clients)
         finally:
-            for s in sinks:
-                server.sinks.remove(s)
             if clients is not None:
                 clients.stdin.close()
                 await clients.wait()
-            await asyncio.to_thread(lambda: [s.close() for s in sinks])  # joins threads: off the loop
         side_s = sum(side1[k] - side0[k] for k in side1 if k in side0)
         got.update(cpu_s=cpu1 - cpu0, side_cpu_s=side_s, packets=pk1 - pk0, ticks_hz=(tk1 - tk0) / (t1 - t0),
                    clients_hz={k: (fr1[k] - fr0[k]) / (fr1["t"] - fr0["t"]) for k in fr1 if k != "t"},
                    foxglove_sent_hz=(fox1 - fox0) / (t1 - t0),
-                   sink_stats={type(s).__name__: s.stats() for s in sinks})
+                   sink_stats={o.name: o.stats() for o in network})
 
     summary = asyncio.run(run_demo(arena, duration_s, None, during=during))
     got["cpu_us_per_packet"] = got["cpu_s"] / max(got["packets"], 1) * 1e6
@@ -547,14 +537,16 @@ def bench_outputs(quick: bool) -> tuple[dict[str, float], list[dict], str]:
         p = free_port()
         if p not in ports:
             ports.append(p)
-    # the demo ignores these sections (its bridge runs MAVLink only); the runs with outputs start them
-    arena = demo_arena("thesis", duration_s, 1, _output_overrides(*ports))
     missing = _foxglove_missing()
     outputs_on = tuple(o for o in ALL_OUTPUTS if o != "foxglove" or not missing)
+    # the demo serves the output sections its arena has: none in the runs without
+    arenas = {False: demo_arena("thesis", duration_s, 1, []),
+              True: demo_arena("thesis", duration_s, 1, [o for o in _output_overrides(*ports)
+                                                         if o.split(".")[0] in outputs_on])}
     runs: dict[bool, list[dict]] = {False: [], True: []}
     for _ in range(pairs):
         for outputs in (False, True):
-            runs[outputs].append(_demo_run(arena, duration_s, outputs_on if outputs else ()))
+            runs[outputs].append(_demo_run(arenas[outputs], duration_s))
     off, on = runs[False], runs[True]
     cost_off = float(np.median([r["cpu_us_per_packet"] for r in off]))
     cost_on = float(np.median([r["cpu_us_per_packet"] for r in on]))

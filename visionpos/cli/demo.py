@@ -9,7 +9,8 @@ import json
 import sys
 
 from visionpos.app.console import add_console_arguments, announce_console, console_settings, port_in_use
-from visionpos.app.demo import demo_arena, format_summary, run_demo
+from visionpos.app.demo import demo_arena, run_demo
+from visionpos.app.demo_summary import format_summary
 from visionpos.errors import UsageError
 
 

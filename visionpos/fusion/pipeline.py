@@ -92,6 +92,7 @@ from visionpos.fusion.layout import (
 from visionpos.fusion.matching import Projector, match_unlabeled
 from visionpos.fusion.rigidbody import BodyModel, identify, layout_ambiguities
 from visionpos.fusion.settings import FUSION_PARAMS, pack_params, parse_fusion
+from visionpos.fusion.snapshot import CameraFrame, FusionSnapshot
 from visionpos.fusion.timealign import Group, TimeAligner, TimeAlignment
 from visionpos.fusion.tracking import FilterBank
 from visionpos.fusion.tracks import Observation, Track, new_track_rows
@@ -531,6 +532,13 @@ class FusionPipeline:
         self._camera_packed[i] = self._proj[camera_id].packed
         self._view_cache.clear()
         self.arena = self.arena.with_cameras([self.cameras[c.id] for c in self.arena.cameras])
+
+    def snapshot(self) -> FusionSnapshot:
+        """What the operator console shows (fusion/snapshot.py); references to this pipeline's arrays, no copies."""
+        cams = {cid: CameraFrame(o.capture_ns, self.last_px[cid], o.xn, o.label, o.pred_px, o.pred_rows)
+                for cid, o in self.obs.items() if cid in self.last_px}
+        return FusionSnapshot(cams, tuple(bool(tr.tracked) for tr in self.tracks), dict(self.untracked_why),
+                              self.loose_points)
 
     def stats(self) -> dict[str, Any]:
         """Counters: frames, fusions, measurements, rejections by reason, per-camera frames, per-body state."""

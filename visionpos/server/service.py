@@ -5,16 +5,10 @@
                                                  v
                                    sinks: publish(states)  (bridge, pose stream, recorder)
 
-Sinks are any objects with `publish(states: list[BodyState])`, called on the loop at
-every output tick, and optionally `publish_markers(points: LoosePoints)`, called at a
-tick after the pipeline triangulated a new set of loose markers (points of no body).
-Neither may block (queue internally; the recorder only appends to memory). Optional
-`start()`, `close()` (plain or async) and `stats()` are used when present. A sink that raises is logged and
-keeps being called. Sinks that show more than poses may also have `packet_taps()` (callables
-tap(recv_ns, data) that Ingest calls with every accepted packet, on the loop: each must cost about a
-dictionary store), `publish_health(time_ns, health)` (every status period) and
-`publish_event(time_ns, info)` (camera registered, vanished, clock jump ...).
-The server knows no concrete output: visionpos.app.serve composes it with the bridge.
+Sinks are `visionpos.server.sinks.Sink`s: publish(states) at every output tick, publish_markers
+when the pipeline triangulated a new set of loose markers, packet taps, health and events, start,
+close and stats (sinks.py says when each is called). A sink that raises is logged and keeps being
+called. The server knows no concrete output: visionpos.app.outputs builds them from the arena.
 
 Programmatic use (demo, tests):
 
@@ -26,19 +20,24 @@ Programmatic use (demo, tests):
 from __future__ import annotations
 
 import asyncio
-import inspect
 import ipaddress
 import logging
 import signal
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from visionpos.config.arena import ArenaConfig, apply_overrides, load_yaml, parse_arena, resolve_config_path
-from visionpos.messages import BodyState
+from visionpos.messages import BlobFrame, BodyState, LoosePoints
 from visionpos.server.ingest import Ingest
 from visionpos.server.settings import ServerSettings, parse_server
+from visionpos.server.sinks import Sink, start_sink
+
+if TYPE_CHECKING:
+    from visionpos.fusion.camera_monitor import CameraMonitor
+    from visionpos.fusion.pipeline import FusionPipeline
+    from visionpos.recording import RecordingWriter
 
 log = logging.getLogger(__name__)
 # the periodic status line: INFO, but `serve` and `record` turn this logger on by default
@@ -56,26 +55,41 @@ def load_config_with_overrides(config: str | Path, overrides: Sequence[str] = ()
     return parse_arena(data, str(path))
 
 
-async def _maybe_await(x: Any) -> Any:
-    if inspect.isawaitable(x):
-        return await x
-    return x
+class _RecorderSink(Sink):
+    """The recording as a sink: it records every tick's states and loose markers. The server closes the
+    recording itself, last (it also records the final health)."""
+
+    def __init__(self, recorder: RecordingWriter):
+        self.recorder = recorder
+
+    @property
+    def name(self) -> str:
+        return "RecordingWriter"
+
+    def publish(self, states: list[BodyState]) -> None:
+        self.recorder.publish(states)
+
+    def publish_markers(self, points: LoosePoints) -> None:
+        self.recorder.publish_markers(points)
+
+    def stats(self) -> dict[str, Any]:
+        return self.recorder.stats()
 
 
 class FusionServer:
     """Ingest + pipeline + output tick + sinks on the running event loop.
 
     arena: validated ArenaConfig. settings: ServerSettings (default: the arena's `server:`
-    section). sinks: objects with publish(states). pipeline: a FusionPipeline-like object
-    (default: visionpos.fusion.pipeline.FusionPipeline(arena)).
-    recorder: a RecordingWriter; it gets every packet, events and health snapshots, is added to the
-    sinks, and is closed by stop() (the server owns it from then on).
+    section). sinks: the outputs (visionpos.app.outputs.build_outputs(arena) for the arena's own).
+    pipeline: default FusionPipeline(arena).
+    recorder: a RecordingWriter; it gets every packet, events and health snapshots, the outputs (as a
+    sink), and is closed by stop() (the server owns it from then on).
     host: None = settings.bind. port: None = settings.port; 0 = any free port (see .port after start()).
     """
 
-    def __init__(self, arena: ArenaConfig, settings: ServerSettings | None = None, sinks: Sequence[Any] = (),
-                 host: str | None = None, port: int | None = None, pipeline: Any = None, recorder: Any = None,
-                 clock: Callable[[], int] = time.monotonic_ns):
+    def __init__(self, arena: ArenaConfig, settings: ServerSettings | None = None, sinks: Sequence[Sink] = (),
+                 host: str | None = None, port: int | None = None, pipeline: FusionPipeline | None = None,
+                 recorder: RecordingWriter | None = None, clock: Callable[[], int] = time.monotonic_ns):
         self.arena = arena
         self.settings = settings or parse_server(arena)
         if pipeline is None:
@@ -84,24 +98,21 @@ class FusionServer:
             pipeline = FusionPipeline(arena)
         self.pipeline = pipeline
         self.recorder = recorder
-        self.sinks: list[Any] = list(sinks)
-        if recorder is not None and recorder not in self.sinks:
-            self.sinks.append(recorder)
+        self.outputs: list[Sink] = list(sinks)  # the outputs; self.sinks adds the recording
+        self.sinks: list[Sink] = self.outputs + ([_RecorderSink(recorder)] if recorder is not None else [])
         self.host = self.settings.bind if host is None else host
         self._port_req = self.settings.port if port is None else int(port)
         self.clock = clock
-        self.monitor = None  # continuous calibration (fusion/camera_monitor.py), on a real pipeline only
-        feed = pipeline
-        if hasattr(pipeline, "set_camera_pose"):
-            from visionpos.fusion.camera_monitor import CameraMonitor, parse_camera_monitor
+        self.monitor: CameraMonitor | None = None  # continuous calibration (fusion/camera_monitor.py)
+        feed: FusionPipeline | _MonitoredFeed = pipeline
+        from visionpos.fusion import camera_monitor
 
-            monitor_settings = parse_camera_monitor(arena)
-            if monitor_settings.enabled:
-                self.monitor = CameraMonitor(arena, monitor_settings)
-                feed = _MonitoredFeed(pipeline, self.monitor)
-        taps = [tap for s in self.sinks if s is not recorder and hasattr(s, "packet_taps") for tap in s.packet_taps()]
-        self._health_sinks = [s for s in self.sinks if s is not recorder and hasattr(s, "publish_health")]
-        self._event_sinks = [s for s in self.sinks if s is not recorder and hasattr(s, "publish_event")]
+        monitor_settings = camera_monitor.parse_camera_monitor(arena)
+        if monitor_settings.enabled:
+            self.monitor = camera_monitor.CameraMonitor(arena, monitor_settings)
+            feed = _MonitoredFeed(pipeline, self.monitor)
+        # the recording gets packets and events from Ingest and the server directly
+        taps = [tap for s in self.outputs for tap in s.packet_taps()]
         self.ingest = Ingest(arena, self.settings, feed, recorder, clock=clock, events=self._on_event, taps=taps)
         self.period_ns = int(round(1e9 / self.settings.output_rate_hz))
         self.ticks = 0
@@ -125,9 +136,16 @@ class FusionServer:
         return self.ingest.port
 
     async def start(self) -> None:
-        for s in self.sinks:
-            if hasattr(s, "start"):
-                await _maybe_await(s.start())
+        started: list[Sink] = []
+        try:
+            for s in self.sinks:
+                start_sink(s)
+                started.append(s)
+        except BaseException:  # a port taken: what did start is closed again, nothing is left running
+            for s in reversed(started):
+                if s in self.outputs:
+                    s.close()
+            raise
         await self.ingest.start(self.host, self._port_req)
         self._running = True
         self._status_prev_ns = self.clock()
@@ -154,14 +172,11 @@ class FusionServer:
             except (asyncio.CancelledError, Exception):
                 pass
         self._tasks = []
-        for s in self.sinks:
-            if s is self.recorder:
-                continue
-            if hasattr(s, "close"):
-                try:
-                    await _maybe_await(s.close())
-                except Exception:
-                    log.exception("closing sink %s failed", type(s).__name__)
+        for s in self.outputs:
+            try:
+                s.close()
+            except Exception:
+                log.exception("closing sink %s failed", s.name)
         if self.recorder is not None:
             try:
                 self.recorder.write_json("/server/health", self.clock(), self.health())
@@ -198,14 +213,13 @@ class FusionServer:
         if self.monitor is not None:
             self._monitor_step(states, now_ns)
         for sink in self.sinks:
-            self._to_sink(type(sink).__name__, sink.publish, states)
-        lp = getattr(self.pipeline, "loose_points", None)
+            self._to_sink(sink.name, sink.publish, states)
+        lp = self.pipeline.loose_points
         if lp is not None and lp.time_ns != self._markers_ns:
             self._markers_ns = lp.time_ns
             self.loose_markers = len(lp.points)
             for sink in self.sinks:
-                if hasattr(sink, "publish_markers"):
-                    self._to_sink(type(sink).__name__ + ".publish_markers", sink.publish_markers, lp)
+                self._to_sink(sink.name + ".publish_markers", sink.publish_markers, lp)
         cost = time.perf_counter_ns() - t0
         if cost > self.tick_cost_ns_max:
             self.tick_cost_ns_max = cost
@@ -259,7 +273,7 @@ class FusionServer:
         while self._running:
             await asyncio.sleep(self.settings.status_period_s)
             status_log.info("%s", self.status_line())
-            if self.recorder is None and not self._health_sinks:
+            if self.recorder is None and not self.outputs:
                 continue
             now = self.clock()
             health = self.health()
@@ -268,8 +282,8 @@ class FusionServer:
                     self.recorder.write_json("/server/health", now, health)
                 except Exception:
                     log.exception("could not record health")
-            for sink in self._health_sinks:
-                self._to_sink(type(sink).__name__ + ".publish_health", sink.publish_health, now, health)
+            for sink in self.outputs:
+                self._to_sink(sink.name + ".publish_health", sink.publish_health, now, health)
 
     def status_line(self) -> str:
         now = self.clock()
@@ -282,8 +296,7 @@ class FusionServer:
             self._body_counts_prev[b.name] = n
         self._status_prev_ns = now
         # sinks that report per-vehicle state (the bridge: what each autopilot says about our poses)
-        extra = "".join(" | " + s.status_line() for s in self.sinks
-                        if callable(getattr(s, "status_line", None)) and getattr(s, "vehicles", None))
+        extra = "".join(" | " + line for line in (s.status_line() for s in self.outputs) if line)
         return (insecure_prefix(self.settings) + self.ingest.status_line() + " | bodies: "
                 + (" ".join(parts) or "none") + extra)
 
@@ -294,8 +307,8 @@ class FusionServer:
         now = self.clock()
         if self.recorder is not None:
             self.recorder.write_json("/server/events", now, event)
-        for sink in self._event_sinks:
-            self._to_sink(type(sink).__name__ + ".publish_event", sink.publish_event, now, event)
+        for sink in self.outputs:
+            self._to_sink(sink.name + ".publish_event", sink.publish_event, now, event)
 
     def health(self) -> dict[str, Any]:
         h = self.ingest.health()
@@ -315,11 +328,12 @@ class FusionServer:
             h["pipeline"] = {"error": repr(e)}
         sinks = {}
         for s in self.sinks:
-            if hasattr(s, "stats"):
-                try:
-                    sinks[type(s).__name__] = s.stats()
-                except Exception as e:
-                    sinks[type(s).__name__] = {"error": repr(e)}
+            try:
+                st = s.stats()
+            except Exception as e:
+                st = {"error": repr(e)}
+            if st:
+                sinks[s.name] = st
         h["sinks"] = sinks
         return h
 
@@ -327,10 +341,10 @@ class FusionServer:
 class _MonitoredFeed:
     """What Ingest pushes frames into: the pipeline, then the camera monitor (which only reads the frame)."""
 
-    def __init__(self, pipeline: Any, monitor: Any):
+    def __init__(self, pipeline: FusionPipeline, monitor: CameraMonitor):
         self.pipeline, self.monitor = pipeline, monitor
 
-    def push(self, frame: Any) -> None:
+    def push(self, frame: BlobFrame) -> None:
         self.pipeline.push(frame)
         try:
             self.monitor.observe_frame(frame)
