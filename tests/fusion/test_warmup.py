@@ -125,3 +125,25 @@ def test_the_record_names_every_compiled_kernel_and_loads_back(tmp_path):
     warmup._write_record(record)
     assert record.exists() and not list(tmp_path.glob("*.tmp"))
     assert warmup._load_record(record) >= 1
+
+
+def test_interpret_while_cold_only_on_a_cold_cache(tmp_path, monkeypatch):
+    from visionpos import jit
+    from visionpos.fusion import warmup
+
+    if not jit.COMPILED:
+        pytest.skip("numba is not installed")
+    record = tmp_path / "fusion-warm-up-test.pickle"
+    monkeypatch.setattr(warmup, "warm_up_record", lambda: record)
+    monkeypatch.setattr(warmup, "_cold", [False])
+    monkeypatch.delenv(warmup.COLD_START_ENV, raising=False)
+    try:
+        monkeypatch.setenv(warmup.COLD_START_ENV, "wait")
+        assert not warmup.interpret_while_cold() and not jit.interpreting()
+        monkeypatch.delenv(warmup.COLD_START_ENV)
+        record.write_bytes(b"")  # a complete cache: the kernels load from it
+        assert not warmup.interpret_while_cold() and not jit.interpreting()
+        record.unlink()
+        assert warmup.interpret_while_cold() and jit.interpreting() and warmup._cold[0]
+    finally:
+        jit.use_compiled()

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
-import os
 import sys
 
 from visionpos.errors import VisionposError
@@ -82,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     importlib.import_module("visionpos.app.sections")  # every section's keys known to --set
     if args.command in LIVE_COMMANDS:  # a live server runs interpreted while its kernels first compile
-        os.environ.setdefault("VISIONPOS_COLD_START", "interpret")
+        importlib.import_module("visionpos.fusion.warmup").interpret_while_cold()
     command = importlib.import_module(f"visionpos.cli.{args.command}")
     try:
         return int(command.run(args) or 0)

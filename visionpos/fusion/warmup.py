@@ -11,11 +11,12 @@ takes a second or two.
 Cold start (no cache for these sources): by default the pipeline waits for
 the compilation (replays, benchmarks and tests want the compiled kernels from
 the first frame). A live server must not wait a minute for its first pose:
-with VISIONPOS_COLD_START=interpret (the CLI sets it for demo, serve and sitl)
-a child process compiles the kernels into the cache while this process runs
-them interpreted (jit.interpret(): the same numbers, several times slower);
-when the child is done the kernels are loaded from the cache and this process
-switches to them (jit.use_compiled()). The child finishes filling the cache
+after interpret_while_cold() (the CLI calls it for demo, serve and sitl) the
+kernels run interpreted (jit.interpret(): the same numbers, several times
+slower) and the pipeline's warm-up starts a child process that compiles them
+into the cache; when the child is done the kernels are loaded from the cache
+and this process switches to them (jit.use_compiled()).
+VISIONPOS_COLD_START=wait makes a live server wait for the compilation instead. The child finishes filling the cache
 even if this process ends first, so the next start is warm. What the child
 compiled is recorded next to the cache (warm_up_record: every kernel's
 argument types), which is also how a later start knows the cache is complete.
@@ -46,7 +47,8 @@ progress_log = logging.getLogger("visionpos.progress")  # shown by default by th
 log = logging.getLogger(__name__)
 _warm = [False]  # kernels compiled (or loaded) in this process: warm_up_once has run
 
-COLD_START_ENV = "VISIONPOS_COLD_START"  # "wait" (default) or "interpret": what warm_up_once does on a cold cache
+COLD_START_ENV = "VISIONPOS_COLD_START"  # "wait": a live server waits for the compilation on a cold cache
+_cold = [False]  # interpret_while_cold() found the cache cold: the warm-up compiles in the background
 _POLL_S = 0.5  # how often a background start looks whether the child is done
 _LOCK_STALE_S = 1200.0  # a lock file older than this is left by a process that died
 
@@ -192,7 +194,7 @@ def _start_child(record: Path, settings: dict[str, Any] | None) -> subprocess.Po
 def _background(record: Path, settings: dict[str, Any] | None) -> None:
     """Run interpreted now; a child compiles into the cache; switch to the compiled kernels once it is done."""
     proc = _start_child(record, settings)
-    jit.interpret()
+    jit.interpret()  # (done already by interpret_while_cold; here too for a caller that did not)
     progress_log.info("the fusion kernels are not compiled yet (first run after install or update): a "
                       "background process compiles them (one to two minutes of one core); until then the "
                       "fusion runs interpreted, slower")
@@ -228,18 +230,30 @@ def _background(record: Path, settings: dict[str, Any] | None) -> None:
     threading.Thread(target=watch, name="kernel compilation watch", daemon=True).start()
 
 
+def interpret_while_cold() -> bool:
+    """For a live server, before anything calls a kernel: when the cache holds no complete warm-up for these
+    sources, run every kernel interpreted from now on, and have the first pipeline's warm-up compile them in
+    a child process (module docstring). Returns whether it did; VISIONPOS_COLD_START=wait says never."""
+    if not COMPILED or os.environ.get(COLD_START_ENV) == "wait" or warm_up_record().exists():
+        return False
+    _cold[0] = True
+    jit.interpret()
+    return True
+
+
 def warm_up_once(arena: ArenaConfig, settings: dict[str, Any] | None = None) -> None:
     """warm_up_kernels on the first call in this process (when the kernels are compiled), else nothing.
 
-    With a cold cache and VISIONPOS_COLD_START=interpret, the compilation runs in a child process and this
+    After interpret_while_cold() found the cache cold, the compilation runs in a child process and this
     process runs interpreted until it is done (module docstring)."""
     if not COMPILED or _warm[0]:
         return
     _warm[0] = True
     record = warm_up_record()
-    if not record.exists() and os.environ.get(COLD_START_ENV, "wait") == "interpret":
+    if _cold[0] and not record.exists():
         _background(record, settings)
         return
+    jit.use_compiled()  # (the record appeared since interpret_while_cold)
     warm_up_kernels(arena, settings)
     if not record.exists():
         _write_record(record)
