@@ -109,3 +109,32 @@ def test_interpret_runs_python_until_use_compiled():
     assert not jit.interpreting()
     assert _halve(3.0) == 1.5
     assert _halve.signatures
+
+
+@jit.njit
+def _outer(x):
+    return _halve(x) + 1.0
+
+
+def test_use_compiled_during_an_interpreted_call_waits_for_it_to_return():
+    """A switch asked for while a kernel runs interpreted (the compile watcher's thread) happens when the
+    outermost interpreted call returns, never between its nested calls."""
+    if not jit.COMPILED:
+        pytest.skip("numba is not installed")
+    seen = []
+    py_halve = _halve.py_func
+
+    def halve_and_ask(x):  # the nested call asks for the switch, then looks whether it happened
+        jit.use_compiled()
+        seen.append(jit.interpreting())
+        return py_halve(x)
+
+    try:
+        jit.interpret()
+        _halve.py_func = halve_and_ask
+        assert _outer(3.0) == 2.5
+        assert seen == [True]  # still interpreted inside the call
+        assert not jit.interpreting()  # switched when _outer returned
+    finally:
+        _halve.py_func = py_halve
+        jit.use_compiled()

@@ -153,7 +153,13 @@ try:
         callee of other kernels; only calls from Python run interpreted."""
 
         def __call__(self, *args, **kwargs):
-            return self.py_func(*args, **kwargs)
+            _depth[0] += 1
+            try:
+                return self.py_func(*args, **kwargs)
+            finally:
+                _depth[0] -= 1
+                if _switch[0] and not _depth[0]:
+                    _switch_now()
 
     def njit(fn: F) -> F:
         """Compile fn in nopython mode, cached on disk. No fastmath: results stay IEEE-exact.
@@ -176,6 +182,8 @@ try:
 
     _uncached: list[str] = []
     _interpreting = [False]
+    _depth = [0]  # interpreted kernels on the stack (calls from Python and their nested calls)
+    _switch = [False]  # use_compiled() came while a kernel ran interpreted: switch when the outermost returns
 
     def interpret() -> None:
         """From now on every kernel called from Python runs as Python (the same numbers, slower) until
@@ -186,7 +194,17 @@ try:
 
     def use_compiled() -> None:
         """Undo interpret(): calls from Python run the compiled kernels again (compiled or loaded from the
-        cache on their first call with new argument types)."""
+        cache on their first call with new argument types). Called (from another thread) while a kernel
+        runs interpreted, the switch waits until the outermost one returns: a kernel's interpreted body
+        would call the compiled callees with the argument types Python gives, which can differ from those
+        compiled (a non-contiguous view, a Python int), and compile them then."""
+        if _depth[0]:
+            _switch[0] = True
+        else:
+            _switch_now()
+
+    def _switch_now() -> None:
+        _switch[0] = False
         _interpreting[0] = False
         for d in _kernels:
             d.__class__ = CPUDispatcher
