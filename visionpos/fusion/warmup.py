@@ -261,11 +261,12 @@ def warm_up_once(arena: ArenaConfig, settings: dict[str, Any] | None = None) -> 
 
 def _child_main(argv: list[str]) -> int:
     """The background compilation: warm up on the thesis arena with the parent's fusion settings, record."""
-    from visionpos.sim import load_scenario
+    from visionpos.config.arena import load_yaml, parse_arena, resolve_config_path
 
     record = warm_up_record()
     settings = json.loads(argv[0]) if argv else {}
-    arena = load_scenario("thesis", session="hover", duration=1.0).arena
+    path = resolve_config_path("thesis")
+    arena = parse_arena(load_yaml(path), str(path))
     try:
         warm_up_kernels(arena, settings or None)
     except Exception:  # noqa: BLE001  (settings of another arena: the defaults give the same argument types)
