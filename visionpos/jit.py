@@ -203,6 +203,12 @@ try:
         else:
             _switch_now()
 
+    def use_compiled_for(kernels: list) -> None:
+        """Run these kernels compiled from now on (the others stay as interpret() left them); for argument
+        types Python gives them, so compile (or load) them for those first."""
+        for d in kernels:
+            d.__class__ = CPUDispatcher
+
     def _switch_now() -> None:
         _switch[0] = False
         _interpreting[0] = False
@@ -227,6 +233,9 @@ except ImportError:
 
     def interpreting() -> bool:
         return False
+
+    def use_compiled_for(kernels: list) -> None:
+        """Without numba everything runs as Python."""
 
 
 # Building blocks for the kernels. numba's `@` and np.cross go through generic

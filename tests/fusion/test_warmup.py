@@ -84,6 +84,12 @@ def test_a_cold_start_runs_interpreted_until_the_background_record_appears(tmp_p
         assert started == [record]
         assert jit.interpreting()
         assert not _wait(lambda: not jit.interpreting(), 0.3)  # no record yet: still interpreted
+        from numba.core.registry import CPUDispatcher
+
+        assert jit.dot3(np.ones(3), np.ones(3)) == 3.0  # compiled for these types (as the child's first stage)
+        warmup._write_record(warmup._hot_record(record), [jit.dot3])
+        assert _wait(lambda: type(jit.dot3) is CPUDispatcher)  # the first stage's kernel runs compiled ...
+        assert jit.interpreting() and type(jit.matvec3) is not CPUDispatcher  # ... the others interpreted
         record.write_bytes(pickle.dumps({"visionpos.jit:dot3": [jit.dot3.signatures[0]]} if jit.dot3.signatures
                                         else {}))
         assert _wait(lambda: not jit.interpreting())
