@@ -154,8 +154,9 @@ def _load_record(path: Path) -> list:
 
 
 def _hot_record(record: Path) -> Path:
-    """The record of the first stage (_hot_kernels compiled for interpreted callers), beside `record`."""
-    return record.with_name(record.name.replace(".pickle", ".hot.pickle"))
+    """The record of the first stage (_hot_kernels compiled for interpreted callers), beside `record` (named
+    apart from it: the record alone says the cache is complete)."""
+    return record.with_name(record.name.replace("fusion-warm-up-", "fusion-first-stage-"))
 
 
 def _hot_kernels() -> list:
