@@ -17,11 +17,12 @@ slower) and the pipeline's warm-up starts a child process that compiles them
 into the cache; when the child is done the kernels are loaded from the cache
 and this process switches to them (jit.use_compiled()). The child compiles the
 hottest kernel first (_hot_kernels, for the argument types interpreted callers
-give it), and the parent runs that one compiled as soon as it is.
-VISIONPOS_COLD_START=wait makes a live server wait for the compilation instead. The child finishes filling the cache
-even if this process ends first, so the next start is warm. What the child
-compiled is recorded next to the cache (warm_up_record: every kernel's
-argument types), which is also how a later start knows the cache is complete.
+give it), and the parent runs that one compiled as soon as it is. The child
+finishes filling the cache even if this process ends first, so the next start
+is warm. What it compiled is recorded next to the cache (warm_up_record: every
+kernel's argument types), which is also how a later start knows the cache is
+complete. VISIONPOS_COLD_START=wait makes a live server wait for the
+compilation instead.
 """
 
 from __future__ import annotations
