@@ -23,6 +23,7 @@ GROUPS: dict[str, str] = {
     "backchannel": "backchannel",
     "camera_monitor": "camera_monitor",
     "demo_memory": "demo_memory",
+    "coldstart": "coldstart",
 }
 
 
@@ -159,6 +160,7 @@ GOALS: list[Goal] = [
          "less at 0 ms, against the same change of the true delay (ms)"),
     Goal("sitl_delay_flights_completed_min", ">=", 1, "ArduPilot SITL, link delayed 0/20/50 ms: every hover "
          "flight completes"),
+    Goal("coldstart_first_pose_s", "<=", 20.0, "visionpos demo on an empty kernel cache: seconds to the first pose"),
     Goal("sitl_delay_ekf_horizontal_error_p99_mm_max", "<=", 20.0, "ArduPilot SITL, link delayed 0/20/50 ms: EKF "
          "horizontal position error p99 (mm), worst flight"),
 ]

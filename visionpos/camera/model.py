@@ -5,7 +5,8 @@ integer coordinates (OpenCV convention). A pose (R, t) maps world to camera:
 x_cam = R @ x_world + t; the camera centre is C = -R.T @ t.
 
 The lens models themselves live one per kind in camera/pinhole.py (OpenCV
-rational + tangential) and camera/fisheye.py (Kannala-Brandt); this module adds
+rational + tangential) and camera/fisheye.py (Kannala-Brandt), picked in one
+place, camera/lens.py; this module adds
 the focal length and principal point, poses and YAML. CameraModel's methods are
 vectorised over N points (shapes in the docstrings); `undistort_pixels` is the
 compiled per-point form of CameraModel.undistort for the fusion hot path, on the
@@ -21,7 +22,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from visionpos.camera import fisheye, pinhole
+from visionpos.camera.lens import lens_module, undistort_point
 from visionpos.errors import VisionposError
 from visionpos.jit import njit
 
@@ -121,7 +122,7 @@ class CameraModel:
     @property
     def lens(self):
         """The lens model's module (camera.pinhole or camera.fisheye)."""
-        return fisheye if self.kind == FISHEYE else pinhole
+        return lens_module(self.kind == FISHEYE)
 
     def fov_deg(self) -> tuple[float, float]:
         """Horizontal and vertical field of view (deg) from the image edges."""
@@ -417,10 +418,7 @@ def undistort_pixels(px, intrinsics, dist, fisheye_):
     out = np.empty((N, 2))
     for i in range(N):
         xd, yd = (px[i, 0] - cx) / fx, (px[i, 1] - cy) / fy
-        if fisheye_:
-            x, y, ok = fisheye.undistort_point(xd, yd, dist)
-        else:
-            x, y, ok = pinhole.undistort_point(xd, yd, dist)
+        x, y, ok = undistort_point(xd, yd, dist, fisheye_)
         if ok:
             out[i, 0], out[i, 1] = x, y
         else:

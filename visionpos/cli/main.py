@@ -35,6 +35,8 @@ COMMANDS: dict[str, str] = {
 # loggers that report progress a user waits for (first-run kernel compilation, live status):
 # shown by default, while every other logger stays at WARNING unless -v
 PROGRESS_LOGGERS = ("visionpos.progress",)
+# commands that serve live traffic: on a cold kernel cache they start interpreted (fusion/warmup.py)
+LIVE_COMMANDS = ("demo", "serve", "sitl")
 
 
 def _version() -> str:
@@ -78,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
         build_parser().print_help()
         return 2
     importlib.import_module("visionpos.app.sections")  # every section's keys known to --set
+    if args.command in LIVE_COMMANDS:  # a live server runs interpreted while its kernels first compile
+        importlib.import_module("visionpos.fusion.warmup").interpret_while_cold()
     command = importlib.import_module(f"visionpos.cli.{args.command}")
     try:
         return int(command.run(args) or 0)

@@ -30,8 +30,8 @@ compensation. Two passes suffice: the first (unit weights) fixes the depths
 to ~1e-3 relative, so the second pass's weights are exact for practical
 purposes. geometry/triangulation.py does the same job with a Gauss-Newton
 refinement for offline work; this one is here because it runs several
-thousand times a second. Lens models come from camera/pinhole.py and
-camera/fisheye.py (their compiled per-point kernels). The per-frame steps are compiled loops
+thousand times a second. Lens models come from camera/lens.py (the compiled
+per-point dispatch over camera/pinhole.py and camera/fisheye.py). The per-frame steps are compiled loops
 (visionpos/jit.py); the public functions are thin wrappers that fix the
 argument types.
 """
@@ -42,8 +42,7 @@ import math
 
 import numpy as np
 
-from visionpos.camera import fisheye as fisheye_lens
-from visionpos.camera import pinhole as pinhole_lens
+from visionpos.camera import lens
 from visionpos.camera.model import lens_arrays, undistort_pixels
 from visionpos.jit import njit
 
@@ -99,10 +98,7 @@ def project_points(X, R, t, intrinsics, dist, fisheye, cos_max, margin):
         if not pc2 > cos_max * math.sqrt(pc0 * pc0 + pc1 * pc1 + pc2 * pc2):
             continue
         x, y = pc0 / pc2, pc1 / pc2
-        if fisheye:
-            xd, yd = fisheye_lens.distort_point(x, y, dist)
-        else:
-            xd, yd = pinhole_lens.distort_point(x, y, dist)
+        xd, yd = lens.distort_point(x, y, dist, fisheye)
         u, v = fx * xd + cx, fy * yd + cy
         if -0.5 - margin < u < w - 0.5 + margin and -0.5 - margin < v < h - 0.5 + margin:
             uv[i, 0], uv[i, 1] = u, v

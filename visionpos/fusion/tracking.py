@@ -75,7 +75,7 @@ Through occlusion (the body cannot be triangulated) the measurement is likewise
 what one camera frame sees (filter_update_view): the pixels of n of the
 body's markers at the frame's capture time, h = lens(R_c X + t_c) with
 X = p + exp(dtheta) R_nom l, linearised with the lens model's analytic
-Jacobian (camera/pinhole.py, camera/fisheye.py) over position and rotation
+Jacobian (camera/lens.py) over position and rotation
 error. The same linear filter and Joseph update do the rest, so the
 covariance shows what one view cannot see (its depth).
 """
@@ -86,8 +86,7 @@ import math
 
 import numpy as np
 
-from visionpos.camera import fisheye as fisheye_lens
-from visionpos.camera import pinhole as pinhole_lens
+from visionpos.camera.lens import pixel_from_normalized, project_with_jacobian
 from visionpos.fusion.layout import (
     ACC0,
     ADAPT_NIS_IMG,
@@ -599,37 +598,6 @@ def pose_nis(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.ndarray,
 
 
 @njit
-def project_with_jacobian(Xc: np.ndarray, intrinsics: np.ndarray, dist: np.ndarray,
-                          fisheye: bool) -> tuple[float, float, np.ndarray]:
-    """Pixel (u, v) of a camera-frame point Xc (3,) (z > 0) and d (u, v) / d Xc (2, 3), through
-    the lens model's compiled distortion and its Jacobian (camera/pinhole.py, camera/fisheye.py)."""
-    iz = 1.0 / Xc[2]
-    x, y = Xc[0] * iz, Xc[1] * iz
-    if fisheye:
-        xd, yd = fisheye_lens.distort_point(x, y, dist)
-        j00, j01, j10, j11 = fisheye_lens.distort_jacobian_point(x, y, dist)
-    else:
-        xd, yd = pinhole_lens.distort_point(x, y, dist)
-        j00, j01, j10, j11 = pinhole_lens.distort_jacobian_point(x, y, dist)
-    fx, fy = intrinsics[0], intrinsics[1]
-    J = np.empty((2, 3))  # diag(fx, fy) (d xd / d xn) (d xn / d Xc), d xn / d Xc = [[1, 0, -x], [0, 1, -y]] / z
-    a00, a01, a10, a11 = fx * j00 * iz, fx * j01 * iz, fy * j10 * iz, fy * j11 * iz
-    J[0, 0], J[0, 1], J[0, 2] = a00, a01, -(a00 * x + a01 * y)
-    J[1, 0], J[1, 1], J[1, 2] = a10, a11, -(a10 * x + a11 * y)
-    return fx * xd + intrinsics[2], fy * yd + intrinsics[3], J
-
-
-@njit
-def _distorted_pixel(xn: float, yn: float, intrinsics: np.ndarray, dist: np.ndarray, fisheye: bool):
-    """Normalised (undistorted) coordinates -> pixel, the inverse of the pipeline's undistortion."""
-    if fisheye:
-        xd, yd = fisheye_lens.distort_point(xn, yn, dist)
-    else:
-        xd, yd = pinhole_lens.distort_point(xn, yn, dist)
-    return intrinsics[0] * xd + intrinsics[2], intrinsics[1] * yd + intrinsics[3]
-
-
-@njit
 def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.ndarray, clock: np.ndarray,
                        params: np.ndarray, t_ns: int, local: np.ndarray, obs_xn: np.ndarray, camera: np.ndarray,
                        var_px: float, gate_per_dof: float, adapt_noise: bool = True) -> tuple[bool, float, np.ndarray]:
@@ -675,7 +643,7 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
         if not Xc[2] > 1e-3:
             return False, np.inf, info
         u, v, J = project_with_jacobian(Xc, intrinsics, dist, fisheye)
-        uo, vo = _distorted_pixel(obs_xn[k, 0], obs_xn[k, 1], intrinsics, dist, fisheye)
+        uo, vo = pixel_from_normalized(obs_xn[k, 0], obs_xn[k, 1], intrinsics, dist, fisheye)
         y[2 * k], y[2 * k + 1] = uo - u, vo - v
         A = np.empty((2, 3))  # d pixel / d world point
         for i in range(2):
