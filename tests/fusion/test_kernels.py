@@ -3,9 +3,10 @@
 import numpy as np
 
 from visionpos.fusion import layout as L
+from visionpos.fusion.body_filter import FilterBank
 from visionpos.fusion.kernels import _pack_states, _tracked_motion
 from visionpos.fusion.matching import Projector
-from visionpos.fusion.tracking import FilterBank, KalmanSettings
+from visionpos.fusion.settings import KalmanSettings
 from visionpos.fusion.tracks import PX_VAR_PRIOR, Track, new_track_rows
 from visionpos.sim import load_scenario
 

@@ -73,8 +73,9 @@ def test_a_pose_outside_the_gate_takes_the_pose_path():
 def test_pose_nis_is_what_the_update_would_see_and_changes_nothing():
     """tracking.pose_nis: the triangulated pose's squared distance against the filter predicted to its
     time, as filter_update's gate sees it, with the filter left untouched (mode `always` takes the views)."""
+    from visionpos.fusion.body_filter import BodyFilter
     from visionpos.fusion.settings import KalmanSettings
-    from visionpos.fusion.tracking import BodyFilter, filter_update, pose_nis
+    from visionpos.fusion.tracking import filter_update, pose_nis
     from visionpos.geometry.rotations import matrix_from_rotvec
 
     f = BodyFilter(KalmanSettings())

@@ -14,10 +14,12 @@ from scipy.stats import chi2
 from visionpos.benchmarks.fusion_occlusion import occlusion_run
 from visionpos.camera.model import CameraModel, undistort_points
 from visionpos.fusion import layout as L
+from visionpos.fusion.body_filter import BodyFilter, FilterBank
 from visionpos.fusion.kernels import _observe_frame, _pose_observable
 from visionpos.fusion.matching import Projector
 from visionpos.fusion.pipeline import FusionPipeline
-from visionpos.fusion.tracking import BodyFilter, FilterBank, KalmanSettings, filter_update_view, project_with_jacobian
+from visionpos.fusion.settings import KalmanSettings
+from visionpos.fusion.tracking import filter_update_view, project_with_jacobian
 from visionpos.sim import load_scenario, simulate
 
 QUAD = np.array([[0.09, 0.0, 0.02], [0.0, 0.07, 0.03], [-0.08, 0.0, 0.02], [0.0, -0.1, 0.025]])

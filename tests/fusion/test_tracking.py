@@ -3,7 +3,8 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from visionpos.fusion.tracking import BodyFilter, KalmanSettings
+from visionpos.fusion.body_filter import BodyFilter
+from visionpos.fusion.settings import KalmanSettings
 from visionpos.geometry.rotations import matrix_from_rotvec as rotvec_to_matrix
 from visionpos.geometry.rotations import quat_from_matrix as matrix_to_quat
 from visionpos.geometry.rotations import rotvec_from_matrix as matrix_to_rotvec

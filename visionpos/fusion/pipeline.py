@@ -72,6 +72,7 @@ import numpy as np
 
 from visionpos.camera.model import Camera
 from visionpos.config.arena import ArenaConfig, ConfigError
+from visionpos.fusion.body_filter import FilterBank
 from visionpos.fusion.kernels import _finite_rows, _fuse_tracked, _observe_frame, _tracked_motion, pose_measurement_cov
 from visionpos.fusion.layout import (
     MEAS_POS,
@@ -94,7 +95,6 @@ from visionpos.fusion.rigidbody import BodyModel, identify, layout_ambiguities
 from visionpos.fusion.settings import FUSION_PARAMS, pack_params, parse_fusion
 from visionpos.fusion.snapshot import CameraFrame, FusionSnapshot
 from visionpos.fusion.timealign import Group, TimeAligner, TimeAlignment
-from visionpos.fusion.tracking import FilterBank
 from visionpos.fusion.tracks import Observation, Track, new_track_rows
 from visionpos.fusion.warmup import warm_up_once
 from visionpos.messages import BlobFrame, BodyState, LoosePoints

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from visionpos.fusion.body_filter import BodyFilter, array_field
 from visionpos.fusion.layout import (
     N_TRACK_FLOATS,
     N_TRACK_INTS,
@@ -29,7 +30,6 @@ from visionpos.fusion.layout import (
     TRACK_UPDATE_KIND,
     TrackRows,
 )
-from visionpos.fusion.tracking import BodyFilter, array_field
 
 PX_VAR_PRIOR = 0.25  # px^2, per-axis pixel noise before any residual is seen
 
