@@ -156,7 +156,8 @@ class FakeAutopilot:
                  truth: Callable[[np.ndarray], Truth] | None = None, telemetry_hz: float = 0.0,
                  delay_ms: float = 0.0, boot_ns: int | None = None, origin_ready_s: float = 0.0,
                  ekf: str = "accept", gyro_noise_rad_s: float = 0.003, attitude_noise_deg: float = 0.2,
-                 seed: int | None = None, gyro_filter_hz: float = 0.0):
+                 seed: int | None = None, gyro_filter_hz: float = 0.0, keep_received: int | None = None,
+                 on_pose: Callable[[Received], None] | None = None):
         kind, _, rest = endpoint.partition(":")
         host, _, port = rest.rpartition(":")
         if kind not in ("udpout", "udpin", "tcpin") or not host or not port.isdigit():
@@ -205,7 +206,10 @@ class FakeAutopilot:
         self._last_pose_ns = 0
         self._pending: collections.deque[tuple[int, bytes]] = collections.deque()  # (due ns, datagram)
         self._kernel_stamps = False
-        self.received: list[Received] = []
+        # every recorded message (keep_received: only the newest that many, for a long run's bounded memory)
+        self.received: list[Received] | collections.deque[Received] = (
+            [] if keep_received is None else collections.deque(maxlen=keep_received))
+        self.on_pose = on_pose  # called from this autopilot's thread with each pose message
         self.timesync_samples: list[tuple[int, int]] = []  # (rtt_ns, offset_ns: bridge clock - ours)
         self.rejected_signature = 0
         self.bad_packets = 0
@@ -426,8 +430,10 @@ class FakeAutopilot:
                     self.mav.send(self.mav.param_value_encode(pid.encode(), self.params[pid],
                                                               mavlink2.MAV_PARAM_TYPE_REAL32, len(self.params), 0))
             if t in RECORDED:
-                self.received.append(Received(t, now, m.get_srcSystem(), m.get_srcComponent(),
-                                              bool(m.get_signed()), m.to_dict()))
+                rec = Received(t, now, m.get_srcSystem(), m.get_srcComponent(), bool(m.get_signed()), m.to_dict())
+                self.received.append(rec)
+                if self.on_pose is not None and t in POSE_TYPES:
+                    self.on_pose(rec)
 
     def _on_pose(self, now: int) -> None:
         self._last_pose_ns = now

@@ -100,3 +100,60 @@ def test_the_collectors_memory_does_not_grow_with_the_poses():
     small, large = held_after(2_000), held_after(20_000)
     # keeping every pose (as the demo did) holds over 1 kB per pose: 18 000 more poses would add 18 MB
     assert large - small < 100_000, (small, large)
+
+
+def _vision_messages(n: int, seed: int = 3) -> list:
+    """n VISION_POSITION_ESTIMATE messages as a fake autopilot records them: a 50 Hz grid of stamps on the
+    truth's circle (NED: x, -y, -z) with 0.5 mm noise, arriving 5-15 ms after their stamp, one 80 ms hole."""
+    from bridge.fake_autopilot import Received
+
+    rng = np.random.default_rng(seed)
+    stamps_ns = T0 - 100_000_000 + np.arange(n, dtype=np.int64) * 20_000_000
+    stamps_ns[n // 2:] += 60_000_000  # a gap: 80 ms between two stamps
+    world, _ = _truth("quad", stamps_ns)
+    world = world + rng.normal(0.0, 5e-4, world.shape)
+    recv_ns = stamps_ns + rng.integers(5_000_000, 15_000_000, n)
+    out = []
+    for s, r, p in zip(stamps_ns, recv_ns, world):
+        out.append(Received("VISION_POSITION_ESTIMATE", int(r), 1, 197, True,
+                            {"usec": int(s) // 1000, "x": p[0], "y": -p[1], "z": -p[2],
+                             "roll": 0.0, "pitch": 0.0, "yaw": 0.0}))
+    return out, stamps_ns, recv_ns, world
+
+
+def test_the_autopilot_tally_equals_the_figures_of_every_kept_message():
+    from visionpos.app.demo_summary import AutopilotPoses, latency_percentiles_ms
+
+    msgs, stamps_ns, recv_ns, world = _vision_messages(400)
+    t_stop = T0 + 5_000_000_000
+    got = AutopilotPoses(boot_stamps=True)
+    for m in msgs[:3]:  # before the window is known: counted, not scored
+        got.on_pose(m)
+    got.score(T0, t_stop, lambda t: _truth("quad", t)[0])
+    for m in msgs[3:]:
+        got.on_pose(m)
+    # the figures straight from every message, as the demo computed them when it kept them all
+    assert got.n == 400
+    assert got.max_gap_ns == int(np.diff(recv_ns).max())
+    inside = (stamps_ns >= T0) & (stamps_ns <= t_stop)
+    inside[:3] = False
+    e_mm = np.linalg.norm(world[inside] - _truth("quad", stamps_ns[inside])[0], axis=1) * 1e3
+    assert got.scored == int(inside.sum())
+    assert got.position_rmse_mm() == pytest.approx(np.sqrt(np.mean(e_mm ** 2)), rel=1e-9)
+    assert got.err_max_mm == pytest.approx(e_mm.max(), rel=1e-9)
+    lat = latency_percentiles_ms([got], (50, 99))
+    want = M.percentiles_ms(recv_ns - stamps_ns, (50, 99))
+    for k in ("p50", "p99"):
+        assert abs(lat[k] - want[k]) <= 2 * HIST_BIN_NS * 1e-6
+
+
+def test_the_demo_keeps_a_bounded_message_log():
+    """A fake autopilot given keep_received keeps only its newest messages (the demo's summary needs none)."""
+    from bridge.fake_autopilot import FakeAutopilot
+
+    ap = FakeAutopilot("udpout:127.0.0.1:9", keep_received=8)
+    msgs, *_ = _vision_messages(50)
+    for m in msgs:
+        ap.received.append(m)
+    assert len(ap.received) == 8 and ap.received[-1] is msgs[-1]
+    assert FakeAutopilot("udpout:127.0.0.1:9").received == []  # unbounded (the tests' own autopilots)

@@ -41,7 +41,7 @@ import numpy as np
 
 from visionpos import protocol as P
 from visionpos.analysis import metrics as M
-from visionpos.app.demo_summary import Collector
+from visionpos.app.demo_summary import AutopilotPoses, Collector, latency_percentiles_ms
 from visionpos.app.outputs import bridge_of, build_outputs
 from visionpos.app.ports import free_port
 from visionpos.config.arena import ArenaConfig, apply_overrides, load_yaml, parse_arena, resolve_config_path
@@ -60,6 +60,7 @@ STILL_BACKGROUND_DN = 8.0  # a simulated still image: dark background of this me
 STILL_NOISE_DN = 3.0  # ... with this much noise (sigma), and marker discs ...
 STILL_MARKER_DN = 230  # ... of this grey level where the blobs are
 STILL_MIN_DIAMETER_PX = 4.0  # a one-pixel blob still shows as a disc
+AUTOPILOT_KEEP_MESSAGES = 1024  # each fake autopilot keeps its newest messages only (the summary: AutopilotPoses)
 STREAM_LEAD_S = 0.3  # first exposure this long after every station is registered and synced
 
 
@@ -435,6 +436,7 @@ class _Run:
     collector: Collector
     key: bytes | None
     autopilots: dict[str, tuple[Any, Any]] = dataclasses.field(default_factory=dict)  # body -> (FakeAutopilot, link)
+    autopilot_poses: dict[str, AutopilotPoses] = dataclasses.field(default_factory=dict)  # body -> what it got
     stations: list[SimStation] = dataclasses.field(default_factory=list)
     shift: int = 0  # sim time + shift = server clock
     t_start: int = 0  # the streaming window, server clock
@@ -533,8 +535,10 @@ def _start_autopilots(run: _Run, live: LiveSource | None) -> None:
         if live is not None:  # a real autopilot is on the link: a fake one beside it would answer as it
             run.autopilots[v.cfg.body] = (None, v)
             continue
+        got = run.autopilot_poses[v.cfg.body] = AutopilotPoses(boot_stamps=v.cfg.time_base == "boot")
+        # the summary's figures are running statistics (got): the autopilot keeps only its newest messages
         ap = FakeAutopilot(f"udpout:127.0.0.1:{v.cfg.endpoint.port}", sysid=v.cfg.sysid,
-                           signing_key=v.cfg.signing_key)
+                           signing_key=v.cfg.signing_key, keep_received=AUTOPILOT_KEEP_MESSAGES, on_pose=got.on_pose)
         run.autopilots[v.cfg.body] = (ap.start(), v)
 
 
@@ -571,9 +575,12 @@ async def _stream(run: _Run, live: LiveSource | None, during: Callable[[DemoCont
             s.frames = live.frames(i, shift)
     run.t_start, run.t_stop, run.streaming = sc.start_ns + shift, sc.end_ns + shift, True
     run.collector.start_window(run.t_start, run.t_stop, lambda name, t: sc.truth_at(name, t - shift))
-    for body, (ap, _) in run.autopilots.items():  # the fake autopilots' sensors follow the simulated truth
+    for body, (ap, link) in run.autopilots.items():  # the fake autopilots' sensors follow the simulated truth
         if ap is not None and any(sb.name == body for sb in sc.bodies):
             ap.truth = trajectory_truth(sc.body(body).trajectory, sc.start_ns + shift)
+            if link.cfg.yaw_offset_deg == 0 and not np.any(link.cfg.pivot_offset):  # world = NED turned about x
+                run.autopilot_poses[body].score(run.t_start, run.t_stop,
+                                                lambda t, body=body: sc.truth_at(body, t - shift)[0])
     tasks = [asyncio.create_task(s.stream(run.t_stop), name=f"station-{s.station_id}") for s in run.stations]
     status = asyncio.create_task(_status_loop(run, status_out))
     if during is not None:
@@ -677,44 +684,31 @@ async def _status_loop(run: _Run, out: TextIO | None) -> None:
 def _summary(run: _Run, health: dict[str, Any], wall: float) -> dict[str, Any]:
     """The run's figures: per body against the truth (the collector's running statistics) and what its
     autopilot got, per station, the server's counters."""
-    from bridge.fake_autopilot import decode_pose
-
-    arena, sc, shift, t_start, t_stop = run.arena, run.sc, run.shift, run.t_start, run.t_stop
+    arena, sc, t_start, t_stop = run.arena, run.sc, run.t_start, run.t_stop
     autopilots, stations = run.autopilots, run.stations
     body_stats = run.collector.finish(t_stop)
     n_ticks = run.collector.ticks
     span = t_stop - t_start
     all_send_lat = []
-    all_ap_lat = []
     bodies = []
     for name in [b.name for b in arena.bodies if any(sb.name == b.name for sb in sc.bodies)]:
         d = {"name": name, **body_stats[name].metrics(n_ticks, span)}
         if name in autopilots:
             ap, link = autopilots[name]
-            poses = ap.messages(("VISION_POSITION_ESTIMATE", "ODOMETRY")) if ap is not None else []
-            rep = ap.report() if ap is not None else {"rejected_signature": None}
+            got = run.autopilot_poses.get(name) if ap is not None else None
+            n_poses = got.n if got is not None else 0
             st = link.stats()
-            d["mavlink_messages"] = len(poses)
+            d["mavlink_messages"] = n_poses
             d["mavlink_signed"] = link.cfg.signing_key is not None
-            d["mavlink_rejected_signature"] = rep["rejected_signature"]
-            d["mavlink_rate_hz"] = len(poses) / (span * 1e-9) if span > 0 else 0.0
-            d["mavlink_max_gap_ms"] = rep.get("max_gap_ms", float("nan"))
+            d["mavlink_rejected_signature"] = ap.rejected_signature if ap is not None else None
+            d["mavlink_rate_hz"] = n_poses / (span * 1e-9) if span > 0 else 0.0
+            d["mavlink_max_gap_ms"] = got.max_gap_ns * 1e-6 if n_poses >= 2 else float("nan")
             send_lat = link.lat_capture.values()
             all_send_lat.append(send_lat)
             d["latency_ms"] = M.percentiles_ms(send_lat, (50, 99))
-            if poses and link.cfg.time_base == "boot":
-                usec = np.array([decode_pose(p)["usec"] for p in poses], dtype=np.int64)
-                recv = np.array([p.recv_ns for p in poses], dtype=np.int64)
-                all_ap_lat.append(recv - usec * 1000)
-                # what the autopilot got, back in the world frame (N, E, D) -> (x, -y, -z)
-                inside = (usec * 1000 >= t_start) & (usec * 1000 <= t_stop)
-                if link.cfg.yaw_offset_deg == 0 and not np.any(link.cfg.pivot_offset) and inside.any():
-                    ned = np.array([decode_pose(p)["position_ned"] for p in poses], dtype=float)[inside]
-                    world = ned * np.array([1.0, -1.0, -1.0])
-                    tp2, _ = sc.truth_at(name, usec[inside] * 1000 - shift)
-                    e = M.position_errors(world, tp2) * 1e3
-                    d["mavlink_position_rmse_mm"] = M.rms(e)
-                    d["mavlink_position_max_mm"] = float(e.max())
+            if got is not None and got.scored:
+                d["mavlink_position_rmse_mm"] = got.position_rmse_mm()
+                d["mavlink_position_max_mm"] = got.err_max_mm
             d["bridge"] = {k: st[k] for k in ("sent", "rate_limited", "not_tracked", "dropped_stale", "no_link",
                                                 "frozen", "timesync_answered", "held_for_origin", "held_identity")}
             d["autopilot_says"] = {"identity": st["identity"], "ekf": st["ekf"], "delay_ms": st["delay_ms"],
@@ -722,7 +716,6 @@ def _summary(run: _Run, health: dict[str, Any], wall: float) -> dict[str, Any]:
                                    "true_delay_ms": ap.true_delay_ms() if ap is not None else None}
         bodies.append(d)
     send = np.concatenate(all_send_lat) if all_send_lat else np.zeros(0)
-    aplat = np.concatenate(all_ap_lat) if all_ap_lat else np.zeros(0)
     cams = health.get("cameras", {})
     stations_out = []
     for s in stations:
@@ -746,7 +739,7 @@ def _summary(run: _Run, health: dict[str, Any], wall: float) -> dict[str, Any]:
         "late_ticks": health.get("late_ticks"),
         "bodies": bodies,
         "latency_ms": M.percentiles_ms(send, (50, 99)),
-        "latency_to_autopilot_ms": M.percentiles_ms(aplat, (50, 99)),
+        "latency_to_autopilot_ms": latency_percentiles_ms(list(run.autopilot_poses.values()), (50, 99)),
         "stations": stations_out,
         "server": {k: health.get(k) for k in ("packets", "frames_accepted", "frames_shed", "malformed", "unknown",
                                               "pipeline_errors", "authenticated", "auth_failed",

@@ -186,6 +186,62 @@ class Collector(Sink):
                     lambda at, name=name: self._truth_on_grid(name, at))
 
 
+class AutopilotPoses:
+    """Running statistics of the pose messages one fake autopilot received (its on_pose callback, called on
+    its own thread, is the only writer; read them after it closed): how many, the largest gap between two
+    arrivals, the stamp-to-arrival latency (a histogram of HIST_BIN_NS bins; only for stamps on the server's
+    clock: boot_stamps) and, once score() set the window and the truth, the position error of every pose
+    stamped inside it. The demo kept every message for these before, which grew it by about 6 MB a minute.
+
+    truth(times_ns) -> positions (N, 3) m in the world frame at those server-clock times.
+    """
+
+    def __init__(self, boot_stamps: bool) -> None:
+        self.boot_stamps = boot_stamps
+        self.n = 0
+        self.max_gap_ns = 0
+        self.latency_hist = np.zeros(HIST_BINS, np.int64)
+        self.err_sq_mm2 = 0.0
+        self.err_max_mm = float("nan")
+        self.scored = 0
+        self._last_recv_ns: int | None = None
+        self._window: tuple[int, int] | None = None
+        self._truth: Callable[[np.ndarray], np.ndarray] | None = None
+
+    def score(self, t_start_ns: int, t_stop_ns: int, truth: Callable[[np.ndarray], np.ndarray]) -> None:
+        """Score the positions of poses stamped in [t_start_ns, t_stop_ns] against truth from now on."""
+        self._truth, self._window = truth, (int(t_start_ns), int(t_stop_ns))
+
+    def on_pose(self, r: Any) -> None:
+        """One pose message (bridge.fake_autopilot.Received) as the autopilot got it."""
+        from bridge.fake_autopilot import decode_pose
+
+        self.n += 1
+        if self._last_recv_ns is not None:
+            self.max_gap_ns = max(self.max_gap_ns, r.recv_ns - self._last_recv_ns)
+        self._last_recv_ns = r.recv_ns
+        if not self.boot_stamps:
+            return
+        pose = decode_pose(r)
+        stamp_ns = int(pose["usec"]) * 1000
+        self.latency_hist[min(max(r.recv_ns - stamp_ns, 0) // HIST_BIN_NS, HIST_BINS - 1)] += 1
+        if self._window is not None and self._window[0] <= stamp_ns <= self._window[1]:
+            world = np.asarray(pose["position_ned"], float) * np.array([1.0, -1.0, -1.0])  # NED -> x, -y, -z
+            e_mm = float(np.linalg.norm(world - self._truth(np.array([stamp_ns]))[0])) * 1e3
+            self.err_sq_mm2 += e_mm * e_mm
+            self.err_max_mm = e_mm if self.scored == 0 else max(self.err_max_mm, e_mm)
+            self.scored += 1
+
+    def position_rmse_mm(self) -> float:
+        return float(np.sqrt(self.err_sq_mm2 / self.scored)) if self.scored else float("nan")
+
+
+def latency_percentiles_ms(tallies: list[AutopilotPoses], qs: tuple[float, ...]) -> dict[str, float]:
+    """{'p50': ms, ...}: the stamp-to-arrival latency percentiles over every autopilot's poses together."""
+    hist = sum((t.latency_hist for t in tallies), np.zeros(HIST_BINS, np.int64))
+    return {f"p{q:g}": v * 1e-6 for q, v in zip(qs, _hist_percentiles_ns(hist, qs))}
+
+
 def _plural(n: int, word: str) -> str:
     return f"{n} {word}" if n == 1 else f"{n} {word}s"
 

@@ -382,6 +382,8 @@ def parse_sim(arena: ArenaConfig, session: str | None = None, **overrides: Any) 
 
     overrides: sim keys to replace (e.g. duration=5, seed=3, centroid_noise_px=0),
     applied before validation so bad values are reported like config errors.
+    Stages: the bodies of the session (_sim_bodies), the cameras with their stations' clocks
+    (_sim_cameras), then the occlusion schedule, latency, reflections and brightness.
     """
     arena.require_poses("the simulator")
     raw_sim = dict(arena.section("sim").data)
@@ -394,10 +396,63 @@ def parse_sim(arena: ArenaConfig, session: str | None = None, **overrides: Any) 
     seed = SIM.read(sim, "seed")
     duration = SIM.read(sim, "duration")
     start_ns = int(round(SIM.read(sim, "start_time") * 1e9))
-
-    # ---- bodies: tracked ones and props, selected by the session
     occ = SIM_OCCLUSION.check(sim.sub("occlusion"))
-    occ_enabled = SIM_OCCLUSION.read(occ, "enabled")
+    session_name, bodies = _sim_bodies(arena, sim, occ, seed)
+    cameras, timings, clocks, bumps = _sim_cameras(arena, sim, seed, start_ns)
+
+    schedule = _view_schedule(sim, bodies, [c.id for c in cameras], start_ns)
+    lat = LATENCY.check(sim.sub("latency_ms"))
+    spur = SPURIOUS.check(sim.sub("spurious"))
+    bright = BRIGHTNESS.check(sim.sub("brightness"))
+    lat_mean = LATENCY.read(lat, "mean")
+    lat_max = lat.number("max", max(15.0, 4 * lat_mean), min=lat_mean)
+    return Scenario(
+        arena=arena,
+        cameras=tuple(cameras),
+        timings=tuple(timings),
+        clocks=clocks,
+        bodies=tuple(bodies),
+        session=session_name,
+        duration_s=duration,
+        seed=seed,
+        start_ns=start_ns,
+        truth_rate_hz=SIM.read(sim, "truth_rate"),
+        centroid_noise_px=SIM.read(sim, "centroid_noise_px"),
+        latency_mean_ns=lat_mean * 1e6,
+        latency_std_ns=LATENCY.read(lat, "std") * 1e6,
+        latency_max_ns=lat_max * 1e6,
+        static_spurious_per_camera=SPURIOUS.read(spur, "static_per_camera"),
+        random_spurious_per_frame=SPURIOUS.read(spur, "random_per_frame"),
+        floor_mirror=SPURIOUS.read(spur, "floor_mirror"),
+        occlusion=SIM_OCCLUSION.read(occ, "enabled"),
+        peak_at_1m=BRIGHTNESS.read(bright, "peak_at_1m"),
+        min_peak=BRIGHTNESS.read(bright, "min_peak"),
+        merge_blobs=SIM.read(sim, "merge_blobs"),
+        max_blobs=SIM.read(sim, "max_blobs"),
+        raw=raw_sim,
+        bumps=bumps,
+        view_schedule=schedule,
+    )
+
+
+def _session_entries(arena: ArenaConfig, sim: Section) -> tuple[str, Section]:
+    """The session's name and its entries (body or prop name -> trajectory); without sessions every tracked
+    body hovers at 1 m, spread along x."""
+    sessions = sim.sub("sessions")
+    if sessions.data:
+        names = list(sessions.data)
+        session_name = sim.string("session", names[0])
+        if session_name not in sessions.data:
+            raise sim.error("session", f"'{session_name}' is not one of the sessions {names}")
+        return session_name, sessions.sub(session_name)
+    n = len(arena.bodies)
+    hover = {b.name: {"trajectory": "hover", "center": [0.6 * (i - (n - 1) / 2), 0.0, 1.0]}
+             for i, b in enumerate(arena.bodies)}
+    return sim.string("session", "default"), Section(hover, arena.source, "sim.sessions.default")
+
+
+def _sim_bodies(arena: ArenaConfig, sim: Section, occ: Section, seed: int) -> tuple[str, list[SimBody]]:
+    """The session's name and its bodies: tracked ones and props, each on its trajectory, with its occluder."""
     occ_default = (SIM_OCCLUSION.read(occ, "disc_radius"), SIM_OCCLUSION.read(occ, "normal_cutoff_deg"))
     candidates: dict[str, tuple[BodyConfig, Section, bool]] = {
         b.name: (b, Section(b.raw.get("occlusion"), arena.source, f"bodies[{i}].occlusion"), True)
@@ -405,26 +460,7 @@ def parse_sim(arena: ArenaConfig, session: str | None = None, **overrides: Any) 
     }
     for b, o in _props(sim, arena):
         candidates[b.name] = (b, o, False)
-
-    sessions = sim.sub("sessions")
-    if sessions.data:
-        names = list(sessions.data)
-        session_name = sim.string("session", names[0])
-        if session_name not in sessions.data:
-            raise sim.error("session", f"'{session_name}' is not one of the sessions {names}")
-        entries = sessions.sub(session_name)
-    else:
-        session_name = sim.string("session", "default")
-        # no sessions: every tracked body hovers at 1 m, spread along x
-        n = len(arena.bodies)
-        entries = Section(
-            {
-                b.name: {"trajectory": "hover", "center": [0.6 * (i - (n - 1) / 2), 0.0, 1.0]}
-                for i, b in enumerate(arena.bodies)
-            },
-            arena.source,
-            "sim.sessions.default",
-        )
+    session_name, entries = _session_entries(arena, sim)
     bodies: list[SimBody] = []
     used_ids: set[int] = set()
     for name in entries.data:
@@ -452,24 +488,60 @@ def parse_sim(arena: ArenaConfig, session: str | None = None, **overrides: Any) 
                 tracked=tracked,
             )
         )
+    return session_name, bodies
 
-    # ---- cameras and their stations' clocks
+
+def _camera_overrides(arena: ArenaConfig, sim: Section) -> Section:
+    """sim.cameras keyed by camera id (--set sim.cameras.3.fps=60 gives string keys), unknown ids refused."""
     cam_over = sim.sub("cameras")
     by_id = arena.camera_by_id()
-    # keys are camera ids; --set sim.cameras.3.fps=60 makes them strings
     norm = {}
     for k, v in cam_over.data.items():
         kid = int(k) if isinstance(k, str) and k.strip().isdigit() else k
         if not isinstance(kid, int) or kid not in by_id:
             raise cam_over.error(str(k), f"no camera with id {k!r}; camera ids are {sorted(by_id)}")
         norm[kid] = v
-    cam_over = Section(norm, cam_over.source, cam_over.path)
-    phase_mode = sim.string("phase", "random", choices=("random", "zero"))
-    jitter_ns = SIM.read(sim, "timing_jitter_us") * 1e3
-    stamp_ns = SIM.read(sim, "stamp_noise_us") * 1e3
+    return Section(norm, cam_over.source, cam_over.path)
+
+
+def _station_clock(sim: Section, co: Section, seed: int, station: int, start_ns: int) -> StationClock:
+    """A station's clock: its offset, drift and sync residual drawn from the seed and the sim's spreads."""
     offset_std = SIM.read(sim, "clock_offset_ms") * 1e6
     drift_std = SIM.read(sim, "clock_drift_ppm")
     resid_std = SIM.read(sim, "sync_residual_us") * 1e3
+    crng = rng_for(seed, TAG_CLOCK, station)
+    drift = float(crng.normal(0.0, drift_std)) if drift_std > 0 else 0.0
+    return StationClock(
+        station_id=station,
+        offset_ns=int(round(crng.normal(0.0, offset_std))) if offset_std > 0 else 0,
+        drift_ppm=drift,
+        bias_ns=float(crng.normal(0.0, resid_std / np.sqrt(2))) + co.number("clock_error_ms", 0.0) * 1e6,
+        amp_ns=np.full(3, resid_std / np.sqrt(3)),
+        freq_hz=crng.uniform(0.01, 0.2, 3),
+        phase=crng.uniform(0, 2 * np.pi, 3),
+        start_ns=start_ns,
+    )
+
+
+def _bumped_camera(co: Section, cam: Camera) -> tuple[int, Camera]:
+    """sim.cameras.N.bump_*: when (ns after start) the camera is knocked, and where it is then (a turn about
+    its own axes and a shift of its centre)."""
+    from scipy.spatial.transform import Rotation
+
+    dR = Rotation.from_rotvec(np.radians(SIM_CAMERA.read(co, "bump_rotation_deg"))).as_matrix()
+    R_new = dR @ cam.R
+    C_new = cam.center + SIM_CAMERA.read(co, "bump_shift_m")
+    return int(round(SIM_CAMERA.read(co, "bump_at_s") * 1e9)), cam.with_pose(R_new, -R_new @ C_new)
+
+
+def _sim_cameras(arena: ArenaConfig, sim: Section, seed: int, start_ns: int
+                 ) -> tuple[list[Camera], list[CameraTiming], dict[int, StationClock], dict[int, tuple[int, Camera]]]:
+    """The enabled cameras, their timing (rate, phase, jitter, drops, rolling shutter), their stations' clocks
+    (one camera per station, as the thesis stations are) and the knocks (camera id -> (ns, camera after))."""
+    cam_over = _camera_overrides(arena, sim)
+    phase_mode = sim.string("phase", "random", choices=("random", "zero"))
+    jitter_ns = SIM.read(sim, "timing_jitter_us") * 1e3
+    stamp_ns = SIM.read(sim, "stamp_noise_us") * 1e3
     drop = SIM.read(sim, "drop_probability")
     readout_ms = SIM.read(sim, "rolling_shutter_ms")
     cameras, timings = [], []
@@ -481,20 +553,9 @@ def parse_sim(arena: ArenaConfig, session: str | None = None, **overrides: Any) 
         if not co.boolean("enabled", True):
             continue
         fps = co.number("fps", cam.fps, min=0.1, max=10000.0)
-        station = cam.id  # one camera per station, as the thesis stations are
-        crng = rng_for(seed, TAG_CLOCK, station)
-        drift = float(crng.normal(0.0, drift_std)) if drift_std > 0 else 0.0
-        clocks[station] = StationClock(
-            station_id=station,
-            offset_ns=int(round(crng.normal(0.0, offset_std))) if offset_std > 0 else 0,
-            drift_ppm=drift,
-            bias_ns=float(crng.normal(0.0, resid_std / np.sqrt(2))) + co.number("clock_error_ms", 0.0) * 1e6,
-            amp_ns=np.full(3, resid_std / np.sqrt(3)),
-            freq_hz=crng.uniform(0.01, 0.2, 3),
-            phase=crng.uniform(0, 2 * np.pi, 3),
-            start_ns=start_ns,
-        )
-        period = 1e9 / fps / (1.0 + drift * 1e-6)
+        station = cam.id
+        clocks[station] = clock = _station_clock(sim, co, seed, station, start_ns)
+        period = 1e9 / fps / (1.0 + clock.drift_ppm * 1e-6)
         if co.has("phase_ms"):
             phase = co.number("phase_ms", min=0.0) * 1e6
         elif phase_mode == "random":
@@ -503,12 +564,7 @@ def parse_sim(arena: ArenaConfig, session: str | None = None, **overrides: Any) 
             phase = 0.0
         cameras.append(cam)
         if co.has("bump_at_s"):
-            from scipy.spatial.transform import Rotation
-
-            dR = Rotation.from_rotvec(np.radians(SIM_CAMERA.read(co, "bump_rotation_deg"))).as_matrix()
-            R_new = dR @ cam.R  # a turn about the camera's own axes
-            C_new = cam.center + SIM_CAMERA.read(co, "bump_shift_m")
-            bumps[cam.id] = (int(round(SIM_CAMERA.read(co, "bump_at_s") * 1e9)), cam.with_pose(R_new, -R_new @ C_new))
+            bumps[cam.id] = _bumped_camera(co, cam)
         timings.append(
             CameraTiming(
                 camera_id=cam.id,
@@ -524,40 +580,7 @@ def parse_sim(arena: ArenaConfig, session: str | None = None, **overrides: Any) 
         )
     if not cameras:
         raise sim.error("cameras", "every camera is disabled; enable at least one")
-
-    schedule = _view_schedule(sim, bodies, [c.id for c in cameras], start_ns)
-    lat = LATENCY.check(sim.sub("latency_ms"))
-    spur = SPURIOUS.check(sim.sub("spurious"))
-    bright = BRIGHTNESS.check(sim.sub("brightness"))
-    lat_mean = LATENCY.read(lat, "mean")
-    lat_max = lat.number("max", max(15.0, 4 * lat_mean), min=lat_mean)
-    return Scenario(
-        arena=arena,
-        cameras=tuple(cameras),
-        timings=tuple(timings),
-        clocks=clocks,
-        bodies=tuple(bodies),
-        session=session_name,
-        duration_s=duration,
-        seed=seed,
-        start_ns=start_ns,
-        truth_rate_hz=SIM.read(sim, "truth_rate"),
-        centroid_noise_px=SIM.read(sim, "centroid_noise_px"),
-        latency_mean_ns=lat_mean * 1e6,
-        latency_std_ns=LATENCY.read(lat, "std") * 1e6,
-        latency_max_ns=lat_max * 1e6,
-        static_spurious_per_camera=SPURIOUS.read(spur, "static_per_camera"),
-        random_spurious_per_frame=SPURIOUS.read(spur, "random_per_frame"),
-        floor_mirror=SPURIOUS.read(spur, "floor_mirror"),
-        occlusion=occ_enabled,
-        peak_at_1m=BRIGHTNESS.read(bright, "peak_at_1m"),
-        min_peak=BRIGHTNESS.read(bright, "min_peak"),
-        merge_blobs=SIM.read(sim, "merge_blobs"),
-        max_blobs=SIM.read(sim, "max_blobs"),
-        raw=raw_sim,
-        bumps=bumps,
-        view_schedule=schedule,
-    )
+    return cameras, timings, clocks, bumps
 
 
 def load_scenario(
