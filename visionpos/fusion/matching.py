@@ -408,7 +408,9 @@ def match_unlabeled(
 
 @njit
 def _match_unlabeled(pts, start, R, t, f, ray_gate_px, max_residual_px):
-    """Compiled core of match_unlabeled; view v's blobs are pts[start[v]:start[v + 1]] (N, 2)."""
+    """Compiled core of match_unlabeled; view v's blobs are pts[start[v]:start[v + 1]] (N, 2).
+    Stages: seed pairs of rays (_seed_pairs), growth to the other views (_grow_seeds), triangulation with
+    the worst wrongly grown view dropped (_drop_grown_outliers), greedy acceptance (_accept_greedy)."""
     V = start.shape[0] - 1
     centres = np.empty((V, 3))
     for v in range(V):
@@ -417,7 +419,26 @@ def _match_unlabeled(pts, start, R, t, f, ray_gate_px, max_residual_px):
     rays = np.empty((pts.shape[0], 3))
     for v in range(V):
         rays[start[v] : start[v + 1]] = _world_rays(pts[start[v] : start[v + 1]], R[v])
-    # 1. seed pairs: rays of two views that pass within ray_gate_px at their ranges
+    idx, X0 = _seed_pairs(start, centres, rays, f, ray_gate_px)
+    S = idx.shape[0]
+    if S == 0:
+        return np.zeros((0, 3)), np.zeros((0, V), dtype=np.int64), np.zeros(0)
+    _grow_seeds(pts, start, R, t, f, max_residual_px, idx, X0)
+    obs = np.full((S, V, 2), np.nan)
+    for s in range(S):
+        for v in range(V):
+            if idx[s, v] >= 0:
+                obs[s, v] = pts[start[v] + idx[s, v]]
+    X, rms, nv = triangulate_irls(obs, R, t, f, np.zeros((0, 0, 3)), False, 2)
+    _drop_grown_outliers(R, t, f, max_residual_px, idx, obs, X, rms, nv)
+    return _accept_greedy(pts.shape[0], start, R, t, f, max_residual_px, idx, obs, X, rms, nv)
+
+
+@njit
+def _seed_pairs(start, centres, rays, f, ray_gate_px):
+    """Seeds: pairs of rays of two views that pass within ray_gate_px at their ranges. Returns the blob
+    index (S, V) (-1 = not in the seed) and each seed's midpoint X0 (S, 3) m."""
+    V = start.shape[0] - 1
     cap = 0
     for a in range(V):
         for b in range(a + 1, V):
@@ -441,11 +462,16 @@ def _match_unlabeled(pts, start, R, t, f, ray_gate_px, max_residual_px):
                         idx[S, a], idx[S, b] = i, j
                         X0[S] = mid[i, j]
                         S += 1
-    if S == 0:
-        return np.zeros((0, 3)), np.zeros((0, V), dtype=np.int64), np.zeros(0)
-    idx = idx[:S].copy()
-    # 2. grow every seed to the other views by reprojection; the growth gate is looser than the
-    # final one: the seed midpoint is not the maximum-likelihood point
+    return idx[:S].copy(), X0[:S]
+
+
+@njit
+def _grow_seeds(pts, start, R, t, f, max_residual_px, idx, X0):
+    """Each seed grown (idx, in place) to the other views by reprojecting its midpoint onto the nearest
+    blob; the growth gate is looser than the final one: the seed midpoint is not the maximum-likelihood
+    point."""
+    V = start.shape[0] - 1
+    S = idx.shape[0]
     for v in range(V):
         n = start[v + 1] - start[v]
         if n == 0:
@@ -466,14 +492,14 @@ def _match_unlabeled(pts, start, R, t, f, ray_gate_px, max_residual_px):
                     best, nn = d, j
             if best < 3.0 * max_residual_px:
                 idx[s, v] = nn
-    obs = np.full((S, V, 2), np.nan)
-    for s in range(S):
-        for v in range(V):
-            if idx[s, v] >= 0:
-                obs[s, v] = pts[start[v] + idx[s, v]]
+
+
+@njit
+def _drop_grown_outliers(R, t, f, max_residual_px, idx, obs, X, rms, nv):
+    """A view whose own residual is over the gate was grown onto a wrong blob: each point's worst such
+    view is dropped and the point triangulated again (idx, obs, X, rms, nv in place)."""
+    S, V = idx.shape
     no_offsets = np.zeros((0, 0, 3))
-    X, rms, nv = triangulate_irls(obs, R, t, f, no_offsets, False, 2)
-    # a view whose own residual is over the gate was grown onto a wrong blob: drop the worst such view
     for s in range(S):
         worst, r_worst = -1, -1.0
         for v in range(V):
@@ -490,11 +516,18 @@ def _match_unlabeled(pts, start, R, t, f, ray_gate_px, max_residual_px):
             idx[s, worst] = -1
             Xs, rs, ns = triangulate_irls(obs[s : s + 1], R, t, f, no_offsets, False, 2)
             X[s], rms[s], nv[s] = Xs[0], rs[0], ns[0]
-    # 3. greedy acceptance (most views, then lowest residual), each blob once; a candidate that
-    # shares blobs with an accepted point keeps its other views if at least two remain
+
+
+@njit
+def _accept_greedy(n_blobs, start, R, t, f, max_residual_px, idx, obs, X, rms, nv):
+    """Greedy acceptance (most views, then lowest residual), each blob once; a candidate that shares blobs
+    with an accepted point keeps its other views if at least two remain. Returns points (Q, 3), blob index
+    (Q, V) and rms (Q,) px in acceptance order."""
+    S, V = idx.shape
+    no_offsets = np.zeros((0, 0, 3))
     by_rms = np.argsort(np.where(rms < max_residual_px, rms, np.inf), kind="mergesort")
     order = by_rms[np.argsort(-nv[by_rms], kind="mergesort")]  # stable: views, then residual, then index
-    used = np.zeros(pts.shape[0], dtype=np.bool_)
+    used = np.zeros(n_blobs, dtype=np.bool_)
     keep = np.zeros(S, dtype=np.bool_)
     for s in order:
         if not rms[s] < max_residual_px:
@@ -522,7 +555,6 @@ def _match_unlabeled(pts, start, R, t, f, ray_gate_px, max_residual_px):
         for v in range(V):
             if idx[s, v] >= 0:
                 used[start[v] + idx[s, v]] = True
-    # in acceptance order
     Q = 0
     for s in order:
         if keep[s]:
