@@ -301,9 +301,9 @@ def _child_main(argv: list[str]) -> int:
     path = resolve_config_path("thesis")
     arena = parse_arena(load_yaml(path), str(path))
     try:
-        from visionpos.fusion.settings import parse_fusion_settings
+        from visionpos.fusion.settings import parse_fusion
 
-        parse_fusion_settings(arena, settings or None)
+        parse_fusion(arena, settings or None)
     except Exception:  # noqa: BLE001  (settings of another arena: the defaults give the same argument types)
         settings = {}
     # first stage: the hottest kernels, compiled for the argument types the interpreted callers give them
