@@ -157,3 +157,24 @@ def test_the_demo_keeps_a_bounded_message_log():
         ap.received.append(m)
     assert len(ap.received) == 8 and ap.received[-1] is msgs[-1]
     assert FakeAutopilot("udpout:127.0.0.1:9").received == []  # unbounded (the tests' own autopilots)
+
+
+@pytest.mark.parametrize("kernels, says", [
+    ({"interpreted_at_start": False, "interpreted_at_end": False}, None),
+    ({"interpreted_at_start": True, "interpreted_at_end": False}, "ran interpreted until they were ready"),
+    ({"interpreted_at_start": True, "interpreted_at_end": True}, "ran interpreted for the whole run"),
+])
+def test_the_summary_says_when_the_fusion_ran_interpreted(kernels, says):
+    """A first demo after installing runs while the kernels compile: its summary must not pass for this host's."""
+    from visionpos.app.demo_summary import format_summary
+
+    s = {"scenario": "thesis", "session": "flight", "seed": 1, "duration_s": 10.0, "ticks": 1000,
+         "stations": [{"camera_id": 1, "fps": 100.0}], "bodies": [],
+         "latency_ms": {"p50": 7.0, "p99": 9.0}, "latency_to_autopilot_ms": {"p50": 8.0},
+         "server": {"frames_accepted": 1000, "frames_shed": 0, "malformed": 0}, "late_ticks": 0,
+         "wall_s": 10.5, "simulate_s": 0.2, "kernels": kernels}
+    text = format_summary(s)
+    if says is None:
+        assert "interpreted" not in text
+    else:
+        assert says in text and "the next run uses the compiled kernels" in text

@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING, Any, AsyncIterator, Awaitable, Callable, Proto
 
 import numpy as np
 
+from visionpos import jit
 from visionpos import protocol as P
 from visionpos.analysis import metrics as M
 from visionpos.app.demo_summary import AutopilotPoses, Collector, latency_percentiles_ms
@@ -442,6 +443,7 @@ class _Run:
     t_start: int = 0  # the streaming window, server clock
     t_stop: int = 0
     streaming: bool = False  # the window is set (so truth can be recorded)
+    interpreted_at_start: bool = False  # the kernels were still compiling when the streaming began
 
 
 async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | None,
@@ -574,6 +576,7 @@ async def _stream(run: _Run, live: LiveSource | None, during: Callable[[DemoCont
         for i, s in enumerate(run.stations):
             s.frames = live.frames(i, shift)
     run.t_start, run.t_stop, run.streaming = sc.start_ns + shift, sc.end_ns + shift, True
+    run.interpreted_at_start = jit.interpreting()
     run.collector.start_window(run.t_start, run.t_stop, lambda name, t: sc.truth_at(name, t - shift))
     for body, (ap, link) in run.autopilots.items():  # the fake autopilots' sensors follow the simulated truth
         if ap is not None and any(sb.name == body for sb in sc.bodies):
@@ -745,6 +748,8 @@ def _summary(run: _Run, health: dict[str, Any], wall: float) -> dict[str, Any]:
                                               "pipeline_errors", "authenticated", "auth_failed",
                                               "tick_cost_max_ms")},
         "pipeline": {k: v for k, v in (health.get("pipeline") or {}).items() if isinstance(v, (int, float, str))},
+        # a first run after installing: the fusion ran interpreted while a background process compiled it
+        "kernels": {"interpreted_at_start": run.interpreted_at_start, "interpreted_at_end": jit.interpreting()},
     })
 
 

@@ -291,4 +291,11 @@ def format_summary(s: dict[str, Any]) -> str:
         f"{_plural(s['late_ticks'] or 0, 'output tick')} late; the demo ran for {s['wall_s']:.1f} s of "
         f"wall-clock time, of which simulating the camera frames took {s['simulate_s']:.1f} s",
     ]
+    k = s.get("kernels") or {}
+    if k.get("interpreted_at_start"):
+        lines.append("the fusion kernels were still being compiled (the first run after installing or updating): "
+                     "the fusion ran interpreted " + ("for the whole run" if k.get("interpreted_at_end") else
+                                                      "until they were ready")
+                     + ", slower, so these figures are not what this host does; the next run uses the compiled "
+                     "kernels")
     return "\n".join(lines)
