@@ -611,9 +611,6 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
     Returns (accepted, NIS per dof, the frame's pose information H^T H / var_px (6, 6) over
     [p, rotation error]); a point behind the camera rejects it.
     """
-    n = local.shape[0]
-    m = 2 * n
-    info = np.zeros((6, 6))
     dt_f = (t_ns - clock[CLOCK_T_NS]) * 1e-9
     dt = 0.0  # capture time - filter time after the prediction
     if dt_f > 0.0:
@@ -624,16 +621,37 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
         _count_folds(R_nom, clock, int(folded))
     else:
         dt = dt_f
+    p, Rb, _ = predict_mean(x, R_nom, dt)
+    ok, y, H = _view_measurement(p, Rb, dt, local, obs_xn, camera)
+    if not ok:
+        return False, np.inf, np.zeros((6, 6))
+    info = _pose_information(H, var_px)
+    accepted, nis = _update_isotropic(x, P, H, y, var_px, gate_per_dof)
+    if not accepted:
+        return False, nis, info
+    _count_folds(R_nom, clock, int(_fold(x, R_nom)))
+    if adapt_noise:
+        _adapt_noise(adapt, clock, params, t_ns, max(dt_f, 0.0), nis, nis, False)
+    return True, nis, info
+
+
+@njit
+def _view_measurement(p: np.ndarray, Rb: np.ndarray, dt: float, local: np.ndarray, obs_xn: np.ndarray,
+                      camera: np.ndarray) -> tuple[bool, np.ndarray, np.ndarray]:
+    """One frame's reprojection innovation y (2n,) px and its Jacobian H (2n, N_STATE) over the error state,
+    for the body at p (3,) m, Rb (3, 3) predicted dt s from the filter's time (filter_update_view's docstring);
+    False when a marker is behind the camera."""
+    n = local.shape[0]
+    m = 2 * n
     Rc, tc = camera[CAMERA_R].reshape((3, 3)), camera[CAMERA_T]
     intrinsics, dist, fisheye = camera[CAMERA_INTRINSICS], camera[CAMERA_DIST], camera[CAMERA_FISHEYE] != 0.0
-    p, Rb, _ = predict_mean(x, R_nom, dt)
     y = np.empty(m)
     H = np.zeros((m, N_STATE))
     for k in range(n):
         r = matvec3(Rb, local[k])  # lever arm, world
         Xc = matvec3(Rc, p + r) + tc
         if not Xc[2] > 1e-3:
-            return False, np.inf, info
+            return False, y, H
         u, v, J = project_with_jacobian(Xc, intrinsics, dist, fisheye)
         uo, vo = pixel_from_normalized(obs_xn[k, 0], obs_xn[k, 1], intrinsics, dist, fisheye)
         y[2 * k], y[2 * k + 1] = uo - u, vo - v
@@ -655,12 +673,30 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
             H[row, RATE0], H[row, RATE0 + 1], H[row, RATE0 + 2] = ar0 * dt, ar1 * dt, ar2 * dt
             h = 0.5 * dt * dt
             H[row, ANG_ACC0], H[row, ANG_ACC0 + 1], H[row, ANG_ACC0 + 2] = ar0 * h, ar1 * h, ar2 * h
+    return True, y, H
+
+
+@njit
+def _pose_information(H: np.ndarray, var_px: float) -> np.ndarray:
+    """The measurement's information over [p, rotation error]: H_pose^T H_pose / var_px (6, 6)."""
+    m = H.shape[0]
+    info = np.zeros((6, 6))
     for i in range(6):
         for j in range(6):
             acc = 0.0
             for row in range(m):
                 acc += H[row, X_POSE[i]] * H[row, X_POSE[j]]
             info[i, j] = acc / var_px
+    return info
+
+
+@njit
+def _update_isotropic(x: np.ndarray, P: np.ndarray, H: np.ndarray, y: np.ndarray, var_px: float,
+                      gate_per_dof: float) -> tuple[bool, float]:
+    """Kalman update (in place, Joseph form) with innovation y (m,), Jacobian H (m, N_STATE) and noise var_px
+    on every row; refused (x, P untouched) when the NIS per dof is over gate_per_dof or NaN. Returns
+    (accepted, NIS per dof)."""
+    m = H.shape[0]
     PHt = np.zeros((N_STATE, m))
     for i in range(N_STATE):
         for row in range(m):
@@ -683,7 +719,7 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
             d2 += y[a] * Sinv[a, c] * y[c]
     nis = d2 / m
     if not nis <= gate_per_dof:  # NaN too
-        return False, nis, info
+        return False, nis
     K = _kalman_gain(PHt, Sinv)
     for i in range(N_STATE):
         acc = 0.0
@@ -715,10 +751,7 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
             for a in range(m):
                 kk += K[i, a] * K[j, a]
             P[i, j] = P[j, i] = acc + var_px * kk
-    _count_folds(R_nom, clock, int(_fold(x, R_nom)))
-    if adapt_noise:
-        _adapt_noise(adapt, clock, params, t_ns, max(dt_f, 0.0), nis, nis, False)
-    return True, nis, info
+    return True, nis
 
 
 @njit
