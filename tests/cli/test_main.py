@@ -104,3 +104,18 @@ def test_tune_checks_the_recording_before_any_trial(tmp_path, capsys, monkeypatc
     not_mcap.write_text("not a recording")
     assert main(["tune", str(not_mcap), "--grid", "fusion.time_alignment=naive"]) == 2
     assert "not an MCAP file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, interprets", [
+    (["demo", "--scenario", "/nonexistent/arena.yaml"], True),
+    (["serve", "--config", "/nonexistent/arena.yaml"], False),
+    (["sitl", "--scenario", "/nonexistent/arena.yaml"], False),
+])
+def test_only_the_demo_runs_interpreted_on_a_cold_cache(argv, interprets, monkeypatch):
+    """serve and sitl send poses to autopilots: they never start on the interpreted (frame-shedding) fusion."""
+    from visionpos.fusion import warmup
+
+    calls = []
+    monkeypatch.setattr(warmup, "interpret_while_cold", lambda: calls.append(1) or False)
+    assert main(argv) == 2  # the missing arena: a usage error, after the choice
+    assert bool(calls) == interprets

@@ -35,8 +35,10 @@ COMMANDS: dict[str, str] = {
 # loggers that report progress a user waits for (first-run kernel compilation, live status):
 # shown by default, while every other logger stays at WARNING unless -v
 PROGRESS_LOGGERS = ("visionpos.progress",)
-# commands that serve live traffic: on a cold kernel cache they start interpreted (fusion/warmup.py)
-LIVE_COMMANDS = ("demo", "serve", "sitl")
+# commands that start interpreted on a cold kernel cache (fusion/warmup.py): the demo only. serve and sitl
+# send poses to autopilots, and an interpreted fusion sheds most frames (a clean install's first demo: 31 poses/s,
+# 60 ms latency): they compile first, so no autopilot flies on it
+INTERPRET_WHILE_COLD_COMMANDS = ("demo",)
 
 
 def _version() -> str:
@@ -80,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         build_parser().print_help()
         return 2
     importlib.import_module("visionpos.app.sections")  # every section's keys known to --set
-    if args.command in LIVE_COMMANDS:  # a live server runs interpreted while its kernels first compile
+    if args.command in INTERPRET_WHILE_COLD_COMMANDS:  # runs interpreted while its kernels first compile
         importlib.import_module("visionpos.fusion.warmup").interpret_while_cold()
     command = importlib.import_module(f"visionpos.cli.{args.command}")
     try:

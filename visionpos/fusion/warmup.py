@@ -10,8 +10,9 @@ takes a second or two.
 
 Cold start (no cache for these sources): by default the pipeline waits for
 the compilation (replays, benchmarks and tests want the compiled kernels from
-the first frame). A live server must not wait a minute for its first pose:
-after interpret_while_cold() (the CLI calls it for demo, serve and sitl) the
+the first frame), and so do `serve` and `sitl`, whose poses go to autopilots (an
+interpreted fusion sheds most frames). The demo must not wait a minute for its first
+pose: after interpret_while_cold() (the CLI calls it for the demo only) the
 kernels run interpreted (jit.interpret(): the same numbers, several times
 slower) and the pipeline's warm-up starts a child process that compiles them
 into the cache; when the child is done the kernels are loaded from the cache
@@ -21,8 +22,8 @@ give it), and the parent runs that one compiled as soon as it is. The child
 finishes filling the cache even if this process ends first, so the next start
 is warm. What it compiled is recorded next to the cache (warm_up_record: every
 kernel's argument types), which is also how a later start knows the cache is
-complete. VISIONPOS_COLD_START=wait makes a live server wait for the
-compilation instead.
+complete. VISIONPOS_COLD_START=wait makes the demo wait for the compilation
+instead.
 """
 
 from __future__ import annotations
