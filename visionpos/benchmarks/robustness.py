@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import sys
 import tempfile
 from pathlib import Path
@@ -37,17 +36,9 @@ import numpy as np
 
 from visionpos.benchmarks import BenchResult
 from visionpos.benchmarks.attacks import ATTACKS
+from visionpos.benchmarks.demo_memory import rss_bytes
 
 RATE_PPS = 25_000.0  # attacker send rate: well above anything a station sends, below loopback's limit
-
-
-def _rss_bytes() -> int:
-    """Resident set size of this process (Linux /proc; 0 elsewhere)."""
-    try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError, IndexError):
-        return 0
 
 
 def _fake_body_blobs(arena) -> dict[str, list[list[float]]]:
@@ -83,13 +74,13 @@ async def _attack(ctx: Any, kind: str, packets: int, tmp: Path, old_hex: list[st
     sent_before = {s.camera.id: s.sent for s in stations}
     replies_refused0 = sum(s.bad_replies for s in stations)
     mav_refused0 = _mavlink_refused(ctx.bridge)
-    rss0 = _rss_bytes()
+    rss0 = rss_bytes()
     proc = await asyncio.create_subprocess_exec(sys.executable, "-m", "visionpos.benchmarks.attacks", str(path),
                                                 stdout=asyncio.subprocess.PIPE)
     out, _ = await proc.communicate()
     report = json.loads(out.decode().strip().splitlines()[-1]) if out else {"sent": 0}
     after = server.health()
-    rss1 = _rss_bytes()
+    rss1 = rss_bytes()
     return {"report": report, "before": before, "after": after, "rss0": rss0, "rss1": rss1,
             "replies_refused": sum(s.bad_replies for s in stations) - replies_refused0,
             "mavlink_refused": _mavlink_refused(ctx.bridge) - mav_refused0,
@@ -153,7 +144,7 @@ def run(quick: bool = False) -> BenchResult:
         base = asyncio.run(run_demo(arena, duration_s, None, record=str(base_rec)))
         base_size = base_rec.stat().st_size
         base_rms = max(b["position_rmse_mm"] for b in base["bodies"])
-        rss_start = _rss_bytes()
+        rss_start = rss_bytes()
         rows.append(("none (reference)", 0, 0, 0, base["bodies"][0]["tracked_fraction"], base_rms, "-", 0.0, 0.0))
         for kind in ATTACKS:
             holder: dict[str, Any] = {}
@@ -189,7 +180,7 @@ def run(quick: bool = False) -> BenchResult:
             res.metrics[f"robustness_{kind}_kernel_dropped"] = kernel_dropped
             res.metrics[f"robustness_{kind}_tracked_fraction"] = tracked
             res.metrics[f"robustness_{kind}_pos_rmse_mm"] = rms
-        rss_total_mb = (_rss_bytes() - rss_start) / 2**20
+        rss_total_mb = (rss_bytes() - rss_start) / 2**20
     res.metrics.update({
         "robustness_packets_thrown": total_thrown,
         "robustness_cameras_blinded": blinded_total,
