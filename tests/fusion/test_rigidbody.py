@@ -71,7 +71,7 @@ def test_layout_ambiguities():
 
 
 def test_pose_measurement_covariance_matches_monte_carlo():
-    from visionpos.fusion.kernels import pose_measurement_cov
+    from visionpos.fusion.measurements import pose_measurement_cov
 
     m = _models()[2].markers  # five markers
     R0 = Rotation.from_euler("zyx", [30, 20, -10], degrees=True).as_matrix()

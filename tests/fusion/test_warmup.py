@@ -43,8 +43,9 @@ def test_warm_up_compiles_every_kernel_the_fusion_uses():
     warm_up_kernels(sc.arena)  # what the first FusionPipeline of a process does
     before = signatures()
     assert sum(before.values()) >= 10  # the kernels Python calls (callees compile inside them)
-    for kernel in ("_observe_frame", "_fuse_tracked", "_tracked_motion", "_finite_rows", "pose_measurement_cov"):
-        assert f"visionpos.fusion.kernels.{kernel}" in before
+    for kernel in ("kernels._observe_frame", "kernels._fuse_tracked", "kernels._tracked_motion", "kernels._finite_rows",
+                   "measurements.pose_measurement_cov"):
+        assert f"visionpos.fusion.{kernel}" in before
     sim = simulate(sc)
     t0 = sim.frames[0].capture_ns
     gap = (t0 + 800_000_000, t0 + 1_100_000_000)

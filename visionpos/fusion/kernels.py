@@ -43,10 +43,7 @@ from visionpos.fusion.layout import (
     N_MEAS,
     N_STATE_COLS,
     NO_TIME,
-    PARAM_COMPENSATE_MAX_VEL_VAR,
-    PARAM_IDENTIFY_TOL_M,
     PARAM_MARKER_VAR_FLOOR,
-    PARAM_MAX_RESIDUAL_PX,
     PARAM_MIN_MARKERS,
     PARAM_RESET_AFTER_NS,
     PARAM_SV_ENABLED,
@@ -56,8 +53,6 @@ from visionpos.fusion.layout import (
     PARAM_SV_MIN_PX_VAR,
     PARAM_SV_WINDOW_NS,
     POS0,
-    POSE_P,
-    POSE_ROT,
     POSE_ROT0,
     RATE0,
     ROT_ERR0,
@@ -94,7 +89,8 @@ from visionpos.fusion.layout import (
     X_ANG_ACC,
     X_RATE,
 )
-from visionpos.fusion.matching import associate_blobs, project_points, triangulate_irls
+from visionpos.fusion.matching import associate_blobs, project_points
+from visionpos.fusion.measurements import _tracked_measurements
 from visionpos.fusion.tracking import (
     _spd_inverse,
     adapt_to_pose,
@@ -105,54 +101,7 @@ from visionpos.fusion.tracking import (
     predict_mean,
     report_image_nis,
 )
-from visionpos.geometry.alignment import kabsch_horn_compiled
-from visionpos.jit import cross3, dot3, matmul3, matvec3, njit
-
-
-@njit
-def _inv3(A: np.ndarray) -> np.ndarray:
-    """Inverse of a 3x3 matrix by the adjugate."""
-    C = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            i1, i2, j1, j2 = (j + 1) % 3, (j + 2) % 3, (i + 1) % 3, (i + 2) % 3
-            C[i, j] = A[i1, j1] * A[i2, j2] - A[i1, j2] * A[i2, j1]  # cofactor of A[j, i]
-    return C / (A[0, 0] * C[0, 0] + A[0, 1] * C[1, 0] + A[0, 2] * C[2, 0])
-
-
-@njit
-def pose_measurement_cov(markers_world: np.ndarray, origin: np.ndarray, var: float) -> np.ndarray:
-    """Covariance (6, 6) over [p, world rotation vector] of a Kabsch pose.
-
-    markers_world: (n, 3) fitted marker positions, n >= 3 not collinear;
-    origin: (3,) body origin; var: per-marker, per-axis noise variance (m^2).
-    Small-error, equal weights.
-    """
-    n = markers_world.shape[0]
-    c = np.zeros(3)
-    for m in range(n):
-        c += markers_world[m]
-    c /= n
-    J = np.zeros((3, 3))  # inertia-like sum (|r|^2 I - r r^T)
-    for m in range(n):
-        r = markers_world[m] - c
-        rr = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
-        for i in range(3):
-            J[i, i] += rr
-            for j in range(3):
-                J[i, j] -= r[i] * r[j]
-    Crot = var * _inv3(J)
-    o = origin - c
-    ox = np.array([[0.0, -o[2], o[1]], [o[2], 0.0, -o[0]], [-o[1], o[0], 0.0]])
-    oxC = matmul3(ox, Crot)
-    C = np.empty((6, 6))
-    C[POSE_P, POSE_P] = matmul3(oxC, ox.T)
-    for i in range(3):
-        C[i, i] += var / n
-    C[POSE_P, POSE_ROT] = -oxC
-    C[POSE_ROT, POSE_P] = -oxC.T
-    C[POSE_ROT, POSE_ROT] = Crot
-    return C
+from visionpos.jit import cross3, dot3, matvec3, njit
 
 
 @njit
@@ -383,157 +332,6 @@ def _image_nis(Xw: np.ndarray, pred: np.ndarray, px: np.ndarray, blob_of: np.nda
 
 
 @njit
-def _tracked_measurements(marker_xn: np.ndarray, views: tuple, tracked: tuple, dt: np.ndarray, states: np.ndarray,
-                          compensate: bool, params: np.ndarray) -> tuple:
-    """Pose measurements of the tracked bodies from one fusion of V views (compiled).
-
-    marker_xn (cameras, all markers, 2): each camera's normalised observation of each
-    marker (NaN = none); views: layout.ViewSet (tuple) of the fused cameras; tracked:
-    layout.TrackedSet (tuple); dt (V,): view capture - reference (s). states
-    (B, N_STATE_COLS): the bodies' filter states as _pack_states packs them.
-    compensate: motion compensation on (velocity-gated per body). params: the fusion
-    params (columns PARAM_*).
-
-    Returns per body: R (B, 3, 3), t (B, 3), markers used (B,), fit residual sum
-    of squares (B,), cameras seeing it (B,), pixel-variance sample (B,), unit-variance
-    pose covariance (B, 6, 6), motion variance added to position / rotation (B,),
-    fit tolerance (B,); the number of points refused by the residual gate; and per body
-    h_t (B, 2): the mean over its fitted observations of dt and dt^2 / 2 (s, s^2) when
-    its views were motion-compensated, else 0.
-
-    A compensated pose is where the body was at the views' times moved to the reference
-    with the filter's own velocity, acceleration and rate, so it measures p + h_t[0] (v -
-    v_est) + h_t[1] (a - a_est) (and the rotation likewise with the rate and the angular
-    acceleration): the filter update
-    must see those columns (tracking._kf_update), or the views older than the reference
-    feed the velocity error back into the velocity (an oscillation that grows once a
-    manoeuvre has raised the process noise).
-    """
-    cameras, R, t, f, _ = views
-    _, rows, sizes, _, local = tracked
-    max_residual_px, identify_tolerance = params[PARAM_MAX_RESIDUAL_PX], params[PARAM_IDENTIFY_TOL_M]
-    compensate_max_vel_var = params[PARAM_COMPENSATE_MAX_VEL_VAR]
-    n_markers, n_views = rows.shape[0], cameras.shape[0]
-    xn = np.empty((n_markers, n_views, 2))
-    for q in range(n_markers):
-        for v in range(n_views):
-            xn[q, v, 0] = marker_xn[cameras[v], rows[q], 0]
-            xn[q, v, 1] = marker_xn[cameras[v], rows[q], 1]
-    n_bodies = sizes.shape[0]
-    dt2_mean = 0.0
-    dt_max = 0.0
-    centre = np.zeros(3)
-    f_mean = 0.0
-    for v in range(n_views):
-        dt2_mean += dt[v] * dt[v] / n_views
-        dt_max = max(dt_max, abs(dt[v]))
-        f_mean += f[v] / n_views
-        for i in range(3):
-            for j in range(3):
-                centre[i] -= R[v, j, i] * t[v, j] / n_views  # mean camera centre: a px-per-metre scale
-    vel = np.zeros((n_bodies, 3))
-    acc = np.zeros((n_bodies, 3))
-    rate = np.zeros((n_bodies, 3))
-    ang_acc = np.zeros((n_bodies, 3))
-    Rb = np.empty((n_bodies, 3, 3))
-    var_p = np.empty(n_bodies)
-    var_r = np.empty(n_bodies)
-    gate = np.empty(n_bodies)
-    fit_tol = np.empty(n_bodies)
-    moving = False
-    compensated = np.zeros(n_bodies, dtype=np.bool_)
-    for b in range(n_bodies):
-        x = states[b, STATE_X]
-        sv2, sw2 = states[b, STATE_VEL_VAR], states[b, STATE_RATE_VAR]
-        w = x[X_RATE] + x[X_ANG_ACC] * states[b, STATE_DT_S]
-        p, Rb[b], v = predict_mean(x, states[b, STATE_R_NOM].reshape((3, 3)), states[b, STATE_DT_S])
-        if compensate and sv2 < compensate_max_vel_var:
-            compensated[b] = True
-            vel[b], acc[b], rate[b], ang_acc[b] = v, x[X_ACC], w, x[X_ANG_ACC]
-            moving = moving or np.any(v != 0.0) or np.any(x[X_ACC] != 0.0) or np.any(w != 0.0) or np.any(
-                x[X_ANG_ACC] != 0.0)
-            var_p[b], var_r[b] = dt2_mean * sv2, dt2_mean * sw2
-            spread = 2.0 * math.sqrt(sv2)
-        else:
-            # velocity not known well enough (or naive mode): compensating with a wrong one
-            # would bias the measurement towards it (a feedback loop); the views are treated
-            # as simultaneous and the motion between them counts as measurement noise
-            vv, ww = dot3(v, v), dot3(w, w)
-            var_p[b], var_r[b] = dt2_mean * (vv + sv2), dt2_mean * (ww + sw2)
-            spread = math.sqrt(vv) + 2.0 * math.sqrt(sv2)
-        d = p - centre
-        # residual gate widened by the motion the views may still disagree by
-        gate[b] = max_residual_px + f_mean * spread * dt_max / max(math.sqrt(dot3(d, d)), 0.5)
-        fit_tol[b] = identify_tolerance + spread * dt_max  # the rigid fit may disagree as much
-    body = np.empty(n_markers, dtype=np.int64)
-    k = 0
-    for b in range(n_bodies):
-        body[k : k + sizes[b]] = b
-        k += sizes[b]
-    has_offsets = compensate and dt_max > 0.0 and moving
-    offsets = np.zeros((n_markers if has_offsets else 0, n_views, 3))
-    if has_offsets:
-        for q in range(n_markers):
-            b = body[q]
-            r = matvec3(Rb[b], local[q])  # lever arm, world
-            wxr = cross3(rate[b], r)
-            u1 = vel[b] + wxr
-            u2 = 0.5 * (acc[b] + cross3(ang_acc[b], r) + cross3(rate[b], wxr))
-            for v in range(n_views):  # marker displacement from ref to the view's capture time (2nd order)
-                offsets[q, v] = u1 * dt[v] + u2 * (dt[v] * dt[v])
-    X, rms, nv = triangulate_irls(xn, R, t, f, offsets, has_offsets, 2)
-    w_fit = np.zeros(n_markers)
-    refused = 0
-    for q in range(n_markers):
-        if nv[q] >= 2:
-            if rms[q] < gate[body[q]]:
-                w_fit[q] = nv[q]  # more rays, better-conditioned point
-            else:
-                refused += 1
-    Rk = np.empty((n_bodies, 3, 3))
-    tk = np.empty((n_bodies, 3))
-    count = np.zeros(n_bodies, dtype=np.int64)
-    res2 = np.zeros(n_bodies)
-    n_cams = np.zeros(n_bodies, dtype=np.int64)
-    px_var = np.zeros(n_bodies)
-    cov = np.full((n_bodies, 6, 6), np.nan)
-    h_t = np.zeros((n_bodies, 2))
-    k = 0
-    for b in range(n_bodies):
-        s = slice(k, k + sizes[b])
-        Rk[b], tk[b] = kabsch_horn_compiled(local[s], X[s], w_fit[s])
-        n_obs = 0
-        for v in range(n_views):
-            seen = False
-            for q in range(k, k + sizes[b]):
-                if not np.isnan(xn[q, v, 0]):
-                    seen = True
-                    if w_fit[q] > 0 and has_offsets and compensated[b]:
-                        h_t[b, 0] += dt[v]
-                        h_t[b, 1] += 0.5 * dt[v] * dt[v]
-                        n_obs += 1
-            n_cams[b] += seen
-        if n_obs:
-            h_t[b] /= n_obs
-        fitted = np.empty((sizes[b], 3))
-        n = 0
-        for q in range(k, k + sizes[b]):
-            if w_fit[q] > 0:
-                fitted[n] = matvec3(Rk[b], local[q]) + tk[b]
-                e = X[q] - fitted[n]
-                res2[b] += dot3(e, e)
-                # (the fitted point absorbs 3 of the 2 nv residual dof: E[rms^2] = sigma^2 (2 nv - 3) / nv)
-                px_var[b] += rms[q] * rms[q] * nv[q] / (2.0 * nv[q] - 3.0)
-                n += 1
-        count[b] = n
-        if n >= 3:
-            px_var[b] /= n
-            cov[b] = pose_measurement_cov(fitted[:n], tk[b], 1.0)
-        k += sizes[b]
-    return Rk, tk, count, res2, n_cams, px_var, cov, var_p, var_r, fit_tol, refused, h_t
-
-
-@njit
 def _track_measured(track_ints: np.ndarray, track_floats: np.ndarray, ref_ns: int, capture_ns: int, n_markers: int,
                     n_cameras: int, fit_rms_m: float) -> None:
     """Record a measurement the filter took (or restarted at) in one body's track rows
@@ -667,11 +465,7 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
     bodies, rows, sizes, _, local = tracked
     cameras, _, _, _, _ = views
     n_views = cameras.shape[0]
-    dt = np.empty(n_views)
-    newest_capture_ns = capture_ns[cameras[0]]
-    for v in range(n_views):
-        dt[v] = (capture_ns[cameras[v]] - ref_ns) * 1e-9
-        newest_capture_ns = max(newest_capture_ns, capture_ns[cameras[v]])
+    dt, newest_capture_ns = _view_times(capture_ns, cameras, ref_ns)
     Rk, tk, counts, res2, n_cams, px_var, cov_unit, var_p, var_r, fit_tol, refused, h_t = _tracked_measurements(
         marker_xn, views, tracked, dt, _pack_states(bank, bodies, ref_ns), compensate, params)
     n_bodies = bodies.shape[0]
@@ -732,19 +526,10 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
                                         True, h_t[i, 0], h_t[i, 1], nis_cov_scale)
         else:  # the views of a triangulated body: its kind stays "pose" (UPDATE_VIEWS says occlusion)
             accepted = True
-        if accepted:
-            verdict[i] = VERDICT_ACCEPTED
-        else:
-            if track_ints[b, TRACK_FIRST_REJECT_NS] == NO_TIME:
-                track_ints[b, TRACK_FIRST_REJECT_NS] = ref_ns
-            if ref_ns - track_ints[b, TRACK_FIRST_REJECT_NS] < params[PARAM_RESET_AFTER_NS]:
-                verdict[i] = VERDICT_GATED
-                continue
-            # persistently inconsistent: believe the measurements, restart the filter there
-            filter_initialize(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i], cov)
-            track_ints[b, TRACK_RESETS] += 1
-            kind = UPDATE_POSE
-            verdict[i] = VERDICT_RESET
+        verdict[i] = VERDICT_ACCEPTED if accepted else _refused(b, ref_ns, tk[i], Rk[i], cov, params, bank,
+                                                                track_ints)
+        if verdict[i] == VERDICT_GATED:
+            continue
         _track_measured(track_ints[b], track_floats[b], ref_ns, newest_capture_ns, n, n_cams[i], fit)
         track_ints[b, TRACK_UPDATE_KIND] = kind
         if kind == UPDATE_POSE:
@@ -753,3 +538,31 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
             view_ns[b, cameras[v]] = max(view_ns[b, cameras[v]], capture_ns[cameras[v]])
     t_c, motion = _tracked_motion(bank, tracked)
     return verdict, meas, refused, t_c, motion
+
+
+@njit
+def _view_times(capture_ns: np.ndarray, cameras: np.ndarray, ref_ns: int) -> tuple[np.ndarray, int]:
+    """Each fused view's capture time less the reference (V,) s, and the newest capture time (ns)."""
+    n_views = cameras.shape[0]
+    dt = np.empty(n_views)
+    newest_capture_ns = capture_ns[cameras[0]]
+    for v in range(n_views):
+        dt[v] = (capture_ns[cameras[v]] - ref_ns) * 1e-9
+        newest_capture_ns = max(newest_capture_ns, capture_ns[cameras[v]])
+    return dt, newest_capture_ns
+
+
+@njit
+def _refused(b: int, ref_ns: int, position: np.ndarray, R: np.ndarray, cov: np.ndarray, params: np.ndarray,
+             bank: tuple, track_ints: np.ndarray) -> int:
+    """Body b's filter refused its pose at ref_ns: VERDICT_GATED while it has refused for less than
+    reset_after; after that the measurements are believed (persistently inconsistent) and the filter restarts
+    there: VERDICT_RESET."""
+    x, P, R_nom, adapt, clock, kalman = bank
+    if track_ints[b, TRACK_FIRST_REJECT_NS] == NO_TIME:
+        track_ints[b, TRACK_FIRST_REJECT_NS] = ref_ns
+    if ref_ns - track_ints[b, TRACK_FIRST_REJECT_NS] < params[PARAM_RESET_AFTER_NS]:
+        return VERDICT_GATED
+    filter_initialize(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, position, R, cov)
+    track_ints[b, TRACK_RESETS] += 1
+    return VERDICT_RESET

@@ -73,7 +73,7 @@ import numpy as np
 from visionpos.camera.model import Camera
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.fusion.body_filter import FilterBank
-from visionpos.fusion.kernels import _finite_rows, _fuse_tracked, _observe_frame, _tracked_motion, pose_measurement_cov
+from visionpos.fusion.kernels import _finite_rows, _fuse_tracked, _observe_frame, _tracked_motion
 from visionpos.fusion.layout import (
     MEAS_POS,
     MEAS_ROT,
@@ -91,6 +91,7 @@ from visionpos.fusion.layout import (
     ViewSet,
 )
 from visionpos.fusion.matching import Projector, match_unlabeled
+from visionpos.fusion.measurements import pose_measurement_cov
 from visionpos.fusion.rigidbody import BodyModel, identify, layout_ambiguities
 from visionpos.fusion.settings import FUSION_PARAMS, pack_params, parse_fusion
 from visionpos.fusion.snapshot import CameraFrame, FusionSnapshot

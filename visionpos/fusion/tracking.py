@@ -259,7 +259,7 @@ def _kf_update(
     vector]. gate_chi2 <= 0 disables the gate. h_vel (s), h_acc (s^2): how much
     of the velocity (and rate) and of the acceleration (and angular acceleration)
     error the measurement carries, the columns of H beside the pose's own (0, 0: a plain pose; see
-    kernels._tracked_measurements: a motion-compensated one). nis_cov_scale: the NIS per block
+    measurements._tracked_measurements: a motion-compensated one). nis_cov_scale: the NIS per block
     (not the gate's distance) is taken with cov times this (1 / reuse: the pose's own covariance,
     fusion.kalman.nis_unsplit_cov). Returns (accepted, squared Mahalanobis distance, position
     NIS / 3, rotation NIS / 3).
