@@ -474,10 +474,8 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
     first = 0
     for i in range(n_bodies):
         first += sizes[i - 1] if i > 0 else 0
-        meas[i, MEAS_ROT] = Rk[i].ravel()
-        meas[i, MEAS_POS] = tk[i]
-        meas[i, MEAS_N_MARKERS] = counts[i]
-        meas[i, MEAS_N_CAMERAS] = n_cams[i]
+        meas[i, MEAS_ROT], meas[i, MEAS_POS] = Rk[i].ravel(), tk[i]
+        meas[i, MEAS_N_MARKERS], meas[i, MEAS_N_CAMERAS] = counts[i], n_cams[i]
         n = counts[i]
         if n < params[PARAM_MIN_MARKERS]:
             meas[i, MEAS_FIT_RMS_M] = np.nan
