@@ -339,12 +339,14 @@ def test_ekf_rejecting_the_vision_is_said_in_plain_words(caplog):
     ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=1, truth=trajectory_truth(FIG8, t0), ekf="reject")
     bridge = _pairs([{}], [ap])
     try:
+        said = lambda: any("EKF rejects the vision" in r.getMessage() for r in caplog.records)  # noqa: E731
         with caplog.at_level(logging.WARNING, logger="visionpos.bridge"):
+            # the state turns at the first bad EKF report, the warning comes with the third: wait for both
             _stream(bridge, [FIG8], t0, 6.0, until=lambda: bridge.vehicles[0].health()["ekf"]["state"]
-                    == "rejecting vision")
+                    == "rejecting vision" and said())
         h = bridge.vehicles[0].health()
         assert h["ekf"]["state"] == "rejecting vision"
-        assert any("EKF rejects the vision" in r.getMessage() for r in caplog.records)
+        assert said()
         assert "EKF rejecting vision" in bridge.status_line()
     finally:
         bridge.close()
