@@ -41,6 +41,11 @@ def _send_and_receive(src: socket.socket, dest: tuple[str, int], sink: socket.so
     return out
 
 
+def _late_bound_ms(delay_ms: float) -> float:
+    """Highest median latency (ms) taken as "held delay_ms": well under 2 x delay_ms for the delays tested."""
+    return delay_ms + max(10.0, 0.25 * delay_ms)
+
+
 @pytest.mark.parametrize("delay_ms", [0.0, 20.0, 50.0])
 def test_relay_delays_both_directions_in_order(delay_ms):
     bridge, autopilot = _sock(), _sock()
@@ -52,12 +57,13 @@ def test_relay_delays_both_directions_in_order(delay_ms):
     for got, first in ((up, 0), (down, 1000)):
         assert [s for s, _, _ in got] == list(range(first, first + n))  # order kept, none lost
         lat_ms = np.array([(t - sent) * 1e-6 for _, sent, t in got])
-        # the relay never sends early; a loaded 2-core host may wake it a few ms late now and then
+        # the relay never sends early (correctness); how late a loaded 2-core host wakes it is speed, so the
+        # upper bound only has to catch a wrong hold (twice the delay, or the delay added in both hops)
         assert lat_ms.min() >= delay_ms - 0.05, lat_ms.min()
-        assert np.median(lat_ms) <= delay_ms + 2.0, np.median(lat_ms)
+        assert np.median(lat_ms) <= _late_bound_ms(delay_ms), np.median(lat_ms)
     holds = np.array([h for _, h in relay.holds["to_bridge"] + relay.holds["to_autopilot"]]) * 1e-6
     assert len(holds) == 2 * n and holds.min() >= delay_ms - 0.05
-    assert delay_ms <= relay.hold_ms_median("to_autopilot") <= delay_ms + 2.0
+    assert delay_ms <= relay.hold_ms_median("to_autopilot") <= _late_bound_ms(delay_ms)
     assert relay.unsent == 0 and not relay.running  # stopped by the context manager
     bridge.close()
     autopilot.close()
