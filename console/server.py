@@ -18,17 +18,23 @@ in each client's queue of QUEUE_UPDATES; a full queue drops its oldest
 update (counted), so a slow or stalled browser loses updates and never holds up fusion or the
 other clients. Each client's sender task awaits the socket; nothing else does.
 
-Access: bound to loopback no token is needed; bound elsewhere every request must carry the token
-(`?token=`, an `Authorization: Bearer` header, or the cookie the page gets with its first
-request). A WebSocket whose Origin is another site is refused (a page from elsewhere must not
-drive the console through the operator's browser). Bad requests and messages are answered or
-dropped and logged once per cause (RateLimitedLog).
+Access, checked before any handler runs (the middleware `_access`):
+- the Host header must name the console itself (`allowed_hosts`: 127.0.0.1, localhost, [::1], the bind
+  address, the address the connection came in on, `console.hosts`, each with the console's port), else 403:
+  a page of another site whose name is rebound to this host's address (DNS rebinding) sends its own name;
+- an Origin header, where a browser sends one, must be one of those hosts too, and a browser's
+  Sec-Fetch-Site must say same-origin (or a navigation), else 403 (a page from elsewhere must not drive or
+  read the console through the operator's browser);
+- bound to loopback no token is needed; bound elsewhere every request must carry the token (`?token=`, an
+  `Authorization: Bearer` header, or the cookie the page gets with its first request), else 401.
+Bad requests and messages are answered or dropped and logged once per cause (RateLimitedLog).
 """
 
 from __future__ import annotations
 
 import asyncio
 import hmac
+import ipaddress
 import json
 import logging
 import time
@@ -106,7 +112,7 @@ class ConsoleServer:
         self.health_view = HealthView(self.view)
         self.clients: set[Client] = set()
         self.rlog = RateLimitedLog(log)
-        self.counters = {"updates": 0, "refused_token": 0, "refused_origin": 0, "refused_full": 0,
+        self.counters = {"updates": 0, "refused_host": 0, "refused_token": 0, "refused_origin": 0, "refused_full": 0,
                          "bad_messages": 0, "send_errors": 0, "update_errors": 0}
         self.cpu_ns = 0  # CPU time of the update task's work and of the sends (the loop's thread), for the bench
         self.port: int | None = None
@@ -174,6 +180,42 @@ class ConsoleServer:
 
     # ---------------------------------------------------------------- access
 
+    def allowed_hosts(self, local_addr: str | None = None) -> frozenset[str]:
+        """The Host values (lower case) that name this console: loopback names, the bind address, local_addr (the
+        address a connection came in on: what a browser on another computer typed for a console on 0.0.0.0) and
+        console.hosts, each with the console's port (and without it on port 80, as browsers send it)."""
+        names = {"127.0.0.1", "localhost", "::1", *self.settings.hosts}
+        for addr in (self.settings.bind, local_addr):
+            if addr:
+                ip = ipaddress.ip_address(addr.split("%", 1)[0])
+                ip = getattr(ip, "ipv4_mapped", None) or ip  # ::ffff:a.b.c.d on a dual-stack socket
+                if not ip.is_unspecified:
+                    names.add(str(ip))
+        out = set()
+        for n in names:
+            n = f"[{n}]" if ":" in n else n.lower()
+            out.add(f"{n}:{self.port}")
+            if self.port == 80:
+                out.add(n)
+        return frozenset(out)
+
+    def _foreign(self, request: web.Request) -> str | None:
+        """"host" or "origin" when the request's Host, or its Origin where it has one, is not this console."""
+        host = request.headers.get("Host")
+        sock = request.transport.get_extra_info("sockname") if request.transport is not None else None
+        allowed = self.allowed_hosts(sock[0] if sock else None)
+        if host is None or host.lower() not in allowed:
+            return "host"
+        origin = request.headers.get("Origin")
+        if origin is not None and urlsplit(origin).netloc.lower() not in allowed:
+            return "origin"
+        # a browser's fetch metadata: a page of another origin fetching without CORS sends no Origin, but says
+        # where it comes from; only a navigation (a link, a typed URL) may come from elsewhere
+        site = request.headers.get("Sec-Fetch-Site", "same-origin")
+        if site not in ("same-origin", "none") and request.headers.get("Sec-Fetch-Mode") != "navigate":
+            return "origin"
+        return None
+
     def _token_ok(self, request: web.Request) -> bool:
         token = self.settings.token
         if token is None:
@@ -186,6 +228,16 @@ class ConsoleServer:
 
     @web.middleware
     async def _access(self, request: web.Request, handler: Any) -> web.StreamResponse:
+        foreign = self._foreign(request)
+        if foreign is not None:
+            self.counters[f"refused_{foreign}"] += 1
+            self.rlog.log(foreign, logging.WARNING, "console: refused %s %s from %s: Host %r / Origin %r is not this "
+                          "console (a page of another site?)", request.method, request.path, request.remote,
+                          request.headers.get("Host"), request.headers.get("Origin"))
+            return web.Response(status=403, text=f"visionpos console: refused: the {foreign.capitalize()} of this "
+                                                 "request is not this console's address (open it as "
+                                                 f"http://127.0.0.1:{self.port}/, this host's IP address, or a "
+                                                 "name listed in console.hosts)\n")
         if not self._token_ok(request):
             self.counters["refused_token"] += 1
             self.rlog.log("token", logging.WARNING,
@@ -226,18 +278,7 @@ class ConsoleServer:
 
     # ---------------------------------------------------------------- WebSocket
 
-    def _origin_ok(self, request: web.Request) -> bool:
-        origin = request.headers.get("Origin")
-        if origin is None:  # not a browser page (scripts, tests)
-            return True
-        return urlsplit(origin).netloc == request.host
-
     async def _ws(self, request: web.Request) -> web.StreamResponse:
-        if not self._origin_ok(request):
-            self.counters["refused_origin"] += 1
-            self.rlog.log("origin", logging.WARNING, "console: refused a WebSocket from a page of %s (another site)",
-                          request.headers.get("Origin"))
-            return web.Response(status=403, text="cross-site WebSocket refused\n")
         if len(self.clients) >= self.settings.max_clients:
             self.counters["refused_full"] += 1
             self.rlog.log("full", logging.WARNING, "console: refused a client from %s: %d connected "

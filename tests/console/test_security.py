@@ -1,0 +1,198 @@
+"""The console against the operator's own browser: a request naming another host (DNS rebinding) or coming from a
+page of another origin is refused before any handler runs, and changes nothing (each test reads the state the
+request would change before and after)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import aiohttp
+import pytest
+
+from console.server import ConsoleServer
+from console.settings import ConsoleSettings, parse_console
+from visionpos import protocol as P
+from visionpos.config.arena import ConfigError, parse_arena
+
+from .test_server import TOKEN, FakeSource
+
+MASK_ALL = {"cmd": "mask", "camera": 1, "ignore": [[0, 0, 960, 640]]}
+
+
+class FakeImages:
+    """A station link that applies every mask it is sent (records it): what a foreign request must never reach."""
+
+    def __init__(self):
+        self.masks: list[tuple[int, list]] = []
+        self.stills = 0
+
+    def update_mask(self, camera_id, ignore=None):
+        self.masks.append((camera_id, ignore))
+        fut = asyncio.get_running_loop().create_future()
+        fut.set_result(P.MaskAck(1, camera_id, 1, 1, int(P.MaskStatus.APPLIED), "mask applied"))
+        return fut
+
+    def request_image(self, camera_id, max_width=640, quality=80):
+        self.stills += 1
+        fut = asyncio.get_running_loop().create_future()
+        fut.set_exception(TimeoutError("the station did not answer"))
+        return fut
+
+    async def wait(self, fut):
+        return await fut
+
+
+@pytest.fixture
+def arena(arena_yaml):
+    return parse_arena(arena_yaml("thesis"), "thesis.yaml")
+
+
+async def _console(arena, **kw):
+    source = FakeSource(arena)
+    source.ingest = type("Ingest", (), {"images": FakeImages()})()
+    console = ConsoleServer(ConsoleSettings(port=0, update_rate_hz=50.0, **kw).with_token(), source,
+                            clock=source.clock)
+    await console.start()
+    return console, source
+
+
+def state(console, source) -> dict:
+    """What a request could change: the masks sent to stations, the scene's masks, the station reads."""
+    return {"masks": list(source.ingest.images.masks), "stills": source.ingest.images.stills,
+            "scene": json.dumps([c.get("mask") for c in console.view.scene["cameras"]]),
+            "health_calls": source.health_calls}
+
+
+def run(coro):
+    return asyncio.run(asyncio.wait_for(coro, 30))
+
+
+async def _reply(ws, kind):
+    while True:
+        m = json.loads((await ws.receive(timeout=5)).data)
+        if m["type"] in (kind, "error"):
+            return m
+
+
+def test_a_foreign_host_is_refused_before_any_handler_and_changes_nothing(arena):
+    async def main():
+        console, source = await _console(arena)
+        console._task.cancel()  # no updates: only the requests could read or change anything
+        base = f"http://127.0.0.1:{console.port}"
+        evil = f"attacker.example:{console.port}"
+        out = {}
+        try:
+            before = state(console, source)
+            async with aiohttp.ClientSession() as http:
+                for path in ("/", "/api/health", "/api/scene", "/static/app.js"):
+                    async with http.get(base + path, headers={"Host": evil}) as r:
+                        out[path] = (r.status, await r.text())
+                # the rebinding attack: a WebSocket from the attacker's page, Host and Origin both its own
+                try:
+                    async with http.ws_connect(base + "/ws", headers={"Host": evil, "Origin": f"http://{evil}"}) as ws:
+                        await ws.send_json(MASK_ALL)
+                        await ws.send_json({"cmd": "still", "camera": 1})
+                        out["ws"] = await ws.receive(timeout=2)
+                except aiohttp.WSServerHandshakeError as e:
+                    out["ws"] = e.status
+                await asyncio.sleep(0.1)
+                out["after"] = state(console, source)
+                # the console's own names still work, and the same mask from them is applied (the fake can fail)
+                async with http.ws_connect(base + "/ws", headers={"Host": f"localhost:{console.port}"}) as ws:
+                    await ws.send_json(MASK_ALL)
+                    out["own"] = await _reply(ws, "mask")
+            out["before"], out["counters"] = before, dict(console.counters)
+        finally:
+            await console.stop()
+        return out
+
+    out = run(main())
+    for path in ("/", "/api/health", "/api/scene", "/static/app.js"):
+        status, text = out[path]
+        assert status == 403 and "Host" in text and "not this console" in text, (path, status, text)
+    assert out["ws"] == 403
+    assert out["after"] == out["before"]  # no mask sent, no still asked, no health read
+    assert out["counters"]["refused_host"] == 5
+    assert out["own"]["type"] == "mask" and out["own"]["ok"], out["own"]
+
+
+def test_a_page_of_another_origin_is_refused_on_every_request(arena):
+    async def main():
+        console, source = await _console(arena)
+        console._task.cancel()
+        base = f"http://127.0.0.1:{console.port}"
+        out = {}
+        try:
+            before = state(console, source)
+            async with aiohttp.ClientSession() as http:
+                for name in ("http://attacker.example", "http://127.0.0.1:P+1", "null"):
+                    origin = name.replace("P+1", str(console.port + 1))
+                    async with http.get(base + "/api/health", headers={"Origin": origin}) as r:
+                        out[name] = r.status
+                    try:
+                        async with http.ws_connect(base + "/ws", headers={"Origin": origin}) as ws:
+                            await ws.send_json(MASK_ALL)
+                            out["ws " + name] = await ws.receive(timeout=2)
+                    except aiohttp.WSServerHandshakeError as e:
+                        out["ws " + name] = e.status
+                await asyncio.sleep(0.1)
+                out["after"] = state(console, source)
+                # the console's own page (another of its names) may open the socket
+                own = f"http://localhost:{console.port}"
+                async with http.ws_connect(base + "/ws", headers={"Origin": own}) as ws:
+                    out["own"] = json.loads((await ws.receive(timeout=5)).data)["type"]
+            out["before"], out["refused"] = before, console.counters["refused_origin"]
+        finally:
+            await console.stop()
+        return out
+
+    out = run(main())
+    for name in ("http://attacker.example", "http://127.0.0.1:P+1", "null"):
+        assert out[name] == 403 and out["ws " + name] == 403, (name, out)
+    assert out["after"] == out["before"] and out["refused"] == 6
+    assert out["own"] == "scene"
+
+
+def test_the_console_answers_to_its_own_addresses_only(arena):
+    """Bound to 0.0.0.0: the address a connection came in on is the console's (127.0.0.2 here: another loopback
+    address), another address or port is not, and a name in console.hosts is."""
+
+    async def main():
+        console, source = await _console(arena, bind="0.0.0.0", token=TOKEN, hosts=("mocap.lab",))
+        console._task.cancel()
+        port = console.port
+        out = {}
+        auth = {"Authorization": f"Bearer {TOKEN}"}
+        try:
+            async with aiohttp.ClientSession() as http:
+                for host in ("127.0.0.2:P", "127.0.0.3:P", "127.0.0.2:P+1", "MOCAP.lab:P", "localhost:P", "[::1]:P",
+                             "127.0.0.2"):
+                    value = host.replace(":P+1", f":{port + 1}").replace(":P", f":{port}")
+                    async with http.get(f"http://127.0.0.2:{port}/api/health", headers={"Host": value, **auth}) as r:
+                        out[host] = r.status
+        finally:
+            await console.stop()
+        return out
+
+    out = run(main())
+    assert out == {"127.0.0.2:P": 200, "127.0.0.3:P": 403, "127.0.0.2:P+1": 403, "MOCAP.lab:P": 200,
+                   "localhost:P": 200, "[::1]:P": 200, "127.0.0.2": 403}  # no port: only port 80 may leave it out
+
+
+def test_allowed_hosts_list_the_loopback_names_the_bind_address_and_port_80_without_port():
+    c = ConsoleServer.__new__(ConsoleServer)
+    c.settings, c.port = ConsoleSettings(bind="192.168.1.10", token=TOKEN), 8080
+    assert c.allowed_hosts() == {"127.0.0.1:8080", "localhost:8080", "[::1]:8080", "192.168.1.10:8080"}
+    c.settings, c.port = ConsoleSettings(bind="::", token=TOKEN), 80
+    assert c.allowed_hosts("::ffff:10.0.0.5") == {"127.0.0.1:80", "localhost:80", "[::1]:80", "10.0.0.5:80",
+                                                  "127.0.0.1", "localhost", "[::1]", "10.0.0.5"}
+
+
+def test_console_hosts_are_checked(arena_yaml):
+    data = arena_yaml("thesis")
+    data["console"] = {"hosts": ["http://mocap.lab:8080"]}
+    with pytest.raises(ConfigError, match="console.hosts"):
+        parse_console(parse_arena(data, "a.yaml"))
+    data["console"] = {"hosts": ["Mocap.Lab"]}
+    assert parse_console(parse_arena(data, "a.yaml")).hosts == ("mocap.lab",)
