@@ -132,11 +132,17 @@ class ConsoleServer:
     # ---------------------------------------------------------------- lifecycle
 
     @property
-    def url(self) -> str:
+    def address(self) -> str:
+        """The console's address without its token: what logs may hold."""
         host = self.settings.bind if self.settings.bind not in ("0.0.0.0", "::") else "127.0.0.1"
         host = f"[{host}]" if ":" in host else host
-        token = f"/?token={self.settings.token}" if self.settings.token else "/"
-        return f"http://{host}:{self.port}{token}"
+        return f"http://{host}:{self.port}/"
+
+    @property
+    def url(self) -> str:
+        """The address to open, with the token where one is needed: printed on the operator's terminal only
+        (visionpos/app/console.py), never logged."""
+        return self.address + (f"?token={self.settings.token}" if self.settings.token else "")
 
     async def start(self) -> None:
         app = web.Application(middlewares=[self._access], client_max_size=MAX_MESSAGE_BYTES)
@@ -153,7 +159,7 @@ class ConsoleServer:
         self._task = asyncio.get_running_loop().create_task(self._update_loop(), name="visionpos-console")
         if self.calibration is not None:
             self.calibration.start()
-        log.info("console on %s", self.url)
+        log.info("console on %s%s", self.address, " (token required)" if self.settings.token else "")
 
     async def stop(self) -> None:
         if self._task is not None:

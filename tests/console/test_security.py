@@ -196,3 +196,36 @@ def test_console_hosts_are_checked(arena_yaml):
         parse_console(parse_arena(data, "a.yaml"))
     data["console"] = {"hosts": ["Mocap.Lab"]}
     assert parse_console(parse_arena(data, "a.yaml")).hosts == ("mocap.lab",)
+
+
+@pytest.mark.slow
+def test_the_console_token_reaches_no_recording_and_no_log_and_the_recording_replays(tmp_path, capsys, caplog):
+    """`demo --set console.token=... --record`: the token is on the operator's terminal (stdout, the URL to open)
+    and nowhere else: not in the recording's bytes, not in a log record, not on stderr; the recording replays."""
+    import logging
+
+    from mcap.reader import make_reader
+
+    from visionpos.analysis.replay import replay_log
+    from visionpos.cli import main
+
+    token = "tok-" + "7Qx9" * 6
+    rec = tmp_path / "x.mcap"
+    with caplog.at_level(logging.DEBUG):
+        rc = main(["demo", "--duration", "1.5", "--seed", "3", "--console-port", "0", "--set",
+                   f"console.token={token}", "--record", str(rec)])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    assert f"?token={token}" in out.out  # the address to open, on the operator's terminal
+    assert token not in out.err and token not in caplog.text
+    data = rec.read_bytes()
+    assert token.encode() not in data
+    with rec.open("rb") as f:
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    import yaml
+
+    from visionpos.recording.writer import REDACTED
+
+    assert yaml.safe_load(meta["visionpos.config"]["yaml"])["console"]["token"] == REDACTED
+    res = replay_log(rec)
+    assert res.n_frames > 0
