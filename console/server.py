@@ -10,7 +10,10 @@
                          may send {"cmd": ...}: "rays" (a camera's blob rays), "views" (on: false while the
                          tab is hidden: no camera views for it), "health", replay controls (console/replay.py),
                          "solve" (the wand solve: console/calibration.py),
-                         "still" and "mask" (a station's still image, its mask saved back: console/stills.py)
+                         "still" and "mask" (a station's still image, its mask saved back: console/stills.py);
+                         a refused message (bad JSON, an unknown command or camera, a mask outside the image,
+                         over MAX_MESSAGE_BYTES, a tab over console.max_clients) changes nothing and is
+                         answered to its sender alone: {"type": "error", "error": "why"} (error_text)
 
 One update task: once per tick it builds the state (only when a client is connected), encodes it
 ONCE (a camera's view only when that camera sent something new: console/view.py) and puts the text
@@ -42,7 +45,7 @@ from pathlib import Path
 from typing import Any, Awaitable, Callable
 from urllib.parse import urlsplit
 
-from aiohttp import WSMsgType, web
+from aiohttp import WSCloseCode, WSMsgType, web
 
 from console.health import HealthView
 from console.settings import ConsoleSettings
@@ -62,6 +65,28 @@ MAX_MESSAGE_BYTES = 4096  # from a client: commands are small
 COOKIE = "visionpos_console"
 CONTENT_TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css", ".txt": "text/plain",
                  ".png": "image/png"}
+
+
+def error_text(message: str) -> str:
+    """A refusal as sent to the one client it concerns: {"type": "error", "error": message} (docs/console.md)."""
+    return json.dumps({"type": "error", "error": message})
+
+
+TOO_BIG = f"message refused: over {MAX_MESSAGE_BYTES} bytes (a command is a short JSON object); connection closed"
+
+
+class _Socket(web.WebSocketResponse):
+    """A console WebSocket: a message over its max_msg_size, which aiohttp answers by closing (1009), gets the
+    refusal as a message first, so the page can say why."""
+
+    async def close(self, *, code: int = WSCloseCode.OK, message: bytes = b"", drain: bool = True) -> bool:
+        if code == WSCloseCode.MESSAGE_TOO_BIG and not self.closed:
+            try:
+                await self.send_str(error_text(TOO_BIG))
+            except (ConnectionError, RuntimeError):
+                pass
+            message = message or b"message too big"
+        return await super().close(code=code, message=message, drain=drain)
 
 
 class Client:
@@ -285,14 +310,18 @@ class ConsoleServer:
     # ---------------------------------------------------------------- WebSocket
 
     async def _ws(self, request: web.Request) -> web.StreamResponse:
-        if len(self.clients) >= self.settings.max_clients:
+        # no per-message compression: it would cost the loop CPU for every client and update
+        ws = _Socket(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=10.0, compress=False)
+        await ws.prepare(request)
+        if len(self.clients) >= self.settings.max_clients:  # answered on the socket: a page cannot read an HTTP 503
             self.counters["refused_full"] += 1
             self.rlog.log("full", logging.WARNING, "console: refused a client from %s: %d connected "
                           "(console.max_clients)", request.remote, len(self.clients))
-            return web.Response(status=503, text=f"the console serves at most {self.settings.max_clients} clients\n")
-        # no per-message compression: it would cost the loop CPU for every client and update
-        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=10.0, compress=False)
-        await ws.prepare(request)
+            n = self.settings.max_clients
+            await ws.send_str(error_text(f"refused: this console serves at most {n} tabs at once and {n} are open "
+                                         "(console.max_clients); close one, this tab retries"))
+            await ws.close(code=WSCloseCode.TRY_AGAIN_LATER, message=b"console full")
+            return ws
         client = Client(ws, str(request.remote))
         self.clients.add(client)
         sender = asyncio.get_running_loop().create_task(self._sender(client))
@@ -308,6 +337,8 @@ class ConsoleServer:
                 elif msg.type == WSMsgType.BINARY:
                     await self._bad(client, "binary", "binary messages are not understood; send JSON text")
                 elif msg.type == WSMsgType.ERROR:
+                    if getattr(msg.data, "code", None) == WSCloseCode.MESSAGE_TOO_BIG:  # answered by _Socket
+                        self.counters["bad_messages"] += 1
                     self.rlog.log(("wserror", client.peer), logging.INFO, "console: client %s: %s", client.peer,
                                   ws.exception())
         except (ConnectionError, asyncio.CancelledError):
@@ -323,7 +354,7 @@ class ConsoleServer:
         self.rlog.log(("bad", cause), logging.WARNING, "console: client %s sent a bad message (%s): %s", client.peer,
                       cause, message)
         try:
-            await client.ws.send_str(json.dumps({"type": "error", "error": message}))
+            await client.ws.send_str(error_text(message))
         except (ConnectionError, RuntimeError):
             pass
 

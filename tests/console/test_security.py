@@ -198,6 +198,68 @@ def test_console_hosts_are_checked(arena_yaml):
     assert parse_console(parse_arena(data, "a.yaml")).hosts == ("mocap.lab",)
 
 
+BAD = [  # (what the client sends, a word the refusal must hold)
+    ("{not json", "not JSON"),
+    ('{"cmd": "fly", "camera": 1}', "unknown command 'fly'"),
+    ('{"cmd": "rays", "camera": 99}', "camera 99 is none of [1, 2, 3, 4]"),
+    ('{"cmd": "still", "camera": 99}', "camera 99 is none of"),
+    ('{"cmd": "mask", "camera": 99, "ignore": [[0, 0, 5, 5]]}', "camera 99 is none of"),
+    ('{"cmd": "mask", "camera": 1, "ignore": [[0, 0, 5000, 10]]}', "not inside the camera's 960x640 image"),
+    ('{"cmd": "mask", "camera": 1, "ignore": [[-5, 0, 10, 10]]}', "not inside"),
+    ('{"cmd": "views", "on": "no"}', "views: expected"),
+    ('{"cmd": "mask", "camera": 1, "ignore": [' + "[0, 0, 1, 1], " * 400 + "[0, 0, 1, 1]]}", "over 4096 bytes"),
+]
+
+
+def test_bad_messages_and_a_tab_too_many_get_a_refusal_each_and_change_nothing(arena):
+    """Each bad message is answered {"type": "error", "error": why} to its sender and changes nothing (the masks
+    sent to stations, the scene, what each tab asked for); the oversized one closes that socket after its answer;
+    a tab beyond console.max_clients gets its refusal on the socket, then a close (1013, try again later)."""
+
+    async def main():
+        console, source = await _console(arena, max_clients=2)
+        console._task.cancel()
+        base = f"http://127.0.0.1:{console.port}"
+        out = {"replies": []}
+        try:
+            async with aiohttp.ClientSession() as http:
+                other = await http.ws_connect(base + "/ws")
+                await other.send_json({"cmd": "rays", "camera": 2})
+                await asyncio.sleep(0.1)
+                before = state(console, source), sorted((c.rays, c.views) for c in console.clients)
+                async with http.ws_connect(base + "/ws") as ws:
+                    for text, _ in BAD:
+                        await ws.send_str(text)
+                        out["replies"].append(await _reply(ws, "never"))
+                    out["closed"] = ((await ws.receive(timeout=5)).type, ws.close_code)
+                    out["tab_settings"] = sorted((c.rays, c.views) for c in console.clients)
+                await asyncio.sleep(0.1)
+                async with http.ws_connect(base + "/ws") as third:  # the limit is 2: other + this one
+                    async with http.ws_connect(base + "/ws") as fourth:
+                        out["full"] = json.loads((await fourth.receive(timeout=5)).data)
+                        out["full_close"] = ((await fourth.receive(timeout=5)).type, fourth.close_code)
+                    out["third"] = json.loads((await third.receive(timeout=5)).data)["type"]
+                out["after"] = state(console, source), sorted((c.rays, c.views) for c in console.clients)
+                out["before"] = before
+                await other.close()
+            out["counters"] = dict(console.counters)
+        finally:
+            await console.stop()
+        return out
+
+    out = run(main())
+    for (text, why), reply in zip(BAD, out["replies"]):
+        assert reply["type"] == "error" and why in reply["error"], (text[:60], reply)
+    assert out["closed"] == (aiohttp.WSMsgType.CLOSE, 1009)  # after the oversized message only
+    assert out["full"]["type"] == "error" and "at most 2 tabs" in out["full"]["error"]
+    assert out["full_close"] == (aiohttp.WSMsgType.CLOSE, 1013)
+    assert out["third"] == "scene"
+    for st, tabs in (out["before"], out["after"]):
+        st.pop("health_calls")  # a tab that connects gets the health: a read, as for any tab
+    assert out["after"] == out["before"]  # no mask, no still, the scene and the other tab's rays as they were
+    assert out["counters"]["bad_messages"] == len(BAD) and out["counters"]["refused_full"] == 1
+
+
 @pytest.mark.slow
 def test_the_console_token_reaches_no_recording_and_no_log_and_the_recording_replays(tmp_path, capsys, caplog):
     """`demo --set console.token=... --record`: the token is on the operator's terminal (stdout, the URL to open)
