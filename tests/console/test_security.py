@@ -136,9 +136,16 @@ def test_a_page_of_another_origin_is_refused_on_every_request(arena):
                             out["ws " + name] = await ws.receive(timeout=2)
                     except aiohttp.WSServerHandshakeError as e:
                         out["ws " + name] = e.status
+                # a fetch without CORS sends no Origin; the browser's fetch metadata still says where it comes from
+                fetch = {"Sec-Fetch-Site": "cross-site", "Sec-Fetch-Mode": "no-cors", "Sec-Fetch-Dest": "image"}
+                async with http.get(base + "/api/health", headers=fetch) as r:
+                    out["no-cors"] = r.status
                 await asyncio.sleep(0.1)
                 out["after"] = state(console, source)
-                # the console's own page (another of its names) may open the socket
+                # a link from elsewhere (a navigation) opens the page; the console's own page opens the socket
+                nav = {"Sec-Fetch-Site": "cross-site", "Sec-Fetch-Mode": "navigate", "Sec-Fetch-Dest": "document"}
+                async with http.get(base + "/", headers=nav) as r:
+                    out["navigate"] = r.status
                 own = f"http://localhost:{console.port}"
                 async with http.ws_connect(base + "/ws", headers={"Origin": own}) as ws:
                     out["own"] = json.loads((await ws.receive(timeout=5)).data)["type"]
@@ -150,7 +157,8 @@ def test_a_page_of_another_origin_is_refused_on_every_request(arena):
     out = run(main())
     for name in ("http://attacker.example", "http://127.0.0.1:P+1", "null"):
         assert out[name] == 403 and out["ws " + name] == 403, (name, out)
-    assert out["after"] == out["before"] and out["refused"] == 6
+    assert out["no-cors"] == 403 and out["navigate"] == 200
+    assert out["after"] == out["before"] and out["refused"] == 7
     assert out["own"] == "scene"
 
 
