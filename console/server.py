@@ -284,6 +284,13 @@ class ConsoleServer:
     # ---------------------------------------------------------------- HTTP
 
     async def _index(self, request: web.Request) -> web.Response:
+        # the address opened from the terminal (?token=): the cookie now holds the token, and the page is shown
+        # at "/" so the address bar, a screenshot or a shared link does not carry it. Only where the browser says
+        # the navigation is its own (typed, a bookmark) or the console's: a SameSite=Strict cookie set on the
+        # way from another site's link would not come back with the redirect
+        if (self.settings.token is not None and request.query.get("token")
+                and request.headers.get("Sec-Fetch-Site") in ("none", "same-origin")):
+            return web.Response(status=303, headers={"Location": "/", "Cache-Control": "no-store"})
         return web.Response(body=(STATIC / "index.html").read_bytes(), content_type="text/html",
                             headers={"Cache-Control": "no-store"})
 

@@ -378,3 +378,34 @@ def test_pages_of_other_origins_and_foreign_hosts_change_nothing_in_chromium(tmp
     assert found["ws"] == "error"
     assert found["after"] == found["before"]  # no mask sent, no still, no health read, the scene as it was
     assert found["refused"] >= 5
+
+
+def test_the_token_leaves_the_address_bar_and_the_page_runs_on_its_cookie(tmp_path, arena_yaml):
+    """The URL printed at start (?token=...) opened in the browser: the console answers with its cookie and a
+    redirect to "/", so the address bar (a screenshot, a shared link) holds no token, and the page connects."""
+    from visionpos.config.arena import parse_arena
+
+    from .test_security import _console
+
+    token = "tok-" + "Zk3" * 8
+    arena = parse_arena(arena_yaml("thesis"), "thesis.yaml")
+    found: dict = {}
+
+    async def main():
+        console, source = await _console(arena, token=token)  # on loopback, but configured: needed everywhere
+        browser = Browser(console.url, tmp_path / "profile")
+        try:
+            await browser.connect()
+            await browser.wait_for("window.visionposConsole && window.visionposConsole.states > 3", 20)
+            found["href"] = await browser.evaluate("location.href")
+            found["text"] = await browser.evaluate("document.body.innerText")
+            found["refused"] = console.counters["refused_token"]
+        finally:
+            await browser.close()
+            await console.stop()
+
+    asyncio.run(asyncio.wait_for(main(), 60))
+    assert token not in found["href"], found["href"]
+    assert found["href"].endswith("/")
+    assert token not in found["text"]
+    assert found["refused"] == 0
