@@ -165,9 +165,9 @@ class ConsoleServer:
 
     @property
     def url(self) -> str:
-        """The address to open, with the token where one is needed: printed on the operator's terminal only
-        (visionpos/app/console.py), never logged."""
-        return self.address + (f"?token={self.settings.token}" if self.settings.token else "")
+        """The address to print on the operator's terminal (visionpos/app/console.py), never to log: with the
+        token only where it was made at start (the one way to learn it); a configured one is never printed."""
+        return self.address + (f"?token={self.settings.token}" if self.settings.token_generated else "")
 
     async def start(self) -> None:
         app = web.Application(middlewares=[self._access], client_max_size=MAX_MESSAGE_BYTES)

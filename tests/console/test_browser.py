@@ -393,7 +393,7 @@ def test_the_token_leaves_the_address_bar_and_the_page_runs_on_its_cookie(tmp_pa
 
     async def main():
         console, source = await _console(arena, token=token)  # on loopback, but configured: needed everywhere
-        browser = Browser(console.url, tmp_path / "profile")
+        browser = Browser(f"{console.address}?token={token}", tmp_path / "profile")
         try:
             await browser.connect()
             await browser.wait_for("window.visionposConsole && window.visionposConsole.states > 3", 20)

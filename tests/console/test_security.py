@@ -197,6 +197,15 @@ def test_allowed_hosts_list_the_loopback_names_the_bind_address_and_port_80_with
                                                   "127.0.0.1", "localhost", "[::1]", "10.0.0.5"}
 
 
+def test_the_printed_address_carries_a_fresh_token_only():
+    c = ConsoleServer.__new__(ConsoleServer)
+    c.port = 8080
+    c.settings = ConsoleSettings(bind="0.0.0.0").with_token()  # made at start: the terminal is the one way to it
+    assert c.url == f"http://127.0.0.1:8080/?token={c.settings.token}" and c.address == "http://127.0.0.1:8080/"
+    c.settings = ConsoleSettings(bind="0.0.0.0", token=TOKEN)  # configured: the operator has it
+    assert c.url == c.address == "http://127.0.0.1:8080/"
+
+
 def test_console_hosts_are_checked(arena_yaml):
     data = arena_yaml("thesis")
     data["console"] = {"hosts": ["http://mocap.lab:8080"]}
@@ -270,8 +279,8 @@ def test_bad_messages_and_a_tab_too_many_get_a_refusal_each_and_change_nothing(a
 
 @pytest.mark.slow
 def test_the_console_token_reaches_no_recording_and_no_log_and_the_recording_replays(tmp_path, capsys, caplog):
-    """`demo --set console.token=... --record`: the token is on the operator's terminal (stdout, the URL to open)
-    and nowhere else: not in the recording's bytes, not in a log record, not on stderr; the recording replays."""
+    """`demo --set console.token=... --record`: the token is nowhere: not in the recording's bytes, not in a log
+    record, not on the terminal (a configured token is never printed); the recording replays."""
     import logging
 
     from mcap.reader import make_reader
@@ -286,8 +295,8 @@ def test_the_console_token_reaches_no_recording_and_no_log_and_the_recording_rep
                    f"console.token={token}", "--record", str(rec)])
     out = capsys.readouterr()
     assert rc == 0, out.err
-    assert f"?token={token}" in out.out  # the address to open, on the operator's terminal
-    assert token not in out.err and token not in caplog.text
+    assert "console at http://127.0.0.1:" in out.out
+    assert token not in out.out and token not in out.err and token not in caplog.text  # configured: never printed
     data = rec.read_bytes()
     assert token.encode() not in data
     with rec.open("rb") as f:
