@@ -23,9 +23,10 @@ other clients. Each client's sender task awaits the socket; nothing else does.
 
 Access, checked before any handler runs (the middleware `_access`):
 - the Host header must name the console itself (`allowed_hosts`: 127.0.0.1, localhost, [::1], the bind
-  address, the address the connection came in on, `console.hosts`, each with the console's port), else 403:
-  a page of another site whose name is rebound to this host's address (DNS rebinding) sends its own name;
-- an Origin header, where a browser sends one, must be one of those hosts too, and a browser's
+  address, the address the connection came in on, `console.hosts`, each with the console's port; a loopback
+  name with any port: an SSH tunnel), else 403: a page of another site whose name is rebound to this host's
+  address (DNS rebinding) sends its own name;
+- an Origin header, where a browser sends one, must be one of those hosts or the request's own, and a browser's
   Sec-Fetch-Site must say same-origin (or a navigation), else 403 (a page from elsewhere must not drive or
   read the console through the operator's browser);
 - bound to loopback no token is needed; bound elsewhere every request must carry the token (`?token=`, an
@@ -63,6 +64,7 @@ HEALTH_PERIOD_S = 1.0  # the health table and /api/health's rates: once a second
 WATCH_PERIOD_S = 0.5  # the residual and static-blob watches run this often, with or without clients
 MAX_MESSAGE_BYTES = 4096  # from a client: commands are small
 COOKIE = "visionpos_console"
+LOOPBACK_NAMES = frozenset({"127.0.0.1", "localhost", "::1"})
 CONTENT_TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css", ".txt": "text/plain",
                  ".png": "image/png"}
 
@@ -215,7 +217,7 @@ class ConsoleServer:
         """The Host values (lower case) that name this console: loopback names, the bind address, local_addr (the
         address a connection came in on: what a browser on another computer typed for a console on 0.0.0.0) and
         console.hosts, each with the console's port (and without it on port 80, as browsers send it)."""
-        names = {"127.0.0.1", "localhost", "::1", *self.settings.hosts}
+        names = {*LOOPBACK_NAMES, *self.settings.hosts}
         for addr in (self.settings.bind, local_addr):
             if addr:
                 ip = ipaddress.ip_address(addr.split("%", 1)[0])
@@ -232,13 +234,20 @@ class ConsoleServer:
 
     def _foreign(self, request: web.Request) -> str | None:
         """"host" or "origin" when the request's Host, or its Origin where it has one, is not this console."""
-        host = request.headers.get("Host")
+        host = (request.headers.get("Host") or "").lower()
         sock = request.transport.get_extra_info("sockname") if request.transport is not None else None
         allowed = self.allowed_hosts(sock[0] if sock else None)
-        if host is None or host.lower() not in allowed:
+        # a loopback name on another port: an SSH tunnel's local end (ssh -L 9000:127.0.0.1:8080); no page of
+        # another site can send it (its own name is what DNS rebinding sends)
+        try:
+            tunnel = urlsplit(f"//{host}").hostname in LOOPBACK_NAMES
+            origin = request.headers.get("Origin")
+            origin_netloc = None if origin is None else urlsplit(origin).netloc.lower()
+        except ValueError:  # e.g. an unclosed [ of an IPv6 address
             return "host"
-        origin = request.headers.get("Origin")
-        if origin is not None and urlsplit(origin).netloc.lower() not in allowed:
+        if host not in allowed and not tunnel:
+            return "host"
+        if origin_netloc is not None and origin_netloc not in allowed | {host}:
             return "origin"
         # a browser's fetch metadata: a page of another origin fetching without CORS sends no Origin, but says
         # where it comes from; only a navigation (a link, a typed URL) may come from elsewhere

@@ -142,6 +142,10 @@ def test_a_page_of_another_origin_is_refused_on_every_request(arena):
                     out["no-cors"] = r.status
                 await asyncio.sleep(0.1)
                 out["after"] = state(console, source)
+                # the page opened through an SSH tunnel (local port P+1): its Origin is its Host, both loopback
+                tunnel = f"127.0.0.1:{console.port + 1}"
+                async with http.ws_connect(base + "/ws", headers={"Host": tunnel, "Origin": f"http://{tunnel}"}) as ws:
+                    out["tunnel"] = json.loads((await ws.receive(timeout=5)).data)["type"]
                 # a link from elsewhere (a navigation) opens the page; the console's own page opens the socket
                 nav = {"Sec-Fetch-Site": "cross-site", "Sec-Fetch-Mode": "navigate", "Sec-Fetch-Dest": "document"}
                 async with http.get(base + "/", headers=nav) as r:
@@ -157,7 +161,7 @@ def test_a_page_of_another_origin_is_refused_on_every_request(arena):
     out = run(main())
     for name in ("http://attacker.example", "http://127.0.0.1:P+1", "null"):
         assert out[name] == 403 and out["ws " + name] == 403, (name, out)
-    assert out["no-cors"] == 403 and out["navigate"] == 200
+    assert out["no-cors"] == 403 and out["navigate"] == 200 and out["tunnel"] == "scene"
     assert out["after"] == out["before"] and out["refused"] == 7
     assert out["own"] == "scene"
 
@@ -175,7 +179,7 @@ def test_the_console_answers_to_its_own_addresses_only(arena):
         try:
             async with aiohttp.ClientSession() as http:
                 for host in ("127.0.0.2:P", "127.0.0.3:P", "127.0.0.2:P+1", "MOCAP.lab:P", "localhost:P", "[::1]:P",
-                             "127.0.0.2"):
+                             "127.0.0.2", "localhost:P+1", "[::1]:P+1", "mocap.lab:P+1", "[::1", "attacker.example"):
                     value = host.replace(":P+1", f":{port + 1}").replace(":P", f":{port}")
                     async with http.get(f"http://127.0.0.2:{port}/api/health", headers={"Host": value, **auth}) as r:
                         out[host] = r.status
@@ -185,7 +189,10 @@ def test_the_console_answers_to_its_own_addresses_only(arena):
 
     out = run(main())
     assert out == {"127.0.0.2:P": 200, "127.0.0.3:P": 403, "127.0.0.2:P+1": 403, "MOCAP.lab:P": 200,
-                   "localhost:P": 200, "[::1]:P": 200, "127.0.0.2": 403}  # no port: only port 80 may leave it out
+                   "localhost:P": 200, "[::1]:P": 200,
+                   "127.0.0.2": 403,  # no port: only port 80 may leave it out
+                   "localhost:P+1": 200, "[::1]:P+1": 200,  # a loopback name on any port: an SSH tunnel's end
+                   "mocap.lab:P+1": 403, "[::1": 403, "attacker.example": 403}
 
 
 def test_allowed_hosts_list_the_loopback_names_the_bind_address_and_port_80_without_port():
