@@ -38,12 +38,12 @@ GHOST = {"name": "ghost", "markers": [[0.0, 0.0, 0.0], [0.21, 0.0, 0.0], [0.0, 0
 class Browser:
     """Headless Chromium with a fresh profile; evaluate() and screenshot() over the DevTools protocol."""
 
-    def __init__(self, url: str, profile: Path):
+    def __init__(self, url: str, profile: Path, flags: tuple[str, ...] = ()):
         import aiohttp
 
         self.url = url
         self.profile = profile
-        self.proc = subprocess.Popen([CHROMIUM, *FLAGS, f"--user-data-dir={profile}", url],
+        self.proc = subprocess.Popen([CHROMIUM, *FLAGS, *flags, f"--user-data-dir={profile}", url],
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self.http = aiohttp.ClientSession()
         self.ws = None
@@ -265,3 +265,147 @@ def test_calibration_panel_in_chromium_fills_in_and_shows_the_solve(tmp_path):
     assert found["wand"].startswith("wand length A-C: error")
     # the heat map draws its lit cells (background #0d0f12, empty cells #1a1d22)
     assert _drawn(found["img"], _rect(found["rheat"], found["dpr"] or 1.0), (0x22, 0x1d, 0x1a)) > 0.01
+
+
+# ------------------------------------------------------------------ the browser's own web against the console
+
+# the attacker's page: a page of another site tries the console cross-origin, then, after its name was rebound
+# to this host (DNS rebinding, played by _rebinding_site), the same requests same-origin
+ATTACK_JS = """
+window.attack = {};
+const MASK = JSON.stringify({cmd: "mask", camera: 1, ignore: [[0, 0, 960, 640]]});
+function tryWs(url) {
+  return new Promise(done => {
+    const ws = new WebSocket(url);
+    ws.onopen = () => { ws.send(MASK); setTimeout(() => done("open"), 500); };
+    ws.onerror = () => done("error");
+  });
+}
+async function tryFetch(url, opts) {
+  try { return (await fetch(url, opts)).status; } catch (e) { return "blocked"; }
+}
+async function attackConsole(httpBase, wsBase) {
+  return {fetch: await tryFetch(httpBase + "/api/health", {mode: "no-cors"}), ws: await tryWs(wsBase + "/ws")};
+}
+"""
+
+
+async def _rebinding_site(console_port: int, page: str):
+    """attacker.example's server on a loopback port: GET /attack answers its page; every other connection is
+    relayed to the console byte for byte, as a browser's connections reach it once the name is rebound."""
+
+    async def handle(reader, writer):
+        try:
+            head = await reader.readuntil(b"\r\n\r\n")
+        except (asyncio.IncompleteReadError, asyncio.LimitOverrunError, ConnectionError):
+            writer.close()
+            return
+        if head.startswith(b"GET /attack "):
+            body = page.encode()
+            writer.write(b"HTTP/1.1 200 OK\r\nContent-Type: text/html\r\nConnection: close\r\nContent-Length: "
+                         + str(len(body)).encode() + b"\r\n\r\n" + body)
+            await writer.drain()
+            writer.close()
+            return
+        up_r, up_w = await asyncio.open_connection("127.0.0.1", console_port)
+        up_w.write(head)
+
+        async def pipe(r, w):
+            try:
+                while data := await r.read(65536):
+                    w.write(data)
+                    await w.drain()
+            except ConnectionError:
+                pass
+            finally:
+                w.close()
+
+        await asyncio.gather(pipe(reader, up_w), pipe(up_r, writer))
+
+    return await asyncio.start_server(handle, "127.0.0.1", 0)
+
+
+def test_pages_of_other_origins_and_foreign_hosts_change_nothing_in_chromium(tmp_path, arena_yaml):
+    """A page of another site tries the console cross-origin and then, rebound to this host, as its own origin;
+    then the browser opens the console under a foreign name. Every request is refused; no mask reaches a station
+    and nothing the console shows changes."""
+    from visionpos.config.arena import parse_arena
+
+    from .test_security import _console, state
+
+    arena = parse_arena(arena_yaml("thesis"), "thesis.yaml")
+    found: dict = {}
+
+    async def main():
+        console, source = await _console(arena)
+        console._task.cancel()  # no updates: only the browser's requests could read or change anything
+        before = state(console, source)
+        cport = console.port
+        page = (f"<html><body>attacker<script>{ATTACK_JS}(async () => {{"
+                f"attack.cross = await attackConsole('http://127.0.0.1:{cport}', 'ws://127.0.0.1:{cport}');"
+                "attack.rebound = await attackConsole('', 'ws://' + location.host);"
+                "attack.done = true; })();</script></body></html>")
+        site = await _rebinding_site(cport, page)
+        sport = site.sockets[0].getsockname()[1]
+        browser = Browser(f"http://attacker.example:{sport}/attack", tmp_path / "profile",
+                          ("--host-resolver-rules=MAP attacker.example 127.0.0.1",))
+        try:
+            await browser.connect()
+            found["attack"] = await browser.wait_for("window.attack && window.attack.done && window.attack", 20)
+            found["mid"] = state(console, source)
+            # the console itself under a foreign name: refused, and a socket from that page too
+            await browser.call("Page.navigate", url=f"http://attacker.example:{cport}/")
+            await browser.wait_for("document.readyState === 'complete' && location.port === '%d'" % cport, 20)
+            found["text"] = await browser.evaluate("document.body.innerText")
+            found["ws"] = (await browser.call("Runtime.evaluate", returnByValue=True, awaitPromise=True, expression=
+                "new Promise(done => { const ws = new WebSocket('ws://' + location.host + '/ws'); ws.onopen = () => "
+                "{ ws.send(JSON.stringify({cmd: 'mask', camera: 1, ignore: [[0, 0, 960, 640]]})); "
+                "setTimeout(() => done('open'), 500); }; ws.onerror = () => done('error'); })"))["result"]["value"]
+            found["after"] = state(console, source)
+            found["refused"] = console.counters.get("refused_host", 0) + console.counters["refused_origin"]
+        finally:
+            await browser.close()
+            site.close()
+            await console.stop()
+        found["before"] = before
+
+    asyncio.run(asyncio.wait_for(main(), 90))
+    a = found["attack"]
+    assert a["cross"]["ws"] == "error" and a["rebound"]["ws"] == "error", a
+    assert a["rebound"]["fetch"] == 403, a  # same-origin after the rebinding: the status is readable
+    assert found["mid"] == found["before"]
+    assert "refused" in found["text"] and "not this console" in found["text"], found["text"]
+    assert found["ws"] == "error"
+    assert found["after"] == found["before"]  # no mask sent, no still, no health read, the scene as it was
+    assert found["refused"] >= 5
+
+
+def test_the_token_leaves_the_address_bar_and_the_page_runs_on_its_cookie(tmp_path, arena_yaml):
+    """The URL printed at start (?token=...) opened in the browser: the console answers with its cookie and a
+    redirect to "/", so the address bar (a screenshot, a shared link) holds no token, and the page connects."""
+    from visionpos.config.arena import parse_arena
+
+    from .test_security import _console
+
+    token = "tok-" + "Zk3" * 8
+    arena = parse_arena(arena_yaml("thesis"), "thesis.yaml")
+    found: dict = {}
+
+    async def main():
+        console, source = await _console(arena, token=token)  # on loopback, but configured: needed everywhere
+        browser = Browser(f"{console.address}?token={token}", tmp_path / "profile")
+        try:
+            await browser.connect()
+            await browser.wait_for("window.visionposConsole && window.visionposConsole.states > 3", 20)
+            found["href"] = await browser.evaluate("location.href")
+            found["text"] = await browser.evaluate("document.body.innerText")
+            found["refused"] = console.counters["refused_token"]
+        finally:
+            await browser.close()
+            await console.stop()
+
+    asyncio.run(asyncio.wait_for(main(), 60))
+    assert token not in found["href"], found["href"]
+    assert found["href"].endswith("/")
+    assert token not in found["text"]
+    assert found["refused"] == 0
