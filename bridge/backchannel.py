@@ -90,10 +90,21 @@ MSG_HIGHRES_IMU = 105
 MSG_LOCAL_POSITION_NED = 32
 MSG_EKF_STATUS_REPORT = 193
 MSG_GPS_GLOBAL_ORIGIN = 49
+MSG_HOME_POSITION = 242
+HOME_TOLERANCE_M = 0.01  # home read back further than this from the origin: said (a float32 COMMAND_LONG's error)
+EARTH_RADIUS_M = 6_378_137.0  # WGS-84 equatorial: metres per radian of latitude, near enough for centimetres
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_CMD_REQUEST_MESSAGE = 512
 MAV_CMD_DO_SET_HOME = 179
 GYRO_FILTER_PARAM = "INS_GYRO_FILTER"  # ArduPilot: the cutoff (Hz) of the low-pass on the gyro it reports
+
+
+def geodetic_offset_m(lat_deg: float, lon_deg: float, ref_lat_deg: float, ref_lon_deg: float) -> tuple[float, float]:
+    """(north, east) m of a point from a reference a few km away at most (equirectangular; under 1 mm error at
+    100 m)."""
+    north = math.radians(lat_deg - ref_lat_deg) * EARTH_RADIUS_M
+    east = math.radians(lon_deg - ref_lon_deg) * EARTH_RADIUS_M * math.cos(math.radians(ref_lat_deg))
+    return north, east
 
 
 def gyro_filter_lag_ns(cutoff_hz: float) -> float:
@@ -221,6 +232,8 @@ class Backchannel:
         self.origin_confirmed = False
         self.origin_reported: tuple[float, float, float] | None = None
         self.home_acked = False
+        self.home_reported: tuple[float, float, float] | None = None  # HOME_POSITION: lat, lon (deg), alt (m)
+        self.home_error_m: float | None = None  # its horizontal distance from the configured origin
         # what we asked for
         self._streams_due = 0
         self.link_up_ns = 0
@@ -277,6 +290,8 @@ class Backchannel:
             self._on_statustext(m)
         elif t == "GPS_GLOBAL_ORIGIN":
             self._on_origin(m)
+        elif t == "HOME_POSITION":
+            self._on_home(m)
         elif t == "COMMAND_ACK":
             if m.command == MAV_CMD_DO_SET_HOME:
                 if m.result == mavlink2.MAV_RESULT_ACCEPTED:
@@ -342,6 +357,7 @@ class Backchannel:
         self.origin_confirmed = False
         self._origin_release_said = False
         self.home_acked = False
+        self.home_reported = self.home_error_m = None
         self.delay_param_confirmed = None
         self.gyro_filter_hz = None  # read again: it may have been changed for this boot
         self.ekf_flags = None
@@ -388,6 +404,19 @@ class Backchannel:
             else:
                 log.info("vehicle %s: the autopilot confirmed its origin", self.cfg.name)
         self.origin_confirmed = True
+
+    def _on_home(self, m) -> None:
+        """HOME_POSITION: where the autopilot put home, against the configured origin (1 cm: the float32
+        degrees of a COMMAND_LONG put it up to a metre off, which is why home goes as COMMAND_INT)."""
+        self.home_reported = (m.latitude * 1e-7, m.longitude * 1e-7, m.altitude * 1e-3)
+        o = self.cfg.origin
+        if o is None:
+            return
+        north, east = geodetic_offset_m(self.home_reported[0], self.home_reported[1], o.lat, o.lon)
+        self.home_error_m = math.hypot(north, east)
+        if self.home_error_m > HOME_TOLERANCE_M and self.home_acked:
+            self.warn("home_off", "vehicle %s: the autopilot's home is %.3f m N, %.3f m E of the configured origin "
+                      "(it kept another home?)", self.cfg.name, north, east)
 
     # ------------------------------------------------------------ optical side (sender thread, per pose)
     def on_optical(self, stamp_ns: int, roll: float, pitch: float, rate_frd, quat_ned_frd) -> None:
@@ -455,6 +484,11 @@ class Backchannel:
     def request_origin(self) -> None:
         self.send(self.mav.command_long_encode(self.cfg.sysid, MAV_COMP_ID_AUTOPILOT1, MAV_CMD_REQUEST_MESSAGE, 0,
                                                MSG_GPS_GLOBAL_ORIGIN, 0, 0, 0, 0, 0, 0))
+
+    def request_home(self) -> None:
+        """MAV_CMD_REQUEST_MESSAGE for HOME_POSITION (no coordinates in it: COMMAND_LONG is fine)."""
+        self.send(self.mav.command_long_encode(self.cfg.sysid, MAV_COMP_ID_AUTOPILOT1, MAV_CMD_REQUEST_MESSAGE, 0,
+                                               MSG_HOME_POSITION, 0, 0, 0, 0, 0, 0))
 
     def coarse_offset_ns(self) -> float | None:
         """Autopilot clock less server clock, from the fastest recent message back (the return latency
@@ -697,6 +731,8 @@ class Backchannel:
             "delay_param_set": self.delay_param_confirmed,
             "origin": self.origin_state(now),
             "home_acked": self.home_acked,
+            "home_reported": list(self.home_reported) if self.home_reported else None,
+            "home_error_m": self.home_error_m,
             "gyro_source": self.gyro_source or None,
             "gyro_filter_hz": self.gyro_filter_hz,
             "local_position_ned": list(self.local_position) if self.local_position else None,

@@ -22,7 +22,9 @@ It keeps an origin set with SET_GPS_GLOBAL_ORIGIN (once `origin_ready_s` after
 boot: an EKF not yet running drops it, as ArduPilot's does) and reports it
 (GPS_GLOBAL_ORIGIN, also on MAV_CMD_REQUEST_MESSAGE); takes MAV_CMD_DO_SET_HOME
 (refused before the origin, as ArduPilot does; ArduPilot ignores
-SET_HOME_POSITION); answers PARAM_SET and PARAM_REQUEST_READ with PARAM_VALUE; says "EKF3 IMU0 is
+SET_HOME_POSITION) and keeps it as it gets it (COMMAND_INT's int32 degE7; COMMAND_LONG's
+float32 degrees, rounded as they came), reporting it with HOME_POSITION (on a change and on
+request); answers PARAM_SET and PARAM_REQUEST_READ with PARAM_VALUE; says "EKF3 IMU0 is
 using external nav data" on its first accepted pose (STATUSTEXT). delay_ms
 holds every received packet that long before handling it (a slow link or
 autopilot: the pose reaches its EKF that much later); reboot() restarts its
@@ -68,6 +70,7 @@ MAV_CMD_DO_SET_HOME = 179
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_CMD_REQUEST_MESSAGE = 512
 MSG_GPS_GLOBAL_ORIGIN = 49
+MSG_HOME_POSITION = 242
 
 
 @dataclass(frozen=True)
@@ -196,6 +199,8 @@ class FakeAutopilot:
         self._next_tx: dict[int, int] = {}
         self.origin: tuple[int, int, int] | None = None  # lat, lon (1e7 deg), alt (mm)
         self.origin_dropped = 0  # SET_GPS_GLOBAL_ORIGIN before origin_ready_s: dropped
+        # home as it keeps it: lat, lon (int32 degE7, as COMMAND_INT carries them; COMMAND_LONG's float32 params
+        # rounded to the nearest degE7), alt (m)
         self.home: tuple[int, int, float] | None = None
         self.params: dict[str, float] = {"INS_GYRO_FILTER": float(gyro_filter_hz)} if autopilot == "ardupilot" else {}
         # the filter's group delay at low frequency, sqrt(2) / (2 pi fc) (no filter: 0)
@@ -464,6 +469,9 @@ class FakeAutopilot:
         elif cmd == MAV_CMD_REQUEST_MESSAGE and int(m.param1) == MSG_GPS_GLOBAL_ORIGIN:
             result = mavlink2.MAV_RESULT_ACCEPTED if self.origin is not None else mavlink2.MAV_RESULT_FAILED
             self._send_origin()
+        elif cmd == MAV_CMD_REQUEST_MESSAGE and int(m.param1) == MSG_HOME_POSITION:
+            result = mavlink2.MAV_RESULT_ACCEPTED if self.home is not None else mavlink2.MAV_RESULT_FAILED
+            self._send_home()
         elif cmd == MAV_CMD_DO_SET_HOME:
             if self.origin is None and self.autopilot == "ardupilot":
                 result = mavlink2.MAV_RESULT_FAILED  # ArduPilot needs its origin first
@@ -473,7 +481,15 @@ class FakeAutopilot:
                 else:
                     self.home = (int(round(m.param5 * 1e7)), int(round(m.param6 * 1e7)), float(m.param7))
                 result = mavlink2.MAV_RESULT_ACCEPTED
+                self._send_home()  # as ArduPilot does on a change of home
         self.mav.send(self.mav.command_ack_encode(cmd, result))
+
+    def _send_home(self) -> None:
+        if self.home is not None:
+            lat, lon, alt = self.home
+            self.mav.send(self.mav.home_position_encode(lat, lon, int(round(alt * 1000)), 0.0, 0.0, 0.0,
+                                                        [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+                                                        self.boot_time_ns() // 1000))
 
     def _telemetry(self, now: int) -> None:
         """Send the streams that are due, from the truth at now (server clock), stamped on our clock."""

@@ -551,6 +551,8 @@ class VehicleLink:
             self.counters["origin_sent"] += 1
         if not bc.origin_confirmed:
             bc.request_origin()
+        if self.cfg.set_home and bc.home_acked and bc.home_reported is None:
+            bc.request_home()  # read it back: within 1 cm of the origin (HOME_TOLERANCE_M)
         if self.cfg.set_home and not bc.home_acked:
             # DO_SET_HOME needs the origin first on ArduPilot (refused before): repeated until acknowledged
             if self._send(self.mav.command_int_encode(
@@ -624,7 +626,8 @@ class VehicleLink:
                          "tripped_after_s": bc["identity_tripped_after_s"]},
             "delay": {"measured_ms": bc["delay_ms"], "detail": bc["delay_detail"], "advice": bc["delay_advice"],
                       "param_set": bc["delay_param_set"]},
-            "origin": {"state": bc["origin"], "home_acked": bc["home_acked"]},
+            "origin": {"state": bc["origin"], "home_acked": bc["home_acked"], "home_reported": bc["home_reported"],
+                       "home_error_m": bc["home_error_m"]},
         }
 
     def sending_state(self, now: int | None = None) -> str:

@@ -357,10 +357,14 @@ def test_home_is_set_with_do_set_home_on_ardupilot():
     ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=3)
     bridge = _pairs([{"origin": ORIGIN, "sysid": 3}], [ap])
     try:
-        _stream(bridge, [FIG8], time.monotonic_ns(), 5.0, until=lambda: ap.home is not None)
+        v = bridge.vehicles[0]
+        _stream(bridge, [FIG8], time.monotonic_ns(), 5.0, until=lambda: v.bc.home_error_m is not None)
         assert ap.origin == (473977420, 85455940, 488000)
         assert ap.home == (473977420, 85455940, pytest.approx(488.0))  # ArduCopter ignores SET_HOME_POSITION
-        assert bridge.vehicles[0].health()["origin"] == {"state": "confirmed", "home_acked": True}
+        assert not [m for m in ap.messages("COMMAND_LONG") if m.fields["command"] == 179]  # COMMAND_INT only
+        o = v.health()["origin"]
+        assert (o["state"], o["home_acked"]) == ("confirmed", True)
+        assert o["home_error_m"] < 0.01  # HOME_POSITION read back: at the origin within 1 cm
     finally:
         bridge.close()
         ap.close()

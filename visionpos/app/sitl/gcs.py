@@ -21,6 +21,9 @@ MAV_CMD_DO_SET_HOME = 179
 MAV_CMD_DO_SET_MODE = 176
 MAV_CMD_COMPONENT_ARM_DISARM = 400
 MAV_CMD_NAV_TAKEOFF = 22
+MAV_CMD_REQUEST_MESSAGE = 512
+MAV_FRAME_GLOBAL = 0
+MSG_HOME_POSITION = 242
 MSG_SIM_STATE = 108
 MSG_SYSTEM_TIME = 2
 MSG_RAW_IMU = 27
@@ -54,6 +57,7 @@ class Gcs:
         self.mode = -1
         self.modes: list[tuple[int, int]] = []  # (recv_ns, custom_mode) at each change
         self.origin: tuple[int, Any] | None = None
+        self.home: tuple[int, Any] | None = None  # (recv_ns, HOME_POSITION)
         self.heartbeats = 0
         self.clock = SitlClock()
 
@@ -148,6 +152,8 @@ class Gcs:
             self.acks[m.command] = (m.result, now)
         elif kind == "GPS_GLOBAL_ORIGIN":
             self.origin = (now, m)
+        elif kind == "HOME_POSITION":
+            self.home = (now, m)
 
     def request_streams(self) -> None:
         # SYSTEM_TIME and RAW_IMU at SIM_STATE's rate share its message bucket: they stamp it (SitlClock)
@@ -211,6 +217,15 @@ class Gcs:
         self.acks.pop(cmd, None)
         p = list(params) + [0.0] * (7 - len(params))
         self.conn.mav.command_long_send(1, 1, cmd, 0, *p)
+
+    def command_int(self, cmd: int, lat_deg: float, lon_deg: float, alt_m: float, *params: float,
+                    frame: int = MAV_FRAME_GLOBAL) -> None:
+        """A command with a position as COMMAND_INT: latitude and longitude as int32 degE7 (1.1 cm). COMMAND_LONG's
+        float32 parameters keep 24 bits: ~1e-5 deg at 149 deg, a home half a metre off."""
+        self.acks.pop(cmd, None)
+        p = list(params) + [0.0] * (4 - len(params))
+        self.conn.mav.command_int_send(1, 1, frame, cmd, 0, 0, *p, int(round(lat_deg * 1e7)),
+                                       int(round(lon_deg * 1e7)), float(alt_m))
 
     async def command_async(self, cmd: int, *params: float, timeout_s: float = 5.0, what: str = "") -> None:
         self.command(cmd, *params)
