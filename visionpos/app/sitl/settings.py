@@ -15,8 +15,10 @@ SITL = section(
     "ArduPilot SITL for `visionpos sitl` (docs/autopilot-setup.md, \"Try it in SITL first\").",
     Setting("binary", "text", None, "the arducopter SITL binary (relative to the arena file)",
             default_doc="--sitl PATH, else $VISIONPOS_SITL, else ../shared/sitl/arducopter beside the checkout"),
-    Setting("defaults", "text", None, "SITL parameter defaults file (--defaults)",
-            default_doc="copter.parm beside the binary, when there"),
+    Setting("defaults", "text", None, "ArduPilot's SITL parameter defaults file, passed as --defaults "
+            "(Tools/autotest/default_params/copter.parm; relative to the arena file)",
+            default_doc="--defaults PATH, else copter.parm beside the binary, in the ArduPilot tree it was built "
+            "in, or in ../shared/sitl"),
     Setting("model", "text", "+", "SITL frame model (--model)"),
     Setting("instance", "integer", None, "SITL instance (-I): ports 5760 + 10*I ...", min=0, max=200,
             default_doc="the first whose ports are free from 1"),
@@ -39,7 +41,7 @@ class SitlError(VisionposError):
 @dataclasses.dataclass(frozen=True)
 class SitlSettings:
     binary: Path
-    defaults: Path | None
+    defaults: Path | None  # None: none passed (tests that build SitlSettings themselves)
     model: str
     instance: int | None
     home: tuple[float, float, float, float]
@@ -47,6 +49,32 @@ class SitlSettings:
     viso_pos_m_nse: float
     viso_yaw_m_nse: float
     viso_vel_m_nse: float
+
+
+DEFAULTS_NAME = "copter.parm"
+DEFAULTS_IN_TREE = Path("Tools") / "autotest" / "default_params" / DEFAULTS_NAME
+
+
+def defaults_candidates(binary: Path) -> list[Path]:
+    """Where copter.parm may be, in order: beside the binary; in the ArduPilot tree it was built in (the binary
+    at build/sitl/bin/arducopter, the file at Tools/autotest/default_params/copter.parm); in ../shared/sitl
+    beside the checkout."""
+    from visionpos.app.sitl.binary import SHARED_BINARY
+
+    b = binary.resolve()
+    return [b.parent / DEFAULTS_NAME, *(p / DEFAULTS_IN_TREE for p in b.parents[:4]),
+            SHARED_BINARY.parent / DEFAULTS_NAME]
+
+
+def find_defaults(binary: Path) -> Path:
+    """The first copter.parm of defaults_candidates; a SitlError in one line when there is none (without it
+    SITL spends its time refusing to arm with "Motors: Check frame class and type")."""
+    for p in defaults_candidates(binary):
+        if p.is_file():
+            return p
+    raise SitlError(f"no {DEFAULTS_NAME} beside {binary} nor in its ArduPilot tree: SITL cannot arm without its "
+                    "defaults (\"Motors: Check frame class and type\"); give --defaults PATH or sitl.defaults "
+                    f"(ArduPilot's {DEFAULTS_IN_TREE})")
 
 
 def parse_sitl(arena: ArenaConfig, binary: Path) -> SitlSettings:
@@ -59,8 +87,7 @@ def parse_sitl(arena: ArenaConfig, binary: Path) -> SitlSettings:
         if not dp.is_file():
             raise ConfigError(arena.source, "sitl.defaults", f"{defaults!r}: no file at {dp}")
     else:
-        dp = binary.parent / "copter.parm"
-        dp = dp if dp.is_file() else None
+        dp = find_defaults(binary)
     home = tuple(float(x) for x in SITL.read(sec, "home"))
     if not (-90 <= home[0] <= 90 and -180 <= home[1] <= 180):
         raise ConfigError(arena.source, "sitl.home", f"{list(home)}: give [lat (-90..90), lon (-180..180), "
