@@ -58,6 +58,7 @@ log = logging.getLogger("visionpos.bridge")
 MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197
 WARN_INTERVAL_S = 10.0  # a repeated warning (same kind) at most this often, with the count held back
 ORIGIN_UNCONFIRMED_INTERVAL_NS = 1_000_000_000  # origin resend period until the autopilot reports it back
+GCS_SYSID = 255
 RX_BAD_WARN = 20  # undecodable packets before the log says so
 
 COUNTERS = (
@@ -81,6 +82,7 @@ COUNTERS = (
     "rx_packets",
     "rx_bad",  # CRC / framing errors
     "rx_foreign",  # from another sysid: ignored, not answered, not learned as peer
+    "rx_gcs",  # of them, a ground station's (sysid 255, or one whose HEARTBEAT says GCS) the autopilot forwards
     "rx_accepted",  # passed every check and went to the back-channel
     "rx_unsigned",  # signed link: an unsigned (or MAVLink1) packet as the vehicle: dropped
     "rx_bad_signature",  # signed link: signature does not verify with the key: dropped
@@ -147,6 +149,7 @@ class VehicleLink:
         self._origin_done = False
         self._last_write_ok = False
         self._logged_once: set[str] = set()
+        self._gcs_sysids: set[int] = set()
         self.sent_times = LatencyRing()  # send times (server clock) for the recent rate
         self._write_ns = 0  # the clock just before the last write to the link
         self.bc = Backchannel(cfg, clock_ns, self.mav, self._send, self._warn.warning, self.base_offset_ns,
@@ -299,10 +302,17 @@ class VehicleLink:
             log.warning("vehicle %s: MAVLink link %s is not signed: the autopilot cannot tell our poses from "
                         "forged ones; set up signing (docs/autopilot-setup.md, Signing)", cfg.name, cfg.endpoint)
 
-    def _log_once(self, kind: str, msg: str, *args) -> None:
+    def _log_once(self, kind: str, msg: str, *args, level: int = logging.WARNING) -> None:
         if kind not in self._logged_once:
             self._logged_once.add(kind)
-            log.warning(msg, *args)
+            log.log(level, msg, *args)
+
+    def _is_gcs(self, m, sysid: int) -> bool:
+        """A ground station's packet: sysid 255 (MAVLink's convention for a GCS; `visionpos sitl`'s own link,
+        which SITL forwards), or a system whose HEARTBEAT said MAV_TYPE_GCS (remembered: its other messages)."""
+        if m.get_type() == "HEARTBEAT" and m.type == mavlink2.MAV_TYPE_GCS:
+            self._gcs_sysids.add(sysid)
+        return sysid == GCS_SYSID or sysid in self._gcs_sysids
 
     def _peer_known(self) -> bool:
         return self.link is not None and self.link.peer is not None
@@ -347,6 +357,12 @@ class VehicleLink:
                 sysid, compid = (buf[5], buf[6]) if v2 else (buf[3], buf[4])
                 if sysid != self.cfg.sysid:
                     c["rx_foreign"] += 1
+                    if self._is_gcs(m, sysid):
+                        c["rx_gcs"] += 1  # the autopilot routes its GCS's traffic to every port: normal
+                        self._log_once(f"gcs{sysid}", "vehicle %s: the autopilot forwards a ground station's "
+                                       "packets (sysid %d) on this link; ignored (counted in rx_gcs)",
+                                       self.cfg.name, sysid, level=logging.INFO)
+                        continue
                     self._log_once("rx_foreign", "vehicle %s: packets from sysid %d on the link of sysid %d are "
                                    "ignored (counted in rx_foreign; logged once): if that is this vehicle's "
                                    "autopilot, set its sysid in the vehicles section (or SYSID_THISMAV / "

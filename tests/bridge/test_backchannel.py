@@ -482,6 +482,33 @@ def test_garbage_from_the_autopilot_poses_go_on_and_it_is_said_once(caplog):
         sink.close()
 
 
+def test_a_ground_station_forwarded_by_the_autopilot_is_recognised_not_warned_about(caplog):
+    """SITL forwards `visionpos sitl`'s own GCS link (sysid 255) on the vision port; a GCS on another sysid says
+    so in its HEARTBEAT. Neither is warned about; an autopilot's packets of another sysid still are."""
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=1)
+    bridge = _pairs([{}], [ap])
+    try:
+        v = bridge.vehicles[0]
+        with caplog.at_level(logging.INFO, logger="visionpos.bridge"):
+            _stream(bridge, [FIG8], time.monotonic_ns(), 3.0, until=lambda: v.counters["rx_accepted"] > 0)
+            gcs255 = mavlink2.MAVLink(None, srcSystem=255, srcComponent=190)
+            gcs7 = mavlink2.MAVLink(None, srcSystem=7, srcComponent=190)
+            other = mavlink2.MAVLink(None, srcSystem=9, srcComponent=1)
+            for enc, kind in ((gcs255, mavlink2.MAV_TYPE_GCS), (gcs7, mavlink2.MAV_TYPE_GCS),
+                              (other, mavlink2.MAV_TYPE_QUADROTOR)):
+                ap.write(enc.heartbeat_encode(kind, 8, 0, 0, 4).pack(enc))
+            ap.write(gcs7.timesync_encode(0, 5).pack(gcs7))  # the GCS's other messages: known by now
+            _stream(bridge, [FIG8], time.monotonic_ns(), 3.0, until=lambda: v.counters["rx_foreign"] >= 4)
+        assert v.counters["rx_foreign"] == 4 and v.counters["rx_gcs"] == 3
+        warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+        assert not [t for t in warned if "sysid 255" in t or "sysid 7 " in t], warned
+        assert _count_logged(caplog, "from sysid 9 on the link of sysid 1") == 1
+        assert _count_logged(caplog, "forwards a ground station's packets (sysid 255)") == 1
+    finally:
+        bridge.close()
+        ap.close()
+
+
 def test_autopilot_of_another_sysid_is_ignored_and_said_once(caplog):
     t0 = time.monotonic_ns()
     ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=9, truth=trajectory_truth(AGGRESSIVE, t0), telemetry_hz=50)
