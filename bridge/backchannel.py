@@ -43,6 +43,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
 from bridge.config import VehicleConfig
+from bridge.estimator_delay import DelayAdvice, advised_delay
 from visionpos.analysis.autopilot import (
     body_rates_from_attitudes,
     estimate_lag,
@@ -209,7 +210,8 @@ class Backchannel:
         self._next_identity = 0
         # delay
         self.clock_lag_ns: float | None = None  # autopilot time less server stamp of one physical instant
-        self.delay_ms: float | None = None
+        self.delay_ms: float | None = None  # the median pose-instant-to-arrival delay (ms)
+        self.advice: DelayAdvice | None = None  # what the autopilot's estimator wants set (bridge/estimator_delay.py)
         self.delay_correlation = float("nan")
         self.delay_window_ns: tuple[int, int] | None = None  # server clock: the optical span of the last figure
         self.delay_reason = "no gyro from the autopilot yet"
@@ -351,6 +353,7 @@ class Backchannel:
         self._delays.clear()
         self.clock_lag_ns = None
         self.delay_ms = None
+        self.advice = None
         self.delay_reason = "the autopilot rebooted; measuring again"
         if not self.identity_tripped:
             self.identity, self.identity_reason = "unknown", "the autopilot rebooted; checking again"
@@ -599,6 +602,9 @@ class Backchannel:
         self.delay_window_ns = (int(to[0]), int(to[-1]))
         self._delays.append(d_ns * 1e-6)
         self.delay_ms = d_ns * 1e-6  # each estimate spans DELAY_WINDOW_NS already; the newest follows changes
+        # each pose's delay: its own stamp -> send, plus the link's share of the median (the same for all)
+        link_ns = d_ns - float(np.median(sends[:, 0]))
+        self.advice = advised_delay(self.autopilot, (sends[:, 0] + link_ns) * 1e-6)
         if self._delay_said is None or abs(self.delay_ms - self._delay_said) >= DELAY_RESET_MS:
             self._delay_said = self.delay_ms
             log.warning("vehicle %s: %s", self.cfg.name, self.delay_advice())
@@ -621,7 +627,9 @@ class Backchannel:
     def _maybe_set_delay(self, now: int) -> None:
         if not self.cfg.set_delay or self.delay_ms is None or len(self._delays) < 3 or self.autopilot is None:
             return
-        value = float(round(self.delay_ms))
+        if self.advice is None:
+            return
+        value = float(self.advice.value_ms)
         if self._delay_param_value is None or abs(value - self._delay_param_value) >= DELAY_RESET_MS:
             self._delay_param_value = value
             self.delay_param_confirmed = None
@@ -697,11 +705,13 @@ class Backchannel:
         return False
 
     def delay_advice(self) -> str:
-        if self.delay_ms is None:
+        if self.delay_ms is None or self.advice is None:
             return f"delay not measured ({self.delay_reason})"
-        d = int(round(self.delay_ms))
-        text = f"measured capture->autopilot delay {self.delay_ms:.1f} ms: set "
-        text += f"EKF2_EV_DELAY={d}" if self.autopilot == "px4" else f"VISO_DELAY_MS={d}"
+        a = self.advice
+        text = (f"measured capture->autopilot delay {self.delay_ms:.1f} ms (median): set {a.param}={a.value_ms}, "
+                f"{a.why}")
+        if a.param == "EKF2_EV_DELAY":
+            text += "; 0 once PX4's TIMESYNC has converged (timesync_status)"
         if self.delay_param_confirmed is not None:
             text += " (set on the autopilot)"
         return text
@@ -728,6 +738,8 @@ class Backchannel:
             "delay_ms": self.delay_ms,
             "delay_detail": self.delay_reason,
             "delay_advice": self.delay_advice(),
+            "delay_param": self.advice.param if self.advice else None,
+            "delay_advised_ms": self.advice.value_ms if self.advice else None,
             "delay_param_set": self.delay_param_confirmed,
             "origin": self.origin_state(now),
             "home_acked": self.home_acked,

@@ -285,15 +285,15 @@ class FakeAutopilot:
                 self.intervals_ns[mid] = self._telemetry_default_ns if mid != 193 else 500_000_000
         self._next_tx = {}
 
-    def true_delay_ms(self, window_s: float | None = None) -> float:
-        """Median delay from a pose's stamp to its arrival here, with the added delay (the stamps are on the
-        server clock); over the poses of the last window_s seconds (None: all)."""
+    def true_delay_ms(self, window_s: float | None = None, percentile: float = 50.0) -> float:
+        """Median (or that percentile of the) delay from a pose's stamp to its arrival here, with the added delay
+        (the stamps are on the server clock); over the poses of the last window_s seconds (None: all)."""
         poses = self.messages(POSE_TYPES)
         if window_s is not None and poses:
             poses = [p for p in poses if p.recv_ns >= poses[-1].recv_ns - window_s * 1e9]
         if not poses:
             return float("nan")
-        return float(np.median([p.recv_ns - decode_pose(p)["usec"] * 1000 for p in poses])) * 1e-6
+        return float(np.percentile([p.recv_ns - decode_pose(p)["usec"] * 1000 for p in poses], percentile)) * 1e-6
 
     def __enter__(self) -> "FakeAutopilot":
         return self.start()

@@ -9,7 +9,7 @@ import pytest
 
 from bridge.config import parse_vehicles
 from visionpos.app import sitl as S
-from visionpos.app.sitl import binary as sitl_binary
+from visionpos.app.sitl import settings as sitl_settings
 from visionpos.app.sitl.settings import find_defaults
 
 
@@ -51,7 +51,7 @@ def test_cli_message_flag_is_the_vehicle_override(monkeypatch):
 
 
 def test_defaults_found_beside_the_binary_and_in_its_ardupilot_tree(tmp_path, monkeypatch):
-    monkeypatch.setattr(sitl_binary, "SHARED_BINARY", tmp_path / "shared" / "arducopter")
+    monkeypatch.setattr(sitl_settings, "SHARED_SITL_DIR", tmp_path / "shared")
     beside = _binary(tmp_path / "a")
     (tmp_path / "a" / "copter.parm").write_text("FRAME_CLASS 1\n")
     assert find_defaults(beside) == tmp_path / "a" / "copter.parm"
@@ -67,7 +67,7 @@ def test_defaults_found_beside_the_binary_and_in_its_ardupilot_tree(tmp_path, mo
 
 
 def test_missing_defaults_is_one_clear_line(tmp_path, monkeypatch):
-    monkeypatch.setattr(sitl_binary, "SHARED_BINARY", tmp_path / "shared" / "arducopter")
+    monkeypatch.setattr(sitl_settings, "SHARED_SITL_DIR", tmp_path / "shared")
     lone = _binary(tmp_path / "lone")
     with pytest.raises(S.SitlError) as e:
         S.parse_sitl(S.sitl_arena("thesis", [], 60.0), lone)

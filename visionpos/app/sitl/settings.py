@@ -25,7 +25,8 @@ SITL = section(
     Setting("home", "array", [-35.363261, 149.165230, 584.0, 0.0], "SITL home and EKF origin: lat, lon (deg), "
             "alt (m AMSL), heading (deg)", shape=(4,)),
     Setting("viso_delay_ms", "number", None, "VISO_DELAY_MS to set", min=0.0, max=250.0,
-            default_doc="measured: the bridge's pose stamp -> send p50 once the vision flows"),
+            default_doc="measured once the vision flows: the bridge's pose stamp -> send p2 (about the smallest delay, "
+            "which ArduPilot's jitter correction leaves; bridge/estimator_delay.py)"),
     Setting("viso_pos_m_nse", "number", 0.01, "VISO_POS_M_NSE: ArduPilot's floor on the position noise (m)",
             min=0.001, max=10.0),
     Setting("viso_yaw_m_nse", "number", 0.02, "VISO_YAW_M_NSE: floor on the yaw noise (rad)", min=0.001, max=1.0),
@@ -51,6 +52,21 @@ class SitlSettings:
     viso_vel_m_nse: float
 
 
+REPO_ROOT = Path(__file__).resolve().parents[3]
+
+
+def _shared_sitl_dir() -> Path:
+    """../shared/sitl beside the checkout (for a git worktree: beside its main checkout)."""
+    root = REPO_ROOT
+    dotgit = root / ".git"
+    if dotgit.is_file():  # a worktree: "gitdir: MAIN/.git/worktrees/NAME"
+        text = dotgit.read_text(errors="replace").strip()
+        if text.startswith("gitdir:") and "/.git/worktrees/" in text:
+            root = Path(text.split(":", 1)[1].strip().split("/.git/worktrees/")[0])
+    return root.parent / "shared" / "sitl"
+
+
+SHARED_SITL_DIR = _shared_sitl_dir()  # the SITL binary and copter.parm of a checkout beside ../shared (tests, CI)
 DEFAULTS_NAME = "copter.parm"
 DEFAULTS_IN_TREE = Path("Tools") / "autotest" / "default_params" / DEFAULTS_NAME
 
@@ -59,11 +75,8 @@ def defaults_candidates(binary: Path) -> list[Path]:
     """Where copter.parm may be, in order: beside the binary; in the ArduPilot tree it was built in (the binary
     at build/sitl/bin/arducopter, the file at Tools/autotest/default_params/copter.parm); in ../shared/sitl
     beside the checkout."""
-    from visionpos.app.sitl.binary import SHARED_BINARY
-
     b = binary.resolve()
-    return [b.parent / DEFAULTS_NAME, *(p / DEFAULTS_IN_TREE for p in b.parents[:4]),
-            SHARED_BINARY.parent / DEFAULTS_NAME]
+    return [b.parent / DEFAULTS_NAME, *(p / DEFAULTS_IN_TREE for p in b.parents[:4]), SHARED_SITL_DIR / DEFAULTS_NAME]
 
 
 def find_defaults(binary: Path) -> Path:
