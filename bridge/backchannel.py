@@ -604,7 +604,8 @@ class Backchannel:
         self.delay_ms = d_ns * 1e-6  # each estimate spans DELAY_WINDOW_NS already; the newest follows changes
         # each pose's delay: its own stamp -> send, plus the link's share of the median (the same for all)
         link_ns = d_ns - float(np.median(sends[:, 0]))
-        self.advice = advised_delay(self.autopilot, (sends[:, 0] + link_ns) * 1e-6)
+        est = self.cfg.autopilot if self.cfg.autopilot != "auto" else self.autopilot
+        self.advice = advised_delay(est, (sends[:, 0] + link_ns) * 1e-6)
         if self._delay_said is None or abs(self.delay_ms - self._delay_said) >= DELAY_RESET_MS:
             self._delay_said = self.delay_ms
             log.warning("vehicle %s: %s", self.cfg.name, self.delay_advice())
@@ -622,7 +623,8 @@ class Backchannel:
         return None if self.gyro_filter_hz is None else gyro_filter_lag_ns(self.gyro_filter_hz)
 
     def _delay_param_name(self) -> str:
-        return "EKF2_EV_DELAY" if self.autopilot == "px4" else "VISO_DELAY_MS"
+        return self.advice.param if self.advice is not None else (
+            "EKF2_EV_DELAY" if self.autopilot == "px4" else "VISO_DELAY_MS")
 
     def _maybe_set_delay(self, now: int) -> None:
         if not self.cfg.set_delay or self.delay_ms is None or len(self._delays) < 3 or self.autopilot is None:
@@ -637,7 +639,7 @@ class Backchannel:
         if self.delay_param_confirmed == self._delay_param_value or now < self._next_param:
             return
         self._next_param = now + PARAM_RETRY_NS
-        px4 = self.autopilot == "px4"
+        px4 = self._delay_param_name() == "EKF2_EV_DELAY"
         ptype = mavlink2.MAV_PARAM_TYPE_REAL32 if px4 else mavlink2.MAV_PARAM_TYPE_INT16
         self.send(self.mav.param_set_encode(self.cfg.sysid, MAV_COMP_ID_AUTOPILOT1,
                                             self._delay_param_name().encode(), value, ptype))
