@@ -44,6 +44,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from bridge.config import VehicleConfig
 from bridge.estimator_delay import DelayAdvice, advised_delay
+from bridge.px4_status import ev_fusion_state
 from visionpos.analysis.autopilot import (
     body_rates_from_attitudes,
     estimate_lag,
@@ -90,6 +91,7 @@ MSG_RAW_IMU = 27
 MSG_HIGHRES_IMU = 105
 MSG_LOCAL_POSITION_NED = 32
 MSG_EKF_STATUS_REPORT = 193
+MSG_ESTIMATOR_STATUS = 230  # PX4's (EKF2): bridge/px4_status.py
 MSG_GPS_GLOBAL_ORIGIN = 49
 MSG_HOME_POSITION = 242
 HOME_TOLERANCE_M = 0.01  # home read back further than this from the origin: said (a float32 COMMAND_LONG's error)
@@ -227,6 +229,8 @@ class Backchannel:
         self.ekf_flags: int | None = None
         self.ekf_ratios: dict[str, float] = {}
         self._ekf_ns = 0
+        self.estimator_status: tuple[int, int, float, float, float] | None = None  # PX4: recv ns, flags, 3 ratios
+        self._ev_said = ""  # the PX4 EV state last logged
         self.ext_nav_text = ""  # the last STATUSTEXT about external navigation
         self.statustexts: collections.deque[tuple[int, str]] = collections.deque(maxlen=20)
         self._ekf_bad_reports = 0
@@ -288,6 +292,14 @@ class Backchannel:
             self.local_position = (m.x, m.y, m.z)
         elif t == "EKF_STATUS_REPORT":
             self._on_ekf_status(m, recv_ns)
+        elif t == "ESTIMATOR_STATUS":
+            self.estimator_status = (recv_ns, int(m.flags), float(m.pos_horiz_ratio), float(m.pos_vert_ratio),
+                                     float(m.vel_ratio))
+            state, why = self.ekf_state(recv_ns)
+            if state != self._ev_said:  # said in words when it changes
+                self._ev_said = state
+                log.log(logging.INFO if state == "using vision" else logging.WARNING, "vehicle %s: %s",
+                        self.cfg.name, why)
         elif t == "STATUSTEXT":
             self._on_statustext(m)
         elif t == "GPS_GLOBAL_ORIGIN":
@@ -364,6 +376,7 @@ class Backchannel:
         self.delay_param_confirmed = None
         self.gyro_filter_hz = None  # read again: it may have been changed for this boot
         self.ekf_flags = None
+        self.estimator_status = None
         self.ekf_ratios = {}
         self.ext_nav_text = ""
         self._streams_due = self.clock_ns()
@@ -479,8 +492,9 @@ class Backchannel:
     def _request_streams(self) -> None:
         interval_us = 1e6 / self.cfg.telemetry_rate_hz
         imu = MSG_RAW_IMU if self.autopilot == "ardupilot" else MSG_HIGHRES_IMU
+        ekf = MSG_ESTIMATOR_STATUS if self.autopilot == "px4" else MSG_EKF_STATUS_REPORT
         for msg_id, us in ((MSG_ATTITUDE, interval_us), (imu, interval_us), (MSG_LOCAL_POSITION_NED, 1e5),
-                           (MSG_EKF_STATUS_REPORT, 5e5)):
+                           (ekf, 5e5)):
             self.send(self.mav.command_long_encode(self.cfg.sysid, MAV_COMP_ID_AUTOPILOT1,
                                                    MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, us, 0, 0, 0, 0, 0))
 
@@ -647,6 +661,10 @@ class Backchannel:
     # ------------------------------------------------------------ reporting
     def ekf_state(self, now: int) -> tuple[str, str]:
         """('using vision' | 'rejecting vision' | 'not using vision' | 'unknown', plain-language detail)."""
+        es = self.estimator_status
+        if es is not None and now - es[0] <= EKF_STATUS_STALE_NS:  # PX4's EKF2
+            sending = bool(self.sends.d) and now - self.sends.last_t() < TELEMETRY_STALE_NS
+            return ev_fusion_state(es[1], es[2], es[3], es[4], sending)
         if self.ekf_flags is None or now - self._ekf_ns > EKF_STATUS_STALE_NS:
             if self.ext_nav_text:
                 return "using vision", self.ext_nav_text

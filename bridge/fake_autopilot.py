@@ -52,6 +52,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # common + EKF_STATUS_REPORT
 from scipy.spatial.transform import Rotation
 
+from bridge.fake_px4 import FLAGS_ATTITUDE_ONLY, FLAGS_EV_FUSED, POSE_FRESH_NS, PX4_PARAMS, Px4State, pose_refusal
 from visionpos.geometry.frames import quat_world_body_to_ned_frd
 from visionpos.server.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
 
@@ -62,7 +63,7 @@ AUTOPILOTS = {"ardupilot": mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, "px4": mavlink2
 SIGNING_EPOCH_S = 1420070400
 GRAVITY = 9.80665
 TELEMETRY = {30: "ATTITUDE", 31: "ATTITUDE_QUATERNION", 105: "HIGHRES_IMU", 27: "RAW_IMU", 32: "LOCAL_POSITION_NED",
-             193: "EKF_STATUS_REPORT"}
+             193: "EKF_STATUS_REPORT", 230: "ESTIMATOR_STATUS"}
 EKF_USING_VISION = 1 | 2 | 4 | 8 | 32  # attitude, velocities, relative horizontal and vertical position
 EKF_NO_POSITION = 1 | 128  # attitude only, constant position mode
 EXT_NAV_TEXT = "EKF3 IMU0 is using external nav data"
@@ -160,7 +161,7 @@ class FakeAutopilot:
                  delay_ms: float = 0.0, boot_ns: int | None = None, origin_ready_s: float = 0.0,
                  ekf: str = "accept", gyro_noise_rad_s: float = 0.003, attitude_noise_deg: float = 0.2,
                  seed: int | None = None, gyro_filter_hz: float = 0.0, keep_received: int | None = None,
-                 on_pose: Callable[[Received], None] | None = None):
+                 on_pose: Callable[[Received], None] | None = None, reject_params: tuple[str, ...] = ()):
         kind, _, rest = endpoint.partition(":")
         host, _, port = rest.rpartition(":")
         if kind not in ("udpout", "udpin", "tcpin") or not host or not port.isdigit():
@@ -203,6 +204,11 @@ class FakeAutopilot:
         # rounded to the nearest degE7), alt (m)
         self.home: tuple[int, int, float] | None = None
         self.params: dict[str, float] = {"INS_GYRO_FILTER": float(gyro_filter_hz)} if autopilot == "ardupilot" else {}
+        # as PX4 (bridge/fake_px4.py): its pose rules, its commander, its parameters; reject_params go unanswered
+        self.px4 = Px4State() if autopilot == "px4" else None
+        if self.px4 is not None:
+            self.params = {k: v for k, v in PX4_PARAMS.items() if k not in reject_params}
+        self.dropped_poses: collections.deque[str] = collections.deque(maxlen=100)  # PX4: why each was not fused
         # the filter's group delay at low frequency, sqrt(2) / (2 pi fc) (no filter: 0)
         self.gyro_lag_ns = int(math.sqrt(2.0) / (2.0 * math.pi * gyro_filter_hz) * 1e9) if gyro_filter_hz > 0 else 0
         self.statustexts: list[str] = []
@@ -282,7 +288,7 @@ class FakeAutopilot:
         self.intervals_ns = {}
         if self._telemetry_default_ns:
             for mid in TELEMETRY:
-                self.intervals_ns[mid] = self._telemetry_default_ns if mid != 193 else 500_000_000
+                self.intervals_ns[mid] = self._telemetry_default_ns if mid not in (193, 230) else 500_000_000
         self._next_tx = {}
 
     def true_delay_ms(self, window_s: float | None = None, percentile: float = 50.0) -> float:
@@ -329,12 +335,16 @@ class FakeAutopilot:
                     break
                 while self._pending and self._pending[0][0] <= now:
                     self._handle(*reversed(self._pending.popleft()))
-                if self._peer is not None and self._sock is not None and self.truth is not None:
+                linked = self._peer is not None and self._sock is not None
+                if linked and (self.truth is not None or self.px4 is not None):
                     self._telemetry(now)
                 if self._peer is not None and self._sock is not None:
                     if self.heartbeat_hz > 0 and now >= next_hb:
+                        base, custom = ((self.px4.base_mode(), self.px4.custom_mode()) if self.px4 is not None
+                                        else (0, 0))
                         self.mav.send(self.mav.heartbeat_encode(
-                            mavlink2.MAV_TYPE_QUADROTOR, AUTOPILOTS[self.autopilot], 0, 0, mavlink2.MAV_STATE_STANDBY))
+                            mavlink2.MAV_TYPE_QUADROTOR, AUTOPILOTS[self.autopilot], base, custom,
+                            mavlink2.MAV_STATE_STANDBY))
                         next_hb = now + int(1e9 / self.heartbeat_hz)
                     if self.timesync_hz > 0 and now >= next_ts:
                         ts1 = self.clock_ns()
@@ -344,7 +354,7 @@ class FakeAutopilot:
                 wake = [now + 20_000_000]
                 if self._pending:
                     wake.append(self._pending[0][0])
-                if self.truth is not None and self._next_tx:
+                if self._next_tx:
                     wake.append(min(self._next_tx.values()))
                 for key, _ in sel.select(max(0.0, (min(wake) - self.clock_ns()) * 1e-9)):
                     if key.data == "listen":
@@ -414,7 +424,15 @@ class FakeAutopilot:
                     self._ts_sent.discard(m.ts1)
                     self.timesync_samples.append((now - m.ts1, m.tc1 - (m.ts1 + now) // 2))
             elif t in POSE_TYPES:
-                self._on_pose(now)
+                refused = pose_refusal(t, m.to_dict()) if self.px4 is not None else None
+                if refused is None:
+                    self._on_pose(now)
+                else:
+                    self.dropped_poses.append(refused)
+            elif t == "HEARTBEAT" and self.px4 is not None and m.type == mavlink2.MAV_TYPE_GCS:
+                self.px4.last_gcs_ns = now
+            elif t == "MANUAL_CONTROL" and self.px4 is not None and m.target == self.sysid:
+                self.px4.last_manual_ns = now
             elif t == "SET_GPS_GLOBAL_ORIGIN" and m.target_system == self.sysid:
                 if self.boot_time_ns(now) < self.origin_ready_ns:
                     self.origin_dropped += 1  # the EKF is not running yet
@@ -427,8 +445,9 @@ class FakeAutopilot:
                 self.home = (m.latitude, m.longitude, m.altitude * 1e-3)
             elif t == "PARAM_SET" and m.target_system == self.sysid:
                 pid = m.param_id.rstrip("\0") if isinstance(m.param_id, str) else str(m.param_id)
-                self.params[pid] = float(m.param_value)
-                self.mav.send(self.mav.param_value_encode(pid.encode(), m.param_value, m.param_type, 1, 0))
+                if self.px4 is None or pid in self.params:  # PX4 does not answer a name it does not have
+                    self.params[pid] = float(m.param_value)
+                    self.mav.send(self.mav.param_value_encode(pid.encode(), m.param_value, m.param_type, 1, 0))
             elif t == "PARAM_REQUEST_READ" and m.target_system == self.sysid:
                 pid = m.param_id.rstrip("\0") if isinstance(m.param_id, str) else str(m.param_id)
                 if pid in self.params:
@@ -442,7 +461,7 @@ class FakeAutopilot:
 
     def _on_pose(self, now: int) -> None:
         self._last_pose_ns = now
-        if self.ekf == "accept" and not self._said_ext_nav:
+        if self.ekf == "accept" and not self._said_ext_nav and self.px4 is None:
             self._said_ext_nav = True
             self._statustext(mavlink2.MAV_SEVERITY_INFO, EXT_NAV_TEXT)
 
@@ -455,9 +474,21 @@ class FakeAutopilot:
             lat, lon, alt = self.origin
             self.mav.send(self.mav.gps_global_origin_encode(lat, lon, alt, self.boot_time_ns() // 1000))
 
+    def ev_fused(self, now: int) -> bool:
+        """Its EKF fuses the vision: it accepts it and a pose it could read arrived lately."""
+        return self.ekf == "accept" and now - self._last_pose_ns < POSE_FRESH_NS
+
     def _command(self, m, kind: str) -> None:
         cmd = m.command
         result = mavlink2.MAV_RESULT_UNSUPPORTED
+        if self.px4 is not None and kind == "COMMAND_LONG":
+            now = self.clock_ns()
+            px4_result, text = self.px4.command(cmd, m.param1, m.param2, now, self.ev_fused(now))
+            if text is not None:
+                self._statustext(mavlink2.MAV_SEVERITY_CRITICAL, text)
+            if px4_result >= 0:
+                self.mav.send(self.mav.command_ack_encode(cmd, px4_result))
+                return
         if cmd == MAV_CMD_SET_MESSAGE_INTERVAL:
             mid, us = int(m.param1), float(m.param2)
             if mid in TELEMETRY:
@@ -500,6 +531,11 @@ class FakeAutopilot:
             iv = self.intervals_ns[mid]
             nxt = self._next_tx.get(mid, now) + iv
             self._next_tx[mid] = nxt if nxt > now else now + iv
+        if self.truth is None:  # PX4 with no motion to play: only the estimator's status
+            for mid in due:
+                if mid in (193, 230):
+                    self.mav.send(self._status(mid, now))
+            return
         tr = self.truth(np.array([now], dtype=np.int64))
         t_boot = self.boot_time_ns(now)
         gyro, acc = imu_from_truth(tr)
@@ -530,8 +566,17 @@ class FakeAutopilot:
                 v = tr.velocity[0] * np.array([1.0, -1.0, -1.0])
                 msg = self.mav.local_position_ned_encode(ms, *p, *v)
             else:
-                msg = self._ekf_status(now)
+                msg = self._status(mid, now)
             self.mav.send(msg)
+
+    def _status(self, mid: int, now: int):
+        """EKF_STATUS_REPORT (193, ArduPilot's) or ESTIMATOR_STATUS (230, PX4's): from what it fuses, no truth."""
+        if mid != 230:
+            return self._ekf_status(now)
+        fused = self.ev_fused(now)
+        ratio = 0.05 if fused else (2.5 if self.ekf == "reject" and now - self._last_pose_ns < POSE_FRESH_NS else 0.0)
+        return self.mav.estimator_status_encode(self.boot_time_ns(now) // 1000, FLAGS_EV_FUSED if fused else
+                                                FLAGS_ATTITUDE_ONLY, ratio, ratio, ratio, 0.0, 0.0, 0.0, 0.01, 0.01)
 
     def _ekf_status(self, now: int):
         fresh = now - self._last_pose_ns < 500_000_000

@@ -42,3 +42,18 @@ def test_constant_delay_gives_that_delay_to_both_and_nothing_without_delays():
 def test_an_added_link_delay_moves_both_by_as_much(shift):
     assert advised_delay("ardupilot", _delays() + shift).value_ms == 10 + shift
     assert advised_delay("px4", _delays() + shift).value_ms == 20 + shift
+
+
+# ------------------------------------------------------------------ PX4's ESTIMATOR_STATUS in words
+def test_px4_estimator_status_in_plain_words():
+    from bridge.px4_status import ev_fusion_state
+
+    state, why = ev_fusion_state(0x1EF, 0.05, 0.1, 0.02, sending=True)  # what SIH showed fusing EV
+    assert state == "using vision" and "0x1ef" in why and "height" in why
+    state, why = ev_fusion_state(0x1, 0.3, 2.4, 0.2, sending=True)
+    assert state == "rejecting vision" and "height test ratio is 2.40" in why
+    state, why = ev_fusion_state(0x1, 0.0, 0.0, 0.0, sending=True)
+    assert state == "not using vision" and "MOCAP is never fused" in why and "EKF2_EV_CTRL" in why
+    assert ev_fusion_state(0x0, 0.0, 0.0, 0.0, sending=True)[1].startswith("EKF2 has no attitude")
+    state, why = ev_fusion_state(0x1, 3.0, 0.0, 0.0, sending=False)  # ratios left over: not a rejection now
+    assert state == "not using vision" and "no pose" in why
