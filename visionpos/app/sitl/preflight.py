@@ -99,6 +99,8 @@ def prepare_vehicle(gcs: Gcs, proc: SitlProcess, cfg: SitlSettings, veh: Vehicle
     """The whole set-up, in its order: connect, the vision-only parameters (read back), reboot, reconnect,
     the noise floors (and VISO_DELAY_MS when configured), the signing key, the EKF origin and home."""
     gcs.connect(30.0, proc)
+    if gcs.autopilot_type == 12:  # MAV_AUTOPILOT_PX4
+        raise SitlError(f"{cfg.binary} runs PX4, not ArduPilot: fly it with --autopilot px4")
     params = vision_parameters(cfg, veh.message, veh.vision_speed)
     gcs.set_params(params)
     say(f"parameters set and read back ({len(params)}); rebooting SITL")

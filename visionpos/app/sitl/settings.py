@@ -19,6 +19,9 @@ SITL = section(
             "(Tools/autotest/default_params/copter.parm; relative to the arena file)",
             default_doc="--defaults PATH, else copter.parm beside the binary, in the ArduPilot tree it was built "
             "in, or in ../shared/sitl"),
+    Setting("px4_dir", "text", None, "PX4's SITL build folder, holding bin/px4 and etc/ (`visionpos sitl --autopilot "
+            "px4`; relative to the arena file)",
+            default_doc="--sitl DIR, else $VISIONPOS_PX4_SITL, else ../shared/sitl-px4/build beside the checkout"),
     Setting("model", "text", "+", "SITL frame model (--model)"),
     Setting("instance", "integer", None, "SITL instance (-I): ports 5760 + 10*I ...", min=0, max=200,
             default_doc="the first whose ports are free from 1"),
