@@ -45,6 +45,25 @@ def test_wrong_build_for_the_autopilot_is_one_line(tmp_path):
         P.find_px4_dir(str(tmp_path))
 
 
+def test_cli_exits_1_with_the_reason_when_px4_refuses_the_set_up(tmp_path, monkeypatch, capsys):
+    import argparse
+
+    from visionpos.cli import sitl as cli
+
+    (tmp_path / "bin").mkdir()
+    (tmp_path / "etc").mkdir()
+    (tmp_path / "bin" / "px4").write_text("")
+
+    def refuse(arena, build, plan, out):
+        raise S.SitlError("PX4 did not answer for EKF2_EV_NOISE_MD: this firmware has no such parameter")
+
+    monkeypatch.setattr(cli, "run_px4", refuse)
+    p = argparse.ArgumentParser()
+    cli.add_arguments(p)
+    assert cli.run(p.parse_args(["--autopilot", "px4", "--sitl", str(tmp_path), "--no-square"])) == 1
+    assert "EKF2_EV_NOISE_MD" in capsys.readouterr().err
+
+
 def _gcs(ap):
     return P.Px4Gcs({"gcs": ap.port, "onboard": 0, "truth": free_port()}, S.TruthTrack(HOME))
 

@@ -10,6 +10,7 @@ from pathlib import Path
 from visionpos.app.sitl import FlightPlan, find_sitl_binary, format_flight, run_sitl, sitl_arena
 from visionpos.app.sitl.px4 import check_build_kind, find_px4_dir
 from visionpos.app.sitl.px4_run import run_px4
+from visionpos.app.sitl.settings import SitlError
 from visionpos.errors import UsageError
 
 
@@ -68,7 +69,11 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError("--link-delay-ms: the delay relay is wired for ArduPilot's SITL only")
         build = find_px4_dir(args.sitl, arena)
         out.write(f"visionpos sitl: PX4 {build} with {len(arena.cameras)} simulated cameras on 127.0.0.1\n")
-        summary = run_px4(arena, build, plan, out)
+        try:
+            summary = run_px4(arena, build, plan, out)
+        except SitlError as e:  # PX4 refused the set-up (a parameter, its HEARTBEAT): which and why, status 1
+            print(f"visionpos sitl: {e}", file=sys.stderr)
+            return 1
     else:
         binary = find_sitl_binary(args.sitl, arena)
         out.write(f"visionpos sitl: {binary} with {len(arena.cameras)} simulated cameras on 127.0.0.1\n")
