@@ -77,7 +77,7 @@ def test_px4_gcs_reads_the_parameters_back_and_says_which_is_missing_or_rejected
         gcs.connect(5.0)
         assert gcs.target == 5
         with pytest.raises(S.SitlError, match="did not answer for EKF2_EV_NOISE_MD.*no such parameter"):
-            gcs.check_params(params, timeout_s=1.5)
+            gcs.check_params(params, timeout_s=1.0)
         del params["EKF2_EV_NOISE_MD"]
         gcs.check_params(params)
         ap.params["EKF2_HGT_REF"] = 1.0  # the firmware kept its own value
@@ -135,8 +135,8 @@ def test_ekf2_rejecting_the_vision_is_said_and_stops_the_run():
     gcs = _gcs(ap)
     try:
         gcs.connect(5.0)
-        with pytest.raises(S.SitlError, match="never fused the vision in 1.5 s: EKF2 rejects the vision"):
-            asyncio.run(_with_vision(gcs, wait_ev_fused(gcs, 1.5, lambda: True)))
+        with pytest.raises(S.SitlError, match="never fused the vision in 1 s: EKF2 rejects the vision"):
+            asyncio.run(_with_vision(gcs, wait_ev_fused(gcs, 1.0, lambda: True)))
     finally:
         gcs.close()
         ap.close()

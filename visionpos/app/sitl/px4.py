@@ -307,7 +307,9 @@ class Px4Gcs(Gcs):
                 break
             for k in missing:
                 self.conn.mav.param_request_read_send(self.target, 1, k.encode(), -1)
-            time.sleep(0.5)
+            again = time.monotonic() + 0.5  # ask again for those still missing after this
+            while time.monotonic() < again and any(k not in self.params for k in missing):
+                time.sleep(0.02)
         missing = [k for k in params if k not in self.params]
         if missing:
             raise SitlError(f"PX4 did not answer for {', '.join(missing)}: this firmware has no such parameter "
