@@ -123,3 +123,21 @@ def test_bridge_to_px4_sends_local_ned_vision_and_reads_estimator_status():
     finally:
         bridge.close()
         ap.close()
+
+
+def test_the_autopilot_setting_decides_before_any_heartbeat():
+    """`autopilot: px4` sends LOCAL_NED from the first pose; `auto` follows the HEARTBEAT (None before it)."""
+    from bridge.config import parse_vehicles
+    from bridge.vehicle_link import VehicleLink
+    from visionpos.benchmarks.factories import arena_with_vehicles
+
+    for setting, expected in (("px4", "px4"), ("ardupilot", "ardupilot"), ("auto", None)):
+        cfg = parse_vehicles(arena_with_vehicles([{"body": "body1", "endpoint": "udpout:127.0.0.1:9",
+                                                   "autopilot": setting}]))[0]
+        link = VehicleLink(cfg)
+        try:
+            assert link.estimator() == expected
+            link.bc.autopilot = "px4"  # as its HEARTBEAT would say
+            assert link.estimator() == (expected or "px4")
+        finally:
+            link.close()
