@@ -644,7 +644,8 @@ class VehicleLink:
     def stats(self) -> dict:
         out: dict = dict(self.counters)
         lc, ls, lb = self.lat_capture.values(), self.lat_stamp.values(), self.lat_bridge.values()
-        lc_p, ls_p, lb_p = (percentiles_ms(v, (50, 99)) for v in (lc, ls, lb))
+        lc_p, lb_p = (percentiles_ms(v, (50, 99)) for v in (lc, lb))
+        ls_p = percentiles_ms(ls, (50, 99, 2))  # p2: about the smallest delay (bridge/estimator_delay.py)
         out.update(
             sysid=self.cfg.sysid,
             body=self.cfg.body,
@@ -658,7 +659,7 @@ class VehicleLink:
             autopilot_heard_s_ago=((self.clock_ns() - self.last_rx_ns) * 1e-9 if self.last_rx_ns else None),
             latency_capture_ms_p50=lc_p[0],
             latency_capture_ms_p99=lc_p[1],
-            latency_stamp_ms_p2=percentiles_ms(ls, (2,))[0],
+            latency_stamp_ms_p2=ls_p[2],
             latency_stamp_ms_p50=ls_p[0],
             latency_stamp_ms_p99=ls_p[1],
             latency_bridge_ms_p50=lb_p[0],

@@ -111,9 +111,12 @@ def test_bridge_to_px4_sends_local_ned_vision_and_reads_estimator_status():
     bridge = _pairs([{"message": "odometry"}], [ap])
     v = bridge.vehicles[0]
     try:
-        _stream(bridge, [FIG8], t0, 6.0, until=lambda: v.health()["ekf"]["state"] == "using vision"
-                and v.bc.identity == "consistent")
-        odo = [m for m in ap.messages("ODOMETRY") if m.recv_ns > ap.boot_ns + 1_000_000_000]
+        # the frame follows the HEARTBEAT: the poses from a little after the bridge heard PX4's
+        after = lambda: [m for m in ap.messages("ODOMETRY") if v.bc.first_heard_ns  # noqa: E731
+                         and m.recv_ns > v.bc.first_heard_ns + 200_000_000]
+        _stream(bridge, [FIG8], t0, 8.0, until=lambda: v.health()["ekf"]["state"] == "using vision"
+                and v.bc.identity == "consistent" and len(after()) >= 20)
+        odo = after()
         assert odo and {(m.fields["frame_id"], m.fields["estimator_type"]) for m in odo} == {(1, 2)}
         assert not ap.dropped_poses
         assert 230 in ap.intervals_ns and 105 in ap.intervals_ns and 193 not in ap.intervals_ns
