@@ -6,7 +6,7 @@ mavlink_receiver, EKF2 and commander as ../shared/sitl-px4/README.md found them 
   with the reason). VISION_POSITION_ESTIMATE is always taken (NED).
 - Arming (MAV_CMD_COMPONENT_ARM_DISARM) needs a GCS HEARTBEAT (MAV_TYPE_GCS) within the last 3 s, MANUAL_CONTROL
   within the last 0.5 s, Position mode (MAV_CMD_DO_SET_MODE 1, 3) and the vision fused; refused otherwise with
-  a STATUSTEXT that says which (worded by this fake, not PX4's own words).
+  a STATUSTEXT (at most 50 characters) that says which, worded by this fake, not as PX4 words it.
 - ESTIMATOR_STATUS (230) on request, with the flags EKF2 showed fusing EV (0x1ef) or attitude only.
 - PARAM_SET answered for the parameters PX4 has (PX4_PARAMS; an unknown name gets no answer, as PX4's), except
   those given as `reject_params` (no answer either: a firmware without them).
@@ -65,13 +65,13 @@ class Px4State:
     def arm_refusal(self, now: int, ev_fused: bool) -> str | None:
         """Why arming is refused now (None: it arms)."""
         if now - self.last_gcs_ns > GCS_TIMEOUT_NS:
-            return "fake PX4: arming refused: no GCS heartbeat"
+            return "Arming denied: no GCS heartbeat"
         if now - self.last_manual_ns > MANUAL_TIMEOUT_NS:
-            return "fake PX4: arming refused: no manual control (MANUAL_CONTROL)"
+            return "Arming denied: no manual control"
         if self.main_mode != POSCTL:
-            return "fake PX4: arming refused: not in Position mode"
+            return "Arming denied: not in Position mode"
         if not ev_fused:
-            return "fake PX4: arming refused: no position estimate (EV not fused)"
+            return "Arming denied: no position estimate (EV)"
         return None
 
     def command(self, cmd: int, p1: float, p2: float, now: int, ev_fused: bool) -> tuple[int, str | None]:

@@ -73,7 +73,7 @@ def test_fake_px4_arms_only_with_gcs_manual_control_position_mode_and_vision():
             send(mav.manual_control_encode(1, 0, 0, 500, 0, 0))
             send(vpe())
         send(arm)
-        assert recv("STATUSTEXT", cond=lambda m: "arming" in m.text).text.endswith("not in Position mode")
+        assert recv("STATUSTEXT", cond=lambda m: "Arming" in m.text).text.endswith("not in Position mode")
         send(mav.command_long_encode(1, 1, 176, 0, 1, 3, 0, 0, 0, 0, 0))  # MAV_CMD_DO_SET_MODE custom, POSCTL
         assert recv("COMMAND_ACK", cond=lambda m: m.command == 176).result == mavlink2.MAV_RESULT_ACCEPTED
         send(mav.manual_control_encode(1, 0, 0, 500, 0, 0))

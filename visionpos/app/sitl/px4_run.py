@@ -152,6 +152,7 @@ async def fly_px4(ctx: Any, gcs: Px4Gcs, plan: FlightPlan, body: str, record: di
     say("EKF2 fuses the vision")
     await arm_in_position_mode(gcs, 45.0)
     record["armed_ns"] = time.monotonic_ns()
+    await gcs.until(lambda: bool(gcs.local), 5.0, "LOCAL_POSITION_NED from PX4 (its GCS link streams it)")
     n0, e0, _ = gcs.local[-1][1:4]
     gcs.setpoint = (n0, e0, -plan.altitude_m)  # streamed before and after the switch: Offboard needs it
     await asyncio.sleep(0.5)
