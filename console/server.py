@@ -103,6 +103,7 @@ class ConsoleServer:
         self.view = ConsoleView(source)
         for cam in self.view.scene["cameras"]:
             cam["mask"] = (masks or {}).get(cam["id"])
+        self.view.scene["update_rate_hz"] = settings.update_rate_hz  # the page compares its own rate with it
         self.health_view = HealthView(self.view)
         self.clients: set[Client] = set()
         self.rlog = RateLimitedLog(log)

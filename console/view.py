@@ -13,6 +13,7 @@ console update (30 Hz), never per packet.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from dataclasses import dataclass, field
@@ -77,7 +78,14 @@ def scene(arena: Any) -> dict[str, Any]:
     bodies = [{"name": b.name, "id": b.id, "markers": [[round(float(v), 5) for v in p] for p in b.markers]}
               for b in arena.bodies]
     return {"type": "scene", "source": arena.source, "cameras": cams, "bodies": bodies,
-            "calibration_rms_px": calibration_residuals(arena)}
+            "calibration_rms_px": calibration_residuals(arena), "scene_id": scene_id(cams, bodies)}
+
+
+def scene_id(cameras: list[dict[str, Any]], bodies: list[dict[str, Any]]) -> str:
+    """A short hash of the cameras (ids, names, intrinsics, poses) and bodies: a page that reconnects to a scene
+    with another id (the server restarted into another arena) builds its views again."""
+    text = json.dumps([cameras, bodies], sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def calibration_residuals(arena: Any) -> dict[str, float]:

@@ -1,9 +1,11 @@
 // visionpos operator console: one WebSocket, a three.js arena, a 2-D canvas per camera, health tables.
-// Messages (console/server.py): scene (once), state (update_rate_hz), health (2 Hz), replay, error.
+// Messages (console/server.py): scene (once per connection), state (update_rate_hz), health (1 Hz), replay, error.
+// Truth on screen: no message for STALE_MS, or a closed socket, greys the page with "no data since HH:MM:SS";
+// a scene with another scene_id (a restart into another arena) rebuilds the 3D view and the camera views.
 import * as THREE from "three";
 import { OrbitControls } from "./vendor/OrbitControls.js";
 import { calibMessage } from "./calib.js";
-import { drawStationLayer, initStationTools, onStationMessage, stationTools } from "./stills.js";
+import { drawStationLayer, initStationTools, onStationMessage, resetStationTools, stationTools } from "./stills.js";
 
 const BODY_COLORS = [0x44ccff, 0xff66cc, 0x88ee66, 0xffdd44, 0xaa88ff, 0xff8844];
 const LEFT_COLOR = "#ffaa44";
@@ -11,9 +13,12 @@ const TRAIL_POINTS = 90;       // a short trail: 3 s at 30 updates/s
 const FRUSTUM_DEPTH_M = 0.35;
 const RAY_LENGTH_M = 8;
 const CAM_VIEW_WIDTH_PX = 300;
+const STALE_MS = 2000;         // no update for this long: the page is not live
+const RATE_WINDOW_MS = 2000;   // the page's own update rate, counted over this window
 
 // what the browser tests read (tests/console/test_browser.py)
-const stats = { scenes: 0, states: 0, health: 0, errors: [], blobs: {}, frames3d: 0 };
+const stats = { scenes: 0, states: 0, health: 0, errors: [], blobs: {}, frames3d: 0, rebuilds: 0, stale: true,
+  staleText: "", updatesPerS: null };
 window.visionposConsole = stats;
 
 const params = new URLSearchParams(location.search);
@@ -44,7 +49,22 @@ class Arena3D {
     this.camera = new THREE.PerspectiveCamera(50, 1, 0.05, 200);
     this.camera.up.set(0, 0, 1);  // world z is up
     this.controls = new OrbitControls(this.camera, canvas);
+    this.load(msg);
+    this.resize();
+    new ResizeObserver(() => this.resize()).observe(canvas);
+    const loop = () => { this.controls.update(); this.renderer.render(this.scene, this.camera); stats.frames3d++;
+      requestAnimationFrame(loop); };
+    loop();
+  }
+
+  // the arena's cameras and bodies, from nothing: a rebuild (another arena) leaves no frustum, body or trail behind
+  load(msg) {
+    for (const o of [...this.scene.children]) {
+      this.scene.remove(o);
+      o.traverse(x => { x.geometry?.dispose(); x.material?.dispose(); });
+    }
     this.cameraPoses = msg.cameras;
+    this.frusta = msg.cameras.length;
     this.bodies = msg.bodies.map((b, i) => this.makeBody(b, i));
     this.markers = new THREE.Points(new THREE.BufferGeometry(),
       new THREE.PointsMaterial({ color: 0xffaa44, size: 6, sizeAttenuation: false }));
@@ -54,11 +74,6 @@ class Arena3D {
     this.scene.add(this.rays);
     this.rayCamera = null;
     this.addWorld(msg.cameras);
-    this.resize();
-    new ResizeObserver(() => this.resize()).observe(canvas);
-    const loop = () => { this.controls.update(); this.renderer.render(this.scene, this.camera); stats.frames3d++;
-      requestAnimationFrame(loop); };
-    loop();
   }
 
   addWorld(cams) {
@@ -316,18 +331,39 @@ function wireControls() {
 
 // ------------------------------------------------------------------ connection
 
-function onScene(msg) {
-  stats.scenes++;
-  if (sceneMsg) return;  // a reconnect: the arena is the same
+function clockText(ms) { return new Date(ms).toTimeString().slice(0, 8); }
+
+// what a tab shows of the arena: built on the first scene, built again when a scene with another id comes
+function buildArena(msg) {
   sceneMsg = msg;
   document.getElementById("source").textContent = msg.source;
-  scene3 = new Arena3D(document.getElementById("view3d"), msg);
+  if (scene3) { scene3.load(msg); stats.rebuilds++; } else scene3 = new Arena3D(document.getElementById("view3d"), msg);
+  document.getElementById("camgrid").replaceChildren();
+  camViews.clear();
+  resetStationTools();
+  stats.blobs = {};
   const rays = document.getElementById("rays");
+  rays.replaceChildren(rays.options[0]);
+  rays.value = "";
   for (const c of msg.cameras) {
     camViews.set(c.id, new CameraView(c));
     const o = el("option", `camera ${c.id} (${c.name})`);
     o.value = String(c.id);
     rays.append(o);
+  }
+  stats.cameraViews = camViews.size;
+  stats.frusta = scene3.frusta;
+  stats.sceneId = msg.scene_id;
+}
+
+function onScene(msg) {
+  stats.scenes++;
+  if (!sceneMsg || msg.scene_id !== sceneMsg.scene_id) { buildArena(msg); return; }
+  // the same arena again (a reconnect): only the masks may have changed meanwhile
+  sceneMsg = msg;
+  for (const c of msg.cameras) {
+    const v = camViews.get(c.id);
+    if (v && JSON.stringify(v.c.mask) !== JSON.stringify(c.mask)) { v.c.mask = c.mask; v.mask = null; v.dim = null; }
   }
 }
 
@@ -338,27 +374,67 @@ function onState(msg) {
   if (msg.replay) showReplay(msg.replay);
 }
 
+// live or not: every message of the stream counts as data; a closed socket or STALE_MS of silence is not live
+let lastDataMs = null;
+let rateMark = { ms: Date.now(), states: 0 };
+function setLive() {
+  const conn = document.getElementById("conn");
+  const open = ws && ws.readyState === WebSocket.OPEN;
+  const stale = !open || lastDataMs === null || Date.now() - lastDataMs > STALE_MS;
+  const since = lastDataMs === null ? "no data yet" : `no data since ${clockText(lastDataMs)}`;
+  const rate = stats.updatesPerS === null ? "" : `${fmt(stats.updatesPerS, 0)} updates/s`;
+  const wanted = sceneMsg?.update_rate_hz;
+  const slow = wanted && stats.updatesPerS !== null && stats.updatesPerS < 0.9 * wanted;
+  stats.stale = stale;
+  stats.staleText = stale ? since : "";
+  document.body.classList.toggle("stale", stale);
+  for (const e of document.querySelectorAll(".stale-note")) e.textContent = stats.staleText;
+  conn.textContent = stale ? (open ? `connected, ${since}` : `disconnected, retrying; ${since}`) : "live";
+  conn.className = stale ? "bad" : "ok";
+  const badge = document.getElementById("badge3d");
+  badge.textContent = stale ? since : (rate ? `live, ${rate}` : "live") + (slow ? ` (configured ${wanted})` : "");
+  badge.className = stale ? "badv" : slow ? "warn" : "good";
+}
+
+function tickLive() {
+  const now = Date.now();
+  if (now - rateMark.ms >= RATE_WINDOW_MS) {
+    stats.updatesPerS = (stats.states - rateMark.states) * 1000 / (now - rateMark.ms);
+    rateMark = { ms: now, states: stats.states };
+  }
+  setLive();
+}
+
+// a refusal the server sent ({"type": "error"}): shown in the header until the next one, with its time
+function showRefusal(text) {
+  const n = document.getElementById("notice");
+  n.textContent = `${clockText(Date.now())} refused: ${text}`;
+  n.title = text;
+  n.hidden = false;
+  stats.refusal = text;
+}
+
 function connect() {
   const url = new URL("ws", location.href);
   url.protocol = location.protocol === "https:" ? "wss:" : "ws:";
   if (token) url.searchParams.set("token", token);
   ws = new WebSocket(url);
-  const conn = document.getElementById("conn");
   ws.onopen = () => {
-    conn.textContent = "live"; conn.className = "ok";
     const rays = document.getElementById("rays").value;
     if (rays) send({ cmd: "rays", camera: Number(rays) });
     if (document.hidden) send({ cmd: "views", on: false });
+    setLive();
   };
-  ws.onclose = () => { conn.textContent = "disconnected, retrying..."; conn.className = "bad"; setTimeout(connect, 1000); };
+  ws.onclose = () => { setLive(); setTimeout(connect, 1000); };
   ws.onmessage = e => {
     const msg = JSON.parse(e.data);
+    lastDataMs = Date.now();
     if (msg.type === "scene") onScene(msg);
     else if (msg.type === "state") onState(msg);
     else if (msg.type === "health") showHealth(msg.health);
     else if (msg.type === "replay") showReplay(msg);
     else if (msg.type === "still" || msg.type === "mask") onStationMessage(msg, camViews);
-    else if (msg.type === "error") { stats.errors.push(msg.error); onStationMessage(msg, camViews); }
+    else if (msg.type === "error") { stats.errors.push(msg.error); showRefusal(msg.error); onStationMessage(msg, camViews); }
     if (msg.type === "calib" || msg.type === "calib_reply" || msg.type === "error") calibMessage(msg, send);
   };
 }
@@ -368,3 +444,4 @@ initStationTools(send, stats);
 // a hidden tab draws nothing: the server builds no camera views for it until it is shown again
 document.addEventListener("visibilitychange", () => send({ cmd: "views", on: !document.hidden }));
 connect();
+setInterval(tickLive, 250);

@@ -12,6 +12,12 @@ export function initStationTools(sendFn, stats) {
   stats.stills = shown;
 }
 
+// another arena: the old cameras' stills and pending answers are gone with their views
+export function resetStationTools() {
+  pending = null;
+  for (const k of Object.keys(shown)) delete shown[k];
+}
+
 function button(text, title, onclick) {
   const b = document.createElement("button");
   b.textContent = text;

@@ -12,6 +12,7 @@ import asyncio
 import base64
 import json
 import os
+import re
 import subprocess
 import tempfile
 from pathlib import Path
@@ -265,3 +266,78 @@ def test_calibration_panel_in_chromium_fills_in_and_shows_the_solve(tmp_path):
     assert found["wand"].startswith("wand length A-C: error")
     # the heat map draws its lit cells (background #0d0f12, empty cells #1a1d22)
     assert _drawn(found["img"], _rect(found["rheat"], found["dpr"] or 1.0), (0x22, 0x1d, 0x1a)) > 0.01
+
+
+def _arena(data: dict, name: str):
+    from visionpos.config.arena import parse_arena
+
+    return parse_arena(data, name)
+
+
+def _grey(img: np.ndarray, rect: tuple[int, int, int, int]) -> bool:
+    """No coloured pixel in rect: every pixel's channels within a few levels of each other."""
+    x, y, w, h = rect
+    crop = img[y:y + h, x:x + w].astype(int)
+    return int((crop.max(axis=2) - crop.min(axis=2)).max()) <= 12  # the panels' own blue-grey: 9
+
+
+@pytest.mark.slow
+def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path, arena_yaml):
+    """`visionpos record`'s console (no fusion: quick to start) for the thesis arena, stopped, then started again on
+    the same port for arena8: the page greys with the time of its last data, then shows arena8's eight cameras."""
+    from console.settings import ConsoleSettings
+    from visionpos.app.console import RecordSource, open_console
+
+    found: dict = {}
+    thesis, arena8 = _arena(arena_yaml("thesis"), "thesis.yaml"), _arena(arena_yaml("arena8"), "arena8.yaml")
+
+    async def main():
+        console = await open_console(ConsoleSettings(port=0), RecordSource(thesis))
+        port = console.port
+        browser = Browser(console.url, tmp_path / "profile")
+        try:
+            await browser.connect()
+            await browser.wait_for("window.visionposConsole && window.visionposConsole.states > 10 && "
+                                   "window.visionposConsole.health > 0 && !window.visionposConsole.stale && "
+                                   "window.visionposConsole.updatesPerS > 0")
+            found["live_badge"] = await browser.evaluate("document.getElementById('badge3d').textContent")
+            found["live_rate"] = await browser.evaluate("window.visionposConsole.updatesPerS")
+            found["dpr"] = await browser.evaluate("window.devicePixelRatio")
+            found["rhealth"] = await browser.evaluate(JS_RECT.format(sel="#health"))
+            found["img_live"] = await browser.screenshot(tmp_path / "live.png")
+            await console.stop()
+            await browser.wait_for("window.visionposConsole.stale", 10)
+            found["notes"] = await browser.evaluate(
+                "[...document.querySelectorAll('.stale-note')].map(e => e.textContent)")
+            found["badge"] = await browser.evaluate("document.getElementById('badge3d').textContent")
+            found["conn"] = await browser.evaluate("document.getElementById('conn').textContent")
+            await asyncio.sleep(0.5)  # the grey filter is drawn with the next frame
+            found["img_stale"] = await browser.screenshot(tmp_path / "stale.png")
+            console = await open_console(ConsoleSettings(port=port), RecordSource(arena8))
+            await browser.wait_for("window.visionposConsole.cameraViews === 8 && !window.visionposConsole.stale", 20)
+            found["rebuilt"] = await browser.evaluate(
+                "({frusta: window.visionposConsole.frusta, rebuilds: window.visionposConsole.rebuilds, "
+                "canvases: document.querySelectorAll('#camgrid canvas').length, "
+                "rays: document.querySelectorAll('#rays option').length, "
+                "titles: [...document.querySelectorAll('#camgrid .cam > div:first-child')].map(e => e.textContent)})")
+            found["errors"] = await browser.evaluate("window.visionposConsole.errors")
+        finally:
+            await browser.close()
+            await console.stop()
+
+    asyncio.run(asyncio.wait_for(main(), 120))
+    dpr = found["dpr"] or 1.0
+    # live: the badge says so with the page's own update rate, and the health panel has colour (state words)
+    assert re.match(r"live, \d+ updates/s", found["live_badge"]), found["live_badge"]
+    assert found["live_rate"] > 0
+    assert not _grey(found["img_live"], _rect(found["rhealth"], dpr))
+    # stopped: every panel, the 3D badge and the header say since when, and the health panel is grey
+    since = r"no data since \d\d:\d\d:\d\d"
+    assert len(found["notes"]) == 3 and all(re.fullmatch(since, n) for n in found["notes"]), found["notes"]
+    assert re.fullmatch(since, found["badge"]) and re.search(since, found["conn"])
+    assert _grey(found["img_stale"], _rect(found["rhealth"], dpr))
+    # another arena on the same port: rebuilt for its eight cameras, nothing of the thesis arena left
+    r = found["rebuilt"]
+    assert r["frusta"] == 8 and r["canvases"] == 8 and r["rays"] == 9 and r["rebuilds"] == 1
+    assert [t.split(":")[0] for t in r["titles"]] == [f"camera {c.id} ({c.name})" for c in arena8.cameras]
+    assert found["errors"] == []
