@@ -5,7 +5,8 @@
 import * as THREE from "three";
 import { OrbitControls } from "./vendor/OrbitControls.js";
 import { calibMessage } from "./calib.js";
-import { drawStationLayer, initStationTools, onStationMessage, resetStationTools, stationTools } from "./stills.js";
+import { drawStationLayer, initStationTools, onStationMessage, proposeMask, resetStationTools, stationTools }
+  from "./stills.js";
 
 const BODY_COLORS = [0x44ccff, 0xff66cc, 0x88ee66, 0xffdd44, 0xaa88ff, 0xff8844];
 const LEFT_COLOR = "#ffaa44";
@@ -182,7 +183,7 @@ class CameraView {
     this.c = c;
     this.scale = CAM_VIEW_WIDTH_PX / c.width;
     const box = el("div", undefined, "cam");
-    this.title = el("div", `camera ${c.id} (${c.name})`);
+    this.title = el("div", `camera ${c.id} (${c.name})`, "camtitle");
     this.canvas = el("canvas");
     this.canvas.id = `cam-${c.id}`;
     this.canvas.width = Math.round(c.width * this.scale);
@@ -226,6 +227,7 @@ class CameraView {
     }
     this.title.textContent = `camera ${this.c.id} (${this.c.name}): ${matched} matched, ${left} left over` +
       (v.age_ms === null ? ", no frame yet" : `, frame ${fmt(v.age_ms, 0)} ms old`);
+    this.title.title = this.title.textContent;  // the box keeps its size: a long title ends in an ellipsis
     stats.blobs[this.c.id] = v.blobs.length;
   }
 
@@ -263,10 +265,12 @@ class CameraView {
 
 // ------------------------------------------------------------------ health
 
+// rows: [level, cells]; a row's level ("ok", "warn": a configured rate not met, "bad": stops a flight or shows
+// nothing true) colours it; cells: [text, class, title]
 function fillTable(id, rows) {
   const body = document.querySelector(`#${id} tbody`);
-  body.replaceChildren(...rows.map(cells => {
-    const tr = el("tr");
+  body.replaceChildren(...rows.map(([level, cells]) => {
+    const tr = el("tr", undefined, `row-${level || "ok"}`);
     for (const [text, cls, title] of cells) {
       const td = el("td", text, cls);
       if (title) td.title = title;
@@ -276,30 +280,62 @@ function fillTable(id, rows) {
   }));
 }
 
+function alerts(row) { const t = (row.alerts || []).join("; "); return [t, "alerts", t]; }
+function rate(x, configured) { return `${fmt(x, 0)} (${fmt(configured, 0)})`; }
+function ago(s) { return s === null || s === undefined ? "-" : s < 1 ? `${fmt(1000 * s, 0)} ms` : `${fmt(s, 1)} s`; }
+
+// the warnings, what stops a flight first; a camera's static blobs are one line with a "mask these" action
+function showWarnings(h) {
+  const items = h.warnings.map(w => el("li", w));
+  for (const r of h.reflections || []) {
+    const i = h.warnings.findIndex(w => w.startsWith(`camera ${r.camera} (`) && w.includes("stayed put"));
+    const view = camViews.get(r.camera);
+    if (i < 0 || !view || !view.drawBtn) continue;
+    const b = el("button", "mask these", "maskthese");
+    b.title = "draw these rectangles on the camera view; check them, then \"save mask\" sends them to the station";
+    b.onclick = () => proposeMask(view, r.ignore);
+    b.dataset.camera = String(r.camera);
+    b.dataset.ignore = JSON.stringify(r.ignore);
+    items[i].append(" ", b);
+  }
+  document.getElementById("warnings").replaceChildren(...items);
+}
+
 function showHealth(h) {
   stats.health++;
-  document.getElementById("warnings").replaceChildren(...h.warnings.map(w => el("li", w)));
+  stats.healthTimes = (stats.healthTimes || []).concat([Date.now()]).slice(-10);
+  stats.levels = {};
+  stats.reflections = h.reflections;
+  for (const k of ["vehicles", "bodies", "cameras"]) {
+    for (const r of h[k]) stats.levels[`${k}:${r.name}`] = r.level;
+  }
+  document.getElementById("health-at").textContent = `at ${clockText(Date.now())}, once a second`;
+  showWarnings(h);
+  fillTable("vehicles", h.vehicles.map(v => [v.level, [[`${v.name} (sysid ${v.sysid})`],
+    [v.link_up ? "up" : "DOWN", v.link_up ? "good" : "badv"],
+    [v.ekf ?? "-", v.ekf === "using vision" ? "good" : v.ekf === "unknown" || v.ekf === null ? "warn" : "badv",
+      v.ekf_detail || ""],
+    [fmt(v.delay_ms, 1), "", v.delay_detail || ""], [rate(v.rate_hz, v.rate_configured_hz)], [String(v.sent)],
+    [v.timesync_rtt_ms !== null ? `rtt ${fmt(v.timesync_rtt_ms, 1)} ms` : `${v.timesync_answered ?? 0} answered`],
+    [v.signed ? "yes" : "no", v.signed ? "good" : "warn"], [fmt(v.latency_ms_p50, 1)], alerts(v)]]));
+  fillTable("bodies", h.bodies.map(b => [b.level, [[b.name], [b.tracked ? "yes" : "NO", b.tracked ? "good" : "badv"],
+    [rate(b.rate_hz, b.rate_configured_hz)], [b.tracked ? String(b.n_markers) : "-"],
+    [b.tracked ? String(b.n_cameras) : "-"], [b.tracked ? fmt(b.residual_mm, 2) : "-"], alerts(b)]]));
   fillTable("cameras", h.cameras.map(c => {
-    const slow = c.state === "streaming" && c.fps < 0.9 * c.fps_configured;
     const dropped = Object.entries(c.dropped).map(([k, n]) => `${n} ${k.replaceAll("_", " ")}`).join(", ") || "none";
     const droppedWhy = Object.keys(c.dropped).map(k => h.drop_reasons[k] || k).join("; ");
-    const risen = c.residual_px !== null && c.residual_calibration_px !== null &&
-      c.residual_px > Math.max(2 * c.residual_calibration_px, c.residual_calibration_px + 0.5);
-    return [[`${c.id} ${c.name}`], [c.state, c.state === "streaming" ? "good" : "badv"],
-      [`${fmt(c.fps, 0)} (${fmt(c.fps_configured, 0)})`, slow ? "warn" : ""], [fmt(c.latency_ms, 1)],
+    return [c.level, [[`${c.id} ${c.name}`], [c.state, c.state === "streaming" ? "good" : "badv"],
+      [rate(c.fps, c.fps_configured)], [ago(c.last_seen_s_ago)], [fmt(c.latency_ms, 1)],
       [`${fmt(c.clock_offset_ms, 2)} (±${fmt(c.clock_uncertainty_us, 0)})`],
       [c.loss === null ? "-" : `${fmt(100 * c.loss, 1)}%`],
-      [`${fmt(c.residual_px, 2)} (${fmt(c.residual_calibration_px, 2)})`, risen ? "warn" : ""],
-      [dropped, "", droppedWhy]];
+      [`${fmt(c.residual_px, 2)} (${fmt(c.residual_calibration_px, 2)})`], [fmt(c.shed_per_s, 0)],
+      [dropped, "", droppedWhy], alerts(c)]];
   }));
-  fillTable("bodies", h.bodies.map(b => [[b.name], [b.tracked ? "yes" : "NO", b.tracked ? "good" : "badv"],
-    [fmt(b.rate_hz, 0)], [b.tracked ? String(b.n_markers) : "-"], [b.tracked ? String(b.n_cameras) : "-"],
-    [b.tracked ? fmt(b.residual_mm, 2) : "-"], [b.tracked ? "" : b.why, "badv"]]));
-  fillTable("vehicles", h.vehicles.map(v => [[`${v.name} (sysid ${v.sysid})`],
-    [v.link_up ? "up" : "DOWN", v.link_up ? "good" : "badv"], [String(v.sent)],
-    [`${fmt(v.rate_hz, 0)} (${fmt(v.rate_configured_hz, 0)})`],
-    [v.timesync_rtt_ms !== null ? `rtt ${fmt(v.timesync_rtt_ms, 1)} ms` : `${v.timesync_answered ?? 0} answered`],
-    [v.signed ? "yes" : "no", v.signed ? "good" : "warn"], [fmt(v.latency_ms_p50, 1)]]));
+  const s = h.server;
+  const line = document.getElementById("server");
+  line.textContent = `server: ${fmt(s.shed_per_s, 0)} frames/s shed, ${fmt(s.late_ticks_per_s, 0)} late ticks/s, ` +
+    `output ${fmt(s.output_rate_hz, 0)} ticks/s` + (s.alerts.length ? `: ${s.alerts.join("; ")}` : "");
+  line.className = `row-${s.level}`;
 }
 
 // ------------------------------------------------------------------ replay controls

@@ -140,7 +140,7 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
     data["bodies"].append(GHOST)
     path = tmp_path / "arena.yaml"
     path.write_text(yaml.safe_dump(data))
-    arena = demo_arena(str(path), 14.0, 3, [])
+    arena = demo_arena(str(path), 16.0, 3, [])
     shots = Path(os.environ.get("VISIONPOS_SCREENSHOTS") or tempfile.mkdtemp(prefix="visionpos-console-"))
     shots.mkdir(parents=True, exist_ok=True)
     views = []
@@ -156,17 +156,28 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             # a tracked body and the ghost's reason in the health table
             await browser.wait_for("[...document.querySelectorAll('#bodies tbody tr')].some(r => "
                                    "r.cells[0].textContent === 'quad' && r.cells[1].textContent === 'yes')")
+            found["bodies"] = await browser.evaluate(  # at once: on a loaded host the body may drop out later
+                "[...document.querySelectorAll('#bodies tbody tr')].map(r => [...r.cells].map(c => c.textContent))")
             # /api/health says the same (polled: on a loaded host the body may drop out for a moment)
             for _ in range(40):
                 found["health"] = console.health()
                 if all(b["tracked"] == (b["name"] == "quad") for b in found["health"]["bodies"]):
                     break
                 await asyncio.sleep(0.25)
-            found["bodies"] = await browser.evaluate(
-                "[...document.querySelectorAll('#bodies tbody tr')].map(r => [...r.cells].map(c => c.textContent))")
             found["cameras"] = await browser.evaluate(
                 "[...document.querySelectorAll('#cameras tbody tr')].map(r => [...r.cells].map(c => c.textContent))")
             found["blobs"] = await browser.evaluate("window.visionposConsole.blobs")
+            # triage: vehicles, then bodies, then cameras; every row has its level; the layout holds still
+            await browser.wait_for("(window.visionposConsole.healthTimes || []).length >= 4")
+            found["triage"] = await browser.evaluate(
+                "({order: [...document.querySelectorAll('#health h2')].map(e => e.textContent), "
+                "vehicles: [...document.querySelectorAll('#vehicles tbody tr')].map(r => "
+                "[r.className, ...[...r.cells].map(c => c.textContent)]), "
+                "levels: window.visionposConsole.levels, times: window.visionposConsole.healthTimes, "
+                "rate: window.visionposConsole.updatesPerS, badge: document.getElementById('badge3d').textContent, "
+                "boxes: [...document.querySelectorAll('#camgrid .cam')].map(b => b.getBoundingClientRect().width), "
+                "titles: [...document.querySelectorAll('#camgrid .camtitle')].map(t => "
+                "[t.getBoundingClientRect().height, getComputedStyle(t).textOverflow])})")
             found["errors"] = await browser.evaluate("window.visionposConsole.errors")
             found["dpr"] = await browser.evaluate("window.devicePixelRatio")
             found["r3d"] = await browser.evaluate(JS_RECT.format(sel="#view3d"))
@@ -181,7 +192,7 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             await browser.close()
 
     settings = ConsoleSettings(port=0)
-    asyncio.run(asyncio.wait_for(run_demo(arena, 14.0, None, during=during, console=settings,
+    asyncio.run(asyncio.wait_for(run_demo(arena, 16.0, None, during=during, console=settings,
                                           on_console=views.append), 240))
     print(f"screenshots in {shots}")
     img, dpr = found["img"], found["dpr"] or 1.0
@@ -200,6 +211,17 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
     assert rows["ghost"][1] == "NO"
     assert rows["ghost"][6] and rows["ghost"][6] != "not seen yet", rows["ghost"]
     assert found["errors"] == []
+    t = found["triage"]
+    print("triage:", {k: t[k] for k in ("vehicles", "levels", "rate", "badge")})
+    assert t["order"] == ["Vehicles", "Bodies", "Cameras"]
+    assert t["levels"]["bodies:ghost"] == "bad" and t["levels"]["vehicles:quad"] in ("ok", "warn", "bad")
+    assert t["vehicles"][0][0] == f"row-{t['levels']['vehicles:quad']}"
+    # health once a second (docs/console.md), the page's own update rate on the badge
+    gaps = np.diff(t["times"][1:])
+    assert 700 < np.median(gaps) < 1500, gaps
+    assert t["rate"] > 0 and t["badge"].startswith("live, ")
+    # a stable layout: every camera box is the canvas' width, its title one line ending in an ellipsis
+    assert t["boxes"] == [302] * 4 and all(h < 24 and o == "ellipsis" for h, o in t["titles"]), t
     # the still image: read out, and drawn (the simulated image's noise and discs change the view's pixels)
     assert found["still"].startswith("background "), found["still"]
     assert not np.array_equal(found["img_still"], found["img"])
@@ -294,6 +316,10 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
     async def main():
         console = await open_console(ConsoleSettings(port=0), RecordSource(thesis))
         port = console.port
+        # two reflections on camera 2 (the static-blob watch itself: test_view.py)
+        console.view.static_blobs = lambda now_ns: {2: [
+            {"x": 100.0, "y": 80.0, "seconds": 6.0, "ignore": [94, 74, 107, 87]},
+            {"x": 500.0, "y": 300.0, "seconds": 7.0, "ignore": [494, 294, 507, 307]}]}
         browser = Browser(console.url, tmp_path / "profile")
         try:
             await browser.connect()
@@ -305,6 +331,14 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
             found["dpr"] = await browser.evaluate("window.devicePixelRatio")
             found["rhealth"] = await browser.evaluate(JS_RECT.format(sel="#health"))
             found["img_live"] = await browser.screenshot(tmp_path / "live.png")
+            # a camera's reflections are one warning line; "mask these" draws their rectangles on its view
+            await browser.wait_for("!!document.querySelector('#warnings button.maskthese')", 10)
+            found["mask_these"] = await browser.evaluate(
+                "(() => { const b = document.querySelector('#warnings button.maskthese'); b.click(); "
+                "const c = document.getElementById('cam-' + b.dataset.camera); "
+                "return {camera: Number(b.dataset.camera), ignore: JSON.parse(b.dataset.ignore), "
+                "line: b.parentElement.textContent, drafts: JSON.parse(c.dataset.drafts || '[]'), "
+                "lines: [...document.querySelectorAll('#warnings li')].map(l => l.textContent)}; })()")
             await console.stop()
             await browser.wait_for("window.visionposConsole.stale", 10)
             found["notes"] = await browser.evaluate(
@@ -336,6 +370,11 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
     assert len(found["notes"]) == 3 and all(re.fullmatch(since, n) for n in found["notes"]), found["notes"]
     assert re.fullmatch(since, found["badge"]) and re.search(since, found["conn"])
     assert _grey(found["img_stale"], _rect(found["rhealth"], dpr))
+    m = found["mask_these"]
+    assert m["camera"] == 2 and m["ignore"] == [[94, 74, 107, 87], [494, 294, 507, 307]]
+    assert m["drafts"] == m["ignore"], m  # drawn on camera 2's view (it has no station mask of its own)
+    assert m["line"].startswith(f"camera {m['camera']} (") and m["line"].endswith("mask these")
+    assert sum(x.startswith(f"camera {m['camera']} (") and "stayed put" in x for x in m["lines"]) == 1
     # another arena on the same port: rebuilt for its eight cameras, nothing of the thesis arena left
     r = found["rebuilt"]
     assert r["frusta"] == 8 and r["canvases"] == 8 and r["rays"] == 9 and r["rebuilds"] == 1
