@@ -61,9 +61,10 @@ class _CameraView:
 _EMPTY_VIEW = _CameraView((), {"blobs": [], "pred": []})
 
 
-def scene(arena: Any) -> dict[str, Any]:
+def scene(arena: Any, name: str | None = None, mode: str = "live") -> dict[str, Any]:
     """The static part: each camera's intrinsics and pose (camera->world), each body's markers, the
-    calibration's residuals. Sent once per client."""
+    calibration's residuals, what the header names (name: a replay's file; default the arena's source) and the
+    mode ("live", or "replay": the page leaves out what a replay cannot do). Sent once per client."""
     cams = []
     stations = arena.camera_stations()
     for c in arena.cameras:
@@ -77,7 +78,7 @@ def scene(arena: Any) -> dict[str, Any]:
         })
     bodies = [{"name": b.name, "id": b.id, "markers": [[round(float(v), 5) for v in p] for p in b.markers]}
               for b in arena.bodies]
-    return {"type": "scene", "source": arena.source, "cameras": cams, "bodies": bodies,
+    return {"type": "scene", "source": name or arena.source, "mode": mode, "cameras": cams, "bodies": bodies,
             "calibration_rms_px": calibration_residuals(arena), "scene_id": scene_id(cams, bodies)}
 
 
@@ -122,7 +123,7 @@ class ConsoleView:
     def __init__(self, source: Any):
         self.source = source
         arena = source.arena
-        self.scene = scene(arena)
+        self.scene = scene(arena, getattr(source, "source_name", None), getattr(source, "console_mode", "live"))
         self.cameras = {c.id: c for c in arena.cameras}
         sizes = [len(b.markers) for b in arena.bodies]
         self.marker_body = np.repeat(np.arange(len(sizes)), sizes).astype(np.int64)

@@ -4,7 +4,7 @@
 // a scene with another scene_id (a restart into another arena) rebuilds the 3D view and the camera views.
 import * as THREE from "three";
 import { OrbitControls } from "./vendor/OrbitControls.js";
-import { calibMessage } from "./calib.js";
+import { calibMessage, calibReplay } from "./calib.js";
 import { drawStationLayer, initStationTools, onStationMessage, proposeMask, resetStationTools, stationTools }
   from "./stills.js";
 
@@ -179,7 +179,7 @@ class Arena3D {
 // ------------------------------------------------------------------ camera views
 
 class CameraView {
-  constructor(c) {
+  constructor(c, replay) {
     this.c = c;
     this.scale = CAM_VIEW_WIDTH_PX / c.width;
     const box = el("div", undefined, "cam");
@@ -189,7 +189,7 @@ class CameraView {
     this.canvas.width = Math.round(c.width * this.scale);
     this.canvas.height = Math.round(c.height * this.scale);
     box.append(this.title, this.canvas);
-    stationTools(this, box);  // still image and mask (stills.js)
+    if (!replay) stationTools(this, box);  // still image and mask (stills.js): a replay has no station to ask
     document.getElementById("camgrid").append(box);
     this.mask = null;
     if (c.mask && c.mask.mask_png) {
@@ -372,7 +372,9 @@ function clockText(ms) { return new Date(ms).toTimeString().slice(0, 8); }
 // what a tab shows of the arena: built on the first scene, built again when a scene with another id comes
 function buildArena(msg) {
   sceneMsg = msg;
-  document.getElementById("source").textContent = msg.source;
+  const replay = msg.mode === "replay";
+  document.getElementById("source").textContent = replay ? `replay of ${msg.source}` : msg.source;
+  calibReplay(replay);
   if (scene3) { scene3.load(msg); stats.rebuilds++; } else scene3 = new Arena3D(document.getElementById("view3d"), msg);
   document.getElementById("camgrid").replaceChildren();
   camViews.clear();
@@ -382,7 +384,7 @@ function buildArena(msg) {
   rays.replaceChildren(rays.options[0]);
   rays.value = "";
   for (const c of msg.cameras) {
-    camViews.set(c.id, new CameraView(c));
+    camViews.set(c.id, new CameraView(c, replay));
     const o = el("option", `camera ${c.id} (${c.name})`);
     o.value = String(c.id);
     rays.append(o);

@@ -380,3 +380,53 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
     assert r["frusta"] == 8 and r["canvases"] == 8 and r["rays"] == 9 and r["rebuilds"] == 1
     assert [t.split(":")[0] for t in r["titles"]] == [f"camera {c.id} ({c.name})" for c in arena8.cameras]
     assert found["errors"] == []
+
+
+@pytest.mark.slow
+def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, thesis_log):
+    """`replay LOG --view` of a flight recording: the file's name in the header, no still-image or mask buttons,
+    no calibration panel (no wand in it); a speed the server refuses is shown in the page."""
+    from console.settings import ConsoleSettings
+    from visionpos.app.console import replay_view
+
+    found: dict = {}
+
+    async def main():
+        views: list = []
+        task = asyncio.create_task(replay_view(str(thesis_log), None, [], None, ConsoleSettings(port=0),
+                                               on_console=views.append, duration_s=60, calibrate_out=str(
+                                                   tmp_path / "out.yaml")))
+        while not views:
+            await asyncio.sleep(0.05)
+        browser = Browser(views[0].url, tmp_path / "profile")
+        try:
+            await browser.connect()
+            await browser.wait_for("window.visionposConsole && window.visionposConsole.states > 10 && "
+                                   "window.visionposConsole.calib && window.visionposConsole.calib.hidden === true")
+            found["page"] = await browser.evaluate(
+                "({source: document.getElementById('source').textContent, "
+                "tools: document.querySelectorAll('.stationtools').length, "
+                "views: document.querySelectorAll('#camgrid canvas').length, "
+                "calib: !!document.getElementById('calib'), "
+                "replay: !document.getElementById('replay').hidden})")
+            await browser.evaluate("(() => { const s = document.getElementById('speed'); const o = "
+                                   "document.createElement('option'); o.value = '100'; s.append(o); s.value = '100'; "
+                                   "s.dispatchEvent(new Event('change')); })()")
+            await browser.wait_for("window.visionposConsole.refusal", 10)
+            found["notice"] = await browser.evaluate(
+                "(() => { const n = document.getElementById('notice'); "
+                "return {text: n.textContent, shown: !n.hidden && n.getBoundingClientRect().width > 0}; })()")
+        finally:
+            await browser.close()
+            task.cancel()
+            try:
+                await task
+            except asyncio.CancelledError:
+                pass
+
+    asyncio.run(asyncio.wait_for(main(), 120))
+    p = found["page"]
+    assert p["source"] == f"replay of {thesis_log.name}" and p["replay"]
+    assert p["views"] == 4 and p["tools"] == 0 and p["calib"] is False
+    assert re.fullmatch(r"\d\d:\d\d:\d\d refused: speed: give x between 0.05 and 16", found["notice"]["text"])
+    assert found["notice"]["shown"]
