@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from visionpos.fusion.layout import ADAPT_NIS_P, ADAPT_NIS_R
 from visionpos.fusion.snapshot import CameraFrame
 
 # a leftover blob that stays within one cell this long, seen in most updates, looks like a reflection
@@ -267,7 +268,8 @@ class ConsoleView:
             if s.tracked:
                 d.update(p=_rounded(np.asarray(s.position).tolist(), 5),
                          q=_rounded(np.asarray(s.quaternion).tolist(), 6),
-                         n_markers=int(s.n_markers), n_cameras=int(s.n_cameras), residual_mm=_r(s.residual_mm, 3))
+                         n_markers=int(s.n_markers), n_cameras=int(s.n_cameras), residual_mm=_r(s.residual_mm, 3),
+                         nis=self._nis(i))
             elif i < len(snap.filter_tracked) and snap.filter_tracked[i]:  # the filter has it, no fresh measurement
                 d["why"] = ("no measurement within fusion.max_prediction_ms: its cameras' frames are late or "
                             "missing (see the cameras' state and frame age)")
@@ -275,6 +277,16 @@ class ConsoleView:
                 d["why"] = snap.untracked_why.get(i, "not seen yet")
             out.append(d)
         return out
+
+    def _nis(self, i: int) -> list[float | None] | None:
+        """Body i's filter consistency: its normalised innovation squared averages [position, rotation] (about 1
+        when the filter's covariance is right), from the filter bank's adaptive-noise row; None where the source
+        has no filter bank (`record`)."""
+        try:
+            row = self.source.pipeline.bank.adapt[i]
+            return [_r(row[ADAPT_NIS_P], 3), _r(row[ADAPT_NIS_R], 3)]
+        except (AttributeError, IndexError, TypeError):
+            return None
 
     def loose_markers(self) -> list[list[float | None]]:
         lp = self.source.pipeline.snapshot().loose_points

@@ -131,16 +131,86 @@ class Arena3D {
     const trail = new THREE.Line(trailGeom, new THREE.LineBasicMaterial({ color }));
     trail.frustumCulled = false;
     this.scene.add(trail);
-    return { group, trail, n: 0 };
+    const label = this.label(b.name, color);
+    label.visible = false;
+    this.scene.add(label);
+    group.userData.body = i;
+    label.userData.body = i;
+    return { group, trail, label, n: 0, name: b.name };
+  }
+
+  // the body's name above it, always facing the viewer, the same size on screen at any distance
+  label(text, color) {
+    const c = el("canvas");
+    c.width = 256; c.height = 64;
+    const g = c.getContext("2d");
+    g.font = "bold 40px system-ui, sans-serif";
+    g.fillStyle = hex(color);
+    g.textAlign = "center"; g.textBaseline = "middle";
+    g.fillText(text, 128, 32);
+    const tex = new THREE.CanvasTexture(c);
+    const sprite = new THREE.Sprite(new THREE.SpriteMaterial({ map: tex, depthTest: false, sizeAttenuation: false }));
+    sprite.scale.set(0.16, 0.04, 1);
+    sprite.center.set(0.5, -0.4);
+    return sprite;
+  }
+
+  // the body under a click (client coordinates), or -1
+  pick(x, y) {
+    const r = this.canvas.getBoundingClientRect();
+    const ndc = new THREE.Vector2((x - r.left) / r.width * 2 - 1, -(y - r.top) / r.height * 2 + 1);
+    const ray = new THREE.Raycaster();
+    ray.params.Line.threshold = 0.02;
+    ray.setFromCamera(ndc, this.camera);
+    const targets = this.bodies.filter(b => b.group.visible).flatMap(b => [b.group, b.label]);
+    for (const hit of ray.intersectObjects(targets, true)) {
+      for (let o = hit.object; o; o = o.parent) if (o.userData.body !== undefined) return o.userData.body;
+    }
+    return -1;
+  }
+
+  // where a body is on the page (client coordinates), for the browser tests' clicks
+  screenOf(i) {
+    const b = this.bodies[i];
+    if (!b || !b.group.visible) return null;
+    const p = b.group.position.clone().project(this.camera);
+    const r = this.canvas.getBoundingClientRect();
+    return [r.left + (p.x + 1) / 2 * r.width, r.top + (1 - p.y) / 2 * r.height];
+  }
+
+  // view presets: the whole arena from above or from the front, or through one camera (its pose and field of view)
+  preset(name) {
+    const cams = this.cameraPoses;
+    const extent = Math.max(2, ...cams.map(c => Math.max(Math.abs(c.position[0]), Math.abs(c.position[1])) + 0.5));
+    this.camera.fov = 50;
+    if (name === "top") {
+      this.camera.position.set(0, -0.001, extent * 2.6);  // a hair off the vertical: "up" stays defined
+      this.controls.target.set(0, 0, 0);
+    } else if (name === "front") {
+      this.camera.position.set(0, -extent * 2.4, 1.2);
+      this.controls.target.set(0, 0, 0.8);
+    } else if (name.startsWith("camera ")) {
+      const c = cams.find(k => String(k.id) === name.slice(7));
+      if (!c) return;
+      const ahead = this.toWorld(c, [0, 0, 1]);
+      this.camera.position.set(...c.position);
+      this.controls.target.copy(ahead);
+      this.camera.fov = 2 * Math.atan(c.height / 2 / c.fy) * 180 / Math.PI;
+    }
+    this.camera.updateProjectionMatrix();
+    this.controls.update();
+    stats.view3d = { preset: name, position: this.camera.position.toArray(), target: this.controls.target.toArray(),
+      fov: this.camera.fov };
   }
 
   update(msg) {
     msg.bodies.forEach((b, i) => {
       const v = this.bodies[i];
       if (!v) return;
-      v.group.visible = b.tracked;
+      v.group.visible = v.label.visible = b.tracked;
       if (!b.tracked) return;
       v.group.position.set(...b.p);
+      v.label.position.set(b.p[0], b.p[1], b.p[2] + 0.12);
       v.group.quaternion.set(...b.q);  // x, y, z, w: the same order as visionpos
       const arr = v.trail.geometry.attributes.position.array;
       if (v.n === TRAIL_POINTS) { arr.copyWithin(0, 3); v.n--; }
@@ -208,6 +278,7 @@ class CameraView {
     drawStationLayer(this, g);
     this.drawMask(g, s);
     let matched = 0, left = 0;
+    this.seen = new Set(v.blobs.filter(b => b[2] >= 0).map(b => b[2]));  // the bodies this camera sees
     const s10 = s / 10;  // pixels arrive in tenths
     for (const [u, vv, body] of v.blobs) {
       g.fillStyle = body >= 0 ? hex(BODY_COLORS[body % BODY_COLORS.length]) : LEFT_COLOR;
@@ -301,7 +372,9 @@ function showWarnings(h) {
   document.getElementById("warnings").replaceChildren(...items);
 }
 
+let lastHealth = null;
 function showHealth(h) {
+  lastHealth = h;
   stats.health++;
   stats.healthTimes = (stats.healthTimes || []).concat([Date.now()]).slice(-10);
   stats.levels = {};
@@ -334,8 +407,59 @@ function showHealth(h) {
   const s = h.server;
   const line = document.getElementById("server");
   line.textContent = `server: ${fmt(s.shed_per_s, 0)} frames/s shed, ${fmt(s.late_ticks_per_s, 0)} late ticks/s, ` +
-    `output ${fmt(s.output_rate_hz, 0)} ticks/s` + (s.alerts.length ? `: ${s.alerts.join("; ")}` : "");
+    `output ${fmt(s.output_rate_hz, 0)} ticks/s`;  // its alerts are in the warnings above
   line.className = `row-${s.level}`;
+}
+
+// ------------------------------------------------------------------ a body's details (click it in the 3D view)
+
+let selected = -1;
+let lastBodies = [];
+
+function rpyDeg([x, y, z, w]) {
+  const roll = Math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y));
+  const pitch = Math.asin(Math.max(-1, Math.min(1, 2 * (w * y - z * x))));
+  const yaw = Math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z));
+  return [roll, pitch, yaw].map(a => a * 180 / Math.PI);
+}
+
+function showBody() {
+  const box = document.getElementById("bodyinfo");
+  const b = lastBodies[selected];
+  box.hidden = !b;
+  if (!b) { stats.bodyInfo = null; return; }
+  const hb = lastHealth?.bodies.find(x => x.name === b.name);
+  const seeing = [...camViews.values()].filter(v => v.seen && v.seen.has(selected)).map(v => v.c.name);
+  const lines = [`${b.name}: ${b.tracked ? "tracked" : "NOT tracked: " + (b.why || "")}`];
+  if (b.tracked) {
+    const [r, p, y] = rpyDeg(b.q);
+    lines.push(`position ${b.p.map(v => fmt(v, 3)).join(", ")} m`,
+      `roll ${fmt(r, 1)}, pitch ${fmt(p, 1)}, yaw ${fmt(y, 1)} deg`,
+      `${b.n_markers} markers, ${b.n_cameras} cameras, fit ${fmt(b.residual_mm, 2)} mm`,
+      b.nis ? `NIS position ${fmt(b.nis[0], 2)}, rotation ${fmt(b.nis[1], 2)} (about 1 when the filter is right)`
+        : "NIS -");
+  }
+  if (hb) lines.push(`${fmt(hb.rate_hz, 0)} of ${fmt(hb.rate_configured_hz, 0)} ticks/s`);
+  lines.push(`seen by: ${seeing.length ? seeing.join(", ") : "no camera"}`);
+  for (const v of (lastHealth?.vehicles || []).filter(v => v.body === b.name)) {
+    lines.push(`vehicle ${v.name}: ${v.level}, ${fmt(v.rate_hz, 0)} poses/s, EKF ${v.ekf ?? "-"}` +
+      (v.delay_ms !== null ? `, delay ${fmt(v.delay_ms, 1)} ms` : ""));
+  }
+  box.replaceChildren(...lines.map(t => el("div", t)));
+  stats.bodyInfo = lines;
+}
+
+function wire3D(canvas) {
+  let down = null;
+  canvas.addEventListener("pointerdown", e => { down = [e.clientX, e.clientY]; });
+  canvas.addEventListener("pointerup", e => {
+    if (!down || !scene3 || Math.hypot(e.clientX - down[0], e.clientY - down[1]) > 5) return;  // a drag: orbiting
+    selected = scene3.pick(e.clientX, e.clientY);
+    showBody();
+  });
+  const preset = document.getElementById("preset");
+  preset.onchange = () => { if (scene3 && preset.value) scene3.preset(preset.value); };
+  stats.screenOf = name => scene3 && scene3.screenOf(scene3.bodies.findIndex(b => b.name === name));
 }
 
 // ------------------------------------------------------------------ replay controls
@@ -383,6 +507,14 @@ function buildArena(msg) {
   const rays = document.getElementById("rays");
   rays.replaceChildren(rays.options[0]);
   rays.value = "";
+  const preset = document.getElementById("preset");
+  preset.replaceChildren(...["", "top", "front", ...msg.cameras.map(c => `camera ${c.id}`)].map(v => {
+    const o = el("option", v || "view...");
+    o.value = v;
+    return o;
+  }));
+  selected = -1;
+  showBody();
   for (const c of msg.cameras) {
     camViews.set(c.id, new CameraView(c, replay));
     const o = el("option", `camera ${c.id} (${c.name})`);
@@ -409,6 +541,8 @@ function onState(msg) {
   stats.states++;
   if (scene3) scene3.update(msg);
   for (const v of msg.cameras || []) camViews.get(v.id)?.draw(v);  // camera_view_rate_hz of the updates carry them
+  lastBodies = msg.bodies;
+  if (selected >= 0) showBody();
   if (msg.replay) showReplay(msg.replay);
 }
 
@@ -478,6 +612,7 @@ function connect() {
 }
 
 wireControls();
+wire3D(document.getElementById("view3d"));
 initStationTools(send, stats);
 // a hidden tab draws nothing: the server builds no camera views for it until it is shown again
 document.addEventListener("visibilitychange", () => send({ cmd: "views", on: !document.hidden }));

@@ -182,6 +182,20 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             found["dpr"] = await browser.evaluate("window.devicePixelRatio")
             found["r3d"] = await browser.evaluate(JS_RECT.format(sel="#view3d"))
             found["rcam"] = await browser.evaluate(JS_RECT.format(sel="#camgrid canvas"))
+            # a view preset, then a click on the quad: its details
+            await browser.evaluate("(() => { const p = document.getElementById('preset'); p.value = 'top'; "
+                                   "p.dispatchEvent(new Event('change')); })()")
+            found["view3d"] = await browser.evaluate("window.visionposConsole.view3d")
+            for _ in range(20):  # the quad moves: click where it is now, until a click lands on it
+                xy = await browser.evaluate("window.visionposConsole.screenOf('quad')")
+                if xy:
+                    for kind in ("mousePressed", "mouseReleased"):
+                        await browser.call("Input.dispatchMouseEvent", type=kind, x=xy[0], y=xy[1], button="left",
+                                           clickCount=1)
+                    if await browser.evaluate("!!window.visionposConsole.bodyInfo"):
+                        break
+                await asyncio.sleep(0.2)
+            found["body_info"] = await browser.evaluate("window.visionposConsole.bodyInfo")
             found["img"] = await browser.screenshot(shots / "console.png")
             # the first camera's "still image" button: the station's image shows under the blobs, read out
             await browser.evaluate("document.querySelector('#camgrid .stationtools button').click()")
@@ -222,6 +236,13 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
     assert t["rate"] > 0 and t["badge"].startswith("live, ")
     # a stable layout: every camera box is the canvas' width, its title one line ending in an ellipsis
     assert t["boxes"] == [302] * 4 and all(h < 24 and o == "ellipsis" for h, o in t["titles"]), t
+    # the top view looks down on the arena; a click on the quad shows its pose, rate, cameras, NIS and vehicle
+    v = found["view3d"]
+    assert v["preset"] == "top" and v["target"] == [0, 0, 0] and v["position"][2] > 3 and abs(v["position"][0]) < 1e-6
+    info = found["body_info"]
+    assert info and info[0] == "quad: tracked", info
+    assert any(x.startswith("position ") for x in info) and any(x.startswith("NIS position ") for x in info)
+    assert any(x.startswith("seen by: pi") for x in info) and any(x.startswith("vehicle quad: ") for x in info)
     # the still image: read out, and drawn (the simulated image's noise and discs change the view's pixels)
     assert found["still"].startswith("background "), found["still"]
     assert not np.array_equal(found["img_still"], found["img"])

@@ -256,3 +256,12 @@ def test_the_searched_share_of_an_image_from_rois_and_ignore_rectangles():
     # a 320 x 240 ROI with a 160 x 240 ignore rectangle over half of it: an eighth of the image
     assert searched_share({"rois": [[0, 0, 320, 240]], "ignore": [[160, 0, 640, 480]]}, 640, 480) == 0.125
     assert searched_share({"rois": [[0, 0, 100, 100]], "ignore": [[0, 0, 640, 480]]}, 640, 480) == 0.0
+
+
+def test_a_tracked_body_carries_its_filter_nis(thesis_log):
+    s, view = _replay_view(thesis_log, 1.5)
+    quad = view.state(s.clock(), cameras=False)["bodies"][0]
+    assert quad["tracked"]
+    nis_p, nis_r = quad["nis"]
+    # a consistent filter on the simulator's own noise: averages of order 1 (chi-square over its dimension)
+    assert 0.05 < nis_p < 20 and 0.05 < nis_r < 20, quad["nis"]
