@@ -599,16 +599,26 @@ function connect() {
   };
   ws.onclose = () => { setLive(); setTimeout(connect, 1000); };
   ws.onmessage = e => {
-    const msg = JSON.parse(e.data);
-    lastDataMs = Date.now();
-    if (msg.type === "scene") onScene(msg);
-    else if (msg.type === "state") onState(msg);
-    else if (msg.type === "health") showHealth(msg.health);
-    else if (msg.type === "replay") showReplay(msg);
-    else if (msg.type === "still" || msg.type === "mask") onStationMessage(msg, camViews);
-    else if (msg.type === "error") { stats.errors.push(msg.error); showRefusal(msg.error); onStationMessage(msg, camViews); }
-    if (msg.type === "calib" || msg.type === "calib_reply" || msg.type === "error") calibMessage(msg, send);
+    const t0 = performance.now();
+    handle(e);
+    const ms = performance.now() - t0;  // the page's own cost per message (stats: mean and max)
+    stats.handled = (stats.handled || 0) + 1;
+    stats.handleMsTotal = (stats.handleMsTotal || 0) + ms;
+    stats.handleMsMax = Math.max(stats.handleMsMax || 0, ms);
   };
+}
+
+// one message of the stream: every message counts as data (the page is live)
+function handle(e) {
+  const msg = JSON.parse(e.data);
+  lastDataMs = Date.now();
+  if (msg.type === "scene") onScene(msg);
+  else if (msg.type === "state") onState(msg);
+  else if (msg.type === "health") showHealth(msg.health);
+  else if (msg.type === "replay") showReplay(msg);
+  else if (msg.type === "still" || msg.type === "mask") onStationMessage(msg, camViews);
+  else if (msg.type === "error") { stats.errors.push(msg.error); showRefusal(msg.error); onStationMessage(msg, camViews); }
+  if (msg.type === "calib" || msg.type === "calib_reply" || msg.type === "error") calibMessage(msg, send);
 }
 
 wireControls();

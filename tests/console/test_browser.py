@@ -140,7 +140,7 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
     data["bodies"].append(GHOST)
     path = tmp_path / "arena.yaml"
     path.write_text(yaml.safe_dump(data))
-    arena = demo_arena(str(path), 16.0, 3, [])
+    arena = demo_arena(str(path), 14.0, 3, [])
     shots = Path(os.environ.get("VISIONPOS_SCREENSHOTS") or tempfile.mkdtemp(prefix="visionpos-console-"))
     shots.mkdir(parents=True, exist_ok=True)
     views = []
@@ -206,7 +206,7 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             await browser.close()
 
     settings = ConsoleSettings(port=0)
-    asyncio.run(asyncio.wait_for(run_demo(arena, 16.0, None, during=during, console=settings,
+    asyncio.run(asyncio.wait_for(run_demo(arena, 14.0, None, during=during, console=settings,
                                           on_console=views.append), 240))
     print(f"screenshots in {shots}")
     img, dpr = found["img"], found["dpr"] or 1.0
@@ -311,6 +311,13 @@ def test_calibration_panel_in_chromium_fills_in_and_shows_the_solve(tmp_path):
     assert _drawn(found["img"], _rect(found["rheat"], found["dpr"] or 1.0), (0x22, 0x1d, 0x1a)) > 0.01
 
 
+def _shots() -> Path:
+    """Where the screenshots go: VISIONPOS_SCREENSHOTS (docs/images regenerates the docs' pictures) or a temp dir."""
+    shots = Path(os.environ.get("VISIONPOS_SCREENSHOTS") or tempfile.mkdtemp(prefix="visionpos-console-"))
+    shots.mkdir(parents=True, exist_ok=True)
+    return shots
+
+
 def _arena(data: dict, name: str):
     from visionpos.config.arena import parse_arena
 
@@ -367,7 +374,7 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
             found["badge"] = await browser.evaluate("document.getElementById('badge3d').textContent")
             found["conn"] = await browser.evaluate("document.getElementById('conn').textContent")
             await asyncio.sleep(0.5)  # the grey filter is drawn with the next frame
-            found["img_stale"] = await browser.screenshot(tmp_path / "stale.png")
+            found["img_stale"] = await browser.screenshot(_shots() / "console-stale.png")
             console = await open_console(ConsoleSettings(port=port), RecordSource(arena8))
             await browser.wait_for("window.visionposConsole.cameraViews === 8 && !window.visionposConsole.stale", 20)
             found["rebuilt"] = await browser.evaluate(
@@ -437,6 +444,9 @@ def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, the
             found["notice"] = await browser.evaluate(
                 "(() => { const n = document.getElementById('notice'); "
                 "return {text: n.textContent, shown: !n.hidden && n.getBoundingClientRect().width > 0}; })()")
+            await browser.evaluate("(() => { const s = document.getElementById('speed'); s.lastChild.remove(); "
+                                   "s.value = '1'; })()")  # the menu as it was, for the picture
+            await browser.screenshot(_shots() / "replay.png")
         finally:
             await browser.close()
             task.cancel()
