@@ -254,12 +254,12 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
 
 @pytest.mark.slow
 def test_calibration_panel_in_chromium_fills_in_and_shows_the_solve(tmp_path):
-    """`visionpos record`'s console with a simulated wand wave fed in: the panel's heat maps, pairs and ENOUGH, then
-    Solve clicked and the per-camera residuals shown."""
+    """`visionpos record`'s console with a simulated wand wave fed in: the panel's heat maps and pairs, "not yet" with
+    the coverage still missing (the simulated wave stays in the middle of each image: 8 to 15 % of it, ENOUGH wants
+    50 %), Solve enabled once the solver's minimums are met, clicked, and the per-camera residuals shown."""
     from console.calibration import CalibrationAssistant
     from console.settings import ConsoleSettings
     from visionpos.app.console import RecordSource, open_console
-    from visionpos.calibration.coverage import Thresholds
     from visionpos.sim import load_scenario, simulate
 
     sc = load_scenario("thesis", ["sim.duration=8"], session="wand")
@@ -269,9 +269,7 @@ def test_calibration_panel_in_chromium_fills_in_and_shows_the_solve(tmp_path):
     found: dict = {}
 
     async def main():
-        # the simulated wave stays in the middle of the volume: 8 to 12 % of each image
-        source = RecordSource(sc.arena, CalibrationAssistant(sc.arena, tmp_path / "arena.yaml",
-                                                             Thresholds(min_coverage=0.05)))
+        source = RecordSource(sc.arena, CalibrationAssistant(sc.arena, tmp_path / "arena.yaml"))
         console = await open_console(ConsoleSettings(port=0), source)
         browser = Browser(console.url, tmp_path / "profile")
         try:
@@ -280,7 +278,11 @@ def test_calibration_panel_in_chromium_fills_in_and_shows_the_solve(tmp_path):
             found["before"] = await browser.evaluate("document.getElementById('calib-verdict').textContent")
             for f in frames:
                 source.push(f)
-            await browser.wait_for("window.visionposConsole.calib.enough === true")
+            await browser.wait_for("window.visionposConsole.calib.messages > 1 && "
+                                   "!document.getElementById('calib-solve').disabled")
+            found["after"] = await browser.evaluate("document.getElementById('calib-verdict').textContent")
+            found["missing"] = await browser.evaluate(
+                "[...document.querySelectorAll('#calib-missing li')].map(l => l.textContent)")
             found["pairs"] = await browser.evaluate(
                 "[...document.querySelectorAll('#calib-pairs tbody tr')].map(r => "
                 "[...r.cells].map(c => c.textContent))")
@@ -301,7 +303,9 @@ def test_calibration_panel_in_chromium_fills_in_and_shows_the_solve(tmp_path):
 
     asyncio.run(asyncio.wait_for(main(), 240))
     print(f"screenshots in {shots}")
-    assert found["before"] == "not yet"
+    assert found["before"] == "not yet" and found["after"] == "not yet"
+    assert found["missing"] and all(re.fullmatch(r"camera pi\d covers \d+ % of its image, want 50 %: .*", m)
+                                    for m in found["missing"]), found["missing"]
     assert len(found["pairs"]) == 6 and all(int(r[1]) >= 100 for r in found["pairs"])
     assert found["cells"] > 0
     assert [r[0] for r in found["result"]] == [c.name for c in sc.arena.cameras]
