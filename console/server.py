@@ -5,7 +5,7 @@
     GET /api/scene       cameras and bodies (console/view.py scene)
     GET /ws              WebSocket: {"type": "scene"} once, then {"type": "state"} at update_rate_hz (the
                          camera views in every second one),
-                         {"type": "health"} twice a second, {"type": "replay"} in a replay, {"type": "calib"}
+                         {"type": "health"} once a second, {"type": "replay"} in a replay, {"type": "calib"}
                          when the calibration assistant's counts or solve changed; the client
                          may send {"cmd": ...}: "rays" (a camera's blob rays), "views" (on: false while the
                          tab is hidden: no camera views for it), "health", replay controls (console/replay.py),

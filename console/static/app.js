@@ -62,7 +62,7 @@ class Arena3D {
   load(msg) {
     for (const o of [...this.scene.children]) {
       this.scene.remove(o);
-      o.traverse(x => { x.geometry?.dispose(); x.material?.dispose(); });
+      o.traverse(x => { x.geometry?.dispose(); x.material?.map?.dispose(); x.material?.dispose(); });
     }
     this.cameraPoses = msg.cameras;
     this.frusta = msg.cameras.length;
@@ -533,7 +533,12 @@ function onScene(msg) {
   sceneMsg = msg;
   for (const c of msg.cameras) {
     const v = camViews.get(c.id);
-    if (v && JSON.stringify(v.c.mask) !== JSON.stringify(c.mask)) { v.c.mask = c.mask; v.mask = null; v.dim = null; }
+    if (v && JSON.stringify(v.c.mask) !== JSON.stringify(c.mask)) {
+      v.c.mask = c.mask;
+      v.dim = null;
+      v.mask = null;
+      if (c.mask && c.mask.mask_png) { v.mask = new Image(); v.mask.src = c.mask.mask_png; }
+    }
   }
 }
 
