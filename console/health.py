@@ -75,6 +75,11 @@ def searched_share(mask: dict[str, Any] | None, width: int, height: int) -> floa
     return float(searched.mean())
 
 
+def _rate(rates: dict[str, float] | None, key: str) -> float | None:
+    """A count's rate per second, rounded; None while not measured yet."""
+    return None if rates is None else round(rates.get(key, 0.0), 1)
+
+
 def _level(bad: list[str], warn: list[str]) -> tuple[str, list[str]]:
     """A row's level ("bad": stops a flight or shows nothing true, "warn": a configured rate not met, "ok") and its
     alerts in words, the bad ones first."""
@@ -92,11 +97,12 @@ class HealthView:
         self.view = view
         self._prev_ns: int | None = None
         self._prev: dict[str, float] = {}
-        self._rates: dict[str, float] = {}
+        self._rates: dict[str, float] | None = None  # None until two samples: no rate is shown as 0
 
-    def _rates_since(self, now_ns: int, counts: dict[str, float]) -> dict[str, float]:
+    def _rates_since(self, now_ns: int, counts: dict[str, float]) -> dict[str, float] | None:
         """Per second since the previous sample (taken at most every 0.4 s) of each count (body tracked ticks,
-        vehicle messages sent, frames shed, late ticks); a count seen for the first time starts from 0."""
+        vehicle messages sent, frames shed, late ticks); a count seen for the first time starts from 0; None before
+        the second sample (a rate not measured yet is no reason for an alert)."""
         if self._prev_ns is not None and now_ns - self._prev_ns < 400_000_000:
             return self._rates
         if self._prev_ns is not None:
@@ -132,9 +138,9 @@ class HealthView:
         out["warnings"] = warnings(out, static)
         return out
 
-    def _vehicle(self, name: str, v: dict[str, Any], rates: dict[str, float]) -> dict[str, Any]:
+    def _vehicle(self, name: str, v: dict[str, Any], rates: dict[str, float] | None) -> dict[str, Any]:
         sent = int(_get(v, "sent", 0) or 0)
-        rate, configured = round(rates.get(f"sent:{name}", 0.0), 1), _num(_get(v, "rate_hz"))
+        rate, configured = _rate(rates, f"sent:{name}"), _num(_get(v, "rate_hz"))
         ekf, ekf_detail = _get(v, "ekf"), _get(v, "ekf_detail")
         out = {"name": name, "body": _get(v, "body"), "sysid": _get(v, "sysid"), "endpoint": _get(v, "endpoint"),
                "link_up": bool(_get(v, "link_up", False)), "sent": sent, "rate_hz": rate,
@@ -158,11 +164,11 @@ class HealthView:
         out["level"], out["alerts"] = _level(bad, warn)
         return out
 
-    def _bodies(self, rates: dict[str, float], output_hz: float | None) -> list[dict[str, Any]]:
+    def _bodies(self, rates: dict[str, float] | None, output_hz: float | None) -> list[dict[str, Any]]:
         out = []
         for b in self.view.bodies():
             b = dict(b)
-            b["rate_hz"] = round(rates.get(f"body:{b['name']}", 0.0), 1)
+            b["rate_hz"] = _rate(rates, f"body:{b['name']}")
             b["rate_configured_hz"] = output_hz
             bad, warn = [], []
             if not b["tracked"]:
@@ -173,20 +179,20 @@ class HealthView:
             out.append(b)
         return out
 
-    def _server(self, h: dict[str, Any], rates: dict[str, float], output_hz: float | None) -> dict[str, Any]:
+    def _server(self, h: dict[str, Any], rates: dict[str, float] | None, output_hz: float | None) -> dict[str, Any]:
         out = {k: _get(h, k) for k in ("packets", "frames_accepted", "frames_shed", "malformed", "auth_failed",
                                        "unknown", "pipeline_errors", "late_ticks", "ticks", "insecure")}
-        out.update(output_rate_hz=output_hz, shed_per_s=round(rates.get("frames_shed", 0.0), 1),
-                   late_ticks_per_s=round(rates.get("late_ticks", 0.0), 1))
+        out.update(output_rate_hz=output_hz, shed_per_s=_rate(rates, "frames_shed"),
+                   late_ticks_per_s=_rate(rates, "late_ticks"))
         warn = []
-        if out["shed_per_s"] > 0:
+        if (out["shed_per_s"] or 0) > 0:
             warn.append(f"sheds {out['shed_per_s']:.0f} frames/s: fusion cannot keep up (CPU busy)")
-        if out["late_ticks_per_s"] > 0:
+        if (out["late_ticks_per_s"] or 0) > 0:
             warn.append(f"{out['late_ticks_per_s']:.0f} late ticks/s: output ticks run behind")
         out["level"], out["alerts"] = _level([], warn)
         return out
 
-    def _cameras(self, h: dict[str, Any], now_ns: int, rates: dict[str, float]) -> list[dict[str, Any]]:
+    def _cameras(self, h: dict[str, Any], now_ns: int, rates: dict[str, float] | None) -> list[dict[str, Any]]:
         snaps = _get(h, "cameras", {}) or {}
         calib = self.view.scene.get("calibration_rms_px", {})
         scene_cams = {c["id"]: c for c in self.view.scene["cameras"]}
@@ -209,7 +215,7 @@ class HealthView:
                 "residual_px": None if w.residual_px is None else round(w.residual_px, 3),
                 "residual_calibration_px": calib.get(cam.name), "dropped": dropped,
                 "dropping": _get(c, "dropping"), "last_drop_reason": _get(c, "last_drop_reason"),
-                "shed_per_s": round(rates.get(f"shed:{cid}", 0.0), 1),
+                "shed_per_s": _rate(rates, f"shed:{cid}"),
                 "searched_share": searched_share(sc.get("mask"), cam.model.width, cam.model.height),
             }
             row["level"], row["alerts"] = _camera_level(row)
@@ -227,7 +233,7 @@ def _camera_level(c: dict[str, Any]) -> tuple[str, list[str]]:
         bad.append("masked over its whole image: its station searches no pixel")
     if c["state"] == "streaming" and _below(c["fps"], c["fps_configured"]):
         warn.append(f"{c['fps']:.0f} frames/s, configured {c['fps_configured']:.0f}")
-    if c["shed_per_s"] > 0:
+    if (c["shed_per_s"] or 0) > 0:
         warn.append(f"{c['shed_per_s']:.0f} frames/s shed: fusion cannot keep up")
     calib, live = c["residual_calibration_px"], c["residual_px"]
     if calib is not None and live is not None and live > max(RESIDUAL_RISE * calib, calib + RESIDUAL_RISE_MIN_PX):

@@ -172,7 +172,7 @@ class _Source:
                 "late_ticks": 0, "sinks": {"Bridge": {"vehicles": vehicles}}}
 
 
-def _health(arena_yaml):
+def _health(arena_yaml, reads: int = 2):
     from console.health import HealthView
 
     data = arena_yaml("thesis")
@@ -184,8 +184,16 @@ def _health(arena_yaml):
     view.static_blobs = lambda now_ns: {1: [{"x": 10.0, "y": 20.0, "seconds": 6.0, "ignore": [4, 14, 17, 27]},
                                             {"x": 90.0, "y": 70.0, "seconds": 9.0, "ignore": [84, 64, 97, 77]}]}
     hv = HealthView(view)
-    hv.health(0)
-    return hv.health(1_000_000_000)
+    h = hv.health(0)
+    return h if reads == 1 else hv.health(1_000_000_000)
+
+
+def test_a_rate_not_measured_yet_is_shown_as_none_and_raises_no_alert(arena_yaml):
+    h = _health(arena_yaml, reads=1)  # the first read: one sample, no rate yet
+    assert [v["rate_hz"] for v in h["vehicles"]] == [None] * 3
+    assert h["vehicles"][0]["level"] == "ok" and h["vehicles"][1]["alerts"] == []
+    assert h["bodies"][0]["rate_hz"] is None and h["bodies"][0]["level"] == "ok"
+    assert h["server"]["shed_per_s"] is None and h["server"]["level"] == "ok"
 
 
 def test_health_rows_turn_amber_for_a_rate_not_met_and_red_with_the_reason(arena_yaml):
