@@ -5,7 +5,7 @@
     GET /api/scene       cameras and bodies (console/view.py scene)
     GET /ws              WebSocket: {"type": "scene"} once, then {"type": "state"} at update_rate_hz (the
                          camera views in every second one),
-                         {"type": "health"} twice a second, {"type": "replay"} in a replay, {"type": "calib"}
+                         {"type": "health"} once a second, {"type": "replay"} in a replay, {"type": "calib"}
                          when the calibration assistant's counts or solve changed; the client
                          may send {"cmd": ...}: "rays" (a camera's blob rays), "views" (on: false while the
                          tab is hidden: no camera views for it), "health", replay controls (console/replay.py),
@@ -136,6 +136,7 @@ class ConsoleServer:
         self.view = ConsoleView(source)
         for cam in self.view.scene["cameras"]:
             cam["mask"] = (masks or {}).get(cam["id"])
+        self.view.scene["update_rate_hz"] = settings.update_rate_hz  # the page compares its own rate with it
         self.health_view = HealthView(self.view)
         self.clients: set[Client] = set()
         self.rlog = RateLimitedLog(log)
