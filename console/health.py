@@ -104,6 +104,9 @@ class HealthView:
         if "error" in h:
             out["error"] = h["error"]
         out["warnings"] = warnings(out, self.view.static_blobs(now_ns))
+        if _get(h, "camera_monitor"):  # which camera moved, by how much, its corrections (fusion/camera_monitor.py)
+            out["camera_monitor"] = h["camera_monitor"]
+            out["warnings"] += [c["warning"] for c in h["camera_monitor"]["cameras"].values() if _get(c, "warning")]
         return out
 
     def _cameras(self, h: dict[str, Any], now_ns: int) -> list[dict[str, Any]]:
