@@ -164,3 +164,27 @@ def test_a_5_degree_knock_is_corrected_and_a_20_degree_one_excluded_never_correc
     assert rep.tracked[name][50:].mean() > 0.99
     p, _ = sc.truth_at(name, rep.times_ns[50:][rep.tracked[name][50:]])
     assert np.linalg.norm(rep.positions[name][50:][rep.tracked[name][50:]] - p, axis=1).max() < 3e-3
+
+
+def test_two_cameras_knocked_at_once_the_flagged_one_is_held_out_with_the_reason():
+    # camera 2 flagged; the unflagged cameras 1, 3, 4 disagree among themselves (camera 3 knocked too): correcting
+    # camera 2 against them would fit it to a bent reference, so nothing is corrected or let back, and after three
+    # such rounds camera 2 is not solvable, with the reason, and stays out of the fusion
+    mon = CameraMonitor(load_arena("thesis"))
+    w = mon.cams[2]
+    w.flagged, w.excluded, w.since = True, True, w.camera
+    mon._fits = {2: (np.array([0.01, 0, 0, 0, 0, 0]), 6.0, 1e5), 1: (np.zeros(6), 9.2, 1e5),
+                 3: (np.zeros(6), 10.1, 1e5), 4: (np.zeros(6), 4.2, 1e4)}
+    for _ in range(3):
+        assert mon._act(10**10) == []
+    r = mon.report()[2]
+    assert r["state"] == "not_solvable" and r["excluded"] and r["corrections"] == 0 and not mon.admits(2)
+    assert "more than one camera moved" in r["why"] and "pi3 10.1 px" in r["why"]
+    # a consistent reference (the others within flag_px): the correction goes ahead
+    mon._fits = {2: (np.array([0.01, 0, 0, 0, 0, 0]), 6.0, 1e5), 1: (np.zeros(6), 0.03, 2.0),
+                 3: (np.zeros(6), 0.04, 3.0), 4: (np.zeros(6), 0.02, 1.0)}
+    for c in (1, 3, 4):
+        mon.cams[c].last["sigma_px"] = 0.3
+    w.last["sigma_px"] = 0.3
+    fixed = mon._act(10**10)
+    assert [c.camera_id for c in fixed] == [2] and math.isclose(fixed[0].rotation_deg, math.degrees(0.01))

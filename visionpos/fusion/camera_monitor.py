@@ -325,7 +325,8 @@ class CameraMonitor:
             return
         self._last_px[v, rows[m]] = blobs[b]
         self._last_ns[v, rows[m]] = frame.capture_ns
-        others = np.ones(len(self.cams), bool)
+        # leave-one-out, and flagged cameras left out too: a knocked camera's rays would bend the others' points
+        others = np.array([not x.flagged for x in self.cams.values()])
         others[v] = False
         r = rows[m]
         age_ns = frame.capture_ns - self._last_ns[:, r].T  # (K, V)
@@ -489,11 +490,14 @@ class CameraMonitor:
                   "fusion; recalibrate it (visionpos calibrate wand)")
 
     def _flag(self, now_ns: int) -> bool:
-        """Flag the camera whose correction is significant, visible and clearly the largest (one at a time:
-        while a flagged one is re-fitted its rays still bend the others' points). True if one was flagged."""
-        st, fits = self.settings, self._fits
+        """Flag the unflagged camera whose correction is significant, visible and clearly the largest among the
+        unflagged ones, while two others remain to check it against. True if one was flagged: then every
+        camera's pairs are dropped, since theirs were triangulated with its rays too (flagged cameras' views
+        are left out of the others' points from then on)."""
+        st = self.settings
+        fits = {c: f for c, f in self._fits.items() if not self.cams[c].flagged}
         moved = sorted(((disp, cid) for cid, (_, disp, chi2) in fits.items() if chi2 > st.chi2_min), reverse=True)
-        if not moved or moved[0][0] <= st.flag_px or any(w.flagged for w in self.cams.values()):
+        if not moved or moved[0][0] <= st.flag_px or sum(not w.flagged for w in self.cams.values()) < 3:
             return False
         # the knocked camera dominates: the fused poses lean toward it, so the others show smaller corrections
         runner_up = max((fits[c][1] for c in fits if c != moved[0][1]), default=0.0)
@@ -508,7 +512,8 @@ class CameraMonitor:
                   ("; left out of the fusion" if st.exclude else "") +
                   ("; re-fitting its pose while tracking goes on" if st.correct else
                    "; recalibrate (visionpos calibrate wand)"))
-        self._clear(w, now_ns)  # the window mixes the old and the new pose: fit the new one on fresh pairs only
+        for x in self.cams.values():  # its window mixes the old and the new pose, the others' hold its rays
+            self._clear(x, now_ns)
         return True
 
     def _act(self, now_ns: int) -> list[Correction]:
@@ -516,6 +521,8 @@ class CameraMonitor:
         solvable (excluded), or (correct) its pose is corrected by the fit, bounded per step."""
         st, out = self.settings, []
         sigmas = [self._fits_sigma(c) for c, w in self.cams.items() if not w.flagged and c in self._fits]
+        if not self._reference_holds(now_ns):
+            return out
         for cid, w in self.cams.items():
             if not w.flagged or cid not in self._fits or now_ns - w.cleared_ns < st.settle_s * 1e9:
                 continue
@@ -549,6 +556,26 @@ class CameraMonitor:
             if st.correct:
                 out.append(self._correct(w, delta, now_ns))
         return out
+
+    def _reference_holds(self, now_ns: int) -> bool:
+        """Whether the unflagged cameras are a reference to correct a flagged one against: two or more of them
+        fitted this round and none of them off by more than flag_px (significantly). Otherwise no flagged camera
+        is corrected or let back (it would be fitted to a bent reference: two cameras knocked at once); after
+        three such rounds each flagged camera is flagged as not solvable, with the reason, and stays out."""
+        st = self.settings
+        ref = {c: self._fits[c] for c, w in self.cams.items() if not w.flagged and c in self._fits}
+        off = {c: f[1] for c, f in ref.items() if f[1] > st.flag_px and f[2] > st.chi2_min}
+        if len(ref) >= 2 and not off:
+            self._bent_rounds = 0
+            return True
+        self._bent_rounds = getattr(self, "_bent_rounds", 0) + bool(off)
+        if self._bent_rounds == LOST_ROUNDS:
+            names = ", ".join(f"{self.cams[c].camera.name} {d:.1f} px" for c, d in off.items())
+            for w in self.cams.values():
+                if w.flagged and not w.unsolvable:
+                    self._unsolvable(w, now_ns, f"the other cameras disagree among themselves too ({names}): more "
+                                     "than one camera moved, and which cannot be told")
+        return False
 
     def _fits_sigma(self, cid: int) -> float:
         return float(self.cams[cid].last.get("sigma_px", np.nan))
