@@ -136,6 +136,9 @@ class HealthView:
         static = self.view.static_blobs(now_ns)
         out["reflections"] = [{"camera": cid, "ignore": [s["ignore"] for s in found]} for cid, found in static.items()]
         out["warnings"] = warnings(out, static)
+        if _get(h, "camera_monitor"):  # which camera moved, by how much, its corrections (fusion/camera_monitor.py)
+            out["camera_monitor"] = h["camera_monitor"]
+            out["warnings"] += [c["warning"] for c in h["camera_monitor"]["cameras"].values() if _get(c, "warning")]
         return out
 
     def _vehicle(self, name: str, v: dict[str, Any], rates: dict[str, float] | None) -> dict[str, Any]:
