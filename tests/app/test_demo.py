@@ -127,3 +127,15 @@ def test_a_taken_output_port_stops_the_demo_at_start_with_one_line_naming_the_ke
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2
     assert len(err) == 1 and f"vrpn.port={port}" in err[0] and "in use" in err[0], err
+
+
+def test_set_vehicles_applies_to_the_vehicles_the_demo_makes():
+    """`visionpos demo --set vehicles.0.message=odometry` on an arena without a vehicles section (issue 31: it
+    failed with "`vehicles` is empty")."""
+    from bridge.config import parse_vehicles
+    from visionpos.app.demo import demo_arena
+
+    vehicles = parse_vehicles(demo_arena("thesis", 10.0, None, ["vehicles.0.message=odometry"]))
+    assert [v.message for v in vehicles] == ["odometry"]
+    assert vehicles[0].endpoint.kind == "udpin" and vehicles[0].endpoint.host == "127.0.0.1"
+    assert [v.message for v in parse_vehicles(demo_arena("thesis", 10.0, None, []))] == ["vision_position_estimate"]

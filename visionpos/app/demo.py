@@ -69,10 +69,14 @@ STREAM_LEAD_S = 0.3  # first exposure this long after every station is registere
 
 
 def demo_arena(scenario: str, duration_s: float, seed: int | None, overrides: list[str]) -> ArenaConfig:
-    """The scenario's arena with loopback vehicle endpoints, sim duration and seed applied."""
+    """The scenario's arena with loopback vehicle endpoints, sim duration and seed applied. `vehicles.*`
+    overrides are applied after the demo has made its vehicles (one per body when the file has none), so
+    `--set vehicles.0.message=odometry` finds them."""
     path = resolve_config_path(scenario)
     data = load_yaml(path)
-    sets = list(overrides) + [f"sim.duration={duration_s}"] + ([f"sim.seed={seed}"] if seed is not None else [])
+    vehicle_sets = [o for o in overrides if o.split("=", 1)[0].strip().startswith("vehicles.")]
+    sets = ([o for o in overrides if o not in vehicle_sets] + [f"sim.duration={duration_s}"]
+            + ([f"sim.seed={seed}"] if seed is not None else []))
     data = apply_overrides(data, sets)
     arena = parse_arena(data, str(path))
     vehicles = data.get("vehicles") or [{"body": b.name, "sysid": b.id} for b in arena.bodies]
@@ -85,7 +89,7 @@ def demo_arena(scenario: str, duration_s: float, seed: int | None, overrides: li
             key_file = key_file or _demo_mavlink_key_file()
             v["signing"] = {"key_file": key_file}
     data["vehicles"] = vehicles
-    return parse_arena(data, str(path))
+    return parse_arena(apply_overrides(data, vehicle_sets) if vehicle_sets else data, str(path))
 
 
 def _demo_mavlink_key_file() -> str:
