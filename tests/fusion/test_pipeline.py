@@ -77,6 +77,23 @@ def test_deterministic(hover):
             assert np.array_equal(s.covariance, t.covariance, equal_nan=True)
 
 
+def test_tick_fuses_the_frame_the_rate_limit_held_back(hover):
+    # the simulated cameras are nearly in phase, so a frame waits for the end of its burst (the rate limit);
+    # when the burst's next frame does not come (lost, late), the tick's output still holds the frame that waited
+    sc, sim = hover
+    p = FusionPipeline(sc.arena)
+    for k, f in enumerate(sim.frames):
+        deferred = p.stats()["deferred"]
+        p.push(f)
+        if k > 300 and p.stats()["deferred"] > deferred:
+            break
+    (s,) = p.tick(f.capture_ns + 3_000_000)  # the burst's next frame is never pushed
+    assert s.tracked and s.capture_ns == f.capture_ns
+    assert p.stats()["fused_at_tick"] == 1
+    (s2,) = p.tick(f.capture_ns + 4_000_000)  # fused once: the next tick only predicts
+    assert p.stats()["fused_at_tick"] == 1 and s2.capture_ns == f.capture_ns
+
+
 def test_tick_reports_lost_body_without_stale_pose(hover):
     sc, sim = hover
     p = FusionPipeline(sc.arena)

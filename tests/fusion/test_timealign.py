@@ -166,3 +166,26 @@ def test_time_aligner_rules():
     assert a == []
     _, a = rl3.add(3, 111 * MS)  # end of the burst: one fusion with all three
     assert a and a[0].cameras == (1, 2, 3)
+
+
+def test_a_deferred_fusion_is_taken_by_the_tick_when_its_burst_never_ends():
+    # three cameras nearly in phase: camera 2's frame waits for camera 3's, due 0.5 ms later; that frame is lost,
+    # so the next tick must fuse camera 2's frame instead of leaving it to the next burst a frame period later
+    al2 = TimeAligner("motion_compensated", 12 * MS, 10 * MS, 30 * MS, periods_ns={1: 10 * MS, 2: 10 * MS, 3: 10 * MS},
+                      min_interval_ns=2 * MS)
+    for cam, tc in ((1, 100 * MS), (2, 100_500_000), (3, 101 * MS)):
+        al2.add(cam, tc)
+    al2.add(1, 110 * MS)
+    _, a = al2.add(2, 110_500_000)  # camera 3 due at 111 ms: deferred
+    assert a == []
+    g = al2.take_deferred()  # camera 3's frame does not come: the tick fuses 1 and 2 at camera 2's time
+    assert g is not None and g.cameras == (1, 2, 3) and g.ref_ns == 110_500_000 and g.compensate
+    assert al2.take_deferred() is None  # once
+    _, a = al2.add(3, 111 * MS)  # late after all: it is fused (0.5 ms after the tick's fusion, nothing else due)
+    assert a and a[0].cameras == (1, 2, 3)
+    # a later fusion takes the deferred frame: nothing is left for the tick
+    al2.add(1, 120 * MS)
+    _, a = al2.add(2, 120_500_000)
+    assert a == [] and al2.deferred is not None
+    _, a = al2.add(3, 121 * MS)
+    assert a and al2.take_deferred() is None

@@ -505,6 +505,26 @@ def test_clock_jump_kinds_are_the_logged_words_and_health_counters(caplog):
     assert [k.value for k in ClockJump] == ["in the future", "too old", "going backwards"]
 
 
+def test_far_ahead_frame_log_says_what_was_refused_and_later_frames_are_fused(caplog):
+    # one signed frame far in the future (an attacker's, or one bad clock read): it alone is refused, and
+    # the log says so with a count; the station's genuine frames after it are accepted, and the log says that
+    ing, pipe, clock = _ingest({"max_future_ms": 20, "max_age_ms": 300})
+    _send(ing, _hello(1), T0)
+    with caplog.at_level(logging.INFO, logger="visionpos.server.ingest"):
+        t = T0 + 10 * MS
+        _send(ing, _frame(1, 1, t - 3 * MS), t)
+        t += 10 * MS
+        assert _send(ing, _frame(1, 2, t + 3_600_000 * MS), t) == []
+        warned = caplog.records[-1].getMessage()
+        for k in range(3, 6):
+            t += 10 * MS
+            _send(ing, _frame(1, k, t - 3 * MS), t)
+    assert [f.seq for f in pipe.frames] == [1, 3, 4, 5]
+    assert "frame refused (1 refused since its last accepted frame, 1 since start" in warned
+    assert "until" not in warned and "dropping its frames" not in warned
+    assert any("frames accepted again after 1 refused for a clock jump" in r.getMessage() for r in caplog.records)
+
+
 def test_event_kinds_are_the_recorded_strings():
     recorded = []  # what the service writes on /server/events: JSON with "kind"
     clock = Clock(T0)

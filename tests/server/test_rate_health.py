@@ -57,3 +57,29 @@ def test_slow_station_is_not_taken_for_a_vanished_one():
     seq, t = _stream(ing, 1, 8.0, T0 + 10 * MS, 2.0)
     seq, t = _stream(ing, 1, 8.0, t + 125 * MS, 3.0, seq, check_vanished=True)
     assert pipe.removed == [] and ing.health(t)["cameras"][1]["vanished"] == 0
+
+
+def test_rate_after_an_outage_is_measured_only_while_the_camera_streams(caplog):
+    # a camera at its configured 100 fps, off for 10 s (a reboot), back at 100 fps: no low-rate warning,
+    # and the rate it reports after the reboot is its streaming rate, not frames / (a span with the outage)
+    ing = Ingest(_arena(), pipeline=Collector(), clock=Clock(T0))
+    _send(ing, _hello(1), T0)
+    with caplog.at_level(logging.WARNING, logger="visionpos.server.ingest"):
+        seq, t = _stream(ing, 1, 100.0, T0 + 10 * MS, 1.5)
+        ing.check_vanished(t + 10_000 * MS)  # the outage: the camera is lost
+        seq, t = _stream(ing, 1, 100.0, t + 10_000 * MS, 1.5, seq)
+        cam = ing.health(t)["cameras"][1]
+    assert 95.0 < cam["fps"] < 105.0 and not cam["low_frame_rate"] and cam["warnings"] == []
+    assert not [r for r in caplog.records if "delivers" in r.getMessage()]
+
+
+def test_outage_without_a_vanish_check_is_no_rate_either(caplog):
+    # a replay or a stalled server may not run check_vanished during the gap: the gap itself restarts it
+    ing = Ingest(_arena(), pipeline=Collector(), clock=Clock(T0))
+    _send(ing, _hello(1), T0)
+    with caplog.at_level(logging.WARNING, logger="visionpos.server.ingest"):
+        seq, t = _stream(ing, 1, 100.0, T0 + 10 * MS, 1.5)
+        seq, t = _stream(ing, 1, 100.0, t + 10_000 * MS, 0.5, seq)
+        cam = ing.health(t)["cameras"][1]
+    assert not [r for r in caplog.records if "delivers" in r.getMessage()]
+    assert not cam["low_frame_rate"] and cam["fps"] > 95.0

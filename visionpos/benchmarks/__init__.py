@@ -24,6 +24,7 @@ GROUPS: dict[str, str] = {
     "camera_monitor": "camera_monitor",
     "demo_memory": "demo_memory",
     "coldstart": "coldstart",
+    "freshness": "freshness",
 }
 
 
@@ -114,6 +115,8 @@ GOALS: list[Goal] = [
          "(unchanged)"),
     Goal("console_cost_ratio", "<=", 1.05, "server loop CPU per packet, console with one client / no console"),
     Goal("console_client_updates_hz", ">=", 30.0, "updates/s the console's WebSocket client receives"),
+    Goal("freshness_age_p99_periods", "<=", 1.5, "age of the newest fused frame at each output tick, p99 (frame "
+         "periods), console and all outputs on"),
     Goal("backchannel_delay_error_ms_max", "<=", 2.0, "capture-to-autopilot delay from the autopilot's gyro: "
          "error (ms), added link delays 0/20/50 ms"),
     Goal("calib_thesis_center_err_mm_max", "<=", 2.0, "wand calibration, thesis: camera centre error (mm)"),

@@ -6,7 +6,8 @@
 
 Deterministic: the same frames in the same order and the same tick times
 give identical outputs (replay depends on it). Only frame.capture_ns is
-used as time; tick() never changes the filter state.
+used as time; tick() changes the filter state only to fuse a frame the rate
+limit deferred (TimeAligner.take_deferred), at the tick's place in the input.
 
 Per frame: undistort its blobs, associate them with the markers of tracked
 bodies (prediction at the frame's capture time, see matching.py), then fuse
@@ -206,6 +207,7 @@ class FusionPipeline:
             "frames": 0,
             "fusions": 0,
             "deferred": 0,
+            "fused_at_tick": 0,  # deferred fusions that the output tick did (their burst's next frame was late)
             "measurements": 0,
             "rejected_gate": 0,
             "rejected_residual": 0,
@@ -465,11 +467,17 @@ class FusionPipeline:
 
     # ----------------------------------------------------------------- output
     def tick(self, now_ns: int) -> list[BodyState]:
-        """One BodyState per configured body, predicted to now_ns; does not change the filters.
+        """One BodyState per configured body, predicted to now_ns.
 
-        A body not updated within max_prediction (or lost) is reported with
-        tracked=False and NaN pose: a stale pose is never re-sent.
+        First the fusion the rate limit deferred, if no later frame took it (TimeAligner.take_deferred): every
+        frame admitted before a tick is in its output, even when the frame that would end its burst is lost
+        or late. Otherwise the filters do not change. A body not updated within max_prediction (or lost) is
+        reported with tracked=False and NaN pose: a stale pose is never re-sent.
         """
+        pending = self.aligner.take_deferred()
+        if pending is not None:
+            self._stats["fused_at_tick"] += 1
+            self._fuse(pending)
         st = self.settings
         out = []
         # stations slower than configured: a body is updated about once per frame interval

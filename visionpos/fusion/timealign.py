@@ -16,6 +16,10 @@ motion_compensated (default)
     skipped when the previous one is less than the interval old and another
     camera's next frame is due within the interval (from its period), so the
     fusion happens at the end of a burst of frames and includes all of them.
+    The skipped fusion is kept (`deferred`) until a later one takes its frame,
+    and the next output tick fuses it (`take_deferred`): a frame whose burst
+    never ends (the awaited frame lost or late) waits for no later burst, so
+    no admitted frame is left out of a tick's output.
 
 naive
     Frames are binned to the nearest point of a fixed grid (period `grid`);
@@ -131,6 +135,7 @@ class TimeAligner:
         self.periods_ns = dict(self.configured_ns)  # camera -> interval in use: measured, else configured
         self.min_interval_ns = int(min_interval_ns)
         self.last_fused_ns: int | None = None
+        self.deferred: Group | None = None  # the fusion the rate limit skipped last, until one takes its frame
         self._bin: int | None = None  # naive: pending grid bin
         self._pending: dict[int, int] = {}  # naive: camera -> capture_ns in the pending bin
 
@@ -205,9 +210,13 @@ class TimeAligner:
                     if t > ref:
                         ref = t
             members.sort()
-            if not self._defer(camera_id, ref):
+            group = Group(tuple(members), ref, True)
+            if self._defer(camera_id, ref):
+                self.deferred = group
+            else:
+                self.deferred = None
                 self.last_fused_ns = ref
-                after.append(Group(tuple(members), ref, True))
+                after.append(group)
         else:
             b = self._bin_of(capture_ns)
             if self._bin is not None and b > self._bin and self._pending:
@@ -219,6 +228,16 @@ class TimeAligner:
             self.latest[camera_id] = capture_ns
             self.newest_ns = capture_ns if self.newest_ns is None else max(self.newest_ns, capture_ns)
         return before, after
+
+    def take_deferred(self) -> Group | None:
+        """The fusion the rate limit skipped last, when no later fusion has taken its frame (then it counts as
+        done); None when there is none. The output tick calls it: the frame a burst's lost or late frame would
+        hold back is fused by the tick, not by the next burst a frame period later."""
+        g = self.deferred
+        if g is not None:
+            self.deferred = None
+            self.last_fused_ns = g.ref_ns
+        return g
 
     def _measured(self, camera_id: int, interval_ns: int) -> None:
         """A camera's new measured frame interval: the window and lead follow."""

@@ -16,6 +16,7 @@ Addr = tuple[Any, ...]
 RETIRED_SESSIONS = 4  # replaced sessions kept per camera: a HELLO for one of them is a replay
 LOW_RATE_FRACTION = 0.8  # a camera delivering less than this fraction of its configured fps ...
 LOW_RATE_AFTER_S = 3.0  # ... for this long gets a health warning
+OUTAGE_MIN_S = 1.0  # a gap in accepted frames longer than this (and the vanish timeout) is an outage, not a rate
 
 
 class ClockJump(StrEnum):
@@ -80,7 +81,8 @@ class CameraHealth:
     last_seen_ns: int = 0  # any accepted packet
     last_frame_ns: int = 0  # accepted frame (receive time)
     online: bool = False
-    jump_run: int = 0
+    jump_run: int = 0  # clock-jumped frames in a row (restarts at a resync request)
+    jumped_since_accepted: int = 0  # clock-jumped frames since the last accepted frame (for the log)
     # the newest refused frame: shows "dropping (reason)" while no frame gets through
     drop_reason: str = ""
     last_drop_ns: int = 0

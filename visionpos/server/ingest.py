@@ -48,6 +48,8 @@ Frame rate: a camera that delivers less than LOW_RATE_FRACTION of its configured
 fps (cameras[i].fps) for LOW_RATE_AFTER_S is reported, once per episode, with what
 to do (lower the configured rate or the station's load); health() carries it as a
 structured warning (measured and configured fps, message) and status_line marks it.
+The rate is measured only while the camera streams: after a gap in accepted frames longer than
+OUTAGE_MIN_S and its vanish timeout (a reboot, a cable), the measurement starts again at its next frame.
 """
 
 from __future__ import annotations
@@ -70,6 +72,7 @@ from visionpos.messages import FLAG_RESYNC, BlobFrame
 from visionpos.server.camera_health import (
     LOW_RATE_AFTER_S,
     LOW_RATE_FRACTION,
+    OUTAGE_MIN_S,
     Addr,
     CameraHealth,
     ClockJump,
@@ -465,11 +468,15 @@ class Ingest(UdpEndpoint):
     def _clock_jump(self, cam: CameraHealth, kind: ClockJump, addr: Addr, lat: int, recv_ns: int) -> None:
         cam.clock_jumps += 1
         cam.jump_run += 1
+        cam.jumped_since_accepted += 1
         self._drop(cam, f"clock jump: {kind}", recv_ns)
+        # says what was refused (this frame, the count), not what will be: the next frame with a sane
+        # capture time is accepted
         self._warn(("jump", cam.camera_id, kind), logging.WARNING,
-                   "camera %d (%s): clock jump (%s): capture time is %.1f ms %s the receive time; dropping its "
-                   "frames until the station's clock is sane again", cam.camera_id, cam.name, kind,
-                   abs(lat) * 1e-6, "after" if lat < 0 else "before")
+                   "camera %d (%s): clock jump (%s): capture time is %.1f ms %s the receive time; frame refused "
+                   "(%d refused since its last accepted frame, %d since start; frames with a sane capture time "
+                   "are still accepted)", cam.camera_id, cam.name, kind, abs(lat) * 1e-6,
+                   "after" if lat < 0 else "before", cam.jumped_since_accepted, cam.clock_jumps)
         if cam.jump_run >= self.settings.resync_after and not cam.resync_pending:
             # ask the station (in the reply to its next heartbeat) to resync; restart the time checks
             cam.jump_run = 0
@@ -594,6 +601,11 @@ class Ingest(UdpEndpoint):
                 cam.seq_restarts += 1
         cam.last_seq = seq
         cam.jump_run = 0
+        if cam.jumped_since_accepted:
+            self._warn(("jump_end", cam.camera_id), logging.INFO,
+                       "camera %d (%s): frames accepted again after %d refused for a clock jump",
+                       cam.camera_id, cam.name, cam.jumped_since_accepted)
+            cam.jumped_since_accepted = 0
         cam.last_capture_ns = capture
         cam.last_seen_ns = recv_ns
 
@@ -601,7 +613,6 @@ class Ingest(UdpEndpoint):
         """An accepted frame's latency (recv - capture, ns) and the camera's 1 s rate bucket; the camera is
         online (back, if it had vanished)."""
         cam.frames += 1
-        cam.last_frame_ns = recv_ns
         if cam.frames == 1:
             cam.latency_ewma_ns = cam.latency_min_ns = cam.latency_max_ns = lat
         else:
@@ -610,6 +621,13 @@ class Ingest(UdpEndpoint):
                 cam.latency_min_ns = lat
             elif lat > cam.latency_max_ns:
                 cam.latency_max_ns = lat
+        outage_ns = max(OUTAGE_MIN_S * 1e9, self.vanish_timeout_ns(cam))
+        if cam.last_frame_ns and recv_ns - cam.last_frame_ns > outage_ns:
+            # back after an outage (a reboot, a cable): the rate is measured only while the camera streams,
+            # so the bucket restarts here and the silence is no low-rate run
+            cam._bucket_start, cam._bucket_frames, cam._bucket_lost = recv_ns, 0, 0
+            cam.low_rate_since_ns = 0
+        cam.last_frame_ns = recv_ns
         cam._bucket_frames += 1
         if recv_ns - cam._bucket_start >= 1_000_000_000:
             if cam._bucket_start:
