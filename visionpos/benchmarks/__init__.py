@@ -24,6 +24,7 @@ GROUPS: dict[str, str] = {
     "camera_monitor": "camera_monitor",
     "demo_memory": "demo_memory",
     "coldstart": "coldstart",
+    "scale": "scale",
 }
 
 
@@ -161,6 +162,8 @@ GOALS: list[Goal] = [
     Goal("sitl_delay_flights_completed_min", ">=", 1, "ArduPilot SITL, link delayed 0/20/50 ms: every hover "
          "flight completes"),
     Goal("coldstart_first_pose_s", "<=", 20.0, "visionpos demo on an empty kernel cache: seconds to the first pose"),
+    Goal("scale_realtime_shed_fraction", "<=", 0, "one server core, fleet20 (12 cameras x 120 Hz, 20 bodies): "
+         "fraction of frames shed"),
     Goal("sitl_delay_ekf_horizontal_error_p99_mm_max", "<=", 20.0, "ArduPilot SITL, link delayed 0/20/50 ms: EKF "
          "horizontal position error p99 (mm), worst flight"),
 ]
