@@ -22,6 +22,17 @@ def _book(models):
     return IdentityBook(models, np.array([[0.0, 0.0, 3.0]]), np.array([700.0]), 10.0)
 
 
+def _filters(positions, var_m2=1e-8, velocities=None):
+    """Filter states (B, 18) at positions (B, 3) m (velocities (B, 3) m/s, default 0) and covariances
+    (B, 18, 18) with var_m2 per position axis."""
+    positions = np.asarray(positions, float)
+    x = np.zeros((len(positions), 18))
+    x[:, :3] = positions
+    if velocities is not None:
+        x[:, 3:6] = velocities
+    return x, np.tile(np.eye(18) * var_m2, (len(positions), 1, 1))
+
+
 def _ident(body, t):
     return Identification(body, np.arange(4), np.eye(3), np.asarray(t, float), 0.0005)
 
@@ -69,9 +80,7 @@ def test_first_acquisition_takes_the_parking_order_and_reacquisition_the_nearest
     assert "unresolved" in book.describe(0)
     assert not book.trusted(0) and book.trusted(3)
     # quad2 and quad3 lost where they were; whichever identify() calls them, they come back by position
-    positions = np.array([[-1.0, 0, 1], [0.0, 0, 1], [1.0, 0, 1], [0, 2, 1]])
-    cov = np.tile(np.eye(3) * 1e-8, (4, 1, 1))
-    book.after_fusion(0, (0, 3), positions, cov)
+    book.after_fusion(0, (0, 3), *_filters([[-1.0, 0, 1], [0.0, 0, 1], [1.0, 0, 1], [0, 2, 1]]))
     assert book.state[1] is IdentityState.LOST and book.state[2] is IdentityState.LOST
     again = book.acquired([_ident(1, [1.05, 0, 1]), _ident(2, [0.05, 0, 1])])
     assert {f.body: f.t[0] for f in again} == {2: 1.05, 1: 0.05}
@@ -85,29 +94,36 @@ def test_two_tracks_of_one_layout_within_the_swap_distance_are_both_unresolved()
         assert book.bind(b)
     assert book.trusted(0) and book.state[0] is IdentityState.CONTINUITY
     assert not book.bind(3)  # a unique layout needs no binding
-    cov = np.tile(np.eye(3) * 1e-8, (4, 1, 1))
     # 0.3 m apart (beyond the 43 mm gate at 3 m): continuity holds
     pos = np.array([[0.0, 0, 0], [0.3, 0, 0], [2.0, 0, 0], [0.02, 0, 0]])
-    book.after_fusion(0, (0, 1, 2, 3), pos, cov)
+    book.after_fusion(0, (0, 1, 2, 3), *_filters(pos))
     assert [book.state[b] for b in range(3)] == [IdentityState.CONTINUITY] * 3  # the solo body is no candidate
     # 3 cm apart: quad1 and quad2 could have swapped
     pos[1] = [0.03, 0, 0]
-    book.after_fusion(1_000_000, (0, 1, 2, 3), pos, cov)  # within the check interval: not looked at yet
+    book.after_fusion(2_000_000, (0, 1, 2, 3), *_filters(pos))  # within the check interval: not looked at yet
     assert book.state[0] is IdentityState.CONTINUITY
-    book.after_fusion(3_000_000, (0, 1, 2, 3), pos, cov)
+    book.after_fusion(6_000_000, (0, 1, 2, 3), *_filters(pos))
     assert book.state[0] is IdentityState.AMBIGUOUS and book.state[1] is IdentityState.AMBIGUOUS
     assert book.state[2] is IdentityState.CONTINUITY
     assert book.describe(0) == "quad1: identity unresolved: two candidates (quad1 or quad2)"
     # apart again: still unresolved until bound
     pos[1] = [0.5, 0, 0]
-    book.after_fusion(6_000_000, (0, 1, 2, 3), pos, cov)
+    book.after_fusion(12_000_000, (0, 1, 2, 3), *_filters(pos))
     assert book.state[1] is IdentityState.AMBIGUOUS and book.swaps_suspected == 1
     # a wide position uncertainty widens the distance: 0.3 m apart with 5 cm std each is ambiguous
     book2 = _book(models)
     book2.acquired([_ident(b, [b * 1.0, 0, 0]) for b in range(3)])
-    wide = np.tile(np.eye(3) * (0.05**2 / 3), (4, 1, 1))
-    book2.after_fusion(0, (0, 1, 2), np.array([[0.0, 0, 0], [0.3, 0, 0], [2.0, 0, 0], [9, 9, 9]]), wide)
+    book2.after_fusion(0, (0, 1, 2), *_filters([[0.0, 0, 0], [0.3, 0, 0], [2.0, 0, 0], [9, 9, 9]], 0.05**2 / 3))
     assert book2.state[0] is IdentityState.AMBIGUOUS
+    # and so does closing speed: 6 cm apart, closing at 4 m/s (2 cm until the next check)
+    book3 = _book(models)
+    book3.acquired([_ident(b, [b * 1.0, 0, 0]) for b in range(3)])
+    apart = [[0.0, 0, 0], [0.06, 0, 0], [2.0, 0, 0], [9, 9, 9]]
+    book3.after_fusion(0, (0, 1, 2), *_filters(apart))
+    assert book3.state[0] is IdentityState.ACQUIRED
+    closing = [[2.0, 0, 0], [-2.0, 0, 0], [0] * 3, [0] * 3]
+    book3.after_fusion(10_000_000, (0, 1, 2), *_filters(apart, velocities=closing))
+    assert book3.state[0] is IdentityState.AMBIGUOUS
 
 
 def test_pipeline_tracks_two_copies_of_a_layout_and_says_how_it_knows():

@@ -18,7 +18,8 @@ prediction), and this book says per body how far that identity can be trusted:
 
 The swap distance of two tracks is the association gate (`fusion.match_gate_px`) in metres at the
 farthest camera's range from either (a whole body within that of the other body's prediction could take
-its blobs) plus 5 standard deviations of their positions' difference; checked every 2 ms of capture time.
+its blobs) plus 5 standard deviations of their positions' difference; checked every 5 ms of capture time,
+plus how far they close in on each other in 5 ms.
 A consumer that sends poses to vehicles sends only to bodies `trusted` says are.
 """
 
@@ -29,11 +30,13 @@ from enum import Enum
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from visionpos.fusion.layout import X_POS, X_VEL
 from visionpos.fusion.rigidbody import BodyModel, Identification
 
 SWAP_SIGMAS = 5.0  # the swap distance's allowance for the positions' uncertainty
 ROW_GAP_M = 0.3  # parking order: bodies whose y differ by less are one row
-CHECK_INTERVAL_NS = 2_000_000  # ambiguity checks at most this often (capture clock): 8 mm at 4 m/s closing
+CHECK_INTERVAL_NS = 5_000_000  # ambiguity checks at most this often (capture clock); the distance grows by
+# the two tracks' closing speed times this, so no pair slips through between checks
 
 
 class IdentityState(str, Enum):
@@ -135,11 +138,11 @@ class IdentityBook:
         return names
 
     # ------------------------------------------------------------------ tracking
-    def after_fusion(self, ref_ns: int, tracked: tuple[int, ...], positions: np.ndarray,
+    def after_fusion(self, ref_ns: int, tracked: tuple[int, ...], states: np.ndarray,
                      covariances: np.ndarray) -> None:
         """After a fusion at ref_ns (capture clock; at most every CHECK_INTERVAL_NS): tracked (the pipeline's
-        tracked bodies), positions (B, 3) m and their covariances (B, 3, 3) m^2 of every body's filter.
-        Marks losses and ambiguous pairs."""
+        tracked bodies), the filters' states (B, N_STATE) (position m, velocity m/s: layout.X_POS, X_VEL) and
+        covariances (B, N_STATE, N_STATE). Marks losses and ambiguous pairs."""
         if 0 <= ref_ns - self._last_check_ns < CHECK_INTERVAL_NS:
             return
         self._last_check_ns = ref_ns
@@ -153,13 +156,17 @@ class IdentityBook:
         live = sh[on[sh]]
         if not len(live):
             return
-        p = positions[live]
+        x = states[live]
+        p = x[:, X_POS]
         self.last_position[live] = p
         if len(live) < 2:
             return
         far = np.sqrt(((p[:, None] - self._centres[None]) ** 2).sum(-1).max(axis=1))  # (L,) m
-        var = np.einsum("bii->b", covariances[live])
-        gate = self._gate_rad * np.maximum(far[:, None], far[None]) + SWAP_SIGMAS * np.sqrt(var[:, None] + var[None])
+        var = np.einsum("bii->b", covariances[live][:, X_POS, X_POS])
+        v = x[:, X_VEL]
+        closing = np.sqrt(((v[:, None] - v[None]) ** 2).sum(-1)) * (CHECK_INTERVAL_NS * 1e-9)
+        gate = (self._gate_rad * np.maximum(far[:, None], far[None]) + SWAP_SIGMAS * np.sqrt(var[:, None] + var[None])
+                + closing)
         d2 = ((p[:, None] - p[None]) ** 2).sum(-1)
         g = self._group_of[live]
         hit = np.triu((d2 < gate * gate) & (g[:, None] == g[None]), 1)

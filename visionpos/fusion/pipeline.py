@@ -352,7 +352,7 @@ class FusionPipeline:
         lost_ns = max(st.kalman.lost_timeout_ns, _LOST_PERIODS * self.aligner.slowest_period_ns())
         gone = [b for b in self._tracked if ref - track_ints[b, TRACK_LAST_UPDATE_NS] > lost_ns]
         if self.identity.shared:
-            self.identity.after_fusion(ref, self._tracked, self.bank.x[:, :3], self.bank.P[:, :3, :3])
+            self.identity.after_fusion(ref, self._tracked, self.bank.x, self.bank.P)
         if gone:
             track_ints[gone, TRACK_TRACKED] = 0
             self._stats["lost"] += len(gone)
