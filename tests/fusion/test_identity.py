@@ -73,7 +73,7 @@ def test_first_acquisition_takes_the_parking_order_and_reacquisition_the_nearest
     assert book.shared and book.state[3] is IdentityState.UNIQUE
     # identify() named them in body order; the parking order along x says otherwise
     found = book.acquired([_ident(0, [1.0, 0, 0]), _ident(1, [-1.0, 0, 0]), _ident(2, [0.0, 0, 0]),
-                           _ident(3, [0, 2, 0])])
+                           _ident(3, [0, 2, 0])], [0, 1, 2, 3])
     named = {f.body: f.t[0] for f in found}
     assert named == {0: -1.0, 1: 0.0, 2: 1.0, 3: 0.0}
     assert all(book.state[b] is IdentityState.ACQUIRED for b in range(3))
@@ -82,14 +82,18 @@ def test_first_acquisition_takes_the_parking_order_and_reacquisition_the_nearest
     # quad2 and quad3 lost where they were; whichever identify() calls them, they come back by position
     book.after_fusion(0, (0, 3), *_filters([[-1.0, 0, 1], [0.0, 0, 1], [1.0, 0, 1], [0, 2, 1]]))
     assert book.state[1] is IdentityState.LOST and book.state[2] is IdentityState.LOST
-    again = book.acquired([_ident(1, [1.05, 0, 1]), _ident(2, [0.05, 0, 1])])
+    again = book.acquired([_ident(1, [1.05, 0, 1]), _ident(2, [0.05, 0, 1])], [1, 2])
     assert {f.body: f.t[0] for f in again} == {2: 1.05, 1: 0.05}
+    # lost by the pipeline before the book's next check: still named among the lost, never another body
+    book.bind(0)
+    back = book.acquired([_ident(0, [-1.02, 0, 1])], [0])
+    assert [f.body for f in back] == [0] and book.state[0] is IdentityState.ACQUIRED
 
 
 def test_two_tracks_of_one_layout_within_the_swap_distance_are_both_unresolved():
     models = _fleet(3)
     book = _book(models)
-    book.acquired([_ident(b, [b * 1.0, 0, 0]) for b in range(3)])
+    book.acquired([_ident(b, [b * 1.0, 0, 0]) for b in range(3)], [0, 1, 2, 3])
     for b in range(3):
         assert book.bind(b)
     assert book.trusted(0) and book.state[0] is IdentityState.CONTINUITY
@@ -112,12 +116,12 @@ def test_two_tracks_of_one_layout_within_the_swap_distance_are_both_unresolved()
     assert book.state[1] is IdentityState.AMBIGUOUS and book.swaps_suspected == 1
     # a wide position uncertainty widens the distance: 0.3 m apart with 5 cm std each is ambiguous
     book2 = _book(models)
-    book2.acquired([_ident(b, [b * 1.0, 0, 0]) for b in range(3)])
+    book2.acquired([_ident(b, [b * 1.0, 0, 0]) for b in range(3)], [0, 1, 2])
     book2.after_fusion(0, (0, 1, 2), *_filters([[0.0, 0, 0], [0.3, 0, 0], [2.0, 0, 0], [9, 9, 9]], 0.05**2 / 3))
     assert book2.state[0] is IdentityState.AMBIGUOUS
     # and so does closing speed: 6 cm apart, closing at 4 m/s (2 cm until the next check)
     book3 = _book(models)
-    book3.acquired([_ident(b, [b * 1.0, 0, 0]) for b in range(3)])
+    book3.acquired([_ident(b, [b * 1.0, 0, 0]) for b in range(3)], [0, 1, 2])
     apart = [[0.0, 0, 0], [0.06, 0, 0], [2.0, 0, 0], [9, 9, 9]]
     book3.after_fusion(0, (0, 1, 2), *_filters(apart))
     assert book3.state[0] is IdentityState.ACQUIRED

@@ -90,11 +90,15 @@ class IdentityBook:
         self.swaps_suspected = 0  # ambiguities seen (pairs)
 
     # ----------------------------------------------------------------- acquisition
-    def acquired(self, found: list[Identification]) -> list[Identification]:
+    def acquired(self, found: list[Identification], lost: list[int]) -> list[Identification]:
         """Rename the identifications of shared layouts by continuity (the pipeline acquires them under these
-        names); found: identify()'s result, its .body a lost body of the right layout."""
+        names); found: identify()'s result among the bodies `lost` (the pipeline's untracked ones), each .body
+        a lost body of the right layout."""
         if not self.shared or not found:
             return found
+        for b in lost:  # the pipeline may have lost it since the last check
+            if self.state[b] is not IdentityState.UNIQUE:
+                self.state[b] = IdentityState.LOST
         out = [f for f in found if self.group[f.body] not in self.members]
         for g, bodies in self.members.items():
             mine = [f for f in found if self.group[f.body] == g]

@@ -425,7 +425,7 @@ class FusionPipeline:
         left = np.ones(len(pts), dtype=bool)
         ambiguous: set[int] = set()
         found = identify(pts, self.models, st.identify_tolerance_m, st.min_markers, only=lost, ambiguous=ambiguous)
-        found = self.identity.acquired(found)
+        found = self.identity.acquired(found, lost)
         for b in lost:
             self.untracked_why[b] = (
                 "identification ambiguous: its visible markers fit another body as well" if b in ambiguous
