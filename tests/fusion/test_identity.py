@@ -77,7 +77,10 @@ def test_first_acquisition_takes_the_parking_order_and_reacquisition_the_nearest
     named = {f.body: f.t[0] for f in found}
     assert named == {0: -1.0, 1: 0.0, 2: 1.0, 3: 0.0}
     assert all(book.state[b] is IdentityState.ACQUIRED for b in range(3))
-    assert "unresolved" in book.describe(0)
+    assert book.describe(0) == "quad1: identity unresolved: acquired (first seen: parking order)"
+    partial = _book(models)  # two of three seen at first: named in order, and it says the order may be off
+    partial.acquired([_ident(0, [1.0, 0, 0]), _ident(1, [-1.0, 0, 0])], [0, 1, 2, 3])
+    assert "2 of the 3 never seen" in partial.describe(0) and partial.state[2] is IdentityState.LOST
     assert not book.trusted(0) and book.trusted(3)
     # quad2 and quad3 lost where they were; whichever identify() calls them, they come back by position
     book.after_fusion(0, (0, 3), *_filters([[-1.0, 0, 1], [0.0, 0, 1], [1.0, 0, 1], [0, 2, 1]]))

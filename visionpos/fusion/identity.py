@@ -104,13 +104,16 @@ class IdentityBook:
             mine = [f for f in found if self.group[f.body] == g]
             if not mine:
                 continue
-            lost = [b for b in bodies if self.state[b] is IdentityState.LOST]
-            names = self._continuity_names([f.t for f in mine], lost)
+            candidates = [b for b in bodies if self.state[b] is IdentityState.LOST]
+            unseen = {b for b in candidates if np.isnan(self.last_position[b, 0])}
+            names = self._continuity_names([f.t for f in mine], candidates)
+            new = sum(b in unseen for b in names)
+            first = ("first seen: parking order" if new == len(unseen) else
+                     f"first seen: parking order of {new} of the {len(unseen)} never seen (the order may be off)")
             for f, b in zip(mine, names):
                 out.append(Identification(b, f.point_index, f.R, f.t, f.rms))
                 self.state[b] = IdentityState.ACQUIRED
-                seen = not np.isnan(self.last_position[b, 0])
-                self.detail[b] = ("reacquired near its last position" if seen else "first seen: parking order")
+                self.detail[b] = first if b in unseen else "reacquired near its last position"
                 self.last_position[b] = f.t
         return sorted(out, key=lambda f: f.body)
 
