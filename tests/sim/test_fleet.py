@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from visionpos.fusion.identity import parking_order
 from visionpos.sim import load_scenario
 from visionpos.sim.fleet import Route
 
@@ -49,6 +50,8 @@ def test_fleet_starts_on_the_floor_and_lands(fleet):
     park = pos[:, 0, :2]
     gaps = np.linalg.norm(park[:, None] - park[None], axis=-1) + np.eye(len(park)) * 9
     assert gaps.min() > 0.45
+    # parked in name order: the order fusion names drones first seen in (fusion/identity.py)
+    assert parking_order(pos[:, 0]).tolist() == list(range(len(pos)))
     # one after the other: take-off times (first above 5 cm) all differ
     up = [times[np.argmax(p[:, 2] > 0.05)] for p in pos]
     assert len(set(up)) == len(up)
