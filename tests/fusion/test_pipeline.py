@@ -247,7 +247,7 @@ def test_indistinguishable_layouts_are_refused(hover):
 
     sc, _ = hover
     quad = sc.arena.bodies[0]
-    twin = dreplace(quad, name="twin", id=2)
+    twin = dreplace(quad, name="twin", id=2, markers=quad.markers[::-1])  # same layout, listed in another order
     with pytest.raises(ConfigError, match="same marker layout"):
         FusionPipeline(dreplace(sc.arena, bodies=(quad, twin)))
     square = dreplace(quad, name="square", markers=np.array([[0.1, 0, 0], [0, 0.1, 0], [-0.1, 0, 0], [0, -0.1, 0]]))

@@ -25,6 +25,7 @@ GROUPS: dict[str, str] = {
     "demo_memory": "demo_memory",
     "coldstart": "coldstart",
     "freshness": "freshness",
+    "scale": "scale",
 }
 
 
@@ -164,6 +165,10 @@ GOALS: list[Goal] = [
     Goal("sitl_delay_flights_completed_min", ">=", 1, "ArduPilot SITL, link delayed 0/20/50 ms: every hover "
          "flight completes"),
     Goal("coldstart_first_pose_s", "<=", 20.0, "visionpos demo on an empty kernel cache: seconds to the first pose"),
+    Goal("scale_realtime_shed_fraction", "<=", 0, "one server core, fleet20 (12 cameras x 120 Hz, 20 bodies): "
+         "fraction of frames shed"),
+    Goal("scale_realtime_shed_after_first_s", "<=", 0, "one server core, fleet20: fraction of frames shed after "
+         "the first second (the first acquisition)"),
     Goal("sitl_delay_ekf_horizontal_error_p99_mm_max", "<=", 20.0, "ArduPilot SITL, link delayed 0/20/50 ms: EKF "
          "horizontal position error p99 (mm), worst flight"),
 ]

@@ -16,7 +16,8 @@ from visionpos.errors import UsageError
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", default="thesis",
-                   help="arena: thesis (default), arena8 or a YAML path with a sim section")
+                   help="arena: thesis (default), arena8, fleet (10 identical quads), fleet20 or a YAML path "
+                        "with a sim section")
     p.add_argument("--duration", type=float, default=10.0, help="seconds of streaming (real time; default 10)")
     p.add_argument("--seed", type=int, default=None, help="simulation seed (default: the scenario's sim.seed)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

@@ -12,8 +12,10 @@ from visionpos.sim.write import write_recording
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", default="thesis",
-                   help="arena with a sim section: thesis, arena8 or a YAML path (default thesis)")
-    p.add_argument("--session", default=None, help="entry of sim.sessions to run (e.g. flight, hover, wand, ground)")
+                   help="arena with a sim section: thesis, arena8, fleet (10 identical quads), fleet20 or a YAML "
+                        "path (default thesis)")
+    p.add_argument("--session", default=None,
+                   help="entry of sim.sessions to run (e.g. flight, hover, wand, ground; fleet)")
     p.add_argument("--duration", type=float, default=None, help="seconds to simulate (default sim.duration)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default sim.seed)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

@@ -74,6 +74,7 @@ import numpy as np
 from visionpos.camera.model import Camera
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.fusion.body_filter import FilterBank
+from visionpos.fusion.identity import IdentityBook
 from visionpos.fusion.kernels import _finite_rows, _fuse_tracked, _observe_frame, _tracked_motion
 from visionpos.fusion.layout import (
     MEAS_POS,
@@ -165,6 +166,9 @@ class FusionPipeline:
         self._t = np.array([c.t for c in arena.cameras]).reshape(-1, 3)
         self._focal_px = np.array([np.sqrt(c.model.fx * c.model.fy) for c in arena.cameras])
         self._proj = {c.id: Projector(c) for c in arena.cameras}
+        # bodies sharing a layout: which is which, by continuity (identity.py)
+        self.identity = IdentityBook(self.models, np.array([c.center for c in arena.cameras]), self._focal_px,
+                                     st.match_gate_px)
         self._layout_cache: dict[tuple[int, ...], TrackedSet] = {}
         self._gate_px = float(st.match_gate_px)
         self._unique_sigmas = float(st.single_view.unique_sigmas)
@@ -349,6 +353,8 @@ class FusionPipeline:
         track_ints = self._track_ints
         lost_ns = max(st.kalman.lost_timeout_ns, _LOST_PERIODS * self.aligner.slowest_period_ns())
         gone = [b for b in self._tracked if ref - track_ints[b, TRACK_LAST_UPDATE_NS] > lost_ns]
+        if self.identity.shared:
+            self.identity.after_fusion(ref, self._tracked, self.bank.x, self.bank.P)
         if gone:
             track_ints[gone, TRACK_TRACKED] = 0
             self._stats["lost"] += len(gone)
@@ -421,6 +427,7 @@ class FusionPipeline:
         left = np.ones(len(pts), dtype=bool)
         ambiguous: set[int] = set()
         found = identify(pts, self.models, st.identify_tolerance_m, st.min_markers, only=lost, ambiguous=ambiguous)
+        found = self.identity.acquired(found, lost)
         for b in lost:
             self.untracked_why[b] = (
                 "identification ambiguous: its visible markers fit another body as well" if b in ambiguous
@@ -547,15 +554,16 @@ class FusionPipeline:
         cams = {cid: CameraFrame(o.capture_ns, self.last_px[cid], o.xn, o.label, o.pred_px, o.pred_rows)
                 for cid, o in self.obs.items() if cid in self.last_px}
         return FusionSnapshot(cams, tuple(bool(tr.tracked) for tr in self.tracks), dict(self.untracked_why),
-                              self.loose_points)
+                              self.loose_points, self.identity.states())
 
     def stats(self) -> dict[str, Any]:
         """Counters: frames, fusions, measurements, rejections by reason, per-camera frames, per-body state."""
         d: dict[str, Any] = dict(self._stats)
         d["per_camera_frames"] = dict(sorted(self._per_camera.items()))
         d["bodies"] = {
-            m.name: {"tracked": tr.tracked, "reset_counter": tr.reset_counter, "n_markers": tr.n_markers}
-            for m, tr in zip(self.models, self.tracks)
+            m.name: {"tracked": tr.tracked, "reset_counter": tr.reset_counter, "n_markers": tr.n_markers,
+                     "identity": self.identity.state[b].value}
+            for b, (m, tr) in enumerate(zip(self.models, self.tracks))
         }
         d["time_alignment"] = self.settings.time_alignment
         return d

@@ -130,16 +130,24 @@ def identify(
     distance mismatch and Kabsch RMS (m). min_markers: fewest markers for a
     detection (>= 3). only: indices of the models to look for (default all).
     ambiguous: when given, gets the bodies refused because another body fits their points as well.
-    Returns at most one Identification per body, with disjoint points.
+    Returns at most one Identification per body, with disjoint points. Bodies with the same layout (the
+    same markers in the same order) are found as often as they are wanted, in body order: which is which
+    is for continuity to say (identity.py), not geometry.
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(points) < 3:
         return []
     D = np.linalg.norm(points[:, None] - points[None], axis=-1)
     wanted = list(range(len(models))) if only is None else list(only)
+    # bodies that share a layout (the same markers in the same order) share its hypotheses
+    layout = [np.asarray(m.markers, np.float64).tobytes() for m in models]
+    by_layout: dict[bytes, list] = {}
     cands = []
     for bi in wanted:
-        for n, rms, idx, R, t in _hypotheses(points, D, models[bi], tolerance):
+        hyps = by_layout.get(layout[bi])
+        if hyps is None:
+            hyps = by_layout[layout[bi]] = _hypotheses(points, D, models[bi], tolerance)
+        for n, rms, idx, R, t in hyps:
             if n >= max(3, min_markers):
                 cands.append((n, rms, bi, idx, R, t))
     # more markers first, then smaller residual; deterministic tie-break by body index
@@ -154,7 +162,8 @@ def identify(
             continue
         # a minimal (3-point) fit that another body explains as well is ambiguous
         if n == 3:
-            rivals = [c for c in cands if c[2] != bi and c[0] >= 3 and set(int(v) for v in c[3][c[3] >= 0]) == pts]
+            rivals = [c for c in cands if layout[c[2]] != layout[bi] and c[0] >= 3
+                      and set(int(v) for v in c[3][c[3] >= 0]) == pts]
             if rivals:
                 if ambiguous is not None:
                     ambiguous.add(bi)
@@ -169,7 +178,8 @@ def layout_ambiguities(models: list[BodyModel], tolerance: float) -> list[str]:
 
     Reports bodies whose full layouts match each other and bodies with a
     non-trivial self-symmetry (a marker permutation that is a rigid motion),
-    both within `tolerance` (m).
+    both within `tolerance` (m). Bodies with exactly the same markers in the
+    same order are a shared layout, not a problem: continuity tells them apart.
     """
     problems = []
     for i, a in enumerate(models):
@@ -184,9 +194,10 @@ def layout_ambiguities(models: list[BodyModel], tolerance: float) -> list[str]:
                     problems.append(f"body '{a.name}' is symmetric: its orientation is ambiguous")
                     break
         for b in models[i + 1 :]:
-            if len(b.markers) != M:
-                continue
+            if len(b.markers) != M or np.array_equal(a.markers, b.markers):
+                continue  # the very same layout: a fleet, told apart by continuity (identity.py)
             D = np.linalg.norm(b.markers[:, None] - b.markers[None], axis=-1)
             if any(h[0] == M for h in _hypotheses(b.markers, D, a, tolerance)):
-                problems.append(f"bodies '{a.name}' and '{b.name}' have the same marker layout: they can be swapped")
+                problems.append(f"bodies '{a.name}' and '{b.name}' have the same marker layout: they can be swapped "
+                                "(a fleet of identical layouts lists the same markers in the same order)")
     return problems

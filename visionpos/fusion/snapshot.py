@@ -42,10 +42,12 @@ class FusionSnapshot:
     cameras: camera id -> CameraFrame (cameras with a frame only). filter_tracked: per body (arena order),
     whether its filter holds a track (even when no measurement came within fusion.max_prediction_ms).
     untracked_why: body index -> why it is not tracked, in words. loose_points: the newest loose markers
-    (points of no body), or None.
+    (points of no body), or None. identity: per body its identity state (fusion/identity.py IdentityState:
+    'unique layout', 'unresolved: two candidates', 'tracked-by-continuity', ...).
     """
 
     cameras: dict[int, CameraFrame]
     filter_tracked: tuple[bool, ...]
     untracked_why: dict[int, str]
     loose_points: LoosePoints | None = None
+    identity: tuple[str, ...] = ()

@@ -28,6 +28,8 @@ Kinds (the `trajectory:` key of a session entry in the `sim` section):
   wand_wave   hand-waved calibration wand: smooth random 6-DoF motion sweeping
               a box, pointing in widely varied directions
   static      a fixed pose (L-frame on the floor, parked drone)
+  fleet       drone `slot` of a fleet of `count` (visionpos/sim/fleet.py): take-off from a row on the floor,
+              crossings and overtakings within 0.3 m of a neighbour, a tight hover, landing
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ GRAVITY = 9.80665
 _OMEGA_STEP_S = 1e-5  # central-difference step for the body rate
 _MAX_TILT_DEG = 70.0  # past ~70 deg a quadrotor cannot hold height; the flat attitude map is singular at 90
 
-KINDS = ("hover", "square", "figure8", "aggressive", "slalom", "dash", "wand_wave", "static")
+KINDS = ("hover", "square", "figure8", "aggressive", "slalom", "dash", "wand_wave", "static", "fleet")
 
 
 @dataclass(frozen=True)
@@ -536,6 +538,7 @@ def from_config(s: Section, rng: np.random.Generator) -> Trajectory:
                   peak_yaw_rate_deg (deg/s), pause (s)
       wand_wave:  center, extent [x, y, z] (m, full size of the swept box), max_angle_deg
       static:     position (or center), yaw_deg or quaternion_xyzw
+      fleet:      slot (0-based), count, height (m), yaw_deg
     rng seeds the random parts (hover drift, wand motion).
     """
     kind = s.string("trajectory", choices=KINDS)
@@ -668,6 +671,16 @@ def _static_from(s: Section, center: np.ndarray, rng: np.random.Generator) -> Tr
     return Static(pos, q)
 
 
+def _fleet_from(s: Section, center: np.ndarray, rng: np.random.Generator) -> Trajectory:
+    from visionpos.sim.fleet import fleet_route  # fleet.py builds on this module's Trajectory
+
+    count = s.integer("count", min=1, max=100)
+    slot = s.integer("slot", min=0, max=99)
+    if slot >= count:
+        raise s.error("slot", f"slot {slot} is not in 0..{count - 1} (count {count})")
+    return fleet_route(slot, count, s.number("height", 1.0, min=0.3, max=3.0), s.number("yaw_deg", 0.0))
+
+
 # each kind's builder and the keys it reads (beside trajectory and center)
 _FROM_CONFIG: dict[str, tuple[Callable[[Section, np.ndarray, np.random.Generator], Trajectory], set[str]]] = {
     "hover": (_hover_from, {"yaw_deg", "drift", "yaw_wobble_deg"}),
@@ -678,4 +691,5 @@ _FROM_CONFIG: dict[str, tuple[Callable[[Section, np.ndarray, np.random.Generator
     "dash": (_dash_from, {"waypoints", "peak_speed", "max_accel", "ramp", "peak_yaw_rate_deg", "pause"}),
     "wand_wave": (_wand_wave_from, {"extent", "max_angle_deg"}),
     "static": (_static_from, {"position", "yaw_deg", "quaternion_xyzw"}),
+    "fleet": (_fleet_from, {"slot", "count", "height", "yaw_deg"}),
 }
