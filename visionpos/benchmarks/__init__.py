@@ -138,6 +138,14 @@ GOALS: list[Goal] = [
     Goal("planner_arena8_marker_ratio", ">=", 0.8, "planner, arena8: measured marker RMS / predicted bound"),
     Goal("planner_thesis_body_pos_ratio", "<=", 1.2, "planner, thesis quad: simulated pose RMS / predicted bound"),
     Goal("planner_thesis_body_pos_ratio", ">=", 0.8, "planner, thesis quad: simulated pose RMS / predicted bound"),
+    Goal("planner_room_marker_ratio", "<=", 1.25, "planner, issue 30's 6x6x3 m room with its suggested camera "
+         "added: simulated marker RMS / the suggestion's bound"),
+    Goal("planner_room_marker_ratio", ">=", 0.8, "planner, issue 30's room + suggestion: simulated marker RMS / "
+         "the suggestion's bound"),
+    Goal("planner_room_body_pos_ratio", "<=", 1.25, "planner, issue 30's room + suggestion, quad: simulated pose "
+         "RMS / predicted bound"),
+    Goal("planner_room_body_pos_ratio", ">=", 0.8, "planner, issue 30's room + suggestion, quad: simulated pose "
+         "RMS / predicted bound"),
     Goal("monitor_flag_s_max", "<=", 3.0, "camera knocked mid-flight by 0.5, 2 or 5 deg or moved 5 cm: flagged "
          "after (s), worst knock"),
     Goal("monitor_corrected_s_max", "<=", 10.0, "knocked camera corrected and agreeing again after (s), worst knock"),
