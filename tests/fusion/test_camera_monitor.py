@@ -217,3 +217,5 @@ def test_two_cameras_knocked_at_once_both_found_and_corrected():
         assert agreed - 3.0 <= 10.0
         assert _angle_deg(rep.pipeline.cameras[cid].R, sc.bumps[cid][1].R) < 0.1
         assert mon.report()[cid]["state"] == "ok" and mon.admits(cid)
+    # the health's ref_px: the other cameras' rays meet at camera 1's points again (0.2 px noise)
+    assert 0.0 < mon.report()[1]["ref_px"] < 0.3

@@ -670,7 +670,7 @@ class CameraMonitor:
         rotation_deg, shift_mm), corrected_deg / corrected_mm (the pose now against the one it was flagged
         with); agrees_again (it agreed again after its last flag); why (not_solvable: the reason); warning
         (a line for the operator, or null); the last fit: pairs, disp_px, chi2, sigma_px, rotation_deg,
-        shift_mm, paired_share."""
+        shift_mm, paired_share, ref_px (the other cameras' triangulation residual at its points)."""
         out = {}
         for cid, w in self.cams.items():
             state = "not_solvable" if w.unsolvable else "moved" if w.flagged else "ok"
