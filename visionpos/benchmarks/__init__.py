@@ -153,6 +153,10 @@ GOALS: list[Goal] = [
          "its true pose (px), worst knock"),
     Goal("monitor_other_cameras_flagged", "<=", 0, "knocks: cameras flagged that did not move"),
     Goal("monitor_unmoved_flags", "<=", 0, "no camera moved, 60 s flight: cameras flagged"),
+    Goal("monitor_two_corrected_s_max", "<=", 10.0, "two cameras knocked at once (2 and 1 deg): both corrected and "
+         "agreeing again after (s)"),
+    Goal("monitor_two_other_cameras_flagged", "<=", 0, "two cameras knocked at once: cameras flagged that did not "
+         "move"),
     Goal("robustness_packets_thrown", ">=", 1_000_000, "hostile packets thrown at the live demo, all attacks"),
     Goal("robustness_cameras_blinded", "<=", 0, "cameras blinded under attack"),
     Goal("robustness_tracked_fraction_min", ">=", 0.99, "tracked fraction under the worst attack"),
