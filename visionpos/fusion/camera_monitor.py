@@ -20,7 +20,9 @@ and when a camera pairs few of its predicted markers, the offset most votes agre
 shift in its image) is added to its predictions until its pose is corrected. A flagged camera is
 left out of the fusion (`exclude`, `admits`) until it agrees again; one whose fit cannot explain its
 pairs, or needs more than `max_correction_deg` / `max_correction_m` in all, or whose markers cannot be
-found at all, is flagged as not solvable and stays excluded: never a wrong "corrected".
+found at all, is flagged as not solvable and stays excluded: never a wrong "corrected". Two cameras knocked at
+once: the second is the one without which the other unflagged cameras' rays meet (`_flag_second`), and two
+cameras left are a reference when their rays meet at the flagged cameras' points (`_pair_agrees`).
 """
 
 from __future__ import annotations
@@ -64,6 +66,12 @@ SEARCH_MIN_PX = 2.0  # a found offset smaller than this is no knock: the gate pa
 # for LOST_ROUNDS rounds, is lost: flagged as not solvable and excluded
 LOST_BELOW = 0.1
 LOST_ROUNDS = 3
+# a second knocked camera: the other unflagged cameras' rays meet (triangulation residual) this many times better
+# without it than any camera's others do with it
+REF_SPLIT = 3.0
+# two unflagged cameras left are a reference when their rays meet at the flagged cameras' points within this part
+# of flag_px (px RMS; 0.1 px at 0.2 px centroid noise)
+PAIR_AGREES = 0.5
 
 MONITOR = section(
     "camera_monitor",
@@ -234,6 +242,7 @@ class CameraWatch:
     times_ns: deque = field(default_factory=deque)
     points: deque = field(default_factory=deque)  # (3,) world
     pixels: deque = field(default_factory=deque)  # (2,)
+    ref_px: deque = field(default_factory=deque)  # the other views' triangulation residual at each point (px RMS)
     pending: list = field(default_factory=list)  # frames' pairs waiting for their batch triangulation
     frames_seen: int = 0
     flagged: bool = False
@@ -354,10 +363,16 @@ class CameraMonitor:
         w.times_ns.extend(times[good].tolist())
         w.points.extend(tri.points[good])
         w.pixels.extend(blobs[good])
+        w.ref_px.extend(np.sqrt(np.nanmean(tri.residuals[good] ** 2, axis=1)))
         while len(w.times_ns) > self.settings.max_pairs:
-            w.times_ns.popleft()
-            w.points.popleft()
-            w.pixels.popleft()
+            self._drop_oldest(w)
+
+    @staticmethod
+    def _drop_oldest(w: CameraWatch) -> None:
+        w.times_ns.popleft()
+        w.points.popleft()
+        w.pixels.popleft()
+        w.ref_px.popleft()
 
     def _vote(self, w: CameraWatch, capture_ns: int, pred: np.ndarray, blobs: np.ndarray) -> None:
         """Keep every blob-minus-prediction offset within search_deg of view (px) for the offset search."""
@@ -403,9 +418,7 @@ class CameraMonitor:
         st = self.settings
         self._triangulate_pending(w)
         while w.times_ns and w.times_ns[0] < now_ns - st.window_s * 1e9:
-            w.times_ns.popleft()
-            w.points.popleft()
-            w.pixels.popleft()
+            self._drop_oldest(w)
         self._fits.pop(w.camera.id, None)
         share = w.paired / w.predicted if w.predicted else float("nan")
         w.last = {"predicted": float(w.predicted), "paired_share": share}
@@ -420,6 +433,7 @@ class CameraMonitor:
         if upto - lo < st.min_pairs:
             return
         pts, pix = np.array(list(w.points)[lo:upto]), np.array(list(w.pixels)[lo:upto])
+        w.last["ref_px"] = float(np.median(list(w.ref_px)[lo:upto]))
         delta, info, sigma, disp = pose_correction(w.camera, pts, pix, iterations=8)
         if w.flagged:
             # a knocked camera may have moved centimetres: the shift the pairs' parallax shows, when a loose
@@ -559,15 +573,20 @@ class CameraMonitor:
 
     def _reference_holds(self, now_ns: int) -> bool:
         """Whether the unflagged cameras are a reference to correct a flagged one against: two or more of them
-        fitted this round and none of them off by more than flag_px (significantly). Otherwise no flagged camera
-        is corrected or let back (it would be fitted to a bent reference: two cameras knocked at once); after
-        three such rounds each flagged camera is flagged as not solvable, with the reason, and stays out."""
+        fitted this round and none of them off by more than flag_px (significantly), or just two left whose rays
+        meet at the flagged cameras' points (`ref_px` below PAIR_AGREES of flag_px). Otherwise no flagged camera is
+        corrected or let back (it would be fitted to a bent reference: two cameras knocked at once). A bent
+        reference of three or more is split when one camera is off and the others agree only without it
+        (`_flag_second`); else after three such rounds each flagged camera is flagged as not solvable, with the
+        reason, and stays out."""
         st = self.settings
         ref = {c: self._fits[c] for c, w in self.cams.items() if not w.flagged and c in self._fits}
         off = {c: f[1] for c, f in ref.items() if f[1] > st.flag_px and f[2] > st.chi2_min}
-        if len(ref) >= 2 and not off:
+        if (len(ref) >= 2 and not off) or (not ref and self._pair_agrees()):
             self._bent_rounds = 0
             return True
+        if off and len(ref) >= 3 and self._flag_second(ref, off, now_ns):
+            return False
         self._bent_rounds = getattr(self, "_bent_rounds", 0) + bool(off)
         if self._bent_rounds == LOST_ROUNDS:
             names = ", ".join(f"{self.cams[c].camera.name} {d:.1f} px" for c, d in off.items())
@@ -576,6 +595,37 @@ class CameraMonitor:
                     self._unsolvable(w, now_ns, f"the other cameras disagree among themselves too ({names}): more "
                                      "than one camera moved, and which cannot be told")
         return False
+
+    def _pair_agrees(self) -> bool:
+        """Two unflagged cameras left: neither can be fitted (its points need two other views), but the flagged
+        cameras' points are triangulated from exactly these two, and their rays meet there when they agree."""
+        if sum(not w.flagged for w in self.cams.values()) != 2:
+            return False
+        meet = [w.last["ref_px"] for c, w in self.cams.items() if w.flagged and c in self._fits and "ref_px" in w.last]
+        return bool(meet) and max(meet) <= PAIR_AGREES * self.settings.flag_px
+
+    def _flag_second(self, ref: dict, off: dict, now_ns: int) -> bool:
+        """A flagged camera left out and the unflagged ones still disagree: another camera moved too. Each
+        unflagged camera's points come from the other unflagged ones, so their triangulation residual (`ref_px`)
+        says whether those agree: the camera k without which the others' rays meet (its ref_px REF_SPLIT times
+        below every other's) and whose own fit is off is the second knocked one: flagged and left out. True if
+        flagged (every camera's pairs are dropped, as in `_flag`)."""
+        meet = {c: self.cams[c].last.get("ref_px", np.nan) for c in ref}
+        k = min(meet, key=lambda c: meet[c] if np.isfinite(meet[c]) else np.inf)
+        rest = [v for c, v in meet.items() if c != k]
+        if k not in off or not np.isfinite(meet[k]) or not min(rest) >= REF_SPLIT * max(meet[k], 0.05):
+            return False
+        w = self.cams[k]
+        w.flagged, w.flagged_since_ns, w.since, w.excluded = True, now_ns, w.camera, self.settings.exclude
+        w.moved = {x: w.last[x] for x in ("disp_px", "rotation_deg", "shift_mm")}
+        w.applied, w.agreed_again_ns = [], None
+        self._say(f"camera {w.camera.name} (id {k}) has moved too: its markers sit {w.last['disp_px']:.1f} px off "
+                  f"where the other cameras put them, and those agree only without it (their rays miss by "
+                  f"{meet[k]:.2f} px without it, {min(rest):.1f} px or more with it)"
+                  + ("; left out of the fusion" if self.settings.exclude else ""))
+        for x in self.cams.values():
+            self._clear(x, now_ns)
+        return True
 
     def _fits_sigma(self, cid: int) -> float:
         return float(self.cams[cid].last.get("sigma_px", np.nan))
@@ -610,6 +660,7 @@ class CameraMonitor:
         w.times_ns.clear()
         w.points.clear()
         w.pixels.clear()
+        w.ref_px.clear()
         w.cleared_ns = now_ns
 
     def report(self) -> dict[int, dict[str, Any]]:
@@ -619,7 +670,7 @@ class CameraMonitor:
         rotation_deg, shift_mm), corrected_deg / corrected_mm (the pose now against the one it was flagged
         with); agrees_again (it agreed again after its last flag); why (not_solvable: the reason); warning
         (a line for the operator, or null); the last fit: pairs, disp_px, chi2, sigma_px, rotation_deg,
-        shift_mm, paired_share."""
+        shift_mm, paired_share, ref_px (the other cameras' triangulation residual at its points)."""
         out = {}
         for cid, w in self.cams.items():
             state = "not_solvable" if w.unsolvable else "moved" if w.flagged else "ok"
