@@ -9,7 +9,8 @@
                          when the calibration assistant's counts or solve changed; the client
                          may send {"cmd": ...}: "rays" (a camera's blob rays), "views" (on: false while the
                          tab is hidden: no camera views for it), "health", replay controls (console/replay.py),
-                         "solve" (the wand solve: console/calibration.py),
+                         "solve" (the wand solve: console/calibration.py), "record" (start or stop a
+                         recording: console/recording.py; answered to every tab as {"type": "record"}),
                          "still" and "mask" (a station's still image, its mask saved back: console/stills.py);
                          a refused message (bad JSON, an unknown command or camera, a mask outside the image,
                          over MAX_MESSAGE_BYTES, a tab over console.max_clients) changes nothing and is
@@ -49,6 +50,7 @@ from urllib.parse import urlsplit
 from aiohttp import WSCloseCode, WSMsgType, web
 
 from console.health import HealthView
+from console.recording import ConsoleRecorder
 from console.settings import ConsoleSettings
 from console.stills import StationCommands
 from console.view import ConsoleView
@@ -137,6 +139,8 @@ class ConsoleServer:
         for cam in self.view.scene["cameras"]:
             cam["mask"] = (masks or {}).get(cam["id"])
         self.view.scene["update_rate_hz"] = settings.update_rate_hz  # the page compares its own rate with it
+        self.recording = ConsoleRecorder(source, settings.record_dir)
+        self.view.scene["can_record"] = self.recording.available  # the page shows the record button
         self.health_view = HealthView(self.view)
         self.clients: set[Client] = set()
         self.rlog = RateLimitedLog(log)
@@ -322,6 +326,7 @@ class ConsoleServer:
     def health(self) -> dict[str, Any]:
         h = self.health_view.health(self.clock())
         h["console"] = self.stats()
+        h["recording"] = self.recording.state()
         return h
 
     # ---------------------------------------------------------------- WebSocket
@@ -406,6 +411,20 @@ class ConsoleServer:
                 return await self._bad(client, "solve", str(e))
             try:
                 await client.ws.send_str(json.dumps({"type": "calib_reply", **reply}))
+            except (ConnectionError, RuntimeError):
+                pass
+            return
+        if msg["cmd"] == "record":
+            try:
+                reply = await self.recording.command(msg)
+            except ValueError as e:
+                return await self._bad(client, "record", str(e))
+            text = json.dumps({"type": "record", **reply})
+            for c in self.clients:  # every tab shows it at once; the sender's answer is never dropped
+                if c is not client:
+                    c.offer(text)
+            try:
+                await client.ws.send_str(text)
             except (ConnectionError, RuntimeError):
                 pass
             return

@@ -5,6 +5,7 @@
 import * as THREE from "three";
 import { OrbitControls } from "./vendor/OrbitControls.js";
 import { calibMessage, calibReplay } from "./calib.js";
+import { initRecord, recordMessage } from "./record.js";
 import { drawStationLayer, initStationTools, onStationMessage, proposeMask, resetStationTools, stationTools }
   from "./stills.js";
 
@@ -499,6 +500,7 @@ function buildArena(msg) {
   const replay = msg.mode === "replay";
   document.getElementById("source").textContent = replay ? `replay of ${msg.source}` : msg.source;
   calibReplay(replay);
+  initRecord(msg, send);
   if (scene3) { scene3.load(msg); stats.rebuilds++; } else scene3 = new Arena3D(document.getElementById("view3d"), msg);
   document.getElementById("camgrid").replaceChildren();
   camViews.clear();
@@ -623,6 +625,7 @@ function handle(e) {
   else if (msg.type === "replay") showReplay(msg);
   else if (msg.type === "still" || msg.type === "mask") onStationMessage(msg, camViews);
   else if (msg.type === "error") { stats.errors.push(msg.error); showRefusal(msg.error); onStationMessage(msg, camViews); }
+  if (msg.type === "health" || msg.type === "record") recordMessage(msg);
   if (msg.type === "calib" || msg.type === "calib_reply" || msg.type === "error") calibMessage(msg, send);
 }
 
