@@ -468,8 +468,24 @@ function wire3D(canvas) {
 function send(obj) { if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(obj)); }
 
 let seeking = false;
+let lostShown = -1;  // marks drawn on the seek bar (the server counts them in lost_n)
+function showLosses(r) {
+  const box = document.getElementById("lost");
+  box.replaceChildren(...r.lost.map(m => {
+    const i = el("i");
+    i.style.left = `${(100 * m.t_s / r.duration_s).toFixed(2)}%`;
+    i.title = `${m.body} lost at ${fmt(m.t_s, 2)} s`;
+    return i;
+  }));
+  lostShown = r.lost.length;
+  stats.lost = r.lost;
+}
 function showReplay(r) {
   document.getElementById("replay").hidden = false;
+  if (r.lost) showLosses(r);
+  else if (r.lost_n !== undefined && r.lost_n !== lostShown) { lostShown = r.lost_n; send({ cmd: "losses" }); }
+  for (const id of ["stepback", "stepfwd"]) document.getElementById(id).disabled = r.playing;
+  stats.replayPos = r.t_s;
   const seek = document.getElementById("seek");
   seek.max = r.duration_s;
   if (!seeking) seek.value = r.t_s;
@@ -484,6 +500,8 @@ function wireControls() {
   seek.oninput = () => { seeking = true; };
   seek.onchange = () => { seeking = false; send({ cmd: "seek", t_s: Number(seek.value) }); };
   document.getElementById("speed").onchange = e => send({ cmd: "speed", x: Number(e.target.value) });
+  document.getElementById("stepback").onclick = () => send({ cmd: "step", frames: -1 });
+  document.getElementById("stepfwd").onclick = () => send({ cmd: "step", frames: 1 });
   document.getElementById("rays").onchange = e => {
     if (scene3) scene3.rayCamera = e.target.value || null;
     send({ cmd: "rays", camera: e.target.value ? Number(e.target.value) : null });  // the server sends only those
@@ -500,6 +518,8 @@ function buildArena(msg) {
   const replay = msg.mode === "replay";
   document.getElementById("source").textContent = replay ? `replay of ${msg.source}` : msg.source;
   calibReplay(replay);
+  lostShown = -1;
+  document.getElementById("lost").replaceChildren();
   initRecord(msg, send);
   if (scene3) { scene3.load(msg); stats.rebuilds++; } else scene3 = new Arena3D(document.getElementById("view3d"), msg);
   document.getElementById("camgrid").replaceChildren();

@@ -178,6 +178,15 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
                 "boxes: [...document.querySelectorAll('#camgrid .cam')].map(b => b.getBoundingClientRect().width), "
                 "titles: [...document.querySelectorAll('#camgrid .camtitle')].map(t => "
                 "[t.getBoundingClientRect().height, getComputedStyle(t).textOverflow])})")
+            # the record button: a new file while it records (its name, size, duration), closed on a second click
+            await browser.evaluate("document.getElementById('rec').click()")
+            await browser.wait_for("(window.visionposConsole.record.recording || {}).duration_s >= 1", 15)
+            found["recording"] = await browser.evaluate("document.getElementById('recinfo').textContent")
+            await browser.evaluate("document.getElementById('rec').click()")
+            await browser.wait_for("!!window.visionposConsole.record.stopped", 15)
+            found["stopped"] = await browser.evaluate(
+                "({info: document.getElementById('recinfo').textContent, button: "
+                "document.getElementById('rec').textContent, stopped: window.visionposConsole.record.stopped})")
             found["errors"] = await browser.evaluate("window.visionposConsole.errors")
             found["dpr"] = await browser.evaluate("window.devicePixelRatio")
             found["r3d"] = await browser.evaluate(JS_RECT.format(sel="#view3d"))
@@ -205,7 +214,7 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
         finally:
             await browser.close()
 
-    settings = ConsoleSettings(port=0)
+    settings = ConsoleSettings(port=0, record_dir=str(tmp_path / "flights"))
     asyncio.run(asyncio.wait_for(run_demo(arena, 14.0, None, during=during, console=settings,
                                           on_console=views.append), 240))
     print(f"screenshots in {shots}")
@@ -247,6 +256,17 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
     # the still image: read out, and drawn (the simulated image's noise and discs change the view's pixels)
     assert found["still"].startswith("background "), found["still"]
     assert not np.array_equal(found["img_still"], found["img"])
+    # the recording: named while it ran, then closed with every packet it was given
+    from visionpos.recording import TOPIC_PACKETS, RecordingReader
+
+    rec = found["stopped"]
+    name = rec["stopped"]["file"]
+    assert re.fullmatch(r"recording visionpos-\d{8}-\d{6}\.mcap, [\d.]+ [kM]B, [1-9]\d* s", found["recording"])
+    assert found["recording"].split(",")[0] == f"recording {name}"
+    assert rec["button"] == "record" and rec["info"].startswith(f"saved {name}, ")
+    path = tmp_path / "flights" / name
+    packets = sum(1 for _ in RecordingReader(path).packets())
+    assert packets > 100 and packets == rec["stopped"]["messages"][TOPIC_PACKETS], rec
     # /api/health says the same
     h = found["health"]
     assert {b["name"]: b["tracked"] for b in h["bodies"]} == {"quad": True, "ghost": False}
@@ -558,14 +578,31 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
     assert found["errors"] == []
 
 
+def _with_a_gap(src: Path, out: Path, start_s: float, end_s: float) -> Path:
+    """A copy of the recording src without any packet from start_s to end_s: every station silent."""
+    from visionpos.recording import RecordingReader, RecordingWriter
+
+    r = RecordingReader(src)
+    packets = list(r.packets_with_source())
+    t0 = packets[0][0]
+    meta = {k: v for k, v in (r.meta or {}).items() if k in ("wall_start_unix_ns", "monotonic_start_ns")}
+    with RecordingWriter(out, r.config, meta, foxglove_rate_hz=None) as w:
+        for t, data, source in packets:
+            if not start_s * 1e9 <= t - t0 < end_s * 1e9:
+                w.write_packet(t, data, source)
+    return out
+
+
 @pytest.mark.slow
 def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, thesis_log):
     """`replay LOG --view` of a flight recording: the file's name in the header, no still-image or mask buttons,
-    no calibration panel (no wand in it); a speed the server refuses is shown in the page."""
+    no calibration panel (no wand in it); a speed the server refuses is shown in the page; the seek bar marks
+    where the body was lost (its stations fell silent for 0.6 s), and the step buttons move one frame."""
     from console.settings import ConsoleSettings
     from visionpos.app.console import replay_view
 
     found: dict = {}
+    thesis_log = _with_a_gap(thesis_log, tmp_path / "gap.mcap", 1.0, 1.6)
 
     async def main():
         views: list = []
@@ -583,7 +620,7 @@ def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, the
                 "({source: document.getElementById('source').textContent, "
                 "tools: document.querySelectorAll('.stationtools').length, "
                 "views: document.querySelectorAll('#camgrid canvas').length, "
-                "calib: !!document.getElementById('calib'), "
+                "calib: !!document.getElementById('calib'), record: !document.getElementById('recbox').hidden, "
                 "replay: !document.getElementById('replay').hidden})")
             await browser.evaluate("(() => { const s = document.getElementById('speed'); const o = "
                                    "document.createElement('option'); o.value = '100'; s.append(o); s.value = '100'; "
@@ -594,6 +631,22 @@ def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, the
                 "return {text: n.textContent, shown: !n.hidden && n.getBoundingClientRect().width > 0}; })()")
             await browser.evaluate("(() => { const s = document.getElementById('speed'); s.lastChild.remove(); "
                                    "s.value = '1'; })()")  # the menu as it was, for the picture
+            await browser.wait_for("(window.visionposConsole.lost || []).length > 0", 20)
+            await browser.evaluate("document.getElementById('play').dataset.playing = '1'; "
+                                   "document.getElementById('play').click()")  # pause
+            await browser.wait_for("document.getElementById('stepfwd').disabled === false", 10)
+            await browser.evaluate("(() => { const s = document.getElementById('seek'); s.value = '2'; "
+                                   "s.dispatchEvent(new Event('change')); })()")
+            await browser.wait_for("window.visionposConsole.replayPos === 2", 10)
+            steps = [await browser.evaluate("window.visionposConsole.replayPos")]
+            for button in ("stepfwd", "stepfwd", "stepback"):
+                await browser.evaluate(f"document.getElementById('{button}').click()")
+                await browser.wait_for(f"window.visionposConsole.replayPos !== {steps[-1]}", 10)
+                steps.append(await browser.evaluate("window.visionposConsole.replayPos"))
+            found["steps"] = steps
+            found["lost"] = await browser.evaluate(
+                "({marks: window.visionposConsole.lost, drawn: [...document.querySelectorAll('#lost i')].map(i => "
+                "[i.style.left, i.title])})")
             await browser.screenshot(_shots() / "replay.png")
         finally:
             await browser.close()
@@ -606,6 +659,13 @@ def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, the
     asyncio.run(asyncio.wait_for(main(), 120))
     p = found["page"]
     assert p["source"] == f"replay of {thesis_log.name}" and p["replay"]
-    assert p["views"] == 4 and p["tools"] == 0 and p["calib"] is False
+    assert p["views"] == 4 and p["tools"] == 0 and p["calib"] is False and p["record"] is False
     assert re.fullmatch(r"\d\d:\d\d:\d\d refused: speed: give x between 0.05 and 16", found["notice"]["text"])
     assert found["notice"]["shown"]
+    # the body lost in the gap (the session's own marks: test_replay.py), drawn where it happened
+    marks = found["lost"]["marks"]
+    assert marks and all(m["body"] == "quad" and 1.0 <= m["t_s"] < 1.7 for m in marks), marks
+    assert [t for _, t in found["lost"]["drawn"]] == [f"quad lost at {m['t_s']:.2f} s" for m in marks]
+    # a frame is one output tick (10 ms at 100 Hz): forward, forward, back; paused in between
+    s0, s1, s2, s3 = found["steps"]
+    assert round(s1 - s0, 3) == 0.01 and round(s2 - s1, 3) == 0.01 and round(s3 - s2, 3) == -0.01, found["steps"]
