@@ -11,6 +11,7 @@
                          tab is hidden: no camera views for it), "health", replay controls (console/replay.py),
                          "solve" (the wand solve: console/calibration.py), "record" (start or stop a
                          recording: console/recording.py; answered to every tab as {"type": "record"}),
+                         "write_pose" (the camera monitor's corrected pose into the arena file: console/arena_file.py),
                          "still" and "mask" (a station's still image, its mask saved back: console/stills.py);
                          a refused message (bad JSON, an unknown command or camera, a mask outside the image,
                          over MAX_MESSAGE_BYTES, a tab over console.max_clients) changes nothing and is
@@ -49,6 +50,7 @@ from urllib.parse import urlsplit
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
+from console.arena_file import write_monitored_pose
 from console.health import HealthView
 from console.recording import ConsoleRecorder
 from console.settings import ConsoleSettings
@@ -425,6 +427,18 @@ class ConsoleServer:
                     c.offer(text)
             try:
                 await client.ws.send_str(text)
+            except (ConnectionError, RuntimeError):
+                pass
+            return
+        if msg["cmd"] == "write_pose":  # the page asked the operator first
+            try:
+                reply = write_monitored_pose(self.source, msg)
+            except ValueError as e:
+                return await self._bad(client, "write_pose", str(e))
+            log.warning("console: camera %d's corrected pose written to %s (the old file: %s)", reply["camera"],
+                        reply["file"], reply["backup"])
+            try:
+                await client.ws.send_str(json.dumps({"type": "pose_written", **reply}))
             except (ConnectionError, RuntimeError):
                 pass
             return

@@ -6,6 +6,7 @@ import * as THREE from "three";
 import { OrbitControls } from "./vendor/OrbitControls.js";
 import { calibMessage, calibReplay } from "./calib.js";
 import { initRecord, recordMessage } from "./record.js";
+import { initMonitor, monitorMessage } from "./monitor.js";
 import { drawStationLayer, initStationTools, onStationMessage, proposeMask, resetStationTools, stationTools }
   from "./stills.js";
 
@@ -646,12 +647,14 @@ function handle(e) {
   else if (msg.type === "still" || msg.type === "mask") onStationMessage(msg, camViews);
   else if (msg.type === "error") { stats.errors.push(msg.error); showRefusal(msg.error); onStationMessage(msg, camViews); }
   if (msg.type === "health" || msg.type === "record") recordMessage(msg);
+  if (msg.type === "health" || msg.type === "pose_written") monitorMessage(msg);
   if (msg.type === "calib" || msg.type === "calib_reply" || msg.type === "error") calibMessage(msg, send);
 }
 
 wireControls();
 wire3D(document.getElementById("view3d"));
 initStationTools(send, stats);
+initMonitor(send);
 // a hidden tab draws nothing: the server builds no camera views for it until it is shown again
 document.addEventListener("visibilitychange", () => send({ cmd: "views", on: !document.hidden }));
 connect();
