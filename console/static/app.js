@@ -77,6 +77,17 @@ class Arena3D {
     this.scene.add(this.rays);
     this.rayCamera = null;
     this.addWorld(msg.cameras);
+    this.volume = msg.volume ? this.addVolume(msg.volume) : null;
+  }
+
+  // the planner's flight volume (plan.volume): a cyan box
+  addVolume(v) {
+    const size = [0, 1, 2].map(i => v.max_m[i] - v.min_m[i]);
+    const box = new THREE.LineSegments(new THREE.EdgesGeometry(new THREE.BoxGeometry(...size)),
+      new THREE.LineBasicMaterial({ color: 0x44ccdd }));
+    box.position.set(...[0, 1, 2].map(i => (v.max_m[i] + v.min_m[i]) / 2));
+    this.scene.add(box);
+    return { center: box.position.toArray(), size };
   }
 
   addWorld(cams) {
@@ -546,6 +557,7 @@ function buildArena(msg) {
   }
   stats.cameraViews = camViews.size;
   stats.frusta = scene3.frusta;
+  stats.volume = scene3.volume;
   stats.sceneId = msg.scene_id;
 }
 

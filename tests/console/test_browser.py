@@ -153,6 +153,7 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             await browser.connect()
             await browser.wait_for("window.visionposConsole && window.visionposConsole.states > 30 && "
                                    "window.visionposConsole.health > 2 && window.visionposConsole.frames3d > 10")
+            await browser.evaluate("document.getElementById('rec').click()")
             # a tracked body and the ghost's reason in the health table
             await browser.wait_for("[...document.querySelectorAll('#bodies tbody tr')].some(r => "
                                    "r.cells[0].textContent === 'quad' && r.cells[1].textContent === 'yes')")
@@ -178,8 +179,8 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
                 "boxes: [...document.querySelectorAll('#camgrid .cam')].map(b => b.getBoundingClientRect().width), "
                 "titles: [...document.querySelectorAll('#camgrid .camtitle')].map(t => "
                 "[t.getBoundingClientRect().height, getComputedStyle(t).textOverflow])})")
-            # the record button: a new file while it records (its name, size, duration), closed on a second click
-            await browser.evaluate("document.getElementById('rec').click()")
+            # the record button (pressed at the start): a new file while it records (its name, size, duration),
+            # closed on a second click
             await browser.wait_for("(window.visionposConsole.record.recording || {}).duration_s >= 1", 15)
             found["recording"] = await browser.evaluate("document.getElementById('recinfo').textContent")
             await browser.evaluate("document.getElementById('rec').click()")
@@ -219,6 +220,17 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
                                           on_console=views.append), 240))
     print(f"screenshots in {shots}")
     img, dpr = found["img"], found["dpr"] or 1.0
+    # the recording: named while it ran, then closed with every packet it was given
+    from visionpos.recording import TOPIC_PACKETS, RecordingReader
+
+    rec = found["stopped"]
+    name = rec["stopped"]["file"]
+    assert re.fullmatch(r"recording visionpos-\d{8}-\d{6}\.mcap, [\d.]+ [kM]B, [1-9]\d* s", found["recording"])
+    assert found["recording"].split(",")[0] == f"recording {name}"
+    assert rec["button"] == "record" and rec["info"].startswith(f"saved {name}, ")
+    path = tmp_path / "flights" / name
+    packets = sum(1 for _ in RecordingReader(path).packets())
+    assert packets > 100 and packets == rec["stopped"]["messages"][TOPIC_PACKETS], rec
     # the 3D canvas draws: grid, frustums and the body cover a fair share of it (background #15181c)
     assert _drawn(img, _rect(found["r3d"], dpr), (0x1c, 0x18, 0x15)) > 0.02
     # every camera view shows blobs, and the first one's canvas has them drawn (background #0d0f12)
@@ -227,7 +239,7 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
     # the health table lists the cameras (name and streaming) and the tracked body
     names = {c.name for c in arena.cameras}
     assert {row[0].split(" ", 1)[1] for row in found["cameras"]} == names
-    assert all(row[1] == "streaming" for row in found["cameras"])
+    assert all(row[1] == "streaming" for row in found["cameras"]), found["cameras"]
     rows = {r[0]: r for r in found["bodies"]}
     assert rows["quad"][1] == "yes"
     # the ghost is not tracked, and the page says why (the pipeline's reason, not the placeholder)
@@ -256,17 +268,6 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
     # the still image: read out, and drawn (the simulated image's noise and discs change the view's pixels)
     assert found["still"].startswith("background "), found["still"]
     assert not np.array_equal(found["img_still"], found["img"])
-    # the recording: named while it ran, then closed with every packet it was given
-    from visionpos.recording import TOPIC_PACKETS, RecordingReader
-
-    rec = found["stopped"]
-    name = rec["stopped"]["file"]
-    assert re.fullmatch(r"recording visionpos-\d{8}-\d{6}\.mcap, [\d.]+ [kM]B, [1-9]\d* s", found["recording"])
-    assert found["recording"].split(",")[0] == f"recording {name}"
-    assert rec["button"] == "record" and rec["info"].startswith(f"saved {name}, ")
-    path = tmp_path / "flights" / name
-    packets = sum(1 for _ in RecordingReader(path).packets())
-    assert packets > 100 and packets == rec["stopped"]["messages"][TOPIC_PACKETS], rec
     # /api/health says the same
     h = found["health"]
     assert {b["name"]: b["tracked"] for b in h["bodies"]} == {"quad": True, "ghost": False}
@@ -507,7 +508,9 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
     from visionpos.app.console import RecordSource, open_console
 
     found: dict = {}
-    thesis, arena8 = _arena(arena_yaml("thesis"), "thesis.yaml"), _arena(arena_yaml("arena8"), "arena8.yaml")
+    volume = {"min_m": [-1.0, -0.5, 0.0], "max_m": [1.0, 1.5, 2.0]}  # the planner's flight volume, drawn as a box
+    thesis = _arena({**arena_yaml("thesis"), "plan": {"volume": volume}}, "thesis.yaml")
+    arena8 = _arena(arena_yaml("arena8"), "arena8.yaml")
 
     async def main():
         console = await open_console(ConsoleSettings(port=0), RecordSource(thesis))
@@ -522,6 +525,7 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
             await browser.wait_for("window.visionposConsole && window.visionposConsole.states > 10 && "
                                    "window.visionposConsole.health > 0 && !window.visionposConsole.stale && "
                                    "window.visionposConsole.updatesPerS > 0")
+            found["volume"] = await browser.evaluate("window.visionposConsole.volume")
             found["live_badge"] = await browser.evaluate("document.getElementById('badge3d').textContent")
             found["live_rate"] = await browser.evaluate("window.visionposConsole.updatesPerS")
             found["dpr"] = await browser.evaluate("window.devicePixelRatio")
@@ -548,7 +552,7 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
             found["rebuilt"] = await browser.evaluate(
                 "({frusta: window.visionposConsole.frusta, rebuilds: window.visionposConsole.rebuilds, "
                 "canvases: document.querySelectorAll('#camgrid canvas').length, "
-                "rays: document.querySelectorAll('#rays option').length, "
+                "rays: document.querySelectorAll('#rays option').length, volume: window.visionposConsole.volume, "
                 "titles: [...document.querySelectorAll('#camgrid .cam > div:first-child')].map(e => e.textContent)})")
             found["errors"] = await browser.evaluate("window.visionposConsole.errors")
         finally:
@@ -574,6 +578,8 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
     # another arena on the same port: rebuilt for its eight cameras, nothing of the thesis arena left
     r = found["rebuilt"]
     assert r["frusta"] == 8 and r["canvases"] == 8 and r["rays"] == 9 and r["rebuilds"] == 1
+    # the thesis arena's plan.volume was a 2 x 2 x 2 m box centred at (0, 0.5, 1); arena8 has none
+    assert found["volume"] == {"center": [0, 0.5, 1], "size": [2, 2, 2]} and r["volume"] is None
     assert [t.split(":")[0] for t in r["titles"]] == [f"camera {c.id} ({c.name})" for c in arena8.cameras]
     assert found["errors"] == []
 
