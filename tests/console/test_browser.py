@@ -135,11 +135,13 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
 
     from console.settings import ConsoleSettings
     from visionpos.app.demo import demo_arena, run_demo
+    from visionpos.fusion.camera_monitor import apply_correction
 
     data = arena_yaml("thesis")
     data["bodies"].append(GHOST)
     path = tmp_path / "arena.yaml"
     path.write_text(yaml.safe_dump(data))
+    original = path.read_text()
     arena = demo_arena(str(path), 14.0, 3, [])
     shots = Path(os.environ.get("VISIONPOS_SCREENSHOTS") or tempfile.mkdtemp(prefix="visionpos-console-"))
     shots.mkdir(parents=True, exist_ok=True)
@@ -212,6 +214,17 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             await browser.wait_for("Object.values(window.visionposConsole.stills || {}).some(s => s.loaded)")
             found["still"] = await browser.evaluate("document.querySelector('#camgrid .stationtools span').textContent")
             found["img_still"] = await browser.screenshot(shots / "console-still.png")
+            # a camera the monitor corrected (as its _correct does: test_arena_file.py) gets a row and "write to
+            # arena file"; the operator says OK to the confirmation
+            watch = console.source.monitor.cams[2]
+            watch.camera = apply_correction(watch.camera, np.array([np.radians(0.5), 0.0, 0.0, 0.0, 0.0, 0.01]))
+            watch.corrections = max(watch.corrections, 1)
+            await browser.wait_for("!!document.querySelector('#monitor button')", 10)
+            await browser.evaluate("window.confirm = () => true; document.querySelector('#monitor button').click()")
+            await browser.wait_for("!!window.visionposConsole.monitor.written", 10)
+            found["written"] = await browser.evaluate(
+                "({reply: window.visionposConsole.monitor.written, "
+                "note: document.getElementById('monitor-note').textContent})")
         finally:
             await browser.close()
 
@@ -220,6 +233,14 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
                                           on_console=views.append), 240))
     print(f"screenshots in {shots}")
     img, dpr = found["img"], found["dpr"] or 1.0
+    # the corrected pose in the arena file, the old file in the backup the page names
+    w = found["written"]["reply"]
+    assert w["camera"] == 2 and w["file"] == str(path.resolve())
+    assert found["written"]["note"] == f"camera 2's pose written to {w['file']} (the old file: {w['backup']})"
+    assert Path(w["backup"]).read_text() == original
+    cams = {c["id"]: c for c in yaml.safe_load(path.read_text())["cameras"]}
+    assert cams[2]["pose"] == w["pose"] != {c["id"]: c for c in data["cameras"]}[2]["pose"]
+    assert all(cams[i]["pose"] == c["pose"] for i, c in ((c["id"], c) for c in data["cameras"]) if i != 2)
     # the recording: named while it ran, then closed with every packet it was given
     from visionpos.recording import TOPIC_PACKETS, RecordingReader
 
