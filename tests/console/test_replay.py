@@ -158,3 +158,17 @@ def test_a_loss_is_marked_where_the_plain_replay_loses_the_body_and_steps_move_o
             await s2.command({"cmd": "step", "frames": 2})
 
     asyncio.run(main())
+
+
+def test_the_recordings_own_losses_are_marked_from_the_start_up_to_the_cap(session_parts):
+    from types import SimpleNamespace
+
+    from console.replay import MAX_LOSSES
+
+    arena, packets = session_parts
+    t0 = packets[0][0]
+    # tracked, untracked, tracked, ... every 10 ms: a loss every 20 ms, 1200 in all
+    states = [SimpleNamespace(name="quad", tracked=k % 2 == 0, time_ns=t0 + k * 10_000_000) for k in range(2400)]
+    s = ReplaySession(arena, packets, recorded_states=states)
+    assert MAX_LOSSES == 1000 and len(s.losses) == 1000 and s.losses_dropped == 200
+    assert s.lost_marks()[:2] == [{"body": "quad", "t_s": 0.01}, {"body": "quad", "t_s": 0.03}]
