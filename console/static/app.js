@@ -655,7 +655,11 @@ function handle(e) {
   if (msg.type === "scene") onScene(msg);
   else if (msg.type === "state") onState(msg);
   else if (msg.type === "health") showHealth(msg.health);
-  else if (msg.type === "replay") showReplay(msg);
+  else if (msg.type === "replay") {  // an answer to a control: sent once it is done (a seek reached its target)
+    stats.replayReplies = (stats.replayReplies || 0) + 1;
+    stats.replayReply = msg.t_s;
+    showReplay(msg);
+  }
   else if (msg.type === "still" || msg.type === "mask") onStationMessage(msg, camViews);
   else if (msg.type === "error") { stats.errors.push(msg.error); showRefusal(msg.error); onStationMessage(msg, camViews); }
   if (msg.type === "health" || msg.type === "record") recordMessage(msg);

@@ -629,7 +629,7 @@ def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, the
     from visionpos.app.console import replay_view
 
     found: dict = {}
-    thesis_log = _with_a_gap(thesis_log, tmp_path / "gap.mcap", 1.0, 1.6)
+    thesis_log = _with_a_gap(thesis_log, tmp_path / "gap.mcap", 2.2, 2.8)  # after the picture
 
     async def main():
         views: list = []
@@ -664,12 +664,13 @@ def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, the
             await browser.wait_for("document.getElementById('stepfwd').disabled === false", 10)
             await browser.evaluate("(() => { const s = document.getElementById('seek'); s.value = '2'; "
                                    "s.dispatchEvent(new Event('change')); })()")
-            await browser.wait_for("window.visionposConsole.replayPos === 2", 10)
+            await browser.wait_for("window.visionposConsole.replayReply === 2", 10)  # the seek's answer
             steps = [await browser.evaluate("window.visionposConsole.replayPos")]
-            for button in ("stepfwd", "stepfwd", "stepback"):
+            for button in ("stepfwd", "stepfwd", "stepback"):  # each answered once done
+                n = await browser.evaluate("window.visionposConsole.replayReplies")
                 await browser.evaluate(f"document.getElementById('{button}').click()")
-                await browser.wait_for(f"window.visionposConsole.replayPos !== {steps[-1]}", 10)
-                steps.append(await browser.evaluate("window.visionposConsole.replayPos"))
+                await browser.wait_for(f"window.visionposConsole.replayReplies > {n}", 10)
+                steps.append(await browser.evaluate("window.visionposConsole.replayReply"))
             found["steps"] = steps
             found["lost"] = await browser.evaluate(
                 "({marks: window.visionposConsole.lost, drawn: [...document.querySelectorAll('#lost i')].map(i => "
@@ -691,7 +692,7 @@ def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, the
     assert found["notice"]["shown"]
     # the body lost in the gap (the session's own marks: test_replay.py), drawn where it happened
     marks = found["lost"]["marks"]
-    assert marks and all(m["body"] == "quad" and 1.0 <= m["t_s"] < 1.7 for m in marks), marks
+    assert marks and all(m["body"] == "quad" and 2.2 <= m["t_s"] < 2.9 for m in marks), marks
     assert [t for _, t in found["lost"]["drawn"]] == [f"quad lost at {m['t_s']:.2f} s" for m in marks]
     # a frame is one output tick (10 ms at 100 Hz): forward, forward, back; paused in between
     s0, s1, s2, s3 = found["steps"]
