@@ -8,13 +8,19 @@ console stays responsive: each wake-up moves the recording clock by the wall tim
 the speed, at most MAX_STEP_S of work before it yields. Seeking backwards starts a fresh ingest and
 pipeline and runs them up to the target as fast as they go (fusion state depends on the past);
 seeking forwards runs on from where it is.
+
+Stepping while paused ({"cmd": "step", "frames": 1 or -1}) moves to the next or previous output tick (a
+frame of the filter's poses, 1 / output rate apart); a step back is a seek back. Every tick at which a
+tracked body became untracked is marked ("lost": the body and the time), kept through seeks and restarts,
+together with the losses in the recording's own states (what the live server tracked); the page draws
+them on its seek bar and fetches them ({"cmd": "losses"}) when `lost_n` in the position grows.
 """
 
 from __future__ import annotations
 
 import asyncio
 import time
-from typing import Any, Sequence
+from typing import Any, Iterable, Sequence
 
 from visionpos import protocol as P
 from visionpos.analysis.replay import V1Upgrade
@@ -28,6 +34,7 @@ from visionpos.server.settings import ServerSettings
 MAX_STEP_S = 0.02  # wall time of pipeline work per slice before yielding to the loop (and the console)
 WAKE_S = 0.01
 SPEEDS = (0.1, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+MAX_LOSSES = 1000  # marks kept for the seek bar; more are counted, not drawn
 
 
 class ReplaySession:
@@ -35,12 +42,14 @@ class ReplaySession:
     health(), clock()) and its controls (command()). calibration: an object with push(BlobFrame)
     (console/calibration.py) that gets every accepted frame of each packet once: a seek back or a play after the
     end runs the pipeline again from the start but keeps the wand frames gathered so far (none counted twice).
-    name: what the console's header shows (the recording's file name)."""
+    name: what the console's header shows (the recording's file name). recorded_states: the recording's own
+    states (RecordingReader.states()), whose losses are marked from the start."""
 
     console_mode = "replay"  # the page shows only what a replay can do (console/view.py scene)
 
     def __init__(self, arena: ArenaConfig, packets: Sequence[tuple], rate_hz: float | None = None,
-                 realtime_minus_monotonic_ns: int | None = None, calibration: Any = None, name: str | None = None):
+                 realtime_minus_monotonic_ns: int | None = None, calibration: Any = None, name: str | None = None,
+                 recorded_states: Iterable[BodyState] = ()):
         if not packets:
             raise ValueError("the recording holds no station packets; record with stations streaming")
         self.arena = arena
@@ -57,6 +66,9 @@ class ReplaySession:
         self.calibration = calibration
         self.source_name = name
         self._fed = 0  # packets [0, _fed) have given the calibration their frames
+        self.losses: set[tuple[str, int]] = set()  # (body, time ns) where a tracked body became untracked
+        self.losses_dropped = 0  # beyond MAX_LOSSES
+        self._mark_losses(recorded_states)
         self._reset()
 
     def _reset(self) -> None:
@@ -77,6 +89,7 @@ class ReplaySession:
         self.last_states: list[BodyState] = []
         self.ticks = 0
         self._tracked: dict[str, int] = {}
+        self._was_tracked: dict[str, bool] = {}
 
     # ---------------------------------------------------------------- the source's face
 
@@ -94,7 +107,29 @@ class ReplaySession:
     def position(self) -> dict[str, Any]:
         return {"replay": {"t_s": round((self._now - self.t0_ns) * 1e-9, 3),
                            "duration_s": round((self.end_ns - self.t0_ns) * 1e-9, 3), "playing": self.playing,
-                           "speed": self.speed, "finished": self.finished}}
+                           "speed": self.speed, "finished": self.finished, "lost_n": len(self.losses),
+                           "frame_s": self.period_ns * 1e-9}}
+
+    def lost_marks(self) -> list[dict[str, Any]]:
+        """The losses as the seek bar draws them: [{"body", "t_s"}] in time order."""
+        marks = sorted(self.losses, key=lambda m: m[1])
+        return [{"body": b, "t_s": round((t - self.t0_ns) * 1e-9, 3)} for b, t in marks]
+
+    def _mark_losses(self, states: Iterable[BodyState]) -> None:
+        """Mark each state that is untracked where the same body's previous one was tracked."""
+        was: dict[str, bool] = {}
+        for st in states:
+            if was.get(st.name) and not st.tracked:
+                self._add_loss(st.name, int(st.time_ns))
+            was[st.name] = bool(st.tracked)
+
+    def _add_loss(self, body: str, t_ns: int) -> None:
+        if (body, t_ns) in self.losses:
+            return
+        if len(self.losses) >= MAX_LOSSES:
+            self.losses_dropped += 1
+            return
+        self.losses.add((body, t_ns))
 
     # ---------------------------------------------------------------- stepping
 
@@ -108,6 +143,9 @@ class ReplaySession:
         for s in self.last_states:
             if s.tracked:
                 self._tracked[s.name] = self._tracked.get(s.name, 0) + 1
+            elif self._was_tracked.get(s.name):
+                self._add_loss(s.name, t)
+            self._was_tracked[s.name] = s.tracked
 
     def advance_to(self, target_ns: int, budget_s: float | None = None) -> bool:
         """Process packets and ticks up to target_ns (recording clock); stop early after budget_s of wall
@@ -166,6 +204,10 @@ class ReplaySession:
             if isinstance(x, bool) or not isinstance(x, (int, float)) or not 0.05 <= x <= 16:
                 raise ValueError("speed: give x between 0.05 and 16")
             self.speed = float(x)
+        elif cmd == "step":
+            await self.step(msg.get("frames"))
+        elif cmd == "losses":
+            return {**self.position()["replay"], "lost": self.lost_marks()}
         elif cmd == "seek":
             t = msg.get("t_s")
             span_s = (self.end_ns - self.t0_ns) * 1e-9
@@ -173,11 +215,28 @@ class ReplaySession:
                 raise ValueError(f"seek: give t_s between 0 and {span_s:.3f}")
             await self.seek(float(t))
         else:
-            raise ValueError(f"unknown command {cmd!r}: play, pause, seek or speed")
+            raise ValueError(f"unknown command {cmd!r}: play, pause, seek, speed, step or losses")
         return self.position()["replay"]
 
+    async def step(self, frames: Any) -> None:
+        """One output tick forward (frames 1) or back (-1) from the position, while paused."""
+        if frames not in (1, -1) or isinstance(frames, bool):
+            raise ValueError("step: give frames 1 (one frame forward) or -1 (one back)")
+        if self.playing:
+            raise ValueError("step: pause first (frames are stepped while paused)")
+        k = (self._now - self.t0_ns) // self.period_ns  # the last tick at or before the position
+        on_tick = self.t0_ns + k * self.period_ns == self._now
+        k = k + 1 if frames == 1 else (k - 1 if on_tick else k)
+        target = min(max(self.t0_ns + k * self.period_ns, self.t0_ns), self.end_ns)
+        if target == self._now:
+            raise ValueError("step: already at the " + ("end" if frames == 1 else "start"))
+        await self.seek_ns(target)
+
     async def seek(self, t_s: float) -> None:
-        target = self.t0_ns + int(t_s * 1e9)
+        await self.seek_ns(self.t0_ns + int(t_s * 1e9))
+
+    async def seek_ns(self, target: int) -> None:
+        """To recording time target (ns): forwards from here, backwards from a fresh start."""
         if target < self._now:
             self._reset()
         self.finished = False

@@ -9,7 +9,9 @@
                          when the calibration assistant's counts or solve changed; the client
                          may send {"cmd": ...}: "rays" (a camera's blob rays), "views" (on: false while the
                          tab is hidden: no camera views for it), "health", replay controls (console/replay.py),
-                         "solve" (the wand solve: console/calibration.py),
+                         "solve" (the wand solve: console/calibration.py), "record" (start or stop a
+                         recording: console/recording.py; answered to every tab as {"type": "record"}),
+                         "write_pose" (the camera monitor's corrected pose into the arena file: console/arena_file.py),
                          "still" and "mask" (a station's still image, its mask saved back: console/stills.py);
                          a refused message (bad JSON, an unknown command or camera, a mask outside the image,
                          over MAX_MESSAGE_BYTES, a tab over console.max_clients) changes nothing and is
@@ -48,7 +50,9 @@ from urllib.parse import urlsplit
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
+from console.arena_file import write_monitored_pose
 from console.health import HealthView
+from console.recording import ConsoleRecorder
 from console.settings import ConsoleSettings
 from console.stills import StationCommands
 from console.view import ConsoleView
@@ -137,6 +141,8 @@ class ConsoleServer:
         for cam in self.view.scene["cameras"]:
             cam["mask"] = (masks or {}).get(cam["id"])
         self.view.scene["update_rate_hz"] = settings.update_rate_hz  # the page compares its own rate with it
+        self.recording = ConsoleRecorder(source, settings.record_dir)
+        self.view.scene["can_record"] = self.recording.available  # the page shows the record button
         self.health_view = HealthView(self.view)
         self.clients: set[Client] = set()
         self.rlog = RateLimitedLog(log)
@@ -322,6 +328,7 @@ class ConsoleServer:
     def health(self) -> dict[str, Any]:
         h = self.health_view.health(self.clock())
         h["console"] = self.stats()
+        h["recording"] = self.recording.state()
         return h
 
     # ---------------------------------------------------------------- WebSocket
@@ -406,6 +413,32 @@ class ConsoleServer:
                 return await self._bad(client, "solve", str(e))
             try:
                 await client.ws.send_str(json.dumps({"type": "calib_reply", **reply}))
+            except (ConnectionError, RuntimeError):
+                pass
+            return
+        if msg["cmd"] == "record":
+            try:
+                reply = await self.recording.command(msg)
+            except ValueError as e:
+                return await self._bad(client, "record", str(e))
+            text = json.dumps({"type": "record", **reply})
+            for c in self.clients:  # every tab shows it at once; the sender's answer is never dropped
+                if c is not client:
+                    c.offer(text)
+            try:
+                await client.ws.send_str(text)
+            except (ConnectionError, RuntimeError):
+                pass
+            return
+        if msg["cmd"] == "write_pose":  # the page asked the operator first
+            try:
+                reply = write_monitored_pose(self.source, msg)
+            except ValueError as e:
+                return await self._bad(client, "write_pose", str(e))
+            log.warning("console: camera %d's corrected pose written to %s (the old file: %s)", reply["camera"],
+                        reply["file"], reply["backup"])
+            try:
+                await client.ws.send_str(json.dumps({"type": "pose_written", **reply}))
             except (ConnectionError, RuntimeError):
                 pass
             return

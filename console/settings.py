@@ -42,6 +42,8 @@ CONSOLE = section(
     Setting("hosts", "any", [], "host names (besides localhost and this host's IP addresses) the console answers "
             "to, e.g. [mocap.lab]: a request naming any other host is refused (DNS rebinding)",
             default_doc="[] (none)"),
+    Setting("record_dir", "text", "recordings", "folder where the console's record button writes its recordings "
+            "(made when needed; relative to the working directory)"),
     Setting("token", "text", None, f"access token (at least {MIN_TOKEN_CHARS} characters) for a console bound "
             "to an address other than loopback", default_doc="a fresh one, printed at start"),
 )
@@ -65,6 +67,7 @@ class ConsoleSettings:
     token_generated: bool = False
     stations: tuple[str, ...] = ()  # station YAML paths, resolved against the arena file
     hosts: tuple[str, ...] = ()  # extra host names a request may name (lower case)
+    record_dir: str = "recordings"  # where the record button writes
 
     def with_address(self, bind: str | None = None, port: int | None = None) -> "ConsoleSettings":
         """--console-bind / --console-port applied (UsageError for a bad address or port)."""
@@ -117,6 +120,8 @@ def parse_console(arena: ArenaConfig) -> ConsoleSettings:
     if not isinstance(hosts, list) or not all(isinstance(h, str) and _HOST_NAME.fullmatch(h) for h in hosts):
         raise s.error("hosts", "give a list of host names without port or scheme, e.g. [mocap.lab, arena-pc]")
     values["hosts"] = tuple(h.lower() for h in hosts)
+    if not values["record_dir"]:
+        raise s.error("record_dir", "give a folder, e.g. recordings or /data/flights")
     base = Path(arena.source).parent
     values["stations"] = tuple(str(p if Path(p).is_absolute() else base / p) for p in stations)
     return ConsoleSettings(**values).with_token()

@@ -80,7 +80,21 @@ def scene(arena: Any, name: str | None = None, mode: str = "live") -> dict[str, 
     bodies = [{"name": b.name, "id": b.id, "markers": [[round(float(v), 5) for v in p] for p in b.markers]}
               for b in arena.bodies]
     return {"type": "scene", "source": name or arena.source, "mode": mode, "cameras": cams, "bodies": bodies,
-            "calibration_rms_px": calibration_residuals(arena), "scene_id": scene_id(cams, bodies)}
+            "calibration_rms_px": calibration_residuals(arena), "scene_id": scene_id(cams, bodies),
+            "volume": capture_volume(arena)}
+
+
+def capture_volume(arena: Any) -> dict[str, list[float]] | None:
+    """The planner's flight volume (`plan.volume`, analysis/planner.py) as {"min_m", "max_m"} (world, m), drawn
+    as a box in the 3D view; None when the arena has none."""
+    if not arena.given("plan"):
+        return None
+    from visionpos.analysis.planner import parse_plan
+
+    vol = parse_plan(arena).volume
+    if vol is None:
+        return None
+    return {"min_m": [round(float(v), 4) for v in vol.lo], "max_m": [round(float(v), 4) for v in vol.hi]}
 
 
 def scene_id(cameras: list[dict[str, Any]], bodies: list[dict[str, Any]]) -> str:

@@ -5,6 +5,8 @@
 import * as THREE from "three";
 import { OrbitControls } from "./vendor/OrbitControls.js";
 import { calibMessage, calibReplay } from "./calib.js";
+import { initRecord, recordMessage } from "./record.js";
+import { initMonitor, monitorMessage } from "./monitor.js";
 import { drawStationLayer, initStationTools, onStationMessage, proposeMask, resetStationTools, stationTools }
   from "./stills.js";
 
@@ -75,6 +77,17 @@ class Arena3D {
     this.scene.add(this.rays);
     this.rayCamera = null;
     this.addWorld(msg.cameras);
+    this.volume = msg.volume ? this.addVolume(msg.volume) : null;
+  }
+
+  // the planner's flight volume (plan.volume): a cyan box
+  addVolume(v) {
+    const size = [0, 1, 2].map(i => v.max_m[i] - v.min_m[i]);
+    const box = new THREE.LineSegments(new THREE.EdgesGeometry(new THREE.BoxGeometry(...size)),
+      new THREE.LineBasicMaterial({ color: 0x44ccdd }));
+    box.position.set(...[0, 1, 2].map(i => (v.max_m[i] + v.min_m[i]) / 2));
+    this.scene.add(box);
+    return { center: box.position.toArray(), size };
   }
 
   addWorld(cams) {
@@ -467,8 +480,24 @@ function wire3D(canvas) {
 function send(obj) { if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(obj)); }
 
 let seeking = false;
+let lostShown = -1;  // marks drawn on the seek bar (the server counts them in lost_n)
+function showLosses(r) {
+  const box = document.getElementById("lost");
+  box.replaceChildren(...r.lost.map(m => {
+    const i = el("i");
+    i.style.left = `${(100 * m.t_s / r.duration_s).toFixed(2)}%`;
+    i.title = `${m.body} lost at ${fmt(m.t_s, 2)} s`;
+    return i;
+  }));
+  lostShown = r.lost.length;
+  stats.lost = r.lost;
+}
 function showReplay(r) {
   document.getElementById("replay").hidden = false;
+  if (r.lost) showLosses(r);
+  else if (r.lost_n !== undefined && r.lost_n !== lostShown) { lostShown = r.lost_n; send({ cmd: "losses" }); }
+  for (const id of ["stepback", "stepfwd"]) document.getElementById(id).disabled = r.playing;
+  stats.replayPos = r.t_s;
   const seek = document.getElementById("seek");
   seek.max = r.duration_s;
   if (!seeking) seek.value = r.t_s;
@@ -483,6 +512,8 @@ function wireControls() {
   seek.oninput = () => { seeking = true; };
   seek.onchange = () => { seeking = false; send({ cmd: "seek", t_s: Number(seek.value) }); };
   document.getElementById("speed").onchange = e => send({ cmd: "speed", x: Number(e.target.value) });
+  document.getElementById("stepback").onclick = () => send({ cmd: "step", frames: -1 });
+  document.getElementById("stepfwd").onclick = () => send({ cmd: "step", frames: 1 });
   document.getElementById("rays").onchange = e => {
     if (scene3) scene3.rayCamera = e.target.value || null;
     send({ cmd: "rays", camera: e.target.value ? Number(e.target.value) : null });  // the server sends only those
@@ -499,6 +530,9 @@ function buildArena(msg) {
   const replay = msg.mode === "replay";
   document.getElementById("source").textContent = replay ? `replay of ${msg.source}` : msg.source;
   calibReplay(replay);
+  lostShown = -1;
+  document.getElementById("lost").replaceChildren();
+  initRecord(msg, send);
   if (scene3) { scene3.load(msg); stats.rebuilds++; } else scene3 = new Arena3D(document.getElementById("view3d"), msg);
   document.getElementById("camgrid").replaceChildren();
   camViews.clear();
@@ -523,6 +557,7 @@ function buildArena(msg) {
   }
   stats.cameraViews = camViews.size;
   stats.frusta = scene3.frusta;
+  stats.volume = scene3.volume;
   stats.sceneId = msg.scene_id;
 }
 
@@ -620,15 +655,22 @@ function handle(e) {
   if (msg.type === "scene") onScene(msg);
   else if (msg.type === "state") onState(msg);
   else if (msg.type === "health") showHealth(msg.health);
-  else if (msg.type === "replay") showReplay(msg);
+  else if (msg.type === "replay") {  // an answer to a control: sent once it is done (a seek reached its target)
+    stats.replayReplies = (stats.replayReplies || 0) + 1;
+    stats.replayReply = msg.t_s;
+    showReplay(msg);
+  }
   else if (msg.type === "still" || msg.type === "mask") onStationMessage(msg, camViews);
   else if (msg.type === "error") { stats.errors.push(msg.error); showRefusal(msg.error); onStationMessage(msg, camViews); }
+  if (msg.type === "health" || msg.type === "record") recordMessage(msg);
+  if (msg.type === "health" || msg.type === "pose_written") monitorMessage(msg);
   if (msg.type === "calib" || msg.type === "calib_reply" || msg.type === "error") calibMessage(msg, send);
 }
 
 wireControls();
 wire3D(document.getElementById("view3d"));
 initStationTools(send, stats);
+initMonitor(send);
 // a hidden tab draws nothing: the server builds no camera views for it until it is shown again
 document.addEventListener("visibilitychange", () => send({ cmd: "views", on: !document.hidden }));
 connect();

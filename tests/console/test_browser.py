@@ -135,11 +135,13 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
 
     from console.settings import ConsoleSettings
     from visionpos.app.demo import demo_arena, run_demo
+    from visionpos.fusion.camera_monitor import apply_correction
 
     data = arena_yaml("thesis")
     data["bodies"].append(GHOST)
     path = tmp_path / "arena.yaml"
     path.write_text(yaml.safe_dump(data))
+    original = path.read_text()
     arena = demo_arena(str(path), 14.0, 3, [])
     shots = Path(os.environ.get("VISIONPOS_SCREENSHOTS") or tempfile.mkdtemp(prefix="visionpos-console-"))
     shots.mkdir(parents=True, exist_ok=True)
@@ -153,6 +155,7 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             await browser.connect()
             await browser.wait_for("window.visionposConsole && window.visionposConsole.states > 30 && "
                                    "window.visionposConsole.health > 2 && window.visionposConsole.frames3d > 10")
+            await browser.evaluate("document.getElementById('rec').click()")
             # a tracked body and the ghost's reason in the health table
             await browser.wait_for("[...document.querySelectorAll('#bodies tbody tr')].some(r => "
                                    "r.cells[0].textContent === 'quad' && r.cells[1].textContent === 'yes')")
@@ -178,6 +181,15 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
                 "boxes: [...document.querySelectorAll('#camgrid .cam')].map(b => b.getBoundingClientRect().width), "
                 "titles: [...document.querySelectorAll('#camgrid .camtitle')].map(t => "
                 "[t.getBoundingClientRect().height, getComputedStyle(t).textOverflow])})")
+            # the record button (pressed at the start): a new file while it records (its name, size, duration),
+            # closed on a second click
+            await browser.wait_for("(window.visionposConsole.record.recording || {}).duration_s >= 1", 15)
+            found["recording"] = await browser.evaluate("document.getElementById('recinfo').textContent")
+            await browser.evaluate("document.getElementById('rec').click()")
+            await browser.wait_for("!!window.visionposConsole.record.stopped", 15)
+            found["stopped"] = await browser.evaluate(
+                "({info: document.getElementById('recinfo').textContent, button: "
+                "document.getElementById('rec').textContent, stopped: window.visionposConsole.record.stopped})")
             found["errors"] = await browser.evaluate("window.visionposConsole.errors")
             found["dpr"] = await browser.evaluate("window.devicePixelRatio")
             found["r3d"] = await browser.evaluate(JS_RECT.format(sel="#view3d"))
@@ -202,14 +214,44 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             await browser.wait_for("Object.values(window.visionposConsole.stills || {}).some(s => s.loaded)")
             found["still"] = await browser.evaluate("document.querySelector('#camgrid .stationtools span').textContent")
             found["img_still"] = await browser.screenshot(shots / "console-still.png")
+            # a camera the monitor corrected (as its _correct does: test_arena_file.py) gets a row and "write to
+            # arena file"; the operator says OK to the confirmation
+            watch = console.source.monitor.cams[2]
+            watch.camera = apply_correction(watch.camera, np.array([np.radians(0.5), 0.0, 0.0, 0.0, 0.0, 0.01]))
+            watch.corrections = max(watch.corrections, 1)
+            await browser.wait_for("!!document.querySelector('#monitor button')", 10)
+            await browser.evaluate("window.confirm = () => true; document.querySelector('#monitor button').click()")
+            await browser.wait_for("!!window.visionposConsole.monitor.written", 10)
+            found["written"] = await browser.evaluate(
+                "({reply: window.visionposConsole.monitor.written, "
+                "note: document.getElementById('monitor-note').textContent})")
         finally:
             await browser.close()
 
-    settings = ConsoleSettings(port=0)
+    settings = ConsoleSettings(port=0, record_dir=str(tmp_path / "flights"))
     asyncio.run(asyncio.wait_for(run_demo(arena, 14.0, None, during=during, console=settings,
                                           on_console=views.append), 240))
     print(f"screenshots in {shots}")
     img, dpr = found["img"], found["dpr"] or 1.0
+    # the corrected pose in the arena file, the old file in the backup the page names
+    w = found["written"]["reply"]
+    assert w["camera"] == 2 and w["file"] == str(path.resolve())
+    assert found["written"]["note"] == f"camera 2's pose written to {w['file']} (the old file: {w['backup']})"
+    assert Path(w["backup"]).read_text() == original
+    cams = {c["id"]: c for c in yaml.safe_load(path.read_text())["cameras"]}
+    assert cams[2]["pose"] == w["pose"] != {c["id"]: c for c in data["cameras"]}[2]["pose"]
+    assert all(cams[i]["pose"] == c["pose"] for i, c in ((c["id"], c) for c in data["cameras"]) if i != 2)
+    # the recording: named while it ran, then closed with every packet it was given
+    from visionpos.recording import TOPIC_PACKETS, RecordingReader
+
+    rec = found["stopped"]
+    name = rec["stopped"]["file"]
+    assert re.fullmatch(r"recording visionpos-\d{8}-\d{6}\.mcap, [\d.]+ [kM]B, [1-9]\d* s", found["recording"])
+    assert found["recording"].split(",")[0] == f"recording {name}"
+    assert rec["button"] == "record" and rec["info"].startswith(f"saved {name}, ")
+    path = tmp_path / "flights" / name
+    packets = sum(1 for _ in RecordingReader(path).packets())
+    assert packets > 100 and packets == rec["stopped"]["messages"][TOPIC_PACKETS], rec
     # the 3D canvas draws: grid, frustums and the body cover a fair share of it (background #15181c)
     assert _drawn(img, _rect(found["r3d"], dpr), (0x1c, 0x18, 0x15)) > 0.02
     # every camera view shows blobs, and the first one's canvas has them drawn (background #0d0f12)
@@ -218,7 +260,7 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
     # the health table lists the cameras (name and streaming) and the tracked body
     names = {c.name for c in arena.cameras}
     assert {row[0].split(" ", 1)[1] for row in found["cameras"]} == names
-    assert all(row[1] == "streaming" for row in found["cameras"])
+    assert all(row[1] == "streaming" for row in found["cameras"]), found["cameras"]
     rows = {r[0]: r for r in found["bodies"]}
     assert rows["quad"][1] == "yes"
     # the ghost is not tracked, and the page says why (the pipeline's reason, not the placeholder)
@@ -487,7 +529,9 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
     from visionpos.app.console import RecordSource, open_console
 
     found: dict = {}
-    thesis, arena8 = _arena(arena_yaml("thesis"), "thesis.yaml"), _arena(arena_yaml("arena8"), "arena8.yaml")
+    volume = {"min_m": [-1.0, -0.5, 0.0], "max_m": [1.0, 1.5, 2.0]}  # the planner's flight volume, drawn as a box
+    thesis = _arena({**arena_yaml("thesis"), "plan": {"volume": volume}}, "thesis.yaml")
+    arena8 = _arena(arena_yaml("arena8"), "arena8.yaml")
 
     async def main():
         console = await open_console(ConsoleSettings(port=0), RecordSource(thesis))
@@ -502,6 +546,7 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
             await browser.wait_for("window.visionposConsole && window.visionposConsole.states > 10 && "
                                    "window.visionposConsole.health > 0 && !window.visionposConsole.stale && "
                                    "window.visionposConsole.updatesPerS > 0")
+            found["volume"] = await browser.evaluate("window.visionposConsole.volume")
             found["live_badge"] = await browser.evaluate("document.getElementById('badge3d').textContent")
             found["live_rate"] = await browser.evaluate("window.visionposConsole.updatesPerS")
             found["dpr"] = await browser.evaluate("window.devicePixelRatio")
@@ -528,7 +573,7 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
             found["rebuilt"] = await browser.evaluate(
                 "({frusta: window.visionposConsole.frusta, rebuilds: window.visionposConsole.rebuilds, "
                 "canvases: document.querySelectorAll('#camgrid canvas').length, "
-                "rays: document.querySelectorAll('#rays option').length, "
+                "rays: document.querySelectorAll('#rays option').length, volume: window.visionposConsole.volume, "
                 "titles: [...document.querySelectorAll('#camgrid .cam > div:first-child')].map(e => e.textContent)})")
             found["errors"] = await browser.evaluate("window.visionposConsole.errors")
         finally:
@@ -554,18 +599,37 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
     # another arena on the same port: rebuilt for its eight cameras, nothing of the thesis arena left
     r = found["rebuilt"]
     assert r["frusta"] == 8 and r["canvases"] == 8 and r["rays"] == 9 and r["rebuilds"] == 1
+    # the thesis arena's plan.volume was a 2 x 2 x 2 m box centred at (0, 0.5, 1); arena8 has none
+    assert found["volume"] == {"center": [0, 0.5, 1], "size": [2, 2, 2]} and r["volume"] is None
     assert [t.split(":")[0] for t in r["titles"]] == [f"camera {c.id} ({c.name})" for c in arena8.cameras]
     assert found["errors"] == []
+
+
+def _with_a_gap(src: Path, out: Path, start_s: float, end_s: float) -> Path:
+    """A copy of the recording src without any packet from start_s to end_s: every station silent."""
+    from visionpos.recording import RecordingReader, RecordingWriter
+
+    r = RecordingReader(src)
+    packets = list(r.packets_with_source())
+    t0 = packets[0][0]
+    meta = {k: v for k, v in (r.meta or {}).items() if k in ("wall_start_unix_ns", "monotonic_start_ns")}
+    with RecordingWriter(out, r.config, meta, foxglove_rate_hz=None) as w:
+        for t, data, source in packets:
+            if not start_s * 1e9 <= t - t0 < end_s * 1e9:
+                w.write_packet(t, data, source)
+    return out
 
 
 @pytest.mark.slow
 def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, thesis_log):
     """`replay LOG --view` of a flight recording: the file's name in the header, no still-image or mask buttons,
-    no calibration panel (no wand in it); a speed the server refuses is shown in the page."""
+    no calibration panel (no wand in it); a speed the server refuses is shown in the page; the seek bar marks
+    where the body was lost (its stations fell silent for 0.6 s), and the step buttons move one frame."""
     from console.settings import ConsoleSettings
     from visionpos.app.console import replay_view
 
     found: dict = {}
+    thesis_log = _with_a_gap(thesis_log, tmp_path / "gap.mcap", 2.2, 2.8)  # after the picture
 
     async def main():
         views: list = []
@@ -583,7 +647,7 @@ def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, the
                 "({source: document.getElementById('source').textContent, "
                 "tools: document.querySelectorAll('.stationtools').length, "
                 "views: document.querySelectorAll('#camgrid canvas').length, "
-                "calib: !!document.getElementById('calib'), "
+                "calib: !!document.getElementById('calib'), record: !document.getElementById('recbox').hidden, "
                 "replay: !document.getElementById('replay').hidden})")
             await browser.evaluate("(() => { const s = document.getElementById('speed'); const o = "
                                    "document.createElement('option'); o.value = '100'; s.append(o); s.value = '100'; "
@@ -594,6 +658,23 @@ def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, the
                 "return {text: n.textContent, shown: !n.hidden && n.getBoundingClientRect().width > 0}; })()")
             await browser.evaluate("(() => { const s = document.getElementById('speed'); s.lastChild.remove(); "
                                    "s.value = '1'; })()")  # the menu as it was, for the picture
+            await browser.wait_for("(window.visionposConsole.lost || []).length > 0", 20)
+            await browser.evaluate("document.getElementById('play').dataset.playing = '1'; "
+                                   "document.getElementById('play').click()")  # pause
+            await browser.wait_for("document.getElementById('stepfwd').disabled === false", 10)
+            await browser.evaluate("(() => { const s = document.getElementById('seek'); s.value = '2'; "
+                                   "s.dispatchEvent(new Event('change')); })()")
+            await browser.wait_for("window.visionposConsole.replayReply === 2", 10)  # the seek's answer
+            steps = [await browser.evaluate("window.visionposConsole.replayPos")]
+            for button in ("stepfwd", "stepfwd", "stepback"):  # each answered once done
+                n = await browser.evaluate("window.visionposConsole.replayReplies")
+                await browser.evaluate(f"document.getElementById('{button}').click()")
+                await browser.wait_for(f"window.visionposConsole.replayReplies > {n}", 10)
+                steps.append(await browser.evaluate("window.visionposConsole.replayReply"))
+            found["steps"] = steps
+            found["lost"] = await browser.evaluate(
+                "({marks: window.visionposConsole.lost, drawn: [...document.querySelectorAll('#lost i')].map(i => "
+                "[i.style.left, i.title])})")
             await browser.screenshot(_shots() / "replay.png")
         finally:
             await browser.close()
@@ -606,6 +687,13 @@ def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, the
     asyncio.run(asyncio.wait_for(main(), 120))
     p = found["page"]
     assert p["source"] == f"replay of {thesis_log.name}" and p["replay"]
-    assert p["views"] == 4 and p["tools"] == 0 and p["calib"] is False
+    assert p["views"] == 4 and p["tools"] == 0 and p["calib"] is False and p["record"] is False
     assert re.fullmatch(r"\d\d:\d\d:\d\d refused: speed: give x between 0.05 and 16", found["notice"]["text"])
     assert found["notice"]["shown"]
+    # the body lost in the gap (the session's own marks: test_replay.py), drawn where it happened
+    marks = found["lost"]["marks"]
+    assert marks and all(m["body"] == "quad" and 2.2 <= m["t_s"] < 2.9 for m in marks), marks
+    assert [t for _, t in found["lost"]["drawn"]] == [f"quad lost at {m['t_s']:.2f} s" for m in marks]
+    # a frame is one output tick (10 ms at 100 Hz): forward, forward, back; paused in between
+    s0, s1, s2, s3 = found["steps"]
+    assert round(s1 - s0, 3) == 0.01 and round(s2 - s1, 3) == 0.01 and round(s3 - s2, 3) == -0.01, found["steps"]

@@ -121,3 +121,54 @@ def test_a_replay_scene_names_its_file_and_says_it_is_a_replay(session_parts):
     # a live server's scene: the arena's file, live
     live = ConsoleView(type("Live", (), {"arena": arena})()).scene
     assert live["source"] == arena.source and live["mode"] == "live"
+
+
+def test_a_loss_is_marked_where_the_plain_replay_loses_the_body_and_steps_move_one_frame(session_parts):
+    arena, packets = session_parts
+    t0 = packets[0][0]
+    gap = [p for p in packets if not 1.0e9 <= p[0] - t0 < 1.6e9]  # every station silent for 0.6 s
+    ref = run_pipeline(arena, gap).bodies["quad"]
+    lost_at = [int(t) for t, a, b in zip(ref.tick_ns[1:], ref.tracked[:-1], ref.tracked[1:]) if a and not b]
+    assert lost_at and all(1.0e9 <= t - t0 < 1.7e9 for t in lost_at)
+
+    async def main():
+        s = ReplaySession(arena, gap)
+        s.playing = False
+        await s.command({"cmd": "seek", "t_s": 2.0})
+        marks = (await s.command({"cmd": "losses"}))["lost"]
+        assert marks == [{"body": "quad", "t_s": round((t - s.t0_ns) * 1e-9, 3)} for t in lost_at]
+        await s.command({"cmd": "seek", "t_s": 0.5})  # back: the marks stay, none twice
+        assert s.position()["replay"]["lost_n"] == len(lost_at)
+        # one frame (output tick) forward, then back: the poses of the plain replay at each tick
+        quad = run_pipeline(arena, packets).bodies["quad"]
+        s2 = ReplaySession(arena, packets)
+        s2.playing = False
+        await s2.command({"cmd": "seek", "t_s": 1.0})
+        t_start = s2.clock()
+        for frames, expected in ((1, 1), (1, 2), (-1, 1)):
+            r = await s2.command({"cmd": "step", "frames": frames})
+            k = int(np.searchsorted(quad.tick_ns, s2.last_states[0].time_ns))
+            assert s2.clock() == s2.last_states[0].time_ns == quad.tick_ns[k]
+            assert s2.clock() - t_start == expected * s2.period_ns, (r, expected)  # 1.0 s is on the tick grid
+            np.testing.assert_array_equal(s2.last_states[0].position, quad.position[k])
+        s2.playing = True
+        with pytest.raises(ValueError, match="pause first"):
+            await s2.command({"cmd": "step", "frames": 1})
+        with pytest.raises(ValueError, match="frames 1"):
+            await s2.command({"cmd": "step", "frames": 2})
+
+    asyncio.run(main())
+
+
+def test_the_recordings_own_losses_are_marked_from_the_start_up_to_the_cap(session_parts):
+    from types import SimpleNamespace
+
+    from console.replay import MAX_LOSSES
+
+    arena, packets = session_parts
+    t0 = packets[0][0]
+    # tracked, untracked, tracked, ... every 10 ms: a loss every 20 ms, 1200 in all
+    states = [SimpleNamespace(name="quad", tracked=k % 2 == 0, time_ns=t0 + k * 10_000_000) for k in range(2400)]
+    s = ReplaySession(arena, packets, recorded_states=states)
+    assert MAX_LOSSES == 1000 and len(s.losses) == 1000 and s.losses_dropped == 200
+    assert s.lost_marks()[:2] == [{"body": "quad", "t_s": 0.01}, {"body": "quad", "t_s": 0.03}]

@@ -273,3 +273,12 @@ def test_a_tracked_body_carries_its_filter_nis(thesis_log):
     nis_p, nis_r = quad["nis"]
     # a consistent filter on the simulator's own noise: averages of order 1 (chi-square over its dimension)
     assert 0.05 < nis_p < 20 and 0.05 < nis_r < 20, quad["nis"]
+
+
+def test_the_scene_carries_the_planners_flight_volume(arena_yaml):
+    from console.view import scene
+
+    data = arena_yaml("thesis")
+    assert scene(parse_arena(data, "thesis.yaml"))["volume"] is None
+    data["plan"] = {"volume": {"min_m": [-1.0, -0.5, 0.0], "max_m": [1.0, 1.5, 2.0]}}
+    assert scene(parse_arena(data, "thesis.yaml"))["volume"] == {"min_m": [-1.0, -0.5, 0.0], "max_m": [1.0, 1.5, 2.0]}

@@ -123,6 +123,7 @@ class RecordingWriter:
                  flush_interval_s: float = FLUSH_INTERVAL_S, max_sources: int = MAX_PACKET_SOURCES,
                  foxglove_rate_hz: float | None = DEFAULT_RATE_HZ, realtime_minus_monotonic_ns: int | None = None):
         self.path = Path(path)
+        self.opened_monotonic_ns = time.monotonic_ns()  # for the console's "recording for N s"
         raw = getattr(config, "raw", config)
         if not isinstance(raw, dict):
             raise TypeError(f"RecordingWriter: config must be a mapping (arena YAML), got {type(raw).__name__}")

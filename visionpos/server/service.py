@@ -184,6 +184,30 @@ class FusionServer:
                 log.exception("could not record final health")
             self.recorder.close()
 
+    def start_recording(self, recorder: RecordingWriter) -> None:
+        """Record from now on (the console's record button): every accepted packet, event, health snapshot and
+        output goes to recorder, as with a recorder given at construction. ValueError while one records."""
+        if self.recorder is not None:
+            raise ValueError(f"already recording to {self.recorder.path.name}")
+        self.recorder = recorder
+        self.sinks = [*self.sinks, _RecorderSink(recorder)]
+        self.ingest.recorder = recorder
+
+    def detach_recording(self) -> RecordingWriter:
+        """Stop recording: the recorder (with its final health written) no longer gets anything; the caller
+        closes it (RecordingWriter.close, which loses nothing handed to it before). ValueError when none records."""
+        rec = self.recorder
+        if rec is None:
+            raise ValueError("not recording")
+        self.ingest.recorder = None
+        self.sinks = [s for s in self.sinks if not (isinstance(s, _RecorderSink) and s.recorder is rec)]
+        self.recorder = None
+        try:
+            rec.write_json("/server/health", self.clock(), self.health())
+        except Exception:
+            log.exception("could not record final health")
+        return rec
+
     async def __aenter__(self) -> "FusionServer":
         await self.start()
         return self
