@@ -43,6 +43,8 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
 from bridge.config import VehicleConfig
+from bridge.estimator_delay import DelayAdvice, advised_delay
+from bridge.px4_status import ev_fusion_state
 from visionpos.analysis.autopilot import (
     body_rates_from_attitudes,
     estimate_lag,
@@ -89,11 +91,23 @@ MSG_RAW_IMU = 27
 MSG_HIGHRES_IMU = 105
 MSG_LOCAL_POSITION_NED = 32
 MSG_EKF_STATUS_REPORT = 193
+MSG_ESTIMATOR_STATUS = 230  # PX4's (EKF2): bridge/px4_status.py
 MSG_GPS_GLOBAL_ORIGIN = 49
+MSG_HOME_POSITION = 242
+HOME_TOLERANCE_M = 0.01  # home read back further than this from the origin: said (a float32 COMMAND_LONG's error)
+EARTH_RADIUS_M = 6_378_137.0  # WGS-84 equatorial: metres per radian of latitude, near enough for centimetres
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_CMD_REQUEST_MESSAGE = 512
 MAV_CMD_DO_SET_HOME = 179
 GYRO_FILTER_PARAM = "INS_GYRO_FILTER"  # ArduPilot: the cutoff (Hz) of the low-pass on the gyro it reports
+
+
+def geodetic_offset_m(lat_deg: float, lon_deg: float, ref_lat_deg: float, ref_lon_deg: float) -> tuple[float, float]:
+    """(north, east) m of a point from a reference a few km away at most (equirectangular; under 1 mm error at
+    100 m)."""
+    north = math.radians(lat_deg - ref_lat_deg) * EARTH_RADIUS_M
+    east = math.radians(lon_deg - ref_lon_deg) * EARTH_RADIUS_M * math.cos(math.radians(ref_lat_deg))
+    return north, east
 
 
 def gyro_filter_lag_ns(cutoff_hz: float) -> float:
@@ -198,7 +212,8 @@ class Backchannel:
         self._next_identity = 0
         # delay
         self.clock_lag_ns: float | None = None  # autopilot time less server stamp of one physical instant
-        self.delay_ms: float | None = None
+        self.delay_ms: float | None = None  # the median pose-instant-to-arrival delay (ms)
+        self.advice: DelayAdvice | None = None  # what the autopilot's estimator wants set (bridge/estimator_delay.py)
         self.delay_correlation = float("nan")
         self.delay_window_ns: tuple[int, int] | None = None  # server clock: the optical span of the last figure
         self.delay_reason = "no gyro from the autopilot yet"
@@ -214,6 +229,8 @@ class Backchannel:
         self.ekf_flags: int | None = None
         self.ekf_ratios: dict[str, float] = {}
         self._ekf_ns = 0
+        self.estimator_status: tuple[int, int, float, float, float] | None = None  # PX4: recv ns, flags, 3 ratios
+        self._ev_said = ""  # the PX4 EV state last logged
         self.ext_nav_text = ""  # the last STATUSTEXT about external navigation
         self.statustexts: collections.deque[tuple[int, str]] = collections.deque(maxlen=20)
         self._ekf_bad_reports = 0
@@ -221,6 +238,8 @@ class Backchannel:
         self.origin_confirmed = False
         self.origin_reported: tuple[float, float, float] | None = None
         self.home_acked = False
+        self.home_reported: tuple[float, float, float] | None = None  # HOME_POSITION: lat, lon (deg), alt (m)
+        self.home_error_m: float | None = None  # its horizontal distance from the configured origin
         # what we asked for
         self._streams_due = 0
         self.link_up_ns = 0
@@ -273,10 +292,20 @@ class Backchannel:
             self.local_position = (m.x, m.y, m.z)
         elif t == "EKF_STATUS_REPORT":
             self._on_ekf_status(m, recv_ns)
+        elif t == "ESTIMATOR_STATUS":
+            self.estimator_status = (recv_ns, int(m.flags), float(m.pos_horiz_ratio), float(m.pos_vert_ratio),
+                                     float(m.vel_ratio))
+            state, why = self.ekf_state(recv_ns)
+            if state != self._ev_said:  # said in words when it changes
+                self._ev_said = state
+                log.log(logging.INFO if state == "using vision" else logging.WARNING, "vehicle %s: %s",
+                        self.cfg.name, why)
         elif t == "STATUSTEXT":
             self._on_statustext(m)
         elif t == "GPS_GLOBAL_ORIGIN":
             self._on_origin(m)
+        elif t == "HOME_POSITION":
+            self._on_home(m)
         elif t == "COMMAND_ACK":
             if m.command == MAV_CMD_DO_SET_HOME:
                 if m.result == mavlink2.MAV_RESULT_ACCEPTED:
@@ -336,15 +365,18 @@ class Backchannel:
         self._delays.clear()
         self.clock_lag_ns = None
         self.delay_ms = None
+        self.advice = None
         self.delay_reason = "the autopilot rebooted; measuring again"
         if not self.identity_tripped:
             self.identity, self.identity_reason = "unknown", "the autopilot rebooted; checking again"
         self.origin_confirmed = False
         self._origin_release_said = False
         self.home_acked = False
+        self.home_reported = self.home_error_m = None
         self.delay_param_confirmed = None
         self.gyro_filter_hz = None  # read again: it may have been changed for this boot
         self.ekf_flags = None
+        self.estimator_status = None
         self.ekf_ratios = {}
         self.ext_nav_text = ""
         self._streams_due = self.clock_ns()
@@ -388,6 +420,19 @@ class Backchannel:
             else:
                 log.info("vehicle %s: the autopilot confirmed its origin", self.cfg.name)
         self.origin_confirmed = True
+
+    def _on_home(self, m) -> None:
+        """HOME_POSITION: where the autopilot put home, against the configured origin (1 cm: the float32
+        degrees of a COMMAND_LONG put it up to a metre off, which is why home goes as COMMAND_INT)."""
+        self.home_reported = (m.latitude * 1e-7, m.longitude * 1e-7, m.altitude * 1e-3)
+        o = self.cfg.origin
+        if o is None:
+            return
+        north, east = geodetic_offset_m(self.home_reported[0], self.home_reported[1], o.lat, o.lon)
+        self.home_error_m = math.hypot(north, east)
+        if self.home_error_m > HOME_TOLERANCE_M and self.home_acked:
+            self.warn("home_off", "vehicle %s: the autopilot's home is %.3f m N, %.3f m E of the configured origin "
+                      "(it kept another home?)", self.cfg.name, north, east)
 
     # ------------------------------------------------------------ optical side (sender thread, per pose)
     def on_optical(self, stamp_ns: int, roll: float, pitch: float, rate_frd, quat_ned_frd) -> None:
@@ -447,14 +492,20 @@ class Backchannel:
     def _request_streams(self) -> None:
         interval_us = 1e6 / self.cfg.telemetry_rate_hz
         imu = MSG_RAW_IMU if self.autopilot == "ardupilot" else MSG_HIGHRES_IMU
+        ekf = MSG_ESTIMATOR_STATUS if self.autopilot == "px4" else MSG_EKF_STATUS_REPORT
         for msg_id, us in ((MSG_ATTITUDE, interval_us), (imu, interval_us), (MSG_LOCAL_POSITION_NED, 1e5),
-                           (MSG_EKF_STATUS_REPORT, 5e5)):
+                           (ekf, 5e5)):
             self.send(self.mav.command_long_encode(self.cfg.sysid, MAV_COMP_ID_AUTOPILOT1,
                                                    MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, us, 0, 0, 0, 0, 0))
 
     def request_origin(self) -> None:
         self.send(self.mav.command_long_encode(self.cfg.sysid, MAV_COMP_ID_AUTOPILOT1, MAV_CMD_REQUEST_MESSAGE, 0,
                                                MSG_GPS_GLOBAL_ORIGIN, 0, 0, 0, 0, 0, 0))
+
+    def request_home(self) -> None:
+        """MAV_CMD_REQUEST_MESSAGE for HOME_POSITION (no coordinates in it: COMMAND_LONG is fine)."""
+        self.send(self.mav.command_long_encode(self.cfg.sysid, MAV_COMP_ID_AUTOPILOT1, MAV_CMD_REQUEST_MESSAGE, 0,
+                                               MSG_HOME_POSITION, 0, 0, 0, 0, 0, 0))
 
     def coarse_offset_ns(self) -> float | None:
         """Autopilot clock less server clock, from the fastest recent message back (the return latency
@@ -565,6 +616,10 @@ class Backchannel:
         self.delay_window_ns = (int(to[0]), int(to[-1]))
         self._delays.append(d_ns * 1e-6)
         self.delay_ms = d_ns * 1e-6  # each estimate spans DELAY_WINDOW_NS already; the newest follows changes
+        # each pose's delay: its own stamp -> send, plus the link's share of the median (the same for all)
+        link_ns = d_ns - float(np.median(sends[:, 0]))
+        est = self.cfg.autopilot if self.cfg.autopilot != "auto" else self.autopilot
+        self.advice = advised_delay(est, (sends[:, 0] + link_ns) * 1e-6)
         if self._delay_said is None or abs(self.delay_ms - self._delay_said) >= DELAY_RESET_MS:
             self._delay_said = self.delay_ms
             log.warning("vehicle %s: %s", self.cfg.name, self.delay_advice())
@@ -582,12 +637,15 @@ class Backchannel:
         return None if self.gyro_filter_hz is None else gyro_filter_lag_ns(self.gyro_filter_hz)
 
     def _delay_param_name(self) -> str:
-        return "EKF2_EV_DELAY" if self.autopilot == "px4" else "VISO_DELAY_MS"
+        return self.advice.param if self.advice is not None else (
+            "EKF2_EV_DELAY" if self.autopilot == "px4" else "VISO_DELAY_MS")
 
     def _maybe_set_delay(self, now: int) -> None:
         if not self.cfg.set_delay or self.delay_ms is None or len(self._delays) < 3 or self.autopilot is None:
             return
-        value = float(round(self.delay_ms))
+        if self.advice is None:
+            return
+        value = float(self.advice.value_ms)
         if self._delay_param_value is None or abs(value - self._delay_param_value) >= DELAY_RESET_MS:
             self._delay_param_value = value
             self.delay_param_confirmed = None
@@ -595,7 +653,7 @@ class Backchannel:
         if self.delay_param_confirmed == self._delay_param_value or now < self._next_param:
             return
         self._next_param = now + PARAM_RETRY_NS
-        px4 = self.autopilot == "px4"
+        px4 = self._delay_param_name() == "EKF2_EV_DELAY"
         ptype = mavlink2.MAV_PARAM_TYPE_REAL32 if px4 else mavlink2.MAV_PARAM_TYPE_INT16
         self.send(self.mav.param_set_encode(self.cfg.sysid, MAV_COMP_ID_AUTOPILOT1,
                                             self._delay_param_name().encode(), value, ptype))
@@ -603,6 +661,10 @@ class Backchannel:
     # ------------------------------------------------------------ reporting
     def ekf_state(self, now: int) -> tuple[str, str]:
         """('using vision' | 'rejecting vision' | 'not using vision' | 'unknown', plain-language detail)."""
+        es = self.estimator_status
+        if es is not None and now - es[0] <= EKF_STATUS_STALE_NS:  # PX4's EKF2
+            sending = bool(self.sends.d) and now - self.sends.last_t() < TELEMETRY_STALE_NS
+            return ev_fusion_state(es[1], es[2], es[3], es[4], sending)
         if self.ekf_flags is None or now - self._ekf_ns > EKF_STATUS_STALE_NS:
             if self.ext_nav_text:
                 return "using vision", self.ext_nav_text
@@ -663,11 +725,13 @@ class Backchannel:
         return False
 
     def delay_advice(self) -> str:
-        if self.delay_ms is None:
+        if self.delay_ms is None or self.advice is None:
             return f"delay not measured ({self.delay_reason})"
-        d = int(round(self.delay_ms))
-        text = f"measured capture->autopilot delay {self.delay_ms:.1f} ms: set "
-        text += f"EKF2_EV_DELAY={d}" if self.autopilot == "px4" else f"VISO_DELAY_MS={d}"
+        a = self.advice
+        text = (f"measured capture->autopilot delay {self.delay_ms:.1f} ms (median): set {a.param}={a.value_ms}, "
+                f"{a.why}")
+        if a.param == "EKF2_EV_DELAY":
+            text += "; 0 once PX4's TIMESYNC has converged (timesync_status)"
         if self.delay_param_confirmed is not None:
             text += " (set on the autopilot)"
         return text
@@ -694,9 +758,13 @@ class Backchannel:
             "delay_ms": self.delay_ms,
             "delay_detail": self.delay_reason,
             "delay_advice": self.delay_advice(),
+            "delay_param": self.advice.param if self.advice else None,
+            "delay_advised_ms": self.advice.value_ms if self.advice else None,
             "delay_param_set": self.delay_param_confirmed,
             "origin": self.origin_state(now),
             "home_acked": self.home_acked,
+            "home_reported": list(self.home_reported) if self.home_reported else None,
+            "home_error_m": self.home_error_m,
             "gyro_source": self.gyro_source or None,
             "gyro_filter_hz": self.gyro_filter_hz,
             "local_position_ned": list(self.local_position) if self.local_position else None,

@@ -107,6 +107,12 @@ VEHICLE = section(
             "mismatch is a 1 s window more than 3 sigma off on average", min=0.5, max=30.0),
     Setting("set_delay", "boolean", False, "write the measured delay to the autopilot (PARAM_SET VISO_DELAY_MS "
             "on ArduPilot, EKF2_EV_DELAY on PX4)"),
+    Setting("vision_gap_s", "number", 0.5, "no pose sent to the vehicle for this long (s) after poses went: a "
+            "vision gap, said loudly (log, status line, health, STATUSTEXT to the autopilot) until a pose goes "
+            "again", min=0.05, max=60.0),
+    Setting("autopilot", "text", "auto", "the autopilot's estimator, for the pose message's frame and "
+            "estimator_type and the delay advice: auto (from its HEARTBEAT), ardupilot or px4",
+            choices=("auto", "ardupilot", "px4")),
 )
 
 POSE_STREAM = section(
@@ -241,6 +247,8 @@ class VehicleConfig:
     identity_check: str = VEHICLE["identity_check"].field_default
     identity_tolerance_deg: float = VEHICLE["identity_tolerance_deg"].field_default
     set_delay: bool = VEHICLE["set_delay"].field_default
+    vision_gap_s: float = VEHICLE["vision_gap_s"].field_default
+    autopilot: str = VEHICLE["autopilot"].field_default
 
     @property
     def period_ns(self) -> int:
@@ -362,6 +370,8 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                 identity_check=V.read(v, "identity_check"),
                 identity_tolerance_deg=V.read(v, "identity_tolerance_deg"),
                 set_delay=V.read(v, "set_delay"),
+                vision_gap_s=V.read(v, "vision_gap_s"),
+                autopilot=V.read(v, "autopilot"),
             )
         )
         if out[-1].message == "odometry" and out[-1].vision_speed:

@@ -22,7 +22,9 @@ It keeps an origin set with SET_GPS_GLOBAL_ORIGIN (once `origin_ready_s` after
 boot: an EKF not yet running drops it, as ArduPilot's does) and reports it
 (GPS_GLOBAL_ORIGIN, also on MAV_CMD_REQUEST_MESSAGE); takes MAV_CMD_DO_SET_HOME
 (refused before the origin, as ArduPilot does; ArduPilot ignores
-SET_HOME_POSITION); answers PARAM_SET and PARAM_REQUEST_READ with PARAM_VALUE; says "EKF3 IMU0 is
+SET_HOME_POSITION) and keeps it as it gets it (COMMAND_INT's int32 degE7; COMMAND_LONG's
+float32 degrees, rounded as they came), reporting it with HOME_POSITION (on a change and on
+request); answers PARAM_SET and PARAM_REQUEST_READ with PARAM_VALUE; says "EKF3 IMU0 is
 using external nav data" on its first accepted pose (STATUSTEXT). delay_ms
 holds every received packet that long before handling it (a slow link or
 autopilot: the pose reaches its EKF that much later); reboot() restarts its
@@ -50,17 +52,18 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # common + EKF_STATUS_REPORT
 from scipy.spatial.transform import Rotation
 
+from bridge.fake_px4 import FLAGS_ATTITUDE_ONLY, FLAGS_EV_FUSED, POSE_FRESH_NS, PX4_PARAMS, Px4State, pose_refusal
 from visionpos.geometry.frames import quat_world_body_to_ned_frd
 from visionpos.server.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
 
 POSE_TYPES = ("VISION_POSITION_ESTIMATE", "ODOMETRY")
 RECORDED = POSE_TYPES + ("VISION_SPEED_ESTIMATE", "HEARTBEAT", "TIMESYNC", "SET_GPS_GLOBAL_ORIGIN", "SET_HOME_POSITION",
-                         "COMMAND_LONG", "COMMAND_INT", "PARAM_SET")
+                         "COMMAND_LONG", "COMMAND_INT", "PARAM_SET", "STATUSTEXT")
 AUTOPILOTS = {"ardupilot": mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, "px4": mavlink2.MAV_AUTOPILOT_PX4}
 SIGNING_EPOCH_S = 1420070400
 GRAVITY = 9.80665
 TELEMETRY = {30: "ATTITUDE", 31: "ATTITUDE_QUATERNION", 105: "HIGHRES_IMU", 27: "RAW_IMU", 32: "LOCAL_POSITION_NED",
-             193: "EKF_STATUS_REPORT"}
+             193: "EKF_STATUS_REPORT", 230: "ESTIMATOR_STATUS"}
 EKF_USING_VISION = 1 | 2 | 4 | 8 | 32  # attitude, velocities, relative horizontal and vertical position
 EKF_NO_POSITION = 1 | 128  # attitude only, constant position mode
 EXT_NAV_TEXT = "EKF3 IMU0 is using external nav data"
@@ -68,6 +71,7 @@ MAV_CMD_DO_SET_HOME = 179
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_CMD_REQUEST_MESSAGE = 512
 MSG_GPS_GLOBAL_ORIGIN = 49
+MSG_HOME_POSITION = 242
 
 
 @dataclass(frozen=True)
@@ -157,7 +161,7 @@ class FakeAutopilot:
                  delay_ms: float = 0.0, boot_ns: int | None = None, origin_ready_s: float = 0.0,
                  ekf: str = "accept", gyro_noise_rad_s: float = 0.003, attitude_noise_deg: float = 0.2,
                  seed: int | None = None, gyro_filter_hz: float = 0.0, keep_received: int | None = None,
-                 on_pose: Callable[[Received], None] | None = None):
+                 on_pose: Callable[[Received], None] | None = None, reject_params: tuple[str, ...] = ()):
         kind, _, rest = endpoint.partition(":")
         host, _, port = rest.rpartition(":")
         if kind not in ("udpout", "udpin", "tcpin") or not host or not port.isdigit():
@@ -196,8 +200,15 @@ class FakeAutopilot:
         self._next_tx: dict[int, int] = {}
         self.origin: tuple[int, int, int] | None = None  # lat, lon (1e7 deg), alt (mm)
         self.origin_dropped = 0  # SET_GPS_GLOBAL_ORIGIN before origin_ready_s: dropped
+        # home as it keeps it: lat, lon (int32 degE7, as COMMAND_INT carries them; COMMAND_LONG's float32 params
+        # rounded to the nearest degE7), alt (m)
         self.home: tuple[int, int, float] | None = None
         self.params: dict[str, float] = {"INS_GYRO_FILTER": float(gyro_filter_hz)} if autopilot == "ardupilot" else {}
+        # as PX4 (bridge/fake_px4.py): its pose rules, its commander, its parameters; reject_params go unanswered
+        self.px4 = Px4State() if autopilot == "px4" else None
+        if self.px4 is not None:
+            self.params = {k: v for k, v in PX4_PARAMS.items() if k not in reject_params}
+        self.dropped_poses: collections.deque[str] = collections.deque(maxlen=100)  # PX4: why each was not fused
         # the filter's group delay at low frequency, sqrt(2) / (2 pi fc) (no filter: 0)
         self.gyro_lag_ns = int(math.sqrt(2.0) / (2.0 * math.pi * gyro_filter_hz) * 1e9) if gyro_filter_hz > 0 else 0
         self.statustexts: list[str] = []
@@ -277,18 +288,18 @@ class FakeAutopilot:
         self.intervals_ns = {}
         if self._telemetry_default_ns:
             for mid in TELEMETRY:
-                self.intervals_ns[mid] = self._telemetry_default_ns if mid != 193 else 500_000_000
+                self.intervals_ns[mid] = self._telemetry_default_ns if mid not in (193, 230) else 500_000_000
         self._next_tx = {}
 
-    def true_delay_ms(self, window_s: float | None = None) -> float:
-        """Median delay from a pose's stamp to its arrival here, with the added delay (the stamps are on the
-        server clock); over the poses of the last window_s seconds (None: all)."""
+    def true_delay_ms(self, window_s: float | None = None, percentile: float = 50.0) -> float:
+        """Median (or that percentile of the) delay from a pose's stamp to its arrival here, with the added delay
+        (the stamps are on the server clock); over the poses of the last window_s seconds (None: all)."""
         poses = self.messages(POSE_TYPES)
         if window_s is not None and poses:
             poses = [p for p in poses if p.recv_ns >= poses[-1].recv_ns - window_s * 1e9]
         if not poses:
             return float("nan")
-        return float(np.median([p.recv_ns - decode_pose(p)["usec"] * 1000 for p in poses])) * 1e-6
+        return float(np.percentile([p.recv_ns - decode_pose(p)["usec"] * 1000 for p in poses], percentile)) * 1e-6
 
     def __enter__(self) -> "FakeAutopilot":
         return self.start()
@@ -324,12 +335,16 @@ class FakeAutopilot:
                     break
                 while self._pending and self._pending[0][0] <= now:
                     self._handle(*reversed(self._pending.popleft()))
-                if self._peer is not None and self._sock is not None and self.truth is not None:
+                linked = self._peer is not None and self._sock is not None
+                if linked and (self.truth is not None or self.px4 is not None):
                     self._telemetry(now)
                 if self._peer is not None and self._sock is not None:
                     if self.heartbeat_hz > 0 and now >= next_hb:
+                        base, custom = ((self.px4.base_mode(), self.px4.custom_mode()) if self.px4 is not None
+                                        else (0, 0))
                         self.mav.send(self.mav.heartbeat_encode(
-                            mavlink2.MAV_TYPE_QUADROTOR, AUTOPILOTS[self.autopilot], 0, 0, mavlink2.MAV_STATE_STANDBY))
+                            mavlink2.MAV_TYPE_QUADROTOR, AUTOPILOTS[self.autopilot], base, custom,
+                            mavlink2.MAV_STATE_STANDBY))
                         next_hb = now + int(1e9 / self.heartbeat_hz)
                     if self.timesync_hz > 0 and now >= next_ts:
                         ts1 = self.clock_ns()
@@ -339,7 +354,7 @@ class FakeAutopilot:
                 wake = [now + 20_000_000]
                 if self._pending:
                     wake.append(self._pending[0][0])
-                if self.truth is not None and self._next_tx:
+                if self._next_tx:
                     wake.append(min(self._next_tx.values()))
                 for key, _ in sel.select(max(0.0, (min(wake) - self.clock_ns()) * 1e-9)):
                     if key.data == "listen":
@@ -409,7 +424,15 @@ class FakeAutopilot:
                     self._ts_sent.discard(m.ts1)
                     self.timesync_samples.append((now - m.ts1, m.tc1 - (m.ts1 + now) // 2))
             elif t in POSE_TYPES:
-                self._on_pose(now)
+                refused = pose_refusal(t, m.to_dict()) if self.px4 is not None else None
+                if refused is None:
+                    self._on_pose(now)
+                else:
+                    self.dropped_poses.append(refused)
+            elif t == "HEARTBEAT" and self.px4 is not None and m.type == mavlink2.MAV_TYPE_GCS:
+                self.px4.last_gcs_ns = now
+            elif t == "MANUAL_CONTROL" and self.px4 is not None and m.target == self.sysid:
+                self.px4.last_manual_ns = now
             elif t == "SET_GPS_GLOBAL_ORIGIN" and m.target_system == self.sysid:
                 if self.boot_time_ns(now) < self.origin_ready_ns:
                     self.origin_dropped += 1  # the EKF is not running yet
@@ -422,8 +445,9 @@ class FakeAutopilot:
                 self.home = (m.latitude, m.longitude, m.altitude * 1e-3)
             elif t == "PARAM_SET" and m.target_system == self.sysid:
                 pid = m.param_id.rstrip("\0") if isinstance(m.param_id, str) else str(m.param_id)
-                self.params[pid] = float(m.param_value)
-                self.mav.send(self.mav.param_value_encode(pid.encode(), m.param_value, m.param_type, 1, 0))
+                if self.px4 is None or pid in self.params:  # PX4 does not answer a name it does not have
+                    self.params[pid] = float(m.param_value)
+                    self.mav.send(self.mav.param_value_encode(pid.encode(), m.param_value, m.param_type, 1, 0))
             elif t == "PARAM_REQUEST_READ" and m.target_system == self.sysid:
                 pid = m.param_id.rstrip("\0") if isinstance(m.param_id, str) else str(m.param_id)
                 if pid in self.params:
@@ -437,7 +461,7 @@ class FakeAutopilot:
 
     def _on_pose(self, now: int) -> None:
         self._last_pose_ns = now
-        if self.ekf == "accept" and not self._said_ext_nav:
+        if self.ekf == "accept" and not self._said_ext_nav and self.px4 is None:
             self._said_ext_nav = True
             self._statustext(mavlink2.MAV_SEVERITY_INFO, EXT_NAV_TEXT)
 
@@ -450,9 +474,21 @@ class FakeAutopilot:
             lat, lon, alt = self.origin
             self.mav.send(self.mav.gps_global_origin_encode(lat, lon, alt, self.boot_time_ns() // 1000))
 
+    def ev_fused(self, now: int) -> bool:
+        """Its EKF fuses the vision: it accepts it and a pose it could read arrived lately."""
+        return self.ekf == "accept" and now - self._last_pose_ns < POSE_FRESH_NS
+
     def _command(self, m, kind: str) -> None:
         cmd = m.command
         result = mavlink2.MAV_RESULT_UNSUPPORTED
+        if self.px4 is not None and kind == "COMMAND_LONG":
+            now = self.clock_ns()
+            px4_result, text = self.px4.command(cmd, m.param1, m.param2, now, self.ev_fused(now))
+            if text is not None:
+                self._statustext(mavlink2.MAV_SEVERITY_CRITICAL, text)
+            if px4_result >= 0:
+                self.mav.send(self.mav.command_ack_encode(cmd, px4_result))
+                return
         if cmd == MAV_CMD_SET_MESSAGE_INTERVAL:
             mid, us = int(m.param1), float(m.param2)
             if mid in TELEMETRY:
@@ -464,6 +500,9 @@ class FakeAutopilot:
         elif cmd == MAV_CMD_REQUEST_MESSAGE and int(m.param1) == MSG_GPS_GLOBAL_ORIGIN:
             result = mavlink2.MAV_RESULT_ACCEPTED if self.origin is not None else mavlink2.MAV_RESULT_FAILED
             self._send_origin()
+        elif cmd == MAV_CMD_REQUEST_MESSAGE and int(m.param1) == MSG_HOME_POSITION:
+            result = mavlink2.MAV_RESULT_ACCEPTED if self.home is not None else mavlink2.MAV_RESULT_FAILED
+            self._send_home()
         elif cmd == MAV_CMD_DO_SET_HOME:
             if self.origin is None and self.autopilot == "ardupilot":
                 result = mavlink2.MAV_RESULT_FAILED  # ArduPilot needs its origin first
@@ -473,7 +512,15 @@ class FakeAutopilot:
                 else:
                     self.home = (int(round(m.param5 * 1e7)), int(round(m.param6 * 1e7)), float(m.param7))
                 result = mavlink2.MAV_RESULT_ACCEPTED
+                self._send_home()  # as ArduPilot does on a change of home
         self.mav.send(self.mav.command_ack_encode(cmd, result))
+
+    def _send_home(self) -> None:
+        if self.home is not None:
+            lat, lon, alt = self.home
+            self.mav.send(self.mav.home_position_encode(lat, lon, int(round(alt * 1000)), 0.0, 0.0, 0.0,
+                                                        [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+                                                        self.boot_time_ns() // 1000))
 
     def _telemetry(self, now: int) -> None:
         """Send the streams that are due, from the truth at now (server clock), stamped on our clock."""
@@ -484,6 +531,11 @@ class FakeAutopilot:
             iv = self.intervals_ns[mid]
             nxt = self._next_tx.get(mid, now) + iv
             self._next_tx[mid] = nxt if nxt > now else now + iv
+        if self.truth is None:  # PX4 with no motion to play: only the estimator's status
+            for mid in due:
+                if mid in (193, 230):
+                    self.mav.send(self._status(mid, now))
+            return
         tr = self.truth(np.array([now], dtype=np.int64))
         t_boot = self.boot_time_ns(now)
         gyro, acc = imu_from_truth(tr)
@@ -514,8 +566,17 @@ class FakeAutopilot:
                 v = tr.velocity[0] * np.array([1.0, -1.0, -1.0])
                 msg = self.mav.local_position_ned_encode(ms, *p, *v)
             else:
-                msg = self._ekf_status(now)
+                msg = self._status(mid, now)
             self.mav.send(msg)
+
+    def _status(self, mid: int, now: int):
+        """EKF_STATUS_REPORT (193, ArduPilot's) or ESTIMATOR_STATUS (230, PX4's): from what it fuses, no truth."""
+        if mid != 230:
+            return self._ekf_status(now)
+        fused = self.ev_fused(now)
+        ratio = 0.05 if fused else (2.5 if self.ekf == "reject" and now - self._last_pose_ns < POSE_FRESH_NS else 0.0)
+        return self.mav.estimator_status_encode(self.boot_time_ns(now) // 1000, FLAGS_EV_FUSED if fused else
+                                                FLAGS_ATTITUDE_ONLY, ratio, ratio, ratio, 0.0, 0.0, 0.0, 0.01, 0.01)
 
     def _ekf_status(self, now: int):
         fresh = now - self._last_pose_ns < 500_000_000

@@ -21,6 +21,11 @@ drops a connection whose handshake is not answered within `handshake_timeout_s`.
 at most RELAY_BUFFER_B per direction and client; past that it stops reading for that client, so the
 SDK's per-client queue fills and drops that client's oldest messages, and the others are unaffected.
 Each cause is logged once a minute at most, with a count.
+The gate also reads each upgrade request: the SDK's server accepts only the subprotocol name
+`foxglove.sdk.v1`, while clients from before that name (Foxglove Studio, Lichtblick up to 1.21)
+offer `foxglove.websocket.v1`, the same protocol under the name of Foxglove's published spec; a
+request offering only that name is relayed offering the SDK's, and the SDK's answer names the
+client's again (offer_sdk_subprotocol, answer_legacy_subprotocol).
 """
 
 from __future__ import annotations
@@ -279,6 +284,36 @@ RELAY_BUFFER_B = 256 * 1024  # bytes held per direction and client; past it the 
 REFUSE_LINGER_S = 1.0  # a refused connection is read (and ignored) this long, so the 503 is not lost to a reset
 MAX_REFUSING = 64  # refused connections lingering at once; beyond, one is closed at once
 _READ_B = 65536
+_MAX_HEAD_B = 16384  # an upgrade request or its answer longer than this is relayed as it is
+SDK_SUBPROTOCOL = "foxglove.sdk.v1"  # what the SDK's server accepts
+# the same protocol under its first name (Foxglove's published ws-protocol spec), which older clients offer
+LEGACY_SUBPROTOCOL = "foxglove.websocket.v1"
+
+
+def offer_sdk_subprotocol(head: bytes) -> tuple[bytes, bool]:
+    """A client's upgrade request with its offer of LEGACY_SUBPROTOCOL renamed SDK_SUBPROTOCOL, when it offers
+    only the legacy name; (head, True) then, else (head unchanged, False). The SDK's server answers 400 to a
+    request that does not offer its own name, and the two names are one protocol."""
+    lines = head.split(b"\r\n")
+    offered = [i for i, ln in enumerate(lines) if ln.lower().startswith(b"sec-websocket-protocol:")]
+    tokens = [t.strip() for i in offered for t in lines[i].split(b":", 1)[1].split(b",")]
+    if SDK_SUBPROTOCOL.encode() in tokens or LEGACY_SUBPROTOCOL.encode() not in tokens:
+        return head, False
+    for i in offered:
+        name, value = lines[i].split(b":", 1)
+        lines[i] = name + b": " + b", ".join(SDK_SUBPROTOCOL.encode() if t.strip() == LEGACY_SUBPROTOCOL.encode()
+                                             else t.strip() for t in value.split(b","))
+    return b"\r\n".join(lines), True
+
+
+def answer_legacy_subprotocol(head: bytes) -> bytes:
+    """The SDK's answer to a renamed offer, naming the subprotocol the client offered (LEGACY_SUBPROTOCOL)."""
+    lines = head.split(b"\r\n")
+    for i, ln in enumerate(lines):
+        if ln.lower().startswith(b"sec-websocket-protocol:") and ln.split(b":", 1)[1].strip() == \
+                SDK_SUBPROTOCOL.encode():
+            lines[i] = ln.split(b":", 1)[0] + b": " + LEGACY_SUBPROTOCOL.encode()
+    return b"\r\n".join(lines)
 
 
 def _refusal(max_clients: int) -> bytes:
@@ -290,13 +325,38 @@ def _refusal(max_clients: int) -> bytes:
 class _Link:
     """One admitted client: its socket (down), the one to the SDK (up) and the bytes in flight each way."""
 
-    __slots__ = ("down", "up", "peer", "to_up", "to_down", "deadline", "events")
+    __slots__ = ("down", "up", "peer", "to_up", "to_down", "deadline", "events", "request", "answer")
 
     def __init__(self, down: socket.socket, up: socket.socket, peer: str, deadline: float):
         self.down, self.up, self.peer, self.deadline = down, up, peer, deadline
         self.to_up = bytearray()
         self.to_down = bytearray()
         self.events: dict[socket.socket, int] = {down: 0, up: 0}  # registered interest per socket
+        # the upgrade request while it is read (None once relayed), the SDK's answer while it is read where
+        # the subprotocol's name must be put back (None: relayed as it comes)
+        self.request: bytearray | None = bytearray()
+        self.answer: bytearray | None = None
+
+    def handshake(self, down: bool, data: bytes) -> bytes:
+        """The bytes to relay now of data read from the client (down) or the SDK: the upgrade request and its
+        answer are held until complete, for the subprotocol's name (offer_sdk_subprotocol)."""
+        held = self.request if down else self.answer
+        if held is None:
+            return data
+        held += data
+        if b"\r\n\r\n" not in held and len(held) < _MAX_HEAD_B:
+            return b""
+        end = held.find(b"\r\n\r\n") + 4 if b"\r\n\r\n" in held else len(held)
+        head, rest = bytes(held[:end]), bytes(held[end:])
+        if down:
+            self.request = None
+            head, legacy = offer_sdk_subprotocol(head)
+            if legacy:
+                self.answer = bytearray()
+        else:
+            self.answer = None
+            head = answer_legacy_subprotocol(head)
+        return head + rest
 
 
 class _Refused:
@@ -469,7 +529,7 @@ class _ClientGate:
                 if not data:
                     self._drop(link, "disconnected" if down else "closed by the server", logging.INFO)
                     return
-                src_buf += data
+                src_buf += link.handshake(down, data)
                 if not down:
                     link.deadline = 0.0  # the SDK answered the handshake
                     self.counters["relayed_b"] += len(data)

@@ -54,13 +54,13 @@ def delay_advice(stats: dict) -> str:
     if not np.isfinite(p50):
         return f"{stats['body']} (sysid {stats['sysid']}): no pose sent yet"
     age = stats["latency_stamp_ms_p50"]
-    d = int(round(age))
+    d, low = int(round(age)), int(round(stats.get("latency_stamp_ms_p2", age)))  # bridge/estimator_delay.py: why
     if stats.get("delay_ms") is not None:
         return (f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms; "
                 f"{stats['delay_advice']}")
     return (
         f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms; "
         f"pose stamp->send p50 {age:.1f} ms (bridge adds p50 {stats['latency_bridge_ms_p50']:.2f} ms) -> "
-        f"ArduPilot VISO_DELAY_MS={d} (+ link latency); PX4 EKF2_EV_DELAY={d} without TIMESYNC, "
+        f"ArduPilot VISO_DELAY_MS={low} (p2 + link latency); PX4 EKF2_EV_DELAY={d} without TIMESYNC, "
         f"~0 with TIMESYNC converged"
     )

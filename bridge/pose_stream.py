@@ -23,8 +23,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from bridge.config import PoseStreamConfig, is_multicast
+from bridge.config import PoseStreamConfig, is_multicast, parse_pose_stream
 from bridge.transport import RateGrid, pack_datagrams
+from visionpos.config.arena import ArenaConfig
 from visionpos.messages import BodyState, LoosePoints
 from visionpos.server.sinks import Sink
 
@@ -267,6 +268,11 @@ class PoseStream(Sink):
         self.counters = {"ticks": 0, "datagrams": 0, "bytes": 0, "send_errors": 0, "skipped_rate": 0,
                          "marker_sets": 0}
         self._grid = RateGrid(cfg.rate_hz)
+
+    @classmethod
+    def from_arena(cls, arena: ArenaConfig) -> "PoseStream | None":
+        cfg = parse_pose_stream(arena)
+        return None if cfg is None else cls(cfg)
 
     @classmethod
     def to(cls, *destinations: str, format: str = "json", rate_hz: float = 0.0, **kw) -> "PoseStream":

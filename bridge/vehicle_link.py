@@ -50,6 +50,7 @@ from bridge.convert import convert_state, odometry_fields, vision_position_field
 from bridge.link_stats import LatencyRing, fmt_addr, percentiles_ms
 from bridge.signing import MAVLINK2_MAGIC, SignatureCheck, SigningClock
 from bridge.transport import Link, LinkDown, make_link
+from bridge.vision_gap import GapEvent, VisionGap
 from visionpos.logutil import RateLimitedLog
 from visionpos.messages import BodyState
 
@@ -58,6 +59,8 @@ log = logging.getLogger("visionpos.bridge")
 MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197
 WARN_INTERVAL_S = 10.0  # a repeated warning (same kind) at most this often, with the count held back
 ORIGIN_UNCONFIRMED_INTERVAL_NS = 1_000_000_000  # origin resend period until the autopilot reports it back
+GCS_SYSID = 255
+STATUSTEXT_MIN_INTERVAL_NS = 1_000_000_000  # our STATUSTEXTs to the autopilot: at most one a second
 RX_BAD_WARN = 20  # undecodable packets before the log says so
 
 COUNTERS = (
@@ -81,6 +84,7 @@ COUNTERS = (
     "rx_packets",
     "rx_bad",  # CRC / framing errors
     "rx_foreign",  # from another sysid: ignored, not answered, not learned as peer
+    "rx_gcs",  # of them, a ground station's (sysid 255, or one whose HEARTBEAT says GCS) the autopilot forwards
     "rx_accepted",  # passed every check and went to the back-channel
     "rx_unsigned",  # signed link: an unsigned (or MAVLink1) packet as the vehicle: dropped
     "rx_bad_signature",  # signed link: signature does not verify with the key: dropped
@@ -147,11 +151,17 @@ class VehicleLink:
         self._origin_done = False
         self._last_write_ok = False
         self._logged_once: set[str] = set()
+        self._gcs_sysids: set[int] = set()
         self.sent_times = LatencyRing()  # send times (server clock) for the recent rate
         self._write_ns = 0  # the clock just before the last write to the link
         self.bc = Backchannel(cfg, clock_ns, self.mav, self._send, self._warn.warning, self.base_offset_ns,
                               write_ns=lambda: self._write_ns)
         self._bc_reboots = 0
+        self.gap = VisionGap(int(cfg.vision_gap_s * 1e9))
+        self._not_sent_why = "no state from the server"  # the last reason a pose was not sent (for a gap)
+        self._statustext_ns = -STATUSTEXT_MIN_INTERVAL_NS
+        self.statustexts_sent = 0
+        self._gap_told = False  # the autopilot was told of the current gap
 
     # ---------------------------------------------------------------- server side
     def offer(self, state: BodyState) -> None:
@@ -233,6 +243,9 @@ class VehicleLink:
                     deadlines.append(next_open)
                 if self.cfg.origin is not None and not self._origin_done:
                     deadlines.append(self._next_origin)
+                gap_due = self.gap.deadline_ns()
+                if gap_due is not None:
+                    deadlines.append(gap_due)
                 timeout = min(max(0.0, (min(deadlines) - now) * 1e-9), 0.5)
                 if self.link is not None:
                     want = selectors.EVENT_READ | (selectors.EVENT_WRITE if self.link.wants_write() else 0)
@@ -299,10 +312,17 @@ class VehicleLink:
             log.warning("vehicle %s: MAVLink link %s is not signed: the autopilot cannot tell our poses from "
                         "forged ones; set up signing (docs/autopilot-setup.md, Signing)", cfg.name, cfg.endpoint)
 
-    def _log_once(self, kind: str, msg: str, *args) -> None:
+    def _log_once(self, kind: str, msg: str, *args, level: int = logging.WARNING) -> None:
         if kind not in self._logged_once:
             self._logged_once.add(kind)
-            log.warning(msg, *args)
+            log.log(level, msg, *args)
+
+    def _is_gcs(self, m, sysid: int) -> bool:
+        """A ground station's packet: sysid 255 (MAVLink's convention for a GCS; `visionpos sitl`'s own link,
+        which SITL forwards), or a system whose HEARTBEAT said MAV_TYPE_GCS (remembered: its other messages)."""
+        if m.get_type() == "HEARTBEAT" and m.type == mavlink2.MAV_TYPE_GCS:
+            self._gcs_sysids.add(sysid)
+        return sysid == GCS_SYSID or sysid in self._gcs_sysids
 
     def _peer_known(self) -> bool:
         return self.link is not None and self.link.peer is not None
@@ -347,6 +367,12 @@ class VehicleLink:
                 sysid, compid = (buf[5], buf[6]) if v2 else (buf[3], buf[4])
                 if sysid != self.cfg.sysid:
                     c["rx_foreign"] += 1
+                    if self._is_gcs(m, sysid):
+                        c["rx_gcs"] += 1  # the autopilot routes its GCS's traffic to every port: normal
+                        self._log_once(f"gcs{sysid}", "vehicle %s: the autopilot forwards a ground station's "
+                                       "packets (sysid %d) on this link; ignored (counted in rx_gcs)",
+                                       self.cfg.name, sysid, level=logging.INFO)
+                        continue
                     self._log_once("rx_foreign", "vehicle %s: packets from sysid %d on the link of sysid %d are "
                                    "ignored (counted in rx_foreign; logged once): if that is this vehicle's "
                                    "autopilot, set its sysid in the vehicles section (or SYSID_THISMAV / "
@@ -402,11 +428,19 @@ class VehicleLink:
         self._origin_done = False
         self._next_origin = self.clock_ns()
 
+    def estimator(self) -> str | None:
+        """Whose estimator takes the poses: the `autopilot` setting, or (auto) what its HEARTBEAT says; None
+        while unknown (ArduPilot's rules then)."""
+        return self.cfg.autopilot if self.cfg.autopilot != "auto" else self.bc.autopilot
+
     def now_base_ns(self) -> int:
         return self.clock_ns() + self.base_offset_ns
 
     def _service(self) -> None:
         now = self.clock_ns()
+        event = self.gap.check(now)
+        if event is not None:
+            self._say_gap(event)
         if self._peer_known():
             if now >= self._next_hb:
                 self._send_heartbeat()
@@ -443,6 +477,7 @@ class VehicleLink:
         c = self.counters
         if not st.tracked:
             c["not_tracked"] += 1
+            self._not_sent_why = "the body is not tracked"
             return
         last = self._last_capture
         if last is not None and st.capture_ns <= last:
@@ -454,6 +489,7 @@ class VehicleLink:
             return
         if now - st.capture_ns > self.cfg.max_age_ms * 1e6:
             c["dropped_stale"] += 1
+            self._not_sent_why = f"the poses reach the bridge over max_age_ms ({self.cfg.max_age_ms:g} ms) old"
             return
         conv = convert_state(st, self.pivot, self.yaw_offset_rad, at_ns=stamp)
         bc = self.bc
@@ -461,12 +497,15 @@ class VehicleLink:
         bc.on_optical(stamp, euler[0], euler[1], rate, conv.quaternion_ned_frd)  # also while held
         if not self._peer_known():
             c["no_link"] += 1
+            self._not_sent_why = "the link is down"
             return
         if bc.blocks:
             c["held_identity"] += 1
+            self._not_sent_why = "stopped: identity mismatch"
             return
         if bc.holds_for_origin(now):
             c["held_for_origin"] += 1
+            self._not_sent_why = "held until the autopilot confirms its origin"
             self._warn.warning("origin_wait", "vehicle %s: holding the poses until the autopilot confirms its "
                                "origin (GPS_GLOBAL_ORIGIN); %s", self.cfg.name,
                                "resending it every second" + (
@@ -476,7 +515,12 @@ class VehicleLink:
         usec = (stamp + self.base_offset_ns) // 1000
         reset = (int(st.reset_counter) + self.local_resets) % 256
         if self.cfg.message == "odometry":
-            ok = self._send(self.mav.odometry_encode(**odometry_fields(conv, usec, reset, self.cfg.quality)))
+            fields = odometry_fields(conv, usec, reset, self.cfg.quality)
+            if self.estimator() == "px4":
+                # PX4 reads LOCAL_FRD as a frame of unknown heading (its yaw never aligns: no arming); our NED is
+                # north-aligned (yaw_offset_deg), which LOCAL_NED says. ArduPilot takes LOCAL_FRD only.
+                fields["frame_id"] = mavlink2.MAV_FRAME_LOCAL_NED
+            ok = self._send(self.mav.odometry_encode(**fields))
             t_write = self._write_ns
         else:
             ok = self._send(self.mav.vision_position_estimate_encode(**vision_position_fields(conv, usec, reset)))
@@ -489,6 +533,9 @@ class VehicleLink:
             self._last_stamp = stamp
             c["sent"] += 1
             t = self.clock_ns()
+            event = self.gap.on_sent(t)
+            if event is not None:
+                self._say_gap(event)
             bc.on_sent(t_write, stamp)
             self.sent_times.add(t)
             self.lat_capture.add(t - st.capture_ns)
@@ -533,6 +580,35 @@ class VehicleLink:
             self.counters["tx_dropped" if self.link is not None and self.link.peer is not None else "no_link"] += 1
         self._last_write_ok = bool(ok)
 
+    def _say_gap(self, e: GapEvent) -> None:
+        """A vision gap's event, loudly: the log (WARNING), and a STATUSTEXT to the autopilot (which routes it to its
+        ground station) when the link is up, at most one a second."""
+        name = self.cfg.name
+        if e.kind == "resumed":
+            self._warn.warning("gap_resumed", "vision resumed: vehicle %s: poses go again after a %.2f s gap", name,
+                               e.gap_s)
+            if self._gap_told:  # the autopilot heard of the gap: it hears of its end too, whatever the rate
+                self._statustext(mavlink2.MAV_SEVERITY_NOTICE, f"visionpos: vision resumed after {e.gap_s:.1f}s")
+            self._gap_told = False
+            return
+        # gaps that come and go: one line per kind every WARN_INTERVAL_S, with the count held back
+        self._warn.warning(f"gap_{e.kind}", "VISION %s: vehicle %s: no pose sent for %.2f s (vision_gap_s %g): %s; "
+                           "the autopilot is on its IMU alone and drifting", "LOST" if e.kind == "lost" else
+                           "STILL LOST", name, e.gap_s, self.cfg.vision_gap_s, self._not_sent_why)
+        # gaps coming and going: at most one warning a STATUSTEXT_MIN_INTERVAL_NS to the autopilot
+        if self.clock_ns() - self._statustext_ns >= STATUSTEXT_MIN_INTERVAL_NS:
+            self._gap_told = self._statustext(mavlink2.MAV_SEVERITY_WARNING,
+                                              f"visionpos: NO VISION for {e.gap_s:.1f}s") or self._gap_told
+
+    def _statustext(self, severity: int, text: str) -> bool:
+        """STATUSTEXT (50 characters at most) to the autopilot, which routes it to its GCS; False: link down."""
+        if not self._peer_known():
+            return False
+        self._statustext_ns = self.clock_ns()
+        ok = self._send(self.mav.statustext_encode(severity, text[:50].encode()))
+        self.statustexts_sent += int(ok)
+        return ok
+
     def _send_heartbeat(self) -> None:
         tracked_recently = self._last_capture is not None and self.clock_ns() - self._last_capture < 1e9
         status = mavlink2.MAV_STATE_ACTIVE if tracked_recently else mavlink2.MAV_STATE_STANDBY
@@ -551,6 +627,8 @@ class VehicleLink:
             self.counters["origin_sent"] += 1
         if not bc.origin_confirmed:
             bc.request_origin()
+        if self.cfg.set_home and bc.home_acked and bc.home_reported is None:
+            bc.request_home()  # read it back: within 1 cm of the origin (HOME_TOLERANCE_M)
         if self.cfg.set_home and not bc.home_acked:
             # DO_SET_HOME needs the origin first on ArduPilot (refused before): repeated until acknowledged
             if self._send(self.mav.command_int_encode(
@@ -566,7 +644,8 @@ class VehicleLink:
     def stats(self) -> dict:
         out: dict = dict(self.counters)
         lc, ls, lb = self.lat_capture.values(), self.lat_stamp.values(), self.lat_bridge.values()
-        lc_p, ls_p, lb_p = (percentiles_ms(v, (50, 99)) for v in (lc, ls, lb))
+        lc_p, lb_p = (percentiles_ms(v, (50, 99)) for v in (lc, lb))
+        ls_p = percentiles_ms(ls, (50, 99, 2))  # p2: about the smallest delay (bridge/estimator_delay.py)
         out.update(
             sysid=self.cfg.sysid,
             body=self.cfg.body,
@@ -580,6 +659,7 @@ class VehicleLink:
             autopilot_heard_s_ago=((self.clock_ns() - self.last_rx_ns) * 1e-9 if self.last_rx_ns else None),
             latency_capture_ms_p50=lc_p[0],
             latency_capture_ms_p99=lc_p[1],
+            latency_stamp_ms_p2=ls_p[2],
             latency_stamp_ms_p50=ls_p[0],
             latency_stamp_ms_p99=ls_p[1],
             latency_bridge_ms_p50=lb_p[0],
@@ -588,7 +668,16 @@ class VehicleLink:
             rate_hz_recent=self._recent_rate_hz(),
         )
         out.update(self.bc.snapshot(self.clock_ns()))
+        out["vision_gap"] = self.vision_gap_state()
         return out
+
+    def vision_gap_state(self) -> dict:
+        """The vision gap (bridge/vision_gap.py): state 'ok' | 'gap' | 'not started', since_last_pose_s, gaps,
+        longest_s, last_gap_s, threshold_s, why (the last reason a pose was not sent), statustexts_sent."""
+        st = self.gap.state(self.clock_ns())
+        st["why"] = self._not_sent_why if st["state"] == "gap" else None
+        st["statustexts_sent"] = self.statustexts_sent
+        return st
 
     def _recent_rate_hz(self, window_ns: int = 2_000_000_000) -> float:
         t = self.sent_times.values()
@@ -623,8 +712,11 @@ class VehicleLink:
                          "statistic": bc["identity_statistic"], "action": self.cfg.identity_check,
                          "tripped_after_s": bc["identity_tripped_after_s"]},
             "delay": {"measured_ms": bc["delay_ms"], "detail": bc["delay_detail"], "advice": bc["delay_advice"],
+                      "param": bc["delay_param"], "advised_ms": bc["delay_advised_ms"],
                       "param_set": bc["delay_param_set"]},
-            "origin": {"state": bc["origin"], "home_acked": bc["home_acked"]},
+            "vision_gap": self.vision_gap_state(),
+            "origin": {"state": bc["origin"], "home_acked": bc["home_acked"], "home_reported": bc["home_reported"],
+                       "home_error_m": bc["home_error_m"]},
         }
 
     def sending_state(self, now: int | None = None) -> str:
@@ -645,6 +737,9 @@ class VehicleLink:
         ekf, _ = bc.ekf_state(now)
         parts = [(f"{self.cfg.name}: " if with_name else "") + f"{self.sending_state(now)} "
                  f"{self._recent_rate_hz():.0f}Hz"]
+        if self.gap.in_gap and self.gap.last_sent_ns is not None:
+            parts[0] = (f"{self.cfg.name}: " if with_name else "") + (
+                f"VISION GAP {(now - self.gap.last_sent_ns) * 1e-9:.1f}s ({self._not_sent_why})")
         if bc.autopilot is None:
             parts.append("autopilot silent")
         else:

@@ -295,6 +295,11 @@ class VrpnServer(Sink):
         self._wake_r: socket.socket | None = None
         self._wake_w: socket.socket | None = None
 
+    @classmethod
+    def from_arena(cls, arena: ArenaConfig) -> "VrpnServer | None":
+        cfg = parse_vrpn(arena)
+        return None if cfg is None else cls(cfg)
+
     # ---------------------------------------------------------------- fusion side
 
     def opens(self) -> dict[str, Any]:

@@ -32,11 +32,15 @@ SPEEDS = (0.1, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 
 class ReplaySession:
     """A recording's packets replayed on demand; the console's source (arena, pipeline, last_states,
-    health(), clock()) and its controls (command()). calibration: an object with push(BlobFrame) and
-    reset() (console/calibration.py) that gets every accepted frame; it is reset with the pipeline."""
+    health(), clock()) and its controls (command()). calibration: an object with push(BlobFrame)
+    (console/calibration.py) that gets every accepted frame of each packet once: a seek back or a play after the
+    end runs the pipeline again from the start but keeps the wand frames gathered so far (none counted twice).
+    name: what the console's header shows (the recording's file name)."""
+
+    console_mode = "replay"  # the page shows only what a replay can do (console/view.py scene)
 
     def __init__(self, arena: ArenaConfig, packets: Sequence[tuple], rate_hz: float | None = None,
-                 realtime_minus_monotonic_ns: int | None = None, calibration: Any = None):
+                 realtime_minus_monotonic_ns: int | None = None, calibration: Any = None, name: str | None = None):
         if not packets:
             raise ValueError("the recording holds no station packets; record with stations streaming")
         self.arena = arena
@@ -51,6 +55,8 @@ class ReplaySession:
         self.finished = False
         self._seeking = False
         self.calibration = calibration
+        self.source_name = name
+        self._fed = 0  # packets [0, _fed) have given the calibration their frames
         self._reset()
 
     def _reset(self) -> None:
@@ -58,8 +64,7 @@ class ReplaySession:
         self._now = self.t0_ns
         fed: Any = self.pipeline
         if self.calibration is not None:
-            self.calibration.reset()
-            fed = _Tee(self.pipeline, self.calibration)
+            fed = _Tee(self.pipeline, self.calibration, self)
         self.ingest = Ingest(self.arena, self.settings, fed, None, clock=lambda: self._now,
                              verify_cookies=False, authenticate=False)
         self.ingest.set_start(-(1 << 62))
@@ -123,6 +128,7 @@ class ReplaySession:
             self._now = recv_ns
             self.ingest.handle(data, item[2] if len(item) > 2 and item[2] is not None else ("replay", 0), recv_ns)
             self._i += 1
+            self._fed = max(self._fed, self._i)
             if t_end is not None and (self._i & 63) == 0 and time.perf_counter() > t_end:
                 return False
         while self._next_tick <= min(target_ns, self.end_ns):
@@ -184,15 +190,18 @@ class ReplaySession:
 
 
 class _Tee:
-    """What the ingest pushes into: the pipeline, and every frame also to the calibration assistant."""
+    """What the ingest pushes into: the pipeline, and each frame also to the calibration assistant, once: the
+    frames of a packet the session replays again (after a seek back) are not given twice."""
 
-    def __init__(self, pipeline: FusionPipeline, calibration: Any):
+    def __init__(self, pipeline: FusionPipeline, calibration: Any, session: ReplaySession):
         self.pipeline = pipeline
         self.calibration = calibration
+        self.session = session
 
     def push(self, frame: Any) -> None:
         self.pipeline.push(frame)
-        self.calibration.push(frame)
+        if self.session._i >= self.session._fed:
+            self.calibration.push(frame)
 
     def remove_camera(self, camera_id: int) -> None:
         self.pipeline.remove_camera(camera_id)

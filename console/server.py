@@ -5,12 +5,15 @@
     GET /api/scene       cameras and bodies (console/view.py scene)
     GET /ws              WebSocket: {"type": "scene"} once, then {"type": "state"} at update_rate_hz (the
                          camera views in every second one),
-                         {"type": "health"} twice a second, {"type": "replay"} in a replay, {"type": "calib"}
+                         {"type": "health"} once a second, {"type": "replay"} in a replay, {"type": "calib"}
                          when the calibration assistant's counts or solve changed; the client
                          may send {"cmd": ...}: "rays" (a camera's blob rays), "views" (on: false while the
                          tab is hidden: no camera views for it), "health", replay controls (console/replay.py),
                          "solve" (the wand solve: console/calibration.py),
-                         "still" and "mask" (a station's still image, its mask saved back: console/stills.py)
+                         "still" and "mask" (a station's still image, its mask saved back: console/stills.py);
+                         a refused message (bad JSON, an unknown command or camera, a mask outside the image,
+                         over MAX_MESSAGE_BYTES, a tab over console.max_clients) changes nothing and is
+                         answered to its sender alone: {"type": "error", "error": "why"} (error_text)
 
 One update task: once per tick it builds the state (only when a client is connected), encodes it
 ONCE (a camera's view only when that camera sent something new: console/view.py) and puts the text
@@ -18,17 +21,24 @@ in each client's queue of QUEUE_UPDATES; a full queue drops its oldest
 update (counted), so a slow or stalled browser loses updates and never holds up fusion or the
 other clients. Each client's sender task awaits the socket; nothing else does.
 
-Access: bound to loopback no token is needed; bound elsewhere every request must carry the token
-(`?token=`, an `Authorization: Bearer` header, or the cookie the page gets with its first
-request). A WebSocket whose Origin is another site is refused (a page from elsewhere must not
-drive the console through the operator's browser). Bad requests and messages are answered or
-dropped and logged once per cause (RateLimitedLog).
+Access, checked before any handler runs (the middleware `_access`):
+- the Host header must name the console itself (`allowed_hosts`: 127.0.0.1, localhost, [::1], the bind
+  address, the address the connection came in on, `console.hosts`, each with the console's port; a loopback
+  name with any port: an SSH tunnel), else 403: a page of another site whose name is rebound to this host's
+  address (DNS rebinding) sends its own name;
+- an Origin header, where a browser sends one, must be one of those hosts or the request's own, and a browser's
+  Sec-Fetch-Site must say same-origin (or a navigation), else 403 (a page from elsewhere must not drive or
+  read the console through the operator's browser);
+- bound to loopback no token is needed; bound elsewhere every request must carry the token (`?token=`, an
+  `Authorization: Bearer` header, or the cookie the page gets with its first request), else 401.
+Bad requests and messages are answered or dropped and logged once per cause (RateLimitedLog).
 """
 
 from __future__ import annotations
 
 import asyncio
 import hmac
+import ipaddress
 import json
 import logging
 import time
@@ -36,7 +46,7 @@ from pathlib import Path
 from typing import Any, Awaitable, Callable
 from urllib.parse import urlsplit
 
-from aiohttp import WSMsgType, web
+from aiohttp import WSCloseCode, WSMsgType, web
 
 from console.health import HealthView
 from console.settings import ConsoleSettings
@@ -54,8 +64,31 @@ HEALTH_PERIOD_S = 1.0  # the health table and /api/health's rates: once a second
 WATCH_PERIOD_S = 0.5  # the residual and static-blob watches run this often, with or without clients
 MAX_MESSAGE_BYTES = 4096  # from a client: commands are small
 COOKIE = "visionpos_console"
+LOOPBACK_NAMES = frozenset({"127.0.0.1", "localhost", "::1"})
 CONTENT_TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css", ".txt": "text/plain",
                  ".png": "image/png"}
+
+
+def error_text(message: str) -> str:
+    """A refusal as sent to the one client it concerns: {"type": "error", "error": message} (docs/console.md)."""
+    return json.dumps({"type": "error", "error": message})
+
+
+TOO_BIG = f"message refused: over {MAX_MESSAGE_BYTES} bytes (a command is a short JSON object); connection closed"
+
+
+class _Socket(web.WebSocketResponse):
+    """A console WebSocket: a message over its max_msg_size, which aiohttp answers by closing (1009), gets the
+    refusal as a message first, so the page can say why."""
+
+    async def close(self, *, code: int = WSCloseCode.OK, message: bytes = b"", drain: bool = True) -> bool:
+        if code == WSCloseCode.MESSAGE_TOO_BIG and not self.closed:
+            try:
+                await self.send_str(error_text(TOO_BIG))
+            except (ConnectionError, RuntimeError):
+                pass
+            message = message or b"message too big"
+        return await super().close(code=code, message=message, drain=drain)
 
 
 class Client:
@@ -103,10 +136,11 @@ class ConsoleServer:
         self.view = ConsoleView(source)
         for cam in self.view.scene["cameras"]:
             cam["mask"] = (masks or {}).get(cam["id"])
+        self.view.scene["update_rate_hz"] = settings.update_rate_hz  # the page compares its own rate with it
         self.health_view = HealthView(self.view)
         self.clients: set[Client] = set()
         self.rlog = RateLimitedLog(log)
-        self.counters = {"updates": 0, "refused_token": 0, "refused_origin": 0, "refused_full": 0,
+        self.counters = {"updates": 0, "refused_host": 0, "refused_token": 0, "refused_origin": 0, "refused_full": 0,
                          "bad_messages": 0, "send_errors": 0, "update_errors": 0}
         self.cpu_ns = 0  # CPU time of the update task's work and of the sends (the loop's thread), for the bench
         self.port: int | None = None
@@ -126,11 +160,17 @@ class ConsoleServer:
     # ---------------------------------------------------------------- lifecycle
 
     @property
-    def url(self) -> str:
+    def address(self) -> str:
+        """The console's address without its token: what logs may hold."""
         host = self.settings.bind if self.settings.bind not in ("0.0.0.0", "::") else "127.0.0.1"
         host = f"[{host}]" if ":" in host else host
-        token = f"/?token={self.settings.token}" if self.settings.token else "/"
-        return f"http://{host}:{self.port}{token}"
+        return f"http://{host}:{self.port}/"
+
+    @property
+    def url(self) -> str:
+        """The address to print on the operator's terminal (visionpos/app/console.py), never to log: with the
+        token only where it was made at start (the one way to learn it); a configured one is never printed."""
+        return self.address + (f"?token={self.settings.token}" if self.settings.token_generated else "")
 
     async def start(self) -> None:
         app = web.Application(middlewares=[self._access], client_max_size=MAX_MESSAGE_BYTES)
@@ -147,7 +187,7 @@ class ConsoleServer:
         self._task = asyncio.get_running_loop().create_task(self._update_loop(), name="visionpos-console")
         if self.calibration is not None:
             self.calibration.start()
-        log.info("console on %s", self.url)
+        log.info("console on %s%s", self.address, " (token required)" if self.settings.token else "")
 
     async def stop(self) -> None:
         if self._task is not None:
@@ -174,6 +214,49 @@ class ConsoleServer:
 
     # ---------------------------------------------------------------- access
 
+    def allowed_hosts(self, local_addr: str | None = None) -> frozenset[str]:
+        """The Host values (lower case) that name this console: loopback names, the bind address, local_addr (the
+        address a connection came in on: what a browser on another computer typed for a console on 0.0.0.0) and
+        console.hosts, each with the console's port (and without it on port 80, as browsers send it)."""
+        names = {*LOOPBACK_NAMES, *self.settings.hosts}
+        for addr in (self.settings.bind, local_addr):
+            if addr:
+                ip = ipaddress.ip_address(addr.split("%", 1)[0])
+                ip = getattr(ip, "ipv4_mapped", None) or ip  # ::ffff:a.b.c.d on a dual-stack socket
+                if not ip.is_unspecified:
+                    names.add(str(ip))
+        out = set()
+        for n in names:
+            n = f"[{n}]" if ":" in n else n.lower()
+            out.add(f"{n}:{self.port}")
+            if self.port == 80:
+                out.add(n)
+        return frozenset(out)
+
+    def _foreign(self, request: web.Request) -> str | None:
+        """"host" or "origin" when the request's Host, or its Origin where it has one, is not this console."""
+        host = (request.headers.get("Host") or "").lower()
+        sock = request.transport.get_extra_info("sockname") if request.transport is not None else None
+        allowed = self.allowed_hosts(sock[0] if sock else None)
+        # a loopback name on another port: an SSH tunnel's local end (ssh -L 9000:127.0.0.1:8080); no page of
+        # another site can send it (its own name is what DNS rebinding sends)
+        try:
+            tunnel = urlsplit(f"//{host}").hostname in LOOPBACK_NAMES
+            origin = request.headers.get("Origin")
+            origin_netloc = None if origin is None else urlsplit(origin).netloc.lower()
+        except ValueError:  # e.g. an unclosed [ of an IPv6 address
+            return "host"
+        if host not in allowed and not tunnel:
+            return "host"
+        if origin_netloc is not None and origin_netloc not in allowed | {host}:
+            return "origin"
+        # a browser's fetch metadata: a page of another origin fetching without CORS sends no Origin, but says
+        # where it comes from; only a navigation (a link, a typed URL) may come from elsewhere
+        site = request.headers.get("Sec-Fetch-Site", "same-origin")
+        if site not in ("same-origin", "none") and request.headers.get("Sec-Fetch-Mode") != "navigate":
+            return "origin"
+        return None
+
     def _token_ok(self, request: web.Request) -> bool:
         token = self.settings.token
         if token is None:
@@ -186,6 +269,16 @@ class ConsoleServer:
 
     @web.middleware
     async def _access(self, request: web.Request, handler: Any) -> web.StreamResponse:
+        foreign = self._foreign(request)
+        if foreign is not None:
+            self.counters[f"refused_{foreign}"] += 1
+            self.rlog.log(foreign, logging.WARNING, "console: refused %s %s from %s: Host %r / Origin %r is not this "
+                          "console (a page of another site?)", request.method, request.path, request.remote,
+                          request.headers.get("Host"), request.headers.get("Origin"))
+            return web.Response(status=403, text=f"visionpos console: refused: the {foreign.capitalize()} of this "
+                                                 "request is not this console's address (open it as "
+                                                 f"http://127.0.0.1:{self.port}/, this host's IP address, or a "
+                                                 "name listed in console.hosts)\n")
         if not self._token_ok(request):
             self.counters["refused_token"] += 1
             self.rlog.log("token", logging.WARNING,
@@ -201,6 +294,13 @@ class ConsoleServer:
     # ---------------------------------------------------------------- HTTP
 
     async def _index(self, request: web.Request) -> web.Response:
+        # the address opened from the terminal (?token=): the cookie now holds the token, and the page is shown
+        # at "/" so the address bar, a screenshot or a shared link does not carry it. Only where the browser says
+        # the navigation is its own (typed, a bookmark) or the console's: a SameSite=Strict cookie set on the
+        # way from another site's link would not come back with the redirect
+        if (self.settings.token is not None and request.query.get("token")
+                and request.headers.get("Sec-Fetch-Site") in ("none", "same-origin")):
+            return web.Response(status=303, headers={"Location": "/", "Cache-Control": "no-store"})
         return web.Response(body=(STATIC / "index.html").read_bytes(), content_type="text/html",
                             headers={"Cache-Control": "no-store"})
 
@@ -226,26 +326,19 @@ class ConsoleServer:
 
     # ---------------------------------------------------------------- WebSocket
 
-    def _origin_ok(self, request: web.Request) -> bool:
-        origin = request.headers.get("Origin")
-        if origin is None:  # not a browser page (scripts, tests)
-            return True
-        return urlsplit(origin).netloc == request.host
-
     async def _ws(self, request: web.Request) -> web.StreamResponse:
-        if not self._origin_ok(request):
-            self.counters["refused_origin"] += 1
-            self.rlog.log("origin", logging.WARNING, "console: refused a WebSocket from a page of %s (another site)",
-                          request.headers.get("Origin"))
-            return web.Response(status=403, text="cross-site WebSocket refused\n")
-        if len(self.clients) >= self.settings.max_clients:
+        # no per-message compression: it would cost the loop CPU for every client and update
+        ws = _Socket(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=10.0, compress=False)
+        await ws.prepare(request)
+        if len(self.clients) >= self.settings.max_clients:  # answered on the socket: a page cannot read an HTTP 503
             self.counters["refused_full"] += 1
             self.rlog.log("full", logging.WARNING, "console: refused a client from %s: %d connected "
                           "(console.max_clients)", request.remote, len(self.clients))
-            return web.Response(status=503, text=f"the console serves at most {self.settings.max_clients} clients\n")
-        # no per-message compression: it would cost the loop CPU for every client and update
-        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=10.0, compress=False)
-        await ws.prepare(request)
+            n = self.settings.max_clients
+            await ws.send_str(error_text(f"refused: this console serves at most {n} tabs at once and {n} are open "
+                                         "(console.max_clients); close one, this tab retries"))
+            await ws.close(code=WSCloseCode.TRY_AGAIN_LATER, message=b"console full")
+            return ws
         client = Client(ws, str(request.remote))
         self.clients.add(client)
         sender = asyncio.get_running_loop().create_task(self._sender(client))
@@ -261,6 +354,8 @@ class ConsoleServer:
                 elif msg.type == WSMsgType.BINARY:
                     await self._bad(client, "binary", "binary messages are not understood; send JSON text")
                 elif msg.type == WSMsgType.ERROR:
+                    if getattr(msg.data, "code", None) == WSCloseCode.MESSAGE_TOO_BIG:  # answered by _Socket
+                        self.counters["bad_messages"] += 1
                     self.rlog.log(("wserror", client.peer), logging.INFO, "console: client %s: %s", client.peer,
                                   ws.exception())
         except (ConnectionError, asyncio.CancelledError):
@@ -276,7 +371,7 @@ class ConsoleServer:
         self.rlog.log(("bad", cause), logging.WARNING, "console: client %s sent a bad message (%s): %s", client.peer,
                       cause, message)
         try:
-            await client.ws.send_str(json.dumps({"type": "error", "error": message}))
+            await client.ws.send_str(error_text(message))
         except (ConnectionError, RuntimeError):
             pass
 

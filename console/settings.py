@@ -6,6 +6,7 @@ Reference table: docs/configuration.md (generated from CONSOLE below).
 from __future__ import annotations
 
 import ipaddress
+import re
 import secrets
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -17,6 +18,7 @@ from visionpos.errors import UsageError
 
 DEFAULT_PORT = 8080
 MIN_TOKEN_CHARS = 16
+_HOST_NAME = re.compile(r"[A-Za-z0-9]([A-Za-z0-9.-]{0,252})")
 
 CONSOLE = section(
     "console",
@@ -37,6 +39,9 @@ CONSOLE = section(
             max=120.0),
     Setting("stations", "any", [], "station YAML files (relative to the arena file) whose detector `mask`, `rois` "
             "and `ignore` the camera views show, matched to cameras by their camera_id", default_doc="[] (none)"),
+    Setting("hosts", "any", [], "host names (besides localhost and this host's IP addresses) the console answers "
+            "to, e.g. [mocap.lab]: a request naming any other host is refused (DNS rebinding)",
+            default_doc="[] (none)"),
     Setting("token", "text", None, f"access token (at least {MIN_TOKEN_CHARS} characters) for a console bound "
             "to an address other than loopback", default_doc="a fresh one, printed at start"),
 )
@@ -59,6 +64,7 @@ class ConsoleSettings:
     token: str | None = None
     token_generated: bool = False
     stations: tuple[str, ...] = ()  # station YAML paths, resolved against the arena file
+    hosts: tuple[str, ...] = ()  # extra host names a request may name (lower case)
 
     def with_address(self, bind: str | None = None, port: int | None = None) -> "ConsoleSettings":
         """--console-bind / --console-port applied (UsageError for a bad address or port)."""
@@ -107,6 +113,10 @@ def parse_console(arena: ArenaConfig) -> ConsoleSettings:
     stations = s.data.get("stations", [])
     if not isinstance(stations, list) or not all(isinstance(p, str) and p for p in stations):
         raise s.error("stations", "give a list of station YAML paths, e.g. [station1.yaml, station2.yaml]")
+    hosts = s.data.get("hosts", [])
+    if not isinstance(hosts, list) or not all(isinstance(h, str) and _HOST_NAME.fullmatch(h) for h in hosts):
+        raise s.error("hosts", "give a list of host names without port or scheme, e.g. [mocap.lab, arena-pc]")
+    values["hosts"] = tuple(h.lower() for h in hosts)
     base = Path(arena.source).parent
     values["stations"] = tuple(str(p if Path(p).is_absolute() else base / p) for p in stations)
     return ConsoleSettings(**values).with_token()

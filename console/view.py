@@ -13,6 +13,7 @@ console update (30 Hz), never per packet.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from dataclasses import dataclass, field
@@ -21,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from visionpos.fusion.layout import ADAPT_NIS_P, ADAPT_NIS_R
 from visionpos.fusion.snapshot import CameraFrame
 
 # a leftover blob that stays within one cell this long, seen in most updates, looks like a reflection
@@ -60,9 +62,10 @@ class _CameraView:
 _EMPTY_VIEW = _CameraView((), {"blobs": [], "pred": []})
 
 
-def scene(arena: Any) -> dict[str, Any]:
+def scene(arena: Any, name: str | None = None, mode: str = "live") -> dict[str, Any]:
     """The static part: each camera's intrinsics and pose (camera->world), each body's markers, the
-    calibration's residuals. Sent once per client."""
+    calibration's residuals, what the header names (name: a replay's file; default the arena's source) and the
+    mode ("live", or "replay": the page leaves out what a replay cannot do). Sent once per client."""
     cams = []
     stations = arena.camera_stations()
     for c in arena.cameras:
@@ -76,8 +79,15 @@ def scene(arena: Any) -> dict[str, Any]:
         })
     bodies = [{"name": b.name, "id": b.id, "markers": [[round(float(v), 5) for v in p] for p in b.markers]}
               for b in arena.bodies]
-    return {"type": "scene", "source": arena.source, "cameras": cams, "bodies": bodies,
-            "calibration_rms_px": calibration_residuals(arena)}
+    return {"type": "scene", "source": name or arena.source, "mode": mode, "cameras": cams, "bodies": bodies,
+            "calibration_rms_px": calibration_residuals(arena), "scene_id": scene_id(cams, bodies)}
+
+
+def scene_id(cameras: list[dict[str, Any]], bodies: list[dict[str, Any]]) -> str:
+    """A short hash of the cameras (ids, names, intrinsics, poses) and bodies: a page that reconnects to a scene
+    with another id (the server restarted into another arena) builds its views again."""
+    text = json.dumps([cameras, bodies], sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def calibration_residuals(arena: Any) -> dict[str, float]:
@@ -114,7 +124,7 @@ class ConsoleView:
     def __init__(self, source: Any):
         self.source = source
         arena = source.arena
-        self.scene = scene(arena)
+        self.scene = scene(arena, getattr(source, "source_name", None), getattr(source, "console_mode", "live"))
         self.cameras = {c.id: c for c in arena.cameras}
         sizes = [len(b.markers) for b in arena.bodies]
         self.marker_body = np.repeat(np.arange(len(sizes)), sizes).astype(np.int64)
@@ -258,7 +268,8 @@ class ConsoleView:
             if s.tracked:
                 d.update(p=_rounded(np.asarray(s.position).tolist(), 5),
                          q=_rounded(np.asarray(s.quaternion).tolist(), 6),
-                         n_markers=int(s.n_markers), n_cameras=int(s.n_cameras), residual_mm=_r(s.residual_mm, 3))
+                         n_markers=int(s.n_markers), n_cameras=int(s.n_cameras), residual_mm=_r(s.residual_mm, 3),
+                         nis=self._nis(i))
             elif i < len(snap.filter_tracked) and snap.filter_tracked[i]:  # the filter has it, no fresh measurement
                 d["why"] = ("no measurement within fusion.max_prediction_ms: its cameras' frames are late or "
                             "missing (see the cameras' state and frame age)")
@@ -266,6 +277,16 @@ class ConsoleView:
                 d["why"] = snap.untracked_why.get(i, "not seen yet")
             out.append(d)
         return out
+
+    def _nis(self, i: int) -> list[float | None] | None:
+        """Body i's filter consistency: its normalised innovation squared averages [position, rotation] (about 1
+        when the filter's covariance is right), from the filter bank's adaptive-noise row; None where the source
+        has no filter bank (`record`)."""
+        try:
+            row = self.source.pipeline.bank.adapt[i]
+            return [_r(row[ADAPT_NIS_P], 3), _r(row[ADAPT_NIS_R], 3)]
+        except (AttributeError, IndexError, TypeError):
+            return None
 
     def loose_markers(self) -> list[list[float | None]]:
         lp = self.source.pipeline.snapshot().loose_points

@@ -357,7 +357,9 @@ class StationAgent:
             self._lost(now)
             self._next_hello = now
         if not self.registered:
-            if now >= self._next_hello:
+            # a HELLO says the resolution: none before the camera has told it (a source whose size comes with
+            # open(), the simulator's, a camera without a configured size), or the server refuses it as malformed
+            if now >= self._next_hello and self.source.width and self.source.height:
                 self._send(P.encode(self._hello(), self.cfg.key))
                 self._next_hello = now + int(self._hello_gap_s * 1e9)
                 self._hello_gap_s = min(self._hello_gap_s * 2, HELLO_MAX_S)

@@ -7,6 +7,10 @@
 const HEAT_WIDTH_PX = 200;
 let panel = null;
 let sendFn = null;
+let replay = false;  // a replay shows the panel only once the recording gave wand frames (not for a flight)
+
+// app.js says so with each scene
+export function calibReplay(on) { replay = on; }
 
 function el(tag, text, cls) {
   const e = document.createElement(tag);
@@ -102,8 +106,13 @@ function showResult(div, solve) {
 }
 
 function show(s) {
-  if (!panel) panel = build();
   const st = stats();
+  if (!panel && replay && !s.cameras.some(c => c.labelled > 0) && !s.solve.running && !s.solve.result) {
+    st.hidden = true;  // a flight recording: no wand, no panel
+    return;
+  }
+  st.hidden = false;
+  if (!panel) panel = build();
   st.messages++;
   st.enough = s.enough;
   st.cameras = s.cameras.length;

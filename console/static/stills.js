@@ -12,6 +12,12 @@ export function initStationTools(sendFn, stats) {
   stats.stills = shown;
 }
 
+// another arena: the old cameras' stills and pending answers are gone with their views
+export function resetStationTools() {
+  pending = null;
+  for (const k of Object.keys(shown)) delete shown[k];
+}
+
 function button(text, title, onclick) {
   const b = document.createElement("button");
   b.textContent = text;
@@ -66,6 +72,20 @@ export function stationTools(view, box) {
   });
 }
 
+// the health panel's "mask these": the camera's ignore rectangles plus the proposed ones, in draw mode for the
+// operator to check; nothing reaches the station until "save mask"
+export function proposeMask(view, rects) {
+  const have = view.drafts || (view.c.mask?.ignore || []).map(r => r.slice());
+  const key = r => r.join(",");
+  view.drafts = have.concat(rects.filter(r => !have.some(h => key(h) === key(r))).map(r => r.slice()));
+  view.canvas.dataset.drafts = JSON.stringify(view.drafts);  // what the browser tests read
+  view.drawBtn.classList.add("on");
+  view.canvas.style.cursor = "crosshair";
+  view.stationStatus.textContent = `${view.drafts.length} rectangles drawn: check them, then "save mask"`;
+  view.stationStatus.className = "warn";
+  view.canvas.scrollIntoView({ block: "nearest" });
+}
+
 // under the blobs: the still image, then the rectangles being drawn
 export function drawStationLayer(view, g) {
   const s = view.scale;
@@ -84,6 +104,11 @@ export function drawStationLayer(view, g) {
 }
 
 export function onStationMessage(msg, camViews) {
+  onStationAnswer(msg, camViews);
+  for (const v of camViews.values()) if (v.stationStatus) v.stationStatus.title = v.stationStatus.textContent;
+}
+
+function onStationAnswer(msg, camViews) {
   if (msg.type === "error") {
     const v = pending !== null && camViews.get(pending);
     if (v) v.stationStatus.textContent = msg.error;

@@ -36,6 +36,7 @@ def test_sitl_section_in_the_arena_file_is_read_and_checked(tmp_path):
     binary = tmp_path / "arducopter"
     binary.write_text("#!/bin/sh\n")
     binary.chmod(0o755)
+    (tmp_path / "copter.parm").write_text("FRAME_CLASS 1\n")
     arena = S.sitl_arena("thesis", [f"sitl.binary={binary}", "sitl.viso_pos_m_nse=0.02"], 60.0)
     assert S.find_sitl_binary(None, arena) == binary
     cfg = S.parse_sitl(arena, binary)

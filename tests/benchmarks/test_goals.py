@@ -36,3 +36,38 @@ def test_every_goal_names_a_metric_prefix_of_a_bench_group():
     assert set(GROUPS) == {"geometry", "detector", "fusion", "bridge", "calibration", "replay", "robustness", "planner",
                            "sitl", "sitl_delay", "console", "backchannel", "camera_monitor", "demo_memory",
                            "coldstart"}
+
+
+def test_a_partial_run_replaces_its_groups_and_keeps_the_others_with_their_own_run():
+    from visionpos.benchmarks.runner import merge_runs, runs_to_markdown
+
+    old = merge_runs({}, {"detector": (BenchResult(metrics={"detector_fps_960x640": 1500.0}), 3.0),
+                          "replay": (BenchResult(metrics={"replay_speed_x_cpu_thesis": 25.0}), 4.0)},
+                     "visionpos bench", False, when="2026-01-01 00:00 UTC", machine="old box")
+    new = merge_runs(old, {"detector": (BenchResult(metrics={"detector_fps_960x640": 2500.0}), 2.0)},
+                     "visionpos bench --only detector", False, when="2026-02-02 00:00 UTC", machine="new box")
+    assert new["detector"]["metrics"] == {"detector_fps_960x640": 2500.0}
+    assert new["replay"] == old["replay"]  # untouched, still labelled with the run that measured it
+    assert list(new) == ["detector", "replay"]  # GROUPS order
+    md = runs_to_markdown(new)
+    # the goals table judges the newest figure; each section names its own run and machine
+    assert "| 2500.0 | >= 2000.0 | yes |" in md and "1500" not in md
+    assert "by `visionpos bench --only detector`, 2026-02-02 00:00 UTC on new box" in md
+    assert "by `visionpos bench`, 2026-01-01 00:00 UTC on old box" in md
+    assert "Commands: each group's section names the run it comes from" in md
+
+
+def test_write_docs_stores_the_runs_beside_the_markdown(tmp_path):
+    import json
+
+    from visionpos.benchmarks.runner import write_docs
+
+    md = tmp_path / "benchmarks.md"
+    write_docs(md, {"replay": (BenchResult(metrics={"replay_speed_x_cpu_thesis": 25.0}), 4.0)}, "visionpos bench",
+               False)
+    write_docs(md, {"detector": (BenchResult(metrics={"detector_fps_960x640": 1500.0}), 3.0)},
+               "visionpos bench --only detector", False)
+    stored = json.loads((tmp_path / "benchmarks.json").read_text())
+    assert set(stored) == {"detector", "replay"}
+    assert stored["replay"]["metrics"] == {"replay_speed_x_cpu_thesis": 25.0}
+    assert "## replay" in md.read_text() and "## detector" in md.read_text()

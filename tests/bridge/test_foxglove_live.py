@@ -51,6 +51,34 @@ def _recv_json(ws, op: str, timeout_s: float = 5.0) -> dict:
     raise AssertionError(f"no {op} within {timeout_s} s")
 
 
+def test_both_subprotocol_names_connect_and_the_answer_names_the_one_offered(server):
+    """foxglove.websocket.v1 (the published ws-protocol spec, Foxglove Studio, Lichtblick up to 1.21) and
+    foxglove.sdk.v1 (the SDK's): each client gets the name it offered and the same protocol after it."""
+    srv, arena = server
+    srv.publish([_state(1_000_000_000, True, 0.5)])
+    got = {}
+    for offer in (["foxglove.websocket.v1"], ["foxglove.sdk.v1"], ["foxglove.websocket.v1", "foxglove.sdk.v1"]):
+        with ws_client.connect(f"ws://127.0.0.1:{srv.port}", subprotocols=offer, open_timeout=5) as ws:
+            got[offer[-1] if len(offer) == 1 else "both"] = (ws.subprotocol, _recv_json(ws, "serverInfo")["name"])
+    with pytest.raises(InvalidStatus):  # no Foxglove name offered: the SDK's own refusal
+        ws_client.connect(f"ws://127.0.0.1:{srv.port}", subprotocols=["other.v1"], open_timeout=5)
+    assert got["foxglove.websocket.v1"][0] == "foxglove.websocket.v1"
+    assert got["foxglove.sdk.v1"][0] == got["both"][0] == "foxglove.sdk.v1"
+    assert len({name for _, name in got.values()}) == 1
+
+
+def test_only_a_legacy_only_offer_is_renamed():
+    from bridge.foxglove_live import answer_legacy_subprotocol, offer_sdk_subprotocol
+
+    req = b"GET / HTTP/1.1\r\nHost: x\r\nSec-WebSocket-Protocol: a.v1, foxglove.websocket.v1\r\n\r\n"
+    assert offer_sdk_subprotocol(req) == (req.replace(b"foxglove.websocket.v1", b"foxglove.sdk.v1"), True)
+    both = b"GET / HTTP/1.1\r\nsec-websocket-protocol: foxglove.websocket.v1\r\nSec-WebSocket-Protocol: " \
+           b"foxglove.sdk.v1\r\n\r\n"
+    assert offer_sdk_subprotocol(both) == (both, False)
+    answer = b"HTTP/1.1 101 Switching Protocols\r\nSec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n"
+    assert answer_legacy_subprotocol(answer) == answer.replace(b"foxglove.sdk.v1", b"foxglove.websocket.v1")
+
+
 @pytest.fixture
 def server():
     arena = load_arena("thesis")

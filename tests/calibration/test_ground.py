@@ -17,12 +17,13 @@ LFRAME = np.array([[0.0, 0.0, 0.0], [0.10, 0.0, 0.0], [0.40, 0.0, 0.0], [0.0, 0.
 HEIGHT = 0.007
 
 
-def _static_frames(cams, points, n=40, noise=0.2, reflections=2, seed=0):
+def _static_frames(cams, points, n=40, noise=0.2, reflections=2, seed=0, bias_px=0.0):
+    """bias_px: a fixed error of each marker's blob in each camera (std, px): what calibration error does."""
     rng = np.random.default_rng(seed)
     frames = []
     for cam in cams:
         fixed = rng.uniform([30, 30], [cam.model.width - 30, cam.model.height - 30], (reflections, 2))
-        uv = cam.project(points)
+        uv = cam.project(points) + rng.normal(0, bias_px, (len(points), 2))
         for k in range(n):
             xy = np.vstack([uv + rng.normal(0, noise, uv.shape), fixed + rng.normal(0, noise, fixed.shape)])
             xy = xy[rng.permutation(len(xy))]
@@ -159,3 +160,46 @@ def test_distance_tolerance_scales_with_how_well_points_are_measured():
     # known to 0.5 mm -> the same difference is not this frame
     with pytest.raises(CalibrationError, match="within 4 sigma"):
         identify_layout(measured, LFRAME, point_std=np.full(4, 5e-4))
+
+
+@pytest.mark.parametrize("legs_mm", [(157.0, 152.0), (155.0, 152.0), (152.0, 152.0)])
+def test_a_near_isosceles_frame_is_settled_by_the_cameras_above_it(legs_mm):
+    # issue 30.4: MoCapRasp's triangle, legs 157 and 152 mm; and 3 mm, and equal legs. With 1 px of blob error
+    # a distance is uncertain by a few mm, so the distances alone cannot tell 3 mm legs apart (refused without
+    # the cameras); the frame's +z must point at the cameras, which only the right assignment does
+    layout = np.array([[0.0, 0.0, 0.0], [legs_mm[0] / 1e3, 0.0, 0.0], [0.0, legs_mm[1] / 1e3, 0.0]])
+    true = ring_cameras(4, target=(0.0, 0.0, 0.5))
+    Rf = Rotation.from_euler("z", 110, degrees=True).as_matrix()
+    world = layout @ Rf.T + np.array([0.2, -0.1, HEIGHT])
+    frames = _static_frames(true, world, n=5, reflections=0, seed=3, bias_px=1.0)
+    g = calibrate_ground(frames, true, layout, origin=0, x_marker=1, marker_height=HEIGHT)
+    # marker 1 on +x and marker 2 on +y (to the bias's few mm): a swapped assignment turns the frame over,
+    # marker 2 on -y and the cameras below the floor
+    np.testing.assert_allclose(g.markers, layout + [0, 0, HEIGHT], atol=1.5e-2)
+    assert min(c.center[2] for c in g.cameras) > 1.0
+    from visionpos.calibration.ground import match_static, static_blobs, static_point_std
+    by_cam = [static_blobs([f for f in frames if f.camera_id == c.id]) for c in true]
+    pts, sup = match_static(true, by_cam)
+    std, _ = static_point_std(true, pts, by_cam)
+    if legs_mm[0] - legs_mm[1] <= 3.0:  # the distances alone: refused (157/152 passes them at this noise)
+        with pytest.raises(CalibrationError, match="more than one way"):
+            identify_layout(pts, layout, sup, point_std=std)
+
+
+def test_a_frame_that_fits_itself_turned_is_refused_with_what_to_change():
+    side = 0.15
+    equilateral = np.array([[0.0, 0.0, 0.0], [side, 0.0, 0.0], [side / 2, side * np.sqrt(3) / 2, 0.0]])
+    true = ring_cameras(4, target=(0.0, 0.0, 0.5))
+    frames = _static_frames(true, equilateral + [0.1, 0.1, HEIGHT], n=5, reflections=0)
+    with pytest.raises(CalibrationError, match=r"even with the cameras above it: turned in its own plane it fits "
+                                               r"itself.*make its legs differ by more than \d+ mm"):
+        calibrate_ground(frames, true, equilateral, origin=0, x_marker=1, marker_height=HEIGHT)
+
+
+def test_a_mirrored_layout_is_named():
+    true = ring_cameras(4, target=(0.0, 0.0, 0.5))
+    scalene = np.array([[0.0, 0.0, 0.0], [0.40, 0.0, 0.0], [0.0, 0.20, 0.0]])
+    frames = _static_frames(true, scalene + [0.1, 0.1, HEIGHT], n=5, reflections=0)
+    # x and y swapped: the same distances, the other handedness
+    with pytest.raises(CalibrationError, match="layout is mirrored"):
+        calibrate_ground(frames, true, scalene[:, [1, 0, 2]], origin=0, x_marker=2, marker_height=HEIGHT)

@@ -97,6 +97,37 @@ def test_refine_intrinsics_refused_for_two_cameras_applied_for_four():
     assert not any("refused" in x for x in cal4.warnings)
     fx = np.array([c.model.fx for c in cal4.cameras])
     assert np.all(fx != true_fx) and np.abs(fx / true_fx - 1).max() < 0.01
+    # the report prints what changed: before, after, std, per camera and parameter
+    from visionpos.calibration.report import wand_report
+
+    text = wand_report(cal4)
+    assert "--refine-intrinsics applied:" in text and "distortion: not refined" in text
+    row = next(line.split() for line in text.splitlines() if line.split()[:2] == [cal4.cameras[0].name, "fx"])
+    std = cal4.info["intrinsics_change"][0]["params"][0]["std"]
+    assert float(row[2]) == true_fx and float(row[3]) == round(fx[0], 2) and float(row[5]) == round(std, 2)
+    assert "refused, the chessboard intrinsics kept" in wand_report(cal2)
+
+
+def _change(std_px, after_px, before_px=720.0):
+    return [{"name": "pi1", "dist": [], "params": [
+        {"name": "fx", "before": before_px, "after": after_px, "std": std_px, "correlation": 0.999,
+         "partner": "camera pi2 position tz", "partner_corr": 0.81}]}]
+
+
+def test_refined_intrinsics_are_judged_at_a_fixed_amount_of_data():
+    from visionpos.calibration.wand_solve import _undetermined_intrinsics
+
+    # two cameras waved for a minute: std 1.7 px (0.24 %, under the 0.3 % guard) from 3000 time steps is
+    # 1.7 x sqrt(3) = 2.9 px (0.41 %) at 1000: refused, with the numbers and the parameter it trades with
+    refuse, warn = _undetermined_intrinsics(_change(1.7, 720.6), frames=3000)
+    assert len(refuse) == 1 and not warn
+    assert "std 1.7 px (0.24 %), 2.9 px at 1000 time steps" in refuse[0]
+    assert "camera pi2 position tz (correlation +0.81)" in refuse[0] and "720.0 -> 720.6" in refuse[0]
+    # the same std from 1000 time steps passes (0.24 %)
+    assert _undetermined_intrinsics(_change(1.7, 720.6), frames=1000) == ([], [])
+    # kept, but moved 5 % (36 px, 21 std) from the chessboard's: warned with the numbers
+    refuse, warn = _undetermined_intrinsics(_change(1.7, 756.0), frames=1000)
+    assert not refuse and len(warn) == 1 and "moved 720.0 -> 756.0 px, 21 std" in warn[0]
 
 
 def test_wand_and_lframe_from_the_arena_yaml():

@@ -49,3 +49,17 @@ def test_no_warning_for_current_keys(raw):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         apply_overrides(raw, ["server.port=6000"])
+
+
+def test_a_number_for_a_text_key_is_the_text_typed(raw):
+    """`--set natnet.bitstream=3.1`: YAML reads 3.1 (a float), the key is declared as text: it gets "3.1" as
+    typed (3.10 stays "3.10", not the float's repr); numbers and booleans stay what YAML reads elsewhere."""
+    import visionpos.app.sections  # noqa: F401  every section registered, natnet's too
+    from bridge.natnet import parse_natnet
+    from visionpos.config.arena import parse_arena
+
+    out = apply_overrides(raw, ["natnet.bitstream=3.1", "natnet.enabled=true", "fusion.kalman.gate_chi2=30"])
+    assert out["natnet"]["bitstream"] == "3.1" and out["natnet"]["enabled"] is True
+    assert out["fusion"]["kalman"]["gate_chi2"] == 30
+    assert apply_overrides(raw, ["natnet.bitstream= 3.10"])["natnet"]["bitstream"] == "3.10"
+    assert parse_natnet(parse_arena(out, "thesis.yaml")).bitstream == (3, 1)

@@ -11,7 +11,7 @@ from visionpos.config.settings import Setting, section
 
 # every stage-owned section of the arena file (visionpos/app/sections.py imports their modules)
 SECTIONS = ["fusion", "camera_monitor", "server", "vehicles", "pose_stream", "vrpn", "natnet", "foxglove", "sim",
-            "sitl", "console"]
+            "sitl", "console", "plan"]
 
 
 def test_every_section_is_registered_with_its_parse_function():

@@ -12,6 +12,7 @@ import asyncio
 import base64
 import json
 import os
+import re
 import subprocess
 import tempfile
 from pathlib import Path
@@ -38,12 +39,12 @@ GHOST = {"name": "ghost", "markers": [[0.0, 0.0, 0.0], [0.21, 0.0, 0.0], [0.0, 0
 class Browser:
     """Headless Chromium with a fresh profile; evaluate() and screenshot() over the DevTools protocol."""
 
-    def __init__(self, url: str, profile: Path):
+    def __init__(self, url: str, profile: Path, flags: tuple[str, ...] = ()):
         import aiohttp
 
         self.url = url
         self.profile = profile
-        self.proc = subprocess.Popen([CHROMIUM, *FLAGS, f"--user-data-dir={profile}", url],
+        self.proc = subprocess.Popen([CHROMIUM, *FLAGS, *flags, f"--user-data-dir={profile}", url],
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self.http = aiohttp.ClientSession()
         self.ws = None
@@ -155,21 +156,46 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             # a tracked body and the ghost's reason in the health table
             await browser.wait_for("[...document.querySelectorAll('#bodies tbody tr')].some(r => "
                                    "r.cells[0].textContent === 'quad' && r.cells[1].textContent === 'yes')")
+            found["bodies"] = await browser.evaluate(  # at once: on a loaded host the body may drop out later
+                "[...document.querySelectorAll('#bodies tbody tr')].map(r => [...r.cells].map(c => c.textContent))")
             # /api/health says the same (polled: on a loaded host the body may drop out for a moment)
             for _ in range(40):
                 found["health"] = console.health()
                 if all(b["tracked"] == (b["name"] == "quad") for b in found["health"]["bodies"]):
                     break
                 await asyncio.sleep(0.25)
-            found["bodies"] = await browser.evaluate(
-                "[...document.querySelectorAll('#bodies tbody tr')].map(r => [...r.cells].map(c => c.textContent))")
             found["cameras"] = await browser.evaluate(
                 "[...document.querySelectorAll('#cameras tbody tr')].map(r => [...r.cells].map(c => c.textContent))")
             found["blobs"] = await browser.evaluate("window.visionposConsole.blobs")
+            # triage: vehicles, then bodies, then cameras; every row has its level; the layout holds still
+            await browser.wait_for("(window.visionposConsole.healthTimes || []).length >= 4")
+            found["triage"] = await browser.evaluate(
+                "({order: [...document.querySelectorAll('#health h2')].map(e => e.textContent), "
+                "vehicles: [...document.querySelectorAll('#vehicles tbody tr')].map(r => "
+                "[r.className, ...[...r.cells].map(c => c.textContent)]), "
+                "levels: window.visionposConsole.levels, times: window.visionposConsole.healthTimes, "
+                "rate: window.visionposConsole.updatesPerS, badge: document.getElementById('badge3d').textContent, "
+                "boxes: [...document.querySelectorAll('#camgrid .cam')].map(b => b.getBoundingClientRect().width), "
+                "titles: [...document.querySelectorAll('#camgrid .camtitle')].map(t => "
+                "[t.getBoundingClientRect().height, getComputedStyle(t).textOverflow])})")
             found["errors"] = await browser.evaluate("window.visionposConsole.errors")
             found["dpr"] = await browser.evaluate("window.devicePixelRatio")
             found["r3d"] = await browser.evaluate(JS_RECT.format(sel="#view3d"))
             found["rcam"] = await browser.evaluate(JS_RECT.format(sel="#camgrid canvas"))
+            # a view preset, then a click on the quad: its details
+            await browser.evaluate("(() => { const p = document.getElementById('preset'); p.value = 'top'; "
+                                   "p.dispatchEvent(new Event('change')); })()")
+            found["view3d"] = await browser.evaluate("window.visionposConsole.view3d")
+            for _ in range(20):  # the quad moves: click where it is now, until a click lands on it
+                xy = await browser.evaluate("window.visionposConsole.screenOf('quad')")
+                if xy:
+                    for kind in ("mousePressed", "mouseReleased"):
+                        await browser.call("Input.dispatchMouseEvent", type=kind, x=xy[0], y=xy[1], button="left",
+                                           clickCount=1)
+                    if await browser.evaluate("!!window.visionposConsole.bodyInfo"):
+                        break
+                await asyncio.sleep(0.2)
+            found["body_info"] = await browser.evaluate("window.visionposConsole.bodyInfo")
             found["img"] = await browser.screenshot(shots / "console.png")
             # the first camera's "still image" button: the station's image shows under the blobs, read out
             await browser.evaluate("document.querySelector('#camgrid .stationtools button').click()")
@@ -199,6 +225,25 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
     assert rows["ghost"][1] == "NO"
     assert rows["ghost"][6] and rows["ghost"][6] != "not seen yet", rows["ghost"]
     assert found["errors"] == []
+    t = found["triage"]
+    print("triage:", {k: t[k] for k in ("vehicles", "levels", "rate", "badge")})
+    assert t["order"] == ["Vehicles", "Bodies", "Cameras"]
+    assert t["levels"]["bodies:ghost"] == "bad" and t["levels"]["vehicles:quad"] in ("ok", "warn", "bad")
+    assert t["vehicles"][0][0] == f"row-{t['levels']['vehicles:quad']}"
+    # health once a second (docs/console.md), the page's own update rate on the badge
+    gaps = np.diff(t["times"][1:])
+    assert 700 < np.median(gaps) < 2500, gaps  # twice a second would be 500 ms; a loaded host stretches them
+    assert t["rate"] > 0 and t["badge"].startswith("live, ")
+    # a stable layout: every camera box is the canvas' width, its title one line ending in an ellipsis
+    assert t["boxes"] == [302] * 4 and all(h < 24 and o == "ellipsis" for h, o in t["titles"]), t
+    # the top view looks down on the arena; a click on the quad shows its pose, rate, cameras, NIS and vehicle
+    v = found["view3d"]
+    assert v["preset"] == "top" and v["target"] == [0, 0, 0] and v["position"][2] > 3 and abs(v["position"][0]) < 1e-6
+    info = found["body_info"]
+    assert info and info[0].startswith("quad: "), info
+    if info[0] == "quad: tracked":  # (a loaded host may lose it for a moment)
+        assert any(x.startswith("position ") for x in info) and any(x.startswith("NIS position ") for x in info)
+    assert any(x.startswith("seen by: ") for x in info) and any(x.startswith("vehicle quad: ") for x in info)
     # the still image: read out, and drawn (the simulated image's noise and discs change the view's pixels)
     assert found["still"].startswith("background "), found["still"]
     assert not np.array_equal(found["img_still"], found["img"])
@@ -210,12 +255,12 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
 
 @pytest.mark.slow
 def test_calibration_panel_in_chromium_fills_in_and_shows_the_solve(tmp_path):
-    """`visionpos record`'s console with a simulated wand wave fed in: the panel's heat maps, pairs and ENOUGH, then
-    Solve clicked and the per-camera residuals shown."""
+    """`visionpos record`'s console with a simulated wand wave fed in: the panel's heat maps and pairs, "not yet" with
+    the coverage still missing (the simulated wave stays in the middle of each image: 8 to 15 % of it, ENOUGH wants
+    50 %), Solve enabled once the solver's minimums are met, clicked, and the per-camera residuals shown."""
     from console.calibration import CalibrationAssistant
     from console.settings import ConsoleSettings
     from visionpos.app.console import RecordSource, open_console
-    from visionpos.calibration.coverage import Thresholds
     from visionpos.sim import load_scenario, simulate
 
     sc = load_scenario("thesis", ["sim.duration=8"], session="wand")
@@ -225,9 +270,7 @@ def test_calibration_panel_in_chromium_fills_in_and_shows_the_solve(tmp_path):
     found: dict = {}
 
     async def main():
-        # the simulated wave stays in the middle of the volume: 8 to 12 % of each image
-        source = RecordSource(sc.arena, CalibrationAssistant(sc.arena, tmp_path / "arena.yaml",
-                                                             Thresholds(min_coverage=0.05)))
+        source = RecordSource(sc.arena, CalibrationAssistant(sc.arena, tmp_path / "arena.yaml"))
         console = await open_console(ConsoleSettings(port=0), source)
         browser = Browser(console.url, tmp_path / "profile")
         try:
@@ -236,7 +279,11 @@ def test_calibration_panel_in_chromium_fills_in_and_shows_the_solve(tmp_path):
             found["before"] = await browser.evaluate("document.getElementById('calib-verdict').textContent")
             for f in frames:
                 source.push(f)
-            await browser.wait_for("window.visionposConsole.calib.enough === true")
+            await browser.wait_for("window.visionposConsole.calib.messages > 1 && "
+                                   "!document.getElementById('calib-solve').disabled")
+            found["after"] = await browser.evaluate("document.getElementById('calib-verdict').textContent")
+            found["missing"] = await browser.evaluate(
+                "[...document.querySelectorAll('#calib-missing li')].map(l => l.textContent)")
             found["pairs"] = await browser.evaluate(
                 "[...document.querySelectorAll('#calib-pairs tbody tr')].map(r => "
                 "[...r.cells].map(c => c.textContent))")
@@ -257,7 +304,9 @@ def test_calibration_panel_in_chromium_fills_in_and_shows_the_solve(tmp_path):
 
     asyncio.run(asyncio.wait_for(main(), 240))
     print(f"screenshots in {shots}")
-    assert found["before"] == "not yet"
+    assert found["before"] == "not yet" and found["after"] == "not yet"
+    assert found["missing"] and all(re.fullmatch(r"camera pi\d covers \d+ % of its image, want 50 %: .*", m)
+                                    for m in found["missing"]), found["missing"]
     assert len(found["pairs"]) == 6 and all(int(r[1]) >= 100 for r in found["pairs"])
     assert found["cells"] > 0
     assert [r[0] for r in found["result"]] == [c.name for c in sc.arena.cameras]
@@ -265,3 +314,298 @@ def test_calibration_panel_in_chromium_fills_in_and_shows_the_solve(tmp_path):
     assert found["wand"].startswith("wand length A-C: error")
     # the heat map draws its lit cells (background #0d0f12, empty cells #1a1d22)
     assert _drawn(found["img"], _rect(found["rheat"], found["dpr"] or 1.0), (0x22, 0x1d, 0x1a)) > 0.01
+
+
+# ------------------------------------------------------------------ the browser's own web against the console
+
+# the attacker's page: a page of another site tries the console cross-origin, then, after its name was rebound
+# to this host (DNS rebinding, played by _rebinding_site), the same requests same-origin
+ATTACK_JS = """
+window.attack = {};
+const MASK = JSON.stringify({cmd: "mask", camera: 1, ignore: [[0, 0, 960, 640]]});
+function tryWs(url) {
+  return new Promise(done => {
+    const ws = new WebSocket(url);
+    ws.onopen = () => { ws.send(MASK); setTimeout(() => done("open"), 500); };
+    ws.onerror = () => done("error");
+  });
+}
+async function tryFetch(url, opts) {
+  try { return (await fetch(url, opts)).status; } catch (e) { return "blocked"; }
+}
+async function attackConsole(httpBase, wsBase) {
+  return {fetch: await tryFetch(httpBase + "/api/health", {mode: "no-cors"}), ws: await tryWs(wsBase + "/ws")};
+}
+"""
+
+
+async def _rebinding_site(console_port: int, page: str):
+    """attacker.example's server on a loopback port: GET /attack answers its page; every other connection is
+    relayed to the console byte for byte, as a browser's connections reach it once the name is rebound."""
+
+    async def handle(reader, writer):
+        try:
+            head = await reader.readuntil(b"\r\n\r\n")
+        except (asyncio.IncompleteReadError, asyncio.LimitOverrunError, ConnectionError):
+            writer.close()
+            return
+        if head.startswith(b"GET /attack "):
+            body = page.encode()
+            writer.write(b"HTTP/1.1 200 OK\r\nContent-Type: text/html\r\nConnection: close\r\nContent-Length: "
+                         + str(len(body)).encode() + b"\r\n\r\n" + body)
+            await writer.drain()
+            writer.close()
+            return
+        up_r, up_w = await asyncio.open_connection("127.0.0.1", console_port)
+        up_w.write(head)
+
+        async def pipe(r, w):
+            try:
+                while data := await r.read(65536):
+                    w.write(data)
+                    await w.drain()
+            except ConnectionError:
+                pass
+            finally:
+                w.close()
+
+        await asyncio.gather(pipe(reader, up_w), pipe(up_r, writer))
+
+    return await asyncio.start_server(handle, "127.0.0.1", 0)
+
+
+def test_pages_of_other_origins_and_foreign_hosts_change_nothing_in_chromium(tmp_path, arena_yaml):
+    """A page of another site tries the console cross-origin and then, rebound to this host, as its own origin;
+    then the browser opens the console under a foreign name. Every request is refused; no mask reaches a station
+    and nothing the console shows changes."""
+    from visionpos.config.arena import parse_arena
+
+    from .test_security import _console, state
+
+    arena = parse_arena(arena_yaml("thesis"), "thesis.yaml")
+    found: dict = {}
+
+    async def main():
+        console, source = await _console(arena)
+        console._task.cancel()  # no updates: only the browser's requests could read or change anything
+        before = state(console, source)
+        cport = console.port
+        page = (f"<html><body>attacker<script>{ATTACK_JS}(async () => {{"
+                f"attack.cross = await attackConsole('http://127.0.0.1:{cport}', 'ws://127.0.0.1:{cport}');"
+                "attack.rebound = await attackConsole('', 'ws://' + location.host);"
+                "attack.done = true; })();</script></body></html>")
+        site = await _rebinding_site(cport, page)
+        sport = site.sockets[0].getsockname()[1]
+        browser = Browser(f"http://attacker.example:{sport}/attack", tmp_path / "profile",
+                          ("--host-resolver-rules=MAP attacker.example 127.0.0.1",))
+        try:
+            await browser.connect()
+            found["attack"] = await browser.wait_for("window.attack && window.attack.done && window.attack", 20)
+            found["mid"] = state(console, source)
+            # the console itself under a foreign name: refused, and a socket from that page too
+            await browser.call("Page.navigate", url=f"http://attacker.example:{cport}/")
+            await browser.wait_for("document.readyState === 'complete' && location.port === '%d'" % cport, 20)
+            found["text"] = await browser.evaluate("document.body.innerText")
+            found["ws"] = (await browser.call("Runtime.evaluate", returnByValue=True, awaitPromise=True, expression=
+                "new Promise(done => { const ws = new WebSocket('ws://' + location.host + '/ws'); ws.onopen = () => "
+                "{ ws.send(JSON.stringify({cmd: 'mask', camera: 1, ignore: [[0, 0, 960, 640]]})); "
+                "setTimeout(() => done('open'), 500); }; ws.onerror = () => done('error'); })"))["result"]["value"]
+            found["after"] = state(console, source)
+            found["refused"] = console.counters.get("refused_host", 0) + console.counters["refused_origin"]
+        finally:
+            await browser.close()
+            site.close()
+            await console.stop()
+        found["before"] = before
+
+    asyncio.run(asyncio.wait_for(main(), 90))
+    a = found["attack"]
+    assert a["cross"]["ws"] == "error" and a["rebound"]["ws"] == "error", a
+    assert a["rebound"]["fetch"] == 403, a  # same-origin after the rebinding: the status is readable
+    assert found["mid"] == found["before"]
+    assert "refused" in found["text"] and "not this console" in found["text"], found["text"]
+    assert found["ws"] == "error"
+    assert found["after"] == found["before"]  # no mask sent, no still, no health read, the scene as it was
+    assert found["refused"] >= 5
+
+
+def test_the_token_leaves_the_address_bar_and_the_page_runs_on_its_cookie(tmp_path, arena_yaml):
+    """The URL printed at start (?token=...) opened in the browser: the console answers with its cookie and a
+    redirect to "/", so the address bar (a screenshot, a shared link) holds no token, and the page connects."""
+    from visionpos.config.arena import parse_arena
+
+    from .test_security import _console
+
+    token = "tok-" + "Zk3" * 8
+    arena = parse_arena(arena_yaml("thesis"), "thesis.yaml")
+    found: dict = {}
+
+    async def main():
+        console, source = await _console(arena, token=token)  # on loopback, but configured: needed everywhere
+        browser = Browser(f"{console.address}?token={token}", tmp_path / "profile")
+        try:
+            await browser.connect()
+            await browser.wait_for("window.visionposConsole && window.visionposConsole.states > 3", 20)
+            found["href"] = await browser.evaluate("location.href")
+            found["text"] = await browser.evaluate("document.body.innerText")
+            found["refused"] = console.counters["refused_token"]
+        finally:
+            await browser.close()
+            await console.stop()
+
+    asyncio.run(asyncio.wait_for(main(), 60))
+    assert token not in found["href"], found["href"]
+    assert found["href"].endswith("/")
+    assert token not in found["text"]
+    assert found["refused"] == 0
+
+def _shots() -> Path:
+    """Where the screenshots go: VISIONPOS_SCREENSHOTS (docs/images regenerates the docs' pictures) or a temp dir."""
+    shots = Path(os.environ.get("VISIONPOS_SCREENSHOTS") or tempfile.mkdtemp(prefix="visionpos-console-"))
+    shots.mkdir(parents=True, exist_ok=True)
+    return shots
+
+
+def _arena(data: dict, name: str):
+    from visionpos.config.arena import parse_arena
+
+    return parse_arena(data, name)
+
+
+def _grey(img: np.ndarray, rect: tuple[int, int, int, int]) -> bool:
+    """No coloured pixel in rect: every pixel's channels within a few levels of each other."""
+    x, y, w, h = rect
+    crop = img[y:y + h, x:x + w].astype(int)
+    return int((crop.max(axis=2) - crop.min(axis=2)).max()) <= 12  # the panels' own blue-grey: 9
+
+
+@pytest.mark.slow
+def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path, arena_yaml):
+    """`visionpos record`'s console (no fusion: quick to start) for the thesis arena, stopped, then started again on
+    the same port for arena8: the page greys with the time of its last data, then shows arena8's eight cameras."""
+    from console.settings import ConsoleSettings
+    from visionpos.app.console import RecordSource, open_console
+
+    found: dict = {}
+    thesis, arena8 = _arena(arena_yaml("thesis"), "thesis.yaml"), _arena(arena_yaml("arena8"), "arena8.yaml")
+
+    async def main():
+        console = await open_console(ConsoleSettings(port=0), RecordSource(thesis))
+        port = console.port
+        # two reflections on camera 2 (the static-blob watch itself: test_view.py)
+        console.view.static_blobs = lambda now_ns: {2: [
+            {"x": 100.0, "y": 80.0, "seconds": 6.0, "ignore": [94, 74, 107, 87]},
+            {"x": 500.0, "y": 300.0, "seconds": 7.0, "ignore": [494, 294, 507, 307]}]}
+        browser = Browser(console.url, tmp_path / "profile")
+        try:
+            await browser.connect()
+            await browser.wait_for("window.visionposConsole && window.visionposConsole.states > 10 && "
+                                   "window.visionposConsole.health > 0 && !window.visionposConsole.stale && "
+                                   "window.visionposConsole.updatesPerS > 0")
+            found["live_badge"] = await browser.evaluate("document.getElementById('badge3d').textContent")
+            found["live_rate"] = await browser.evaluate("window.visionposConsole.updatesPerS")
+            found["dpr"] = await browser.evaluate("window.devicePixelRatio")
+            found["rhealth"] = await browser.evaluate(JS_RECT.format(sel="#health"))
+            found["img_live"] = await browser.screenshot(tmp_path / "live.png")
+            # a camera's reflections are one warning line; "mask these" draws their rectangles on its view
+            await browser.wait_for("!!document.querySelector('#warnings button.maskthese')", 10)
+            found["mask_these"] = await browser.evaluate(
+                "(() => { const b = document.querySelector('#warnings button.maskthese'); b.click(); "
+                "const c = document.getElementById('cam-' + b.dataset.camera); "
+                "return {camera: Number(b.dataset.camera), ignore: JSON.parse(b.dataset.ignore), "
+                "line: b.parentElement.textContent, drafts: JSON.parse(c.dataset.drafts || '[]'), "
+                "lines: [...document.querySelectorAll('#warnings li')].map(l => l.textContent)}; })()")
+            await console.stop()
+            await browser.wait_for("window.visionposConsole.stale", 10)
+            found["notes"] = await browser.evaluate(
+                "[...document.querySelectorAll('.stale-note')].map(e => e.textContent)")
+            found["badge"] = await browser.evaluate("document.getElementById('badge3d').textContent")
+            found["conn"] = await browser.evaluate("document.getElementById('conn').textContent")
+            await asyncio.sleep(0.5)  # the grey filter is drawn with the next frame
+            found["img_stale"] = await browser.screenshot(_shots() / "console-stale.png")
+            console = await open_console(ConsoleSettings(port=port), RecordSource(arena8))
+            await browser.wait_for("window.visionposConsole.cameraViews === 8 && !window.visionposConsole.stale", 20)
+            found["rebuilt"] = await browser.evaluate(
+                "({frusta: window.visionposConsole.frusta, rebuilds: window.visionposConsole.rebuilds, "
+                "canvases: document.querySelectorAll('#camgrid canvas').length, "
+                "rays: document.querySelectorAll('#rays option').length, "
+                "titles: [...document.querySelectorAll('#camgrid .cam > div:first-child')].map(e => e.textContent)})")
+            found["errors"] = await browser.evaluate("window.visionposConsole.errors")
+        finally:
+            await browser.close()
+            await console.stop()
+
+    asyncio.run(asyncio.wait_for(main(), 120))
+    dpr = found["dpr"] or 1.0
+    # live: the badge says so with the page's own update rate, and the health panel has colour (state words)
+    assert re.match(r"live, \d+ updates/s", found["live_badge"]), found["live_badge"]
+    assert found["live_rate"] > 0
+    assert not _grey(found["img_live"], _rect(found["rhealth"], dpr))
+    # stopped: every panel, the 3D badge and the header say since when, and the health panel is grey
+    since = r"no data since \d\d:\d\d:\d\d"
+    assert len(found["notes"]) == 3 and all(re.fullmatch(since, n) for n in found["notes"]), found["notes"]
+    assert re.fullmatch(since, found["badge"]) and re.search(since, found["conn"])
+    assert _grey(found["img_stale"], _rect(found["rhealth"], dpr))
+    m = found["mask_these"]
+    assert m["camera"] == 2 and m["ignore"] == [[94, 74, 107, 87], [494, 294, 507, 307]]
+    assert m["drafts"] == m["ignore"], m  # drawn on camera 2's view (it has no station mask of its own)
+    assert m["line"].startswith(f"camera {m['camera']} (") and m["line"].endswith("mask these")
+    assert sum(x.startswith(f"camera {m['camera']} (") and "stayed put" in x for x in m["lines"]) == 1
+    # another arena on the same port: rebuilt for its eight cameras, nothing of the thesis arena left
+    r = found["rebuilt"]
+    assert r["frusta"] == 8 and r["canvases"] == 8 and r["rays"] == 9 and r["rebuilds"] == 1
+    assert [t.split(":")[0] for t in r["titles"]] == [f"camera {c.id} ({c.name})" for c in arena8.cameras]
+    assert found["errors"] == []
+
+
+@pytest.mark.slow
+def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, thesis_log):
+    """`replay LOG --view` of a flight recording: the file's name in the header, no still-image or mask buttons,
+    no calibration panel (no wand in it); a speed the server refuses is shown in the page."""
+    from console.settings import ConsoleSettings
+    from visionpos.app.console import replay_view
+
+    found: dict = {}
+
+    async def main():
+        views: list = []
+        task = asyncio.create_task(replay_view(str(thesis_log), None, [], None, ConsoleSettings(port=0),
+                                               on_console=views.append, duration_s=60, calibrate_out=str(
+                                                   tmp_path / "out.yaml")))
+        while not views:
+            await asyncio.sleep(0.05)
+        browser = Browser(views[0].url, tmp_path / "profile")
+        try:
+            await browser.connect()
+            await browser.wait_for("window.visionposConsole && window.visionposConsole.states > 10 && "
+                                   "window.visionposConsole.calib && window.visionposConsole.calib.hidden === true")
+            found["page"] = await browser.evaluate(
+                "({source: document.getElementById('source').textContent, "
+                "tools: document.querySelectorAll('.stationtools').length, "
+                "views: document.querySelectorAll('#camgrid canvas').length, "
+                "calib: !!document.getElementById('calib'), "
+                "replay: !document.getElementById('replay').hidden})")
+            await browser.evaluate("(() => { const s = document.getElementById('speed'); const o = "
+                                   "document.createElement('option'); o.value = '100'; s.append(o); s.value = '100'; "
+                                   "s.dispatchEvent(new Event('change')); })()")
+            await browser.wait_for("window.visionposConsole.refusal", 10)
+            found["notice"] = await browser.evaluate(
+                "(() => { const n = document.getElementById('notice'); "
+                "return {text: n.textContent, shown: !n.hidden && n.getBoundingClientRect().width > 0}; })()")
+            await browser.evaluate("(() => { const s = document.getElementById('speed'); s.lastChild.remove(); "
+                                   "s.value = '1'; })()")  # the menu as it was, for the picture
+            await browser.screenshot(_shots() / "replay.png")
+        finally:
+            await browser.close()
+            task.cancel()
+            try:
+                await task
+            except asyncio.CancelledError:
+                pass
+
+    asyncio.run(asyncio.wait_for(main(), 120))
+    p = found["page"]
+    assert p["source"] == f"replay of {thesis_log.name}" and p["replay"]
+    assert p["views"] == 4 and p["tools"] == 0 and p["calib"] is False
+    assert re.fullmatch(r"\d\d:\d\d:\d\d refused: speed: give x between 0.05 and 16", found["notice"]["text"])
+    assert found["notice"]["shown"]

@@ -147,7 +147,7 @@ def test_solve_is_refused_where_there_is_no_assistant_and_default_out_sits_besid
     assert default_out(tmp_path / "wave.mcap") == tmp_path / "wave.calibrated.yaml"
 
 
-def test_replay_view_feeds_the_assistant_and_a_seek_back_starts_it_again(tmp_path):
+def test_replay_view_feeds_the_assistant_and_a_seek_back_or_a_restart_keeps_its_frames(tmp_path):
     from console.replay import ReplaySession
     from visionpos.config.arena import parse_arena
     from visionpos.recording import RecordingReader
@@ -166,8 +166,12 @@ def test_replay_view_feeds_the_assistant_and_a_seek_back_starts_it_again(tmp_pat
         assert n > 500
         await assistant.refresh()
         assert assistant.state()["steps"] > 50
-        await session.seek(0.5)  # backwards: the pipeline and the assistant start again
-        assert 0 < len(assistant.frames) < n / 3
+        await session.seek(0.5)  # backwards: the pipeline starts again, the wand frames gathered stay
+        assert len(assistant.frames) == n
+        session.advance_to(session.end_ns)  # the same packets again: none counted twice
+        assert len(assistant.frames) == n and session.finished
+        await session.command({"cmd": "play"})  # play after the end: from the start, the frames kept
+        assert session.clock() == session.t0_ns and session.playing and len(assistant.frames) == n
         await assistant.stop()
 
     asyncio.run(main())

@@ -8,6 +8,9 @@ attitude estimate, stamped on its own boot clock) against the optical body
   do not depend on how the arena's yaw is aligned to north, so a wrong pairing
   (swapped sysids, drone A's pose sent to drone B, a mirrored marker layout)
   shows as residuals far outside the noise of the two estimates.
+- Which vehicle is which, for a fleet of identical marker layouts? (`assign_identities`) Every
+  optical body against every vehicle's telemetry: the assignment of least total residual, and per
+  body the margin by which it beats the best assignment that gives that body another vehicle.
 - How late does a pose reach the autopilot? (`estimate_lag`, `vision_delay_ns`)
   Cross-correlating the two angular rates gives the autopilot-clock time of the
   instant the optics stamped at a given server time (the clock offset, plus any
@@ -26,7 +29,8 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation
 
 __all__ = ["LagEstimate", "estimate_lag", "body_rates_from_attitudes", "vision_delay_ns", "theil_sen_at",
-           "weighted_time_ns", "identity_residuals", "identity_statistic", "wrap_angle"]
+           "weighted_time_ns", "identity_residuals", "identity_statistic", "wrap_angle", "IdentityAssignment",
+           "assign_identities"]
 
 
 class LagEstimate(NamedTuple):
@@ -224,3 +228,62 @@ def identity_statistic(residuals: np.ndarray) -> float:
     that is generous) when the two are the same vehicle; NaN for an empty window."""
     r = np.asarray(residuals, float)
     return float(np.mean(r * r)) if r.size else float("nan")
+
+
+class IdentityAssignment(NamedTuple):
+    """vehicle (B,) int: the vehicle index bound to each optical body, -1 for none; margin (B,): how much
+    larger (in summed squared normalised residuals, i.e. twice the log-likelihood ratio) the best assignment
+    that gives this body another vehicle, or none, is than the chosen one (inf when there is no other
+    choice); candidates (B,) int: the vehicles whose own pair cost is within the margin threshold of the
+    chosen pair's (how many this body could be)."""
+
+    vehicle: np.ndarray
+    margin: np.ndarray
+    candidates: np.ndarray
+
+
+def assign_identities(cost: np.ndarray, reject_cost: np.ndarray | float, ambiguity: float) -> IdentityAssignment:
+    """Bind B optical bodies to V vehicles (a fleet with identical marker layouts) from their telemetry.
+
+    cost (B, V): for each body-vehicle pair, the sum of squared normalised residuals (`identity_residuals`)
+    over one window of shared instants, the same count of instants for every pair; NaN or inf where the pair
+    cannot be compared (no telemetry, no optical pose). reject_cost (B,) or scalar: the cost at which a body
+    is better left unbound (a chi-square quantile for its residuals' degrees of freedom: no vehicle moves
+    like it). ambiguity: the margin (same units) under which a body's binding is not trusted, e.g.
+    2 ln(1000) = 13.8 for odds of a thousand to one.
+
+    Minimises the total cost over one-to-one assignments in which each body takes a vehicle or none (its
+    reject cost), by the Hungarian method; then, for each bound body, solves again with its pair forbidden:
+    the difference is its margin. Still vehicles and still bodies have near-zero rates and level attitudes:
+    every pairing fits and every margin is small, so nothing is bound until the vehicles move.
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    c = np.asarray(cost, dtype=np.float64)
+    B, V = c.shape
+    reject = np.broadcast_to(np.asarray(reject_cost, dtype=np.float64), (B,))
+    big = 1e12  # a forbidden pair: never chosen while the reject column is open
+    full = np.full((B, V + B), big)
+    full[:, :V] = np.where(np.isfinite(c), c, big)
+    full[np.arange(B), V + np.arange(B)] = reject  # each body's own "no vehicle" column
+
+    def solve(m: np.ndarray) -> tuple[float, np.ndarray]:
+        rows, cols = linear_sum_assignment(m)
+        out = np.full(B, -1)
+        out[rows] = cols
+        return float(m[rows, cols].sum()), out
+
+    best, cols = solve(full)
+    vehicle = np.where(cols < V, cols, -1)
+    margin = np.full(B, np.inf)
+    candidates = np.zeros(B, dtype=int)
+    for b in range(B):
+        if vehicle[b] < 0:
+            continue
+        m = full.copy()
+        m[b, vehicle[b]] = big
+        alt, _ = solve(m)
+        margin[b] = alt - best if alt < big / 2 else np.inf
+        pair = full[b, vehicle[b]]
+        candidates[b] = int(np.sum(full[b, :V] <= pair + ambiguity))
+    return IdentityAssignment(vehicle, margin, candidates)

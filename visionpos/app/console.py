@@ -188,7 +188,7 @@ async def replay_view(log: str, config: str | None, overrides: list[str], rate_h
     rt = None
     if isinstance(meta.get("wall_start_unix_ns"), int) and isinstance(meta.get("monotonic_start_ns"), int):
         rt = meta["wall_start_unix_ns"] - meta["monotonic_start_ns"]
-    session = ReplaySession(arena, list(reader.packets_with_source()), rate_hz, rt,
+    session = ReplaySession(arena, list(reader.packets_with_source()), rate_hz, rt, name=Path(log).name,
                             calibration=CalibrationAssistant(arena, calibrate_out or default_out(log)))
     session.playing = not paused
     view = await open_console(settings, session, clock=session.clock, controls=session.command,

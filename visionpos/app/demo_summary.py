@@ -18,6 +18,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from bridge.fake_autopilot import decode_pose
 from visionpos.analysis import metrics as M
 from visionpos.messages import BodyState
 from visionpos.server.sinks import Sink
@@ -214,8 +215,6 @@ class AutopilotPoses:
 
     def on_pose(self, r: Any) -> None:
         """One pose message (bridge.fake_autopilot.Received) as the autopilot got it."""
-        from bridge.fake_autopilot import decode_pose
-
         self.n += 1
         if self._last_recv_ns is not None:
             self.max_gap_ns = max(self.max_gap_ns, r.recv_ns - self._last_recv_ns)

@@ -10,6 +10,7 @@ imports the bridge.
 
 from __future__ import annotations
 
+import importlib
 from typing import TYPE_CHECKING
 
 from visionpos.config.arena import ArenaConfig, ConfigError
@@ -22,34 +23,22 @@ if TYPE_CHECKING:
 REPORT_INTERVAL_S = 30.0
 
 
+# each network output: its arena section, and where its Sink class lives (imported only when the section is given,
+# so an arena without it never loads that library); each class has from_arena(arena) -> Sink | None
+NETWORK_OUTPUTS = (("pose_stream", "bridge.pose_stream", "PoseStream"),
+                   ("vrpn", "bridge.vrpn", "VrpnServer"),
+                   ("natnet", "bridge.natnet", "NatNetServer"),
+                   ("foxglove", "bridge.foxglove_live", "FoxgloveServer"))
+
+
 def network_outputs(arena: ArenaConfig) -> list[Sink]:
     """The pose stream, VRPN, NatNet and Foxglove servers the arena's sections ask for (none opened)."""
     out: list[Sink] = []
-    if arena.given("pose_stream"):
-        from bridge.config import parse_pose_stream
-        from bridge.pose_stream import PoseStream
-
-        ps = parse_pose_stream(arena)
-        if ps is not None:
-            out.append(PoseStream(ps))
-    if arena.given("vrpn"):
-        from bridge.vrpn import VrpnServer, parse_vrpn
-
-        vrpn = parse_vrpn(arena)
-        if vrpn is not None:
-            out.append(VrpnServer(vrpn))
-    if arena.given("natnet"):
-        from bridge.natnet import NatNetServer
-
-        natnet = NatNetServer.from_arena(arena)
-        if natnet is not None:
-            out.append(natnet)
-    if arena.given("foxglove"):
-        from bridge.foxglove_live import FoxgloveServer
-
-        fox = FoxgloveServer.from_arena(arena)
-        if fox is not None:
-            out.append(fox)
+    for key, module, cls_name in NETWORK_OUTPUTS:
+        if arena.given(key):
+            sink = getattr(importlib.import_module(module), cls_name).from_arena(arena)
+            if sink is not None:
+                out.append(sink)
     return out
 
 

@@ -9,6 +9,7 @@ import bridge.foxglove_live  # noqa: F401  foxglove
 import bridge.natnet  # noqa: F401  natnet
 import bridge.vrpn  # noqa: F401  vrpn
 import console.settings  # noqa: F401  console
+import visionpos.analysis.planner  # noqa: F401  plan
 import visionpos.app.sitl  # noqa: F401  sitl
 import visionpos.fusion.camera_monitor  # noqa: F401  camera_monitor
 import visionpos.fusion.settings  # noqa: F401  fusion

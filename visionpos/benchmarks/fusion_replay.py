@@ -72,7 +72,8 @@ def replay(
     i = 0
     for k, tk in enumerate(ticks):
         while i < len(fr) and key[i] <= tk:
-            pipe.push(fr[i])
+            if monitor is None or monitor.admits(fr[i].camera_id):  # a knocked camera left out until it agrees
+                pipe.push(fr[i])
             if raw_cb is not None:
                 raw_cb(pipe)
             if monitor is not None:

@@ -298,6 +298,7 @@ class _Problem:
         if self.refine_intrinsics:
             intr = sd[self.n_cam : self.off_offsets].reshape(V, 4)
             out["f_px"], out["c_px"] = intr[:, :2], intr[:, 2:]
+            out["intrinsics_correlation"] = self.intrinsics_correlation(cov)
         if self.n_off:
             off = np.zeros(V)
             off[self.cam_index >= 0] = sd[self.off_offsets : self.off_ratio]
@@ -305,6 +306,41 @@ class _Problem:
         if self.estimate_ratio:
             out["ratio"] = float(sd[self.off_ratio])
         return out
+
+    def parameter_names(self) -> list[str]:
+        """Names of the non-frame parameters in their order (camera v as `cam{v}`: the caller names them)."""
+        names = []
+        for v in np.flatnonzero(self.cam_index >= 0):
+            names += [f"cam{v} rotation {a}" for a in "xyz"] + [f"cam{v} position t{a}" for a in "xyz"]
+        if self.refine_intrinsics:
+            names += [f"cam{v} {p}" for v in range(self.V) for p in ("fx", "fy", "cx", "cy")]
+        names += [f"cam{v} clock offset" for v in np.flatnonzero(self.cam_index >= 0)][: self.n_off]
+        if self.estimate_ratio:
+            names.append("wand ratio")
+        return names
+
+    def intrinsics_correlation(self, cov: np.ndarray) -> dict:
+        """How far the data separate each camera's fx, fy, cx, cy from every other parameter, from the
+        covariance (n_small, n_small): `multiple` (V, 4) the multiple correlation with all the others
+        (sqrt(1 - 1/(C_ii (C^-1)_ii)): 1 when the others explain it entirely, as a focal length and the
+        distances two cameras see the wand at), `partner` (V, 4) the index of the most correlated single
+        parameter (`parameter_names`) and `partner_corr` (V, 4) that correlation."""
+        d = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+        corr = cov / d[:, None] / d[None, :]
+        info = np.linalg.pinv(corr)
+        V = self.V
+        multiple, partner, pcorr = np.zeros((V, 4)), np.zeros((V, 4), int), np.zeros((V, 4))
+        for v in range(V):
+            for k in range(4):
+                i = self.n_cam + 4 * v + k
+                vif = max(float(corr[i, i] * info[i, i]), 1.0)
+                multiple[v, k] = np.sqrt(1.0 - 1.0 / vif)
+                row = np.abs(corr[i]).copy()
+                row[i] = -1.0
+                row[self.n_cam + 4 * v: self.n_cam + 4 * v + 4] = -1.0  # its own camera's others: not the question
+                partner[v, k] = int(np.argmax(row))
+                pcorr[v, k] = float(corr[i, partner[v, k]])
+        return {"multiple": multiple, "partner": partner, "partner_corr": pcorr, "names": self.parameter_names()}
 
     def fun(self, x: np.ndarray) -> np.ndarray:
         self._evaluate(x)

@@ -140,6 +140,7 @@ def static_point_std(cameras: list[Camera], points: np.ndarray, blobs: list[np.n
 def identify_layout(
     points: np.ndarray, layout: np.ndarray, support: np.ndarray | None = None, tol: float = 0.01,
     point_std: np.ndarray | None = None, layout_std: float = 0.001, n_sigma: float = 4.0,
+    above: np.ndarray | None = None,
 ) -> np.ndarray:
     """Which measured point is which layout marker.
 
@@ -151,6 +152,11 @@ def identify_layout(
     without point_std, by less than tol (m). Of the assignments that fit the same points, the one whose
     distances agree best wins when the next one's chi-square is n_sigma^2 larger; otherwise the frame is
     too symmetric for the noise and CalibrationError says by how much its distances must differ.
+    above: (V, 3) camera centres, which are above the floor: an assignment is kept only when the layout's
+    +z, fitted to its points, points towards most of them. A frame and its mirror image have the same
+    distances (an L with legs of 157 and 152 mm and the same L with its legs swapped), so this settles
+    a near-isosceles frame whatever the noise; what remains ambiguous is a frame that matches itself
+    turned in its own plane (an equilateral triangle).
     Returns (M,) indices into points.
     """
     M, N = len(layout), len(points)
@@ -194,6 +200,14 @@ def identify_layout(
             "check the frame's marker layout (and --marker-height) and that the cameras are calibrated"
         )
     sols.sort()
+    if above is not None:
+        facing = [s for s in sols if _faces(points[list(s[2])], layout, above)]
+        if not facing:
+            raise CalibrationError(
+                "the ground frame's distances match the static points only with the frame's +z pointing away from "
+                "the cameras: its layout is mirrored (list its markers counter-clockwise seen from above, or "
+                "swap its x and y), or the cameras are not above the floor")
+        sols = facing
     best = sols[0]
     for other in sols[1:]:
         if other[0] == best[0] and set(other[2]) == set(best[2]) and other[1] - best[1] < n_sigma**2:
@@ -201,6 +215,14 @@ def identify_layout(
             dl = np.sort(Dl[iu])
             closest = float(np.min(np.diff(dl))) if len(dl) > 1 else 0.0
             noise = float(np.median(S[np.ix_(list(best[2]), list(best[2]))][iu]))
+            if above is not None:
+                raise CalibrationError(
+                    "the ground frame matches the static points in more than one way even with the cameras above "
+                    "it: turned in its own plane it fits itself (its two closest distances differ by "
+                    f"{closest * 1000:.1f} mm, a measured distance is uncertain by about {noise * 1000:.1f} mm, "
+                    "1 sigma); make its legs differ by more than "
+                    f"{2 * n_sigma * noise * 1000:.0f} mm, or move one marker so the frame is no longer symmetric "
+                    "(an L with unequal arms, a scalene triangle)")
             raise CalibrationError(
                 "the ground frame's marker distances match the static points in more than one way: its two closest "
                 f"distances differ by {closest * 1000:.1f} mm, and a measured distance is uncertain by about "
@@ -210,6 +232,14 @@ def identify_layout(
             )
         break
     return np.array(best[2])
+
+
+def _faces(measured: np.ndarray, layout: np.ndarray, centers: np.ndarray) -> bool:
+    """Whether the layout's +z, fitted to the measured points (M, 3) (a proper rotation: a mirrored
+    assignment turns it over), points towards most camera centres (V, 3)."""
+    Rl, tl = kabsch_svd(layout, measured)
+    side = (np.asarray(centers, float) - measured.mean(axis=0)) @ Rl[:, 2]
+    return int(np.sum(side > 0)) > len(side) / 2
 
 
 @dataclass
@@ -303,7 +333,8 @@ def calibrate_ground(
         )
     pts, support = match_static(cameras, blobs)
     std, sigma_px = static_point_std(cameras, pts, blobs)
-    idx = identify_layout(pts, layout, support, point_std=std, layout_std=layout_std, n_sigma=n_sigma)
+    idx = identify_layout(pts, layout, support, point_std=std, layout_std=layout_std, n_sigma=n_sigma,
+                          above=np.array([c.center for c in cameras]))
     measured = pts[idx]
     R, t, fit = world_from_layout(measured, layout, origin, x_marker, marker_height)
     new = apply_world(cameras, R, t)

@@ -94,6 +94,7 @@ def wand_report(cal: WandCalibration, title: str = "wand calibration") -> str:
         )
     if cal.check is not None:
         out.append("  " + cal.check.message())
+    out += intrinsics_lines(cal.info)
     t = cal.timings
     out.append("")
     out.append(
@@ -104,6 +105,28 @@ def wand_report(cal: WandCalibration, title: str = "wand calibration") -> str:
     for w in cal.warnings:
         out.append(f"warning: {w}")
     return "\n".join(out)
+
+
+def intrinsics_lines(info: dict) -> list[str]:
+    """What `--refine-intrinsics` changed (`info["intrinsics_change"]`): per camera and parameter the chessboard
+    value, the refined one, its std and the parameter it trades with most; empty without the option."""
+    change = info.get("intrinsics_change")
+    if not change:
+        return []
+    refused = info.get("intrinsics_refused", False)
+    rows = []
+    for cam in change:
+        for p in cam["params"]:
+            rows.append([cam["name"], p["name"], f"{p['before']:.2f}", f"{p['after']:.2f}",
+                         f"{p['after'] - p['before']:+.2f}", f"{p['std']:.2f}",
+                         f"{p.get('partner', '-')} ({p.get('partner_corr', float('nan')):+.2f})"])
+    head = ("refused, the chessboard intrinsics kept (the refined values, for comparison):" if refused
+            else "applied:")
+    dist = "; ".join(f"{c['name']} {[round(x, 5) for x in c['dist']]}" for c in change)
+    return ["", f"--refine-intrinsics {head}",
+            _table(["camera", "param", "before px", "after px", "change px", "std px", "trades most with (corr)"],
+                   rows),
+            f"distortion: not refined, unchanged: {dist}"]
 
 
 def intrinsics_report(res: IntrinsicsResult) -> str:

@@ -198,6 +198,12 @@ class WandCheck:
 # limits of what the data must determine before a parameter is used (observability guards)
 MAX_FOCAL_STD_REL = 0.003  # focal length std / focal length
 MAX_CENTRE_STD_PX = 3.0  # principal point std (px)
+# the intrinsics' guards hold for the std at this many time steps: a model error (distortion, blob bias, clock)
+# does not average out over more frames, so a longer wave must not pass a geometry that cannot separate focal
+# length from distance (two cameras: 0.24 % at 3000 steps, 0.42 % at 1000; four around a volume: 0.12-0.18 %)
+INTRINSICS_REFERENCE_FRAMES = 1000
+# a refined intrinsic that moved by more than this many std from the chessboard's is warned about
+INTRINSICS_MOVE_SIGMA = 4.0
 MAX_OFFSET_STD_S = 0.5e-3  # clock offset std
 MAX_CAMERA_CENTER_STD_M = 0.005  # camera position std (RMS over the axes)
 
@@ -369,7 +375,9 @@ def _final_solve(data: WandData, cameras: list[Camera], cams: list[Camera], Rk: 
                           progress=progress, velocity=vel(data, A, u), estimate_ratio=True, covariance=True)
     if not refine_intrinsics:
         return final
-    refused = _undetermined_intrinsics(final[4]["std"], final[0], names)
+    change = intrinsics_change(cameras, final[0], final[4]["std"])
+    refused, moved = _undetermined_intrinsics(change, len(data.times_ns))
+    warnings += moved
     if refused:
         warnings.append("--refine-intrinsics refused, keeping the chessboard intrinsics: " + "; ".join(refused))
         # same poses, the cameras' own intrinsics
@@ -378,6 +386,7 @@ def _final_solve(data: WandData, cameras: list[Camera], cams: list[Camera], Rk: 
                               final[1], final[2], spec, ref=ref, progress=progress, velocity=vel(data, A, u),
                               estimate_ratio=True, covariance=True)
     final[4]["intrinsics_refused"] = bool(refused)
+    final[4]["intrinsics_change"] = change
     return final
 
 
@@ -404,20 +413,55 @@ def _offset_hint(offsets_ns: np.ndarray, names: list[str], max_offset_ms: float,
     return (f"; a clock offset beyond the search range (+-{max_offset_ms:.0f} ms; estimated offsets: {est}{more})")
 
 
-def _undetermined_intrinsics(std: dict, cams: list[Camera], names: list[str]) -> list[str]:
-    """Reasons (one per parameter) why refined intrinsics cannot be trusted: std beyond the guards."""
+def intrinsics_change(before: list[Camera], after: list[Camera], std: dict) -> list[dict]:
+    """What `--refine-intrinsics` changed, per camera: {name, params: [{name (fx, fy, cx, cy), before, after,
+    std (px), correlation (the multiple correlation with every other parameter), partner (the most correlated
+    other camera's or pose parameter, named), partner_corr}], dist (the distortion vector, not refined)}."""
+    corr = std.get("intrinsics_correlation")
     out = []
-    for v, (c, name) in enumerate(zip(cams, names)):
-        for k, axis in enumerate("xy"):
-            f = (c.model.fx, c.model.fy)[k]
-            sf = std["f_px"][v, k]
-            if not np.isfinite(sf) or sf > MAX_FOCAL_STD_REL * f:
-                out.append(f"camera {name} focal length f{axis}: std {sf:.1f} px ({100 * sf / f:.1f} %) — the data "
-                           "cannot determine it")
-            sc = std["c_px"][v, k]
-            if not np.isfinite(sc) or sc > MAX_CENTRE_STD_PX:
-                out.append(f"camera {name} principal point c{axis}: std {sc:.1f} px — the data cannot determine it")
+    for v, (b, a) in enumerate(zip(before, after)):
+        params = []
+        for k, p in enumerate(("fx", "fy", "cx", "cy")):
+            sd = (std["f_px"] if k < 2 else std["c_px"])[v, k % 2]
+            entry = {"name": p, "before": float(getattr(b.model, p)), "after": float(getattr(a.model, p)),
+                     "std": float(sd)}
+            if corr is not None:
+                name = corr["names"][int(corr["partner"][v, k])]
+                cam_index, _, what = name.partition(" ")  # "cam{v} ...": the bundle's camera index -> its name
+                partner = f"camera {before[int(cam_index[3:])].name} {what}" if cam_index[3:].isdigit() else name
+                entry.update(correlation=float(corr["multiple"][v, k]), partner=partner,
+                             partner_corr=float(corr["partner_corr"][v, k]))
+            params.append(entry)
+        out.append({"name": b.name, "params": params, "dist": [float(x) for x in np.ravel(b.model.dist)]})
     return out
+
+
+def _undetermined_intrinsics(change: list[dict], frames: int) -> tuple[list[str], list[str]]:
+    """(reasons to refuse, warnings) for refined intrinsics, one per parameter, from `intrinsics_change`:
+    refused where the std, taken at INTRINSICS_REFERENCE_FRAMES time steps (std x sqrt(frames / that)), is beyond
+    the guards (focal length 0.3 %, principal point 3 px); warned where a kept one moved by more than
+    INTRINSICS_MOVE_SIGMA std. Each names the parameter's std and the parameter it trades with."""
+    refuse, warn = [], []
+    scale = np.sqrt(max(frames, 1) / INTRINSICS_REFERENCE_FRAMES)
+    for cam in change:
+        for p in cam["params"]:
+            sd, f = p["std"], p["before"]
+            geo = sd * max(scale, 1.0)
+            trades = (f", trades most with {p['partner']} (correlation {p['partner_corr']:+.2f})"
+                      if "correlation" in p else "")
+            what = (f"camera {cam['name']} {'focal length' if p['name'][0] == 'f' else 'principal point'} {p['name']}: "
+                    f"std {sd:.1f} px")
+            limit = MAX_FOCAL_STD_REL * f if p["name"][0] == "f" else MAX_CENTRE_STD_PX
+            if not np.isfinite(sd) or geo > limit:
+                rel = f" ({100 * sd / f:.2f} %)" if p["name"][0] == "f" else ""
+                at = f", {geo:.1f} px at {INTRINSICS_REFERENCE_FRAMES} time steps" if scale > 1.0 else ""
+                refuse.append(f"{what}{rel}{at}{trades}: the data cannot determine it (it would have moved "
+                              f"{p['before']:.1f} -> {p['after']:.1f} px)")
+            elif abs(p["after"] - p["before"]) > INTRINSICS_MOVE_SIGMA * sd:
+                warn.append(f"{what}: moved {p['before']:.1f} -> {p['after']:.1f} px, "
+                            f"{abs(p['after'] - p['before']) / sd:.0f} std from the chessboard's{trades}; check the "
+                            "chessboard calibration and the lens model")
+    return refuse, warn
 
 
 def compare_cameras(

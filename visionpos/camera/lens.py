@@ -5,6 +5,8 @@ Each lens module holds its model's forward map (`distort`), its Jacobian and its
 lens, or needs the projection's Jacobian, picks the model here:
 
 - `lens_module(fisheye)`: the module, for the vectorised forms (camera/model.py, geometry/triangulation.py);
+- `depth_scaled_projection_jacobian(xn, Jd)`: the projection's Jacobian through a lens, vectorised, shared by
+  camera/model.py (one camera) and geometry/triangulation.py (a rig, on the triangulation's hot path);
 - compiled, per point, for the fusion hot path: `distort_point`, `undistort_point`,
   `pixel_from_normalized` (normalised point -> pixel) and `project_with_jacobian` (camera-frame
   point -> pixel and d pixel / d point), on the arrays camera/model.py's `lens_arrays` packs:
@@ -25,6 +27,23 @@ from visionpos.jit import njit
 def lens_module(fisheye: bool):
     """camera.fisheye (Kannala-Brandt) when fisheye, else camera.pinhole (OpenCV rational + tangential)."""
     return fisheye_lens if fisheye else pinhole_lens
+
+
+def depth_scaled_projection_jacobian(xn: np.ndarray, Jd: np.ndarray | None) -> np.ndarray:
+    """z * d xd / d Xc (..., 2, 3) = [Jd | -Jd xn]: the Jacobian of a lens's output xd (normalised, or pixels
+    when Jd carries the focal lengths) with respect to the camera-frame point Xc = z (xn, 1), times its depth z.
+
+    xn: (..., 2) normalised undistorted coordinates; Jd: (..., 2, 2) d xd / d xn, or None for no lens (identity).
+    From d xn / d Xc = [[1, 0, -x], [0, 1, -y]] / z. The caller divides by z (its own order of operations is
+    part of its byte-for-byte contract)."""
+    A = np.empty(xn.shape + (3,))
+    if Jd is None:
+        A[..., :2] = np.eye(2)
+        A[..., 2] = -xn
+    else:
+        A[..., :2] = Jd
+        A[..., 2] = -(Jd @ xn[..., None])[..., 0]
+    return A
 
 
 @njit
@@ -77,5 +96,6 @@ def project_with_jacobian(Xc: np.ndarray, intrinsics: np.ndarray, dist: np.ndarr
     return fx * xd + intrinsics[2], fy * yd + intrinsics[3], J
 
 
-__all__ = ["lens_module", "distort_point", "distort_jacobian_point", "undistort_point", "pixel_from_normalized",
+__all__ = ["lens_module", "depth_scaled_projection_jacobian",
+           "distort_point", "distort_jacobian_point", "undistort_point", "pixel_from_normalized",
            "project_with_jacobian"]

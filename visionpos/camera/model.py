@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from visionpos.camera.lens import lens_module, undistort_point
+from visionpos.camera.lens import depth_scaled_projection_jacobian, lens_module, undistort_point
 from visionpos.errors import VisionposError
 from visionpos.jit import njit
 
@@ -206,8 +206,7 @@ class CameraModel:
         with np.errstate(divide="ignore", invalid="ignore"):
             xn = p[:, :2] / z[:, None]
             _, Jd = self.lens.distort_with_jacobian(xn, self.dist)
-            # d xn / d p = [[1, 0, -x], [0, 1, -y]] / z
-            A = np.concatenate([Jd, -(Jd @ xn[:, :, None])], axis=2) / z[:, None, None]
+            A = depth_scaled_projection_jacobian(xn, Jd) / z[:, None, None]
         J = A * np.array([self.fx, self.fy])[:, None]
         J[z <= 0] = np.nan
         return J

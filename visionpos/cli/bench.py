@@ -12,14 +12,16 @@ import sys
 from pathlib import Path
 
 from visionpos.benchmarks import GROUPS, BenchResult
-from visionpos.benchmarks.runner import format_value, goal_rows, merged_metrics, run_group_in_child, to_markdown
+from visionpos.benchmarks.runner import format_value, goal_rows, merged_metrics, run_group_in_child, write_docs
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--only", action="append", choices=sorted(GROUPS), help="run only this group (repeatable)")
     p.add_argument("--quick", action="store_true", help="shorter runs (smoke test; figures are noisier)")
     p.add_argument("--json", action="store_true", help="print all metrics as one JSON object")
-    p.add_argument("--write-docs", metavar="FILE", help="write the results as markdown (e.g. docs/benchmarks.md)")
+    p.add_argument("--write-docs", metavar="FILE",
+                   help="write the results as markdown (e.g. docs/benchmarks.md), merged with the groups stored "
+                        "beside it (FILE with .json): a run of some groups replaces only theirs")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -52,6 +54,6 @@ def run(args: argparse.Namespace) -> int:
     if args.write_docs:
         cmd = ("visionpos bench" + "".join(f" --only {g}" for g in (args.only or []))
                + (" --quick" if args.quick else ""))
-        Path(args.write_docs).write_text(to_markdown(results, cmd, args.quick))
+        write_docs(Path(args.write_docs), results, cmd, args.quick)
         print(f"wrote {args.write_docs}", file=sys.stderr)
     return 1 if failed else 0

@@ -12,10 +12,11 @@ from visionpos.errors import UsageError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", help="arena YAML (cameras with poses and intrinsics, bodies) or a built-in arena name")
+    p.add_argument("config", help="arena YAML (cameras with poses and intrinsics, bodies; the room in its `plan:` "
+                   "section) or a built-in arena name")
     p.add_argument("--volume", type=float, nargs=6, metavar=("XMIN", "XMAX", "YMIN", "YMAX", "ZMIN", "ZMAX"),
-                   help="flight volume in metres, world frame (default: inside the cameras' footprint, "
-                        "shrunk by 20 %%, from 0.1 m to 2/3 of the lowest camera's height)")
+                   help="flight volume in metres, world frame (default: plan.volume, else inside the cameras' "
+                        "footprint, shrunk by 20 %%, from 0.1 m to 2/3 of the lowest camera's height)")
     p.add_argument("--step-m", type=float, default=0.25, help="grid step over the volume (m); default 0.25")
     p.add_argument("--noise-px", type=float, default=0.2,
                    help="blob centroid noise per axis (px, 1 sigma); default 0.2 (well-exposed 4-8 px blobs)")
@@ -28,8 +29,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from visionpos.analysis.planner import (
         Volume,
+        check_room,
         coverage,
         default_volume,
+        parse_plan,
         plot_coverage,
         suggest_camera,
         summary_lines,
@@ -44,20 +47,26 @@ def run(args: argparse.Namespace) -> int:
     arena.require_poses("the planner")
     if len(arena.cameras) < 2:
         raise UsageError(f"{arena.source}: the planner needs at least 2 cameras, the file has {len(arena.cameras)}")
-    if args.volume is None:
-        volume = default_volume(arena.cameras, args.step_m)
-    else:
+    room = parse_plan(arena)
+    if args.volume is not None:
         v = np.array(args.volume, float)
         lo, hi = v[0::2], v[1::2]
         if not (hi > lo).all():
             raise UsageError("--volume: give XMIN XMAX YMIN YMAX ZMIN ZMAX with each maximum above its minimum")
         volume = Volume(lo, hi, args.step_m)
+        check_room(room, arena.cameras, volume, arena.source, "--volume")
+    elif room.volume is not None:
+        volume = Volume(room.volume.lo, room.volume.hi, args.step_m)
+    else:
+        volume = default_volume(arena.cameras, args.step_m)
+        if room.given:  # the cameras' footprint may reach past the walls: the room's part of it
+            volume = Volume(np.clip(volume.lo, room.lo, room.hi), np.clip(volume.hi, room.lo, room.hi), args.step_m)
     n_points = len(volume.grid())
     if n_points > 20000:
         raise UsageError(f"--volume with --step-m {args.step_m:g} gives {n_points} points; use a coarser step")
-    cov = coverage(arena, volume, args.noise_px, with_bodies=not args.no_bodies)
-    suggestions = suggest_camera(arena, volume, args.noise_px, args.suggest) if args.suggest > 0 else []
-    for line in summary_lines(arena, volume, cov, suggestions, args.noise_px):
+    cov = coverage(arena, volume, args.noise_px, with_bodies=not args.no_bodies, obstacles=room.obstacles)
+    suggestions = suggest_camera(arena, volume, args.noise_px, args.suggest, room) if args.suggest > 0 else []
+    for line in summary_lines(arena, volume, cov, suggestions, args.noise_px, room):
         print(line)
     if args.out:
         from pathlib import Path
@@ -75,8 +84,9 @@ def run(args: argparse.Namespace) -> int:
                "marker_std_mm": num(cov.marker_std_mm),
                "bodies": {k: {"position_std_mm": num(v), "rotation_std_deg": num(cov.body_rotation_std_deg[k])}
                           for k, v in cov.body_position_std_mm.items()},
-               "suggestions": [{"position": s.camera.center.round(4).tolist(), "seen_by_2": s.seen_by_2,
-                                "marker_rms_mm": s.marker_rms_mm} for s in suggestions]}
+               "suggestions": [{"position": s.camera.center.round(4).tolist(), "mount": s.mount, "where": s.where,
+                                "look_at": (0.5 * (volume.lo + volume.hi)).round(4).tolist(),
+                                "seen_by_2": s.seen_by_2, "marker_rms_mm": s.marker_rms_mm} for s in suggestions]}
         (out_dir / "plan.json").write_text(json.dumps(out))
         print(f"wrote {out_dir / 'plan.json'}")
         try:

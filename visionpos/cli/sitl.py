@@ -5,16 +5,28 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 from visionpos.app.sitl import FlightPlan, find_sitl_binary, format_flight, run_sitl, sitl_arena
+from visionpos.app.sitl.px4 import check_build_kind, find_px4_dir
+from visionpos.app.sitl.px4_run import run_px4
+from visionpos.app.sitl.settings import SitlError
 from visionpos.errors import UsageError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--autopilot", choices=("ardupilot", "px4"), default="ardupilot",
+                   help="ArduPilot's SITL (default) or PX4's SITL with SIH")
     p.add_argument("--sitl", metavar="PATH", help="ArduPilot's arducopter SITL binary (default: the arena's "
-                   "sitl.binary, $VISIONPOS_SITL, or ../shared/sitl/arducopter beside the checkout)")
+                   "sitl.binary, $VISIONPOS_SITL, or ../shared/sitl/arducopter beside the checkout); with --autopilot "
+                   "px4, PX4's build folder holding bin/px4 and etc/ (default: sitl.px4_dir, $VISIONPOS_PX4_SITL)")
+    p.add_argument("--defaults", metavar="PATH", help="ArduPilot's SITL defaults file, copter.parm (default: the "
+                   "arena's sitl.defaults, else copter.parm beside the binary, in its ArduPilot tree, ../shared/sitl)")
     p.add_argument("--scenario", default="thesis", help="arena: thesis (default), arena8 or a YAML path")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--message", choices=("vision_position_estimate", "odometry"), default=None,
+                   help="the pose message to the autopilot (default: the arena's vehicles[0].message, "
+                        "vision_position_estimate); the same as --set vehicles.0.message=...")
     p.add_argument("--altitude", type=float, default=1.0, help="take-off height (m; default 1)")
     p.add_argument("--side", type=float, default=1.0, help="side of the square flown (m; default 1)")
     p.add_argument("--no-square", action="store_true", help="take off, hold and land only")
@@ -45,10 +57,26 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--yaw-swing {swing}: give 0 to 3 rad/s")
     plan = FlightPlan(args.altitude, args.side, args.hold, not args.no_square, args.cut, args.timeout,
                       args.link_delay_ms, swing)
-    arena = sitl_arena(args.scenario, args.set, args.timeout + 60.0)
-    binary = find_sitl_binary(args.sitl, arena)
+    sets = list(args.set) + ([f"vehicles.0.message={args.message}"] if args.message else [])
+    if args.defaults:  # the flag is the arena key, relative to here
+        sets.append(f"sitl.defaults={Path(args.defaults).resolve()}")
+    arena = sitl_arena(args.scenario, sets, args.timeout + 60.0)
     out = sys.stderr if args.json else sys.stdout
-    out.write(f"visionpos sitl: {binary} with {len(arena.cameras)} simulated cameras on 127.0.0.1\n")
-    summary = run_sitl(arena, binary, plan, out)
+    if args.sitl:  # the wrong build for --autopilot: one line
+        check_build_kind(Path(args.sitl), args.autopilot)
+    if args.autopilot == "px4":
+        if args.link_delay_ms is not None:
+            raise UsageError("--link-delay-ms: the delay relay is wired for ArduPilot's SITL only")
+        build = find_px4_dir(args.sitl, arena)
+        out.write(f"visionpos sitl: PX4 {build} with {len(arena.cameras)} simulated cameras on 127.0.0.1\n")
+        try:
+            summary = run_px4(arena, build, plan, out)
+        except SitlError as e:  # PX4 refused the set-up (a parameter, its HEARTBEAT): which and why, status 1
+            print(f"visionpos sitl: {e}", file=sys.stderr)
+            return 1
+    else:
+        binary = find_sitl_binary(args.sitl, arena)
+        out.write(f"visionpos sitl: {binary} with {len(arena.cameras)} simulated cameras on 127.0.0.1\n")
+        summary = run_sitl(arena, binary, plan, out)
     print(json.dumps(summary, indent=2) if args.json else format_flight(summary))
     return 0 if summary["ok"] else 1

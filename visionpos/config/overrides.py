@@ -3,7 +3,9 @@ settings mappings the fusion pipeline takes (nested or dotted keys).
 
 `--set` keys are checked against the declarations (config/schema.py) before anything changes, so
 a typo fails with a suggestion instead of being ignored, and a list index out of range names the
-key. Values are parsed as YAML (`--set fusion.loose_points=false`, `--set cameras.0.dist=[0,0,0,0]`).
+key. Values are parsed as YAML (`--set fusion.loose_points=false`, `--set cameras.0.dist=[0,0,0,0]`),
+except that a number given for a key declared as text is taken as the text typed (`--set
+natnet.bitstream=3.1` is "3.1", `--set x=3.10` is "3.10", not the float's repr).
 """
 
 from __future__ import annotations
@@ -36,14 +38,16 @@ def apply_overrides(data: dict[str, Any], overrides: list[str], source: str = "-
         parts = key.strip().split(".")
         if not all(parts):
             raise ConfigError(source, key, "empty part in the dotted key; write e.g. fusion.kalman.gate_chi2=30")
-        set_path(out, parts, yaml.safe_load(value), schema, source)
+        set_path(out, parts, yaml.safe_load(value), schema, source, text=value.strip())
     return out
 
 
-def set_path(data: dict[str, Any], parts: list[str], value: Any, schema: Spec | None, source: str) -> None:
+def set_path(data: dict[str, Any], parts: list[str], value: Any, schema: Spec | None, source: str,
+             text: str | None = None) -> None:
     """data[parts[0]][parts[1]]... = value, creating mappings on the way; list items by index.
 
-    schema: the Spec of `data` (None: free-form, nothing checked)."""
+    schema: the Spec of `data` (None: free-form, nothing checked). text: the value as typed; where the key is
+    declared as text and YAML read a number from it, the key gets this text instead."""
     node: Any = data
     spec = schema  # mode "mapping": the spec of node (None: free); "list" / "map": the spec of its items
     mode = "mapping"
@@ -72,7 +76,8 @@ def set_path(data: dict[str, Any], parts: list[str], value: Any, schema: Spec | 
             if not last and kind not in ("section", "list", "map", "any"):
                 raise ConfigError(source, where, f"is a single value, not a section; write {where}=VALUE")
         if last:
-            node[key] = value
+            is_number = isinstance(value, (int, float)) and not isinstance(value, bool)
+            node[key] = text if kind == "text" and is_number and text is not None else value
             return
         if mode in ("list", "map"):
             child_spec = spec  # the items' spec

@@ -133,4 +133,5 @@ TOP = section(
     Setting("sitl", "section", {}, "ArduPilot SITL for `visionpos sitl`"),
     Setting("console", "section", {}, "the operator console (web page)"),
     Setting("calibration", "section", {}, "calibration wand, ground frame and reports", spec=CALIBRATION),
+    Setting("plan", "section", {}, "the room for `visionpos plan`: walls, ceiling, obstacles, flight volume"),
 )

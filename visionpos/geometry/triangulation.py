@@ -19,6 +19,7 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 
 from visionpos.camera import fisheye, pinhole
+from visionpos.camera.lens import depth_scaled_projection_jacobian
 from visionpos.camera.model import FISHEYE, PINHOLE, Camera
 
 __all__ = ["TriangulationResult", "CameraRig", "triangulate_normalized", "triangulate_pixels", "triangulation_crb",
@@ -239,16 +240,8 @@ def _residual_jac(
     z = Xc[..., 2]
     iz = 1.0 / z
     xn = Xc[..., :2] * iz[..., None]
-    # d xn / d Xc = [[1, 0, -xn], [0, 1, -yn]] / z, composed with the distortion Jacobian Jd
-    A = np.empty(xn.shape + (3,))
-    if distort is None:
-        pred = xn
-        A[..., :2] = np.eye(2)
-        A[..., 2] = -xn
-    else:
-        pred, Jd = distort(xn)
-        A[..., :2] = Jd
-        A[..., 2] = -(Jd @ xn[..., None])[..., 0]
+    pred, Jd = (xn, None) if distort is None else distort(xn)
+    A = depth_scaled_projection_jacobian(xn, Jd)
     valid = mask & (z > 0)
     J = (A @ R) * np.where(valid, iz, 0.0)[..., None, None]  # (P,V,2,3)
     r = np.where(valid[..., None], pred - obs, 0.0)

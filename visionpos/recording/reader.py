@@ -37,6 +37,7 @@ from visionpos.recording.codec import (
     RecordingError,
     state_from_dict,
 )
+from visionpos.recording.writer import drop_redacted
 
 _MAX_RECORD = 64 * 2**20  # a corrupted length field must not make the reader allocate GiB
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, content length
@@ -130,7 +131,7 @@ class RecordingReader:
             raise RecordingError(f"{self.path}: recorded config is not valid YAML: {e}") from None
         if not isinstance(cfg, dict):
             raise RecordingError(f"{self.path}: recorded config is not a mapping")
-        return cfg
+        return drop_redacted(cfg)  # the secrets the writer left out take their defaults
 
     def _damaged(self, what: str) -> None:
         self.damage = what

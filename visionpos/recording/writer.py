@@ -52,6 +52,30 @@ FLUSH_INTERVAL_S = 0.25
 # ports would make
 MAX_PACKET_SOURCES = 64
 _OVERFLOW_SOURCES_COUNTED = 1024  # distinct overflow senders counted exactly up to this many
+# keys of the arena file whose value is a secret itself (console.token), wherever they appear: a recording's
+# copy of the arena holds REDACTED instead. Key material lives in files (server.key_file,
+# vehicles[i].signing.key_file): only their paths are recorded, never read into the recording.
+SECRET_KEYS = frozenset({"token", "secret", "password", "passphrase", "key"})
+REDACTED = "<redacted>"
+
+
+def redact_secrets(value: Any) -> Any:
+    """A copy of an arena mapping with the value of every SECRET_KEYS key (at any depth) replaced by REDACTED."""
+    if isinstance(value, dict):
+        return {k: (REDACTED if k in SECRET_KEYS and v is not None else redact_secrets(v)) for k, v in value.items()}
+    if isinstance(value, list):
+        return [redact_secrets(v) for v in value]
+    return value
+
+
+def drop_redacted(value: Any) -> Any:
+    """A recorded arena mapping with the REDACTED values left out, so their settings take their defaults on
+    replay (a replay's console makes a fresh token where it needs one)."""
+    if isinstance(value, dict):
+        return {k: drop_redacted(v) for k, v in value.items() if not (k in SECRET_KEYS and v == REDACTED)}
+    if isinstance(value, list):
+        return [drop_redacted(v) for v in value]
+    return value
 
 
 class _Spool:
@@ -139,7 +163,8 @@ class RecordingWriter:
             "monotonic_start_ns": time.monotonic_ns(),
             **plain(meta or {}),
         }
-        self._w.add_metadata("visionpos.config", {"yaml": yaml.safe_dump(plain(raw), sort_keys=False)})
+        self._w.add_metadata("visionpos.config", {"yaml": yaml.safe_dump(redact_secrets(plain(raw)),
+                                                                         sort_keys=False)})
         self._w.add_metadata("visionpos.meta", {"json": json.dumps(full_meta)})
         self._state_schema = self._w.register_schema("visionpos.BodyState", "jsonschema", json_bytes(STATE_SCHEMA))
         self._truth_schema = self._w.register_schema("visionpos.Truth", "jsonschema", json_bytes(TRUTH_SCHEMA))

@@ -345,7 +345,8 @@ class _MonitoredFeed:
         self.pipeline, self.monitor = pipeline, monitor
 
     def push(self, frame: BlobFrame) -> None:
-        self.pipeline.push(frame)
+        if self.monitor.admits(frame.camera_id):  # a knocked camera is left out until it agrees again
+            self.pipeline.push(frame)
         try:
             self.monitor.observe_frame(frame)
         except Exception:  # a monitor bug must not cost the frame its fusion (it is fused above)

@@ -7,26 +7,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from visionpos.app.sitl.settings import SITL
+from visionpos.app.sitl.settings import SHARED_SITL_DIR, SITL
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.errors import UsageError
 
 SITL_ENV = "VISIONPOS_SITL"
-REPO_ROOT = Path(__file__).resolve().parents[3]
-
-
-def _shared_binary() -> Path:
-    """../shared/sitl/arducopter beside the checkout (for a git worktree: beside its main checkout)."""
-    root = REPO_ROOT
-    dotgit = root / ".git"
-    if dotgit.is_file():  # a worktree: "gitdir: MAIN/.git/worktrees/NAME"
-        text = dotgit.read_text(errors="replace").strip()
-        if text.startswith("gitdir:") and "/.git/worktrees/" in text:
-            root = Path(text.split(":", 1)[1].strip().split("/.git/worktrees/")[0])
-    return root.parent / "shared" / "sitl" / "arducopter"
-
-
-SHARED_BINARY = _shared_binary()  # a checkout beside ../shared (tests, CI)
+SHARED_BINARY = SHARED_SITL_DIR / "arducopter"  # a checkout beside ../shared (tests, CI)
 
 
 def default_sitl_binary() -> Path | None:

@@ -12,6 +12,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from bridge.estimator_delay import advised_delay
 from visionpos.app.sitl.delay import delay_record, fmt_ms
 from visionpos.app.sitl.gcs import (
     COPTER_MODES,
@@ -52,11 +53,13 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
     link = ctx.bridge.vehicle(body)
     if cfg.viso_delay_ms is None:
         await asyncio.sleep(2.0)  # a couple of seconds of poses for the latency figure
-        delay = link.stats()["latency_stamp_ms_p50"] + (plan.link_delay_ms or 0.0)
-        delay_ms = int(round(delay)) if np.isfinite(delay) else 10
+        # each pose's stamp -> arrival: its stamp -> send, plus the relay's hold (loopback adds nothing)
+        advice = advised_delay("ardupilot", link.lat_stamp.values() * 1e-6 + (plan.link_delay_ms or 0.0))
+        delay_ms = advice.value_ms if advice is not None else 10
         await gcs.set_params_async({"VISO_DELAY_MS": delay_ms})
-        say(f"EKF3 uses the vision; VISO_DELAY_MS = {delay_ms} (the bridge's pose stamp -> send p50"
-            + (f" + the relay's {plan.link_delay_ms:g} ms" if plan.link_delay_ms else "") + "; loopback adds nothing)")
+        say(f"EKF3 uses the vision; VISO_DELAY_MS = {delay_ms}: "
+            + (advice.why if advice is not None else "no pose timed yet")
+            + (f", with the relay's {plan.link_delay_ms:g} ms" if plan.link_delay_ms else ""))
     record["viso_delay_ms"] = gcs.params.get("VISO_DELAY_MS")
     await gcs.command_async(MAV_CMD_DO_SET_MODE, 1, COPTER_MODES["GUIDED"], what="GUIDED mode")
     arm_end = time.monotonic() + min(45.0, left())

@@ -21,6 +21,9 @@ MAV_CMD_DO_SET_HOME = 179
 MAV_CMD_DO_SET_MODE = 176
 MAV_CMD_COMPONENT_ARM_DISARM = 400
 MAV_CMD_NAV_TAKEOFF = 22
+MAV_CMD_REQUEST_MESSAGE = 512
+MAV_FRAME_GLOBAL = 0
+MSG_HOME_POSITION = 242
 MSG_SIM_STATE = 108
 MSG_SYSTEM_TIME = 2
 MSG_RAW_IMU = 27
@@ -54,7 +57,10 @@ class Gcs:
         self.mode = -1
         self.modes: list[tuple[int, int]] = []  # (recv_ns, custom_mode) at each change
         self.origin: tuple[int, Any] | None = None
+        self.home: tuple[int, Any] | None = None  # (recv_ns, HOME_POSITION)
         self.heartbeats = 0
+        self.autopilot_type: int | None = None  # HEARTBEAT.autopilot (MAV_AUTOPILOT_*)
+        self.target = 1  # the autopilot's sysid
         self.clock = SitlClock()
 
     # -- connection
@@ -136,8 +142,9 @@ class Gcs:
             self.texts.append((now, m.severity, m.text))
             if self.on_text is not None:
                 self.on_text(m.text)
-        elif kind == "HEARTBEAT" and m.get_srcSystem() == 1 and m.get_srcComponent() == 1:
+        elif kind == "HEARTBEAT" and m.get_srcSystem() == self.target and m.get_srcComponent() == 1:
             self.heartbeats += 1
+            self.autopilot_type = m.autopilot
             self.armed = bool(m.base_mode & 128)
             if m.custom_mode != self.mode:
                 self.mode = m.custom_mode
@@ -148,13 +155,15 @@ class Gcs:
             self.acks[m.command] = (m.result, now)
         elif kind == "GPS_GLOBAL_ORIGIN":
             self.origin = (now, m)
+        elif kind == "HOME_POSITION":
+            self.home = (now, m)
 
     def request_streams(self) -> None:
         # SYSTEM_TIME and RAW_IMU at SIM_STATE's rate share its message bucket: they stamp it (SitlClock)
         for msg_id, rate in ((MSG_SIM_STATE, TRUTH_RATE_HZ), (MSG_SYSTEM_TIME, TRUTH_RATE_HZ),
                              (MSG_RAW_IMU, TRUTH_RATE_HZ), (32, TELEMETRY_RATE_HZ), (30, TELEMETRY_RATE_HZ),
                              (193, 10.0), (49, 1.0)):  # LOCAL_POSITION_NED, ATTITUDE, EKF_STATUS_REPORT, ORIGIN
-            self.conn.mav.command_long_send(1, 1, MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 1e6 / rate,
+            self.conn.mav.command_long_send(self.target, 1, MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 1e6 / rate,
                                             0, 0, 0, 0, 0)
 
     # -- waiting (blocking and async)
@@ -179,7 +188,7 @@ class Gcs:
         from pymavlink import mavutil
 
         self.params.pop(name, None)
-        self.conn.mav.param_set_send(1, 1, name.encode(), float(value), mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
+        self.conn.mav.param_set_send(self.target, 1, name.encode(), float(value), mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
 
     def param_confirmed(self, name: str, value: float) -> bool:
         got = self.params.get(name)
@@ -210,7 +219,16 @@ class Gcs:
     def command(self, cmd: int, *params: float) -> None:
         self.acks.pop(cmd, None)
         p = list(params) + [0.0] * (7 - len(params))
-        self.conn.mav.command_long_send(1, 1, cmd, 0, *p)
+        self.conn.mav.command_long_send(self.target, 1, cmd, 0, *p)
+
+    def command_int(self, cmd: int, lat_deg: float, lon_deg: float, alt_m: float, *params: float,
+                    frame: int = MAV_FRAME_GLOBAL) -> None:
+        """A command with a position as COMMAND_INT: latitude and longitude as int32 degE7 (1.1 cm). COMMAND_LONG's
+        float32 parameters keep 24 bits: ~1e-5 deg at 149 deg, a home half a metre off."""
+        self.acks.pop(cmd, None)
+        p = list(params) + [0.0] * (4 - len(params))
+        self.conn.mav.command_int_send(self.target, 1, frame, cmd, 0, 0, *p, int(round(lat_deg * 1e7)),
+                                       int(round(lon_deg * 1e7)), float(alt_m))
 
     async def command_async(self, cmd: int, *params: float, timeout_s: float = 5.0, what: str = "") -> None:
         self.command(cmd, *params)

@@ -12,15 +12,24 @@ Each step is a function below; prepare_vehicle runs them in that order.
 
 from __future__ import annotations
 
+import math
 import time
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
-from visionpos.app.sitl.gcs import MAV_CMD_DO_SET_HOME, MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, Gcs
+from visionpos.app.sitl.gcs import (
+    MAV_CMD_DO_SET_HOME,
+    MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN,
+    MAV_CMD_REQUEST_MESSAGE,
+    MSG_HOME_POSITION,
+    Gcs,
+)
 from visionpos.app.sitl.process import SitlProcess
 from visionpos.app.sitl.settings import SitlError, SitlSettings
 
 if TYPE_CHECKING:
     from bridge.config import VehicleConfig
+
+HOME_TOLERANCE_M = 0.01  # home read back further than this from the origin: an error
 
 
 def vision_parameters(cfg: SitlSettings, message: str, vision_speed: bool) -> dict[str, float]:
@@ -43,25 +52,46 @@ def _setup_signing(gcs: Gcs, key: bytes) -> None:
 
 def _set_origin(gcs: Gcs, cfg: SitlSettings, say: Callable[[str], None]) -> None:
     """SET_GPS_GLOBAL_ORIGIN until SITL reports GPS_GLOBAL_ORIGIN (EKF3 drops it until it runs), then
-    MAV_CMD_DO_SET_HOME at the same place (ArduCopter 4.3+ ignores SET_HOME_POSITION)."""
+    MAV_CMD_DO_SET_HOME at the same place as COMMAND_INT (ArduCopter 4.3+ ignores SET_HOME_POSITION; a
+    COMMAND_LONG's float32 degrees put home 2 cm N and 47 cm E of the origin), read back with HOME_POSITION."""
     lat, lon, alt, _ = cfg.home
     end = time.monotonic() + 60.0
     while gcs.origin is None:
         if time.monotonic() > end:
             raise SitlError("SITL never reported GPS_GLOBAL_ORIGIN: EKF3 did not take the origin")
-        gcs.conn.mav.set_gps_global_origin_send(1, int(lat * 1e7), int(lon * 1e7), int(alt * 1000),
-                                                int(time.time() * 1e6))
+        gcs.conn.mav.set_gps_global_origin_send(1, int(round(lat * 1e7)), int(round(lon * 1e7)),
+                                                int(round(alt * 1000)), int(time.time() * 1e6))
         for _ in range(50):
             if gcs.origin is not None:
                 break
             time.sleep(0.02)
     m = gcs.origin[1]
     say(f"EKF origin confirmed by SITL: {m.latitude * 1e-7:.7f}, {m.longitude * 1e-7:.7f}, {m.altitude * 1e-3:.2f} m")
-    gcs.command(MAV_CMD_DO_SET_HOME, 0, 0, 0, 0, lat, lon, alt)
+    gcs.home = None
+    gcs.command_int(MAV_CMD_DO_SET_HOME, lat, lon, alt)
     gcs.wait(lambda: MAV_CMD_DO_SET_HOME in gcs.acks, 5.0, "COMMAND_ACK for MAV_CMD_DO_SET_HOME")
     if gcs.acks[MAV_CMD_DO_SET_HOME][0] != 0:
         say(f"note: SITL refused MAV_CMD_DO_SET_HOME (MAV_RESULT {gcs.acks[MAV_CMD_DO_SET_HOME][0]}); it sets home "
             "itself when it arms")
+        return
+    gcs.command(MAV_CMD_REQUEST_MESSAGE, MSG_HOME_POSITION)
+    try:
+        gcs.wait(lambda: gcs.home is not None, 3.0, "HOME_POSITION")
+    except SitlError:
+        say("note: SITL did not report HOME_POSITION; home not checked")
+        return
+    north, east = home_offset_m(gcs.home[1], lat, lon)
+    say(f"home set and read back: {1000 * north:+.1f} mm N, {1000 * east:+.1f} mm E of the origin")
+    if math.hypot(north, east) > HOME_TOLERANCE_M:
+        raise SitlError(f"SITL's home is {north:.3f} m N, {east:.3f} m E of the origin (over "
+                        f"{100 * HOME_TOLERANCE_M:g} cm): it did not take MAV_CMD_DO_SET_HOME's position")
+
+
+def home_offset_m(home: Any, lat_deg: float, lon_deg: float) -> tuple[float, float]:
+    """(north, east) m of a HOME_POSITION (degE7 fields) from lat_deg, lon_deg."""
+    from bridge.backchannel import geodetic_offset_m
+
+    return geodetic_offset_m(home.latitude * 1e-7, home.longitude * 1e-7, lat_deg, lon_deg)
 
 
 def prepare_vehicle(gcs: Gcs, proc: SitlProcess, cfg: SitlSettings, veh: VehicleConfig, key: bytes,
@@ -69,6 +99,8 @@ def prepare_vehicle(gcs: Gcs, proc: SitlProcess, cfg: SitlSettings, veh: Vehicle
     """The whole set-up, in its order: connect, the vision-only parameters (read back), reboot, reconnect,
     the noise floors (and VISO_DELAY_MS when configured), the signing key, the EKF origin and home."""
     gcs.connect(30.0, proc)
+    if gcs.autopilot_type == 12:  # MAV_AUTOPILOT_PX4
+        raise SitlError(f"{cfg.binary} runs PX4, not ArduPilot: fly it with --autopilot px4")
     params = vision_parameters(cfg, veh.message, veh.vision_speed)
     gcs.set_params(params)
     say(f"parameters set and read back ({len(params)}); rebooting SITL")

@@ -26,8 +26,9 @@ FAILSAFE_WORDS = ("failsafe", "ekf variance", "lane switch", "ekf primary change
 
 
 def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: dict[str, Any], plan: FlightPlan,
-                   wall_s: float) -> dict[str, Any]:
-    """EKF and vision against SITL's truth, EKF test ratios, every STATUSTEXT, failsafes."""
+                   wall_s: float, our_modes: set[int] | None = None) -> dict[str, Any]:
+    """EKF and vision against SITL's truth, EKF test ratios, every STATUSTEXT, failsafes. our_modes: the
+    HEARTBEAT custom_modes the flight commands (default ArduCopter's GUIDED and LAND)."""
     a = record.get("armed_ns")
     b = record.get("disarmed_ns") or time.monotonic_ns()
     out: dict[str, Any] = {"completed": bool(record.get("completed")), "error": record.get("error"), "wall_s": wall_s,
@@ -66,7 +67,7 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
     texts = [t for _, _, t in gcs.texts]
     out["statustext"] = texts
     out["failsafe_or_lane_switch"] = [t for t in texts if any(w in t.lower() for w in FAILSAFE_WORDS)]
-    ours = {COPTER_MODES["GUIDED"], COPTER_MODES["LAND"]}
+    ours = our_modes if our_modes is not None else {COPTER_MODES["GUIDED"], COPTER_MODES["LAND"]}
     out["mode_changes_not_ours"] = [MODE_NAMES.get(m, m) for t, m in gcs.modes
                                     if a is not None and a <= t <= b and m not in ours]
     vb = next((x for x in demo.get("bodies", [])), {})
@@ -91,7 +92,8 @@ def format_flight(s: dict[str, Any]) -> str:
     vis = s["vision"]
     lines = [
         f"visionpos sitl: flight {'completed' if s['completed'] else 'NOT completed'} "
-        f"({s['wall_s']:.0f} s wall, VISO_DELAY_MS {f(s.get('viso_delay_ms'), '.0f')})"
+        f"({s['wall_s']:.0f} s wall, {s.get('delay_param', 'VISO_DELAY_MS')} {f(s.get('viso_delay_ms'), '.0f')}"
+        + (f"; the bridge advises {s['delay_advised_ms']}" if s.get("delay_advised_ms") is not None else "") + ")"
         + (f": {s['error']}" if s.get("error") else ""),
         f"  EKF position vs SITL truth (armed to disarmed): horizontal p50 {f(h.get('p50'))} mm, p99 {f(h.get('p99'))}"
         f" mm, max {f(h.get('max'))} mm; vertical p99 {f(v.get('p99'))} mm",

@@ -26,11 +26,18 @@ if TYPE_CHECKING:
 
 
 def sitl_arena(scenario: str, overrides: list[str], max_duration_s: float) -> ArenaConfig:
+    """The demo's arena for the flight. `vehicles.*` overrides are applied after the demo has made its vehicles
+    (one per body when the file has none): applied to the file as read, `--set vehicles.0.message=odometry`
+    found an empty list ("`vehicles` is empty")."""
     from visionpos.app.demo import demo_arena
+    from visionpos.config.arena import apply_overrides, parse_arena
 
-    arena = demo_arena(scenario, max_duration_s, None, overrides)
+    vehicle_sets = [o for o in overrides if o.split("=", 1)[0].strip().startswith("vehicles.")]
+    arena = demo_arena(scenario, max_duration_s, None, [o for o in overrides if o not in vehicle_sets])
     if len(arena.bodies) < 1:
         raise UsageError(f"{arena.source}: the arena has no body to fly")
+    if vehicle_sets:
+        arena = parse_arena(apply_overrides(arena.to_dict(), vehicle_sets), arena.source)
     return arena
 
 

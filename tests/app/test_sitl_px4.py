@@ -1,0 +1,158 @@
+"""`visionpos sitl --autopilot px4`: the EKF2 parameters, the GCS link's steps (parameters read back, arming in
+Position mode, EKF2 fusing the vision) against the fake PX4, the wrong build; a short flight on a real PX4 SIH
+build where one is found."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+
+from bridge.fake_autopilot import FakeAutopilot
+from visionpos.app import sitl as S
+from visionpos.app.ports import free_port
+from visionpos.app.sitl import px4 as P
+from visionpos.app.sitl.px4_run import arm_in_position_mode, wait_ev_fused
+
+HOME = (-35.363261, 149.165230, 584.0)
+
+
+def test_px4_parameters_and_their_environment():
+    p = P.px4_parameters("vision_position_estimate", 16, 0.01, 0.02, 3)
+    assert p["EKF2_EV_CTRL"] == 11 and P.px4_parameters("odometry", 16, 0.01, 0.02, 3)["EKF2_EV_CTRL"] == 15
+    assert (p["EKF2_HGT_REF"], p["EKF2_GPS_CTRL"], p["EKF2_MAG_TYPE"], p["SYS_HAS_GPS"], p["SYS_HAS_MAG"]) == (
+        3, 0, 5, 0, 0)
+    env = P.px4_env(p)
+    assert env["PX4_PARAM_EKF2_HGT_REF"] == "3" and env["PX4_PARAM_EKF2_EV_DELAY"] == "16"
+    assert env["PX4_PARAM_EKF2_EVP_NOISE"] == "0.01" and env["PX4_PARAM_MAV_SYS_ID"] == "3"
+    assert P.px4_ports(7) == {"gcs": 18577, "onboard": 14587, "truth": 19417}  # the README's instance 7
+
+
+def test_wrong_build_for_the_autopilot_is_one_line(tmp_path):
+    from visionpos.errors import UsageError
+
+    (tmp_path / "px4" / "bin").mkdir(parents=True)
+    (tmp_path / "px4" / "etc").mkdir()
+    (tmp_path / "px4" / "bin" / "px4").write_text("")
+    (tmp_path / "arducopter").write_text("")
+    with pytest.raises(UsageError, match="is a PX4 build.*--autopilot px4"):
+        P.check_build_kind(tmp_path / "px4", "ardupilot")
+    with pytest.raises(UsageError, match="is a file.*--autopilot ardupilot"):
+        P.check_build_kind(tmp_path / "arducopter", "px4")
+    assert P.find_px4_dir(str(tmp_path / "px4" / "bin" / "px4")) == tmp_path / "px4"
+    with pytest.raises(UsageError, match="no PX4 build there"):
+        P.find_px4_dir(str(tmp_path))
+
+
+def test_cli_exits_1_with_the_reason_when_px4_refuses_the_set_up(tmp_path, monkeypatch, capsys):
+    import argparse
+
+    from visionpos.cli import sitl as cli
+
+    (tmp_path / "bin").mkdir()
+    (tmp_path / "etc").mkdir()
+    (tmp_path / "bin" / "px4").write_text("")
+
+    def refuse(arena, build, plan, out):
+        raise S.SitlError("PX4 did not answer for EKF2_EV_NOISE_MD: this firmware has no such parameter")
+
+    monkeypatch.setattr(cli, "run_px4", refuse)
+    p = argparse.ArgumentParser()
+    cli.add_arguments(p)
+    assert cli.run(p.parse_args(["--autopilot", "px4", "--sitl", str(tmp_path), "--no-square"])) == 1
+    assert "EKF2_EV_NOISE_MD" in capsys.readouterr().err
+
+
+def _gcs(ap):
+    return P.Px4Gcs({"gcs": ap.port, "onboard": 0, "truth": free_port()}, S.TruthTrack(HOME))
+
+
+def test_px4_gcs_reads_the_parameters_back_and_says_which_is_missing_or_rejected():
+    params = P.px4_parameters("odometry", 16, 0.01, 0.02, 5)
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=5, autopilot="px4", reject_params=("EKF2_EV_NOISE_MD",)).start()
+    ap.params.update({k: v for k, v in params.items() if k != "EKF2_EV_NOISE_MD"})  # as PX4_PARAM_ set them
+    gcs = _gcs(ap)
+    try:
+        gcs.connect(5.0)
+        assert gcs.target == 5
+        with pytest.raises(S.SitlError, match="did not answer for EKF2_EV_NOISE_MD.*no such parameter"):
+            gcs.check_params(params, timeout_s=1.0)
+        del params["EKF2_EV_NOISE_MD"]
+        gcs.check_params(params)
+        ap.params["EKF2_HGT_REF"] = 1.0  # the firmware kept its own value
+        with pytest.raises(S.SitlError, match="rejected.*EKF2_HGT_REF = 1, not 3"):
+            gcs.check_params(params)
+    finally:
+        gcs.close()
+        ap.close()
+
+
+def test_px4_gcs_refuses_an_ardupilot():
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=1, autopilot="ardupilot").start()
+    gcs = _gcs(ap)
+    try:
+        with pytest.raises(S.SitlError, match="not PX4.*ArduPilot"):
+            gcs.connect(5.0)
+    finally:
+        gcs.close()
+        ap.close()
+
+
+async def _with_vision(gcs, coro):
+    """Run coro while poses go to the fake PX4 at 20 Hz (VISION_POSITION_ESTIMATE, NED)."""
+    async def poses():
+        while True:
+            gcs.conn.mav.vision_position_estimate_send(time.monotonic_ns() // 1000, 0.0, 0.0, -0.1, 0.0, 0.0, 0.0)
+            await asyncio.sleep(0.05)
+
+    task = asyncio.ensure_future(poses())
+    try:
+        return await coro
+    finally:
+        task.cancel()
+
+
+def test_arming_sequence_against_the_fake_px4():
+    """GCS heartbeat and MANUAL_CONTROL from the keep-alive, Position mode, then arm: the fake PX4 arms only with
+    all of them and the vision fused."""
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=1, autopilot="px4", heartbeat_hz=10).start()
+    gcs = _gcs(ap)
+    try:
+        gcs.connect(5.0)
+        asyncio.run(_with_vision(gcs, wait_ev_fused(gcs, 5.0, lambda: True)))
+        assert gcs.ev_fused() and gcs.estimator.flags == 0x1EF
+        asyncio.run(_with_vision(gcs, arm_in_position_mode(gcs, 5.0)))
+        assert gcs.armed and ap.px4.armed and ap.px4.main_mode == P.POSCTL
+        assert gcs.mode == P.POSCTL << 16
+    finally:
+        gcs.close()
+        ap.close()
+
+
+def test_ekf2_rejecting_the_vision_is_said_and_stops_the_run():
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=1, autopilot="px4", ekf="reject").start()
+    gcs = _gcs(ap)
+    try:
+        gcs.connect(5.0)
+        with pytest.raises(S.SitlError, match="never fused the vision in 1 s: EKF2 rejects the vision"):
+            asyncio.run(_with_vision(gcs, wait_ev_fused(gcs, 1.0, lambda: True)))
+    finally:
+        gcs.close()
+        ap.close()
+
+
+@pytest.mark.skipif(P.default_px4_dir() is None,
+                    reason=f"no PX4 SITL build (set {P.PX4_ENV}=DIR, DIR holding bin/px4 and etc/ of a px4_sitl "
+                           "build, or put it in ../shared/sitl-px4/build beside the checkout)")
+def test_short_closed_loop_flight_on_real_px4():
+    from visionpos.app.sitl.px4_run import run_px4
+
+    plan = S.FlightPlan(altitude_m=0.5, side_m=0.5, hold_s=1.0, square=False, cut_s=0.0, timeout_s=90.0)
+    arena = S.sitl_arena("thesis", [f"cameras.{i}.fps=50" for i in range(4)], plan.timeout_s + 30.0)
+    s = run_px4(arena, P.default_px4_dir(), plan, None)
+    rt = s["real_time"]
+    if rt["frames_late_fraction"] > 0.02 or rt["frames_not_fused_fraction"] > 0.05:
+        pytest.skip("this host did not keep real time")
+    assert s["completed"], (s["error"], s["statustext"])
+    assert s["ekf_horizontal_error_mm"]["p99"] <= 20.0

@@ -1,0 +1,208 @@
+"""`visionpos sitl --autopilot px4`: PX4 SITL (SIH) started with its EKF2 set for vision only, the demo's cameras
+following SIH's true state, the bridge feeding PX4's Onboard link, and the flight: EKF2 fusing the vision, Position
+mode, arm, Offboard take-off, hold (cut), square, AUTO.LAND, disarm; the summary against SIH's truth.
+
+EKF2_EV_DELAY needs a restart to change, so it is set at start: sitl.viso_delay_ms when given, else
+FIRST_EV_DELAY_MS plus the link delay; the summary gives the value the bridge's measurement advises (PX4 in SITL
+stamps the poses on arrival: the median stamp-to-arrival delay, bridge/estimator_delay.py) for the next run.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from pathlib import Path
+from typing import Any, Callable, TextIO
+
+import numpy as np
+
+from visionpos.app.sitl.flight import FlightPlan
+from visionpos.app.sitl.px4 import (
+    AUTO,
+    AUTO_LAND,
+    OFFBOARD,
+    POSCTL,
+    Px4Gcs,
+    Px4Process,
+    free_px4_instance,
+    px4_parameters,
+    px4_ports,
+)
+from visionpos.app.sitl.report import flight_summary
+from visionpos.app.sitl.settings import SITL, SitlError
+from visionpos.app.sitl.truth import LiveArena, TruthTrack, truth_now
+from visionpos.config.arena import ArenaConfig
+from visionpos.geometry.frames import ned_to_world
+
+FIRST_EV_DELAY_MS = 15.0  # the bridge's stamp -> send median on the reference VM (issue 31: 16 ms)
+OUR_MODES = {POSCTL << 16, OFFBOARD << 16, (AUTO << 16) | (AUTO_LAND << 24)}
+
+
+def px4_arena(arena: ArenaConfig, instance: int) -> ArenaConfig:
+    """The arena with its first vehicle only, as PX4's instance: sysid instance+1, the Onboard link (udpout,
+    unsigned: PX4 does not sign with our key), `autopilot: px4`, no origin (EKF2 flies the local frame)."""
+    from visionpos.config.arena import ConfigError, parse_arena
+
+    data = arena.to_dict()
+    vehicles = data.get("vehicles") or []
+    if not vehicles:
+        raise ConfigError(arena.source, "vehicles", "SITL flies the first vehicle: add one (docs/autopilot-setup.md)")
+    v = dict(vehicles[0])
+    for k in ("signing", "origin", "autopilot_address"):
+        v.pop(k, None)
+    v.update(sysid=instance + 1, endpoint=f"udpout:127.0.0.1:{px4_ports(instance)['onboard']}", autopilot="px4")
+    data["vehicles"] = [v]
+    return parse_arena(data, arena.source)
+
+
+def run_px4(arena: ArenaConfig, build: Path, plan: FlightPlan, out: TextIO | None) -> dict[str, Any]:
+    """Start PX4 SIH with the vision-only EKF2, fly the plan on the live arena, the summary dict."""
+    from bridge.config import parse_vehicles
+
+    sec = SITL.check(arena.section("sitl"))
+    home = tuple(float(x) for x in SITL.read(sec, "home"))
+    instance = SITL.read(sec, "instance") or free_px4_instance()
+    arena = px4_arena(arena, instance)
+    veh = parse_vehicles(arena)[0]
+    given = SITL.read(sec, "viso_delay_ms")
+    ev_delay = given if given is not None else FIRST_EV_DELAY_MS + (plan.link_delay_ms or 0.0)
+    params = px4_parameters(veh.message, round(ev_delay), SITL.read(sec, "viso_pos_m_nse"),
+                            SITL.read(sec, "viso_yaw_m_nse"), veh.sysid)
+    say = (lambda text: (out.write(text + "\n"), out.flush())) if out is not None else (lambda text: None)
+    truth = TruthTrack(home[:3])
+    live = LiveArena(veh.body, truth)
+    record: dict[str, Any] = {"viso_delay_ms": round(ev_delay), "delay_param": "EKF2_EV_DELAY"}
+    t0 = time.monotonic()
+    with Px4Process(build, instance, params, home) as proc:
+        gcs = Px4Gcs(px4_ports(instance), truth, on_text=lambda text: say(f"  PX4: {text}"))
+        try:
+            say(f"PX4 SIH instance {instance} in {proc.folder}: GCS udp 127.0.0.1:{gcs.port}, the bridge on its "
+                f"Onboard link {veh.endpoint}; EKF2 set at start ({len(params)} parameters)")
+            gcs.connect(30.0, proc)
+            gcs.check_params(params)
+            say(f"parameters read back; cameras start (EKF2_EV_DELAY {round(ev_delay)} ms)")
+            demo = _fly_live(arena, gcs, live, plan, veh.body, record, say)
+        finally:
+            gcs.close()
+    summary = flight_summary(gcs, truth, demo, record, plan, time.monotonic() - t0, our_modes=OUR_MODES)
+    made = max(live.frames_made, 1)
+    summary["real_time"] = {"frames_made": live.frames_made, "frames_late_fraction": live.frames_late / made,
+                            "frames_not_fused_fraction": (summary["vision"]["frames_not_fused"] or 0) / made}
+    summary["delay_param"] = "EKF2_EV_DELAY"
+    summary["delay_advised_ms"] = record.get("advised_ms")
+    return summary
+
+
+def _fly_live(arena: ArenaConfig, gcs: Px4Gcs, live: LiveArena, plan: FlightPlan, body: str,
+              record: dict[str, Any], say: Callable[[str], None]) -> dict[str, Any]:
+    from visionpos.app.demo import run_demo
+
+    async def during(ctx: Any) -> None:
+        try:
+            await fly_px4(ctx, gcs, plan, body, record, say, live)
+        except SitlError as e:
+            record["error"] = str(e)
+            say(f"flight failed: {e}")
+        finally:
+            live.stop()
+
+    return asyncio.run(run_demo(arena, plan.timeout_s + 60.0, None, during=during, live=live))
+
+
+async def wait_ev_fused(gcs: Px4Gcs, timeout_s: float, sending: Callable[[], bool]) -> None:
+    """Until EKF2 has a relative position from the vision; else SitlError saying why (bridge/px4_status.py)."""
+    from bridge.px4_status import ev_fusion_state
+
+    end = time.monotonic() + timeout_s
+    while not gcs.ev_fused():
+        if time.monotonic() > end:
+            m = gcs.estimator
+            why = ("PX4 sent no ESTIMATOR_STATUS" if m is None else
+                   ev_fusion_state(m.flags, m.pos_horiz_ratio, m.pos_vert_ratio, m.vel_ratio, sending())[1])
+            raise SitlError(f"PX4's EKF2 never fused the vision in {timeout_s:g} s: {why}; last messages: "
+                            + "; ".join(t for _, _, t in gcs.texts[-5:]))
+        await asyncio.sleep(0.1)
+
+
+async def arm_in_position_mode(gcs: Px4Gcs, timeout_s: float) -> None:
+    """GCS heartbeat (always) and MANUAL_CONTROL, Position mode (MAV_CMD_DO_SET_MODE 1, 3), then arm, asked again
+    until PX4 lets it (its preflight checks settle on the vision); SitlError with its last words otherwise."""
+    gcs.manual = True
+    await asyncio.sleep(0.5)  # a few MANUAL_CONTROL first: Position mode wants them
+    await gcs.command_async(176, 1, POSCTL, what="Position mode")
+    end = time.monotonic() + timeout_s
+    while True:
+        gcs.command(400, 1)
+        try:
+            await gcs.until(lambda: gcs.armed, 1.5, "arming")
+            return
+        except SitlError:
+            if time.monotonic() > end:
+                raise SitlError("PX4 would not arm in Position mode; last messages: "
+                                + "; ".join(t for _, _, t in gcs.texts[-5:])) from None
+
+
+async def fly_px4(ctx: Any, gcs: Px4Gcs, plan: FlightPlan, body: str, record: dict[str, Any],
+                  say: Callable[[str], None], live: LiveArena) -> None:
+    """EKF2 on the vision, arm in Position mode, Offboard take-off, hold (cut), square, AUTO.LAND, disarm."""
+    link = ctx.bridge.vehicle(body)
+    await wait_ev_fused(gcs, 60.0, lambda: link.sending_state() == "sending")
+    record["extnav_ns"] = time.monotonic_ns()
+    say("EKF2 fuses the vision")
+    await arm_in_position_mode(gcs, 45.0)
+    record["armed_ns"] = time.monotonic_ns()
+    await gcs.until(lambda: bool(gcs.local), 5.0, "LOCAL_POSITION_NED from PX4 (its GCS link streams it)")
+    n0, e0, _ = gcs.local[-1][1:4]
+    gcs.setpoint = (n0, e0, -plan.altitude_m)  # streamed before and after the switch: Offboard needs it
+    await asyncio.sleep(0.5)
+    await gcs.command_async(176, 1, OFFBOARD, what="Offboard mode")
+    gcs.manual = False
+    say("armed in Position mode; Offboard take-off")
+    await _reach(gcs, n0, e0, -plan.altitude_m, 30.0)
+    record["airborne_ns"] = time.monotonic_ns()
+    await asyncio.sleep(plan.hold_s / 2)
+    if plan.cut_s > 0:
+        now = time.monotonic_ns()
+        live.cut(now, now + int(plan.cut_s * 1e9))
+        record["cut"] = (now, now + int(plan.cut_s * 1e9), (n0, e0, -plan.altitude_m))
+        say(f"vision cut for {plan.cut_s:g} s")
+        await asyncio.sleep(plan.cut_s)
+    await asyncio.sleep(plan.hold_s / 2)
+    if plan.square:
+        s = plan.side_m
+        for dn, de in ((s, 0.0), (s, s), (0.0, s), (0.0, 0.0)):
+            await _reach(gcs, n0 + dn, e0 + de, -plan.altitude_m, 20.0)
+            say(f"  corner N {dn:+.1f} E {de:+.1f} m reached")
+            await asyncio.sleep(1.0)
+    bc = link.bc
+    if bc.advice is not None:
+        record["advised_ms"] = bc.advice.value_ms
+        say(f"the bridge advises EKF2_EV_DELAY={bc.advice.value_ms} ({bc.advice.why}); this run had "
+            f"{record['viso_delay_ms']} (set sitl.viso_delay_ms for the next: it needs a restart)")
+    record["land_ns"] = time.monotonic_ns()
+    await gcs.command_async(176, 1, AUTO, AUTO_LAND, what="AUTO.LAND")
+    gcs.setpoint = None
+    await gcs.until(lambda: not gcs.armed, 40.0, "landing and disarm")
+    record["disarmed_ns"] = time.monotonic_ns()
+    record["completed"] = True
+    say("landed and disarmed")
+
+
+async def _reach(gcs: Px4Gcs, north: float, east: float, down: float, timeout_s: float) -> None:
+    """The offboard setpoint moved there, until SIH's true position is within 5 cm for 0.5 s."""
+    gcs.setpoint = (north, east, down)
+    target = ned_to_world(np.array([north, east, down]))
+    end = time.monotonic() + timeout_s
+    ok_since = None
+    while True:
+        await asyncio.sleep(0.05)
+        t, x = truth_now(gcs.truth)
+        if t and math.dist(x[:3], target) < 0.05:
+            ok_since = ok_since or time.monotonic()
+            if time.monotonic() - ok_since > 0.5:
+                return
+        else:
+            ok_since = None
+        if time.monotonic() > end:
+            raise SitlError(f"the vehicle did not reach N {north:.2f} E {east:.2f} D {down:.2f} within {timeout_s:g} s")
