@@ -52,16 +52,17 @@ def test_pair_costs_sum_the_normalised_squares():
 
 
 class Fleet:
-    """Three drones; optical body i is drone perm[i]; vehicle 'v{k}' is drone k. yaw_rate[k](t s) rad/s."""
+    """Drones on the floor; optical body i is drone perm[i]; vehicle 'v{k}' is drone k. yaw_rate[k](t s) rad/s."""
 
     def __init__(self, perm=(2, 0, 1), policy="continuity"):
         self.perm = list(perm)
-        self.bodies = ["quad1", "quad2", "quad3"]
-        self.names = ["v0", "v1", "v2"]
+        n = len(self.perm)
+        self.bodies = [f"quad{i + 1}" for i in range(n)]
+        self.names = [f"v{k}" for k in range(n)]
         self.binding = FleetBinding([self.bodies], dict(zip(self.names, self.bodies)),
                                     dict.fromkeys(self.names, math.radians(3.0)), dict.fromkeys(self.names, policy))
-        self.rates = [lambda t: 0.0] * 3
-        self.yaw = [0.0, 0.0, 0.0]
+        self.rates = [lambda t: 0.0] * n
+        self.yaw = [0.0] * n
         self.tel = {n: ([], []) for n in self.names}
         self.t_ns = 0
         self.silent: set[str] = set()
@@ -204,3 +205,87 @@ def test_a_silent_back_channel_turns_the_identity_unknown_and_follows_the_policy
         assert f.binding.vehicle_of("quad2") is None
     else:
         assert f.binding.vehicle_of("quad2") is None and "stopped" in st.reason
+
+
+def test_ten_on_the_floor_turned_by_hand_one_at_a_time_the_last_by_elimination():
+    perm = [3, 7, 0, 9, 5, 1, 8, 2, 6, 4]  # the tracker's names say nothing about which drone is which
+    f = Fleet(perm)
+    order = [0, 1, 2, 3, 4, 5, 6, 7, 8]  # drone k turned 30 deg over 1 s at 1.5 k s; drone 9 never moves
+    for k in order:
+        f.rates[k] = hand_yaw(1.0 + 1.5 * k, 30.0, 1.0)
+    f.step(1.0 + 1.5 * len(order) + 1.0)
+    assert {b: v for _, b, v in f.made} == {b: f.truth_vehicle(b) for b in f.bodies}
+    bound_at = {v: t * 1e-9 for t, _, v in f.made}
+    for k in order:  # each within a second of its turn's start
+        assert 0 < bound_at[f"v{k}"] - (1.0 + 1.5 * k) <= 1.0
+    assert f.binding.binds == 10 and f.stopped == []
+
+
+class Book:
+    """The pipeline's IdentityBook as the bridge reads it: names, state, bind."""
+
+    def __init__(self, names):
+        from visionpos.fusion.identity import IdentityState
+
+        self.names, self.state, self.bound = list(names), [IdentityState.ACQUIRED] * len(names), []
+        self.S = IdentityState
+
+    def bind(self, b: int) -> bool:
+        self.bound.append(self.names[b])
+        self.state[b] = self.S.CONTINUITY
+        return True
+
+
+def test_the_bridge_sends_a_fleet_body_to_the_vehicle_it_is_bound_to_only():
+    from bridge import Bridge
+    from visionpos.benchmarks.factories import body_state
+    from visionpos.config.arena import parse_arena
+
+    layout = [[0.1, 0, 0], [0, 0.1, 0], [-0.1, 0, 0], [0, -0.12, 0.02]]
+    arena = parse_arena({"bodies": [{"name": "quadA", "id": 1, "markers": layout},
+                                    {"name": "quadB", "id": 2, "markers": layout}],
+                         "vehicles": [{"body": "quadA", "endpoint": "udpout:127.0.0.1:9"},
+                                      {"body": "quadB", "endpoint": "udpout:127.0.0.1:10"}]}, "fleet-test.yaml")
+    clock = [10**12]
+    bridge = Bridge(arena, {"clock_ns": lambda: clock[0], "report_interval_s": 0, "pose_stream": False})
+    book = Book(["quadA", "quadB"])
+    bridge.use_identity(book)
+    v_a, v_b = bridge.vehicle("quadA"), bridge.vehicle("quadB")
+    turn = hand_yaw(1.0, 45.0, 1.0)  # quadA is vehicle quadB's drone: its autopilot turns, quadA's body too
+    yaw = 0.0
+    for i in range(250):
+        clock[0] += STEP_NS
+        t = (clock[0] - 10**12) * 1e-9
+        r = turn(t)
+        yaw += r * STEP_NS * 1e-9
+        if i % 2 == 0:
+            for v, rate in ((v_b, r), (v_a, 0.0)):
+                v.bc.att.add(clock[0], (0.0, 0.0, 0.0, 0.0, -rate))
+                v.bc.clock_offsets.add(clock[0], (0,))
+        q = Rotation.from_euler("z", yaw).as_quat()
+        bridge.publish([body_state("quadA", 1, capture_ns=clock[0], quaternion=q, angular_velocity=(0, 0, r)),
+                        body_state("quadB", 2, capture_ns=clock[0])])
+        if i == 50:
+            assert v_a._slot is None and v_b._slot is None  # unbound: nothing offered
+            assert "no motion yet" in bridge.health()["quadA"]["identity_reason"]
+            assert "identity unresolved" in bridge.status_line()
+    assert book.bound == ["quadA", "quadB"]  # quadA by its turn, then quadB by elimination
+    assert v_b._slot.name == "quadA" and v_a._slot.name == "quadB"
+    assert bridge.stats()["vehicles"]["quadB"]["bound_body"] == "quadA"
+    book.state[0] = book.S.LOST  # its track breaks: its vehicle stops at once, its mailbox emptied
+    v_b._slot = None
+    bridge.publish([body_state("quadA", 1, capture_ns=clock[0] + STEP_NS, tracked=False),
+                    body_state("quadB", 2, capture_ns=clock[0] + STEP_NS)])
+    assert v_b._slot is None and bridge.health()["quadB"]["identity_binding"] == "unresolved"
+    assert "track lost" in bridge.health()["quadB"]["identity_reason"]
+    assert v_a._slot.name == "quadB"
+
+
+def test_silent_backchannel_is_checked():
+    from bridge.config import parse_vehicles
+    from visionpos.benchmarks.factories import arena_with_vehicles
+    from visionpos.config.arena import ConfigError
+
+    with pytest.raises(ConfigError, match=r"vehicles\[0\]\.silent_backchannel"):
+        parse_vehicles(arena_with_vehicles([{"body": "body1", "endpoint": "udpout:127.0.0.1:9",
+                                             "silent_backchannel": "sometimes"}]))
