@@ -17,8 +17,9 @@ thousand to one); the pipeline is told (IdentityBook.bind: its state turns track
 - A binding holds while the body's identity stays tracked-by-continuity; after a loss or an ambiguous
   crossing it is dropped at once (the body's samples too: they may be another drone's) and made again
   from fresh samples.
-- A held binding is checked at every evaluation: its pair cost over the reject cost, or another vehicle
-  assigned to its body with confidence, and the output stops first, then the body is bound again.
+- A held binding is checked at every evaluation: its pair cost over the reject cost, or another vehicle's
+  cost for its body lower by AMBIGUITY (a thousand to one: another autopilot moves like it), and the output
+  stops first, then the body is bound again.
 - A vehicle whose back-channel is silent (no attitude for TELEMETRY_STALE_NS) has identity "unknown"; its
   output follows `silent_backchannel` (bridge/config.py): continuity keeps a held binding while the track
   stays continuous (a loss or ambiguity drops it, and there is nothing to bind again with), stop drops it.
@@ -280,10 +281,17 @@ class FleetBinding:
             v = self.bound.get(b)
             if v is None or v not in col:
                 continue  # a silent vehicle's binding: its policy decides (_live_vehicles)
-            if cost[i, col[v]] > reject:
+            mine = cost[i, col[v]]
+            others = np.delete(cost[i], col[v])
+            better = others[np.isfinite(others)].min() if np.isfinite(others).any() else np.inf
+            if mine > reject or mine > better + AMBIGUITY:
                 self.disagreements += 1
                 self.rings[b].clear()
-                why = f"{b} no longer moves like it (cost {cost[i, col[v]]:.0f} over the reject {reject:.0f})"
+                alt = np.where(np.isfinite(cost[i]), cost[i], np.inf)
+                alt[col[v]] = np.inf
+                j = int(np.argmin(alt))
+                why = (f"{b} no longer moves like it (cost {mine:.0f} over the reject {reject:.0f})" if mine > reject
+                       else f"{b} moves like {vehicles[j]} (cost {cost[i, j]:.0f} against its {mine:.0f})")
                 dropped.append(self._drop(b, f"binding disagreed: {why}: poses stopped, binding again", self._now_ns,
                                           STOPPED))
         made = []

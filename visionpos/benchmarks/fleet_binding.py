@@ -31,12 +31,13 @@ LIFT_M = 0.01
 
 
 LOSS_S = 0.2  # an injected loss: the body untracked this long
+SWAP = ("quad1", "quad6")  # an injected swap: two drones of different cells (a pair flies alike to its cell)
 
 
 def measure(duration_s: float | None = None, scenario: str = "fleet", loss_at_s: tuple[float, ...] = (),
             swap_at_s: float | None = None) -> dict:
     """The figures (module docstring). loss_at_s: scenario times at which quad3's track is taken away for LOSS_S
-    (the bridge sees it untracked, then reacquired); swap_at_s: from then on the states of quad1 and quad2 are
+    (the bridge sees it untracked, then reacquired); swap_at_s: from then on the states of the SWAP bodies are
     exchanged while the identity book still says continuous (a swap the tracker did not notice)."""
     from visionpos.benchmarks.fusion_replay import replay
     from visionpos.sim import load_scenario, simulate
@@ -92,9 +93,10 @@ def _inject(sc, t_ns: int, states: list, identity: dict, loss_at_s, swap_at_s, b
         identity["quad3"] = IdentityState.ACQUIRED.value
     if swap_at_s is not None and t >= swap_at_s:
         by = {s.name: s for s in states}
-        if "quad1" in by and "quad2" in by:
-            states = [dataclasses.replace(by["quad2"], name="quad1") if s.name == "quad1" else
-                      dataclasses.replace(by["quad1"], name="quad2") if s.name == "quad2" else s for s in states]
+        a, b = SWAP
+        if a in by and b in by:
+            states = [dataclasses.replace(by[b], name=a) if s.name == a else
+                      dataclasses.replace(by[a], name=b) if s.name == b else s for s in states]
     return states
 
 
