@@ -17,9 +17,10 @@ thousand to one); the pipeline is told (IdentityBook.bind: its state turns track
 - A binding holds while the body's identity stays tracked-by-continuity; after a loss or an ambiguous
   crossing it is dropped at once (the body's samples too: they may be another drone's) and made again
   from fresh samples.
-- A held binding is checked at every evaluation: its pair cost over the reject cost, or another vehicle's
-  cost for its body lower by AMBIGUITY (a thousand to one: another autopilot moves like it), and the output
-  stops first, then the body is bound again.
+- A held binding is checked at every evaluation: its pair cost over the reject cost, another vehicle's
+  cost for its body lower by AMBIGUITY, or the assignment made without the held bindings giving its body
+  another vehicle by a margin of AMBIGUITY (a thousand to one: another autopilot moves like it), and the
+  output stops first, then the body is bound again.
 - A vehicle whose back-channel is silent (no attitude for TELEMETRY_STALE_NS) has identity "unknown"; its
   output follows `silent_backchannel` (bridge/config.py): continuity keeps a held binding while the track
   stays continuous (a loss or ambiguity drops it, and there is nothing to bind again with), stop drops it.
@@ -258,8 +259,11 @@ class FleetBinding:
             elif v is not None:  # bound to a silent vehicle: not a candidate for the others
                 held[i, :] = np.nan
         res = assign_identities(held, reject, AMBIGUITY)
+        # the held bindings are checked against the assignment free of them: one that gives a held body another
+        # vehicle with confidence says the track followed another drone (a swap the tracker did not see)
+        free = assign_identities(cost, reject, AMBIGUITY) if self.bound else res
         still = bool(np.abs(opt[..., 2:]).max() < STILL_RATE_RAD_S)
-        return self._apply(rows, vehicles, cost, reject, res, still)
+        return self._apply(rows, vehicles, cost, reject, res, still, free)
 
     def _say_unresolved(self, bodies: list[str], vehicles: list[str], reason: str) -> list[str]:
         for v in vehicles:
@@ -272,8 +276,8 @@ class FleetBinding:
         if self._now_ns >= self.vehicles[vehicle].said_until_ns:
             self.vehicles[vehicle] = VehicleIdentity(UNRESOLVED, reason)
 
-    def _apply(self, rows: list[str], vehicles: list[str], cost: np.ndarray, reject: float, res, still: bool
-               ) -> tuple[list[str], list[tuple[str, str]]]:
+    def _apply(self, rows: list[str], vehicles: list[str], cost: np.ndarray, reject: float, res, still: bool,
+               free) -> tuple[list[str], list[tuple[str, str]]]:
         """Check the held bindings (a disagreement stops the output first), then make the confident new ones."""
         dropped: list[str] = []
         col = {v: j for j, v in enumerate(vehicles)}
@@ -284,12 +288,14 @@ class FleetBinding:
             mine = cost[i, col[v]]
             others = np.delete(cost[i], col[v])
             better = others[np.isfinite(others)].min() if np.isfinite(others).any() else np.inf
-            if mine > reject or mine > better + AMBIGUITY:
+            chosen = int(free.vehicle[i])
+            other = chosen >= 0 and vehicles[chosen] != v and free.margin[i] >= AMBIGUITY
+            if mine > reject or mine > better + AMBIGUITY or other:
                 self.disagreements += 1
                 self.rings[b].clear()
                 alt = np.where(np.isfinite(cost[i]), cost[i], np.inf)
                 alt[col[v]] = np.inf
-                j = int(np.argmin(alt))
+                j = chosen if other else int(np.argmin(alt))
                 why = (f"{b} no longer moves like it (cost {mine:.0f} over the reject {reject:.0f})" if mine > reject
                        else f"{b} moves like {vehicles[j]} (cost {cost[i, j]:.0f} against its {mine:.0f})")
                 dropped.append(self._drop(b, f"binding disagreed: {why}: poses stopped, binding again", self._now_ns,

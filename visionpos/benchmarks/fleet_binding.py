@@ -31,7 +31,7 @@ LIFT_M = 0.01
 
 
 LOSS_S = 0.2  # an injected loss: the body untracked this long
-SWAP = ("quad1", "quad6")  # an injected swap: two drones of different cells (a pair flies alike to its cell)
+SWAP = ("quad1", "quad9")  # an injected swap: two drones of different cells that fly apart in the huddle leg
 
 
 def measure(duration_s: float | None = None, scenario: str = "fleet", loss_at_s: tuple[float, ...] = (),
