@@ -289,3 +289,37 @@ def test_silent_backchannel_is_checked():
     with pytest.raises(ConfigError, match=r"vehicles\[0\]\.silent_backchannel"):
         parse_vehicles(arena_with_vehicles([{"body": "body1", "endpoint": "udpout:127.0.0.1:9",
                                              "silent_backchannel": "sometimes"}]))
+
+
+def test_the_server_hands_the_identity_book_to_its_outputs():
+    from visionpos.server.service import FusionServer, load_config_with_overrides
+    from visionpos.server.sinks import Sink
+
+    class Pipeline:
+        identity = object()
+
+    class Out(Sink):
+        got = None
+
+        def use_identity(self, book):
+            self.got = book
+
+    out = Out()
+    arena = load_config_with_overrides("thesis", ["server.insecure=true"])
+    FusionServer(arena, sinks=[out], pipeline=Pipeline())
+    assert out.got is Pipeline.identity
+
+
+def test_another_body_starts_the_vehicles_own_identity_check_afresh():
+    from bridge.backchannel import Backchannel
+    from bridge.config import parse_vehicles
+    from visionpos.benchmarks.factories import arena_with_vehicles
+
+    cfg = parse_vehicles(arena_with_vehicles([{"body": "body1", "endpoint": "udpout:127.0.0.1:9"}]))[0]
+    bc = Backchannel(cfg, lambda: 0, None, lambda m: True, lambda *a: None)
+    for k in range(5):
+        bc.on_optical(k * 10**7, 0.1, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    bc.identity_tripped, bc.identity = True, "mismatch"  # tripped against the body it got until now
+    bc.optical_epoch += 1  # the bridge bound it to another body
+    bc.on_optical(10**8, 0.0, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    assert len(bc.opt) == 1 and not bc.identity_tripped and bc.identity == "unknown"
