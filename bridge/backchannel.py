@@ -210,6 +210,10 @@ class Backchannel:
         self.identity_tripped_after_s: float | None = None  # from the first optical pose to the mismatch
         self._first_opt_ns = 0
         self._next_identity = 0
+        # the optical body feeding this vehicle changed (a fleet's binding, bridge/fleet_binding.py): written by the
+        # bridge on the server's loop, read here on the sender thread, which then starts the optical side afresh
+        self.optical_epoch = 0
+        self._opt_epoch_seen = 0
         # delay
         self.clock_lag_ns: float | None = None  # autopilot time less server stamp of one physical instant
         self.delay_ms: float | None = None  # the median pose-instant-to-arrival delay (ms)
@@ -438,6 +442,13 @@ class Backchannel:
     def on_optical(self, stamp_ns: int, roll: float, pitch: float, rate_frd, quat_ned_frd) -> None:
         """One optical pose at its stamp: roll, pitch (rad), the filter's body rate (3,) rad/s FRD and the
         attitude (4,) xyzw."""
+        if self.optical_epoch != self._opt_epoch_seen:  # another body now: its samples are not the last one's
+            self._opt_epoch_seen = self.optical_epoch
+            self.opt.clear()
+            self._first_opt_ns = 0
+            if self.identity_tripped:  # the mismatch was against the body this vehicle no longer gets
+                self.identity_tripped, self.identity_tripped_after_s = False, None
+                self.identity, self.identity_reason = "unknown", "bound to another optical body; checking again"
         self.opt.add(stamp_ns, (roll, pitch, rate_frd[0], rate_frd[1], rate_frd[2], *quat_ned_frd))
         if not self._first_opt_ns:
             self._first_opt_ns = stamp_ns
@@ -513,6 +524,20 @@ class Backchannel:
         if not len(self.clock_offsets):
             return None
         return float(max(r[1] for r in self.clock_offsets.d))
+
+    def attitude_on_server_clock(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The autopilot's recent attitude samples on the server clock, safe to call from another thread: times
+        (N,) int64 ns and (N, 5) roll, pitch rad, p, q, r rad/s FRD; None before the clocks can be mapped."""
+        rows = list(self.att.d)  # list() copies under the GIL while the sender thread appends
+        lag = self.clock_lag_ns
+        offsets = list(self.clock_offsets.d)
+        if lag is None and not offsets:
+            return None
+        off = lag if lag is not None else float(max(r[1] for r in offsets))
+        if not rows:
+            return np.zeros(0, np.int64), np.zeros((0, 5))
+        a = np.array(rows, dtype=np.float64)
+        return (a[:, 0] - off).astype(np.int64), a[:, 1:]
 
     def _clock_map_ns(self) -> float | None:
         return self.clock_lag_ns if self.clock_lag_ns is not None else self.coarse_offset_ns()

@@ -105,6 +105,10 @@ VEHICLE = section(
             choices=("stop", "warn", "off")),
     Setting("identity_tolerance_deg", "number", 3.0, "noise of the roll/pitch comparison (1 sigma, deg); a "
             "mismatch is a 1 s window more than 3 sigma off on average", min=0.5, max=30.0),
+    Setting("silent_backchannel", "text", "continuity", "a vehicle of a fleet (bodies sharing one marker layout, "
+            "bound to its optical body by its back-channel: docs/autopilot-setup.md) whose autopilot goes silent: "
+            "continuity = keep sending while its body's track stays continuous and stop after any loss or ambiguity "
+            "(no re-binding without telemetry), stop = stop at once", choices=("continuity", "stop")),
     Setting("set_delay", "boolean", False, "write the measured delay to the autopilot (PARAM_SET VISO_DELAY_MS "
             "on ArduPilot, EKF2_EV_DELAY on PX4)"),
     Setting("vision_gap_s", "number", 0.5, "no pose sent to the vehicle for this long (s) after poses went: a "
@@ -246,6 +250,7 @@ class VehicleConfig:
     telemetry_rate_hz: float = VEHICLE["telemetry_rate_hz"].field_default
     identity_check: str = VEHICLE["identity_check"].field_default
     identity_tolerance_deg: float = VEHICLE["identity_tolerance_deg"].field_default
+    silent_backchannel: str = VEHICLE["silent_backchannel"].field_default
     set_delay: bool = VEHICLE["set_delay"].field_default
     vision_gap_s: float = VEHICLE["vision_gap_s"].field_default
     autopilot: str = VEHICLE["autopilot"].field_default
@@ -369,6 +374,7 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                 telemetry_rate_hz=V.read(v, "telemetry_rate_hz"),
                 identity_check=V.read(v, "identity_check"),
                 identity_tolerance_deg=V.read(v, "identity_tolerance_deg"),
+                silent_backchannel=V.read(v, "silent_backchannel"),
                 set_delay=V.read(v, "set_delay"),
                 vision_gap_s=V.read(v, "vision_gap_s"),
                 autopilot=V.read(v, "autopilot"),

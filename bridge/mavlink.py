@@ -5,15 +5,23 @@ into its vehicle's single-slot mailbox (bridge/vehicle_link.py: VehicleLink, one
 and sender thread per vehicle; signing in bridge/signing.py) and to the optional UDP pose stream;
 it never waits on a socket. Every report_interval_s it prints each vehicle's latencies and the
 autopilot delay to set (bridge/link_stats.py: delay_advice).
+
+Vehicles whose bodies share one marker layout (a fleet of identical drones) get the optical body their
+back-channel binds them to, not the one named `body` (bridge/fleet_binding.py); the pipeline's
+IdentityBook, handed over by the server (use_identity), says whether each track stayed continuous.
 """
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from typing import Callable
 
+import numpy as np
+
 from bridge.config import parse_pose_stream, parse_vehicles
+from bridge.fleet_binding import FleetBinding
 from bridge.link_stats import delay_advice
 from bridge.vehicle_link import VehicleLink
 from visionpos.config.arena import ArenaConfig
@@ -48,6 +56,14 @@ class Bridge(Sink):
         self._report: Callable[[str], None] = settings.get("report", lambda s: print(s, file=sys.stderr))
         self._next_report = 0
         self._started = False
+        self.fleet = _fleet_binding(arena, self.vehicles)
+        self._identity_book = None  # the pipeline's IdentityBook (use_identity), read and told on the loop
+        self._by_name = {v.cfg.name: v for v in self.vehicles}
+
+    def use_identity(self, book) -> None:
+        """The pipeline's IdentityBook (visionpos/fusion/identity.py): each body's identity state is read at every
+        publish and a body bound here is told to it (bind). Called on the server's loop, before any publish."""
+        self._identity_book = book
 
     def vehicle(self, name: str) -> VehicleLink:
         for v in self.vehicles:
@@ -66,8 +82,15 @@ class Bridge(Sink):
     def publish(self, states: list[BodyState]) -> None:
         """Hand each state to its vehicle's mailbox and the pose stream. Never blocks."""
         by_body = self._by_body
+        fleet = self.fleet
+        if fleet is not None:
+            self._bind(states)
         for st in states:
-            v = by_body.get(st.name)
+            if fleet is not None and st.name in fleet.bodies:
+                name = fleet.vehicle_of(st.name)
+                v = self._by_name[name] if name is not None else None
+            else:
+                v = by_body.get(st.name)
             if v is not None:
                 v.offer(st)
         if self.pose_stream is not None:
@@ -77,6 +100,29 @@ class Bridge(Sink):
             if now >= self._next_report:
                 self._next_report = now + self.report_interval_ns
                 self._report(self.latency_report())
+
+    def _bind(self, states: list[BodyState]) -> None:
+        """The fleet's bindings: dropped at once when a track breaks, evaluated every BIND_EVERY_NS."""
+        book = self._identity_book
+        identity = None
+        if book is not None:
+            identity = {name: s.value for name, s in zip(book.names, book.state)}
+        stop = self.fleet.observe(states, identity)
+        now = self.clock_ns()
+        made: list[tuple[str, str]] = []
+        if self.fleet.due(now):
+            telemetry = {name: self._by_name[name].bc.attitude_on_server_clock() for name in self.fleet.vehicles}
+            more, made = self.fleet.evaluate(now, telemetry)
+            stop += more
+        for name in stop:
+            v = self._by_name[name]
+            with v._lock:  # a state of the body it no longer gets may wait in its mailbox: never sent
+                v._slot = None
+            v.bc.optical_epoch += 1
+        for body, name in made:
+            self._by_name[name].bc.optical_epoch += 1
+            if book is not None and body in book.names:
+                book.bind(book.names.index(body))
 
     def publish_markers(self, lp) -> None:
         """Loose markers (LoosePoints) go to the pose stream only (autopilots get bodies)."""
@@ -93,18 +139,35 @@ class Bridge(Sink):
         return not any(v.pending() for v in self.vehicles)
 
     def status_line(self) -> str:
-        """Every vehicle's part of the server's status line."""
-        return " | ".join(v.status_part() for v in self.vehicles)
+        """Every vehicle's part of the server's status line (a fleet vehicle without a bound body: why)."""
+        parts = []
+        for v in self.vehicles:
+            part = v.status_part()
+            b = self.fleet.vehicles.get(v.cfg.name) if self.fleet is not None else None
+            if b is not None and b.state != "bound":
+                part += f" ({v.cfg.name}: identity {b.state}: {b.reason})"
+            parts.append(part)
+        return " | ".join(parts)
+
+    def identity(self, name: str) -> dict:
+        """A fleet vehicle's binding: {'identity': bound | unresolved | unknown | stopped, 'identity_reason',
+        'bound_body'}; {} for a vehicle whose layout is unique (its configured body names it)."""
+        b = self.fleet.vehicles.get(name) if self.fleet is not None else None
+        if b is None:
+            return {}
+        return {"identity_binding": b.state, "identity_reason": b.reason, "bound_body": b.body}
 
     def health(self) -> dict:
-        """{vehicle name: VehicleLink.health()}."""
-        return {v.cfg.name: v.health() for v in self.vehicles}
+        """{vehicle name: VehicleLink.health() and, for a fleet vehicle, its binding (identity)}."""
+        return {v.cfg.name: {**v.health(), **self.identity(v.cfg.name)} for v in self.vehicles}
 
     def latency_report(self) -> str:
         return "\n".join("bridge: " + delay_advice(v.stats()) for v in self.vehicles)
 
     def stats(self) -> dict:
-        out = {"vehicles": {v.cfg.name: v.stats() for v in self.vehicles}}
+        out = {"vehicles": {v.cfg.name: {**v.stats(), **self.identity(v.cfg.name)} for v in self.vehicles}}
+        if self.fleet is not None:
+            out["fleet_binding"] = self.fleet.stats()
         if self.pose_stream is not None:
             out["pose_stream"] = self.pose_stream.stats()
         return out
@@ -117,3 +180,15 @@ class Bridge(Sink):
         if self._started and self.vehicles and self.report_interval_ns > 0:
             self._report(self.latency_report())
         self._started = False
+
+
+def _fleet_binding(arena: ArenaConfig, vehicles: list[VehicleLink]) -> FleetBinding | None:
+    """The binding of the vehicles whose bodies share one marker layout (None when no two do)."""
+    first: dict[bytes, list[str]] = {}
+    for b in arena.bodies:
+        first.setdefault(np.asarray(b.markers, np.float64).tobytes(), []).append(b.name)
+    groups = [names for names in first.values() if len(names) > 1]
+    fleet = FleetBinding(groups, {v.cfg.name: v.cfg.body for v in vehicles},
+                         {v.cfg.name: math.radians(v.cfg.identity_tolerance_deg) for v in vehicles},
+                         {v.cfg.name: v.cfg.silent_backchannel for v in vehicles})
+    return fleet if fleet.groups else None

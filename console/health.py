@@ -154,6 +154,7 @@ class HealthView:
                "ekf": ekf, "ekf_detail": ekf_detail, "delay_ms": _num(_get(v, "delay_ms")),
                "delay_detail": _get(v, "delay_detail")}
         bad, warn = [], []
+        bad += [f"identity: {_get(v, 'identity_reason')}"] if _get(v, "identity_binding") not in (None, "bound") else []
         if not out["link_up"]:
             bad.append("link down: nothing heard from the autopilot")
         if rate == 0:

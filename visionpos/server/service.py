@@ -100,6 +100,8 @@ class FusionServer:
         self.recorder = recorder
         self.outputs: list[Sink] = list(sinks)  # the outputs; self.sinks adds the recording
         self.sinks: list[Sink] = self.outputs + ([_RecorderSink(recorder)] if recorder is not None else [])
+        for s in self.outputs:  # which body is which, where bodies share a layout (the bridge binds them)
+            s.use_identity(getattr(pipeline, "identity", None))
         self.host = self.settings.bind if host is None else host
         self._port_req = self.settings.port if port is None else int(port)
         self.clock = clock

@@ -49,6 +49,9 @@ class Sink:
         """Open sockets and threads (before the server listens); an OSError when an address cannot be
         opened (start_sink turns it into a SinkStartError naming opens())."""
 
+    def use_identity(self, book: Any) -> None:
+        """The pipeline's IdentityBook (fusion/identity.py), once, before any publish: read it on the loop."""
+
     def publish(self, states: list[BodyState]) -> None:
         """The tick's states, one per configured body (never blocks)."""
 

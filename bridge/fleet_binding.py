@@ -1,0 +1,340 @@
+"""Which optical body feeds which vehicle, where the vehicles' bodies share one marker layout (a fleet).
+
+Geometry cannot tell identical marker sets apart: the tracker names them by continuity
+(visionpos/fusion/identity.py, IdentityBook), and the name of an optical body says nothing about which
+drone it is. So for the vehicles of one layout group the bridge does not send by the configured `body`:
+every BIND_EVERY_NS it compares each vehicle's back-channel (the autopilot's roll, pitch and body rates,
+on the server clock) with each optical body's, on one grid of shared instants (the same instants and
+count for every pair), sums the squared normalised residuals of each pair
+(visionpos.analysis.autopilot.identity_residuals: the per-vehicle identity check's noise model) and
+assigns bodies to vehicles (assign_identities: Hungarian, a chi-square reject cost per body, the margin
+each binding wins by). A body is bound when its margin is at least AMBIGUITY (2 ln 1000: odds of a
+thousand to one); the pipeline is told (IdentityBook.bind: its state turns tracked-by-continuity).
+
+- Only a bound body feeds a vehicle; until then the vehicle gets nothing and its state says why
+  ("identity unresolved: two candidates (quad3, quad4)", "no motion yet: still vehicles cannot be told
+  apart").
+- A binding holds while the body's identity stays tracked-by-continuity; after a loss or an ambiguous
+  crossing it is dropped at once (the body's samples too: they may be another drone's) and made again
+  from fresh samples.
+- A held binding is checked at every evaluation: its pair cost over the reject cost, another vehicle's
+  cost for its body lower by AMBIGUITY, or the assignment made without the held bindings giving its body
+  another vehicle by a margin of AMBIGUITY (a thousand to one: another autopilot moves like it), and the
+  output stops first, then the body is bound again.
+- A vehicle whose back-channel is silent (no attitude for TELEMETRY_STALE_NS) has identity "unknown"; its
+  output follows `silent_backchannel` (bridge/config.py): continuity keeps a held binding while the track
+  stays continuous (a loss or ambiguity drops it, and there is nothing to bind again with), stop drops it.
+
+Still vehicles have level attitudes and no rates: every pairing fits and nothing is bound until they
+move (docs/autopilot-setup.md, "A fleet": how identity is established before take-off).
+Without an IdentityBook (a bridge fed by something else) a body's continuity is its `tracked` flag.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from bridge.backchannel import IDENTITY_RATE_NOISE_RAD_S, IDENTITY_RATE_REL, MAX_PAIR_GAP_NS, TELEMETRY_STALE_NS
+from visionpos.analysis.autopilot import assign_identities, identity_residuals
+from visionpos.fusion.identity import IdentityState
+from visionpos.geometry.frames import quat_world_body_to_ned_frd
+
+BIND_EVERY_NS = 250_000_000  # evaluations of every group's assignment
+WINDOW_NS = 1_000_000_000  # the newest this much of shared instants
+MIN_SPAN_NS = 300_000_000  # a body (or vehicle) needs this much history to take part
+GRID_NS = 20_000_000  # the shared instants, 50 Hz: near the telemetry's rate, so samples are not repeated
+AMBIGUITY = 2.0 * math.log(1000.0)  # margin (summed squared normalised residuals) a binding must win by
+REJECT_P = 1e-3  # a true pair's cost exceeds the reject cost this rarely (chi-square, 5 per instant)
+STILL_RATE_RAD_S = 0.05  # a window whose optical rates all stay under this: no motion to tell vehicles apart
+RING = 256  # optical samples kept per body (at 100 Hz output: 2.5 s)
+SAY_DROP_NS = 1_000_000_000  # why a binding was dropped stays the vehicle's reason this long
+
+BOUND, UNRESOLVED, UNKNOWN, STOPPED = "bound", "unresolved", "unknown", "stopped"
+
+
+def optical_attitude(q_world_flu: np.ndarray, w_flu: np.ndarray) -> np.ndarray:
+    """Roll, pitch and body rates as an autopilot reports them: (N, 5) roll, pitch rad (FRD in NED), p, q, r
+    rad/s FRD, from quaternions (N, 4) xyzw body FLU -> world z-up and body rates (N, 3) rad/s FLU."""
+    q = quat_world_body_to_ned_frd(np.asarray(q_world_flu, float).reshape(-1, 4))
+    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
+    rates = np.asarray(w_flu, float).reshape(-1, 3) * np.array([1.0, -1.0, -1.0])
+    return np.column_stack([roll, pitch, rates])
+
+
+def sample_at(t_query: np.ndarray, t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """v (N, k) at times t (N,) ns, linearly interpolated at t_query (M,) ns: (ok (M,) bool, values (M, k));
+    ok only inside the samples' span with neighbours at most MAX_PAIR_GAP_NS apart."""
+    out = np.full((len(t_query), v.shape[1]), np.nan)
+    if len(t) < 2:
+        return np.zeros(len(t_query), bool), out
+    j = np.clip(np.searchsorted(t, t_query), 1, len(t) - 1)
+    ok = (t_query >= t[0]) & (t_query <= t[-1]) & ((t[j] - t[j - 1]) <= MAX_PAIR_GAP_NS)
+    for c in range(v.shape[1]):
+        out[:, c] = np.interp(t_query, t, v[:, c])
+    return ok, out
+
+
+def pair_costs(optical: np.ndarray, telemetry: np.ndarray, sigma_att_rad: np.ndarray) -> np.ndarray:
+    """Summed squared normalised residuals (B, V) of every (optical body, vehicle) pair over the same M
+    instants: optical (B, M, 5) and telemetry (V, M, 5) roll, pitch rad, p, q, r rad/s FRD; sigma_att_rad (V,)
+    each vehicle's roll/pitch noise (its identity_tolerance_deg)."""
+    B, M, _ = optical.shape
+    V = telemetry.shape[0]
+    o = np.broadcast_to(optical[:, None], (B, V, M, 5)).reshape(-1, 5)
+    a = np.broadcast_to(telemetry[None], (B, V, M, 5)).reshape(-1, 5)
+    r = identity_residuals(a[:, :2], a[:, 2:], o[:, :2], o[:, 2:], 1.0, IDENTITY_RATE_NOISE_RAD_S, IDENTITY_RATE_REL)
+    r[:, :2] /= np.repeat(np.broadcast_to(np.asarray(sigma_att_rad, float)[None], (B, V)).reshape(-1), M)[:, None]
+    return (r * r).reshape(B, V, M * 5).sum(axis=2)
+
+
+def reject_cost(instants: int) -> float:
+    """The cost over `instants` shared instants (5 residuals each) a true pair exceeds with probability
+    REJECT_P, by the chi-square law."""
+    return float(chi2.isf(REJECT_P, 5 * instants))
+
+
+@dataclass
+class VehicleIdentity:
+    """What the bridge says of one fleet vehicle: state (bound, unresolved, unknown, stopped), reason in words,
+    the optical body it gets (None: nothing) and the margin of its last binding."""
+
+    state: str = UNRESOLVED
+    reason: str = "no optical body bound yet"
+    body: str | None = None
+    margin: float = float("nan")
+    said_until_ns: int = 0  # a dropped binding's reason is said this long before the next one replaces it
+
+
+class FleetBinding:
+    """Binding of optical bodies to vehicles for the layout groups of a fleet (module docstring).
+
+    groups: per layout group, the body names sharing the layout; vehicle_body: {vehicle name: its configured
+    body} (the vehicles of a group are those whose body is in it); sigma_att_rad and silent_policy: per
+    vehicle, its identity_tolerance_deg in rad and its silent_backchannel.
+    """
+
+    def __init__(self, groups: list[list[str]], vehicle_body: dict[str, str], sigma_att_rad: dict[str, float],
+                 silent_policy: dict[str, str]):
+        self.groups = [(list(bodies), [v for v, b in vehicle_body.items() if b in bodies]) for bodies in groups]
+        self.groups = [(bs, vs) for bs, vs in self.groups if len(vs) > 0 and len(bs) > 1]
+        self.bodies = {b for bs, _ in self.groups for b in bs}
+        self.vehicles = {v: VehicleIdentity() for _, vs in self.groups for v in vs}
+        self.sigma_att_rad = sigma_att_rad
+        self.silent_policy = silent_policy
+        self.rings = {b: collections.deque(maxlen=RING) for b in self.bodies}  # (t ns, q xyzw, w FLU)
+        self.bound: dict[str, str] = {}  # optical body -> vehicle
+        self.identity: dict[str, str] = {b: IdentityState.LOST.value for b in self.bodies}
+        self._next_ns = 0
+        self._now_ns = 0
+        self.binds = 0  # bindings made
+        self.drops = 0  # bindings dropped (loss, ambiguity, disagreement, silence)
+        self.disagreements = 0
+
+    def vehicle_of(self, body: str) -> str | None:
+        """The vehicle that gets this optical body's states now (None: nobody)."""
+        return self.bound.get(body)
+
+    def observe(self, states, identity: dict[str, str] | None) -> list[str]:
+        """Every output tick: the states' samples and each body's identity state (IdentityState values; None:
+        from the tracked flags). Drops the bindings whose track is no longer continuous; returns their
+        vehicles (their output stops now)."""
+        dropped = []
+        for st in states:
+            b = st.name
+            if b not in self.bodies:
+                continue
+            was = self.identity[b]
+            now = identity.get(b, was) if identity is not None else self._own_identity(b, st.tracked)
+            self.identity[b] = now
+            if now in (IdentityState.LOST.value, IdentityState.AMBIGUOUS.value) and was != now:
+                self.rings[b].clear()  # from here on the track may follow another drone
+            if b in self.bound and now != IdentityState.CONTINUITY.value:
+                why = "track lost" if now == IdentityState.LOST.value else f"identity {now}"
+                dropped.append(self._drop(b, f"{why}: binding dropped, binding again when it moves", st.time_ns))
+            if st.tracked:
+                self.rings[b].append((st.time_ns, *st.quaternion, *st.angular_velocity))
+        return dropped
+
+    def _own_identity(self, body: str, tracked: bool) -> str:
+        if not tracked:
+            return IdentityState.LOST.value
+        was = self.identity[body]
+        return IdentityState.ACQUIRED.value if was == IdentityState.LOST.value else was
+
+    def _drop(self, body: str, reason: str, now_ns: int, state: str = UNRESOLVED) -> str:
+        v = self.bound.pop(body)
+        self.vehicles[v] = VehicleIdentity(state, reason, said_until_ns=now_ns + SAY_DROP_NS)
+        self.drops += 1
+        return v
+
+    def due(self, now_ns: int) -> bool:
+        return now_ns >= self._next_ns
+
+    def evaluate(self, now_ns: int, telemetry: dict[str, tuple[np.ndarray, np.ndarray] | None]
+                 ) -> tuple[list[str], list[tuple[str, str]]]:
+        """Every BIND_EVERY_NS: telemetry {vehicle: (times (N,) ns server clock, (N, 5) roll, pitch, p, q, r) or
+        None}. Returns (vehicles whose binding was dropped: stop their output, new bindings [(body, vehicle)]:
+        tell the pipeline)."""
+        self._next_ns = now_ns + BIND_EVERY_NS
+        dropped: list[str] = []
+        made: list[tuple[str, str]] = []
+        for bodies, vehicles in self.groups:
+            live = self._live_vehicles(now_ns, vehicles, telemetry, dropped)
+            self._now_ns = now_ns
+            d, m = self._evaluate_group(now_ns, bodies, live, telemetry)
+            dropped += d
+            made += m
+        for b, v in made:
+            self.identity[b] = IdentityState.CONTINUITY.value
+        return dropped, made
+
+    def _live_vehicles(self, now_ns: int, vehicles: list[str], telemetry: dict, dropped: list[str]) -> list[str]:
+        """The vehicles with fresh telemetry; the silent ones get identity 'unknown' and their policy."""
+        live = []
+        for v in vehicles:
+            tel = telemetry.get(v)
+            age = (now_ns - int(tel[0][-1])) * 1e-9 if tel is not None and len(tel[0]) else None
+            if age is not None and age * 1e9 <= TELEMETRY_STALE_NS:
+                live.append(v)
+                continue
+            silent = ("the back-channel is silent: no attitude from the autopilot" +
+                      (f" for {age:.1f} s" if age is not None else " yet"))
+            body = next((b for b, x in self.bound.items() if x == v), None)
+            stop = self.silent_policy.get(v, "continuity") == "stop"
+            if body is None:
+                then = "; poses stopped (silent_backchannel: stop)" if stop else \
+                    "; nothing to bind it with, nothing sent"
+                self.vehicles[v] = VehicleIdentity(UNKNOWN, silent + then)
+            elif stop:
+                dropped.append(self._drop(body, silent + "; poses stopped (silent_backchannel: stop)", now_ns, UNKNOWN))
+            else:
+                self.vehicles[v] = VehicleIdentity(UNKNOWN, silent + f"; poses from {body} go on while its track stays "
+                                                   "continuous (silent_backchannel: continuity)", body)
+        return live
+
+    def _evaluate_group(self, now_ns: int, bodies: list[str], vehicles: list[str], telemetry: dict
+                        ) -> tuple[list[str], list[tuple[str, str]]]:
+        rows = [b for b in bodies if self.identity[b] != IdentityState.LOST.value and len(self.rings[b]) > 1
+                and self.rings[b][-1][0] - self.rings[b][0][0] >= MIN_SPAN_NS]
+        if not rows or not vehicles:
+            return self._say_unresolved(bodies, vehicles, "no optical body with enough history yet"), []
+        ring_arrays = {b: np.array(self.rings[b], dtype=np.float64) for b in rows}
+        t_end = min(min(a[-1, 0] for a in ring_arrays.values()), min(float(telemetry[v][0][-1]) for v in vehicles))
+        t_start = max(t_end - WINDOW_NS, max(a[0, 0] for a in ring_arrays.values()))
+        grid = np.arange(t_end, t_start, -GRID_NS)[::-1]
+        ok = np.ones(len(grid), bool)
+        opt = np.zeros((len(rows), len(grid), 5))
+        for i, b in enumerate(rows):
+            a = ring_arrays[b]
+            good, val = sample_at(grid, a[:, 0], optical_attitude(a[:, 1:5], a[:, 5:8]))
+            ok &= good
+            opt[i] = val
+        tel = np.zeros((len(vehicles), len(grid), 5))
+        for j, v in enumerate(vehicles):
+            t, val = telemetry[v]
+            good, tel[j] = sample_at(grid, t.astype(np.float64), val)
+            ok &= good
+        n = int(ok.sum())
+        if n * GRID_NS < MIN_SPAN_NS:
+            return self._say_unresolved(bodies, vehicles, "too few shared instants of optics and telemetry yet"), []
+        opt, tel = opt[:, ok], tel[:, ok]
+        cost = pair_costs(opt, tel, np.array([self.sigma_att_rad.get(v, math.radians(3.0)) for v in vehicles]))
+        reject = reject_cost(n)
+        # a held binding is known by continuity: its body and its vehicle are no one else's, so the others are
+        # assigned among themselves (the last still one of a fleet is bound by elimination)
+        held = cost.copy()
+        for i, b in enumerate(rows):
+            v = self.bound.get(b)
+            if v in vehicles:
+                j = vehicles.index(v)
+                held[i, :], held[:, j] = np.nan, np.nan
+                held[i, j] = cost[i, j]
+            elif v is not None:  # bound to a silent vehicle: not a candidate for the others
+                held[i, :] = np.nan
+        res = assign_identities(held, reject, AMBIGUITY)
+        # the held bindings are checked against the assignment free of them: one that gives a held body another
+        # vehicle with confidence says the track followed another drone (a swap the tracker did not see)
+        free = assign_identities(cost, reject, AMBIGUITY) if self.bound else res
+        still = bool(np.abs(opt[..., 2:]).max() < STILL_RATE_RAD_S)
+        return self._apply(rows, vehicles, cost, reject, res, still, free)
+
+    def _say_unresolved(self, bodies: list[str], vehicles: list[str], reason: str) -> list[str]:
+        for v in vehicles:
+            if v not in self.bound.values():
+                self._say(v, reason)
+        return []
+
+    def _say(self, vehicle: str, reason: str) -> None:
+        """An unbound vehicle's reason (after a dropped binding's has been said for SAY_DROP_NS)."""
+        if self._now_ns >= self.vehicles[vehicle].said_until_ns:
+            self.vehicles[vehicle] = VehicleIdentity(UNRESOLVED, reason)
+
+    def _apply(self, rows: list[str], vehicles: list[str], cost: np.ndarray, reject: float, res, still: bool,
+               free) -> tuple[list[str], list[tuple[str, str]]]:
+        """Check the held bindings (a disagreement stops the output first), then make the confident new ones."""
+        dropped: list[str] = []
+        col = {v: j for j, v in enumerate(vehicles)}
+        for i, b in enumerate(rows):
+            v = self.bound.get(b)
+            if v is None or v not in col:
+                continue  # a silent vehicle's binding: its policy decides (_live_vehicles)
+            mine = cost[i, col[v]]
+            others = np.delete(cost[i], col[v])
+            better = others[np.isfinite(others)].min() if np.isfinite(others).any() else np.inf
+            chosen = int(free.vehicle[i])
+            other = chosen >= 0 and vehicles[chosen] != v and free.margin[i] >= AMBIGUITY
+            if mine > reject or mine > better + AMBIGUITY or other:
+                self.disagreements += 1
+                self.rings[b].clear()
+                alt = np.where(np.isfinite(cost[i]), cost[i], np.inf)
+                alt[col[v]] = np.inf
+                j = chosen if other else int(np.argmin(alt))
+                why = (f"{b} no longer moves like it (cost {mine:.0f} over the reject {reject:.0f})" if mine > reject
+                       else f"{b} moves like {vehicles[j]} (cost {cost[i, j]:.0f} against its {mine:.0f})")
+                dropped.append(self._drop(b, f"binding disagreed: {why}: poses stopped, binding again", self._now_ns,
+                                          STOPPED))
+        made = []
+        taken = set(self.bound.values())
+        for i, b in enumerate(rows):
+            if b in self.bound:
+                continue
+            j = int(res.vehicle[i])
+            if j < 0:
+                continue
+            v = vehicles[j]
+            if res.margin[i] >= AMBIGUITY and v not in taken and self.identity[b] != IdentityState.LOST.value:
+                self.bound[b] = v
+                taken.add(v)
+                self.vehicles[v] = VehicleIdentity(BOUND, f"bound to {b} (margin {min(res.margin[i], 1e6):.0f})", b,
+                                                   float(res.margin[i]))
+                self.binds += 1
+                made.append((b, v))
+        for v in vehicles:
+            if v not in taken:
+                self._say(v, self._why(v, vehicles, rows, cost, reject, still))
+        return dropped, made
+
+    def _why(self, v: str, vehicles: list[str], rows: list[str], cost: np.ndarray, reject: float, still: bool) -> str:
+        """Why vehicle v has no body, in words (the candidates: the unbound bodies whose cost is under reject)."""
+        if still:
+            return "no motion yet: still vehicles cannot be told apart (docs/autopilot-setup.md, 'A fleet')"
+        j = vehicles.index(v)
+        fits = [rows[i] for i in range(len(rows)) if cost[i, j] <= reject and rows[i] not in self.bound]
+        if not fits:
+            return "no optical body moves like it (every pair over the reject cost)"
+        near = sorted(fits, key=lambda b: cost[rows.index(b), j])[:4]
+        if len(fits) == 1:
+            return f"identity unresolved: one candidate ({near[0]}), not yet by a margin of {AMBIGUITY:.1f}"
+        words = {2: "two", 3: "three", 4: "four"}.get(len(fits), str(len(fits)))
+        return f"identity unresolved: {words} candidates ({', '.join(near)}{', ...' if len(fits) > 4 else ''})"
+
+    def stats(self) -> dict:
+        return {"binds": self.binds, "drops": self.drops, "disagreements": self.disagreements,
+                "bound": dict(self.bound)}

@@ -1,0 +1,325 @@
+"""The fleet's binding of optical bodies to vehicles (bridge/fleet_binding.py) on made-up telemetry."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bridge.fleet_binding import (
+    BOUND,
+    STOPPED,
+    UNKNOWN,
+    UNRESOLVED,
+    FleetBinding,
+    optical_attitude,
+    pair_costs,
+)
+
+STEP_NS = 10_000_000  # output ticks, 100 Hz
+TEL_NS = 20_000_000  # telemetry, 50 Hz
+
+
+class State(NamedTuple):
+    name: str
+    time_ns: int
+    quaternion: np.ndarray
+    angular_velocity: np.ndarray
+    tracked: bool = True
+
+
+def test_optical_attitude_is_what_an_autopilot_reports():
+    q = Rotation.from_euler("xy", [10, 20], degrees=True).as_quat()  # body FLU -> world z-up
+    got = optical_attitude(q[None], np.array([[0.1, 0.2, 0.3]]))[0]
+    # FLU -> FRD: a roll right is the same, a pitch about y-left by +20 deg is nose down: -20 deg up
+    assert np.degrees(got[0]) == pytest.approx(10.0, abs=1e-9)
+    assert np.degrees(got[1]) == pytest.approx(-20.0 * math.cos(math.radians(10)) / math.cos(math.radians(10)),
+                                               abs=1e-9)
+    assert got[2:] == pytest.approx([0.1, -0.2, -0.3])
+
+
+def test_pair_costs_sum_the_normalised_squares():
+    opt = np.zeros((2, 3, 5))
+    tel = np.zeros((1, 3, 5))
+    opt[1, :, 4] = 0.2  # body 1 yaws at 0.2 rad/s: rate sigma 0.1 + 0.1 * 0.2 = 0.12
+    tel[0, :, 0] = math.radians(1.0)  # the vehicle reports 1 deg of roll: 1/2 sigma at 2 deg
+    c = pair_costs(opt, tel, np.array([math.radians(2.0)]))
+    assert c[0, 0] == pytest.approx(3 * 0.25)
+    assert c[1, 0] == pytest.approx(3 * (0.25 + (0.2 / 0.12) ** 2))
+
+
+class Fleet:
+    """Drones on the floor; optical body i is drone perm[i]; vehicle 'v{k}' is drone k. yaw_rate[k](t s) rad/s."""
+
+    def __init__(self, perm=(2, 0, 1), policy="continuity"):
+        self.perm = list(perm)
+        n = len(self.perm)
+        self.bodies = [f"quad{i + 1}" for i in range(n)]
+        self.names = [f"v{k}" for k in range(n)]
+        self.binding = FleetBinding([self.bodies], dict(zip(self.names, self.bodies)),
+                                    dict.fromkeys(self.names, math.radians(3.0)), dict.fromkeys(self.names, policy))
+        self.rates = [lambda t: 0.0] * n
+        self.yaw = [0.0] * n
+        self.tel = {n: ([], []) for n in self.names}
+        self.t_ns = 0
+        self.silent: set[str] = set()
+        self.lost: set[str] = set()
+        self.identity = None  # None: from the tracked flags
+        self.made: list[tuple[int, str, str]] = []
+        self.stopped: list[tuple[int, str]] = []
+
+    def step(self, seconds: float) -> None:
+        rng = np.random.default_rng(self.t_ns)
+        for _ in range(int(round(seconds * 1e9 / STEP_NS))):
+            self.t_ns += STEP_NS
+            t = self.t_ns * 1e-9
+            r = [f(t) for f in self.rates]
+            self.yaw = [y + ri * STEP_NS * 1e-9 for y, ri in zip(self.yaw, r)]
+            states = [State(b, self.t_ns, Rotation.from_euler("z", self.yaw[d]).as_quat(),
+                            np.array([0.0, 0.0, r[d]]) + rng.normal(0, 0.01, 3), b not in self.lost)
+                      for b, d in zip(self.bodies, self.perm)]
+            stop = self.binding.observe(states, self.identity)
+            if self.t_ns % TEL_NS == 0:
+                for k, n in enumerate(self.names):
+                    if n not in self.silent:
+                        self.tel[n][0].append(self.t_ns)
+                        self.tel[n][1].append([0.0, 0.0, 0.0, 0.0, -r[k]])  # FRD: yaw rate right is -z FLU
+            if self.binding.due(self.t_ns):
+                tel = {n: (np.array(ts, np.int64), np.array(v).reshape(-1, 5)) for n, (ts, v) in self.tel.items()}
+                more, made = self.binding.evaluate(self.t_ns, tel)
+                stop += more
+                self.made += [(self.t_ns, b, v) for b, v in made]
+            self.stopped += [(self.t_ns, v) for v in stop]
+
+    def truth_vehicle(self, body: str) -> str:
+        return self.names[self.perm[self.bodies.index(body)]]
+
+
+def hand_yaw(start_s: float, turn_deg: float = 45.0, span_s: float = 1.0):
+    """A yaw by hand: a sine-squared rate bump turning turn_deg in span_s from start_s (rad/s)."""
+    peak = math.radians(turn_deg) * 2 / span_s
+
+    def rate(t: float) -> float:
+        u = (t - start_s) / span_s
+        return peak * math.sin(math.pi * u) ** 2 if 0 <= u <= 1 else 0.0
+
+    return rate
+
+
+def test_still_vehicles_are_not_bound_and_say_why():
+    f = Fleet()
+    f.step(3.0)
+    assert f.made == []
+    for v in f.names:
+        st = f.binding.vehicles[v]
+        assert st.state == UNRESOLVED and st.body is None
+        assert "no motion yet" in st.reason
+    assert all(f.binding.vehicle_of(b) is None for b in f.bodies)
+
+
+def test_a_yaw_by_hand_binds_the_moved_body_to_its_vehicle_only():
+    f = Fleet()
+    f.rates[0] = hand_yaw(2.0)  # drone 0 (optical quad2) is turned by hand from t = 2 s
+    f.step(4.0)
+    assert [(b, v) for _, b, v in f.made] == [("quad2", "v0")]
+    t_bind = f.made[0][0] * 1e-9
+    assert 2.0 < t_bind <= 3.0  # within a second of the first motion
+    assert f.binding.vehicle_of("quad2") == "v0"
+    assert f.binding.vehicles["v0"].state == BOUND
+    # the two still ones: unresolved between themselves, and nothing goes to them
+    for v in ("v1", "v2"):
+        assert f.binding.vehicles[v].state == UNRESOLVED
+        assert "two candidates" in f.binding.vehicles[v].reason
+    # then the others, one at a time: each to its own vehicle
+    f.rates[1] = hand_yaw(4.5)
+    f.step(2.0)
+    assert {b: v for _, b, v in f.made} == {b: f.truth_vehicle(b) for b in f.bodies}
+
+
+def test_a_loss_drops_the_binding_at_once_and_it_is_made_again():
+    f = Fleet()
+    f.rates[0] = hand_yaw(1.0, 90.0, 4.0)
+    f.step(2.5)
+    assert f.binding.vehicle_of("quad2") == "v0"
+    f.lost.add("quad2")
+    f.step(0.01)
+    assert f.stopped[-1] == (f.t_ns, "v0")
+    assert f.binding.vehicle_of("quad2") is None
+    assert "track lost" in f.binding.vehicles["v0"].reason
+    f.lost.clear()
+    t_back = f.t_ns
+    f.step(1.5)
+    assert f.made[-1][1:] == ("quad2", "v0")
+    assert (f.made[-1][0] - t_back) * 1e-9 <= 1.0
+
+
+def test_a_binding_that_disagrees_stops_first_then_binds_again():
+    f = Fleet()
+    f.rates[0] = hand_yaw(1.0, 360.0, 8.0)
+    f.rates[1] = hand_yaw(1.0, -360.0, 8.0)
+    f.step(2.5)
+    assert f.binding.vehicle_of("quad2") == "v0" and f.binding.vehicle_of("quad3") == "v1"
+    f.perm = [2, 1, 0]  # the tracks of drones 0 and 1 swap unnoticed by the tracker
+    f.step(1.0)
+    stops = [v for _, v in f.stopped]
+    assert "v0" in stops and "v1" in stops
+    assert f.binding.disagreements >= 1
+    first_stop = min(t for t, v in f.stopped if v in ("v0", "v1"))
+    rebound = [(t, b, v) for t, b, v in f.made if t >= first_stop]
+    assert all(f.truth_vehicle(b) == v for _, b, v in rebound)  # never the wrong one
+    f.step(1.0)
+    assert f.binding.vehicle_of("quad3") == "v0" and f.binding.vehicle_of("quad2") == "v1"
+    assert f.binding.vehicles["v0"].state == BOUND
+
+
+def test_a_disagreeing_binding_says_stopped():
+    f = Fleet()
+    f.rates[0] = hand_yaw(1.0, 360.0, 8.0)
+    f.step(2.5)
+    f.perm = [2, 1, 0]  # quad2 now follows the still drone 1
+    f.step(0.6)
+    st = f.binding.vehicles["v0"]
+    assert ("v0" in [v for _, v in f.stopped]) and (st.state in (STOPPED, UNRESOLVED))
+    assert f.binding.vehicle_of("quad2") != "v0"
+
+
+@pytest.mark.parametrize("policy", ["continuity", "stop"])
+def test_a_silent_back_channel_turns_the_identity_unknown_and_follows_the_policy(policy):
+    f = Fleet(policy=policy)
+    f.rates[0] = hand_yaw(1.0, 90.0, 2.0)
+    f.step(2.5)
+    assert f.binding.vehicle_of("quad2") == "v0"
+    f.silent.add("v0")
+    f.step(2.5)
+    st = f.binding.vehicles["v0"]
+    assert st.state == UNKNOWN and "silent" in st.reason
+    if policy == "continuity":
+        assert f.binding.vehicle_of("quad2") == "v0" and "go on" in st.reason
+        f.lost.add("quad2")  # any loss: stopped, and nothing to bind it again with
+        f.step(0.5)
+        f.lost.clear()
+        f.step(2.0)
+        assert f.binding.vehicle_of("quad2") is None
+    else:
+        assert f.binding.vehicle_of("quad2") is None and "stopped" in st.reason
+
+
+def test_ten_on_the_floor_turned_by_hand_one_at_a_time_the_last_by_elimination():
+    perm = [3, 7, 0, 9, 5, 1, 8, 2, 6, 4]  # the tracker's names say nothing about which drone is which
+    f = Fleet(perm)
+    order = [0, 1, 2, 3, 4, 5, 6, 7, 8]  # drone k turned 30 deg over 1 s at 1.5 k s; drone 9 never moves
+    for k in order:
+        f.rates[k] = hand_yaw(1.0 + 1.5 * k, 30.0, 1.0)
+    f.step(1.0 + 1.5 * len(order) + 1.0)
+    assert {b: v for _, b, v in f.made} == {b: f.truth_vehicle(b) for b in f.bodies}
+    bound_at = {v: t * 1e-9 for t, _, v in f.made}
+    for k in order:  # each within a second of its turn's start
+        assert 0 < bound_at[f"v{k}"] - (1.0 + 1.5 * k) <= 1.0
+    assert f.binding.binds == 10 and f.stopped == []
+
+
+class Book:
+    """The pipeline's IdentityBook as the bridge reads it: names, state, bind."""
+
+    def __init__(self, names):
+        from visionpos.fusion.identity import IdentityState
+
+        self.names, self.state, self.bound = list(names), [IdentityState.ACQUIRED] * len(names), []
+        self.S = IdentityState
+
+    def bind(self, b: int) -> bool:
+        self.bound.append(self.names[b])
+        self.state[b] = self.S.CONTINUITY
+        return True
+
+
+def test_the_bridge_sends_a_fleet_body_to_the_vehicle_it_is_bound_to_only():
+    from bridge import Bridge
+    from visionpos.benchmarks.factories import body_state
+    from visionpos.config.arena import parse_arena
+
+    layout = [[0.1, 0, 0], [0, 0.1, 0], [-0.1, 0, 0], [0, -0.12, 0.02]]
+    arena = parse_arena({"bodies": [{"name": "quadA", "id": 1, "markers": layout},
+                                    {"name": "quadB", "id": 2, "markers": layout}],
+                         "vehicles": [{"body": "quadA", "endpoint": "udpout:127.0.0.1:9"},
+                                      {"body": "quadB", "endpoint": "udpout:127.0.0.1:10"}]}, "fleet-test.yaml")
+    clock = [10**12]
+    bridge = Bridge(arena, {"clock_ns": lambda: clock[0], "report_interval_s": 0, "pose_stream": False})
+    book = Book(["quadA", "quadB"])
+    bridge.use_identity(book)
+    v_a, v_b = bridge.vehicle("quadA"), bridge.vehicle("quadB")
+    turn = hand_yaw(1.0, 45.0, 1.0)  # quadA is vehicle quadB's drone: its autopilot turns, quadA's body too
+    yaw = 0.0
+    for i in range(250):
+        clock[0] += STEP_NS
+        t = (clock[0] - 10**12) * 1e-9
+        r = turn(t)
+        yaw += r * STEP_NS * 1e-9
+        if i % 2 == 0:
+            for v, rate in ((v_b, r), (v_a, 0.0)):
+                v.bc.att.add(clock[0], (0.0, 0.0, 0.0, 0.0, -rate))
+                v.bc.clock_offsets.add(clock[0], (0,))
+        q = Rotation.from_euler("z", yaw).as_quat()
+        bridge.publish([body_state("quadA", 1, capture_ns=clock[0], quaternion=q, angular_velocity=(0, 0, r)),
+                        body_state("quadB", 2, capture_ns=clock[0])])
+        if i == 50:
+            assert v_a._slot is None and v_b._slot is None  # unbound: nothing offered
+            assert "no motion yet" in bridge.health()["quadA"]["identity_reason"]
+            assert "identity unresolved" in bridge.status_line()
+    assert book.bound == ["quadA", "quadB"]  # quadA by its turn, then quadB by elimination
+    assert v_b._slot.name == "quadA" and v_a._slot.name == "quadB"
+    assert bridge.stats()["vehicles"]["quadB"]["bound_body"] == "quadA"
+    book.state[0] = book.S.LOST  # its track breaks: its vehicle stops at once, its mailbox emptied
+    v_b._slot = None
+    bridge.publish([body_state("quadA", 1, capture_ns=clock[0] + STEP_NS, tracked=False),
+                    body_state("quadB", 2, capture_ns=clock[0] + STEP_NS)])
+    assert v_b._slot is None and bridge.health()["quadB"]["identity_binding"] == "unresolved"
+    assert "track lost" in bridge.health()["quadB"]["identity_reason"]
+    assert v_a._slot.name == "quadB"
+
+
+def test_silent_backchannel_is_checked():
+    from bridge.config import parse_vehicles
+    from visionpos.benchmarks.factories import arena_with_vehicles
+    from visionpos.config.arena import ConfigError
+
+    with pytest.raises(ConfigError, match=r"vehicles\[0\]\.silent_backchannel"):
+        parse_vehicles(arena_with_vehicles([{"body": "body1", "endpoint": "udpout:127.0.0.1:9",
+                                             "silent_backchannel": "sometimes"}]))
+
+
+def test_the_server_hands_the_identity_book_to_its_outputs():
+    from visionpos.server.service import FusionServer, load_config_with_overrides
+    from visionpos.server.sinks import Sink
+
+    class Pipeline:
+        identity = object()
+
+    class Out(Sink):
+        got = None
+
+        def use_identity(self, book):
+            self.got = book
+
+    out = Out()
+    arena = load_config_with_overrides("thesis", ["server.insecure=true"])
+    FusionServer(arena, sinks=[out], pipeline=Pipeline())
+    assert out.got is Pipeline.identity
+
+
+def test_another_body_starts_the_vehicles_own_identity_check_afresh():
+    from bridge.backchannel import Backchannel
+    from bridge.config import parse_vehicles
+    from visionpos.benchmarks.factories import arena_with_vehicles
+
+    cfg = parse_vehicles(arena_with_vehicles([{"body": "body1", "endpoint": "udpout:127.0.0.1:9"}]))[0]
+    bc = Backchannel(cfg, lambda: 0, None, lambda m: True, lambda *a: None)
+    for k in range(5):
+        bc.on_optical(k * 10**7, 0.1, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    bc.identity_tripped, bc.identity = True, "mismatch"  # tripped against the body it got until now
+    bc.optical_epoch += 1  # the bridge bound it to another body
+    bc.on_optical(10**8, 0.0, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    assert len(bc.opt) == 1 and not bc.identity_tripped and bc.identity == "unknown"

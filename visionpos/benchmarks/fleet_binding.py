@@ -1,0 +1,156 @@
+"""The fleet's binding measured on the fleet scenario, offline: `python -m visionpos.benchmarks.fleet_binding [S]`.
+
+The scenario is simulated and replayed through the pipeline (fusion_replay.replay: arrival order, 100 Hz
+ticks), and the bridge's binding (bridge/fleet_binding.py) runs on the ticks as the Bridge runs it: each
+tick's states and the IdentityBook's states, an evaluation every BIND_EVERY_NS, IdentityBook.bind for each
+new binding. Vehicle k is drone k of the scenario (as in `visionpos demo`, whose fake autopilots play their
+own drone's truth): its back-channel is that drone's true roll, pitch and body rates at TELEMETRY_HZ,
+TELEMETRY_LAG_NS late. No network and no real time: the figures are the binding's own, on the pipeline's
+real tracks, identity states and losses (a real-time demo needs the cores to keep 10 cameras at 120 Hz).
+
+Counted: poses that would go to the wrong vehicle (a bound body's pose nearer another drone's truth than
+its vehicle's own, or over WRONG_M from it); per vehicle the time from its first rotation (and from its
+lift-off) to its first binding; every dropped binding of a flying drone and how long until it is bound
+again.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from bridge.fleet_binding import FleetBinding, optical_attitude
+from visionpos.fusion.identity import IdentityState
+
+TELEMETRY_HZ = 50.0
+TELEMETRY_LAG_NS = 5_000_000  # the autopilot's message reaches the server this late
+WRONG_M = 0.1
+MOVING_RAD_S = 0.05  # the first rotation: a body rate over this
+LIFT_M = 0.01
+
+
+LOSS_S = 0.2  # an injected loss: the body untracked this long
+SWAP = ("quad1", "quad9")  # an injected swap: two drones of different cells that fly apart in the huddle leg
+
+
+def measure(duration_s: float | None = None, scenario: str = "fleet", loss_at_s: tuple[float, ...] = (),
+            swap_at_s: float | None = None) -> dict:
+    """The figures (module docstring). loss_at_s: scenario times at which quad3's track is taken away for LOSS_S
+    (the bridge sees it untracked, then reacquired); swap_at_s: from then on the states of the SWAP bodies are
+    exchanged while the identity book still says continuous (a swap the tracker did not notice)."""
+    from visionpos.benchmarks.fusion_replay import replay
+    from visionpos.sim import load_scenario, simulate
+
+    sc = load_scenario(scenario, [f"sim.duration={duration_s}"] if duration_s else [])
+    sim = simulate(sc)
+    names = [b.name for b in sc.bodies]
+    vehicles = [f"v{k}" for k in range(len(names))]  # vehicle k flies drone k
+    binding = FleetBinding([names], dict(zip(vehicles, names)), dict.fromkeys(vehicles, np.radians(3.0)),
+                           dict.fromkeys(vehicles, "continuity"))
+    tel_t = np.arange(sc.start_ns, sc.end_ns + 1, int(1e9 / TELEMETRY_HZ), dtype=np.int64)
+    tel = {}
+    for k, n in enumerate(names):
+        m = sc.motion_at(n, tel_t)
+        tel[vehicles[k]] = (tel_t + TELEMETRY_LAG_NS, optical_attitude(m.quaternions, m.angular_velocities))
+    holder: dict = {}
+    log: list[tuple[int, dict[str, str]]] = []  # (tick, bound) after each tick
+    sent = {v: [] for v in vehicles}  # (tick ns, position) of every pose a vehicle would get
+
+    injected = {"lost": False}
+
+    def tick_cb(t_ns: int, states) -> None:
+        book = holder["pipe"].identity
+        identity = {n: s.value for n, s in zip(book.names, book.state)}
+        states = _inject(sc, t_ns, list(states), identity, loss_at_s, swap_at_s, binding, injected)
+        binding.observe(states, identity)
+        if binding.due(t_ns):
+            upto = {v: (tt[tt <= t_ns], vals[tt <= t_ns]) for v, (tt, vals) in tel.items()}
+            _, made = binding.evaluate(t_ns, upto)
+            for body, _v in made:
+                book.bind(book.names.index(body))
+                injected["lost"] = injected["lost"] and body != "quad3"
+        for st in states:
+            v = binding.vehicle_of(st.name)
+            if v is not None and st.tracked:
+                sent[v].append((t_ns, np.asarray(st.position, float)))
+        log.append((t_ns, dict(binding.bound)))
+
+    rep = replay(sc.arena, sim.frames, raw_cb=lambda p: holder.setdefault("pipe", p), tick_cb=tick_cb)
+    return _figures(sc, names, vehicles, sent, log, rep)
+
+
+def _inject(sc, t_ns: int, states: list, identity: dict, loss_at_s, swap_at_s, binding, injected) -> list:
+    """The injected loss and swap (measure's docstring): states and identity changed in place of the tick's."""
+    import dataclasses
+
+    t = (t_ns - sc.start_ns) * 1e-9
+    if any(a <= t < a + LOSS_S for a in loss_at_s):
+        injected["lost"] = True
+        states = [dataclasses.replace(s, tracked=False) if s.name == "quad3" else s for s in states]
+        identity["quad3"] = IdentityState.LOST.value
+    elif injected["lost"]:  # reacquired: not continuous until bound again
+        identity["quad3"] = IdentityState.ACQUIRED.value
+    if swap_at_s is not None and t >= swap_at_s:
+        by = {s.name: s for s in states}
+        a, b = SWAP
+        if a in by and b in by:
+            states = [dataclasses.replace(by[b], name=a) if s.name == a else
+                      dataclasses.replace(by[a], name=b) if s.name == b else s for s in states]
+    return states
+
+
+def _figures(sc, names, vehicles, sent, log, rep) -> dict:
+    wrong, total = 0, 0
+    for k, v in enumerate(vehicles):
+        if not sent[v]:
+            continue
+        t = np.array([s[0] for s in sent[v]], np.int64)
+        p = np.array([s[1] for s in sent[v]])
+        d = np.stack([np.linalg.norm(p - sc.truth_at(n, t)[0], axis=1) for n in names])
+        total += len(t)
+        wrong += int(np.sum((np.argmin(d, axis=0) != k) | (d[k] > WRONG_M)))
+    ts = rep.times_ns
+    rows = []
+    for k, (n, v) in enumerate(zip(names, vehicles)):
+        m = sc.motion_at(n, ts)
+        rot = ts[np.argmax(np.linalg.norm(m.angular_velocities, axis=1) > MOVING_RAD_S)]
+        lift = ts[np.argmax(m.positions[:, 2] > m.positions[0, 2] + LIFT_M)]
+        first = next((t for t, b in log if v in b.values()), None)
+        drops = []
+        was, since = False, 0
+        for t, b in log:
+            on = v in b.values()
+            if was and not on:
+                since = t
+            if on and not was and since:
+                drops.append(((since - sc.start_ns) * 1e-9, (t - since) * 1e-9))
+            was = on
+        rows.append({"vehicle": v, "drone": n, "lift_off_s": (lift - sc.start_ns) * 1e-9,
+                     "first_rotation_s": (rot - sc.start_ns) * 1e-9,
+                     "bound_after_rotation_s": None if first is None else (first - rot) * 1e-9,
+                     "bound_after_lift_off_s": None if first is None else (first - lift) * 1e-9,
+                     "rebinds": drops, "final": binding_state(log, v)})
+    book = rep.pipeline.identity
+    return {"poses": total, "wrong_vehicle": wrong, "rows": rows, "ambiguities": book.swaps_suspected,
+            "identity_end": [s.value for s in book.state], "continuity": IdentityState.CONTINUITY.value}
+
+
+def binding_state(log, v: str) -> str | None:
+    """The body vehicle v is bound to at the end, or None."""
+    return next((b for b, x in log[-1][1].items() if x == v), None) if log else None
+
+
+if __name__ == "__main__":
+    args = [float(a) for a in sys.argv[1:]]
+    # python -m visionpos.benchmarks.fleet_binding [DURATION [SWAP_AT [LOSS_AT ...]]] (0: none)
+    out = measure(args[0] if args and args[0] else None, "fleet", tuple(args[2:]),
+                  args[1] if len(args) > 1 and args[1] else None)
+    print(f"poses to vehicles {out['poses']}, to the wrong vehicle {out['wrong_vehicle']}; "
+          f"ambiguities {out['ambiguities']}")
+    for r in out["rows"]:
+        ra, rl = r["bound_after_rotation_s"], r["bound_after_lift_off_s"]
+        when = "never" if ra is None else f"{ra:.2f} s after it ({rl:.2f} s after lift-off)"
+        print(f"{r['vehicle']} ({r['drone']}): lift-off {r['lift_off_s']:.2f} s, first rotation "
+              f"{r['first_rotation_s']:.2f} s, bound {when}; re-binds (at s, after s) "
+              f"{[(round(a, 2), round(b, 2)) for a, b in r['rebinds']]}; at the end {r['final']}")
