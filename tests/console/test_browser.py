@@ -198,7 +198,7 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             await browser.evaluate("(() => { const p = document.getElementById('preset'); p.value = 'top'; "
                                    "p.dispatchEvent(new Event('change')); })()")
             found["view3d"] = await browser.evaluate("window.visionposConsole.view3d")
-            for _ in range(20):  # the quad moves: click where it is now, until a click lands on it
+            for _ in range(50):  # the quad moves (and a loaded host may lose it a moment): click where it is now
                 xy = await browser.evaluate("window.visionposConsole.screenOf('quad')")
                 if xy:
                     for kind in ("mousePressed", "mouseReleased"):
