@@ -71,3 +71,20 @@ def test_write_docs_stores_the_runs_beside_the_markdown(tmp_path):
     assert set(stored) == {"detector", "replay"}
     assert stored["replay"]["metrics"] == {"replay_speed_x_cpu_thesis": 25.0}
     assert "## replay" in md.read_text() and "## detector" in md.read_text()
+
+
+def test_a_skipped_group_keeps_its_last_figures_and_says_it_was_not_re_run():
+    from visionpos.benchmarks.runner import merge_runs, runs_to_markdown
+
+    old = merge_runs({}, {"sitl": (BenchResult(metrics={"sitl_ekf_horizontal_p99_mm": 11.9}), 60.0)},
+                     "visionpos bench", False, when="2026-01-01 00:00 UTC", machine="box with SITL")
+    skipped = BenchResult(notes=["skipped: no ArduPilot SITL binary"])
+    new = merge_runs(old, {"sitl": (skipped, 1.0)}, "visionpos bench", False, when="2026-02-02 00:00 UTC",
+                     machine="box without")
+    assert new["sitl"]["metrics"] == {"sitl_ekf_horizontal_p99_mm": 11.9}
+    assert new["sitl"]["date"] == "2026-01-01 00:00 UTC" and new["sitl"]["machine"] == "box with SITL"
+    assert new["sitl"]["notes"] == ["not re-run by `visionpos bench` on 2026-02-02 00:00 UTC: skipped: no ArduPilot "
+                                    "SITL binary"]
+    assert "not re-run by" in runs_to_markdown(new)
+    # with nothing stored, the skip itself is what the docs show
+    assert merge_runs({}, {"sitl": (skipped, 1.0)}, "visionpos bench", False)["sitl"]["notes"] == skipped.notes

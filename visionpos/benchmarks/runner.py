@@ -114,15 +114,28 @@ def _run_record(res: BenchResult, elapsed_s: float, command: str, quick: bool, w
             "command": command, "quick": quick, "date": when, "machine": machine}
 
 
+def _skipped(res: BenchResult) -> bool:
+    """A group that measured nothing because what it needs is absent (its notes all say "skipped: ...")."""
+    return not res.metrics and bool(res.notes) and all(n.startswith("skipped:") for n in res.notes)
+
+
 def merge_runs(stored: dict[str, dict], results: dict[str, tuple[BenchResult, float]], command: str, quick: bool,
                when: str | None = None, machine: str | None = None) -> dict[str, dict]:
     """The stored runs (group -> record, as in docs/benchmarks.json) with the groups just run replaced: each
     record keeps the command, date and machine of the run that produced it, so a partial run
-    (`--only ...`) refreshes its groups and leaves the others as they were measured."""
+    (`--only ...`) refreshes its groups and leaves the others as they were measured. A group that skipped (what
+    it needs is absent: "skipped: ..." notes, no metrics) keeps its stored figures, with a note saying so."""
     when = when or _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     machine = machine or machine_description()
     merged = dict(stored)
     for group, (res, elapsed) in results.items():
+        if _skipped(res) and group in stored and stored[group]["metrics"]:
+            # nothing measured now (no SITL binary here): the last figures stay, saying they were not re-run
+            kept = dict(stored[group])
+            kept["notes"] = [n for n in kept["notes"] if not n.startswith("not re-run by ")] + [
+                f"not re-run by `{command}` on {when}: " + "; ".join(res.notes)]
+            merged[group] = kept
+            continue
         merged[group] = _run_record(res, elapsed, command, quick, when, machine)
     return {g: merged[g] for g in [*GROUPS, *sorted(set(merged) - set(GROUPS))] if g in merged}
 
