@@ -156,3 +156,24 @@ def test_short_closed_loop_flight_on_real_px4():
         pytest.skip("this host did not keep real time")
     assert s["completed"], (s["error"], s["statustext"])
     assert s["ekf_horizontal_error_mm"]["p99"] <= 20.0
+
+
+def test_px4_process_starts_in_its_own_folder_and_close_stops_it_and_cleans_up(tmp_path):
+    """Px4Process on a stand-in build (bin/px4 a script that prints its arguments and waits)."""
+    import os
+    import time
+
+    from visionpos.app.sitl.px4 import Px4Process
+
+    (tmp_path / "bin").mkdir()
+    (tmp_path / "etc").mkdir()
+    px4 = tmp_path / "bin" / "px4"
+    px4.write_text("#!/bin/sh\necho \"$@\" model=$PX4_SIM_MODEL; exec sleep 30\n")
+    px4.chmod(0o755)
+    with Px4Process(tmp_path, 7, {"EKF2_EV_CTRL": 11}, (47.0, 8.0, 400.0)) as p:
+        assert p.alive() and os.path.isdir(p.folder)
+        deadline = time.monotonic() + 5.0
+        while "model=" not in p.log_tail() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert p.log_tail() == f"-i 7 -d {tmp_path / 'etc'} model=sihsim_quadx"
+    assert not p.alive() and not os.path.exists(p.folder)

@@ -32,29 +32,23 @@ def free_instance() -> int:
     raise SitlError("no free SITL instance: ports 5770-7763 are all taken")
 
 
-class SitlProcess:
-    """ArduPilot SITL in a fresh temporary working directory; close() kills it and removes the folder."""
+class ChildProcess:
+    """A simulator binary in a fresh temporary working directory, its output in a log file there; close() stops
+    it (SIGTERM, then SIGKILL after term_wait_s) and removes the folder. A context manager."""
 
-    def __init__(self, cfg: SitlSettings, instance: int, serial1: str | None = None):
-        self.instance = instance
-        self.gcs_port = 5760 + 10 * self.instance
-        self.folder = tempfile.mkdtemp(prefix="visionpos-sitl-")
-        lat, lon, alt, hdg = cfg.home
-        # --speedup 1: the cameras, the fusion and the bridge run on the wall clock
-        self.args = [str(cfg.binary), "--model", cfg.model, "--speedup", "1", "-I", str(self.instance),
-                     "--home", f"{lat:.7f},{lon:.7f},{alt:.2f},{hdg:g}"]
-        if serial1 is not None:  # e.g. udpclient:HOST:PORT (SITL's own syntax; MAVProxy's --out is not one)
-            self.args.append(f"--serial1={serial1}")
-        if cfg.defaults is not None:
-            self.args += ["--defaults", str(cfg.defaults.resolve())]
-        self.log_path = os.path.join(self.folder, "sitl.log")
+    term_wait_s = 3.0
+
+    def _start(self, args: list[str], folder_prefix: str, log_name: str, env: dict[str, str] | None = None) -> None:
+        self.args = args
+        self.folder = tempfile.mkdtemp(prefix=folder_prefix)
+        self.log_path = os.path.join(self.folder, log_name)
         self._log = open(self.log_path, "wb")
         try:
-            self.proc = subprocess.Popen(self.args, cwd=self.folder, stdout=self._log, stderr=subprocess.STDOUT,
-                                         stdin=subprocess.DEVNULL, start_new_session=True)
+            self.proc = subprocess.Popen(self.args, cwd=self.folder, env=env, stdout=self._log,
+                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
         except OSError as e:
             self.close()
-            raise SitlError(f"could not start {cfg.binary}: {e}") from e
+            raise SitlError(f"could not start {self.args[0]}: {e}") from e
 
     def alive(self) -> bool:
         return self.proc.poll() is None
@@ -70,18 +64,35 @@ class SitlProcess:
         if proc is not None and proc.poll() is None:
             proc.terminate()
             try:
-                proc.wait(3.0)
+                proc.wait(self.term_wait_s)
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait(3.0)
         self._log.close()
         shutil.rmtree(self.folder, ignore_errors=True)
 
-    def __enter__(self) -> "SitlProcess":
+    def __enter__(self):
         return self
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+class SitlProcess(ChildProcess):
+    """ArduPilot SITL in a fresh temporary working directory; close() kills it and removes the folder."""
+
+    def __init__(self, cfg: SitlSettings, instance: int, serial1: str | None = None):
+        self.instance = instance
+        self.gcs_port = 5760 + 10 * self.instance
+        lat, lon, alt, hdg = cfg.home
+        # --speedup 1: the cameras, the fusion and the bridge run on the wall clock
+        args = [str(cfg.binary), "--model", cfg.model, "--speedup", "1", "-I", str(self.instance),
+                "--home", f"{lat:.7f},{lon:.7f},{alt:.2f},{hdg:g}"]
+        if serial1 is not None:  # e.g. udpclient:HOST:PORT (SITL's own syntax; MAVProxy's --out is not one)
+            args.append(f"--serial1={serial1}")
+        if cfg.defaults is not None:
+            args += ["--defaults", str(cfg.defaults.resolve())]
+        self._start(args, "visionpos-sitl-", "sitl.log")
 
 
 # ---------------------------------------------------------------- the true pose

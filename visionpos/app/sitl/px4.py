@@ -11,10 +11,7 @@ HIL_STATE_QUATERNION (the true state) to 19410+i, where Px4Gcs listens. MAV_SYS_
 from __future__ import annotations
 
 import os
-import shutil
 import socket
-import subprocess
-import tempfile
 import threading
 import time
 import types
@@ -22,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from visionpos.app.sitl.gcs import Gcs
+from visionpos.app.sitl.process import ChildProcess
 from visionpos.app.sitl.settings import SHARED_SITL_DIR, SITL, SitlError
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.errors import UsageError
@@ -132,55 +130,25 @@ def _udp_free(port: int) -> bool:
     return True
 
 
-class Px4Process:
+class Px4Process(ChildProcess):
     """PX4 SITL (SIH) in a fresh temporary working directory (parameters.bson, logs); close() kills it."""
+
+    term_wait_s = 5.0
 
     def __init__(self, build: Path, instance: int, params: dict[str, float], home: tuple[float, ...],
                  model: str = "sihsim_quadx"):
         self.instance = instance
-        self.folder = tempfile.mkdtemp(prefix="visionpos-px4-")
         env = dict(os.environ, PX4_SIM_MODEL=model, PX4_HOME_LAT=f"{home[0]:.7f}", PX4_HOME_LON=f"{home[1]:.7f}",
                    PX4_HOME_ALT=f"{home[2]:.2f}", **px4_env(params))
-        self.args = [str(build / "bin" / "px4"), "-i", str(instance), "-d", str(build / "etc")]
-        self.log_path = os.path.join(self.folder, "px4.log")
-        self._log = open(self.log_path, "wb")
-        try:
-            self.proc = subprocess.Popen(self.args, cwd=self.folder, env=env, stdout=self._log,
-                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
-        except OSError as e:
-            self.close()
-            raise SitlError(f"could not start {self.args[0]}: {e}") from e
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def log_tail(self, n: int = 15) -> str:
-        try:
-            return "\n".join(Path(self.log_path).read_text(errors="replace").splitlines()[-n:])
-        except OSError:
-            return ""
+        self._start([str(build / "bin" / "px4"), "-i", str(instance), "-d", str(build / "etc")], "visionpos-px4-",
+                    "px4.log", env)
 
     def close(self) -> None:
-        proc = getattr(self, "proc", None)
-        if proc is not None and proc.poll() is None:
-            proc.terminate()
-            try:
-                proc.wait(5.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(3.0)
-        self._log.close()
-        shutil.rmtree(self.folder, ignore_errors=True)
+        super().close()
         try:
             os.unlink(f"/tmp/px4-sock-{self.instance}")  # left behind by a killed px4
         except OSError:
             pass
-
-    def __enter__(self) -> "Px4Process":
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
 
 
 def hil_state_as_sim_state(m: Any) -> Any:
