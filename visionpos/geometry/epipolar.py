@@ -41,7 +41,9 @@ def _eight_point(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     h2 = np.einsum("bij,bnj->bni", T2, np.concatenate([x2, np.ones((B, N, 1))], axis=2))
     # x2^T E x1 = 0 -> kron(x2, x1) . vec(E) = 0
     A = (h2[:, :, :, None] * h1[:, :, None, :]).reshape(B, N, 9)
-    _, _, Vt = np.linalg.svd(A)
+    # a thin SVD for N >= 9 (the full one also builds an N x N U, which dominated a calibration's time);
+    # a minimal 8-point sample needs the full V for its null vector
+    _, _, Vt = np.linalg.svd(A, full_matrices=N < 9)
     En = Vt[:, -1, :].reshape(B, 3, 3)
     # in Hartley coordinates only rank 2 holds (it is a fundamental matrix there)
     U, S, Vt2 = np.linalg.svd(En)
