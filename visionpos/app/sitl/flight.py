@@ -23,7 +23,7 @@ from visionpos.app.sitl.gcs import (
     Gcs,
 )
 from visionpos.app.sitl.settings import SitlError, SitlSettings
-from visionpos.app.sitl.truth import LATE_NS, LiveArena, truth_now
+from visionpos.app.sitl.truth import LATE_NS, LiveArena, truth_now, until_settled
 from visionpos.geometry.frames import ned_to_world
 
 
@@ -134,25 +134,16 @@ async def _hold(gcs: Gcs, plan: FlightPlan, north: float, east: float, duration_
 
 
 async def _goto(gcs: Gcs, north: float, east: float, down: float, timeout_s: float) -> None:
-    """SET_POSITION_TARGET_LOCAL_NED (position only) until the true position is within 5 cm of it."""
-    target_world = ned_to_world(np.array([north, east, down]))
-    end = time.monotonic() + timeout_s
-    ok_since = None
-    while True:
+    """SET_POSITION_TARGET_LOCAL_NED (position only, resent every 0.25 s) until the true position has settled
+    within 5 cm of it (truth.until_settled)."""
+    def setpoint() -> None:
         gcs.conn.mav.set_position_target_local_ned_send(0, 1, 1, 1, 0b0000_1111_1111_1000, north, east, down,
                                                         0, 0, 0, 0, 0, 0, 0, 0)
-        for _ in range(5):
-            await asyncio.sleep(0.05)
-            _, x = truth_now(gcs.truth)
-            if np.linalg.norm(x[:3] - target_world) < 0.05:
-                ok_since = ok_since or time.monotonic()
-                if time.monotonic() - ok_since > 0.5:
-                    return
-            else:
-                ok_since = None
-        if time.monotonic() > end:
-            raise SitlError(f"the vehicle did not reach N {north:.2f} E {east:.2f} D {down:.2f} within "
-                            f"{timeout_s:g} s (true position {x[:3].round(3).tolist()} in the world frame)")
+
+    x = await until_settled(gcs.truth, ned_to_world(np.array([north, east, down])), timeout_s, setpoint)
+    if x is not None:
+        raise SitlError(f"the vehicle did not reach N {north:.2f} E {east:.2f} D {down:.2f} within "
+                        f"{timeout_s:g} s (true position {x.round(3).tolist()} in the world frame)")
 
 
 # ---------------------------------------------------------------- the summary

@@ -10,7 +10,6 @@ stamps the poses on arrival: the median stamp-to-arrival delay, bridge/estimator
 from __future__ import annotations
 
 import asyncio
-import math
 import time
 from pathlib import Path
 from typing import Any, Callable, TextIO
@@ -31,7 +30,7 @@ from visionpos.app.sitl.px4 import (
 )
 from visionpos.app.sitl.report import flight_summary
 from visionpos.app.sitl.settings import SITL, SitlError
-from visionpos.app.sitl.truth import LiveArena, TruthTrack, truth_now
+from visionpos.app.sitl.truth import LiveArena, TruthTrack, until_settled
 from visionpos.config.arena import ArenaConfig
 from visionpos.geometry.frames import ned_to_world
 
@@ -190,19 +189,10 @@ async def fly_px4(ctx: Any, gcs: Px4Gcs, plan: FlightPlan, body: str, record: di
 
 
 async def _reach(gcs: Px4Gcs, north: float, east: float, down: float, timeout_s: float) -> None:
-    """The offboard setpoint moved there, until SIH's true position is within 5 cm for 0.5 s."""
+    """The offboard setpoint moved there (Px4Gcs streams it), until SIH's true position has settled within 5 cm
+    of it (truth.until_settled)."""
     gcs.setpoint = (north, east, down)
-    target = ned_to_world(np.array([north, east, down]))
-    end = time.monotonic() + timeout_s
-    ok_since = None
-    while True:
-        await asyncio.sleep(0.05)
-        t, x = truth_now(gcs.truth)
-        if t and math.dist(x[:3], target) < 0.05:
-            ok_since = ok_since or time.monotonic()
-            if time.monotonic() - ok_since > 0.5:
-                return
-        else:
-            ok_since = None
-        if time.monotonic() > end:
-            raise SitlError(f"the vehicle did not reach N {north:.2f} E {east:.2f} D {down:.2f} within {timeout_s:g} s")
+    x = await until_settled(gcs.truth, ned_to_world(np.array([north, east, down])), timeout_s)
+    if x is not None:
+        raise SitlError(f"the vehicle did not reach N {north:.2f} E {east:.2f} D {down:.2f} within {timeout_s:g} s "
+                        f"(true position {x.round(3).tolist()} in the world frame)")

@@ -21,7 +21,7 @@ import dataclasses
 import math
 import threading
 import time
-from typing import Any, AsyncIterator
+from typing import Any, AsyncIterator, Callable
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -216,3 +216,32 @@ class LiveArena:
 def truth_now(truth: TruthTrack) -> tuple[int, np.ndarray]:
     t, x = truth.snapshot()
     return (int(t[-1]), x[-1]) if len(t) else (0, np.zeros(13))
+
+
+SETTLE_RADIUS_M = 0.05  # a waypoint is reached when the true position stays this close ...
+SETTLE_S = 0.5  # ... for this long
+
+
+async def until_settled(truth: TruthTrack, target_world: np.ndarray, timeout_s: float,
+                        nudge: Callable[[], None] | None = None) -> np.ndarray | None:
+    """Poll the true position every 50 ms (calling nudge(), e.g. a setpoint resent, every 0.25 s) until it
+    stays within SETTLE_RADIUS_M of target_world (3,) m, world frame, for SETTLE_S: None then; else, once
+    timeout_s has passed, the last true position (3,) m, for the error message."""
+    end = time.monotonic() + timeout_s
+    ok_since = None
+    polls = 0
+    while True:
+        if nudge is not None and polls % 5 == 0:
+            nudge()
+        polls += 1
+        await asyncio.sleep(0.05)
+        _, x = truth_now(truth)
+        if np.linalg.norm(x[:3] - target_world) < SETTLE_RADIUS_M:
+            ok_since = ok_since or time.monotonic()
+            if time.monotonic() - ok_since > SETTLE_S:
+                return None
+        else:
+            ok_since = None
+        if time.monotonic() > end:
+            return x[:3]
+
