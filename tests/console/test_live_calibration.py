@@ -221,3 +221,43 @@ def test_a_stale_result_or_changed_cameras_are_refused_and_change_nothing(tmp_pa
     with pytest.raises(ValueError, match="built-in arena"):
         lb._apply_ground()
     assert lb.applied is None
+
+
+def test_set_ground_finds_the_l_frame_and_its_floor_is_applied_like_a_solve(tmp_path):
+    """The arena's world tilted 2 deg and shifted 5 cm off the floor; the simulator's L-frame lies at the true origin:
+    "ground" finds it in 2 s of frames, "apply_ground" puts the running cameras and the file back on the floor."""
+    from visionpos.calibration.ground import apply_world
+    from visionpos.sim import load_scenario, simulate
+
+    truth = load_arena("thesis")
+    R0 = Rotation.from_euler("xyz", [2.0, -1.0, 10.0], degrees=True).as_matrix()
+    raw = truth.to_dict()
+    raw["cameras"] = [c.to_dict() for c in apply_world(list(truth.cameras), R0, np.array([0.05, -0.03, 0.05]))]
+    path = tmp_path / "arena.yaml"
+    dump_yaml(raw, path)
+    original = path.read_bytes()
+    server = FusionServer(load_config_with_overrides(str(path), ["server.insecure=true"]), port=0)
+    lc = LiveCalibration(server, tmp_path / "out.yaml")
+    frames = simulate(load_scenario("thesis", ["sim.duration=3"], session="ground")).frames
+
+    async def main():
+        with pytest.raises(ValueError, match="set ground first"):
+            await lc.command({"cmd": "apply_ground"})
+        assert (await lc.command({"cmd": "ground"}))["ground"] == "gathering"
+        _feed(server, frames, 0)
+        assert lc.ground["state"] == "solving" and lc._ground_task is not None
+        await lc._ground_task
+        assert lc.ground["state"] == "found", lc.ground
+        assert path.read_bytes() == original
+        reply = await lc.command({"cmd": "apply_ground"})
+        assert reply["applied"] == "ground frame"
+        await lc.stop()
+        return lc.ground["result"], reply
+
+    g, reply = asyncio.run(asyncio.wait_for(main(), 60))
+    assert g["tilt_deg"] == pytest.approx(math.degrees(math.acos(R0[2, 2])), abs=0.1) and g["fit_mm"] < 2.0
+    for run, c, f in zip(server.pipeline.cameras.values(), truth.cameras, load_arena(str(path)).cameras):
+        assert _angle_deg(run.R, c.R) < 0.1 and np.linalg.norm(run.center - c.center) < 0.005
+        assert np.allclose(f.R, run.R, atol=1e-6)
+    assert sorted(tmp_path.glob("arena.yaml.bak-*"))[0].read_bytes() == original
+    assert lc.state()["applied"]["backup"] == reply["backup"]
