@@ -473,7 +473,11 @@ def test_pages_of_other_origins_and_foreign_hosts_change_nothing_in_chromium(tmp
 
 def test_the_token_leaves_the_address_bar_and_the_page_runs_on_its_cookie(tmp_path, arena_yaml):
     """The URL printed at start (?token=...) opened in the browser: the console answers with its cookie and a
-    redirect to "/", so the address bar (a screenshot, a shared link) holds no token, and the page connects."""
+    redirect to "/", so the address bar (a screenshot, a shared link) holds no token, and the page connects.
+    Then the page comes back while console.max_clients tabs are open: its header says it was refused and why, it
+    does not look live, and once a tab closes it gets in on its next try."""
+    import aiohttp
+
     from visionpos.config.arena import parse_arena
 
     from .test_security import _console
@@ -483,7 +487,8 @@ def test_the_token_leaves_the_address_bar_and_the_page_runs_on_its_cookie(tmp_pa
     found: dict = {}
 
     async def main():
-        console, source = await _console(arena, token=token)  # on loopback, but configured: needed everywhere
+        # on loopback, but configured: needed everywhere; two tabs at most
+        console, source = await _console(arena, token=token, max_clients=2)
         browser = Browser(f"{console.address}?token={token}", tmp_path / "profile")
         try:
             await browser.connect()
@@ -491,15 +496,32 @@ def test_the_token_leaves_the_address_bar_and_the_page_runs_on_its_cookie(tmp_pa
             found["href"] = await browser.evaluate("location.href")
             found["text"] = await browser.evaluate("document.body.innerText")
             found["refused"] = console.counters["refused_token"]
+            await browser.call("Page.navigate", url="about:blank")
+            async with aiohttp.ClientSession() as http:
+                tabs = [await http.ws_connect(f"{console.address}ws?token={token}") for _ in range(2)]
+                await browser.call("Page.navigate", url=console.address)  # the third tab: its cookie, no token
+                found["full"] = await browser.wait_for(
+                    "window.visionposConsole && window.visionposConsole.full && "
+                    "document.getElementById('conn').textContent.startsWith('refused') && "
+                    "[document.getElementById('conn').textContent, document.getElementById('conn').className, "
+                    "window.visionposConsole.stale]", 20)
+                found["refused_full"] = console.counters["refused_full"]
+                await tabs[0].close()
+                found["back"] = await browser.wait_for("document.getElementById('conn').textContent === 'live'", 20)
+                await tabs[1].close()
         finally:
             await browser.close()
             await console.stop()
 
-    asyncio.run(asyncio.wait_for(main(), 60))
+    asyncio.run(asyncio.wait_for(main(), 90))
     assert token not in found["href"], found["href"]
     assert found["href"].endswith("/")
     assert token not in found["text"]
     assert found["refused"] == 0
+    text, cls, stale = found["full"]
+    assert "at most 2 tabs" in text and "console.max_clients" in text and "next try in 5 s" in text, text
+    assert cls == "bad" and stale is True
+    assert found["refused_full"] >= 1 and found["back"]
 
 def _shots() -> Path:
     """Where the screenshots go: VISIONPOS_SCREENSHOTS (docs/images regenerates the docs' pictures) or a temp dir."""
