@@ -9,7 +9,9 @@
                          when the calibration assistant's counts or solve changed; the client
                          may send {"cmd": ...}: "rays" (a camera's blob rays), "views" (on: false while the
                          tab is hidden: no camera views for it), "health", replay controls (console/replay.py),
-                         "solve" (the wand solve: console/calibration.py), "record" (start or stop a
+                         "solve" (the wand solve: console/calibration.py), "wave", "apply_calibration",
+                         "ground" and "apply_ground" (a running fusion server's: console/live_calibration.py; an
+                         apply sends every tab the new scene), "record" (start or stop a
                          recording: console/recording.py; answered to every tab as {"type": "record"}),
                          "write_pose" (the camera monitor's corrected pose into the arena file: console/arena_file.py),
                          "still" and "mask" (a station's still image, its mask saved back: console/stills.py);

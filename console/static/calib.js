@@ -212,6 +212,7 @@ function show(s) {
   st.pairs = s.pairs.length;
   st.heatCells = 0;
   st.solve = s.solve;
+  st.framesKept = s.frames_kept;
   const v = panel.querySelector("#calib-verdict");
   v.textContent = s.enough ? "ENOUGH" : "not yet";
   v.className = "calib-verdict " + (s.enough ? "enough" : "notyet");

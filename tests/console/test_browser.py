@@ -190,6 +190,12 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             found["stopped"] = await browser.evaluate(
                 "({info: document.getElementById('recinfo').textContent, button: "
                 "document.getElementById('rec').textContent, stopped: window.visionposConsole.record.stopped})")
+            # the running server's calibration panel: "gather wave" takes what the stations send from the click
+            await browser.wait_for("!!document.getElementById('calib-wave')", 10)
+            await browser.evaluate("document.getElementById('calib-wave').click()")
+            found["wave"] = await browser.wait_for(
+                "window.visionposConsole.calib.framesKept > 0 && [document.getElementById('calib-wave').textContent, "
+                "document.getElementById('calib-ground').textContent, window.visionposConsole.calib.framesKept]", 10)
             found["errors"] = await browser.evaluate("window.visionposConsole.errors")
             found["dpr"] = await browser.evaluate("window.devicePixelRatio")
             found["r3d"] = await browser.evaluate(JS_RECT.format(sel="#view3d"))
@@ -233,6 +239,7 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
                                           on_console=views.append), 240))
     print(f"screenshots in {shots}")
     img, dpr = found["img"], found["dpr"] or 1.0
+    assert found["wave"][:2] == ["stop the wave", "set ground"] and found["wave"][2] > 0, found["wave"]
     # the corrected pose in the arena file, the old file in the backup the page names
     w = found["written"]["reply"]
     assert w["camera"] == 2 and w["file"] == str(path.resolve())
@@ -597,6 +604,12 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
                 "canvases: document.querySelectorAll('#camgrid canvas').length, "
                 "rays: document.querySelectorAll('#rays option').length, volume: window.visionposConsole.volume, "
                 "titles: [...document.querySelectorAll('#camgrid .cam > div:first-child')].map(e => e.textContent)})")
+            # the running server's calibration panel: "gather wave" takes what the stations send from the click
+            await browser.wait_for("!!document.getElementById('calib-wave')", 10)
+            await browser.evaluate("document.getElementById('calib-wave').click()")
+            found["wave"] = await browser.wait_for(
+                "window.visionposConsole.calib.framesKept > 0 && [document.getElementById('calib-wave').textContent, "
+                "document.getElementById('calib-ground').textContent, window.visionposConsole.calib.framesKept]", 10)
             found["errors"] = await browser.evaluate("window.visionposConsole.errors")
         finally:
             await browser.close()

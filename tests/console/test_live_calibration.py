@@ -10,6 +10,7 @@ import concurrent.futures
 import json
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import aiohttp
 import numpy as np
@@ -157,7 +158,10 @@ def test_a_solve_of_a_live_wave_is_applied_after_the_residuals_and_a_worse_one_i
     assert _angle_deg(cam2.R, truth.cameras[1].R) < 0.1
     written = load_arena(str(path))
     assert _angle_deg(written.cameras[1].R, truth.cameras[1].R) < 0.1
-    assert written.raw["calibration"]["extrinsics"]["rms_px"]["pi2"] < 0.5
+    report = written.raw["calibration"]["extrinsics"]
+    assert report["rms_px"]["pi2"] < 0.5 and set(report["clock_offset_ms"]) == {"pi1", "pi2", "pi3", "pi4"}
+    # the solve's own file: the aligned cameras, the running world's
+    assert _angle_deg(load_arena(str(tmp_path / "solved.yaml")).cameras[1].R, truth.cameras[1].R) < 0.1
     backups = sorted(tmp_path.glob("arena.yaml.bak-*"))
     assert [b.name for b in backups] == [reply["backup"].rsplit("/", 1)[1]] and backups[0].read_bytes() == original
 
@@ -243,8 +247,15 @@ def test_set_ground_finds_the_l_frame_and_its_floor_is_applied_like_a_solve(tmp_
     async def main():
         with pytest.raises(ValueError, match="set ground first"):
             await lc.command({"cmd": "apply_ground"})
+        # one camera's frames only: not found, and why
+        await lc.command({"cmd": "ground"})
+        _feed(server, [f for f in frames if f.camera_id == 1], 0)
+        await lc._ground_task
+        assert lc.ground["state"] == "failed" and "static markers found in 1 camera(s) (pi1)" in lc.ground["error"]
+        with pytest.raises(ValueError, match="set ground first"):
+            await lc.command({"cmd": "apply_ground"})
         assert (await lc.command({"cmd": "ground"}))["ground"] == "gathering"
-        _feed(server, frames, 0)
+        _feed(server, frames, SHIFT_NS)
         assert lc.ground["state"] == "solving" and lc._ground_task is not None
         await lc._ground_task
         assert lc.ground["state"] == "found", lc.ground
@@ -256,8 +267,47 @@ def test_set_ground_finds_the_l_frame_and_its_floor_is_applied_like_a_solve(tmp_
 
     g, reply = asyncio.run(asyncio.wait_for(main(), 60))
     assert g["tilt_deg"] == pytest.approx(math.degrees(math.acos(R0[2, 2])), abs=0.1) and g["fit_mm"] < 2.0
+    assert g["heights_m"] == pytest.approx({c.name: c.center[2] for c in truth.cameras}, abs=0.005)
+    assert g["shift_mm"] > 50.0 and g["rotation_deg"] > 5.0
     for run, c, f in zip(server.pipeline.cameras.values(), truth.cameras, load_arena(str(path)).cameras):
         assert _angle_deg(run.R, c.R) < 0.1 and np.linalg.norm(run.center - c.center) < 0.005
         assert np.allclose(f.R, run.R, atol=1e-6)
     assert sorted(tmp_path.glob("arena.yaml.bak-*"))[0].read_bytes() == original
     assert lc.state()["applied"]["backup"] == reply["backup"]
+
+
+def test_set_cameras_swaps_every_pose_and_restarts_the_camera_monitor(tmp_path):
+    arena = load_config_with_overrides("thesis", ["server.insecure=true"])
+    server = FusionServer(arena, port=0)
+    old_monitor, cams = server.monitor, list(arena.cameras)
+    old_monitor.events.append("an earlier event")
+    moved = [apply_correction(c, np.array([0.01 * c.id, 0, 0, 0, 0, 0])) for c in cams]
+    with pytest.raises(ValueError, match="not the arena's"):
+        server.set_cameras(moved[:3])
+    assert server.monitor is old_monitor and all(server.pipeline.cameras[c.id] is c for c in cams)
+    server.set_cameras(moved)
+    assert all(server.pipeline.cameras[c.id] is c for c in moved) and list(server.arena.cameras) == moved
+    assert server.monitor is not old_monitor and server.ingest.pipeline.monitor is server.monitor
+    assert all(server.monitor.cams[c.id].camera is c for c in moved)
+    assert server.monitor.events == ["an earlier event"]
+
+
+def test_a_live_solve_writes_beside_the_arena_file_or_in_the_working_directory(tmp_path, monkeypatch):
+    from console.live_calibration import live_out
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "lab.yaml").write_text("cameras: []\n")
+    assert live_out(str(tmp_path / "lab.yaml")) == tmp_path / "lab.calibrated.yaml"
+    builtin = load_arena("thesis").source
+    assert live_out(builtin) == tmp_path / (Path(builtin).stem + ".calibrated.yaml")
+
+
+def test_the_docs_name_the_apply_rules_the_code_keeps():
+    from console.live_calibration import GROUND_S, MAX_AGE_S, MIN_GAIN, WAND_SLACK_MM
+
+    root = Path(__file__).resolve().parents[2] / "docs"
+    console_md, calibration_md = (root / "console.md").read_text(), (root / "calibration.md").read_text()
+    for doc in (console_md, calibration_md):
+        text = " ".join(doc.split())
+        assert f"at least {100 * MIN_GAIN:.0f} % lower" in text and f"at most {WAND_SLACK_MM} mm larger" in text
+        assert f"older than {MAX_AGE_S / 60:.0f} minutes" in text and f"{GROUND_S:.0f} s of" in text
