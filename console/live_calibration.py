@@ -231,8 +231,9 @@ class LiveCalibration(CalibrationAssistant):
     # ---------------------------------------------------------------- the console's face
 
     def state(self) -> dict[str, Any]:
+        done = {k: bool(b and b.get("applied")) for k, b in (("solve", self._solved), ("ground", self._grounded))}
         return {**super().state(), "live": True, "gathering": self.gathering, "applied": self.applied,
-                "ground": dict(self.ground)}
+                "ground": dict(self.ground), "applied_results": done}
 
     async def stop(self) -> None:
         self._feed(False)

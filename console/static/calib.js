@@ -166,6 +166,7 @@ function showCompare(s) {
   t.append(body);
   div.append(t);
   if (r.refused) { div.append(el("p", `not applicable: ${r.refused}`, "badv")); return; }
+  if (s.applied_results.solve) return;
   const b = el("button", "apply to the running server");
   b.id = "calib-apply-button";
   b.onclick = () => confirmSend("Apply this solve to the running server? Fusion switches to the new camera poses " +
@@ -189,6 +190,7 @@ function showGround(s) {
     Object.entries(r.heights_m).map(([k, v]) => `${k} ${num(v, 2)} m`).join(", "));
   p.id = "calib-ground-result";
   div.append(p);
+  if (s.applied_results.ground) return;
   const b = el("button", "apply the floor");
   b.id = "calib-ground-apply";
   b.onclick = () => confirmSend("Move the running world onto this floor? Every camera pose changes, and the arena " +
@@ -213,6 +215,8 @@ function show(s) {
   st.heatCells = 0;
   st.solve = s.solve;
   st.framesKept = s.frames_kept;
+  // a running server's panel before any wave: its bar alone (the coverage lists would only say "0 frames")
+  panel.classList.toggle("calib-idle", live && !gathering && s.frames_kept === 0);
   const v = panel.querySelector("#calib-verdict");
   v.textContent = s.enough ? "ENOUGH" : "not yet";
   v.className = "calib-verdict " + (s.enough ? "enough" : "notyet");
