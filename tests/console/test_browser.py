@@ -550,12 +550,39 @@ def _grey(img: np.ndarray, rect: tuple[int, int, int, int]) -> bool:
     return int((crop.max(axis=2) - crop.min(axis=2)).max()) <= 12  # the panels' own blue-grey: 9
 
 
+def _solve_result(lc) -> list:
+    """A wand solve's result on a live calibration panel, as solve_and_compare gives it (console/live_calibration.py):
+    the running cameras with camera 2 turned 0.2 deg, scored better than the running ones; returns those cameras."""
+    from visionpos.fusion.camera_monitor import apply_correction
+
+    cams = lc.running_cameras()
+    cams[1] = apply_correction(cams[1], np.array([np.radians(0.2), 0.0, 0.0, 0.0, 0.0, 0.0]))
+
+    def score(px):
+        return {"cameras": [{"id": c.id, "name": c.name, "rms_px": px, "max_px": 3 * px} for c in cams],
+                "rms_px": px, "worst_rms_px": px, "wand_ac_err_mm": 0.1, "wand_ac_std_mm": 0.5, "points": 900}
+
+    result = {"out": "lab.calibrated.yaml", "time_steps": 300, "wand_ac_mean_err_mm": 0.1, "wand_ac_std_mm": 0.5,
+              "cameras": [{"id": c.id, "name": c.name, "rms_px": 0.2, "max_px": 0.8, "views": 300, "offset_ms": 0.0}
+                          for c in cams], "warnings": [], "seconds": 1.0, "current": score(1.2), "new": score(0.2),
+              "refused": None, "moved": [{"id": c.id, "name": c.name, "rotation_deg": 0.2 * (c.id == 2),
+                                          "shift_mm": 0.0} for c in cams]}
+    lc._solved = {"scene_id": lc.scene_id(), "time": lc.clock(), "cameras": cams, "report": {"rms_px": {}}}
+    lc.solve = {"running": False, "result": result, "error": None, "frames": 900}
+    lc.version += 1
+    return cams
+
+
 @pytest.mark.slow
 def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path, arena_yaml):
     """`visionpos record`'s console (no fusion: quick to start) for the thesis arena, stopped, then started again on
-    the same port for arena8: the page greys with the time of its last data, then shows arena8's eight cameras."""
+    the same port for arena8: the page greys with the time of its last data, then shows arena8's eight cameras. Then
+    a running fusion server's console there: a solve's "apply to the running server" waits for the confirmation."""
     from console.settings import ConsoleSettings
     from visionpos.app.console import RecordSource, open_console
+    from visionpos.config.arena import dump_yaml
+    from visionpos.fusion.pipeline import FusionPipeline
+    from visionpos.server.service import FusionServer, load_config_with_overrides
 
     found: dict = {}
     volume = {"min_m": [-1.0, -0.5, 0.0], "max_m": [1.0, 1.5, 2.0]}  # the planner's flight volume, drawn as a box
@@ -605,11 +632,35 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
                 "rays: document.querySelectorAll('#rays option').length, volume: window.visionposConsole.volume, "
                 "titles: [...document.querySelectorAll('#camgrid .cam > div:first-child')].map(e => e.textContent)})")
             found["errors"] = await browser.evaluate("window.visionposConsole.errors")
+            # a running fusion server's console on the same port, with a solve's result on its panel: "apply to the
+            # running server" asks first; cancelled, nothing changes; confirmed, the file and the running cameras
+            await console.stop()
+            lab = load_config_with_overrides(str(path), ["server.insecure=true"])
+            server = FusionServer(lab, port=0, pipeline=FusionPipeline(lab, warm_up=False))  # never started: no frames
+            console = await open_console(ConsoleSettings(port=port), server)
+            solved = _solve_result(console.calibration)
+            await browser.wait_for("!!document.getElementById('calib-apply-button')", 20)
+            scene_before = await browser.evaluate("window.visionposConsole.sceneId")
+            click = "document.getElementById('calib-apply-button').click()"
+            await browser.evaluate(f"window.confirm = () => false; {click}")
+            await asyncio.sleep(0.5)
+            found["cancelled"] = (console.calibration.applied, path.read_text() == original)
+            await browser.evaluate(f"window.confirm = () => true; {click}")
+            found["applied"] = await browser.wait_for(
+                f"window.visionposConsole.calib.applied && window.visionposConsole.sceneId !== '{scene_before}' && "
+                "document.getElementById('calib-apply').textContent", 10)
+            found["running"] = server.pipeline.cameras[2] is solved[1]
         finally:
             await browser.close()
             await console.stop()
 
+    path = tmp_path / "lab.yaml"
+    dump_yaml(arena_yaml("thesis"), path)
+    original = path.read_text()
     asyncio.run(asyncio.wait_for(main(), 120))
+    assert found["cancelled"] == (None, True)
+    assert found["applied"].startswith(f"applied: the wand solve, written to {path.resolve()} (the old file: ")
+    assert found["running"] and [b.read_text() for b in tmp_path.glob("lab.yaml.bak-*")] == [original]
     dpr = found["dpr"] or 1.0
     # live: the badge says so with the page's own update rate, and the health panel has colour (state words)
     assert re.match(r"live, \d+ updates/s", found["live_badge"]), found["live_badge"]
