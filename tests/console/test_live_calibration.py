@@ -247,6 +247,13 @@ def test_set_ground_finds_the_l_frame_and_its_floor_is_applied_like_a_solve(tmp_
     async def main():
         with pytest.raises(ValueError, match="set ground first"):
             await lc.command({"cmd": "apply_ground"})
+        version = lc.version  # malformed commands: refused, nothing changed
+        for bad in ({"cmd": "wave", "on": "yes"}, {"cmd": "wave"}, {"cmd": "ground", "seconds": 60},
+                    {"cmd": "apply_calibration", "force": True}):
+            with pytest.raises(ValueError, match="expected"):
+                await lc.command(bad)
+        assert lc.version == version and not lc.gathering and lc.ground["state"] == "idle"
+        assert not isinstance(server.ingest.pipeline, live._Tee)  # nothing gathers
         # one camera's frames only: not found, and why
         await lc.command({"cmd": "ground"})
         _feed(server, [f for f in frames if f.camera_id == 1], 0)
@@ -311,3 +318,24 @@ def test_the_docs_name_the_apply_rules_the_code_keeps():
         text = " ".join(doc.split())
         assert f"at least {100 * MIN_GAIN:.0f} % lower" in text and f"at most {WAND_SLACK_MM} mm larger" in text
         assert f"older than {MAX_AGE_S / 60:.0f} minutes" in text and f"{GROUND_S:.0f} s of" in text
+
+
+def test_a_console_without_a_running_server_refuses_the_live_commands(tmp_path):
+    from console.calibration import CalibrationAssistant
+    from visionpos.app.console import RecordSource
+
+    arena = load_arena("thesis")
+
+    async def main():
+        source = RecordSource(arena, CalibrationAssistant(arena, tmp_path / "a.yaml"))
+        console = await open_console(ConsoleSettings(port=0), source)
+        try:
+            async with aiohttp.ClientSession() as http, http.ws_connect(f"http://127.0.0.1:{console.port}/ws") as ws:
+                for cmd in ({"cmd": "wave", "on": True}, {"cmd": "apply_calibration"}, {"cmd": "ground"}):
+                    await ws.send_str(json.dumps(cmd))
+                    assert "only the console of a running fusion server" in (await _next(ws, "error"))["error"]
+        finally:
+            await console.stop()
+        assert source.calibration.frames == [] and source.calibration.version == 0
+
+    asyncio.run(asyncio.wait_for(main(), 30))
