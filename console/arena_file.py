@@ -30,16 +30,31 @@ def write_camera_pose(arena_path: str | Path, camera_id: int, pose: dict[str, An
     """Replace cameras[i].pose of the camera with id camera_id in the arena file by pose (Camera.to_dict()'s
     "pose"); returns the backup of the old file. ValueError (the file untouched) when the file has no such
     camera or cannot be read or written."""
+    return write_camera_poses(arena_path, {camera_id: pose}, local_time=local_time, what="write pose")
+
+
+def write_camera_poses(arena_path: str | Path, poses: dict[int, dict[str, Any]],
+                       extrinsics: dict[str, Any] | None = None, local_time: time.struct_time | None = None,
+                       what: str = "apply") -> Path:
+    """Replace cameras[i].pose of each camera id in poses (Camera.to_dict()'s "pose") in the arena file, and
+    calibration.extrinsics by `extrinsics` where given (the solve's report); returns the backup of the old file.
+    ValueError (the file untouched), its text starting with `what`, when the file lacks one of the cameras or
+    cannot be read or written."""
     path = Path(arena_path)
     try:
         data = load_yaml(path)
     except (OSError, ConfigError) as e:
-        raise ValueError(f"write pose: cannot read the arena file {path}: {e}") from None
+        raise ValueError(f"{what}: cannot read the arena file {path}: {e}") from None
     cams = data.get("cameras") if isinstance(data, dict) else None
-    idx = [i for i, c in enumerate(cams or []) if isinstance(c, dict) and c.get("id") == camera_id]
-    if len(idx) != 1:
-        raise ValueError(f"write pose: {path} has no single camera with id {camera_id}")
-    cams[idx[0]]["pose"] = pose
+    for camera_id, pose in poses.items():
+        idx = [i for i, c in enumerate(cams or []) if isinstance(c, dict) and c.get("id") == camera_id]
+        if len(idx) != 1:
+            raise ValueError(f"{what}: {path} has no single camera with id {camera_id}")
+        cams[idx[0]]["pose"] = pose
+    if extrinsics is not None:
+        cal = data.get("calibration") if isinstance(data.get("calibration"), dict) else {}
+        cal["extrinsics"] = extrinsics
+        data["calibration"] = cal
     stamp = time.strftime("%Y%m%d-%H%M%S", local_time or time.localtime())
     backup, n = path.with_name(f"{path.name}.bak-{stamp}"), 1
     while backup.exists():
@@ -52,8 +67,19 @@ def write_camera_pose(arena_path: str | Path, camera_id: int, pose: dict[str, An
         os.replace(tmp, path)
     except OSError as e:
         tmp.unlink(missing_ok=True)
-        raise ValueError(f"write pose: cannot write {path}: {e.strerror or e}") from None
+        raise ValueError(f"{what}: cannot write {path}: {e.strerror or e}") from None
     return backup
+
+
+def writable_arena(source: str, what: str) -> Path:
+    """The arena file a server started with, resolved; ValueError (starting with `what`) when it is no file on
+    disk or one of the package's built-in arenas (never rewritten: start from a copy)."""
+    path = Path(source).resolve()
+    if not path.is_file():
+        raise ValueError(f"{what}: the arena {source} is no file on disk")
+    if BUILTIN in path.parents:
+        raise ValueError(f"{what}: {path.name} is a built-in arena; copy it, start from the copy, and write there")
+    return path
 
 
 def write_monitored_pose(source: Any, msg: dict[str, Any]) -> dict[str, Any]:
@@ -73,12 +99,7 @@ def write_monitored_pose(source: Any, msg: dict[str, Any]) -> dict[str, Any]:
         raise ValueError(f"write pose: camera {cid} could not be corrected ({watch.unsolvable}); recalibrate it")
     if watch.corrections == 0:
         raise ValueError(f"write pose: camera {cid} has no corrected pose (the monitor has not corrected it)")
-    path = Path(source.arena.source).resolve()
-    if not path.is_file():
-        raise ValueError(f"write pose: the arena {source.arena.source} is no file on disk")
-    if BUILTIN in path.parents:
-        raise ValueError(f"write pose: {path.name} is a built-in arena; copy it, start from the copy, and write "
-                         "there")
+    path = writable_arena(source.arena.source, "write pose")
     pose = watch.camera.to_dict()["pose"]
     backup = write_camera_pose(path, cid, pose)
     return {"camera": cid, "file": str(path), "backup": str(backup), "pose": pose}

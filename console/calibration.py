@@ -39,7 +39,7 @@ class CalibrationAssistant:
     """A live wand wave for the console. out_path: where "solve" writes the calibrated arena YAML."""
 
     def __init__(self, arena: ArenaConfig, out_path: str | Path, thresholds: Thresholds = Thresholds(),
-                 max_frames: int = MAX_FRAMES):
+                 max_frames: int = MAX_FRAMES, pool: concurrent.futures.Executor | None = None):
         self.arena = arena
         self.out_path = Path(out_path)
         self.spec, self.max_offset_ms = wand_settings(arena)
@@ -55,7 +55,8 @@ class CalibrationAssistant:
         self._summary = self._cov.summary()
         self._task: asyncio.Task | None = None
         self._solving: asyncio.Task | None = None
-        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+        self._pool = pool  # where the solve runs; None: a spawned child process, made at the first solve
+        self._own_pool = pool is None
         self._refreshing = asyncio.Lock()
 
     # ---------------------------------------------------------------- feed (per packet)
@@ -91,7 +92,7 @@ class CalibrationAssistant:
                 except (asyncio.CancelledError, Exception):
                     pass
         self._task = self._solving = None
-        if self._pool is not None:
+        if self._pool is not None and self._own_pool:
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None
 
@@ -153,9 +154,8 @@ class CalibrationAssistant:
         if self._pool is None:  # a fresh interpreter: no fork of a process with a loop and threads
             self._pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
         try:
-            result = await loop.run_in_executor(self._pool, solve_wand_to_file, frames, self.arena, self.spec,
-                                                self.max_offset_ms, str(self.out_path))
-            self.solve = {"running": False, "result": result, "error": None, "frames": len(frames)}
+            result = await loop.run_in_executor(self._pool, *self._job(frames))
+            self.solve = {"running": False, "result": self._accept(result), "error": None, "frames": len(frames)}
             log.info("calibration assistant: wand solve written to %s", self.out_path)
         except CalibrationError as e:
             self.solve = {"running": False, "result": None, "error": str(e), "frames": len(frames)}
@@ -164,6 +164,15 @@ class CalibrationAssistant:
             self.solve = {"running": False, "result": None, "error": f"{type(e).__name__}: {e}",
                           "frames": len(frames)}
         self.version += 1
+
+
+    def _job(self, frames: list[BlobFrame]) -> tuple[Any, ...]:
+        """The solve's function and arguments, run in the pool (picklable)."""
+        return solve_wand_to_file, frames, self.arena, self.spec, self.max_offset_ms, str(self.out_path)
+
+    def _accept(self, result: Any) -> dict[str, Any]:
+        """The JSON-ready result shown from what the job returned."""
+        return result
 
 
 def _label_and_count(cov: WandCoverage, chunk: list[BlobFrame]) -> dict[str, Any]:

@@ -9,7 +9,9 @@
                          when the calibration assistant's counts or solve changed; the client
                          may send {"cmd": ...}: "rays" (a camera's blob rays), "views" (on: false while the
                          tab is hidden: no camera views for it), "health", replay controls (console/replay.py),
-                         "solve" (the wand solve: console/calibration.py), "record" (start or stop a
+                         "solve" (the wand solve: console/calibration.py), "wave", "apply_calibration",
+                         "ground" and "apply_ground" (a running fusion server's: console/live_calibration.py; an
+                         apply sends every tab the new scene), "record" (start or stop a
                          recording: console/recording.py; answered to every tab as {"type": "record"}),
                          "write_pose" (the camera monitor's corrected pose into the arena file: console/arena_file.py),
                          "still" and "mask" (a station's still image, its mask saved back: console/stills.py);
@@ -55,7 +57,7 @@ from console.health import HealthView
 from console.recording import ConsoleRecorder
 from console.settings import ConsoleSettings
 from console.stills import StationCommands
-from console.view import ConsoleView
+from console.view import ConsoleView, scene
 from visionpos.logutil import RateLimitedLog
 
 log = logging.getLogger(__name__)
@@ -78,6 +80,7 @@ def error_text(message: str) -> str:
     return json.dumps({"type": "error", "error": message})
 
 
+CALIBRATION_COMMANDS = ("solve", "wave", "apply_calibration", "ground", "apply_ground")
 TOO_BIG = f"message refused: over {MAX_MESSAGE_BYTES} bytes (a command is a short JSON object); connection closed"
 
 
@@ -403,19 +406,8 @@ class ConsoleServer:
                 return await self._bad(client, "views", 'views: expected {"cmd": "views", "on": true or false}')
             client.views = msg["on"]
             return
-        if msg["cmd"] == "solve":
-            if self.calibration is None:
-                return await self._bad(client, "solve", "solve: no calibration assistant here (it runs in the "
-                                                        "console of `visionpos record` and `replay --view`)")
-            try:
-                reply = await self.calibration.command(msg)
-            except ValueError as e:
-                return await self._bad(client, "solve", str(e))
-            try:
-                await client.ws.send_str(json.dumps({"type": "calib_reply", **reply}))
-            except (ConnectionError, RuntimeError):
-                pass
-            return
+        if msg["cmd"] in CALIBRATION_COMMANDS:
+            return await self._calibration_command(client, msg)
         if msg["cmd"] == "record":
             try:
                 reply = await self.recording.command(msg)
@@ -460,6 +452,45 @@ class ConsoleServer:
                 await client.ws.send_str(json.dumps({"type": "replay", **reply}))
             except (ConnectionError, RuntimeError):
                 pass
+
+    async def _calibration_command(self, client: Client, msg: dict[str, Any]) -> None:
+        """solve (record, replay --view, serve, demo); wave, ground and the applies (serve and demo: a running fusion
+        server, console/live_calibration.py). An apply changes the running cameras: every tab gets the new scene."""
+        cmd = msg["cmd"]
+        if self.calibration is None:
+            return await self._bad(client, cmd, f"{cmd}: no calibration assistant here (it runs in the console of "
+                                                "`visionpos serve`, `demo`, `record` and `replay --view`)")
+        if cmd not in getattr(self.calibration, "commands", ("solve",)):
+            return await self._bad(client, cmd, f"{cmd}: only the console of a running fusion server (`visionpos "
+                                                "serve`, `demo`) gathers a live wave, finds the ground frame or "
+                                                "applies a calibration")
+        try:
+            reply = await self.calibration.command(msg)
+        except ValueError as e:
+            return await self._bad(client, cmd, str(e))
+        if "applied" in reply:
+            self._new_scene()
+            for c in list(self.clients):
+                try:
+                    await c.ws.send_str(self._scene_text)
+                except (ConnectionError, RuntimeError):
+                    pass
+        try:
+            await client.ws.send_str(json.dumps({"type": "calib_reply", **reply}))
+        except (ConnectionError, RuntimeError):
+            pass
+
+    def _new_scene(self) -> None:
+        """The source's cameras moved (a calibration applied): the scene from its arena now, masks and the page's
+        settings kept; its scene_id changes, so the page builds its views again."""
+        fresh = scene(self.source.arena, getattr(self.source, "source_name", None),
+                      getattr(self.source, "console_mode", "live"))
+        masks = {c["id"]: c.get("mask") for c in self.view.scene["cameras"]}
+        for cam in fresh["cameras"]:
+            cam["mask"] = masks.get(cam["id"])
+        self.view.scene = {**self.view.scene, **{k: fresh[k] for k in ("cameras", "scene_id", "calibration_rms_px")}}
+        self.view.cameras = {c.id: c for c in self.source.arena.cameras}
+        self.scene_changed()
 
     async def _sender(self, client: Client) -> None:
         try:

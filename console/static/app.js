@@ -588,6 +588,8 @@ function onState(msg) {
 
 // live or not: every message of the stream counts as data; a closed socket or STALE_MS of silence is not live
 let lastDataMs = null;
+let full = null;  // {reason, tries}: the server refused this tab (console.max_clients), until a scene comes
+const FULL_RETRY_MS = 5000;
 let rateMark = { ms: Date.now(), states: 0 };
 function setLive() {
   const conn = document.getElementById("conn");
@@ -601,7 +603,8 @@ function setLive() {
   stats.staleText = stale ? since : "";
   document.body.classList.toggle("stale", stale);
   for (const e of document.querySelectorAll(".stale-note")) e.textContent = stats.staleText;
-  conn.textContent = stale ? (open ? `connected, ${since}` : `disconnected, retrying; ${since}`) : "live";
+  conn.textContent = stale && full ? `refused: ${full.reason} (tried ${full.tries} times; next try in ` +
+    `${FULL_RETRY_MS / 1000} s)` : stale ? (open ? `connected, ${since}` : `disconnected, retrying; ${since}`) : "live";
   conn.className = stale ? "bad" : "ok";
   const badge = document.getElementById("badge3d");
   badge.textContent = stale ? since : (rate ? `live, ${rate}` : "live") + (slow ? ` (configured ${wanted})` : "");
@@ -618,7 +621,9 @@ function tickLive() {
 }
 
 // a refusal the server sent ({"type": "error"}): shown in the header until the next one, with its time
+let lastRefusal = null;
 function showRefusal(text) {
+  lastRefusal = text;
   const n = document.getElementById("notice");
   n.textContent = `${clockText(Date.now())} refused: ${text}`;
   n.title = text;
@@ -637,7 +642,15 @@ function connect() {
     if (document.hidden) send({ cmd: "views", on: false });
     setLive();
   };
-  ws.onclose = () => { setLive(); setTimeout(connect, 1000); };
+  ws.onclose = ev => {
+    // 1013: the console serves console.max_clients tabs and refused this one; its reason came as an error first
+    if (ev.code === 1013) {
+      full = { reason: lastRefusal || ev.reason || "the console is full", tries: (full?.tries || 0) + 1 };
+      stats.full = full;
+    }
+    setLive();
+    setTimeout(connect, ev.code === 1013 ? FULL_RETRY_MS : 1000);
+  };
   ws.onmessage = e => {
     const t0 = performance.now();
     handle(e);
@@ -651,8 +664,8 @@ function connect() {
 // one message of the stream: every message counts as data (the page is live)
 function handle(e) {
   const msg = JSON.parse(e.data);
-  lastDataMs = Date.now();
-  if (msg.type === "scene") onScene(msg);
+  if (msg.type !== "error") lastDataMs = Date.now();  // a refusal is no data: a refused tab must not look live
+  if (msg.type === "scene") { full = null; stats.full = null; onScene(msg); }
   else if (msg.type === "state") onState(msg);
   else if (msg.type === "health") showHealth(msg.health);
   else if (msg.type === "replay") {  // an answer to a control: sent once it is done (a seek reached its target)

@@ -1,13 +1,20 @@
 // The calibration assistant's panel (console/calibration.py): while a wand wave is recorded, each camera's
 // image coverage as a heat map and the frames each camera pair shares, ENOUGH or what is missing, and the
-// Solve button with the wand solve's result. Messages: calib (the state), calib_reply (a solve started),
-// error (a refused solve: "solve: ..."). The panel is made on the first calib message: consoles without the
-// assistant (serve, demo) never show it.
+// Solve button with the wand solve's result. Messages: calib (the state), calib_reply (a solve started, an
+// apply done), error (a refused command: "solve: ...", "apply: ...", "ground: ...", "wave: ..."). The panel is
+// made on the first calib message. On a running fusion server (serve, demo: calib.live,
+// console/live_calibration.py) it also gathers the wave ("gather wave"), shows the solve's residuals next to
+// the running calibration's on the same wand frames, applies the solve after a confirmation, and finds the
+// ground frame ("set ground") and applies the floor transform the same way.
 
 const HEAT_WIDTH_PX = 200;
 let panel = null;
 let sendFn = null;
-let replay = false;  // a replay shows the panel only once the recording gave wand frames (not for a flight)
+let replay = false;
+let live = false;  // a running fusion server: gather, apply, ground
+let gathering = false;
+let lastApplyRefusal = null;
+const GROUND_NOTE = "the console watches it for 2 s, finds it and shows the floor transform";  // a replay shows the panel only once the recording gave wand frames (not for a flight)
 
 // app.js says so with each scene
 export function calibReplay(on) { replay = on; }
@@ -43,6 +50,23 @@ function build() {
     <div id="calib-result"></div>`;
   document.querySelector("main").append(sec);
   sec.querySelector("#calib-solve").onclick = () => sendFn && sendFn({ cmd: "solve" });
+  if (live) {
+    const bar = sec.querySelector(".bar");
+    const wave = el("button", "gather wave");
+    wave.id = "calib-wave";
+    wave.title = "gather every frame the stations send as the wand wave (again: start over)";
+    wave.onclick = () => sendFn && sendFn({ cmd: "wave", on: !gathering });
+    const ground = el("button", "set ground");
+    ground.id = "calib-ground";
+    ground.title = `lay the L-frame (ground frame) on the floor, still, and press: ${GROUND_NOTE}`;
+    ground.onclick = () => sendFn && sendFn({ cmd: "ground" });
+    bar.insertBefore(wave, sec.querySelector("#calib-solve"));
+    bar.append(ground);
+    sec.append(el("div", undefined, "calib-apply"));
+    sec.lastChild.id = "calib-apply";
+    sec.append(el("div", undefined, "calib-apply"));
+    sec.lastChild.id = "calib-groundbox";
+  }
   return sec;
 }
 
@@ -105,8 +129,79 @@ function showResult(div, solve) {
   if (r.warnings.length) div.append(warn);
 }
 
+function confirmSend(text, msg) {
+  if (window.confirm(text)) sendFn && sendFn(msg);
+}
+
+// the solve against the running calibration on the same wand frames, and the apply button
+function showCompare(s) {
+  const div = panel.querySelector("#calib-apply");
+  const r = s.solve.result;
+  div.replaceChildren();
+  if (s.applied) div.append(el("p", `applied: the ${s.applied.what}, written to ${s.applied.file} (the old file: ` +
+    `${s.applied.backup})`, "good"));
+  if (!r || !r.current) return;
+  div.append(el("h2", "Solve against the running calibration, on the same wand frames"));
+  const t = el("table");
+  t.id = "calib-compare";
+  t.innerHTML = "<thead><tr><th>camera</th><th>running px RMS</th><th>solve px RMS</th><th>moves it deg</th>" +
+    "<th>moves it mm</th></tr></thead>";
+  const body = el("tbody");
+  r.current.cameras.forEach((c, i) => {
+    const tr = el("tr");
+    const n = r.new.cameras[i], m = r.moved[i];
+    for (const v of [c.name, num(c.rms_px, 3), num(n.rms_px, 3), num(m.rotation_deg, 3), num(m.shift_mm, 1)]) {
+      tr.append(el("td", String(v)));
+    }
+    body.append(tr);
+  });
+  const all = el("tr");
+  for (const v of ["all", num(r.current.rms_px, 3), num(r.new.rms_px, 3), "", ""]) all.append(el("td", String(v)));
+  body.append(all);
+  const wand = el("tr");
+  for (const v of ["wand A-C error mm", num(r.current.wand_ac_err_mm, 2), num(r.new.wand_ac_err_mm, 2), "", ""]) {
+    wand.append(el("td", String(v)));
+  }
+  body.append(wand);
+  t.append(body);
+  div.append(t);
+  if (r.refused) { div.append(el("p", `not applicable: ${r.refused}`, "badv")); return; }
+  if (s.applied_results.solve) return;
+  const b = el("button", "apply to the running server");
+  b.id = "calib-apply-button";
+  b.onclick = () => confirmSend("Apply this solve to the running server? Fusion switches to the new camera poses " +
+    "between two frames, and the arena file it started with is rewritten (the old one kept beside it).",
+    { cmd: "apply_calibration" });
+  div.append(b);
+}
+
+function showGround(s) {
+  const div = panel.querySelector("#calib-groundbox");
+  const g = s.ground;
+  div.replaceChildren();
+  if (g.state === "gathering") div.append(el("p", `ground frame: ${GROUND_NOTE}...`, "warn"));
+  else if (g.state === "solving") div.append(el("p", "ground frame: finding it...", "warn"));
+  else if (g.state === "failed") div.append(el("pre", `ground frame not found: ${g.error}`, "badv"));
+  if (g.state !== "found") return;
+  const r = g.result;
+  div.append(el("h2", "Ground frame found: the floor transform"));
+  const p = el("p", `tilt ${num(r.tilt_deg, 2)} deg, turn ${num(r.rotation_deg, 2)} deg, shift ${num(r.shift_mm, 1)} ` +
+    `mm; layout fit ${num(r.fit_mm, 2)} mm (${r.frames} frames); camera heights after: ` +
+    Object.entries(r.heights_m).map(([k, v]) => `${k} ${num(v, 2)} m`).join(", "));
+  p.id = "calib-ground-result";
+  div.append(p);
+  if (s.applied_results.ground) return;
+  const b = el("button", "apply the floor");
+  b.id = "calib-ground-apply";
+  b.onclick = () => confirmSend("Move the running world onto this floor? Every camera pose changes, and the arena " +
+    "file the server started with is rewritten (the old one kept beside it).", { cmd: "apply_ground" });
+  div.append(b);
+}
+
 function show(s) {
   const st = stats();
+  live = !!s.live;
+  gathering = !!s.gathering;
   if (!panel && replay && !s.cameras.some(c => c.labelled > 0) && !s.solve.running && !s.solve.result) {
     st.hidden = true;  // a flight recording: no wand, no panel
     return;
@@ -119,6 +214,9 @@ function show(s) {
   st.pairs = s.pairs.length;
   st.heatCells = 0;
   st.solve = s.solve;
+  st.framesKept = s.frames_kept;
+  // a running server's panel before any wave: its bar alone (the coverage lists would only say "0 frames")
+  panel.classList.toggle("calib-idle", live && !gathering && s.frames_kept === 0);
   const v = panel.querySelector("#calib-verdict");
   v.textContent = s.enough ? "ENOUGH" : "not yet";
   v.className = "calib-verdict " + (s.enough ? "enough" : "notyet");
@@ -141,14 +239,31 @@ function show(s) {
     return tr;
   }));
   showResult(panel.querySelector("#calib-result"), s.solve);
+  if (live) {
+    const w = panel.querySelector("#calib-wave");
+    w.textContent = gathering ? "stop the wave" : "gather wave";
+    showCompare(s);
+    showGround(s);
+    const note = el("p", lastApplyRefusal || "", "badv");
+    note.id = "calib-refusal";
+    panel.querySelector("#calib-groundbox").append(note);
+    st.applied = s.applied;
+    st.ground = s.ground.state;
+  }
 }
 
 // app.js hands every calib, calib_reply and error message here, with its send()
 export function calibMessage(msg, send) {
   sendFn = send;
   if (msg.type === "calib") show(msg.calib);
-  else if (msg.type === "error" && typeof msg.error === "string" && msg.error.startsWith("solve:")) {
+  else if (msg.type === "error" && typeof msg.error === "string" && /^(solve|apply|ground|wave):/.test(msg.error)) {
     stats().refused.push(msg.error);
+    if (/^(apply|ground):/.test(msg.error)) {  // kept under the apply buttons until the next one
+      lastApplyRefusal = `${new Date().toLocaleTimeString()} refused: ${msg.error}`;
+      const box = panel && panel.querySelector("#calib-refusal");
+      if (box) box.textContent = lastApplyRefusal;
+      return;
+    }
     if (panel) {
       const div = panel.querySelector("#calib-result");
       div.replaceChildren(el("p", msg.error, "badv"));

@@ -190,6 +190,12 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
             found["stopped"] = await browser.evaluate(
                 "({info: document.getElementById('recinfo').textContent, button: "
                 "document.getElementById('rec').textContent, stopped: window.visionposConsole.record.stopped})")
+            # the running server's calibration panel: "gather wave" takes what the stations send from the click
+            await browser.wait_for("!!document.getElementById('calib-wave')", 10)
+            await browser.evaluate("document.getElementById('calib-wave').click()")
+            found["wave"] = await browser.wait_for(
+                "window.visionposConsole.calib.framesKept > 0 && [document.getElementById('calib-wave').textContent, "
+                "document.getElementById('calib-ground').textContent, window.visionposConsole.calib.framesKept]", 10)
             found["errors"] = await browser.evaluate("window.visionposConsole.errors")
             found["dpr"] = await browser.evaluate("window.devicePixelRatio")
             found["r3d"] = await browser.evaluate(JS_RECT.format(sel="#view3d"))
@@ -233,6 +239,7 @@ def test_console_in_chromium_shows_the_arena_the_cameras_and_health(tmp_path, ar
                                           on_console=views.append), 240))
     print(f"screenshots in {shots}")
     img, dpr = found["img"], found["dpr"] or 1.0
+    assert found["wave"][:2] == ["stop the wave", "set ground"] and found["wave"][2] > 0, found["wave"]
     # the corrected pose in the arena file, the old file in the backup the page names
     w = found["written"]["reply"]
     assert w["camera"] == 2 and w["file"] == str(path.resolve())
@@ -473,7 +480,11 @@ def test_pages_of_other_origins_and_foreign_hosts_change_nothing_in_chromium(tmp
 
 def test_the_token_leaves_the_address_bar_and_the_page_runs_on_its_cookie(tmp_path, arena_yaml):
     """The URL printed at start (?token=...) opened in the browser: the console answers with its cookie and a
-    redirect to "/", so the address bar (a screenshot, a shared link) holds no token, and the page connects."""
+    redirect to "/", so the address bar (a screenshot, a shared link) holds no token, and the page connects.
+    Then the page comes back while console.max_clients tabs are open: its header says it was refused and why, it
+    does not look live, and once a tab closes it gets in on its next try."""
+    import aiohttp
+
     from visionpos.config.arena import parse_arena
 
     from .test_security import _console
@@ -483,7 +494,8 @@ def test_the_token_leaves_the_address_bar_and_the_page_runs_on_its_cookie(tmp_pa
     found: dict = {}
 
     async def main():
-        console, source = await _console(arena, token=token)  # on loopback, but configured: needed everywhere
+        # on loopback, but configured: needed everywhere; two tabs at most
+        console, source = await _console(arena, token=token, max_clients=2)
         browser = Browser(f"{console.address}?token={token}", tmp_path / "profile")
         try:
             await browser.connect()
@@ -491,15 +503,32 @@ def test_the_token_leaves_the_address_bar_and_the_page_runs_on_its_cookie(tmp_pa
             found["href"] = await browser.evaluate("location.href")
             found["text"] = await browser.evaluate("document.body.innerText")
             found["refused"] = console.counters["refused_token"]
+            await browser.call("Page.navigate", url="about:blank")
+            async with aiohttp.ClientSession() as http:
+                tabs = [await http.ws_connect(f"{console.address}ws?token={token}") for _ in range(2)]
+                await browser.call("Page.navigate", url=console.address)  # the third tab: its cookie, no token
+                found["full"] = await browser.wait_for(
+                    "window.visionposConsole && window.visionposConsole.full && "
+                    "document.getElementById('conn').textContent.startsWith('refused') && "
+                    "[document.getElementById('conn').textContent, document.getElementById('conn').className, "
+                    "window.visionposConsole.stale]", 20)
+                found["refused_full"] = console.counters["refused_full"]
+                await tabs[0].close()
+                found["back"] = await browser.wait_for("document.getElementById('conn').textContent === 'live'", 20)
+                await tabs[1].close()
         finally:
             await browser.close()
             await console.stop()
 
-    asyncio.run(asyncio.wait_for(main(), 60))
+    asyncio.run(asyncio.wait_for(main(), 90))
     assert token not in found["href"], found["href"]
     assert found["href"].endswith("/")
     assert token not in found["text"]
     assert found["refused"] == 0
+    text, cls, stale = found["full"]
+    assert "at most 2 tabs" in text and "console.max_clients" in text and "next try in 5 s" in text, text
+    assert cls == "bad" and stale is True
+    assert found["refused_full"] >= 1 and found["back"]
 
 def _shots() -> Path:
     """Where the screenshots go: VISIONPOS_SCREENSHOTS (docs/images regenerates the docs' pictures) or a temp dir."""
@@ -521,12 +550,39 @@ def _grey(img: np.ndarray, rect: tuple[int, int, int, int]) -> bool:
     return int((crop.max(axis=2) - crop.min(axis=2)).max()) <= 12  # the panels' own blue-grey: 9
 
 
+def _solve_result(lc) -> list:
+    """A wand solve's result on a live calibration panel, as solve_and_compare gives it (console/live_calibration.py):
+    the running cameras with camera 2 turned 0.2 deg, scored better than the running ones; returns those cameras."""
+    from visionpos.fusion.camera_monitor import apply_correction
+
+    cams = lc.running_cameras()
+    cams[1] = apply_correction(cams[1], np.array([np.radians(0.2), 0.0, 0.0, 0.0, 0.0, 0.0]))
+
+    def score(px):
+        return {"cameras": [{"id": c.id, "name": c.name, "rms_px": px, "max_px": 3 * px} for c in cams],
+                "rms_px": px, "worst_rms_px": px, "wand_ac_err_mm": 0.1, "wand_ac_std_mm": 0.5, "points": 900}
+
+    result = {"out": "lab.calibrated.yaml", "time_steps": 300, "wand_ac_mean_err_mm": 0.1, "wand_ac_std_mm": 0.5,
+              "cameras": [{"id": c.id, "name": c.name, "rms_px": 0.2, "max_px": 0.8, "views": 300, "offset_ms": 0.0}
+                          for c in cams], "warnings": [], "seconds": 1.0, "current": score(1.2), "new": score(0.2),
+              "refused": None, "moved": [{"id": c.id, "name": c.name, "rotation_deg": 0.2 * (c.id == 2),
+                                          "shift_mm": 0.0} for c in cams]}
+    lc._solved = {"scene_id": lc.scene_id(), "time": lc.clock(), "cameras": cams, "report": {"rms_px": {}}}
+    lc.solve = {"running": False, "result": result, "error": None, "frames": 900}
+    lc.version += 1
+    return cams
+
+
 @pytest.mark.slow
 def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path, arena_yaml):
     """`visionpos record`'s console (no fusion: quick to start) for the thesis arena, stopped, then started again on
-    the same port for arena8: the page greys with the time of its last data, then shows arena8's eight cameras."""
+    the same port for arena8: the page greys with the time of its last data, then shows arena8's eight cameras. Then
+    a running fusion server's console there: a solve's "apply to the running server" waits for the confirmation."""
     from console.settings import ConsoleSettings
     from visionpos.app.console import RecordSource, open_console
+    from visionpos.config.arena import dump_yaml
+    from visionpos.fusion.pipeline import FusionPipeline
+    from visionpos.server.service import FusionServer, load_config_with_overrides
 
     found: dict = {}
     volume = {"min_m": [-1.0, -0.5, 0.0], "max_m": [1.0, 1.5, 2.0]}  # the planner's flight volume, drawn as a box
@@ -576,11 +632,35 @@ def test_a_stopped_stream_greys_the_page_and_another_arena_rebuilds_it(tmp_path,
                 "rays: document.querySelectorAll('#rays option').length, volume: window.visionposConsole.volume, "
                 "titles: [...document.querySelectorAll('#camgrid .cam > div:first-child')].map(e => e.textContent)})")
             found["errors"] = await browser.evaluate("window.visionposConsole.errors")
+            # a running fusion server's console on the same port, with a solve's result on its panel: "apply to the
+            # running server" asks first; cancelled, nothing changes; confirmed, the file and the running cameras
+            await console.stop()
+            lab = load_config_with_overrides(str(path), ["server.insecure=true"])
+            server = FusionServer(lab, port=0, pipeline=FusionPipeline(lab, warm_up=False))  # never started: no frames
+            console = await open_console(ConsoleSettings(port=port), server)
+            solved = _solve_result(console.calibration)
+            await browser.wait_for("!!document.getElementById('calib-apply-button')", 20)
+            scene_before = await browser.evaluate("window.visionposConsole.sceneId")
+            click = "document.getElementById('calib-apply-button').click()"
+            await browser.evaluate(f"window.confirm = () => false; {click}")
+            await asyncio.sleep(0.5)
+            found["cancelled"] = (console.calibration.applied, path.read_text() == original)
+            await browser.evaluate(f"window.confirm = () => true; {click}")
+            found["applied"] = await browser.wait_for(
+                f"window.visionposConsole.calib.applied && window.visionposConsole.sceneId !== '{scene_before}' && "
+                "document.getElementById('calib-apply').textContent", 10)
+            found["running"] = server.pipeline.cameras[2] is solved[1]
         finally:
             await browser.close()
             await console.stop()
 
+    path = tmp_path / "lab.yaml"
+    dump_yaml(arena_yaml("thesis"), path)
+    original = path.read_text()
     asyncio.run(asyncio.wait_for(main(), 120))
+    assert found["cancelled"] == (None, True)
+    assert found["applied"].startswith(f"applied: the wand solve, written to {path.resolve()} (the old file: ")
+    assert found["running"] and [b.read_text() for b in tmp_path.glob("lab.yaml.bak-*")] == [original]
     dpr = found["dpr"] or 1.0
     # live: the badge says so with the page's own update rate, and the health panel has colour (state words)
     assert re.match(r"live, \d+ updates/s", found["live_badge"]), found["live_badge"]

@@ -3,7 +3,8 @@
 console_settings() applies the command line to the arena's `console:` section; open_console()
 starts the console for a source on the running loop. For `record`, which fuses nothing,
 RecordSource stands in for the server: the cameras' newest blobs and their health, no bodies. `record` and
-`replay --view` feed every accepted frame to the calibration assistant (console/calibration.py).
+`replay --view` feed every accepted frame to the calibration assistant (console/calibration.py); the console of
+a running fusion server (serve, demo) gets the live one (console/live_calibration.py).
 """
 
 from __future__ import annotations
@@ -118,8 +119,13 @@ def port_in_use(settings: ConsoleSettings) -> bool:
 async def open_console(settings: ConsoleSettings, source: Any, **kw: Any) -> ConsoleServer:
     """A started ConsoleServer for source, with the stations' masks of console.stations (an OSError, such as
     the port in use, propagates)."""
+    calibration = getattr(source, "calibration", None)
+    if calibration is None and hasattr(source, "set_cameras"):  # a running fusion server: serve, demo
+        from console.live_calibration import LiveCalibration, live_out
+
+        calibration = LiveCalibration(source, live_out(source.arena.source))
     console = ConsoleServer(settings, source, masks=station_masks(source.arena, settings.stations),
-                            calibration=getattr(source, "calibration", None), **kw)
+                            calibration=calibration, **kw)
     await console.start()
     return console
 

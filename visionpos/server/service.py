@@ -35,6 +35,7 @@ from visionpos.server.settings import ServerSettings, parse_server
 from visionpos.server.sinks import Sink, start_sink
 
 if TYPE_CHECKING:
+    from visionpos.camera.model import Camera
     from visionpos.fusion.camera_monitor import CameraMonitor
     from visionpos.fusion.pipeline import FusionPipeline
     from visionpos.recording import RecordingWriter
@@ -113,6 +114,7 @@ class FusionServer:
         if monitor_settings.enabled:
             self.monitor = camera_monitor.CameraMonitor(arena, monitor_settings)
             feed = _MonitoredFeed(pipeline, self.monitor)
+        self._feed = feed
         # the recording gets packets and events from Ingest and the server directly
         taps = [tap for s in self.outputs for tap in s.packet_taps()]
         self.ingest = Ingest(arena, self.settings, feed, recorder, clock=clock, events=self._on_event, taps=taps)
@@ -264,6 +266,25 @@ class FusionServer:
             self.sink_errors["camera_monitor"] = self.sink_errors.get("camera_monitor", 0) + 1
             if self.sink_errors["camera_monitor"] in (1, 100, 10_000):
                 log.exception("camera monitor failed")
+
+    def set_cameras(self, cameras: Sequence[Camera]) -> None:
+        """Swap every camera's pose at once (a recalibration applied from the console): one call on the loop, so
+        between two frames, and no fusion mixes old and new poses; the camera monitor starts again from them.
+        ValueError (nothing changed) when the cameras are not the arena's."""
+        if sorted(c.id for c in cameras) != sorted(c.id for c in self.arena.cameras):
+            raise ValueError(f"set_cameras: camera ids {sorted(c.id for c in cameras)} are not the arena's "
+                             f"{sorted(c.id for c in self.arena.cameras)}")
+        by_id = {c.id: c for c in cameras}
+        for c in cameras:
+            self.pipeline.set_camera_pose(c.id, c)
+        self.arena = self.arena.with_cameras([by_id[c.id] for c in self.arena.cameras])
+        if self.monitor is not None:
+            from visionpos.fusion.camera_monitor import CameraMonitor
+
+            events = self.monitor.events
+            self.monitor = CameraMonitor(self.arena, self.monitor.settings)
+            self.monitor.events = events
+            self._feed.monitor = self.monitor
 
     def _to_sink(self, name: str, method: Any, *args: Any) -> None:
         """method(*args); a failure is counted under `name` and logged at the 1st, 100th, 10000th time."""
