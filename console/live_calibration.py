@@ -343,8 +343,17 @@ class LiveCalibration(CalibrationAssistant):
             raise ValueError(why)
         return self._apply("apply", self._solved, self._solved["report"])
 
+    def vehicles_sending(self) -> list[str]:
+        """The vehicles the running server's bridge sends poses to now (its sinks' `vehicles`: sending_state)."""
+        return [v.cfg.name for sink in self.server.sinks for v in getattr(sink, "vehicles", ())
+                if v.sending_state() == "sending"]
+
     def _apply_ground(self) -> dict[str, Any]:
         why = self.refusal("ground", self._grounded)
+        flying = self.vehicles_sending() if why is None else []
+        if flying:  # the floor moves the world frame: a flying autopilot would see its position jump
+            why = (f"ground: {', '.join(flying)} receive(s) poses now, and the floor moves the world they fly in; "
+                   "land and stop their output first")
         if why is not None:
             raise ValueError(why)
         return self._apply("ground", self._grounded, None)

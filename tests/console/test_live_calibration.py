@@ -218,6 +218,22 @@ def test_a_stale_result_or_changed_cameras_are_refused_and_change_nothing(tmp_pa
     with pytest.raises(ValueError, match="changed since"):
         lc._apply_ground()
     assert not list(tmp_path.glob("*.bak-*"))
+    # the floor moves the world: refused while a vehicle receives poses, nothing written
+    lc._grounded = {"scene_id": lc.scene_id(), "time": now[0], "cameras": lc.running_cameras()}
+
+    class _Link:
+        def __init__(self, name, state):
+            self.cfg, self.state = type("Cfg", (), {"name": name})(), state
+
+        def sending_state(self):
+            return self.state
+
+    bridge = type("Bridge", (), {"vehicles": [_Link("quad", "sending"), _Link("quad2", "idle")]})()
+    server.sinks.append(bridge)
+    with pytest.raises(ValueError, match=r"ground: quad receive\(s\) poses now.*land"):
+        lc._apply_ground()
+    assert not list(tmp_path.glob("*.bak-*")) and lc.applied is None
+    server.sinks.remove(bridge)
     # an arena that is built in is never rewritten
     builtin = FusionServer(load_config_with_overrides("thesis", ["server.insecure=true"]), port=0)
     lb = LiveCalibration(builtin, tmp_path / "out.yaml")
@@ -318,6 +334,7 @@ def test_the_docs_name_the_apply_rules_the_code_keeps():
         text = " ".join(doc.split())
         assert f"at least {100 * MIN_GAIN:.0f} % lower" in text and f"at most {WAND_SLACK_MM} mm larger" in text
         assert f"older than {MAX_AGE_S / 60:.0f} minutes" in text and f"{GROUND_S:.0f} s of" in text
+        assert "while a vehicle receives poses" in text or "while any vehicle receives poses" in text  # the floor
 
 
 def test_a_console_without_a_running_server_refuses_the_live_commands(tmp_path):
