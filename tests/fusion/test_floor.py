@@ -9,11 +9,18 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from visionpos.config.arena import load_arena
-from visionpos.fusion.matching import MERGE_MAX_PX, floor_gate, floor_merge_px, match_unlabeled
+from visionpos.fusion.matching import BELOW_FLOOR_M, MERGE_MAX_PX, floor_gate, floor_merge_px, match_unlabeled
 from visionpos.sim import parse_sim, simulate
 from visionpos.sim.capture import SPURIOUS_MIRROR
 
 TAKEOFF = Path(__file__).resolve().parents[1] / "data" / "takeoff_two_cameras.yaml"
+
+
+def test_the_docs_give_the_floor_figures_the_code_uses():
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "calibration.md").read_text(encoding="utf-8")
+    section = doc[doc.index("## A shiny floor"):]
+    assert f"more than {BELOW_FLOOR_M * 100:.0f} cm under the floor is a mirror image" in " ".join(section.split())
+    assert f"less than {MERGE_MAX_PX:.0f} px apart" in " ".join(section.split())
 
 
 def _down_camera(height_m: float, f_px: float):
