@@ -81,13 +81,8 @@ def test_acquisition_drops_mirror_images_and_keeps_markers_pulled_by_their_refle
     assert np.abs(pts[:, :2] - floor[idx[:, 0], :2]).max() < 0.02
 
 
-def _phases(tracked, err, t_s):
-    """(tracked fraction, median error mm) on the floor, through the take-off and in the air."""
-    out = {}
-    for name, a, b in (("floor", 0.5, 2.4), ("take-off", 2.4, 4.0), ("air", 4.0, 6.0)):
-        m = (t_s >= a) & (t_s < b)
-        out[name] = (tracked[m].mean(), float(np.median(err[m & tracked])) * 1e3 if (m & tracked).any() else np.inf)
-    return out
+PHASES = (("take-off from the floor", 0.0, 1.8), ("hover at 1 m", 1.8, 3.7), ("landing", 3.7, 5.5),
+          ("standing on the floor", 5.6, 7.4), ("take-off", 7.4, 9.1))
 
 
 def test_a_drone_on_a_shiny_floor_is_tracked_through_its_take_off():
@@ -99,16 +94,24 @@ def test_a_drone_on_a_shiny_floor_is_tracked_through_its_take_off():
     # floor, and mirror images of their own in the air
     merged = sum(int(tr.merged.sum()) for tr in sim.frame_truth)
     mirrors = sum(int((tr.marker == SPURIOUS_MIRROR).sum()) for tr in sim.frame_truth)
-    assert merged > 50 and mirrors > 500
+    assert merged > 100 and mirrors > 1000
     rep = replay(sc.arena, sim.frames)
     t = np.asarray(rep.times_ns)
     truth = sc.motion_at("drone", t)
+    t_s = (t - sc.start_ns) * 1e-9
     tracked = np.asarray(rep.tracked["drone"], bool)
-    err = np.linalg.norm(np.asarray(rep.positions["drone"]) - truth.positions, axis=1)
-    ph = _phases(tracked, err, (t - sc.start_ns) * 1e-9)
-    for name, (frac, med_mm) in ph.items():
-        assert frac > 0.98, (name, ph)
-        assert med_mm < 3.0, (name, ph)  # the body itself, never its mirror image or a ghost
-    q = np.asarray(rep.quaternions["drone"])[tracked]
-    ang = (Rotation.from_quat(q).inv() * Rotation.from_quat(truth.quaternions[tracked])).magnitude()
-    assert np.degrees(np.median(ang)) < 2.0
+    d = np.asarray(rep.positions["drone"]) - truth.positions
+    q = np.asarray(rep.quaternions["drone"])
+    for name, a, b in PHASES:
+        m = (t_s >= a) & (t_s < b)
+        assert tracked[m].mean() > 0.97, name
+        m &= tracked
+        # the body itself, never its mirror image (the same x-y, z turned over) or a ghost
+        assert np.median(np.linalg.norm(d[m, :2], axis=1)) < 2e-3, name
+        assert np.abs(np.median(d[m, 2])) < (10e-3 if name == "standing on the floor" else 3e-3), name
+        ang = (Rotation.from_quat(q[m]).inv() * Rotation.from_quat(truth.quaternions[m])).magnitude()
+        # standing, the merged reflections tilt the pose by a few degrees (documented)
+        assert np.degrees(np.median(ang)) < (5.0 if name == "standing on the floor" else 2.0), name
+    # standing, the merged reflections pull the height down (5 mm here, documented); x-y is exact
+    m = (t_s >= 5.6) & (t_s < 7.4) & tracked
+    assert -10e-3 < np.median(d[m, 2]) < -1e-3
