@@ -58,32 +58,38 @@ from visionpos.jit import njit
 FLOOR_Z_M = 0.0  # the floor: world z = 0, where the ground calibration puts it
 BELOW_FLOOR_M = 0.02  # a point this far under the floor is a mirror image (calibration and noise: mm)
 MERGE_MAX_PX = 12.0  # a mirror image this far from its marker's image is a blob of its own, not merged
+MERGE_MAX_HEIGHT_M = 0.5  # higher, a marker's mirror image is MERGE_MAX_PX away unless the camera is ~30 m off
+
+
+@njit
+def _merge_px_view(X, R, t, f):
+    """floor_merge_px in one view: R (3, 3), t (3,), f px; X (3,) m above the floor."""
+    z_c = R[2, 0] * X[0] + R[2, 1] * X[1] + t[2]
+    z = z_c + R[2, 2] * X[2]
+    zm = z_c + R[2, 2] * (2.0 * FLOOR_Z_M - X[2])  # the mirror image's depth
+    if not (z > 0.0 and zm > 0.0):
+        return 0.0
+    du = (R[0, 0] * X[0] + R[0, 1] * X[1] + t[0] + R[0, 2] * X[2]) / z
+    du -= (R[0, 0] * X[0] + R[0, 1] * X[1] + t[0] + R[0, 2] * (2.0 * FLOOR_Z_M - X[2])) / zm
+    dv = (R[1, 0] * X[0] + R[1, 1] * X[1] + t[1] + R[1, 2] * X[2]) / z
+    dv -= (R[1, 0] * X[0] + R[1, 1] * X[1] + t[1] + R[1, 2] * (2.0 * FLOOR_Z_M - X[2])) / zm
+    sep = math.sqrt(du * du + dv * dv) * f
+    return 0.5 * sep if sep < MERGE_MAX_PX else 0.0
 
 
 @njit
 def floor_merge_px(X, R, t, f):
     """How far (px) a marker at X (3,) m may be pulled towards its mirror image in each view (V,): half the
     separation of the two images where it is under MERGE_MAX_PX (one merged blob; a reflection is never
-    brighter than its marker), else 0; 0 for a point not above the floor or behind a camera.
-    R (V, 3, 3), t (V, 3) world->camera; f (V,) focal lengths px."""
+    brighter than its marker), else 0; 0 for a point not above the floor, higher than MERGE_MAX_HEIGHT_M or
+    behind a camera. R (V, 3, 3), t (V, 3) world->camera; f (V,) focal lengths px."""
     V = R.shape[0]
     out = np.zeros(V)
     h = X[2] - FLOOR_Z_M
-    if not h > 0.0:
+    if not 0.0 < h < MERGE_MAX_HEIGHT_M:
         return out
     for v in range(V):
-        pc = np.empty(3)
-        pm = np.empty(3)
-        for i in range(3):
-            base = R[v, i, 0] * X[0] + R[v, i, 1] * X[1] + t[v, i]
-            pc[i] = base + R[v, i, 2] * X[2]
-            pm[i] = base + R[v, i, 2] * (2.0 * FLOOR_Z_M - X[2])
-        if not (pc[2] > 0.0 and pm[2] > 0.0):
-            continue
-        du, dv = pc[0] / pc[2] - pm[0] / pm[2], pc[1] / pc[2] - pm[1] / pm[2]
-        sep = math.sqrt(du * du + dv * dv) * f[v]
-        if sep < MERGE_MAX_PX:
-            out[v] = 0.5 * sep
+        out[v] = _merge_px_view(X, R[v], t[v], f[v])
     return out
 
 
@@ -94,6 +100,8 @@ def floor_gate(X, R, t, f, seen, gate_px):
     for a point under the floor: a mirror image."""
     if X[2] < FLOOR_Z_M - BELOW_FLOOR_M:
         return -1.0
+    if not X[2] - FLOOR_Z_M < MERGE_MAX_HEIGHT_M:
+        return gate_px
     s = floor_merge_px(X, R, t, f)
     extra, n = 0.0, 0
     for v in range(s.shape[0]):
@@ -520,9 +528,11 @@ def _seed_pairs(start, centres, rays, R, t, f, ray_gate_px):
                     if not dist[i, j] < math.inf or mid[i, j, 2] < FLOOR_Z_M - BELOW_FLOOR_M:
                         continue
                     ok = dist[i, j] < ray_gate_px
-                    if not ok:  # near the floor each ray may miss by its merged reflection's pull too
-                        s = floor_merge_px(mid[i, j], R, t, f)
-                        ok = dist[i, j] ** 2 < ray_gate_px**2 + s[a] ** 2 + s[b] ** 2
+                    if not ok and 0.0 < mid[i, j, 2] - FLOOR_Z_M < MERGE_MAX_HEIGHT_M:
+                        # near the floor each ray may miss by its merged reflection's pull too
+                        sa = _merge_px_view(mid[i, j], R[a], t[a], f[a])
+                        sb = _merge_px_view(mid[i, j], R[b], t[b], f[b])
+                        ok = dist[i, j] ** 2 < ray_gate_px**2 + sa * sa + sb * sb
                     if ok:
                         idx[S, a], idx[S, b] = i, j
                         X0[S] = mid[i, j]
