@@ -115,3 +115,4 @@ def test_a_drone_on_a_shiny_floor_is_tracked_through_its_take_off():
     # standing, the merged reflections pull the height down (5 mm here, documented); x-y is exact
     m = (t_s >= 5.6) & (t_s < 7.4) & tracked
     assert -10e-3 < np.median(d[m, 2]) < -1e-3
+

@@ -1,10 +1,10 @@
 """The pose measurement of the tracked bodies in one fusion (compiled; kernels._fuse_tracked calls it).
 
 Per fusion: the views' spread in time (_view_spread), each body's motion prior and gates (_motion_priors),
-the motion-compensated triangulation of its markers with the residual gate (a marker under the floor is a
-mirror image and refused; one just above it has the gate widened and its weight lowered by the pull of its
-merged reflection, matching.floor_gate), and the weighted Kabsch fit with the
-pose covariance (_fit_bodies, pose_measurement_cov); _tracked_measurements strings them together.
+the motion-compensated triangulation of its markers with the residual gate (a marker just above the floor has
+the gate widened and its weight lowered by the pull of its merged reflection, matching.floor_gate), and the
+weighted Kabsch fit with the pose covariance (_fit_bodies, pose_measurement_cov); _tracked_measurements strings
+them together.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from visionpos.fusion.layout import (
     X_ANG_ACC,
     X_RATE,
 )
-from visionpos.fusion.matching import BELOW_FLOOR_M, FLOOR_Z_M, floor_gate, triangulate_irls
+from visionpos.fusion.matching import floor_gate, triangulate_irls
 from visionpos.fusion.tracking import (
     predict_mean,
 )
@@ -142,9 +142,6 @@ def _tracked_measurements(marker_xn: np.ndarray, views: tuple, tracked: tuple, d
     for q in range(n_markers):
         if nv[q] >= 2:
             g = gate[body[q]]
-            if X[q, 2] < FLOOR_Z_M - BELOW_FLOOR_M:  # under the floor: a mirror image was associated
-                refused += 1
-                continue
             if not rms[q] < g:  # near the floor a merged reflection may pull each view (matching.py)
                 seen = np.zeros(n_views, dtype=np.bool_)
                 for v in range(n_views):
