@@ -20,6 +20,15 @@ Two ways a blob gets its meaning:
    is too tight far away (a marker 8 m off misses by > 1 cm per pixel) and
    too loose up close.
 
+The floor: the ground calibration puts the world's z = 0 on it (docs/calibration.md), and a shiny floor
+shows every marker's mirror image (z -> -z). A point triangulated more than BELOW_FLOOR_M under the floor
+is a mirror image, never a marker: acquisition drops it. A marker a few centimetres above the floor has its
+image and its mirror image's within a blob's width, and the detector sees one blob whose centroid is pulled
+towards the reflection, by up to half their separation and by a different amount in each camera (the floor
+reflects each at its own angle). `floor_merge_px` is that spread per view; the residual gates of a point
+near the floor are widened by it and its weight in the pose fit lowered (measurements.py), so a drone
+standing on a shiny floor and taking off stays tracked instead of having its markers refused.
+
 `triangulate` is the per-packet hot path: an iteratively re-weighted
 linear triangulation in normalised image coordinates. With the
 weights f/z (focal length over depth) its cost is exactly the reprojection
@@ -45,6 +54,63 @@ import numpy as np
 from visionpos.camera import lens
 from visionpos.camera.model import lens_arrays, undistort_pixels
 from visionpos.jit import njit
+
+FLOOR_Z_M = 0.0  # the floor: world z = 0, where the ground calibration puts it
+BELOW_FLOOR_M = 0.02  # a point this far under the floor is a mirror image (calibration and noise: mm)
+MERGE_MAX_PX = 12.0  # a mirror image this far from its marker's image is a blob of its own, not merged
+MERGE_MAX_HEIGHT_M = 0.5  # higher, a marker's mirror image is MERGE_MAX_PX away unless the camera is ~30 m off
+
+
+@njit
+def _merge_px_view(X, R, t, f):
+    """floor_merge_px in one view: R (3, 3), t (3,), f px; X (3,) m above the floor."""
+    z_c = R[2, 0] * X[0] + R[2, 1] * X[1] + t[2]
+    z = z_c + R[2, 2] * X[2]
+    zm = z_c + R[2, 2] * (2.0 * FLOOR_Z_M - X[2])  # the mirror image's depth
+    if not (z > 0.0 and zm > 0.0):
+        return 0.0
+    du = (R[0, 0] * X[0] + R[0, 1] * X[1] + t[0] + R[0, 2] * X[2]) / z
+    du -= (R[0, 0] * X[0] + R[0, 1] * X[1] + t[0] + R[0, 2] * (2.0 * FLOOR_Z_M - X[2])) / zm
+    dv = (R[1, 0] * X[0] + R[1, 1] * X[1] + t[1] + R[1, 2] * X[2]) / z
+    dv -= (R[1, 0] * X[0] + R[1, 1] * X[1] + t[1] + R[1, 2] * (2.0 * FLOOR_Z_M - X[2])) / zm
+    sep = math.sqrt(du * du + dv * dv) * f
+    return 0.5 * sep if sep < MERGE_MAX_PX else 0.0
+
+
+@njit
+def floor_merge_px(X, R, t, f):
+    """How far (px) a marker at X (3,) m may be pulled towards its mirror image in each view (V,): half the
+    separation of the two images where it is under MERGE_MAX_PX (one merged blob; a reflection is never
+    brighter than its marker), else 0; 0 for a point not above the floor, higher than MERGE_MAX_HEIGHT_M or
+    behind a camera. R (V, 3, 3), t (V, 3) world->camera; f (V,) focal lengths px."""
+    V = R.shape[0]
+    out = np.zeros(V)
+    h = X[2] - FLOOR_Z_M
+    if not 0.0 < h < MERGE_MAX_HEIGHT_M:
+        return out
+    for v in range(V):
+        out[v] = _merge_px_view(X, R[v], t[v], f[v])
+    return out
+
+
+@njit
+def floor_gate(X, R, t, f, seen, gate_px):
+    """The RMS residual gate (px) of a point X (3,) m seen in views `seen` (V,) bool: gate_px widened by the
+    mean squared floor_merge_px of those views (exactly gate_px away from the floor); -1 (nothing passes)
+    for a point under the floor: a mirror image."""
+    if X[2] < FLOOR_Z_M - BELOW_FLOOR_M:
+        return -1.0
+    if not X[2] - FLOOR_Z_M < MERGE_MAX_HEIGHT_M:
+        return gate_px
+    s = floor_merge_px(X, R, t, f)
+    extra, n = 0.0, 0
+    for v in range(s.shape[0]):
+        if seen[v]:
+            extra += s[v] * s[v]
+            n += 1
+    if extra > 0.0:
+        return math.sqrt(gate_px * gate_px + extra / n)
+    return gate_px
 
 
 class Projector:
@@ -419,7 +485,7 @@ def _match_unlabeled(pts, start, R, t, f, ray_gate_px, max_residual_px):
     rays = np.empty((pts.shape[0], 3))
     for v in range(V):
         rays[start[v] : start[v + 1]] = _world_rays(pts[start[v] : start[v + 1]], R[v])
-    idx, X0 = _seed_pairs(start, centres, rays, f, ray_gate_px)
+    idx, X0 = _seed_pairs(start, centres, rays, R, t, f, ray_gate_px)
     S = idx.shape[0]
     if S == 0:
         return np.zeros((0, 3)), np.zeros((0, V), dtype=np.int64), np.zeros(0)
@@ -435,9 +501,10 @@ def _match_unlabeled(pts, start, R, t, f, ray_gate_px, max_residual_px):
 
 
 @njit
-def _seed_pairs(start, centres, rays, f, ray_gate_px):
-    """Seeds: pairs of rays of two views that pass within ray_gate_px at their ranges. Returns the blob
-    index (S, V) (-1 = not in the seed) and each seed's midpoint X0 (S, 3) m."""
+def _seed_pairs(start, centres, rays, R, t, f, ray_gate_px):
+    """Seeds: pairs of rays of two views that pass within ray_gate_px at their ranges (widened near the floor
+    by floor_merge_px at their midpoint; none whose midpoint is under the floor: a mirror image). Returns the
+    blob index (S, V) (-1 = not in the seed) and each seed's midpoint X0 (S, 3) m."""
     V = start.shape[0] - 1
     cap = 0
     for a in range(V):
@@ -458,7 +525,15 @@ def _seed_pairs(start, centres, rays, f, ray_gate_px):
             )
             for i in range(dist.shape[0]):
                 for j in range(dist.shape[1]):
-                    if dist[i, j] < ray_gate_px:
+                    if not dist[i, j] < math.inf or mid[i, j, 2] < FLOOR_Z_M - BELOW_FLOOR_M:
+                        continue
+                    ok = dist[i, j] < ray_gate_px
+                    if not ok and 0.0 < mid[i, j, 2] - FLOOR_Z_M < MERGE_MAX_HEIGHT_M:
+                        # near the floor each ray may miss by its merged reflection's pull too
+                        sa = _merge_px_view(mid[i, j], R[a], t[a], f[a])
+                        sb = _merge_px_view(mid[i, j], R[b], t[b], f[b])
+                        ok = dist[i, j] ** 2 < ray_gate_px**2 + sa * sa + sb * sb
+                    if ok:
                         idx[S, a], idx[S, b] = i, j
                         X0[S] = mid[i, j]
                         S += 1
@@ -525,12 +600,15 @@ def _accept_greedy(n_blobs, start, R, t, f, max_residual_px, idx, obs, X, rms, n
     (Q, V) and rms (Q,) px in acceptance order."""
     S, V = idx.shape
     no_offsets = np.zeros((0, 0, 3))
-    by_rms = np.argsort(np.where(rms < max_residual_px, rms, np.inf), kind="mergesort")
+    gate = np.empty(S)  # max_residual_px, widened near the floor; -1 under it (a mirror image)
+    for s in range(S):
+        gate[s] = floor_gate(X[s], R, t, f, idx[s] >= 0, max_residual_px)
+    by_rms = np.argsort(np.where(rms < gate, rms, np.inf), kind="mergesort")
     order = by_rms[np.argsort(-nv[by_rms], kind="mergesort")]  # stable: views, then residual, then index
     used = np.zeros(n_blobs, dtype=np.bool_)
     keep = np.zeros(S, dtype=np.bool_)
     for s in order:
-        if not rms[s] < max_residual_px:
+        if not rms[s] < gate[s]:
             break
         n_views = 0
         n_clash = 0
@@ -548,7 +626,7 @@ def _accept_greedy(n_blobs, start, R, t, f, max_residual_px, idx, obs, X, rms, n
                     ok[0, v] = np.nan
                     idx[s, v] = -1
             Xs, rs, _ = triangulate_irls(ok, R, t, f, no_offsets, False, 2)
-            if not rs[0] < max_residual_px:
+            if not rs[0] < floor_gate(Xs[0], R, t, f, idx[s] >= 0, max_residual_px):
                 continue
             X[s], rms[s] = Xs[0], rs[0]
         keep[s] = True

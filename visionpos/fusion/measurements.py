@@ -1,8 +1,10 @@
 """The pose measurement of the tracked bodies in one fusion (compiled; kernels._fuse_tracked calls it).
 
 Per fusion: the views' spread in time (_view_spread), each body's motion prior and gates (_motion_priors),
-the motion-compensated triangulation of its markers with the residual gate, and the weighted Kabsch fit with the
-pose covariance (_fit_bodies, pose_measurement_cov); _tracked_measurements strings them together.
+the motion-compensated triangulation of its markers with the residual gate (a marker just above the floor has
+the gate widened and its weight lowered by the pull of its merged reflection, matching.floor_gate), and the
+weighted Kabsch fit with the pose covariance (_fit_bodies, pose_measurement_cov); _tracked_measurements strings
+them together.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from visionpos.fusion.layout import (
     X_ANG_ACC,
     X_RATE,
 )
-from visionpos.fusion.matching import triangulate_irls
+from visionpos.fusion.matching import floor_gate, triangulate_irls
 from visionpos.fusion.tracking import (
     predict_mean,
 )
@@ -139,7 +141,16 @@ def _tracked_measurements(marker_xn: np.ndarray, views: tuple, tracked: tuple, d
     refused = 0
     for q in range(n_markers):
         if nv[q] >= 2:
-            if rms[q] < gate[body[q]]:
+            g = gate[body[q]]
+            if not rms[q] < g:  # near the floor a merged reflection may pull each view (matching.py)
+                seen = np.zeros(n_views, dtype=np.bool_)
+                for v in range(n_views):
+                    seen[v] = not np.isnan(xn[q, v, 0])
+                g_floor = floor_gate(X[q], R, t, f, seen, g)
+                if rms[q] < g_floor:  # kept, weighted down by the pull it may carry
+                    w_fit[q] = nv[q] * g * g / (g_floor * g_floor)
+                    continue
+            if rms[q] < g:
                 w_fit[q] = nv[q]  # more rays, better-conditioned point
             else:
                 refused += 1
