@@ -58,6 +58,11 @@ ALTERNATIVES = (
     ("pose_ang_acc", "fusion.single_view.mode occlusion, the angular-acceleration state as the defaults",
      {"single_view": {"mode": "occlusion"}}),
 )
+# the fake autopilot's IMU for the IMU rows (issue 29 item 2): a MEMS IMU streamed at 250 Hz, stamped on the
+# vehicle's clock and delay-corrected (bridge/imu_feed.py), arriving 3 ms after its sample; noise per sample and
+# biases drawn per flight from its seed (std per axis)
+IMU_FAKE = {"rate_hz": 250.0, "delay_ms": 3.0, "accel_noise_m_s2": 0.03, "accel_bias_m_s2": 0.1,
+            "gyro_noise_rad_s": 0.002, "gyro_bias_rad_s": 0.005}
 SKIP_S = 0.5  # acquisition and the filter's first convergence are not judged
 CRB_EVERY = 5  # evaluate the bound at every 5th output tick
 
@@ -147,11 +152,28 @@ def _pose_errors(sc, name: str, times_ns: np.ndarray, positions: np.ndarray,
     return np.linalg.norm(positions - p_true, axis=1), dr
 
 
+def fake_imu(sc, name: str, seed: int, imu: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """The fake autopilot's IMU over the flight (imu: IMU_FAKE's keys): sample times (N,) ns on the capture
+    clock, specific force (N, 3) m/s^2 and rates (N, 3) rad/s in the body's frame (as bridge/imu_feed.py
+    hands them to the core), and the drawn biases (FLU)."""
+    from bridge.fake_autopilot import imu_from_truth, imu_reading, trajectory_truth
+    from bridge.imu_feed import FRD_TO_FLU
+
+    rng = np.random.default_rng(1000 + seed)
+    gyro_bias = rng.normal(0.0, imu["gyro_bias_rad_s"], 3)
+    accel_bias = rng.normal(0.0, imu["accel_bias_m_s2"], 3)
+    t = np.arange(sc.start_ns, sc.end_ns, int(1e9 / imu["rate_hz"]), dtype=np.int64)
+    gyro, acc = imu_from_truth(trajectory_truth(sc.body(name).trajectory, sc.start_ns)(t))
+    gyro, acc = imu_reading(gyro, acc, gyro_bias, accel_bias, imu["gyro_noise_rad_s"], imu["accel_noise_m_s2"], rng)
+    return t, acc * FRD_TO_FLU, gyro * FRD_TO_FLU, {"accel": accel_bias * FRD_TO_FLU, "gyro": gyro_bias * FRD_TO_FLU}
+
+
 def fly(session: str, duration_s: float, seed: int, settings: dict | None = None,
-        overrides: list[str] | None = None) -> dict[str, float]:
+        overrides: list[str] | None = None, imu: dict | None = None) -> dict[str, float]:
     """One flight of the thesis arena's `session` through the pipeline: errors, bound, stall (see the module).
 
-    settings: fusion settings for the pipeline; overrides: `--set` style changes of the arena file."""
+    settings: fusion settings for the pipeline; overrides: `--set` style changes of the arena file; imu:
+    the fake autopilot's IMU (IMU_FAKE) fed to the pipeline as each sample arrives (fusion.imu on)."""
     from visionpos.benchmarks.fusion_replay import replay
     from visionpos.sim import load_scenario, simulate
 
@@ -174,7 +196,27 @@ def fly(session: str, duration_s: float, seed: int, settings: dict | None = None
                                   (tick_ns - st.capture_ns) * 1e-9)
             sent.append((tick_ns, st.capture_ns, p, q))
 
-    rep = replay(sc.arena, sim.frames, settings, raw_cb=watch, tick_cb=at_capture)
+    feed, age_ns = None, []
+    if imu is not None:
+        settings = {**(settings or {}), "imu": {"enabled": True}}
+        t_imu, acc, gyro, bias = fake_imu(sc, name, seed, imu)
+        arrive = t_imu + int(imu["delay_ms"] * 1e6)
+        k = [0]
+
+        def feed(pipe, t_ns):  # every sample that arrived by t_ns
+            while k[0] < len(t_imu) and arrive[k[0]] <= t_ns:
+                pipe.push_imu(name, int(t_imu[k[0]]), acc[k[0]], gyro[k[0]])
+                k[0] += 1
+
+    def at_tick(tick_ns, states):  # the newest information in the output: frame capture or IMU sample
+        at_capture(tick_ns, states)
+        if states[0].tracked:
+            newest = states[0].capture_ns
+            if imu is not None and k[0] > 0:
+                newest = max(newest, int(t_imu[k[0] - 1]))
+            age_ns.append((tick_ns, tick_ns - newest))
+
+    rep = replay(sc.arena, sim.frames, settings, raw_cb=watch, tick_cb=at_tick, feed_cb=feed)
     t = rep.times_ns
     judged_from_ns = sc.start_ns + int(SKIP_S * 1e9)
     keep = t >= judged_from_ns
@@ -188,7 +230,17 @@ def fly(session: str, duration_s: float, seed: int, settings: dict | None = None
     grid = np.arange(judged_from_ns, int(t[-1]), 250_000, dtype=np.int64)
     seen = seeing_cameras(sim.frames, sim.frame_truth, 0, grid) >= 2
     stall_ns = longest_stall_ns(np.asarray(accepted, np.int64), seen, grid)
-    return {
+    ages = np.array([a for tk, a in age_ns if tk >= judged_from_ns], float)
+    out = {}
+    if imu is not None:
+        est = rep.pipeline.imu.bodies[0]
+        out = {"accel_bias_err_m_s2": float(np.linalg.norm(est.accel_bias - bias["accel"])),
+               "accel_bias_m_s2": float(np.linalg.norm(bias["accel"])),
+               "gyro_bias_err_rad_s": float(np.linalg.norm(est.gyro_bias - bias["gyro"])),
+               "gyro_bias_rad_s": float(np.linalg.norm(bias["gyro"])),
+               "imu_refused": float(est.stats["refused"]), "imu_dropped": float(est.dropped)}
+    return out | {
+        "newest_age_ms": float(ages.mean() / 1e6) if len(ages) else float("nan"),
         "pos_rmse_mm": float(np.sqrt((dp**2).mean()) * 1e3),
         "rot_rmse_deg": float(np.degrees(np.sqrt((dr**2).mean()))),
         "max_err_mm": float(dp.max() * 1e3),

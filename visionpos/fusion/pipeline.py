@@ -75,6 +75,7 @@ from visionpos.camera.model import Camera
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.fusion.body_filter import FilterBank
 from visionpos.fusion.identity import IdentityBook
+from visionpos.fusion.imu import ImuInputs
 from visionpos.fusion.kernels import _finite_rows, _fuse_tracked, _observe_frame, _tracked_motion
 from visionpos.fusion.layout import (
     MEAS_POS,
@@ -199,6 +200,8 @@ class FusionPipeline:
         self._track_rows_arg = tuple(self._track_rows)  # the kernels take argument groups as plain tuples
         self.tracks = [Track(fl, self._track_ints[b], self._track_floats[b]) for b, fl in enumerate(self.bank.filters)]
         self._motion: tuple[int, np.ndarray] | None = None  # see _motion_cache
+        # the vehicles' IMU samples (push_imu) in the prediction, when fusion.imu.enabled (fusion/imu.py)
+        self.imu = ImuInputs(st.imu, [m.name for m in self.models], st.kalman) if st.imu.enabled else None
         self._tracking_changed()
         self.loose_points: LoosePoints | None = None
         self._last_acquire_ns = -(1 << 62)
@@ -267,6 +270,12 @@ class FusionPipeline:
         self.obs[cam] = self._observe(cam, t, px)
         for g in after:
             self._fuse(g)
+
+    def push_imu(self, body: str, t_ns: int, accel_body: np.ndarray, gyro_body: np.ndarray) -> bool:
+        """One IMU sample of the vehicle bound to `body` (fusion/imu.py): t_ns on the capture clock, specific
+        force (3,) m/s^2 and rate (3,) rad/s in the body's frame. False (nothing changes) when fusion.imu is
+        off, the body unknown or the sample refused (ImuInput.push)."""
+        return self.imu is not None and self.imu.push(body, t_ns, accel_body, gyro_body)
 
     def remove_camera(self, camera_id: int) -> None:
         """A station vanished: stop using and waiting for its frames."""
@@ -341,7 +350,11 @@ class FusionPipeline:
         self._stats["fusions"] += 1
         views = self._views(cams)
         if self._tracked:
+            if self.imu is not None:
+                self.imu.before_fusion(self._tracked, self.bank.filters, ref)
             self._update_tracked(views, ref, g.compensate)
+            if self.imu is not None:
+                self.imu.after_fusion(self._tracked, self.last_raw, ref)
         # acquisition is for lost bodies; with all tracked it only refreshes the loose points
         lost = len(self._tracked) < len(self.tracks)
         interval = st.acquire_interval_ns if lost else st.loose_points_interval_ns
@@ -495,7 +508,8 @@ class FusionPipeline:
             row = self._track_ints[b].tolist()  # Python ints, read once
             age = now_ns - row[TRACK_LAST_UPDATE_NS]
             if row[TRACK_TRACKED] and age <= max_prediction_ns and age <= lost_ns:
-                p, q, v, w_body, cov, vcov = tr.filter.output_at(now_ns)
+                p, q, v, w_body, cov, vcov = (tr.filter.output_at(now_ns) if self.imu is None
+                                              else self.imu.output_at(b, tr.filter, now_ns))
                 out.append(
                     BodyState(
                         name=model.name,
