@@ -111,7 +111,8 @@ def imu_from_truth(tr: Truth) -> tuple[np.ndarray, np.ndarray]:
 
 
 def imu_reading(gyro_frd: np.ndarray, accel_frd: np.ndarray, gyro_bias: np.ndarray, accel_bias: np.ndarray,
-                gyro_noise_rad_s: float, accel_noise_m_s2: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+                gyro_noise_rad_s: float, accel_noise_m_s2: float,
+                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """What a MEMS IMU reads of the perfect readings (imu_from_truth's, (T, 3) FRD): each plus its constant bias
     (3,) and white noise of the given std per axis and sample, drawn from rng (gyro first, then accel)."""
     g = gyro_frd + gyro_bias + rng.normal(0.0, gyro_noise_rad_s, np.shape(gyro_frd))

@@ -8,9 +8,11 @@ message into a sample the core takes (FusionPipeline.push_imu): its time on the 
 specific force and rate in the tracked body's frame (FLU: the vehicle's FRD with y and z turned over,
 as bridge/convert.py maps the body), SI units.
 
-imu_sample (pure) reads one message; ImuFeed is the mailbox between the vehicle link's sender thread,
-which offers the messages, and the server's loop, which drains the samples into the pipeline before
-each fusion step (a deque: appends and pops are atomic under the GIL; bounded, the oldest dropped).
+imu_sample and to_fusion (pure) read one message; ImuFeed is the mailbox between the vehicle link's
+sender thread, which offers the messages (Backchannel.handle), and the server's loop, which drains the
+samples into the pipeline before each frame and tick (a deque: appends and pops are atomic under the
+GIL; bounded, the oldest dropped); BridgeImu drains every vehicle of a Bridge into the body bound to it
+(Bridge.imu_sources -> FusionPipeline.add_imu_source, composed by server/service.py).
 """
 
 from __future__ import annotations
@@ -56,32 +58,59 @@ def to_fusion(t_ap_ns: int, accel_frd: np.ndarray, gyro_frd: np.ndarray,
 
 
 class ImuFeed:
-    """The IMU samples of the vehicle bound to one body, from the link's thread to the server's loop."""
+    """The IMU samples of one vehicle, from its link's thread to the server's loop."""
 
-    def __init__(self, body: str):
-        self.body = body
+    def __init__(self):
         self.queue: collections.deque[tuple[int, np.ndarray, np.ndarray]] = collections.deque(maxlen=_MAX_QUEUED)
         self.offered = 0
-        self.unmapped = 0  # messages before the vehicle's clock was measured: not usable
+        self.unmapped = 0  # messages before the vehicle's clock (and its gyro filter's lag) was known: not usable
 
-    def offer(self, m, autopilot: str | None, clock_lag_ns: float | None) -> bool:
-        """On the link's thread: one message from the autopilot; True if it was an IMU sample queued."""
-        s = imu_sample(m, autopilot)
+    def offer(self, m, bc) -> bool:
+        """On the link's thread: one message from the autopilot of Backchannel `bc`; True if it was an IMU sample
+        and is queued. Its time: the autopilot's, less bc.clock_lag_ns (the clocks, measured against the optical
+        motion) and bc.gyro_lag_ns() (ArduPilot's INS_GYRO_FILTER: its samples trail the motion by that)."""
+        s = imu_sample(m, bc.autopilot)
         if s is None:
             return False
-        if clock_lag_ns is None:
+        lag, filter_lag = bc.clock_lag_ns, bc.gyro_lag_ns()
+        if lag is None or filter_lag is None:
             self.unmapped += 1
             return False
-        self.queue.append(to_fusion(s[0], s[1], s[2], clock_lag_ns))
+        self.queue.append(to_fusion(s[0], s[1], s[2], lag + filter_lag))
         self.offered += 1
         return True
 
-    def drain(self, push, until_ns: int | None = None) -> int:
-        """On the server's loop: hand the queued samples (up to until_ns, if given) to push(body, t_ns, accel,
-        gyro), e.g. FusionPipeline.push_imu; returns how many the core took."""
+    def drain(self, push, body: str | None, lever_arm_m: np.ndarray) -> int:
+        """On the server's loop: hand the queued samples to push(body, t_ns, accel, gyro, lever_arm_m), e.g.
+        FusionPipeline.push_imu (body None: the vehicle is bound to none, the samples are dropped); returns how
+        many the core took."""
         taken = 0
         q = self.queue
-        while q and (until_ns is None or q[0][0] <= until_ns):
+        while q:
             t, a, w = q.popleft()
-            taken += bool(push(self.body, t, a, w))
+            if body is not None:
+                taken += bool(push(body, t, a, w, lever_arm_m))
+        return taken
+
+
+class BridgeImu:
+    """Every vehicle's ImuFeed on a Bridge (bridge/mavlink.py), drained into the bodies bound to them: a fleet
+    vehicle's bound body (bridge/fleet_binding.py), else its configured one. The IMU is taken to sit at the
+    vehicle's reference point (pivot_offset from the body's origin)."""
+
+    def __init__(self, bridge):
+        self.bridge = bridge
+        self.feeds = []
+        for v in bridge.vehicles:
+            v.bc.imu_feed = ImuFeed()
+            self.feeds.append((v, v.bc.imu_feed, np.asarray(v.cfg.pivot_offset, dtype=np.float64)))
+
+    def drain(self, push) -> int:
+        """Hand every vehicle's queued samples to push (FusionPipeline.push_imu)."""
+        taken = 0
+        for v, feed, arm in self.feeds:
+            if feed.queue:
+                bound = self.bridge.identity(v.cfg.name)
+                body = bound.get("bound_body") if bound else v.cfg.body
+                taken += feed.drain(push, body, arm)
         return taken

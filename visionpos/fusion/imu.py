@@ -40,6 +40,7 @@ from visionpos.fusion.layout import (
     ACC0,
     ADAPT_SCALE_P,
     ADAPT_SCALE_R,
+    ANG_ACC0,
     CLOCK_T_NS,
     OUT_POS,
     OUT_POSE_COV,
@@ -62,13 +63,18 @@ _MAX_PENDING = 4096  # samples held for the filter at most (a stream far ahead o
 
 
 def imu_measurement(R: np.ndarray, accel_body: np.ndarray, gyro_body: np.ndarray, accel_bias: np.ndarray,
-                    gyro_bias: np.ndarray) -> np.ndarray:
-    """The world-frame acceleration (m/s^2) and angular rate (rad/s) one sample measures, (6,):
+                    gyro_bias: np.ndarray, lever_arm_body: np.ndarray | None = None,
+                    rate_world: np.ndarray | None = None, ang_acc_world: np.ndarray | None = None) -> np.ndarray:
+    """The world-frame acceleration of the body origin (m/s^2) and angular rate (rad/s) one sample measures, (6,):
     R (3, 3) body->world; accel_body (3,) specific force m/s^2 and gyro_body (3,) rad/s in the body frame;
-    the biases (3,) in the same units."""
+    the biases (3,) in the same units. An IMU lever_arm_body (3,) m from the body origin reads the origin's
+    acceleration plus dw/dt x r + w x (w x r): taken off with the filter's rate_world and ang_acc_world (3,)."""
     z = np.empty(6)
     z[:3] = R @ (accel_body - accel_bias) + GRAVITY_WORLD
     z[3:] = R @ (gyro_body - gyro_bias)
+    if lever_arm_body is not None:
+        r = R @ lever_arm_body
+        z[:3] -= np.cross(ang_acc_world, r) + np.cross(rate_world, np.cross(rate_world, r))
     return z
 
 
@@ -180,6 +186,7 @@ class ImuInput:
         self.accel_bias = np.zeros(3)
         self.gyro_bias = np.zeros(3)
         self.bias_fits = 0  # windows fitted so far
+        self.lever_arm_m: np.ndarray | None = None  # body frame, from the origin to the IMU (None: at the origin)
         self.last_t_ns: int | None = None  # newest sample pushed
         self.last_used_ns: int | None = None  # newest sample in the filter (or its output)
         self.dropped = False  # refused or implausible: optical only from then on
@@ -224,7 +231,8 @@ class ImuInput:
         if dt != 0.0:
             _count_folds(R_nom, clock, int(_kf_predict(x, P, R_nom, dt, qj, qw, kalman.angular_jerk_psd * scale_r)))
             clock[CLOCK_T_NS] = t_ns
-        z = imu_measurement(R_nom, a, w, self.accel_bias, self.gyro_bias)
+        z = imu_measurement(R_nom, a, w, self.accel_bias, self.gyro_bias, self.lever_arm_m, x[RATE0:RATE0 + 3],
+                            x[ANG_ACC0:ANG_ACC0 + 3])
         ok, _ = imu_update(x, P, z, self._var, self.s.gate_chi2)
         if not record:
             return
@@ -324,10 +332,18 @@ class ImuInputs:
         self.bodies = [ImuInput(settings, n) for n in names]
         self.index = {n: i for i, n in enumerate(names)}
 
-    def push(self, name: str, t_ns: int, accel_body: np.ndarray, gyro_body: np.ndarray) -> bool:
-        """One sample for body `name` (ImuInput.push); False for an unknown body."""
+    def push(self, name: str, t_ns: int, accel_body: np.ndarray, gyro_body: np.ndarray,
+             lever_arm_m: np.ndarray | None = None) -> bool:
+        """One sample for body `name` (ImuInput.push), from an IMU lever_arm_m (3,) from its origin (body frame;
+        None: at the origin); False for an unknown body."""
         b = self.index.get(name)
-        return b is not None and self.bodies[b].push(int(t_ns), accel_body, gyro_body)
+        if b is None:
+            return False
+        body = self.bodies[b]
+        if lever_arm_m is not None:
+            arm = np.asarray(lever_arm_m, dtype=np.float64).reshape(3)
+            body.lever_arm_m = arm if np.isfinite(arm).all() and arm.any() else None
+        return body.push(int(t_ns), accel_body, gyro_body)
 
     def before_fusion(self, tracked: tuple[int, ...], filters, ref_ns: int) -> None:
         """The tracked bodies' samples up to ref_ns into their filters (ImuInput.before_fusion)."""

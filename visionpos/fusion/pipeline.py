@@ -202,6 +202,7 @@ class FusionPipeline:
         self._motion: tuple[int, np.ndarray] | None = None  # see _motion_cache
         # the vehicles' IMU samples (push_imu) in the prediction, when fusion.imu.enabled (fusion/imu.py)
         self.imu = ImuInputs(st.imu, [m.name for m in self.models], st.kalman) if st.imu.enabled else None
+        self._imu_sources: list = []
         self._tracking_changed()
         self.loose_points: LoosePoints | None = None
         self._last_acquire_ns = -(1 << 62)
@@ -245,6 +246,8 @@ class FusionPipeline:
     # ------------------------------------------------------------------ input
     def push(self, frame: BlobFrame) -> None:
         """Take one camera frame (arrival order) and do the fusion work it enables."""
+        if self._imu_sources and self.imu is not None:
+            self._drain_imu()
         self._stats["frames"] += 1
         cam = int(frame.camera_id)
         if cam not in self.cameras:
@@ -271,11 +274,22 @@ class FusionPipeline:
         for g in after:
             self._fuse(g)
 
-    def push_imu(self, body: str, t_ns: int, accel_body: np.ndarray, gyro_body: np.ndarray) -> bool:
+    def push_imu(self, body: str, t_ns: int, accel_body: np.ndarray, gyro_body: np.ndarray,
+                 lever_arm_m: np.ndarray | None = None) -> bool:
         """One IMU sample of the vehicle bound to `body` (fusion/imu.py): t_ns on the capture clock, specific
-        force (3,) m/s^2 and rate (3,) rad/s in the body's frame. False (nothing changes) when fusion.imu is
-        off, the body unknown or the sample refused (ImuInput.push)."""
-        return self.imu is not None and self.imu.push(body, t_ns, accel_body, gyro_body)
+        force (3,) m/s^2 and rate (3,) rad/s in the body's frame, from an IMU lever_arm_m (3,) from the body's
+        origin (None: at it). False (nothing changes) when fusion.imu is off, the body unknown or the sample
+        refused (ImuInput.push)."""
+        return self.imu is not None and self.imu.push(body, t_ns, accel_body, gyro_body, lever_arm_m)
+
+    def add_imu_source(self, drain) -> None:
+        """drain(push_imu) is called before every frame and tick, on the pipeline's thread: it hands over the
+        IMU samples that arrived (bridge/imu_feed.py). Nothing is drained while fusion.imu is off."""
+        self._imu_sources.append(drain)
+
+    def _drain_imu(self) -> None:
+        for drain in self._imu_sources:
+            drain(self.push_imu)
 
     def remove_camera(self, camera_id: int) -> None:
         """A station vanished: stop using and waiting for its frames."""
@@ -494,6 +508,8 @@ class FusionPipeline:
         or late. Otherwise the filters do not change. A body not updated within max_prediction (or lost) is
         reported with tracked=False and NaN pose: a stale pose is never re-sent.
         """
+        if self._imu_sources and self.imu is not None:
+            self._drain_imu()
         pending = self.aligner.take_deferred()
         if pending is not None:
             self._stats["fused_at_tick"] += 1

@@ -106,9 +106,9 @@ IMU = section(
             "they are ignored"),
     Setting("accel_noise_m_s2", "number", 0.05, "std of one accelerometer sample per axis (m/s^2)", min=1e-6),
     Setting("gyro_noise_rad_s", "number", 0.003, "std of one gyro sample per axis (rad/s)", min=1e-7),
-    Setting("jerk_psd", "number", 1000.0, "white-jerk density between IMU samples (m^2/s^5): the acceleration "
+    Setting("jerk_psd", "number", 100.0, "white-jerk density between IMU samples (m^2/s^5): the acceleration "
             "may change this much from one sample to the next (the optical model's floor is far lower)", min=1e-6),
-    Setting("angular_accel_psd", "number", 100.0, "white angular-acceleration density between IMU samples "
+    Setting("angular_accel_psd", "number", 3.0, "white angular-acceleration density between IMU samples "
             "(rad^2/s^3)", min=1e-6),
     Setting("gate_chi2", "number", 60.0, "a sample whose innovation against the filter's acceleration and rate "
             "exceeds this (Mahalanobis^2, 6 dof) is refused", min=1.0),
@@ -186,7 +186,8 @@ FusionSettings = settings_dataclass(
     "FusionSettings", FUSION, "Validated `fusion:` section (SI units). window_ns and grid_ns are 0 until "
     "derived from the cameras; auto_window: window_ms was 0, so the window follows the cameras' measured "
     "frame intervals (timealign.py) and window_ns is only its starting value.", __name__,
-    nested={"kalman": KalmanSettings, "single_view": SingleViewSettings, "imu": ImuSettings}, extra=(("auto_window", bool, True),))
+    nested={"kalman": KalmanSettings, "single_view": SingleViewSettings, "imu": ImuSettings},
+    extra=(("auto_window", bool, True),))
 
 
 class Param(NamedTuple):
