@@ -596,4 +596,7 @@ class FusionPipeline:
             for b, (m, tr) in enumerate(zip(self.models, self.tracks))
         }
         d["time_alignment"] = self.settings.time_alignment
+        if self.imu is not None:  # per body: samples pushed, used, refused, late, invalid; dropped; bias fits
+            d["imu"] = {m.name: {**i.stats, "dropped": i.dropped, "bias_fits": i.bias_fits}
+                        for m, i in zip(self.models, self.imu.bodies)}
         return d
