@@ -331,6 +331,7 @@ class ImuInputs:
         self.kalman = kalman
         self.bodies = [ImuInput(settings, n) for n in names]
         self.index = {n: i for i, n in enumerate(names)}
+        self.live = False  # a sample was taken: until then the pipeline skips these (no cost without an IMU)
 
     def push(self, name: str, t_ns: int, accel_body: np.ndarray, gyro_body: np.ndarray,
              lever_arm_m: np.ndarray | None = None) -> bool:
@@ -343,7 +344,9 @@ class ImuInputs:
         if lever_arm_m is not None:
             arm = np.asarray(lever_arm_m, dtype=np.float64).reshape(3)
             body.lever_arm_m = arm if np.isfinite(arm).all() and arm.any() else None
-        return body.push(int(t_ns), accel_body, gyro_body)
+        taken = body.push(int(t_ns), accel_body, gyro_body)
+        self.live |= taken
+        return taken
 
     def before_fusion(self, tracked: tuple[int, ...], filters, ref_ns: int) -> None:
         """The tracked bodies' samples up to ref_ns into their filters (ImuInput.before_fusion)."""

@@ -364,11 +364,12 @@ class FusionPipeline:
         self._stats["fusions"] += 1
         views = self._views(cams)
         if self._tracked:
-            if self.imu is not None:
-                self.imu.before_fusion(self._tracked, self.bank.filters, ref)
+            imu = self.imu if self.imu is not None and self.imu.live else None
+            if imu is not None:
+                imu.before_fusion(self._tracked, self.bank.filters, ref)
             self._update_tracked(views, ref, g.compensate)
-            if self.imu is not None:
-                self.imu.after_fusion(self._tracked, self.last_raw, ref)
+            if imu is not None:
+                imu.after_fusion(self._tracked, self.last_raw, ref)
         # acquisition is for lost bodies; with all tracked it only refreshes the loose points
         lost = len(self._tracked) < len(self.tracks)
         interval = st.acquire_interval_ns if lost else st.loose_points_interval_ns
@@ -524,7 +525,7 @@ class FusionPipeline:
             row = self._track_ints[b].tolist()  # Python ints, read once
             age = now_ns - row[TRACK_LAST_UPDATE_NS]
             if row[TRACK_TRACKED] and age <= max_prediction_ns and age <= lost_ns:
-                p, q, v, w_body, cov, vcov = (tr.filter.output_at(now_ns) if self.imu is None
+                p, q, v, w_body, cov, vcov = (tr.filter.output_at(now_ns) if self.imu is None or not self.imu.live
                                               else self.imu.output_at(b, tr.filter, now_ns))
                 out.append(
                     BodyState(
