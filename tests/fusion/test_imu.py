@@ -162,3 +162,14 @@ def test_the_running_estimate_converges_over_windows():
         errors.append(np.linalg.norm(inp.accel_bias - b_a))
     assert inp.bias_fits == 4
     assert errors[-1] < 0.01
+
+
+def test_an_implausible_bias_drops_the_imu():
+    # an accelerometer off by 1.5 m/s^2 (over max_accel_bias_m_s2, 1): not an IMU's bias, the input is dropped
+    t, Rm, w, a_w, obs, p_obs, R_obs = _spinning_window(np.random.default_rng(6))
+    f = np.einsum("nji,nj->ni", Rm, a_w - G) + [1.5, 0.0, 0.0]
+    inp = ImuInput(replace(ImuSettings(), bias_window_ns=990_000_000), "quad")
+    inp._win_imu, inp._win_start_ns = [(ti, fi, wi, Ri) for ti, fi, wi, Ri in zip(t, f, w, Rm)], 0
+    for k, i in enumerate(obs):
+        inp.observe_pose(int(round(t[i] * 1e9)), p_obs[k], R_obs[k])
+    assert inp.dropped and inp.bias_fits == 0 and not inp.accel_bias.any()
