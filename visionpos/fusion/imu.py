@@ -99,8 +99,9 @@ def imu_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, var: np.ndarray, gat
 
 
 def fit_accel_bias(t_s: np.ndarray, accel_body: np.ndarray, R: np.ndarray, obs_t_s: np.ndarray,
-                   obs_pos: np.ndarray) -> np.ndarray | None:
-    """The accelerometer bias (3,) m/s^2 (body frame) that best explains optical positions by the samples.
+                   obs_pos: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """The accelerometer bias (3,) m/s^2 (body frame) that best explains optical positions by the samples, and
+    the RMS distance (m) of the positions from that fit (the optical noise when the IMU is this body's and sane).
 
     t_s (N,) sample times, accel_body (N, 3) raw specific force, R (N, 3, 3) body->world at each sample,
     each held until the next; obs_t_s (K,) and obs_pos (K, 3) m optical positions within the samples' span.
@@ -131,13 +132,15 @@ def fit_accel_bias(t_s: np.ndarray, accel_body: np.ndarray, R: np.ndarray, obs_t
     rows[:, :, 0:3] = np.eye(3)
     rows[:, :, 3:6] = np.eye(3) * tau[:, None, None]
     rows[:, :, 6:9] = -Mk
-    sol = np.linalg.lstsq(rows.reshape(-1, 9), (obs_pos - Dk).reshape(-1), rcond=None)[0]
-    return sol[6:9]
+    A, y = rows.reshape(-1, 9), (obs_pos - Dk).reshape(-1)
+    sol = np.linalg.lstsq(A, y, rcond=None)[0]
+    return sol[6:9], float(np.sqrt(np.mean((A @ sol - y) ** 2) * 3.0))
 
 
 def fit_gyro_bias(t_s: np.ndarray, gyro_body: np.ndarray, obs_t_s: np.ndarray,
-                  obs_R: np.ndarray) -> np.ndarray | None:
-    """The gyro bias (3,) rad/s (body frame) that best explains optical rotations by the samples.
+                  obs_R: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """The gyro bias (3,) rad/s (body frame) that best explains optical rotations by the samples, and the RMS
+    angle (rad) of the rotations from that fit.
 
     t_s (N,) sample times, gyro_body (N, 3) raw rates, each held until the next; obs_t_s (K,) and obs_R
     (K, 3, 3) body->world optical rotations within the samples' span. Q(t): the rotation the raw rates
@@ -171,8 +174,9 @@ def fit_gyro_bias(t_s: np.ndarray, gyro_body: np.ndarray, obs_t_s: np.ndarray,
         rows[j, :, :3] = Qj.T
         rows[j, :, 3:] = -Qj.T @ Sj
         rhs[j] = rotvec_from_matrix_compiled(np.ascontiguousarray((R0 @ Qj).T @ obs_R[j]))
-    sol = np.linalg.lstsq(rows.reshape(-1, 6), rhs.reshape(-1), rcond=None)[0]
-    return sol[3:]
+    A, y = rows.reshape(-1, 6), rhs.reshape(-1)
+    sol = np.linalg.lstsq(A, y, rcond=None)[0]
+    return sol[3:], float(np.sqrt(np.mean((A @ sol - y) ** 2) * 3.0))
 
 
 class ImuInput:
@@ -304,9 +308,16 @@ class ImuInput:
             return
         f, w, R = np.array([s[1] for s in imu]), np.array([s[2] for s in imu]), np.array([s[3] for s in imu])
         op, oR = np.array([o[1] for o in obs])[inside], np.array([o[2] for o in obs])[inside]
-        ba = fit_accel_bias(t - t0, f, R, ot[inside] - t0, op)
-        bg = fit_gyro_bias(t - t0, w, ot[inside] - t0, oR)
-        if ba is None or bg is None:
+        fa = fit_accel_bias(t - t0, f, R, ot[inside] - t0, op)
+        fg = fit_gyro_bias(t - t0, w, ot[inside] - t0, oR)
+        if fa is None or fg is None:
+            return
+        (ba, rms_p), (bg, rms_r) = fa, fg
+        if rms_p > self.s.max_fit_residual_mm * 1e-3 or rms_r > np.radians(self.s.max_fit_residual_deg):
+            self._drop(f"integrated over {t[-1] - t0:.1f} s it misses the optical track by {rms_p * 1e3:.1f} mm and "
+                       f"{np.degrees(rms_r):.2f} deg RMS (fusion.imu.max_fit_residual_mm "
+                       f"{self.s.max_fit_residual_mm}, max_fit_residual_deg {self.s.max_fit_residual_deg}): stuck, "
+                       "another vehicle's, or a clock that jumped")
             return
         if np.linalg.norm(ba) > self.s.max_accel_bias_m_s2:
             self._drop(f"its fitted accelerometer bias {np.linalg.norm(ba):.2f} m/s^2 is above "

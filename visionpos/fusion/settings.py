@@ -119,6 +119,11 @@ IMU = section(
     Setting("bias_window_ms", "number", 1000.0, "the biases are fitted over windows this long: the optical "
             "positions and rotations against the IMU integrated over the window", field="bias_window_ns",
             convert=ms_to_ns, min=100.0),
+    Setting("max_fit_residual_mm", "number", 5.0, "the optical positions of a bias window further than this (RMS) "
+            "from the IMU integrated over it: the IMU is not this body's or not sane (stuck, another vehicle's, a "
+            "clock that jumped); the body's IMU input is dropped (said once)", min=0.1),
+    Setting("max_fit_residual_deg", "number", 2.0, "likewise for the optical rotations against the integrated "
+            "gyro", min=0.01),
     Setting("max_accel_bias_m_s2", "number", 1.0, "a fitted accelerometer bias above this is not an IMU's "
             "bias: the body's IMU input is dropped (said once)", min=0.01),
 )
