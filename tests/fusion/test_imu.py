@@ -192,3 +192,20 @@ def test_an_imu_that_misses_the_optical_track_is_dropped(fault):
     for k, i in enumerate(obs):
         inp.observe_pose(int(round(t[i] * 1e9)), p_obs[k], R_obs[k])
     assert inp.dropped and inp.bias_fits == 0
+
+
+def test_the_server_hands_its_outputs_imu_sources_to_the_pipeline():
+    # a sink with IMU samples (as the MAVLink bridge, bridge/imu_feed.py): the server registers its source, the
+    # pipeline drains it before each tick into the body's input
+    from visionpos.server.service import FusionServer, load_config_with_overrides
+    from visionpos.server.sinks import Sink
+
+    arena = load_config_with_overrides("thesis", ["fusion.imu.enabled=true", "server.insecure=true"])
+
+    class ImuSink(Sink):
+        def imu_sources(self):
+            return [lambda push: push("quad", 5_000_000, np.array([0.0, 0.0, 9.8]), np.zeros(3))]
+
+    server = FusionServer(arena, sinks=[ImuSink()], port=0)
+    server.tick(10_000_000)
+    assert server.pipeline.stats()["imu"]["quad"]["samples"] == 1
