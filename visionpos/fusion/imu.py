@@ -16,7 +16,10 @@ f the specific force and omega the rate in the body frame, R the filter's body->
 to the next) instead of the constant-acceleration model's guess, and the attitude follows the gyro; the
 process noise between samples is fusion.imu.jerk_psd / angular_accel_psd (the acceleration may change that
 much from one sample to the next). Before each fusion the samples up to its reference time go into the
-filter (before_fusion); an output tick takes the samples after the filter's time on a copy of it
+filter (before_fusion), and the position block's covariance is widened for the acceleration held from the
+newest sample to that time (the fusion's own prediction has only the optical model's jerk floor: with
+samples at 50 Hz that left the held acceleration trusted for 20 ms and the slalom's position error at 1.0x
+its bound instead of 0.66x); an output tick takes the samples after the filter's time on a copy of it
 (output_at), so the outputs predict to the tick with the measured accelerations. Without a fresh sample
 (none fed, older than max_age_ms, refused) the filter and its outputs are the optical ones, from the same
 state: no jump.
@@ -50,7 +53,7 @@ from visionpos.fusion.layout import (
     OUT_VEL_COV,
     RATE0,
 )
-from visionpos.fusion.tracking import _count_folds, _fold, _kf_predict, _output_at
+from visionpos.fusion.tracking import _add_process_noise, _count_folds, _fold, _kf_predict, _output_at
 from visionpos.geometry.rotations import matrix_from_rotvec_compiled, rotvec_from_matrix_compiled
 
 log = logging.getLogger(__name__)
@@ -226,15 +229,19 @@ class ImuInput:
         return not self.dropped and self.last_t_ns is not None and t_ns - self.last_t_ns <= self.s.max_age_ns
 
     # ----------------------------------------------------------- the filter
-    def _step(self, x, P, R_nom, clock, scale_p: float, scale_r: float, kalman, t_ns: int, a: np.ndarray,
-              w: np.ndarray, record: bool) -> None:
-        """Predict x, P, R_nom, clock (a filter row or a copy) to t_ns, then fuse the sample (a, w)."""
+    def _predict(self, x, P, R_nom, clock, scale_p: float, scale_r: float, kalman, t_ns: int) -> None:
+        """Predict x, P, R_nom, clock (a filter row or a copy) to t_ns with the process noise between samples."""
         dt = (t_ns - int(clock[CLOCK_T_NS])) * 1e-9
         qj = max(self.s.jerk_psd, kalman.jerk_psd * scale_p)
         qw = max(self.s.angular_accel_psd, kalman.angular_accel_psd * scale_r)
         if dt != 0.0:
             _count_folds(R_nom, clock, int(_kf_predict(x, P, R_nom, dt, qj, qw, kalman.angular_jerk_psd * scale_r)))
             clock[CLOCK_T_NS] = t_ns
+
+    def _step(self, x, P, R_nom, clock, scale_p: float, scale_r: float, kalman, t_ns: int, a: np.ndarray,
+              w: np.ndarray, record: bool) -> None:
+        """Predict x, P, R_nom, clock (a filter row or a copy) to t_ns, then fuse the sample (a, w)."""
+        self._predict(x, P, R_nom, clock, scale_p, scale_r, kalman, t_ns)
         z = imu_measurement(R_nom, a, w, self.accel_bias, self.gyro_bias, self.lever_arm_m, x[RATE0:RATE0 + 3],
                             x[ANG_ACC0:ANG_ACC0 + 3])
         ok, _ = imu_update(x, P, z, self._var, self.s.gate_chi2)
@@ -255,7 +262,8 @@ class ImuInput:
 
     def before_fusion(self, flt, kalman, ref_ns: int) -> None:
         """Put the samples up to ref_ns into filter `flt` (a BodyFilter, mutated), in time order; samples
-        older than the filter's time are late (counted, left out)."""
+        older than the filter's time are late (counted, left out). While the stream is fresh, the position
+        block's covariance is widened for the acceleration held from the newest sample to ref_ns."""
         while self.pending and self.pending[0][0] <= ref_ns:
             t, a, w = self.pending.popleft()
             if self.dropped:
@@ -265,6 +273,12 @@ class ImuInput:
                 continue
             self._step(flt._x, flt._P, flt._R_nom, flt._clock, flt.scale_p, flt.scale_r, kalman, t, a, w, True)
             self.last_used_ns = t
+        if self.fresh(ref_ns) and ref_ns > flt.t_ns:
+            # the fusion predicts on from the newest sample with the optical model's jerk floor; the acceleration
+            # held since that sample may change as much as between samples: the difference goes into P (position
+            # block; times untouched, so the fusion's views at their own capture times step no further back)
+            qj = max(self.s.jerk_psd - kalman.jerk_psd * flt.scale_p, 0.0)
+            _add_process_noise(flt._P, (ref_ns - flt.t_ns) * 1e-9, qj, 0.0, 0.0)
 
     def output_at(self, flt, kalman, t_ns: int) -> tuple:
         """BodyFilter.output_at(t_ns) with the pending samples up to t_ns taken on a copy of the filter (the
@@ -362,7 +376,7 @@ class ImuInputs:
     def before_fusion(self, tracked: tuple[int, ...], filters, ref_ns: int) -> None:
         """The tracked bodies' samples up to ref_ns into their filters (ImuInput.before_fusion)."""
         for b in tracked:
-            if self.bodies[b].pending:
+            if self.bodies[b].pending or self.bodies[b].fresh(ref_ns):
                 self.bodies[b].before_fusion(filters[b], self.kalman, ref_ns)
 
     def after_fusion(self, tracked: tuple[int, ...], last_raw: dict, ref_ns: int) -> None:
