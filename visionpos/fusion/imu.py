@@ -18,8 +18,8 @@ process noise between samples is fusion.imu.jerk_psd / angular_accel_psd (the ac
 much from one sample to the next). Before each fusion the samples up to its reference time go into the
 filter (before_fusion), and the position block's covariance is widened for the acceleration held from the
 newest sample to that time (the fusion's own prediction has only the optical model's jerk floor: with
-samples at 50 Hz that left the held acceleration trusted for 20 ms and the slalom's position error at 1.0x
-its bound instead of 0.66x); an output tick takes the samples after the filter's time on a copy of it
+samples at 50 Hz that left the held acceleration trusted for 20 ms and the flights' position error at
+0.75-0.84x their bound instead of 0.68-0.71x); an output tick takes the samples after the filter's time on a copy of it
 (output_at), so the outputs predict to the tick with the measured accelerations. Without a fresh sample
 (none fed, older than max_age_ms, refused) the filter and its outputs are the optical ones, from the same
 state: no jump.
