@@ -252,6 +252,7 @@ class Backchannel:
         self._next_timesync = 0
         self._silent_warned = False
         self._first_send_ns = 0
+        self.imu_feed = None  # bridge/imu_feed.py's ImuFeed: the IMU samples on to the fusion (offer)
 
     # ------------------------------------------------------------ receive
     def handle(self, m, compid: int, recv_ns: int) -> None:
@@ -292,6 +293,8 @@ class Backchannel:
                 self.gyro.add(ta, (m.xgyro * scale, m.ygyro * scale, m.zgyro * scale))
                 self.gyro_source = t
                 self._gyro_recv_ns = recv_ns
+                if self.imu_feed is not None:
+                    self.imu_feed.offer(m, self)
         elif t == "LOCAL_POSITION_NED":
             self.local_position = (m.x, m.y, m.z)
         elif t == "EKF_STATUS_REPORT":

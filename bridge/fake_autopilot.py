@@ -30,7 +30,9 @@ holds every received packet that long before handling it (a slow link or
 autopilot: the pose reaches its EKF that much later); reboot() restarts its
 clock and forgets origin, home and streams. gyro_filter_hz plays ArduPilot's
 INS_GYRO_FILTER (reported as that parameter): the gyro and the ATTITUDE rates it
-sends trail the motion by the group delay of that 2-pole low-pass.
+sends trail the motion by the group delay of that 2-pole low-pass. Its IMU (imu_reading) adds white noise
+(gyro_noise_rad_s, accel_noise_m_s2 per sample) and constant biases drawn from `seed` (the gyro's with std
+gyro_noise_rad_s, the accelerometer's with std accel_bias_m_s2, none by default) to the truth's.
 
     with FakeAutopilot("udpout:127.0.0.1:14561", sysid=1) as ap:
         ...
@@ -108,6 +110,15 @@ def imu_from_truth(tr: Truth) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(tr.angular_velocity, float) * flip, f_flu * flip
 
 
+def imu_reading(gyro_frd: np.ndarray, accel_frd: np.ndarray, gyro_bias: np.ndarray, accel_bias: np.ndarray,
+                gyro_noise_rad_s: float, accel_noise_m_s2: float,
+                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """What a MEMS IMU reads of the perfect readings (imu_from_truth's, (T, 3) FRD): each plus its constant bias
+    (3,) and white noise of the given std per axis and sample, drawn from rng (gyro first, then accel)."""
+    g = gyro_frd + gyro_bias + rng.normal(0.0, gyro_noise_rad_s, np.shape(gyro_frd))
+    return g, accel_frd + accel_bias + rng.normal(0.0, accel_noise_m_s2, np.shape(accel_frd))
+
+
 @dataclass
 class Received:
     """One message as the autopilot got it. fields: msg.to_dict() (incl. 'mavpackettype')."""
@@ -161,7 +172,8 @@ class FakeAutopilot:
                  delay_ms: float = 0.0, boot_ns: int | None = None, origin_ready_s: float = 0.0,
                  ekf: str = "accept", gyro_noise_rad_s: float = 0.003, attitude_noise_deg: float = 0.2,
                  seed: int | None = None, gyro_filter_hz: float = 0.0, keep_received: int | None = None,
-                 on_pose: Callable[[Received], None] | None = None, reject_params: tuple[str, ...] = ()):
+                 on_pose: Callable[[Received], None] | None = None, reject_params: tuple[str, ...] = (),
+                 accel_noise_m_s2: float = 0.02, accel_bias_m_s2: float = 0.0):
         kind, _, rest = endpoint.partition(":")
         host, _, port = rest.rpartition(":")
         if kind not in ("udpout", "udpin", "tcpin") or not host or not port.isdigit():
@@ -195,6 +207,9 @@ class FakeAutopilot:
         self.attitude_noise = math.radians(attitude_noise_deg)
         self.rng = np.random.default_rng(sysid if seed is None else seed)
         self.gyro_bias = self.rng.normal(0.0, gyro_noise_rad_s, 3)
+        # the accelerometer's bias, drawn (std accel_bias_m_s2 per axis) only when asked for: the draws after it move
+        self.accel_bias = self.rng.normal(0.0, accel_bias_m_s2, 3) if accel_bias_m_s2 > 0 else np.zeros(3)
+        self.accel_noise = accel_noise_m_s2
         self._telemetry_default_ns = int(1e9 / telemetry_hz) if telemetry_hz > 0 else 0
         self.intervals_ns: dict[int, int] = {}  # message id -> interval (SET_MESSAGE_INTERVAL)
         self._next_tx: dict[int, int] = {}
@@ -541,8 +556,8 @@ class FakeAutopilot:
         gyro, acc = imu_from_truth(tr)
         if self.gyro_lag_ns:  # the filtered gyro: the motion of gyro_lag_ns ago
             gyro, _ = imu_from_truth(self.truth(np.array([now - self.gyro_lag_ns], dtype=np.int64)))
-        gyro = gyro[0] + self.gyro_bias + self.rng.normal(0.0, self.gyro_noise, 3)
-        acc = acc[0] + self.rng.normal(0.0, 0.02, 3)
+        gyro, acc = imu_reading(gyro[0], acc[0], self.gyro_bias, self.accel_bias, self.gyro_noise, self.accel_noise,
+                                self.rng)
         q_nf = quat_world_body_to_ned_frd(tr.quaternion[0])
         att_err = Rotation.from_rotvec(self.rng.normal(0.0, self.attitude_noise, 3))
         r_nf = Rotation.from_quat(q_nf) * att_err

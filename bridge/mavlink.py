@@ -65,6 +65,12 @@ class Bridge(Sink):
         publish and a body bound here is told to it (bind). Called on the server's loop, before any publish."""
         self._identity_book = book
 
+    def imu_sources(self) -> list:
+        """The vehicles' IMU samples for the pipeline (bridge/imu_feed.py), each to the body bound to it."""
+        from bridge.imu_feed import BridgeImu
+
+        return [BridgeImu(self).drain]
+
     def vehicle(self, name: str) -> VehicleLink:
         for v in self.vehicles:
             if v.cfg.name == name or v.cfg.body == name:

@@ -58,6 +58,11 @@ ALTERNATIVES = (
     ("pose_ang_acc", "fusion.single_view.mode occlusion, the angular-acceleration state as the defaults",
      {"single_view": {"mode": "occlusion"}}),
 )
+# the fake autopilot's IMU for the IMU rows (issue 29 item 2): a MEMS IMU streamed at 250 Hz, stamped on the
+# vehicle's clock and delay-corrected (bridge/imu_feed.py), arriving 3 ms after its sample; noise per sample and
+# biases drawn per flight from its seed (std per axis)
+IMU_FAKE = {"rate_hz": 250.0, "delay_ms": 3.0, "accel_noise_m_s2": 0.03, "accel_bias_m_s2": 0.1,
+            "gyro_noise_rad_s": 0.002, "gyro_bias_rad_s": 0.005}
 SKIP_S = 0.5  # acquisition and the filter's first convergence are not judged
 CRB_EVERY = 5  # evaluate the bound at every 5th output tick
 
@@ -147,11 +152,68 @@ def _pose_errors(sc, name: str, times_ns: np.ndarray, positions: np.ndarray,
     return np.linalg.norm(positions - p_true, axis=1), dr
 
 
+def fake_imu(sc, name: str, seed: int, imu: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """The fake autopilot's IMU over the flight (imu: IMU_FAKE's keys): sample times (N,) ns on the capture
+    clock, specific force (N, 3) m/s^2 and rates (N, 3) rad/s in the body's frame (as bridge/imu_feed.py
+    hands them to the core), and the drawn biases (FLU)."""
+    from bridge.fake_autopilot import imu_from_truth, imu_reading, trajectory_truth
+    from bridge.imu_feed import FRD_TO_FLU
+
+    rng = np.random.default_rng(1000 + seed)
+    gyro_bias = rng.normal(0.0, imu["gyro_bias_rad_s"], 3)
+    accel_bias = rng.normal(0.0, imu["accel_bias_m_s2"], 3)
+    t = np.arange(sc.start_ns, sc.end_ns, int(1e9 / imu["rate_hz"]), dtype=np.int64)
+    gyro, acc = imu_from_truth(trajectory_truth(sc.body(name).trajectory, sc.start_ns)(t))
+    gyro, acc = imu_reading(gyro, acc, gyro_bias, accel_bias, imu["gyro_noise_rad_s"], imu["accel_noise_m_s2"], rng)
+    return t, acc * FRD_TO_FLU, gyro * FRD_TO_FLU, {"accel": accel_bias * FRD_TO_FLU, "gyro": gyro_bias * FRD_TO_FLU}
+
+
+def imu_feeder(sc, name: str, seed: int, imu: dict):
+    """fake_imu's samples as replay's feed_cb (each pushed once it arrived, delay_ms after its time), the time
+    of the newest one pushed (a function) and the drawn biases."""
+    t_imu, acc, gyro, bias = fake_imu(sc, name, seed, imu)
+    arrive = t_imu + int(imu["delay_ms"] * 1e6)
+    k = [0]
+
+    def feed(pipe, t_ns):
+        while k[0] < len(t_imu) and arrive[k[0]] <= t_ns:
+            pipe.push_imu(name, int(t_imu[k[0]]), acc[k[0]], gyro[k[0]])
+            k[0] += 1
+
+    return feed, lambda: int(t_imu[k[0] - 1]) if k[0] else -(1 << 62), bias
+
+
+def static_imu_jitter(static: tuple, imu: dict, settings: dict | None = None) -> tuple[float, float]:
+    """(raw, output) position jitter (mm per axis) of the static body (static_flight's scenario and simulation)
+    with the fake IMU fed (fusion.imu on), as benchmarks.fusion_replay.static_jitter measures it."""
+    from visionpos.analysis.metrics import position_jitter
+    from visionpos.benchmarks.fusion_replay import replay
+
+    sc, sim = static
+    feed, _, _ = imu_feeder(sc, "quad", 1, imu)
+    raws: dict[int, tuple] = {}
+
+    def cb(p):
+        r = p.last_raw.get(0)
+        if r is not None:
+            raws[r[0]] = r
+
+    st = {"time_alignment": "motion_compensated", **copy.deepcopy(settings or {}),
+          "imu": {"enabled": True, **imu.get("fusion", {})}}
+    rep = replay(sc.arena, sim.frames, st, raw_cb=cb, feed_cb=feed)
+    t = np.array(sorted(raws))
+    t = t[t >= t[0] + 500_000_000]
+    P = np.array([raws[k][1] for k in t])
+    ok = rep.tracked["quad"] & (rep.times_ns >= t[0])
+    return position_jitter(t, P) * 1e3, position_jitter(rep.times_ns[ok], rep.positions["quad"][ok]) * 1e3
+
+
 def fly(session: str, duration_s: float, seed: int, settings: dict | None = None,
-        overrides: list[str] | None = None) -> dict[str, float]:
+        overrides: list[str] | None = None, imu: dict | None = None) -> dict[str, float]:
     """One flight of the thesis arena's `session` through the pipeline: errors, bound, stall (see the module).
 
-    settings: fusion settings for the pipeline; overrides: `--set` style changes of the arena file."""
+    settings: fusion settings for the pipeline; overrides: `--set` style changes of the arena file; imu:
+    the fake autopilot's IMU (IMU_FAKE) fed to the pipeline as each sample arrives (fusion.imu on)."""
     from visionpos.benchmarks.fusion_replay import replay
     from visionpos.sim import load_scenario, simulate
 
@@ -174,7 +236,20 @@ def fly(session: str, duration_s: float, seed: int, settings: dict | None = None
                                   (tick_ns - st.capture_ns) * 1e-9)
             sent.append((tick_ns, st.capture_ns, p, q))
 
-    rep = replay(sc.arena, sim.frames, settings, raw_cb=watch, tick_cb=at_capture)
+    feed, age_ns = None, []
+    if imu is not None:
+        settings = {**(settings or {}), "imu": {"enabled": True, **imu.get("fusion", {})}}
+        feed, newest_sample_ns, bias = imu_feeder(sc, name, seed, imu)
+
+    def at_tick(tick_ns, states):  # the newest information in the output: frame capture or IMU sample
+        at_capture(tick_ns, states)
+        if states[0].tracked:
+            newest = states[0].capture_ns
+            if imu is not None:
+                newest = max(newest, newest_sample_ns())
+            age_ns.append((tick_ns, tick_ns - newest))
+
+    rep = replay(sc.arena, sim.frames, settings, raw_cb=watch, tick_cb=at_tick, feed_cb=feed)
     t = rep.times_ns
     judged_from_ns = sc.start_ns + int(SKIP_S * 1e9)
     keep = t >= judged_from_ns
@@ -188,7 +263,17 @@ def fly(session: str, duration_s: float, seed: int, settings: dict | None = None
     grid = np.arange(judged_from_ns, int(t[-1]), 250_000, dtype=np.int64)
     seen = seeing_cameras(sim.frames, sim.frame_truth, 0, grid) >= 2
     stall_ns = longest_stall_ns(np.asarray(accepted, np.int64), seen, grid)
-    return {
+    ages = np.array([a for tk, a in age_ns if tk >= judged_from_ns], float)
+    out = {}
+    if imu is not None:
+        est = rep.pipeline.imu.bodies[0]
+        out = {"accel_bias_err_m_s2": float(np.linalg.norm(est.accel_bias - bias["accel"])),
+               "accel_bias_m_s2": float(np.linalg.norm(bias["accel"])),
+               "gyro_bias_err_rad_s": float(np.linalg.norm(est.gyro_bias - bias["gyro"])),
+               "gyro_bias_rad_s": float(np.linalg.norm(bias["gyro"])),
+               "imu_refused": float(est.stats["refused"]), "imu_dropped": float(est.dropped)}
+    return out | {
+        "newest_age_ms": float(ages.mean() / 1e6) if len(ages) else float("nan"),
         "pos_rmse_mm": float(np.sqrt((dp**2).mean()) * 1e3),
         "rot_rmse_deg": float(np.degrees(np.sqrt((dr**2).mean()))),
         "max_err_mm": float(dp.max() * 1e3),
@@ -204,9 +289,11 @@ def fly(session: str, duration_s: float, seed: int, settings: dict | None = None
     }
 
 
-def _flights(session: str, dur: float, seeds: list[int], settings: dict | None = None) -> dict[str, float]:
-    """fly() over seeds, combined: RMSEs and bounds as root mean squares, the worst max error, stall and tracking."""
-    runs = [fly(session, dur, s, copy.deepcopy(settings)) for s in seeds]
+def _flights(session: str, dur: float, seeds: list[int], settings: dict | None = None,
+             imu: dict | None = None) -> dict[str, float]:
+    """fly() over seeds, combined: RMSEs and bounds as root mean squares, the worst max error, stall and tracking
+    (and with imu: the mean age of the newest information, the worst bias errors, the samples refused)."""
+    runs = [fly(session, dur, s, copy.deepcopy(settings), imu=imu) for s in seeds]
 
     def rms(key):
         return float(np.sqrt(np.mean([r[key] ** 2 for r in runs])))
@@ -223,7 +310,13 @@ def _flights(session: str, dur: float, seeds: list[int], settings: dict | None =
         "max_gap_periods": max(r["max_gap_periods"] for r in runs),
         "tracked_fraction": min(r["tracked_fraction"] for r in runs),
         "gated": sum(r["gated"] for r in runs),
+        "newest_age_ms": float(np.mean([r["newest_age_ms"] for r in runs])),
     }
+    if imu is not None:
+        for k in ("accel_bias_err_m_s2", "accel_bias_m_s2", "gyro_bias_err_rad_s", "gyro_bias_rad_s"):
+            m[k] = max(r[k] for r in runs)
+        m["imu_refused"] = sum(r["imu_refused"] for r in runs)
+        m["imu_dropped"] = max(r["imu_dropped"] for r in runs)
     m["pos_over_crb"] = m["pos_rmse_mm"] / m["crb_pos_mm"]
     m["rot_over_crb"] = m["rot_rmse_deg"] / m["crb_rot_deg"]
     m["tick_pos_over_crb"] = m["tick_pos_rmse_mm"] / m["crb_pos_mm"]
@@ -285,8 +378,9 @@ def run(quick: bool, res: BenchResult) -> None:
         "| longest stall (frame periods) | gated | tracked |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    optical = {}
     for session, what in FLIGHTS:
-        m = _flights(session, dur, seeds)
+        m = optical[session] = _flights(session, dur, seeds)
         for k, v in m.items():
             res.metrics[f"fusion_flights_{session}_{k}"] = v
         tbl.append(
@@ -308,4 +402,51 @@ def run(quick: bool, res: BenchResult) -> None:
     res.tables[
         f"Fusion: realistic flights (thesis arena, 4 cameras at 100 Hz; {len(seeds)} seed(s) x {dur:.0f} s each, "
         f"outputs at 100 Hz vs truth, first {SKIP_S} s not judged)"
+    ] = "\n".join(tbl)
+    run_imu(quick, res, optical)
+
+
+def run_imu(quick: bool, res: BenchResult, optical: dict[str, dict[str, float]]) -> None:
+    """The flights with the fake autopilot's IMU in the prediction (fusion.imu, IMU_FAKE at 250 Hz and at the
+    bridge's default telemetry_rate_hz, 50 Hz) against without (`optical`: run's metrics per session), and the
+    static body's jitter with it: metrics fusion_imu_*."""
+    from visionpos.benchmarks.fusion_replay import static_flight
+
+    dur = 4.0 if quick else 10.0
+    seeds = [1] if quick else [1, 2]
+    tbl = [
+        "| flight | IMU | position / rotation RMSE / bound | at the output ticks | max error (mm), at the ticks "
+        "| newest information at the ticks (ms) | accelerometer bias error / drawn (m/s^2) | gyro bias error / "
+        "drawn (rad/s) | samples refused |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+
+    def row(session, label, m, bias):
+        tbl.append(f"| {session} | {label} | {m['pos_over_crb']:.2f} / {m['rot_over_crb']:.2f} | "
+                   f"{m['tick_pos_over_crb']:.2f} / {m['tick_rot_over_crb']:.2f} | {m['max_err_mm']:.2f}, "
+                   f"{m['tick_max_err_mm']:.2f} | {m['newest_age_ms']:.1f} | {bias} |")
+
+    for session, _ in FLIGHTS:
+        row(session, "none", optical[session], "- | - | -")
+        for rate in (IMU_FAKE["rate_hz"], 50.0):
+            m = _flights(session, dur, seeds, imu={**IMU_FAKE, "rate_hz": rate})
+            for k, v in m.items():
+                res.metrics[f"fusion_imu_{session}_{rate:.0f}hz_{k}"] = v
+            row(session, f"{rate:.0f} Hz", m, f"{m['accel_bias_err_m_s2']:.3f} / {m['accel_bias_m_s2']:.3f} | "
+                f"{m['gyro_bias_err_rad_s']:.4f} / {m['gyro_bias_rad_s']:.4f} | {m['imu_refused']:.0f}")
+    raw_jit, out_jit = static_imu_jitter(static_flight(quick), IMU_FAKE)
+    res.metrics["fusion_imu_static_jitter_filtered_over_raw"] = out_jit / raw_jit
+    tbl += [
+        "",
+        f"The fake autopilot's IMU (bridge/fake_autopilot.py imu_reading): accelerometer noise "
+        f"{IMU_FAKE['accel_noise_m_s2']} m/s^2 per sample and bias drawn with std {IMU_FAKE['accel_bias_m_s2']} "
+        f"m/s^2 per axis, gyro noise {IMU_FAKE['gyro_noise_rad_s']} rad/s and bias std {IMU_FAKE['gyro_bias_rad_s']} "
+        f"rad/s, each sample arriving {IMU_FAKE['delay_ms']:.0f} ms after its time (delay-corrected). Bias error: the "
+        "estimate at the flight's end against the drawn bias (the worst seed). Newest information: the tick less "
+        "the newest frame's capture or IMU sample in its output, mean. The static body with the IMU at "
+        f"{IMU_FAKE['rate_hz']:.0f} Hz: output jitter / raw {out_jit / raw_jit:.2f}.",
+    ]
+    res.tables[
+        f"Fusion: the vehicle's IMU in the prediction (fusion.imu; thesis arena, {len(seeds)} seed(s) x {dur:.0f} s "
+        "each; position and rotation as RMSE / bound)"
     ] = "\n".join(tbl)

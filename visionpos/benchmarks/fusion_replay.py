@@ -43,6 +43,7 @@ def replay(
     raw_cb=None,
     monitor=None,
     tick_cb=None,
+    feed_cb=None,
 ) -> Replay:
     """Feed frames to a new pipeline in arrival order and tick it at tick_hz on the receive clock.
 
@@ -50,7 +51,8 @@ def replay(
     every frame received before it; states are predicted to the tick time.
     raw_cb(pipeline) is called after every push (for raw-pose collection). monitor: a
     fusion.camera_monitor.CameraMonitor fed as the server feeds it (its corrections applied).
-    tick_cb(tick_ns, states) is called after every tick with its BodyStates.
+    tick_cb(tick_ns, states) is called after every tick with its BodyStates. feed_cb(pipeline, t_ns) is called
+    before every push (t_ns: the frame's arrival) and every tick: other inputs that arrived by t_ns (IMU samples).
     """
     pipe = FusionPipeline(arena, settings)
     if order == "recv":
@@ -72,6 +74,8 @@ def replay(
     i = 0
     for k, tk in enumerate(ticks):
         while i < len(fr) and key[i] <= tk:
+            if feed_cb is not None:
+                feed_cb(pipe, key[i])
             if monitor is None or monitor.admits(fr[i].camera_id):  # a knocked camera left out until it agrees
                 pipe.push(fr[i])
             if raw_cb is not None:
@@ -79,6 +83,8 @@ def replay(
             if monitor is not None:
                 monitor.observe_frame(fr[i])
             i += 1
+        if feed_cb is not None:
+            feed_cb(pipe, int(tk))
         states = pipe.tick(int(tk))
         if tick_cb is not None:
             tick_cb(int(tk), states)

@@ -75,6 +75,7 @@ from visionpos.camera.model import Camera
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.fusion.body_filter import FilterBank
 from visionpos.fusion.identity import IdentityBook
+from visionpos.fusion.imu import ImuInputs
 from visionpos.fusion.kernels import _finite_rows, _fuse_tracked, _observe_frame, _tracked_motion
 from visionpos.fusion.layout import (
     MEAS_POS,
@@ -199,6 +200,9 @@ class FusionPipeline:
         self._track_rows_arg = tuple(self._track_rows)  # the kernels take argument groups as plain tuples
         self.tracks = [Track(fl, self._track_ints[b], self._track_floats[b]) for b, fl in enumerate(self.bank.filters)]
         self._motion: tuple[int, np.ndarray] | None = None  # see _motion_cache
+        # the vehicles' IMU samples (push_imu) in the prediction, when fusion.imu.enabled (fusion/imu.py)
+        self.imu = ImuInputs(st.imu, [m.name for m in self.models], st.kalman) if st.imu.enabled else None
+        self._imu_sources: list = []
         self._tracking_changed()
         self.loose_points: LoosePoints | None = None
         self._last_acquire_ns = -(1 << 62)
@@ -242,6 +246,8 @@ class FusionPipeline:
     # ------------------------------------------------------------------ input
     def push(self, frame: BlobFrame) -> None:
         """Take one camera frame (arrival order) and do the fusion work it enables."""
+        if self._imu_sources and self.imu is not None:
+            self._drain_imu()
         self._stats["frames"] += 1
         cam = int(frame.camera_id)
         if cam not in self.cameras:
@@ -267,6 +273,23 @@ class FusionPipeline:
         self.obs[cam] = self._observe(cam, t, px)
         for g in after:
             self._fuse(g)
+
+    def push_imu(self, body: str, t_ns: int, accel_body: np.ndarray, gyro_body: np.ndarray,
+                 lever_arm_m: np.ndarray | None = None) -> bool:
+        """One IMU sample of the vehicle bound to `body` (fusion/imu.py): t_ns on the capture clock, specific
+        force (3,) m/s^2 and rate (3,) rad/s in the body's frame, from an IMU lever_arm_m (3,) from the body's
+        origin (None: at it). False (nothing changes) when fusion.imu is off, the body unknown or the sample
+        refused (ImuInput.push)."""
+        return self.imu is not None and self.imu.push(body, t_ns, accel_body, gyro_body, lever_arm_m)
+
+    def add_imu_source(self, drain) -> None:
+        """drain(push_imu) is called before every frame and tick, on the pipeline's thread: it hands over the
+        IMU samples that arrived (bridge/imu_feed.py). Nothing is drained while fusion.imu is off."""
+        self._imu_sources.append(drain)
+
+    def _drain_imu(self) -> None:
+        for drain in self._imu_sources:
+            drain(self.push_imu)
 
     def remove_camera(self, camera_id: int) -> None:
         """A station vanished: stop using and waiting for its frames."""
@@ -341,7 +364,12 @@ class FusionPipeline:
         self._stats["fusions"] += 1
         views = self._views(cams)
         if self._tracked:
+            imu = self.imu if self.imu is not None and self.imu.live else None
+            if imu is not None:
+                imu.before_fusion(self._tracked, self.bank.filters, ref)
             self._update_tracked(views, ref, g.compensate)
+            if imu is not None:
+                imu.after_fusion(self._tracked, self.last_raw, ref)
         # acquisition is for lost bodies; with all tracked it only refreshes the loose points
         lost = len(self._tracked) < len(self.tracks)
         interval = st.acquire_interval_ns if lost else st.loose_points_interval_ns
@@ -481,6 +509,8 @@ class FusionPipeline:
         or late. Otherwise the filters do not change. A body not updated within max_prediction (or lost) is
         reported with tracked=False and NaN pose: a stale pose is never re-sent.
         """
+        if self._imu_sources and self.imu is not None:
+            self._drain_imu()
         pending = self.aligner.take_deferred()
         if pending is not None:
             self._stats["fused_at_tick"] += 1
@@ -495,7 +525,8 @@ class FusionPipeline:
             row = self._track_ints[b].tolist()  # Python ints, read once
             age = now_ns - row[TRACK_LAST_UPDATE_NS]
             if row[TRACK_TRACKED] and age <= max_prediction_ns and age <= lost_ns:
-                p, q, v, w_body, cov, vcov = tr.filter.output_at(now_ns)
+                p, q, v, w_body, cov, vcov = (tr.filter.output_at(now_ns) if self.imu is None or not self.imu.live
+                                              else self.imu.output_at(b, tr.filter, now_ns))
                 out.append(
                     BodyState(
                         name=model.name,
@@ -566,4 +597,7 @@ class FusionPipeline:
             for b, (m, tr) in enumerate(zip(self.models, self.tracks))
         }
         d["time_alignment"] = self.settings.time_alignment
+        if self.imu is not None:  # per body: samples pushed, used, refused, late, invalid; dropped; bias fits
+            d["imu"] = {m.name: {**i.stats, "dropped": i.dropped, "bias_fits": i.bias_fits}
+                        for m, i in zip(self.models, self.imu.bodies)}
         return d

@@ -95,6 +95,39 @@ SINGLE_VIEW = section(
             "measured one comes from the triangulation residuals)", min=1e-4),
 )
 
+IMU = section(
+    "fusion.imu",
+    "The vehicle's IMU in the prediction (fusion/imu.py): where the bridge feeds a body the accelerations and "
+    "rates of the autopilot it is bound to (bridge/imu_feed.py), each sample, delay-corrected onto the capture "
+    "clock, is a measurement of the filter's acceleration and angular rate between camera frames and up to the "
+    "output ticks; its biases are estimated against the optical track. Without samples (none fed, the stream "
+    "stopped, or refused) the filter is the optical one.",
+    Setting("enabled", "boolean", False, "use the IMU samples fed to a body (FusionPipeline.push_imu); off: "
+            "they are ignored"),
+    Setting("accel_noise_m_s2", "number", 0.05, "std of one accelerometer sample per axis (m/s^2)", min=1e-6),
+    Setting("gyro_noise_rad_s", "number", 0.003, "std of one gyro sample per axis (rad/s)", min=1e-7),
+    Setting("jerk_psd", "number", 100.0, "white-jerk density between IMU samples (m^2/s^5): the acceleration "
+            "may change this much from one sample to the next (the optical model's floor is far lower)", min=1e-6),
+    Setting("angular_accel_psd", "number", 3.0, "white angular-acceleration density between IMU samples "
+            "(rad^2/s^3)", min=1e-6),
+    Setting("gate_chi2", "number", 60.0, "a sample whose innovation against the filter's acceleration and rate "
+            "exceeds this (Mahalanobis^2, 6 dof) is refused", min=1.0),
+    Setting("max_refused", "integer", 20, "this many refused samples in a row: the body's IMU input is dropped "
+            "(said once) and the filter goes on optical only", min=1),
+    Setting("max_age_ms", "number", 20.0, "an IMU stream with no sample this long is stopped: the outputs "
+            "predict with the optical model again", field="max_age_ns", convert=ms_to_ns, min=1.0),
+    Setting("bias_window_ms", "number", 1000.0, "the biases are fitted over windows this long: the optical "
+            "positions and rotations against the IMU integrated over the window", field="bias_window_ns",
+            convert=ms_to_ns, min=100.0),
+    Setting("max_fit_residual_mm", "number", 5.0, "the optical positions of a bias window further than this (RMS) "
+            "from the IMU integrated over it: the IMU is not this body's or not sane (stuck, another vehicle's, a "
+            "clock that jumped); the body's IMU input is dropped (said once)", min=0.1),
+    Setting("max_fit_residual_deg", "number", 2.0, "likewise for the optical rotations against the integrated "
+            "gyro", min=0.01),
+    Setting("max_accel_bias_m_s2", "number", 1.0, "a fitted accelerometer bias above this is not an IMU's "
+            "bias: the body's IMU input is dropped (said once)", min=0.01),
+)
+
 FUSION = section(
     "fusion",
     "Fusion (pipeline.py): which camera frames are fused together, association, triangulation, "
@@ -130,6 +163,7 @@ FUSION = section(
             "body is tracked", field="loose_points_interval_ns", convert=ms_to_ns, min=0.0),
     Setting("kalman", "section", {}, "the body filter", spec=KALMAN),
     Setting("single_view", "section", {}, "single-camera updates through occlusion", spec=SINGLE_VIEW),
+    Setting("imu", "section", {}, "the vehicle's IMU in the prediction", spec=IMU),
     removed=REMOVED,
 )
 
@@ -151,11 +185,14 @@ KalmanSettings = settings_dataclass(
 SingleViewSettings = settings_dataclass(
     "SingleViewSettings", SINGLE_VIEW, "The single-view path (`fusion.single_view` in the YAML; SI units).",
     __name__)
+ImuSettings = settings_dataclass(
+    "ImuSettings", IMU, "The IMU in the prediction (`fusion.imu` in the YAML; SI units).", __name__)
 FusionSettings = settings_dataclass(
     "FusionSettings", FUSION, "Validated `fusion:` section (SI units). window_ns and grid_ns are 0 until "
     "derived from the cameras; auto_window: window_ms was 0, so the window follows the cameras' measured "
     "frame intervals (timealign.py) and window_ns is only its starting value.", __name__,
-    nested={"kalman": KalmanSettings, "single_view": SingleViewSettings}, extra=(("auto_window", bool, True),))
+    nested={"kalman": KalmanSettings, "single_view": SingleViewSettings, "imu": ImuSettings},
+    extra=(("auto_window", bool, True),))
 
 
 class Param(NamedTuple):
@@ -237,7 +274,7 @@ def parse_fusion(arena: ArenaConfig, settings: dict[str, Any] | None = None) -> 
     derived = {"window_ms": 1.2e3 / min(fps), "naive_grid_hz": max(fps)}
     auto_window = FUSION["window_ms"].read(s) == 0
     return FusionSettings(**FUSION.parse(s, derived), auto_window=auto_window, kalman=KalmanSettings(**kalman),
-                          single_view=SingleViewSettings(**single_view))
+                          single_view=SingleViewSettings(**single_view), imu=ImuSettings(**IMU.parse(s.sub("imu"))))
 
 
 register_section("fusion", FUSION, parse_fusion)

@@ -103,6 +103,8 @@ class FusionServer:
         self.sinks: list[Sink] = self.outputs + ([_RecorderSink(recorder)] if recorder is not None else [])
         for s in self.outputs:  # which body is which, where bodies share a layout (the bridge binds them)
             s.use_identity(getattr(pipeline, "identity", None))
+            for drain in s.imu_sources() if hasattr(pipeline, "add_imu_source") else ():  # the vehicles' IMU
+                pipeline.add_imu_source(drain)
         self.host = self.settings.bind if host is None else host
         self._port_req = self.settings.port if port is None else int(port)
         self.clock = clock

@@ -52,6 +52,10 @@ class Sink:
     def use_identity(self, book: Any) -> None:
         """The pipeline's IdentityBook (fusion/identity.py), once, before any publish: read it on the loop."""
 
+    def imu_sources(self) -> list[Any]:
+        """Callables drain(push_imu) that hand the pipeline IMU samples (FusionPipeline.add_imu_source)."""
+        return []
+
     def publish(self, states: list[BodyState]) -> None:
         """The tick's states, one per configured body (never blocks)."""
 

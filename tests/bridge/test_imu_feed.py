@@ -1,0 +1,105 @@
+"""bridge/imu_feed.py: the autopilot's IMU messages as the fusion's samples (its clock, its body frame, SI units),
+and the mailbox that hands them to the pipeline. Expected values are written out from the MAVLink units."""
+
+import time
+
+import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+from bridge.imu_feed import ImuFeed, imu_sample, to_fusion
+
+MAV = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+
+
+def _decoded(msg):
+    return MAV.decode(bytearray(msg.pack(MAV)))
+
+
+HIGHRES = _decoded(MAV.highres_imu_encode(2_000_000, 0.5, -0.25, -9.75, 0.01, -0.02, 0.03, 0, 0, 0, 1013, 0, 0, 20,
+                                          0x3F))
+RAW = _decoded(MAV.raw_imu_encode(3_000_000, 100, -50, -1000, 10, -20, 30, 0, 0, 0))
+SCALED = _decoded(MAV.scaled_imu_encode(4000, 100, -50, -1000, 10, -20, 30, 0, 0, 0))
+
+
+def test_each_imu_message_reads_in_si_units_on_the_autopilot_clock():
+    t, a, w = imu_sample(HIGHRES, "px4")
+    assert t == 2_000_000_000
+    np.testing.assert_allclose(a, [0.5, -0.25, -9.75], rtol=1e-6)
+    np.testing.assert_allclose(w, [0.01, -0.02, 0.03], rtol=1e-6)
+    t, a, w = imu_sample(RAW, "ardupilot")  # ArduPilot's mG and mrad/s
+    assert t == 3_000_000_000
+    np.testing.assert_allclose(a, [0.980665, -0.4903325, -9.80665])
+    np.testing.assert_allclose(w, [0.01, -0.02, 0.03])
+    t, _, w = imu_sample(SCALED, "px4")
+    assert t == 4_000_000_000
+    np.testing.assert_allclose(w, [0.01, -0.02, 0.03])
+    assert imu_sample(RAW, "px4") is None  # another autopilot's raw sensor units: unknown
+
+
+def test_to_fusion_moves_the_sample_onto_the_capture_clock_and_into_the_body_frame():
+    t, a, w = to_fusion(5_000_000_000, np.array([1.0, 2.0, -9.8]), np.array([0.1, 0.2, 0.3]), 1_250_000.0)
+    assert t == 4_998_750_000
+    np.testing.assert_allclose(a, [1.0, -2.0, 9.8])  # FRD -> FLU: at rest the body reads +g up
+    np.testing.assert_allclose(w, [0.1, -0.2, -0.3])
+
+
+class _Bc:
+    autopilot = "ardupilot"
+    clock_lag_ns: float | None = None
+    filter_lag: float | None = 11_300_000.0
+
+    def gyro_lag_ns(self):
+        return self.filter_lag
+
+
+def test_the_feed_waits_for_the_clocks_then_hands_over_the_samples_with_the_filter_lag_taken_off():
+    feed, bc = ImuFeed(), _Bc()
+    assert not feed.offer(RAW, bc) and feed.unmapped == 1  # the vehicle's clock not measured yet
+    bc.clock_lag_ns = 1_000_000.0
+    assert feed.offer(RAW, bc)
+    assert not feed.offer(_decoded(MAV.heartbeat_encode(2, 3, 0, 0, 0)), bc)  # not an IMU message
+    got = []
+    assert feed.drain(lambda *s: got.append(s) or True, "quad", np.zeros(3)) == 1
+    body, t, a, w, arm = got[0]
+    assert body == "quad" and t == 3_000_000_000 - 1_000_000 - 11_300_000
+    np.testing.assert_allclose(a, [0.980665, 0.4903325, 9.80665])
+    assert not feed.queue
+    feed.offer(RAW, bc)
+    assert feed.drain(lambda *s: True, None, np.zeros(3)) == 0 and not feed.queue  # bound to no body: dropped
+
+
+def test_a_fake_autopilots_imu_reaches_the_pipelines_push_live():
+    """The whole way over loopback: the fake autopilot's RAW_IMU (its truth plus a drawn accelerometer bias), the
+    back-channel, the feed, the bridge's drain into push_imu: times on the server clock, FLU, SI units."""
+    from bridge import Bridge
+    from bridge.fake_autopilot import FakeAutopilot, imu_from_truth, trajectory_truth
+    from bridge.imu_feed import FRD_TO_FLU
+    from visionpos.benchmarks.factories import arena_with_vehicles
+    from visionpos.sim import trajectories as T
+
+    t0 = time.monotonic_ns()
+    truth = trajectory_truth(T.Aggressive(np.array([0.0, 0.0, 1.5])), t0)
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=1, truth=truth, boot_ns=t0, accel_bias_m_s2=0.2, seed=4).start()
+    bridge = Bridge(arena_with_vehicles([{"sysid": 1, "body": "body1", "endpoint": f"udpout:127.0.0.1:{ap.port}",
+                                          "telemetry_rate_hz": 200.0}]), {"report_interval_s": 0})
+    (drain,) = bridge.imu_sources()
+    bridge.start()
+    got = []
+    try:
+        bc = bridge.vehicles[0].bc
+        bc.clock_lag_ns = float(-t0)  # as measured: its boot clock is the server's less t0 (exact here)
+        end = time.monotonic() + 5.0
+        while len(got) < 200 and time.monotonic() < end:
+            time.sleep(0.05)
+            drain(lambda *s: got.append(s) or True)
+    finally:
+        bridge.close()
+        ap.close()
+    assert len(got) >= 200, f"{len(got)} samples"
+    assert {s[0] for s in got} == {"body1"}
+    t = np.array([s[1] for s in got], np.int64)
+    gyro_frd, acc_frd = imu_from_truth(truth(t))
+    acc = np.array([s[2] for s in got])
+    # RAW_IMU carries whole mG: resolution 0.01 m/s^2, noise 0.02 m/s^2; the mean offset is the drawn bias
+    np.testing.assert_allclose((acc - acc_frd * FRD_TO_FLU).mean(0), ap.accel_bias * FRD_TO_FLU, atol=0.01)
+    np.testing.assert_allclose(np.array([s[3] for s in got]), gyro_frd * FRD_TO_FLU, atol=0.05)
