@@ -107,6 +107,7 @@ class Client:
         self.queue: asyncio.Queue[str] = asyncio.Queue(QUEUE_UPDATES)
         self.sent = 0
         self.dropped = 0
+        self.dropped_at_calib = 0  # its `dropped` when it was last offered the calibration state
         self.rays: int | None = None  # the camera whose blob rays this tab draws
         self.views = True  # it shows the camera views (a hidden tab says no: none are built for it)
 
@@ -116,6 +117,13 @@ class Client:
             self.queue.get_nowait()
             self.dropped += 1
         self.queue.put_nowait(text)
+
+
+def _offer_calib(client: Client, text: str) -> None:
+    """The calibration state to one tab, remembering its drops so far (the health tick offers it again only to
+    a tab that dropped something since)."""
+    client.offer(text)
+    client.dropped_at_calib = client.dropped
 
 
 class ConsoleServer:
@@ -150,7 +158,7 @@ class ConsoleServer:
         self.clients: set[Client] = set()
         self.rlog = RateLimitedLog(log)
         self.counters = {"updates": 0, "refused_host": 0, "refused_token": 0, "refused_origin": 0, "refused_full": 0,
-                         "bad_messages": 0, "send_errors": 0, "update_errors": 0}
+                         "bad_messages": 0, "send_errors": 0, "update_errors": 0, "dropped_by_gone": 0}
         self.cpu_ns = 0  # CPU time of the update task's work and of the sends (the loop's thread), for the bench
         self.port: int | None = None
         self._scene_text = json.dumps(self.view.scene)
@@ -219,7 +227,8 @@ class ConsoleServer:
 
     def stats(self) -> dict[str, Any]:
         return {**self.counters, "clients": len(self.clients),
-                "dropped": sum(c.dropped for c in self.clients), "log_suppressed": self.rlog.suppressed}
+                "dropped": self.counters["dropped_by_gone"] + sum(c.dropped for c in self.clients),
+                "log_suppressed": self.rlog.suppressed}
 
     # ---------------------------------------------------------------- access
 
@@ -357,7 +366,7 @@ class ConsoleServer:
             await ws.send_str(self._scene_text)
             client.offer(json.dumps({"type": "health", "health": self.health()}))
             if self.calibration is not None:
-                client.offer(self._calib_text())
+                _offer_calib(client, self._calib_text())
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
                     await self._command(client, msg.data)
@@ -372,6 +381,7 @@ class ConsoleServer:
             pass
         finally:
             self.clients.discard(client)
+            self.counters["dropped_by_gone"] += client.dropped
             sender.cancel()
             self._senders.discard(sender)
         return ws
@@ -538,6 +548,21 @@ class ConsoleServer:
         for c in self.clients:
             c.offer(text if c.views else plain)
 
+    def publish_health(self) -> None:
+        """The health (once a second) to every tab, and the calibration state again to a tab whose queue dropped
+        something since it was last offered (only there: a third message would push out a state update)."""
+        h = self.health()
+        if not self.clients:
+            return
+        text = _encode({"type": "health", "health": h})
+        for c in self.clients:
+            c.offer(text)
+        if self.calibration is not None:
+            text = self._calib_text()
+            for c in self.clients:
+                if c.dropped != c.dropped_at_calib:
+                    _offer_calib(c, text)
+
     def _calib_text(self) -> str:
         self._calib_version = self.calibration.version
         return json.dumps({"type": "calib", "calib": self.calibration.state()})
@@ -563,20 +588,12 @@ class ConsoleServer:
                     if self.calibration is not None and self.calibration.version != self._calib_version:
                         text = self._calib_text()
                         for c in self.clients:
-                            c.offer(text)
+                            _offer_calib(c, text)
                 elif watch:
                     self.view.state(self.clock(), watch=True, cameras=False)
                 if now_s >= next_health:  # also without clients: the rates of /api/health need samples
                     next_health = now_s + HEALTH_PERIOD_S
-                    h = self.health()
-                    if self.clients:
-                        text = _encode({"type": "health", "health": h})
-                        for c in self.clients:
-                            c.offer(text)
-                        if self.calibration is not None:  # again: an update queue may have dropped the last one
-                            text = self._calib_text()
-                            for c in self.clients:
-                                c.offer(text)
+                    self.publish_health()
             except Exception:
                 self.counters["update_errors"] += 1
                 if self.counters["update_errors"] in (1, 100, 10_000):

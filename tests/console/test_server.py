@@ -354,3 +354,40 @@ def test_a_hidden_tab_gets_no_camera_views_and_none_are_built_for_it(arena):
     # 20 updates at 50/s: the views of every second one for a visible tab, only the watch's (2/s) for none
     assert out["built_hidden"] <= 3 and out["shown"] >= 9 and out["built_shown"] >= 9
     assert out["hidden_beside"] == 0
+
+
+def test_the_health_tick_with_a_calibration_panel_never_pushes_out_a_state_update(arena):
+    """A queue of QUEUE_UPDATES: the state update, then the health; the calibration state is offered again only to
+    a tab whose queue dropped something since (a third message would drop the state: 30 of 31 updates/s)."""
+    async def stop():
+        pass
+
+    calib = SimpleNamespace(version=1, state=lambda: {"counts": {}}, start=lambda: None, stop=stop)
+
+    async def main():
+        settings = ConsoleSettings(port=0, update_rate_hz=50.0).with_token()
+        source = FakeSource(arena)
+        console = ConsoleServer(settings, source, clock=source.clock, calibration=calib)
+        await console.start()
+        client = Client(None, "test")
+        console.clients.add(client)
+        got = []
+        try:
+            for slow in (False, True):
+                if slow:  # a tab that fell behind: its queue dropped an update since its calibration state
+                    for _ in range(QUEUE_UPDATES + 1):
+                        console.publish_once()
+                    while not client.queue.empty():
+                        client.queue.get_nowait()
+                console.publish_once()
+                console.publish_health()
+                got.append([json.loads(client.queue.get_nowait())["type"] for _ in range(client.queue.qsize())])
+        finally:
+            console.clients.discard(client)
+            await console.stop()
+        return got, client.dropped
+
+    (fresh, behind), dropped = run(main())
+    assert QUEUE_UPDATES == 2
+    assert fresh == ["state", "health"]  # nothing dropped: the state kept
+    assert dropped >= 1 and behind[-1] == "calib"  # the one that dropped gets it again
