@@ -1,0 +1,58 @@
+"""The accelerometer's identity signal (visionpos/analysis/autopilot.py): an optical track's specific force
+against an IMU's. Expected values are worked by hand from the set-up."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from visionpos.analysis.autopilot import accel_residuals, gaussian_kernel, lowpass, optical_specific_force
+
+G = 9.80665
+DT = 0.02
+
+
+def test_a_level_climb_reads_gravity_plus_its_acceleration_down():
+    t = np.arange(60) * DT
+    p = np.zeros((60, 3))
+    p[:, 2] = 0.5 * 2.0 * t**2  # 2 m/s^2 up
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (60, 1))
+    k = gaussian_kernel(0.05, DT)
+    f, mag = optical_specific_force(p, q, DT, k)
+    half = len(k) // 2
+    inner = slice(half + 1, 60 - half - 1)
+    assert f[inner] == pytest.approx(np.tile([0.0, 0.0, -(G + 2.0)], (60 - 2 * half - 2, 1)), abs=1e-9)
+    assert mag[inner] == pytest.approx(2.0, abs=1e-9)
+    assert np.isnan(f[: half + 1]).all() and np.isnan(f[-half - 1:]).all()  # the low-pass needs both sides
+
+
+def test_a_rolled_body_at_rest_reads_gravity_in_its_own_axes():
+    q = np.tile(Rotation.from_euler("x", 30, degrees=True).as_quat(), (40, 1))  # rolled 30 deg, FLU
+    f, _ = optical_specific_force(np.ones((40, 3)), q, DT, gaussian_kernel(0.05, DT))
+    # FLU: R^T (0, 0, g) = (0, g sin 30, g cos 30); FRD flips y and z
+    assert f[20] == pytest.approx([0.0, -G * 0.5, -G * math.cos(math.radians(30))], abs=1e-9)
+
+
+def test_the_low_pass_keeps_slow_motion_and_has_no_lag():
+    k = gaussian_kernel(0.05, DT)
+    assert k.sum() == pytest.approx(1.0) and k == pytest.approx(k[::-1])
+    t = np.arange(200) * DT
+    x = np.sin(2 * np.pi * 1.0 * t)[:, None]
+    y = lowpass(x, k)
+    mid = slice(50, 150)
+    gain = np.exp(-2 * np.pi**2 * 0.05**2 * 1.0**2)  # a Gaussian's response at 1 Hz
+    assert y[mid, 0] == pytest.approx(gain * x[mid, 0], abs=2e-3)
+    x[100] = np.nan  # a missing sample spoils every output whose kernel covers it
+    assert np.isnan(lowpass(x, k)[100 - len(k) // 2: 100 + len(k) // 2 + 1]).all()
+
+
+def test_the_accelerometer_bias_is_differenced_out():
+    f_opt = np.array([[0.0, 0.0, -G], [1.0, 0.0, -G], [0.0, 0.0, -G - 1.0]])
+    bias = np.array([0.3, -0.2, 0.1])
+    assert accel_residuals(f_opt + bias, f_opt, np.zeros(3), 0.3, 0.1) == pytest.approx(np.zeros((3, 3)))
+    # a residual of 0.6 m/s^2 on x at the second instant: mean 0.2 taken away; sigma 0.3 + 0.1 * 1 m/s^2
+    f_ap = f_opt.copy()
+    f_ap[1, 0] += 0.6
+    r = accel_residuals(f_ap, f_opt, np.array([0.0, 1.0, 1.0]), 0.3, 0.1)
+    assert r[:, 0] == pytest.approx([-0.2 / 0.3, 0.4 / 0.4, -0.2 / 0.4])
