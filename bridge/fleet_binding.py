@@ -8,7 +8,7 @@ clock) with each optical body's, on one grid of shared instants (the same instan
 sums the squared normalised residuals of each pair (visionpos.analysis.autopilot.identity_residuals: the
 per-vehicle identity check's noise model), adds the accelerometers' (accel_costs: the optical track's
 acceleration in the body with gravity, against the IMU's specific force from bridge/imu_samples.py, both
-low-passed alike, each pair's bias differenced out; a vertical climb has no attitude signal but a strong one
+low-passed alike, each pair's bias estimated; a vertical climb has no attitude signal but a strong one
 here, so drones that take off in turn are bound at their own take-off) where every vehicle of the group sends
 its IMU, and assigns bodies to vehicles (assign_identities: Hungarian, a chi-square reject cost per body, the
 margin each binding wins by). A body is bound when its margin is at least AMBIGUITY (2 ln 1000: odds of a
@@ -63,12 +63,13 @@ REJECT_P = 1e-3  # a true pair's cost exceeds the reject cost this rarely (chi-s
 STILL_RATE_RAD_S = 0.05  # a window whose optical rates all stay under this: no motion to tell vehicles apart
 RING = 256  # optical samples kept per body (at 100 Hz output: 2.5 s)
 SAY_DROP_NS = 1_000_000_000  # why a binding was dropped stays the vehicle's reason this long
-ACCEL_LOWPASS_S = 0.05  # the Gaussian low-pass of both accelerations (sigma): what the optical track resolves
+ACCEL_LOWPASS_S = 0.035  # the Gaussian low-pass of both accelerations (sigma): what the optical track resolves
 ACCEL_EVERY = 5  # accelerations compared every 5th shared instant (100 ms): the low-passed samples between are
 # not independent, and counting them would overstate the evidence
 ACCEL_NOISE_M_S2 = 0.3  # the low-passed optical acceleration's error at rest ...
 ACCEL_REL = 0.15  # ... plus this fraction of the body's acceleration (the filter's lag, the clocks' timing)
-ACCEL_MIN_INSTANTS = 3
+ACCEL_BIAS_M_S2 = 0.5  # the accelerometer bias an IMU may have (the prior's sigma: a calibrated one has less)
+ACCEL_MIN_INSTANTS = 2
 STILL_ACCEL_M_S2 = 0.3  # and whose low-passed accelerations all stay under this
 
 BOUND, UNRESOLVED, UNKNOWN, STOPPED = "bound", "unresolved", "unknown", "stopped"
@@ -125,7 +126,8 @@ def accel_costs(grid_ns: np.ndarray, optical: list[np.ndarray], imu: list[tuple[
     grid_ns (G,) uniform GRID_NS apart; optical: per body its ring (N, 12) (t ns, q xyzw FLU -> world, w, p m);
     imu: per vehicle (times (M,) ns server clock, (M, 3) specific force m/s^2 FRD). Both sides are sampled on
     the grid, low-passed alike (gaussian_kernel, ACCEL_LOWPASS_S), compared every ACCEL_EVERY instants where
-    every body and vehicle has a value (accel_residuals: each pair's accelerometer bias differenced out).
+    every body and vehicle has a value (accel_residuals: each pair's accelerometer bias estimated, with a prior of
+    ACCEL_BIAS_M_S2).
     """
     dt_s = GRID_NS * 1e-9
     kernel = gaussian_kernel(ACCEL_LOWPASS_S, dt_s)
@@ -145,9 +147,10 @@ def accel_costs(grid_ns: np.ndarray, optical: list[np.ndarray], imu: list[tuple[
     at = np.nonzero(known)[0][::-1][::ACCEL_EVERY][::-1]  # every ACCEL_EVERY-th, counted from the newest
     if len(at) < ACCEL_MIN_INSTANTS:
         return None
-    cost = np.array([[float(np.sum(accel_residuals(fa[at], fo[at], m[at], ACCEL_NOISE_M_S2, ACCEL_REL) ** 2))
-                      for fa in f_ap] for fo, m in zip(f_opt, mag)])
-    return cost, 3 * (len(at) - 1), float(max(np.max(m[at]) for m in mag))
+    cost = np.array([[float(np.sum(accel_residuals(fa[at], fo[at], m[at], ACCEL_NOISE_M_S2, ACCEL_REL,
+                                                   ACCEL_BIAS_M_S2) ** 2)) for fa in f_ap]
+                     for fo, m in zip(f_opt, mag)])
+    return cost, 3 * len(at), float(max(np.max(m[at]) for m in mag))
 
 
 @dataclass

@@ -47,12 +47,28 @@ def test_the_low_pass_keeps_slow_motion_and_has_no_lag():
     assert np.isnan(lowpass(x, k)[100 - len(k) // 2: 100 + len(k) // 2 + 1]).all()
 
 
-def test_the_accelerometer_bias_is_differenced_out():
+def test_the_accelerometer_bias_is_estimated():
     f_opt = np.array([[0.0, 0.0, -G], [1.0, 0.0, -G], [0.0, 0.0, -G - 1.0]])
     bias = np.array([0.3, -0.2, 0.1])
-    assert accel_residuals(f_opt + bias, f_opt, np.zeros(3), 0.3, 0.1) == pytest.approx(np.zeros((3, 3)))
-    # a residual of 0.6 m/s^2 on x at the second instant: mean 0.2 taken away; sigma 0.3 + 0.1 * 1 m/s^2
+    # without a prior the mean residual is the bias: all of it is taken away
+    r = accel_residuals(f_opt + bias, f_opt, np.zeros(3), 0.3, 0.1, np.inf)
+    assert r == pytest.approx(np.zeros((4, 3)))
+    # a residual of 0.6 m/s^2 on x at the second instant; sigmas 0.3, 0.4, 0.4 (0.3 + 0.1 * 1 m/s^2): the
+    # weighted mean 0.6 / 0.16 / (1 / 0.09 + 2 / 0.16) = 0.158824 is taken away
     f_ap = f_opt.copy()
     f_ap[1, 0] += 0.6
-    r = accel_residuals(f_ap, f_opt, np.array([0.0, 1.0, 1.0]), 0.3, 0.1)
-    assert r[:, 0] == pytest.approx([-0.2 / 0.3, 0.4 / 0.4, -0.2 / 0.4])
+    r = accel_residuals(f_ap, f_opt, np.array([0.0, 1.0, 1.0]), 0.3, 0.1, np.inf)
+    assert r[:3, 0] == pytest.approx([-0.158824 / 0.3, (0.6 - 0.158824) / 0.4, -0.158824 / 0.4], abs=1e-5)
+
+
+def test_a_steady_acceleration_does_not_pass_for_a_bias():
+    """4 instants 2 m/s^2 apart on z (a climb against a drone at rest), sigma 0.5, a bias prior of 0.5 m/s^2:
+    with w = 1/0.25 per instant the bias estimate is 4 * 4 * 2 / (16 + 4) = 1.6 and the cost
+    16 * 0.4^2 + 1.6^2 / 0.25 = 12.8 (= 2^2 / (1/16 + 0.25)); without the prior it would be 0."""
+    f_opt = np.tile([0.0, 0.0, -G], (4, 1))
+    f_ap = f_opt + [0.0, 0.0, 2.0]
+    r = accel_residuals(f_ap, f_opt, np.zeros(4), 0.5, 0.1, 0.5)
+    assert r.shape == (5, 3)
+    assert float(np.sum(r**2)) == pytest.approx(12.8)
+    assert r[-1] == pytest.approx([0.0, 0.0, 1.6 / 0.5])
+    assert float(np.sum(accel_residuals(f_ap, f_opt, np.zeros(4), 0.5, 0.1, np.inf) ** 2)) == pytest.approx(0.0)
