@@ -348,6 +348,7 @@ class FleetBinding:
                free) -> tuple[list[str], list[tuple[str, str]]]:
         """Check the held bindings (a disagreement stops the output first), then make the confident new ones."""
         dropped: list[str] = []
+        disagreed: set[str] = set()
         col = {v: j for j, v in enumerate(vehicles)}
         for i, b in enumerate(rows):
             v = self.bound.get(b)
@@ -368,10 +369,12 @@ class FleetBinding:
                        else f"{b} moves like {vehicles[j]} (cost {cost[i, j]:.0f} against its {mine:.0f})")
                 dropped.append(self._drop(b, f"binding disagreed: {why}: poses stopped, binding again", self._now_ns,
                                           STOPPED))
+                disagreed.add(b)
         made = []
-        taken = set(self.bound.values())
+        # this evaluation's assignment held the bindings just dropped: they are made again from fresh samples only
+        taken = set(self.bound.values()) | set(dropped)
         for i, b in enumerate(rows):
-            if b in self.bound:
+            if b in self.bound or b in disagreed:
                 continue
             j = int(res.vehicle[i])
             if j < 0:

@@ -375,3 +375,21 @@ def test_drones_taking_off_in_turn_are_told_apart_by_their_accelerometers(with_a
         k = names.index(v)
         assert t - lift_s[k] <= 2.0
         assert t - lift_s[k] > 0 or k == 3  # the last one may be bound by elimination, before it moves
+
+
+def test_a_binding_dropped_for_disagreeing_is_not_made_again_by_the_same_evaluation():
+    """Both held pairs cost 50 under the reject (100), but each body fits the other vehicle at 20: both stop.
+    The evaluation's own assignment held them (each body free only to keep its vehicle or none, by a margin of
+    50): it must not bind them again; only fresh samples may."""
+    from visionpos.analysis.autopilot import assign_identities
+
+    b = FleetBinding([["quadA", "quadB"]], {"v0": "quadA", "v1": "quadB"}, dict.fromkeys(["v0", "v1"], 0.05),
+                     dict.fromkeys(["v0", "v1"], "continuity"))
+    b.bound = {"quadA": "v0", "quadB": "v1"}
+    b.identity = dict.fromkeys(["quadA", "quadB"], "tracked-by-continuity")
+    cost = np.array([[50.0, 20.0], [20.0, 50.0]])
+    held = np.array([[50.0, np.nan], [np.nan, 50.0]])
+    dropped, made = b._apply(["quadA", "quadB"], ["v0", "v1"], cost, 100.0, assign_identities(held, 100.0, 13.8),
+                             False, assign_identities(cost, 100.0, 13.8))
+    assert sorted(dropped) == ["v0", "v1"] and made == []
+    assert b.bound == {} and b.vehicles["v0"].state == STOPPED
