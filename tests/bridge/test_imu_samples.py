@@ -51,3 +51,24 @@ def test_the_back_channel_keeps_the_accelerometer_of_each_imu_message():
     t, a = bc.accel.on_server_clock(bc._clock_map_ns())
     assert a[:, 2] == pytest.approx([-G * (1000 + k) / 1000 for k in range(4)])
     assert np.all(np.diff(t) == 20_000_000)
+
+
+def test_the_fleet_gets_each_vehicles_accelerometer_on_the_server_clock():
+    from bridge import Bridge
+    from visionpos.config.arena import parse_arena
+
+    layout = [[0.1, 0, 0], [0, 0.1, 0], [-0.1, 0, 0], [0, -0.12, 0.02]]
+    arena = parse_arena({"bodies": [{"name": "quadA", "id": 1, "markers": layout},
+                                    {"name": "quadB", "id": 2, "markers": layout}],
+                         "vehicles": [{"body": "quadA", "endpoint": "udpout:127.0.0.1:9"},
+                                      {"body": "quadB", "endpoint": "udpout:127.0.0.1:10"}]}, "fleet-test.yaml")
+    bridge = Bridge(arena, {"clock_ns": lambda: 10**12, "report_interval_s": 0, "pose_stream": False})
+    a, b = bridge.vehicle("quadA").bc, bridge.vehicle("quadB").bc
+    a.clock_offsets.add(10**12, (-(10**12 - 3_000_000_000),))  # quadA's autopilot clock: 3 s since its boot
+    for k in range(3):
+        a.accel.add("HIGHRES_IMU", _highres(0, (0, 0, -G - k)), 3_000_000_000 + k * 20_000_000, "px4")
+    got = bridge.fleet.accel_telemetry(bridge._by_name)
+    t, acc = got["quadA"]
+    assert t.tolist() == [10**12, 10**12 + 20_000_000, 10**12 + 40_000_000]
+    assert acc[:, 2] == pytest.approx([-G, -G - 1, -G - 2])
+    assert got["quadB"] is None and len(b.accel) == 0  # nothing heard from it: its clock is not mapped
