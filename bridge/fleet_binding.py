@@ -147,10 +147,9 @@ def accel_costs(grid_ns: np.ndarray, optical: list[np.ndarray], imu: list[tuple[
     at = np.nonzero(known)[0][::-1][::ACCEL_EVERY][::-1]  # every ACCEL_EVERY-th, counted from the newest
     if len(at) < ACCEL_MIN_INSTANTS:
         return None
-    cost = np.array([[float(np.sum(accel_residuals(fa[at], fo[at], m[at], ACCEL_NOISE_M_S2, ACCEL_REL,
-                                                   ACCEL_BIAS_M_S2) ** 2)) for fa in f_ap]
-                     for fo, m in zip(f_opt, mag)])
-    return cost, 3 * len(at), float(max(np.max(m[at]) for m in mag))
+    fo, m, fa = np.array(f_opt)[:, at], np.array(mag)[:, at], np.array(f_ap)[:, at]  # (B, n, 3), (B, n), (V, n, 3)
+    r = accel_residuals(fa[None], fo[:, None], m[:, None], ACCEL_NOISE_M_S2, ACCEL_REL, ACCEL_BIAS_M_S2)
+    return (r * r).sum(axis=(2, 3)), 3 * len(at), float(m.max())
 
 
 @dataclass

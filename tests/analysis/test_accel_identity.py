@@ -72,3 +72,12 @@ def test_a_steady_acceleration_does_not_pass_for_a_bias():
     assert float(np.sum(r**2)) == pytest.approx(12.8)
     assert r[-1] == pytest.approx([0.0, 0.0, 1.6 / 0.5])
     assert float(np.sum(accel_residuals(f_ap, f_opt, np.zeros(4), 0.5, 0.1, np.inf) ** 2)) == pytest.approx(0.0)
+
+
+def test_every_pair_at_once_is_each_pair_alone():
+    rng = np.random.default_rng(1)
+    f_ap, f_opt, acc = rng.normal(0, 1, (3, 5, 3)), rng.normal(0, 1, (2, 5, 3)), rng.uniform(0, 3, (2, 5))
+    both = accel_residuals(f_ap[None], f_opt[:, None], acc[:, None], 0.3, 0.15, 0.5)  # (2, 3, 6, 3)
+    for b in range(2):
+        for v in range(3):
+            assert both[b, v] == pytest.approx(accel_residuals(f_ap[v], f_opt[b], acc[b], 0.3, 0.15, 0.5))

@@ -346,11 +346,12 @@ def optical_specific_force(positions_m: np.ndarray, quaternions: np.ndarray, dt_
 
 def accel_residuals(f_ap: np.ndarray, f_opt: np.ndarray, accel_opt_m_s2: np.ndarray, sigma_m_s2: float,
                     rel: float, bias_sigma_m_s2: float) -> np.ndarray:
-    """Normalised residuals (N + 1, 3) between the autopilot's low-passed specific force f_ap (N, 3) m/s^2 FRD
-    and the optical body's f_opt (N, 3) (optical_specific_force) at the same N instants, less the pair's
-    accelerometer bias: the N instants' and, last, the bias's own (its estimate over bias_sigma_m_s2).
+    """Normalised residuals (..., N + 1, 3) between the autopilot's low-passed specific force f_ap (..., N, 3)
+    m/s^2 FRD and the optical body's f_opt (..., N, 3) (optical_specific_force) at the same N instants, less the
+    pair's accelerometer bias: the N instants' and, last, the bias's own (its estimate over bias_sigma_m_s2).
+    Leading axes broadcast (every pair of a fleet at once).
 
-    Noise per sample: sigma_m_s2 + rel * accel_opt_m_s2 (N,), the optical body's acceleration (its track's
+    Noise per sample: sigma_m_s2 + rel * accel_opt_m_s2 (..., N), the optical body's acceleration (its track's
     error grows with the manoeuvre: the filter's lag, the clocks' timing). The bias is estimated per axis with
     a zero-mean prior of bias_sigma_m_s2 (a calibrated IMU's): the weighted mean residual shrunk towards zero.
     Without the prior (inf) a short stretch of steady acceleration (a climb's) would pass for a bias; with it
@@ -358,7 +359,8 @@ def accel_residuals(f_ap: np.ndarray, f_opt: np.ndarray, accel_opt_m_s2: np.ndar
     residual is taken away).
     """
     e = np.asarray(f_ap, dtype=np.float64) - np.asarray(f_opt, dtype=np.float64)
-    sig = sigma_m_s2 + rel * np.asarray(accel_opt_m_s2, dtype=np.float64).reshape(-1, 1)  # (N, 1)
+    sig = sigma_m_s2 + rel * np.asarray(accel_opt_m_s2, dtype=np.float64)[..., None]  # (..., N, 1)
     w = 1.0 / sig**2
-    bias = (w * e).sum(axis=0) / (w.sum() + 1.0 / bias_sigma_m_s2**2)  # (3,)
-    return np.vstack([(e - bias) / sig, bias / bias_sigma_m_s2])
+    bias = (w * e).sum(axis=-2, keepdims=True) / (w.sum(axis=-2, keepdims=True) + 1.0 / bias_sigma_m_s2**2)
+    e, bias = np.broadcast_arrays(e, bias)
+    return np.concatenate([(e - bias[..., :1, :]) / sig, bias[..., :1, :] / bias_sigma_m_s2], axis=-2)
