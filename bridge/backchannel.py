@@ -44,6 +44,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from bridge.config import VehicleConfig
 from bridge.estimator_delay import DelayAdvice, advised_delay
+from bridge.imu_samples import AccelSamples
 from bridge.px4_status import ev_fusion_state
 from visionpos.analysis.autopilot import (
     body_rates_from_attitudes,
@@ -196,6 +197,7 @@ class Backchannel:
         self.att = _Ring(512, 5)  # autopilot clock: roll, pitch, p, q, r (FRD)
         self.gyro = _Ring(8192, 3)  # autopilot clock: p, q, r (FRD)
         self.gyro_source = ""
+        self.accel = AccelSamples()  # autopilot clock: the IMU's specific force, for a fleet's binding
         self.opt = _Ring(8192, 9)  # server clock (pose stamp): roll, pitch, p, q, r (FRD), quaternion NED<-FRD xyzw
         self.sends = _Ring(8192, 1)  # server clock (send time): send - stamp ns
         self.clock_offsets = _Ring(256, 1)  # server receive time: autopilot time - receive time
@@ -291,6 +293,7 @@ class Backchannel:
             if self._stamp(ta, recv_ns):
                 scale = 1.0 if t == "HIGHRES_IMU" else 1e-3  # RAW/SCALED_IMU carry mrad/s
                 self.gyro.add(ta, (m.xgyro * scale, m.ygyro * scale, m.zgyro * scale))
+                self.accel.add(t, m, ta, self.autopilot)
                 self.gyro_source = t
                 self._gyro_recv_ns = recv_ns
                 if self.imu_feed is not None:

@@ -1,14 +1,17 @@
 """Which optical body feeds which vehicle, where the vehicles' bodies share one marker layout (a fleet).
 
 Geometry cannot tell identical marker sets apart: the tracker names them by continuity
-(visionpos/fusion/identity.py, IdentityBook), and the name of an optical body says nothing about which
-drone it is. So for the vehicles of one layout group the bridge does not send by the configured `body`:
-every BIND_EVERY_NS it compares each vehicle's back-channel (the autopilot's roll, pitch and body rates,
-on the server clock) with each optical body's, on one grid of shared instants (the same instants and
-count for every pair), sums the squared normalised residuals of each pair
-(visionpos.analysis.autopilot.identity_residuals: the per-vehicle identity check's noise model) and
-assigns bodies to vehicles (assign_identities: Hungarian, a chi-square reject cost per body, the margin
-each binding wins by). A body is bound when its margin is at least AMBIGUITY (2 ln 1000: odds of a
+(visionpos/fusion/identity.py, IdentityBook), and the name of an optical body says nothing about which drone it
+is. So for the vehicles of one layout group the bridge does not send by the configured `body`: every
+BIND_EVERY_NS it compares each vehicle's back-channel (the autopilot's roll, pitch and body rates, on the server
+clock) with each optical body's, on one grid of shared instants (the same instants and count for every pair),
+sums the squared normalised residuals of each pair (visionpos.analysis.autopilot.identity_residuals: the
+per-vehicle identity check's noise model), adds the accelerometers' (accel_costs: the optical track's
+acceleration in the body with gravity, against the IMU's specific force from bridge/imu_samples.py, both
+low-passed alike, each pair's bias estimated; a vertical climb has no attitude signal but a strong one
+here, so drones that take off in turn are bound at their own take-off) where every vehicle of the group sends
+its IMU, and assigns bodies to vehicles (assign_identities: Hungarian, a chi-square reject cost per body, the
+margin each binding wins by). A body is bound when its margin is at least AMBIGUITY (2 ln 1000: odds of a
 thousand to one); the pipeline is told (IdentityBook.bind: its state turns tracked-by-continuity).
 
 - Only a bound body feeds a vehicle; until then the vehicle gets nothing and its state says why
@@ -25,8 +28,8 @@ thousand to one); the pipeline is told (IdentityBook.bind: its state turns track
   output follows `silent_backchannel` (bridge/config.py): continuity keeps a held binding while the track
   stays continuous (a loss or ambiguity drops it, and there is nothing to bind again with), stop drops it.
 
-Still vehicles have level attitudes and no rates: every pairing fits and nothing is bound until they
-move (docs/autopilot-setup.md, "A fleet": how identity is established before take-off).
+Still vehicles have level attitudes, no rates and no accelerations: every pairing fits and nothing is bound
+until they move (docs/autopilot-setup.md, "A fleet": how identity is established before take-off).
 Without an IdentityBook (a bridge fed by something else) a body's continuity is its `tracked` flag.
 """
 
@@ -40,7 +43,14 @@ import numpy as np
 from scipy.stats import chi2
 
 from bridge.backchannel import IDENTITY_RATE_NOISE_RAD_S, IDENTITY_RATE_REL, MAX_PAIR_GAP_NS, TELEMETRY_STALE_NS
-from visionpos.analysis.autopilot import assign_identities, identity_residuals
+from visionpos.analysis.autopilot import (
+    accel_residuals,
+    assign_identities,
+    gaussian_kernel,
+    identity_residuals,
+    lowpass,
+    optical_specific_force,
+)
 from visionpos.fusion.identity import IdentityState
 from visionpos.geometry.frames import quat_world_body_to_ned_frd
 
@@ -53,6 +63,14 @@ REJECT_P = 1e-3  # a true pair's cost exceeds the reject cost this rarely (chi-s
 STILL_RATE_RAD_S = 0.05  # a window whose optical rates all stay under this: no motion to tell vehicles apart
 RING = 256  # optical samples kept per body (at 100 Hz output: 2.5 s)
 SAY_DROP_NS = 1_000_000_000  # why a binding was dropped stays the vehicle's reason this long
+ACCEL_LOWPASS_S = 0.035  # the Gaussian low-pass of both accelerations (sigma): what the optical track resolves
+ACCEL_EVERY = 5  # accelerations compared every 5th shared instant (100 ms): the low-passed samples between are
+# not independent, and counting them would overstate the evidence
+ACCEL_NOISE_M_S2 = 0.3  # the low-passed optical acceleration's error at rest ...
+ACCEL_REL = 0.15  # ... plus this fraction of the body's acceleration (the filter's lag, the clocks' timing)
+ACCEL_BIAS_M_S2 = 0.5  # the accelerometer bias an IMU may have (the prior's sigma: a calibrated one has less)
+ACCEL_MIN_INSTANTS = 2
+STILL_ACCEL_M_S2 = 0.3  # and whose low-passed accelerations all stay under this
 
 BOUND, UNRESOLVED, UNKNOWN, STOPPED = "bound", "unresolved", "unknown", "stopped"
 
@@ -94,10 +112,44 @@ def pair_costs(optical: np.ndarray, telemetry: np.ndarray, sigma_att_rad: np.nda
     return (r * r).reshape(B, V, M * 5).sum(axis=2)
 
 
-def reject_cost(instants: int) -> float:
-    """The cost over `instants` shared instants (5 residuals each) a true pair exceeds with probability
-    REJECT_P, by the chi-square law."""
-    return float(chi2.isf(REJECT_P, 5 * instants))
+def reject_cost(instants: int, accel_dof: int = 0) -> float:
+    """The cost over `instants` shared instants (5 residuals each) plus accel_dof acceleration residuals
+    (accel_costs) a true pair exceeds with probability REJECT_P, by the chi-square law."""
+    return float(chi2.isf(REJECT_P, 5 * instants + accel_dof))
+
+
+def accel_costs(grid_ns: np.ndarray, optical: list[np.ndarray], imu: list[tuple[np.ndarray, np.ndarray]]
+                ) -> tuple[np.ndarray, int, float] | None:
+    """The accelerometers' part of the pair costs: (cost (B, V), degrees of freedom, the largest low-passed
+    optical acceleration m/s^2), or None where fewer than ACCEL_MIN_INSTANTS instants are shared.
+
+    grid_ns (G,) uniform GRID_NS apart; optical: per body its ring (N, 12) (t ns, q xyzw FLU -> world, w, p m);
+    imu: per vehicle (times (M,) ns server clock, (M, 3) specific force m/s^2 FRD). Both sides are sampled on
+    the grid, low-passed alike (gaussian_kernel, ACCEL_LOWPASS_S), compared every ACCEL_EVERY instants where
+    every body and vehicle has a value (accel_residuals: each pair's accelerometer bias estimated, with a prior of
+    ACCEL_BIAS_M_S2).
+    """
+    dt_s = GRID_NS * 1e-9
+    kernel = gaussian_kernel(ACCEL_LOWPASS_S, dt_s)
+    f_opt, mag = [], []
+    for a in optical:
+        good, val = sample_at(grid_ns, a[:, 0], a[:, 1:])
+        val[~good] = np.nan
+        f, m = optical_specific_force(val[:, 7:10], val[:, 0:4], dt_s, kernel)
+        f_opt.append(f)
+        mag.append(m)
+    f_ap = []
+    for t, acc in imu:
+        good, val = sample_at(grid_ns, t.astype(np.float64), np.asarray(acc, np.float64))
+        val[~good] = np.nan
+        f_ap.append(lowpass(val, kernel))
+    known = np.all([np.isfinite(f).all(axis=1) for f in f_opt + f_ap], axis=0)
+    at = np.nonzero(known)[0][::-1][::ACCEL_EVERY][::-1]  # every ACCEL_EVERY-th, counted from the newest
+    if len(at) < ACCEL_MIN_INSTANTS:
+        return None
+    fo, m, fa = np.array(f_opt)[:, at], np.array(mag)[:, at], np.array(f_ap)[:, at]  # (B, n, 3), (B, n), (V, n, 3)
+    r = accel_residuals(fa[None], fo[:, None], m[:, None], ACCEL_NOISE_M_S2, ACCEL_REL, ACCEL_BIAS_M_S2)
+    return (r * r).sum(axis=(2, 3)), 3 * len(at), float(m.max())
 
 
 @dataclass
@@ -128,10 +180,11 @@ class FleetBinding:
         self.vehicles = {v: VehicleIdentity() for _, vs in self.groups for v in vs}
         self.sigma_att_rad = sigma_att_rad
         self.silent_policy = silent_policy
-        self.rings = {b: collections.deque(maxlen=RING) for b in self.bodies}  # (t ns, q xyzw, w FLU)
+        self.rings = {b: collections.deque(maxlen=RING) for b in self.bodies}  # (t ns, q xyzw, w FLU, p m)
         self.bound: dict[str, str] = {}  # optical body -> vehicle
         self.identity: dict[str, str] = {b: IdentityState.LOST.value for b in self.bodies}
         self._next_ns = 0
+        self._accel: dict = {}  # the evaluation's accelerations (evaluate)
         self._now_ns = 0
         self.binds = 0  # bindings made
         self.drops = 0  # bindings dropped (loss, ambiguity, disagreement, silence)
@@ -159,7 +212,7 @@ class FleetBinding:
                 why = "track lost" if now == IdentityState.LOST.value else f"identity {now}"
                 dropped.append(self._drop(b, f"{why}: binding dropped, binding again when it moves", st.time_ns))
             if st.tracked:
-                self.rings[b].append((st.time_ns, *st.quaternion, *st.angular_velocity))
+                self.rings[b].append((st.time_ns, *st.quaternion, *st.angular_velocity, *st.position))
         return dropped
 
     def _own_identity(self, body: str, tracked: bool) -> str:
@@ -174,15 +227,23 @@ class FleetBinding:
         self.drops += 1
         return v
 
+    def accel_telemetry(self, links: dict) -> dict[str, tuple[np.ndarray, np.ndarray] | None]:
+        """{vehicle: its accelerometer on the server clock (bridge/imu_samples.py), None before its clock is
+        mapped} from the bridge's links {vehicle name: VehicleLink}, mapped as its attitude is."""
+        return {v: links[v].bc.accel.on_server_clock(links[v].bc._clock_map_ns()) for v in self.vehicles}
+
     def due(self, now_ns: int) -> bool:
         return now_ns >= self._next_ns
 
-    def evaluate(self, now_ns: int, telemetry: dict[str, tuple[np.ndarray, np.ndarray] | None]
+    def evaluate(self, now_ns: int, telemetry: dict[str, tuple[np.ndarray, np.ndarray] | None],
+                 accel: dict[str, tuple[np.ndarray, np.ndarray] | None] | None = None
                  ) -> tuple[list[str], list[tuple[str, str]]]:
         """Every BIND_EVERY_NS: telemetry {vehicle: (times (N,) ns server clock, (N, 5) roll, pitch, p, q, r) or
-        None}. Returns (vehicles whose binding was dropped: stop their output, new bindings [(body, vehicle)]:
-        tell the pipeline)."""
+        None}; accel {vehicle: (times (M,) ns server clock, (M, 3) specific force m/s^2 FRD) or None} (a group
+        uses the accelerations only where every live vehicle of it has some). Returns (vehicles whose binding
+        was dropped: stop their output, new bindings [(body, vehicle)]: tell the pipeline)."""
         self._next_ns = now_ns + BIND_EVERY_NS
+        self._accel = accel or {}
         dropped: list[str] = []
         made: list[tuple[str, str]] = []
         for bodies, vehicles in self.groups:
@@ -244,9 +305,16 @@ class FleetBinding:
         n = int(ok.sum())
         if n * GRID_NS < MIN_SPAN_NS:
             return self._say_unresolved(bodies, vehicles, "too few shared instants of optics and telemetry yet"), []
-        opt, tel = opt[:, ok], tel[:, ok]
-        cost = pair_costs(opt, tel, np.array([self.sigma_att_rad.get(v, math.radians(3.0)) for v in vehicles]))
-        reject = reject_cost(n)
+        cost = pair_costs(opt[:, ok], tel[:, ok],
+                          np.array([self.sigma_att_rad.get(v, math.radians(3.0)) for v in vehicles]))
+        imu = [self._accel.get(v) for v in vehicles]
+        acc = None
+        if all(x is not None and len(x[0]) > 1 for x in imu):
+            acc = accel_costs(grid, [ring_arrays[b] for b in rows], imu)
+        still = bool(np.abs(opt[:, ok, 2:]).max() < STILL_RATE_RAD_S) and (acc is None or acc[2] < STILL_ACCEL_M_S2)
+        if acc is not None:
+            cost = cost + acc[0]
+        reject = reject_cost(n, acc[1] if acc is not None else 0)
         # a held binding is known by continuity: its body and its vehicle are no one else's, so the others are
         # assigned among themselves (the last still one of a fleet is bound by elimination)
         held = cost.copy()
@@ -262,7 +330,6 @@ class FleetBinding:
         # the held bindings are checked against the assignment free of them: one that gives a held body another
         # vehicle with confidence says the track followed another drone (a swap the tracker did not see)
         free = assign_identities(cost, reject, AMBIGUITY) if self.bound else res
-        still = bool(np.abs(opt[..., 2:]).max() < STILL_RATE_RAD_S)
         return self._apply(rows, vehicles, cost, reject, res, still, free)
 
     def _say_unresolved(self, bodies: list[str], vehicles: list[str], reason: str) -> list[str]:
@@ -280,6 +347,7 @@ class FleetBinding:
                free) -> tuple[list[str], list[tuple[str, str]]]:
         """Check the held bindings (a disagreement stops the output first), then make the confident new ones."""
         dropped: list[str] = []
+        disagreed: set[str] = set()
         col = {v: j for j, v in enumerate(vehicles)}
         for i, b in enumerate(rows):
             v = self.bound.get(b)
@@ -300,10 +368,12 @@ class FleetBinding:
                        else f"{b} moves like {vehicles[j]} (cost {cost[i, j]:.0f} against its {mine:.0f})")
                 dropped.append(self._drop(b, f"binding disagreed: {why}: poses stopped, binding again", self._now_ns,
                                           STOPPED))
+                disagreed.add(b)
         made = []
-        taken = set(self.bound.values())
+        # this evaluation's assignment held the bindings just dropped: they are made again from fresh samples only
+        taken = set(self.bound.values()) | set(dropped)
         for i, b in enumerate(rows):
-            if b in self.bound:
+            if b in self.bound or b in disagreed:
                 continue
             j = int(res.vehicle[i])
             if j < 0:

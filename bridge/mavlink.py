@@ -118,7 +118,7 @@ class Bridge(Sink):
         made: list[tuple[str, str]] = []
         if self.fleet.due(now):
             telemetry = {name: self._by_name[name].bc.attitude_on_server_clock() for name in self.fleet.vehicles}
-            more, made = self.fleet.evaluate(now, telemetry)
+            more, made = self.fleet.evaluate(now, telemetry, self.fleet.accel_telemetry(self._by_name))
             stop += more
         for name in stop:
             v = self._by_name[name]

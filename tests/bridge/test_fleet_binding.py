@@ -29,6 +29,7 @@ class State(NamedTuple):
     quaternion: np.ndarray
     angular_velocity: np.ndarray
     tracked: bool = True
+    position: np.ndarray = np.zeros(3)
 
 
 def test_optical_attitude_is_what_an_autopilot_reports():
@@ -323,3 +324,72 @@ def test_another_body_starts_the_vehicles_own_identity_check_afresh():
     bc.optical_epoch += 1  # the bridge bound it to another body
     bc.on_optical(10**8, 0.0, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
     assert len(bc.opt) == 1 and not bc.identity_tripped and bc.identity == "unknown"
+
+
+def _climb(t: np.ndarray, start_s: float, height_m: float = 1.0, span_s: float = 1.5):
+    """A vertical take-off at start_s: height (T,) m and vertical acceleration (T,) m/s^2 of a septic step (rest
+    to rest in span_s)."""
+    u = np.clip((t - start_s) / span_s, 0.0, 1.0)
+    z = height_m * u**4 * (35 - 84 * u + 70 * u**2 - 20 * u**3)
+    a = height_m * 420 * u**2 * (1 - u) ** 2 * (1 - 2 * u) / span_s**2
+    return z, a
+
+
+@pytest.mark.parametrize("with_accel", [True, False])
+def test_drones_taking_off_in_turn_are_told_apart_by_their_accelerometers(with_accel):
+    """Four level drones, no rates: they take off straight up 0.3 s apart. Their accelerometers (a bias each)
+    bind each to its own body within 2 s of its lift-off; without them nothing is bound."""
+    perm = [2, 0, 3, 1]  # optical body i is drone perm[i]
+    bodies, names = [f"quad{i + 1}" for i in range(4)], [f"v{k}" for k in range(4)]
+    binding = FleetBinding([bodies], dict(zip(names, bodies)), dict.fromkeys(names, math.radians(3.0)),
+                           dict.fromkeys(names, "continuity"))
+    rng = np.random.default_rng(5)
+    lift_s = [1.0 + 0.3 * k for k in range(4)]
+    bias = rng.uniform(-0.3, 0.3, (4, 3))
+    t_tel = np.arange(0, 4.0, TEL_NS * 1e-9)
+    tel = {n: (np.round(t_tel * 1e9).astype(np.int64), np.zeros((len(t_tel), 5))) for n in names}
+    acc = {}
+    for k, n in enumerate(names):
+        f = np.zeros((len(t_tel), 3)) + bias[k] + rng.normal(0, 0.02, (len(t_tel), 3))
+        f[:, 2] -= 9.80665 + _climb(t_tel, lift_s[k])[1]  # FRD: up is -z
+        acc[n] = (tel[n][0], f)
+    made = {}
+    level = np.array([0.0, 0.0, 0.0, 1.0])
+    for i in range(1, 400):
+        t_ns = i * STEP_NS
+        states = [State(b, t_ns, level, rng.normal(0, 0.01, 3),
+                        position=np.array([0.5 * d, 0.0, _climb(np.array([t_ns * 1e-9]), lift_s[d])[0][0]])
+                        + rng.normal(0, 3e-4, 3)) for b, d in zip(bodies, perm)]
+        binding.observe(states, None)
+        if binding.due(t_ns):
+            upto = {n: (t[t <= t_ns], v[t <= t_ns]) for n, (t, v) in tel.items()}
+            a_upto = {n: (t[t <= t_ns], v[t <= t_ns]) for n, (t, v) in acc.items()} if with_accel else None
+            for b, v in binding.evaluate(t_ns, upto, a_upto)[1]:
+                made[b] = (v, t_ns * 1e-9)
+    if not with_accel:
+        assert made == {}
+        assert all("no motion yet" in binding.vehicles[n].reason for n in names)
+        return
+    assert {b: v for b, (v, _) in made.items()} == {b: names[d] for b, d in zip(bodies, perm)}
+    for b, (v, t) in made.items():
+        k = names.index(v)
+        assert t - lift_s[k] <= 2.0
+        assert t - lift_s[k] > 0 or k == 3  # the last one may be bound by elimination, before it moves
+
+
+def test_a_binding_dropped_for_disagreeing_is_not_made_again_by_the_same_evaluation():
+    """Both held pairs cost 50 under the reject (100), but each body fits the other vehicle at 20: both stop.
+    The evaluation's own assignment held them (each body free only to keep its vehicle or none, by a margin of
+    50): it must not bind them again; only fresh samples may."""
+    from visionpos.analysis.autopilot import assign_identities
+
+    b = FleetBinding([["quadA", "quadB"]], {"v0": "quadA", "v1": "quadB"}, dict.fromkeys(["v0", "v1"], 0.05),
+                     dict.fromkeys(["v0", "v1"], "continuity"))
+    b.bound = {"quadA": "v0", "quadB": "v1"}
+    b.identity = dict.fromkeys(["quadA", "quadB"], "tracked-by-continuity")
+    cost = np.array([[50.0, 20.0], [20.0, 50.0]])
+    held = np.array([[50.0, np.nan], [np.nan, 50.0]])
+    dropped, made = b._apply(["quadA", "quadB"], ["v0", "v1"], cost, 100.0, assign_identities(held, 100.0, 13.8),
+                             False, assign_identities(cost, 100.0, 13.8))
+    assert sorted(dropped) == ["v0", "v1"] and made == []
+    assert b.bound == {} and b.vehicles["v0"].state == STOPPED

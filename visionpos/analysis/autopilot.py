@@ -11,6 +11,10 @@ attitude estimate, stamped on its own boot clock) against the optical body
 - Which vehicle is which, for a fleet of identical marker layouts? (`assign_identities`) Every
   optical body against every vehicle's telemetry: the assignment of least total residual, and per
   body the margin by which it beats the best assignment that gives that body another vehicle.
+- What does each vehicle's accelerometer say? (`gaussian_kernel`, `optical_specific_force`,
+  `accel_residuals`) The optical track's acceleration, rotated into the body frame with gravity removed and
+  low-passed, against the IMU's specific force low-passed the same way: a vertical climb (no attitude, no
+  rates) is a strong signal, and drones that take off in turn are told apart at their own take-off.
 - How late does a pose reach the autopilot? (`estimate_lag`, `vision_delay_ns`)
   Cross-correlating the two angular rates gives the autopilot-clock time of the
   instant the optics stamped at a given server time (the clock offset, plus any
@@ -30,7 +34,10 @@ from scipy.spatial.transform import Rotation
 
 __all__ = ["LagEstimate", "estimate_lag", "body_rates_from_attitudes", "vision_delay_ns", "theil_sen_at",
            "weighted_time_ns", "identity_residuals", "identity_statistic", "wrap_angle", "IdentityAssignment",
-           "assign_identities"]
+           "assign_identities", "GRAVITY_M_S2", "gaussian_kernel", "lowpass", "optical_specific_force",
+           "accel_residuals"]
+
+GRAVITY_M_S2 = 9.80665
 
 
 class LagEstimate(NamedTuple):
@@ -287,3 +294,73 @@ def assign_identities(cost: np.ndarray, reject_cost: np.ndarray | float, ambigui
         pair = full[b, vehicle[b]]
         candidates[b] = int(np.sum(full[b, :V] <= pair + ambiguity))
     return IdentityAssignment(vehicle, margin, candidates)
+
+
+def gaussian_kernel(sigma_s: float, dt_s: float) -> np.ndarray:
+    """A Gaussian low-pass (2K+1,) for samples dt_s apart, sigma_s s wide, cut at 3 sigma, summing to 1: its
+    response is exp(-2 pi^2 sigma^2 f^2) (0.95 at 1 Hz for sigma 50 ms, 0.64 at 3 Hz)."""
+    k = max(1, int(np.ceil(3.0 * sigma_s / dt_s)))
+    x = np.arange(-k, k + 1) * dt_s
+    w = np.exp(-0.5 * (x / sigma_s) ** 2)
+    return w / w.sum()
+
+
+def lowpass(x: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """x (N, k) on a uniform grid convolved with kernel (2K+1,), centred (no lag): (N, k), NaN within K
+    samples of either end and wherever the kernel covers a NaN sample."""
+    x = np.asarray(x, dtype=np.float64)
+    half = len(kernel) // 2
+    out = np.full(x.shape, np.nan)
+    if len(x) < len(kernel):
+        return out
+    for c in range(x.shape[1]):
+        out[half: len(x) - half, c] = np.convolve(x[:, c], kernel[::-1], mode="valid")
+    return out
+
+
+def optical_specific_force(positions_m: np.ndarray, quaternions: np.ndarray, dt_s: float,
+                           kernel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What an accelerometer on the optical body reads, low-passed: (N, 3) m/s^2 FRD, and the magnitude of its
+    low-passed acceleration (N,) m/s^2 (gravity not included); NaN where not known.
+
+    positions_m (N, 3) world z-up and quaternions (N, 4) xyzw body FLU -> world, on a uniform grid dt_s apart
+    (NaN rows: no sample). The acceleration is the second difference of the positions; with gravity added
+    (specific force: at rest the body reads +g up, -g on z down in FRD) it is rotated into the body at each
+    instant, then low-passed with kernel: the same low-pass applied to the IMU's samples makes the two
+    comparable (the second difference of noisy positions is all noise above a few hertz).
+    """
+    p = np.asarray(positions_m, dtype=np.float64)
+    n = len(p)
+    f = np.full((n, 3), np.nan)
+    if n < 3:
+        return f
+    a = np.full((n, 3), np.nan)
+    a[1:-1] = (p[2:] - 2.0 * p[1:-1] + p[:-2]) / (dt_s * dt_s)
+    q = np.asarray(quaternions, dtype=np.float64)
+    ok = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(a), axis=1)
+    if ok.any():
+        f_world = a[ok] + np.array([0.0, 0.0, GRAVITY_M_S2])
+        f[ok] = Rotation.from_quat(q[ok]).inv().apply(f_world) * np.array([1.0, -1.0, -1.0])
+    return lowpass(f, kernel), np.linalg.norm(lowpass(a, kernel), axis=1)
+
+
+def accel_residuals(f_ap: np.ndarray, f_opt: np.ndarray, accel_opt_m_s2: np.ndarray, sigma_m_s2: float,
+                    rel: float, bias_sigma_m_s2: float) -> np.ndarray:
+    """Normalised residuals (..., N + 1, 3) between the autopilot's low-passed specific force f_ap (..., N, 3)
+    m/s^2 FRD and the optical body's f_opt (..., N, 3) (optical_specific_force) at the same N instants, less the
+    pair's accelerometer bias: the N instants' and, last, the bias's own (its estimate over bias_sigma_m_s2).
+    Leading axes broadcast (every pair of a fleet at once).
+
+    Noise per sample: sigma_m_s2 + rel * accel_opt_m_s2 (..., N), the optical body's acceleration (its track's
+    error grows with the manoeuvre: the filter's lag, the clocks' timing). The bias is estimated per axis with
+    a zero-mean prior of bias_sigma_m_s2 (a calibrated IMU's): the weighted mean residual shrunk towards zero.
+    Without the prior (inf) a short stretch of steady acceleration (a climb's) would pass for a bias; with it
+    the sum of squares is chi-square with 3 N degrees of freedom for a true pair (3 (N - 1) for inf: the mean
+    residual is taken away).
+    """
+    e = np.asarray(f_ap, dtype=np.float64) - np.asarray(f_opt, dtype=np.float64)
+    sig = sigma_m_s2 + rel * np.asarray(accel_opt_m_s2, dtype=np.float64)[..., None]  # (..., N, 1)
+    w = 1.0 / sig**2
+    bias = (w * e).sum(axis=-2, keepdims=True) / (w.sum(axis=-2, keepdims=True) + 1.0 / bias_sigma_m_s2**2)
+    e, bias = np.broadcast_arrays(e, bias)
+    return np.concatenate([(e - bias[..., :1, :]) / sig, bias[..., :1, :] / bias_sigma_m_s2], axis=-2)

@@ -1,17 +1,19 @@
 """The fleet's binding measured on the fleet scenario, offline: `python -m visionpos.benchmarks.fleet_binding [S]`.
 
-The scenario is simulated and replayed through the pipeline (fusion_replay.replay: arrival order, 100 Hz
-ticks), and the bridge's binding (bridge/fleet_binding.py) runs on the ticks as the Bridge runs it: each
-tick's states and the IdentityBook's states, an evaluation every BIND_EVERY_NS, IdentityBook.bind for each
-new binding. Vehicle k is drone k of the scenario (as in `visionpos demo`, whose fake autopilots play their
-own drone's truth): its back-channel is that drone's true roll, pitch and body rates at TELEMETRY_HZ,
-TELEMETRY_LAG_NS late. No network and no real time: the figures are the binding's own, on the pipeline's
-real tracks, identity states and losses (a real-time demo needs the cores to keep 10 cameras at 120 Hz).
+The scenario is simulated and replayed through the pipeline (fusion_replay.replay: arrival order, 100 Hz ticks),
+and the bridge's binding (bridge/fleet_binding.py) runs on the ticks as the Bridge runs it: each tick's states
+and the IdentityBook's states, an evaluation every BIND_EVERY_NS, IdentityBook.bind for each new binding.
+Vehicle k is drone k of the scenario (as in `visionpos demo`, whose fake autopilots play their own drone's
+truth): its back-channel is that drone's true roll, pitch and body rates, and its accelerometer's specific force
+(FRD) with ACCEL_NOISE_M_S2 of noise and a bias of up to ACCEL_BIAS_M_S2 per axis, at TELEMETRY_HZ,
+TELEMETRY_LAG_NS late (`--no-accel`: without the accelerations, as before they were used). No network and no
+real time: the figures are the binding's own, on the pipeline's real tracks, identity states and losses (a
+real-time demo needs the cores to keep 10 cameras at 120 Hz).
 
-Counted: poses that would go to the wrong vehicle (a bound body's pose nearer another drone's truth than
-its vehicle's own, or over WRONG_M from it); per vehicle the time from its first rotation (and from its
-lift-off) to its first binding; every dropped binding of a flying drone and how long until it is bound
-again.
+Counted: poses that would go to the wrong vehicle (a bound body's pose nearer another drone's truth than its
+vehicle's own, or over WRONG_M from it); per vehicle the time from its first motion (a speed over MOVING_M_S or
+a body rate over MOVING_RAD_S: its lift-off), and from its first rotation, to its first binding; every dropped
+binding of a flying drone and how long until it is bound again.
 """
 
 from __future__ import annotations
@@ -27,7 +29,10 @@ TELEMETRY_HZ = 50.0
 TELEMETRY_LAG_NS = 5_000_000  # the autopilot's message reaches the server this late
 WRONG_M = 0.1
 MOVING_RAD_S = 0.05  # the first rotation: a body rate over this
+MOVING_M_S = 0.02  # the first motion: a speed over this (or the first rotation)
 LIFT_M = 0.01
+ACCEL_NOISE_M_S2 = 0.02  # the accelerometer's white noise per sample
+ACCEL_BIAS_M_S2 = 0.3  # its bias, drawn per vehicle and axis in +-this
 
 
 LOSS_S = 0.2  # an injected loss: the body untracked this long
@@ -35,7 +40,7 @@ SWAP = ("quad1", "quad9")  # an injected swap: two drones of different cells tha
 
 
 def measure(duration_s: float | None = None, scenario: str = "fleet", loss_at_s: tuple[float, ...] = (),
-            swap_at_s: float | None = None) -> dict:
+            swap_at_s: float | None = None, use_accel: bool = True) -> dict:
     """The figures (module docstring). loss_at_s: scenario times at which quad3's track is taken away for LOSS_S
     (the bridge sees it untracked, then reacquired); swap_at_s: from then on the states of the SWAP bodies are
     exchanged while the identity book still says continuous (a swap the tracker did not notice)."""
@@ -49,10 +54,13 @@ def measure(duration_s: float | None = None, scenario: str = "fleet", loss_at_s:
     binding = FleetBinding([names], dict(zip(vehicles, names)), dict.fromkeys(vehicles, np.radians(3.0)),
                            dict.fromkeys(vehicles, "continuity"))
     tel_t = np.arange(sc.start_ns, sc.end_ns + 1, int(1e9 / TELEMETRY_HZ), dtype=np.int64)
-    tel = {}
+    tel, acc = {}, {}
+    rng = np.random.default_rng(28)
     for k, n in enumerate(names):
         m = sc.motion_at(n, tel_t)
         tel[vehicles[k]] = (tel_t + TELEMETRY_LAG_NS, optical_attitude(m.quaternions, m.angular_velocities))
+        f = specific_force_frd(sc, n, tel_t) + rng.uniform(-ACCEL_BIAS_M_S2, ACCEL_BIAS_M_S2, 3)
+        acc[vehicles[k]] = (tel_t + TELEMETRY_LAG_NS, f + rng.normal(0.0, ACCEL_NOISE_M_S2, f.shape))
     holder: dict = {}
     log: list[tuple[int, dict[str, str]]] = []  # (tick, bound) after each tick
     sent = {v: [] for v in vehicles}  # (tick ns, position) of every pose a vehicle would get
@@ -66,7 +74,8 @@ def measure(duration_s: float | None = None, scenario: str = "fleet", loss_at_s:
         binding.observe(states, identity)
         if binding.due(t_ns):
             upto = {v: (tt[tt <= t_ns], vals[tt <= t_ns]) for v, (tt, vals) in tel.items()}
-            _, made = binding.evaluate(t_ns, upto)
+            acc_upto = {v: (tt[tt <= t_ns], vals[tt <= t_ns]) for v, (tt, vals) in acc.items()} if use_accel else None
+            _, made = binding.evaluate(t_ns, upto, acc_upto)
             for body, _v in made:
                 book.bind(book.names.index(body))
                 injected["lost"] = injected["lost"] and body != "quad3"
@@ -78,6 +87,19 @@ def measure(duration_s: float | None = None, scenario: str = "fleet", loss_at_s:
 
     rep = replay(sc.arena, sim.frames, raw_cb=lambda p: holder.setdefault("pipe", p), tick_cb=tick_cb)
     return _figures(sc, names, vehicles, sent, log, rep)
+
+
+def specific_force_frd(sc, name: str, times_ns: np.ndarray) -> np.ndarray:
+    """What a perfect accelerometer on the drone reads at server times (T,) ns: (T, 3) m/s^2 FRD (its true
+    acceleration with gravity added, in the body)."""
+    from scipy.spatial.transform import Rotation
+
+    from visionpos.analysis.autopilot import GRAVITY_M_S2
+
+    traj = sc.body(name).trajectory
+    t = (np.asarray(times_ns, np.int64) - np.int64(sc.start_ns)).astype(np.float64) * 1e-9
+    a = traj.kinematics(t)[2] + np.array([0.0, 0.0, GRAVITY_M_S2])
+    return Rotation.from_quat(sc.motion_at(name, times_ns).quaternions).inv().apply(a) * np.array([1.0, -1.0, -1.0])
 
 
 def _inject(sc, t_ns: int, states: list, identity: dict, loss_at_s, swap_at_s, binding, injected) -> list:
@@ -114,7 +136,9 @@ def _figures(sc, names, vehicles, sent, log, rep) -> dict:
     rows = []
     for k, (n, v) in enumerate(zip(names, vehicles)):
         m = sc.motion_at(n, ts)
-        rot = ts[np.argmax(np.linalg.norm(m.angular_velocities, axis=1) > MOVING_RAD_S)]
+        rotating = np.linalg.norm(m.angular_velocities, axis=1) > MOVING_RAD_S
+        rot = ts[np.argmax(rotating)]
+        moved = ts[np.argmax(rotating | (np.linalg.norm(m.velocities, axis=1) > MOVING_M_S))]
         lift = ts[np.argmax(m.positions[:, 2] > m.positions[0, 2] + LIFT_M)]
         first = next((t for t, b in log if v in b.values()), None)
         drops = []
@@ -127,7 +151,8 @@ def _figures(sc, names, vehicles, sent, log, rep) -> dict:
                 drops.append(((since - sc.start_ns) * 1e-9, (t - since) * 1e-9))
             was = on
         rows.append({"vehicle": v, "drone": n, "lift_off_s": (lift - sc.start_ns) * 1e-9,
-                     "first_rotation_s": (rot - sc.start_ns) * 1e-9,
+                     "first_rotation_s": (rot - sc.start_ns) * 1e-9, "first_motion_s": (moved - sc.start_ns) * 1e-9,
+                     "bound_after_motion_s": None if first is None else (first - moved) * 1e-9,
                      "bound_after_rotation_s": None if first is None else (first - rot) * 1e-9,
                      "bound_after_lift_off_s": None if first is None else (first - lift) * 1e-9,
                      "rebinds": drops, "final": binding_state(log, v)})
@@ -142,15 +167,18 @@ def binding_state(log, v: str) -> str | None:
 
 
 if __name__ == "__main__":
-    args = [float(a) for a in sys.argv[1:]]
-    # python -m visionpos.benchmarks.fleet_binding [DURATION [SWAP_AT [LOSS_AT ...]]] (0: none)
+    flags = [a for a in sys.argv[1:] if a.startswith("--")]
+    args = [float(a) for a in sys.argv[1:] if not a.startswith("--")]
+    # python -m visionpos.benchmarks.fleet_binding [--no-accel] [DURATION [SWAP_AT [LOSS_AT ...]]] (0: none)
     out = measure(args[0] if args and args[0] else None, "fleet", tuple(args[2:]),
-                  args[1] if len(args) > 1 and args[1] else None)
+                  args[1] if len(args) > 1 and args[1] else None, use_accel="--no-accel" not in flags)
     print(f"poses to vehicles {out['poses']}, to the wrong vehicle {out['wrong_vehicle']}; "
           f"ambiguities {out['ambiguities']}")
     for r in out["rows"]:
-        ra, rl = r["bound_after_rotation_s"], r["bound_after_lift_off_s"]
-        when = "never" if ra is None else f"{ra:.2f} s after it ({rl:.2f} s after lift-off)"
-        print(f"{r['vehicle']} ({r['drone']}): lift-off {r['lift_off_s']:.2f} s, first rotation "
+        rm, ra = r["bound_after_motion_s"], r["bound_after_rotation_s"]
+        when = "never" if rm is None else f"{rm:.2f} s after it ({ra:.2f} s after its first rotation)"
+        print(f"{r['vehicle']} ({r['drone']}): first motion {r['first_motion_s']:.2f} s, first rotation "
               f"{r['first_rotation_s']:.2f} s, bound {when}; re-binds (at s, after s) "
               f"{[(round(a, 2), round(b, 2)) for a, b in r['rebinds']]}; at the end {r['final']}")
+    done = [r["bound_after_motion_s"] for r in out["rows"]]
+    print("first motion to binding: worst " + ("never" if None in done else f"{max(done):.2f} s"))

@@ -1,0 +1,69 @@
+"""The accelerometer half of the autopilot's IMU messages, for the fleet's binding (bridge/fleet_binding.py).
+
+The back-channel (bridge/backchannel.py) asks for the vehicle's IMU (ArduPilot's RAW_IMU, PX4's HIGHRES_IMU;
+SCALED_IMU is read too) and keeps its gyro; each accepted IMU message also goes here (AccelSamples.add), where its
+specific force is kept in m/s^2 FRD on the autopilot's clock. `on_server_clock` maps the samples onto the server
+clock as the attitude is mapped (Backchannel.attitude_on_server_clock: the lag the gyro's correlation measured,
+else the fastest message's offset).
+
+Units: HIGHRES_IMU carries m/s^2; ArduPilot's RAW_IMU and SCALED_IMU carry milli-g (MAVLink: "mG"). PX4's
+RAW_IMU carries raw sensor counts and is not read (as for its gyro).
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+
+import numpy as np
+
+from visionpos.analysis.autopilot import GRAVITY_M_S2
+
+RING = 1024  # samples kept: 20 s at 50 Hz (the binding uses the newest second or two)
+MILLI_G_M_S2 = GRAVITY_M_S2 / 1000.0
+MAX_ABS_M_S2 = 16.0 * GRAVITY_M_S2  # a reading beyond an IMU's range is corrupt: dropped
+
+
+def accel_frd_m_s2(msg_type: str, m, autopilot: str | None) -> tuple[float, float, float] | None:
+    """A message's specific force (m/s^2, FRD), or None where its units are not known or it is not finite."""
+    if msg_type == "HIGHRES_IMU":
+        scale = 1.0
+    elif msg_type == "SCALED_IMU" or (msg_type == "RAW_IMU" and autopilot == "ardupilot"):
+        scale = MILLI_G_M_S2
+    else:
+        return None
+    a = (float(m.xacc) * scale, float(m.yacc) * scale, float(m.zacc) * scale)
+    if not all(math.isfinite(x) and abs(x) <= MAX_ABS_M_S2 for x in a):
+        return None
+    return a
+
+
+class AccelSamples:
+    """The newest RING accelerometer samples of one vehicle: (autopilot time ns, ax, ay, az m/s^2 FRD)."""
+
+    def __init__(self):
+        self.d: collections.deque[tuple[int, float, float, float]] = collections.deque(maxlen=RING)
+
+    def add(self, msg_type: str, m, t_ap_ns: int, autopilot: str | None) -> None:
+        """One IMU message the back-channel accepted, stamped t_ap_ns on the autopilot's clock. A stamp older
+        than the newest kept (the autopilot rebooted: a new clock) starts afresh."""
+        a = accel_frd_m_s2(msg_type, m, autopilot)
+        if a is None:
+            return
+        if self.d and t_ap_ns <= self.d[-1][0]:
+            self.d.clear()
+        self.d.append((int(t_ap_ns), *a))
+
+    def __len__(self) -> int:
+        return len(self.d)
+
+    def on_server_clock(self, clock_map_ns: float | None) -> tuple[np.ndarray, np.ndarray] | None:
+        """Times (N,) int64 ns on the server clock and (N, 3) m/s^2 FRD, safe to call from another thread;
+        clock_map_ns: the autopilot time less the server time of one instant (None: not known yet, None back)."""
+        rows = list(self.d)  # list() copies under the GIL while the receiving thread appends
+        if clock_map_ns is None:
+            return None
+        if not rows:
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        a = np.array(rows, dtype=np.float64)
+        return (a[:, 0] - clock_map_ns).astype(np.int64), a[:, 1:]
