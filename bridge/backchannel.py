@@ -46,6 +46,7 @@ from bridge.config import VehicleConfig
 from bridge.estimator_delay import DelayAdvice, advised_delay
 from bridge.imu_samples import AccelSamples
 from bridge.px4_status import ev_fusion_state
+from bridge.telemetry import IMU_MESSAGES, Ring, geodetic_offset_m, gyro_filter_lag_ns, imu_sample, sample_at
 from visionpos.analysis.autopilot import (
     body_rates_from_attitudes,
     estimate_lag,
@@ -96,78 +97,10 @@ MSG_ESTIMATOR_STATUS = 230  # PX4's (EKF2): bridge/px4_status.py
 MSG_GPS_GLOBAL_ORIGIN = 49
 MSG_HOME_POSITION = 242
 HOME_TOLERANCE_M = 0.01  # home read back further than this from the origin: said (a float32 COMMAND_LONG's error)
-EARTH_RADIUS_M = 6_378_137.0  # WGS-84 equatorial: metres per radian of latitude, near enough for centimetres
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_CMD_REQUEST_MESSAGE = 512
 MAV_CMD_DO_SET_HOME = 179
 GYRO_FILTER_PARAM = "INS_GYRO_FILTER"  # ArduPilot: the cutoff (Hz) of the low-pass on the gyro it reports
-
-
-def geodetic_offset_m(lat_deg: float, lon_deg: float, ref_lat_deg: float, ref_lon_deg: float) -> tuple[float, float]:
-    """(north, east) m of a point from a reference a few km away at most (equirectangular; under 1 mm error at
-    100 m)."""
-    north = math.radians(lat_deg - ref_lat_deg) * EARTH_RADIUS_M
-    east = math.radians(lon_deg - ref_lon_deg) * EARTH_RADIUS_M * math.cos(math.radians(ref_lat_deg))
-    return north, east
-
-
-def gyro_filter_lag_ns(cutoff_hz: float) -> float:
-    """Group delay (ns) of a 2-pole Butterworth low-pass at cutoff_hz for motion well below it (ArduPilot's
-    LowPassFilter2p; its sample rate moves it by under 0.1 ms at 400 Hz and up): sqrt(2) / (2 pi fc). 0 for a
-    filter turned off (cutoff 0)."""
-    return math.sqrt(2.0) / (2.0 * math.pi * cutoff_hz) * 1e9 if cutoff_hz > 0 else 0.0
-
-
-class _Ring:
-    """The last n samples (time ns, k values), read back oldest first as arrays. A deque of tuples:
-    appending is what runs per pose and per telemetry message, so it is the cheap side."""
-
-    __slots__ = ("d", "k", "n")
-
-    def __init__(self, n: int, k: int):
-        self.d: collections.deque[tuple] = collections.deque(maxlen=n)
-        self.k = k
-        self.n = 0  # samples ever added (since the last clear)
-
-    def add(self, t: int, values) -> None:
-        self.d.append((t, *values))
-        self.n += 1
-
-    def clear(self) -> None:
-        self.d.clear()
-        self.n = 0
-
-    def __len__(self) -> int:
-        return len(self.d)
-
-    def last_t(self) -> int | None:
-        return self.d[-1][0] if self.d else None
-
-    def since(self, t0: int) -> tuple[np.ndarray, np.ndarray]:
-        """Times (m,) int64 and values (m, k) of the samples at or after t0."""
-        rows = []
-        for r in reversed(self.d):
-            if r[0] < t0:
-                break
-            rows.append(r)
-        if not rows:
-            return np.zeros(0, np.int64), np.zeros((0, self.k))
-        rows.reverse()
-        return np.array([r[0] for r in rows], dtype=np.int64), np.array([r[1:] for r in rows], dtype=np.float64)
-
-
-def _interp_pairs(t_query: np.ndarray, t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """v (N, k) at t (N,) linearly interpolated at t_query (M,); returns (mask (M,), values (mask.sum(), k)):
-    only queries inside the samples' span with neighbours at most MAX_PAIR_GAP_NS apart."""
-    if len(t) < 2:
-        return np.zeros(len(t_query), bool), np.zeros((0, v.shape[1]))
-    j = np.searchsorted(t, t_query)
-    ok = (j > 0) & (j < len(t))
-    jj = np.clip(j, 1, len(t) - 1)
-    ok &= (t[jj] - t[jj - 1]) <= MAX_PAIR_GAP_NS
-    tq = t_query[ok]
-    out = np.column_stack([np.interp(tq, t, v[:, c]) for c in range(v.shape[1])])
-    return ok, out
 
 
 class Backchannel:
@@ -194,14 +127,14 @@ class Backchannel:
         self.reboots = 0
         self.messages = 0  # accepted from the autopilot component
         self._t_ap_newest: int | None = None
-        self.att = _Ring(512, 5)  # autopilot clock: roll, pitch, p, q, r (FRD)
-        self.gyro = _Ring(8192, 3)  # autopilot clock: p, q, r (FRD)
+        self.att = Ring(512, 5)  # autopilot clock: roll, pitch, p, q, r (FRD)
+        self.gyro = Ring(8192, 3)  # autopilot clock: p, q, r (FRD)
         self.gyro_source = ""
         self.accel = AccelSamples()  # autopilot clock: the IMU's specific force, for a fleet's binding
-        self.opt = _Ring(8192, 9)  # server clock (pose stamp): roll, pitch, p, q, r (FRD), quaternion NED<-FRD xyzw
-        self.sends = _Ring(8192, 1)  # server clock (send time): send - stamp ns
-        self.clock_offsets = _Ring(256, 1)  # server receive time: autopilot time - receive time
-        self.timesync = _Ring(64, 2)  # server send time s1: tc1 - s1, round trip
+        self.opt = Ring(8192, 9)  # server clock (pose stamp): roll, pitch, p, q, r (FRD), quaternion NED<-FRD xyzw
+        self.sends = Ring(8192, 1)  # server clock (send time): send - stamp ns
+        self.clock_offsets = Ring(256, 1)  # server receive time: autopilot time - receive time
+        self.timesync = Ring(64, 2)  # server send time s1: tc1 - s1, round trip
         self._ts_pending: collections.OrderedDict[int, int] = collections.OrderedDict()
         self.local_position: tuple[float, float, float] | None = None
         # identity
@@ -286,18 +219,15 @@ class Backchannel:
                 pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
                 self.att.add(ta, (roll, pitch, m.rollspeed, m.pitchspeed, m.yawspeed))
                 self._att_recv_ns = recv_ns
-        elif t in ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU"):
-            ta = m.time_boot_ms * 1_000_000 if t == "SCALED_IMU" else m.time_usec * 1000
-            if t == "RAW_IMU" and self.autopilot != "ardupilot":
-                return  # raw sensor units: only ArduPilot's (mrad/s) are known
-            if self._stamp(ta, recv_ns):
-                scale = 1.0 if t == "HIGHRES_IMU" else 1e-3  # RAW/SCALED_IMU carry mrad/s
-                self.gyro.add(ta, (m.xgyro * scale, m.ygyro * scale, m.zgyro * scale))
-                self.accel.add(t, m, ta, self.autopilot)
+        elif t in IMU_MESSAGES:
+            s = imu_sample(m, self.autopilot)  # None: another autopilot's raw RAW_IMU units, values not finite
+            if s is not None and self._stamp(s[0], recv_ns):
+                self.gyro.add(s[0], s[2])
+                self.accel.add(s[0], s[1])
                 self.gyro_source = t
                 self._gyro_recv_ns = recv_ns
                 if self.imu_feed is not None:
-                    self.imu_feed.offer(m, self)
+                    self.imu_feed.offer(*s, self)
         elif t == "LOCAL_POSITION_NED":
             self.local_position = (m.x, m.y, m.z)
         elif t == "EKF_STATUS_REPORT":
@@ -565,7 +495,8 @@ class Backchannel:
         ta, va = self.att.since(newest - IDENTITY_WINDOW_NS)
         t_srv = ta - int(round(off))
         to, vo = self.opt.since(int(t_srv[0]) - MAX_PAIR_GAP_NS)
-        ok, vi = _interp_pairs(t_srv, to, vo[:, :5])
+        ok, vi = sample_at(t_srv, to, vo[:, :5], MAX_PAIR_GAP_NS)
+        vi = vi[ok]
         if ok.sum() < IDENTITY_MIN_PAIRS:
             self.identity = "unknown"
             self.identity_reason = "no optical pose at the autopilot's times"

@@ -43,6 +43,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from bridge.backchannel import IDENTITY_RATE_NOISE_RAD_S, IDENTITY_RATE_REL, MAX_PAIR_GAP_NS, TELEMETRY_STALE_NS
+from bridge.telemetry import sample_at
 from visionpos.analysis.autopilot import (
     accel_residuals,
     assign_identities,
@@ -86,19 +87,6 @@ def optical_attitude(q_world_flu: np.ndarray, w_flu: np.ndarray) -> np.ndarray:
     return np.column_stack([roll, pitch, rates])
 
 
-def sample_at(t_query: np.ndarray, t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """v (N, k) at times t (N,) ns, linearly interpolated at t_query (M,) ns: (ok (M,) bool, values (M, k));
-    ok only inside the samples' span with neighbours at most MAX_PAIR_GAP_NS apart."""
-    out = np.full((len(t_query), v.shape[1]), np.nan)
-    if len(t) < 2:
-        return np.zeros(len(t_query), bool), out
-    j = np.clip(np.searchsorted(t, t_query), 1, len(t) - 1)
-    ok = (t_query >= t[0]) & (t_query <= t[-1]) & ((t[j] - t[j - 1]) <= MAX_PAIR_GAP_NS)
-    for c in range(v.shape[1]):
-        out[:, c] = np.interp(t_query, t, v[:, c])
-    return ok, out
-
-
 def pair_costs(optical: np.ndarray, telemetry: np.ndarray, sigma_att_rad: np.ndarray) -> np.ndarray:
     """Summed squared normalised residuals (B, V) of every (optical body, vehicle) pair over the same M
     instants: optical (B, M, 5) and telemetry (V, M, 5) roll, pitch rad, p, q, r rad/s FRD; sigma_att_rad (V,)
@@ -133,14 +121,14 @@ def accel_costs(grid_ns: np.ndarray, optical: list[np.ndarray], imu: list[tuple[
     kernel = gaussian_kernel(ACCEL_LOWPASS_S, dt_s)
     f_opt, mag = [], []
     for a in optical:
-        good, val = sample_at(grid_ns, a[:, 0], a[:, 1:])
+        good, val = sample_at(grid_ns, a[:, 0], a[:, 1:], MAX_PAIR_GAP_NS)
         val[~good] = np.nan
         f, m = optical_specific_force(val[:, 7:10], val[:, 0:4], dt_s, kernel)
         f_opt.append(f)
         mag.append(m)
     f_ap = []
     for t, acc in imu:
-        good, val = sample_at(grid_ns, t.astype(np.float64), np.asarray(acc, np.float64))
+        good, val = sample_at(grid_ns, t.astype(np.float64), np.asarray(acc, np.float64), MAX_PAIR_GAP_NS)
         val[~good] = np.nan
         f_ap.append(lowpass(val, kernel))
     known = np.all([np.isfinite(f).all(axis=1) for f in f_opt + f_ap], axis=0)
@@ -294,13 +282,13 @@ class FleetBinding:
         opt = np.zeros((len(rows), len(grid), 5))
         for i, b in enumerate(rows):
             a = ring_arrays[b]
-            good, val = sample_at(grid, a[:, 0], optical_attitude(a[:, 1:5], a[:, 5:8]))
+            good, val = sample_at(grid, a[:, 0], optical_attitude(a[:, 1:5], a[:, 5:8]), MAX_PAIR_GAP_NS)
             ok &= good
             opt[i] = val
         tel = np.zeros((len(vehicles), len(grid), 5))
         for j, v in enumerate(vehicles):
             t, val = telemetry[v]
-            good, tel[j] = sample_at(grid, t.astype(np.float64), val)
+            good, tel[j] = sample_at(grid, t.astype(np.float64), val, MAX_PAIR_GAP_NS)
             ok &= good
         n = int(ok.sum())
         if n * GRID_NS < MIN_SPAN_NS:

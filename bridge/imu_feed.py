@@ -8,8 +8,9 @@ message into a sample the core takes (FusionPipeline.push_imu): its time on the 
 specific force and rate in the tracked body's frame (FLU: the vehicle's FRD with y and z turned over,
 as bridge/convert.py maps the body), SI units.
 
-imu_sample and to_fusion (pure) read one message; ImuFeed is the mailbox between the vehicle link's
-sender thread, which offers the messages (Backchannel.handle), and the server's loop, which drains the
+to_fusion (pure) maps one sample (bridge/telemetry.py imu_sample reads the message); ImuFeed is the mailbox
+between the vehicle link's sender thread, which offers the samples (Backchannel.handle), and the server's loop,
+which drains the
 samples into the pipeline before each frame and tick (a deque: appends and pops are atomic under the
 GIL; bounded, the oldest dropped); BridgeImu drains every vehicle of a Bridge into the body bound to it
 (Bridge.imu_sources -> FusionPipeline.add_imu_source, composed by server/service.py).
@@ -21,33 +22,8 @@ import collections
 
 import numpy as np
 
-from visionpos.fusion.imu import GRAVITY_M_S2
-
 FRD_TO_FLU = np.array([1.0, -1.0, -1.0])  # the vehicle's FRD axes as the body's FLU ones (and back)
 _MAX_QUEUED = 4096
-
-
-def imu_sample(m, autopilot: str | None) -> tuple[int, np.ndarray, np.ndarray] | None:
-    """One IMU message (pymavlink HIGHRES_IMU, RAW_IMU or SCALED_IMU) as (time on the autopilot's boot clock
-    ns, specific force (3,) m/s^2 FRD, rate (3,) rad/s FRD); None for another message, for RAW_IMU from an
-    autopilot other than ArduPilot (raw sensor units), and for non-finite values.
-
-    HIGHRES_IMU: m/s^2, rad/s, time_usec; RAW_IMU (ArduPilot's): mG and mrad/s, time_usec; SCALED_IMU:
-    mG and mrad/s, time_boot_ms."""
-    t = m.get_type()
-    if t == "HIGHRES_IMU":
-        ta, acc_scale, gyro_scale = int(m.time_usec) * 1000, 1.0, 1.0
-    elif t == "RAW_IMU" and autopilot == "ardupilot":
-        ta, acc_scale, gyro_scale = int(m.time_usec) * 1000, GRAVITY_M_S2 * 1e-3, 1e-3
-    elif t == "SCALED_IMU":
-        ta, acc_scale, gyro_scale = int(m.time_boot_ms) * 1_000_000, GRAVITY_M_S2 * 1e-3, 1e-3
-    else:
-        return None
-    acc = np.array([m.xacc, m.yacc, m.zacc], dtype=np.float64) * acc_scale
-    gyro = np.array([m.xgyro, m.ygyro, m.zgyro], dtype=np.float64) * gyro_scale
-    if not (np.isfinite(acc).all() and np.isfinite(gyro).all()):
-        return None
-    return ta, acc, gyro
 
 
 def to_fusion(t_ap_ns: int, accel_frd: np.ndarray, gyro_frd: np.ndarray,
@@ -65,18 +41,16 @@ class ImuFeed:
         self.offered = 0
         self.unmapped = 0  # messages before the vehicle's clock (and its gyro filter's lag) was known: not usable
 
-    def offer(self, m, bc) -> bool:
-        """On the link's thread: one message from the autopilot of Backchannel `bc`; True if it was an IMU sample
-        and is queued. Its time: the autopilot's, less bc.clock_lag_ns (the clocks, measured against the optical
-        motion) and bc.gyro_lag_ns() (ArduPilot's INS_GYRO_FILTER: its samples trail the motion by that)."""
-        s = imu_sample(m, bc.autopilot)
-        if s is None:
-            return False
+    def offer(self, t_ap_ns: int, accel_frd: np.ndarray, gyro_frd: np.ndarray, bc) -> bool:
+        """On the link's thread: one IMU sample (bridge/telemetry.py imu_sample) from the autopilot of Backchannel
+        `bc`; True if it is queued. Its time: the autopilot's, less bc.clock_lag_ns (the clocks, measured against
+        the optical motion) and bc.gyro_lag_ns() (ArduPilot's INS_GYRO_FILTER: its samples trail the motion by
+        that)."""
         lag, filter_lag = bc.clock_lag_ns, bc.gyro_lag_ns()
         if lag is None or filter_lag is None:
             self.unmapped += 1
             return False
-        self.queue.append(to_fusion(s[0], s[1], s[2], lag + filter_lag))
+        self.queue.append(to_fusion(t_ap_ns, accel_frd, gyro_frd, lag + filter_lag))
         self.offered += 1
         return True
 

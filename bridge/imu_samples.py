@@ -13,29 +13,13 @@ RAW_IMU carries raw sensor counts and is not read (as for its gyro).
 from __future__ import annotations
 
 import collections
-import math
 
 import numpy as np
 
-from visionpos.analysis.autopilot import GRAVITY_M_S2
+from visionpos.geometry.frames import GRAVITY_M_S2
 
 RING = 1024  # samples kept: 20 s at 50 Hz (the binding uses the newest second or two)
-MILLI_G_M_S2 = GRAVITY_M_S2 / 1000.0
 MAX_ABS_M_S2 = 16.0 * GRAVITY_M_S2  # a reading beyond an IMU's range is corrupt: dropped
-
-
-def accel_frd_m_s2(msg_type: str, m, autopilot: str | None) -> tuple[float, float, float] | None:
-    """A message's specific force (m/s^2, FRD), or None where its units are not known or it is not finite."""
-    if msg_type == "HIGHRES_IMU":
-        scale = 1.0
-    elif msg_type == "SCALED_IMU" or (msg_type == "RAW_IMU" and autopilot == "ardupilot"):
-        scale = MILLI_G_M_S2
-    else:
-        return None
-    a = (float(m.xacc) * scale, float(m.yacc) * scale, float(m.zacc) * scale)
-    if not all(math.isfinite(x) and abs(x) <= MAX_ABS_M_S2 for x in a):
-        return None
-    return a
 
 
 class AccelSamples:
@@ -44,11 +28,12 @@ class AccelSamples:
     def __init__(self):
         self.d: collections.deque[tuple[int, float, float, float]] = collections.deque(maxlen=RING)
 
-    def add(self, msg_type: str, m, t_ap_ns: int, autopilot: str | None) -> None:
-        """One IMU message the back-channel accepted, stamped t_ap_ns on the autopilot's clock. A stamp older
+    def add(self, t_ap_ns: int, accel_frd_m_s2) -> None:
+        """One IMU sample the back-channel accepted (bridge/telemetry.py imu_sample): its specific force (3,) m/s^2
+        FRD, stamped t_ap_ns on the autopilot's clock. A reading beyond an IMU's range is dropped; a stamp older
         than the newest kept (the autopilot rebooted: a new clock) starts afresh."""
-        a = accel_frd_m_s2(msg_type, m, autopilot)
-        if a is None:
+        a = tuple(float(x) for x in accel_frd_m_s2)
+        if not all(abs(x) <= MAX_ABS_M_S2 for x in a):
             return
         if self.d and t_ap_ns <= self.d[-1][0]:
             self.d.clear()

@@ -56,7 +56,7 @@ def test_a_command_long_home_would_miss_by_more_than_a_centimetre():
 def test_geodetic_offset_of_a_known_step(lat, lon):
     """1e-5 deg of latitude is 1.113 m everywhere (R = 6378137 m: 2 pi R / 360 * 1e-5); of longitude, that
     times cos(lat)."""
-    from bridge.backchannel import geodetic_offset_m
+    from bridge.telemetry import geodetic_offset_m
 
     n, e = geodetic_offset_m(lat + 1e-5, lon + 1e-5, lat, lon)
     assert n == pytest.approx(1.1131949, abs=1e-6)

@@ -6,7 +6,8 @@ import time
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from bridge.imu_feed import ImuFeed, imu_sample, to_fusion
+from bridge.imu_feed import ImuFeed, to_fusion
+from bridge.telemetry import imu_sample
 
 MAV = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
 
@@ -54,17 +55,18 @@ class _Bc:
 
 def test_the_feed_waits_for_the_clocks_then_hands_over_the_samples_with_the_filter_lag_taken_off():
     feed, bc = ImuFeed(), _Bc()
-    assert not feed.offer(RAW, bc) and feed.unmapped == 1  # the vehicle's clock not measured yet
+    raw = imu_sample(RAW, "ardupilot")
+    assert not feed.offer(*raw, bc) and feed.unmapped == 1  # the vehicle's clock not measured yet
     bc.clock_lag_ns = 1_000_000.0
-    assert feed.offer(RAW, bc)
-    assert not feed.offer(_decoded(MAV.heartbeat_encode(2, 3, 0, 0, 0)), bc)  # not an IMU message
+    assert feed.offer(*raw, bc)
+    assert imu_sample(_decoded(MAV.heartbeat_encode(2, 3, 0, 0, 0)), "ardupilot") is None  # not an IMU message
     got = []
     assert feed.drain(lambda *s: got.append(s) or True, "quad", np.zeros(3)) == 1
     body, t, a, w, arm = got[0]
     assert body == "quad" and t == 3_000_000_000 - 1_000_000 - 11_300_000
     np.testing.assert_allclose(a, [0.980665, 0.4903325, 9.80665])
     assert not feed.queue
-    feed.offer(RAW, bc)
+    feed.offer(*raw, bc)
     assert feed.drain(lambda *s: True, None, np.zeros(3)) == 0 and not feed.queue  # bound to no body: dropped
 
 

@@ -1,4 +1,5 @@
-"""The accelerometer half of the autopilot's IMU messages (bridge/imu_samples.py) and the back-channel's hook."""
+"""The accelerometer half of the autopilot's IMU messages (bridge/telemetry.py imu_sample, bridge/imu_samples.py)
+and the back-channel's hook."""
 
 import numpy as np
 import pytest
@@ -6,7 +7,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from bridge.backchannel import Backchannel
 from bridge.config import parse_vehicles
-from bridge.imu_samples import AccelSamples, accel_frd_m_s2
+from bridge.imu_samples import AccelSamples
+from bridge.telemetry import imu_sample
 from visionpos.benchmarks.factories import arena_with_vehicles
 
 G = 9.80665
@@ -20,24 +22,31 @@ def _raw(t_us, acc):
     return mavlink2.MAVLink_raw_imu_message(t_us, *acc, 0, 0, 0, 0, 0, 0)
 
 
+def _accel(m, autopilot):
+    s = imu_sample(m, autopilot)
+    return None if s is None else tuple(s[1])
+
+
 def test_units_per_message():
-    assert accel_frd_m_s2("HIGHRES_IMU", _highres(0, (0.5, -0.25, -9.0)), "px4") == pytest.approx((0.5, -0.25, -9.0))
+    assert _accel(_highres(0, (0.5, -0.25, -9.0)), "px4") == pytest.approx((0.5, -0.25, -9.0))
     # ArduPilot's RAW_IMU and SCALED_IMU: milli-g, 1000 of them one g
-    assert accel_frd_m_s2("RAW_IMU", _raw(0, (0, 500, -1000)), "ardupilot") == pytest.approx((0.0, G / 2, -G))
-    assert accel_frd_m_s2("RAW_IMU", _raw(0, (0, 0, -1000)), "px4") is None  # raw counts: units unknown
-    assert accel_frd_m_s2("HIGHRES_IMU", _highres(0, (float("nan"), 0, 0)), "px4") is None
-    assert accel_frd_m_s2("HIGHRES_IMU", _highres(0, (1e6, 0, 0)), "px4") is None  # beyond any IMU's range
+    assert _accel(_raw(0, (0, 500, -1000)), "ardupilot") == pytest.approx((0.0, G / 2, -G))
+    assert _accel(_raw(0, (0, 0, -1000)), "px4") is None  # raw counts: units unknown
+    assert _accel(_highres(0, (float("nan"), 0, 0)), "px4") is None
+    s = AccelSamples()
+    s.add(0, (1e6, 0, 0))  # beyond any IMU's range: dropped
+    assert len(s) == 0
 
 
 def test_samples_restart_on_a_reboot_and_map_onto_the_server_clock():
     s = AccelSamples()
     for k in range(3):
-        s.add("HIGHRES_IMU", _highres(0, (k, 0, -G)), 5_000_000_000 + k * 20_000_000, "px4")
+        s.add(5_000_000_000 + k * 20_000_000, (k, 0, -G))
     assert s.on_server_clock(None) is None  # the clocks are not mapped yet
     t, a = s.on_server_clock(4_000_000_000.0)
     assert t.tolist() == [1_000_000_000, 1_020_000_000, 1_040_000_000]
     assert a[:, 0].tolist() == [0.0, 1.0, 2.0]
-    s.add("HIGHRES_IMU", _highres(0, (9, 0, -G)), 1_000_000, "px4")  # the autopilot rebooted: a new clock
+    s.add(1_000_000, (9, 0, -G))  # the autopilot rebooted: a new clock
     assert len(s) == 1
 
 
@@ -66,7 +75,7 @@ def test_the_fleet_gets_each_vehicles_accelerometer_on_the_server_clock():
     a, b = bridge.vehicle("quadA").bc, bridge.vehicle("quadB").bc
     a.clock_offsets.add(10**12, (-(10**12 - 3_000_000_000),))  # quadA's autopilot clock: 3 s since its boot
     for k in range(3):
-        a.accel.add("HIGHRES_IMU", _highres(0, (0, 0, -G - k)), 3_000_000_000 + k * 20_000_000, "px4")
+        a.accel.add(3_000_000_000 + k * 20_000_000, (0, 0, -G - k))
     got = bridge.fleet.accel_telemetry(bridge._by_name)
     t, acc = got["quadA"]
     assert t.tolist() == [10**12, 10**12 + 20_000_000, 10**12 + 40_000_000]

@@ -32,12 +32,12 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation
 
+from visionpos.geometry.frames import GRAVITY_M_S2
+
 __all__ = ["LagEstimate", "estimate_lag", "body_rates_from_attitudes", "vision_delay_ns", "theil_sen_at",
            "weighted_time_ns", "identity_residuals", "identity_statistic", "wrap_angle", "IdentityAssignment",
-           "assign_identities", "GRAVITY_M_S2", "gaussian_kernel", "lowpass", "optical_specific_force",
+           "assign_identities", "gaussian_kernel", "lowpass", "optical_specific_force",
            "accel_residuals"]
-
-GRAVITY_M_S2 = 9.80665
 
 
 class LagEstimate(NamedTuple):

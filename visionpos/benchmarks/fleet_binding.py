@@ -94,7 +94,7 @@ def specific_force_frd(sc, name: str, times_ns: np.ndarray) -> np.ndarray:
     acceleration with gravity added, in the body)."""
     from scipy.spatial.transform import Rotation
 
-    from visionpos.analysis.autopilot import GRAVITY_M_S2
+    from visionpos.geometry.frames import GRAVITY_M_S2
 
     traj = sc.body(name).trajectory
     t = (np.asarray(times_ns, np.int64) - np.int64(sc.start_ns)).astype(np.float64) * 1e-9

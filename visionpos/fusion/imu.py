@@ -54,11 +54,11 @@ from visionpos.fusion.layout import (
     RATE0,
 )
 from visionpos.fusion.tracking import _add_process_noise, _count_folds, _fold, _kf_predict, _output_at
+from visionpos.geometry.frames import GRAVITY_M_S2
 from visionpos.geometry.rotations import matrix_from_rotvec_compiled, rotvec_from_matrix_compiled
 
 log = logging.getLogger(__name__)
 
-GRAVITY_M_S2 = 9.80665  # standard gravity
 GRAVITY_WORLD = np.array([0.0, 0.0, -GRAVITY_M_S2])  # m/s^2, world frame z up
 IMU_ROWS = np.r_[ACC0:ACC0 + 3, RATE0:RATE0 + 3]  # the state rows a sample measures: a (3), w (3)
 _BIAS_SMOOTHING = 0.3  # weight of each new window's bias fit in the running estimate (the first: 1)

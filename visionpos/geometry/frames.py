@@ -14,6 +14,8 @@ from scipy.spatial.transform import Rotation
 
 from visionpos.geometry.rotations import euler_zyx_from_matrix
 
+GRAVITY_M_S2 = 9.80665  # standard gravity; the world's z axis points up, against it
+
 __all__ = [
     "FLU_FRD",
     "world_to_ned",

@@ -89,7 +89,7 @@ def _set_origin(gcs: Gcs, cfg: SitlSettings, say: Callable[[str], None]) -> None
 
 def home_offset_m(home: Any, lat_deg: float, lon_deg: float) -> tuple[float, float]:
     """(north, east) m of a HOME_POSITION (degE7 fields) from lat_deg, lon_deg."""
-    from bridge.backchannel import geodetic_offset_m
+    from bridge.telemetry import geodetic_offset_m
 
     return geodetic_offset_m(home.latitude * 1e-7, home.longitude * 1e-7, lat_deg, lon_deg)
 
