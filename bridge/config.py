@@ -254,6 +254,7 @@ class VehicleConfig:
     set_delay: bool = VEHICLE["set_delay"].field_default
     vision_gap_s: float = VEHICLE["vision_gap_s"].field_default
     autopilot: str = VEHICLE["autopilot"].field_default
+    position_only: bool = False  # its body is a single-marker point body: position-only messages (convert.py)
 
     @property
     def period_ns(self) -> int:
@@ -342,6 +343,9 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                               "names where the poses go")
             autopilot_address = _host_port(v, "autopilot_address", v.data["autopilot_address"])
         rmin = V.read(v, "reconnect_min_s")
+        point = bodies[body].is_point
+        if point:
+            _refuse_attitude_options(v)
         out.append(
             VehicleConfig(
                 name=name,
@@ -372,12 +376,13 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                 hold_until_origin=V.read(v, "hold_until_origin"),
                 origin_confirm_timeout_s=V.read(v, "origin_confirm_timeout_s"),
                 telemetry_rate_hz=V.read(v, "telemetry_rate_hz"),
-                identity_check=V.read(v, "identity_check"),
+                identity_check="off" if point else V.read(v, "identity_check"),
                 identity_tolerance_deg=V.read(v, "identity_tolerance_deg"),
                 silent_backchannel=V.read(v, "silent_backchannel"),
                 set_delay=V.read(v, "set_delay"),
                 vision_gap_s=V.read(v, "vision_gap_s"),
                 autopilot=V.read(v, "autopilot"),
+                position_only=point,
             )
         )
         if out[-1].message == "odometry" and out[-1].vision_speed:
@@ -389,6 +394,24 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
             raise v.error("endpoint", UDPIN_UNAUTHENTICATED.format(port=endpoint.port))
     _check_unique(arena.source, out)
     return out
+
+
+def _refuse_attitude_options(v) -> None:
+    """A vehicle of a single-marker (point) body gets its position only: the options about the optical attitude
+    are refused with their key (a lever arm needs the attitude; there is no optical attitude to check)."""
+    if VEHICLE.read(v, "message") == "odometry" and VEHICLE.read(v, "autopilot") != "px4":
+        raise v.error("message", "its body is a single-marker point body (position only): ODOMETRY without an "
+                      "attitude (NaN quaternion) is for PX4 only; write autopilot: px4, or use "
+                      "message: vision_position_estimate (ArduPilot)")
+    if any(float(x) != 0.0 for x in VEHICLE.read(v, "pivot_offset")):
+        raise v.error("pivot_offset", "its body is a single-marker point body (position only): there is no optical "
+                      "attitude to carry a lever arm; put the marker on the vehicle's reference point and remove "
+                      "pivot_offset")
+    for key in ("identity_check", "identity_tolerance_deg"):
+        if v.has(key):
+            raise v.error(key, "its body is a single-marker point body (position only): there is no optical "
+                          "attitude to compare with the autopilot's; remove the key (a fleet of point bodies is "
+                          "bound by its accelerations, docs/autopilot-setup.md)")
 
 
 def _check_unique(source: str, vehicles: list[VehicleConfig]) -> None:

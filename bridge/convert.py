@@ -130,10 +130,35 @@ def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: fl
     return MavlinkState(p_ned, q_nf, euler, v_ned, v_frd, flu_to_frd(w_body), pose_cov, vcov_ned, vcov_frd)
 
 
+def convert_position_only(state: BodyState, yaw_offset_rad: float, at_ns: int | None = None) -> MavlinkState:
+    """A point body's BodyState (no attitude) -> NED quantities at at_ns (default: its capture time): the position
+    moved back with the velocity, the velocity and their covariances; the attitude, the body-frame velocity and
+    the rates NaN (unknown), the pose covariance's rotation rows and columns NaN."""
+    dt = (state.time_ns - (state.capture_ns if at_ns is None else at_ns)) * 1e-9
+    v_w = np.asarray(state.velocity, float)
+    Y = yaw_matrix_ned(yaw_offset_rad)
+    J = Y @ FLU_FRD  # world z-up -> offset NED
+    nan3 = np.full(3, np.nan)
+    C = np.asarray(state.covariance, float)
+    pose_cov = None
+    if C.shape == (6, 6) and np.isfinite(C[:3, :3]).all():
+        pose_cov = np.full((6, 6), np.nan)
+        pose_cov[:3, :3] = J @ C[:3, :3] @ J.T
+    Cv = np.asarray(state.velocity_covariance, float)
+    vcov_ned = J @ Cv @ J.T if Cv.shape == (3, 3) and np.isfinite(Cv).all() else None
+    return MavlinkState(Y @ world_to_ned(np.asarray(state.position, float) - v_w * dt), np.full(4, np.nan),
+                        nan3, Y @ world_to_ned(v_w), nan3.copy(), nan3.copy(), pose_cov, vcov_ned, None)
+
+
 def vision_position_fields(c: MavlinkState, usec: int, reset_counter: int) -> dict:
-    """Fields of VISION_POSITION_ESTIMATE."""
-    cov = nan_covariance(21) if c.pose_cov is None else mavlink_upper_triangle(c.pose_cov).tolist()
+    """Fields of VISION_POSITION_ESTIMATE. Without an attitude (a point body: euler NaN) roll, pitch and yaw are
+    0 and the covariance unknown (NaN first): ArduPilot takes the position with VISO_POS_M_NSE and reads the
+    attitude only for EK3_SRC1_YAW = 6 (docs/autopilot-setup.md, single-marker drones)."""
     x, y, z = (float(a) for a in c.position_ned)
+    if not np.isfinite(c.euler).all():
+        return dict(usec=usec, x=x, y=y, z=z, roll=0.0, pitch=0.0, yaw=0.0, covariance=nan_covariance(21),
+                    reset_counter=reset_counter)
+    cov = nan_covariance(21) if c.pose_cov is None else mavlink_upper_triangle(c.pose_cov).tolist()
     roll, pitch, yaw = (float(a) for a in c.euler)
     return dict(usec=usec, x=x, y=y, z=z, roll=roll, pitch=pitch, yaw=yaw, covariance=cov, reset_counter=reset_counter)
 
@@ -151,8 +176,19 @@ MAV_ESTIMATOR_TYPE_VISION = 2
 
 
 def odometry_fields(c: MavlinkState, usec: int, reset_counter: int, quality: int) -> dict:
-    """Fields of ODOMETRY: pose in LOCAL_FRD (our NED), velocities in BODY_FRD, q w-first."""
+    """Fields of ODOMETRY: pose in LOCAL_FRD (our NED), velocities in BODY_FRD, q w-first. Without an attitude
+    (a point body) q is NaN first (MAVLink: unknown), the body-frame velocities and rates NaN with an unknown
+    velocity covariance, and the pose covariance's rotation entries NaN."""
     pose_cov = nan_covariance(21) if c.pose_cov is None else mavlink_upper_triangle(c.pose_cov).tolist()
+    if not np.isfinite(c.quaternion_ned_frd).all():
+        x, y, z = (float(a) for a in c.position_ned)
+        nan = float("nan")
+        return dict(
+            time_usec=usec, frame_id=MAV_FRAME_LOCAL_FRD, child_frame_id=MAV_FRAME_BODY_FRD,
+            x=x, y=y, z=z, q=[nan, 0.0, 0.0, 0.0], vx=nan, vy=nan, vz=nan, rollspeed=nan, pitchspeed=nan, yawspeed=nan,
+            pose_covariance=pose_cov, velocity_covariance=nan_covariance(21),
+            reset_counter=reset_counter, estimator_type=MAV_ESTIMATOR_TYPE_VISION, quality=quality,
+        )
     if c.velocity_cov_frd is None:
         vel_cov = nan_covariance(21)
     else:

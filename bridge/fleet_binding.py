@@ -43,6 +43,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from bridge.backchannel import IDENTITY_RATE_NOISE_RAD_S, IDENTITY_RATE_REL, MAX_PAIR_GAP_NS, TELEMETRY_STALE_NS
+from bridge.point_binding import point_accel_costs
 from bridge.telemetry import sample_at
 from visionpos.analysis.autopilot import (
     accel_residuals,
@@ -161,7 +162,7 @@ class FleetBinding:
     """
 
     def __init__(self, groups: list[list[str]], vehicle_body: dict[str, str], sigma_att_rad: dict[str, float],
-                 silent_policy: dict[str, str]):
+                 silent_policy: dict[str, str], point_bodies: frozenset[str] = frozenset()):
         self.groups = [(list(bodies), [v for v, b in vehicle_body.items() if b in bodies]) for bodies in groups]
         self.groups = [(bs, vs) for bs, vs in self.groups if len(vs) > 0 and len(bs) > 1]
         self.bodies = {b for bs, _ in self.groups for b in bs}
@@ -177,6 +178,7 @@ class FleetBinding:
         self.binds = 0  # bindings made
         self.drops = 0  # bindings dropped (loss, ambiguity, disagreement, silence)
         self.disagreements = 0
+        self.point_bodies = point_bodies  # single-marker bodies: bound by their accelerations (point_binding.py)
 
     def vehicle_of(self, body: str) -> str | None:
         """The vehicle that gets this optical body's states now (None: nobody)."""
@@ -278,6 +280,8 @@ class FleetBinding:
         t_end = min(min(a[-1, 0] for a in ring_arrays.values()), min(float(telemetry[v][0][-1]) for v in vehicles))
         t_start = max(t_end - WINDOW_NS, max(a[0, 0] for a in ring_arrays.values()))
         grid = np.arange(t_end, t_start, -GRID_NS)[::-1]
+        if rows[0] in self.point_bodies:
+            return self._point_costs(rows, vehicles, grid, ring_arrays, telemetry)
         ok = np.ones(len(grid), bool)
         opt = np.zeros((len(rows), len(grid), 5))
         for i, b in enumerate(rows):
@@ -302,7 +306,25 @@ class FleetBinding:
         still = bool(np.abs(opt[:, ok, 2:]).max() < STILL_RATE_RAD_S) and (acc is None or acc[2] < STILL_ACCEL_M_S2)
         if acc is not None:
             cost = cost + acc[0]
-        reject = reject_cost(n, acc[1] if acc is not None else 0)
+        return self._assign(rows, vehicles, cost, reject_cost(n, acc[1] if acc is not None else 0), still)
+
+    def _point_costs(self, rows: list[str], vehicles: list[str], grid: np.ndarray, ring_arrays: dict,
+                     telemetry: dict) -> tuple[list[str], list[tuple[str, str]]]:
+        """A group of single-marker bodies: the accelerations' costs only (point_binding.py), then _assign."""
+        imu = [self._accel.get(v) for v in vehicles]
+        if not all(x is not None and len(x[0]) > 1 for x in imu):
+            return self._say_unresolved(rows, vehicles, "single-marker bodies are bound by their accelerations: "
+                                        "no accelerometer samples from every vehicle yet"), []
+        acc = point_accel_costs(grid, [(a[:, 0], a[:, 8:11]) for a in (ring_arrays[b] for b in rows)],
+                                [telemetry[v] for v in vehicles], imu, MAX_PAIR_GAP_NS, ACCEL_LOWPASS_S, ACCEL_EVERY,
+                                ACCEL_NOISE_M_S2, ACCEL_REL, ACCEL_BIAS_M_S2, ACCEL_MIN_INSTANTS)
+        if acc is None:
+            return self._say_unresolved(rows, vehicles, "too few shared instants of optics and accelerometers yet"), []
+        return self._assign(rows, vehicles, acc[0], reject_cost(0, acc[1]), acc[2] < STILL_ACCEL_M_S2)
+
+    def _assign(self, rows: list[str], vehicles: list[str], cost: np.ndarray, reject: float, still: bool
+                ) -> tuple[list[str], list[tuple[str, str]]]:
+        """The assignment of the group's bodies `rows` to its live vehicles from their pair costs (B, V)."""
         # a held binding is known by continuity: its body and its vehicle are no one else's, so the others are
         # assigned among themselves (the last still one of a fleet is bound by elimination)
         held = cost.copy()

@@ -196,5 +196,6 @@ def _fleet_binding(arena: ArenaConfig, vehicles: list[VehicleLink]) -> FleetBind
     groups = [names for names in first.values() if len(names) > 1]
     fleet = FleetBinding(groups, {v.cfg.name: v.cfg.body for v in vehicles},
                          {v.cfg.name: math.radians(v.cfg.identity_tolerance_deg) for v in vehicles},
-                         {v.cfg.name: v.cfg.silent_backchannel for v in vehicles})
+                         {v.cfg.name: v.cfg.silent_backchannel for v in vehicles},
+                         frozenset(b.name for b in arena.bodies if b.is_point))
     return fleet if fleet.groups else None

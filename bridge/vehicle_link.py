@@ -46,7 +46,13 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from bridge.backchannel import MAV_CMD_DO_SET_HOME, MAV_COMP_ID_AUTOPILOT1, Backchannel
 from bridge.config import VehicleConfig, pivot_array
-from bridge.convert import convert_state, odometry_fields, vision_position_fields, vision_speed_fields
+from bridge.convert import (
+    convert_position_only,
+    convert_state,
+    odometry_fields,
+    vision_position_fields,
+    vision_speed_fields,
+)
 from bridge.link_stats import LatencyRing, fmt_addr, percentiles_ms
 from bridge.signing import MAVLINK2_MAGIC, SignatureCheck, SigningClock
 from bridge.transport import Link, LinkDown, make_link
@@ -491,10 +497,13 @@ class VehicleLink:
             c["dropped_stale"] += 1
             self._not_sent_why = f"the poses reach the bridge over max_age_ms ({self.cfg.max_age_ms:g} ms) old"
             return
-        conv = convert_state(st, self.pivot, self.yaw_offset_rad, at_ns=stamp)
         bc = self.bc
-        euler, rate = conv.euler, conv.angular_velocity_frd
-        bc.on_optical(stamp, euler[0], euler[1], rate, conv.quaternion_ned_frd)  # also while held
+        if self.cfg.position_only:  # a point body: no attitude to send or to check
+            conv = convert_position_only(st, self.yaw_offset_rad, at_ns=stamp)
+        else:
+            conv = convert_state(st, self.pivot, self.yaw_offset_rad, at_ns=stamp)
+            euler, rate = conv.euler, conv.angular_velocity_frd
+            bc.on_optical(stamp, euler[0], euler[1], rate, conv.quaternion_ned_frd)  # also while held
         if not self._peer_known():
             c["no_link"] += 1
             self._not_sent_why = "the link is down"

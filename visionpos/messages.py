@@ -67,7 +67,9 @@ class BodyState:
     capture_ns: capture time of the newest camera frame that contributed.
     update_kind: which measurement last kept the body tracked: "pose" (triangulated, or the
     identification; in fusion.single_view.mode always the filter took the triangulated frames' views),
-    "views" (single-camera reprojection updates through occlusion), "" (none).
+    "views" (single-camera reprojection updates through occlusion), "position" (a single-marker point body:
+    position and velocity only; its quaternion, angular_velocity and the covariance's rotation rows are NaN),
+    "" (none).
     """
 
     name: str

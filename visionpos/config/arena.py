@@ -200,13 +200,19 @@ class Section:
 
 @dataclass(frozen=True)
 class BodyConfig:
-    """A rigid body: markers (M, 3) in the body frame (m; x forward, y left, z up)."""
+    """A rigid body: markers (M, 3) in the body frame (m; x forward, y left, z up); M = 1: a point body (position
+    only, its one marker at the origin)."""
 
     name: str
     id: int
     markers: np.ndarray
     marker_diameter: float = 0.014
     raw: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def is_point(self) -> bool:
+        """One marker: tracked for its position only (fusion/point_tracks.py)."""
+        return len(self.markers) == 1
 
 
 @dataclass(frozen=True)
@@ -293,8 +299,14 @@ def parse_arena(data: dict[str, Any], source: str = "<arena>") -> ArenaConfig:
         if b.has("occlusion"):
             sections.BODY_OCCLUSION.check(b.sub("occlusion"))
         markers = sections.BODY.read(b, "markers")
-        if len(markers) < 3:
-            raise b.error("markers", f"a rigid body needs at least 3 markers, got {len(markers)}")
+        if len(markers) == 1 and np.any(markers[0] != 0.0):
+            raise b.error("markers", f"a single-marker (point) body's marker is its origin: write [[0, 0, 0]], got "
+                                     f"{markers.tolist()}")
+        if len(markers) == 2:
+            raise b.error("markers", "a rigid body needs at least 3 markers (one marker: a position-only point "
+                                     "body, [[0, 0, 0]]), got 2")
+        if len(markers) < 1:
+            raise b.error("markers", "a body needs 1 marker (a point body) or at least 3 (a rigid body), got 0")
         d = np.linalg.norm(markers[:, None] - markers[None], axis=-1)
         if np.min(d + np.eye(len(markers)) * 1e9) < 0.01:
             raise b.error("markers", "two markers are closer than 10 mm; cameras cannot separate them")

@@ -74,7 +74,8 @@ BODY = section(
     Setting(
         "id", "integer", None, "body id in outputs (1..255)", min=1, max=255, default_doc="position in the list + 1"
     ),
-    Setting("markers", "array", doc="marker centres (M, 3) in m, at least 3, no two closer than 10 mm",
+    Setting("markers", "array", doc="marker centres (M, 3) in m, at least 3, no two closer than 10 mm; or one "
+            "marker at the origin, [[0, 0, 0]]: a point body, tracked for its position only",
             shape=(None, 3)),
     Setting("marker_diameter", "number", 0.014, "marker sphere diameter (m)", min=0.001),
     Setting("occlusion", "section", doc="simulator self-occlusion of this body", spec=BODY_OCCLUSION),

@@ -88,6 +88,8 @@ from visionpos.fusion.layout import (
     TRACK_RESIDUAL_MM,
     TRACK_TRACKED,
     TRACK_UPDATE_KIND,
+    X_POS,
+    X_VEL,
     TrackedSet,
     UpdateKind,
     Verdict,
@@ -95,7 +97,8 @@ from visionpos.fusion.layout import (
 )
 from visionpos.fusion.matching import Projector, match_unlabeled
 from visionpos.fusion.measurements import pose_measurement_cov
-from visionpos.fusion.rigidbody import BodyModel, identify, layout_ambiguities
+from visionpos.fusion.point_tracks import PointTracks
+from visionpos.fusion.rigidbody import BodyModel, Identification, identify, layout_ambiguities
 from visionpos.fusion.settings import FUSION_PARAMS, pack_params, parse_fusion
 from visionpos.fusion.snapshot import CameraFrame, FusionSnapshot
 from visionpos.fusion.timealign import Group, TimeAligner, TimeAlignment
@@ -147,8 +150,13 @@ class FusionPipeline:
         self.settings = parse_fusion(arena, settings)
         st = self.settings
         self.models = [BodyModel(b.name, b.id, np.asarray(b.markers, float)) for b in arena.bodies]
+        # single-marker bodies: position-only tracks by continuity (point_tracks.py), apart from the rigid ones
+        self._point_bodies = [b for b, m in enumerate(self.models) if len(m.markers) == 1]
+        self._point_row = {b: k for k, b in enumerate(self._point_bodies)}
+        self._n_rigid = len(self.models) - len(self._point_bodies)
+        self.points = PointTracks(self._point_bodies, st.kalman.marker_sigma_m) if self._point_bodies else None
         # layouts the geometry cannot tell apart would be swapped or flipped: refuse them
-        problems = layout_ambiguities(self.models, 0.5 * st.identify_tolerance_m)
+        problems = layout_ambiguities([m for m in self.models if len(m.markers) > 1], 0.5 * st.identify_tolerance_m)
         if problems:
             raise ConfigError(
                 arena.source,
@@ -305,6 +313,8 @@ class FusionPipeline:
         self._tracked_set = tuple(self._layout(self._tracked)) if self._tracked else ()  # the kernels' argument
         # by blob label: free for acquisition unless a marker of a tracked body (label -1: the last entry)
         self._label_free = np.append(self._track_ints[self._marker_body, TRACK_TRACKED] == 0, True)
+        if self.points is not None:  # a tracked point body's blob (labelled by _track_points) is not free
+            self._label_free[self._marker_start[self._point_bodies]] = ~self.points.tracked
         self._motion = None
 
     def _motion_cache(self) -> tuple[int, np.ndarray]:
@@ -370,8 +380,10 @@ class FusionPipeline:
             self._update_tracked(views, ref, g.compensate)
             if imu is not None:
                 imu.after_fusion(self._tracked, self.last_raw, ref)
+        if self.points is not None and self.points.due(ref):
+            self._track_points([obs[c] for c in cams], views, ref)
         # acquisition is for lost bodies; with all tracked it only refreshes the loose points
-        lost = len(self._tracked) < len(self.tracks)
+        lost = len(self._tracked) < self._n_rigid
         interval = st.acquire_interval_ns if lost else st.loose_points_interval_ns
         if (lost or st.loose_points) and (ref - self._last_acquire_ns >= interval or ref < self._last_acquire_ns):
             self._last_acquire_ns = ref
@@ -381,8 +393,10 @@ class FusionPipeline:
         track_ints = self._track_ints
         lost_ns = max(st.kalman.lost_timeout_ns, _LOST_PERIODS * self.aligner.slowest_period_ns())
         gone = [b for b in self._tracked if ref - track_ints[b, TRACK_LAST_UPDATE_NS] > lost_ns]
-        if self.identity.shared:
+        if self.identity.shared and self.points is None:
             self.identity.after_fusion(ref, self._tracked, self.bank.x, self.bank.P)
+        elif self.identity.shared:
+            self._identity_with_points(ref)
         if gone:
             track_ints[gone, TRACK_TRACKED] = 0
             self._stats["lost"] += len(gone)
@@ -433,7 +447,7 @@ class FusionPipeline:
         """Match leftover blobs across views (cam_index (V,): their cameras' indices); identify lost bodies;
         report loose points."""
         st = self.settings
-        lost = [b for b in range(len(self.tracks)) if b not in self._tracked]
+        lost = [b for b in range(len(self.tracks)) if b not in self._tracked and b not in self._point_row]
         if not lost and not st.loose_points:
             return
         free = [np.flatnonzero(self._label_free[o.label]) for o in obs]
@@ -500,6 +514,89 @@ class FusionPipeline:
             self._tracking_changed()
         self.loose_points = LoosePoints(ref, pts[left], rms[left])
 
+    # ----------------------------------------------------------- point bodies
+    def _track_points(self, obs: list[Observation], views: tuple, ref: int) -> None:
+        """One point fusion (point_tracks.py) at ref (ns) from the blobs no tracked body took in obs (the fusion's
+        frames, cameras `views`): triangulate them, update the point tracks, label the blobs they took, lose the
+        stale ones, and acquire lost point bodies from confirmed new points, named as the identity book names
+        bodies of a shared layout."""
+        st, pt = self.settings, self.points
+        cam_index, R, t, focal_px, _ = views
+        free = [np.flatnonzero(self._label_free[o.label]) for o in obs]
+        pts, idx, rms = match_unlabeled([o.xn[fr] for o, fr in zip(obs, free)], R, t, focal_px,
+                                        st.acquire_ray_gate_px, st.max_residual_px)
+        n_views = (idx >= 0).sum(axis=1)
+        # per axis: the reprojection residual (at least 0.2 px) at the farthest camera's range, over the views
+        centres = -np.einsum("vji,vj->vi", R, t)
+        far_m = np.sqrt(((pts[:, None] - centres[None]) ** 2).sum(-1)).max(axis=1) if len(pts) else np.zeros(0)
+        var = (np.maximum(rms, 0.2) * far_m / float(np.min(focal_px))) ** 2 / np.maximum(n_views, 1)
+        capture = max(o.capture_ns for o in obs)
+        used = pt.step(ref, pts, var, n_views, capture)
+        for q in np.flatnonzero(used >= 0).tolist():
+            row = int(self._marker_start[self._point_bodies[used[q]]])
+            pt.residual_px[used[q]] = rms[q]
+            for v, o in enumerate(obs):
+                if idx[q, v] >= 0:
+                    o.label[free[v][idx[q, v]]] = row
+        lost_ns = max(st.kalman.lost_timeout_ns, _LOST_PERIODS * self.aligner.slowest_period_ns())
+        changed = False
+        for k in np.flatnonzero(pt.tracked & (ref - pt.last_update_ns > lost_ns)).tolist():
+            pt.tracked[k], changed = False, True
+            self._stats["lost"] += 1
+            self.untracked_why[self._point_bodies[k]] = "its marker was not seen by two cameras near its prediction"
+        lost = [b for k, b in enumerate(self._point_bodies) if not pt.tracked[k]]
+        if lost:
+            confirmed = pt.candidates(pts[used < 0], n_views[used < 0])
+            for b in lost:
+                self.untracked_why[b] = "no new point seen by three cameras for a while"
+            found = [Identification(lost[0], np.zeros(1, np.int64), np.eye(3), p, 0.0) for p in confirmed[:len(lost)]]
+            for f in self.identity.acquired(found, lost):
+                k = self._point_row[f.body]
+                near = int(np.argmin(((pts - f.t) ** 2).sum(-1)))
+                pt.start(k, ref, f.t, float(var[near]), capture)
+                self.untracked_why.pop(f.body, None)
+                self._stats["acquisitions"] += 1
+                changed = True
+        else:
+            pt.cand, pt.hits = pt.cand[:0], pt.hits[:0]  # candidates are for lost bodies, fresh each time
+        if changed:
+            self._tracking_changed()
+
+    def _identity_with_points(self, ref: int) -> None:
+        """IdentityBook.after_fusion over the rigid and the point tracks (the point filters' positions and
+        velocities in the rigid states' places)."""
+        pt = self.points
+        x, P = self.bank.x.copy(), self.bank.P.copy()
+        rows = np.array(self._point_bodies)
+        x[rows, X_POS], x[rows, X_VEL] = pt.x[:, :3], pt.x[:, 3:6]
+        P[rows, X_POS, X_POS] = pt.P[:, :3, :3]
+        tracked = tuple(sorted(self._tracked + tuple(rows[pt.tracked].tolist())))
+        self.identity.after_fusion(ref, tracked, x, P)
+
+    def _is_tracked(self, b: int) -> bool:
+        k = self._point_row.get(b)
+        return bool(self.tracks[b].tracked) if k is None else bool(self.points.tracked[k])
+
+    def _point_state(self, b: int, now_ns: int, max_prediction_ns: int, lost_ns: int) -> BodyState:
+        """A point body's BodyState at now_ns: position and velocity with their covariances; no attitude (NaN
+        quaternion, body rates and rotation covariance: a point has none), n_markers 1."""
+        pt, k, model = self.points, self._point_row[b], self.models[b]
+        age = now_ns - int(pt.last_update_ns[k])
+        nan3 = np.full(3, np.nan)
+        cov = np.full((6, 6), np.nan)
+        if pt.tracked[k] and age <= max_prediction_ns and age <= lost_ns:
+            p, v, Pp, Pv = pt.output_at(k, now_ns)
+            cov[:3, :3] = Pp
+            return BodyState(name=model.name, body_id=model.id, time_ns=int(now_ns),
+                             capture_ns=int(pt.last_capture_ns[k]), position=p, quaternion=np.full(4, np.nan),
+                             velocity=v, angular_velocity=nan3, covariance=cov, velocity_covariance=Pv, tracked=True,
+                             n_markers=1, n_cameras=int(pt.n_cameras[k]),
+                             residual_mm=float("nan"), update_kind="position")
+        return BodyState(name=model.name, body_id=model.id, time_ns=int(now_ns),
+                         capture_ns=int(pt.last_capture_ns[k]), position=nan3, quaternion=np.full(4, np.nan),
+                         velocity=nan3.copy(), angular_velocity=nan3.copy(), covariance=cov,
+                         velocity_covariance=np.full((3, 3), np.nan), tracked=False)
+
     # ----------------------------------------------------------------- output
     def tick(self, now_ns: int) -> list[BodyState]:
         """One BodyState per configured body, predicted to now_ns.
@@ -522,6 +619,9 @@ class FusionPipeline:
         max_prediction_ns = max(st.kalman.max_prediction_ns, _PREDICTION_PERIODS * slowest)
         lost_ns = max(st.kalman.lost_timeout_ns, _LOST_PERIODS * slowest)
         for b, (model, tr) in enumerate(zip(self.models, self.tracks)):
+            if b in self._point_row:
+                out.append(self._point_state(b, now_ns, max_prediction_ns, lost_ns))
+                continue
             row = self._track_ints[b].tolist()  # Python ints, read once
             age = now_ns - row[TRACK_LAST_UPDATE_NS]
             if row[TRACK_TRACKED] and age <= max_prediction_ns and age <= lost_ns:
@@ -584,15 +684,16 @@ class FusionPipeline:
         """What the operator console shows (fusion/snapshot.py); references to this pipeline's arrays, no copies."""
         cams = {cid: CameraFrame(o.capture_ns, self.last_px[cid], o.xn, o.label, o.pred_px, o.pred_rows)
                 for cid, o in self.obs.items() if cid in self.last_px}
-        return FusionSnapshot(cams, tuple(bool(tr.tracked) for tr in self.tracks), dict(self.untracked_why),
-                              self.loose_points, self.identity.states())
+        tracked = tuple(self._is_tracked(b) for b in range(len(self.tracks)))
+        return FusionSnapshot(cams, tracked, dict(self.untracked_why), self.loose_points, self.identity.states())
 
     def stats(self) -> dict[str, Any]:
         """Counters: frames, fusions, measurements, rejections by reason, per-camera frames, per-body state."""
         d: dict[str, Any] = dict(self._stats)
         d["per_camera_frames"] = dict(sorted(self._per_camera.items()))
         d["bodies"] = {
-            m.name: {"tracked": tr.tracked, "reset_counter": tr.reset_counter, "n_markers": tr.n_markers,
+            m.name: {"tracked": self._is_tracked(b), "reset_counter": tr.reset_counter,
+                     "n_markers": tr.n_markers if b not in self._point_row else int(self._is_tracked(b)),
                      "identity": self.identity.state[b].value}
             for b, (m, tr) in enumerate(zip(self.models, self.tracks))
         }

@@ -150,3 +150,19 @@ def fleet_route(slot: int, count: int, height: float = 1.0, yaw_deg: float = 0.0
     times += [down_at, down_at + CLIMB_S]
     points += [wp["above_park"], wp["park"]]
     return Route(np.array(times), np.array(points), float(np.radians(yaw_deg)))
+
+
+def point_fleet(arena: dict, count: int, duration_s: float | None = None) -> dict:
+    """A copy of an arena mapping whose bodies are `count` single-marker drones (point bodies `dot1`, `dot2`,
+    ..., one marker at the origin) flying the fleet plan of `count` (session `fleet_points`), for
+    `duration_s` s (default: to the last landing)."""
+    out = dict(arena)
+    out["bodies"] = [{"name": f"dot{i + 1}", "id": i + 1, "marker_diameter": 0.019, "markers": [[0.0, 0.0, 0.0]]}
+                     for i in range(count)]
+    sim = dict(out.get("sim") or {})
+    sim["sessions"] = {**(sim.get("sessions") or {}), "fleet_points": {
+        f"dot{i + 1}": {"trajectory": "fleet", "slot": i, "count": count} for i in range(count)}}
+    sim["session"] = "fleet_points"
+    sim["duration"] = float(duration_s if duration_s is not None else fleet_schedule(count)["landed"] + 0.5)
+    out["sim"] = sim
+    return out
