@@ -43,7 +43,7 @@ def _point_state(**kw):
     C = np.full((6, 6), np.nan)
     C[:3, :3] = np.diag([1e-6, 2e-6, 3e-6])
     return body_state(name="dot", position=(1, 2, 3), quaternion=NAN4, velocity=(0.5, 0, 0),
-                      angular_velocity=(np.nan,) * 3, covariance=C, **kw)
+                      angular_velocity=(np.nan,) * 3, covariance=C, n_markers=1, **kw)
 
 
 def _pair(fake, **vehicle):
@@ -123,9 +123,9 @@ def test_a_fleet_of_point_bodies_is_bound_by_its_accelerations():
         if fb.due(int(t)) and i > 0:
             ts = t_all[: i + 1]
             tel = {v: (ts, np.zeros((len(ts), 5))) for v in vehicles}
+            w = {v: omega[drone_of[v]] for v in vehicles}  # up: a = -amp w^2 sin(w t); FRD z reads -(a + g)
             acc = {v: (ts, np.column_stack([np.zeros(len(ts)), np.zeros(len(ts)),
-                                            -(G - amp * omega[drone_of[v]] ** 2 * np.sin(omega[drone_of[v]] * ts * 1e-9))]))
-                   for v in vehicles}
+                                            -(G - amp * w[v] ** 2 * np.sin(w[v] * ts * 1e-9))])) for v in vehicles}
             made += fb.evaluate(int(t), tel, acc)[1]
     assert sorted(made) == [("dot1", "b"), ("dot2", "a")]
 
@@ -141,6 +141,9 @@ def test_the_outputs_never_send_an_attitude_for_a_point_body():
     st = _point_state()
     line = json.loads(_json_line(st, 0))  # pose stream: the position, the attitude null (JSON has no NaN)
     assert line["tracked"] and line["position"] == pytest.approx([1, 2, 3]) and line["quaternion"] == [None] * 4
+    assert line["angular_velocity"] == [None] * 3 and line["velocity"] == pytest.approx([0.5, 0, 0])
+    cov = line["covariance"]  # upper triangle of [x y z rx ry rz]: (0,0) (1,1) known, (3,3) (5,5) not
+    assert cov[0] == pytest.approx(1e-6) and cov[6] == pytest.approx(2e-6) and cov[15] is None and cov[20] is None
     assert encode_reports(st, 0, time.time_ns(), 0) is None  # VRPN: Pos_Quat needs an attitude: nothing sent
     srv = server(transmission="unicast")
     try:  # NatNet: a rigid body not valid, at the origin with the identity (as an untracked one)
