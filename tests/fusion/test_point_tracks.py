@@ -109,7 +109,7 @@ def test_a_fleet_of_point_bodies_is_tracked_apart_through_a_crossing():
         seen = sum(c.visible(truth[i]).astype(int) for c in sc.arena.cameras) >= 2  # in two cameras' views
         assert tracked[seen].mean() >= 0.95
         err = np.linalg.norm(pos[tracked] - truth[i, tracked], axis=1)
-        assert np.sqrt(np.mean(err**2)) < 0.006
+        assert np.sqrt(np.mean(err**2)) < 0.003
         others = np.delete(truth, i, axis=0)[:, tracked]
         assert np.all(np.linalg.norm(pos[tracked] - others, axis=-1).min(axis=0) > err)  # no swap
     assert pipe.snapshot().identity == ("unresolved: acquired",) * 4

@@ -531,7 +531,10 @@ class FusionPipeline:
         far_m = np.sqrt(((pts[:, None] - centres[None]) ** 2).sum(-1)).max(axis=1) if len(pts) else np.zeros(0)
         var = (np.maximum(rms, 0.2) * far_m / float(np.min(focal_px))) ** 2 / np.maximum(n_views, 1)
         capture = max(o.capture_ns for o in obs)
-        used = pt.step(ref, pts, var, n_views, capture)
+        seen = idx >= 0
+        t_obs = np.array([o.capture_ns for o in obs], dtype=np.int64)
+        t_meas = ((seen * (t_obs - capture)).sum(axis=1) // np.maximum(n_views, 1) + capture).astype(np.int64)
+        used = pt.step(ref, pts, var, n_views, t_meas, capture)
         for q in np.flatnonzero(used >= 0).tolist():
             row = int(self._marker_start[self._point_bodies[used[q]]])
             pt.residual_px[used[q]] = rms[q]

@@ -7,7 +7,9 @@ of a fusion's frames), at most every POINT_INTERVAL_NS of capture time:
 - each tracked point body's constant-acceleration Kalman filter (position, velocity, acceleration; white jerk)
   is predicted to the fusion's time, and the points are assigned to the predictions (Hungarian on the
   squared distance normalised by the innovation covariance, gated at GATE_NIS plus GATE_FLOOR_M);
-- an assigned point updates its track; a track without one for the lost timeout is lost;
+- an assigned point updates its track at the point's own time, the mean capture time of the views that saw
+  it (the cameras are asynchronous: a fusion's frames saw a moving marker at different instants); a track
+  without a point for the lost timeout is lost;
 - a point no track takes, seen by at least ACQUIRE_VIEWS cameras in CONFIRM_HITS fusions in a row near the
   same place, is a candidate: the pipeline names it as it names identical rigid bodies (IdentityBook: the
   nearest lost body by last position, a body never seen by the parking order), and the identity book marks
@@ -22,7 +24,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 N_POINT_STATE = 9  # position (3), velocity (3), acceleration (3)
-JERK_PSD = 400.0  # white-jerk spectral density (m^2/s^5): a small drone's manoeuvres, ~20 m/s^3 in 1 s
+# white-jerk spectral density (m^2/s^5); on the fleet plan (thesis arena) 400 gave 2.9 mm RMSE, 10 gave 1.8 mm
+JERK_PSD = 10.0
 GATE_NIS = 16.27  # chi-square, 3 dof, p = 0.001: a point farther from a prediction is not its marker ...
 GATE_FLOOR_M = 0.02  # ... unless within this (a tight filter must still follow an unmodelled jerk)
 POINT_INTERVAL_NS = 4_000_000  # point tracking at most this often (capture clock)
@@ -146,28 +149,31 @@ class PointTracks:
         return not 0 <= ref_ns - self.last_ns < POINT_INTERVAL_NS
 
     def step(self, ref_ns: int, points_m: np.ndarray, var_m2: np.ndarray, n_views: np.ndarray,
-             capture_ns: int) -> np.ndarray:
+             t_meas_ns: np.ndarray, capture_ns: int) -> np.ndarray:
         """One point fusion at ref_ns: points (N, 3) m triangulated from n_views (N,) cameras with variance
-        var_m2 (N,) m^2 per axis. Updates the tracked filters; returns per point the track index that took it
-        (-1: none)."""
+        var_m2 (N,) m^2 per axis, each at t_meas_ns (N,) (the mean capture time of its views: asynchronous
+        cameras see a moving marker at different instants). Associates at ref_ns, updates each track that took a
+        point at that point's time; returns per point the track index that took it (-1: none)."""
         self.last_ns = ref_ns
         used = np.full(len(points_m), -1, dtype=np.int64)
         live = np.flatnonzero(self.tracked)
-        if not len(live):
+        if not len(live) or not len(points_m):
             return used
         x, P = predict(self.x[live], self.P[live], (ref_ns - self.t_ns[live]) * 1e-9)
         R = np.maximum(var_m2, self.meas_var_floor)[:, None, None] * np.eye(3)
-        S = P[:, :3, :3] + np.mean(R, axis=0) if len(points_m) else P[:, :3, :3]
-        match = associate(x[:, :3], S, points_m)
+        match = associate(x[:, :3], P[:, :3, :3] + np.mean(R, axis=0), points_m)
         hit = match >= 0
-        if hit.any():
-            x[hit], P[hit] = update(x[hit], P[hit], points_m[match[hit]], R[match[hit]])
-        k = live[hit]
-        self.x[live], self.P[live], self.t_ns[live] = x, P, ref_ns
+        hit[hit] = t_meas_ns[match[hit]] > self.t_ns[live[hit]]  # the same frames again (older on average): no news
+        if not hit.any():
+            return used
+        k, q = live[hit], match[hit]
+        x, P = predict(self.x[k], self.P[k], (t_meas_ns[q] - self.t_ns[k]) * 1e-9)
+        self.x[k], self.P[k] = update(x, P, points_m[q], R[q])
+        self.t_ns[k] = t_meas_ns[q]
         self.last_update_ns[k] = ref_ns
         self.last_capture_ns[k] = capture_ns
-        self.n_cameras[k] = n_views[match[hit]]
-        used[match[hit]] = k
+        self.n_cameras[k] = n_views[q]
+        used[q] = k
         return used
 
     def candidates(self, points_m: np.ndarray, n_views: np.ndarray) -> np.ndarray:
