@@ -203,6 +203,9 @@ class FusionPipeline:
         # the vehicles' IMU samples (push_imu) in the prediction, when fusion.imu.enabled (fusion/imu.py)
         self.imu = ImuInputs(st.imu, [m.name for m in self.models], st.kalman) if st.imu.enabled else None
         self._imu_sources: list = []
+        # tap(log_ns, body, t_ns, accel, gyro, lever_arm, at) sees every sample the sources hand over, before the
+        # pipeline takes it (the recording: RecordingWriter.write_imu; None: not recording)
+        self.imu_tap = None
         self._tracking_changed()
         self.loose_points: LoosePoints | None = None
         self._last_acquire_ns = -(1 << 62)
@@ -247,7 +250,7 @@ class FusionPipeline:
     def push(self, frame: BlobFrame) -> None:
         """Take one camera frame (arrival order) and do the fusion work it enables."""
         if self._imu_sources and self.imu is not None:
-            self._drain_imu()
+            self._drain_imu(int(frame.recv_ns), "frame")
         self._stats["frames"] += 1
         cam = int(frame.camera_id)
         if cam not in self.cameras:
@@ -287,9 +290,17 @@ class FusionPipeline:
         IMU samples that arrived (bridge/imu_feed.py). Nothing is drained while fusion.imu is off."""
         self._imu_sources.append(drain)
 
-    def _drain_imu(self) -> None:
+    def _drain_imu(self, log_ns: int, at: str) -> None:
+        """The sources' samples into push_imu, each shown first to imu_tap with the input's time and kind: a
+        frame's receive time ("frame": before that frame) or the tick's time ("tick")."""
+        tap = self.imu_tap
+        push = self.push_imu
+        if tap is not None:
+            def push(body, t_ns, accel, gyro, lever_arm_m=None):
+                tap(log_ns, body, t_ns, accel, gyro, lever_arm_m, at)
+                return self.push_imu(body, t_ns, accel, gyro, lever_arm_m)
         for drain in self._imu_sources:
-            drain(self.push_imu)
+            drain(push)
 
     def remove_camera(self, camera_id: int) -> None:
         """A station vanished: stop using and waiting for its frames."""
@@ -510,7 +521,7 @@ class FusionPipeline:
         reported with tracked=False and NaN pose: a stale pose is never re-sent.
         """
         if self._imu_sources and self.imu is not None:
-            self._drain_imu()
+            self._drain_imu(int(now_ns), "tick")
         pending = self.aligner.take_deferred()
         if pending is not None:
             self._stats["fused_at_tick"] += 1
