@@ -437,11 +437,11 @@ class Backchannel:
                             SILENT_WARN_NS * 1e-9)
 
     def _request_streams(self) -> None:
-        interval_us = 1e6 / self.cfg.telemetry_rate_hz
         imu = MSG_RAW_IMU if self.autopilot == "ardupilot" else MSG_HIGHRES_IMU
         ekf = MSG_ESTIMATOR_STATUS if self.autopilot == "px4" else MSG_EKF_STATUS_REPORT
-        for msg_id, us in ((MSG_ATTITUDE, interval_us), (imu, interval_us), (MSG_LOCAL_POSITION_NED, 1e5),
-                           (ekf, 5e5)):
+        imu_hz = self.cfg.imu_rate_hz or self.cfg.telemetry_rate_hz  # its own rate (the filter's input)
+        for msg_id, us in ((MSG_ATTITUDE, 1e6 / self.cfg.telemetry_rate_hz), (imu, 1e6 / imu_hz),
+                           (MSG_LOCAL_POSITION_NED, 1e5), (ekf, 5e5)):
             self.send(self.mav.command_long_encode(self.cfg.sysid, MAV_COMP_ID_AUTOPILOT1,
                                                    MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, us, 0, 0, 0, 0, 0))
 

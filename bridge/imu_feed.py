@@ -2,11 +2,11 @@
 
 The back-channel (bridge/backchannel.py) already asks the autopilot for its IMU stream with
 MAV_CMD_SET_MESSAGE_INTERVAL (RAW_IMU from ArduPilot, HIGHRES_IMU from PX4, at the vehicle's
-telemetry_rate_hz) and measures the vehicle's clock against the server's (Backchannel.clock_lag_ns:
-autopilot time less the capture-clock stamp of one physical instant). This module turns each IMU
-message into a sample the core takes (FusionPipeline.push_imu): its time on the capture clock, its
-specific force and rate in the tracked body's frame (FLU: the vehicle's FRD with y and z turned over,
-as bridge/convert.py maps the body), SI units.
+imu_rate_hz: 200 Hz with fusion.imu.enabled) and measures the vehicle's clock against the server's
+(Backchannel.clock_lag_ns: autopilot time less the capture-clock stamp of one physical instant).
+This module turns each IMU message into a sample the core takes (FusionPipeline.push_imu):
+its time on the capture clock, its specific force and rate in the tracked body's frame
+(FLU: the vehicle's FRD with y and z turned over, as bridge/convert.py maps the body), SI units.
 
 to_fusion (pure) maps one sample (bridge/telemetry.py imu_sample reads the message); ImuFeed is the mailbox
 between the vehicle link's sender thread, which offers the samples (Backchannel.handle), and the server's loop,

@@ -105,3 +105,32 @@ def test_a_fake_autopilots_imu_reaches_the_pipelines_push_live():
     # RAW_IMU carries whole mG: resolution 0.01 m/s^2, noise 0.02 m/s^2; the mean offset is the drawn bias
     np.testing.assert_allclose((acc - acc_frd * FRD_TO_FLU).mean(0), ap.accel_bias * FRD_TO_FLU, atol=0.01)
     np.testing.assert_allclose(np.array([s[3] for s in got]), gyro_frd * FRD_TO_FLU, atol=0.05)
+
+
+def test_the_imu_stream_is_asked_for_at_its_own_rate_200_hz_where_the_filter_takes_it():
+    import pytest
+
+    from bridge.backchannel import Backchannel
+    from bridge.config import parse_vehicles
+    from visionpos.config.arena import ConfigError, parse_arena
+
+    def vehicle(imu_on=None, **kw):
+        raw = {"bodies": [{"name": "body1", "id": 1, "markers": [[0, 0, 0], [0.1, 0, 0], [0, 0.12, 0], [0, 0, 0.05]]}],
+               "vehicles": [{"body": "body1", "endpoint": "udpout:127.0.0.1:9", **kw}]}
+        if imu_on is not None:
+            raw["fusion"] = {"imu": {"enabled": imu_on}}
+        return parse_vehicles(parse_arena(raw, "a.yaml"))[0]
+
+    assert vehicle().imu_rate_hz == 50.0 and vehicle(False, telemetry_rate_hz=20).imu_rate_hz == 20.0
+    assert vehicle(True).imu_rate_hz == 200.0 and vehicle(True, imu_rate_hz=400).imu_rate_hz == 400.0
+    with pytest.raises(ConfigError, match=r"a\.yaml: vehicles\[0\]\.imu_rate_hz: .*<= 1000"):
+        vehicle(imu_rate_hz=2000)
+    sent = []
+    bc = Backchannel(vehicle(True, telemetry_rate_hz=40), lambda: 100 * 10**9, mavlink2.MAVLink(None, 1, 197),
+                     lambda m: sent.append(m) or True, lambda *a: None)
+    bc.handle(mavlink2.MAVLink_heartbeat_message(2, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 3, 3), 1, 0)
+    bc.service(100 * 10**9)
+    asked = {int(m.param1): m.param2 for m in sent
+             if m.get_type() == "COMMAND_LONG" and m.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL}
+    assert asked[mavlink2.MAVLINK_MSG_ID_ATTITUDE] == 25_000  # us: 40 Hz
+    assert asked[mavlink2.MAVLINK_MSG_ID_RAW_IMU] == 5_000  # 200 Hz
