@@ -2,7 +2,7 @@
 again at the same point of the pipeline's input order, so a session with the IMU on replays to the same outputs."""
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 from visionpos.analysis.replay import _ReplayLoop, load_settings, replay_log, write_trajectories_csv
 from visionpos.recording import RecordingReader, RecordingWriter
@@ -30,20 +30,31 @@ def test_a_session_with_the_imu_on_replays_to_the_same_trajectories(thesis_log, 
     writer = RecordingWriter(rec, arena.raw, foxglove_rate_hz=None)
     live.ingest.recorder = writer
     live.pipe.imu_tap = writer.write_imu
-    nxt = [0]
+    nxt, poses = [0], []
 
-    def source(push):
-        while nxt[0] < len(t) and t[nxt[0]] <= live.now_ns - 5_000_000:
-            k = nxt[0]
-            push(name, int(t[k]), acc[k], gyro[k], None)
-            nxt[0] += 1
+    class Source:  # as bridge/imu_feed.py's BridgeImu: drain(push), and the optical-only poses back
+        def __call__(self, push):
+            while nxt[0] < len(t) and t[nxt[0]] <= live.now_ns - 5_000_000:
+                k = nxt[0]
+                push(name, int(t[k]), acc[k], gyro[k], None)
+                nxt[0] += 1
 
-    live.pipe.add_imu_source(source)
+        def optical_pose(self, body, t_ns, R):
+            poses.append((body, t_ns, R))
+
+    live.pipe.add_imu_source(Source())
     for item in reader.packets_with_source():
         live.feed(item)
     got = live.result()
     writer.close()
     assert got.pipeline_stats["imu"][name]["used"] > 100 and not got.pipeline_stats["imu"][name]["dropped"]
+    # the fusions' triangulated rotations went to the source while its samples were in the filter: the truth's
+    assert len(poses) > 100 and {p[0] for p in poses} == {name}
+    tp = np.array([p[1] for p in poses])
+    ok = (tp >= t[0]) & (tp <= t[-1])
+    truth_at = Slerp(t.astype(float), Rotation.from_quat(q))(tp[ok].astype(float))
+    err = (Rotation.from_matrix([p[2] for p in poses])[ok].inv() * truth_at).magnitude()
+    assert ok.sum() > 100 and np.degrees(err).max() < 2.0  # Kabsch noise, the sim's frame timing
     kinds = {r.at for r in RecordingReader(rec).inputs() if hasattr(r, "at")}
     assert kinds == {"frame", "tick"}  # samples taken by frames' pushes and by ticks were both recorded
     again = replay_log(rec)

@@ -203,6 +203,7 @@ class FusionPipeline:
         # the vehicles' IMU samples (push_imu) in the prediction, when fusion.imu.enabled (fusion/imu.py)
         self.imu = ImuInputs(st.imu, [m.name for m in self.models], st.kalman) if st.imu.enabled else None
         self._imu_sources: list = []
+        self._pose_taps: list = []  # the IMU sources' optical_pose (add_imu_source)
         # tap(log_ns, body, t_ns, accel, gyro, lever_arm, at) sees every sample the sources hand over, before the
         # pipeline takes it (the recording: RecordingWriter.write_imu; None: not recording)
         self.imu_tap = None
@@ -287,8 +288,13 @@ class FusionPipeline:
 
     def add_imu_source(self, drain) -> None:
         """drain(push_imu) is called before every frame and tick, on the pipeline's thread: it hands over the
-        IMU samples that arrived (bridge/imu_feed.py). Nothing is drained while fusion.imu is off."""
+        IMU samples that arrived (bridge/imu_feed.py). Nothing is drained while fusion.imu is off. A source with
+        an optical_pose(body, t_ns, R) method gets, while samples are in the filters, each fusion's triangulated
+        rotation R (3, 3) body->world of every tracked body at its reference time t_ns: the optical-only
+        attitude (the back-channel's identity check and delay measurement compare it with the autopilot's)."""
         self._imu_sources.append(drain)
+        if callable(getattr(drain, "optical_pose", None)):
+            self._pose_taps.append(drain.optical_pose)
 
     def _drain_imu(self, log_ns: int, at: str) -> None:
         """The sources' samples into push_imu, each shown first to imu_tap with the input's time and kind: a
@@ -381,6 +387,11 @@ class FusionPipeline:
             self._update_tracked(views, ref, g.compensate)
             if imu is not None:
                 imu.after_fusion(self._tracked, self.last_raw, ref)
+                for tap in self._pose_taps:  # the optical-only attitude, while the IMU is in the filters
+                    for b in self._tracked:
+                        raw = self.last_raw.get(b)
+                        if raw is not None and raw[0] == ref:
+                            tap(self.models[b].name, ref, raw[2])
         # acquisition is for lost bodies; with all tracked it only refreshes the loose points
         lost = len(self._tracked) < len(self.tracks)
         interval = st.acquire_interval_ns if lost else st.loose_points_interval_ns
