@@ -91,3 +91,24 @@ def test_a_truncated_recording_gives_its_imu_samples_up_to_the_cut(tmp_path):
     assert (r.log_ns, r.body, r.at, r.lever_arm) == (70, "quad", "frame", None)
     assert r.accel.tolist() == [0.1 * 7, 0.0, 9.8] and r.gyro.tolist() == [0.0, 0.01 * 7, 0.0]
     assert imu[6].lever_arm.tolist() == [0.0, 0.0, 0.05]
+
+
+def test_the_server_records_the_imu_samples_its_pipeline_takes_while_it_records(tmp_path):
+    from visionpos.server.service import FusionServer, load_config_with_overrides
+
+    class Pipe:  # what the server needs of a pipeline here
+        imu_tap = None
+        identity = None
+
+        def add_imu_source(self, drain):
+            pass
+
+    arena = load_config_with_overrides("thesis", ["server.insecure=true"])
+    pipe = Pipe()
+    with RecordingWriter(tmp_path / "a.mcap", arena.raw, foxglove_rate_hz=None) as w:
+        server = FusionServer(arena, pipeline=pipe, recorder=w)
+        assert pipe.imu_tap == w.write_imu
+        server.detach_recording()
+        assert pipe.imu_tap is None
+        server.start_recording(w)  # the console's record button
+        assert pipe.imu_tap == w.write_imu
