@@ -67,6 +67,7 @@ IDENTITY_THRESHOLD = 9.0  # mean squared normalised residual: RMS 3 sigma over t
 IDENTITY_RATE_NOISE_RAD_S = 0.1
 IDENTITY_RATE_REL = 0.1
 MAX_PAIR_GAP_NS = 100_000_000  # optical samples further apart than this are not interpolated between
+OPTICAL_ONLY_HOLD_NS = 500_000_000  # no optical-only pose (optical_only) this long: the filter's poses again
 DELAY_WINDOW_NS = 20_000_000_000  # the lag's noise falls as the root of the window
 DELAY_MIN_SPAN_NS = 4_000_000_000
 DELAY_EVERY_NS = 5_000_000_000
@@ -188,6 +189,10 @@ class Backchannel:
         self._silent_warned = False
         self._first_send_ns = 0
         self.imu_feed = None  # bridge/imu_feed.py's ImuFeed: the IMU samples on to the fusion (offer)
+        # optical-only poses (bridge/imu_feed.py BridgeImu.optical_pose, from the loop) while this vehicle's IMU is in
+        # the filter: they stand in for the filter's (on_optical), which carry the gyro they are compared with
+        self.optical_only: collections.deque[tuple] = collections.deque(maxlen=1024)
+        self._optical_only_ns = -(1 << 62)  # stamp of the newest taken
 
     # ------------------------------------------------------------ receive
     def handle(self, m, compid: int, recv_ns: int) -> None:
@@ -377,7 +382,18 @@ class Backchannel:
     # ------------------------------------------------------------ optical side (sender thread, per pose)
     def on_optical(self, stamp_ns: int, roll: float, pitch: float, rate_frd, quat_ned_frd) -> None:
         """One optical pose at its stamp: roll, pitch (rad), the filter's body rate (3,) rad/s FRD and the
-        attitude (4,) xyzw."""
+        attitude (4,) xyzw; while optical-only poses come (optical_only, the IMU in the filter), those instead."""
+        q = self.optical_only
+        if q or stamp_ns - self._optical_only_ns < OPTICAL_ONLY_HOLD_NS:
+            while q:
+                t, *rest = q.popleft()
+                if t > (self.opt.last_t() or 0) or self.optical_epoch != self._opt_epoch_seen:
+                    self._optical_only_ns = t
+                    self._on_optical(t, *rest)
+            return
+        self._on_optical(stamp_ns, roll, pitch, rate_frd, quat_ned_frd)
+
+    def _on_optical(self, stamp_ns: int, roll: float, pitch: float, rate_frd, quat_ned_frd) -> None:
         if self.optical_epoch != self._opt_epoch_seen:  # another body now: its samples are not the last one's
             self._opt_epoch_seen = self.optical_epoch
             self.opt.clear()
@@ -437,11 +453,11 @@ class Backchannel:
                             SILENT_WARN_NS * 1e-9)
 
     def _request_streams(self) -> None:
-        interval_us = 1e6 / self.cfg.telemetry_rate_hz
         imu = MSG_RAW_IMU if self.autopilot == "ardupilot" else MSG_HIGHRES_IMU
         ekf = MSG_ESTIMATOR_STATUS if self.autopilot == "px4" else MSG_EKF_STATUS_REPORT
-        for msg_id, us in ((MSG_ATTITUDE, interval_us), (imu, interval_us), (MSG_LOCAL_POSITION_NED, 1e5),
-                           (ekf, 5e5)):
+        imu_hz = self.cfg.imu_rate_hz or self.cfg.telemetry_rate_hz  # its own rate (the filter's input)
+        for msg_id, us in ((MSG_ATTITUDE, 1e6 / self.cfg.telemetry_rate_hz), (imu, 1e6 / imu_hz),
+                           (MSG_LOCAL_POSITION_NED, 1e5), (ekf, 5e5)):
             self.send(self.mav.command_long_encode(self.cfg.sysid, MAV_COMP_ID_AUTOPILOT1,
                                                    MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, us, 0, 0, 0, 0, 0))
 

@@ -22,6 +22,7 @@ from visionpos.config.settings import Setting, section
 ENDPOINT_KINDS = ("udpin", "udpout", "tcp", "serial")
 MESSAGES = ("vision_position_estimate", "odometry")
 TIME_BASES = ("boot", "epoch")
+IMU_RATE_WITH_FUSION_HZ = 200.0  # vehicles[i].imu_rate_hz's default where the filter takes the IMU (issue 29)
 
 ENDPOINT_HELP = (
     "write it as udpin:HOST:PORT (the autopilot sends to us; we answer the address it sent from), "
@@ -97,9 +98,14 @@ VEHICLE = section(
             "centimetres off in height"),
     Setting("origin_confirm_timeout_s", "number", 30.0, "send the poses anyway (with a warning) when the origin is "
             "not confirmed this long after the autopilot was first heard (0 = wait for ever)", min=0.0),
-    Setting("telemetry_rate_hz", "number", 50.0, "ask the autopilot for its attitude and IMU at this rate "
-            "(SET_MESSAGE_INTERVAL) for the identity check and the delay measurement; 0 = ask for nothing",
-            min=0.0, max=400.0),
+    Setting("telemetry_rate_hz", "number", 50.0, "ask the autopilot for its attitude at this rate "
+            "(SET_MESSAGE_INTERVAL) for the identity check and the delay measurement; 0 = ask for nothing (no IMU "
+            "either)", min=0.0, max=400.0),
+    Setting("imu_rate_hz", "number", None, "ask the autopilot for its IMU (RAW_IMU on ArduPilot, HIGHRES_IMU on "
+            "PX4) at this rate, requested apart from the attitude: its gyro for the identity check and the delay "
+            "measurement, and with fusion.imu.enabled the filter's input between camera frames (the faster the "
+            "better: 50 Hz helps the flights less than 200 Hz)", min=1.0, max=1000.0,
+            default_doc="200 with fusion.imu.enabled, else telemetry_rate_hz"),
     Setting("identity_check", "text", "stop", "the autopilot's roll, pitch and body rates against the optical "
             "body's: stop = stop sending on a mismatch (e.g. swapped sysids), warn = only say so, off",
             choices=("stop", "warn", "off")),
@@ -248,6 +254,7 @@ class VehicleConfig:
     hold_until_origin: bool = VEHICLE["hold_until_origin"].field_default
     origin_confirm_timeout_s: float = VEHICLE["origin_confirm_timeout_s"].field_default
     telemetry_rate_hz: float = VEHICLE["telemetry_rate_hz"].field_default
+    imu_rate_hz: float | None = None  # None: as telemetry_rate_hz (parse_vehicles fills in the default)
     identity_check: str = VEHICLE["identity_check"].field_default
     identity_tolerance_deg: float = VEHICLE["identity_tolerance_deg"].field_default
     silent_backchannel: str = VEHICLE["silent_backchannel"].field_default
@@ -376,6 +383,7 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                 hold_until_origin=V.read(v, "hold_until_origin"),
                 origin_confirm_timeout_s=V.read(v, "origin_confirm_timeout_s"),
                 telemetry_rate_hz=V.read(v, "telemetry_rate_hz"),
+                imu_rate_hz=V.read(v, "imu_rate_hz", default=_default_imu_rate_hz(arena, v)),
                 identity_check="off" if point else V.read(v, "identity_check"),
                 identity_tolerance_deg=V.read(v, "identity_tolerance_deg"),
                 silent_backchannel=V.read(v, "silent_backchannel"),
@@ -412,6 +420,16 @@ def _refuse_attitude_options(v) -> None:
             raise v.error(key, "its body is a single-marker point body (position only): there is no optical "
                           "attitude to compare with the autopilot's; remove the key (a fleet of point bodies is "
                           "bound by its accelerations, docs/autopilot-setup.md)")
+
+
+def _default_imu_rate_hz(arena: ArenaConfig, v: Section) -> float:
+    """vehicles[i].imu_rate_hz when not given: 200 Hz where the filter takes the IMU (fusion.imu.enabled), else
+    the attitude's rate (0 -> 1: only read where telemetry_rate_hz > 0)."""
+    from visionpos.fusion.settings import IMU
+
+    if IMU.read(arena.section("fusion").sub("imu"), "enabled"):
+        return IMU_RATE_WITH_FUSION_HZ
+    return max(VEHICLE.read(v, "telemetry_rate_hz"), 1.0)
 
 
 def _check_unique(source: str, vehicles: list[VehicleConfig]) -> None:

@@ -69,7 +69,7 @@ class Bridge(Sink):
         """The vehicles' IMU samples for the pipeline (bridge/imu_feed.py), each to the body bound to it."""
         from bridge.imu_feed import BridgeImu
 
-        return [BridgeImu(self).drain]
+        return [BridgeImu(self)]  # called as drain(push); its optical_pose gets the triangulated attitudes
 
     def vehicle(self, name: str) -> VehicleLink:
         for v in self.vehicles:

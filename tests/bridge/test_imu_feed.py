@@ -5,6 +5,7 @@ import time
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+from scipy.spatial.transform import Rotation
 
 from bridge.imu_feed import ImuFeed, to_fusion
 from bridge.telemetry import imu_sample
@@ -105,3 +106,92 @@ def test_a_fake_autopilots_imu_reaches_the_pipelines_push_live():
     # RAW_IMU carries whole mG: resolution 0.01 m/s^2, noise 0.02 m/s^2; the mean offset is the drawn bias
     np.testing.assert_allclose((acc - acc_frd * FRD_TO_FLU).mean(0), ap.accel_bias * FRD_TO_FLU, atol=0.01)
     np.testing.assert_allclose(np.array([s[3] for s in got]), gyro_frd * FRD_TO_FLU, atol=0.05)
+
+
+def test_the_imu_stream_is_asked_for_at_its_own_rate_200_hz_where_the_filter_takes_it():
+    import pytest
+
+    from bridge.backchannel import Backchannel
+    from bridge.config import parse_vehicles
+    from visionpos.config.arena import ConfigError, parse_arena
+
+    def vehicle(imu_on=None, **kw):
+        raw = {"bodies": [{"name": "body1", "id": 1, "markers": [[0, 0, 0], [0.1, 0, 0], [0, 0.12, 0], [0, 0, 0.05]]}],
+               "vehicles": [{"body": "body1", "endpoint": "udpout:127.0.0.1:9", **kw}]}
+        if imu_on is not None:
+            raw["fusion"] = {"imu": {"enabled": imu_on}}
+        return parse_vehicles(parse_arena(raw, "a.yaml"))[0]
+
+    assert vehicle().imu_rate_hz == 200.0 and vehicle(True, imu_rate_hz=400).imu_rate_hz == 400.0  # fusion.imu on
+    assert vehicle(False).imu_rate_hz == 50.0 and vehicle(False, telemetry_rate_hz=20).imu_rate_hz == 20.0
+    with pytest.raises(ConfigError, match=r"a\.yaml: vehicles\[0\]\.imu_rate_hz: .*<= 1000"):
+        vehicle(imu_rate_hz=2000)
+    sent = []
+    bc = Backchannel(vehicle(True, telemetry_rate_hz=40), lambda: 100 * 10**9, mavlink2.MAVLink(None, 1, 197),
+                     lambda m: sent.append(m) or True, lambda *a: None)
+    bc.handle(mavlink2.MAVLink_heartbeat_message(2, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 3, 3), 1, 0)
+    bc.service(100 * 10**9)
+    asked = {int(m.param1): m.param2 for m in sent
+             if m.get_type() == "COMMAND_LONG" and m.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL}
+    assert asked[mavlink2.MAVLINK_MSG_ID_ATTITUDE] == 25_000  # us: 40 Hz
+    assert asked[mavlink2.MAVLINK_MSG_ID_RAW_IMU] == 5_000  # 200 Hz
+
+
+def test_the_optical_rate_is_the_central_difference_of_the_triangulated_rotations():
+    from bridge.imu_feed import optical_rate_body
+
+    w = np.array([0.3, -1.2, 2.0])  # rad/s, body frame, constant
+    R0 = Rotation.from_euler("xyz", [0.2, -0.1, 1.0])
+    t = np.array([0, 7_000_000, 20_000_000])  # uneven spacing
+    R = np.stack([(R0 * Rotation.from_rotvec(w * s * 1e-9)).as_matrix() for s in t])
+    np.testing.assert_allclose(optical_rate_body(t, R), w, atol=1e-9)
+
+
+def _wired_wrong(seconds, optical_only, opt_traj):
+    """A vehicle whose autopilot flies AGGRESSIVE while the body it gets is opt_traj, its IMU in the filter, so the
+    filter's attitude and rates (its poses, on_optical) follow that autopilot's gyro; optical_only: the fusions'
+    triangulated attitudes of the body go to BridgeImu.optical_pose. The identity check's verdicts (simulated
+    clock, 100 Hz poses, 50 Hz telemetry)."""
+    from bridge import Bridge
+    from visionpos.benchmarks.factories import arena_with_vehicles
+    from visionpos.geometry.frames import euler_ned_frd, flu_to_frd, quat_world_body_to_ned_frd
+    from visionpos.sim import trajectories as T
+
+    ap_traj = T.Aggressive(np.array([0.0, 0.0, 1.5]))
+    bridge = Bridge(arena_with_vehicles([{"sysid": 1, "body": "body1", "endpoint": "udpout:127.0.0.1:9"}]),
+                    {"report_interval_s": 0})
+    (imu,) = bridge.imu_sources()
+    v = bridge.vehicles[0]
+    bc = v.bc
+    ts = np.arange(0, int(seconds * 1e9), 10_000_000)
+    ma, mo = ap_traj(ts * 1e-9), opt_traj(ts * 1e-9)
+    e_ap, g_ap, q_ap = euler_ned_frd(ma.quaternions), flu_to_frd(ma.angular_velocities), \
+        quat_world_body_to_ned_frd(ma.quaternions)
+    noise = Rotation.from_rotvec(np.random.default_rng(3).normal(0, 0.0005, (len(ts), 3)))  # Kabsch's, 0.03 deg
+    R_opt = (Rotation.from_quat(mo.quaternions) * noise).as_matrix()
+    off, verdicts = 7_000_000_000, []
+    for i, t in enumerate(ts):
+        t = int(t)
+        bc.imu_feed.queue.append((t, np.zeros(3), np.zeros(3)))
+        imu(lambda *s: True)  # the pipeline takes the vehicle's sample: its IMU is in the filter
+        if optical_only:
+            imu.optical_pose("body1", t, R_opt[i])
+        bc.on_optical(t, e_ap[i, 0], e_ap[i, 1], g_ap[i], q_ap[i])  # the filter's pose: the autopilot's gyro
+        if i % 2 == 0:
+            bc.handle(mavlink2.MAVLink_attitude_message((t + off) // 1_000_000, *e_ap[i], *g_ap[i]), 1, t + 1_000_000)
+        if i % 50 == 0:
+            bc._ts_pending[t] = t
+            bc.on_timesync_reply(t, t + off + 2_000_000, t + 3_000_000)
+        if i % 25 == 0:
+            verdicts.append(bc.check_identity(t + 3_000_000))
+    return verdicts
+
+
+def test_a_wrong_vehicles_imu_in_the_filter_is_still_caught_by_the_identity_check():
+    from visionpos.sim import trajectories as T
+
+    fig8, aggressive = T.Figure8(np.array([0.0, 0.0, 1.0])), T.Aggressive(np.array([0.0, 0.0, 1.5]))
+    # the filter's poses carry the wrong autopilot's gyro: compared with them, the check would pass it
+    assert _wired_wrong(3.0, False, fig8)[2:] == ["consistent"] * 10
+    assert _wired_wrong(3.0, True, fig8)[2:] == ["mismatch"] * 10  # against the optical-only attitudes: caught
+    assert _wired_wrong(3.0, True, aggressive)[2:] == ["consistent"] * 10  # the right vehicle: no false alarm

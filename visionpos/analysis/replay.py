@@ -9,7 +9,9 @@ recording replays without the key. Recordings of protocol version 1 (before
 sessions and counters) are upgraded packet by packet (`V1Upgrade`). Output
 ticks fall on a fixed grid of the recording's clock
 (first receive time + k / output rate) and run before any packet received
-after them. Nothing reads the wall clock, so the same log and settings give
+after them. The vehicles' IMU samples the live pipeline took (topic /fusion/imu) are handed over again at the same
+point of its input order: those a frame's push took just before that frame, those a tick took after the
+replay's ticks up to that tick's time. Nothing reads the wall clock, so the same log and settings give
 the same outputs, byte for byte (--speed only sleeps between steps).
 
 Writes trajectories.csv; where the log carries ground truth also
@@ -183,7 +185,8 @@ def run_pipeline(
     receive order. The server's Ingest does what it does live (registration,
     sequence and clock checks, HMAC when the arena names a key_file, cameras that
     vanish), on a clock that is the recording's receive time, so the only
-    input is the log. Ticks: t0 + k * period for k >= 1, t0 the first receive
+    input is the log (packets may come with recorded IMU samples between them:
+    RecordingReader.inputs). Ticks: t0 + k * period for k >= 1, t0 the first receive
     time; every tick at or before a packet's receive time runs before that
     packet (and the vanish check runs every 20 ms of recording time before a
     tick, as in the server), ticks continue to the last receive time.
@@ -192,9 +195,25 @@ def run_pipeline(
     CLOCK_REALTIME - monotonic difference (from the recording's meta), used
     for stations that stamp in Timebase.REALTIME instead of this host's clocks.
     """
+    from visionpos.recording.codec import ImuRecord
+
     loop = _ReplayLoop(arena, rate_hz, speed, realtime_minus_monotonic_ns)
+    held = None  # the last packet: the IMU samples its frame's push took follow it in the recording
     for item in packets:
-        loop.feed(item)
+        if isinstance(item, ImuRecord):
+            if item.at == "frame" and held is not None and item.log_ns == held[0][0]:
+                held[1].append(item)
+                continue
+            if held is not None:
+                loop.feed(*held)
+                held = None
+            loop.feed_imu(item)
+        else:
+            if held is not None:
+                loop.feed(*held)
+            held = (item, [])
+    if held is not None:
+        loop.feed(*held)
     return loop.result()
 
 
@@ -226,6 +245,8 @@ class _ReplayLoop:
             # live, Ingest converts realtime-stamped frames with this host's clocks; a replay must use
             # the recording host's difference
             self.ingest.realtime_minus_monotonic_ns = int(realtime_minus_monotonic_ns)
+        self.imu_queue: list = []  # the recorded IMU samples the next frame's push takes (ImuRecord)
+        self.pipe.add_imu_source(self._drain_imu)
         self.per_body: dict[str, tuple[list[int], list[BodyState]]] = {}
         self.ticks: list[int] = []
         self.t0 = self.next_tick = self.last = self.first_frame = None
@@ -233,8 +254,28 @@ class _ReplayLoop:
         self.wall0 = time.perf_counter()
         self.cpu0 = time.process_time()
 
-    def feed(self, item: tuple) -> None:
-        """One recorded datagram: the ticks due before it, then the datagram through Ingest."""
+    def _drain_imu(self, push) -> None:
+        q, self.imu_queue = self.imu_queue, []
+        for r in q:
+            push(r.body, r.t_ns, r.accel, r.gyro, r.lever_arm)
+
+    def _ticks_to(self, t_ns: int, before: bool = False) -> None:
+        """The ticks due up to t_ns (before: strictly before it)."""
+        while self.next_tick < t_ns + (not before):
+            self._pace(self.next_tick)
+            self._tick(self.next_tick)
+            self.next_tick += self.period_ns
+
+    def feed_imu(self, r) -> None:
+        """One recorded IMU sample (ImuRecord) a tick took (or one without its frame): the ticks due before its
+        log time, then the sample into the pipeline (a tick at that time takes it, as the tick that did live)."""
+        if self.t0 is not None:
+            self._ticks_to(r.log_ns, before=True)
+        self.pipe.push_imu(r.body, r.t_ns, r.accel, r.gyro, r.lever_arm)
+
+    def feed(self, item: tuple, imu: list | None = None) -> None:
+        """One recorded datagram: the ticks due before it, then the datagram through Ingest; imu: the recorded
+        IMU samples its frame's push took (ImuRecord), handed over by that push."""
         recv_ns, data = int(item[0]), item[1]
         if len(data) > 4 and data[4] == 1 and data[:4] == P.MAGIC:
             data = self.upgrade(data)
@@ -242,12 +283,11 @@ class _ReplayLoop:
         if self.t0 is None:
             self.t0 = recv_ns
             self.next_tick = recv_ns + self.period_ns
-        while self.next_tick <= recv_ns:
-            self._pace(self.next_tick)
-            self._tick(self.next_tick)
-            self.next_tick += self.period_ns
+        self._ticks_to(recv_ns)
         self.last = recv_ns
         self.now_ns = recv_ns
+        if imu:
+            self.imu_queue.extend(imu)
         self.ingest.handle(data, addr, recv_ns)
         if self.first_frame is None and self.ingest.counters.frames_accepted:
             self.first_frame = recv_ns
@@ -355,7 +395,7 @@ def replay_log(
     rt = None
     if isinstance(meta.get("wall_start_unix_ns"), int) and isinstance(meta.get("monotonic_start_ns"), int):
         rt = meta["wall_start_unix_ns"] - meta["monotonic_start_ns"]
-    res = run_pipeline(arena, reader.packets_with_source(), rate_hz=rate_hz, speed=speed,
+    res = run_pipeline(arena, reader.inputs(), rate_hz=rate_hz, speed=speed,
                        realtime_minus_monotonic_ns=rt)
     res.truth = dict(reader.truth() or {})
     return res

@@ -35,6 +35,7 @@ import copy
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from bridge.config import IMU_RATE_WITH_FUSION_HZ
 from bridge.convert import back_propagate
 from visionpos.benchmarks import BenchResult
 
@@ -58,10 +59,10 @@ ALTERNATIVES = (
     ("pose_ang_acc", "fusion.single_view.mode occlusion, the angular-acceleration state as the defaults",
      {"single_view": {"mode": "occlusion"}}),
 )
-# the fake autopilot's IMU for the IMU rows (issue 29 item 2): a MEMS IMU streamed at 250 Hz, stamped on the
-# vehicle's clock and delay-corrected (bridge/imu_feed.py), arriving 3 ms after its sample; noise per sample and
-# biases drawn per flight from its seed (std per axis)
-IMU_FAKE = {"rate_hz": 250.0, "delay_ms": 3.0, "accel_noise_m_s2": 0.03, "accel_bias_m_s2": 0.1,
+# the fake autopilot's IMU for the IMU rows (issue 29 item 2): a MEMS IMU streamed at 200 Hz (imu_rate_hz's
+# default), stamped on the vehicle's clock and delay-corrected (bridge/imu_feed.py), arriving 3 ms after its sample;
+# noise per sample and biases drawn per flight from its seed (std per axis)
+IMU_FAKE = {"rate_hz": IMU_RATE_WITH_FUSION_HZ, "delay_ms": 3.0, "accel_noise_m_s2": 0.03, "accel_bias_m_s2": 0.1,
             "gyro_noise_rad_s": 0.002, "gyro_bias_rad_s": 0.005}
 SKIP_S = 0.5  # acquisition and the filter's first convergence are not judged
 CRB_EVERY = 5  # evaluate the bound at every 5th output tick
@@ -407,9 +408,9 @@ def run(quick: bool, res: BenchResult) -> None:
 
 
 def run_imu(quick: bool, res: BenchResult, optical: dict[str, dict[str, float]]) -> None:
-    """The flights with the fake autopilot's IMU in the prediction (fusion.imu, IMU_FAKE at 250 Hz and at the
-    bridge's default telemetry_rate_hz, 50 Hz) against without (`optical`: run's metrics per session), and the
-    static body's jitter with it: metrics fusion_imu_*."""
+    """The flights with the fake autopilot's IMU in the prediction (fusion.imu, IMU_FAKE at the vehicles' default
+    imu_rate_hz, 200 Hz, and at 50 Hz, the default telemetry_rate_hz) against without (`optical`: run's metrics
+    per session), and the static body's jitter with it: metrics fusion_imu_*."""
     from visionpos.benchmarks.fusion_replay import static_flight
 
     dur = 4.0 if quick else 10.0

@@ -154,6 +154,7 @@ class FusionPipeline:
         self._point_bodies = [b for b, m in enumerate(self.models) if len(m.markers) == 1]
         self._point_row = {b: k for k, b in enumerate(self._point_bodies)}
         self._n_rigid = len(self.models) - len(self._point_bodies)
+        self._point_names = frozenset(self.models[b].name for b in self._point_bodies)
         self.points = PointTracks(self._point_bodies, st.kalman.marker_sigma_m) if self._point_bodies else None
         # layouts the geometry cannot tell apart would be swapped or flipped: refuse them
         problems = layout_ambiguities([m for m in self.models if len(m.markers) > 1], 0.5 * st.identify_tolerance_m)
@@ -211,6 +212,10 @@ class FusionPipeline:
         # the vehicles' IMU samples (push_imu) in the prediction, when fusion.imu.enabled (fusion/imu.py)
         self.imu = ImuInputs(st.imu, [m.name for m in self.models], st.kalman) if st.imu.enabled else None
         self._imu_sources: list = []
+        self._pose_taps: list = []  # the IMU sources' optical_pose (add_imu_source)
+        # tap(log_ns, body, t_ns, accel, gyro, lever_arm, at) sees every sample the sources hand over, before the
+        # pipeline takes it (the recording: RecordingWriter.write_imu; None: not recording)
+        self.imu_tap = None
         self._tracking_changed()
         self.loose_points: LoosePoints | None = None
         self._last_acquire_ns = -(1 << 62)
@@ -255,7 +260,7 @@ class FusionPipeline:
     def push(self, frame: BlobFrame) -> None:
         """Take one camera frame (arrival order) and do the fusion work it enables."""
         if self._imu_sources and self.imu is not None:
-            self._drain_imu()
+            self._drain_imu(int(frame.recv_ns), "frame")
         self._stats["frames"] += 1
         cam = int(frame.camera_id)
         if cam not in self.cameras:
@@ -287,17 +292,32 @@ class FusionPipeline:
         """One IMU sample of the vehicle bound to `body` (fusion/imu.py): t_ns on the capture clock, specific
         force (3,) m/s^2 and rate (3,) rad/s in the body's frame, from an IMU lever_arm_m (3,) from the body's
         origin (None: at it). False (nothing changes) when fusion.imu is off, the body unknown or the sample
-        refused (ImuInput.push)."""
-        return self.imu is not None and self.imu.push(body, t_ns, accel_body, gyro_body, lever_arm_m)
+        refused (ImuInput.push); a single-marker body's IMU is not used (its filter has no attitude to turn it)."""
+        if self.imu is None or body in self._point_names:
+            return False
+        return self.imu.push(body, t_ns, accel_body, gyro_body, lever_arm_m)
 
     def add_imu_source(self, drain) -> None:
         """drain(push_imu) is called before every frame and tick, on the pipeline's thread: it hands over the
-        IMU samples that arrived (bridge/imu_feed.py). Nothing is drained while fusion.imu is off."""
+        IMU samples that arrived (bridge/imu_feed.py). Nothing is drained while fusion.imu is off. A source with
+        an optical_pose(body, t_ns, R) method gets, while samples are in the filters, each fusion's triangulated
+        rotation R (3, 3) body->world of every tracked body at its reference time t_ns: the optical-only
+        attitude (the back-channel's identity check and delay measurement compare it with the autopilot's)."""
         self._imu_sources.append(drain)
+        if callable(getattr(drain, "optical_pose", None)):
+            self._pose_taps.append(drain.optical_pose)
 
-    def _drain_imu(self) -> None:
+    def _drain_imu(self, log_ns: int, at: str) -> None:
+        """The sources' samples into push_imu, each shown first to imu_tap with the input's time and kind: a
+        frame's receive time ("frame": before that frame) or the tick's time ("tick")."""
+        tap = self.imu_tap
+        push = self.push_imu
+        if tap is not None:
+            def push(body, t_ns, accel, gyro, lever_arm_m=None):
+                tap(log_ns, body, t_ns, accel, gyro, lever_arm_m, at)
+                return self.push_imu(body, t_ns, accel, gyro, lever_arm_m)
         for drain in self._imu_sources:
-            drain(self.push_imu)
+            drain(push)
 
     def remove_camera(self, camera_id: int) -> None:
         """A station vanished: stop using and waiting for its frames."""
@@ -380,6 +400,11 @@ class FusionPipeline:
             self._update_tracked(views, ref, g.compensate)
             if imu is not None:
                 imu.after_fusion(self._tracked, self.last_raw, ref)
+                for tap in self._pose_taps:  # the optical-only attitude, while the IMU is in the filters
+                    for b in self._tracked:
+                        raw = self.last_raw.get(b)
+                        if raw is not None and raw[0] == ref:
+                            tap(self.models[b].name, ref, raw[2])
         if self.points is not None and self.points.due(ref):
             self._track_points([obs[c] for c in cams], views, ref)
         # acquisition is for lost bodies; with all tracked it only refreshes the loose points
@@ -610,7 +635,7 @@ class FusionPipeline:
         reported with tracked=False and NaN pose: a stale pose is never re-sent.
         """
         if self._imu_sources and self.imu is not None:
-            self._drain_imu()
+            self._drain_imu(int(now_ns), "tick")
         pending = self.aligner.take_deferred()
         if pending is not None:
             self._stats["fused_at_tick"] += 1

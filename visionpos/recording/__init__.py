@@ -13,6 +13,8 @@ Layout (MCAP profile "visionpos"):
                        (channel metadata: host, port); data = the UDP payload, untouched
     /fusion/states     json, schema visionpos.BodyState
     /fusion/markers    json {"points": [[x, y, z], ...], "residual_px": [...]}: loose markers (no body)
+    /fusion/imu        json, schema visionpos.ImuSample: the vehicles' IMU samples the pipeline took
+                       (FusionPipeline.push_imu), an input a replay hands over again at the same point
     /sim/truth         json, schema visionpos.Truth
     /foxglove/...      protobuf, schemas foxglove.* (visionpos/foxglove/channels.py): the 3-D scene, the
                        cameras' blobs and health as Foxglove and Lichtblick show them, at a bounded rate
@@ -54,10 +56,12 @@ from visionpos.recording.codec import (
     PROFILE,
     TOPIC_EVENTS,
     TOPIC_HEALTH,
+    TOPIC_IMU,
     TOPIC_MARKERS,
     TOPIC_PACKETS,
     TOPIC_STATES,
     TOPIC_TRUTH,
+    ImuRecord,
     RecordingDamagedWarning,
     RecordingError,
     state_from_dict,
@@ -69,7 +73,8 @@ from visionpos.recording.writer import FLUSH_INTERVAL_S, MAX_PACKET_SOURCES, Rec
 
 __all__ = [
     "FLUSH_INTERVAL_S", "FORMAT_VERSION", "MAX_PACKET_SOURCES", "META_END", "META_FOXGLOVE_COPY", "META_RECOVERED",
-    "PACKET_ENCODING", "PROFILE", "TOPIC_EVENTS", "TOPIC_HEALTH", "TOPIC_MARKERS", "TOPIC_PACKETS", "TOPIC_STATES",
-    "TOPIC_TRUTH", "RecordingDamagedWarning", "RecordingError", "RecordingReader", "RecordingWriter",
+    "PACKET_ENCODING", "PROFILE", "TOPIC_EVENTS", "TOPIC_HEALTH", "TOPIC_IMU", "TOPIC_MARKERS", "TOPIC_PACKETS",
+    "TOPIC_STATES", "TOPIC_TRUTH", "ImuRecord", "RecordingDamagedWarning", "RecordingError", "RecordingReader",
+    "RecordingWriter",
     "foxglove_copy", "recover", "state_from_dict", "state_to_dict",
 ]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from mcap.data_stream import RecordBuilder
@@ -28,6 +28,7 @@ TOPIC_TRUTH = "/sim/truth"
 TOPIC_MARKERS = "/fusion/markers"
 TOPIC_HEALTH = "/server/health"
 TOPIC_EVENTS = "/server/events"
+TOPIC_IMU = "/fusion/imu"  # the vehicles' IMU samples the pipeline took (FusionPipeline.push_imu): an input
 PACKET_ENCODING = "visionpos.station"
 META_END = "visionpos.end"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -79,6 +80,52 @@ TRUTH_SCHEMA = {
         "quaternion": {"type": "array", "items": {"type": "number"}},
     },
 }
+IMU_SCHEMA = {
+    "title": "visionpos.ImuSample",
+    "type": "object",
+    "description": "One IMU sample handed to FusionPipeline.push_imu, logged at the pipeline's input time: the receive "
+                   "time of the frame whose push took it (at 'frame', recorded after that frame's packet) or the "
+                   "output tick's time (at 'tick'); a replay hands it over at the same point of the input order.",
+    "properties": {
+        "body": {"type": "string"},
+        "t_ns": {"type": "integer", "description": "sample time, capture clock ns"},
+        "accel": {"type": "array", "items": {"type": ["number", "null"]},
+                  "description": "specific force, body frame (FLU), m/s^2"},
+        "gyro": {"type": "array", "items": {"type": ["number", "null"]}, "description": "rate, body frame, rad/s"},
+        "lever_arm": {"type": ["array", "null"], "items": {"type": ["number", "null"]},
+                      "description": "body frame, origin to the IMU, m (null: at the origin)"},
+        "at": {"type": "string", "enum": ["frame", "tick"]},
+    },
+}
+
+
+class ImuRecord(NamedTuple):
+    """A recorded IMU sample as RecordingReader.inputs yields it (IMU_SCHEMA); log_ns: the message's log time."""
+    log_ns: int
+    body: str
+    t_ns: int
+    accel: np.ndarray  # (3,) m/s^2, body frame
+    gyro: np.ndarray  # (3,) rad/s, body frame
+    lever_arm: np.ndarray | None  # (3,) m, body frame
+    at: str  # "frame" or "tick"
+
+
+def imu_to_dict(body: str, t_ns: int, accel: Any, gyro: Any, lever_arm: Any, at: str) -> dict[str, Any]:
+    """One IMU sample as recorded (IMU_SCHEMA); NaN/inf -> null (read back as NaN: refused alike)."""
+    return {"body": str(body), "t_ns": int(t_ns), "accel": _list(accel), "gyro": _list(gyro),
+            "lever_arm": None if lever_arm is None else _list(lever_arm), "at": str(at)}
+
+
+def imu_from_dict(d: dict[str, Any]) -> tuple[str, int, np.ndarray, np.ndarray, np.ndarray | None, str]:
+    """Inverse of imu_to_dict: (body, t_ns, accel (3,), gyro (3,), lever_arm (3,) or None, at). Raises
+    KeyError/ValueError/TypeError on a malformed dict."""
+    arm = d.get("lever_arm")
+    at = str(d.get("at", "tick"))
+    if at not in ("frame", "tick"):
+        raise ValueError(f"at {at!r}")
+    return (str(d["body"]), int(d["t_ns"]), np.asarray(d["accel"], dtype=np.float64).reshape(3),
+            np.asarray(d["gyro"], dtype=np.float64).reshape(3),
+            None if arm is None else np.asarray(arm, dtype=np.float64).reshape(3), at)
 
 
 class RecordingError(VisionposError, ValueError):

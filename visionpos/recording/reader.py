@@ -30,11 +30,14 @@ from visionpos.recording.codec import (
     PACKET_ENCODING,
     PROFILE,
     PROVISIONAL_END,
+    TOPIC_IMU,
     TOPIC_PACKETS,
     TOPIC_STATES,
     TOPIC_TRUTH,
+    ImuRecord,
     RecordingDamagedWarning,
     RecordingError,
+    imu_from_dict,
     state_from_dict,
 )
 from visionpos.recording.writer import drop_redacted
@@ -228,7 +231,8 @@ class RecordingReader:
         if ch.topic == TOPIC_PACKETS and ch.message_encoding != PACKET_ENCODING:
             raise RecordingError(f"{self.path}: channel {ch.topic} has message encoding {ch.message_encoding!r}, "
                                  f"expected {PACKET_ENCODING!r}")
-        expect = {TOPIC_STATES: "visionpos.BodyState", TOPIC_TRUTH: "visionpos.Truth"}.get(ch.topic)
+        expect = {TOPIC_STATES: "visionpos.BodyState", TOPIC_TRUTH: "visionpos.Truth",
+                  TOPIC_IMU: "visionpos.ImuSample"}.get(ch.topic)
         if expect is not None:
             sc = schemas.get(ch.schema_id)
             if ch.message_encoding != "json" or sc is None or sc.name != expect:
@@ -245,6 +249,23 @@ class RecordingReader:
         """(recv_ns, raw bytes, (host, port) or None) in log order."""
         sources: dict[int, tuple[str, int] | None] = {}
         for _, t, data, ch in self.messages({TOPIC_PACKETS}):
+            src = sources.get(ch.id, 0)
+            if src == 0:
+                md = ch.metadata
+                src = sources[ch.id] = (md["host"], int(md["port"])) if "host" in md and "port" in md else None
+            yield t, data, src
+
+    def inputs(self) -> Iterator[tuple]:
+        """The pipeline's recorded inputs in file order (its input order): station packets as packets_with_source
+        gives them, (recv_ns, raw bytes, (host, port) or None), and IMU samples as ImuRecord."""
+        sources: dict[int, tuple[str, int] | None] = {}
+        for topic, t, data, ch in self.messages({TOPIC_PACKETS, TOPIC_IMU}):
+            if topic == TOPIC_IMU:
+                try:
+                    yield ImuRecord(t, *imu_from_dict(json.loads(data)))
+                except (json.JSONDecodeError, UnicodeDecodeError, KeyError, ValueError, TypeError) as e:
+                    self._damaged(f"IMU sample at {t} ns is malformed ({type(e).__name__}: {e})")
+                continue
             src = sources.get(ch.id, 0)
             if src == 0:
                 md = ch.metadata

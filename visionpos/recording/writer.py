@@ -23,6 +23,7 @@ from visionpos.foxglove.channels import DEFAULT_RATE_HZ, TOPIC_PREFIX, FoxgloveC
 from visionpos.messages import BodyState
 from visionpos.recording.codec import (
     FORMAT_VERSION,
+    IMU_SCHEMA,
     META_END,
     PACKET_ENCODING,
     PROFILE,
@@ -30,6 +31,7 @@ from visionpos.recording.codec import (
     STATE_SCHEMA,
     TOPIC_EVENTS,
     TOPIC_HEALTH,
+    TOPIC_IMU,
     TOPIC_MARKERS,
     TOPIC_PACKETS,
     TOPIC_STATES,
@@ -37,6 +39,7 @@ from visionpos.recording.codec import (
     TRUTH_SCHEMA,
     RecordingError,
     arena_cameras,
+    imu_to_dict,
     json_bytes,
     plain,
     protobuf_schema,
@@ -169,6 +172,7 @@ class RecordingWriter:
         self._w.add_metadata("visionpos.meta", {"json": json.dumps(full_meta)})
         self._state_schema = self._w.register_schema("visionpos.BodyState", "jsonschema", json_bytes(STATE_SCHEMA))
         self._truth_schema = self._w.register_schema("visionpos.Truth", "jsonschema", json_bytes(TRUTH_SCHEMA))
+        self._imu_schema = self._w.register_schema("visionpos.ImuSample", "jsonschema", json_bytes(IMU_SCHEMA))
         self._packet_channels: dict[tuple[str, int] | None, int] = {}
         self._topic_channels: dict[str, int] = {}
         self._seq = 0
@@ -306,15 +310,24 @@ class RecordingWriter:
                 ch = self._channel_for(TOPIC_TRUTH, "json", self._truth_schema)
                 self._add(ch, int(time_ns), data, TOPIC_TRUTH)
 
+    def write_imu(self, log_ns: int, body: str, t_ns: int, accel, gyro, lever_arm, at: str) -> None:
+        """One IMU sample handed to the pipeline (FusionPipeline.push_imu; IMU_SCHEMA), logged at log_ns: the
+        receive time of the frame whose push took it (at "frame") or the tick's time (at "tick")."""
+        data = json_bytes(imu_to_dict(body, t_ns, accel, gyro, lever_arm, at))
+        with self._lock:
+            if self._recording():
+                ch = self._channel_for(TOPIC_IMU, "json", self._imu_schema)
+                self._add(ch, int(log_ns), data, TOPIC_IMU)
+
     def write_json(self, topic: str, time_ns: int, obj: dict[str, Any]) -> None:
         """Any JSON-able mapping on its own topic (events, camera truth, stats).
 
         /server/health and /server/events also go to the Foxglove log.
         """
-        if topic in (TOPIC_PACKETS, TOPIC_STATES, TOPIC_TRUTH, TOPIC_MARKERS) or topic.startswith(TOPIC_PREFIX):
-            raise ValueError(
-                f"write_json: topic {topic!r} is reserved; use write_packet/write_state/write_truth/publish_markers"
-            )
+        reserved = (TOPIC_PACKETS, TOPIC_STATES, TOPIC_TRUTH, TOPIC_MARKERS, TOPIC_IMU)
+        if topic in reserved or topic.startswith(TOPIC_PREFIX):
+            raise ValueError(f"write_json: topic {topic!r} is reserved; use write_packet/write_state/write_truth/"
+                             "publish_markers/write_imu")
         data = json_bytes(plain(obj))
         fox = None
         if self.foxglove is not None and topic in (TOPIC_HEALTH, TOPIC_EVENTS):

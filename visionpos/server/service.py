@@ -105,6 +105,7 @@ class FusionServer:
             s.use_identity(getattr(pipeline, "identity", None))
             for drain in s.imu_sources() if hasattr(pipeline, "add_imu_source") else ():  # the vehicles' IMU
                 pipeline.add_imu_source(drain)
+        self._tap_imu(recorder)
         self.host = self.settings.bind if host is None else host
         self._port_req = self.settings.port if port is None else int(port)
         self.clock = clock
@@ -198,6 +199,12 @@ class FusionServer:
         self.recorder = recorder
         self.sinks = [*self.sinks, _RecorderSink(recorder)]
         self.ingest.recorder = recorder
+        self._tap_imu(recorder)
+
+    def _tap_imu(self, recorder: RecordingWriter | None) -> None:
+        """The IMU samples the pipeline takes go to recorder (an input: a replay hands them over again)."""
+        if hasattr(self.pipeline, "imu_tap"):
+            self.pipeline.imu_tap = recorder.write_imu if recorder is not None else None
 
     def detach_recording(self) -> RecordingWriter:
         """Stop recording: the recorder (with its final health written) no longer gets anything; the caller
@@ -206,6 +213,7 @@ class FusionServer:
         if rec is None:
             raise ValueError("not recording")
         self.ingest.recorder = None
+        self._tap_imu(None)
         self.sinks = [s for s in self.sinks if not (isinstance(s, _RecorderSink) and s.recorder is rec)]
         self.recorder = None
         try:
