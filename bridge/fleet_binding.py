@@ -327,9 +327,10 @@ class FleetBinding:
         if n * GRID_NS < MIN_SPAN_NS:
             return self._say_unresolved(bodies, vehicles, "too few shared instants of optics and telemetry yet"), []
         usual = np.array([np.nanmedian(ring_arrays[b][:, 11]) for b in rows])
+        noise = optical_rate_noise(att_sigma, usual)[:, ok]
         cost = pair_costs(opt[:, ok], tel[:, ok],
-                          np.array([self.sigma_att_rad.get(v, math.radians(3.0)) for v in vehicles]),
-                          optical_rate_noise(att_sigma, usual)[:, ok])
+                          np.array([self.sigma_att_rad.get(v, math.radians(3.0)) for v in vehicles]), noise)
+        uncertain = noise[:, -(BIND_EVERY_NS // GRID_NS):].max(axis=1) > IDENTITY_RATE_NOISE_RAD_S
         imu = [self._accel.get(v) for v in vehicles]
         acc = None
         if all(x is not None and len(x[0]) > 1 for x in imu):
@@ -353,7 +354,7 @@ class FleetBinding:
         # the held bindings are checked against the assignment free of them: one that gives a held body another
         # vehicle with confidence says the track followed another drone (a swap the tracker did not see)
         free = assign_identities(cost, reject, AMBIGUITY) if self.bound else res
-        return self._apply(rows, vehicles, cost, reject, res, still, free)
+        return self._apply(rows, vehicles, cost, reject, res, still, free, uncertain)
 
     def _say_unresolved(self, bodies: list[str], vehicles: list[str], reason: str) -> list[str]:
         for v in vehicles:
@@ -367,8 +368,10 @@ class FleetBinding:
             self.vehicles[vehicle] = VehicleIdentity(UNRESOLVED, reason)
 
     def _apply(self, rows: list[str], vehicles: list[str], cost: np.ndarray, reject: float, res, still: bool,
-               free) -> tuple[list[str], list[tuple[str, str]]]:
-        """Check the held bindings (a disagreement stops the output first), then make the confident new ones."""
+               free, uncertain: np.ndarray | None = None) -> tuple[list[str], list[tuple[str, str]]]:
+        """Check the held bindings (a disagreement stops the output first), then make the confident new ones.
+        uncertain (len(rows),): the bodies whose optical rates counted less since the last evaluation (None:
+        none)."""
         dropped: list[str] = []
         disagreed: set[str] = set()
         col = {v: j for j, v in enumerate(vehicles)}
@@ -392,6 +395,18 @@ class FleetBinding:
                 dropped.append(self._drop(b, f"binding disagreed: {why}: poses stopped, binding again", self._now_ns,
                                           STOPPED))
                 disagreed.add(b)
+        # a swap has two sides: a held body whose optical rates counted less since the last evaluation (its
+        # attitude uncertain: optical_rate_noise) cannot vouch for its binding by its own check; when another
+        # binding of its group disagrees, it may be the other side, and when in doubt it stops too
+        first = next(iter(disagreed), None) if uncertain is not None else None
+        for k, c in enumerate(rows):
+            if first is not None and c not in disagreed and self.bound.get(c) in col and uncertain[k]:
+                self.disagreements += 1
+                self.rings[c].clear()
+                dropped.append(self._drop(c, f"binding in doubt: {first}'s binding disagreed and {c}'s attitude is "
+                                             "uncertain (the other side of a swap?): poses stopped, binding again",
+                                          self._now_ns, STOPPED))
+                disagreed.add(c)
         made = []
         # this evaluation's assignment held the bindings just dropped: they are made again from fresh samples only
         taken = set(self.bound.values()) | set(dropped)

@@ -219,6 +219,21 @@ def test_optical_rates_that_err_while_the_attitude_is_uncertain_do_not_stop_a_ri
         assert [v for _, v in f.stopped] == ["v0"]
 
 
+def test_a_swap_whose_one_side_is_uncertain_stops_both_at_once():
+    f = Fleet()
+    f.rates[0] = hand_yaw(1.0, 360.0, 8.0)
+    f.rates[1] = hand_yaw(1.0, -360.0, 8.0)
+    f.step(2.5)
+    assert f.binding.vehicle_of("quad2") == "v0" and f.binding.vehicle_of("quad3") == "v1"
+    f.perm = [2, 1, 0]  # swapped unnoticed; quad3 (now drone 0) is the one whose optical attitude is uncertain
+    f.sigma_deg["quad3"] = 2.0
+    f.step(0.3)
+    stops = dict((v, t) for t, v in reversed(f.stopped))
+    assert set(stops) == {"v0", "v1"} and stops["v0"] == stops["v1"]
+    why = f.binding.vehicles["v1"].reason
+    assert "binding in doubt: quad2's binding disagreed and quad3's attitude is uncertain" in why
+
+
 def test_a_disagreeing_binding_says_stopped():
     f = Fleet()
     f.rates[0] = hand_yaw(1.0, 360.0, 8.0)
