@@ -19,6 +19,7 @@ binding of a flying drone and how long until it is bound again.
 from __future__ import annotations
 
 import sys
+import time
 
 import numpy as np
 
@@ -36,7 +37,8 @@ ACCEL_BIAS_M_S2 = 0.3  # its bias, drawn per vehicle and axis in +-this
 
 
 LOSS_S = 0.2  # an injected loss: the body untracked this long
-SWAP = ("quad1", "quad9")  # an injected swap: two drones of different cells that fly apart in the huddle leg
+SWAP = ("quad1", "quad9")
+LIVE_POLL_S = 0.5  # an injected swap: two drones of different cells that fly apart in the huddle leg
 
 
 def measure(duration_s: float | None = None, scenario: str = "fleet", loss_at_s: tuple[float, ...] = (),
@@ -214,7 +216,8 @@ def measure_live(duration_s: float | None = None, fps: float = 30.0, scenario: s
     autopilot per vehicle playing its own drone's truth as its telemetry (bridge/fake_autopilot.py); at each
     autopilot, the poses it received that came from another drone's body (nearer another drone's truth than
     its own at the pose's stamp, or over WRONG_M from its own). Returns those counts with the server's shed
-    frames and late ticks, the output rate and each vehicle's binding state at the end."""
+    frames and late ticks, the output rate, per vehicle how long it was bound (the bridge's binding sampled every
+    LIVE_POLL_S) and its binding at the end."""
     import asyncio
 
     from visionpos.app import demo
@@ -225,9 +228,21 @@ def measure_live(duration_s: float | None = None, fps: float = 30.0, scenario: s
     duration = duration_s or float(data["sim"]["duration"])
     arena = demo.demo_arena(scenario, duration, None, sets)
     tally = _PosesAtAutopilot(demo.AutopilotPoses)
+    seen: dict[str, dict] = {}  # vehicle: the bridge's binding, sampled every LIVE_POLL_S
+    bound_s: dict[str, float] = {}  # vehicle: seconds of the run it was bound
+
+    async def watch(ctx) -> None:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < duration:
+            for v in ctx.bridge.vehicles:
+                seen[v.cfg.name] = ctx.bridge.identity(v.cfg.name)
+                if seen[v.cfg.name].get("identity_binding") == "bound":
+                    bound_s[v.cfg.name] = bound_s.get(v.cfg.name, 0.0) + LIVE_POLL_S
+            await asyncio.sleep(LIVE_POLL_S)
+
     demo.AutopilotPoses = tally.make  # read-only: the summary's tallies, each also keeping its poses
     try:
-        summary = asyncio.run(demo.run_demo(arena, duration, None))
+        summary = asyncio.run(demo.run_demo(arena, duration, None, during=watch))
     finally:
         demo.AutopilotPoses = tally.base
     total, wrong, per = tally.wrong()
@@ -235,7 +250,7 @@ def measure_live(duration_s: float | None = None, fps: float = 30.0, scenario: s
             "wrong_vehicle": wrong, "wrong_per_vehicle": per, "frames_shed": summary["server"]["frames_shed"],
             "frames_accepted": summary["server"]["frames_accepted"], "late_ticks": summary["late_ticks"],
             "output_rate_hz": summary["output_rate_hz"],
-            "identity": {b["name"]: b.get("autopilot_says", {}).get("identity") for b in summary["bodies"]},
+            "binding": seen, "bound_s": bound_s,
             "mavlink_messages": {b["name"]: b.get("mavlink_messages") for b in summary["bodies"]}}
 
 
@@ -253,8 +268,9 @@ def _main(argv: list[str]) -> None:
               f"autopilots {out['poses']}, from another drone {out['wrong_vehicle']} {out['wrong_per_vehicle']}; "
               f"frames shed {out['frames_shed']} of {out['frames_accepted']} accepted, late ticks {out['late_ticks']}, "
               f"output {out['output_rate_hz']:.0f} Hz")
-        for name, ident in out["identity"].items():
-            print(f"{name}: {out['mavlink_messages'][name]} poses; identity at the end: {ident}")
+        for name, b in out["binding"].items():
+            print(f"{name}: bound {out['bound_s'].get(name, 0.0):.1f} s; at the end {b.get('identity_binding')} "
+                  f"({b.get('identity_reason')})")
         return
     # python -m visionpos.benchmarks.fleet_binding [--no-accel] [--fleet20] [DURATION [SWAP_AT [LOSS_AT ...]]] (0: none)
     out = measure(args[0] if args and args[0] else None, "fleet20" if "--fleet20" in flags else "fleet",
