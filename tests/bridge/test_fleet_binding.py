@@ -451,3 +451,16 @@ def test_a_binding_dropped_for_disagreeing_is_not_made_again_by_the_same_evaluat
                              False, assign_identities(cost, 100.0, 13.8))
     assert sorted(dropped) == ["v0", "v1"] and made == []
     assert b.bound == {} and b.vehicles["v0"].state == STOPPED
+
+
+def test_the_live_bench_counts_poses_from_another_drones_body_at_each_autopilot():
+    from visionpos.app.demo_summary import AutopilotPoses
+    from visionpos.benchmarks.fleet_binding import _PosesAtAutopilot
+
+    tally = _PosesAtAutopilot(AutopilotPoses)
+    a, b = tally.make(boot_stamps=True), tally.make(boot_stamps=True)
+    a.score(0, 10, lambda t: np.zeros((len(t), 3)))  # drone a hovers at the origin, drone b 1 m along x
+    b.score(0, 10, lambda t: np.tile([1.0, 0.0, 0.0], (len(t), 1)))
+    a.got = [(1, np.array([0.01, 0.0, 0.0])), (2, np.array([0.98, 0.0, 0.0]))]  # the second is b's
+    b.got = [(1, np.array([1.0, 0.0, 0.0])), (2, np.array([1.2, 0.0, 0.0]))]  # the second 0.2 m off: not its own
+    assert tally.wrong() == (4, 2, [1, 1])

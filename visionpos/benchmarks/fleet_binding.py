@@ -210,23 +210,34 @@ class _PosesAtAutopilot:
         return total, sum(per), per
 
 
-def measure_live(duration_s: float | None = None, fps: float = 30.0, scenario: str = "fleet") -> dict:
+def measure_live(duration_s: float | None = None, fps: float = 30.0, scenario: str = "fleet",
+                 cameras: int | None = None) -> dict:
     """The goal's own place, in real time: `visionpos demo --scenario SCENARIO` with every camera at `fps`
     (`--set cameras.N.fps=FPS`: this host's cores cannot fuse ten cameras at 120 Hz in real time) and one fake
     autopilot per vehicle playing its own drone's truth as its telemetry (bridge/fake_autopilot.py); at each
     autopilot, the poses it received that came from another drone's body (nearer another drone's truth than
-    its own at the pose's stamp, or over WRONG_M from its own). Returns those counts with the server's shed
+    its own at the pose's stamp, or over WRONG_M from its own); cameras: only the scenario's first this many
+    (None: all). Returns those counts with the server's shed
     frames and late ticks, the output rate, per vehicle how long it was bound (the bridge's binding sampled every
     LIVE_POLL_S) and its binding at the end."""
     import asyncio
+    import tempfile
+
+    import yaml
 
     from visionpos.app import demo
     from visionpos.config.arena import load_yaml, resolve_config_path
 
     data = load_yaml(resolve_config_path(scenario))
-    sets = [f"cameras.{i}.fps={fps:g}" for i in range(len(data["cameras"]))]
+    data["cameras"] = data["cameras"][:cameras]
+    for c in data["cameras"]:
+        c["fps"] = fps
     duration = duration_s or float(data["sim"]["duration"])
-    arena = demo.demo_arena(scenario, duration, None, sets)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = f"{tmp}/{scenario}.yaml"
+        with open(path, "w") as f:
+            yaml.safe_dump(data, f, sort_keys=False)
+        arena = demo.demo_arena(path, duration, None, [])
     tally = _PosesAtAutopilot(demo.AutopilotPoses)
     seen: dict[str, dict] = {}  # vehicle: the bridge's binding, sampled every LIVE_POLL_S
     bound_s: dict[str, float] = {}  # vehicle: seconds of the run it was bound
@@ -262,8 +273,10 @@ def binding_state(log, v: str) -> str | None:
 def _main(argv: list[str]) -> None:
     flags = [a for a in argv if a.startswith("--")]
     args = [float(a) for a in argv if not a.startswith("--")]
-    if "--live" in flags:  # python -m visionpos.benchmarks.fleet_binding --live [DURATION [FPS]]
-        out = measure_live(args[0] if args and args[0] else None, args[1] if len(args) > 1 else 30.0)
+    if "--live" in flags:
+        # python -m visionpos.benchmarks.fleet_binding --live [DURATION [FPS [CAMERAS]]] (0: the scenario's)
+        out = measure_live(args[0] if args and args[0] else None, args[1] if len(args) > 1 else 30.0,
+                           cameras=int(args[2]) if len(args) > 2 and args[2] else None)
         print(f"live demo, {out['cameras']} cameras at {out['fps']:g} Hz, {out['duration_s']:.1f} s: poses at the "
               f"autopilots {out['poses']}, from another drone {out['wrong_vehicle']} {out['wrong_per_vehicle']}; "
               f"frames shed {out['frames_shed']} of {out['frames_accepted']} accepted, late ticks {out['late_ticks']}, "
