@@ -260,7 +260,8 @@ def measure_live(duration_s: float | None = None, fps: float = 30.0, scenario: s
     return {"fps": fps, "cameras": len(arena.cameras), "duration_s": summary["duration_s"], "poses": total,
             "wrong_vehicle": wrong, "wrong_per_vehicle": per, "frames_shed": summary["server"]["frames_shed"],
             "frames_accepted": summary["server"]["frames_accepted"], "late_ticks": summary["late_ticks"],
-            "output_rate_hz": summary["output_rate_hz"],
+            "output_rate_hz": summary["output_rate_hz"], "kernels": summary["kernels"],
+            "tick_cost_max_ms": summary["server"]["tick_cost_max_ms"],
             "binding": seen, "bound_s": bound_s,
             "mavlink_messages": {b["name"]: b.get("mavlink_messages") for b in summary["bodies"]}}
 
@@ -280,7 +281,7 @@ def _main(argv: list[str]) -> None:
         print(f"live demo, {out['cameras']} cameras at {out['fps']:g} Hz, {out['duration_s']:.1f} s: poses at the "
               f"autopilots {out['poses']}, from another drone {out['wrong_vehicle']} {out['wrong_per_vehicle']}; "
               f"frames shed {out['frames_shed']} of {out['frames_accepted']} accepted, late ticks {out['late_ticks']}, "
-              f"output {out['output_rate_hz']:.0f} Hz")
+              f"output {out['output_rate_hz']:.0f} Hz; kernels {out['kernels']}")
         for name, b in out["binding"].items():
             print(f"{name}: bound {out['bound_s'].get(name, 0.0):.1f} s; at the end {b.get('identity_binding')} "
                   f"({b.get('identity_reason')})")
