@@ -463,4 +463,4 @@ def test_the_live_bench_counts_poses_from_another_drones_body_at_each_autopilot(
     b.score(0, 10, lambda t: np.tile([1.0, 0.0, 0.0], (len(t), 1)))
     a.got = [(1, np.array([0.01, 0.0, 0.0])), (2, np.array([0.98, 0.0, 0.0]))]  # the second is b's
     b.got = [(1, np.array([1.0, 0.0, 0.0])), (2, np.array([1.2, 0.0, 0.0]))]  # the second 0.2 m off: not its own
-    assert tally.wrong() == (4, 2, [1, 1])
+    assert tally.wrong() == (4, 2, [1, 1], 1)

@@ -193,11 +193,11 @@ class _PosesAtAutopilot:
 
         return Tally(*args, **kwargs)
 
-    def wrong(self) -> tuple[int, int, list[int]]:
+    def wrong(self) -> tuple[int, int, list[int], int]:
         """(poses scored, poses nearer another drone's truth than the vehicle's own or over WRONG_M from it, per
-        vehicle the wrong ones)."""
+        vehicle the wrong ones, of them the ones nearer another drone's truth)."""
         truths = [t._truth for t in self.tallies if t._truth is not None]
-        total, per = 0, []
+        total, per, nearer = 0, [], 0
         for k, t in enumerate(x for x in self.tallies if x._truth is not None):
             if not t.got:
                 per.append(0)
@@ -207,7 +207,8 @@ class _PosesAtAutopilot:
             d = np.stack([np.linalg.norm(p - f(ts), axis=1) for f in truths])
             total += len(ts)
             per.append(int(np.sum((np.argmin(d, axis=0) != k) | (d[k] > WRONG_M))))
-        return total, sum(per), per
+            nearer += int(np.sum(np.argmin(d, axis=0) != k))
+        return total, sum(per), per, nearer
 
 
 def measure_live(duration_s: float | None = None, fps: float = 30.0, scenario: str = "fleet",
@@ -256,9 +257,10 @@ def measure_live(duration_s: float | None = None, fps: float = 30.0, scenario: s
         summary = asyncio.run(demo.run_demo(arena, duration, None, during=watch))
     finally:
         demo.AutopilotPoses = tally.base
-    total, wrong, per = tally.wrong()
+    total, wrong, per, nearer = tally.wrong()
     return {"fps": fps, "cameras": len(arena.cameras), "duration_s": summary["duration_s"], "poses": total,
-            "wrong_vehicle": wrong, "wrong_per_vehicle": per, "frames_shed": summary["server"]["frames_shed"],
+            "wrong_vehicle": wrong, "wrong_per_vehicle": per, "nearer_another_drone": nearer,
+            "frames_shed": summary["server"]["frames_shed"],
             "frames_accepted": summary["server"]["frames_accepted"], "late_ticks": summary["late_ticks"],
             "output_rate_hz": summary["output_rate_hz"], "kernels": summary["kernels"],
             "tick_cost_max_ms": summary["server"]["tick_cost_max_ms"],
@@ -279,7 +281,8 @@ def _main(argv: list[str]) -> None:
         out = measure_live(args[0] if args and args[0] else None, args[1] if len(args) > 1 else 30.0,
                            cameras=int(args[2]) if len(args) > 2 and args[2] else None)
         print(f"live demo, {out['cameras']} cameras at {out['fps']:g} Hz, {out['duration_s']:.1f} s: poses at the "
-              f"autopilots {out['poses']}, from another drone {out['wrong_vehicle']} {out['wrong_per_vehicle']}; "
+              f"autopilots {out['poses']}, wrong {out['wrong_vehicle']} {out['wrong_per_vehicle']} (nearer another "
+              f"drone {out['nearer_another_drone']}); "
               f"frames shed {out['frames_shed']} of {out['frames_accepted']} accepted, late ticks {out['late_ticks']}, "
               f"output {out['output_rate_hz']:.0f} Hz; kernels {out['kernels']}")
         for name, b in out["binding"].items():
