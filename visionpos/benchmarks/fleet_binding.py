@@ -170,6 +170,8 @@ class _PosesAtAutopilot:
 
     def __init__(self, base: type) -> None:
         self.base, self.tallies = base, []
+        self.details: list[tuple[int, int, float, float]] = []  # wrong poses: (vehicle, stamp ns, m off its own
+        # drone, m off the nearest other)
 
     def make(self, *args, **kwargs):
         outer = self
@@ -206,7 +208,10 @@ class _PosesAtAutopilot:
             p = np.array([g[1] for g in t.got])
             d = np.stack([np.linalg.norm(p - f(ts), axis=1) for f in truths])
             total += len(ts)
-            per.append(int(np.sum((np.argmin(d, axis=0) != k) | (d[k] > WRONG_M))))
+            bad = (np.argmin(d, axis=0) != k) | (d[k] > WRONG_M)
+            per.append(int(np.sum(bad)))
+            others = np.delete(d, k, axis=0).min(axis=0) if len(d) > 1 else np.full(len(ts), np.inf)
+            self.details += [(k, int(ts[i]), float(d[k, i]), float(others[i])) for i in np.nonzero(bad)[0]]
             nearer += int(np.sum(np.argmin(d, axis=0) != k))
         return total, sum(per), per, nearer
 
@@ -264,7 +269,7 @@ def measure_live(duration_s: float | None = None, fps: float = 30.0, scenario: s
             "frames_accepted": summary["server"]["frames_accepted"], "late_ticks": summary["late_ticks"],
             "output_rate_hz": summary["output_rate_hz"], "kernels": summary["kernels"],
             "tick_cost_max_ms": summary["server"]["tick_cost_max_ms"],
-            "binding": seen, "bound_s": bound_s,
+            "binding": seen, "bound_s": bound_s, "wrong_poses": tally.details[:50],
             "mavlink_messages": {b["name"]: b.get("mavlink_messages") for b in summary["bodies"]}}
 
 
