@@ -73,6 +73,10 @@ ACCEL_REL = 0.15  # ... plus this fraction of the body's acceleration (the filte
 ACCEL_BIAS_M_S2 = 0.5  # the accelerometer bias an IMU may have (the prior's sigma: a calibrated one has less)
 ACCEL_MIN_INSTANTS = 2
 STILL_ACCEL_M_S2 = 0.3  # and whose low-passed accelerations all stay under this
+RATE_PER_ATT_S = 100.0  # the optical rates' error per axis per radian of attitude uncertainty over the usual
+# (fleet20: rate errors of 0.75 rad/s median, 1.34 p90 (norm) where the attitude's sigma was 0.7-1.0 deg against
+# a usual 0.25: about 80 per radian per axis at p90)
+QUALITY_SPREAD = 2  # shared instants (40 ms) either side a glitch's rate error is allowed for
 
 BOUND, UNRESOLVED, UNKNOWN, STOPPED = "bound", "unresolved", "unknown", "stopped"
 
@@ -88,17 +92,42 @@ def optical_attitude(q_world_flu: np.ndarray, w_flu: np.ndarray) -> np.ndarray:
     return np.column_stack([roll, pitch, rates])
 
 
-def pair_costs(optical: np.ndarray, telemetry: np.ndarray, sigma_att_rad: np.ndarray) -> np.ndarray:
+def pair_costs(optical: np.ndarray, telemetry: np.ndarray, sigma_att_rad: np.ndarray,
+               optical_rate_noise_rad_s: np.ndarray | None = None) -> np.ndarray:
     """Summed squared normalised residuals (B, V) of every (optical body, vehicle) pair over the same M
     instants: optical (B, M, 5) and telemetry (V, M, 5) roll, pitch rad, p, q, r rad/s FRD; sigma_att_rad (V,)
-    each vehicle's roll/pitch noise (its identity_tolerance_deg)."""
+    each vehicle's roll/pitch noise (its identity_tolerance_deg); optical_rate_noise_rad_s (B, M): the optical
+    rates' own extra error per axis at each instant (optical_rate_noise; None: none), added to the rate noise."""
     B, M, _ = optical.shape
     V = telemetry.shape[0]
     o = np.broadcast_to(optical[:, None], (B, V, M, 5)).reshape(-1, 5)
     a = np.broadcast_to(telemetry[None], (B, V, M, 5)).reshape(-1, 5)
-    r = identity_residuals(a[:, :2], a[:, 2:], o[:, :2], o[:, 2:], 1.0, IDENTITY_RATE_NOISE_RAD_S, IDENTITY_RATE_REL)
+    extra = (np.zeros((B, M)) if optical_rate_noise_rad_s is None else np.asarray(optical_rate_noise_rad_s, float))
+    sigma_rate = IDENTITY_RATE_NOISE_RAD_S + np.broadcast_to(extra[:, None], (B, V, M)).reshape(-1, 1)
+    r = identity_residuals(a[:, :2], a[:, 2:], o[:, :2], o[:, 2:], 1.0, sigma_rate, IDENTITY_RATE_REL)
     r[:, :2] /= np.repeat(np.broadcast_to(np.asarray(sigma_att_rad, float)[None], (B, V)).reshape(-1), M)[:, None]
     return (r * r).reshape(B, V, M * 5).sum(axis=2)
+
+
+def attitude_sigma_rad(covariance: np.ndarray) -> float:
+    """The filter's attitude uncertainty of one BodyState: the root of the trace of its covariance's rotation
+    block (6, 6: [x, y, z, rx, ry, rz] m^2, rad^2), rad."""
+    return float(np.sqrt(max(np.trace(np.asarray(covariance, float)[3:6, 3:6]), 0.0)))
+
+
+def optical_rate_noise(sigma_att_rad: np.ndarray, usual_rad: np.ndarray) -> np.ndarray:
+    """The optical body rates' extra error per axis, rad/s (B, M), from the filter's attitude uncertainty
+    sigma_att_rad (B, M) rad (attitude_sigma_rad on the shared instants) over each body's usual one usual_rad
+    (B,) rad: RATE_PER_ATT_S per radian of excess, the largest within QUALITY_SPREAD instants either side (a
+    glitch's rate error outlasts the covariance's peak a little). Where markers of two bodies merge in some
+    cameras, or a body is seen by few, its attitude is less certain and its filtered rates err by up to
+    1-2 rad/s: those instants must not count against the binding as a disagreement would."""
+    s = np.asarray(sigma_att_rad, float)
+    excess = np.maximum(np.nan_to_num(s - np.asarray(usual_rad, float)[:, None], nan=0.0), 0.0)
+    k = QUALITY_SPREAD
+    pad = np.pad(excess, ((0, 0), (k, k)), mode="edge")
+    widened = np.max(np.stack([pad[:, i:i + excess.shape[1]] for i in range(2 * k + 1)]), axis=0)
+    return RATE_PER_ATT_S * widened
 
 
 def reject_cost(instants: int, accel_dof: int = 0) -> float:
@@ -141,6 +170,16 @@ def accel_costs(grid_ns: np.ndarray, optical: list[np.ndarray], imu: list[tuple[
     return (r * r).sum(axis=(2, 3)), 3 * len(at), float(m.max())
 
 
+def _clock_map_ns(bc) -> float | None:
+    """A back-channel's autopilot-less-server clock offset, ns (None: not known yet), read from another thread
+    as BackChannel.attitude_on_server_clock reads it (the offsets copied first)."""
+    lag = bc.clock_lag_ns
+    if lag is not None:
+        return lag
+    offsets = list(bc.clock_offsets.d)  # list() copies under the GIL while the link's thread appends
+    return float(max(r[1] for r in offsets)) if offsets else None
+
+
 @dataclass
 class VehicleIdentity:
     """What the bridge says of one fleet vehicle: state (bound, unresolved, unknown, stopped), reason in words,
@@ -169,7 +208,8 @@ class FleetBinding:
         self.vehicles = {v: VehicleIdentity() for _, vs in self.groups for v in vs}
         self.sigma_att_rad = sigma_att_rad
         self.silent_policy = silent_policy
-        self.rings = {b: collections.deque(maxlen=RING) for b in self.bodies}  # (t ns, q xyzw, w FLU, p m)
+        # (t ns, q xyzw, w FLU, p m, the attitude's sigma rad: attitude_sigma_rad)
+        self.rings = {b: collections.deque(maxlen=RING) for b in self.bodies}
         self.bound: dict[str, str] = {}  # optical body -> vehicle
         self.identity: dict[str, str] = {b: IdentityState.LOST.value for b in self.bodies}
         self._next_ns = 0
@@ -202,7 +242,8 @@ class FleetBinding:
                 why = "track lost" if now == IdentityState.LOST.value else f"identity {now}"
                 dropped.append(self._drop(b, f"{why}: binding dropped, binding again when it moves", st.time_ns))
             if st.tracked:
-                self.rings[b].append((st.time_ns, *st.quaternion, *st.angular_velocity, *st.position))
+                self.rings[b].append((st.time_ns, *st.quaternion, *st.angular_velocity, *st.position,
+                                      attitude_sigma_rad(st.covariance)))
         return dropped
 
     def _own_identity(self, body: str, tracked: bool) -> str:
@@ -219,8 +260,10 @@ class FleetBinding:
 
     def accel_telemetry(self, links: dict) -> dict[str, tuple[np.ndarray, np.ndarray] | None]:
         """{vehicle: its accelerometer on the server clock (bridge/imu_samples.py), None before its clock is
-        mapped} from the bridge's links {vehicle name: VehicleLink}, mapped as its attitude is."""
-        return {v: links[v].bc.accel.on_server_clock(links[v].bc._clock_map_ns()) for v in self.vehicles}
+        mapped} from the bridge's links {vehicle name: VehicleLink}, mapped as its attitude is. Runs on the
+        publishing thread while each link's thread appends: the clock offsets are copied before they are read
+        (iterating the deque itself raised "deque mutated during iteration" in a live fleet demo)."""
+        return {v: links[v].bc.accel.on_server_clock(_clock_map_ns(links[v].bc)) for v in self.vehicles}
 
     def due(self, now_ns: int) -> bool:
         return now_ns >= self._next_ns
@@ -284,11 +327,13 @@ class FleetBinding:
             return self._point_costs(rows, vehicles, grid, ring_arrays, telemetry)
         ok = np.ones(len(grid), bool)
         opt = np.zeros((len(rows), len(grid), 5))
+        att_sigma = np.zeros((len(rows), len(grid)))
         for i, b in enumerate(rows):
             a = ring_arrays[b]
-            good, val = sample_at(grid, a[:, 0], optical_attitude(a[:, 1:5], a[:, 5:8]), MAX_PAIR_GAP_NS)
+            good, val = sample_at(grid, a[:, 0], np.column_stack([optical_attitude(a[:, 1:5], a[:, 5:8]), a[:, 11]]),
+                                  MAX_PAIR_GAP_NS)
             ok &= good
-            opt[i] = val
+            opt[i], att_sigma[i] = val[:, :5], val[:, 5]
         tel = np.zeros((len(vehicles), len(grid), 5))
         for j, v in enumerate(vehicles):
             t, val = telemetry[v]
@@ -297,8 +342,11 @@ class FleetBinding:
         n = int(ok.sum())
         if n * GRID_NS < MIN_SPAN_NS:
             return self._say_unresolved(bodies, vehicles, "too few shared instants of optics and telemetry yet"), []
+        usual = np.array([np.nanmedian(ring_arrays[b][:, 11]) for b in rows])
+        noise = optical_rate_noise(att_sigma, usual)[:, ok]
         cost = pair_costs(opt[:, ok], tel[:, ok],
-                          np.array([self.sigma_att_rad.get(v, math.radians(3.0)) for v in vehicles]))
+                          np.array([self.sigma_att_rad.get(v, math.radians(3.0)) for v in vehicles]), noise)
+        uncertain = noise[:, -(BIND_EVERY_NS // GRID_NS):].max(axis=1) > IDENTITY_RATE_NOISE_RAD_S
         imu = [self._accel.get(v) for v in vehicles]
         acc = None
         if all(x is not None and len(x[0]) > 1 for x in imu):
@@ -340,7 +388,7 @@ class FleetBinding:
         # the held bindings are checked against the assignment free of them: one that gives a held body another
         # vehicle with confidence says the track followed another drone (a swap the tracker did not see)
         free = assign_identities(cost, reject, AMBIGUITY) if self.bound else res
-        return self._apply(rows, vehicles, cost, reject, res, still, free)
+        return self._apply(rows, vehicles, cost, reject, res, still, free, uncertain)
 
     def _say_unresolved(self, bodies: list[str], vehicles: list[str], reason: str) -> list[str]:
         for v in vehicles:
@@ -354,8 +402,10 @@ class FleetBinding:
             self.vehicles[vehicle] = VehicleIdentity(UNRESOLVED, reason)
 
     def _apply(self, rows: list[str], vehicles: list[str], cost: np.ndarray, reject: float, res, still: bool,
-               free) -> tuple[list[str], list[tuple[str, str]]]:
-        """Check the held bindings (a disagreement stops the output first), then make the confident new ones."""
+               free, uncertain: np.ndarray | None = None) -> tuple[list[str], list[tuple[str, str]]]:
+        """Check the held bindings (a disagreement stops the output first), then make the confident new ones.
+        uncertain (len(rows),): the bodies whose optical rates counted less since the last evaluation (None:
+        none)."""
         dropped: list[str] = []
         disagreed: set[str] = set()
         col = {v: j for j, v in enumerate(vehicles)}
@@ -379,6 +429,18 @@ class FleetBinding:
                 dropped.append(self._drop(b, f"binding disagreed: {why}: poses stopped, binding again", self._now_ns,
                                           STOPPED))
                 disagreed.add(b)
+        # a swap has two sides: a held body whose optical rates counted less since the last evaluation (its
+        # attitude uncertain: optical_rate_noise) cannot vouch for its binding by its own check; when another
+        # binding of its group disagrees, it may be the other side, and when in doubt it stops too
+        first = next(iter(disagreed), None) if uncertain is not None else None
+        for k, c in enumerate(rows):
+            if first is not None and c not in disagreed and self.bound.get(c) in col and uncertain[k]:
+                self.disagreements += 1
+                self.rings[c].clear()
+                dropped.append(self._drop(c, f"binding in doubt: {first}'s binding disagreed and {c}'s attitude is "
+                                             "uncertain (the other side of a swap?): poses stopped, binding again",
+                                          self._now_ns, STOPPED))
+                disagreed.add(c)
         made = []
         # this evaluation's assignment held the bindings just dropped: they are made again from fresh samples only
         taken = set(self.bound.values()) | set(dropped)

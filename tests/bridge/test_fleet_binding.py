@@ -11,11 +11,15 @@ from scipy.spatial.transform import Rotation
 
 from bridge.fleet_binding import (
     BOUND,
+    QUALITY_SPREAD,
+    RATE_PER_ATT_S,
     STOPPED,
     UNKNOWN,
     UNRESOLVED,
     FleetBinding,
+    attitude_sigma_rad,
     optical_attitude,
+    optical_rate_noise,
     pair_costs,
 )
 
@@ -30,6 +34,7 @@ class State(NamedTuple):
     angular_velocity: np.ndarray
     tracked: bool = True
     position: np.ndarray = np.zeros(3)
+    covariance: np.ndarray = np.diag([1e-6] * 3 + [math.radians(0.25) ** 2 / 3] * 3)  # attitude sigma 0.25 deg
 
 
 def test_optical_attitude_is_what_an_autopilot_reports():
@@ -52,6 +57,21 @@ def test_pair_costs_sum_the_normalised_squares():
     assert c[1, 0] == pytest.approx(3 * (0.25 + (0.2 / 0.12) ** 2))
 
 
+def test_the_optical_rates_noise_grows_with_the_attitudes_uncertainty_over_its_usual():
+    assert attitude_sigma_rad(np.diag([9.0, 9.0, 9.0, 0.01, 0.02, 0.06])) == pytest.approx(0.3)
+    usual = np.radians([0.25, 0.5])
+    s = np.radians([[0.25] * 9, [0.5] * 9])
+    s[0, 4] = math.radians(1.25)  # one glitch of body 0: 1 deg over its usual
+    s[1, 0] = math.radians(0.3)  # under body 1's usual: no extra
+    got = optical_rate_noise(s, usual)
+    want = np.zeros((2, 9))
+    want[0, 4 - QUALITY_SPREAD:4 + QUALITY_SPREAD + 1] = RATE_PER_ATT_S * math.radians(1.0)
+    assert got == pytest.approx(want)
+    opt, tel = np.zeros((1, 1, 5)), np.zeros((1, 1, 5))
+    opt[0, 0, 2] = 1.0  # a roll rate of 1 rad/s the vehicle does not report: sigma 0.1 + 0.4 + 0.1 * 1
+    assert pair_costs(opt, tel, np.array([1.0]), np.array([[0.4]]))[0, 0] == pytest.approx((1.0 / 0.6) ** 2)
+
+
 class Fleet:
     """Drones on the floor; optical body i is drone perm[i]; vehicle 'v{k}' is drone k. yaw_rate[k](t s) rad/s."""
 
@@ -71,6 +91,8 @@ class Fleet:
         self.identity = None  # None: from the tracked flags
         self.made: list[tuple[int, str, str]] = []
         self.stopped: list[tuple[int, str]] = []
+        self.glitch: dict[str, np.ndarray] = {}  # body: an error of its optical rates (rad/s FLU)
+        self.sigma_deg: dict[str, float] = {}  # body: its attitude's sigma (default 0.25 deg)
 
     def step(self, seconds: float) -> None:
         rng = np.random.default_rng(self.t_ns)
@@ -80,7 +102,9 @@ class Fleet:
             r = [f(t) for f in self.rates]
             self.yaw = [y + ri * STEP_NS * 1e-9 for y, ri in zip(self.yaw, r)]
             states = [State(b, self.t_ns, Rotation.from_euler("z", self.yaw[d]).as_quat(),
-                            np.array([0.0, 0.0, r[d]]) + rng.normal(0, 0.01, 3), b not in self.lost)
+                            np.array([0.0, 0.0, r[d]]) + rng.normal(0, 0.01, 3) + self.glitch.get(b, 0.0),
+                            b not in self.lost, np.zeros(3),
+                            np.diag([1e-6] * 3 + [math.radians(self.sigma_deg.get(b, 0.25)) ** 2 / 3] * 3))
                       for b, d in zip(self.bodies, self.perm)]
             stop = self.binding.observe(states, self.identity)
             if self.t_ns % TEL_NS == 0:
@@ -174,6 +198,40 @@ def test_a_binding_that_disagrees_stops_first_then_binds_again():
     f.step(1.0)
     assert f.binding.vehicle_of("quad3") == "v0" and f.binding.vehicle_of("quad2") == "v1"
     assert f.binding.vehicles["v0"].state == BOUND
+
+
+@pytest.mark.parametrize("sigma_deg", [1.0, 0.25])
+def test_optical_rates_that_err_while_the_attitude_is_uncertain_do_not_stop_a_right_binding(sigma_deg):
+    # fleet20's crossing: markers of two bodies merge in some cameras, the body's attitude is less certain
+    # (its covariance says so) and its filtered rates err by 1.3 rad/s; the same error with a certain attitude
+    # is a disagreement
+    f = Fleet()
+    f.rates[0] = hand_yaw(1.0, 360.0, 8.0)
+    f.step(2.5)
+    assert f.binding.vehicle_of("quad2") == "v0"
+    f.glitch["quad2"], f.sigma_deg["quad2"] = np.array([1.3, -1.3, 0.0]), sigma_deg
+    f.step(0.6)
+    f.glitch.clear(), f.sigma_deg.clear()
+    f.step(1.0)
+    if sigma_deg > 0.25:
+        assert f.stopped == [] and f.binding.vehicle_of("quad2") == "v0"
+    else:
+        assert [v for _, v in f.stopped] == ["v0"]
+
+
+def test_a_swap_whose_one_side_is_uncertain_stops_both_at_once():
+    f = Fleet()
+    f.rates[0] = hand_yaw(1.0, 360.0, 8.0)
+    f.rates[1] = hand_yaw(1.0, -360.0, 8.0)
+    f.step(2.5)
+    assert f.binding.vehicle_of("quad2") == "v0" and f.binding.vehicle_of("quad3") == "v1"
+    f.perm = [2, 1, 0]  # swapped unnoticed; quad3 (now drone 0) is the one whose optical attitude is uncertain
+    f.sigma_deg["quad3"] = 2.0
+    f.step(0.3)
+    stops = dict((v, t) for t, v in reversed(f.stopped))
+    assert set(stops) == {"v0", "v1"} and stops["v0"] == stops["v1"]
+    why = f.binding.vehicles["v1"].reason
+    assert "binding in doubt: quad2's binding disagreed and quad3's attitude is uncertain" in why
 
 
 def test_a_disagreeing_binding_says_stopped():
@@ -393,3 +451,16 @@ def test_a_binding_dropped_for_disagreeing_is_not_made_again_by_the_same_evaluat
                              False, assign_identities(cost, 100.0, 13.8))
     assert sorted(dropped) == ["v0", "v1"] and made == []
     assert b.bound == {} and b.vehicles["v0"].state == STOPPED
+
+
+def test_the_live_bench_counts_poses_from_another_drones_body_at_each_autopilot():
+    from visionpos.app.demo_summary import AutopilotPoses
+    from visionpos.benchmarks.fleet_binding import _PosesAtAutopilot
+
+    tally = _PosesAtAutopilot(AutopilotPoses)
+    a, b = tally.make(boot_stamps=True), tally.make(boot_stamps=True)
+    a.score(0, 10, lambda t: np.zeros((len(t), 3)))  # drone a hovers at the origin, drone b 1 m along x
+    b.score(0, 10, lambda t: np.tile([1.0, 0.0, 0.0], (len(t), 1)))
+    a.got = [(1, np.array([0.01, 0.0, 0.0])), (2, np.array([0.98, 0.0, 0.0]))]  # the second is b's
+    b.got = [(1, np.array([1.0, 0.0, 0.0])), (2, np.array([1.2, 0.0, 0.0]))]  # the second 0.2 m off: not its own
+    assert tally.wrong() == (4, 2, [1, 1], 1)

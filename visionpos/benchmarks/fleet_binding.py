@@ -19,6 +19,7 @@ binding of a flying drone and how long until it is bound again.
 from __future__ import annotations
 
 import sys
+import time
 
 import numpy as np
 
@@ -36,14 +37,16 @@ ACCEL_BIAS_M_S2 = 0.3  # its bias, drawn per vehicle and axis in +-this
 
 
 LOSS_S = 0.2  # an injected loss: the body untracked this long
-SWAP = ("quad1", "quad9")  # an injected swap: two drones of different cells that fly apart in the huddle leg
+SWAP = ("quad1", "quad9")
+LIVE_POLL_S = 0.5  # an injected swap: two drones of different cells that fly apart in the huddle leg
 
 
 def measure(duration_s: float | None = None, scenario: str = "fleet", loss_at_s: tuple[float, ...] = (),
-            swap_at_s: float | None = None, use_accel: bool = True) -> dict:
+            swap_at_s: float | None = None, use_accel: bool = True, swap: tuple[str, str] = SWAP) -> dict:
     """The figures (module docstring). loss_at_s: scenario times at which quad3's track is taken away for LOSS_S
     (the bridge sees it untracked, then reacquired); swap_at_s: from then on the states of the SWAP bodies are
-    exchanged while the identity book still says continuous (a swap the tracker did not notice)."""
+    exchanged while the identity book still says continuous (a swap the tracker did not notice); swap: which
+    two bodies."""
     from visionpos.benchmarks.fusion_replay import replay
     from visionpos.sim import load_scenario, simulate
 
@@ -70,7 +73,7 @@ def measure(duration_s: float | None = None, scenario: str = "fleet", loss_at_s:
     def tick_cb(t_ns: int, states) -> None:
         book = holder["pipe"].identity
         identity = {n: s.value for n, s in zip(book.names, book.state)}
-        states = _inject(sc, t_ns, list(states), identity, loss_at_s, swap_at_s, binding, injected)
+        states = _inject(sc, t_ns, list(states), identity, loss_at_s, swap_at_s, swap, injected)
         binding.observe(states, identity)
         if binding.due(t_ns):
             upto = {v: (tt[tt <= t_ns], vals[tt <= t_ns]) for v, (tt, vals) in tel.items()}
@@ -102,7 +105,7 @@ def specific_force_frd(sc, name: str, times_ns: np.ndarray) -> np.ndarray:
     return Rotation.from_quat(sc.motion_at(name, times_ns).quaternions).inv().apply(a) * np.array([1.0, -1.0, -1.0])
 
 
-def _inject(sc, t_ns: int, states: list, identity: dict, loss_at_s, swap_at_s, binding, injected) -> list:
+def _inject(sc, t_ns: int, states: list, identity: dict, loss_at_s, swap_at_s, swap, injected) -> list:
     """The injected loss and swap (measure's docstring): states and identity changed in place of the tick's."""
     import dataclasses
 
@@ -115,7 +118,7 @@ def _inject(sc, t_ns: int, states: list, identity: dict, loss_at_s, swap_at_s, b
         identity["quad3"] = IdentityState.ACQUIRED.value
     if swap_at_s is not None and t >= swap_at_s:
         by = {s.name: s for s in states}
-        a, b = SWAP
+        a, b = swap
         if a in by and b in by:
             states = [dataclasses.replace(by[b], name=a) if s.name == a else
                       dataclasses.replace(by[a], name=b) if s.name == b else s for s in states]
@@ -161,17 +164,139 @@ def _figures(sc, names, vehicles, sent, log, rep) -> dict:
             "identity_end": [s.value for s in book.state], "continuity": IdentityState.CONTINUITY.value}
 
 
+class _PosesAtAutopilot:
+    """Every pose a fake autopilot of the live demo received inside its scored window, with the truths of all
+    its fleet (the demo's AutopilotPoses, keeping (stamp ns, position m world) too: measure_live)."""
+
+    def __init__(self, base: type) -> None:
+        self.base, self.tallies = base, []
+        self.details: list[tuple[int, int, float, float]] = []  # wrong poses: (vehicle, stamp ns, m off its own
+        # drone, m off the nearest other)
+
+    def make(self, *args, **kwargs):
+        outer = self
+
+        class Tally(self.base):
+            def __init__(self, *a, **k) -> None:
+                super().__init__(*a, **k)
+                self.got: list[tuple[int, np.ndarray]] = []
+                outer.tallies.append(self)
+
+            def on_pose(self, r) -> None:
+                super().on_pose(r)
+                if self._window is None or not self.boot_stamps:
+                    return
+                from bridge.fake_autopilot import decode_pose
+
+                pose = decode_pose(r)
+                stamp_ns = int(pose["usec"]) * 1000
+                if self._window[0] <= stamp_ns <= self._window[1]:
+                    self.got.append((stamp_ns, np.asarray(pose["position_ned"], float) * np.array([1.0, -1.0, -1.0])))
+
+        return Tally(*args, **kwargs)
+
+    def wrong(self) -> tuple[int, int, list[int], int]:
+        """(poses scored, poses nearer another drone's truth than the vehicle's own or over WRONG_M from it, per
+        vehicle the wrong ones, of them the ones nearer another drone's truth)."""
+        truths = [t._truth for t in self.tallies if t._truth is not None]
+        total, per, nearer = 0, [], 0
+        for k, t in enumerate(x for x in self.tallies if x._truth is not None):
+            if not t.got:
+                per.append(0)
+                continue
+            ts = np.array([g[0] for g in t.got], np.int64)
+            p = np.array([g[1] for g in t.got])
+            d = np.stack([np.linalg.norm(p - f(ts), axis=1) for f in truths])
+            total += len(ts)
+            bad = (np.argmin(d, axis=0) != k) | (d[k] > WRONG_M)
+            per.append(int(np.sum(bad)))
+            others = np.delete(d, k, axis=0).min(axis=0) if len(d) > 1 else np.full(len(ts), np.inf)
+            self.details += [(k, int(ts[i]), float(d[k, i]), float(others[i])) for i in np.nonzero(bad)[0]]
+            nearer += int(np.sum(np.argmin(d, axis=0) != k))
+        return total, sum(per), per, nearer
+
+
+def measure_live(duration_s: float | None = None, fps: float = 30.0, scenario: str = "fleet",
+                 cameras: int | None = None) -> dict:
+    """The goal's own place, in real time: `visionpos demo --scenario SCENARIO` with every camera at `fps`
+    (`--set cameras.N.fps=FPS`: this host's cores cannot fuse ten cameras at 120 Hz in real time) and one fake
+    autopilot per vehicle playing its own drone's truth as its telemetry (bridge/fake_autopilot.py); at each
+    autopilot, the poses it received that came from another drone's body (nearer another drone's truth than
+    its own at the pose's stamp, or over WRONG_M from its own); cameras: only the scenario's first this many
+    (None: all). Returns those counts with the server's shed
+    frames and late ticks, the output rate, per vehicle how long it was bound (the bridge's binding sampled every
+    LIVE_POLL_S) and its binding at the end."""
+    import asyncio
+    import tempfile
+
+    import yaml
+
+    from visionpos.app import demo
+    from visionpos.config.arena import load_yaml, resolve_config_path
+
+    data = load_yaml(resolve_config_path(scenario))
+    data["cameras"] = data["cameras"][:cameras]
+    for c in data["cameras"]:
+        c["fps"] = fps
+    duration = duration_s or float(data["sim"]["duration"])
+    with tempfile.TemporaryDirectory() as tmp:
+        path = f"{tmp}/{scenario}.yaml"
+        with open(path, "w") as f:
+            yaml.safe_dump(data, f, sort_keys=False)
+        arena = demo.demo_arena(path, duration, None, [])
+    tally = _PosesAtAutopilot(demo.AutopilotPoses)
+    seen: dict[str, dict] = {}  # vehicle: the bridge's binding, sampled every LIVE_POLL_S
+    bound_s: dict[str, float] = {}  # vehicle: seconds of the run it was bound
+
+    async def watch(ctx) -> None:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < duration:
+            for v in ctx.bridge.vehicles:
+                seen[v.cfg.name] = ctx.bridge.identity(v.cfg.name)
+                if seen[v.cfg.name].get("identity_binding") == "bound":
+                    bound_s[v.cfg.name] = bound_s.get(v.cfg.name, 0.0) + LIVE_POLL_S
+            await asyncio.sleep(LIVE_POLL_S)
+
+    demo.AutopilotPoses = tally.make  # read-only: the summary's tallies, each also keeping its poses
+    try:
+        summary = asyncio.run(demo.run_demo(arena, duration, None, during=watch))
+    finally:
+        demo.AutopilotPoses = tally.base
+    total, wrong, per, nearer = tally.wrong()
+    return {"fps": fps, "cameras": len(arena.cameras), "duration_s": summary["duration_s"], "poses": total,
+            "wrong_vehicle": wrong, "wrong_per_vehicle": per, "nearer_another_drone": nearer,
+            "frames_shed": summary["server"]["frames_shed"],
+            "frames_accepted": summary["server"]["frames_accepted"], "late_ticks": summary["late_ticks"],
+            "output_rate_hz": summary["output_rate_hz"], "kernels": summary["kernels"],
+            "tick_cost_max_ms": summary["server"]["tick_cost_max_ms"],
+            "binding": seen, "bound_s": bound_s, "wrong_poses": tally.details[:50],
+            "mavlink_messages": {b["name"]: b.get("mavlink_messages") for b in summary["bodies"]}}
+
+
 def binding_state(log, v: str) -> str | None:
     """The body vehicle v is bound to at the end, or None."""
     return next((b for b, x in log[-1][1].items() if x == v), None) if log else None
 
 
-if __name__ == "__main__":
-    flags = [a for a in sys.argv[1:] if a.startswith("--")]
-    args = [float(a) for a in sys.argv[1:] if not a.startswith("--")]
-    # python -m visionpos.benchmarks.fleet_binding [--no-accel] [DURATION [SWAP_AT [LOSS_AT ...]]] (0: none)
-    out = measure(args[0] if args and args[0] else None, "fleet", tuple(args[2:]),
-                  args[1] if len(args) > 1 and args[1] else None, use_accel="--no-accel" not in flags)
+def _main(argv: list[str]) -> None:
+    flags = [a for a in argv if a.startswith("--")]
+    args = [float(a) for a in argv if not a.startswith("--")]
+    if "--live" in flags:
+        # python -m visionpos.benchmarks.fleet_binding --live [DURATION [FPS [CAMERAS]]] (0: the scenario's)
+        out = measure_live(args[0] if args and args[0] else None, args[1] if len(args) > 1 else 30.0,
+                           cameras=int(args[2]) if len(args) > 2 and args[2] else None)
+        print(f"live demo, {out['cameras']} cameras at {out['fps']:g} Hz, {out['duration_s']:.1f} s: poses at the "
+              f"autopilots {out['poses']}, wrong {out['wrong_vehicle']} {out['wrong_per_vehicle']} (nearer another "
+              f"drone {out['nearer_another_drone']}); "
+              f"frames shed {out['frames_shed']} of {out['frames_accepted']} accepted, late ticks {out['late_ticks']}, "
+              f"output {out['output_rate_hz']:.0f} Hz; kernels {out['kernels']}")
+        for name, b in out["binding"].items():
+            print(f"{name}: bound {out['bound_s'].get(name, 0.0):.1f} s; at the end {b.get('identity_binding')} "
+                  f"({b.get('identity_reason')})")
+        return
+    # python -m visionpos.benchmarks.fleet_binding [--no-accel] [--fleet20] [DURATION [SWAP_AT [LOSS_AT ...]]] (0: none)
+    out = measure(args[0] if args and args[0] else None, "fleet20" if "--fleet20" in flags else "fleet",
+                  tuple(args[2:]), args[1] if len(args) > 1 and args[1] else None, use_accel="--no-accel" not in flags)
     print(f"poses to vehicles {out['poses']}, to the wrong vehicle {out['wrong_vehicle']}; "
           f"ambiguities {out['ambiguities']}")
     for r in out["rows"]:
@@ -182,3 +307,7 @@ if __name__ == "__main__":
               f"{[(round(a, 2), round(b, 2)) for a, b in r['rebinds']]}; at the end {r['final']}")
     done = [r["bound_after_motion_s"] for r in out["rows"]]
     print("first motion to binding: worst " + ("never" if None in done else f"{max(done):.2f} s"))
+
+
+if __name__ == "__main__":
+    _main(sys.argv[1:])
