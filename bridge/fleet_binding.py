@@ -354,7 +354,7 @@ class FleetBinding:
         still = bool(np.abs(opt[:, ok, 2:]).max() < STILL_RATE_RAD_S) and (acc is None or acc[2] < STILL_ACCEL_M_S2)
         if acc is not None:
             cost = cost + acc[0]
-        return self._assign(rows, vehicles, cost, reject_cost(n, acc[1] if acc is not None else 0), still)
+        return self._assign(rows, vehicles, cost, reject_cost(n, acc[1] if acc is not None else 0), still, uncertain)
 
     def _point_costs(self, rows: list[str], vehicles: list[str], grid: np.ndarray, ring_arrays: dict,
                      telemetry: dict) -> tuple[list[str], list[tuple[str, str]]]:
@@ -368,11 +368,14 @@ class FleetBinding:
                                 ACCEL_NOISE_M_S2, ACCEL_REL, ACCEL_BIAS_M_S2, ACCEL_MIN_INSTANTS)
         if acc is None:
             return self._say_unresolved(rows, vehicles, "too few shared instants of optics and accelerometers yet"), []
-        return self._assign(rows, vehicles, acc[0], reject_cost(0, acc[1]), acc[2] < STILL_ACCEL_M_S2)
+        return self._assign(rows, vehicles, acc[0], reject_cost(0, acc[1]), acc[2] < STILL_ACCEL_M_S2,
+                            np.zeros(len(rows), bool))
 
-    def _assign(self, rows: list[str], vehicles: list[str], cost: np.ndarray, reject: float, still: bool
-                ) -> tuple[list[str], list[tuple[str, str]]]:
-        """The assignment of the group's bodies `rows` to its live vehicles from their pair costs (B, V)."""
+    def _assign(self, rows: list[str], vehicles: list[str], cost: np.ndarray, reject: float, still: bool,
+                uncertain: np.ndarray) -> tuple[list[str], list[tuple[str, str]]]:
+        """The assignment of the group's bodies `rows` to its live vehicles from their pair costs (B, V);
+        uncertain (B,): bodies whose optical attitude was unreliable since the last check (their bindings are in
+        doubt when another binding of the group disagrees)."""
         # a held binding is known by continuity: its body and its vehicle are no one else's, so the others are
         # assigned among themselves (the last still one of a fleet is bound by elimination)
         held = cost.copy()
