@@ -102,7 +102,7 @@ IMU = section(
     "clock, is a measurement of the filter's acceleration and angular rate between camera frames and up to the "
     "output ticks; its biases are estimated against the optical track. Without samples (none fed, the stream "
     "stopped, or refused) the filter is the optical one.",
-    Setting("enabled", "boolean", True, "use the IMU samples fed to a body (FusionPipeline.push_imu): a body bound "
+    Setting("enabled", "boolean", False, "use the IMU samples fed to a body (FusionPipeline.push_imu): a body bound "
             "to a vehicle whose autopilot streams its IMU; the others (no vehicle, none streaming) stay optical; off: "
             "the samples are ignored"),
     Setting("accel_noise_m_s2", "number", 0.05, "std of one accelerometer sample per axis (m/s^2)", min=1e-6),
