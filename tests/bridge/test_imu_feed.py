@@ -123,7 +123,8 @@ def test_the_imu_stream_is_asked_for_at_its_own_rate_200_hz_where_the_filter_tak
         return parse_vehicles(parse_arena(raw, "a.yaml"))[0]
 
     assert vehicle(True).imu_rate_hz == 200.0 and vehicle(True, imu_rate_hz=400).imu_rate_hz == 400.0  # fusion.imu on
-    assert vehicle().imu_rate_hz == 50.0 and vehicle(False).imu_rate_hz == 50.0  # off by default and vehicle(False, telemetry_rate_hz=20).imu_rate_hz == 20.0
+    assert vehicle().imu_rate_hz == 50.0  # off by default
+    assert vehicle(False).imu_rate_hz == 50.0 and vehicle(False, telemetry_rate_hz=20).imu_rate_hz == 20.0
     with pytest.raises(ConfigError, match=r"a\.yaml: vehicles\[0\]\.imu_rate_hz: .*<= 1000"):
         vehicle(imu_rate_hz=2000)
     sent = []
