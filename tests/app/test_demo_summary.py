@@ -170,10 +170,13 @@ def test_the_summary_says_when_the_fusion_ran_interpreted(kernels, says):
 
     s = {"scenario": "thesis", "session": "flight", "seed": 1, "duration_s": 10.0, "ticks": 1000,
          "stations": [{"camera_id": 1, "fps": 100.0}], "bodies": [],
-         "latency_ms": {"p50": 7.0, "p99": 9.0}, "latency_to_autopilot_ms": {"p50": 8.0},
+         "latency_ms": {"p50": 7.0, "p99": 9.0}, "latency_to_autopilot_ms": {"p2": 6.25, "p50": 8.0},
          "server": {"frames_accepted": 1000, "frames_shed": 0, "malformed": 0}, "late_ticks": 0,
          "wall_s": 10.5, "simulate_s": 0.2, "kernels": kernels}
     text = format_summary(s)
+    # the delay each estimator wants (bridge/estimator_delay.py): ArduPilot the smallest, PX4 the median
+    assert "2nd percentile 6.25 ms (ArduPilot's VISO_DELAY_MS: about the 2nd percentile" in text
+    assert "PX4's EKF2_EV_DELAY: about the median" in text
     if says is None:
         assert "interpreted" not in text
     else:

@@ -746,7 +746,7 @@ def _summary(run: _Run, health: dict[str, Any], wall: float) -> dict[str, Any]:
         "late_ticks": health.get("late_ticks"),
         "bodies": bodies,
         "latency_ms": M.percentiles_ms(send, (50, 99)),
-        "latency_to_autopilot_ms": latency_percentiles_ms(list(run.autopilot_poses.values()), (50, 99)),
+        "latency_to_autopilot_ms": latency_percentiles_ms(list(run.autopilot_poses.values()), (2, 50, 99)),
         "stations": stations_out,
         "server": {k: health.get(k) for k in ("packets", "frames_accepted", "frames_shed", "malformed", "unknown",
                                               "pipeline_errors", "authenticated", "auth_failed",
