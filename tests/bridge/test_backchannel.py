@@ -328,7 +328,8 @@ def test_measured_delay_matches_the_added_link_delay_live():
                                                                    [u.bc.delay_ms for u in bridge.vehicles])
         # ArduPilot's jitter correction takes the smallest delay: VISO_DELAY_MS is about the fake's p2, not its median
         low = aps[2].true_delay_ms(window_s=DELAY_WINDOW_NS * 1e-9, percentile=2.0)
-        assert aps[2].params["VISO_DELAY_MS"] == pytest.approx(low, abs=2.0), (low, true_ms[2])
+        # 5 % of it: the p2 of a loaded host moves by a few ms; the median (the old advice) is ~10 ms off
+        assert aps[2].params["VISO_DELAY_MS"] == pytest.approx(low, abs=max(2.0, 0.05 * low)), (low, true_ms[2])
         assert bridge.vehicles[2].health()["delay"]["advised_ms"] == aps[2].params["VISO_DELAY_MS"]
         assert "VISO_DELAY_MS=" in bridge.latency_report() and "smallest" in bridge.latency_report()
     finally:
