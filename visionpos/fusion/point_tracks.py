@@ -23,6 +23,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from visionpos.fusion.tracking import white_jerk_coefficients
+
 N_POINT_STATE = 9  # position (3), velocity (3), acceleration (3)
 # white-jerk spectral density (m^2/s^5); on the fleet plan (thesis arena) 400 gave 2.9 mm RMSE, 10 gave 1.8 mm
 JERK_PSD = 10.0
@@ -47,11 +49,7 @@ def ca_transition(dt_s: float) -> np.ndarray:
 
 def ca_process_noise(dt_s: float, jerk_psd: float = JERK_PSD) -> np.ndarray:
     """The white-jerk process noise (9, 9) over dt_s seconds (m^2 ... m^2/s^4), jerk_psd m^2/s^5."""
-    t = abs(dt_s)
-    q = jerk_psd * np.array([[t**5 / 20, t**4 / 8, t**3 / 6],
-                             [t**4 / 8, t**3 / 3, t**2 / 2],
-                             [t**3 / 6, t**2 / 2, t]])
-    return np.kron(q, np.eye(3))
+    return np.kron(jerk_psd * white_jerk_coefficients(float(dt_s)), np.eye(3))
 
 
 def predict(x: np.ndarray, P: np.ndarray, dt_s: np.ndarray, jerk_psd: float = JERK_PSD

@@ -151,14 +151,22 @@ _SCALE_DECAY_S = 0.2  # s, time constant of the process-noise scale's return to 
 
 
 @njit
+def white_jerk_coefficients(dt: float) -> np.ndarray:
+    """Discrete covariance (3, 3) of (position, velocity, acceleration) on one axis per unit white-jerk density
+    over t = |dt| s: [[t^5/20, t^4/8, t^3/6], [t^4/8, t^3/3, t^2/2], [t^3/6, t^2/2, t]]."""
+    a = abs(dt)
+    a2 = a * a
+    a3, a4, a5 = a2 * a, a2 * a2, a2 * (a2 * a)
+    return np.array([[a5 / 20.0, a4 / 8.0, a3 / 6.0], [a4 / 8.0, a3 / 3.0, a2 / 2.0], [a3 / 6.0, a2 / 2.0, a]])
+
+
+@njit
 def _add_process_noise(P: np.ndarray, dt: float, qj: float, qw: float, qaj: float) -> None:
     """P (18, 18) += discrete Q over |dt|: white jerk qj on (p, v, a); on the rotation white angular
     acceleration qw on (dtheta, w) plus white angular jerk qaj on (dtheta, w, dw/dt)."""
     a = abs(dt)
-    a2 = a * a
-    a3, a4 = a2 * a, a2 * a2
-    a5 = a2 * a3
-    c = np.array([[a5 / 20.0, a4 / 8.0, a3 / 6.0], [a4 / 8.0, a3 / 3.0, a2 / 2.0], [a3 / 6.0, a2 / 2.0, a]])
+    a2, a3 = a * a, a * a * a
+    c = white_jerk_coefficients(dt)
     for k in range(3):
         for i in range(3):
             for j in range(3):
