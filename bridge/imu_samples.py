@@ -12,21 +12,20 @@ RAW_IMU carries raw sensor counts and is not read (as for its gyro).
 
 from __future__ import annotations
 
-import collections
-
 import numpy as np
 
+from bridge.telemetry import Ring
 from visionpos.geometry.frames import GRAVITY_M_S2
 
 RING = 1024  # samples kept: 20 s at 50 Hz (the binding uses the newest second or two)
 MAX_ABS_M_S2 = 16.0 * GRAVITY_M_S2  # a reading beyond an IMU's range is corrupt: dropped
 
 
-class AccelSamples:
+class AccelSamples(Ring):
     """The newest RING accelerometer samples of one vehicle: (autopilot time ns, ax, ay, az m/s^2 FRD)."""
 
     def __init__(self):
-        self.d: collections.deque[tuple[int, float, float, float]] = collections.deque(maxlen=RING)
+        super().__init__(RING, 3)
 
     def add(self, t_ap_ns: int, accel_frd_m_s2) -> None:
         """One IMU sample the back-channel accepted (bridge/telemetry.py imu_sample): its specific force (3,) m/s^2
@@ -36,11 +35,8 @@ class AccelSamples:
         if not all(abs(x) <= MAX_ABS_M_S2 for x in a):
             return
         if self.d and t_ap_ns <= self.d[-1][0]:
-            self.d.clear()
-        self.d.append((int(t_ap_ns), *a))
-
-    def __len__(self) -> int:
-        return len(self.d)
+            self.clear()
+        super().add(int(t_ap_ns), a)
 
     def on_server_clock(self, clock_map_ns: float | None) -> tuple[np.ndarray, np.ndarray] | None:
         """Times (N,) int64 ns on the server clock and (N, 3) m/s^2 FRD, safe to call from another thread;
