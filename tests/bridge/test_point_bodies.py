@@ -151,3 +151,28 @@ def test_the_outputs_never_send_an_attitude_for_a_point_body():
         assert [(i, tuple(p), tuple(q), ok) for i, p, q, _, ok in f.bodies] == [(7, (0, 0, 0), (0, 0, 0, 1), False)]
     finally:
         srv.close()
+
+
+def test_natnetsdk_reads_a_point_body_as_not_valid_and_never_a_made_up_attitude():
+    """OptiTrack's own client (natnetsdk) decodes what our NatNet server sends for a body without an attitude."""
+    import time
+
+    from tests.bridge.test_natnet import natnet_client, server, shutdown, wait_for
+
+    srv = server(transmission="unicast")
+    c, got = natnet_client(srv)
+    try:
+        assert c.run()
+        q = Rotation.from_euler("z", 0.3).as_quat()
+        for _ in range(30):  # cf1 has no attitude (a point body's state), drone_b a full pose
+            srv.publish([body_state("cf1", 7, position=(1, 2, 3), quaternion=NAN4),
+                         body_state("drone_b", 12, position=(-1, 0.5, 1), quaternion=q)])
+            time.sleep(0.01)
+        assert wait_for(lambda: len(got["frames"]) >= 5)
+        rb = {r.id_num: r for r in got["frames"][-1][1].rigid_body_data.rigid_body_list}
+        assert not rb[7].tracking_valid and tuple(rb[7].pos) == (0.0, 0.0, 0.0)
+        assert all(math.isfinite(x) for x in rb[7].rot)
+        assert rb[12].tracking_valid
+    finally:
+        shutdown(c)
+        srv.close()
