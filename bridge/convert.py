@@ -10,6 +10,7 @@ roll/pitch/yaw (ZYX Euler) through the Euler-rate matrix.
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 
 import numpy as np
@@ -208,3 +209,26 @@ def odometry_fields(c: MavlinkState, usec: int, reset_counter: int, quality: int
         pose_covariance=pose_cov, velocity_covariance=vel_cov,
         reset_counter=reset_counter, estimator_type=MAV_ESTIMATOR_TYPE_VISION, quality=quality,
     )
+
+
+# PARAM_VALUE / PARAM_SET carry every parameter in a float32. ArduPilot casts integers to it (C_CAST); PX4 puts
+# the integer's own bytes there (MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE): 11 reads 1.5e-44 as a float.
+PARAM_INT_FORMATS = {1: "<B", 2: "<b", 3: "<H", 4: "<h", 5: "<I", 6: "<i"}  # MAV_PARAM_TYPE_(U)INT8..32
+
+
+def param_from_wire(value: float, param_type: int, bytewise: bool) -> float:
+    """The parameter's number from PARAM_VALUE's param_value (float32) and param_type; bytewise for PX4."""
+    fmt = PARAM_INT_FORMATS.get(param_type)
+    if not bytewise or fmt is None:
+        return float(value)
+    raw = struct.pack("<f", value)
+    return float(struct.unpack(fmt, raw[:struct.calcsize(fmt)])[0])
+
+
+def param_to_wire(number: float, param_type: int, bytewise: bool) -> float:
+    """param_value to send for the number as param_type (the inverse of param_from_wire)."""
+    fmt = PARAM_INT_FORMATS.get(param_type)
+    if not bytewise or fmt is None:
+        return float(number)
+    raw = struct.pack(fmt, int(round(number))).ljust(4, b"\0")
+    return struct.unpack("<f", raw)[0]

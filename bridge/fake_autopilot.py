@@ -54,7 +54,16 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # common + EKF_STATUS_REPORT
 from scipy.spatial.transform import Rotation
 
-from bridge.fake_px4 import FLAGS_ATTITUDE_ONLY, FLAGS_EV_FUSED, POSE_FRESH_NS, PX4_PARAMS, Px4State, pose_refusal
+from bridge.convert import param_from_wire, param_to_wire
+from bridge.fake_px4 import (
+    FLAGS_ATTITUDE_ONLY,
+    FLAGS_EV_FUSED,
+    POSE_FRESH_NS,
+    PX4_INT_PARAMS,
+    PX4_PARAMS,
+    Px4State,
+    pose_refusal,
+)
 from visionpos.geometry.frames import quat_world_body_to_ned_frd
 from visionpos.server.netstamps import ANC_SIZE, enable_kernel_stamps, kernel_stamp_ns
 
@@ -354,6 +363,9 @@ class FakeAutopilot:
                 if linked and (self.truth is not None or self.px4 is not None):
                     self._telemetry(now)
                 if self._peer is not None and self._sock is not None:
+                    lost = self.px4.failsafe(now) if self.px4 is not None else None
+                    if lost is not None:
+                        self._statustext(mavlink2.MAV_SEVERITY_CRITICAL, lost)
                     if self.heartbeat_hz > 0 and now >= next_hb:
                         base, custom = ((self.px4.base_mode(), self.px4.custom_mode()) if self.px4 is not None
                                         else (0, 0))
@@ -461,13 +473,12 @@ class FakeAutopilot:
             elif t == "PARAM_SET" and m.target_system == self.sysid:
                 pid = m.param_id.rstrip("\0") if isinstance(m.param_id, str) else str(m.param_id)
                 if self.px4 is None or pid in self.params:  # PX4 does not answer a name it does not have
-                    self.params[pid] = float(m.param_value)
-                    self.mav.send(self.mav.param_value_encode(pid.encode(), m.param_value, m.param_type, 1, 0))
+                    self.params[pid] = param_from_wire(m.param_value, self._param_type(pid), self.px4 is not None)
+                    self._send_param(pid, 1)
             elif t == "PARAM_REQUEST_READ" and m.target_system == self.sysid:
                 pid = m.param_id.rstrip("\0") if isinstance(m.param_id, str) else str(m.param_id)
                 if pid in self.params:
-                    self.mav.send(self.mav.param_value_encode(pid.encode(), self.params[pid],
-                                                              mavlink2.MAV_PARAM_TYPE_REAL32, len(self.params), 0))
+                    self._send_param(pid, len(self.params))
             if t in RECORDED:
                 rec = Received(t, now, m.get_srcSystem(), m.get_srcComponent(), bool(m.get_signed()), m.to_dict())
                 self.received.append(rec)
@@ -484,6 +495,16 @@ class FakeAutopilot:
         self.statustexts.append(text)
         self.mav.send(self.mav.statustext_encode(severity, text.encode()))
 
+    def _param_type(self, pid: str) -> int:
+        return mavlink2.MAV_PARAM_TYPE_INT32 if self.px4 is not None and pid in PX4_INT_PARAMS \
+            else mavlink2.MAV_PARAM_TYPE_REAL32
+
+    def _send_param(self, pid: str, count: int) -> None:
+        """PARAM_VALUE as this autopilot encodes it: PX4's integers bytewise, ArduPilot's as floats."""
+        kind = self._param_type(pid)
+        value = param_to_wire(self.params[pid], kind, self.px4 is not None)
+        self.mav.send(self.mav.param_value_encode(pid.encode(), value, kind, count, 0))
+
     def _send_origin(self) -> None:
         if self.origin is not None:
             lat, lon, alt = self.origin
@@ -498,7 +519,7 @@ class FakeAutopilot:
         result = mavlink2.MAV_RESULT_UNSUPPORTED
         if self.px4 is not None and kind == "COMMAND_LONG":
             now = self.clock_ns()
-            px4_result, text = self.px4.command(cmd, m.param1, m.param2, now, self.ev_fused(now))
+            px4_result, text = self.px4.command(cmd, m.param1, m.param2, now, self.ev_fused(now), m.param3)
             if text is not None:
                 self._statustext(mavlink2.MAV_SEVERITY_CRITICAL, text)
             if px4_result >= 0:

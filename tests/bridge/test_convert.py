@@ -11,6 +11,8 @@ from bridge.convert import (
     convert_state,
     mavlink_upper_triangle,
     odometry_fields,
+    param_from_wire,
+    param_to_wire,
     vision_position_fields,
     vision_speed_fields,
 )
@@ -140,3 +142,15 @@ def test_back_propagation_matches_scipy_composition():
         _, q_back = back_propagate(np.zeros(3), q, np.zeros(3), w, 0.02)
         expect = Rotation.from_quat(q) * Rotation.from_rotvec(-w * 0.02)
         assert (Rotation.from_quat(q_back) * expect.inv()).magnitude() < 1e-12
+
+
+def test_param_values_on_the_wire_as_each_autopilot_encodes_them():
+    """PX4 puts an INT32 parameter's bytes in PARAM_VALUE's float; ArduPilot casts. The bit patterns below are
+    written out by hand: 11 as int32 is 0x0000000b, the float with those bits 11 * 2**-149."""
+    bytewise_11 = 11 * 2.0 ** -149
+    assert param_to_wire(11, 6, bytewise=True) == bytewise_11  # MAV_PARAM_TYPE_INT32
+    assert param_from_wire(bytewise_11, 6, bytewise=True) == 11
+    assert param_from_wire(-1.0, 6, bytewise=True) == -1082130432  # 0xbf800000 read as int32
+    assert param_from_wire(bytewise_11, 9, bytewise=True) == bytewise_11  # REAL32: the float itself
+    assert param_from_wire(11.0, 6, bytewise=False) == 11.0 and param_to_wire(11, 6, bytewise=False) == 11.0
+    assert param_from_wire(param_to_wire(200, 1, True), 1, True) == 200  # UINT8 in the lowest byte

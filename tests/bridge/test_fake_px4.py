@@ -1,6 +1,7 @@
 """The fake autopilot as PX4 (bridge/fake_px4.py) and the bridge's output and back-channel against it."""
 
 import socket
+import struct
 import time
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -82,6 +83,13 @@ def test_fake_px4_arms_only_with_gcs_manual_control_position_mode_and_vision():
         assert recv("COMMAND_ACK", cond=lambda m: m.command == 400).result == mavlink2.MAV_RESULT_ACCEPTED
         hb = recv("HEARTBEAT", cond=lambda m: m.base_mode & 128)
         assert hb is not None and hb.custom_mode == 3 << 16 and hb.autopilot == mavlink2.MAV_AUTOPILOT_PX4
+        # Offboard, then the sticks go quiet: PX4 (COM_RCL_EXCEPT 0) fails safe into AUTO.LAND after 0.5 s
+        send(mav.command_long_encode(1, 1, 176, 0, 1, 6, 0, 0, 0, 0, 0))
+        assert recv("COMMAND_ACK", cond=lambda m: m.command == 176).result == mavlink2.MAV_RESULT_ACCEPTED
+        assert recv("HEARTBEAT", cond=lambda m: m.custom_mode == 6 << 16) is not None
+        assert recv("STATUSTEXT", 2.0, cond=lambda m: m.text == "Failsafe activated") is not None
+        hb = recv("HEARTBEAT")
+        assert hb.custom_mode == (4 << 16) | (6 << 24) and hb.base_mode & 128  # still armed, landing
     finally:
         sock.close()
         ap.close()
@@ -91,9 +99,16 @@ def test_fake_px4_answers_its_parameters_only():
     ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=1, autopilot="px4", reject_params=("EKF2_EV_NOISE_MD",)).start()
     sock, mav, send, recv = _client(ap.port)
     try:
-        send(mav.param_set_encode(1, 1, b"EKF2_HGT_REF", 3, mavlink2.MAV_PARAM_TYPE_INT32))
+        # PX4 carries an INT32 parameter's bytes in the float field (PARAM_ENCODE_BYTEWISE): 3 is 3 * 2**-149
+        three = struct.unpack("<f", struct.pack("<i", 3))[0]
+        assert three == 3 * 2.0 ** -149
+        send(mav.param_set_encode(1, 1, b"EKF2_HGT_REF", three, mavlink2.MAV_PARAM_TYPE_INT32))
         m = recv("PARAM_VALUE")
-        assert m.param_id == "EKF2_HGT_REF" and m.param_value == 3 and ap.params["EKF2_HGT_REF"] == 3
+        assert m.param_id == "EKF2_HGT_REF" and m.param_type == mavlink2.MAV_PARAM_TYPE_INT32
+        assert m.param_value == three and ap.params["EKF2_HGT_REF"] == 3
+        send(mav.param_request_read_encode(1, 1, b"EKF2_EV_DELAY", -1))  # a REAL32 one: the float itself
+        m = recv("PARAM_VALUE")
+        assert m.param_type == mavlink2.MAV_PARAM_TYPE_REAL32 and m.param_value == 0.0
         for name in (b"EKF2_EV_NOISE_MD", b"VISO_TYPE"):  # rejected here; ArduPilot's, not PX4's
             send(mav.param_set_encode(1, 1, name, 1, mavlink2.MAV_PARAM_TYPE_INT32))
             assert recv("PARAM_VALUE", 0.3) is None

@@ -9,6 +9,7 @@ import threading
 import time
 from typing import Any, Callable
 
+from bridge.convert import param_from_wire
 from visionpos.app.sitl.clock import SitlClock
 from visionpos.app.sitl.process import SitlProcess
 from visionpos.app.sitl.settings import SitlError
@@ -39,6 +40,8 @@ class Gcs:
     """Our ground-station link to SITL's SERIAL0 (tcp), with a reader thread keeping what SITL reports.
 
     Every record carries its arrival time on the server clock (time.monotonic_ns)."""
+
+    param_bytewise = False  # ArduPilot casts integer parameters into PARAM_VALUE's float (bridge/convert.py)
 
     def __init__(self, port: int, truth: TruthTrack, on_text: Callable[[str], None] | None = None):
         self.port = port
@@ -150,7 +153,7 @@ class Gcs:
                 self.mode = m.custom_mode
                 self.modes.append((now, m.custom_mode))
         elif kind == "PARAM_VALUE":
-            self.params[m.param_id] = m.param_value
+            self.params[m.param_id] = param_from_wire(m.param_value, m.param_type, self.param_bytewise)
         elif kind == "COMMAND_ACK":
             self.acks[m.command] = (m.result, now)
         elif kind == "GPS_GLOBAL_ORIGIN":

@@ -223,9 +223,10 @@ SETTLE_S = 0.5  # ... for this long
 
 
 async def until_settled(truth: TruthTrack, target_world: np.ndarray, timeout_s: float,
-                        nudge: Callable[[], None] | None = None) -> np.ndarray | None:
+                        nudge: Callable[[], None] | None = None,
+                        radius_m: float = SETTLE_RADIUS_M) -> np.ndarray | None:
     """Poll the true position every 50 ms (calling nudge(), e.g. a setpoint resent, every 0.25 s) until it
-    stays within SETTLE_RADIUS_M of target_world (3,) m, world frame, for SETTLE_S: None then; else, once
+    stays within radius_m of target_world (3,) m, world frame, for SETTLE_S: None then; else, once
     timeout_s has passed, the last true position (3,) m, for the error message."""
     end = time.monotonic() + timeout_s
     ok_since = None
@@ -236,7 +237,7 @@ async def until_settled(truth: TruthTrack, target_world: np.ndarray, timeout_s: 
         polls += 1
         await asyncio.sleep(0.05)
         _, x = truth_now(truth)
-        if np.linalg.norm(x[:3] - target_world) < SETTLE_RADIUS_M:
+        if np.linalg.norm(x[:3] - target_world) < radius_m:
             ok_since = ok_since or time.monotonic()
             if time.monotonic() - ok_since > SETTLE_S:
                 return None

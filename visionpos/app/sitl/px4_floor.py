@@ -1,0 +1,123 @@
+"""The floor PX4 SIH sets for any vision: the scripted flight of `visionpos sitl --autopilot px4` with SIH's own
+true state (its display link's HIL_STATE_QUATERNION, as Px4Gcs keeps it) sent as VISION_POSITION_ESTIMATE at
+50 Hz, on arrival, in place of the cameras, fusion and bridge.
+
+SIH's IMU carries its vibration model in flight (accelerometer noise 0.5/1.7/1.4 m/s^2, gyro 0.14/0.07/0.03
+rad/s on x/y/z, src/modules/simulation/simulator_sih/sih.cpp), which EKF2's output predictor integrates between
+fusions: the EKF's error against the truth that this flight measures is what EKF2 on that IMU reaches with a
+vision that is exact and on time. The `sitl_px4` bench sets the flight on visionpos's vision beside it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from visionpos.app.sitl.flight import FlightPlan
+from visionpos.app.sitl.px4 import Px4Gcs, Px4Process, free_px4_instance, px4_parameters, px4_ports
+from visionpos.app.sitl.px4_run import OUR_MODES, fly_px4
+from visionpos.app.sitl.report import flight_summary
+from visionpos.app.sitl.settings import SITL, SitlError
+from visionpos.app.sitl.truth import TruthTrack, truth_now
+from visionpos.config.arena import ArenaConfig
+from visionpos.geometry.frames import euler_ned_frd, world_to_ned
+
+TRUTH_VISION_HZ = 50.0
+TRUTH_EV_DELAY_MS = 1  # the truth's own transit: display link out, our send back, both on loopback
+
+
+class TruthVision:
+    """A thread sending the newest true pose to PX4's Onboard link as VISION_POSITION_ESTIMATE (NED, FRD
+    roll/pitch/yaw, no covariance) at rate_hz; nothing inside a cut(start_ns, end_ns) window."""
+
+    def __init__(self, truth: TruthTrack, port: int, rate_hz: float = TRUTH_VISION_HZ):
+        from pymavlink import mavutil
+
+        self.truth = truth
+        self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=200, source_component=197,
+                                               dialect="common")
+        self.period_s = 1.0 / rate_hz
+        self.sent = 0
+        self.last_sent_ns = 0
+        self._cuts: list[tuple[int, int]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="px4-truth-vision", daemon=True)
+
+    def start(self) -> TruthVision:
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.conn.close()
+
+    def cut(self, start_ns: int, end_ns: int) -> None:
+        self._cuts.append((start_ns, end_ns))
+
+    def sending(self) -> bool:
+        return time.monotonic_ns() - self.last_sent_ns < 200_000_000
+
+    def _run(self) -> None:
+        nan = float("nan")
+        while not self._stop.wait(self.period_s):
+            now = time.monotonic_ns()
+            t_ns, x = truth_now(self.truth)
+            if t_ns == 0 or any(a <= now <= b for a, b in self._cuts):
+                continue
+            ned = world_to_ned(x[0:3])
+            roll, pitch, yaw = euler_ned_frd(x[6:10])
+            try:
+                self.conn.mav.vision_position_estimate_send(now // 1000, *ned, roll, pitch, yaw, [nan] * 21, 0)
+            except OSError:
+                return
+            self.sent += 1
+            self.last_sent_ns = now
+
+
+def run_px4_truth_vision(arena: ArenaConfig, build: Path, plan: FlightPlan, out: TextIO | None) -> dict[str, Any]:
+    """Start PX4 SIH with the vision-only EKF2 (EKF2_EV_DELAY 1 ms), fly the plan on SIH's truth as the vision,
+    the summary dict (flight_summary's, with no `vision` statistics of ours)."""
+    sec = SITL.check(arena.section("sitl"))
+    home = tuple(float(x) for x in SITL.read(sec, "home"))
+    instance = SITL.read(sec, "instance") or free_px4_instance()
+    params = px4_parameters("vision_position_estimate", TRUTH_EV_DELAY_MS, SITL.read(sec, "viso_pos_m_nse"),
+                            SITL.read(sec, "viso_yaw_m_nse"), instance + 1)
+    say = (lambda text: (out.write(text + "\n"), out.flush())) if out is not None else (lambda text: None)
+    truth = TruthTrack(home[:3])
+    record: dict[str, Any] = {"viso_delay_ms": TRUTH_EV_DELAY_MS, "delay_param": "EKF2_EV_DELAY"}
+    t0 = time.monotonic()
+    with Px4Process(build, instance, params, home) as proc:
+        ports = px4_ports(instance)
+        gcs = Px4Gcs(ports, truth, on_text=lambda text: say(f"  PX4: {text}"))
+        vision: TruthVision | None = None
+        try:
+            gcs.connect(30.0, proc)
+            gcs.check_params(params)
+            vision = TruthVision(truth, ports["onboard"]).start()
+            say(f"PX4 SIH instance {instance}: SIH's true state sent as the vision at {TRUTH_VISION_HZ:g} Hz")
+            try:
+                asyncio.run(fly_px4(gcs, plan, record, say, vision, vision.sending, lambda: None))
+            except SitlError as e:
+                record["error"] = str(e)
+                say(f"flight failed: {e}")
+        finally:
+            if vision is not None:
+                vision.close()
+            gcs.close()
+    wall = time.monotonic() - t0
+    summary = flight_summary(gcs, truth, {"duration_s": wall}, record, plan, wall, our_modes=OUR_MODES)
+    summary["vision"] = {"poses_sent": vision.sent if vision is not None else 0, "source": "SIH's true state"}
+    summary["real_time"] = {"frames_made": 0, "frames_late_fraction": 0.0, "frames_not_fused_fraction": 0.0}
+    return summary
+
+
+def ekf_error_of(summary: dict[str, Any]) -> np.ndarray:
+    """(p50, p99, max) of the EKF's horizontal error (mm) in a flight summary; NaN where missing."""
+    h = summary.get("ekf_horizontal_error_mm") or {}
+    return np.array([np.nan if h.get(k) is None else h[k] for k in ("p50", "p99", "max")], dtype=float)
