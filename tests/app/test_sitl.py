@@ -283,3 +283,27 @@ def test_intake_probe_times_the_vision_ports_intake_through_the_relay():
     assert len(clock.intake) >= 3 and seen["signed_ok"] >= 3 and seen["other"] == 0
     for s1, tc1 in clock.intake:  # the relay's send lags the identifier by microseconds, by ms on a loaded host
         assert 7_000_000_000 + 3_000_000 - 20_000_000 < tc1 - s1 <= 7_000_000_000 + 3_000_000
+
+
+def test_ekf_lead_is_the_time_shift_of_the_ekf_against_the_truth():
+    """A circle of radius 1 m at 1 rad/s (1 m/s); the 'EKF' reports the position the circle has 12 ms later, plus
+    a 3 mm offset: the fit must give +12 ms (ahead), and -12 ms for a position 12 ms old; a hover, no figure."""
+    from visionpos.app.sitl.report import ekf_lead_ms
+
+    track = S.TruthTrack(HOME)
+    t0, dt_ns = 10_000_000_000, 10_000_000
+    circle = lambda t: np.array([np.cos(t), np.sin(t), -1.0])  # noqa: E731  NED, 1 m up
+    for k in range(1000):
+        t = k * dt_ns * 1e-9
+        n, e, _ = circle(t)
+        track.add(t0 + k * dt_ns, _sim_state(n, e, 1.0, (-np.sin(t), np.cos(t), 0.0), (1.0, 0.0, 0.0, 0.0)))
+    times = t0 + np.arange(100, 900) * dt_ns + 4_000_000
+    t = (times - t0) * 1e-9
+    for shift_s in (0.012, -0.012):
+        ekf = np.array([circle(x + shift_s) for x in t]) + [0.003, -0.003, 0.0]
+        lead, n = ekf_lead_ms(times, ekf, track)
+        assert n == len(times) and lead == pytest.approx(shift_s * 1e3, abs=0.5)
+    still = S.TruthTrack(HOME)
+    for k in range(200):
+        still.add(t0 + k * dt_ns, _sim_state(0.0, 0.0, 1.0, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
+    assert ekf_lead_ms(t0 + np.arange(10, 190) * dt_ns, np.zeros((180, 3)), still) is None

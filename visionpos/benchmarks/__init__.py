@@ -19,6 +19,7 @@ GROUPS: dict[str, str] = {
     "planner": "planner",
     "sitl": "sitl",
     "sitl_delay": "sitl_delay",
+    "sitl_px4": "sitl_px4",
     "console": "console",
     "backchannel": "backchannel",
     "camera_monitor": "camera_monitor",
@@ -176,6 +177,13 @@ GOALS: list[Goal] = [
          "less at 0 ms, against the same change of the true delay (ms)"),
     Goal("sitl_delay_flights_completed_min", ">=", 1, "ArduPilot SITL, link delayed 0/20/50 ms: every hover "
          "flight completes"),
+    Goal("sitl_delay_ekf_lead_ms_abs_max", "<=", 2.0, "ArduPilot SITL, link delayed 0/20/50 ms, VISO_DELAY_MS as "
+         "advised: the EKF leads or lags the truth by (ms), worst flight"),
+    Goal("sitl_px4_flight_completed", ">=", 1, "PX4 SIH on visionpos: the scripted flight completes"),
+    Goal("sitl_px4_ekf_horizontal_error_p99_mm", "<=", 20.0, "PX4 SIH: EKF2 horizontal position error p99 (mm)"),
+    Goal("sitl_px4_ekf_p99_over_floor", "<=", 1.2, "PX4 SIH: EKF2 horizontal p99 on visionpos's vision over the same "
+         "flight on SIH's exact truth as the vision"),
+    Goal("sitl_px4_failsafe_messages", "<=", 0, "PX4 SIH: failsafe messages, uncommanded modes"),
     Goal("coldstart_first_pose_s", "<=", 20.0, "visionpos demo on an empty kernel cache: seconds to the first pose"),
     Goal("scale_realtime_shed_fraction", "<=", 0, "one server core, fleet20 (12 cameras x 120 Hz, 20 bodies): "
          "fraction of frames shed"),

@@ -30,6 +30,7 @@ def run(quick: bool = False) -> BenchResult:
         "sitl_ekf_horizontal_error_max_mm": h.get("max"),
         "sitl_ekf_vertical_error_p99_mm": (s.get("ekf_vertical_error_mm") or {}).get("p99"),
         "sitl_ekf_yaw_error_p99_deg": y.get("p99"),
+        "sitl_ekf_lead_ms": s.get("ekf_lead_ms"),
         "sitl_ekf_pos_test_ratio_max": (ratios.get("position_horizontal") or {}).get("max"),
         "sitl_vision_position_rmse_mm": s["vision"].get("position_rmse_mm"),
         "sitl_failsafe_messages": float(len(s["failsafe_or_lane_switch"]) + len(s["mode_changes_not_ours"])),

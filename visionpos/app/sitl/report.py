@@ -22,6 +22,26 @@ def _pcts(v: np.ndarray) -> dict[str, float | None]:
     return {"p50": float(np.percentile(v, 50)), "p99": float(np.percentile(v, 99)), "max": float(v.max())}
 
 
+LEAD_MIN_SPEED_M_S = 0.1  # samples slower than this carry no timing information
+LEAD_MIN_SAMPLES = 50
+
+
+def ekf_lead_ms(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> tuple[float, int] | None:
+    """How far ahead of the truth the EKF's horizontal position runs (ms; negative: behind), and the samples the
+    fit used: the shift tau with ekf(t) = truth(t + tau), fitted on e = v * tau + c (per axis, least squares)
+    over the samples moving faster than LEAD_MIN_SPEED_M_S. t_ns (T,): arrival times on the server clock, as the
+    truth's own (both cross loopback, so the transport cancels); ekf_ned (T, 3) m. None with too little motion."""
+    p, v, _, _ = truth.sample(t_ns.astype(np.int64))
+    e = (ekf_ned - world_to_ned(p))[:, :2]
+    v = world_to_ned(v)[:, :2]
+    moving = np.hypot(v[:, 0], v[:, 1]) > LEAD_MIN_SPEED_M_S
+    n = int(moving.sum())
+    if n < LEAD_MIN_SAMPLES:
+        return None
+    e, v = e[moving] - e[moving].mean(axis=0), v[moving] - v[moving].mean(axis=0)
+    return float((e * v).sum() / (v * v).sum() * 1e3), n
+
+
 FAILSAFE_WORDS = ("failsafe", "ekf variance", "lane switch", "ekf primary changed", "position lost", "crash")
 
 
@@ -41,6 +61,9 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
             err = loc[:, 1:4] - ned_true
             out["ekf_horizontal_error_mm"] = _pcts(np.hypot(err[:, 0], err[:, 1]) * 1e3)
             out["ekf_vertical_error_mm"] = _pcts(np.abs(err[:, 2]) * 1e3)
+            lead = ekf_lead_ms(loc[:, 0], loc[:, 1:4], truth)
+            if lead is not None:
+                out["ekf_lead_ms"], out["ekf_lead_samples"] = lead
         att = np.array([r for r in gcs.attitude if a <= r[0] <= b], dtype=float).reshape(-1, 4)
         if len(att):
             _, _, _, rot = truth.sample(att[:, 0].astype(np.int64))
@@ -97,6 +120,8 @@ def format_flight(s: dict[str, Any]) -> str:
         + (f": {s['error']}" if s.get("error") else ""),
         f"  EKF position vs SITL truth (armed to disarmed): horizontal p50 {f(h.get('p50'))} mm, p99 {f(h.get('p99'))}"
         f" mm, max {f(h.get('max'))} mm; vertical p99 {f(v.get('p99'))} mm",
+        f"  EKF ahead of the truth by {f(s.get('ekf_lead_ms'))} ms (fitted on the {s.get('ekf_lead_samples') or 0} "
+        f"samples moving faster than {LEAD_MIN_SPEED_M_S:g} m/s; negative: behind)",
         f"  EKF yaw vs truth: p50 {f(y.get('p50'), '.2f')} deg, p99 {f(y.get('p99'), '.2f')} deg, "
         f"max {f(y.get('max'), '.2f')} deg",
         f"  vision (fusion output) vs truth: RMS {f(vis.get('position_rmse_mm'), '.2f')} mm, max "

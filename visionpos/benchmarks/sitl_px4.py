@@ -1,0 +1,78 @@
+"""Benchmark group `sitl_px4`: PX4 SITL with SIH flown closed loop on the simulated thesis arena
+(`visionpos sitl --autopilot px4`), and the same flight with SIH's own true state as the vision (the floor).
+
+The full scripted flight (Offboard take-off to 1 m, hold with a 1 s vision cut, 1 m square, AUTO.LAND), about
+70 s of real time each. The floor flight (visionpos/app/sitl/px4_floor.py) sends SIH's truth as
+VISION_POSITION_ESTIMATE at 50 Hz on arrival: what EKF2 reaches on SIH's vibrating IMU with an exact vision.
+The issue's goal (EKF horizontal p99 <= 20 mm) is reported as it is, beside the floor, and the ratio of the two
+is what visionpos's vision costs EKF2 over an exact one. Skipped, with the reason in the notes, where no PX4
+build is found ($VISIONPOS_PX4_SITL or ../shared/sitl-px4/build beside the checkout).
+"""
+
+from __future__ import annotations
+
+import math
+
+from visionpos.benchmarks import BenchResult
+
+
+def _flight_metrics(prefix: str, s: dict) -> dict[str, float]:
+    h = s.get("ekf_horizontal_error_mm") or {}
+    cut = s.get("cut") or {}
+    m = {
+        f"{prefix}_flight_completed": 1.0 if s["completed"] else 0.0,
+        f"{prefix}_ekf_horizontal_error_p50_mm": h.get("p50"),
+        f"{prefix}_ekf_horizontal_error_p99_mm": h.get("p99"),
+        f"{prefix}_ekf_horizontal_error_max_mm": h.get("max"),
+        f"{prefix}_ekf_vertical_error_p99_mm": (s.get("ekf_vertical_error_mm") or {}).get("p99"),
+        f"{prefix}_ekf_yaw_error_p99_deg": (s.get("ekf_yaw_error_deg") or {}).get("p99"),
+        f"{prefix}_ekf_lead_ms": s.get("ekf_lead_ms"),
+        f"{prefix}_failsafe_messages": float(len(s["failsafe_or_lane_switch"]) + len(s["mode_changes_not_ours"])),
+        f"{prefix}_cut_1s_max_drift_mm": cut.get("max_drift_from_hold_mm"),
+    }
+    return {k: float(v) for k, v in m.items() if v is not None}
+
+
+def run(quick: bool = False) -> BenchResult:
+    from visionpos.app.sitl import FlightPlan, sitl_arena
+    from visionpos.app.sitl.px4 import PX4_ENV, default_px4_dir
+    from visionpos.app.sitl.px4_floor import run_px4_truth_vision
+    from visionpos.app.sitl.px4_run import run_px4
+
+    build = default_px4_dir()
+    if build is None:
+        return BenchResult(notes=[f"skipped: no PX4 SITL build (set {PX4_ENV}=DIR holding bin/px4 and etc/, or put "
+                                  "it in ../shared/sitl-px4/build beside the checkout)"])
+    plan = FlightPlan(altitude_m=1.0, side_m=1.0, hold_s=4.0, square=True, cut_s=1.0, timeout_s=200.0)
+    ours = run_px4(sitl_arena("thesis", [], plan.timeout_s + 60.0), build, plan, None)
+    floor = run_px4_truth_vision(sitl_arena("thesis", [], plan.timeout_s + 60.0), build, plan, None)
+    res = BenchResult(metrics={**_flight_metrics("sitl_px4", ours), **_flight_metrics("sitl_px4_floor", floor)})
+    a, b = (res.metrics.get(f"{p}_ekf_horizontal_error_p99_mm") for p in ("sitl_px4", "sitl_px4_floor"))
+    res.metrics["sitl_px4_ekf_p99_over_floor"] = a / b if a is not None and b else math.nan
+    v = ours["vision"]
+    for k, name in (("position_rmse_mm", "sitl_px4_vision_position_rmse_mm"),):
+        if v.get(k) is not None:
+            res.metrics[name] = float(v[k])
+    rt = ours["real_time"]
+    res.metrics["sitl_px4_frames_late_fraction"] = rt["frames_late_fraction"]
+    res.metrics["sitl_px4_frames_not_fused_fraction"] = rt["frames_not_fused_fraction"]
+    res.metrics["sitl_px4_ev_delay_ms"] = float(ours.get("viso_delay_ms") or math.nan)
+    fmt = (lambda x, spec=".1f": "-" if x is None else format(x, spec))  # noqa: E731
+    rows = ["| vision | flight | EKF horizontal p50 / p99 / max mm | vertical p99 mm | EKF ahead of truth ms | "
+            "1 s cut: drift mm | failsafes |", "|---|---|---|---|---|---|---|"]
+    for label, s in (("visionpos (4 cameras, fusion, bridge)", ours), ("SIH's true state, on arrival", floor)):
+        h = s.get("ekf_horizontal_error_mm") or {}
+        rows.append(f"| {label} | {'completed' if s['completed'] else 'NOT completed'} | {fmt(h.get('p50'))} / "
+                    f"{fmt(h.get('p99'))} / {fmt(h.get('max'))} | "
+                    f"{fmt((s.get('ekf_vertical_error_mm') or {}).get('p99'))} | {fmt(s.get('ekf_lead_ms'))} | "
+                    f"{fmt((s.get('cut') or {}).get('max_drift_from_hold_mm'))} | "
+                    f"{len(s['failsafe_or_lane_switch']) + len(s['mode_changes_not_ours'])} |")
+    res.tables["PX4 SIH closed loop: visionpos's vision against SIH's own truth as the vision"] = "\n".join(rows)
+    for label, s in (("visionpos", ours), ("floor", floor)):
+        if s.get("error"):
+            res.notes.append(f"{label} flight: {s['error']}")
+        res.notes.append(f"{label} flight STATUSTEXT: " + " | ".join(s["statustext"]))
+    if rt["frames_late_fraction"] > 0.02 or rt["frames_not_fused_fraction"] > 0.05:
+        res.notes.append("this host did not keep real time during the flight (camera frames late or not fused): the "
+                         "EKF figures measure the host's load, not the EKF")
+    return res
