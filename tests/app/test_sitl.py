@@ -86,6 +86,10 @@ def test_vision_parameters_turn_gps_and_compass_off_and_external_nav_on():
     assert p["EK3_SRC1_POSXY"] == p["EK3_SRC1_POSZ"] == p["EK3_SRC1_YAW"] == 6
     assert p["EK3_SRC1_VELXY"] == 0  # no velocity in VISION_POSITION_ESTIMATE
     assert S.vision_parameters(cfg, "odometry", False)["EK3_SRC1_VELXY"] == 6
+    # VISO_DELAY_MS goes in before the reboot, covering the delay to come: EKF3 sizes its buffer at start
+    assert p["VISO_DELAY_MS"] == 20 and S.vision_parameters(cfg, "odometry", False, 50.0)["VISO_DELAY_MS"] == 70
+    fixed = S.SitlSettings(S.SHARED_BINARY, None, "+", None, (*HOME, 0.0), 33.0, 0.01, 0.02, 0.05)
+    assert S.vision_parameters(fixed, "odometry", False, 50.0)["VISO_DELAY_MS"] == 33  # sitl.viso_delay_ms
 
 
 @pytest.mark.skipif(S.default_sitl_binary() is None,

@@ -27,6 +27,24 @@ def test_px4_parameters_and_their_environment():
     assert env["PX4_PARAM_EKF2_HGT_REF"] == "3" and env["PX4_PARAM_EKF2_EV_DELAY"] == "16"
     assert env["PX4_PARAM_EKF2_EVP_NOISE"] == "0.01" and env["PX4_PARAM_MAV_SYS_ID"] == "3"
     assert P.px4_ports(7) == {"gcs": 18577, "onboard": 14587, "truth": 19417}  # the README's instance 7
+    # the height from the vision alone, and a short horizon with a tight output predictor (docs: the PX4 table)
+    assert (p["EKF2_BARO_CTRL"], p["EKF2_RNG_CTRL"], p["EKF2_ASP_DELAY"], p["EKF2_GPS_DELAY"]) == (0, 0, 0, 0)
+    assert p["EKF2_DELAY_MAX"] == 16 + 25 and p["EKF2_TAU_POS"] == p["EKF2_TAU_VEL"] == 0.1
+
+
+def test_every_parameter_the_px4_flight_sets_is_in_the_docs_with_its_value():
+    """docs/autopilot-setup.md: section 0 lists what `visionpos sitl --autopilot px4` sets, the PX4 table of
+    section 2 says why; both must name every parameter px4_parameters sets."""
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text()
+    section0 = doc[doc.index("--autopilot px4 --cut 1"):doc.index("## 1. The `vehicles:` section")]
+    table = doc[doc.index("### PX4 (1.14 and later)"):doc.index("## 3. Time stamps and delays")]
+    for name in P.px4_parameters("vision_position_estimate", 15, 0.01, 0.02, 2):
+        assert f"`{name}`" in section0, name
+        if name != "SENS_EN_GPSSIM":  # SIH's own GPS: SITL only
+            assert f"`{name}`" in table, name
+    assert "`EKF2_BARO_CTRL` 0" in section0 and "`EKF2_TAU_POS` 0.1" in section0
 
 
 def test_wrong_build_for_the_autopilot_is_one_line(tmp_path):
@@ -179,3 +197,39 @@ def test_px4_process_starts_in_its_own_folder_and_close_stops_it_and_cleans_up(t
             time.sleep(0.05)
         assert p.log_tail() == f"-i 7 -d {tmp_path / 'etc'} model=sihsim_quadx"
     assert not p.alive() and not os.path.exists(p.folder)
+
+
+def test_link_delay_relay_in_front_of_px4s_onboard_port():
+    """`--link-delay-ms` with PX4: the bridge sends first, to the relay; the relay holds each datagram D ms on to
+    PX4's fixed Onboard port and PX4's answers D ms back (the fake PX4 as the Onboard port)."""
+    import socket
+
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    from visionpos.app.linkdelay import DelayRelay
+    from visionpos.app.sitl.px4_run import px4_arena
+
+    arena = px4_arena(S.sitl_arena("thesis", [], 60.0), 3, onboard_port=45678)
+    assert arena.to_dict()["vehicles"][0]["endpoint"] == "udpout:127.0.0.1:45678"
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=4, autopilot="px4", heartbeat_hz=20).start()
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(0.05)
+    mav, rx = mavlink2.MAVLink(None, srcSystem=255, srcComponent=190), mavlink2.MAVLink(None)
+    try:
+        with DelayRelay(("127.0.0.1", ap.port), 40.0) as relay:
+            t_sent = time.monotonic()
+            sock.sendto(mav.heartbeat_encode(6, 8, 0, 0, 4).pack(mav), ("127.0.0.1", relay.port))
+            got = None
+            while got is None and time.monotonic() - t_sent < 3.0:
+                try:
+                    data = sock.recv(65535)
+                except socket.timeout:
+                    continue
+                got = next((m for m in rx.parse_buffer(data) or [] if m.get_type() == "HEARTBEAT"), None)
+            assert got is not None and got.autopilot == mavlink2.MAV_AUTOPILOT_PX4
+            assert time.monotonic() - t_sent >= 0.080  # 40 ms there (PX4 learns us), 40 ms back
+            assert relay.hold_ms_median("to_autopilot") == pytest.approx(40.0, abs=5.0)
+    finally:
+        sock.close()
+        ap.close()

@@ -65,8 +65,6 @@ def run(args: argparse.Namespace) -> int:
     if args.sitl:  # the wrong build for --autopilot: one line
         check_build_kind(Path(args.sitl), args.autopilot)
     if args.autopilot == "px4":
-        if args.link_delay_ms is not None:
-            raise UsageError("--link-delay-ms: the delay relay is wired for ArduPilot's SITL only")
         build = find_px4_dir(args.sitl, arena)
         out.write(f"visionpos sitl: PX4 {build} with {len(arena.cameras)} simulated cameras on 127.0.0.1\n")
         try:

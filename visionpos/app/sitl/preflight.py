@@ -32,13 +32,29 @@ if TYPE_CHECKING:
 HOME_TOLERANCE_M = 0.01  # home read back further than this from the origin: an error
 
 
-def vision_parameters(cfg: SitlSettings, message: str, vision_speed: bool) -> dict[str, float]:
-    """The vision-only parameters of docs/autopilot-setup.md (GPS and compass off, external nav on)."""
+BOOT_VISO_DELAY_MS = 20.0  # VISO_DELAY_MS at boot, plus the link's delay: above the advice to come (7-8 ms here)
+
+
+def boot_viso_delay_ms(cfg: SitlSettings, link_delay_ms: float | None) -> int:
+    """VISO_DELAY_MS to boot with. EKF3 sizes its IMU buffer once, at start, from the largest sensor delay
+    (VISO_DELAY_MS, EK3_HGT_DELAY 60 ms, ...: NavEKF3_core::setup_core) and moves a pose older than that buffer
+    up to its oldest sample: a VISO_DELAY_MS raised later past the buffer is not honoured. So the boot value
+    covers the delay to come; the flight then sets the advised value (smaller or equal)."""
+    if cfg.viso_delay_ms is not None:
+        return round(cfg.viso_delay_ms)
+    return round(BOOT_VISO_DELAY_MS + (link_delay_ms or 0.0))
+
+
+def vision_parameters(cfg: SitlSettings, message: str, vision_speed: bool,
+                      link_delay_ms: float | None = None) -> dict[str, float]:
+    """The vision-only parameters of docs/autopilot-setup.md (GPS and compass off, external nav on), and
+    VISO_DELAY_MS for the boot (boot_viso_delay_ms)."""
     vel = 6.0 if (message == "odometry" or vision_speed) else 0.0
     return {
         "VISO_TYPE": 1, "SERIAL1_PROTOCOL": 2, "SERIAL1_BAUD": 921,
         "EK3_SRC1_POSXY": 6, "EK3_SRC1_POSZ": 6, "EK3_SRC1_VELXY": vel, "EK3_SRC1_VELZ": vel, "EK3_SRC1_YAW": 6,
         "GPS1_TYPE": 0, "COMPASS_USE": 0, "COMPASS_USE2": 0, "COMPASS_USE3": 0, "COMPASS_ENABLE": 0,
+        "VISO_DELAY_MS": boot_viso_delay_ms(cfg, link_delay_ms),
     }
 
 
@@ -95,13 +111,13 @@ def home_offset_m(home: Any, lat_deg: float, lon_deg: float) -> tuple[float, flo
 
 
 def prepare_vehicle(gcs: Gcs, proc: SitlProcess, cfg: SitlSettings, veh: VehicleConfig, key: bytes,
-                    say: Callable[[str], None]) -> None:
+                    say: Callable[[str], None], link_delay_ms: float | None = None) -> None:
     """The whole set-up, in its order: connect, the vision-only parameters (read back), reboot, reconnect,
-    the noise floors (and VISO_DELAY_MS when configured), the signing key, the EKF origin and home."""
+    the noise floors, the signing key, the EKF origin and home."""
     gcs.connect(30.0, proc)
     if gcs.autopilot_type == 12:  # MAV_AUTOPILOT_PX4
         raise SitlError(f"{cfg.binary} runs PX4, not ArduPilot: fly it with --autopilot px4")
-    params = vision_parameters(cfg, veh.message, veh.vision_speed)
+    params = vision_parameters(cfg, veh.message, veh.vision_speed, link_delay_ms)
     gcs.set_params(params)
     say(f"parameters set and read back ({len(params)}); rebooting SITL")
     gcs.command(MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1)
@@ -111,8 +127,6 @@ def prepare_vehicle(gcs: Gcs, proc: SitlProcess, cfg: SitlSettings, veh: Vehicle
     gcs.connect(30.0, proc)
     noise = {"VISO_POS_M_NSE": cfg.viso_pos_m_nse, "VISO_YAW_M_NSE": cfg.viso_yaw_m_nse,
              "VISO_VEL_M_NSE": cfg.viso_vel_m_nse}
-    if cfg.viso_delay_ms is not None:
-        noise["VISO_DELAY_MS"] = round(cfg.viso_delay_ms)
     gcs.set_params(noise)
     _setup_signing(gcs, key)
     _set_origin(gcs, cfg, say)

@@ -176,7 +176,8 @@ class Px4Gcs(Gcs):
     """Our ground-station link to PX4's GCS port (udpout: we talk first), on Gcs's reader (texts, parameters, acks,
     LOCAL_POSITION_NED, ATTITUDE, heartbeats and modes), plus ESTIMATOR_STATUS into `ekf`, SIH's true state (the
     display link's HIL_STATE_QUATERNION) into the TruthTrack, and a keep-alive thread: the GCS HEARTBEAT PX4 needs
-    to arm, MANUAL_CONTROL (centred sticks) while `manual`, and the offboard `setpoint` (N, E, D m) while set."""
+    to arm, MANUAL_CONTROL (centred sticks) while `manual`, and the offboard `setpoint` (N, E, D m; with
+    `yaw_rate` rad/s where set) while set."""
 
     param_bytewise = True  # PX4 puts an integer parameter's bytes in PARAM_VALUE's float
 
@@ -187,6 +188,7 @@ class Px4Gcs(Gcs):
         self.estimator: Any = None  # the newest ESTIMATOR_STATUS
         self.manual = False
         self.setpoint: tuple[float, float, float] | None = None
+        self.yaw_rate: float | None = None  # rad/s with the setpoint (a yaw swing); None: PX4 holds its heading
         self._keep = threading.Event()
         self._threads: list[threading.Thread] = []
         self._truth_sock: socket.socket | None = None
@@ -253,11 +255,12 @@ class Px4Gcs(Gcs):
                 if self.manual and now >= next_manual and self.target:
                     next_manual = now + 1.0 / MANUAL_HZ
                     self.conn.mav.manual_control_send(self.target, 0, 0, 500, 0, 0)  # centred: hold
-                sp = self.setpoint
+                sp, rate = self.setpoint, self.yaw_rate
                 if sp is not None and now >= next_sp and self.target:
                     next_sp = now + 1.0 / SETPOINT_HZ
-                    self.conn.mav.set_position_target_local_ned_send(0, self.target, 1, 1, 0b0000_1111_1111_1000,
-                                                                     *sp, 0, 0, 0, 0, 0, 0, 0, 0)
+                    mask = 0b0000_1111_1111_1000 if rate is None else 0b0000_0101_1111_1000  # position (+ yaw rate)
+                    self.conn.mav.set_position_target_local_ned_send(0, self.target, 1, 1, mask, *sp,
+                                                                     0, 0, 0, 0, 0, 0, 0, rate or 0.0)
             except OSError:
                 return
             time.sleep(0.01)

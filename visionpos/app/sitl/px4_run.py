@@ -10,13 +10,15 @@ stamps the poses on arrival: the median stamp-to-arrival delay, bridge/estimator
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from pathlib import Path
 from typing import Any, Callable, TextIO
 
 import numpy as np
 
-from visionpos.app.sitl.flight import FlightPlan
+from visionpos.app.linkdelay import DelayRelay
+from visionpos.app.sitl.flight import YAW_SWING_PERIOD_S, FlightPlan
 from visionpos.app.sitl.px4 import (
     AUTO,
     AUTO_LAND,
@@ -41,9 +43,10 @@ OUR_MODES = {POSCTL << 16, OFFBOARD << 16, (AUTO << 16) | (AUTO_LAND << 24)}
 SETTLE_RADIUS_M = 0.08
 
 
-def px4_arena(arena: ArenaConfig, instance: int) -> ArenaConfig:
+def px4_arena(arena: ArenaConfig, instance: int, onboard_port: int | None = None) -> ArenaConfig:
     """The arena with its first vehicle only, as PX4's instance: sysid instance+1, the Onboard link (udpout,
-    unsigned: PX4 does not sign with our key), `autopilot: px4`, no origin (EKF2 flies the local frame)."""
+    unsigned: PX4 does not sign with our key; onboard_port: a relay's in its place), `autopilot: px4`, no origin
+    (EKF2 flies the local frame)."""
     from visionpos.config.arena import ConfigError, parse_arena
 
     data = arena.to_dict()
@@ -53,19 +56,32 @@ def px4_arena(arena: ArenaConfig, instance: int) -> ArenaConfig:
     v = dict(vehicles[0])
     for k in ("signing", "origin", "autopilot_address"):
         v.pop(k, None)
-    v.update(sysid=instance + 1, endpoint=f"udpout:127.0.0.1:{px4_ports(instance)['onboard']}", autopilot="px4")
+    port = onboard_port if onboard_port is not None else px4_ports(instance)["onboard"]
+    v.update(sysid=instance + 1, endpoint=f"udpout:127.0.0.1:{port}", autopilot="px4")
     data["vehicles"] = [v]
     return parse_arena(data, arena.source)
 
 
 def run_px4(arena: ArenaConfig, build: Path, plan: FlightPlan, out: TextIO | None) -> dict[str, Any]:
-    """Start PX4 SIH with the vision-only EKF2, fly the plan on the live arena, the summary dict."""
+    """Start PX4 SIH with the vision-only EKF2, fly the plan on the live arena, the summary dict. With
+    plan.link_delay_ms, the bridge talks to PX4's Onboard link through a DelayRelay holding each direction that
+    long (the relay's 'autopilot side' is the bridge here: it sends first; its target is PX4's fixed port)."""
+    sec = SITL.check(arena.section("sitl"))
+    instance = SITL.read(sec, "instance") or free_px4_instance()
+    if plan.link_delay_ms is None:
+        return _run_px4(arena, build, plan, out, instance, None)
+    with DelayRelay(("127.0.0.1", px4_ports(instance)["onboard"]), plan.link_delay_ms,
+                    lifetime_s=plan.timeout_s + 180.0) as relay:
+        return _run_px4(arena, build, plan, out, instance, relay)
+
+
+def _run_px4(arena: ArenaConfig, build: Path, plan: FlightPlan, out: TextIO | None, instance: int,
+             relay: DelayRelay | None) -> dict[str, Any]:
     from bridge.config import parse_vehicles
 
     sec = SITL.check(arena.section("sitl"))
     home = tuple(float(x) for x in SITL.read(sec, "home"))
-    instance = SITL.read(sec, "instance") or free_px4_instance()
-    arena = px4_arena(arena, instance)
+    arena = px4_arena(arena, instance, relay.port if relay is not None else None)
     veh = parse_vehicles(arena)[0]
     given = SITL.read(sec, "viso_delay_ms")
     ev_delay = given if given is not None else FIRST_EV_DELAY_MS + (plan.link_delay_ms or 0.0)
@@ -80,7 +96,10 @@ def run_px4(arena: ArenaConfig, build: Path, plan: FlightPlan, out: TextIO | Non
         gcs = Px4Gcs(px4_ports(instance), truth, on_text=lambda text: say(f"  PX4: {text}"))
         try:
             say(f"PX4 SIH instance {instance} in {proc.folder}: GCS udp 127.0.0.1:{gcs.port}, the bridge on its "
-                f"Onboard link {veh.endpoint}; EKF2 set at start ({len(params)} parameters)")
+                f"Onboard link {veh.endpoint}"
+                + ("" if relay is None else f" (a relay holding each direction {plan.link_delay_ms:g} ms -> "
+                   f"udp 127.0.0.1:{px4_ports(instance)['onboard']})")
+                + f"; EKF2 set at start ({len(params)} parameters)")
             gcs.connect(30.0, proc)
             gcs.check_params(params)
             say(f"parameters read back; cameras start (EKF2_EV_DELAY {round(ev_delay)} ms)")
@@ -93,6 +112,9 @@ def run_px4(arena: ArenaConfig, build: Path, plan: FlightPlan, out: TextIO | Non
                             "frames_not_fused_fraction": (summary["vision"]["frames_not_fused"] or 0) / made}
     summary["delay_param"] = "EKF2_EV_DELAY"
     summary["delay_advised_ms"] = record.get("advised_ms")
+    if relay is not None:
+        summary["link_relay"] = {"added_ms": plan.link_delay_ms,
+                                 "hold_ms_p50": relay.hold_ms_median("to_autopilot")}
     return summary
 
 
@@ -164,14 +186,14 @@ async def fly_px4(gcs: Px4Gcs, plan: FlightPlan, record: dict[str, Any], say: Ca
     say("armed in Position mode; Offboard take-off")
     await _reach(gcs, n0, e0, -plan.altitude_m, 30.0)
     record["airborne_ns"] = time.monotonic_ns()
-    await asyncio.sleep(plan.hold_s / 2)
+    await _hold(gcs, plan, plan.hold_s / 2)
     if plan.cut_s > 0:
         now = time.monotonic_ns()
         live.cut(now, now + int(plan.cut_s * 1e9))
         record["cut"] = (now, now + int(plan.cut_s * 1e9), (n0, e0, -plan.altitude_m))
         say(f"vision cut for {plan.cut_s:g} s")
         await asyncio.sleep(plan.cut_s)
-    await asyncio.sleep(plan.hold_s / 2)
+    await _hold(gcs, plan, plan.hold_s / 2)
     if plan.square:
         s = plan.side_m
         for dn, de in ((s, 0.0), (s, s), (0.0, s), (0.0, 0.0)):
@@ -190,6 +212,20 @@ async def fly_px4(gcs: Px4Gcs, plan: FlightPlan, record: dict[str, Any], say: Ca
     record["disarmed_ns"] = time.monotonic_ns()
     record["completed"] = True
     say("landed and disarmed")
+
+
+async def _hold(gcs: Px4Gcs, plan: FlightPlan, duration_s: float) -> None:
+    """Hover duration_s: still, or (plan.yaw_swing_rad_s) turning back and forth about the vertical with a
+    sinusoidal yaw rate (flight.YAW_SWING_PERIOD_S), the rotation the back-channel's delay measurement
+    correlates; SIH's roll and pitch gyros are too noisy for it."""
+    t0 = time.monotonic()
+    try:
+        while (t := time.monotonic() - t0) < duration_s:
+            if plan.yaw_swing_rad_s > 0:
+                gcs.yaw_rate = plan.yaw_swing_rad_s * math.sin(2 * math.pi * t / YAW_SWING_PERIOD_S)
+            await asyncio.sleep(0.05)
+    finally:
+        gcs.yaw_rate = None
 
 
 async def _reach(gcs: Px4Gcs, north: float, east: float, down: float, timeout_s: float) -> None:

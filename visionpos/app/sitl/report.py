@@ -136,6 +136,9 @@ def format_flight(s: dict[str, Any]) -> str:
         e = c.get("ekf_horizontal_error_1_to_3_s_after_mm") or {}
         lines.append(f"  vision cut {c['seconds']:g} s: true drift from the hold point max "
                      f"{f(c['max_drift_from_hold_mm'])} mm; EKF error 1-3 s after: p99 {f(e.get('p99'))} mm")
+    if "link_relay" in s:
+        r = s["link_relay"]
+        lines.append(f"  link delay {r['added_ms']:g} ms each way (a relay; held {fmt_ms(r['hold_ms_p50'])} ms p50)")
     if "link_delay" in s:
         d = s["link_delay"]
         lines.append(f"  link delay {d['added_ms']:g} ms each way: capture->autopilot delay measured by the "

@@ -85,7 +85,7 @@ def _run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | 
                 f"SERIAL1 udpclient:127.0.0.1:{serial1_port} -> "
                 + ("" if relay is None else f"a relay holding each direction {plan.link_delay_ms:g} ms -> ")
                 + f"the bridge ({veh.endpoint}, signed)")
-            prepare_vehicle(gcs, proc, cfg, veh, key, say)
+            prepare_vehicle(gcs, proc, cfg, veh, key, say, plan.link_delay_ms)
             if relay is not None:  # SITL's intake of the vision link's datagrams, for the true delay
                 probe = IntakeProbe(relay, key, gcs.clock).__enter__()
             say(f"set-up done in {time.monotonic() - t0:.1f} s; cameras start")
