@@ -29,8 +29,9 @@ def test_every_goal_names_a_metric_prefix_of_a_bench_group():
         assert g.op in ("<=", ">=")
         assert any(
             g.metric.startswith(p) for p in ("geometry_", "detector_", "fusion_", "bridge_", "calib_", "replay_",
-                                              "robustness_", "planner_", "sitl_", "sitl_delay_", "sitl_px4_", "console_",
-                                              "backchannel_", "monitor_", "coldstart_", "freshness_", "scale_")
+                                              "robustness_", "planner_", "sitl_", "sitl_delay_", "sitl_px4_",
+                                              "console_", "backchannel_", "monitor_", "coldstart_", "freshness_",
+                                              "scale_")
         )
         assert (g.target is None) == (g.versus is not None)
     assert set(GROUPS) == {"geometry", "detector", "fusion", "bridge", "calibration", "replay", "robustness", "planner",
