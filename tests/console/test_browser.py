@@ -754,7 +754,8 @@ def test_a_replay_shows_only_what_a_replay_can_do_and_its_refusals(tmp_path, the
             await browser.evaluate("(() => { const s = document.getElementById('seek'); s.value = '2'; "
                                    "s.dispatchEvent(new Event('change')); })()")
             await browser.wait_for("window.visionposConsole.replayReply === 2", 10)  # the seek's answer
-            steps = [await browser.evaluate("window.visionposConsole.replayPos")]
+            # from the seek's own answer: the shown position (replayPos) may still be a state sent before it
+            steps = [await browser.evaluate("window.visionposConsole.replayReply")]
             for button in ("stepfwd", "stepfwd", "stepback"):  # each answered once done
                 n = await browser.evaluate("window.visionposConsole.replayReplies")
                 await browser.evaluate(f"document.getElementById('{button}').click()")

@@ -40,7 +40,7 @@ def run(quick: bool = False) -> BenchResult:
         "sitl_frames_not_fused_fraction": s["real_time"]["frames_not_fused_fraction"],
     }
     metrics = {k: float(v) for k, v in metrics.items() if v is not None}
-    notes = ["STATUSTEXT during the run: " + " | ".join(s["statustext"])]
+    notes = [f"SITL binary: {binary}", "STATUSTEXT during the run: " + " | ".join(s["statustext"])]
     if s["real_time"]["frames_late_fraction"] > 0.02 or s["real_time"]["frames_not_fused_fraction"] > 0.05:
         notes.append("this host did not keep real time during the flight (camera frames late or not fused): the "
                      "EKF figures measure the host's load, not the EKF")

@@ -48,7 +48,7 @@ def run(quick: bool = False) -> BenchResult:
     if binary is None:
         return BenchResult(notes=[f"skipped: no ArduPilot SITL binary (set {SITL_ENV}=PATH or put it in "
                                   "../shared/sitl/arducopter beside the checkout)"])
-    res = BenchResult()
+    res = BenchResult(notes=[f"SITL binary: {binary}"])
     rows = []
     for d in DELAYS_MS:
         plan = FlightPlan(altitude_m=1.0, side_m=1.0, hold_s=10.0, square=True, timeout_s=150.0, link_delay_ms=d,

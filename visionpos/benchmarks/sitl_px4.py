@@ -73,6 +73,7 @@ def run(quick: bool = False) -> BenchResult:
                     f"{fmt((s.get('cut') or {}).get('max_drift_from_hold_mm'))} | "
                     f"{len(s['failsafe_or_lane_switch']) + len(s['mode_changes_not_ours'])} |")
     res.tables["PX4 SIH closed loop: visionpos's vision against SIH's own truth as the vision"] = "\n".join(rows)
+    res.notes.append(f"PX4 build: {build}")
     for label, s in (("visionpos", ours), ("floor", floor)):
         if s.get("error"):
             res.notes.append(f"{label} flight: {s['error']}")
