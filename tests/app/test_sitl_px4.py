@@ -233,3 +233,49 @@ def test_link_delay_relay_in_front_of_px4s_onboard_port():
     finally:
         sock.close()
         ap.close()
+
+
+def test_truth_vision_sends_the_true_pose_in_ned_and_nothing_in_a_cut():
+    """px4_floor.TruthVision: SIH's truth (here a vehicle still at N 1, E 2, 1.5 m up, heading east) as
+    VISION_POSITION_ESTIMATE in NED with FRD yaw; nothing while cut."""
+    import math
+    import socket
+    import types
+
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    from visionpos.app.sitl.px4_floor import TruthVision
+    from visionpos.app.sitl.truth import LATLON_TO_M
+
+    track = S.TruthTrack(HOME)
+    lat_e7, lon_e7 = int(round(HOME[0] * 1e7)), int(round(HOME[1] * 1e7))
+    yaw = math.pi / 2
+    state = types.SimpleNamespace(lat_int=lat_e7 + int(round(1.0 / LATLON_TO_M)),
+                                  lon_int=lon_e7 + int(round(2.0 / (LATLON_TO_M * math.cos(math.radians(HOME[0]))))),
+                                  alt=HOME[2] + 1.5, vn=0.0, ve=0.0, vd=0.0, q1=math.cos(yaw / 2), q2=0.0, q3=0.0,
+                                  q4=math.sin(yaw / 2), xgyro=0.0, ygyro=0.0, zgyro=0.0)
+    now = time.monotonic_ns()
+    for k in range(5):
+        track.add(now + k * 1_000_000, state)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(1.0)
+    vision = TruthVision(track, sock.getsockname()[1], rate_hz=50.0).start()
+    rx = mavlink2.MAVLink(None)
+    try:
+        m = None
+        while m is None:
+            m = next((x for x in rx.parse_buffer(sock.recv(65535)) or [] if x.get_type() == "VISION_POSITION_ESTIMATE"),
+                     None)
+        assert (m.x, m.y, m.z) == pytest.approx((1.0, 2.0, -1.5), abs=0.011)  # 1e-7 deg lat/lon: 1.1 cm
+        assert m.yaw == pytest.approx(yaw, abs=1e-4) and abs(m.roll) < 1e-4 and abs(m.pitch) < 1e-4
+        assert vision.sending()
+        t = time.monotonic_ns()
+        vision.cut(t, t + 2_000_000_000)
+        time.sleep(0.1)
+        sent = vision.sent
+        time.sleep(0.3)
+        assert vision.sent == sent and not vision.sending()
+    finally:
+        vision.close()
+        sock.close()

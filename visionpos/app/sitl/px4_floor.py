@@ -11,6 +11,7 @@ vision that is exact and on time. The `sitl_px4` bench sets the flight on vision
 from __future__ import annotations
 
 import asyncio
+import socket
 import threading
 import time
 from pathlib import Path
@@ -32,15 +33,16 @@ TRUTH_EV_DELAY_MS = 1  # the truth's own transit: display link out, our send bac
 
 
 class TruthVision:
-    """A thread sending the newest true pose to PX4's Onboard link as VISION_POSITION_ESTIMATE (NED, FRD
+    """A thread sending the true pose to PX4's Onboard link as VISION_POSITION_ESTIMATE (NED, FRD
     roll/pitch/yaw, no covariance) at rate_hz; nothing inside a cut(start_ns, end_ns) window."""
 
     def __init__(self, truth: TruthTrack, port: int, rate_hz: float = TRUTH_VISION_HZ):
-        from pymavlink import mavutil
+        from pymavlink.dialects.v20 import common as mavlink2
 
         self.truth = truth
-        self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=200, source_component=197,
-                                               dialect="common")
+        self.mav = mavlink2.MAVLink(None, srcSystem=200, srcComponent=197)  # MAVLink 2, whatever MAVLINK20 says
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.target = ("127.0.0.1", port)
         self.period_s = 1.0 / rate_hz
         self.sent = 0
         self.last_sent_ns = 0
@@ -55,7 +57,7 @@ class TruthVision:
     def close(self) -> None:
         self._stop.set()
         self._thread.join(2.0)
-        self.conn.close()
+        self.sock.close()
 
     def cut(self, start_ns: int, end_ns: int) -> None:
         self._cuts.append((start_ns, end_ns))
@@ -67,13 +69,16 @@ class TruthVision:
         nan = float("nan")
         while not self._stop.wait(self.period_s):
             now = time.monotonic_ns()
-            t_ns, x = truth_now(self.truth)
+            t_ns, _ = truth_now(self.truth)
             if t_ns == 0 or any(a <= now <= b for a, b in self._cuts):
                 continue
-            ned = world_to_ned(x[0:3])
-            roll, pitch, yaw = euler_ned_frd(x[6:10])
+            # the pose at this instant: the newest sample carried forward on its velocity and rate (<= 20 ms)
+            pos, _, _, rot = self.truth.sample(np.array([now], dtype=np.int64))
+            ned = world_to_ned(pos[0])
+            roll, pitch, yaw = euler_ned_frd(rot.as_quat()[0])
+            msg = self.mav.vision_position_estimate_encode(now // 1000, *ned, roll, pitch, yaw, [nan] * 21, 0)
             try:
-                self.conn.mav.vision_position_estimate_send(now // 1000, *ned, roll, pitch, yaw, [nan] * 21, 0)
+                self.sock.sendto(msg.pack(self.mav), self.target)
             except OSError:
                 return
             self.sent += 1
@@ -114,10 +119,7 @@ def run_px4_truth_vision(arena: ArenaConfig, build: Path, plan: FlightPlan, out:
     summary = flight_summary(gcs, truth, {"duration_s": wall}, record, plan, wall, our_modes=OUR_MODES)
     summary["vision"] = {"poses_sent": vision.sent if vision is not None else 0, "source": "SIH's true state"}
     summary["real_time"] = {"frames_made": 0, "frames_late_fraction": 0.0, "frames_not_fused_fraction": 0.0}
+    summary["delay_param"] = "EKF2_EV_DELAY"
     return summary
 
 
-def ekf_error_of(summary: dict[str, Any]) -> np.ndarray:
-    """(p50, p99, max) of the EKF's horizontal error (mm) in a flight summary; NaN where missing."""
-    h = summary.get("ekf_horizontal_error_mm") or {}
-    return np.array([np.nan if h.get(k) is None else h[k] for k in ("p50", "p99", "max")], dtype=float)
