@@ -35,8 +35,8 @@ def test_every_goal_names_a_metric_prefix_of_a_bench_group():
         )
         assert (g.target is None) == (g.versus is not None)
     assert set(GROUPS) == {"geometry", "detector", "fusion", "bridge", "calibration", "replay", "robustness", "planner",
-                           "sitl", "sitl_delay", "sitl_px4", "console", "backchannel", "camera_monitor", "demo_memory",
-                           "coldstart", "freshness", "scale"}
+                           "sitl", "sitl_delay", "sitl_px4", "sitl_px4_delay", "console", "backchannel",
+                           "camera_monitor", "demo_memory", "coldstart", "freshness", "scale"}
 
 
 def test_a_partial_run_replaces_its_groups_and_keeps_the_others_with_their_own_run():

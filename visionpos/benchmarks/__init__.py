@@ -20,6 +20,7 @@ GROUPS: dict[str, str] = {
     "sitl": "sitl",
     "sitl_delay": "sitl_delay",
     "sitl_px4": "sitl_px4",
+    "sitl_px4_delay": "sitl_px4_delay",
     "console": "console",
     "backchannel": "backchannel",
     "camera_monitor": "camera_monitor",
@@ -185,6 +186,8 @@ GOALS: list[Goal] = [
          "flight on SIH's exact truth as the vision"),
     Goal("sitl_px4_ekf_lead_ms_abs", "<=", 2.0, "PX4 SIH, EKF2_EV_DELAY as the back-channel advised: the EKF "
          "leads or lags the truth by (ms)"),
+    Goal("sitl_px4_delay_ekf_lead_ms_abs_max", "<=", 2.0, "PX4 SIH, link delayed 20/50 ms each way, EKF2_EV_DELAY "
+         "as advised: the EKF leads or lags the truth by (ms), worst"),
     Goal("sitl_px4_failsafe_messages", "<=", 0, "PX4 SIH: failsafe messages, uncommanded modes"),
     Goal("coldstart_first_pose_s", "<=", 20.0, "visionpos demo on an empty kernel cache: seconds to the first pose"),
     Goal("scale_realtime_shed_fraction", "<=", 0, "one server core, fleet20 (12 cameras x 120 Hz, 20 bodies): "
