@@ -34,8 +34,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cut", type=float, default=0.0, metavar="S",
                    help="hide the vehicle from every camera for S seconds mid-hover (e.g. 1)")
     p.add_argument("--link-delay-ms", type=float, default=None, metavar="D",
-                   help="put a relay in the vision link (SITL's SERIAL1 <-> the bridge) holding each direction D ms, "
-                        "and compare the back-channel's measured capture-to-autopilot delay with the true one")
+                   help="put a relay in the vision link (ArduPilot: SITL's SERIAL1 <-> the bridge; PX4: the bridge "
+                        "-> its Onboard port) holding each direction D ms; with ArduPilot, compare the back-channel's "
+                        "measured capture-to-autopilot delay with the true one")
     p.add_argument("--yaw-swing", type=float, default=None, metavar="RAD_S",
                    help="swing the yaw rate +-RAD_S (2 s period) during the hold: the rotation the delay measurement "
                         "correlates (default 1 with --link-delay-ms, else 0)")

@@ -1,6 +1,7 @@
 """`visionpos sitl --autopilot px4`: PX4 SITL (SIH) started with its EKF2 set for vision only, the demo's cameras
 following SIH's true state, the bridge feeding PX4's Onboard link, and the flight: EKF2 fusing the vision, Position
-mode, arm, Offboard take-off, hold (cut), square, AUTO.LAND, disarm; the summary against SIH's truth.
+mode, arm, Offboard take-off, hold (cut, yaw swing), square, AUTO.LAND, disarm; the summary against SIH's truth.
+With plan.link_delay_ms, a DelayRelay sits between the bridge and the Onboard port.
 
 EKF2_EV_DELAY needs a restart to change, so it is set at start: sitl.viso_delay_ms when given, else
 FIRST_EV_DELAY_MS plus the link delay; the summary gives the value the bridge's measurement advises (PX4 in SITL
