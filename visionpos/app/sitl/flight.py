@@ -41,6 +41,10 @@ class FlightPlan:
     # back-channel's gyro/optical correlation needs to measure the delay (0: hold still)
     yaw_swing_rad_s: float = 0.0
 
+    def yaw_rate_at(self, t_s: float) -> float:
+        """The swing's yaw rate (rad/s) t_s into the hold."""
+        return self.yaw_swing_rad_s * math.sin(2 * math.pi * t_s / YAW_SWING_PERIOD_S)
+
 
 async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSettings, body: str,
               record: dict[str, Any], say: Callable[[str], None], relay: Any = None) -> None:
@@ -127,7 +131,7 @@ async def _hold(gcs: Gcs, plan: FlightPlan, north: float, east: float, duration_
         return
     t0 = time.monotonic()
     while (t := time.monotonic() - t0) < duration_s:
-        rate = plan.yaw_swing_rad_s * math.sin(2 * math.pi * t / YAW_SWING_PERIOD_S)
+        rate = plan.yaw_rate_at(t)
         gcs.conn.mav.set_position_target_local_ned_send(0, 1, 1, 1, 0b0000_0101_1111_1000, north, east,
                                                         -plan.altitude_m, 0, 0, 0, 0, 0, 0, 0, rate)
         await asyncio.sleep(0.05)

@@ -22,7 +22,7 @@ import numpy as np
 from visionpos.app.sitl.flight import FlightPlan
 from visionpos.app.sitl.px4 import Px4Gcs, Px4Process, free_px4_instance, px4_parameters, px4_ports
 from visionpos.app.sitl.px4_run import OUR_MODES, fly_px4
-from visionpos.app.sitl.report import flight_summary
+from visionpos.app.sitl.report import flight_summary, say_to
 from visionpos.app.sitl.settings import SITL, SitlError
 from visionpos.app.sitl.truth import TruthTrack, truth_now
 from visionpos.config.arena import ArenaConfig
@@ -93,7 +93,7 @@ def run_px4_truth_vision(arena: ArenaConfig, build: Path, plan: FlightPlan, out:
     instance = SITL.read(sec, "instance") or free_px4_instance()
     params = px4_parameters("vision_position_estimate", TRUTH_EV_DELAY_MS, SITL.read(sec, "viso_pos_m_nse"),
                             SITL.read(sec, "viso_yaw_m_nse"), instance + 1)
-    say = (lambda text: (out.write(text + "\n"), out.flush())) if out is not None else (lambda text: None)
+    say = say_to(out)
     truth = TruthTrack(home[:3])
     record: dict[str, Any] = {"viso_delay_ms": TRUTH_EV_DELAY_MS, "delay_param": "EKF2_EV_DELAY"}
     t0 = time.monotonic()

@@ -11,7 +11,6 @@ stamps the poses on arrival: the median stamp-to-arrival delay, bridge/estimator
 from __future__ import annotations
 
 import asyncio
-import math
 import time
 from pathlib import Path
 from typing import Any, Callable, TextIO
@@ -19,7 +18,7 @@ from typing import Any, Callable, TextIO
 import numpy as np
 
 from visionpos.app.linkdelay import DelayRelay
-from visionpos.app.sitl.flight import YAW_SWING_PERIOD_S, FlightPlan
+from visionpos.app.sitl.flight import FlightPlan
 from visionpos.app.sitl.px4 import (
     AUTO,
     AUTO_LAND,
@@ -31,7 +30,7 @@ from visionpos.app.sitl.px4 import (
     px4_parameters,
     px4_ports,
 )
-from visionpos.app.sitl.report import flight_summary
+from visionpos.app.sitl.report import flight_summary, say_to
 from visionpos.app.sitl.settings import SITL, SitlError
 from visionpos.app.sitl.truth import LiveArena, TruthTrack, until_settled
 from visionpos.config.arena import ArenaConfig
@@ -70,17 +69,16 @@ def run_px4(arena: ArenaConfig, build: Path, plan: FlightPlan, out: TextIO | Non
     sec = SITL.check(arena.section("sitl"))
     instance = SITL.read(sec, "instance") or free_px4_instance()
     if plan.link_delay_ms is None:
-        return _run_px4(arena, build, plan, out, instance, None)
+        return _run_px4(arena, sec, build, plan, out, instance, None)
     with DelayRelay(("127.0.0.1", px4_ports(instance)["onboard"]), plan.link_delay_ms,
                     lifetime_s=plan.timeout_s + 180.0) as relay:
-        return _run_px4(arena, build, plan, out, instance, relay)
+        return _run_px4(arena, sec, build, plan, out, instance, relay)
 
 
-def _run_px4(arena: ArenaConfig, build: Path, plan: FlightPlan, out: TextIO | None, instance: int,
+def _run_px4(arena: ArenaConfig, sec: Any, build: Path, plan: FlightPlan, out: TextIO | None, instance: int,
              relay: DelayRelay | None) -> dict[str, Any]:
     from bridge.config import parse_vehicles
 
-    sec = SITL.check(arena.section("sitl"))
     home = tuple(float(x) for x in SITL.read(sec, "home"))
     arena = px4_arena(arena, instance, relay.port if relay is not None else None)
     veh = parse_vehicles(arena)[0]
@@ -88,7 +86,7 @@ def _run_px4(arena: ArenaConfig, build: Path, plan: FlightPlan, out: TextIO | No
     ev_delay = given if given is not None else FIRST_EV_DELAY_MS + (plan.link_delay_ms or 0.0)
     params = px4_parameters(veh.message, round(ev_delay), SITL.read(sec, "viso_pos_m_nse"),
                             SITL.read(sec, "viso_yaw_m_nse"), veh.sysid)
-    say = (lambda text: (out.write(text + "\n"), out.flush())) if out is not None else (lambda text: None)
+    say = say_to(out)
     truth = TruthTrack(home[:3])
     live = LiveArena(veh.body, truth)
     record: dict[str, Any] = {"viso_delay_ms": round(ev_delay), "delay_param": "EKF2_EV_DELAY"}
@@ -217,13 +215,13 @@ async def fly_px4(gcs: Px4Gcs, plan: FlightPlan, record: dict[str, Any], say: Ca
 
 async def _hold(gcs: Px4Gcs, plan: FlightPlan, duration_s: float) -> None:
     """Hover duration_s: still, or (plan.yaw_swing_rad_s) turning back and forth about the vertical with a
-    sinusoidal yaw rate (flight.YAW_SWING_PERIOD_S), the rotation the back-channel's delay measurement
+    sinusoidal yaw rate (FlightPlan.yaw_rate_at), the rotation the back-channel's delay measurement
     correlates; SIH's roll and pitch gyros are too noisy for it."""
     t0 = time.monotonic()
     try:
         while (t := time.monotonic() - t0) < duration_s:
             if plan.yaw_swing_rad_s > 0:
-                gcs.yaw_rate = plan.yaw_swing_rad_s * math.sin(2 * math.pi * t / YAW_SWING_PERIOD_S)
+                gcs.yaw_rate = plan.yaw_rate_at(t)
             await asyncio.sleep(0.05)
     finally:
         gcs.yaw_rate = None

@@ -5,7 +5,7 @@ format_flight prints it.
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, Callable, TextIO
 
 import numpy as np
 
@@ -20,6 +20,13 @@ def _pcts(v: np.ndarray) -> dict[str, float | None]:
     if len(v) == 0:
         return {"p50": None, "p99": None, "max": None}
     return {"p50": float(np.percentile(v, 50)), "p99": float(np.percentile(v, 99)), "max": float(v.max())}
+
+
+def say_to(out: TextIO | None) -> Callable[[str], None]:
+    """The flight's running commentary: each line written and flushed to out, or dropped (None)."""
+    if out is None:
+        return lambda text: None
+    return lambda text: (out.write(text + "\n"), out.flush(), None)[-1]
 
 
 LEAD_MIN_SPEED_M_S = 0.1  # samples slower than this carry no timing information

@@ -15,7 +15,7 @@ from visionpos.app.sitl.flight import FlightPlan, fly
 from visionpos.app.sitl.gcs import Gcs
 from visionpos.app.sitl.preflight import prepare_vehicle
 from visionpos.app.sitl.process import SitlProcess, free_instance
-from visionpos.app.sitl.report import flight_summary
+from visionpos.app.sitl.report import flight_summary, say_to
 from visionpos.app.sitl.settings import SitlError, SitlSettings, parse_sitl
 from visionpos.app.sitl.truth import LiveArena, TruthTrack
 from visionpos.config.arena import ArenaConfig, ConfigError
@@ -69,7 +69,7 @@ def _run_sitl(arena: ArenaConfig, binary: Path, plan: FlightPlan, out: TextIO | 
     arena = _one_vehicle(arena)
     veh = _vehicle_cfg(arena)
     key, vision_port = veh.signing_key, veh.endpoint.port
-    say = (lambda text: (out.write(text + "\n"), out.flush())) if out is not None else (lambda text: None)
+    say = say_to(out)
     truth = TruthTrack(cfg.home[:3])
     live = LiveArena(veh.body, truth)
     record: dict[str, Any] = {}
