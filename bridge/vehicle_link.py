@@ -68,6 +68,9 @@ ORIGIN_UNCONFIRMED_INTERVAL_NS = 1_000_000_000  # origin resend period until the
 GCS_SYSID = 255
 STATUSTEXT_MIN_INTERVAL_NS = 1_000_000_000  # our STATUSTEXTs to the autopilot: at most one a second
 RX_BAD_WARN = 20  # undecodable packets before the log says so
+# a crossed link (another of our autopilots answers on this vehicle's endpoint) clears once that autopilot has
+# been silent here this long and the vehicle's own sysid has been heard since
+CROSSED_CLEAR_NS = 2_000_000_000
 
 COUNTERS = (
     "sent",  # pose messages (VISION_POSITION_ESTIMATE or ODOMETRY) handed to the link
@@ -82,6 +85,8 @@ COUNTERS = (
     "no_link",  # link down or (udpin) no autopilot heard yet
     "held_for_origin",  # the autopilot is heard but has not confirmed the origin yet (hold_until_origin)
     "held_identity",  # the identity check found these poses are not this vehicle's (identity_check: stop)
+    "held_crossed",  # another autopilot (an authenticated sysid not this vehicle's) answers on this link
+    "crossed",  # such episodes: swapped endpoints (two radios' ports exchanged) or a wrong vehicles[].sysid
     "home_sent",
     "tx_dropped",  # stream buffer full (slow serial)
     "link_errors",
@@ -168,6 +173,12 @@ class VehicleLink:
         self._statustext_ns = -STATUSTEXT_MIN_INTERVAL_NS
         self.statustexts_sent = 0
         self._gap_told = False  # the autopilot was told of the current gap
+        # a crossed link: the sysid of another autopilot that answered from this link's peer, and when
+        self.other_keys: dict[int, bytes] = {}  # sysid -> signing key of the bridge's other vehicles (Bridge)
+        self._foreign_checks: dict[int, list[SignatureCheck]] = {}
+        self._crossed_sysid: int | None = None
+        self._crossed_last_ns = 0
+        self._crossed_since_ns = 0
 
     # ---------------------------------------------------------------- server side
     def offer(self, state: BodyState) -> None:
@@ -379,6 +390,10 @@ class VehicleLink:
                                        "packets (sysid %d) on this link; ignored (counted in rx_gcs)",
                                        self.cfg.name, sysid, level=logging.INFO)
                         continue
+                    if compid == MAV_COMP_ID_AUTOPILOT1 and (addr is None or addr == link.peer) and \
+                            self._foreign_verified(buf, v2, sysid, compid):
+                        self._on_crossed(sysid, addr)
+                        continue
                     self._log_once("rx_foreign", "vehicle %s: packets from sysid %d on the link of sysid %d are "
                                    "ignored (counted in rx_foreign; logged once): if that is this vehicle's "
                                    "autopilot, set its sysid in the vehicles section (or SYSID_THISMAV / "
@@ -407,6 +422,47 @@ class VehicleLink:
                         self.bc.on_timesync_reply(m.ts1, m.tc1, now)
                     continue
                 self.bc.handle(m, compid, now)
+
+    def _foreign_verified(self, buf: bytearray, v2: bool, sysid: int, compid: int) -> bool:
+        """Whether another sysid's autopilot packet speaks for the link: on an unsigned link every packet from the
+        peer does; on a signed one it must verify with the key of the bridge's vehicle of that sysid, or with this
+        vehicle's (a fleet sharing one key), on its own streams (a refused packet changes nothing)."""
+        if self._key is None:
+            return True
+        checks = self._foreign_checks.get(sysid)
+        if checks is None:
+            keys = [k for k in (self.other_keys.get(sysid), self._key) if k is not None]
+            checks = self._foreign_checks[sysid] = [SignatureCheck(k) for k in dict.fromkeys(keys)]
+        return any(chk.check(buf, v2, compid)[0] >= 0 for chk in checks)
+
+    def _on_crossed(self, sysid: int, addr: tuple | None) -> None:
+        """Another of our autopilots answers from this link's peer: the link is crossed (two endpoints swapped,
+        or this vehicle's sysid wrong). The poses stop at once (_crossed), before the identity check could see
+        it, and the log says so loudly, once per episode."""
+        now = self.clock_ns()
+        if self._crossed_sysid != sysid:
+            self._crossed_sysid, self._crossed_since_ns = sysid, now
+            self.counters["crossed"] += 1
+            log.error("vehicle %s: the autopilot of sysid %d answers on this link (%s), where sysid %d's should: "
+                      "two vehicles' endpoints swapped (radios or ports exchanged), or vehicles[].sysid wrong? "
+                      "Poses to it stopped until sysid %d answers here again and sysid %d has been silent for "
+                      "%.0f s", self.cfg.name, sysid, fmt_addr(addr) if addr else self.cfg.endpoint, self.cfg.sysid,
+                      self.cfg.sysid, sysid, CROSSED_CLEAR_NS * 1e-9)
+        self._crossed_last_ns = now
+
+    def crossed(self, now: int | None = None) -> int | None:
+        """The sysid of the other autopilot answering on this link, while the link is crossed; else None. Clears
+        once that autopilot has been silent here for CROSSED_CLEAR_NS and this vehicle's sysid was heard since."""
+        s = self._crossed_sysid
+        if s is None:
+            return None
+        now = self.clock_ns() if now is None else now
+        if now - self._crossed_last_ns > CROSSED_CLEAR_NS and self.last_rx_ns > self._crossed_last_ns:
+            self._crossed_sysid = None
+            log.warning("vehicle %s: sysid %d answers on its link again and sysid %d has gone; poses resume",
+                        self.cfg.name, self.cfg.sysid, s)
+            return None
+        return s
 
     def _verify(self, buf: bytearray, v2: bool, compid: int, addr: tuple | None) -> int:
         """The packet's signing timestamp if it is signed with the vehicle's key and newer than the last
@@ -507,6 +563,10 @@ class VehicleLink:
         if not self._peer_known():
             c["no_link"] += 1
             self._not_sent_why = "the link is down"
+            return
+        if (crossed := self.crossed(now)) is not None:
+            c["held_crossed"] += 1
+            self._not_sent_why = f"stopped: sysid {crossed}'s autopilot answers on this link"
             return
         if bc.blocks:
             c["held_identity"] += 1
@@ -611,7 +671,7 @@ class VehicleLink:
 
     def _statustext(self, severity: int, text: str) -> bool:
         """STATUSTEXT (50 characters at most) to the autopilot, which routes it to its GCS; False: link down."""
-        if not self._peer_known():
+        if not self._peer_known() or self._crossed_sysid is not None:  # crossed: it would reach another autopilot
             return False
         self._statustext_ns = self.clock_ns()
         ok = self._send(self.mav.statustext_encode(severity, text[:50].encode()))
@@ -711,7 +771,7 @@ class VehicleLink:
                      + c["rx_bad_signature"] + c["rx_replayed"] + c["rx_wrong_source"]},
             "output": {"message": self.cfg.message, "sent": c["sent"], "rate_hz": self._recent_rate_hz(),
                        "rate_hz_configured": self.cfg.rate_hz, "held_for_origin": c["held_for_origin"],
-                       "held_identity": c["held_identity"],
+                       "held_identity": c["held_identity"], "held_crossed": c["held_crossed"],
                        "latency_capture_ms_p50": percentiles_ms(self.lat_capture.values(), (50,))[0]},
             "sending": self.sending_state(now),
             "ekf": {"state": bc["ekf"], "detail": bc["ekf_detail"], "flags": bc["ekf_flags"],
@@ -724,15 +784,19 @@ class VehicleLink:
                       "param": bc["delay_param"], "advised_ms": bc["delay_advised_ms"],
                       "param_set": bc["delay_param_set"]},
             "vision_gap": self.vision_gap_state(),
+            "crossed": {"sysid": self.crossed(now), "episodes": c["crossed"]},
             "origin": {"state": bc["origin"], "home_acked": bc["home_acked"], "home_reported": bc["home_reported"],
                        "home_error_m": bc["home_error_m"]},
         }
 
     def sending_state(self, now: int | None = None) -> str:
-        """'sending', 'no link', 'stopped: identity mismatch', 'waiting for the origin' or 'idle'."""
+        """'sending', 'no link', 'stopped: sysid N's autopilot answers on this link ...' (a crossed link),
+        'stopped: identity mismatch', 'waiting for the origin' or 'idle'."""
         now = self.clock_ns() if now is None else now
         if not self._peer_known():
             return "no link"
+        if (crossed := self.crossed(now)) is not None:
+            return f"stopped: sysid {crossed}'s autopilot answers on this link (endpoints swapped?)"
         if self.bc.blocks:
             return "stopped: identity mismatch"
         if self.bc.holds_for_origin(now):

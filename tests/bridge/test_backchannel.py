@@ -488,7 +488,8 @@ def test_garbage_from_the_autopilot_poses_go_on_and_it_is_said_once(caplog):
 
 def test_a_ground_station_forwarded_by_the_autopilot_is_recognised_not_warned_about(caplog):
     """SITL forwards `visionpos sitl`'s own GCS link (sysid 255) on the vision port; a GCS on another sysid says
-    so in its HEARTBEAT. Neither is warned about; an autopilot's packets of another sysid still are."""
+    so in its HEARTBEAT. Neither is warned about; an autopilot's packets of another sysid still are (a crossed
+    link: tests/bridge/test_crossed_link.py)."""
     ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=1)
     bridge = _pairs([{}], [ap])
     try:
@@ -506,14 +507,16 @@ def test_a_ground_station_forwarded_by_the_autopilot_is_recognised_not_warned_ab
         assert v.counters["rx_foreign"] == 4 and v.counters["rx_gcs"] == 3
         warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
         assert not [t for t in warned if "sysid 255" in t or "sysid 7 " in t], warned
-        assert _count_logged(caplog, "from sysid 9 on the link of sysid 1") == 1
+        assert _count_logged(caplog, "the autopilot of sysid 9 answers on this link") == 1
         assert _count_logged(caplog, "forwards a ground station's packets (sysid 255)") == 1
     finally:
         bridge.close()
         ap.close()
 
 
-def test_autopilot_of_another_sysid_is_ignored_and_said_once(caplog):
+def test_an_autopilot_of_another_sysid_on_the_link_stops_the_poses_and_is_said_once(caplog):
+    """vehicles[].sysid wrong (or the endpoint another drone's): the autopilot answering on the link is not the
+    vehicle's; nothing it says is used, and no pose goes to it (bridge/vehicle_link.py: a crossed link)."""
     t0 = time.monotonic_ns()
     ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=9, truth=trajectory_truth(AGGRESSIVE, t0), telemetry_hz=50)
     bridge = _pairs([{}], [ap])  # the bridge's vehicle is sysid 1
@@ -521,9 +524,11 @@ def test_autopilot_of_another_sysid_is_ignored_and_said_once(caplog):
         with caplog.at_level(logging.WARNING, logger="visionpos.bridge"):
             _stream(bridge, [FIG8], t0, 2.0)
         v = bridge.vehicles[0]
-        assert v.counters["rx_foreign"] > 50 and v.counters["sent"] > 50
+        assert v.counters["rx_foreign"] > 50 and v.counters["held_crossed"] > 50
+        assert len(ap.messages(VPE)) == v.counters["sent"] <= 3  # only before its first packet reached the bridge
+        assert v.health()["sending"] == "stopped: sysid 9's autopilot answers on this link (endpoints swapped?)"
         assert v.bc.identity == "unknown" and v.bc.autopilot is None  # nothing from sysid 9 was used
-        assert _count_logged(caplog, "from sysid 9 on the link of sysid 1") == 1
+        assert _count_logged(caplog, "the autopilot of sysid 9 answers on this link") == 1
     finally:
         bridge.close()
         ap.close()
