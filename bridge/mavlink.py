@@ -46,7 +46,7 @@ class Bridge(Sink):
         self.clock_ns: Callable[[], int] = settings.get("clock_ns", time.monotonic_ns)
         self.vehicles: list[VehicleLink] = [VehicleLink(v, self.clock_ns) for v in parse_vehicles(arena)]
         for v in self.vehicles:  # to tell another of our autopilots on a vehicle's link (a crossed link)
-            v.other_keys = {w.cfg.sysid: w.cfg.signing_key for w in self.vehicles
+            v.cross.other_keys = {w.cfg.sysid: w.cfg.signing_key for w in self.vehicles
                             if w is not v and w.cfg.signing_key is not None}
         self._by_body: dict[str, VehicleLink] = {v.cfg.body: v for v in self.vehicles}
         self.pose_stream = None

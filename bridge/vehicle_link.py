@@ -53,6 +53,7 @@ from bridge.convert import (
     vision_position_fields,
     vision_speed_fields,
 )
+from bridge.crossed_link import CrossedLink
 from bridge.link_stats import LatencyRing, fmt_addr, percentiles_ms
 from bridge.signing import MAVLINK2_MAGIC, SignatureCheck, SigningClock
 from bridge.transport import Link, LinkDown, make_link
@@ -68,9 +69,6 @@ ORIGIN_UNCONFIRMED_INTERVAL_NS = 1_000_000_000  # origin resend period until the
 GCS_SYSID = 255
 STATUSTEXT_MIN_INTERVAL_NS = 1_000_000_000  # our STATUSTEXTs to the autopilot: at most one a second
 RX_BAD_WARN = 20  # undecodable packets before the log says so
-# a crossed link (another of our autopilots answers on this vehicle's endpoint) clears once that autopilot has
-# been silent here this long and the vehicle's own sysid has been heard since
-CROSSED_CLEAR_NS = 2_000_000_000
 
 COUNTERS = (
     "sent",  # pose messages (VISION_POSITION_ESTIMATE or ODOMETRY) handed to the link
@@ -173,12 +171,7 @@ class VehicleLink:
         self._statustext_ns = -STATUSTEXT_MIN_INTERVAL_NS
         self.statustexts_sent = 0
         self._gap_told = False  # the autopilot was told of the current gap
-        # a crossed link: the sysid of another autopilot that answered from this link's peer, and when
-        self.other_keys: dict[int, bytes] = {}  # sysid -> signing key of the bridge's other vehicles (Bridge)
-        self._foreign_checks: dict[int, list[SignatureCheck]] = {}
-        self._crossed_sysid: int | None = None
-        self._crossed_last_ns = 0
-        self._crossed_since_ns = 0
+        self.cross = CrossedLink(cfg.name, cfg.sysid, self._key)  # another of our autopilots on this link
 
     # ---------------------------------------------------------------- server side
     def offer(self, state: BodyState) -> None:
@@ -391,8 +384,10 @@ class VehicleLink:
                                        self.cfg.name, sysid, level=logging.INFO)
                         continue
                     if compid == MAV_COMP_ID_AUTOPILOT1 and (addr is None or addr == link.peer) and \
-                            self._foreign_verified(buf, v2, sysid, compid):
-                        self._on_crossed(sysid, addr)
+                            self.cross.verified(buf, v2, sysid, compid):
+                        if self.cross.other != sysid:
+                            c["crossed"] += 1
+                        self.cross.heard(sysid, addr, self.cfg.endpoint, self.clock_ns())
                         continue
                     self._log_once("rx_foreign", "vehicle %s: packets from sysid %d on the link of sysid %d are "
                                    "ignored (counted in rx_foreign; logged once): if that is this vehicle's "
@@ -423,46 +418,9 @@ class VehicleLink:
                     continue
                 self.bc.handle(m, compid, now)
 
-    def _foreign_verified(self, buf: bytearray, v2: bool, sysid: int, compid: int) -> bool:
-        """Whether another sysid's autopilot packet speaks for the link: on an unsigned link every packet from the
-        peer does; on a signed one it must verify with the key of the bridge's vehicle of that sysid, or with this
-        vehicle's (a fleet sharing one key), on its own streams (a refused packet changes nothing)."""
-        if self._key is None:
-            return True
-        checks = self._foreign_checks.get(sysid)
-        if checks is None:
-            keys = [k for k in (self.other_keys.get(sysid), self._key) if k is not None]
-            checks = self._foreign_checks[sysid] = [SignatureCheck(k) for k in dict.fromkeys(keys)]
-        return any(chk.check(buf, v2, compid)[0] >= 0 for chk in checks)
-
-    def _on_crossed(self, sysid: int, addr: tuple | None) -> None:
-        """Another of our autopilots answers from this link's peer: the link is crossed (two endpoints swapped,
-        or this vehicle's sysid wrong). The poses stop at once (_crossed), before the identity check could see
-        it, and the log says so loudly, once per episode."""
-        now = self.clock_ns()
-        if self._crossed_sysid != sysid:
-            self._crossed_sysid, self._crossed_since_ns = sysid, now
-            self.counters["crossed"] += 1
-            log.error("vehicle %s: the autopilot of sysid %d answers on this link (%s), where sysid %d's should: "
-                      "two vehicles' endpoints swapped (radios or ports exchanged), or vehicles[].sysid wrong? "
-                      "Poses to it stopped until sysid %d answers here again and sysid %d has been silent for "
-                      "%.0f s", self.cfg.name, sysid, fmt_addr(addr) if addr else self.cfg.endpoint, self.cfg.sysid,
-                      self.cfg.sysid, sysid, CROSSED_CLEAR_NS * 1e-9)
-        self._crossed_last_ns = now
-
     def crossed(self, now: int | None = None) -> int | None:
-        """The sysid of the other autopilot answering on this link, while the link is crossed; else None. Clears
-        once that autopilot has been silent here for CROSSED_CLEAR_NS and this vehicle's sysid was heard since."""
-        s = self._crossed_sysid
-        if s is None:
-            return None
-        now = self.clock_ns() if now is None else now
-        if now - self._crossed_last_ns > CROSSED_CLEAR_NS and self.last_rx_ns > self._crossed_last_ns:
-            self._crossed_sysid = None
-            log.warning("vehicle %s: sysid %d answers on its link again and sysid %d has gone; poses resume",
-                        self.cfg.name, self.cfg.sysid, s)
-            return None
-        return s
+        """The sysid of another autopilot answering on this link while it is crossed (bridge/crossed_link.py)."""
+        return self.cross.current(self.clock_ns() if now is None else now, self.last_rx_ns)
 
     def _verify(self, buf: bytearray, v2: bool, compid: int, addr: tuple | None) -> int:
         """The packet's signing timestamp if it is signed with the vehicle's key and newer than the last
@@ -671,7 +629,7 @@ class VehicleLink:
 
     def _statustext(self, severity: int, text: str) -> bool:
         """STATUSTEXT (50 characters at most) to the autopilot, which routes it to its GCS; False: link down."""
-        if not self._peer_known() or self._crossed_sysid is not None:  # crossed: it would reach another autopilot
+        if not self._peer_known() or self.cross.other is not None:  # crossed: it would reach another autopilot
             return False
         self._statustext_ns = self.clock_ns()
         ok = self._send(self.mav.statustext_encode(severity, text[:50].encode()))

@@ -161,10 +161,11 @@ def test_the_docs_say_what_the_crossed_link_does():
     """docs/autopilot-setup.md (Endpoints): the status text, clearing time and health key, as the code has them."""
     from pathlib import Path
 
-    from bridge.vehicle_link import COUNTERS, CROSSED_CLEAR_NS
+    from bridge.crossed_link import CLEAR_NS
+    from bridge.vehicle_link import COUNTERS
 
     doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
     assert "`stopped: sysid 2's autopilot answers on this link (endpoints swapped?)`" in doc
-    assert f"silent on the link for {CROSSED_CLEAR_NS * 1e-9:.0f} s" in doc
+    assert f"silent on the link for {CLEAR_NS * 1e-9:.0f} s" in doc
     assert '`health()["crossed"]`' in doc and "held_crossed" in COUNTERS and "`held_crossed`" in doc
     assert "at most three poses" in doc  # test_swapped_endpoints_...: len(wrong) <= 3
