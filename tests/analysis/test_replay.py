@@ -100,15 +100,19 @@ def test_replay_is_byte_identical_across_runs_and_processes(thesis_log, tmp_path
     assert all(line.startswith("quad,") for line in lines[1:])
 
 
-def test_interpreted_kernels_give_the_compiled_result(thesis_log, tmp_path):
+def test_interpreted_kernels_give_the_compiled_result(tmp_path):
     """Without numba (VISIONPOS_NO_JIT, as on a platform with no wheel) the same kernels run as
-    Python: the replay must give the same trajectories, to round-off."""
+    Python: the replay must give the same trajectories, to round-off. (1 s of recording: interpreted, the
+    kernels take about 6 s a simulated second on 2 cores.)"""
     import os
     import subprocess
     import sys
 
     from visionpos.cli import main
+    from visionpos.sim.write import write_recording
 
+    thesis_log = tmp_path / "thesis1.mcap"
+    write_recording("thesis", thesis_log, duration_s=1.0, seed=5)
     a, b = tmp_path / "a", tmp_path / "b"
     assert main(["replay", str(thesis_log), "--out", str(a), "--no-plots"]) == 0
     env = dict(os.environ, VISIONPOS_NO_JIT="1")
@@ -121,7 +125,7 @@ def test_interpreted_kernels_give_the_compiled_result(thesis_log, tmp_path):
     assert proc.returncode == 0, proc.stderr
     ca = np.genfromtxt(a / "trajectories.csv", delimiter=",", skip_header=1)[:, 1:]
     cb = np.genfromtxt(b / "trajectories.csv", delimiter=",", skip_header=1)[:, 1:]
-    assert ca.shape == cb.shape and ca.shape[0] > 250
+    assert ca.shape == cb.shape and ca.shape[0] > 80 and np.isfinite(ca).all(axis=1).sum() > 50
     assert np.array_equal(np.isnan(ca), np.isnan(cb))
     assert np.nanmax(np.abs(ca - cb)) < 1e-9
 
