@@ -21,6 +21,7 @@ GROUPS: dict[str, str] = {
     "sitl_delay": "sitl_delay",
     "sitl_px4": "sitl_px4",
     "sitl_px4_delay": "sitl_px4_delay",
+    "sitl_fleet": "sitl_fleet",
     "console": "console",
     "backchannel": "backchannel",
     "camera_monitor": "camera_monitor",
@@ -180,6 +181,16 @@ GOALS: list[Goal] = [
          "flight completes"),
     Goal("sitl_delay_ekf_lead_ms_abs_max", "<=", 2.0, "ArduPilot SITL, link delayed 0/20/50 ms, VISO_DELAY_MS as "
          "advised: the EKF leads or lags the truth by (ms), worst flight"),
+    Goal("sitl_fleet_flights_completed_min", ">=", 1, "two ArduPilot SITLs flown together (pair): both flights "
+         "complete, through a swap of their links"),
+    Goal("sitl_fleet_ekf_horizontal_p99_outside_swap_mm_max", "<=", 20.0, "two ArduPilot SITLs: each EKF's "
+         "horizontal error p99 outside the swap (mm)"),
+    Goal("sitl_fleet_swap_wrong_poses_after_detection", "<=", 0, "two ArduPilot SITLs, links swapped mid-hover: "
+         "poses that reached the wrong autopilot later than the bridge heard it on the other link (+60 ms in flight)"),
+    Goal("sitl_fleet_swap_caught", ">=", 1, "two ArduPilot SITLs, links swapped mid-hover: both links stopped at the "
+         "other autopilot's first packet"),
+    Goal("sitl_fleet_failsafe_messages", "<=", 0, "two ArduPilot SITLs: failsafe / lane-switch messages, "
+         "uncommanded modes"),
     Goal("sitl_px4_flight_completed", ">=", 1, "PX4 SIH on visionpos: the scripted flight completes"),
     Goal("sitl_px4_ekf_horizontal_error_p99_mm", "<=", 20.0, "PX4 SIH: EKF2 horizontal position error p99 (mm)"),
     Goal("sitl_px4_ekf_p99_over_floor", "<=", 1.2, "PX4 SIH: EKF2 horizontal p99 on visionpos's vision over the same "

@@ -22,7 +22,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "px4, PX4's build folder holding bin/px4 and etc/ (default: sitl.px4_dir, $VISIONPOS_PX4_SITL)")
     p.add_argument("--defaults", metavar="PATH", help="ArduPilot's SITL defaults file, copter.parm (default: the "
                    "arena's sitl.defaults, else copter.parm beside the binary, in its ArduPilot tree, ../shared/sitl)")
-    p.add_argument("--scenario", default="thesis", help="arena: thesis (default), arena8 or a YAML path")
+    p.add_argument("--scenario", default=None,
+                   help="arena: thesis (default), pair (default with --vehicles 2), arena8 or a YAML path")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
     p.add_argument("--message", choices=("vision_position_estimate", "odometry"), default=None,
                    help="the pose message to the autopilot (default: the arena's vehicles[0].message, "
@@ -40,6 +41,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--yaw-swing", type=float, default=None, metavar="RAD_S",
                    help="swing the yaw rate +-RAD_S (2 s period) during the hold: the rotation the delay measurement "
                         "correlates (default 1 with --link-delay-ms, else 0)")
+    p.add_argument("--vehicles", type=int, default=1, metavar="N",
+                   help="fly the arena's first N vehicles together, one ArduPilot SITL each, from a row on the floor: "
+                        "take-off, a hover, a crossing and back, land (bodies of distinct layouts: the pair scenario)")
+    p.add_argument("--swap-at", type=float, default=None, metavar="S",
+                   help="with --vehicles: S s into the hover, exchange the first two vehicles' links (two radios "
+                        "swapped) for --swap-for s, then put them back; the bridge must stop both at once")
+    p.add_argument("--swap-for", type=float, default=2.0, metavar="S",
+                   help="how long the links stay swapped (default 2)")
     p.add_argument("--timeout", type=float, default=240.0, help="give up after this many seconds (default 240)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
@@ -61,10 +70,15 @@ def run(args: argparse.Namespace) -> int:
     sets = list(args.set) + ([f"vehicles.0.message={args.message}"] if args.message else [])
     if args.defaults:  # the flag is the arena key, relative to here
         sets.append(f"sitl.defaults={Path(args.defaults).resolve()}")
-    arena = sitl_arena(args.scenario, sets, args.timeout + 60.0)
+    scenario = args.scenario or ("pair" if args.vehicles > 1 else "thesis")
+    arena = sitl_arena(scenario, sets, args.timeout + 60.0)
     out = sys.stderr if args.json else sys.stdout
     if args.sitl:  # the wrong build for --autopilot: one line
         check_build_kind(Path(args.sitl), args.autopilot)
+    if args.vehicles != 1 and args.autopilot == "px4":
+        raise UsageError("--vehicles: ArduPilot SITL only (PX4 flies one vehicle here)")
+    if args.swap_at is not None and args.vehicles < 2:
+        raise UsageError("--swap-at swaps two vehicles' links: give --vehicles 2 or more")
     if args.autopilot == "px4":
         build = find_px4_dir(args.sitl, arena)
         out.write(f"visionpos sitl: PX4 {build} with {len(arena.cameras)} simulated cameras on 127.0.0.1\n")
@@ -73,6 +87,23 @@ def run(args: argparse.Namespace) -> int:
         except SitlError as e:  # PX4 refused the set-up (a parameter, its HEARTBEAT): which and why, status 1
             print(f"visionpos sitl: {e}", file=sys.stderr)
             return 1
+    elif args.vehicles > 1:
+        from visionpos.app.sitl.fleet import Swap, format_fleet, run_fleet
+
+        if args.link_delay_ms is not None or args.cut:
+            raise UsageError("--vehicles: --link-delay-ms and --cut fly one vehicle; leave them out")
+        swap = None
+        if args.swap_at is not None:
+            if not (0 <= args.swap_at and 0.5 <= args.swap_for <= 5 and args.swap_at + args.swap_for <= args.hold):
+                raise UsageError(f"--swap-at {args.swap_at} --swap-for {args.swap_for}: the swap (0.5 to 5 s) must "
+                                 f"end within the hover (--hold {args.hold:g})")
+            swap = Swap(args.swap_at, args.swap_for)
+        binary = find_sitl_binary(args.sitl, arena)
+        out.write(f"visionpos sitl: {args.vehicles} x {binary} with {len(arena.cameras)} simulated cameras on "
+                  "127.0.0.1\n")
+        summary = run_fleet(arena, binary, plan, args.vehicles, swap, out)
+        print(json.dumps(summary, indent=2) if args.json else format_fleet(summary))
+        return 0 if summary["ok"] else 1
     else:
         binary = find_sitl_binary(args.sitl, arena)
         out.write(f"visionpos sitl: {binary} with {len(arena.cameras)} simulated cameras on 127.0.0.1\n")

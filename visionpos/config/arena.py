@@ -22,7 +22,7 @@ from visionpos.errors import VisionposError
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 BUILTIN_SCENARIOS = {"thesis": "thesis_arena.yaml", "arena8": "arena8.yaml", "fleet": "fleet.yaml",
-                     "fleet20": "fleet20.yaml"}
+                     "fleet20": "fleet20.yaml", "pair": "pair.yaml"}
 
 
 class ConfigError(VisionposError, ValueError):

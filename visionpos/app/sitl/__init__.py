@@ -28,6 +28,7 @@ The package, one module per part:
     delay.py      delay_record: the back-channel's delay against the true one
     report.py     flight_summary and format_flight
     run.py        run_sitl: all of it, the flight on the demo's live arena (app/demo.py run_demo)
+    fleet.py      run_fleet: --vehicles N, one SITL each flown together, their links swappable (--swap-at)
     px4.py        PX4 SITL (SIH) for --autopilot px4: the build, EKF2's parameters (PX4_PARAM_ env), the process,
                   Px4Gcs (its GCS link, SIH's truth, the keep-alive; parameters read back)
     px4_run.py    run_px4: the flight on PX4 (EKF2 on the vision, Position mode, arm, Offboard, AUTO.LAND)

@@ -56,30 +56,9 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
     record["extnav_ns"] = time.monotonic_ns()
     link = ctx.bridge.vehicle(body)
     if cfg.viso_delay_ms is None:
-        await asyncio.sleep(2.0)  # a couple of seconds of poses for the latency figure
-        # each pose's stamp -> arrival: its stamp -> send, plus the relay's hold (loopback adds nothing)
-        advice = advised_delay("ardupilot", link.lat_stamp.values() * 1e-6 + (plan.link_delay_ms or 0.0))
-        delay_ms = advice.value_ms if advice is not None else 10
-        await gcs.set_params_async({"VISO_DELAY_MS": delay_ms})
-        say(f"EKF3 uses the vision; VISO_DELAY_MS = {delay_ms}: "
-            + (advice.why if advice is not None else "no pose timed yet")
-            + (f", with the relay's {plan.link_delay_ms:g} ms" if plan.link_delay_ms else ""))
+        await set_advised_delay(gcs, link, plan, say)
     record["viso_delay_ms"] = gcs.params.get("VISO_DELAY_MS")
-    await gcs.command_async(MAV_CMD_DO_SET_MODE, 1, COPTER_MODES["GUIDED"], what="GUIDED mode")
-    arm_end = time.monotonic() + min(45.0, left())
-    while True:  # pre-arm checks pass once the EKF has settled on the vision
-        gcs.command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
-        try:
-            await Gcs.until(lambda: gcs.armed, 1.5, "arming")
-            break
-        except SitlError:
-            if time.monotonic() > arm_end:
-                late = live.frames_late / max(1, live.frames_made)
-                raise SitlError("SITL would not arm; last messages: " + "; ".join(t for _, _, t in gcs.texts[-5:])
-                                + f". {100 * late:.0f}% of the camera frames so far were made more than "
-                                f"{LATE_NS // 1_000_000} ms late" + (": this host is not keeping real time, and "
-                                "'VisOdom: not healthy' means gaps of over 300 ms in the vision" if late > 0.02
-                                else ""))
+    await arm_in_guided(gcs, live, left())
     record["armed_ns"] = time.monotonic_ns()
     say("armed in GUIDED")
     await gcs.command_async(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, plan.altitude_m, what="takeoff")
@@ -109,7 +88,7 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
     if plan.square:
         s = plan.side_m
         for dx, dy in ((s, 0.0), (s, s), (0.0, s), (0.0, 0.0)):
-            await _goto(gcs, x0 + dx, y0 + dy, -plan.altitude_m, min(20.0, left()))
+            await goto(gcs, x0 + dx, y0 + dy, -plan.altitude_m, min(20.0, left()))
             say(f"  corner N {dx:+.1f} E {dy:+.1f} m reached")
             await asyncio.sleep(1.0)
     record["land_ns"] = time.monotonic_ns()
@@ -123,6 +102,37 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
 YAW_SWING_PERIOD_S = 2.0
 
 
+async def set_advised_delay(gcs: Gcs, link: Any, plan: FlightPlan, say: Callable[[str], None]) -> None:
+    """VISO_DELAY_MS set to the bridge's advice (bridge/estimator_delay.py) from a couple of seconds of poses: each
+    pose's stamp -> arrival, its stamp -> send plus the relay's hold (loopback adds nothing)."""
+    await asyncio.sleep(2.0)
+    advice = advised_delay("ardupilot", link.lat_stamp.values() * 1e-6 + (plan.link_delay_ms or 0.0))
+    delay_ms = advice.value_ms if advice is not None else 10
+    await gcs.set_params_async({"VISO_DELAY_MS": delay_ms})
+    say(f"EKF3 uses the vision; VISO_DELAY_MS = {delay_ms}: "
+        + (advice.why if advice is not None else "no pose timed yet")
+        + (f", with the relay's {plan.link_delay_ms:g} ms" if plan.link_delay_ms else ""))
+
+
+async def arm_in_guided(gcs: Gcs, live: LiveArena, timeout_s: float) -> None:
+    """GUIDED, then arm, retried while the pre-arm checks wait for the EKF to settle on the vision (at most 45 s)."""
+    await gcs.command_async(MAV_CMD_DO_SET_MODE, 1, COPTER_MODES["GUIDED"], what="GUIDED mode")
+    arm_end = time.monotonic() + min(45.0, timeout_s)
+    while True:
+        gcs.command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        try:
+            await Gcs.until(lambda: gcs.armed, 1.5, "arming")
+            return
+        except SitlError:
+            if time.monotonic() > arm_end:
+                late = live.frames_late / max(1, live.frames_made)
+                raise SitlError("SITL would not arm; last messages: " + "; ".join(t for _, _, t in gcs.texts[-5:])
+                                + f". {100 * late:.0f}% of the camera frames so far were made more than "
+                                f"{LATE_NS // 1_000_000} ms late" + (": this host is not keeping real time, and "
+                                "'VisOdom: not healthy' means gaps of over 300 ms in the vision" if late > 0.02
+                                else "")) from None
+
+
 async def _hold(gcs: Gcs, plan: FlightPlan, north: float, east: float, duration_s: float) -> None:
     """Hold the position for duration_s: still, or (plan.yaw_swing_rad_s) turning back and forth about the
     vertical with a sinusoidal yaw rate (SET_POSITION_TARGET_LOCAL_NED: position and yaw rate)."""
@@ -132,16 +142,16 @@ async def _hold(gcs: Gcs, plan: FlightPlan, north: float, east: float, duration_
     t0 = time.monotonic()
     while (t := time.monotonic() - t0) < duration_s:
         rate = plan.yaw_rate_at(t)
-        gcs.conn.mav.set_position_target_local_ned_send(0, 1, 1, 1, 0b0000_0101_1111_1000, north, east,
+        gcs.conn.mav.set_position_target_local_ned_send(0, gcs.target, 1, 1, 0b0000_0101_1111_1000, north, east,
                                                         -plan.altitude_m, 0, 0, 0, 0, 0, 0, 0, rate)
         await asyncio.sleep(0.05)
 
 
-async def _goto(gcs: Gcs, north: float, east: float, down: float, timeout_s: float) -> None:
+async def goto(gcs: Gcs, north: float, east: float, down: float, timeout_s: float) -> None:
     """SET_POSITION_TARGET_LOCAL_NED (position only, resent every 0.25 s) until the true position has settled
     within 5 cm of it (truth.until_settled)."""
     def setpoint() -> None:
-        gcs.conn.mav.set_position_target_local_ned_send(0, 1, 1, 1, 0b0000_1111_1111_1000, north, east, down,
+        gcs.conn.mav.set_position_target_local_ned_send(0, gcs.target, 1, 1, 0b0000_1111_1111_1000, north, east, down,
                                                         0, 0, 0, 0, 0, 0, 0, 0)
 
     x = await until_settled(gcs.truth, ned_to_world(np.array([north, east, down])), timeout_s, setpoint)

@@ -63,19 +63,21 @@ def _setup_signing(gcs: Gcs, key: bytes) -> None:
     unsigned): SITL then signs on SERIAL1 and takes only signed vision there, as a real signed set-up, and
     the bridge's udpin endpoint learns SITL's address from signed packets only."""
     stamp = int((time.time() - 1420070400) * 1e5)  # 10 us since 2015-01-01
-    gcs.conn.mav.setup_signing_send(1, 1, key, stamp)
+    gcs.conn.mav.setup_signing_send(gcs.target, 1, key, stamp)
 
 
-def _set_origin(gcs: Gcs, cfg: SitlSettings, say: Callable[[str], None]) -> None:
-    """SET_GPS_GLOBAL_ORIGIN until SITL reports GPS_GLOBAL_ORIGIN (EKF3 drops it until it runs), then
-    MAV_CMD_DO_SET_HOME at the same place as COMMAND_INT (ArduCopter 4.3+ ignores SET_HOME_POSITION; a
-    COMMAND_LONG's float32 degrees put home 2 cm N and 47 cm E of the origin), read back with HOME_POSITION."""
+def _set_origin(gcs: Gcs, cfg: SitlSettings, say: Callable[[str], None],
+                home: tuple[float, float, float] | None = None) -> None:
+    """SET_GPS_GLOBAL_ORIGIN (cfg.home) until SITL reports GPS_GLOBAL_ORIGIN (EKF3 drops it until it runs), then
+    MAV_CMD_DO_SET_HOME as COMMAND_INT (ArduCopter 4.3+ ignores SET_HOME_POSITION; a COMMAND_LONG's float32
+    degrees put home 2 cm N and 47 cm E of the origin) at home (lat, lon deg, alt m; default: the origin; a fleet
+    vehicle's: where it stands), read back with HOME_POSITION."""
     lat, lon, alt, _ = cfg.home
     end = time.monotonic() + 60.0
     while gcs.origin is None:
         if time.monotonic() > end:
             raise SitlError("SITL never reported GPS_GLOBAL_ORIGIN: EKF3 did not take the origin")
-        gcs.conn.mav.set_gps_global_origin_send(1, int(round(lat * 1e7)), int(round(lon * 1e7)),
+        gcs.conn.mav.set_gps_global_origin_send(gcs.target, int(round(lat * 1e7)), int(round(lon * 1e7)),
                                                 int(round(alt * 1000)), int(time.time() * 1e6))
         for _ in range(50):
             if gcs.origin is not None:
@@ -84,6 +86,7 @@ def _set_origin(gcs: Gcs, cfg: SitlSettings, say: Callable[[str], None]) -> None
     m = gcs.origin[1]
     say(f"EKF origin confirmed by SITL: {m.latitude * 1e-7:.7f}, {m.longitude * 1e-7:.7f}, {m.altitude * 1e-3:.2f} m")
     gcs.home = None
+    lat, lon, alt = home if home is not None else (lat, lon, alt)
     gcs.command_int(MAV_CMD_DO_SET_HOME, lat, lon, alt)
     gcs.wait(lambda: MAV_CMD_DO_SET_HOME in gcs.acks, 5.0, "COMMAND_ACK for MAV_CMD_DO_SET_HOME")
     if gcs.acks[MAV_CMD_DO_SET_HOME][0] != 0:
@@ -97,9 +100,10 @@ def _set_origin(gcs: Gcs, cfg: SitlSettings, say: Callable[[str], None]) -> None
         say("note: SITL did not report HOME_POSITION; home not checked")
         return
     north, east = home_offset_m(gcs.home[1], lat, lon)
-    say(f"home set and read back: {1000 * north:+.1f} mm N, {1000 * east:+.1f} mm E of the origin")
+    where = "the origin" if home is None else "where it stands"
+    say(f"home set and read back: {1000 * north:+.1f} mm N, {1000 * east:+.1f} mm E of {where}")
     if math.hypot(north, east) > HOME_TOLERANCE_M:
-        raise SitlError(f"SITL's home is {north:.3f} m N, {east:.3f} m E of the origin (over "
+        raise SitlError(f"SITL's home is {north:.3f} m N, {east:.3f} m E of {where} (over "
                         f"{100 * HOME_TOLERANCE_M:g} cm): it did not take MAV_CMD_DO_SET_HOME's position")
 
 
@@ -111,7 +115,8 @@ def home_offset_m(home: Any, lat_deg: float, lon_deg: float) -> tuple[float, flo
 
 
 def prepare_vehicle(gcs: Gcs, proc: SitlProcess, cfg: SitlSettings, veh: VehicleConfig, key: bytes,
-                    say: Callable[[str], None], link_delay_ms: float | None = None) -> None:
+                    say: Callable[[str], None], link_delay_ms: float | None = None,
+                    home: tuple[float, float, float] | None = None) -> None:
     """The whole set-up, in its order: connect, the vision-only parameters (read back), reboot, reconnect,
     the noise floors, the signing key, the EKF origin and home."""
     gcs.connect(30.0, proc)
@@ -129,4 +134,4 @@ def prepare_vehicle(gcs: Gcs, proc: SitlProcess, cfg: SitlSettings, veh: Vehicle
              "VISO_VEL_M_NSE": cfg.viso_vel_m_nse}
     gcs.set_params(noise)
     _setup_signing(gcs, key)
-    _set_origin(gcs, cfg, say)
+    _set_origin(gcs, cfg, say, home)

@@ -26,10 +26,15 @@ def _ports_free(instance: int) -> bool:
 
 
 def free_instance() -> int:
-    for i in range(1, 200):
-        if _ports_free(i):
-            return i
-    raise SitlError("no free SITL instance: ports 5770-7763 are all taken")
+    return free_instances(1)[0]
+
+
+def free_instances(n: int) -> list[int]:
+    """n SITL instances whose ports are all free, the lowest first."""
+    found = [i for i in range(1, 200) if _ports_free(i)][:n]
+    if len(found) < n:
+        raise SitlError(f"not {n} free SITL instances: ports 5770-7763 are taken")
+    return found
 
 
 class ChildProcess:
@@ -81,7 +86,7 @@ class ChildProcess:
 class SitlProcess(ChildProcess):
     """ArduPilot SITL in a fresh temporary working directory; close() kills it and removes the folder."""
 
-    def __init__(self, cfg: SitlSettings, instance: int, serial1: str | None = None):
+    def __init__(self, cfg: SitlSettings, instance: int, serial1: str | None = None, sysid: int | None = None):
         self.instance = instance
         self.gcs_port = 5760 + 10 * self.instance
         lat, lon, alt, hdg = cfg.home
@@ -90,6 +95,8 @@ class SitlProcess(ChildProcess):
                 "--home", f"{lat:.7f},{lon:.7f},{alt:.2f},{hdg:g}"]
         if serial1 is not None:  # e.g. udpclient:HOST:PORT (SITL's own syntax; MAVProxy's --out is not one)
             args.append(f"--serial1={serial1}")
+        if sysid is not None:  # SYSID_THISMAV (a fleet: one system per vehicle)
+            args += ["--sysid", str(sysid)]
         if cfg.defaults is not None:
             args += ["--defaults", str(cfg.defaults.resolve())]
         self._start(args, "visionpos-sitl-", "sitl.log")

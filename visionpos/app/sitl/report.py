@@ -53,9 +53,10 @@ FAILSAFE_WORDS = ("failsafe", "ekf variance", "lane switch", "ekf primary change
 
 
 def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: dict[str, Any], plan: FlightPlan,
-                   wall_s: float, our_modes: set[int] | None = None) -> dict[str, Any]:
+                   wall_s: float, our_modes: set[int] | None = None, body: str | None = None) -> dict[str, Any]:
     """EKF and vision against SITL's truth, EKF test ratios, every STATUSTEXT, failsafes. our_modes: the
-    HEARTBEAT custom_modes the flight commands (default ArduCopter's GUIDED and LAND)."""
+    HEARTBEAT custom_modes the flight commands (default ArduCopter's GUIDED and LAND); body: whose vision figures
+    (default the demo's first body)."""
     a = record.get("armed_ns")
     b = record.get("disarmed_ns") or time.monotonic_ns()
     out: dict[str, Any] = {"completed": bool(record.get("completed")), "error": record.get("error"), "wall_s": wall_s,
@@ -100,7 +101,7 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
     ours = our_modes if our_modes is not None else {COPTER_MODES["GUIDED"], COPTER_MODES["LAND"]}
     out["mode_changes_not_ours"] = [MODE_NAMES.get(m, m) for t, m in gcs.modes
                                     if a is not None and a <= t <= b and m not in ours]
-    vb = next((x for x in demo.get("bodies", [])), {})
+    vb = next((x for x in demo.get("bodies", []) if body is None or x.get("name") == body), {})
     out["vision"] = {k: vb.get(k) for k in ("position_rmse_mm", "position_max_mm", "rotation_rmse_deg",
                                             "tracked_fraction", "latency_ms")}
     sent = (vb.get("bridge") or {}).get("sent") or 0

@@ -147,19 +147,21 @@ class LiveTrajectory(Trajectory):
 
 
 class LiveArena:
-    """The demo's live source (app/demo.py LiveSource): the vehicle's body follows SITL's truth.
+    """The demo's live source (app/demo.py LiveSource): the vehicle's body follows SITL's truth (several
+    vehicles' bodies, each its own SITL's: `visionpos sitl --vehicles N`, tracks {body: TruthTrack}).
 
     Each camera's frames are made window by window (LIVE_WINDOW_NS), a quarter to three quarters into
     the window on the server clock (the cameras spread over it): a frame's pose is at most three
     quarters of a window plus the truth's age ahead of the newest SIM_STATE (extrapolated for those
     ms), and a frame exposed early in the window leaves late (more latency, which VISO_DELAY_MS
     absorbs; its capture stamp stays true).
-    cut(start_ns, end_ns) hides the body from every camera for a while (the frames still go out,
+    cut(start_ns, end_ns) hides the live bodies from every camera for a while (the frames still go out,
     without its markers: an occlusion, not a dead station)."""
 
-    def __init__(self, body: str, truth: TruthTrack):
+    def __init__(self, body: str, truth: TruthTrack, more: dict[str, TruthTrack] | None = None):
         self.body = body
         self.truth = truth
+        self.tracks = {body: truth, **(more or {})}
         self.origin_ns = [0]
         self.stopped_ns: int | None = None
         self.scenario: Any = None
@@ -168,10 +170,11 @@ class LiveArena:
         self.frames_late = 0  # made more than LATE_NS after their receive time: the host fell behind real time
 
     def prepare(self, scenario: Any) -> Any:
-        bodies = tuple(dataclasses.replace(b, trajectory=LiveTrajectory(self.truth, self.origin_ns))
-                       if b.name == self.body else b for b in scenario.bodies)
-        if not any(b.name == self.body for b in bodies):
-            raise UsageError(f"the arena has no simulated body {self.body!r}")
+        bodies = tuple(dataclasses.replace(b, trajectory=LiveTrajectory(self.tracks[b.name], self.origin_ns))
+                       if b.name in self.tracks else b for b in scenario.bodies)
+        missing = set(self.tracks) - {b.name for b in bodies}
+        if missing:
+            raise UsageError(f"the arena has no simulated body {sorted(missing)[0]!r}")
         self.scenario = scenario.with_changes(bodies=bodies)
         return self.scenario
 
@@ -190,7 +193,7 @@ class LiveArena:
 
         sc = self.scenario
         self.origin_ns[0] = sc.start_ns + shift_ns
-        body_index = next(i for i, b in enumerate(sc.bodies) if b.name == self.body)
+        live_index = np.array([i for i, b in enumerate(sc.bodies) if b.name in self.tracks])
         lo, hi = LIVE_MAKE_AT
         make_at = lo + (hi - lo) * camera_index / max(1, len(sc.cameras) - 1)
         w = 0
@@ -202,7 +205,7 @@ class LiveArena:
             for f, tr in window_frames(sc, camera_index, w, w * LIVE_WINDOW_NS, (w + 1) * LIVE_WINDOW_NS):
                 f = dataclasses.replace(f, capture_ns=f.capture_ns + shift_ns, recv_ns=f.recv_ns + shift_ns)
                 if self._hidden(f.capture_ns):
-                    f = dataclasses.replace(f, blobs=f.blobs[tr.body != body_index])
+                    f = dataclasses.replace(f, blobs=f.blobs[~np.isin(tr.body, live_index)])
                 self.frames_made += 1
                 if time.monotonic_ns() - f.recv_ns > LATE_NS:
                     self.frames_late += 1
