@@ -115,6 +115,10 @@ VEHICLE = section(
             "bound to its optical body by its back-channel: docs/autopilot-setup.md) whose autopilot goes silent: "
             "continuity = keep sending while its body's track stays continuous and stop after any loss or ambiguity "
             "(no re-binding without telemetry), stop = stop at once", choices=("continuity", "stop")),
+    Setting("pad", "array", None, "a fleet vehicle's parking pad on the floor (x, y m, world): a still body of its "
+            "layout standing within 10 cm of it is bound to it before take-off, and the binding is checked by its "
+            "motion from the first one on (docs/autopilot-setup.md, 'A fleet')", shape=(2,),
+            default_doc="none: bound only by its motion"),
     Setting("set_delay", "boolean", False, "write the measured delay to the autopilot (PARAM_SET VISO_DELAY_MS "
             "on ArduPilot, EKF2_EV_DELAY on PX4)"),
     Setting("vision_gap_s", "number", 0.5, "no pose sent to the vehicle for this long (s) after poses went: a "
@@ -262,6 +266,7 @@ class VehicleConfig:
     vision_gap_s: float = VEHICLE["vision_gap_s"].field_default
     autopilot: str = VEHICLE["autopilot"].field_default
     position_only: bool = False  # its body is a single-marker point body: position-only messages (convert.py)
+    pad: tuple[float, float] | None = None  # its parking pad (x, y m, world): bound there before it moves
 
     @property
     def period_ns(self) -> int:
@@ -391,6 +396,7 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                 vision_gap_s=V.read(v, "vision_gap_s"),
                 autopilot=V.read(v, "autopilot"),
                 position_only=point,
+                pad=None if (pad := V.read(v, "pad")) is None else (float(pad[0]), float(pad[1])),
             )
         )
         if out[-1].message == "odometry" and out[-1].vision_speed:
@@ -401,7 +407,21 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
         if endpoint.kind == "udpin" and key is None and autopilot_address is None:
             raise v.error("endpoint", UDPIN_UNAUTHENTICATED.format(port=endpoint.port))
     _check_unique(arena.source, out)
+    _check_pads(arena.source, out)
     return out
+
+
+PAD_RADIUS_M = 0.10  # a still body this close (horizontally) to a vehicle's pad stands on it (fleet_binding.py)
+
+
+def _check_pads(source: str, vehicles: list[VehicleConfig]) -> None:
+    """Two pads closer than twice the binding radius could both hold one body: refused, naming the key."""
+    for i, v in enumerate(vehicles):
+        for j in range(i):
+            w = vehicles[j]
+            if v.pad is not None and w.pad is not None and math.dist(v.pad, w.pad) < 2 * PAD_RADIUS_M:
+                raise ConfigError(source, f"vehicles[{i}].pad", f"{list(v.pad)} is {math.dist(v.pad, w.pad):.2f} m "
+                                  f"from vehicles[{j}].pad; pads must be at least {2 * PAD_RADIUS_M:g} m apart")
 
 
 def _refuse_attitude_options(v) -> None:

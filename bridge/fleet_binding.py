@@ -43,6 +43,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from bridge.backchannel import IDENTITY_RATE_NOISE_RAD_S, IDENTITY_RATE_REL, MAX_PAIR_GAP_NS, TELEMETRY_STALE_NS
+from bridge.config import PAD_RADIUS_M
 from bridge.point_binding import point_accel_costs
 from bridge.telemetry import sample_at
 from visionpos.analysis.autopilot import (
@@ -57,6 +58,7 @@ from visionpos.fusion.identity import IdentityState
 from visionpos.geometry.frames import quat_world_body_to_ned_frd
 
 BIND_EVERY_NS = 250_000_000  # evaluations of every group's assignment
+PAD_MAX_HEIGHT_M = 0.3  # a body standing on a pad (within config.PAD_RADIUS_M) is below this height (on the floor)
 WINDOW_NS = 1_000_000_000  # the newest this much of shared instants
 MIN_SPAN_NS = 300_000_000  # a body (or vehicle) needs this much history to take part
 GRID_NS = 20_000_000  # the shared instants, 50 Hz: near the telemetry's rate, so samples are not repeated
@@ -201,7 +203,8 @@ class FleetBinding:
     """
 
     def __init__(self, groups: list[list[str]], vehicle_body: dict[str, str], sigma_att_rad: dict[str, float],
-                 silent_policy: dict[str, str], point_bodies: frozenset[str] = frozenset()):
+                 silent_policy: dict[str, str], point_bodies: frozenset[str] = frozenset(),
+                 pads: dict[str, tuple[float, float]] | None = None):
         self.groups = [(list(bodies), [v for v, b in vehicle_body.items() if b in bodies]) for bodies in groups]
         self.groups = [(bs, vs) for bs, vs in self.groups if len(vs) > 0 and len(bs) > 1]
         self.bodies = {b for bs, _ in self.groups for b in bs}
@@ -219,6 +222,7 @@ class FleetBinding:
         self.drops = 0  # bindings dropped (loss, ambiguity, disagreement, silence)
         self.disagreements = 0
         self.point_bodies = point_bodies  # single-marker bodies: bound by their accelerations (point_binding.py)
+        self.pads = dict(pads or {})  # vehicle -> its parking pad (x, y m, world): _bind_on_pads
 
     def vehicle_of(self, body: str) -> str | None:
         """The vehicle that gets this optical body's states now (None: nobody)."""
@@ -461,10 +465,41 @@ class FleetBinding:
                                                    float(res.margin[i]))
                 self.binds += 1
                 made.append((b, v))
+        if still and self.pads:
+            made += self._bind_on_pads(rows, vehicles, taken, disagreed)
         for v in vehicles:
             if v not in taken:
                 self._say(v, self._why(v, vehicles, rows, cost, reject, still))
         return dropped, made
+
+    def _bind_on_pads(self, rows: list[str], vehicles: list[str], taken: set[str], disagreed: set[str]
+                      ) -> list[tuple[str, str]]:
+        """While the group is still: each unbound live vehicle with a pad gets the one unbound body standing on it
+        (within PAD_RADIUS_M horizontally, below PAD_MAX_HEIGHT_M, on no other vehicle's pad). Its motion checks
+        the binding from the first one on (_apply: a body that does not move like it is dropped and stopped)."""
+        made = []
+        free = [b for b in rows if b not in self.bound and b not in disagreed
+                and self.identity[b] != IdentityState.LOST.value]
+        where = {b: np.asarray(self.rings[b][-1][8:11], dtype=float) for b in free}
+
+        def on(p: np.ndarray, pad: tuple[float, float]) -> bool:
+            return math.hypot(p[0] - pad[0], p[1] - pad[1]) <= PAD_RADIUS_M and p[2] <= PAD_MAX_HEIGHT_M
+
+        for v in vehicles:
+            pad = self.pads.get(v)
+            if pad is None or v in taken:
+                continue
+            here = [b for b in free if b not in self.bound and on(where[b], pad)]
+            if len(here) != 1 or any(on(where[here[0]], p) for w, p in self.pads.items() if w != v):
+                continue
+            b = here[0]
+            self.bound[b] = v
+            taken.add(v)
+            self.vehicles[v] = VehicleIdentity(BOUND, f"bound to {b}: standing on its pad {list(pad)} (its motion "
+                                               "checks the binding from the first one on)", b)
+            self.binds += 1
+            made.append((b, v))
+        return made
 
     def _why(self, v: str, vehicles: list[str], rows: list[str], cost: np.ndarray, reject: float, still: bool) -> str:
         """Why vehicle v has no body, in words (the candidates: the unbound bodies whose cost is under reject)."""

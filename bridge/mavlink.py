@@ -61,6 +61,7 @@ class Bridge(Sink):
         self._started = False
         self.fleet = _fleet_binding(arena, self.vehicles)
         self._identity_book = None  # the pipeline's IdentityBook (use_identity), read and told on the loop
+        self._last_bound: dict[str, str] = {}  # fleet vehicle -> the body it was last bound to
         self._by_name = {v.cfg.name: v for v in self.vehicles}
 
     def use_identity(self, book) -> None:
@@ -129,6 +130,9 @@ class Bridge(Sink):
                 v._slot = None
             v.bc.optical_epoch += 1
         for body, name in made:
+            if self._last_bound.get(name, body) != body:  # another body's poses: the autopilot resets to them
+                self._by_name[name].reset()
+            self._last_bound[name] = body
             self._by_name[name].bc.optical_epoch += 1
             if book is not None and body in book.names:
                 book.bind(book.names.index(body))
@@ -200,5 +204,6 @@ def _fleet_binding(arena: ArenaConfig, vehicles: list[VehicleLink]) -> FleetBind
     fleet = FleetBinding(groups, {v.cfg.name: v.cfg.body for v in vehicles},
                          {v.cfg.name: math.radians(v.cfg.identity_tolerance_deg) for v in vehicles},
                          {v.cfg.name: v.cfg.silent_backchannel for v in vehicles},
-                         frozenset(b.name for b in arena.bodies if b.is_point))
+                         frozenset(b.name for b in arena.bodies if b.is_point),
+                         {v.cfg.name: v.cfg.pad for v in vehicles if v.cfg.pad is not None})
     return fleet if fleet.groups else None

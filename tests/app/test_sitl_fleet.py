@@ -31,13 +31,19 @@ def test_the_row_is_centred_on_the_origin_and_each_home_is_where_its_vehicle_sta
         assert (alt, hdg) == (ORIGIN[2], ORIGIN[3])
 
 
-def test_the_fleet_arena_keeps_n_vehicles_and_refuses_shared_layouts():
+def test_the_fleet_arena_keeps_n_vehicles_and_pads_those_of_one_layout_where_they_stand():
+    from bridge.config import parse_vehicles
+
     pair = F.fleet_arena(S.sitl_arena("pair", [], 60.0), 2)
-    assert [v["body"] for v in pair.to_dict()["vehicles"]] == ["quad", "kilo"]
+    assert [v.body for v in parse_vehicles(pair)] == ["quad", "kilo"]
+    assert [v.pad for v in parse_vehicles(pair)] == [None, None]  # two layouts: geometry names them
+    twins = F.fleet_arena(S.sitl_arena("pair", [], 60.0), 2, same_layout=True)
+    assert np.array_equal(twins.bodies[0].markers, twins.bodies[1].markers)
+    assert [v.pad for v in parse_vehicles(twins)] == [(0.0, -0.6), (0.0, 0.6)]  # the row: start_positions(2)
+    fleet = F.fleet_arena(S.sitl_arena("fleet", [], 60.0), 3)
+    assert [v.pad for v in parse_vehicles(fleet)] == [(0.0, -1.2), (0.0, 0.0), (0.0, 1.2)]
     with pytest.raises(UsageError, match="has 1 vehicle"):
         F.fleet_arena(S.sitl_arena("thesis", [], 60.0), 2)
-    with pytest.raises(UsageError, match="share one marker layout.*VisOdom: not healthy"):
-        F.fleet_arena(S.sitl_arena("fleet", [], 60.0), 2)
 
 
 def _datagram(*msgs, signed=False) -> bytes:
@@ -82,6 +88,7 @@ def test_the_swap_record_counts_poses_that_crossed_after_the_bridge_heard_the_ot
     (["--vehicles", "2", "--autopilot", "px4"], "ArduPilot SITL only"),
     (["--vehicles", "2", "--swap-at", "3", "--hold", "4"], "must end within the hover"),
     (["--vehicles", "2", "--cut", "1"], "--cut fly one vehicle"),
+    (["--same-layout"], "give --vehicles 2 or more"),
 ])
 def test_fleet_options_that_cannot_fly_are_one_line(capsys, argv, match):
     assert main(["sitl", *argv]) == 2

@@ -30,12 +30,12 @@ def test_every_goal_names_a_metric_prefix_of_a_bench_group():
         assert any(
             g.metric.startswith(p) for p in ("geometry_", "detector_", "fusion_", "bridge_", "calib_", "replay_",
                                               "robustness_", "planner_", "sitl_", "sitl_delay_", "sitl_px4_",
-                                              "console_", "backchannel_", "monitor_", "coldstart_", "freshness_",
-                                              "scale_")
+                                              "sitl_fleet_", "console_", "backchannel_", "monitor_", "coldstart_",
+                                              "freshness_", "scale_")
         )
         assert (g.target is None) == (g.versus is not None)
     assert set(GROUPS) == {"geometry", "detector", "fusion", "bridge", "calibration", "replay", "robustness", "planner",
-                           "sitl", "sitl_delay", "sitl_px4", "sitl_px4_delay", "console", "backchannel",
+                           "sitl", "sitl_delay", "sitl_px4", "sitl_px4_delay", "sitl_fleet", "console", "backchannel",
                            "camera_monitor", "demo_memory", "coldstart", "freshness", "scale"}
 
 

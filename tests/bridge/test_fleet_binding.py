@@ -75,13 +75,15 @@ def test_the_optical_rates_noise_grows_with_the_attitudes_uncertainty_over_its_u
 class Fleet:
     """Drones on the floor; optical body i is drone perm[i]; vehicle 'v{k}' is drone k. yaw_rate[k](t s) rad/s."""
 
-    def __init__(self, perm=(2, 0, 1), policy="continuity"):
+    def __init__(self, perm=(2, 0, 1), policy="continuity", pads=None, positions=None):
         self.perm = list(perm)
         n = len(self.perm)
         self.bodies = [f"quad{i + 1}" for i in range(n)]
         self.names = [f"v{k}" for k in range(n)]
         self.binding = FleetBinding([self.bodies], dict(zip(self.names, self.bodies)),
-                                    dict.fromkeys(self.names, math.radians(3.0)), dict.fromkeys(self.names, policy))
+                                    dict.fromkeys(self.names, math.radians(3.0)), dict.fromkeys(self.names, policy),
+                                    pads=pads)
+        self.positions = [np.zeros(3)] * n if positions is None else [np.asarray(p, float) for p in positions]
         self.rates = [lambda t: 0.0] * n
         self.yaw = [0.0] * n
         self.tel = {n: ([], []) for n in self.names}
@@ -103,7 +105,7 @@ class Fleet:
             self.yaw = [y + ri * STEP_NS * 1e-9 for y, ri in zip(self.yaw, r)]
             states = [State(b, self.t_ns, Rotation.from_euler("z", self.yaw[d]).as_quat(),
                             np.array([0.0, 0.0, r[d]]) + rng.normal(0, 0.01, 3) + self.glitch.get(b, 0.0),
-                            b not in self.lost, np.zeros(3),
+                            b not in self.lost, self.positions[d],
                             np.diag([1e-6] * 3 + [math.radians(self.sigma_deg.get(b, 0.25)) ** 2 / 3] * 3))
                       for b, d in zip(self.bodies, self.perm)]
             stop = self.binding.observe(states, self.identity)
@@ -464,3 +466,95 @@ def test_the_live_bench_counts_poses_from_another_drones_body_at_each_autopilot(
     a.got = [(1, np.array([0.01, 0.0, 0.0])), (2, np.array([0.98, 0.0, 0.0]))]  # the second is b's
     b.got = [(1, np.array([1.0, 0.0, 0.0])), (2, np.array([1.2, 0.0, 0.0]))]  # the second 0.2 m off: not its own
     assert tally.wrong() == (4, 2, [1, 1], 1)
+
+
+PADS = {"v0": (0.0, 0.0), "v1": (1.0, 0.0), "v2": (2.0, 0.0)}
+
+
+def test_still_vehicles_standing_on_their_pads_are_bound_before_they_move():
+    """vehicles[].pad: drone k stands on v{k}'s pad; each still body is bound to the vehicle whose pad it stands on
+    (within 10 cm), none by elimination or by motion."""
+    f = Fleet(pads=PADS, positions=[(0.03, -0.04, 0.02), (1.0, 0.05, 0.0), (1.95, 0.0, 0.01)])
+    f.step(1.5)
+    assert {b: v for _, b, v in f.made} == {b: f.truth_vehicle(b) for b in f.bodies}
+    for v in f.names:
+        st = f.binding.vehicles[v]
+        assert st.state == BOUND and "standing on its pad" in st.reason
+    assert f.stopped == []
+
+
+def test_a_body_off_its_pad_or_in_the_air_is_not_bound_by_the_pad():
+    # drone 1 stands 12 cm from its pad, drone 2 is held 0.5 m up above its pad: only drone 0 is bound
+    f = Fleet(pads=PADS, positions=[(0.0, 0.0, 0.0), (1.12, 0.0, 0.0), (2.0, 0.0, 0.5)])
+    f.step(1.5)
+    assert [(b, v) for _, b, v in f.made] == [("quad2", "v0")]
+    assert f.binding.vehicles["v1"].state == UNRESOLVED and "no motion yet" in f.binding.vehicles["v1"].reason
+
+
+def test_drones_parked_on_each_others_pads_are_stopped_at_their_first_motion_and_bound_right():
+    """Drones 0 and 1 parked on each other's pads: the pads bind them wrongly; the first motion (drone 0 turned)
+    stops both bindings within a second and binds them by motion, each to its own vehicle."""
+    f = Fleet(pads=PADS, positions=[(1.0, 0.0, 0.0), (0.0, 0.0, 0.0), (2.0, 0.0, 0.0)])
+    f.step(1.5)
+    wrong = {b: v for _, b, v in f.made}
+    assert wrong["quad2"] == "v1" and wrong["quad3"] == "v0"  # quad2 is drone 0, on v1's pad
+    f.rates[0] = hand_yaw(2.0, 90.0, 2.0)
+    f.step(2.0)
+    stops = [(t * 1e-9, v) for t, v in f.stopped]
+    assert {"v0", "v1"} <= {v for _, v in stops} and max(t for t, _ in stops) <= 3.0
+    assert f.binding.vehicles["v2"].state == BOUND and not any(v == "v2" for _, v in stops)
+    f.step(2.0)
+    assert f.binding.vehicle_of("quad2") == "v0" and f.binding.vehicle_of("quad3") == "v1"
+
+
+def test_pads_closer_than_twice_the_radius_are_refused():
+    from bridge.config import parse_vehicles
+    from bridge.fleet_binding import PAD_RADIUS_M
+    from visionpos.benchmarks.factories import arena_with_vehicles
+    from visionpos.config.arena import ConfigError
+
+    assert PAD_RADIUS_M == 0.10  # the docs' "within 10 cm"
+    vs = [{"body": "body1", "sysid": 1, "endpoint": "udpout:127.0.0.1:14551", "pad": [0.0, 0.0]},
+          {"body": "body2", "sysid": 2, "endpoint": "udpout:127.0.0.1:14552", "pad": [0.15, 0.0]}]
+    with pytest.raises(ConfigError, match=r"vehicles\[1\]\.pad.*at least 0.2 m apart"):
+        parse_vehicles(arena_with_vehicles(vs))
+    vs[1]["pad"] = [0.25, 0.0]
+    assert [v.pad for v in parse_vehicles(arena_with_vehicles(vs))] == [(0.0, 0.0), (0.25, 0.0)]
+
+
+def test_a_vehicle_bound_again_to_another_body_gets_a_reset():
+    """A re-binding to another optical body (a drone on the wrong pad, found at its first motion) jumps the
+    poses: the reset counter tells the autopilot's EKF to take the new position, not to reject it."""
+    from bridge import Bridge
+    from visionpos.benchmarks.factories import body_state
+    from visionpos.config.arena import parse_arena
+
+    layout = [[0.1, 0, 0], [0, 0.1, 0], [-0.1, 0, 0], [0, -0.12, 0.02]]
+    arena = parse_arena({"bodies": [{"name": "quadA", "id": 1, "markers": layout},
+                                    {"name": "quadB", "id": 2, "markers": layout}],
+                         "vehicles": [{"body": "quadA", "endpoint": "udpout:127.0.0.1:9"},
+                                      {"body": "quadB", "endpoint": "udpout:127.0.0.1:10"}]}, "fleet-test.yaml")
+    bridge = Bridge(arena, {"report_interval_s": 0, "pose_stream": False})
+    results = iter([([], [("quadB", "quadA")]), (["quadA"], []), ([], [("quadB", "quadA")]),
+                    (["quadA"], []), ([], [("quadA", "quadA")])])
+    bridge.fleet.due = lambda now: True
+    bridge.fleet.evaluate = lambda now, tel, acc=None: next(results)
+    v = bridge.vehicle("quadA")
+    resets = []
+    for _ in range(5):
+        bridge.publish([body_state("quadA", 1), body_state("quadB", 2)])
+        resets.append(v.local_resets)
+    # bound to quadB, dropped, bound to quadB again (the same body: no reset), dropped, bound to quadA: a reset
+    assert resets == [0, 0, 0, 0, 1]
+
+
+def test_the_docs_say_what_a_pad_does():
+    from pathlib import Path
+
+    from bridge.fleet_binding import PAD_MAX_HEIGHT_M, PAD_RADIUS_M
+
+    doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
+    assert (f"standing within {PAD_RADIUS_M * 100:.0f} cm of the pad (horizontally, below {PAD_MAX_HEIGHT_M:g} m, "
+            "on no other vehicle's pad)") in doc
+    assert f"Pads closer than {2 * PAD_RADIUS_M:g} m are refused at start" in doc
+    assert "increments the pose's reset counter" in doc  # test_a_vehicle_bound_again_to_another_body_gets_a_reset

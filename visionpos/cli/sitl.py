@@ -44,6 +44,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vehicles", type=int, default=1, metavar="N",
                    help="fly the arena's first N vehicles together, one ArduPilot SITL each, from a row on the floor: "
                         "take-off, a hover, a crossing and back, land (bodies of distinct layouts: the pair scenario)")
+    p.add_argument("--same-layout", action="store_true",
+                   help="with --vehicles: every flown body gets the first one's markers (identical drones): each is "
+                        "bound on its parking pad before take-off and checked by its motion")
     p.add_argument("--swap-at", type=float, default=None, metavar="S",
                    help="with --vehicles: S s into the hover, exchange the first two vehicles' links (two radios "
                         "swapped) for --swap-for s, then put them back; the bridge must stop both at once")
@@ -77,6 +80,8 @@ def run(args: argparse.Namespace) -> int:
         check_build_kind(Path(args.sitl), args.autopilot)
     if args.vehicles != 1 and args.autopilot == "px4":
         raise UsageError("--vehicles: ArduPilot SITL only (PX4 flies one vehicle here)")
+    if args.same_layout and args.vehicles < 2:
+        raise UsageError("--same-layout gives several vehicles one layout: give --vehicles 2 or more")
     if args.swap_at is not None and args.vehicles < 2:
         raise UsageError("--swap-at swaps two vehicles' links: give --vehicles 2 or more")
     if args.autopilot == "px4":
@@ -101,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         binary = find_sitl_binary(args.sitl, arena)
         out.write(f"visionpos sitl: {args.vehicles} x {binary} with {len(arena.cameras)} simulated cameras on "
                   "127.0.0.1\n")
-        summary = run_fleet(arena, binary, plan, args.vehicles, swap, out)
+        summary = run_fleet(arena, binary, plan, args.vehicles, swap, out, args.same_layout)
         print(json.dumps(summary, indent=2) if args.json else format_fleet(summary))
         return 0 if summary["ok"] else 1
     else:

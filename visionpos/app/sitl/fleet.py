@@ -12,9 +12,10 @@ The flight, all vehicles together: EKF on vision, VISO_DELAY_MS as advised, GUID
 the other), hover (the swap), a crossing (the first and the last vehicle exchange places, passing CROSS_GAP_M
 apart at the same height: their markers merge in some cameras' images), the crossing back, land.
 
-Bodies that share a marker layout are refused: the bridge binds those through motion (bridge/fleet_binding.py),
-and ArduPilot on vision alone cannot arm, let alone move, before its body is bound ("Arm: VisOdom: not
-healthy"); a SITL vehicle cannot be turned by hand on the floor (docs/autopilot-setup.md, "A fleet").
+Vehicles whose bodies share a marker layout (--same-layout: identical drones) are bound before take-off by their
+parking pads (vehicles[].pad, set where each stands): ArduPilot on vision alone cannot arm before its body is bound
+("Arm: VisOdom: not healthy"), so it cannot be bound by a take-off, and a SITL vehicle cannot be turned by hand
+on the floor (docs/autopilot-setup.md, "A fleet"). The motion checks each pad binding from the first one on.
 """
 
 from __future__ import annotations
@@ -63,27 +64,30 @@ class _Vehicle:
     record: dict = dataclasses.field(default_factory=dict)
 
 
-def fleet_arena(arena: ArenaConfig, n: int) -> ArenaConfig:
-    """The arena with its first n vehicles only (its other bodies fly their scenario's paths); refused where two of
-    them share a layout."""
+def fleet_arena(arena: ArenaConfig, n: int, same_layout: bool = False) -> ArenaConfig:
+    """The arena with its first n vehicles only (its other bodies fly their scenario's paths). same_layout: their
+    bodies all get the first one's markers (identical drones). Vehicles whose bodies share a layout get a pad where
+    they stand (start_positions), unless the file gives one: the bridge binds each still body to the vehicle on
+    whose pad it stands, and checks it by motion (bridge/fleet_binding.py); ArduPilot on vision alone cannot arm
+    before its body is bound ('Arm: VisOdom: not healthy'), so it could not take off to be bound by its motion."""
     from visionpos.config.arena import parse_arena
 
     data = arena.to_dict()
-    vehicles = (data.get("vehicles") or [])[:n]
+    vehicles = [dict(v) for v in (data.get("vehicles") or [])[:n]]
     if len(vehicles) < n:
         raise UsageError(f"{arena.source}: --vehicles {n}, but the arena has {len(vehicles)} vehicle(s) "
-                         "(the demo makes one per body): take a scenario with more bodies (--scenario pair or arena8)")
+                         "(the demo makes one per body): take a scenario with more bodies (pair, arena8)")
     names = [v["body"] for v in vehicles]
-    layouts = {}
-    for b in arena.bodies:
-        if b.name in names:
-            key = np.asarray(b.markers, np.float64).round(6).tobytes()
-            if key in layouts:
-                raise UsageError(f"bodies {layouts[key]} and {b.name} share one marker layout: the bridge binds such "
-                                 "bodies through motion, and ArduPilot on vision alone cannot arm before its body is "
-                                 "bound ('Arm: VisOdom: not healthy'), nor can a SITL vehicle be turned by hand on the "
-                                 "floor; fly bodies of distinct layouts (--scenario pair or arena8)")
-            layouts[key] = b.name
+    bodies = {b["name"]: b for b in data["bodies"]}
+    if same_layout:
+        first = bodies[names[0]]
+        for name in names[1:]:
+            bodies[name].update(markers=[list(m) for m in first["markers"]],
+                                marker_diameter=first.get("marker_diameter", bodies[name].get("marker_diameter")))
+    layouts = [np.asarray(bodies[name]["markers"], np.float64).round(6).tobytes() for name in names]
+    if len(set(layouts)) < len(layouts):
+        for v, at in zip(vehicles, start_positions(n)):
+            v.setdefault("pad", [float(at[0]), float(at[1])])
     data["vehicles"] = vehicles
     return parse_arena(data, arena.source)
 
@@ -103,7 +107,7 @@ def home_at(origin: tuple[float, float, float, float], world: np.ndarray) -> tup
 
 
 def run_fleet(arena: ArenaConfig, binary: Path, plan: FlightPlan, n: int, swap: Swap | None,
-              out: TextIO | None) -> dict[str, Any]:
+              out: TextIO | None, same_layout: bool = False) -> dict[str, Any]:
     """Start n SITLs, set each up for vision-only flight, fly them together on the live arena; the summary dict."""
     from bridge.config import parse_vehicles
     from visionpos.app.linkswap import CrossRelay
@@ -112,7 +116,7 @@ def run_fleet(arena: ArenaConfig, binary: Path, plan: FlightPlan, n: int, swap: 
         raise UsageError(f"--vehicles {n}: give 2 or more (one vehicle: leave --vehicles out)")
     if swap is not None and swap.at_s + swap.for_s > plan.hold_s:
         raise UsageError("--swap-at: the swap must end within the hover (--hold)")
-    arena = fleet_arena(arena, n)
+    arena = fleet_arena(arena, n, same_layout)
     cfg = parse_sitl(arena, binary)
     vcfgs = parse_vehicles(arena)
     if any(v.signing_key is None for v in vcfgs):
