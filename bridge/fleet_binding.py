@@ -59,6 +59,7 @@ from visionpos.geometry.frames import quat_world_body_to_ned_frd
 
 BIND_EVERY_NS = 250_000_000  # evaluations of every group's assignment
 PAD_MAX_HEIGHT_M = 0.3  # a body standing on a pad (within config.PAD_RADIUS_M) is below this height (on the floor)
+PAD_STILL_M = 0.02  # ... and has moved less than this over its samples (it stands there)
 WINDOW_NS = 1_000_000_000  # the newest this much of shared instants
 MIN_SPAN_NS = 300_000_000  # a body (or vehicle) needs this much history to take part
 GRID_NS = 20_000_000  # the shared instants, 50 Hz: near the telemetry's rate, so samples are not repeated
@@ -465,22 +466,27 @@ class FleetBinding:
                                                    float(res.margin[i]))
                 self.binds += 1
                 made.append((b, v))
-        if still and self.pads:
-            made += self._bind_on_pads(rows, vehicles, taken, disagreed)
+        if self.pads:
+            made += self._bind_on_pads(rows, vehicles, taken, disagreed, cost, reject)
         for v in vehicles:
             if v not in taken:
                 self._say(v, self._why(v, vehicles, rows, cost, reject, still))
         return dropped, made
 
-    def _bind_on_pads(self, rows: list[str], vehicles: list[str], taken: set[str], disagreed: set[str]
-                      ) -> list[tuple[str, str]]:
-        """While the group is still: each unbound live vehicle with a pad gets the one unbound body standing on it
-        (within PAD_RADIUS_M horizontally, below PAD_MAX_HEIGHT_M, on no other vehicle's pad). Its motion checks
-        the binding from the first one on (_apply: a body that does not move like it is dropped and stopped)."""
+    def _bind_on_pads(self, rows: list[str], vehicles: list[str], taken: set[str], disagreed: set[str],
+                      cost: np.ndarray, reject: float) -> list[tuple[str, str]]:
+        """Each unbound live vehicle with a pad gets the one unbound body standing still on it (within PAD_RADIUS_M
+        horizontally, below PAD_MAX_HEIGHT_M, moved less than PAD_STILL_M over its samples, on no other vehicle's
+        pad) whose motion does not contradict it (pair cost under the reject). Its motion checks the binding from
+        the first one on (_apply: a body that does not move like it is dropped and stopped)."""
         made = []
         free = [b for b in rows if b not in self.bound and b not in disagreed
                 and self.identity[b] != IdentityState.LOST.value]
-        where = {b: np.asarray(self.rings[b][-1][8:11], dtype=float) for b in free}
+        where = {}
+        for b in free:
+            p = np.array(self.rings[b], dtype=float)[:, 8:11]
+            if np.abs(p - p[-1]).max() <= PAD_STILL_M:
+                where[b] = p[-1]
 
         def on(p: np.ndarray, pad: tuple[float, float]) -> bool:
             return math.hypot(p[0] - pad[0], p[1] - pad[1]) <= PAD_RADIUS_M and p[2] <= PAD_MAX_HEIGHT_M
@@ -489,7 +495,8 @@ class FleetBinding:
             pad = self.pads.get(v)
             if pad is None or v in taken:
                 continue
-            here = [b for b in free if b not in self.bound and on(where[b], pad)]
+            j = vehicles.index(v)
+            here = [b for b in where if b not in self.bound and on(where[b], pad) and cost[rows.index(b), j] <= reject]
             if len(here) != 1 or any(on(where[here[0]], p) for w, p in self.pads.items() if w != v):
                 continue
             b = here[0]

@@ -98,14 +98,16 @@ def test_fleet_options_that_cannot_fly_are_one_line(capsys, argv, match):
 @pytest.mark.skipif(S.default_sitl_binary() is None,
                     reason=f"no ArduPilot SITL binary (set {S.SITL_ENV}=PATH or put it in ../shared/sitl/arducopter "
                            "beside the checkout)")
-def test_two_real_sitls_fly_together_and_a_swap_of_their_links_is_caught():
-    """Two ArduPilot SITLs on the pair arena: both take off, hover, cross 0.3 m apart and back, land; their vision
-    links are exchanged 1 s into the hover for 1.5 s. No pose reaches the wrong autopilot after the bridge hears
-    it on the other link, the poses flow again, and each EKF stays within 2 cm of its truth outside the swap."""
+def test_two_identical_real_sitls_are_bound_on_their_pads_fly_together_and_a_swap_of_their_links_is_caught():
+    """Two ArduPilot SITLs whose bodies share one layout (pair --same-layout): each bound on its pad before it can
+    arm; both take off, hover, cross 0.3 m apart and back, land; their vision links are exchanged 1 s into the
+    hover for 1.5 s. No pose reaches the wrong autopilot after the bridge hears it on the other link, the poses
+    flow again, each body stays bound to its own vehicle, and each EKF stays within 2 cm of its truth outside the
+    swap."""
     plan = S.FlightPlan(altitude_m=0.7, hold_s=4.0, timeout_s=110.0)
     arena = S.sitl_arena("pair", [f"cameras.{i}.fps=50" for i in range(4)], plan.timeout_s + 30.0)
-    s = F.run_fleet(arena, S.default_sitl_binary(), plan, 2, F.Swap(1.0, 1.5), None)
-    if s["real_time"]["frames_late_fraction"] > 0.02:
+    s = F.run_fleet(arena, S.default_sitl_binary(), plan, 2, F.Swap(1.0, 1.5), None, same_layout=True)
+    if s["real_time"]["frames_late_fraction"] > 0.05:  # two SITLs beside the cameras: a 2-core host runs at 1-5 %
         pytest.skip(f"not judged: this host did not keep real time "
                     f"({100 * s['real_time']['frames_late_fraction']:.0f}% of camera frames late)")
     assert s["error"] is None and all(v["completed"] for v in s["vehicles"].values()), s["error"]
@@ -113,9 +115,15 @@ def test_two_real_sitls_fly_together_and_a_swap_of_their_links_is_caught():
     for k in ("autopilot0", "autopilot1"):
         assert sw[k]["detected_after_ms"] is not None and sw[k]["wrong_poses_after_detection"] == 0, sw
     assert all("answers on this link" in said for said in sw["said"]) and sw["resumed_after_s"] < 4.0
+    for name, v in s["vehicles"].items():  # each bound on its pad, to the body standing there (its own)
+        b = v["binding_at_take_off"]
+        assert b["identity_binding"] == "bound" and "standing on its pad" in b["identity_reason"], b
     for v in s["vehicles"].values():
         assert v["ekf_horizontal_error_outside_swap_mm"]["p99"] <= 20.0, v["ekf_horizontal_error_outside_swap_mm"]
-        assert v["failsafe_or_lane_switch"] == [] and v["mode_changes_not_ours"] == []
+        # (a pose or two of the other vehicle may reach an autopilot before the bridge hears it: EKF3 may switch
+        # lanes over them, the docs say so; no failsafe, no mode change)
+        assert not [t for t in v["failsafe_or_lane_switch"] if "failsafe" in t.lower()], v["failsafe_or_lane_switch"]
+        assert v["mode_changes_not_ours"] == []
 
 
 def test_the_docs_say_what_the_fleet_flight_does():

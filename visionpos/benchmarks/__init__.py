@@ -181,8 +181,8 @@ GOALS: list[Goal] = [
          "flight completes"),
     Goal("sitl_delay_ekf_lead_ms_abs_max", "<=", 2.0, "ArduPilot SITL, link delayed 0/20/50 ms, VISO_DELAY_MS as "
          "advised: the EKF leads or lags the truth by (ms), worst flight"),
-    Goal("sitl_fleet_flights_completed_min", ">=", 1, "two ArduPilot SITLs flown together (pair): both flights "
-         "complete, through a swap of their links"),
+    Goal("sitl_fleet_flights_completed_min", ">=", 1, "two identical drones (one layout, bound on their pads), one "
+         "ArduPilot SITL each, flown together: both flights complete, through a swap of their links"),
     Goal("sitl_fleet_ekf_horizontal_p99_outside_swap_mm_max", "<=", 20.0, "two ArduPilot SITLs: each EKF's "
          "horizontal error p99 outside the swap (mm)"),
     Goal("sitl_fleet_swap_wrong_poses_after_detection", "<=", 0, "two ArduPilot SITLs, links swapped mid-hover: "

@@ -1,7 +1,8 @@
-"""Benchmark group `sitl_fleet`: two ArduPilot SITL instances flown together on the `pair` arena
-(`visionpos sitl --vehicles 2 --swap-at 2 --swap-for 2 --hold 8`).
+"""Benchmark group `sitl_fleet`: two identical drones (one marker layout), one ArduPilot SITL each, flown
+together on the `pair` arena (`visionpos sitl --vehicles 2 --same-layout --swap-at 2 --swap-for 2 --hold 8`).
 
-Both take off from a row on the floor, hover, cross 0.3 m apart and back, and land; 2 s into the hover their
+Each is bound to its optical body on its parking pad before take-off (bridge/fleet_binding.py). Both take off
+from a row on the floor, hover, cross 0.3 m apart and back, and land; 2 s into the hover their
 vision links are exchanged for 2 s (two radios swapped at the ground station) and put back. Measured: each EKF
 against its SITL's truth outside the swap, how soon the bridge saw each autopilot on the other's link, the poses
 that reached the wrong autopilot, how soon the poses flowed again. About 65 s of real time. Skipped, with the
@@ -22,7 +23,8 @@ def run(quick: bool = False) -> BenchResult:
         return BenchResult(notes=[f"skipped: no ArduPilot SITL binary (set {SITL_ENV}=PATH or put it in "
                                   "../shared/sitl/arducopter beside the checkout)"])
     plan = FlightPlan(altitude_m=1.0, hold_s=8.0, timeout_s=150.0)
-    s = run_fleet(sitl_arena("pair", [], plan.timeout_s + 60.0), binary, plan, 2, Swap(2.0, 2.0), None)
+    s = run_fleet(sitl_arena("pair", [], plan.timeout_s + 60.0), binary, plan, 2, Swap(2.0, 2.0), None,
+                  same_layout=True)
     vs = list(s["vehicles"].values())
     outside = [(v.get("ekf_horizontal_error_outside_swap_mm") or {}).get("p99") for v in vs]
     whole = [(v.get("ekf_horizontal_error_mm") or {}).get("max") for v in vs]

@@ -175,7 +175,13 @@ async def _fly(ctx: Any, fleet: list[_Vehicle], live: LiveArena, plan: FlightPla
     end = time.monotonic() + plan.timeout_s
     left = lambda: max(1.0, end - time.monotonic())  # noqa: E731
     for v in fleet:
-        await Gcs.until(v.gcs.ekf_using_vision, min(60.0, left()), f"STATUSTEXT '{EXTNAV_TEXT}' from {v.name}")
+        try:
+            await Gcs.until(v.gcs.ekf_using_vision, min(60.0, left()), f"STATUSTEXT '{EXTNAV_TEXT}' from {v.name}")
+        except SitlError as e:  # nothing went to it: say why (a fleet vehicle's binding)
+            h = ctx.bridge.health().get(v.name) or {}
+            raise SitlError(f"{e}; the bridge: {h.get('sending')}" + (
+                f", identity {h['identity_binding']}: {h.get('identity_reason')}" if "identity_binding" in h
+                else "")) from None
     await asyncio.gather(*(set_advised_delay(v.gcs, ctx.bridge.vehicle(v.name), plan, say) for v in fleet))
     for v in fleet:  # each takes off as soon as it is armed (an armed copter left on the ground disarms itself)
         v.record["viso_delay_ms"] = v.gcs.params.get("VISO_DELAY_MS")
@@ -183,6 +189,9 @@ async def _fly(ctx: Any, fleet: list[_Vehicle], live: LiveArena, plan: FlightPla
         v.record["armed_ns"] = time.monotonic_ns()
         await v.gcs.command_async(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, plan.altitude_m, what="takeoff")
         say(f"{v.name} armed in GUIDED, taking off")
+    for v in fleet:  # how each was bound (a fleet of one layout: on its pad)
+        h = ctx.bridge.health().get(v.name) or {}
+        v.record["binding"] = {k: h.get(k) for k in ("identity_binding", "identity_reason", "bound_body")}
     alt = plan.altitude_m - 0.05
     await Gcs.until(lambda: all(truth_now(v.truth)[1][2] >= alt for v in fleet), min(30.0, left()),
                     f"every vehicle at {plan.altitude_m} m")
@@ -275,6 +284,7 @@ def _summary(fleet: list[_Vehicle], live: LiveArena, demo: dict[str, Any], plan:
     vehicles = {}
     for v in fleet:
         s = flight_summary(v.gcs, v.truth, demo, v.record, plan, wall_s, body=v.name)
+        s["binding_at_take_off"] = v.record.get("binding")
         if swap is not None:  # the target is judged outside the swap: the EKF is on its IMU alone during it
             o = s["ekf_horizontal_error_outside_swap_mm"] = _outside(v, swap)
             s["ok"] = bool(s["completed"] and o["p99"] is not None and o["p99"] <= 20.0
@@ -313,6 +323,9 @@ def format_fleet(s: dict[str, Any]) -> str:
     for name, v in s["vehicles"].items():
         lines.append(f"{name}:")
         text = format_flight(v)
+        b = v.get("binding_at_take_off") or {}
+        if b.get("identity_binding"):
+            text += f"\n  binding at take-off: {b['identity_binding']}, {b.get('identity_reason')}"
         o = v.get("ekf_horizontal_error_outside_swap_mm")
         if o is not None:  # judged outside the swap: the EKF is on its IMU alone during it
             text = text.replace("target (EKF horizontal p99 <= 20 mm", "target (EKF horizontal p99 outside the swap "
