@@ -44,6 +44,11 @@ def test_the_fleet_arena_keeps_n_vehicles_and_pads_those_of_one_layout_where_the
     assert [v.pad for v in parse_vehicles(fleet)] == [(0.0, -1.2), (0.0, 0.0), (0.0, 1.2)]
     with pytest.raises(UsageError, match="has 1 vehicle"):
         F.fleet_arena(S.sitl_arena("thesis", [], 60.0), 2)
+    # --swap-pads: the first two parked on each other's pads (the operator's mistake, to reproduce)
+    wrong = F.fleet_arena(S.sitl_arena("pair", [], 60.0), 2, same_layout=True, swap_pads=True)
+    assert [v.pad for v in parse_vehicles(wrong)] == [(0.0, 0.6), (0.0, -0.6)]
+    with pytest.raises(UsageError, match="--swap-pads.*--same-layout"):
+        F.fleet_arena(S.sitl_arena("pair", [], 60.0), 2, swap_pads=True)
 
 
 def _datagram(*msgs, signed=False) -> bytes:

@@ -47,6 +47,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--same-layout", action="store_true",
                    help="with --vehicles: every flown body gets the first one's markers (identical drones): each is "
                         "bound on its parking pad before take-off and checked by its motion")
+    p.add_argument("--swap-pads", action="store_true",
+                   help="with --same-layout: the first two vehicles parked on each other's pads (the operator's "
+                        "mistake): the pads bind them wrongly, their first motion must stop and re-bind them")
     p.add_argument("--swap-at", type=float, default=None, metavar="S",
                    help="with --vehicles: S s into the hover, exchange the first two vehicles' links (two radios "
                         "swapped) for --swap-for s, then put them back; the bridge must stop both at once")
@@ -106,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
         binary = find_sitl_binary(args.sitl, arena)
         out.write(f"visionpos sitl: {args.vehicles} x {binary} with {len(arena.cameras)} simulated cameras on "
                   "127.0.0.1\n")
-        summary = run_fleet(arena, binary, plan, args.vehicles, swap, out, args.same_layout)
+        summary = run_fleet(arena, binary, plan, args.vehicles, swap, out, args.same_layout, args.swap_pads)
         print(json.dumps(summary, indent=2) if args.json else format_fleet(summary))
         return 0 if summary["ok"] else 1
     else:

@@ -64,10 +64,11 @@ class _Vehicle:
     record: dict = dataclasses.field(default_factory=dict)
 
 
-def fleet_arena(arena: ArenaConfig, n: int, same_layout: bool = False) -> ArenaConfig:
+def fleet_arena(arena: ArenaConfig, n: int, same_layout: bool = False, swap_pads: bool = False) -> ArenaConfig:
     """The arena with its first n vehicles only (its other bodies fly their scenario's paths). same_layout: their
     bodies all get the first one's markers (identical drones). Vehicles whose bodies share a layout get a pad where
-    they stand (start_positions), unless the file gives one: the bridge binds each still body to the vehicle on
+    they stand (start_positions; swap_pads: the first two exchanged, drones parked on each other's pads), unless
+    the file gives one: the bridge binds each still body to the vehicle on
     whose pad it stands, and checks it by motion (bridge/fleet_binding.py); ArduPilot on vision alone cannot arm
     before its body is bound ('Arm: VisOdom: not healthy'), so it could not take off to be bound by its motion."""
     from visionpos.config.arena import parse_arena
@@ -86,8 +87,13 @@ def fleet_arena(arena: ArenaConfig, n: int, same_layout: bool = False) -> ArenaC
                                 marker_diameter=first.get("marker_diameter", bodies[name].get("marker_diameter")))
     layouts = [np.asarray(bodies[name]["markers"], np.float64).round(6).tobytes() for name in names]
     if len(set(layouts)) < len(layouts):
-        for v, at in zip(vehicles, start_positions(n)):
-            v.setdefault("pad", [float(at[0]), float(at[1])])
+        pads = [[float(at[0]), float(at[1])] for at in start_positions(n)]
+        if swap_pads:  # the first two parked on each other's pads: the pads bind them wrongly until they move
+            pads[0], pads[1] = pads[1], pads[0]
+        for v, pad in zip(vehicles, pads):
+            v.setdefault("pad", pad)
+    elif swap_pads:
+        raise UsageError("--swap-pads: the pads bind vehicles of one layout; give --same-layout")
     data["vehicles"] = vehicles
     return parse_arena(data, arena.source)
 
@@ -107,7 +113,7 @@ def home_at(origin: tuple[float, float, float, float], world: np.ndarray) -> tup
 
 
 def run_fleet(arena: ArenaConfig, binary: Path, plan: FlightPlan, n: int, swap: Swap | None,
-              out: TextIO | None, same_layout: bool = False) -> dict[str, Any]:
+              out: TextIO | None, same_layout: bool = False, swap_pads: bool = False) -> dict[str, Any]:
     """Start n SITLs, set each up for vision-only flight, fly them together on the live arena; the summary dict."""
     from bridge.config import parse_vehicles
     from visionpos.app.linkswap import CrossRelay
@@ -116,7 +122,7 @@ def run_fleet(arena: ArenaConfig, binary: Path, plan: FlightPlan, n: int, swap: 
         raise UsageError(f"--vehicles {n}: give 2 or more (one vehicle: leave --vehicles out)")
     if swap is not None and swap.at_s + swap.for_s > plan.hold_s:
         raise UsageError("--swap-at: the swap must end within the hover (--hold)")
-    arena = fleet_arena(arena, n, same_layout)
+    arena = fleet_arena(arena, n, same_layout, swap_pads)
     cfg = parse_sitl(arena, binary)
     vcfgs = parse_vehicles(arena)
     if any(v.signing_key is None for v in vcfgs):
@@ -211,6 +217,7 @@ async def _fly(ctx: Any, fleet: list[_Vehicle], live: LiveArena, plan: FlightPla
         say(f"  {a.name} and {b.name} " + ("crossed" if leg == 0 else "crossed back")
             + f" ({CROSS_GAP_M:g} m apart as they passed)")
         await asyncio.sleep(1.0)
+    fleet[0].record["fleet_binding"] = (ctx.bridge.stats().get("fleet_binding") or {})
     for v in fleet:
         v.record["land_ns"] = time.monotonic_ns()
         await v.gcs.command_async(MAV_CMD_DO_SET_MODE, 1, COPTER_MODES["LAND"], what="LAND mode")
@@ -293,6 +300,8 @@ def _summary(fleet: list[_Vehicle], live: LiveArena, demo: dict[str, Any], plan:
     out: dict[str, Any] = {"vehicles": vehicles, "error": fleet[0].record.get("error"), "wall_s": wall_s}
     if swap is not None:
         out["swap"] = swap_record(relay, swap)
+    if "fleet_binding" in fleet[0].record:
+        out["fleet_binding"] = fleet[0].record["fleet_binding"]
     made = max(live.frames_made, 1)
     out["real_time"] = {"frames_made": live.frames_made, "frames_late_fraction": live.frames_late / made}
     out["ok"] = bool(all(s["ok"] for s in vehicles.values()) and (swap is None or out["swap"]["ok"]))
@@ -343,6 +352,10 @@ def format_fleet(s: dict[str, Any]) -> str:
                             else f"{a['last_wrong_after_detection_ms']:.0f} ms") + " after that")
         lines.append(f"  poses flowed again {sw['resumed_after_s']:.2f} s after the links were put back; "
                      f"swap caught: {'yes' if sw['ok'] else 'NO'}")
+    fb = s.get("fleet_binding")
+    if fb:
+        lines.append(f"  fleet binding: {fb.get('binds')} bindings made, {fb.get('drops')} dropped, "
+                     f"{fb.get('disagreements')} disagreed with the motion; at the end {fb.get('bound')}")
     rt = s["real_time"]
     lines.append(f"  real time: {rt['frames_made']} camera frames made, {100 * rt['frames_late_fraction']:.1f}% more "
                  "than 50 ms late")
