@@ -169,7 +169,12 @@ def _fly_live(arena: ArenaConfig, fleet: list[_Vehicle], live: LiveArena, plan: 
         except SitlError as e:
             fleet[0].record["error"] = str(e)
             say(f"flight failed: {e}")
-        finally:
+        finally:  # the bindings as they ended (a failed flight too)
+            fleet[0].record["fleet_binding"] = ctx.bridge.stats().get("fleet_binding") or {}
+            for v in fleet:
+                h = ctx.bridge.health().get(v.name) or {}
+                v.record["binding_at_end"] = {k: h.get(k) for k in ("identity_binding", "identity_reason",
+                                                                     "bound_body")}
             live.stop()
 
     return asyncio.run(run_demo(arena, plan.timeout_s + 60.0, None, during=during, live=live))
@@ -217,7 +222,6 @@ async def _fly(ctx: Any, fleet: list[_Vehicle], live: LiveArena, plan: FlightPla
         say(f"  {a.name} and {b.name} " + ("crossed" if leg == 0 else "crossed back")
             + f" ({CROSS_GAP_M:g} m apart as they passed)")
         await asyncio.sleep(1.0)
-    fleet[0].record["fleet_binding"] = (ctx.bridge.stats().get("fleet_binding") or {})
     for v in fleet:
         v.record["land_ns"] = time.monotonic_ns()
         await v.gcs.command_async(MAV_CMD_DO_SET_MODE, 1, COPTER_MODES["LAND"], what="LAND mode")
@@ -292,6 +296,7 @@ def _summary(fleet: list[_Vehicle], live: LiveArena, demo: dict[str, Any], plan:
     for v in fleet:
         s = flight_summary(v.gcs, v.truth, demo, v.record, plan, wall_s, body=v.name)
         s["binding_at_take_off"] = v.record.get("binding")
+        s["binding_at_end"] = v.record.get("binding_at_end")
         if swap is not None:  # the target is judged outside the swap: the EKF is on its IMU alone during it
             o = s["ekf_horizontal_error_outside_swap_mm"] = _outside(v, swap)
             s["ok"] = bool(s["completed"] and o["p99"] is not None and o["p99"] <= 20.0
@@ -335,6 +340,9 @@ def format_fleet(s: dict[str, Any]) -> str:
         b = v.get("binding_at_take_off") or {}
         if b.get("identity_binding"):
             text += f"\n  binding at take-off: {b['identity_binding']}, {b.get('identity_reason')}"
+        e = v.get("binding_at_end") or {}
+        if e.get("identity_binding"):
+            text += f"\n  binding at the end: {e['identity_binding']}, {e.get('identity_reason')}"
         o = v.get("ekf_horizontal_error_outside_swap_mm")
         if o is not None:  # judged outside the swap: the EKF is on its IMU alone during it
             text = text.replace("target (EKF horizontal p99 <= 20 mm", "target (EKF horizontal p99 outside the swap "
