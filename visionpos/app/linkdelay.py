@@ -30,7 +30,47 @@ from typing import Callable
 RECV_BYTES = 65535
 
 
-class DelayRelay:
+class RelayThread:
+    """A relay's thread and sockets: start() runs _run on its own thread, stop() ends it and closes _sockets();
+    a context manager. Subclasses call super().__init__() and give _run, _sockets and thread_name."""
+
+    thread_name = "relay"
+
+    def __init__(self) -> None:
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _run(self) -> None:
+        raise NotImplementedError
+
+    def _sockets(self) -> list[socket.socket]:
+        raise NotImplementedError
+
+    def start(self):
+        self._thread = threading.Thread(target=self._run, name=self.thread_name, daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
+            self._thread = None
+        for s in self._sockets():
+            s.close()
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+
+class DelayRelay(RelayThread):
     """UDP relay on 127.0.0.1 holding each datagram delay_ms in both directions; see the module docstring.
 
     target: the bridge's (host, port); port: where the autopilot side sends (0: any free port)."""
@@ -57,31 +97,12 @@ class DelayRelay:
         # tap(read_ns, datagram): sees each datagram from the autopilot as it is read (on the relay's thread;
         # keep it cheap); the SITL harness reads its own TIMESYNC answers there
         self.tap: Callable[[int, bytes], None] | None = None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        super().__init__()
 
-    def start(self) -> "DelayRelay":
-        self._thread = threading.Thread(target=self._run, name="link-delay-relay", daemon=True)
-        self._thread.start()
-        return self
+    thread_name = "link-delay-relay"
 
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(2.0)
-            self._thread = None
-        self.ap_sock.close()
-        self.bridge_sock.close()
-
-    def __enter__(self) -> "DelayRelay":
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
-    @property
-    def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
+    def _sockets(self) -> list[socket.socket]:
+        return [self.ap_sock, self.bridge_sock]
 
     def _run(self) -> None:
         end = time.monotonic_ns() + int(self.lifetime_s * 1e9)

@@ -22,10 +22,10 @@ import socket
 import threading
 import time
 
-RECV_BYTES = 65535
+from visionpos.app.linkdelay import RECV_BYTES, RelayThread
 
 
-class CrossRelay:
+class CrossRelay(RelayThread):
     """Legs between autopilots and the bridge's endpoints on 127.0.0.1; see the module docstring.
 
     targets: the bridge's (host, port) of each vehicle, in the autopilots' order."""
@@ -44,8 +44,7 @@ class CrossRelay:
         self.to_bridge: list[tuple] = []
         self.send_errors = 0
         self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        super().__init__()
 
     @staticmethod
     def _bound() -> socket.socket:
@@ -66,24 +65,10 @@ class CrossRelay:
             self.swaps.append((t, (i, j)))
         return t
 
-    def start(self) -> "CrossRelay":
-        self._thread = threading.Thread(target=self._run, name="cross-relay", daemon=True)
-        self._thread.start()
-        return self
+    thread_name = "cross-relay"
 
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(2.0)
-            self._thread = None
-        for s in self.ap_socks + self.leg_socks:
-            s.close()
-
-    def __enter__(self) -> "CrossRelay":
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
+    def _sockets(self) -> list[socket.socket]:
+        return self.ap_socks + self.leg_socks
 
     def _run(self) -> None:
         end = time.monotonic() + self.lifetime_s
