@@ -55,6 +55,7 @@ from visionpos.analysis.autopilot import (
     vision_delay_ns,
     weighted_time_ns,
 )
+from visionpos.geometry.frames import GRAVITY_M_S2
 
 log = logging.getLogger("visionpos.bridge")
 
@@ -78,6 +79,9 @@ TIMESYNC_EVERY_NS = 500_000_000
 STREAM_RETRY_NS = 3_000_000_000
 SILENT_WARN_NS = 10_000_000_000
 TELEMETRY_STALE_NS = 2_000_000_000
+MOTION_SAMPLES = 5  # Backchannel.moving: the newest IMU / ATTITUDE samples looked at ...
+MOTION_ACCEL_M_S2 = 1.0  # ... a specific force this far off 1 g ...
+MOTION_RATE_RAD_S = 0.2  # ... or a body rate over this: the vehicle moves (a take-off)
 EKF_STATUS_STALE_NS = 5_000_000_000
 PARAM_RETRY_NS = 2_000_000_000
 ORIGIN_SILENT_GRACE_NS = 2_000_000_000  # with an origin to confirm, wait this long for a silent autopilot
@@ -123,6 +127,7 @@ class Backchannel:
         # request's s1, so neither packing nor a wait for the GIL after the write counts as link latency
         self.write_ns = write_ns if write_ns is not None else clock_ns
         self.autopilot: str | None = None  # 'ardupilot', 'px4' or 'other' (from HEARTBEAT)
+        self.armed = False  # its HEARTBEAT's MAV_MODE_FLAG_SAFETY_ARMED
         self.first_heard_ns = 0
         self.last_heard_ns = 0
         self.reboots = 0
@@ -212,6 +217,7 @@ class Backchannel:
                 self._streams_due = recv_ns
                 log.info("vehicle %s: autopilot heard (%s)", self.cfg.name, kind)
             self.autopilot = kind
+            self.armed = bool(m.base_mode & mavlink2.MAV_MODE_FLAG_SAFETY_ARMED)
         elif t == "ATTITUDE":
             if self._stamp(m.time_boot_ms * 1_000_000, recv_ns):
                 self.att.add(m.time_boot_ms * 1_000_000, (m.roll, m.pitch, m.rollspeed, m.pitchspeed, m.yawspeed))
@@ -541,6 +547,15 @@ class Backchannel:
             self.identity, self.identity_reason = "consistent", f"statistic {stat:.2f} (mismatch above " \
                                                                 f"{IDENTITY_THRESHOLD:.0f})"
         return self.identity
+
+    def moving(self) -> bool:
+        """Whether the vehicle's own newest IMU samples (the last MOTION_SAMPLES) or ATTITUDE show it moving: a
+        specific force off 1 g by over MOTION_ACCEL_M_S2, or a body rate over MOTION_RATE_RAD_S."""
+        acc = list(self.accel.d)[-MOTION_SAMPLES:]
+        if any(abs(math.sqrt(a * a + b * b + c * c) - GRAVITY_M_S2) > MOTION_ACCEL_M_S2 for _, a, b, c in acc):
+            return True
+        att = list(self.att.d)[-MOTION_SAMPLES:]
+        return any(max(abs(p), abs(q), abs(r)) > MOTION_RATE_RAD_S for _, _, _, p, q, r in att)
 
     @property
     def blocks(self) -> bool:

@@ -193,6 +193,7 @@ class VehicleIdentity:
     body: str | None = None
     margin: float = float("nan")
     said_until_ns: int = 0  # a dropped binding's reason is said this long before the next one replaces it
+    on_pad: bool = False  # bound on its pad, not yet confirmed by its motion (Bridge holds it once armed)
 
 
 class FleetBinding:
@@ -437,6 +438,17 @@ class FleetBinding:
                 dropped.append(self._drop(b, f"binding disagreed: {why}: poses stopped, binding again", self._now_ns,
                                           STOPPED))
                 disagreed.add(b)
+        # a pad binding that passed its check is confirmed by motion once the assignment free of the held
+        # bindings gives its body the same vehicle by the margin (the vehicles' motions tell them apart)
+        for i, b in enumerate(rows):
+            v = self.bound.get(b)
+            if v is None or b in disagreed or not self.vehicles[v].on_pad or still:
+                continue
+            chosen = int(free.vehicle[i])
+            if chosen >= 0 and vehicles[chosen] == v and free.margin[i] >= AMBIGUITY:
+                self.vehicles[v] = VehicleIdentity(BOUND, f"bound to {b}: on its pad, confirmed by its motion "
+                                                   f"(margin {min(free.margin[i], 1e6):.0f})", b,
+                                                   float(free.margin[i]))
         # a swap has two sides: a held body whose optical rates counted less since the last evaluation (its
         # attitude uncertain: optical_rate_noise) cannot vouch for its binding by its own check; when another
         # binding of its group disagrees, it may be the other side, and when in doubt it stops too
@@ -503,7 +515,7 @@ class FleetBinding:
             self.bound[b] = v
             taken.add(v)
             self.vehicles[v] = VehicleIdentity(BOUND, f"bound to {b}: standing on its pad {list(pad)} (its motion "
-                                               "checks the binding from the first one on)", b)
+                                               "checks the binding from the first one on)", b, on_pad=True)
             self.binds += 1
             made.append((b, v))
         return made

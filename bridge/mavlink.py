@@ -62,6 +62,7 @@ class Bridge(Sink):
         self.fleet = _fleet_binding(arena, self.vehicles)
         self._identity_book = None  # the pipeline's IdentityBook (use_identity), read and told on the loop
         self._last_bound: dict[str, str] = {}  # fleet vehicle -> the body it was last bound to
+        self._pad_moving: set[str] = set()  # fleet vehicles seen moving on an unconfirmed pad binding
         self._by_name = {v.cfg.name: v for v in self.vehicles}
 
     def use_identity(self, book) -> None:
@@ -99,6 +100,14 @@ class Bridge(Sink):
             if fleet is not None and st.name in fleet.bodies:
                 name = fleet.vehicle_of(st.name)
                 v = self._by_name[name] if name is not None else None
+                if v is not None and fleet.vehicles[name].on_pad and v.bc.armed and (
+                        name in self._pad_moving or v.bc.moving()):
+                    # moving on the operator's word: nothing until its motion confirms the pad's binding (an EKF
+                    # fed another drone's still pose in its climb learns a wrong climb and flies away)
+                    self._pad_moving.add(name)
+                    v.held_unconfirmed += 1
+                    v.not_sent_why = "held: it moves on its pad's binding, until its motion confirms it"
+                    continue
             else:
                 v = by_body.get(st.name)
             if v is not None:
@@ -129,7 +138,10 @@ class Bridge(Sink):
             with v._lock:  # a state of the body it no longer gets may wait in its mailbox: never sent
                 v._slot = None
             v.bc.optical_epoch += 1
+        for name in stop:
+            self._pad_moving.discard(name)
         for body, name in made:
+            self._pad_moving.discard(name)
             if self._last_bound.get(name, body) != body:  # another body's poses: the autopilot resets to them
                 self._by_name[name].reset()
             self._last_bound[name] = body

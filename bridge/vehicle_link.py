@@ -167,11 +167,12 @@ class VehicleLink:
                               write_ns=lambda: self._write_ns)
         self._bc_reboots = 0
         self.gap = VisionGap(int(cfg.vision_gap_s * 1e9))
-        self._not_sent_why = "no state from the server"  # the last reason a pose was not sent (for a gap)
+        self.not_sent_why = "no state from the server"  # the last reason a pose was not sent (for a gap)
         self._statustext_ns = -STATUSTEXT_MIN_INTERVAL_NS
         self.statustexts_sent = 0
         self._gap_told = False  # the autopilot was told of the current gap
         self.cross = CrossedLink(cfg.name, cfg.sysid, self._key)  # another of our autopilots on this link
+        self.held_unconfirmed = 0  # states the Bridge held: armed on a pad binding its motion has not confirmed
 
     # ---------------------------------------------------------------- server side
     def offer(self, state: BodyState) -> None:
@@ -497,7 +498,7 @@ class VehicleLink:
         c = self.counters
         if not st.tracked:
             c["not_tracked"] += 1
-            self._not_sent_why = "the body is not tracked"
+            self.not_sent_why = "the body is not tracked"
             return
         last = self._last_capture
         if last is not None and st.capture_ns <= last:
@@ -509,7 +510,7 @@ class VehicleLink:
             return
         if now - st.capture_ns > self.cfg.max_age_ms * 1e6:
             c["dropped_stale"] += 1
-            self._not_sent_why = f"the poses reach the bridge over max_age_ms ({self.cfg.max_age_ms:g} ms) old"
+            self.not_sent_why = f"the poses reach the bridge over max_age_ms ({self.cfg.max_age_ms:g} ms) old"
             return
         bc = self.bc
         if self.cfg.position_only:  # a point body: no attitude to send or to check
@@ -520,19 +521,19 @@ class VehicleLink:
             bc.on_optical(stamp, euler[0], euler[1], rate, conv.quaternion_ned_frd)  # also while held
         if not self._peer_known():
             c["no_link"] += 1
-            self._not_sent_why = "the link is down"
+            self.not_sent_why = "the link is down"
             return
         if (crossed := self.crossed(now)) is not None:
             c["held_crossed"] += 1
-            self._not_sent_why = f"stopped: sysid {crossed}'s autopilot answers on this link"
+            self.not_sent_why = f"stopped: sysid {crossed}'s autopilot answers on this link"
             return
         if bc.blocks:
             c["held_identity"] += 1
-            self._not_sent_why = "stopped: identity mismatch"
+            self.not_sent_why = "stopped: identity mismatch"
             return
         if bc.holds_for_origin(now):
             c["held_for_origin"] += 1
-            self._not_sent_why = "held until the autopilot confirms its origin"
+            self.not_sent_why = "held until the autopilot confirms its origin"
             self._warn.warning("origin_wait", "vehicle %s: holding the poses until the autopilot confirms its "
                                "origin (GPS_GLOBAL_ORIGIN); %s", self.cfg.name,
                                "resending it every second" + (
@@ -621,7 +622,7 @@ class VehicleLink:
         # gaps that come and go: one line per kind every WARN_INTERVAL_S, with the count held back
         self._warn.warning(f"gap_{e.kind}", "VISION %s: vehicle %s: no pose sent for %.2f s (vision_gap_s %g): %s; "
                            "the autopilot is on its IMU alone and drifting", "LOST" if e.kind == "lost" else
-                           "STILL LOST", name, e.gap_s, self.cfg.vision_gap_s, self._not_sent_why)
+                           "STILL LOST", name, e.gap_s, self.cfg.vision_gap_s, self.not_sent_why)
         # gaps coming and going: at most one warning a STATUSTEXT_MIN_INTERVAL_NS to the autopilot
         if self.clock_ns() - self._statustext_ns >= STATUSTEXT_MIN_INTERVAL_NS:
             self._gap_told = self._statustext(mavlink2.MAV_SEVERITY_WARNING,
@@ -702,7 +703,7 @@ class VehicleLink:
         """The vision gap (bridge/vision_gap.py): state 'ok' | 'gap' | 'not started', since_last_pose_s, gaps,
         longest_s, last_gap_s, threshold_s, why (the last reason a pose was not sent), statustexts_sent."""
         st = self.gap.state(self.clock_ns())
-        st["why"] = self._not_sent_why if st["state"] == "gap" else None
+        st["why"] = self.not_sent_why if st["state"] == "gap" else None
         st["statustexts_sent"] = self.statustexts_sent
         return st
 
@@ -770,7 +771,7 @@ class VehicleLink:
                  f"{self._recent_rate_hz():.0f}Hz"]
         if self.gap.in_gap and self.gap.last_sent_ns is not None:
             parts[0] = (f"{self.cfg.name}: " if with_name else "") + (
-                f"VISION GAP {(now - self.gap.last_sent_ns) * 1e-9:.1f}s ({self._not_sent_why})")
+                f"VISION GAP {(now - self.gap.last_sent_ns) * 1e-9:.1f}s ({self.not_sent_why})")
         if bc.autopilot is None:
             parts.append("autopilot silent")
         else:

@@ -558,3 +558,53 @@ def test_the_docs_say_what_a_pad_does():
             "on no other vehicle's pad)") in doc
     assert f"Pads closer than {2 * PAD_RADIUS_M:g} m are refused at start" in doc
     assert "increments the pose's reset counter" in doc  # test_a_vehicle_bound_again_to_another_body_gets_a_reset
+
+
+def test_an_armed_vehicle_moving_on_an_unconfirmed_pad_binding_gets_nothing_until_its_motion_confirms_it():
+    """Once armed and moving (its own IMU or rates), a vehicle bound only by its pad is held: an EKF fed another
+    drone's still pose through its climb learns a wrong climb (measured with ArduPilot SITL: a fly-away). On the
+    ground, or once its motion confirmed the binding, its body's states go to it."""
+    from bridge import Bridge
+    from bridge.fleet_binding import VehicleIdentity
+    from visionpos.benchmarks.factories import body_state
+    from visionpos.config.arena import parse_arena
+    from visionpos.fusion.identity import IdentityState
+
+    layout = [[0.1, 0, 0], [0, 0.1, 0], [-0.1, 0, 0], [0, -0.12, 0.02]]
+    arena = parse_arena({"bodies": [{"name": "quadA", "id": 1, "markers": layout},
+                                    {"name": "quadB", "id": 2, "markers": layout}],
+                         "vehicles": [{"body": "quadA", "endpoint": "udpout:127.0.0.1:9", "pad": [0, 0]},
+                                      {"body": "quadB", "endpoint": "udpout:127.0.0.1:10", "pad": [1, 0]}]},
+                        "fleet-test.yaml")
+    bridge = Bridge(arena, {"report_interval_s": 0, "pose_stream": False})
+    fleet, v = bridge.fleet, bridge.vehicle("quadA")
+    fleet.due = lambda now: False
+    fleet.bound["quadA"] = "quadA"
+    fleet.identity["quadA"] = IdentityState.CONTINUITY.value  # as a binding made by evaluate leaves it
+    fleet.vehicles["quadA"] = VehicleIdentity(BOUND, "bound to quadA: standing on its pad", "quadA", on_pad=True)
+
+    def offered(armed: bool, accel_z: float) -> bool:
+        v._slot = None
+        v.bc.armed = armed
+        v.bc.accel.add(v.bc.accel.last_t() + 1 if v.bc.accel.d else 1, (0.0, 0.0, -accel_z))
+        bridge.publish([body_state("quadA", 1), body_state("quadB", 2)])
+        return v._slot is not None
+
+    assert offered(False, 9.81)  # on the ground, disarmed: the pad's binding feeds it
+    assert offered(True, 9.81)  # armed, still: still fed (ArduPilot arms only on fresh vision)
+    assert not offered(True, 12.5)  # it climbs: held, and said why
+    assert v.held_unconfirmed == 1 and "until its motion confirms it" in v.not_sent_why
+    assert not offered(True, 9.81)  # a steady climb still holds until the binding is confirmed
+    fleet.vehicles["quadA"] = VehicleIdentity(BOUND, "bound to quadA: on its pad, confirmed by its motion", "quadA")
+    assert offered(True, 9.81)
+
+
+def test_the_docs_say_when_a_pad_binding_is_held():
+    from pathlib import Path
+
+    from bridge.backchannel import MOTION_ACCEL_M_S2, MOTION_RATE_RAD_S, MOTION_SAMPLES
+
+    doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
+    assert (f"specific force more than {MOTION_ACCEL_M_S2:g} m/s^2 off 1 g, or a body rate over "
+            f"{MOTION_RATE_RAD_S:g} rad/s, in its newest {MOTION_SAMPLES} samples") in doc
+    assert '"held: it moves on its pad\'s binding, until its motion confirms it"' in doc
