@@ -63,6 +63,7 @@ class Bridge(Sink):
         self._identity_book = None  # the pipeline's IdentityBook (use_identity), read and told on the loop
         self._last_bound: dict[str, str] = {}  # fleet vehicle -> the body it was last bound to
         self._pad_moving: set[str] = set()  # fleet vehicles seen moving on an unconfirmed pad binding
+        self._body_resets: dict[str, int] = {}  # each body's newest reset counter (the shared counter's sum)
         self._by_name = {v.cfg.name: v for v in self.vehicles}
 
     def use_identity(self, book) -> None:
@@ -96,6 +97,12 @@ class Bridge(Sink):
         fleet = self.fleet
         if fleet is not None:
             self._bind(states)
+        if len(self.vehicles) > 1:  # one reset counter for every vehicle: any body's reset or bridge reset
+            for name, st in ((s.name, s) for s in states):
+                self._body_resets[name] = int(st.reset_counter)
+            shared = (sum(self._body_resets.values()) + sum(v.local_resets for v in self.vehicles)) % 256
+            for v in self.vehicles:
+                v.reset_shared = shared
         for st in states:
             if fleet is not None and st.name in fleet.bodies:
                 name = fleet.vehicle_of(st.name)

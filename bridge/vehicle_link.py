@@ -173,6 +173,9 @@ class VehicleLink:
         self._gap_told = False  # the autopilot was told of the current gap
         self.cross = CrossedLink(cfg.name, cfg.sysid, self._key)  # another of our autopilots on this link
         self.held_unconfirmed = 0  # states the Bridge held: armed on a pad binding its motion has not confirmed
+        # with several vehicles, the Bridge's one reset counter for all (Bridge.publish): a pose that reaches another
+        # autopilot (a crossed link) carries the counter it already has, so its EKF gates the jump, not resets to it
+        self.reset_shared: int | None = None
 
     # ---------------------------------------------------------------- server side
     def offer(self, state: BodyState) -> None:
@@ -541,7 +544,8 @@ class VehicleLink:
                                    if self.cfg.origin_confirm_timeout_s > 0 else ""))
             return
         usec = (stamp + self.base_offset_ns) // 1000
-        reset = (int(st.reset_counter) + self.local_resets) % 256
+        shared = self.reset_shared
+        reset = (shared if shared is not None else int(st.reset_counter) + self.local_resets) % 256
         if self.cfg.message == "odometry":
             fields = odometry_fields(conv, usec, reset, self.cfg.quality)
             if self.estimator() == "px4":

@@ -489,3 +489,34 @@ def test_latency_percentiles_are_numpys():
         assert np.allclose(percentiles_ms(lat_ns, (0, 50, 99, 100)), np.percentile(lat_ns, [0, 50, 99, 100]) * 1e-6,
                            rtol=1e-12, atol=0)
     assert all(np.isnan(percentiles_ms(np.zeros(0, np.int64), (50, 99))))
+
+
+def test_several_vehicles_share_one_reset_counter():
+    """With several vehicles every pose carries one counter, the sum of every body's and every link's resets: a
+    pose that reaches another autopilot over a crossed link (before the bridge hears that autopilot) carries the
+    counter that autopilot already has, so its EKF gates the other drone's position instead of resetting to it
+    (ArduPilot resets its position to the vision at any change of the counter: measured with two SITLs)."""
+    pa, pb = free_port(), free_port()
+    sign = {"signing": {"key_file": key_file()}, "max_age_ms": 10000}
+    bridge = Bridge(arena_with_vehicles([
+        {"body": "body1", "sysid": 1, "endpoint": f"udpin:127.0.0.1:{pa}", **sign},
+        {"body": "body2", "sysid": 2, "endpoint": f"udpin:127.0.0.1:{pb}", **sign}]), {"report_interval_s": 0})
+    bridge.start()
+    aps = [FakeAutopilot(f"udpout:127.0.0.1:{p}", sysid=s, signing_key=KEY).start() for p, s in ((pa, 1), (pb, 2))]
+    try:
+        assert all(ap.wait_for("HEARTBEAT", 1, 5.0) for ap in aps)
+        t0, ms = time.monotonic_ns(), 1_000_000
+        for k, (r1, r2, local) in enumerate([(0, 0, 0), (1, 0, 0), (1, 3, 0), (1, 3, 1)]):
+            if local:
+                bridge.vehicle("body2").reset()  # a bridge reset of one vehicle counts for all
+            c = t0 + 30 * ms * k
+            bridge.publish([body_state("body1", 1, capture_ns=c, reset_counter=r1),
+                            body_state("body2", 2, capture_ns=c, reset_counter=r2)])
+            assert bridge.flush(2.0)
+        assert all(ap.wait_for(VPE, 4) for ap in aps)
+        for ap in aps:
+            assert [m.fields["reset_counter"] for m in ap.messages(VPE)] == [0, 1, 4, 5]
+    finally:
+        bridge.close()
+        for ap in aps:
+            ap.close()
