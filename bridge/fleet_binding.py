@@ -225,6 +225,7 @@ class FleetBinding:
         self.disagreements = 0
         self.point_bodies = point_bodies  # single-marker bodies: bound by their accelerations (point_binding.py)
         self.pads = dict(pads or {})  # vehicle -> its parking pad (x, y m, world): _bind_on_pads
+        self.pad_refuted: set[str] = set()  # vehicles whose pad binding its motion contradicted: by motion only
 
     def vehicle_of(self, body: str) -> str | None:
         """The vehicle that gets this optical body's states now (None: nobody)."""
@@ -435,6 +436,9 @@ class FleetBinding:
                 j = chosen if other else int(np.argmin(alt))
                 why = (f"{b} no longer moves like it (cost {mine:.0f} over the reject {reject:.0f})" if mine > reject
                        else f"{b} moves like {vehicles[j]} (cost {cost[i, j]:.0f} against its {mine:.0f})")
+                if self.vehicles[v].on_pad:  # the operator's pad was wrong: no pad binds it again
+                    self.pad_refuted.add(v)
+                    why += f"; its pad {list(self.pads[v])} is not where it stands: bound by its motion only now"
                 dropped.append(self._drop(b, f"binding disagreed: {why}: poses stopped, binding again", self._now_ns,
                                           STOPPED))
                 disagreed.add(b)
@@ -505,7 +509,7 @@ class FleetBinding:
 
         for v in vehicles:
             pad = self.pads.get(v)
-            if pad is None or v in taken:
+            if pad is None or v in taken or v in self.pad_refuted:
                 continue
             j = vehicles.index(v)
             here = [b for b in where if b not in self.bound and on(where[b], pad) and cost[rows.index(b), j] <= reject]

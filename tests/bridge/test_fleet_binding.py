@@ -505,6 +505,14 @@ def test_drones_parked_on_each_others_pads_are_stopped_at_their_first_motion_and
     assert f.binding.vehicles["v2"].state == BOUND and not any(v == "v2" for _, v in stops)
     f.step(2.0)
     assert f.binding.vehicle_of("quad2") == "v0" and f.binding.vehicle_of("quad3") == "v1"
+    # their pads were wrong: no pad binds them again (a lost track is bound by motion only), v2's still does
+    assert f.binding.pad_refuted == {"v0", "v1"}
+    f.lost.update(["quad2", "quad3"])
+    f.step(0.3)
+    f.lost.clear()
+    f.rates[0] = lambda t: 0.0
+    f.step(1.5)
+    assert f.binding.vehicle_of("quad2") is None and f.binding.vehicle_of("quad3") is None
 
 
 def test_pads_closer_than_twice_the_radius_are_refused():
