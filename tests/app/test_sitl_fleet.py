@@ -122,7 +122,7 @@ def test_two_identical_real_sitls_are_bound_on_their_pads_fly_together_and_a_swa
     assert all("answers on this link" in said for said in sw["said"]) and sw["resumed_after_s"] < 4.0
     for name, v in s["vehicles"].items():  # each bound on its pad, to the body standing there (its own)
         b = v["binding_at_take_off"]
-        assert b["identity_binding"] == "bound" and "standing on its pad" in b["identity_reason"], b
+        assert b["identity_binding"] == "bound" and "on its pad" in b["identity_reason"], b
     for v in s["vehicles"].values():
         assert v["ekf_horizontal_error_outside_swap_mm"]["p99"] <= 20.0, v["ekf_horizontal_error_outside_swap_mm"]
         # (a pose or two of the other vehicle may reach an autopilot before the bridge hears it: EKF3 may switch
