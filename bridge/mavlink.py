@@ -64,6 +64,8 @@ class Bridge(Sink):
         self._last_bound: dict[str, str] = {}  # fleet vehicle -> the body it was last bound to
         self._pad_moving: set[str] = set()  # fleet vehicles seen moving on an unconfirmed pad binding
         self._body_resets: dict[str, int] = {}  # each body's newest reset counter (the shared counter's sum)
+        self._several = len(self.vehicles) > 1
+        self._shared: int | None = None
         self._by_name = {v.cfg.name: v for v in self.vehicles}
 
     def use_identity(self, book) -> None:
@@ -97,12 +99,15 @@ class Bridge(Sink):
         fleet = self.fleet
         if fleet is not None:
             self._bind(states)
-        if len(self.vehicles) > 1:  # one reset counter for every vehicle: any body's reset or bridge reset
-            for name, st in ((s.name, s) for s in states):
-                self._body_resets[name] = int(st.reset_counter)
-            shared = (sum(self._body_resets.values()) + sum(v.local_resets for v in self.vehicles)) % 256
-            for v in self.vehicles:
-                v.reset_shared = shared
+        if self._several:  # one reset counter for every vehicle: any body's reset or bridge reset
+            resets = self._body_resets
+            for st in states:
+                resets[st.name] = st.reset_counter
+            shared = int(sum(resets.values()) + sum(v.local_resets for v in self.vehicles)) % 256
+            if shared != self._shared:
+                self._shared = shared
+                for v in self.vehicles:
+                    v.reset_shared = shared
         for st in states:
             if fleet is not None and st.name in fleet.bodies:
                 name = fleet.vehicle_of(st.name)

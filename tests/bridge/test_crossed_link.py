@@ -136,12 +136,15 @@ def test_an_unverified_packet_of_another_sysid_from_the_peer_changes_nothing(tmp
     bridge = Bridge(arena_with_vehicles([{"body": "body1", "sysid": 1, "endpoint": f"udpin:127.0.0.1:{port}",
                                           "signing": {"key_file": _key_file(tmp_path, KEYS[0], "k")}}]),
                     {"report_interval_s": 0})
-    ap = FakeAutopilot(f"udpout:127.0.0.1:{port}", sysid=1, signing_key=KEYS[0]).start()
     bridge.start()
+    ap = FakeAutopilot(f"udpout:127.0.0.1:{port}", sysid=1, signing_key=KEYS[0], heartbeat_hz=10).start()
     try:
         from pymavlink.dialects.v20 import common as mavlink2
 
         v = bridge.vehicles[0]
+        end = time.monotonic() + 5.0
+        while not v.health()["link"]["up"] and time.monotonic() < end:  # the bridge has learned the autopilot
+            time.sleep(0.01)
         stranger = mavlink2.MAVLink(None, srcSystem=2, srcComponent=1)
         stranger.signing.secret_key, stranger.signing.sign_outgoing = KEYS[1], True
         stranger.signing.link_id, stranger.signing.timestamp = 0, int((time.time() - 1420070400) * 1e5)
