@@ -108,6 +108,15 @@ MAV_CMD_DO_SET_HOME = 179
 GYRO_FILTER_PARAM = "INS_GYRO_FILTER"  # ArduPilot: the cutoff (Hz) of the low-pass on the gyro it reports
 
 
+def _newest(d: collections.deque, n: int) -> list:
+    """The newest n entries of a deque another thread appends to, by index (each read atomic under the GIL;
+    iterating it could meet an append), none where it was emptied meanwhile."""
+    try:
+        return [d[-k] for k in range(1, min(n, len(d)) + 1)]
+    except IndexError:
+        return []
+
+
 class Backchannel:
     """The autopilot's telemetry for one vehicle link and the checks on it; see the module docstring.
 
@@ -551,10 +560,10 @@ class Backchannel:
     def moving(self) -> bool:
         """Whether the vehicle's own newest IMU samples (the last MOTION_SAMPLES) or ATTITUDE show it moving: a
         specific force off 1 g by over MOTION_ACCEL_M_S2, or a body rate over MOTION_RATE_RAD_S."""
-        acc = list(self.accel.d)[-MOTION_SAMPLES:]
+        acc = _newest(self.accel.d, MOTION_SAMPLES)  # (runs every output tick while armed on a pad: no copies)
         if any(abs(math.sqrt(a * a + b * b + c * c) - GRAVITY_M_S2) > MOTION_ACCEL_M_S2 for _, a, b, c in acc):
             return True
-        att = list(self.att.d)[-MOTION_SAMPLES:]
+        att = _newest(self.att.d, MOTION_SAMPLES)
         return any(max(abs(p), abs(q), abs(r)) > MOTION_RATE_RAD_S for _, _, _, p, q, r in att)
 
     @property

@@ -43,10 +43,11 @@ class CrossedLink:
             checks = self._checks[sysid] = [SignatureCheck(k) for k in dict.fromkeys(keys)]
         return any(chk.check(buf, v2, compid)[0] >= 0 for chk in checks)
 
-    def heard(self, sysid: int, addr: tuple | None, endpoint: object, now_ns: int) -> None:
+    def heard(self, sysid: int, addr: tuple | None, endpoint: object, now_ns: int) -> bool:
         """An authenticated packet of another sysid's autopilot from the peer: crossed from now; said loudly, once
-        per episode."""
-        if self.other != sysid:
+        per episode. True when it starts an episode."""
+        new = self.other != sysid
+        if new:
             self.other = sysid
             log.error("vehicle %s: the autopilot of sysid %d answers on this link (%s), where sysid %d's should: "
                       "two vehicles' endpoints swapped (radios or ports exchanged), or vehicles[].sysid wrong? "
@@ -54,6 +55,7 @@ class CrossedLink:
                       "%.0f s", self.name, sysid, fmt_addr(addr) if addr else endpoint, self.sysid, self.sysid,
                       sysid, CLEAR_NS * 1e-9)
         self.last_ns = now_ns
+        return new
 
     def current(self, now_ns: int, own_last_rx_ns: int) -> int | None:
         """The other sysid while the link is crossed, else None (clearing once it is over)."""

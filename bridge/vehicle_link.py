@@ -389,9 +389,7 @@ class VehicleLink:
                         continue
                     if compid == MAV_COMP_ID_AUTOPILOT1 and (addr is None or addr == link.peer) and \
                             self.cross.verified(buf, v2, sysid, compid):
-                        if self.cross.other != sysid:
-                            c["crossed"] += 1
-                        self.cross.heard(sysid, addr, self.cfg.endpoint, self.clock_ns())
+                        c["crossed"] += self.cross.heard(sysid, addr, self.cfg.endpoint, self.clock_ns())
                         continue
                     self._log_once("rx_foreign", "vehicle %s: packets from sysid %d on the link of sysid %d are "
                                    "ignored (counted in rx_foreign; logged once): if that is this vehicle's "

@@ -35,7 +35,7 @@ from visionpos.app.sitl.flight import FlightPlan, arm_in_guided, goto, set_advis
 from visionpos.app.sitl.gcs import COPTER_MODES, EXTNAV_TEXT, MAV_CMD_DO_SET_MODE, MAV_CMD_NAV_TAKEOFF, Gcs
 from visionpos.app.sitl.preflight import prepare_vehicle
 from visionpos.app.sitl.process import SitlProcess, free_instances
-from visionpos.app.sitl.report import flight_summary, say_to
+from visionpos.app.sitl.report import flight_summary, horizontal_error_mm, say_to
 from visionpos.app.sitl.settings import SitlError, parse_sitl
 from visionpos.app.sitl.truth import LATLON_TO_M, LiveArena, TruthTrack, truth_now
 from visionpos.config.arena import ArenaConfig
@@ -323,8 +323,7 @@ def _outside(v: _Vehicle, swap: dict[str, Any]) -> dict[str, float | None]:
     loc = np.array([r for r in v.gcs.local if a <= r[0] <= b and not lo <= r[0] <= hi], dtype=float).reshape(-1, 4)
     if not len(loc):
         return {"p99": None, "max": None}
-    p, _, _, _ = v.truth.sample(loc[:, 0].astype(np.int64))
-    e = np.hypot(*(loc[:, 1:3] - world_to_ned(p)[:, :2]).T) * 1e3
+    e = horizontal_error_mm(loc, v.truth)
     return {"p99": float(np.percentile(e, 99)), "max": float(e.max())}
 
 

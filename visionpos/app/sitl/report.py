@@ -49,6 +49,13 @@ def ekf_lead_ms(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> tup
     return float((e * v).sum() / (v * v).sum() * 1e3), n
 
 
+def horizontal_error_mm(loc: np.ndarray, truth: TruthTrack) -> np.ndarray:
+    """The EKF's horizontal distance (T,) mm from the truth at each LOCAL_POSITION_NED row of loc (T, 4): arrival
+    ns, N, E, D m."""
+    p, _, _, _ = truth.sample(loc[:, 0].astype(np.int64))
+    return np.hypot(*(loc[:, 1:3] - world_to_ned(p)[:, :2]).T) * 1e3
+
+
 FAILSAFE_WORDS = ("failsafe", "ekf variance", "lane switch", "ekf primary changed", "position lost", "crash")
 
 
@@ -65,10 +72,8 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
         loc = np.array([r for r in gcs.local if a <= r[0] <= b], dtype=float).reshape(-1, 4)
         if len(loc):
             p, _, _, _ = truth.sample(loc[:, 0].astype(np.int64))
-            ned_true = world_to_ned(p)
-            err = loc[:, 1:4] - ned_true
-            out["ekf_horizontal_error_mm"] = _pcts(np.hypot(err[:, 0], err[:, 1]) * 1e3)
-            out["ekf_vertical_error_mm"] = _pcts(np.abs(err[:, 2]) * 1e3)
+            out["ekf_horizontal_error_mm"] = _pcts(horizontal_error_mm(loc, truth))
+            out["ekf_vertical_error_mm"] = _pcts(np.abs(loc[:, 3] - world_to_ned(p)[:, 2]) * 1e3)
             lead = ekf_lead_ms(loc[:, 0], loc[:, 1:4], truth)
             if lead is not None:
                 out["ekf_lead_ms"], out["ekf_lead_samples"] = lead
@@ -92,9 +97,7 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
             out["cut"] = {"seconds": plan.cut_s, "max_drift_from_hold_mm": float(dev.max()) if len(dev) else None}
             after = loc[(loc[:, 0] >= c1 + 1_000_000_000) & (loc[:, 0] <= c1 + 3_000_000_000)] if len(loc) else loc
             if len(after):
-                p, _, _, _ = truth.sample(after[:, 0].astype(np.int64))
-                e = np.hypot(*(after[:, 1:3] - world_to_ned(p)[:, :2]).T) * 1e3
-                out["cut"]["ekf_horizontal_error_1_to_3_s_after_mm"] = _pcts(e)
+                out["cut"]["ekf_horizontal_error_1_to_3_s_after_mm"] = _pcts(horizontal_error_mm(after, truth))
     texts = [t for _, _, t in gcs.texts]
     out["statustext"] = texts
     out["failsafe_or_lane_switch"] = [t for t in texts if any(w in t.lower() for w in FAILSAFE_WORDS)]
