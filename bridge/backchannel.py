@@ -734,6 +734,8 @@ class Backchannel:
                 f"{a.why}")
         if a.param == "EKF2_EV_DELAY":
             text += "; 0 once PX4's TIMESYNC has converged (timesync_status)"
+        if a.horizon_param is not None:
+            text += f"; {a.horizon_param}={a.horizon_ms}: {a.horizon_why}"
         if self.delay_param_confirmed is not None:
             text += " (set on the autopilot)"
         return text
@@ -763,6 +765,8 @@ class Backchannel:
             "delay_param": self.advice.param if self.advice else None,
             "delay_advised_ms": self.advice.value_ms if self.advice else None,
             "delay_param_set": self.delay_param_confirmed,
+            "delay_horizon_param": self.advice.horizon_param if self.advice else None,
+            "delay_horizon_ms": self.advice.horizon_ms if self.advice else None,
             "origin": self.origin_state(now),
             "home_acked": self.home_acked,
             "home_reported": list(self.home_reported) if self.home_reported else None,

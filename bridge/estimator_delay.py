@@ -7,27 +7,52 @@ The two estimators use the pose's stamp differently, so the same measured delays
   smallest (arrival - stamp) seen and maps every stamp with it, so each pose is taken as if it had arrived with
   the smallest delay seen; the jitter is gone, and what is left is that smallest delay, which
   NavEKF3_core::writeExtNavData (libraries/AP_NavEKF3/AP_NavEKF3_Measurements.cpp) removes as its `delay_ms`
-  argument, VISO_DELAY_MS. So VISO_DELAY_MS wants about the smallest stamp-to-arrival delay: a low percentile
-  (ARDUPILOT_PERCENTILE; a single early outlier sets ArduPilot's own minimum too, but not the advice). The median
-  over-delays every pose by (median - minimum): against SITL 16 ms instead of 7 ms put the EKF 11-13 ms ahead
-  of the truth (issue 31).
+  argument, VISO_DELAY_MS. Its smallest is taken afresh every JITTER_WINDOW (100) messages (the minimum of
+  the last window replaces it), so the advice is that: the median, over consecutive windows of 100 poses in
+  arrival order, of each window's smallest delay (a single early outlier moves one window, not the advice).
+  The median delay over-delays every pose by (median - minimum): against SITL 16 ms instead of 7 ms put the EKF
+  11-13 ms ahead of the truth (issue 31); so did a low percentile (p2) where the host's load spread the
+  delays: p2 9-14 ms put the EKF 4-6 ms ahead in 3 flights, 5-8 ms 0.3-1.4 ms in 3.
 - PX4 (EKF2). mavlink_receiver stamps the sample with the synchronised `time_usec` only while its TIMESYNC
   estimate has converged, else with the arrival time (../shared/sitl-px4/README.md); EKF2 then moves every
   sample back by EKF2_EV_DELAY (EstimatorInterface::setExtVisionData, src/modules/ekf2/EKF/
   estimator_interface.cpp: time_us - ev_delay_ms * 1000 - half an EKF step), no jitter correction. Stamped on
   arrival, each sample's error is its own delay less the setting: the median of the delays makes the errors
   balance (PX4_PERCENTILE). Stamped with a converged TIMESYNC, the stamp is the pose's instant: 0.
+
+Each estimator also keeps only so much IMU history (its delayed horizon), and a pose older than that is fused
+as if it were as old as the horizon, i.e. newer than it is: the EKF then trails the truth whatever the delay
+setting. So the advice also names the horizon the poses need (DelayAdvice.horizon_*):
+- EKF3 sizes its buffer once, at boot (NavEKF3_core::setup_core): floor(M / 12 ms) + 1 samples of at least one
+  EKF step (12 ms; 12.5 at a 400 Hz loop) each, M being the largest of its sensor delays (EK3_HGT_DELAY, 60 ms
+  by default, EK3_FLOW_DELAY, EK3_BCN_DELAY, VISO_DELAY_MS), and writeExtNavData clamps an older pose to the
+  buffer's oldest sample. Its jitter correction gives a pose the smallest delay plus its own lateness, so the
+  poses reach back to about the p99 of the delays, plus half a step. Through a relay adding 50 ms each way
+  (SITL, issue 31) the default buffer (62.5 ms) was short of that (about 80 ms): the EKF trailed the truth by
+  15-20 ms with VISO_DELAY_MS as advised, 2 ms once the buffer was sized for it. EK3_BCN_DELAY, a delay EKF3
+  uses only for range beacons, sizes the buffer without moving any sensor in time (reboot to apply).
+- EKF2's horizon is EKF2_DELAY_MAX (read at start; EKF2 raises it to its largest sensor delay): the delay
+  setting plus a margin (EKF2_HORIZON_MARGIN_MS) holds a sample stamped on arrival; with a converged TIMESYNC
+  the poses reach back to the delays' p99.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
-ARDUPILOT_PERCENTILE = 2.0  # about the smallest delay, robust to a stray early sample
+JITTER_WINDOW = 100  # JitterCorrection's convergence_loops (libraries/AP_RTC/JitterCorrection.h default)
 PX4_PERCENTILE = 50.0
 PARAMS = {"ardupilot": "VISO_DELAY_MS", "px4": "EKF2_EV_DELAY"}
+HORIZON_PERCENTILE = 99.0  # the poses' horizon covers this share of their delays
+EKF3_SLOT_MS = 12  # EKF_TARGET_DT_MS: one buffer sample per this much of the largest delay, each at least this long
+EKF3_HALF_STEP_MS = 6.0  # writeExtNavData also moves each pose back by half an EKF step
+EKF3_DEFAULT_LARGEST_DELAY_MS = 60  # EK3_HGT_DELAY's default, the largest of EKF3's delays unless one is raised
+EKF3_MAX_DELAY_MS = 250  # the delay parameters' range, and what EKF3 takes of VISO_DELAY_MS for its buffer
+EKF3_HORIZON_PARAM = "EK3_BCN_DELAY"  # used only for range beacons: it sizes the buffer and moves no sensor
+EKF2_HORIZON_MARGIN_MS = 25.0  # EKF2_DELAY_MAX over the oldest a pose gets (a sample stamped on arrival: the setting)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,6 +60,37 @@ class DelayAdvice:
     param: str  # the autopilot parameter (VISO_DELAY_MS, EKF2_EV_DELAY)
     value_ms: int  # what to set it to (whole ms: both parameters are)
     why: str  # one phrase: which statistic of the delays, and why
+    # the estimator's horizon the poses need, where its default falls short (ArduPilot: None when
+    # EK3_HGT_DELAY's default buffer holds them; PX4: always, EKF2_DELAY_MAX's default being far too long)
+    horizon_param: str | None = None  # EK3_BCN_DELAY, EKF2_DELAY_MAX; both need a reboot
+    horizon_ms: int | None = None
+    horizon_why: str = ""
+
+
+def jitter_corrected_delay_ms(stamp_to_arrival_ms: np.ndarray) -> float:
+    """The delay ArduPilot's jitter correction gives the poses (ms): the median, over consecutive windows of
+    JITTER_WINDOW delays (N,) in arrival order, of each window's smallest (the smallest of all for fewer; a last
+    partial window counts only if it holds half a window)."""
+    d = np.asarray(stamp_to_arrival_ms, dtype=np.float64)
+    full = len(d) // JITTER_WINDOW
+    if full == 0:
+        return float(d.min())
+    mins = list(d[: full * JITTER_WINDOW].reshape(full, JITTER_WINDOW).min(axis=1))
+    if len(d) - full * JITTER_WINDOW >= JITTER_WINDOW // 2:
+        mins.append(float(d[full * JITTER_WINDOW:].min()))
+    return float(np.median(mins))
+
+
+def ekf3_history_ms(largest_delay_ms: float) -> float:
+    """The IMU history (ms) EKF3 keeps for a largest sensor delay of largest_delay_ms at boot: floor(M / 12)
+    steps of at least 12 ms (NavEKF3_core::setup_core; a lower bound: 12.5 ms steps at a 400 Hz loop)."""
+    return (min(largest_delay_ms, EKF3_MAX_DELAY_MS) // EKF3_SLOT_MS) * EKF3_SLOT_MS
+
+
+def ekf3_largest_delay_for(oldest_ms: float) -> int:
+    """The smallest largest-delay setting (ms, whole slots) whose buffer (ekf3_history_ms) holds a pose
+    oldest_ms old: may exceed EKF3_MAX_DELAY_MS, which EKF3 cannot hold."""
+    return EKF3_SLOT_MS * max(1, math.ceil(oldest_ms / EKF3_SLOT_MS))
 
 
 def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_timesync_converged: bool = False,
@@ -49,11 +105,26 @@ def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_ti
         return None
     if autopilot == "px4":
         if px4_timesync_converged:
-            return DelayAdvice("EKF2_EV_DELAY", 0, "PX4 stamps the poses with their own time (TIMESYNC converged)")
-        v = float(np.percentile(d, PX4_PERCENTILE))
-        return DelayAdvice("EKF2_EV_DELAY", int(round(max(0.0, v))),
-                           "the median stamp-to-arrival delay (PX4 stamps each pose on arrival)")
-    v = float(np.percentile(d, ARDUPILOT_PERCENTILE))
-    return DelayAdvice("VISO_DELAY_MS", int(round(max(0.0, v))),
-                       f"the smallest stamp-to-arrival delay (p{ARDUPILOT_PERCENTILE:g}: ArduPilot's jitter "
-                       "correction gives every pose the smallest delay it has seen)")
+            late = float(np.percentile(d, HORIZON_PERCENTILE))
+            return DelayAdvice("EKF2_EV_DELAY", 0, "PX4 stamps the poses with their own time (TIMESYNC converged)",
+                               "EKF2_DELAY_MAX", int(math.ceil(late + EKF2_HORIZON_MARGIN_MS)),
+                               f"the poses reach back {late:.0f} ms (p{HORIZON_PERCENTILE:g}), plus a margin")
+        v = int(round(max(0.0, float(np.percentile(d, PX4_PERCENTILE)))))
+        return DelayAdvice("EKF2_EV_DELAY", v, "the median stamp-to-arrival delay (PX4 stamps each pose on arrival)",
+                           "EKF2_DELAY_MAX", int(math.ceil(v + EKF2_HORIZON_MARGIN_MS)),
+                           "EKF2_EV_DELAY plus a margin: a shorter horizon carries less IMU noise to the output")
+    v = int(round(max(0.0, jitter_corrected_delay_ms(d))))
+    why = (f"the smallest stamp-to-arrival delay (ArduPilot's jitter correction gives every pose the smallest "
+           f"delay of its last {JITTER_WINDOW} messages: the median of such minima)")
+    late = float(np.percentile(d, HORIZON_PERCENTILE))
+    oldest = late + EKF3_HALF_STEP_MS
+    if ekf3_history_ms(max(EKF3_DEFAULT_LARGEST_DELAY_MS, v)) >= oldest:
+        return DelayAdvice("VISO_DELAY_MS", v, why)
+    need = ekf3_largest_delay_for(oldest)
+    return DelayAdvice("VISO_DELAY_MS", v, why, EKF3_HORIZON_PARAM, min(need, EKF3_MAX_DELAY_MS),
+                       f"poses reach EKF3 up to {late:.0f} ms (p{HORIZON_PERCENTILE:g}) after their stamp, older "
+                       f"than its IMU history (sized at boot from its largest sensor delay, EK3_HGT_DELAY's "
+                       f"{EKF3_DEFAULT_LARGEST_DELAY_MS} ms by default), which takes them as newer than they are; "
+                       f"{EKF3_HORIZON_PARAM} (used only for range beacons) sizes it: set it and reboot"
+                       + ("" if need <= EKF3_MAX_DELAY_MS else
+                          f"; even its largest, {EKF3_MAX_DELAY_MS} ms, is short: this link is too slow"))

@@ -44,7 +44,10 @@ class LatencyRing:
         self.n += 1
 
     def values(self) -> np.ndarray:
-        return self.buf[: min(self.n, LATENCY_SAMPLES)].copy()
+        """The kept latencies, oldest first."""
+        if self.n <= LATENCY_SAMPLES:
+            return self.buf[: self.n].copy()
+        return np.roll(self.buf, -(self.n % LATENCY_SAMPLES))
 
 
 def delay_advice(stats: dict) -> str:
@@ -54,13 +57,14 @@ def delay_advice(stats: dict) -> str:
     if not np.isfinite(p50):
         return f"{stats['body']} (sysid {stats['sysid']}): no pose sent yet"
     age = stats["latency_stamp_ms_p50"]
-    d, low = int(round(age)), int(round(stats.get("latency_stamp_ms_p2", age)))  # bridge/estimator_delay.py: why
+    d, low = int(round(age)), int(round(stats.get("latency_stamp_ms_jitter_min", age)))  # estimator_delay.py: why
     if stats.get("delay_ms") is not None:
         return (f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms; "
                 f"{stats['delay_advice']}")
     return (
         f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms; "
         f"pose stamp->send p50 {age:.1f} ms (bridge adds p50 {stats['latency_bridge_ms_p50']:.2f} ms) -> "
-        f"ArduPilot VISO_DELAY_MS={low} (p2 + link latency); PX4 EKF2_EV_DELAY={d} without TIMESYNC, "
+        f"ArduPilot VISO_DELAY_MS={low} (the smallest of each 100 poses + link latency); PX4 EKF2_EV_DELAY={d} "
+        "without TIMESYNC, "
         f"~0 with TIMESYNC converged"
     )

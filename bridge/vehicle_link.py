@@ -54,6 +54,7 @@ from bridge.convert import (
     vision_speed_fields,
 )
 from bridge.crossed_link import CrossedLink
+from bridge.estimator_delay import jitter_corrected_delay_ms
 from bridge.link_stats import LatencyRing, fmt_addr, percentiles_ms
 from bridge.signing import MAVLINK2_MAGIC, SignatureCheck, SigningClock
 from bridge.transport import Link, LinkDown, make_link
@@ -675,7 +676,7 @@ class VehicleLink:
         out: dict = dict(self.counters)
         lc, ls, lb = self.lat_capture.values(), self.lat_stamp.values(), self.lat_bridge.values()
         lc_p, lb_p = (percentiles_ms(v, (50, 99)) for v in (lc, lb))
-        ls_p = percentiles_ms(ls, (50, 99, 2))  # p2: about the smallest delay (bridge/estimator_delay.py)
+        ls_p = percentiles_ms(ls, (50, 99, 2))
         out.update(
             sysid=self.cfg.sysid,
             body=self.cfg.body,
@@ -690,6 +691,7 @@ class VehicleLink:
             latency_capture_ms_p50=lc_p[0],
             latency_capture_ms_p99=lc_p[1],
             latency_stamp_ms_p2=ls_p[2],
+            latency_stamp_ms_jitter_min=jitter_corrected_delay_ms(ls * 1e-6) if len(ls) else math.nan,
             latency_stamp_ms_p50=ls_p[0],
             latency_stamp_ms_p99=ls_p[1],
             latency_bridge_ms_p50=lb_p[0],
@@ -743,7 +745,8 @@ class VehicleLink:
                          "tripped_after_s": bc["identity_tripped_after_s"]},
             "delay": {"measured_ms": bc["delay_ms"], "detail": bc["delay_detail"], "advice": bc["delay_advice"],
                       "param": bc["delay_param"], "advised_ms": bc["delay_advised_ms"],
-                      "param_set": bc["delay_param_set"]},
+                      "param_set": bc["delay_param_set"], "horizon_param": bc["delay_horizon_param"],
+                      "horizon_ms": bc["delay_horizon_ms"]},
             "vision_gap": self.vision_gap_state(),
             "crossed": {"sysid": self.crossed(now), "episodes": c["crossed"]},
             "origin": {"state": bc["origin"], "home_acked": bc["home_acked"], "home_reported": bc["home_reported"],

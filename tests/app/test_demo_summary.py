@@ -175,7 +175,7 @@ def test_the_summary_says_when_the_fusion_ran_interpreted(kernels, says):
          "wall_s": 10.5, "simulate_s": 0.2, "kernels": kernels}
     text = format_summary(s)
     # the delay each estimator wants (bridge/estimator_delay.py): ArduPilot the smallest, PX4 the median
-    assert "2nd percentile 6.25 ms (ArduPilot's VISO_DELAY_MS: about the 2nd percentile" in text
+    assert "2nd percentile 6.25 ms (ArduPilot's VISO_DELAY_MS: near the smallest" in text
     assert "PX4's EKF2_EV_DELAY: about the median" in text
     if says is None:
         assert "interpreted" not in text

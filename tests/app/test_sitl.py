@@ -86,8 +86,13 @@ def test_vision_parameters_turn_gps_and_compass_off_and_external_nav_on():
     assert p["EK3_SRC1_POSXY"] == p["EK3_SRC1_POSZ"] == p["EK3_SRC1_YAW"] == 6
     assert p["EK3_SRC1_VELXY"] == 0  # no velocity in VISION_POSITION_ESTIMATE
     assert S.vision_parameters(cfg, "odometry", False)["EK3_SRC1_VELXY"] == 6
-    # VISO_DELAY_MS goes in before the reboot, covering the delay to come: EKF3 sizes its buffer at start
+    # VISO_DELAY_MS goes in before the reboot (the flight sets the advice later)
     assert p["VISO_DELAY_MS"] == 20 and S.vision_parameters(cfg, "odometry", False, 50.0)["VISO_DELAY_MS"] == 70
+    # EKF3's IMU history, sized only at boot, for poses up to 40 ms + the link's delay + half a 12 ms step old,
+    # in whole 12 ms slots: a direct link's 46 ms fits EK3_HGT_DELAY's default 60; 20 ms more: 66 -> 72; 50: 96
+    assert "EK3_BCN_DELAY" not in p
+    assert S.vision_parameters(cfg, "odometry", False, 20.0)["EK3_BCN_DELAY"] == 72
+    assert S.vision_parameters(cfg, "odometry", False, 50.0)["EK3_BCN_DELAY"] == 96
     fixed = S.SitlSettings(S.SHARED_BINARY, None, "+", None, (*HOME, 0.0), 33.0, 0.01, 0.02, 0.05)
     assert S.vision_parameters(fixed, "odometry", False, 50.0)["VISO_DELAY_MS"] == 33  # sitl.viso_delay_ms
 

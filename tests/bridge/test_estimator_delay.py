@@ -16,10 +16,23 @@ def _delays():
     return rng.permutation(d)
 
 
-def test_ardupilot_wants_about_the_smallest_delay():
+def test_ardupilot_wants_the_smallest_delay_of_its_jitter_window():
+    # 100 delays: one window of ArduPilot's JitterCorrection, whose smallest (6) every pose gets
     a = advised_delay("ardupilot", _delays())
-    assert (a.param, a.value_ms) == ("VISO_DELAY_MS", 10)
+    assert (a.param, a.value_ms) == ("VISO_DELAY_MS", 6)
     assert "smallest" in a.why
+
+
+def test_jitter_corrected_delay_is_the_median_of_each_100_poses_smallest():
+    from bridge.estimator_delay import jitter_corrected_delay_ms
+
+    d = np.full(250, 20.0)
+    d[10], d[150], d[220] = 5.0, 7.0, 3.0  # windows 0-99, 100-199 and the last 50 (half a window: counted)
+    assert jitter_corrected_delay_ms(d) == 5.0  # median of 5, 7, 3
+    assert jitter_corrected_delay_ms(d[:240]) == 6.0  # the last 40 are too few: median of 5 and 7
+    assert jitter_corrected_delay_ms(np.array([9.0, 4.0, 8.0])) == 4.0  # under one window: the smallest
+    # in arrival order: the same values sorted make other windows (minima 3, 20, 20 -> 20)
+    assert jitter_corrected_delay_ms(np.sort(d)) == 20.0
 
 
 def test_px4_on_arrival_wants_the_median_and_with_timesync_zero():
@@ -40,7 +53,7 @@ def test_constant_delay_gives_that_delay_to_both_and_nothing_without_delays():
 
 @pytest.mark.parametrize("shift", [0.0, 20.0, 50.0])
 def test_an_added_link_delay_moves_both_by_as_much(shift):
-    assert advised_delay("ardupilot", _delays() + shift).value_ms == 10 + shift
+    assert advised_delay("ardupilot", _delays() + shift).value_ms == 6 + shift
     assert advised_delay("px4", _delays() + shift).value_ms == 20 + shift
 
 
@@ -57,3 +70,52 @@ def test_px4_estimator_status_in_plain_words():
     assert ev_fusion_state(0x0, 0.0, 0.0, 0.0, sending=True)[1].startswith("EKF2 has no attitude")
     state, why = ev_fusion_state(0x1, 3.0, 0.0, 0.0, sending=False)  # ratios left over: not a rejection now
     assert state == "not using vision" and "no pose" in why
+
+
+def test_ekf3_history_follows_its_largest_delay_in_whole_12_ms_slots():
+    # NavEKF3_core::setup_core: floor(M / 12) + 1 samples, the oldest floor(M / 12) steps of >= 12 ms back
+    from bridge.estimator_delay import ekf3_history_ms, ekf3_largest_delay_for
+    assert ekf3_history_ms(60) == 60
+    assert ekf3_history_ms(70) == 60  # 70 // 12 = 5 slots: the D = 50 ms relay's boot value fell short this way
+    assert ekf3_history_ms(300) == 240  # the parameters stop at 250: 20 slots
+    assert ekf3_largest_delay_for(66) == 72
+    assert ekf3_largest_delay_for(72) == 72
+    assert ekf3_history_ms(ekf3_largest_delay_for(91.5)) >= 91.5
+
+
+def test_ardupilot_names_the_buffer_when_poses_outlive_ekf3s_default_history():
+    # a direct link's delays: p99 7.4 + half a step 6 = 13.4 ms, well inside EK3_HGT_DELAY's 60 ms: nothing to add
+    assert advised_delay("ardupilot", np.full(50, 7.4)).horizon_param is None
+    # _delays(): p99 = 60 (h = 99 * 0.99 = 98.01, between the two 60s), + 6 = 66 > 60 -> 12 * ceil(66 / 12) = 72
+    a = advised_delay("ardupilot", _delays())
+    assert (a.horizon_param, a.horizon_ms) == ("EK3_BCN_DELAY", 72)
+    assert "reboot" in a.horizon_why
+    # 50 ms more: p99 110 + 6 = 116 -> 120
+    assert advised_delay("ardupilot", _delays() + 50.0).horizon_ms == 120
+    # 200 ms more: 266 needs 276, past the parameter's 250: the largest, and the link called too slow
+    b = advised_delay("ardupilot", _delays() + 200.0)
+    assert b.horizon_ms == 250 and "too slow" in b.horizon_why
+
+
+def test_px4_horizon_is_the_delay_setting_plus_a_margin_or_the_p99_with_timesync():
+    a = advised_delay("px4", _delays())
+    assert (a.horizon_param, a.horizon_ms) == ("EKF2_DELAY_MAX", 20 + 25)
+    b = advised_delay("px4", _delays(), px4_timesync_converged=True)
+    assert (b.horizon_param, b.horizon_ms) == ("EKF2_DELAY_MAX", 60 + 25)
+
+
+def test_the_docs_say_how_the_horizon_is_advised():
+    """docs/autopilot-setup.md section 3: the figures of the horizon rule are the code's."""
+    from pathlib import Path
+
+    import bridge.estimator_delay as ed
+    from visionpos.app.sitl import preflight
+
+    doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
+    assert "floor(M / 12 ms) + 1" in doc and ed.EKF3_SLOT_MS == 12
+    assert "`EK3_HGT_DELAY`, 60 ms by default" in doc and ed.EKF3_DEFAULT_LARGEST_DELAY_MS == 60
+    assert "p99 + 6 ms" in doc and ed.HORIZON_PERCENTILE == 99.0 and ed.EKF3_HALF_STEP_MS == 6.0
+    assert "(at most 250)" in doc and ed.EKF3_MAX_DELAY_MS == 250 and ed.EKF3_HORIZON_PARAM == "EK3_BCN_DELAY"
+    assert "`delay.horizon_param` and `delay.horizon_ms`" in doc
+    assert "`EKF2_EV_DELAY` advised + 25 ms" in doc and ed.EKF2_HORIZON_MARGIN_MS == 25.0
+    assert "sized for poses up to 40 ms + the link's delay old" in doc and preflight.EXPECTED_LATE_MS == 40.0

@@ -283,9 +283,9 @@ def format_summary(s: dict[str, Any]) -> str:
         f"latency from camera exposure to MAVLink send, all bodies: median {fmt(lat['p50'])} ms, "
         f"99th percentile {fmt(lat['p99'])} ms; from a pose's timestamp to its arrival at the autopilot: "
         f"median {fmt(s['latency_to_autopilot_ms']['p50'])} ms, 2nd percentile "
-        f"{fmt(s['latency_to_autopilot_ms'].get('p2'))} ms (ArduPilot's VISO_DELAY_MS: about the 2nd percentile, "
-        "its jitter correction takes each pose at the smallest delay; PX4's EKF2_EV_DELAY: about the median, it "
-        "stamps poses on arrival without TIMESYNC; docs/autopilot-setup.md section 3)",
+        f"{fmt(s['latency_to_autopilot_ms'].get('p2'))} ms (ArduPilot's VISO_DELAY_MS: near the smallest, its "
+        "jitter correction takes each pose at the smallest delay of its last 100; PX4's EKF2_EV_DELAY: about the "
+        "median, it stamps poses on arrival without TIMESYNC; docs/autopilot-setup.md section 3)",
         f"server: accepted {server['frames_accepted']} camera frames"
         + (f" ({shed} not fused: they queued too long)" if shed else "")
         + f", {_plural(server['malformed'] or 0, 'malformed packet')}, "

@@ -24,12 +24,13 @@ motion a pose shows (the poses' body rates correlated with SIM_STATE's at their 
 and TIMESYNC). "Poses behind SITL's truth" (the poses' rates against SIM_STATE's as stamped on arrival) is
 shown for diagnosis.
 
-Also per D: VISO_DELAY_MS as the flight set it (the back-channel's advice: the 2nd percentile of stamp to arrival,
-plus the relay), how far the EKF runs ahead of the truth with it (visionpos.app.sitl.report.ekf_lead_ms: the
-time shift fitted on the square's legs; goal within 2 ms), the EKF's horizontal error p99 against SITL's truth,
-whether the flight completed, and the
-real-time fractions of `sitl` (camera frames made late or not fused: above a few %, the host, not the
-measurement, is what the figures show). Skipped, with the reason in the notes, where no SITL binary is found.
+Also per D: VISO_DELAY_MS as the flight set it (the back-channel's advice: the smallest stamp-to-arrival delay of
+the first 100 poses, as ArduPilot's jitter correction takes it, plus the relay; EKF3's IMU history sized at boot
+for the relay, bridge/estimator_delay.py), how far the EKF runs ahead of the truth with it
+(visionpos.app.sitl.report.ekf_lead_ms: the time shift fitted on the square's legs; goal within 2 ms), the EKF's
+horizontal error p99 against SITL's truth, whether the flight completed, and the real-time fractions of `sitl`
+(camera frames made late or not fused: above a few %, the host, not the measurement, is what the figures show).
+Skipped, with the reason in the notes, where no SITL binary is found.
 """
 
 from __future__ import annotations

@@ -112,6 +112,11 @@ async def set_advised_delay(gcs: Gcs, link: Any, plan: FlightPlan, say: Callable
     say(f"EKF3 uses the vision; VISO_DELAY_MS = {delay_ms}: "
         + (advice.why if advice is not None else "no pose timed yet")
         + (f", with the relay's {plan.link_delay_ms:g} ms" if plan.link_delay_ms else ""))
+    if advice is not None and advice.horizon_param is not None:
+        booted = gcs.params.get(advice.horizon_param)
+        say(f"  the poses need {advice.horizon_param}={advice.horizon_ms} ({advice.horizon_why}); SITL booted with "
+            + (f"{booted:g}" if booted is not None else "its default")
+            + ("" if booted is not None and booted >= advice.horizon_ms else ": short, the EKF will trail the truth"))
 
 
 async def arm_in_guided(gcs: Gcs, live: LiveArena, timeout_s: float) -> None:

@@ -16,6 +16,14 @@ import math
 import time
 from typing import TYPE_CHECKING, Any, Callable
 
+from bridge.estimator_delay import (
+    EKF3_DEFAULT_LARGEST_DELAY_MS,
+    EKF3_HALF_STEP_MS,
+    EKF3_HORIZON_PARAM,
+    EKF3_MAX_DELAY_MS,
+    ekf3_history_ms,
+    ekf3_largest_delay_for,
+)
 from visionpos.app.sitl.gcs import (
     MAV_CMD_DO_SET_HOME,
     MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN,
@@ -32,29 +40,41 @@ if TYPE_CHECKING:
 HOME_TOLERANCE_M = 0.01  # home read back further than this from the origin: an error
 
 
-BOOT_VISO_DELAY_MS = 20.0  # VISO_DELAY_MS at boot, plus the link's delay: above the advice to come (7-8 ms here)
+BOOT_VISO_DELAY_MS = 20.0  # VISO_DELAY_MS at boot, plus the link's delay; the flight sets the advice before arming
+# the poses' stamp-to-arrival p99 expected on a direct link (the 2-core VM: 20-30 ms), plus the link's delay: what
+# EKF3's IMU history is sized for at boot (bridge/estimator_delay.py)
+EXPECTED_LATE_MS = 40.0
 
 
 def boot_viso_delay_ms(cfg: SitlSettings, link_delay_ms: float | None) -> int:
-    """VISO_DELAY_MS to boot with. EKF3 sizes its IMU buffer once, at start, from the largest sensor delay
-    (VISO_DELAY_MS, EK3_HGT_DELAY 60 ms, ...: NavEKF3_core::setup_core) and moves a pose older than that buffer
-    up to its oldest sample: a VISO_DELAY_MS raised later past the buffer is not honoured. So the boot value
-    covers the delay to come; the flight then sets the advised value (smaller or equal)."""
+    """VISO_DELAY_MS to boot with: sitl.viso_delay_ms when given (kept for the flight), else a value the flight
+    replaces with the bridge's advice once the poses are timed."""
     if cfg.viso_delay_ms is not None:
         return round(cfg.viso_delay_ms)
     return round(BOOT_VISO_DELAY_MS + (link_delay_ms or 0.0))
 
 
+def boot_history_params(link_delay_ms: float | None) -> dict[str, float]:
+    """EKF3's IMU history sized at boot (it is sized only then: NavEKF3_core::setup_core) for poses up to
+    EXPECTED_LATE_MS plus the link's delay old, as the bridge advises it (EK3_BCN_DELAY,
+    bridge/estimator_delay.py); nothing where EK3_HGT_DELAY's default already holds them. Without it, a relay
+    adding 50 ms left the EKF 15-20 ms behind the truth with the advised VISO_DELAY_MS (issue 31)."""
+    oldest = EXPECTED_LATE_MS + (link_delay_ms or 0.0) + EKF3_HALF_STEP_MS
+    if ekf3_history_ms(EKF3_DEFAULT_LARGEST_DELAY_MS) >= oldest:
+        return {}
+    return {EKF3_HORIZON_PARAM: float(min(ekf3_largest_delay_for(oldest), EKF3_MAX_DELAY_MS))}
+
+
 def vision_parameters(cfg: SitlSettings, message: str, vision_speed: bool,
                       link_delay_ms: float | None = None) -> dict[str, float]:
-    """The vision-only parameters of docs/autopilot-setup.md (GPS and compass off, external nav on), and
-    VISO_DELAY_MS for the boot (boot_viso_delay_ms)."""
+    """The vision-only parameters of docs/autopilot-setup.md (GPS and compass off, external nav on),
+    VISO_DELAY_MS for the boot (boot_viso_delay_ms) and EKF3's history (boot_history_params)."""
     vel = 6.0 if (message == "odometry" or vision_speed) else 0.0
     return {
         "VISO_TYPE": 1, "SERIAL1_PROTOCOL": 2, "SERIAL1_BAUD": 921,
         "EK3_SRC1_POSXY": 6, "EK3_SRC1_POSZ": 6, "EK3_SRC1_VELXY": vel, "EK3_SRC1_VELZ": vel, "EK3_SRC1_YAW": 6,
         "GPS1_TYPE": 0, "COMPASS_USE": 0, "COMPASS_USE2": 0, "COMPASS_USE3": 0, "COMPASS_ENABLE": 0,
-        "VISO_DELAY_MS": boot_viso_delay_ms(cfg, link_delay_ms),
+        "VISO_DELAY_MS": boot_viso_delay_ms(cfg, link_delay_ms), **boot_history_params(link_delay_ms),
     }
 
 

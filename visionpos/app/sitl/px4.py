@@ -18,6 +18,7 @@ import types
 from pathlib import Path
 from typing import Any
 
+from bridge.estimator_delay import EKF2_HORIZON_MARGIN_MS
 from visionpos.app.sitl.gcs import Gcs
 from visionpos.app.sitl.process import ChildProcess
 from visionpos.app.sitl.settings import SHARED_SITL_DIR, SITL, SitlError
@@ -32,7 +33,6 @@ POSCTL, AUTO, OFFBOARD = 3, 4, 6  # PX4 main modes (custom_mode = main << 16, su
 AUTO_LAND = 6  # sub mode of AUTO
 ESTIMATOR_POS_HORIZ_REL = 8
 MANUAL_HZ, GCS_HEARTBEAT_HZ, SETPOINT_HZ = 10.0, 1.0, 20.0
-HORIZON_MARGIN_MS = 25.0  # EKF2_DELAY_MAX over EKF2_EV_DELAY: a pose older than the horizon is dropped
 
 
 def is_px4_dir(p: Path) -> bool:
@@ -108,7 +108,7 @@ def px4_parameters(message: str, ev_delay_ms: float, pos_noise_m: float, yaw_noi
         "EKF2_EV_CTRL": 15.0 if message == "odometry" else 11.0, "EKF2_HGT_REF": 3.0, "EKF2_GPS_CTRL": 0.0,
         "SYS_HAS_GPS": 0.0, "SENS_EN_GPSSIM": 0.0, "EKF2_MAG_TYPE": 5.0, "SYS_HAS_MAG": 0.0,
         "EKF2_BARO_CTRL": 0.0, "EKF2_RNG_CTRL": 0.0, "EKF2_EV_DELAY": float(ev_delay_ms),
-        "EKF2_DELAY_MAX": float(ev_delay_ms) + HORIZON_MARGIN_MS, "EKF2_ASP_DELAY": 0.0, "EKF2_GPS_DELAY": 0.0,
+        "EKF2_DELAY_MAX": float(ev_delay_ms) + EKF2_HORIZON_MARGIN_MS, "EKF2_ASP_DELAY": 0.0, "EKF2_GPS_DELAY": 0.0,
         "EKF2_TAU_POS": 0.1, "EKF2_TAU_VEL": 0.1,
         "EKF2_EV_NOISE_MD": 0.0, "EKF2_EVP_NOISE": float(pos_noise_m), "EKF2_EVA_NOISE": float(yaw_noise_rad),
         "MAV_SYS_ID": float(sysid),

@@ -28,8 +28,8 @@ SITL = section(
     Setting("home", "array", [-35.363261, 149.165230, 584.0, 0.0], "SITL home and EKF origin: lat, lon (deg), "
             "alt (m AMSL), heading (deg)", shape=(4,)),
     Setting("viso_delay_ms", "number", None, "VISO_DELAY_MS to set", min=0.0, max=250.0,
-            default_doc="measured once the vision flows: the bridge's pose stamp -> send p2 (about the smallest delay, "
-            "which ArduPilot's jitter correction leaves; bridge/estimator_delay.py)"),
+            default_doc="measured once the vision flows: the smallest pose stamp -> send delay of the bridge's first "
+            "100 poses, which ArduPilot's jitter correction leaves; bridge/estimator_delay.py"),
     Setting("viso_pos_m_nse", "number", 0.01, "VISO_POS_M_NSE: ArduPilot's floor on the position noise (m)",
             min=0.001, max=10.0),
     Setting("viso_yaw_m_nse", "number", 0.02, "VISO_YAW_M_NSE: floor on the yaw noise (rad)", min=0.001, max=1.0),
