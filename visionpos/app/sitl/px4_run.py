@@ -111,10 +111,22 @@ def _run_px4(arena: ArenaConfig, sec: Any, build: Path, plan: FlightPlan, out: T
                             "frames_not_fused_fraction": (summary["vision"]["frames_not_fused"] or 0) / made}
     summary["delay_param"] = "EKF2_EV_DELAY"
     summary["delay_advised_ms"] = record.get("advised_ms")
+    summary["delay_measured_ms"] = record.get("measured_ms")
+    summary["send_minus_stamp_ms_p50"] = record.get("send_minus_stamp_ms_p50")
     if relay is not None:
         summary["link_relay"] = {"added_ms": plan.link_delay_ms,
                                  "hold_ms_p50": relay.hold_ms_median("to_autopilot")}
     return summary
+
+
+def measured_floor(bc: Any) -> dict[str, Any]:
+    """The back-channel's measured capture-to-PX4 delay (ms) and, over the poses of its window, the median of
+    their send less stamp: with the relay's hold, a floor the measured delay cannot physically be under (PX4
+    cannot take a pose in before the relay passes it on)."""
+    win = getattr(bc, "delay_window_ns", None)
+    rows = [r[1] for r in list(bc.sends.d) if win is None or win[0] <= r[0] <= win[1]]
+    return {"measured_ms": bc.delay_ms,
+            "send_minus_stamp_ms_p50": float(np.median(rows)) * 1e-6 if rows else None}
 
 
 def _fly_live(arena: ArenaConfig, gcs: Px4Gcs, live: LiveArena, plan: FlightPlan, body: str,
@@ -126,6 +138,7 @@ def _fly_live(arena: ArenaConfig, gcs: Px4Gcs, live: LiveArena, plan: FlightPlan
             link = ctx.bridge.vehicle(body)
             await fly_px4(gcs, plan, record, say, live, lambda: link.sending_state() == "sending",
                           lambda: link.bc.advice)
+            record.update(measured_floor(link.bc))
         except SitlError as e:
             record["error"] = str(e)
             say(f"flight failed: {e}")

@@ -31,6 +31,8 @@ def say_to(out: TextIO | None) -> Callable[[str], None]:
 
 LEAD_MIN_SPEED_M_S = 0.1  # samples slower than this carry no timing information
 LEAD_MIN_SAMPLES = 50
+YAW_LEAD_MIN_RATE_RAD_S = 0.2
+YAW_RATE_STEP_NS = 5_000_000  # the true yaw rate: central difference over twice this
 
 
 def ekf_lead_ms(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> tuple[float, int] | None:
@@ -47,6 +49,25 @@ def ekf_lead_ms(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> tup
         return None
     e, v = e[moving] - e[moving].mean(axis=0), v[moving] - v[moving].mean(axis=0)
     return float((e * v).sum() / (v * v).sum() * 1e3), n
+
+
+def ekf_yaw_lead_ms(att: np.ndarray, truth: TruthTrack) -> tuple[float, int] | None:
+    """How far ahead of the truth the autopilot's reported yaw runs (ms), and the samples the fit used: as
+    ekf_lead_ms, on ATTITUDE rows att (T, 4: arrival ns, roll, pitch, yaw rad) against the true yaw while it
+    turns faster than YAW_LEAD_MIN_RATE_RAD_S (a yaw swing). The attitude is the IMU's, carried forward without
+    the vision's delay, so this is mostly how much sooner or later ATTITUDE arrives here than the truth does:
+    the share of ekf_lead_ms that is transport, not the EKF. None with too little turning."""
+    t = att[:, 0].astype(np.int64)
+    h = YAW_RATE_STEP_NS
+    yaws = [euler_ned_frd(truth.sample(t + k)[3].as_quat())[:, 2] for k in (-h, 0, h)]
+    rate = np.angle(np.exp(1j * (yaws[2] - yaws[0]))) / (2 * h * 1e-9)
+    e = np.angle(np.exp(1j * (att[:, 3] - yaws[1])))
+    turning = np.abs(rate) > YAW_LEAD_MIN_RATE_RAD_S
+    n = int(turning.sum())
+    if n < LEAD_MIN_SAMPLES:
+        return None
+    e, rate = e[turning] - e[turning].mean(), rate[turning] - rate[turning].mean()
+    return float((e * rate).sum() / (rate * rate).sum() * 1e3), n
 
 
 def horizontal_error_mm(loc: np.ndarray, truth: TruthTrack) -> np.ndarray:
@@ -83,6 +104,9 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
             yaw_true = euler_ned_frd(rot.as_quat())[:, 2]
             dyaw = np.angle(np.exp(1j * (att[:, 3] - yaw_true)))
             out["ekf_yaw_error_deg"] = _pcts(np.degrees(np.abs(dyaw)))
+            yaw_lead = ekf_yaw_lead_ms(att, truth)
+            if yaw_lead is not None:
+                out["ekf_yaw_lead_ms"], out["ekf_yaw_lead_samples"] = yaw_lead
         ekf = np.array([r for r in gcs.ekf if a <= r[0] <= b], dtype=float).reshape(-1, 6)
         if len(ekf):
             out["ekf_test_ratios"] = {name: {"max": float(ekf[:, k].max()), "p99": float(np.percentile(ekf[:, k], 99))}
@@ -132,7 +156,10 @@ def format_flight(s: dict[str, Any]) -> str:
         f"  EKF position vs SITL truth (armed to disarmed): horizontal p50 {f(h.get('p50'))} mm, p99 {f(h.get('p99'))}"
         f" mm, max {f(h.get('max'))} mm; vertical p99 {f(v.get('p99'))} mm",
         f"  EKF ahead of the truth by {f(s.get('ekf_lead_ms'))} ms (fitted on the {s.get('ekf_lead_samples') or 0} "
-        f"samples moving faster than {LEAD_MIN_SPEED_M_S:g} m/s; negative: behind)",
+        f"samples moving faster than {LEAD_MIN_SPEED_M_S:g} m/s; negative: behind)"
+        + ("" if s.get("ekf_yaw_lead_ms") is None else
+           f"; its reported yaw {s['ekf_yaw_lead_ms']:.1f} ms ahead of the true yaw while turning (how much sooner its "
+           "telemetry arrives than the truth: the transport's share)"),
         f"  EKF yaw vs truth: p50 {f(y.get('p50'), '.2f')} deg, p99 {f(y.get('p99'), '.2f')} deg, "
         f"max {f(y.get('max'), '.2f')} deg",
         f"  vision (fusion output) vs truth: RMS {f(vis.get('position_rmse_mm'), '.2f')} mm, max "
@@ -149,7 +176,11 @@ def format_flight(s: dict[str, Any]) -> str:
                      f"{f(c['max_drift_from_hold_mm'])} mm; EKF error 1-3 s after: p99 {f(e.get('p99'))} mm")
     if "link_relay" in s:
         r = s["link_relay"]
-        lines.append(f"  link delay {r['added_ms']:g} ms each way (a relay; held {fmt_ms(r['hold_ms_p50'])} ms p50)")
+        lines.append(f"  link delay {r['added_ms']:g} ms each way (a relay; held {fmt_ms(r['hold_ms_p50'])} ms p50)"
+                     + ("" if s.get("send_minus_stamp_ms_p50") is None else
+                        f"; capture->autopilot delay measured by the back-channel {fmt_ms(s.get('delay_measured_ms'))}"
+                        f" ms, its floor send-stamp {fmt_ms(s['send_minus_stamp_ms_p50'])} + relay "
+                        f"{fmt_ms(r['hold_ms_p50'])} ms"))
     if "link_delay" in s:
         d = s["link_delay"]
         lines.append(f"  link delay {d['added_ms']:g} ms each way: capture->autopilot delay measured by the "
