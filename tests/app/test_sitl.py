@@ -294,6 +294,30 @@ def test_intake_probe_times_the_vision_ports_intake_through_the_relay():
         assert 7_000_000_000 + 3_000_000 - 20_000_000 < tc1 - s1 <= 7_000_000_000 + 3_000_000
 
 
+def test_yaw_lead_is_the_time_shift_of_the_reported_yaw_against_the_true_yaw():
+    """A hover swinging its yaw as yaw(t) = sin(pi t) rad (the flights' +-1 rad/s-ish swing, NED heading); ATTITUDE
+    rows carrying the yaw 8 ms later (and 7 ms earlier): +8 ms (-7 ms); still, no figure."""
+    from visionpos.app.sitl.report import ekf_yaw_lead_ms
+
+    yaw = lambda t: np.sin(np.pi * t)  # noqa: E731
+    track = S.TruthTrack(HOME)
+    t0, dt_ns = 10_000_000_000, 10_000_000
+    for k in range(600):
+        h = 0.5 * yaw(k * dt_ns * 1e-9)
+        track.add(t0 + k * dt_ns, _sim_state(0.0, 0.0, 1.0, (0.0, 0.0, 0.0), (np.cos(h), 0.0, 0.0, np.sin(h))))
+    times = t0 + np.arange(50, 550) * dt_ns + 3_000_000
+    t = (times - t0) * 1e-9
+    for shift_s in (0.008, -0.007):
+        att = np.column_stack([times, np.zeros(len(t)), np.zeros(len(t)), yaw(t + shift_s)])
+        lead, n = ekf_yaw_lead_ms(att, track)
+        assert n > 250 and lead == pytest.approx(shift_s * 1e3, abs=0.5)
+    still = np.column_stack([times, np.zeros((len(t), 3))])
+    flat = S.TruthTrack(HOME)
+    for k in range(600):
+        flat.add(t0 + k * dt_ns, _sim_state(0.0, 0.0, 1.0, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
+    assert ekf_yaw_lead_ms(still, flat) is None
+
+
 def test_ekf_lead_is_the_time_shift_of_the_ekf_against_the_truth():
     """A circle of radius 1 m at 1 rad/s (1 m/s); the 'EKF' reports the position the circle has 12 ms later, plus
     a 3 mm offset: the fit must give +12 ms (ahead), and -12 ms for a position 12 ms old; a hover, no figure."""

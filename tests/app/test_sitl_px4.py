@@ -279,3 +279,18 @@ def test_truth_vision_sends_the_true_pose_in_ned_and_nothing_in_a_cut():
     finally:
         vision.close()
         sock.close()
+
+
+def test_measured_delay_floor_is_the_send_stamp_median_over_the_measurements_window():
+    """Poses sent 10, 12, 14 ms after their stamps inside the back-channel's window and 90 ms outside it: the
+    floor's send-stamp part is 12 ms, the measured delay passed through."""
+    import types
+
+    from bridge.telemetry import Ring
+    from visionpos.app.sitl.px4_run import measured_floor
+
+    sends = Ring(16, 1)
+    for t, d in ((1_000, 90e6), (2_000, 10e6), (3_000, 14e6), (4_000, 12e6), (9_000, 90e6)):
+        sends.add(t, (d,))
+    bc = types.SimpleNamespace(sends=sends, delay_window_ns=(2_000, 4_000), delay_ms=37.5)
+    assert measured_floor(bc) == {"measured_ms": 37.5, "send_minus_stamp_ms_p50": pytest.approx(12.0)}
