@@ -52,8 +52,6 @@ from visionpos.analysis.autopilot import (
     estimate_lag,
     identity_residuals,
     identity_statistic,
-    rate_matched_times_ns,
-    theil_sen_slope,
     vision_delay_ns,
     weighted_time_ns,
 )
@@ -594,15 +592,6 @@ class Backchannel:
         if len(to) < 20 or float(np.std(rates, axis=0).max()) < DELAY_MIN_RATE_STD:
             self.delay_reason = "the vehicle turns too little to correlate its rates (needs some rotation)"
             return self.delay_ms
-        # the gyro's times at our clock's rate about the instant the correlation stands for (where the vehicle
-        # turned most): a drifting clock (a simulator behind real time) would smear the lag over the window
-        at_ns = weighted_time_ns(to, rates)
-        ts_t, ts = self.timesync.since(int(to[0]) - DELAY_WINDOW_NS)
-        if len(ts) >= 3:
-            drift = theil_sen_slope(ts_t, ts[:, 0])
-            # the autopilot's time of at_ns: the coarse offset is of the newest messages, the clocks drift since
-            newest_ns = float(gyro_t[-1]) - off
-            gyro_t = rate_matched_times_ns(gyro_t, at_ns + off + drift * (at_ns - newest_ns), drift)
         fine = estimate_lag(to, rates, gyro_t, gyro_v, off, DELAY_SEARCH_NS, step_ns=4e6)
         if fine is None or fine.correlation < DELAY_MIN_CORRELATION:
             self.delay_reason = ("the autopilot's gyro and the optical rates do not correlate"
@@ -616,12 +605,15 @@ class Backchannel:
             return self.delay_ms
         self.clock_lag_ns = fine.lag_ns - gyro_lag_ns  # the motion's instant, not the filtered gyro's
         self.delay_correlation = fine.correlation
+        ts_t, ts = self.timesync.since(int(to[0]) - DELAY_WINDOW_NS)
         _, sends = self.sends.since(int(to[0]))
         if len(ts) < 3 or len(sends) < 10:
             self.delay_reason = "waiting for TIMESYNC answers from the autopilot" if len(ts) < 3 else \
                 "waiting for poses to be sent"
             return self.delay_ms
-        # the forward link's TIMESYNC at the same instant: the two clocks drift apart over the window
+        # the forward link's TIMESYNC at the instant the correlation stands for (where the vehicle turned
+        # most): the two clocks drift apart over the window
+        at_ns = weighted_time_ns(to, rates)
         d_ns = vision_delay_ns(sends[:, 0], ts_t, ts_t + ts[:, 0], self.clock_lag_ns, at_ns=at_ns)
         self.delay_window_ns = (int(to[0]), int(to[-1]))
         self._delays.append(d_ns * 1e-6)

@@ -171,8 +171,7 @@ class FakeAutopilot:
     anything unsigned or signed with another key is rejected (counted in
     rejected_signature, not recorded). duration_s: stop by itself after it.
     source_port (udpout): send from this local port (0: any free one), e.g. the
-    port a bridge's `autopilot_address` names. clock_rate: how fast its own clock runs against the server's (1.0;
-    PX4 SIH's lockstep clock ran 0.6 % slow on the 2-core VM: 0.994).
+    port a bridge's `autopilot_address` names.
     """
 
     def __init__(self, endpoint: str, sysid: int = 1, *, autopilot: str = "ardupilot",
@@ -183,7 +182,7 @@ class FakeAutopilot:
                  ekf: str = "accept", gyro_noise_rad_s: float = 0.003, attitude_noise_deg: float = 0.2,
                  seed: int | None = None, gyro_filter_hz: float = 0.0, keep_received: int | None = None,
                  on_pose: Callable[[Received], None] | None = None, reject_params: tuple[str, ...] = (),
-                 accel_noise_m_s2: float = 0.02, accel_bias_m_s2: float = 0.0, clock_rate: float = 1.0):
+                 accel_noise_m_s2: float = 0.02, accel_bias_m_s2: float = 0.0):
         kind, _, rest = endpoint.partition(":")
         host, _, port = rest.rpartition(":")
         if kind not in ("udpout", "udpin", "tcpin") or not host or not port.isdigit():
@@ -211,7 +210,6 @@ class FakeAutopilot:
         self.truth = truth
         self.delay_ns = int(round(delay_ms * 1e6))
         self.boot_ns = boot_ns  # server-clock time of its boot (None: at start())
-        self.clock_rate = float(clock_rate)
         self.origin_ready_ns = int(origin_ready_s * 1e9)
         self.ekf = ekf
         self.gyro_noise = gyro_noise_rad_s
@@ -299,9 +297,8 @@ class FakeAutopilot:
         self._sock = self._listen = None
 
     def boot_time_ns(self, now_ns: int | None = None) -> int:
-        """Its own clock: ns since its boot (running at clock_rate against the server's)."""
-        since = (self.clock_ns() if now_ns is None else now_ns) - self.boot_ns
-        return since if self.clock_rate == 1.0 else int(since * self.clock_rate)
+        """Its own clock: ns since its boot."""
+        return (self.clock_ns() if now_ns is None else now_ns) - self.boot_ns
 
     def reboot(self) -> None:
         """Restart its clock; forget the origin, home and the streams asked for (as a real reboot does)."""

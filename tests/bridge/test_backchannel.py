@@ -185,24 +185,6 @@ def test_vision_delay_takes_the_forward_latency_at_the_correlations_instant():
     assert vision_delay_ns(np.full(5, 4e6), s1, tc1, lag) == pytest.approx(12e6, abs=0.1e6)
 
 
-def test_gyro_times_run_at_our_rate_about_the_correlations_instant():
-    from visionpos.analysis.autopilot import rate_matched_times_ns, theil_sen_slope
-
-    # the autopilot's clock 1000 s ahead and 0.6 % slow: its times of our instants 0, 10 and 20 s
-    ours = np.array([0.0, 10e9, 20e9])
-    ap = 1000e9 + ours * 0.994
-    drift = theil_sen_slope(ours, ap - ours)
-    assert drift == pytest.approx(-0.006, abs=1e-9)
-    # about its time of our instant 10 s: 10 s of our clock either side is 10 s of the re-scaled times (60 ms
-    # more than its own clock ran), and the time at 10 s keeps its value
-    t = rate_matched_times_ns(ap, ap[1], drift)
-    assert np.diff(t) == pytest.approx([10e9, 10e9], abs=1e3)
-    assert t[1] == pytest.approx(ap[1], abs=1)
-    # the anchor 100 ms off moves the times by 0.6 % of that only
-    assert rate_matched_times_ns(ap, ap[1] + 100e6, drift)[0] == pytest.approx(t[0] - 0.6e6, abs=0.01e6)
-    assert theil_sen_slope([1.0, 2.0], [3.0, 4.0]) == 0.0  # too few points: no drift taken
-
-
 def test_delay_is_not_biased_by_a_slow_return_link():
     """The link delayed both ways (SITL through `visionpos sitl --link-delay-ms`): the gyro comes back late,
     but it carries the autopilot's own stamps, and TIMESYNC's forward half is the autopilot's receive time;
@@ -329,30 +311,6 @@ def test_correct_wiring_sends_and_reads_back_live():
             assert h["link"]["autopilot"] == "ardupilot" and h["link"]["timesync_rtt_ms"] is not None
             assert h["output"]["rate_hz"] > 20 and h["sending"] == "sending"
             assert "EKF using vision" in v.status_part() and "identity consistent" in v.status_part()
-    finally:
-        bridge.close()
-        for ap in aps:
-            ap.close()
-
-
-def test_measured_delay_holds_against_an_autopilot_clock_that_runs_slow(monkeypatch):
-    """PX4 SIH's lockstep clock ran 0.6 % slow against the host's (issue 31: TIMESYNC's tc1 - s1 fell 5.8 ms a
-    second): over the 20 s window the gyro's lag behind the optical rates moves by ~100 ms. The measured delay must
-    still be the delay at the instant it stands for, as for a clock that keeps time."""
-    import bridge.backchannel as backchannel
-
-    monkeypatch.setattr(backchannel, "DELAY_EVERY_NS", 2_000_000_000)
-    t0 = time.monotonic_ns()
-    aps = [FakeAutopilot("udpin:127.0.0.1:0", sysid=1, truth=trajectory_truth(AGGRESSIVE, t0), delay_ms=20.0,
-                         boot_ns=t0 - int(3.7e9), gyro_filter_hz=20.0, clock_rate=0.994)]
-    bridge = _pairs([{}], aps)
-    try:
-        _stream(bridge, [AGGRESSIVE], t0, 25.0, rate_hz=50.0, until=lambda: len(bridge.vehicles[0].bc._delays) >= 3)
-        true = aps[0].true_delay_ms(window_s=DELAY_WINDOW_NS * 1e-9)
-        v = bridge.vehicles[0]
-        assert true > 20.0
-        # the delay itself is on the autopilot's clock: 0.6 % of ~30 ms is 0.2 ms, inside the tolerance
-        assert v.bc.delay_ms == pytest.approx(true, abs=2.0), (v.bc.delay_reason, true)
     finally:
         bridge.close()
         for ap in aps:

@@ -183,40 +183,20 @@ def vision_delay_ns(send_minus_stamp_ns: np.ndarray, timesync_s1_ns: np.ndarray,
     return float(np.median(send_minus_stamp_ns) + f - clock_lag_ns)
 
 
-def theil_sen_slope(t: np.ndarray, y: np.ndarray) -> float:
-    """The median of the pairwise slopes of (t, y) (y's unit per t's); 0 for fewer than 3 points or no spread
-    of t."""
-    t = np.asarray(t, dtype=np.float64)
-    y = np.asarray(y, dtype=np.float64)
-    if len(t) < 3 or np.ptp(t) <= 0:
-        return 0.0
-    i, j = np.triu_indices(len(t), 1)
-    dt = t[j] - t[i]
-    ok = dt != 0
-    return float(np.median((y[j] - y[i])[ok] / dt[ok]))
-
-
 def theil_sen_at(t: np.ndarray, y: np.ndarray, at: float) -> float:
-    """The Theil-Sen line through (t, y) (theil_sen_slope; the intercept the median of the residuals: a few
-    late answers do not move it) evaluated at `at`; the median of y for fewer than 3 points or no spread of t."""
+    """The Theil-Sen line through (t, y) (the median of the pairwise slopes; the intercept the median of the
+    residuals: a few late answers do not move it) evaluated at `at`; the median of y for fewer than 3 points
+    or no spread of t."""
     t = np.asarray(t, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     if len(t) < 3 or np.ptp(t) <= 0:
         return float(np.median(y))
-    slope = theil_sen_slope(t, y)
+    i, j = np.triu_indices(len(t), 1)
+    dt = t[j] - t[i]
+    ok = dt != 0
+    slope = float(np.median((y[j] - y[i])[ok] / dt[ok]))
     t0 = float(np.median(t))
     return float(np.median(y - slope * (t - t0)) + slope * (at - t0))
-
-
-def rate_matched_times_ns(t_ap_ns: np.ndarray, t_ap_at_ns: float, drift: float) -> np.ndarray:
-    """Autopilot-clock times (N,) ns re-scaled to run at the server clock's rate about the autopilot time
-    t_ap_at_ns: t_ap_at + (t - t_ap_at) / (1 + drift), drift being how much faster the autopilot's clock runs
-    than ours (dimensionless: theil_sen_slope of TIMESYNC's tc1 - s1 against s1). t_ap_at_ns is the autopilot's
-    time of the instant a correlation stands for (an error e in it shifts the result by drift * e only), so a lag
-    correlated on the re-scaled times is the lag at that instant: a simulator's clock running 0.6 % slow moves the
-    lag by 6 ms a second, ~100 ms over a 20 s window, and would smear the correlation over all of it."""
-    t = np.asarray(t_ap_ns, dtype=np.float64)
-    return np.round(t_ap_at_ns + (t - t_ap_at_ns) / (1.0 + drift)).astype(np.int64)
 
 
 def weighted_time_ns(t_ns: np.ndarray, x: np.ndarray) -> float:

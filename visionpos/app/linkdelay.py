@@ -152,13 +152,14 @@ class DelayRelay(RelayThread):
                 if dest is None:
                     self.unsent += 1
                     continue
+                # recorded before the send: whatever answers the datagram finds its hold already counted
+                sent = time.monotonic_ns()
+                self.holds[name].append((sent, sent - due + self.delay_ns))
                 try:
                     sock.sendto(data, dest)
                 except OSError:
                     self.send_errors += 1
-                    continue
-                sent = time.monotonic_ns()
-                self.holds[name].append((sent, sent - due + self.delay_ns))
+                    self.holds[name].pop()
 
     def send_to_autopilot(self, data: bytes) -> int | None:
         """Send a datagram of our own to the autopilot now, unheld (any thread); the clock read just before the
