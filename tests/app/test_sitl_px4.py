@@ -294,3 +294,25 @@ def test_measured_delay_floor_is_the_send_stamp_median_over_the_measurements_win
         sends.add(t, (d,))
     bc = types.SimpleNamespace(sends=sends, delay_window_ns=(2_000, 4_000), delay_ms=37.5)
     assert measured_floor(bc) == {"measured_ms": 37.5, "send_minus_stamp_ms_p50": pytest.approx(12.0)}
+
+
+def test_the_flight_summary_says_the_yaw_lead_and_the_measured_delay_beside_its_floor():
+    from visionpos.app.sitl.report import format_flight
+
+    s = {"completed": True, "wall_s": 50.0, "delay_param": "EKF2_EV_DELAY", "viso_delay_ms": 59,
+         "delay_advised_ms": 38, "ekf_lead_ms": 12.1, "ekf_lead_samples": 823, "ekf_yaw_lead_ms": 0.8,
+         "vision": {"poses_sent": 2500}, "failsafe_or_lane_switch": [], "mode_changes_not_ours": [],
+         "statustext": [], "ok": False, "link_relay": {"added_ms": 20.0, "hold_ms_p50": 21.06},
+         "delay_measured_ms": 38.14, "send_minus_stamp_ms_p50": 16.28}
+    text = format_flight(s)
+    assert "EKF ahead of the truth by 12.1 ms" in text
+    assert "its reported yaw 0.8 ms ahead of the true yaw while turning" in text
+    assert ("capture->autopilot delay measured by the back-channel 38.14 ms, its floor send-stamp 16.28 + relay "
+            "21.06 ms") in text
+    del s["ekf_yaw_lead_ms"], s["send_minus_stamp_ms_p50"]
+    text = format_flight(s)
+    assert "reported yaw" not in text and "its floor" not in text
+    from pathlib import Path
+    doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
+    assert '"its reported yaw Y ms ahead of the true yaw while turning"' in doc
+    assert '"capture->autopilot delay measured by the back-channel M ms, its floor send-stamp S + relay R ms"' in doc
