@@ -87,6 +87,14 @@ def ekf3_history_ms(largest_delay_ms: float) -> float:
     return (min(largest_delay_ms, EKF3_MAX_DELAY_MS) // EKF3_SLOT_MS) * EKF3_SLOT_MS
 
 
+def ekf3_history_param_ms(oldest_ms: float, largest_delay_ms: float = EKF3_DEFAULT_LARGEST_DELAY_MS) -> int | None:
+    """The EKF3_HORIZON_PARAM value (ms) a pose oldest_ms old needs when EKF3's history for largest_delay_ms
+    (ekf3_history_ms) falls short of it; None when it holds the pose. At most EKF3_MAX_DELAY_MS."""
+    if ekf3_history_ms(largest_delay_ms) >= oldest_ms:
+        return None
+    return min(ekf3_largest_delay_for(oldest_ms), EKF3_MAX_DELAY_MS)
+
+
 def ekf3_largest_delay_for(oldest_ms: float) -> int:
     """The smallest largest-delay setting (ms, whole slots) whose buffer (ekf3_history_ms) holds a pose
     oldest_ms old: may exceed EKF3_MAX_DELAY_MS, which EKF3 cannot hold."""
@@ -118,13 +126,13 @@ def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_ti
            f"delay of its last {JITTER_WINDOW} messages: the median of such minima)")
     late = float(np.percentile(d, HORIZON_PERCENTILE))
     oldest = late + EKF3_HALF_STEP_MS
-    if ekf3_history_ms(max(EKF3_DEFAULT_LARGEST_DELAY_MS, v)) >= oldest:
+    horizon = ekf3_history_param_ms(oldest, max(EKF3_DEFAULT_LARGEST_DELAY_MS, v))
+    if horizon is None:
         return DelayAdvice("VISO_DELAY_MS", v, why)
-    need = ekf3_largest_delay_for(oldest)
-    return DelayAdvice("VISO_DELAY_MS", v, why, EKF3_HORIZON_PARAM, min(need, EKF3_MAX_DELAY_MS),
+    return DelayAdvice("VISO_DELAY_MS", v, why, EKF3_HORIZON_PARAM, horizon,
                        f"poses reach EKF3 up to {late:.0f} ms (p{HORIZON_PERCENTILE:g}) after their stamp, older "
                        f"than its IMU history (sized at boot from its largest sensor delay, EK3_HGT_DELAY's "
                        f"{EKF3_DEFAULT_LARGEST_DELAY_MS} ms by default), which takes them as newer than they are; "
                        f"{EKF3_HORIZON_PARAM} (used only for range beacons) sizes it: set it and reboot"
-                       + ("" if need <= EKF3_MAX_DELAY_MS else
+                       + ("" if ekf3_largest_delay_for(oldest) <= EKF3_MAX_DELAY_MS else
                           f"; even its largest, {EKF3_MAX_DELAY_MS} ms, is short: this link is too slow"))

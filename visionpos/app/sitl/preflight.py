@@ -16,14 +16,7 @@ import math
 import time
 from typing import TYPE_CHECKING, Any, Callable
 
-from bridge.estimator_delay import (
-    EKF3_DEFAULT_LARGEST_DELAY_MS,
-    EKF3_HALF_STEP_MS,
-    EKF3_HORIZON_PARAM,
-    EKF3_MAX_DELAY_MS,
-    ekf3_history_ms,
-    ekf3_largest_delay_for,
-)
+from bridge.estimator_delay import EKF3_HALF_STEP_MS, EKF3_HORIZON_PARAM, ekf3_history_param_ms
 from visionpos.app.sitl.gcs import (
     MAV_CMD_DO_SET_HOME,
     MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN,
@@ -59,10 +52,8 @@ def boot_history_params(link_delay_ms: float | None) -> dict[str, float]:
     EXPECTED_LATE_MS plus the link's delay old, as the bridge advises it (EK3_BCN_DELAY,
     bridge/estimator_delay.py); nothing where EK3_HGT_DELAY's default already holds them. Without it, a relay
     adding 50 ms left the EKF 15-20 ms behind the truth with the advised VISO_DELAY_MS (issue 31)."""
-    oldest = EXPECTED_LATE_MS + (link_delay_ms or 0.0) + EKF3_HALF_STEP_MS
-    if ekf3_history_ms(EKF3_DEFAULT_LARGEST_DELAY_MS) >= oldest:
-        return {}
-    return {EKF3_HORIZON_PARAM: float(min(ekf3_largest_delay_for(oldest), EKF3_MAX_DELAY_MS))}
+    need = ekf3_history_param_ms(EXPECTED_LATE_MS + (link_delay_ms or 0.0) + EKF3_HALF_STEP_MS)
+    return {} if need is None else {EKF3_HORIZON_PARAM: float(need)}
 
 
 def vision_parameters(cfg: SitlSettings, message: str, vision_speed: bool,
