@@ -63,3 +63,51 @@ def thesis_log(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("rec") / "thesis3.mcap"
     write_recording("thesis", path, duration_s=3.0, seed=5)
     return path
+
+
+# ------------------------------------------------------------------ a cold kernel cache (a fresh clone, CI)
+# The fusion kernels compile once per checkout: about two minutes of one core (fusion/warmup.py). On a cold
+# cache a child process compiles them, at a lower priority, while the test folders that start no fusion run
+# first; the first test of the other folders waits for the child's record and then loads the kernels from the
+# cache instead of compiling them again. On 2 cores that takes the compilation off the suite's wall time.
+# A test of an early folder that does use a kernel compiles it itself, as it would without this.
+_FUSION_FREE = ("bridge", "calibration", "camera", "cli", "config", "data", "geometry", "sim", "stations",
+                "support")  # folders under tests/ whose tests start no fusion and no server (measured) ...
+_FUSION_USERS = ("bridge/test_foxglove_live.py", "bridge/test_mavlink_security.py", "config/test_unposed_cameras.py",
+                 "stations/test_hello.py")  # ... but for these files, which do
+_compile_child: list = []  # the child compiling the kernels (a Popen), while it runs
+
+
+def _fusion_free(item) -> bool:
+    parts = Path(str(item.fspath)).relative_to(REPO / "tests").parts
+    return len(parts) > 1 and parts[0] in _FUSION_FREE and "/".join(parts) not in _FUSION_USERS
+
+
+def pytest_collection_modifyitems(session, config, items):
+    from visionpos.fusion import warmup
+    from visionpos.jit import COMPILED
+
+    if not COMPILED or warmup.warm_up_record().exists() or not any(not _fusion_free(i) for i in items):
+        return
+    items[:] = [i for i in items if _fusion_free(i)] + [i for i in items if not _fusion_free(i)]
+    proc = warmup._start_child(warmup.warm_up_record(), None)
+    if proc is not None:
+        try:
+            os.setpriority(os.PRIO_PROCESS, proc.pid, 10)  # the early tests' live servers come first
+        except OSError:
+            pass
+        _compile_child.append(proc)
+
+
+def pytest_runtest_setup(item):
+    if not _compile_child or _fusion_free(item):
+        return
+    import time
+
+    from visionpos.fusion import warmup
+
+    proc = _compile_child.pop()
+    record = warmup.warm_up_record()
+    t0 = time.monotonic()
+    while not record.exists() and proc.poll() is None and time.monotonic() - t0 < 900.0:
+        time.sleep(0.2)
