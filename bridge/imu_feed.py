@@ -49,10 +49,10 @@ class ImuFeed:
 
     def offer(self, t_ap_ns: int, accel_frd: np.ndarray, gyro_frd: np.ndarray, bc) -> bool:
         """On the link's thread: one IMU sample (bridge/telemetry.py imu_sample) from the autopilot of Backchannel
-        `bc`; True if it is queued. Its time: the autopilot's, less bc.clock_lag_ns (the clocks, measured against
-        the optical motion) and bc.gyro_lag_ns() (ArduPilot's INS_GYRO_FILTER: its samples trail the motion by
-        that)."""
-        lag, filter_lag = bc.clock_lag_ns, bc.gyro_lag_ns()
+        `bc`; True if it is queued. Its time: the autopilot's, less bc.imu_clock_lag_ns (the clocks: measured
+        against the optical motion and carried by TIMESYNC, or TIMESYNC alone before the vehicle has turned) and
+        bc.gyro_lag_ns() (ArduPilot's INS_GYRO_FILTER: its samples trail the motion by that)."""
+        lag, filter_lag = bc.imu_clock_lag_ns(t_ap_ns), bc.gyro_lag_ns()
         if lag is None or filter_lag is None:
             self.unmapped += 1
             return False

@@ -12,6 +12,7 @@ import logging
 import math
 import socket
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,7 +20,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from scipy.spatial.transform import Rotation
 
 from bridge import Bridge
-from bridge.backchannel import DELAY_WINDOW_NS, Backchannel
+from bridge.backchannel import DELAY_WINDOW_NS, IMU_TIMESYNC_MAX_RTT_NS, Backchannel
 from bridge.config import parse_vehicles
 from bridge.fake_autopilot import (
     EXT_NAV_TEXT,
@@ -171,6 +172,36 @@ def test_delay_is_not_biased_by_the_autopilots_clock_drifting():
     correlation's instant."""
     bc, _ = _fly(AGGRESSIVE, AGGRESSIVE, 60.0, delay_ms=20.0, drift_ppm=500.0)
     assert bc.delay_ms == pytest.approx(4.0 + 20.0, abs=0.7), bc.delay_reason
+
+
+def test_the_imu_clock_map_is_timesync_before_the_vehicle_turns_and_follows_the_drift_after():
+    """The IMU's samples go onto the capture clock by the clock lag (bridge/imu_feed.py). The gyro/optical
+    correlation gives it only once the vehicle has turned, so on the ground and through the take-off's climb
+    TIMESYNC's offset stands in; after, the measured lag (of an instant seconds back) is carried to the sample by
+    TIMESYNC's drift. Here the autopilot's clock runs 0.2 % slow (PX4 SIH's ran 0.55 % slow)."""
+    drift_ppm = 2000.0
+
+    def truth_lag(t):  # the autopilot's clock less the server's at server time t (as _fly makes it)
+        return 7_000_000_000 - int(t * drift_ppm * 1e-6)
+
+    still = T.Static(np.array([0.0, 0.0, 0.1]))
+    bc, _ = _fly(still, still, 8.0, drift_ppm=drift_ppm)
+    t = 8_000_000_000
+    assert bc.clock_lag_ns is None and "turns too little" in bc.delay_reason
+    # TIMESYNC takes the one-way share as half the round trip: forward 2 ms, back 1 ms in _fly: 0.5 ms off
+    assert bc.imu_clock_lag_ns(t + truth_lag(t)) == pytest.approx(truth_lag(t) + 0.5e6, abs=0.3e6)
+    bc, _ = _fly(AGGRESSIVE, AGGRESSIVE, 30.0, drift_ppm=drift_ppm)
+    t = 30_000_000_000
+    assert bc.clock_lag_ns is not None
+    assert abs(bc.clock_lag_ns - truth_lag(t)) > 8e6  # the correlation's instant is seconds back: stale alone
+    assert bc.imu_clock_lag_ns(t + truth_lag(t)) == pytest.approx(truth_lag(t), abs=1.5e6)
+    # through a slow link (60 ms each way, a telemetry radio) TIMESYNC's half round trip is not trusted for it
+    bc, _ = _fly(still, still, 8.0, delay_ms=60.0, return_ms=60.0)
+    assert bc.imu_clock_lag_ns(8_000_000_000 + 7_000_000_000) is None
+    doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
+    assert (f"TIMESYNC's clock offset alone stands in (the one-way share taken as half the round trip), where its "
+            f"round trips are under {IMU_TIMESYNC_MAX_RTT_NS // 1_000_000} ms") in doc
+    assert "Over a slower link the IMU waits for the measurement" in doc
 
 
 def test_vision_delay_takes_the_forward_latency_at_the_correlations_instant():

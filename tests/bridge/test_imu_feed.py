@@ -53,6 +53,9 @@ class _Bc:
     def gyro_lag_ns(self):
         return self.filter_lag
 
+    def imu_clock_lag_ns(self, t_ap_ns):
+        return self.clock_lag_ns
+
 
 def test_the_feed_waits_for_the_clocks_then_hands_over_the_samples_with_the_filter_lag_taken_off():
     feed, bc = ImuFeed(), _Bc()
