@@ -44,6 +44,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from bridge.config import VehicleConfig
 from bridge.estimator_delay import DelayAdvice, advised_delay
+from bridge.imu_clock import ImuClockMap
 from bridge.imu_samples import AccelSamples
 from bridge.px4_status import ev_fusion_state
 from bridge.telemetry import IMU_MESSAGES, Ring, geodetic_offset_m, gyro_filter_lag_ns, imu_sample, sample_at
@@ -52,7 +53,6 @@ from visionpos.analysis.autopilot import (
     estimate_lag,
     identity_residuals,
     identity_statistic,
-    theil_sen_at,
     vision_delay_ns,
     weighted_time_ns,
 )
@@ -87,11 +87,6 @@ EKF_STATUS_STALE_NS = 5_000_000_000
 PARAM_RETRY_NS = 2_000_000_000
 ORIGIN_SILENT_GRACE_NS = 2_000_000_000  # with an origin to confirm, wait this long for a silent autopilot
 DELAY_RESET_MS = 5.0  # re-set the parameter when the measurement moves this far
-# the IMU's clock map between (and before) the delay measurements: TIMESYNC answers whose round trip is this short
-# (the one-way share, taken as half, then known to +-5 ms), over this window, while the newest is this recent
-IMU_TIMESYNC_MAX_RTT_NS = 10_000_000
-IMU_TIMESYNC_WINDOW_NS = 10_000_000_000
-IMU_TIMESYNC_STALE_NS = 3_000_000_000
 
 # EKF_STATUS_REPORT flags (ArduPilot's EKF_STATUS_FLAGS)
 EKF_ATTITUDE = 1
@@ -172,10 +167,7 @@ class Backchannel:
         self._opt_epoch_seen = 0
         # delay
         self.clock_lag_ns: float | None = None  # autopilot time less server stamp of one physical instant
-        # TIMESYNC's clock offset as a line (server ns of its newest answer, offset ns there, slope), and its value
-        # at the instant clock_lag_ns stands for: the IMU's clock map follows the clocks' drift from there
-        self._ts_line: tuple[float, float, float] | None = None
-        self._lag_ts_offset_ns: float | None = None
+        self.imu_clock = ImuClockMap()  # clock_lag_ns carried by TIMESYNC, for the IMU's samples
         self.delay_ms: float | None = None  # the median pose-instant-to-arrival delay (ms)
         self.advice: DelayAdvice | None = None  # what the autopilot's estimator wants set (bridge/estimator_delay.py)
         self.delay_correlation = float("nan")
@@ -309,46 +301,12 @@ class Backchannel:
         if newest is None or tc1 > newest:
             self._t_ap_newest = tc1
         self.timesync.add(s1, (float(tc1 - s1), float(recv_ns - s1)))
-        self._fit_timesync()
+        self.imu_clock.fit(self.timesync)
         return True
 
-    def _fit_timesync(self) -> None:
-        """The autopilot clock less the server clock as a line over server time, through the recent TIMESYNC
-        answers with short round trips: each one's offset tc1 - s1 - rtt / 2 at s1 + rtt / 2 (the request's
-        one-way share taken as half the round trip); a robust line (theil_sen_at), as the clocks drift."""
-        t, v = self.timesync.since(self.timesync.last_t() - IMU_TIMESYNC_WINDOW_NS)
-        ok = v[:, 1] <= IMU_TIMESYNC_MAX_RTT_NS
-        if ok.sum() < 3:
-            self._ts_line = None
-            return
-        mid = t[ok] + 0.5 * v[ok, 1]
-        off = v[ok, 0] - 0.5 * v[ok, 1]
-        t_end = float(mid[-1])
-        at_end = theil_sen_at(mid, off, t_end)
-        self._ts_line = (t_end, at_end, (at_end - theil_sen_at(mid, off, t_end - 1e9)) * 1e-9)
-
-    def _timesync_offset_ns(self, t_ns: float) -> float | None:
-        """TIMESYNC's autopilot-less-server clock offset at server time t_ns (None without a recent line)."""
-        line = self._ts_line
-        if line is None or t_ns - line[0] > IMU_TIMESYNC_STALE_NS:
-            return None
-        return line[1] + line[2] * (t_ns - line[0])
-
     def imu_clock_lag_ns(self, t_ap_ns: int) -> float | None:
-        """The clock lag that moves an IMU sample stamped t_ap_ns (autopilot clock) onto the capture clock: the
-        delay measurement's (clock_lag_ns, from the gyro against the optical rates) carried forward by TIMESYNC's
-        drift since the instant it stands for; before the vehicle has turned enough for that, TIMESYNC's offset
-        alone (a take-off's acceleration is then already in the filter: the two agreed within 1-4 ms on
-        ArduPilot SITL). None while neither is known (or only TIMESYNC over a slow link: round trips over
-        IMU_TIMESYNC_MAX_RTT_NS)."""
-        lag = self.clock_lag_ns
-        line = self._ts_line
-        ts = None if line is None else self._timesync_offset_ns(t_ap_ns - (lag if lag is not None else line[1]))
-        if lag is None:
-            return ts
-        if ts is None or self._lag_ts_offset_ns is None:
-            return lag
-        return lag + (ts - self._lag_ts_offset_ns)
+        """The clock lag that moves an IMU sample stamped t_ap_ns onto the capture clock (bridge/imu_clock.py)."""
+        return self.imu_clock.lag_ns(t_ap_ns, self.clock_lag_ns)
 
     def _stamp(self, t_ap: int, recv_ns: int) -> bool:
         """Note a timestamped sample; detects a reboot. False for a stamp too old to use."""
@@ -373,7 +331,7 @@ class Backchannel:
         self._ts_pending.clear()
         self._delays.clear()
         self.clock_lag_ns = None
-        self._ts_line = self._lag_ts_offset_ns = None
+        self.imu_clock.reset()
         self.delay_ms = None
         self.advice = None
         self.delay_reason = "the autopilot rebooted; measuring again"
@@ -656,7 +614,7 @@ class Backchannel:
         self.clock_lag_ns = fine.lag_ns - gyro_lag_ns  # the motion's instant, not the filtered gyro's
         # the instant the correlation stands for (where the vehicle turned most): the clocks drift apart
         at_ns = weighted_time_ns(to, rates)
-        self._lag_ts_offset_ns = self._timesync_offset_ns(at_ns)
+        self.imu_clock.mark_lag(at_ns)
         self.delay_correlation = fine.correlation
         ts_t, ts = self.timesync.since(int(to[0]) - DELAY_WINDOW_NS)
         _, sends = self.sends.since(int(to[0]))

@@ -35,7 +35,8 @@ def test_every_goal_names_a_metric_prefix_of_a_bench_group():
         )
         assert (g.target is None) == (g.versus is not None)
     assert set(GROUPS) == {"geometry", "detector", "fusion", "bridge", "calibration", "replay", "robustness", "planner",
-                           "sitl", "sitl_delay", "sitl_px4", "sitl_px4_delay", "sitl_fleet", "console", "backchannel",
+                           "sitl", "sitl_delay", "sitl_px4", "sitl_px4_delay", "sitl_fleet", "sitl_imu", "console",
+                           "backchannel",
                            "camera_monitor", "demo_memory", "coldstart", "freshness", "scale"}
 
 

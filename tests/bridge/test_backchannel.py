@@ -20,7 +20,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from scipy.spatial.transform import Rotation
 
 from bridge import Bridge
-from bridge.backchannel import DELAY_WINDOW_NS, IMU_TIMESYNC_MAX_RTT_NS, Backchannel
+from bridge.backchannel import DELAY_WINDOW_NS, Backchannel
 from bridge.config import parse_vehicles
 from bridge.fake_autopilot import (
     EXT_NAV_TEXT,
@@ -30,6 +30,7 @@ from bridge.fake_autopilot import (
     imu_from_truth,
     trajectory_truth,
 )
+from bridge.imu_clock import IMU_TIMESYNC_MAX_RTT_NS
 from visionpos.analysis.autopilot import estimate_lag, vision_delay_ns
 from visionpos.benchmarks.factories import arena_with_vehicles, body_state
 from visionpos.geometry.frames import euler_ned_frd, flu_to_frd, quat_world_body_to_ned_frd

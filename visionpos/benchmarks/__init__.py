@@ -22,6 +22,7 @@ GROUPS: dict[str, str] = {
     "sitl_px4": "sitl_px4",
     "sitl_px4_delay": "sitl_px4_delay",
     "sitl_fleet": "sitl_fleet",
+    "sitl_imu": "sitl_imu",
     "console": "console",
     "backchannel": "backchannel",
     "camera_monitor": "camera_monitor",

@@ -43,6 +43,7 @@ from visionpos.fusion.layout import (
     N_MEAS,
     N_STATE_COLS,
     NO_TIME,
+    PARAM_COMPENSATE_MAX_VEL_VAR,
     PARAM_MARKER_VAR_FLOOR,
     PARAM_MIN_MARKERS,
     PARAM_RESET_AFTER_NS,
@@ -436,6 +437,16 @@ def _single_views(b: int, local: np.ndarray, body_rows: np.ndarray, marker_xn: n
 
 
 @njit
+def _velocity_known(P: np.ndarray, params: np.ndarray) -> bool:
+    """Whether a body's filter (covariance P (18, 18)) knows its velocity well enough for single-camera views: its
+    mean velocity variance under the motion compensation's threshold (m^2/s^2). A new or reacquired track does not
+    yet (it starts at rest with the initial velocity sigma): one camera's view has no depth, and the update would
+    take its residual for velocity (after a 1 s occlusion in SITL flights, 0.3-0.6 m/s of a hovering vehicle,
+    and the next output 20-100 mm off); such a track waits for a triangulated pose."""
+    return (P[VEL0, VEL0] + P[VEL0 + 1, VEL0 + 1] + P[VEL0 + 2, VEL0 + 2]) / 3.0 < params[PARAM_COMPENSATE_MAX_VEL_VAR]
+
+
+@njit
 def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.ndarray, views: tuple, ref_ns: int,
                   tracked: tuple, params: np.ndarray, compensate: bool, reuse: float, bank: tuple,
                   tracks: tuple) -> tuple[np.ndarray, np.ndarray, int, int, np.ndarray]:
@@ -479,7 +490,7 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
         n = counts[i]
         if n < params[PARAM_MIN_MARKERS]:
             meas[i, MEAS_FIT_RMS_M] = np.nan
-            if params[PARAM_SV_ENABLED] != 0.0:
+            if params[PARAM_SV_ENABLED] != 0.0 and _velocity_known(P[bodies[i]], params):
                 b = bodies[i]
                 s = slice(first, first + sizes[i])
                 verdict[i], n_seen, n_views_used, newest = _single_views(
@@ -504,7 +515,7 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
         kind = UPDATE_POSE
         sv_verdict = VERDICT_TOO_FEW
         nis_cov_scale = 1.0 / reuse if kalman[KALMAN_NIS_UNSPLIT_COV] != 0.0 else 1.0
-        if params[PARAM_SV_ENABLED] == SV_PARAM_ALWAYS:
+        if params[PARAM_SV_ENABLED] == SV_PARAM_ALWAYS and _velocity_known(P[b], params):
             # mode `always`: each frame's own markers at its capture time instead of the compensated pose
             s = slice(first, first + sizes[i])
             d2, nis_p, nis_r = pose_nis(x[b], P[b], R_nom[b], adapt[b], clock[b], kalman, ref_ns, tk[i], Rk[i],

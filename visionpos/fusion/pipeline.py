@@ -23,7 +23,9 @@ fusion is updated instead from the 2-D markers each of the fusion's frames sees
 (kernels._single_views, tracking.filter_update_view: a reprojection measurement
 at the frame's own capture time, each frame used once, NIS-gated, only
 unambiguous associations). The track is kept only while the recent views' pose
-information bounds the pose; single views never acquire or re-identify.
+information bounds the pose; single views never acquire or re-identify, and a new or
+reacquired track takes none until a triangulated pose has told it its velocity
+(kernels._velocity_known).
 BodyState.update_kind says which kind of update last kept a body.
 
 Measurement covariance: from the rigid-body fit itself. The Kabsch residual

@@ -70,7 +70,10 @@ SINGLE_VIEW = section(
     "Tracking through occlusion (kernels._single_views, tracking.filter_update_view): a tracked body that "
     "cannot be triangulated (fewer than min_markers markers seen by 2 cameras) is updated from the 2-D "
     "markers each camera frame sees, at the frame's capture time. It never acquires or re-identifies a "
-    "body; the track is kept only while the recent views' pose information bounds the pose.",
+    "body; the track is kept only while the recent views' pose information bounds the pose. A new or "
+    "reacquired track takes no single view (in either mode) until a triangulated pose has told it its velocity "
+    "(velocity std under 0.3 m/s): one camera's view has no depth, and the update would take its residual for "
+    "velocity.",
     Setting("enabled", "boolean", True, "use single-camera reprojection updates for tracked bodies that "
             "cannot be triangulated"),
     Setting("mode", "text", SV_ALWAYS, "always: a tracked body whose triangulated pose fits its layout is "
