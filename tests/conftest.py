@@ -75,7 +75,7 @@ _FUSION_FREE = ("bridge", "calibration", "camera", "cli", "config", "data", "geo
                 "support")  # folders under tests/ whose tests start no fusion and no server (measured) ...
 _FUSION_USERS = ("bridge/test_foxglove_live.py", "bridge/test_mavlink_security.py", "config/test_unposed_cameras.py",
                  "stations/test_hello.py")  # ... but for these files, which do
-_compile_child: list = []  # the child compiling the kernels (a Popen), while it runs
+_compile_child: list = []  # the child compiling the kernels (a Popen; None: another process holds the lock)
 
 
 def _fusion_free(item) -> bool:
@@ -90,13 +90,14 @@ def pytest_collection_modifyitems(session, config, items):
     if not COMPILED or warmup.warm_up_record().exists() or not any(not _fusion_free(i) for i in items):
         return
     items[:] = [i for i in items if _fusion_free(i)] + [i for i in items if not _fusion_free(i)]
-    proc = warmup._start_child(warmup.warm_up_record(), None)
+    record = warmup.warm_up_record()
+    proc = warmup._start_child(record, None)  # None: another process compiles them already (a demo just run)
     if proc is not None:
         try:
             os.setpriority(os.PRIO_PROCESS, proc.pid, 10)  # the early tests' live servers come first
         except OSError:
             pass
-        _compile_child.append(proc)
+    _compile_child.append(proc)
 
 
 def pytest_runtest_setup(item):
@@ -108,6 +109,8 @@ def pytest_runtest_setup(item):
 
     proc = _compile_child.pop()
     record = warmup.warm_up_record()
+    lock = record.with_suffix(".lock")
     t0 = time.monotonic()
-    while not record.exists() and proc.poll() is None and time.monotonic() - t0 < 900.0:
+    while (not record.exists() and time.monotonic() - t0 < 900.0
+           and (proc.poll() is None if proc is not None else warmup._lock_holder(lock) is not None)):
         time.sleep(0.2)
