@@ -7,17 +7,36 @@ The full scripted flight (take off to 1 m, hold with a 1 s vision cut, 1 m squar
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from visionpos.benchmarks import BenchResult
 
 
-def run(quick: bool = False) -> BenchResult:
-    from visionpos.app.sitl import SITL_ENV, FlightPlan, default_sitl_binary, run_sitl, sitl_arena
+def sitl_binary() -> tuple[Path | None, BenchResult | None]:
+    """(ArduPilot's SITL binary, None), or (None, the skipped group's result saying why) where none is found."""
+    from visionpos.app.sitl import SITL_ENV, default_sitl_binary
 
     binary = default_sitl_binary()
     if binary is None:
-        return BenchResult(notes=[f"skipped: no ArduPilot SITL binary (set {SITL_ENV}=PATH or put it in "
-                                  "../shared/sitl/arducopter beside the checkout)"])
-    plan = FlightPlan(altitude_m=1.0, side_m=1.0, hold_s=4.0, square=True, cut_s=1.0, timeout_s=200.0)
+        return None, BenchResult(notes=[f"skipped: no ArduPilot SITL binary (set {SITL_ENV}=PATH or put it in "
+                                        "../shared/sitl/arducopter beside the checkout)"])
+    return binary, None
+
+
+def full_flight():
+    """The full scripted flight: take off to 1 m, hold 4 s with a 1 s vision cut, 1 m square, land."""
+    from visionpos.app.sitl import FlightPlan
+
+    return FlightPlan(altitude_m=1.0, side_m=1.0, hold_s=4.0, square=True, cut_s=1.0, timeout_s=200.0)
+
+
+def run(quick: bool = False) -> BenchResult:
+    from visionpos.app.sitl import run_sitl, sitl_arena
+
+    binary, skipped = sitl_binary()
+    if skipped is not None:
+        return skipped
+    plan = full_flight()
     s = run_sitl(sitl_arena("thesis", [], plan.timeout_s + 60.0), binary, plan, None)
     h = s.get("ekf_horizontal_error_mm") or {}
     y = s.get("ekf_yaw_error_deg") or {}

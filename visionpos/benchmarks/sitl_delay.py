@@ -43,12 +43,12 @@ DELAYS_MS = (0.0, 20.0, 50.0)
 
 
 def run(quick: bool = False) -> BenchResult:
-    from visionpos.app.sitl import SITL_ENV, FlightPlan, default_sitl_binary, run_sitl, sitl_arena
+    from visionpos.app.sitl import FlightPlan, run_sitl, sitl_arena
+    from visionpos.benchmarks.sitl import sitl_binary
 
-    binary = default_sitl_binary()
-    if binary is None:
-        return BenchResult(notes=[f"skipped: no ArduPilot SITL binary (set {SITL_ENV}=PATH or put it in "
-                                  "../shared/sitl/arducopter beside the checkout)"])
+    binary, skipped = sitl_binary()
+    if skipped is not None:
+        return skipped
     res = BenchResult(notes=[f"SITL binary: {binary}"])
     rows = []
     for d in DELAYS_MS:

@@ -15,13 +15,13 @@ from visionpos.benchmarks import BenchResult
 
 
 def run(quick: bool = False) -> BenchResult:
-    from visionpos.app.sitl import SITL_ENV, FlightPlan, default_sitl_binary, sitl_arena
+    from visionpos.app.sitl import FlightPlan, sitl_arena
     from visionpos.app.sitl.fleet import Swap, run_fleet
+    from visionpos.benchmarks.sitl import sitl_binary
 
-    binary = default_sitl_binary()
-    if binary is None:
-        return BenchResult(notes=[f"skipped: no ArduPilot SITL binary (set {SITL_ENV}=PATH or put it in "
-                                  "../shared/sitl/arducopter beside the checkout)"])
+    binary, skipped = sitl_binary()
+    if skipped is not None:
+        return skipped
     plan = FlightPlan(altitude_m=1.0, hold_s=8.0, timeout_s=150.0)
     s = run_fleet(sitl_arena("pair", [], plan.timeout_s + 60.0), binary, plan, 2, Swap(2.0, 2.0), None,
                   same_layout=True)

@@ -15,13 +15,13 @@ _CASES = (("off", []), ("on", ["fusion.imu.enabled=true"]))
 
 
 def run(quick: bool = False) -> BenchResult:
-    from visionpos.app.sitl import SITL_ENV, FlightPlan, default_sitl_binary, run_sitl, sitl_arena
+    from visionpos.app.sitl import run_sitl, sitl_arena
+    from visionpos.benchmarks.sitl import full_flight, sitl_binary
 
-    binary = default_sitl_binary()
-    if binary is None:
-        return BenchResult(notes=[f"skipped: no ArduPilot SITL binary (set {SITL_ENV}=PATH or put it in "
-                                  "../shared/sitl/arducopter beside the checkout)"])
-    plan = FlightPlan(altitude_m=1.0, side_m=1.0, hold_s=4.0, square=True, cut_s=1.0, timeout_s=200.0)
+    binary, skipped = sitl_binary()
+    if skipped is not None:
+        return skipped
+    plan = full_flight()
     res = BenchResult(notes=[f"SITL binary: {binary}"])
     rows = []
     for tag, overrides in _CASES:
