@@ -11,7 +11,7 @@ short. On ArduPilot SITL the two agreed within 1-4 ms.
 from __future__ import annotations
 
 from bridge.telemetry import Ring
-from visionpos.analysis.autopilot import theil_sen_at
+from visionpos.analysis.autopilot import theil_sen_line
 
 # TIMESYNC answers whose round trip is this short (the one-way share, taken as half, then known to +-5 ms), over
 # this window, while the newest is this recent
@@ -24,7 +24,8 @@ class ImuClockMap:
     """TIMESYNC's clock offset as a line, and its value where the delay measurement's lag stands for."""
 
     def __init__(self) -> None:
-        self.line: tuple[float, float, float] | None = None  # server ns of the newest answer, offset ns there, slope
+        self.line: tuple[float, float, float] | None = None  # theil_sen_line: server ns t0, offset ns at t0, slope
+        self.newest_ns = 0.0  # server time of the newest answer the line was fitted to
         self.lag_ts_offset_ns: float | None = None  # TIMESYNC's offset at the measured lag's instant
 
     def reset(self) -> None:
@@ -36,19 +37,15 @@ class ImuClockMap:
         clocks drift."""
         t, v = timesync.since(timesync.last_t() - IMU_TIMESYNC_WINDOW_NS)
         ok = v[:, 1] <= IMU_TIMESYNC_MAX_RTT_NS
-        if ok.sum() < 3:
-            self.line = None
-            return
         mid = t[ok] + 0.5 * v[ok, 1]
-        off = v[ok, 0] - 0.5 * v[ok, 1]
-        t_end = float(mid[-1])
-        at_end = theil_sen_at(mid, off, t_end)
-        self.line = (t_end, at_end, (at_end - theil_sen_at(mid, off, t_end - 1e9)) * 1e-9)
+        self.line = theil_sen_line(mid, v[ok, 0] - 0.5 * v[ok, 1])
+        if self.line is not None:
+            self.newest_ns = float(mid[-1])
 
     def offset_at(self, t_ns: float) -> float | None:
         """TIMESYNC's autopilot-less-server offset (ns) at server time t_ns; None without a recent line."""
         line = self.line
-        if line is None or t_ns - line[0] > IMU_TIMESYNC_STALE_NS:
+        if line is None or t_ns - self.newest_ns > IMU_TIMESYNC_STALE_NS:
             return None
         return line[1] + line[2] * (t_ns - line[0])
 

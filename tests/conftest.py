@@ -87,10 +87,10 @@ def pytest_collection_modifyitems(session, config, items):
     from visionpos.fusion import warmup
     from visionpos.jit import COMPILED
 
-    if not COMPILED or warmup.warm_up_record().exists() or not any(not _fusion_free(i) for i in items):
+    record = warmup.warm_up_record() if COMPILED else None
+    if record is None or record.exists() or not any(not _fusion_free(i) for i in items):
         return
     items[:] = [i for i in items if _fusion_free(i)] + [i for i in items if not _fusion_free(i)]
-    record = warmup.warm_up_record()
     proc = warmup._start_child(record, None)  # None: another process compiles them already (a demo just run)
     if proc is not None:
         try:

@@ -183,20 +183,30 @@ def vision_delay_ns(send_minus_stamp_ns: np.ndarray, timesync_s1_ns: np.ndarray,
     return float(np.median(send_minus_stamp_ns) + f - clock_lag_ns)
 
 
-def theil_sen_at(t: np.ndarray, y: np.ndarray, at: float) -> float:
-    """The Theil-Sen line through (t, y) (the median of the pairwise slopes; the intercept the median of the
-    residuals: a few late answers do not move it) evaluated at `at`; the median of y for fewer than 3 points
-    or no spread of t."""
+def theil_sen_line(t: np.ndarray, y: np.ndarray) -> tuple[float, float, float] | None:
+    """The Theil-Sen line through (t, y): (t0, y at t0, slope), t0 the median of t, the slope the median of the
+    pairwise slopes, the intercept the median of the residuals (a few late answers do not move it); None for
+    fewer than 3 points or no spread of t."""
     t = np.asarray(t, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     if len(t) < 3 or np.ptp(t) <= 0:
-        return float(np.median(y))
+        return None
     i, j = np.triu_indices(len(t), 1)
     dt = t[j] - t[i]
     ok = dt != 0
     slope = float(np.median((y[j] - y[i])[ok] / dt[ok]))
     t0 = float(np.median(t))
-    return float(np.median(y - slope * (t - t0)) + slope * (at - t0))
+    return t0, float(np.median(y - slope * (t - t0))), slope
+
+
+def theil_sen_at(t: np.ndarray, y: np.ndarray, at: float) -> float:
+    """theil_sen_line through (t, y) evaluated at `at`; the median of y for fewer than 3 points or no spread
+    of t."""
+    line = theil_sen_line(t, y)
+    if line is None:
+        return float(np.median(np.asarray(y, dtype=np.float64)))
+    t0, y0, slope = line
+    return float(y0 + slope * (at - t0))
 
 
 def weighted_time_ns(t_ns: np.ndarray, x: np.ndarray) -> float:

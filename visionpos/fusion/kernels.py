@@ -136,6 +136,12 @@ def _marker_motion(
 
 
 @njit
+def _mean_velocity_var(P: np.ndarray) -> float:
+    """The mean of a filter's three velocity variances (m^2/s^2), from its covariance P (18, 18)."""
+    return (P[VEL0, VEL0] + P[VEL0 + 1, VEL0 + 1] + P[VEL0 + 2, VEL0 + 2]) / 3.0
+
+
+@njit
 def _pack_states(bank: tuple, bodies: np.ndarray, t_ns: int) -> np.ndarray:
     """The kernels' packed input (B, N_STATE_COLS) (columns STATE_*) for the filters `bodies` (B,)
     of a FilterBank (bank: layout.FilterArrays as a tuple) at t_ns: per body its state, nominal
@@ -149,7 +155,7 @@ def _pack_states(bank: tuple, bodies: np.ndarray, t_ns: int) -> np.ndarray:
             for c in range(3):
                 out[i, STATE_R_NOM0 + 3 * r + c] = R_nom[b, r, c]
         out[i, STATE_DT_S] = (t_ns - clock[b, CLOCK_T_NS]) * 1e-9
-        out[i, STATE_VEL_VAR] = (P[b, VEL0, VEL0] + P[b, VEL0 + 1, VEL0 + 1] + P[b, VEL0 + 2, VEL0 + 2]) / 3.0
+        out[i, STATE_VEL_VAR] = _mean_velocity_var(P[b])
         out[i, STATE_RATE_VAR] = (P[b, RATE0, RATE0] + P[b, RATE0 + 1, RATE0 + 1] + P[b, RATE0 + 2, RATE0 + 2]) / 3.0
     return out
 
@@ -443,7 +449,7 @@ def _velocity_known(P: np.ndarray, params: np.ndarray) -> bool:
     yet (it starts at rest with the initial velocity sigma): one camera's view has no depth, and the update would
     take its residual for velocity (after a 1 s occlusion in SITL flights, 0.3-0.6 m/s of a hovering vehicle,
     and the next output 20-100 mm off); such a track waits for a triangulated pose."""
-    return (P[VEL0, VEL0] + P[VEL0 + 1, VEL0 + 1] + P[VEL0 + 2, VEL0 + 2]) / 3.0 < params[PARAM_COMPENSATE_MAX_VEL_VAR]
+    return _mean_velocity_var(P) < params[PARAM_COMPENSATE_MAX_VEL_VAR]
 
 
 @njit
