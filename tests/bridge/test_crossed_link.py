@@ -14,7 +14,7 @@ import pytest
 from bridge import Bridge
 from bridge.fake_autopilot import FakeAutopilot, decode_pose, trajectory_truth
 from visionpos.app.linkswap import CrossRelay
-from visionpos.app.ports import free_port
+from visionpos.app.ports import free_port, free_ports
 from visionpos.benchmarks.factories import arena_with_vehicles, body_state
 from visionpos.sim import trajectories as T
 
@@ -36,7 +36,7 @@ def _fly(tmp_path, shared_key: bool, swap_back: bool):
     """Two fake autopilots behind a CrossRelay, a bridge whose vehicles are signed (one key for both, or one each);
     poses streamed at 50 Hz, the relay swapping the autopilots 1 s in (and back 1 s later with swap_back)."""
     keys = [KEYS[0], KEYS[0]] if shared_key else KEYS
-    ports = [free_port(), free_port()]
+    ports = free_ports(2)
     vehicles = [{"body": f"body{i + 1}", "sysid": i + 1, "endpoint": f"udpin:127.0.0.1:{p}",
                  "signing": {"key_file": _key_file(tmp_path, keys[i], f"k{i}")}} for i, p in enumerate(ports)]
     bridge = Bridge(arena_with_vehicles(vehicles), {"report_interval_s": 0})

@@ -17,7 +17,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from bridge import Bridge
 from bridge.fake_autopilot import FakeAutopilot, decode_pose
-from visionpos.app.ports import free_port
+from visionpos.app.ports import free_port, free_ports
 from visionpos.benchmarks.factories import arena_with_vehicles, body_state
 
 S45 = math.sqrt(0.5)
@@ -252,7 +252,7 @@ def test_epoch_time_base_consistent_with_timesync():
 
 
 def test_two_vehicles_no_cross_talk():
-    pa, pb = free_port(), free_port()
+    pa, pb = free_ports(2)
     sign = {"key_file": key_file()}
     arena = arena_with_vehicles([
         {"body": "body1", "sysid": 1, "endpoint": f"udpin:127.0.0.1:{pa}", "signing": sign},
@@ -496,7 +496,7 @@ def test_several_vehicles_share_one_reset_counter():
     pose that reaches another autopilot over a crossed link (before the bridge hears that autopilot) carries the
     counter that autopilot already has, so its EKF gates the other drone's position instead of resetting to it
     (ArduPilot resets its position to the vision at any change of the counter: measured with two SITLs)."""
-    pa, pb = free_port(), free_port()
+    pa, pb = free_ports(2)
     sign = {"signing": {"key_file": key_file()}, "max_age_ms": 10000}
     bridge = Bridge(arena_with_vehicles([
         {"body": "body1", "sysid": 1, "endpoint": f"udpin:127.0.0.1:{pa}", **sign},

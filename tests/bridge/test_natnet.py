@@ -17,7 +17,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from bridge.natnet import NatNetServer, parse_natnet
-from visionpos.app.ports import free_port
+from visionpos.app.ports import free_ports
 from visionpos.benchmarks.factories import body_state
 from visionpos.config.arena import ConfigError, parse_arena
 
@@ -33,7 +33,7 @@ def arena(natnet: dict, source="natnet-test.yaml"):
 
 
 def server(**kw):
-    cfg = {"interface": "127.0.0.1", "command_port": free_port(), "data_port": free_port(), **kw}
+    cfg = {"interface": "127.0.0.1", **dict(zip(("command_port", "data_port"), free_ports(2))), **kw}
     s = NatNetServer.from_arena(arena(cfg))
     s.start()
     return s
@@ -375,6 +375,22 @@ def test_config_errors_name_file_key_and_fix():
 def test_serve_creates_the_natnet_sink_from_the_arena():
     from visionpos.app.outputs import build_outputs
 
-    sinks = build_outputs(arena({"interface": "127.0.0.1", "command_port": free_port(), "data_port": free_port()}))
+    sinks = build_outputs(arena({"interface": "127.0.0.1", **dict(zip(("command_port", "data_port"), free_ports(2)))}))
     assert [type(s).__name__ for s in sinks] == ["OffLoopOutputs"]
     assert [type(o).__name__ for o in sinks[0].outputs] == ["NatNetServer"]
+
+
+def test_free_ports_are_distinct_and_bindable():
+    """Two free_port() calls may get the same port back (the kernel reuses a port just freed: a NatNet server once
+    refused its data port equal to its command port); free_ports binds them all at once."""
+    import socket
+
+    ports = free_ports(16)
+    assert len(set(ports)) == 16
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in ports]
+    try:
+        for s, p in zip(socks, ports):
+            s.bind(("127.0.0.1", p))
+    finally:
+        for s in socks:
+            s.close()

@@ -103,11 +103,11 @@ def bench_encode(n: int) -> dict[str, float]:
 def bench_loopback(duration_s: float) -> tuple[dict[str, float], list[dict]]:
     from bridge import Bridge
     from bridge.fake_autopilot import FakeAutopilot
-    from visionpos.app.ports import free_port
+    from visionpos.app.ports import free_ports
     from visionpos.benchmarks.factories import arena_with_vehicles, body_state
 
-    ports = [free_port() for _ in range(N_VEHICLES)]
-    ap_ports = [free_port() for _ in range(N_VEHICLES)]  # udpin without signing needs the autopilot's address
+    both = free_ports(2 * N_VEHICLES)
+    ports, ap_ports = both[:N_VEHICLES], both[N_VEHICLES:]  # udpin without signing needs the autopilot's address
     arena = arena_with_vehicles(
         [{"body": f"body{i + 1}", "sysid": i + 1, "endpoint": f"udpin:127.0.0.1:{p}",
           "autopilot_address": f"127.0.0.1:{a}"} for i, (p, a) in enumerate(zip(ports, ap_ports))]

@@ -66,10 +66,10 @@ class _AgeSink(Sink):
 
 
 def _overrides() -> list[str]:
-    from visionpos.app.ports import free_port
+    from visionpos.app.ports import free_ports
     from visionpos.benchmarks.bridge import _output_overrides
 
-    return _output_overrides(free_port(), free_port(), free_port(), free_port())
+    return _output_overrides(*free_ports(4))
 
 
 def _demo_run(duration_s: float) -> tuple[list[tuple[int, int, int, int]], dict[str, Any]]:
