@@ -92,9 +92,10 @@ def pytest_collection_modifyitems(session, config, items):
         return
     items[:] = [i for i in items if _fusion_free(i)] + [i for i in items if not _fusion_free(i)]
     proc = warmup._start_child(record, None)  # None: another process compiles them already (a demo just run)
-    if proc is not None:
+    pid = proc.pid if proc is not None else warmup._lock_holder(record.with_suffix(".lock"))
+    if pid:
         try:
-            os.setpriority(os.PRIO_PROCESS, proc.pid, 10)  # the early tests' live servers come first
+            os.setpriority(os.PRIO_PROCESS, pid, 10)  # the early tests' live servers come first
         except OSError:
             pass
     _compile_child.append(proc)
