@@ -358,7 +358,9 @@ def test_measured_delay_matches_the_added_link_delay_live(monkeypatch):
     # the advice waits for come in ~9 s of streaming, not ~16
     monkeypatch.setattr(backchannel, "DELAY_EVERY_NS", 2_000_000_000)
     t0 = time.monotonic_ns()
-    delays = (0.0, 20.0, 50.0)
+    # the third link's p99 past EKF3's default 60 ms history whatever the host: 60 ms added plus the bridge's own
+    # (with 50 ms added a quiet host once read 64.999 ms, and the horizon advice went unexercised)
+    delays = (0.0, 20.0, 60.0)
     # ArduPilot copters' INS_GYRO_FILTER (20 Hz): their gyro 11.3 ms behind the motion
     aps = [FakeAutopilot("udpin:127.0.0.1:0", sysid=i + 1, truth=trajectory_truth(AGGRESSIVE, t0), delay_ms=d,
                          boot_ns=t0 - int((i + 1) * 3.7e9), gyro_filter_hz=20.0) for i, d in enumerate(delays)]
@@ -393,7 +395,7 @@ def test_measured_delay_matches_the_added_link_delay_live(monkeypatch):
                 assert h["horizon_param"] == "EK3_BCN_DELAY" and h["horizon_ms"] % 12 == 0, (i, h)
                 assert late - 5.0 <= h["horizon_ms"] <= late + 12.0 + 5.0, (i, h, late)
                 assert "EK3_BCN_DELAY=" in bridge.vehicles[i].bc.delay_advice()
-        assert aps[2].true_delay_ms(window_s=DELAY_WINDOW_NS * 1e-9, percentile=99.0) > 65.0  # 50 ms added
+        assert aps[2].true_delay_ms(window_s=DELAY_WINDOW_NS * 1e-9, percentile=99.0) > 65.0  # 60 ms added
         assert "VISO_DELAY_MS=" in bridge.latency_report() and "smallest" in bridge.latency_report()
     finally:
         bridge.close()
