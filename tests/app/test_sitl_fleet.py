@@ -123,6 +123,8 @@ def test_two_identical_real_sitls_are_bound_on_their_pads_fly_together_and_a_swa
     for name, v in s["vehicles"].items():  # each bound on its pad, to the body standing there (its own)
         b = v["binding_at_take_off"]
         assert b["identity_binding"] == "bound" and "on its pad" in b["identity_reason"], b
+        # and never to the other's body (at the end it may be unbound: a loss on the ground)
+        assert b["bound_body"] == name and v["binding_at_end"]["bound_body"] in (name, None), (b, v["binding_at_end"])
     for v in s["vehicles"].values():
         assert v["ekf_horizontal_error_outside_swap_mm"]["p99"] <= 20.0, v["ekf_horizontal_error_outside_swap_mm"]
         # (a pose or two of the other vehicle may reach an autopilot before the bridge hears it: EKF3 may switch

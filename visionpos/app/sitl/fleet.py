@@ -198,11 +198,12 @@ async def _fly(ctx: Any, fleet: list[_Vehicle], live: LiveArena, plan: FlightPla
         v.record["viso_delay_ms"] = v.gcs.params.get("VISO_DELAY_MS")
         await arm_in_guided(v.gcs, live, left())
         v.record["armed_ns"] = time.monotonic_ns()
-        await v.gcs.command_async(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, plan.altitude_m, what="takeoff")
-        say(f"{v.name} armed in GUIDED, taking off")
-    for v in fleet:  # how each was bound (a fleet of one layout: on its pad)
+        # how it was bound when it takes off (a fleet of one layout: on its pad); read here, not after the
+        # others armed: by then a loss in its flight may have had it bound again by its motion
         h = ctx.bridge.health().get(v.name) or {}
         v.record["binding"] = {k: h.get(k) for k in ("identity_binding", "identity_reason", "bound_body")}
+        await v.gcs.command_async(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, plan.altitude_m, what="takeoff")
+        say(f"{v.name} armed in GUIDED, taking off")
     alt = plan.altitude_m - 0.05
     await Gcs.until(lambda: all(truth_now(v.truth)[1][2] >= alt for v in fleet), min(30.0, left()),
                     f"every vehicle at {plan.altitude_m} m")
