@@ -153,6 +153,7 @@ class Backchannel:
         self.timesync = Ring(64, 2)  # server send time s1: tc1 - s1, round trip
         self._ts_pending: collections.OrderedDict[int, int] = collections.OrderedDict()
         self.local_position: tuple[float, float, float] | None = None
+        self.local_position_ns = 0  # its receive time, server clock
         # identity
         self.identity = "unknown"
         self.identity_reason = "no attitude from the autopilot yet"
@@ -251,7 +252,7 @@ class Backchannel:
                 if self.imu_feed is not None:
                     self.imu_feed.offer(*s, self)
         elif t == "LOCAL_POSITION_NED":
-            self.local_position = (m.x, m.y, m.z)
+            self.local_position, self.local_position_ns = (m.x, m.y, m.z), recv_ns
         elif t == "EKF_STATUS_REPORT":
             self._on_ekf_status(m, recv_ns)
         elif t == "ESTIMATOR_STATUS":

@@ -45,6 +45,7 @@ from scipy.stats import chi2
 from bridge.backchannel import IDENTITY_RATE_NOISE_RAD_S, IDENTITY_RATE_REL, MAX_PAIR_GAP_NS, TELEMETRY_STALE_NS
 from bridge.config import PAD_RADIUS_M
 from bridge.point_binding import point_accel_costs
+from bridge.position_binding import POSITION_STALE_NS, REBIND_WITHIN_NS, rebind_by_position, vehicle_position_world
 from bridge.telemetry import sample_at
 from visionpos.analysis.autopilot import (
     accel_residuals,
@@ -206,7 +207,7 @@ class FleetBinding:
 
     def __init__(self, groups: list[list[str]], vehicle_body: dict[str, str], sigma_att_rad: dict[str, float],
                  silent_policy: dict[str, str], point_bodies: frozenset[str] = frozenset(),
-                 pads: dict[str, tuple[float, float]] | None = None):
+                 pads: dict[str, tuple[float, float]] | None = None, yaw_offset_rad: dict[str, float] | None = None):
         self.groups = [(list(bodies), [v for v, b in vehicle_body.items() if b in bodies]) for bodies in groups]
         self.groups = [(bs, vs) for bs, vs in self.groups if len(vs) > 0 and len(bs) > 1]
         self.bodies = {b for bs, _ in self.groups for b in bs}
@@ -226,6 +227,10 @@ class FleetBinding:
         self.point_bodies = point_bodies  # single-marker bodies: bound by their accelerations (point_binding.py)
         self.pads = dict(pads or {})  # vehicle -> its parking pad (x, y m, world): _bind_on_pads
         self.pad_refuted: set[str] = set()  # vehicles whose pad binding its motion contradicted: by motion only
+        self.yaw_offset_rad = dict(yaw_offset_rad or {})  # vehicle -> its vision frame's yaw (position_binding.py)
+        self._lost_ns: dict[str, int] = {}  # vehicle -> when its binding was dropped for a track loss
+        self._positions: dict = {}  # the evaluation's {vehicle: (receive ns, LOCAL_POSITION_NED (3,) m)}
+        self._group_bodies: list[str] = []
 
     def vehicle_of(self, body: str) -> str | None:
         """The vehicle that gets this optical body's states now (None: nobody)."""
@@ -247,7 +252,12 @@ class FleetBinding:
                 self.rings[b].clear()  # from here on the track may follow another drone
             if b in self.bound and now != IdentityState.CONTINUITY.value:
                 why = "track lost" if now == IdentityState.LOST.value else f"identity {now}"
-                dropped.append(self._drop(b, f"{why}: binding dropped, binding again when it moves", st.time_ns))
+                v = self._drop(b, f"{why}: binding dropped, binding again when it moves or where its EKF says it is"
+                               if now == IdentityState.LOST.value else f"{why}: binding dropped, binding again when "
+                               "it moves", st.time_ns)
+                if now == IdentityState.LOST.value:
+                    self._lost_ns[v] = st.time_ns
+                dropped.append(v)
             if st.tracked:
                 self.rings[b].append((st.time_ns, *st.quaternion, *st.angular_velocity, *st.position,
                                       attitude_sigma_rad(st.covariance)))
@@ -276,19 +286,22 @@ class FleetBinding:
         return now_ns >= self._next_ns
 
     def evaluate(self, now_ns: int, telemetry: dict[str, tuple[np.ndarray, np.ndarray] | None],
-                 accel: dict[str, tuple[np.ndarray, np.ndarray] | None] | None = None
+                 accel: dict[str, tuple[np.ndarray, np.ndarray] | None] | None = None,
+                 positions: dict[str, tuple[int, tuple[float, float, float] | None]] | None = None
                  ) -> tuple[list[str], list[tuple[str, str]]]:
         """Every BIND_EVERY_NS: telemetry {vehicle: (times (N,) ns server clock, (N, 5) roll, pitch, p, q, r) or
         None}; accel {vehicle: (times (M,) ns server clock, (M, 3) specific force m/s^2 FRD) or None} (a group
-        uses the accelerations only where every live vehicle of it has some). Returns (vehicles whose binding
+        uses the accelerations only where every live vehicle of it has some); positions {vehicle: (receive time ns
+        server clock, its LOCAL_POSITION_NED (3,) m or None)} (position_binding.py). Returns (vehicles whose binding
         was dropped: stop their output, new bindings [(body, vehicle)]: tell the pipeline)."""
         self._next_ns = now_ns + BIND_EVERY_NS
         self._accel = accel or {}
+        self._positions = positions or {}
         dropped: list[str] = []
         made: list[tuple[str, str]] = []
         for bodies, vehicles in self.groups:
             live = self._live_vehicles(now_ns, vehicles, telemetry, dropped)
-            self._now_ns = now_ns
+            self._now_ns, self._group_bodies = now_ns, bodies
             d, m = self._evaluate_group(now_ns, bodies, live, telemetry)
             dropped += d
             made += m
@@ -484,6 +497,8 @@ class FleetBinding:
                 made.append((b, v))
         if self.pads:
             made += self._bind_on_pads(rows, vehicles, taken, disagreed, cost, reject)
+        if self._lost_ns:
+            made += self._bind_by_position(rows, vehicles, taken, disagreed, cost, reject)
         for v in vehicles:
             if v not in taken:
                 self._say(v, self._why(v, vehicles, rows, cost, reject, still))
@@ -520,6 +535,39 @@ class FleetBinding:
             taken.add(v)
             self.vehicles[v] = VehicleIdentity(BOUND, f"bound to {b}: standing on its pad {list(pad)} (its motion "
                                                "checks the binding from the first one on)", b, on_pad=True)
+            self.binds += 1
+            made.append((b, v))
+        return made
+
+    def _bind_by_position(self, rows: list[str], vehicles: list[str], taken: set[str], disagreed: set[str],
+                          cost: np.ndarray, reject: float) -> list[tuple[str, str]]:
+        """Each live vehicle whose binding a track loss dropped lately is bound again to the one body reacquired
+        where its EKF says it is (position_binding.py), where its motion does not contradict it (pair cost under
+        the reject). Bodies are compared by their origins: a pivot_offset of a few cm is within NEAR_M."""
+        now = self._now_ns
+        fresh = {}
+        for v in vehicles:
+            t, ned = self._positions.get(v, (0, None))
+            if ned is not None and 0 <= now - t <= POSITION_STALE_NS:
+                fresh[v] = vehicle_position_world(np.array(ned, float), self.yaw_offset_rad.get(v, 0.0))
+        candidates = {v: p for v, p in fresh.items() if v not in taken and v not in self.bound.values()
+                      and now - self._lost_ns.get(v, -(1 << 62)) <= REBIND_WITHIN_NS}
+        if not candidates:
+            return []
+        newest = {b: np.array(self.rings[b][-1][8:11], float) for b in self._group_bodies
+                  if self.rings[b] and self.identity[b] != IdentityState.LOST.value}
+        free = {b: newest[b] for b in rows if b in newest and b not in self.bound and b not in disagreed}
+        made = []
+        for b, v, d in rebind_by_position(candidates, fresh, free,
+                                          {b: p for b, p in newest.items() if b not in free}):
+            if cost[rows.index(b), vehicles.index(v)] > reject:
+                continue
+            self.bound[b] = v
+            taken.add(v)
+            age = (now - self._lost_ns.pop(v)) * 1e-9
+            self.vehicles[v] = VehicleIdentity(BOUND, f"bound to {b}: reacquired {d * 1e3:.0f} mm from where its "
+                                               f"EKF says it is, {age:.1f} s after the loss (its motion checks the "
+                                               "binding from the first one on)", b)
             self.binds += 1
             made.append((b, v))
         return made

@@ -143,7 +143,9 @@ class Bridge(Sink):
         made: list[tuple[str, str]] = []
         if self.fleet.due(now):
             telemetry = {name: self._by_name[name].bc.attitude_on_server_clock() for name in self.fleet.vehicles}
-            more, made = self.fleet.evaluate(now, telemetry, self.fleet.accel_telemetry(self._by_name))
+            positions = {name: (self._by_name[name].bc.local_position_ns, self._by_name[name].bc.local_position)
+                         for name in self.fleet.vehicles}
+            more, made = self.fleet.evaluate(now, telemetry, self.fleet.accel_telemetry(self._by_name), positions)
             stop += more
         for name in stop:
             v = self._by_name[name]
@@ -152,6 +154,10 @@ class Bridge(Sink):
             v.bc.optical_epoch += 1
         for name in stop:
             self._pad_moving.discard(name)
+        bound = self.fleet.bound
+        for name, ident in self.fleet.vehicles.items():  # what a vision-gap warning says of an unbound one
+            if ident.body is None or bound.get(ident.body) != name:
+                self._by_name[name].not_sent_why = f"identity {ident.state}: {ident.reason}"
         for body, name in made:
             self._pad_moving.discard(name)
             if self._last_bound.get(name, body) != body:  # another body's poses: the autopilot resets to them
@@ -229,5 +235,6 @@ def _fleet_binding(arena: ArenaConfig, vehicles: list[VehicleLink]) -> FleetBind
                          {v.cfg.name: math.radians(v.cfg.identity_tolerance_deg) for v in vehicles},
                          {v.cfg.name: v.cfg.silent_backchannel for v in vehicles},
                          frozenset(b.name for b in arena.bodies if b.is_point),
-                         {v.cfg.name: v.cfg.pad for v in vehicles if v.cfg.pad is not None})
+                         {v.cfg.name: v.cfg.pad for v in vehicles if v.cfg.pad is not None},
+                         {v.cfg.name: math.radians(v.cfg.yaw_offset_deg) for v in vehicles})
     return fleet if fleet.groups else None

@@ -31,6 +31,35 @@ def test_the_row_is_centred_on_the_origin_and_each_home_is_where_its_vehicle_sta
         assert (alt, hdg) == (ORIGIN[2], ORIGIN[3])
 
 
+def _closest_m(p0, p1, q0, q1) -> float:
+    """Closest distance of two points moving at once along straight segments p0->p1, q0->q1 (same start and end
+    times), sampled finely."""
+    s = np.linspace(0.0, 1.0, 2001)[:, None]
+    return float(np.min(np.linalg.norm((p0 + s * (p1 - p0)) - (q0 + s * (q1 - q0)), axis=1)))
+
+
+@pytest.mark.parametrize("n", [2, 3, 5])
+def test_the_crossing_passes_at_the_gap_and_clear_of_the_vehicles_hovering_in_the_row(n):
+    """The first and the last exchange places passing 0.3 m apart and come back where they started; with three or
+    more, no leg takes either within 0.5 m of a vehicle hovering in the row (a straight crossing through the row
+    would pass the middle one within 0.15 m)."""
+    ned = np.array([[0.0, -y] for y in F.start_positions(n)[:, 1]])  # (north, east): E = -y
+    a0, b0, others = ned[0], ned[-1], ned[1:-1]
+    legs = F.crossing_legs(np.r_[a0, 0.0], np.r_[b0, 0.0], n)
+    pa, pb = a0, b0
+    gaps = []
+    for qa, qb, _ in legs:
+        qa, qb = np.array(qa), np.array(qb)
+        gaps.append(_closest_m(pa, qa, pb, qb))
+        for o in others:
+            assert _closest_m(pa, qa, o, o) >= 0.5 and _closest_m(pb, qb, o, o) >= 0.5, (n, qa, qb, o)
+        pa, pb = qa, qb
+    assert min(gaps) == pytest.approx(0.3, abs=1e-3)  # they pass at the gap, never nearer
+    assert np.allclose(pa, a0) and np.allclose(pb, b0)  # back over their pads to land
+    crossed = [leg for leg in legs if leg[2].startswith("crossed (")][0]
+    assert abs(crossed[0][1] - b0[1]) < 1e-9 and abs(crossed[1][1] - a0[1]) < 1e-9  # places exchanged
+
+
 def test_the_fleet_arena_keeps_n_vehicles_and_pads_those_of_one_layout_where_they_stand():
     from bridge.config import parse_vehicles
 
@@ -145,6 +174,7 @@ def test_the_docs_say_what_the_fleet_flight_does():
     cli.add_arguments(p)
     assert f"in a row along the arena's y axis {F.ROW_SPACING_M:g} m apart" in doc
     assert f"passing {F.CROSS_GAP_M:g} m apart at the same height" in doc
+    assert f"With three or more, the first and the last fly {F.CROSS_OFFSET_M:g} m out of the row (north)" in doc
     assert f"for T s ({p.get_default('swap_for'):g} by default)" in doc
     assert "The default arena is `pair`" in doc and "home read back within 1 cm of where it stands" in doc
     from visionpos.app.sitl.preflight import HOME_TOLERANCE_M

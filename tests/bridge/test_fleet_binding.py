@@ -75,15 +75,17 @@ def test_the_optical_rates_noise_grows_with_the_attitudes_uncertainty_over_its_u
 class Fleet:
     """Drones on the floor; optical body i is drone perm[i]; vehicle 'v{k}' is drone k. yaw_rate[k](t s) rad/s."""
 
-    def __init__(self, perm=(2, 0, 1), policy="continuity", pads=None, positions=None):
+    def __init__(self, perm=(2, 0, 1), policy="continuity", pads=None, positions=None, yaw_offset_deg=0.0):
         self.perm = list(perm)
         n = len(self.perm)
         self.bodies = [f"quad{i + 1}" for i in range(n)]
         self.names = [f"v{k}" for k in range(n)]
         self.binding = FleetBinding([self.bodies], dict(zip(self.names, self.bodies)),
                                     dict.fromkeys(self.names, math.radians(3.0)), dict.fromkeys(self.names, policy),
-                                    pads=pads)
+                                    pads=pads, yaw_offset_rad=dict.fromkeys(self.names, math.radians(yaw_offset_deg)))
         self.positions = [np.zeros(3)] * n if positions is None else [np.asarray(p, float) for p in positions]
+        self.yaw_offset_deg = yaw_offset_deg
+        self.ekf_error: dict[str, np.ndarray] | None = None  # vehicle: its EKF's error (m world); None: no positions
         self.rates = [lambda t: 0.0] * n
         self.yaw = [0.0] * n
         self.tel = {n: ([], []) for n in self.names}
@@ -116,10 +118,23 @@ class Fleet:
                         self.tel[n][1].append([0.0, 0.0, 0.0, 0.0, -r[k]])  # FRD: yaw rate right is -z FLU
             if self.binding.due(self.t_ns):
                 tel = {n: (np.array(ts, np.int64), np.array(v).reshape(-1, 5)) for n, (ts, v) in self.tel.items()}
-                more, made = self.binding.evaluate(self.t_ns, tel)
+                more, made = self.binding.evaluate(self.t_ns, tel, None, self.ekf_positions())
                 stop += more
                 self.made += [(self.t_ns, b, v) for b, v in made]
             self.stopped += [(self.t_ns, v) for v in stop]
+
+    def ekf_positions(self) -> dict | None:
+        """Each vehicle's LOCAL_POSITION_NED as its autopilot sends it: its drone's true position plus its EKF's
+        error, in NED (N = x, E = -y, D = -z) turned by the yaw offset (heading of world +x), written out here."""
+        if self.ekf_error is None:
+            return None
+        c, s = math.cos(math.radians(self.yaw_offset_deg)), math.sin(math.radians(self.yaw_offset_deg))
+        out = {}
+        for k, n in enumerate(self.names):
+            x, y, z = self.positions[k] + self.ekf_error.get(n, np.zeros(3))
+            north, east = x, -y
+            out[n] = (self.t_ns, (c * north - s * east, s * north + c * east, -z))
+        return out
 
     def truth_vehicle(self, body: str) -> str:
         return self.names[self.perm[self.bodies.index(body)]]
@@ -330,6 +345,8 @@ def test_the_bridge_sends_a_fleet_body_to_the_vehicle_it_is_bound_to_only():
             assert v_a._slot is None and v_b._slot is None  # unbound: nothing offered
             assert "no motion yet" in bridge.health()["quadA"]["identity_reason"]
             assert "identity unresolved" in bridge.status_line()
+            # a vision-gap warning says why nothing goes: its identity, not "the body is not tracked"
+            assert v_a.not_sent_why.startswith("identity unresolved: no motion yet"), v_a.not_sent_why
     assert book.bound == ["quadA", "quadB"]  # quadA by its turn, then quadB by elimination
     assert v_b._slot.name == "quadA" and v_a._slot.name == "quadB"
     assert bridge.stats()["vehicles"]["quadB"]["bound_body"] == "quadA"
@@ -339,6 +356,7 @@ def test_the_bridge_sends_a_fleet_body_to_the_vehicle_it_is_bound_to_only():
                     body_state("quadB", 2, capture_ns=clock[0] + STEP_NS)])
     assert v_b._slot is None and bridge.health()["quadB"]["identity_binding"] == "unresolved"
     assert "track lost" in bridge.health()["quadB"]["identity_reason"]
+    assert v_b.not_sent_why.startswith("identity unresolved: track lost"), v_b.not_sent_why
     assert v_a._slot.name == "quadB"
 
 
@@ -546,7 +564,7 @@ def test_a_vehicle_bound_again_to_another_body_gets_a_reset():
     results = iter([([], [("quadB", "quadA")]), (["quadA"], []), ([], [("quadB", "quadA")]),
                     (["quadA"], []), ([], [("quadA", "quadA")])])
     bridge.fleet.due = lambda now: True
-    bridge.fleet.evaluate = lambda now, tel, acc=None: next(results)
+    bridge.fleet.evaluate = lambda now, tel, acc=None, pos=None: next(results)
     v = bridge.vehicle("quadA")
     resets = []
     for _ in range(5):
@@ -616,3 +634,91 @@ def test_the_docs_say_when_a_pad_binding_is_held():
     assert (f"specific force more than {MOTION_ACCEL_M_S2:g} m/s^2 off 1 g, or a body rate over "
             f"{MOTION_RATE_RAD_S:g} rad/s, in its newest {MOTION_SAMPLES} samples") in doc
     assert '"held: it moves on its pad\'s binding, until its motion confirms it"' in doc
+
+
+ROW_IN_AIR = [(0.0, -1.2, 1.0), (0.0, 0.0, 1.0), (0.0, 1.2, 1.0)]
+
+
+def _bound_hovering_row(**kw) -> Fleet:
+    """Three identical drones hovering 1.2 m apart, each bound by a yaw (the last by elimination), then still."""
+    f = Fleet(positions=ROW_IN_AIR, **kw)
+    f.rates[0], f.rates[1] = hand_yaw(1.0), hand_yaw(2.5)
+    f.step(4.5)
+    assert {b: v for _, b, v in f.made} == {b: f.truth_vehicle(b) for b in f.bodies}
+    return f
+
+
+def _stall(f: Fleet) -> int:
+    """Every track lost for 50 ms at once (a host stall), then tracked again; returns when they came back."""
+    f.lost.update(f.bodies)
+    f.step(0.05)
+    assert sorted(v for _, v in f.stopped[-3:]) == f.names and all(f.binding.vehicle_of(b) is None for b in f.bodies)
+    f.lost.clear()
+    return f.t_ns
+
+
+@pytest.mark.parametrize("yaw_offset_deg", [0.0, 30.0])
+def test_hovering_drones_lost_at_once_are_bound_again_where_their_own_ekfs_say_they_are(yaw_offset_deg):
+    """After a loss of every track, still drones give no motion to bind by: each is bound again to the body
+    reacquired where its own EKF (LOCAL_POSITION_NED, in its vision frame) says it is, within 1 s."""
+    f = _bound_hovering_row(yaw_offset_deg=yaw_offset_deg)
+    f.ekf_error = {"v0": np.array([0.08, 0.0, 0.0]), "v1": np.array([0.0, -0.05, 0.03])}  # dead reckoning's drift
+    back = _stall(f)
+    n_made = len(f.made)
+    f.step(1.0)
+    again = f.made[n_made:]
+    assert {b: v for _, b, v in again} == {b: f.truth_vehicle(b) for b in f.bodies}
+    assert all((t - back) * 1e-9 <= 1.0 for t, _, _ in again)
+    for v in f.names:
+        st = f.binding.vehicles[v]
+        assert st.state == BOUND and "from where its EKF says it is" in st.reason, st.reason
+
+
+def test_without_positions_still_drones_stay_unbound_after_a_loss():
+    """The same stall where the autopilots send no position: nothing binds still drones again (the case the
+    positions are for)."""
+    f = _bound_hovering_row()
+    _stall(f)
+    n_made = len(f.made)
+    f.step(2.0)
+    assert f.made[n_made:] == []
+
+
+@pytest.mark.parametrize("case", ["drifted", "another body near", "another vehicle near", "lost long ago"])
+def test_a_position_that_could_be_another_drones_binds_nothing(case):
+    """Where the vehicle says it is must pick one body, and nothing else may be near: an EKF drifted 0.2 m, a
+    body of the layout 0.4 m from it, another vehicle saying it is 0.4 m from the body, or a loss 3.5 s ago."""
+    f = _bound_hovering_row()
+    f.ekf_error = {}
+    if case == "drifted":
+        f.ekf_error["v1"] = np.array([0.2, 0.0, 0.0])
+    elif case == "another body near":
+        f.positions[2] = np.array([0.0, 0.4, 1.0])  # drone 2 hovers 0.4 m from drone 1
+    elif case == "another vehicle near":
+        f.ekf_error["v2"] = np.array([0.0, -0.8, 0.0])  # v2 says it is 0.4 m from drone 1
+    _stall(f)
+    if case == "lost long ago":
+        f.ekf_error = None  # no positions until 3.5 s after the loss
+        f.step(3.5)
+        f.ekf_error = {}
+    n_made = len(f.made)
+    f.step(1.0)
+    # v1 is not bound by its position (with the other two bound by theirs, it may be by elimination: rightly)
+    assert "EKF says" not in f.binding.vehicles["v1"].reason
+    assert all(v == f.truth_vehicle(b) for _, b, v in f.made[n_made:])
+    if case != "drifted":
+        assert f.binding.vehicles["v1"].state == UNRESOLVED
+
+
+def test_the_docs_say_when_a_vehicle_is_bound_again_by_its_position():
+    from pathlib import Path
+
+    from bridge import position_binding as P
+
+    doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
+    assert (f"a vehicle whose binding a track loss dropped at most {P.REBIND_WITHIN_NS * 1e-9:g} s ago is bound again "
+            f"to the one body reacquired within {P.NEAR_M:g} m of its LOCAL_POSITION_NED (at most "
+            f"{P.POSITION_STALE_NS * 1e-9:g} s old") in doc
+    assert (f"no other body of its layout is within {P.CLEAR_M:g} m of that position and no other vehicle says it is "
+            f"within {P.CLEAR_M:g} m of that body") in doc
+    assert "binding dropped, binding again when it moves or where its EKF says it is" in doc

@@ -10,7 +10,8 @@ that reached the wrong autopilot.
 
 The flight, all vehicles together: EKF on vision, VISO_DELAY_MS as advised, GUIDED, arm and take off (one after
 the other), hover (the swap), a crossing (the first and the last vehicle exchange places, passing CROSS_GAP_M
-apart at the same height: their markers merge in some cameras' images), the crossing back, land.
+apart at the same height on parallel lines: their markers merge in some cameras' images; with three or more,
+CROSS_OFFSET_M out of the row, clear of the others: crossing_legs), the crossing back, land.
 
 Vehicles whose bodies share a marker layout (--same-layout: identical drones) are bound before take-off by their
 parking pads (vehicles[].pad, set where each stands): ArduPilot on vision alone cannot arm before its body is bound
@@ -44,6 +45,7 @@ from visionpos.geometry.frames import world_to_ned
 
 ROW_SPACING_M = 1.2  # the vehicles stand in a row along y this far apart, centred on the origin
 CROSS_GAP_M = 0.3  # the crossing vehicles pass this far apart (north-south), at the same height
+CROSS_OFFSET_M = 0.8  # with 3 or more vehicles the crossing is flown this far north of the row (clear of the others)
 RESUME_TIMEOUT_S = 10.0  # after the links are put back, the poses must flow again within this
 SWAP_SLACK_NS = 60_000_000  # a pose already on its way when the bridge read the other autopilot's packet
 
@@ -102,6 +104,22 @@ def start_positions(n: int) -> np.ndarray:
     """(n, 3) m world positions of the row the vehicles stand in (y from -, on the floor)."""
     y = (np.arange(n) - (n - 1) / 2.0) * ROW_SPACING_M
     return np.column_stack([np.zeros(n), y, np.zeros(n)])
+
+
+def crossing_legs(start_a_ned: np.ndarray, start_b_ned: np.ndarray, n: int
+                  ) -> list[tuple[tuple[float, float], tuple[float, float], str]]:
+    """The crossing of the first (a) and last (b) vehicle of n standing in the row: legs [((north, east) m of a,
+    (north, east) m of b, what they did)], local NED, each leg flown by both at once. They first step apart
+    north-south (CROSS_GAP_M), exchange places on parallel lines, come back the same way and return over their
+    pads: flown straight from the row to the other's place they would pass at half the gap. With more than two,
+    the others hover in the row between them, so a and b step out CROSS_OFFSET_M north of it first."""
+    ea, eb = float(start_a_ned[1]), float(start_b_ned[1])
+    x = 0.0 if n <= 2 else CROSS_OFFSET_M
+    na, nb = x + CROSS_GAP_M / 2, x - CROSS_GAP_M / 2
+    passed = f"({CROSS_GAP_M:g} m apart as they passed)"
+    out = f"stepped {CROSS_GAP_M:g} m apart" + (f", {x:g} m out of the row" if x else "")
+    return [((na, ea), (nb, eb), out), ((na, eb), (nb, ea), f"crossed {passed}"),
+            ((na, ea), (nb, eb), f"crossed back {passed}"), ((0.0, ea), (0.0, eb), "are back over their pads")]
 
 
 def home_at(origin: tuple[float, float, float, float], world: np.ndarray) -> tuple[float, float, float, float]:
@@ -214,14 +232,11 @@ async def _fly(ctx: Any, fleet: list[_Vehicle], live: LiveArena, plan: FlightPla
         fleet[0].record["swap"] = await _swap(ctx, fleet, relay, swap, say)
     await asyncio.sleep(max(0.0, hover_end - time.monotonic()))
     a, b = fleet[0], fleet[-1]
-    na, nb = world_to_ned(a.start_world), world_to_ned(b.start_world)
     down = -plan.altitude_m
-    for leg, (pa, pb) in enumerate((((CROSS_GAP_M / 2, nb[1]), (-CROSS_GAP_M / 2, na[1])),
-                                    ((0.0, na[1]), (0.0, nb[1])))):
+    for pa, pb, what in crossing_legs(world_to_ned(a.start_world), world_to_ned(b.start_world), len(fleet)):
         await asyncio.gather(goto(a.gcs, pa[0], pa[1], down, min(25.0, left())),
                              goto(b.gcs, pb[0], pb[1], down, min(25.0, left())))
-        say(f"  {a.name} and {b.name} " + ("crossed" if leg == 0 else "crossed back")
-            + f" ({CROSS_GAP_M:g} m apart as they passed)")
+        say(f"  {a.name} and {b.name} {what}")
         await asyncio.sleep(1.0)
     for v in fleet:
         v.record["land_ns"] = time.monotonic_ns()
