@@ -93,3 +93,34 @@ def test_pose_nis_is_what_the_update_would_see_and_changes_nothing():
     _, d2_update = filter_update(f.x, f.P, f.R_nom, f._adapt, f._clock, f.bank.params, 210_000_000, p, R, cov,
                                  True, 0.0, 0.0)
     assert d2 == pytest.approx(d2_update, rel=1e-9)
+
+
+def test_paused_view_updates_fuse_as_mode_occlusion_and_resume_as_always():
+    """FusionPipeline.pause_view_updates (the server's load relief): while paused, the same frames give exactly
+    what mode `occlusion` gives; resumed, the views are taken again (the output leaves occlusion's); a pipeline
+    in mode `occlusion` has nothing to pause."""
+    sc = load_scenario("thesis", session="slalom", duration=1.5, seed=1)
+    frames = sorted(simulate(sc).frames, key=lambda f: (f.recv_ns, f.camera_id))
+    ticks = list(range(sc.start_ns + 300_000_000, frames[-1].recv_ns, 10_000_000))
+    resume_at = ticks[len(ticks) // 2]
+
+    def run(settings, pause):
+        pipe = FusionPipeline(sc.arena, settings)
+        assert pipe.pause_view_updates(pause) is (pause and settings is None)
+        out, i = [], 0
+        for tk in ticks:
+            if tk == resume_at:
+                pipe.pause_view_updates(False)
+            while frames[i].recv_ns <= tk:
+                pipe.push(frames[i])
+                i += 1
+            out.append(np.r_[pipe.tick(tk)[0].position])
+        return np.array(out)
+
+    occlusion = run({"single_view": {"mode": "occlusion"}}, False)
+    paused = run(None, True)
+    always = run(None, False)
+    half = len(ticks) // 2
+    assert np.array_equal(paused[:half], occlusion[:half])  # paused: occlusion's output, bit for bit
+    assert not np.array_equal(always[:half], occlusion[:half])  # the default differs from it
+    assert not np.array_equal(paused[half + 5:], occlusion[half + 5:])  # resumed: the views are taken again

@@ -34,12 +34,17 @@ class Collector:
     def __init__(self):
         self.frames: list[BlobFrame] = []
         self.removed: list[int] = []
+        self.pauses: list[tuple[int, bool]] = []
 
     def push(self, frame):
         self.frames.append(frame)
 
     def remove_camera(self, camera_id):
         self.removed.append(camera_id)
+
+    def pause_view_updates(self, paused):
+        self.pauses.append((len(self.frames), paused))  # before which frame
+        return paused
 
 
 class Clock:
@@ -263,6 +268,27 @@ def test_frames_that_queued_too_long_are_shed_not_fused():
     _send(off, _hello(1), T0)
     off.handle(P.encode(_frame(1, 1, T0 + 5 * MS), None), ADDR, T0 + 10 * MS, 10_000 * MS)
     assert len(off_pipe.frames) == 1
+
+
+def test_a_queue_behind_pauses_the_view_updates_until_it_drains():
+    """Load relief (server/load.py): a frame that waited over pause_views_backlog_ms pauses the per-frame view
+    updates; frames are still fused; they resume once a frame waits under a fifth of it (2 ms of 10), not
+    before; counted in frames_without_view_updates. 0 = off."""
+    ing, pipe, clock = _ingest({"pause_views_backlog_ms": 10, "shed_backlog_ms": 30})
+    _send(ing, _hello(1), T0)
+    waits_ms = [0, 3, 12, 25, 5, 2.5, 1.5, 0, 11]
+    for seq, backlog_ms in enumerate(waits_ms, start=1):
+        t = T0 + 100 * MS + seq * 10 * MS
+        clock.t = t
+        ing.handle(P.encode(_frame(1, seq, t - 4 * MS), None), ADDR, t, int(backlog_ms * MS))
+    assert [f.seq for f in pipe.frames] == list(range(1, 10))  # every frame fused
+    # paused before frame 3 (12 ms), resumed before frame 7 (1.5 ms < 2), paused again before frame 9
+    assert pipe.pauses == [(2, True), (6, False), (8, True)]
+    assert ing.health()["frames_without_view_updates"] == 5  # frames 3, 4, 5, 6 and 9
+    off, off_pipe, _ = _ingest({"pause_views_backlog_ms": 0})
+    _send(off, _hello(1), T0)
+    off.handle(P.encode(_frame(1, 1, T0 + 5 * MS), None), ADDR, T0 + 10 * MS, 14 * MS)
+    assert off_pipe.pauses == [] and off.health()["frames_without_view_updates"] == 0
 
 
 def test_clock_jumps_dropped_then_resync():
@@ -697,3 +723,17 @@ def test_taps_get_the_accepted_packets_only_and_a_failing_tap_changes_nothing():
     types = [d[5] for _, d in seen]
     assert types == [P.MsgType.HELLO, P.MsgType.FRAME] and seen[-1] == (T0 + 12 * MS, good)
     assert ing.health()["tap_errors"] == 2  # the hello and the frame
+
+
+def test_the_docs_say_when_the_view_updates_pause():
+    from pathlib import Path
+
+    from visionpos.server.load import RESUME_FRACTION
+    from visionpos.server.settings import SERVER
+
+    doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "architecture.md").read_text().split())
+    pause = SERVER["pause_views_backlog_ms"].field_default
+    assert (f"a frame that queued longer than `pause_views_backlog_ms` ({pause:g}) pauses the per-frame "
+            "single-view updates of triangulated bodies until a frame queues less than a fifth of it") in doc
+    assert RESUME_FRACTION == 1 / 5
+    assert "`frames_without_view_updates`" in doc and "frames_without_view_updates" in _ingest()[0].health()

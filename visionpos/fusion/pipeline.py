@@ -82,6 +82,9 @@ from visionpos.fusion.kernels import _finite_rows, _fuse_tracked, _observe_frame
 from visionpos.fusion.layout import (
     MEAS_POS,
     MEAS_ROT,
+    PARAM_SV_ENABLED,
+    SV_PARAM_ALWAYS,
+    SV_PARAM_OCCLUSION,
     TRACK_LAST_CAPTURE_NS,
     TRACK_LAST_UPDATE_NS,
     TRACK_N_CAMERAS,
@@ -185,6 +188,7 @@ class FusionPipeline:
         self._gate_px = float(st.match_gate_px)
         self._unique_sigmas = float(st.single_view.unique_sigmas)
         self._kernel_params = pack_params(FUSION_PARAMS, st)  # the fusion kernels' settings (fusion/settings.py)
+        self._kernel_params_sv = float(self._kernel_params[PARAM_SV_ENABLED])  # as configured (pause_view_updates)
         self._view_cache: dict[tuple[int, ...], tuple] = {}  # ViewSets as plain tuples
         self.aligner = TimeAligner(
             st.time_alignment,
@@ -298,6 +302,15 @@ class FusionPipeline:
         if self.imu is None or body in self._point_names:
             return False
         return self.imu.push(body, t_ns, accel_body, gyro_body, lever_arm_m)
+
+    def pause_view_updates(self, paused: bool) -> bool:
+        """While paused, triangulated bodies take no single-view updates (fusion.single_view.mode `always` acts
+        as `occlusion`; occluded bodies still do): the server's load relief before it sheds frames
+        (server/load.py). Returns whether anything is paused (False where the mode is `occlusion` already)."""
+        if self._kernel_params_sv != SV_PARAM_ALWAYS:
+            return False
+        self._kernel_params[PARAM_SV_ENABLED] = SV_PARAM_OCCLUSION if paused else SV_PARAM_ALWAYS
+        return paused
 
     def add_imu_source(self, drain) -> None:
         """drain(push_imu) is called before every frame and tick, on the pipeline's thread: it hands over the

@@ -214,6 +214,7 @@ class IngestCounters:
     bytes: int = 0
     frames_accepted: int = 0
     frames_shed: int = 0
+    frames_without_view_updates: int = 0  # fused while the view updates were paused (server/load.py)
     malformed: int = 0
     auth_failed: int = 0
     unknown: int = 0

@@ -83,6 +83,7 @@ from visionpos.server.camera_health import (
 )
 from visionpos.server.endpoint import UdpEndpoint
 from visionpos.server.images import StationImages
+from visionpos.server.load import ViewUpdatePause
 from visionpos.server.settings import ServerSettings, parse_server
 
 log = logging.getLogger(__name__)
@@ -144,6 +145,8 @@ class Ingest(UdpEndpoint):
         self._max_age_ns = int(self.settings.max_age_ms * 1e6)
         self._shed_ns = int(self.settings.shed_backlog_ms * 1e6) or None
         self._last_shed_log_ns = -(1 << 62)
+        self.view_pause = ViewUpdatePause(int(self.settings.pause_views_backlog_ms * 1e6))
+        self._last_pause_log_ns = -(1 << 62)
         self.rlog = RateLimitedLog(log)
         # (station, camera) -> packets of cameras not configured (or pinned to another station); LRU
         self.unknown_sources: OrderedDict[tuple[int, int], int] = OrderedDict()
@@ -658,6 +661,11 @@ class Ingest(UdpEndpoint):
                             "fusion.min_fusion_interval_ms)", backlog_ns * 1e-6, self.counters.frames_shed)
             return
         if self.pipeline is not None:
+            changed = self.view_pause.update(backlog_ns)
+            if changed is not None:
+                self._pause_views(changed, backlog_ns, recv_ns)
+            if self.view_pause.paused:
+                self.counters.frames_without_view_updates += 1
             try:
                 self.pipeline.push(f)
             except Exception:
@@ -665,6 +673,20 @@ class Ingest(UdpEndpoint):
                 if self.counters.pipeline_errors == 1 or self.counters.pipeline_errors % 1000 == 0:
                     log.exception("pipeline.push failed (%d times so far); frame dropped",
                                   self.counters.pipeline_errors)
+
+    def _pause_views(self, paused: bool, backlog_ns: int, recv_ns: int) -> None:
+        """server/load.py: tell the pipeline; say it when it first pauses (then at most every 5 s)."""
+        try:
+            self.pipeline.pause_view_updates(paused)
+        except Exception:
+            self.counters.pipeline_errors += 1
+            log.exception("pipeline.pause_view_updates failed")
+        if paused and recv_ns - self._last_pause_log_ns > 5_000_000_000:
+            self._last_pause_log_ns = recv_ns
+            log.warning("a frame queued %.0f ms before its turn: per-frame view updates paused until the queue "
+                        "drains (%d frames fused without them so far; every frame is still fused). If it keeps "
+                        "happening this host is short of time for these cameras and bodies", backlog_ns * 1e-6,
+                        self.counters.frames_without_view_updates)
 
     def _check_rate(self, cam: CameraHealth, recv_ns: int) -> None:
         """After each 1 s bucket: a run of buckets below LOW_RATE_FRACTION of the configured fps that
@@ -730,6 +752,7 @@ class Ingest(UdpEndpoint):
             "bytes": c.bytes,
             "frames_accepted": c.frames_accepted,
             "frames_shed": c.frames_shed,
+            "frames_without_view_updates": c.frames_without_view_updates,
             "malformed": c.malformed,
             "malformed_reasons": dict(c.malformed_reasons),
             "auth_failed": c.auth_failed,

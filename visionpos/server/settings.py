@@ -27,6 +27,9 @@ SERVER = section(
     "slow for its cameras then fuses the freshest frames at the rate it can sustain instead of falling ever "
     "further behind. Only the server's own backlog counts, never a station's or the network's latency (a "
     "steady slow link is used). Replays have no backlog and never shed.\n"
+    "- `pause_views_backlog_ms` relieves the load before it comes to that: while the queue is behind, every "
+    "frame is still fused, but triangulated bodies skip their per-frame single-view updates (server/load.py; "
+    "counted in `frames_without_view_updates`).\n"
     "- Authentication is on by default: with neither `key_file` nor `insecure: true` the server reads the "
     "default key file and refuses to start without one (docs/security.md).",
     Setting("port", "integer", P.DEFAULT_PORT, "UDP port the stations send to", min=0, max=65535),
@@ -52,6 +55,9 @@ SERVER = section(
     Setting("status_period_s", "number", 5.0, "period of the status log line (0 = off)", min=0.0),
     Setting("shed_backlog_ms", "number", 15.0, "frames that waited longer than this in the receive queue are "
             "not fused (0 = off)", min=0.0),
+    Setting("pause_views_backlog_ms", "number", 5.0, "load relief before shedding: once a frame waited longer "
+            "than this in the receive queue, triangulated bodies take no per-frame single-view updates (as "
+            "fusion.single_view.mode occlusion) until a frame waits less than a fifth of it (0 = off)", min=0.0),
 )
 
 
@@ -79,6 +85,7 @@ class ServerSettings:
     resync_after: int = SERVER["resync_after"].field_default
     status_period_s: float = SERVER["status_period_s"].field_default
     shed_backlog_ms: float = SERVER["shed_backlog_ms"].field_default
+    pause_views_backlog_ms: float = SERVER["pause_views_backlog_ms"].field_default
 
     def __post_init__(self) -> None:
         if self.key is None and not self.insecure:
