@@ -21,6 +21,7 @@ import pytest
 
 from visionpos import protocol as P
 from visionpos.app.outputs import build_outputs
+from visionpos.fusion.layout import PARAM_SV_ENABLED, SV_PARAM_ALWAYS, SV_PARAM_OCCLUSION
 from visionpos.messages import BlobFrame
 from visionpos.recording import RecordingDamagedWarning, RecordingReader, RecordingWriter
 from visionpos.server.service import FusionServer, load_config_with_overrides
@@ -509,12 +510,17 @@ def test_backlogged_frames_are_shed_over_a_real_socket():
     class Frames:
         def __init__(self):
             self.seqs = []
+            self.pauses = []
 
         def push(self, frame):
             self.seqs.append(frame.seq)
 
         def remove_camera(self, camera_id):
             pass
+
+        def pause_view_updates(self, paused):
+            self.pauses.append((len(self.seqs), paused))
+            return paused
 
         def tick(self, now_ns):
             return []
@@ -552,6 +558,7 @@ def test_backlogged_frames_are_shed_over_a_real_socket():
         pytest.skip("no kernel receive stamps on this platform")
     assert health["frames_accepted"] == 25
     assert health["frames_shed"] == 20 and pipe.seqs == list(range(21, 26))
+    assert pipe.pauses[0] == (0, True) and health["pipeline_errors"] == 0  # the backlog paused the view updates
 
 
 def test_oversize_datagrams_over_udp_are_refused_whole(tmp_path):
@@ -582,3 +589,15 @@ def test_oversize_datagrams_over_udp_are_refused_whole(tmp_path):
     assert ing.counters.malformed == 3
     assert ing.counters.malformed_reasons.get("oversize packet") == 3, ing.counters.malformed_reasons
     assert ing.counters.challenges == 1  # the HELLO after them was read whole and answered
+
+
+def test_the_servers_feed_passes_the_load_relief_to_its_pipeline():
+    """What Ingest pushes into in a server with a camera monitor (its feed around the FusionPipeline) pauses the
+    pipeline's view updates (a feed without the method failed every pause in a live SITL fleet flight)."""
+    arena = load_config_with_overrides("thesis", ["server.status_period_s=0", INSECURE])
+    server = FusionServer(arena, port=0)
+    feed = server.ingest.pipeline
+    assert feed.pause_view_updates(True) is True
+    assert server.pipeline._kernel_params[PARAM_SV_ENABLED] == SV_PARAM_OCCLUSION
+    assert feed.pause_view_updates(False) is False
+    assert server.pipeline._kernel_params[PARAM_SV_ENABLED] == SV_PARAM_ALWAYS

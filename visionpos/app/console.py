@@ -158,6 +158,9 @@ class RecordSource:
     def remove_camera(self, camera_id: int) -> None:
         self.frames.pop(camera_id, None)
 
+    def pause_view_updates(self, paused: bool) -> bool:
+        return False  # nothing is fused: no view updates to pause
+
     def snapshot(self) -> FusionSnapshot:
         """The console's view of it: each camera's newest blobs, every blob of no body, no body tracked."""
         return FusionSnapshot(dict(self.frames), (False,) * len(self.arena.bodies), self._untracked_why)

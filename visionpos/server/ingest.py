@@ -100,6 +100,7 @@ _COOKIE_FIELDS = struct.Struct("<HHIq")
 class PipelineLike(Protocol):
     def push(self, frame: BlobFrame) -> Any: ...
     def remove_camera(self, camera_id: int) -> Any: ...
+    def pause_view_updates(self, paused: bool) -> Any: ...
 
 
 class RecorderLike(Protocol):
@@ -649,7 +650,10 @@ class Ingest(UdpEndpoint):
 
     def _fuse(self, cam: CameraHealth, f: BlobFrame, recv_ns: int, backlog_ns: int) -> None:
         """Hand an accepted frame to the pipeline, unless it queued longer than server.shed_backlog_ms
-        (load shedding: counted, not fused)."""
+        (load shedding: counted, not fused). A queue behind pauses the view updates first (server/load.py)."""
+        changed = self.view_pause.update(backlog_ns)
+        if changed is not None and self.pipeline is not None:
+            self._pause_views(changed, backlog_ns, recv_ns)
         if self._shed_ns is not None and backlog_ns > self._shed_ns:
             cam.shed += 1
             self.counters.frames_shed += 1
@@ -661,9 +665,6 @@ class Ingest(UdpEndpoint):
                             "fusion.min_fusion_interval_ms)", backlog_ns * 1e-6, self.counters.frames_shed)
             return
         if self.pipeline is not None:
-            changed = self.view_pause.update(backlog_ns)
-            if changed is not None:
-                self._pause_views(changed, backlog_ns, recv_ns)
             if self.view_pause.paused:
                 self.counters.frames_without_view_updates += 1
             try:
@@ -680,13 +681,14 @@ class Ingest(UdpEndpoint):
             self.pipeline.pause_view_updates(paused)
         except Exception:
             self.counters.pipeline_errors += 1
-            log.exception("pipeline.pause_view_updates failed")
+            if self.counters.pipeline_errors == 1 or self.counters.pipeline_errors % 1000 == 0:
+                log.exception("pipeline.pause_view_updates failed (%d pipeline errors so far)",
+                              self.counters.pipeline_errors)
         if paused and recv_ns - self._last_pause_log_ns > 5_000_000_000:
             self._last_pause_log_ns = recv_ns
             log.warning("a frame queued %.0f ms before its turn: per-frame view updates paused until the queue "
-                        "drains (%d frames fused without them so far; every frame is still fused). If it keeps "
-                        "happening this host is short of time for these cameras and bodies", backlog_ns * 1e-6,
-                        self.counters.frames_without_view_updates)
+                        "drains (%d frames fused without them so far; every frame is still fused)",
+                        backlog_ns * 1e-6, self.counters.frames_without_view_updates)
 
     def _check_rate(self, cam: CameraHealth, recv_ns: int) -> None:
         """After each 1 s bucket: a run of buckets below LOW_RATE_FRACTION of the configured fps that

@@ -412,6 +412,9 @@ class _MonitoredFeed:
     def remove_camera(self, camera_id: int) -> None:
         self.pipeline.remove_camera(camera_id)
 
+    def pause_view_updates(self, paused: bool) -> bool:
+        return self.pipeline.pause_view_updates(paused)
+
 
 def insecure_prefix(settings: ServerSettings) -> str:
     """The status line's first words when the server runs without a key."""
