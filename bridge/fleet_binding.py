@@ -248,14 +248,16 @@ class FleetBinding:
             was = self.identity[b]
             now = identity.get(b, was) if identity is not None else self._own_identity(b, st.tracked)
             self.identity[b] = now
-            if now in (IdentityState.LOST.value, IdentityState.AMBIGUOUS.value) and was != now:
+            # a track lost and acquired again between two ticks goes from continuity to acquired directly
+            lost = now == IdentityState.LOST.value or (now == IdentityState.ACQUIRED.value and
+                                                      was == IdentityState.CONTINUITY.value)
+            if (now in (IdentityState.LOST.value, IdentityState.AMBIGUOUS.value) and was != now) or lost:
                 self.rings[b].clear()  # from here on the track may follow another drone
             if b in self.bound and now != IdentityState.CONTINUITY.value:
-                why = "track lost" if now == IdentityState.LOST.value else f"identity {now}"
-                v = self._drop(b, f"{why}: binding dropped, binding again when it moves or where its EKF says it is"
-                               if now == IdentityState.LOST.value else f"{why}: binding dropped, binding again when "
-                               "it moves", st.time_ns)
-                if now == IdentityState.LOST.value:
+                v = self._drop(b, "track lost: binding dropped, binding again when it moves or where its EKF says "
+                               "it is" if lost else f"identity {now}: binding dropped, binding again when it moves",
+                               st.time_ns)
+                if lost:
                     self._lost_ns[v] = st.time_ns
                 dropped.append(v)
             if st.tracked:

@@ -121,6 +121,8 @@ class Fleet:
                 more, made = self.binding.evaluate(self.t_ns, tel, None, self.ekf_positions())
                 stop += more
                 self.made += [(self.t_ns, b, v) for b, v in made]
+                if self.identity is not None:  # the bridge tells the identity book (IdentityBook.bind)
+                    self.identity.update({b: "tracked-by-continuity" for b, _ in made})
             self.stopped += [(self.t_ns, v) for v in stop]
 
     def ekf_positions(self) -> dict | None:
@@ -722,3 +724,18 @@ def test_the_docs_say_when_a_vehicle_is_bound_again_by_its_position():
     assert (f"no other body of its layout is within {P.CLEAR_M:g} m of that position and no other vehicle says it is "
             f"within {P.CLEAR_M:g} m of that body") in doc
     assert "binding dropped, binding again when it moves or where its EKF says it is" in doc
+
+
+def test_a_track_lost_and_acquired_between_two_ticks_is_a_loss_too():
+    """The identity book may mark a track lost and acquire it again within one tick: the bridge then sees it go
+    from tracked-by-continuity to acquired. That drops the binding as a loss, and the position binds it again."""
+    f = _bound_hovering_row()
+    f.ekf_error = {}
+    f.identity = {b: "tracked-by-continuity" for b in f.bodies}
+    f.step(0.05)
+    f.identity = {b: "unresolved: acquired" for b in f.bodies}
+    n_made, n_stopped = len(f.made), len(f.stopped)
+    f.step(1.0)
+    assert sorted(v for _, v in f.stopped[n_stopped:]) == f.names
+    assert {b: v for _, b, v in f.made[n_made:]} == {b: f.truth_vehicle(b) for b in f.bodies}
+    assert all("from where its EKF says it is" in f.binding.vehicles[v].reason for v in f.names)
