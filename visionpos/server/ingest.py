@@ -667,23 +667,21 @@ class Ingest(UdpEndpoint):
         if self.pipeline is not None:
             if self.view_pause.paused:
                 self.counters.frames_without_view_updates += 1
-            try:
-                self.pipeline.push(f)
-            except Exception:
-                self.counters.pipeline_errors += 1
-                if self.counters.pipeline_errors == 1 or self.counters.pipeline_errors % 1000 == 0:
-                    log.exception("pipeline.push failed (%d times so far); frame dropped",
-                                  self.counters.pipeline_errors)
+            self._call_pipeline(self.pipeline.push, f, what="push failed (%d times so far); frame dropped")
 
-    def _pause_views(self, paused: bool, backlog_ns: int, recv_ns: int) -> None:
-        """server/load.py: tell the pipeline; say it when it first pauses (then at most every 5 s)."""
+    def _call_pipeline(self, method, *args, what: str) -> None:
+        """A pipeline bug must not take the server down: counted, logged at the first and every 1000th."""
         try:
-            self.pipeline.pause_view_updates(paused)
+            method(*args)
         except Exception:
             self.counters.pipeline_errors += 1
             if self.counters.pipeline_errors == 1 or self.counters.pipeline_errors % 1000 == 0:
-                log.exception("pipeline.pause_view_updates failed (%d pipeline errors so far)",
-                              self.counters.pipeline_errors)
+                log.exception("pipeline." + what, self.counters.pipeline_errors)
+
+    def _pause_views(self, paused: bool, backlog_ns: int, recv_ns: int) -> None:
+        """server/load.py: tell the pipeline; say it when it first pauses (then at most every 5 s)."""
+        self._call_pipeline(self.pipeline.pause_view_updates, paused,
+                            what="pause_view_updates failed (%d pipeline errors so far)")
         if paused and recv_ns - self._last_pause_log_ns > 5_000_000_000:
             self._last_pause_log_ns = recv_ns
             log.warning("a frame queued %.0f ms before its turn: per-frame view updates paused until the queue "
