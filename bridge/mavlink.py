@@ -141,7 +141,8 @@ class Bridge(Sink):
         stop = self.fleet.observe(states, identity)
         now = self.clock_ns()
         made: list[tuple[str, str]] = []
-        if self.fleet.due(now):
+        evaluated = self.fleet.due(now)
+        if evaluated:
             telemetry = {name: self._by_name[name].bc.attitude_on_server_clock() for name in self.fleet.vehicles}
             positions = {name: (self._by_name[name].bc.local_position_ns, self._by_name[name].bc.local_position)
                          for name in self.fleet.vehicles}
@@ -154,10 +155,11 @@ class Bridge(Sink):
             v.bc.optical_epoch += 1
         for name in stop:
             self._pad_moving.discard(name)
-        bound = self.fleet.bound
-        for name, ident in self.fleet.vehicles.items():  # what a vision-gap warning says of an unbound one
-            if ident.body is None or bound.get(ident.body) != name:
-                self._by_name[name].not_sent_why = f"identity {ident.state}: {ident.reason}"
+        if evaluated or stop:  # the identities change only there: what a vision-gap warning says of an unbound one
+            bound = self.fleet.bound
+            for name, ident in self.fleet.vehicles.items():
+                if ident.body is None or bound.get(ident.body) != name:
+                    self._by_name[name].not_sent_why = f"identity {ident.state}: {ident.reason}"
         for body, name in made:
             self._pad_moving.discard(name)
             if self._last_bound.get(name, body) != body:  # another body's poses: the autopilot resets to them
