@@ -273,6 +273,7 @@ class FleetBinding:
 
     def _drop(self, body: str, reason: str, now_ns: int, state: str = UNRESOLVED) -> str:
         v = self.bound.pop(body)
+        self._lost_ns.pop(v, None)  # an earlier loss no longer counts: only the caller's own loss (observe) does
         self.vehicles[v] = VehicleIdentity(state, reason, said_until_ns=now_ns + SAY_DROP_NS)
         self.drops += 1
         return v

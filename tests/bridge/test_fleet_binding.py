@@ -739,3 +739,21 @@ def test_a_track_lost_and_acquired_between_two_ticks_is_a_loss_too():
     assert sorted(v for _, v in f.stopped[n_stopped:]) == f.names
     assert {b: v for _, b, v in f.made[n_made:]} == {b: f.truth_vehicle(b) for b in f.bodies}
     assert all("from where its EKF says it is" in f.binding.vehicles[v].reason for v in f.names)
+
+
+def test_a_binding_dropped_for_an_ambiguity_is_not_made_again_by_position():
+    """Two vehicles lost, bound again by their motion, then dropped for an ambiguous encounter: their earlier
+    losses do not let their positions bind them (the drones were close); still, they stay unresolved."""
+    f = _bound_hovering_row()
+    f.ekf_error = {}
+    f.binding._lost_ns.update(v0=f.t_ns, v1=f.t_ns)  # as if lost just before their motion bound them
+    f.identity = {b: "tracked-by-continuity" for b in f.bodies}
+    f.step(0.05)
+    pair = [f.bodies[f.perm.index(k)] for k in (0, 1)]
+    f.identity.update(dict.fromkeys(pair, "unresolved: two candidates"))
+    f.step(0.05)
+    assert all(f.binding.vehicle_of(b) is None for b in pair)
+    n_made = len(f.made)
+    f.step(1.0)
+    assert [v for _, _, v in f.made[n_made:]] == []
+    assert all("EKF says" not in f.binding.vehicles[v].reason for v in ("v0", "v1"))
