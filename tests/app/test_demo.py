@@ -68,6 +68,7 @@ def test_the_demo_serves_its_vrpn_and_pose_stream_sections_to_real_clients():
     """`--set vrpn.port=...` and `--set pose_stream.destination=...` open what they say: a libmotioncapture client
     gets the body from the demo's VRPN server, a UDP socket gets the pose stream."""
     import asyncio
+    import gc
     import socket
     import sys
 
@@ -84,7 +85,10 @@ def test_the_demo_serves_its_vrpn_and_pose_stream_sections_to_real_clients():
     arena = demo_arena("thesis", 4.0, 3, sets)
     lines: list[bytes] = []
 
+    frozen: list[int] = []
+
     async def during(ctx) -> None:
+        frozen.append(gc.get_freeze_count())
         assert [o.opens() for o in ctx.outputs[-1].outputs] == [
             {"pose_stream.destinations": f"127.0.0.1:{listener.getsockname()[1]}"},
             {"vrpn.host": "127.0.0.1", "vrpn.port": vrpn_port}]
@@ -98,6 +102,8 @@ def test_the_demo_serves_its_vrpn_and_pose_stream_sections_to_real_clients():
 
     summary = asyncio.run(run_demo(arena, 4.0, None, during=during))
     assert summary["bodies"][0]["tracked_fraction"] > 0.8
+    # the start-up heap is out of the collector's reach while the demo streams (app/serve.py), and back after
+    assert frozen[0] > 10_000 and gc.get_freeze_count() == 0
     datagrams = []
     while True:
         try:

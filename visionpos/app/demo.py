@@ -45,6 +45,7 @@ from visionpos.analysis import metrics as M
 from visionpos.app.demo_summary import AutopilotPoses, Collector, latency_percentiles_ms
 from visionpos.app.outputs import bridge_of, build_outputs
 from visionpos.app.ports import free_port
+from visionpos.app.serve import startup_heap_frozen
 from visionpos.config.arena import ArenaConfig, apply_overrides, load_yaml, parse_arena, resolve_config_path
 from visionpos.config.keys import KEY_BYTES
 from visionpos.messages import BlobFrame
@@ -485,7 +486,8 @@ async def run_demo(arena: ArenaConfig, duration_s: float, status_out: TextIO | N
                 on_console(view)
         _start_autopilots(run, live)
         await _start_stations(run, console.stations if console is not None else ())
-        await _stream(run, live, during, duration_s, status_out)
+        with startup_heap_frozen():
+            await _stream(run, live, during, duration_s, status_out)
         health = run.server.health()
     finally:
         await _stop(run, view)
@@ -618,6 +620,8 @@ async def _stop(run: _Run, view: Any) -> None:
     for ap, _ in run.autopilots.values():
         if ap is not None:
             ap.close()
+    for got in run.autopilot_poses.values():  # closed: their last poses are scored here
+        got.flush()
 
 
 def _station_files(paths: tuple[str, ...]) -> dict[int, str]:

@@ -25,6 +25,8 @@ from visionpos.server.sinks import Sink
 
 BATCH_TICKS = 512  # ticks buffered before they are folded into the sums (5 s at 100 Hz)
 TRUTH_STEP_NS = 5_000_000  # the summary's truth grid
+SCORE_BATCH = 64  # autopilot poses scored per call of the truth (AutopilotPoses)
+NED_TO_WORLD = np.array([1.0, -1.0, -1.0])  # NED -> x, -y, -z
 HIST_BIN_NS = 10_000  # latency and interval histograms: 10 µs bins ...
 HIST_BINS = 20_000  # ... up to 200 ms (larger values counted in the last bin)
 LATENCY_QS = (50, 90, 99)
@@ -193,6 +195,8 @@ class AutopilotPoses:
     arrivals, the stamp-to-arrival latency (a histogram of HIST_BIN_NS bins; only for stamps on the server's
     clock: boot_stamps) and, once score() set the window and the truth, the position error of every pose
     stamped inside it. The demo kept every message for these before, which grew it by about 6 MB a minute.
+    The positions are scored SCORE_BATCH at a time, in one call of the truth: one call per pose cost the
+    autopilot's thread a millisecond each, on the GIL the server's loop needs.
 
     truth(times_ns) -> positions (N, 3) m in the world frame at those server-clock times.
     """
@@ -208,6 +212,8 @@ class AutopilotPoses:
         self._last_recv_ns: int | None = None
         self._window: tuple[int, int] | None = None
         self._truth: Callable[[np.ndarray], np.ndarray] | None = None
+        self._stamps_ns: list[int] = []  # poses waiting to be scored: their stamps and world positions (m)
+        self._positions: list[np.ndarray] = []
 
     def score(self, t_start_ns: int, t_stop_ns: int, truth: Callable[[np.ndarray], np.ndarray]) -> None:
         """Score the positions of poses stamped in [t_start_ns, t_stop_ns] against truth from now on."""
@@ -225,11 +231,21 @@ class AutopilotPoses:
         stamp_ns = int(pose["usec"]) * 1000
         self.latency_hist[min(max(r.recv_ns - stamp_ns, 0) // HIST_BIN_NS, HIST_BINS - 1)] += 1
         if self._window is not None and self._window[0] <= stamp_ns <= self._window[1]:
-            world = np.asarray(pose["position_ned"], float) * np.array([1.0, -1.0, -1.0])  # NED -> x, -y, -z
-            e_mm = float(np.linalg.norm(world - self._truth(np.array([stamp_ns]))[0])) * 1e3
-            self.err_sq_mm2 += e_mm * e_mm
-            self.err_max_mm = e_mm if self.scored == 0 else max(self.err_max_mm, e_mm)
-            self.scored += 1
+            self._stamps_ns.append(stamp_ns)
+            self._positions.append(np.asarray(pose["position_ned"], float) * NED_TO_WORLD)
+            if len(self._stamps_ns) >= SCORE_BATCH:
+                self.flush()
+
+    def flush(self) -> None:
+        """Score the poses still waiting (the summary calls it once the autopilot has closed)."""
+        if not self._stamps_ns:
+            return
+        world = np.array(self._positions, float).reshape(-1, 3)
+        e_mm = np.linalg.norm(world - self._truth(np.array(self._stamps_ns, np.int64)), axis=1) * 1e3
+        self._stamps_ns, self._positions = [], []
+        self.err_sq_mm2 += float(np.sum(e_mm * e_mm))
+        self.err_max_mm = float(e_mm.max()) if self.scored == 0 else max(self.err_max_mm, float(e_mm.max()))
+        self.scored += len(e_mm)
 
     def position_rmse_mm(self) -> float:
         return float(np.sqrt(self.err_sq_mm2 / self.scored)) if self.scored else float("nan")

@@ -3,7 +3,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+import gc
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -11,6 +13,20 @@ from visionpos.app.outputs import build_outputs
 from visionpos.config.arena import ArenaConfig
 from visionpos.server.service import FusionServer, run_until_signal
 from visionpos.server.settings import ServerSettings
+
+
+@contextlib.contextmanager
+def startup_heap_frozen() -> Iterator[None]:
+    """While it is open, what the start allocated (modules, the arena, compiled kernels, the outputs) is out of
+    the garbage collector's reach (gc.freeze), so a full collection walks only what the run allocates: on the
+    live demo one held the server's loop for 115 ms, 14-24 ms with the start-up heap frozen. Unfrozen at the
+    end, so a process that runs again (tests, benchmarks) can collect it."""
+    gc.collect()
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
 
 
 async def serve(arena: ArenaConfig, settings: ServerSettings, host: str | None = None, record: str | Path | None = None,
@@ -48,7 +64,8 @@ async def serve(arena: ArenaConfig, settings: ServerSettings, host: str | None =
             view = await open_console(console, server)
             if on_console is not None:
                 on_console(view)
-        await run_until_signal(duration_s)
+        with startup_heap_frozen():
+            await run_until_signal(duration_s)
     finally:
         if view is not None:
             await view.stop()

@@ -164,17 +164,16 @@ def pose_correction(camera: Camera, points_world: np.ndarray, pixels: np.ndarray
         ok = np.isfinite(r).all(axis=1)
         Jc = pixel_jacobians([cam], X, ok[:, None])[:, 0] @ cam.R.T  # d pixel / d X_camera (N, 2, 3)
         P = X @ cam.R.T + cam.t  # the points in the camera frame, which the turn acts on
-        skew = np.zeros((len(X), 3, 3))
-        skew[:, 0, 1], skew[:, 0, 2] = -P[:, 2], P[:, 1]
-        skew[:, 1, 0], skew[:, 1, 2] = P[:, 2], -P[:, 0]
-        skew[:, 2, 0], skew[:, 2, 1] = -P[:, 1], P[:, 0]
-        J = np.concatenate([-Jc @ skew, Jc], axis=2)  # d pixel / d [omega, tau]
+        # d pixel / d [omega, tau]: a turn moves P by omega x P, so its rows are Jc [P]x = Jc_row x P
+        J = np.concatenate([np.cross(P[:, None, :], Jc), Jc], axis=2)
         r = np.where(ok[:, None], r, 0.0)
         rn = np.linalg.norm(r, axis=1)
         sigma = max(1.4826 * float(np.median(rn[ok])) / np.sqrt(2.0), 0.02) if ok.any() else 1.0
         w = np.where(ok, np.minimum(1.0, huber_px * 2.0 * sigma / np.maximum(rn, 1e-12)), 0.0) / sigma**2
-        H = np.einsum("n,nia,nib->ab", w, J, J) + prior
-        g = np.einsum("n,nia,ni->a", w, J, r) - prior @ delta
+        Jf = J.reshape(-1, 6)  # (2N, 6): the normal equations in one BLAS product each
+        JtW = Jf.T * np.repeat(w, 2)
+        H = JtW @ Jf + prior
+        g = JtW @ r.reshape(-1) - prior @ delta
         try:
             step = np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
@@ -183,7 +182,8 @@ def pose_correction(camera: Camera, points_world: np.ndarray, pixels: np.ndarray
         cam = apply_correction(camera, delta)
         if np.abs(step).max() < 1e-8:
             break
-    info = np.einsum("nia,nib->ab", J, J) / sigma**2
+    Jf = J.reshape(-1, 6)
+    info = Jf.T @ Jf / sigma**2
     # the image displacement, exact: a knock of degrees is far outside the linearisation
     moved = cam.project(X) - camera.project(X)
     ok = np.isfinite(moved).all(axis=1)

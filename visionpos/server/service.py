@@ -33,6 +33,7 @@ from visionpos.messages import BlobFrame, BodyState, LoosePoints
 from visionpos.server.ingest import Ingest
 from visionpos.server.settings import ServerSettings, parse_server
 from visionpos.server.sinks import Sink, start_sink
+from visionpos.server.tick_phase import TickPhase
 
 if TYPE_CHECKING:
     from visionpos.camera.model import Camera
@@ -110,18 +111,21 @@ class FusionServer:
         self._port_req = self.settings.port if port is None else int(port)
         self.clock = clock
         self.monitor: CameraMonitor | None = None  # continuous calibration (fusion/camera_monitor.py)
-        feed: FusionPipeline | _MonitoredFeed = pipeline
         from visionpos.fusion import camera_monitor
 
         monitor_settings = camera_monitor.parse_camera_monitor(arena)
         if monitor_settings.enabled:
             self.monitor = camera_monitor.CameraMonitor(arena, monitor_settings)
-            feed = _MonitoredFeed(pipeline, self.monitor)
+        self.period_ns = int(round(1e9 / self.settings.output_rate_hz))
+        # the output tick's phase follows the frames' arrivals (server/tick_phase.py)
+        self.tick_phase = TickPhase(self.period_ns) if self.settings.tick_phase_lock else None
+        feed: FusionPipeline | _Feed = pipeline
+        if self.monitor is not None or self.tick_phase is not None:
+            feed = _Feed(pipeline, self.monitor, self.tick_phase, clock)
         self._feed = feed
         # the recording gets packets and events from Ingest and the server directly
         taps = [tap for s in self.outputs for tap in s.packet_taps()]
         self.ingest = Ingest(arena, self.settings, feed, recorder, clock=clock, events=self._on_event, taps=taps)
-        self.period_ns = int(round(1e9 / self.settings.output_rate_hz))
         self.ticks = 0
         self.late_ticks = 0
         self.sink_errors: dict[str, int] = {}
@@ -322,9 +326,11 @@ class FusionServer:
                 self.ingest.check_vanished(now)
             self.tick(now)
             next_t += period
-            if now - next_t > 2 * period:  # far behind (loop stalled): skip, never burst
-                self.late_ticks += 1
-                next_t = now + period
+            if self.tick_phase is not None:
+                next_t += self.tick_phase.shift_ns(now, next_t)
+            if now - next_t > 2 * period:  # far behind (loop stalled): skip the missed ticks, never burst, and
+                self.late_ticks += 1  # keep the phase
+                next_t += ((now - next_t) // period + 1) * period
 
     async def _status_loop(self) -> None:
         while self._running:
@@ -372,6 +378,7 @@ class FusionServer:
         h["insecure"] = self.settings.insecure
         h["ticks"] = self.ticks
         h["late_ticks"] = self.late_ticks
+        h["tick_phase_moves"] = self.tick_phase.shifts if self.tick_phase is not None else 0
         h["states_out"] = self.states_out
         h["loose_markers"] = self.loose_markers
         h["tick_cost_max_ms"] = self.tick_cost_ns_max * 1e-6
@@ -395,17 +402,24 @@ class FusionServer:
         return h
 
 
-class _MonitoredFeed:
-    """What Ingest pushes frames into: the pipeline, then the camera monitor (which only reads the frame)."""
+class _Feed:
+    """What Ingest pushes frames into: the pipeline; the tick's phase notes the fused frame's arrival; then the
+    camera monitor (which only reads the frame)."""
 
-    def __init__(self, pipeline: FusionPipeline, monitor: CameraMonitor):
-        self.pipeline, self.monitor = pipeline, monitor
+    def __init__(self, pipeline: FusionPipeline, monitor: CameraMonitor | None, tick_phase: TickPhase | None,
+                 clock: Callable[[], int]):
+        self.pipeline, self.monitor, self.tick_phase, self.clock = pipeline, monitor, tick_phase, clock
 
     def push(self, frame: BlobFrame) -> None:
-        if self.monitor.admits(frame.camera_id):  # a knocked camera is left out until it agrees again
+        monitor = self.monitor
+        if monitor is None or monitor.admits(frame.camera_id):  # a knocked camera is left out until it agrees
             self.pipeline.push(frame)
+            if self.tick_phase is not None:
+                self.tick_phase.note(self.clock(), frame.capture_ns)
+        if monitor is None:
+            return
         try:
-            self.monitor.observe_frame(frame)
+            monitor.observe_frame(frame)
         except Exception:  # a monitor bug must not cost the frame its fusion (it is fused above)
             log.debug("camera monitor: frame not observed", exc_info=True)
 

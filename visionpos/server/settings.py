@@ -58,6 +58,9 @@ SERVER = section(
     Setting("pause_views_backlog_ms", "number", 5.0, "load relief before shedding: once a frame waited longer "
             "than this in the receive queue, triangulated bodies take no per-frame single-view updates (as "
             "fusion.single_view.mode occlusion) until a frame waits less than a fifth of it (0 = off)", min=0.0),
+    Setting("tick_phase_lock", "boolean", True, "move the output tick's phase to just after the cameras' frames "
+            "arrive, so each tick carries the freshest frame (server/tick_phase.py; one tick interval grows by "
+            "less than a period when it moves, none shrinks)"),
 )
 
 
@@ -86,6 +89,7 @@ class ServerSettings:
     status_period_s: float = SERVER["status_period_s"].field_default
     shed_backlog_ms: float = SERVER["shed_backlog_ms"].field_default
     pause_views_backlog_ms: float = SERVER["pause_views_backlog_ms"].field_default
+    tick_phase_lock: bool = SERVER["tick_phase_lock"].field_default
 
     def __post_init__(self) -> None:
         if self.key is None and not self.insecure:
