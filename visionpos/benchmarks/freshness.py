@@ -16,10 +16,18 @@ but not fused yet (the pipeline's rate limit deferred it), or fused but not take
 The simulated stations share the server's loop and process: a loop that stalls (a loaded host) delays their
 sending as well, so on a shared host the figures carry its load (run it on a quiet one).
 
-The cause found (issue 29): the rate limit (fusion.min_fusion_interval_ms) skips a fusion when another
-camera's frame is due within the interval, so that one fusion takes the whole burst; when that frame was lost
-or late, the skipped frame waited for the next burst, a frame period later. The output tick now fuses it
-(TimeAligner.take_deferred): `freshness_fused_at_tick` counts those.
+The causes found (issue 29):
+- the rate limit (fusion.min_fusion_interval_ms) skips a fusion when another camera's frame is due within the
+  interval, so that one fusion takes the whole burst; when that frame was lost or late, the skipped frame
+  waited for the next burst, a frame period later. The output tick now fuses it (TimeAligner.take_deferred):
+  `freshness_fused_at_tick` counts those;
+- the tick's phase: the thesis cameras' frames arrive within 2 ms of each other every period, and a tick just
+  before them carried a frame a period older than a tick just after them (the median age of a run was 6 or
+  13 ms by the chance of the server's start). The tick's phase now follows the arrivals
+  (server/tick_phase.py): `freshness_tick_phase_moves` counts its moves;
+- what is left are stalls of the loop: the camera monitor's fit of one camera (4 a second, about 11 ms of
+  CPU each on the 2-core bench host), threads that share the GIL (the bridge's outputs, the demo's fake
+  autopilot) and a loaded host.
 """
 
 from __future__ import annotations
@@ -117,6 +125,7 @@ def _demo_run(duration_s: float) -> tuple[list[tuple[int, int, int, int]], dict[
             await asyncio.sleep(max(0.5, duration_s - SETTLE_S - 0.5))
             sink.recording = False
             st1 = server.pipeline.stats()
+            got["tick_phase_moves"] = server.health()["tick_phase_moves"]
             got.update(shed=server.ingest.counters.frames_shed - shed0, late_ticks=server.late_ticks - late0,
                        deferred=st1.get("deferred", 0) - defer0, fused_at_tick=st1.get("fused_at_tick", 0) - at_tick0)
         finally:
@@ -193,6 +202,7 @@ def run(quick: bool = False) -> BenchResult:
     res.metrics.update({"freshness_shed_frames": float(got["shed"]), "freshness_deferred_fusions":
                         float(got["deferred"]), "freshness_fused_at_tick": float(got["fused_at_tick"]),
                         "freshness_late_ticks": float(got["late_ticks"]),
+                        "freshness_tick_phase_moves": float(got["tick_phase_moves"]),
                         "freshness_tracked_fraction": got["tracked_fraction"]})
     lines = ["| ticks x bodies | age p50 (ms) | p99 (ms) | max (ms) | p99 / frame period | ticks >= 1 period old | "
              "of them: newest admitted as old | admitted, not fused | fused, not in the state |",
@@ -203,7 +213,7 @@ def run(quick: bool = False) -> BenchResult:
     res.tables[f"Age of the newest fused frame at each output tick: thesis demo (4 cameras x 100 Hz), console with "
                f"a client and all outputs on, {duration_s:g} s (judged after {SETTLE_S:g} s; shed frames "
                f"{got['shed']}, deferred fusions {got['deferred']} (by the tick {got['fused_at_tick']}), late ticks "
-               f"{got['late_ticks']}, tracked "
+               f"{got['late_ticks']}, tick phase moves {got['tick_phase_moves']}, tracked "
                f"{100 * got['tracked_fraction']:.2f} %)"] = "\n".join(lines)
     prows, period_ms = pipeline_rows(PIPELINE_S_QUICK if quick else PIPELINE_S_FULL)
     pm = ages(prows, period_ms)
