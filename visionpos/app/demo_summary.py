@@ -20,13 +20,13 @@ import numpy as np
 
 from bridge.fake_autopilot import decode_pose
 from visionpos.analysis import metrics as M
+from visionpos.geometry.frames import ned_to_world
 from visionpos.messages import BodyState
 from visionpos.server.sinks import Sink
 
 BATCH_TICKS = 512  # ticks buffered before they are folded into the sums (5 s at 100 Hz)
 TRUTH_STEP_NS = 5_000_000  # the summary's truth grid
 SCORE_BATCH = 64  # autopilot poses scored per call of the truth (AutopilotPoses)
-NED_TO_WORLD = np.array([1.0, -1.0, -1.0])  # NED -> x, -y, -z
 HIST_BIN_NS = 10_000  # latency and interval histograms: 10 µs bins ...
 HIST_BINS = 20_000  # ... up to 200 ms (larger values counted in the last bin)
 LATENCY_QS = (50, 90, 99)
@@ -212,7 +212,7 @@ class AutopilotPoses:
         self._last_recv_ns: int | None = None
         self._window: tuple[int, int] | None = None
         self._truth: Callable[[np.ndarray], np.ndarray] | None = None
-        self._stamps_ns: list[int] = []  # poses waiting to be scored: their stamps and world positions (m)
+        self._stamps_ns: list[int] = []  # poses waiting to be scored: their stamps and positions (NED, m)
         self._positions: list[np.ndarray] = []
 
     def score(self, t_start_ns: int, t_stop_ns: int, truth: Callable[[np.ndarray], np.ndarray]) -> None:
@@ -232,7 +232,7 @@ class AutopilotPoses:
         self.latency_hist[min(max(r.recv_ns - stamp_ns, 0) // HIST_BIN_NS, HIST_BINS - 1)] += 1
         if self._window is not None and self._window[0] <= stamp_ns <= self._window[1]:
             self._stamps_ns.append(stamp_ns)
-            self._positions.append(np.asarray(pose["position_ned"], float) * NED_TO_WORLD)
+            self._positions.append(pose["position_ned"])
             if len(self._stamps_ns) >= SCORE_BATCH:
                 self.flush()
 
@@ -240,7 +240,7 @@ class AutopilotPoses:
         """Score the poses still waiting (the summary calls it once the autopilot has closed)."""
         if not self._stamps_ns:
             return
-        world = np.array(self._positions, float).reshape(-1, 3)
+        world = ned_to_world(np.array(self._positions, float).reshape(-1, 3))
         e_mm = np.linalg.norm(world - self._truth(np.array(self._stamps_ns, np.int64)), axis=1) * 1e3
         self._stamps_ns, self._positions = [], []
         self.err_sq_mm2 += float(np.sum(e_mm * e_mm))

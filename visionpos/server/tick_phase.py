@@ -62,10 +62,10 @@ class TickPhase:
         self._arrivals: deque[tuple[int, int]] = deque()
         self._next_judged_ns: int | None = None
         self.shifts = 0  # phase moves made
-        self.last_gain_ns = 0.0  # the mean age the last move saved
 
     def note(self, arrival_ns: int, capture_ns: int) -> None:
-        """An accepted frame: server clock when it reached the fusion, and its capture time."""
+        """An accepted frame: server clock when it reached the fusion (called in that order), and its capture
+        time."""
         self._arrivals.append((arrival_ns, capture_ns))
         while self._arrivals and self._arrivals[0][0] < arrival_ns - WINDOW_NS:
             self._arrivals.popleft()
@@ -79,8 +79,7 @@ class TickPhase:
         if now_ns < self._next_judged_ns or len(self._arrivals) < MIN_ARRIVALS:
             return 0
         self._next_judged_ns = now_ns + EVERY_NS
-        a = np.array(self._arrivals, np.int64)
-        a = a[np.argsort(a[:, 0], kind="stable")]
+        a = np.array(self._arrivals, np.int64)  # in arrival order: noted as they reach the fusion
         best, score = best_phase_ns(a[:, 0], a[:, 1], self.period_ns)
         current = int(next_tick_ns % self.period_ns)
         k_now = int(round(current * CANDIDATES / self.period_ns)) % CANDIDATES
@@ -88,5 +87,4 @@ class TickPhase:
         if gain < max(GAIN_PERIODS * self.period_ns, GAIN_MIN_NS):
             return 0
         self.shifts += 1
-        self.last_gain_ns = gain
         return (best - current) % self.period_ns
