@@ -8,13 +8,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from visionpos.config.arena import ConfigError, load_arena
-from visionpos.fusion.camera_monitor import (
-    CameraMonitor,
-    MonitorSettings,
-    apply_correction,
-    parse_camera_monitor,
-    pose_correction,
-)
+from visionpos.fusion.camera_monitor import CameraMonitor, MonitorSettings, parse_camera_monitor
+from visionpos.geometry.resection import apply_correction, pose_correction
 
 
 def _angle_deg(Ra, Rb):
@@ -222,3 +217,81 @@ def test_two_cameras_knocked_at_once_both_found_and_corrected():
     # camera 3 miss at camera 1's and 4's
     health = next(r for m, r in reports if "has moved too" in m)
     assert health[3]["ref_px"] < 0.3 and min(health[1]["ref_px"], health[4]["ref_px"]) > 1.0
+
+
+def test_single_marker_bodies_are_calibration_points_too():
+    """A point body's state has no rotation (NaN quaternion): its marker is its position. Before, its state made
+    the monitor raise on every tick, and no camera was watched at all."""
+    from visionpos.benchmarks.fusion import replay
+    from visionpos.config.arena import load_yaml, parse_arena, resolve_config_path
+    from visionpos.sim import parse_sim, simulate
+    from visionpos.sim.fleet import point_fleet
+
+    sc = parse_sim(parse_arena(point_fleet(load_yaml(resolve_config_path("thesis")), 3, 6.0), "<dots>"))
+    mon = CameraMonitor(sc.arena)
+    replay(sc.arena, simulate(sc).frames, monitor=mon)
+    for w in mon.cams.values():
+        assert len(w.times_ns) >= 100, w.camera.name
+        times = np.fromiter(w.times_ns, np.int64)
+        points = np.array(list(w.points))
+        truth = np.stack([sc.truth_at(b.name, times)[0] for b in sc.bodies])  # (B, N, 3)
+        miss_m = np.linalg.norm(truth - points[None], axis=2).min(axis=0)  # to the nearest dot
+        assert np.median(miss_m) < 0.002 and miss_m.max() < 0.02, (w.camera.name, np.median(miss_m), miss_m.max())
+    assert mon.events == []
+
+
+def _one_marker_monitor(blobs_px):
+    """A thesis monitor whose only tracked marker is the quad's first, and one sampled frame of camera 1 with
+    these blobs (px, (N, 2)); returns the monitor and where camera 1 predicts the marker (px)."""
+    from visionpos.messages import BlobFrame
+
+    arena = load_arena("thesis")
+    mon = CameraMonitor(arena, replace(MonitorSettings(), sample_every=1))
+    X = np.array([[0.0, 0.0, 1.0]])
+    mon._motion = (np.zeros(1, np.int64), X, np.zeros((1, 3)), np.zeros(1, np.int64))
+    pred = arena.camera_by_id()[1].project(X)[0]
+    blobs = np.column_stack([np.asarray(blobs_px(pred), float), np.full((len(blobs_px(pred)), 2), 10.0)])
+    mon.observe_frame(BlobFrame(1, 0, 1_000_000, blobs.astype(np.float32)))
+    return mon, pred
+
+
+def test_a_marker_pairs_only_with_a_lone_blob_within_the_gate():
+    mon, pred = _one_marker_monitor(lambda p: [p + [1.0, 0.0], p + [40.0, 0.0]])
+    w = mon.cams[1]
+    assert (w.predicted, w.paired) == (1, 1)
+    np.testing.assert_allclose(mon._last_px[0, 0], pred + [1.0, 0.0], atol=1e-4)  # float32 blobs
+    assert mon._last_ns[0, 0] == 1_000_000
+    # the offset search's votes: every blob-minus-prediction offset within search_deg (6 deg ~ 75 px here)
+    np.testing.assert_allclose(np.concatenate([v[1] for v in w.votes]), [[1.0, 0.0], [40.0, 0.0]], atol=1e-4)
+    # a second blob within twice the distance (at least 2 px) makes the pair ambiguous: no pair
+    mon, _ = _one_marker_monitor(lambda p: [p + [1.0, 0.0], p + [0.0, 1.5]])
+    assert (mon.cams[1].predicted, mon.cams[1].paired) == (1, 0)
+    # beyond the gate (15 px): no pair
+    mon, _ = _one_marker_monitor(lambda p: [p + [16.0, 0.0]])
+    assert (mon.cams[1].predicted, mon.cams[1].paired) == (1, 0)
+
+
+def test_the_monitor_waits_while_the_kernels_compile():
+    """During a first start the kernels run interpreted (fusion/warmup.py); a fit would hold the loop ~0.3 s:
+    the monitor pairs and fits nothing, and the health says why (docs/calibration.md)."""
+    from visionpos import jit
+    from visionpos.fusion.camera_monitor import PAUSED_WHILE_COMPILING
+
+    jit.interpret()
+    try:
+        mon, _ = _one_marker_monitor(lambda p: [p + [1.0, 0.0]])
+        assert mon.cams[1].paired == 0 and mon.cams[1].frames_seen == 0
+        assert mon.step(10**9) == [] and mon._turn == 0
+        assert mon.paused == PAUSED_WHILE_COMPILING
+        assert _health(mon)["camera_monitor"]["paused"] == PAUSED_WHILE_COMPILING
+    finally:
+        jit.use_compiled()
+    assert mon.paused == "" and _health(mon)["camera_monitor"]["paused"] == ""
+    mon, _ = _one_marker_monitor(lambda p: [p + [1.0, 0.0]])
+    assert mon.cams[1].paired == 1
+    from pathlib import Path
+
+    doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "calibration.md").read_text().split())
+    assert ("`paused` says why the monitor watches nothing now, and is empty otherwise: during a first start after "
+            "an install the fusion's kernels compile in the background") in doc
+    assert "0.3 s" in PAUSED_WHILE_COMPILING and "about 0.3 s, so the monitor pairs and fits nothing" in doc

@@ -5,7 +5,7 @@ monitor predicts the tracked bodies' markers at the frame's capture time (the fu
 velocities), projects them with the camera's current pose, and pairs them with the frame's blobs when
 the pairing is unambiguous. It keeps each camera's recent pairs (marker in the world, blob pixel), and
 once a second fits a small correction of that camera's pose to them by robust Gauss-Newton
-(`pose_correction`, a 6-parameter resection with the markers held fixed).
+(geometry/resection.py's `pose_correction`, a 6-parameter resection with the markers held fixed).
 
 A camera is flagged as moved when its correction is both significant (chi-square of the correction
 against the fit's own noise) and visible (it moves the camera's markers by more than `flag_px` pixels
@@ -28,6 +28,7 @@ cameras left are a reference when their rays meet at the flagged cameras' points
 from __future__ import annotations
 
 import logging
+import math
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -35,11 +36,16 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from visionpos.camera.model import Camera
+from visionpos import jit
+from visionpos.camera.lens import pixel_from_normalized
+from visionpos.camera.model import Camera, lens_arrays, undistort_pixels
 from visionpos.config.arena import ArenaConfig
 from visionpos.config.schema import register_section
 from visionpos.config.settings import Setting, section
-from visionpos.geometry.triangulation import CameraRig, pixel_jacobians, triangulate_pixels
+from visionpos.fusion.matching import refine_in_pixels, triangulate
+from visionpos.geometry.resection import apply_correction, misfit, pose_correction
+from visionpos.geometry.rotations import matrix_from_quat
+from visionpos.jit import njit
 from visionpos.messages import BlobFrame, BodyState
 
 log = logging.getLogger(__name__)
@@ -49,7 +55,10 @@ log = logging.getLogger(__name__)
 DOMINANCE = 1.4
 # A flagged camera is re-fitted until its correction moves its markers by less than this part of flag_px.
 SETTLED = 0.1
-MAX_FIT_PAIRS = 1000  # a fit uses at most this many of a camera's newest pairs: a few ms on the loop
+PAUSED_WHILE_COMPILING = ("waiting for the compiled kernels: a first start after an install compiles them in the "
+                          "background, and run interpreted each fit would hold the server's loop for about 0.3 s")
+REFINE_STEPS = 3  # Gauss-Newton steps of a leave-one-out point from its linear start (1-2 converge)
+MAX_FIT_PAIRS = 1000  # a fit uses at most this many of a camera's newest pairs: about 1 ms on the loop
 # a flagged camera's fit must explain its pairs: robust residual std at most this many times the other cameras'
 # median (and at least UNSOLVED_SIGMA_PX): otherwise the knock is not a rigid turn and shift of the camera
 UNSOLVED_SIGMA_RATIO = 4.0
@@ -137,100 +146,161 @@ register_section("camera_monitor", MONITOR, parse_camera_monitor)
 
 
 # ---------------------------------------------------------------------------------------------- math
-def pose_correction(camera: Camera, points_world: np.ndarray, pixels: np.ndarray, iterations: int = 3,
-                    huber_px: float = 1.0, prior_rotation_rad: float = 0.05, prior_shift_m: float = 0.005
-                    ) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """Small correction of a camera's pose that best reprojects known world points onto observed pixels.
+@njit
+def _pair_frame(blobs, t_ns, X0, V, rows, capture_ns, R, t, intrinsics, dist, fisheye, offset_px, gate_px, vote_r2, v,
+                others, fresh_ns, last_px, last_ns):
+    """One sampled frame of camera v (pose R, t; its lens as lens_arrays packs it): the tracked markers moved to
+    its capture time (X0 (M, 3) m at t_ns (M,) ns, velocities V (M, 3) m/s; rows (M,): their rows in last_px),
+    projected and paired with its blobs (B, 2) px once offset_px is added: a marker pairs with its nearest blob
+    within gate_px when no other blob is within twice that distance of the marker and no other marker within
+    twice that distance of the blob (at least 2 px either way). Writes each paired
+    marker's blob and capture time as view v's newest (last_px (V, Mt, 2), last_ns (V, Mt), in place). Returns
+    (markers predicted on its sensor, votes (K, 2): every blob-minus-prediction offset of an on-sensor marker
+    within sqrt(vote_r2) px (none for vote_r2 <= 0), markers paired, and for each paired marker that two or
+    more views in `others` (V,) bool saw within fresh_ns: those views' pixels (U, V, 2) (NaN elsewhere),
+    their offsets (U, V, 3) m (the marker's motion from each view's capture to this one, 0 elsewhere), and
+    this frame's blob (U, 2))."""
+    M, B, n_views = X0.shape[0], blobs.shape[0], last_px.shape[0]
+    pred = np.full((M, 2), np.nan)
+    width, height = intrinsics[4], intrinsics[5]
+    predicted = 0
+    n_votes = 0
+    votes = np.empty((M * B if vote_r2 > 0.0 else 0, 2))
+    for m in range(M):
+        dt = (capture_ns - t_ns[m]) * 1e-9
+        x, y, z = X0[m, 0] + V[m, 0] * dt, X0[m, 1] + V[m, 1] * dt, X0[m, 2] + V[m, 2] * dt
+        zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+        if not zc > 0.0:
+            continue
+        xc = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
+        yc = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
+        pred[m, 0], pred[m, 1] = pixel_from_normalized(xc / zc, yc / zc, intrinsics, dist, fisheye)
+        if not (-0.5 <= pred[m, 0] <= width - 0.5 and -0.5 <= pred[m, 1] <= height - 0.5):
+            continue
+        predicted += 1
+        if vote_r2 > 0.0:
+            for b in range(B):
+                dx, dy = blobs[b, 0] - pred[m, 0], blobs[b, 1] - pred[m, 1]
+                if dx * dx + dy * dy < vote_r2:
+                    votes[n_votes, 0], votes[n_votes, 1] = dx, dy
+                    n_votes += 1
+    # the pairing, on the predictions plus the search offset
+    d = np.full((M, B), np.inf)
+    for m in range(M):
+        for b in range(B):
+            dx = pred[m, 0] + offset_px[0] - blobs[b, 0]
+            dy = pred[m, 1] + offset_px[1] - blobs[b, 1]
+            dd = math.sqrt(dx * dx + dy * dy)
+            if math.isfinite(dd):
+                d[m, b] = dd
+    pair_m = np.empty(M, np.int64)
+    pair_b = np.empty(M, np.int64)
+    paired = 0
+    for m in range(M):
+        best = 0
+        for b in range(1, B):
+            if d[m, b] < d[m, best]:
+                best = b
+        dm = d[m, best]
+        if not dm < gate_px:
+            continue
+        limit = max(2.0 * dm, 2.0)
+        near_blobs = 0
+        for b in range(B):
+            if d[m, b] < limit:
+                near_blobs += 1
+        near_markers = 0
+        for k in range(M):
+            if d[k, best] < limit:
+                near_markers += 1
+        if near_blobs == 1 and near_markers == 1:
+            pair_m[paired], pair_b[paired] = m, best
+            paired += 1
+    for k in range(paired):
+        r = rows[pair_m[k]]
+        last_px[v, r, 0], last_px[v, r, 1] = blobs[pair_b[k], 0], blobs[pair_b[k], 1]
+        last_ns[v, r] = capture_ns
+    px = np.full((paired, n_views, 2), np.nan)
+    offsets = np.zeros((paired, n_views, 3))
+    pair_px = np.empty((paired, 2))
+    used = 0
+    for k in range(paired):
+        m, r = pair_m[k], rows[pair_m[k]]
+        n_fresh = 0
+        for u in range(n_views):
+            if others[u] and abs(capture_ns - last_ns[u, r]) < fresh_ns:
+                n_fresh += 1
+        if n_fresh < 2:
+            continue
+        for u in range(n_views):
+            age_ns = capture_ns - last_ns[u, r]
+            if others[u] and abs(age_ns) < fresh_ns:
+                px[used, u, 0], px[used, u, 1] = last_px[u, r, 0], last_px[u, r, 1]
+                for a in range(3):  # each other view saw the marker where it was at its own capture time
+                    offsets[used, u, a] = -V[m, a] * (age_ns * 1e-9)
+        pair_px[used, 0], pair_px[used, 1] = blobs[pair_b[k], 0], blobs[pair_b[k], 1]
+        used += 1
+    return predicted, votes[:n_votes].copy(), paired, px[:used].copy(), offsets[:used].copy(), pair_px[:used].copy()
 
-    points_world: (N, 3) m; pixels: (N, 2) observed (distorted) pixels. The corrected camera is
-    R' = exp([omega]) R, t' = exp([omega]) t + tau (a turn about the camera's own centre, omega rad, then a
-    shift tau m, both in the camera frame). Points seen from one
-    camera in a small volume barely tell a turn from a shift (both move them across the image alike), so
-    the fit has a zero-mean prior on each (std prior_rotation_rad, prior_shift_m): a knock, mostly a turn,
-    comes out as a turn, and a shift only where the points' spread in depth shows it. Returns (delta (6,)
-    = [omega, tau], information (6, 6) of the data = J^T J / sigma^2, sigma (px, robust residual std after
-    the fit), the RMS image displacement (px) the correction causes at these points). Robust: Huber
-    weights at huber_px x 2 sigma.
-    """
-    X = np.asarray(points_world, float).reshape(-1, 3)
-    u = np.asarray(pixels, float).reshape(-1, 2)
-    prior = np.diag([prior_rotation_rad ** -2] * 3 + [prior_shift_m ** -2] * 3)
-    delta = np.zeros(6)
-    cam = camera
-    sigma = 1.0
-    J = np.zeros((len(X), 2, 6))
-    for _ in range(iterations):
-        r = u - cam.project(X)
-        ok = np.isfinite(r).all(axis=1)
-        Jc = pixel_jacobians([cam], X, ok[:, None])[:, 0] @ cam.R.T  # d pixel / d X_camera (N, 2, 3)
-        P = X @ cam.R.T + cam.t  # the points in the camera frame, which the turn acts on
-        # d pixel / d [omega, tau]: a turn moves P by omega x P, so its rows are Jc [P]x = Jc_row x P
-        J = np.concatenate([np.cross(P[:, None, :], Jc), Jc], axis=2)
-        r = np.where(ok[:, None], r, 0.0)
-        rn = np.linalg.norm(r, axis=1)
-        sigma = max(1.4826 * float(np.median(rn[ok])) / np.sqrt(2.0), 0.02) if ok.any() else 1.0
-        w = np.where(ok, np.minimum(1.0, huber_px * 2.0 * sigma / np.maximum(rn, 1e-12)), 0.0) / sigma**2
-        Jf = J.reshape(-1, 6)  # (2N, 6): the normal equations in one BLAS product each
-        JtW = Jf.T * np.repeat(w, 2)
-        H = JtW @ Jf + prior
-        g = JtW @ r.reshape(-1) - prior @ delta
-        try:
-            step = np.linalg.solve(H, g)
-        except np.linalg.LinAlgError:
-            break
-        delta += step
-        cam = apply_correction(camera, delta)
-        if np.abs(step).max() < 1e-8:
-            break
-    Jf = J.reshape(-1, 6)
-    info = Jf.T @ Jf / sigma**2
-    # the image displacement, exact: a knock of degrees is far outside the linearisation
-    moved = cam.project(X) - camera.project(X)
-    ok = np.isfinite(moved).all(axis=1)
-    disp = float(np.sqrt(np.mean(np.sum(moved[ok] ** 2, axis=1)))) if ok.any() else 0.0
-    return delta, info, sigma, disp
+
+def _rig_arrays(cameras: list[Camera]) -> tuple[np.ndarray, ...]:
+    """The cameras as the compiled triangulation takes them: R (V, 3, 3), t (V, 3), f (V,) px (sqrt(fx fy)),
+    intrinsics (V, 6), dist (V, 8), fisheye (V,) bool (camera.model.lens_arrays per camera)."""
+    lenses = [lens_arrays(c.model) for c in cameras]
+    return (np.ascontiguousarray([c.R for c in cameras], dtype=np.float64),
+            np.ascontiguousarray([c.t for c in cameras], dtype=np.float64),
+            np.array([np.sqrt(c.model.fx * c.model.fy) for c in cameras]),
+            np.ascontiguousarray([x[0] for x in lenses]), np.ascontiguousarray([x[1] for x in lenses]),
+            np.array([x[2] for x in lenses], dtype=np.bool_))
 
 
-def _misfit(camera: Camera, delta: np.ndarray, points_world: np.ndarray, pixels: np.ndarray, sigma_px: float
-            ) -> float:
-    """Robust chi-square of the pairs (N, 3) world / (N, 2) px under the corrected camera: sum of squared
-    residuals / sigma_px^2, each clipped at 3 sigma (an outlier pair costs no more than that)."""
-    r = np.linalg.norm(pixels - apply_correction(camera, delta).project(points_world), axis=1) / sigma_px
-    return float(np.sum(np.minimum(np.nan_to_num(r, nan=3.0), 3.0) ** 2))
+def leave_one_out_points(rig: tuple[np.ndarray, ...], pixels: np.ndarray, offsets: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Points (P, 3) m triangulated from pixels (P, V, 2) (NaN where a view does not see the point) with per-view
+    offsets (P, V, 3) m (view v saw X + offsets[p, v]), and their residual (P,) px RMS: the compiled linear
+    start (fusion/matching.triangulate), refined on the reprojection error in pixels through each lens. NaN
+    where fewer than 2 views see a point or a view sees it from behind. rig: _rig_arrays."""
+    R, t, f, intrinsics, dist, fisheye_ = rig
+    px = np.array(pixels, dtype=np.float64)  # a copy: unseen views are marked in it
+    xn = np.empty_like(px)
+    for v in range(px.shape[1]):
+        xn[:, v] = undistort_pixels(np.ascontiguousarray(px[:, v]), intrinsics[v], dist[v], bool(fisheye_[v]))
+    px[np.isnan(xn)] = np.nan  # beyond a lens's fold: no view
+    off = np.ascontiguousarray(offsets, dtype=np.float64)
+    X, _, _ = triangulate(xn, R, t, f, off)
+    return refine_in_pixels(X, px, off, True, R, t, intrinsics, dist, fisheye_, REFINE_STEPS)
 
 
-def apply_correction(camera: Camera, delta: np.ndarray) -> Camera:
-    """The camera turned by omega about its own centre, then shifted by tau: R' = exp([omega]) R,
-    t' = exp([omega]) t + tau; delta = [omega (rad), tau (m)], camera frame."""
-    dR = Rotation.from_rotvec(np.asarray(delta[:3], float)).as_matrix()
-    return camera.with_pose(dR @ camera.R, dR @ camera.t + np.asarray(delta[3:], float))
+def warm_up_monitor_kernels(arena: ArenaConfig, points_world: np.ndarray) -> None:
+    """Run the monitor's compiled kernels once on the first body's markers at points (M, 3) m in front of the
+    cameras (fusion/warmup.py), so that a live server's first frame and fit do not compile them on its loop."""
+    cameras = list(arena.cameras)
+    X = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    px = np.stack([c.project(X) for c in cameras], axis=1)
+    mon = CameraMonitor(arena, MonitorSettings(sample_every=1))
+    mon._motion = (np.zeros(len(X), np.int64), X, np.zeros_like(X), np.arange(len(X)))
+    blobs = np.column_stack([np.nan_to_num(px[:, 0]), np.full((len(X), 2), 10.0)]).astype(np.float32)
+    mon.observe_frame(BlobFrame(cameras[0].id, 0, 0, blobs))
+    leave_one_out_points(_rig_arrays(cameras), px, np.zeros(px.shape[:2] + (3,)))
+    pose_correction(cameras[0], X, px[:, 0], iterations=1)
 
 
 def marker_motion(state: BodyState, markers_body: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(markers (M, 3) in the world at state.time_ns, their velocities (M, 3) m/s) from the state's pose,
-    velocity and body-frame angular velocity: X(t) ~ X + V (t - time_ns) over a frame's few milliseconds."""
-    R = Rotation.from_quat(state.quaternion).as_matrix()
+    velocity and body-frame angular velocity: X(t) ~ X + V (t - time_ns) over a frame's few milliseconds.
+    A single-marker body's state has no rotation (NaN quaternion): its marker sits at its position."""
+    position = np.asarray(state.position, float)
+    velocity = np.asarray(state.velocity, float)
+    q = np.asarray(state.quaternion, float)
+    if not np.isfinite(q).all():
+        n = len(markers_body)
+        return np.tile(position, (n, 1)), np.tile(velocity, (n, 1))
+    R = matrix_from_quat(q)
     lever = markers_body @ R.T
-    omega_world = R @ np.asarray(state.angular_velocity, float)
-    return lever + np.asarray(state.position, float), np.cross(omega_world, lever) + np.asarray(state.velocity, float)
-
-
-def pair_blobs(predicted_px: np.ndarray, blobs_px: np.ndarray, gate_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """Unambiguous pairs (marker index (K,), blob index (K,)): the nearest blob within gate_px of a predicted
-    marker, when no other blob is within twice that distance of the marker and no other marker within twice
-    that distance of the blob (at least 2 px either way)."""
-    if len(predicted_px) == 0 or len(blobs_px) == 0:
-        return np.zeros(0, int), np.zeros(0, int)
-    d = np.linalg.norm(predicted_px[:, None, :] - blobs_px[None, :, :], axis=2)
-    d = np.where(np.isfinite(d), d, np.inf)
-    b = np.argmin(d, axis=1)
-    m = np.arange(len(d))
-    dm = d[m, b]
-    limit = np.maximum(2.0 * dm, 2.0)
-    lone_blob = (d < limit[:, None]).sum(axis=1) == 1
-    lone_marker = (d[:, b] < limit[None, :]).sum(axis=0) == 1
-    ok = (dm < gate_px) & lone_blob & lone_marker
-    return m[ok], b[ok]
+    w = R @ np.asarray(state.angular_velocity, float)
+    marker_velocity = np.column_stack([w[1] * lever[:, 2] - w[2] * lever[:, 1], w[2] * lever[:, 0] - w[0] * lever[:, 2],
+                                       w[0] * lever[:, 1] - w[1] * lever[:, 0]]) + velocity
+    return lever + position, marker_velocity
 
 
 # ---------------------------------------------------------------------------------------------- state
@@ -281,7 +351,11 @@ class CameraMonitor:
         self.markers = {b.name: np.asarray(b.markers, float) for b in arena.bodies}
         self._motion: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._index = {c.id: i for i, c in enumerate(arena.cameras)}
-        self._rig = CameraRig(list(arena.cameras))
+        self._rig = _rig_arrays(list(arena.cameras))
+        self._lens = {c.id: lens_arrays(c.model) for c in arena.cameras}
+        # the offset search's votes: blob-minus-prediction offsets within search_deg of view (px^2; none at 0)
+        self._vote_r2 = {c.id: float(np.tan(np.radians(self.settings.search_deg)) * c.model.fx) ** 2
+                         if self.settings.search_deg > 0 else -1.0 for c in arena.cameras}
         starts = np.cumsum([0] + [len(b.markers) for b in arena.bodies])
         self._marker_rows = {b.name: np.arange(starts[i], starts[i + 1]) for i, b in enumerate(arena.bodies)}
         # each camera's newest paired view of every marker: pixel (V, M, 2) and capture time (V, M)
@@ -313,41 +387,30 @@ class CameraMonitor:
         newest views (leave-one-out: the fused pose leans toward a knocked camera, the other cameras' rays do
         not) with this blob. The other frames cost a counter."""
         v = self._index.get(frame.camera_id)
-        if v is None or self._motion is None:
+        if v is None or self._motion is None or jit.interpreting():
             return
         w = self.cams[frame.camera_id]
         w.frames_seen += 1
         if w.frames_seen % self.settings.sample_every:
             return
-        blobs = np.asarray(frame.blobs, float).reshape(-1, 4)[:, :2]
+        blobs = np.ascontiguousarray(np.asarray(frame.blobs, dtype=np.float64).reshape(-1, 4)[:, :2])
         if not len(blobs):
             return
-        t_ns, X0, V, rows = self._motion
-        X = X0 + V * ((frame.capture_ns - t_ns) * 1e-9)[:, None]
-        pred = w.camera.project(X)
-        inside = np.isfinite(pred).all(axis=1) & w.camera.model.in_image(pred)
-        w.predicted += int(inside.sum())
-        self._vote(w, frame.capture_ns, pred[inside], blobs)
-        m, b = pair_blobs(pred + w.offset_px, blobs, self.settings.gate_px)
-        w.paired += len(m)
-        if not len(m):
-            return
-        self._last_px[v, rows[m]] = blobs[b]
-        self._last_ns[v, rows[m]] = frame.capture_ns
+        cam = self._lens[frame.camera_id]
         # leave-one-out, and flagged cameras left out too: a knocked camera's rays would bend the others' points
         others = np.array([not x.flagged for x in self.cams.values()])
         others[v] = False
-        r = rows[m]
-        age_ns = frame.capture_ns - self._last_ns[:, r].T  # (K, V)
-        fresh = others[None, :] & (np.abs(age_ns) < self._fresh_ns)
-        use = fresh.sum(axis=1) >= 2
-        if not use.any():
-            return
-        px = np.where(fresh[use][..., None], self._last_px[:, r[use]].transpose(1, 0, 2), np.nan)
-        # each other view saw the marker where it was at its own capture time
-        offsets = -V[m[use], None, :] * (age_ns[use] * 1e-9)[..., None]
-        # triangulated in one batch per camera at the next step(): per frame only this bookkeeping
-        w.pending.append((frame.capture_ns, px, np.where(fresh[use][..., None], offsets, 0.0), blobs[b[use]]))
+        predicted, votes, paired, px, offsets, pair_px = _pair_frame(
+            blobs, *self._motion, frame.capture_ns, w.camera.R, w.camera.t, *cam, w.offset_px,
+            float(self.settings.gate_px), self._vote_r2[frame.camera_id], v, others,
+            self._fresh_ns, self._last_px, self._last_ns)
+        w.predicted += predicted
+        w.paired += paired
+        if len(votes):
+            w.votes.append((frame.capture_ns, votes))
+        if len(pair_px):
+            # triangulated in one batch per camera at the next step(): per frame only this bookkeeping
+            w.pending.append((frame.capture_ns, px, offsets, pair_px))
 
     def _triangulate_pending(self, w: CameraWatch) -> None:
         """The leave-one-out points of a camera's pending pairs, in one triangulation."""
@@ -358,12 +421,12 @@ class CameraMonitor:
         blobs = np.concatenate([p[3] for p in w.pending])
         times = np.concatenate([np.full(len(p[3]), p[0], np.int64) for p in w.pending])
         w.pending.clear()
-        tri = triangulate_pixels(self._rig, px, offsets=offsets)
-        good = np.isfinite(tri.points).all(axis=1)
+        points, ref_px = leave_one_out_points(self._rig, px, offsets)
+        good = np.isfinite(points).all(axis=1)
         w.times_ns.extend(times[good].tolist())
-        w.points.extend(tri.points[good])
+        w.points.extend(points[good])
         w.pixels.extend(blobs[good])
-        w.ref_px.extend(np.sqrt(np.nanmean(tri.residuals[good] ** 2, axis=1)))
+        w.ref_px.extend(ref_px[good])
         while len(w.times_ns) > self.settings.max_pairs:
             self._drop_oldest(w)
 
@@ -373,16 +436,6 @@ class CameraMonitor:
         w.points.popleft()
         w.pixels.popleft()
         w.ref_px.popleft()
-
-    def _vote(self, w: CameraWatch, capture_ns: int, pred: np.ndarray, blobs: np.ndarray) -> None:
-        """Keep every blob-minus-prediction offset within search_deg of view (px) for the offset search."""
-        if not len(pred) or self.settings.search_deg <= 0:
-            return
-        radius = np.tan(np.radians(self.settings.search_deg)) * w.camera.model.fx
-        d = (blobs[None, :, :] - pred[:, None, :]).reshape(-1, 2)
-        d = d[np.einsum("ij,ij->i", d, d) < radius**2]
-        if len(d):
-            w.votes.append((capture_ns, d))
 
     def _search(self, w: CameraWatch, since_ns: int) -> None:
         """When the camera paired few of its predicted markers: the image offset most of its blob-minus-prediction
@@ -440,7 +493,7 @@ class CameraMonitor:
             # prior explains them significantly better (SHIFT_EVIDENCE_CHI2; a turn alone fits as well under either,
             # and the tight prior keeps the turn/shift trade-off of a small volume out of it)
             loose = pose_correction(w.camera, pts, pix, iterations=8, prior_shift_m=FLAGGED_PRIOR_SHIFT_M)
-            gain = (_misfit(w.camera, delta, pts, pix, sigma) - _misfit(w.camera, loose[0], pts, pix, sigma))
+            gain = (misfit(w.camera, delta, pts, pix, sigma) - misfit(w.camera, loose[0], pts, pix, sigma))
             w.last["shift_evidence_chi2"] = float(gain)
             if gain > SHIFT_EVIDENCE_CHI2:
                 delta, info, sigma, disp = loose
@@ -458,6 +511,8 @@ class CameraMonitor:
         st = self.settings
         if self._next_step_ns is not None and now_ns < self._next_step_ns:
             return []
+        if self.paused:
+            return []
         ids = list(self.cams)
         self._next_step_ns = now_ns + int(st.step_s * 1e9 / len(ids))
         if self._turn % len(ids) == 0:
@@ -471,6 +526,14 @@ class CameraMonitor:
         if self._flag(now_ns):
             return []
         return self._act(now_ns)
+
+    @property
+    def paused(self) -> str:
+        """Why the monitor watches nothing now, else "": while a first start compiles the kernels in the
+        background (fusion/warmup.py), interpreted, one fit would hold the server's loop for about 0.3 s."""
+        if jit.interpreting():
+            return PAUSED_WHILE_COMPILING
+        return ""
 
     def _say(self, msg: str) -> None:
         """An operator-visible line: the log's WARNING and the health's events."""
@@ -641,7 +704,7 @@ class CameraMonitor:
         if shift > st.max_step_m:
             delta[3:] *= st.max_step_m / shift
         w.camera = apply_correction(w.camera, delta)
-        self._rig = CameraRig([x.camera for x in self.cams.values()])
+        self._rig = _rig_arrays([x.camera for x in self.cams.values()])
         w.corrections += 1
         w.offset_px = np.zeros(2)
         w.unsolvable = ""

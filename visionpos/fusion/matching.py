@@ -392,6 +392,80 @@ def triangulate_irls(xn, R, t, f, offsets, has_offsets, iterations):
 
 
 @njit
+def refine_in_pixels(X, px, offsets, has_offsets, R, t, intrinsics, dist, fisheye, iterations):
+    """Gauss-Newton on each point's reprojection error in its views' pixels, through each lens (compiled).
+
+    X (P, 3) start (triangulate's points, m; NaN rows stay NaN); px (P, V, 2) observed pixels, NaN where view
+    v does not see point p; offsets (P, V, 3) as triangulate's, read only if has_offsets; R (V, 3, 3),
+    t (V, 3) world->camera; intrinsics (V, 6), dist (V, 8), fisheye (V,) bool: each camera as lens_arrays
+    packs it. At most `iterations` steps per point (from the linear start one or two suffice). Returns the
+    points (P, 3) (NaN where a view sees the point from behind) and their residual (P,): the RMS over the
+    seen views of the reprojection error's length, px. The linear start's residual is in focal-scaled
+    normalised units, which a fisheye's edge compresses: this one is the maximum-likelihood point under pixel
+    noise."""
+    P, V = px.shape[0], px.shape[1]
+    out = np.full((P, 3), np.nan)
+    rms = np.full(P, np.nan)
+    Pc = np.empty(3)
+    for p in range(P):
+        x0, x1, x2 = X[p, 0], X[p, 1], X[p, 2]
+        if not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2)):
+            continue
+        ok = True
+        ss = 0.0
+        n = 0
+        for it in range(iterations + 1):
+            h00 = h01 = h02 = h11 = h12 = h22 = g0 = g1 = g2 = ss = 0.0
+            n = 0
+            for v in range(V):
+                if math.isnan(px[p, v, 0]):
+                    continue
+                w0, w1, w2 = x0, x1, x2
+                if has_offsets:
+                    w0, w1, w2 = x0 + offsets[p, v, 0], x1 + offsets[p, v, 1], x2 + offsets[p, v, 2]
+                for a in range(3):
+                    Pc[a] = R[v, a, 0] * w0 + R[v, a, 1] * w1 + R[v, a, 2] * w2 + t[v, a]
+                if not Pc[2] > 0.0:
+                    ok = False
+                    break
+                u, w, Jc = lens.project_with_jacobian(Pc, intrinsics[v], dist[v], fisheye[v])
+                r0, r1 = px[p, v, 0] - u, px[p, v, 1] - w
+                ss += r0 * r0 + r1 * r1
+                n += 1
+                # d pixel / d X = Jc R (2, 3)
+                a0 = Jc[0, 0] * R[v, 0, 0] + Jc[0, 1] * R[v, 1, 0] + Jc[0, 2] * R[v, 2, 0]
+                a1 = Jc[0, 0] * R[v, 0, 1] + Jc[0, 1] * R[v, 1, 1] + Jc[0, 2] * R[v, 2, 1]
+                a2 = Jc[0, 0] * R[v, 0, 2] + Jc[0, 1] * R[v, 1, 2] + Jc[0, 2] * R[v, 2, 2]
+                b0 = Jc[1, 0] * R[v, 0, 0] + Jc[1, 1] * R[v, 1, 0] + Jc[1, 2] * R[v, 2, 0]
+                b1 = Jc[1, 0] * R[v, 0, 1] + Jc[1, 1] * R[v, 1, 1] + Jc[1, 2] * R[v, 2, 1]
+                b2 = Jc[1, 0] * R[v, 0, 2] + Jc[1, 1] * R[v, 1, 2] + Jc[1, 2] * R[v, 2, 2]
+                h00 += a0 * a0 + b0 * b0
+                h01 += a0 * a1 + b0 * b1
+                h02 += a0 * a2 + b0 * b2
+                h11 += a1 * a1 + b1 * b1
+                h12 += a1 * a2 + b1 * b2
+                h22 += a2 * a2 + b2 * b2
+                g0 += a0 * r0 + b0 * r1
+                g1 += a1 * r0 + b1 * r1
+                g2 += a2 * r0 + b2 * r1
+            if not ok or n < 2 or it == iterations:
+                break
+            c00, c01, c02 = h11 * h22 - h12 * h12, h02 * h12 - h01 * h22, h01 * h12 - h02 * h11
+            c11, c12, c22 = h00 * h22 - h02 * h02, h01 * h02 - h00 * h12, h00 * h11 - h01 * h01
+            det = h00 * c00 + h01 * c01 + h02 * c02
+            if not abs(det) > 0.0:
+                break
+            d0 = (c00 * g0 + c01 * g1 + c02 * g2) / det
+            d1 = (c01 * g0 + c11 * g1 + c12 * g2) / det
+            d2 = (c02 * g0 + c12 * g1 + c22 * g2) / det
+            x0, x1, x2 = x0 + d0, x1 + d1, x2 + d2
+        if ok and n >= 2:
+            out[p, 0], out[p, 1], out[p, 2] = x0, x1, x2
+            rms[p] = math.sqrt(ss / n)
+    return out, rms
+
+
+@njit
 def _world_rays(xn, R):
     """Normalised coordinates (N, 2) of a camera with world->camera rotation R -> unit world directions (N, 3)."""
     out = np.empty((xn.shape[0], 3))

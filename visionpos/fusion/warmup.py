@@ -112,6 +112,9 @@ def warm_up_kernels(arena: ArenaConfig, settings: dict[str, Any] | None = None) 
             for i, (c, blobs) in enumerate(zip(cams, views)):
                 pipe.push(BlobFrame(c.id, k, 1_000_000_000 + k * 10_000_000 + i * 1_000_000, blobs))
             pipe.tick(1_000_000_000 + k * 10_000_000 + 9_000_000)
+        from visionpos.fusion.camera_monitor import warm_up_monitor_kernels
+
+        warm_up_monitor_kernels(arena, markers)
     finally:
         done.set()
 
@@ -120,9 +123,16 @@ def warm_up_kernels(arena: ArenaConfig, settings: dict[str, Any] | None = None) 
 def warm_up_record() -> Path:
     """Where the argument types of every kernel a warm-up compiled are kept (a pickle, written once the
     cache holds them all), under numba's cache root and keyed like the fusion kernels' cache."""
-    import visionpos.fusion.kernels  # noqa: F401  (the fusion path's kernels and their dependencies)
+    import hashlib
 
-    return jit.cache_base() / f"fusion-warm-up-{jit.module_key('visionpos.fusion.kernels')}.pickle"
+    import visionpos.fusion.camera_monitor  # noqa: F401  (the camera monitor's kernels, warmed up too)
+    import visionpos.fusion.kernels  # noqa: F401  (the fusion path's kernels and their dependencies)
+    import visionpos.geometry.resection  # noqa: F401
+
+    # the monitor calls its resection kernel through a plain function, which module_key does not follow
+    key = "".join(jit.module_key(m) for m in ("visionpos.fusion.kernels", "visionpos.fusion.camera_monitor",
+                                               "visionpos.geometry.resection"))
+    return jit.cache_base() / f"fusion-warm-up-{hashlib.sha1(key.encode()).hexdigest()[:16]}.pickle"
 
 
 def _kernel_name(d) -> str:

@@ -385,7 +385,8 @@ class FusionServer:
         h["sink_errors"] = dict(self.sink_errors)
         h["bodies_tracked_ticks"] = dict(self._body_tracked)
         if self.monitor is not None:
-            h["camera_monitor"] = {"cameras": self.monitor.report(), "events": self.monitor.events[-10:]}
+            h["camera_monitor"] = {"cameras": self.monitor.report(), "events": self.monitor.events[-10:],
+                                   "paused": self.monitor.paused}
         try:
             h["pipeline"] = dict(self.pipeline.stats())
         except Exception as e:
