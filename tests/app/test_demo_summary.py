@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from visionpos.analysis import metrics as M
-from visionpos.app.demo_summary import BATCH_TICKS, HIST_BIN_NS, Collector
+from visionpos.app.demo_summary import BATCH_TICKS, HIST_BIN_NS, HOLD_NS, Collector
 from visionpos.messages import BodyState
 
 T0 = 5_000_000_000  # window start, server clock
@@ -51,7 +51,7 @@ def _collect(ticks: list[int], states: list[BodyState], t_end: int) -> Collector
 
 
 def test_running_statistics_equal_the_metrics_on_every_pose():
-    n = 3 * BATCH_TICKS + 77  # several folds and a remainder
+    n = 3 * BATCH_TICKS + HOLD_NS // TICK_NS + 77  # several folds and the newest ticks still held
     ticks, states = _states(n)
     t_stop = ticks[-40]  # the last ticks are after the window's end
     c = _collect(ticks, states, ticks[-1] + TICK_NS)

@@ -30,8 +30,12 @@ The causes found (issue 29):
   triangulation and fit are compiled now: a fit holds the loop 2.6 ms (median, 5.4 at most), and the monitor
   takes about 3 % of a core (10 s demo runs on the 2-core bench host). On that host the p99 was 1.70-1.87
   periods in 3 runs before and 0.87-1.62 in 4 runs after;
-- what is left are threads that share the GIL (the bridge's outputs, the demo's fake autopilot), a loaded host,
-  and one stall of about 45 ms per run.
+- the largest age of every run, 44-48 ms, was the bench's own: its window, started once the clients were up,
+  ran past the stations' last frame. It ends there now;
+- all four stations' sends 16-18 ms late at once, every 5.12 s: the demo's summary folded 512 ticks into its
+  scores on the loop (about 9 ms of CPU). It folds 64 at a time now (about 3 ms). On the 2-core bench host the
+  p99 was then 0.79-0.85 periods in 4 runs (before it, 0.78-1.62 in 7), the largest age 17-18 ms;
+- what is left are threads that share the GIL (the bridge's outputs, the demo's fake autopilot) and the host.
 """
 
 from __future__ import annotations
@@ -61,13 +65,14 @@ class _AgeSink(Sink):
         self.server = server
         self.rows: list[tuple[int, int, int, int]] = []  # (tick ns, state capture ns, newest admitted, fused)
         self.recording = False
+        self.until_ns: int | None = None  # the stations' last frame: later ticks have no new frame to carry
 
     @property
     def name(self) -> str:
         return "bench-freshness"
 
     def publish(self, states: list) -> None:
-        if not self.recording:
+        if not self.recording or (self.until_ns is not None and states and states[0].time_ns > self.until_ns):
             return
         al = self.server.pipeline.aligner
         newest = al.newest_ns if al.newest_ns is not None else 0
@@ -102,6 +107,9 @@ def _demo_run(duration_s: float) -> tuple[list[tuple[int, int, int, int]], dict[
     async def during(ctx) -> None:
         server = ctx.server
         sink = _AgeSink(server)
+        # judged while every station streams: the clients' start-up shifts the window past the stream's end, where
+        # the last ticks carried ever older frames (up to 47 ms: the largest age of every run until this was cut)
+        sink.until_ns = min(max(f.recv_ns for f in s.frames) for s in ctx.stations)
         server.sinks.append(sink)
         network = network_of(ctx.outputs)
         pose, natnet, vrpn, fox = (next((o for o in network if isinstance(o, cls)), None)
