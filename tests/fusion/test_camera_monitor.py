@@ -295,3 +295,15 @@ def test_the_monitor_waits_while_the_kernels_compile():
     assert ("`paused` says why the monitor watches nothing now, and is empty otherwise: during a first start after "
             "an install the fusion's kernels compile in the background") in doc
     assert "0.3 s" in PAUSED_WHILE_COMPILING and "about 0.3 s, so the monitor pairs and fits nothing" in doc
+    assert "likewise, for good, where numba has no wheel for the platform" in doc
+
+
+def test_without_numba_the_monitor_says_so_and_watches_nothing(monkeypatch):
+    from visionpos import jit
+    from visionpos.fusion.camera_monitor import PAUSED_WITHOUT_NUMBA
+
+    monkeypatch.setattr(jit, "COMPILED", False)
+    mon, _ = _one_marker_monitor(lambda p: [p + [1.0, 0.0]])
+    assert mon.paused == PAUSED_WITHOUT_NUMBA and "numba is not installed" in PAUSED_WITHOUT_NUMBA
+    assert mon.cams[1].paired == 0 and mon.step(10**9) == []
+    assert _health(mon)["camera_monitor"]["paused"] == PAUSED_WITHOUT_NUMBA

@@ -57,6 +57,8 @@ DOMINANCE = 1.4
 SETTLED = 0.1
 PAUSED_WHILE_COMPILING = ("waiting for the compiled kernels: a first start after an install compiles them in the "
                           "background, and run interpreted each fit would hold the server's loop for about 0.3 s")
+PAUSED_WITHOUT_NUMBA = ("numba is not installed (no wheel for this platform): the kernels run as Python, and each fit "
+                        "would hold the server's loop for about 0.3 s")
 REFINE_STEPS = 3  # Gauss-Newton steps of a leave-one-out point from its linear start (1-2 converge)
 MAX_FIT_PAIRS = 1000  # a fit uses at most this many of a camera's newest pairs: about 1 ms on the loop
 # a flagged camera's fit must explain its pairs: robust residual std at most this many times the other cameras'
@@ -387,7 +389,7 @@ class CameraMonitor:
         newest views (leave-one-out: the fused pose leans toward a knocked camera, the other cameras' rays do
         not) with this blob. The other frames cost a counter."""
         v = self._index.get(frame.camera_id)
-        if v is None or self._motion is None or jit.interpreting():
+        if v is None or self._motion is None or self.paused:
             return
         w = self.cams[frame.camera_id]
         w.frames_seen += 1
@@ -529,8 +531,11 @@ class CameraMonitor:
 
     @property
     def paused(self) -> str:
-        """Why the monitor watches nothing now, else "": while a first start compiles the kernels in the
-        background (fusion/warmup.py), interpreted, one fit would hold the server's loop for about 0.3 s."""
+        """Why the monitor watches nothing now, else "": its kernels would run as Python (a first start that
+        compiles them in the background, fusion/warmup.py, or no numba at all), and one fit would hold the
+        server's loop for about 0.3 s."""
+        if not jit.COMPILED:
+            return PAUSED_WITHOUT_NUMBA
         if jit.interpreting():
             return PAUSED_WHILE_COMPILING
         return ""
