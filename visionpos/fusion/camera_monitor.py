@@ -354,7 +354,6 @@ class CameraMonitor:
         self._motion: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._index = {c.id: i for i, c in enumerate(arena.cameras)}
         self._rig = _rig_arrays(list(arena.cameras))
-        self._lens = {c.id: lens_arrays(c.model) for c in arena.cameras}
         # the offset search's votes: blob-minus-prediction offsets within search_deg of view (px^2; none at 0)
         self._vote_r2 = {c.id: float(np.tan(np.radians(self.settings.search_deg)) * c.model.fx) ** 2
                          if self.settings.search_deg > 0 else -1.0 for c in arena.cameras}
@@ -398,12 +397,13 @@ class CameraMonitor:
         blobs = np.ascontiguousarray(np.asarray(frame.blobs, dtype=np.float64).reshape(-1, 4)[:, :2])
         if not len(blobs):
             return
-        cam = self._lens[frame.camera_id]
+        _, _, _, intrinsics, dist, fisheye_ = self._rig  # view v's lens, as lens_arrays packs it
         # leave-one-out, and flagged cameras left out too: a knocked camera's rays would bend the others' points
         others = np.array([not x.flagged for x in self.cams.values()])
         others[v] = False
         predicted, votes, paired, px, offsets, pair_px = _pair_frame(
-            blobs, *self._motion, frame.capture_ns, w.camera.R, w.camera.t, *cam, w.offset_px,
+            blobs, *self._motion, frame.capture_ns, w.camera.R, w.camera.t, intrinsics[v], dist[v], bool(fisheye_[v]),
+            w.offset_px,
             float(self.settings.gate_px), self._vote_r2[frame.camera_id], v, others,
             self._fresh_ns, self._last_px, self._last_ns)
         w.predicted += predicted
