@@ -77,12 +77,13 @@ class TruthVision:
             ned = world_to_ned(pos[0])
             roll, pitch, yaw = euler_ned_frd(rot.as_quat()[0])
             msg = self.mav.vision_position_estimate_encode(now // 1000, *ned, roll, pitch, yaw, [nan] * 21, 0)
+            # counted before the send: a reader woken by this datagram must already see it counted
+            self.sent += 1
+            self.last_sent_ns = now
             try:
                 self.sock.sendto(msg.pack(self.mav), self.target)
             except OSError:
                 return
-            self.sent += 1
-            self.last_sent_ns = now
 
 
 def run_px4_truth_vision(arena: ArenaConfig, build: Path, plan: FlightPlan, out: TextIO | None) -> dict[str, Any]:
