@@ -256,3 +256,78 @@ def test_refine_in_pixels_reaches_the_exact_point_through_fisheye_lenses():
     behind = X[:1] - 2.0 * (X[:1] - cams[1].center)  # mirrored through camera 1's centre: behind it
     points, rms = refine_in_pixels(behind, px[:1], off[:1], True, *args, 5)
     assert np.isnan(points).all() and np.isnan(rms).all()
+
+
+def _crowded_views(rig, seed):
+    """Many markers close together in the thesis rig's four views, with spurious blobs and two blobs in a view
+    at exactly the same place (a tie): normalised coordinates per view."""
+    cams, R, t, f = rig
+    rng = np.random.default_rng(seed)
+    X = rng.uniform([-0.5, -0.5, 0.0], [0.5, 0.5, 1.2], (40, 3))
+    xn = _normalized(cams, X) + rng.normal(0, 0.3, (40, 4, 2)) / f[None, :, None]
+    views = []
+    for v in range(4):
+        seen = xn[rng.random(40) > 0.1, v]
+        views.append(np.vstack([seen, rng.uniform(-0.5, 0.5, (6, 2)), seen[:1]]))
+    return views
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_seeds_and_growth_are_the_brute_force_ones(rig, seed):
+    """_seed_pairs keeps every pair of rays that passes the gate at its ranges (above the floor, in the views'
+    pair order), and _grow_seeds gives each seed, in each view it lacks, the nearest blob within 3 x
+    max_residual_px (the lowest index among equally near ones): both against every pair and every blob tried
+    here in Python."""
+    from visionpos.fusion import matching as M
+
+    cams, R, t, f = rig
+    views = _crowded_views(rig, seed)
+    V = len(views)
+    start = np.concatenate([[0], np.cumsum([len(x) for x in views])]).astype(np.int64)
+    pts = np.ascontiguousarray(np.vstack(views))
+    centres = np.array([-c.R.T @ c.t for c in cams])
+    rays = [x_ @ np.eye(3)[:2] + np.eye(3)[2] for x_ in views]  # camera-frame directions (x, y, 1)
+    rays = [(r @ c.R) / np.linalg.norm(r, axis=1)[:, None] for r, c in zip(rays, cams)]  # world
+    gate_px = 3.0
+    want = []
+    for a in range(V):
+        for b in range(a + 1, V):
+            for i, d1 in enumerate(rays[a]):
+                for j, d2 in enumerate(rays[b]):
+                    # closest approach of the two rays: s, u along each from its centre
+                    A = np.array([[d1 @ d1, -d1 @ d2], [d1 @ d2, -d2 @ d2]])
+                    s, u = np.linalg.solve(A, [(centres[b] - centres[a]) @ d1, (centres[b] - centres[a]) @ d2])
+                    p1, p2 = centres[a] + s * d1, centres[b] + u * d2
+                    if s <= 0 or u <= 0 or (p1 + p2)[2] / 2 < -0.02:
+                        continue
+                    px = np.linalg.norm(p1 - p2) / np.hypot(s / f[a], u / f[b])
+                    if px < gate_px - 1e-6:
+                        want.append((a, i, b, j))
+                    elif px < gate_px + 1e-6 or 0 < (p1 + p2)[2] / 2 < 0.5:
+                        want.append(None)  # on the gate, or near the floor (its merge widening): either way
+    idx, X0 = M._seed_pairs(start, centres, np.ascontiguousarray(np.vstack(rays)), R, t, f, gate_px)
+    got = [tuple(int(k) for v in range(V) if idx[s, v] >= 0 for k in (v, idx[s, v])) for s in range(len(idx))]
+    definite = [w for w in want if w is not None]
+    assert set(definite) <= set(got) and len(got) <= len(want)
+    assert got == sorted(got, key=lambda g: (g[0], g[2], g[1], g[3])), "in the views' pairs' order, then blobs'"
+    assert len(got) > 3 * 40  # a crowded scene: many seeds, most of them ghosts
+
+    max_residual_px = 2.0
+    grown = idx.copy()
+    M._grow_seeds(pts, start, R, t, f, max_residual_px, grown, X0)
+    for s in range(len(idx)):
+        for v in range(V):
+            if idx[s, v] >= 0:
+                assert grown[s, v] == idx[s, v]
+                continue
+            pc = cams[v].R @ X0[s] + cams[v].t
+            if pc[2] <= 0:
+                assert grown[s, v] == -1
+                continue
+            d = np.linalg.norm(views[v] - pc[:2] / pc[2], axis=1) * f[v]
+            near = np.nonzero(d <= d.min() + 1e-9)[0]
+            if d.min() < 3 * max_residual_px - 1e-9:
+                assert grown[s, v] in near and (len(near) == 1 or grown[s, v] == near[0])
+            elif d.min() > 3 * max_residual_px + 1e-9:
+                assert grown[s, v] == -1
+    assert (grown >= 0).sum() > (idx >= 0).sum()  # it grew

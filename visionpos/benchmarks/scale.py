@@ -136,7 +136,7 @@ def one_core(arena, packets: list[tuple[int, bytes]], shed_ns: int = SHED_BACKLO
     """The one-core server model (module docstring) over packets (receive ns, datagram), the fusion with
     `settings` (FusionPipeline's) and the server's load relief at pause_views_ns (server/load.py, as the
     server applies it; 0: none): shed fraction, busy fraction, queueing delay p50/p99/max (ms), output ticks/s,
-    the fraction of packets fused with the view updates paused."""
+    the fraction of packets fused with the view updates paused, the longest single push or tick (ms)."""
     pipe = FusionPipeline(arena, settings)
     pause = ViewUpdatePause(pause_views_ns)
     paused = 0
@@ -148,6 +148,7 @@ def one_core(arena, packets: list[tuple[int, bytes]], shed_ns: int = SHED_BACKLO
     ticks = 0
     all_tracked_ns = None  # when every body was first tracked
     shed_first = 0  # packets shed in the first STARTUP_NS (the first acquisition and its backlog)
+    longest_ns = 0  # the longest single push or tick
     for recv, data in packets:
         if all_tracked_ns is None and all(t.tracked for t in pipe.tracks):
             all_tracked_ns = recv
@@ -156,7 +157,7 @@ def one_core(arena, packets: list[tuple[int, bytes]], shed_ns: int = SHED_BACKLO
             t0 = time.thread_time_ns()
             pipe.tick(next_tick)
             dt = time.thread_time_ns() - t0
-            free_at, busy, ticks = begin + dt, busy + dt, ticks + 1
+            free_at, busy, ticks, longest_ns = begin + dt, busy + dt, ticks + 1, max(longest_ns, dt)
             next_tick += TICK_NS
         begin = max(recv, free_at)
         waits.append(begin - recv)
@@ -171,7 +172,7 @@ def one_core(arena, packets: list[tuple[int, bytes]], shed_ns: int = SHED_BACKLO
         t0 = time.thread_time_ns()
         pipe.push(decode(data, recv_ns=recv))
         dt = time.thread_time_ns() - t0
-        free_at, busy = begin + dt, busy + dt
+        free_at, busy, longest_ns = begin + dt, busy + dt, max(longest_ns, dt)
     span = max(packets[-1][0], free_at) - packets[0][0]  # until the core is done with the last
     w = np.array(waits) * 1e-6
     return {"shed_fraction": shed / len(packets), "busy_fraction": busy / span,
@@ -180,7 +181,7 @@ def one_core(arena, packets: list[tuple[int, bytes]], shed_ns: int = SHED_BACKLO
             "tracked": sum(t.tracked for t in pipe.tracks), "bodies": len(pipe.tracks),
             "all_tracked_s": (all_tracked_ns - packets[0][0]) * 1e-9 if all_tracked_ns is not None else float("nan"),
             "shed_first_s": shed_first, "shed_after_first_s": (shed - shed_first) / len(packets),
-            "paused_fraction": paused / len(packets)}
+            "paused_fraction": paused / len(packets), "longest_step_ms": longest_ns * 1e-6}
 
 
 def profile(arena, packets: list[tuple[int, bytes]], top: int = 8) -> list[tuple[str, float, int]]:
@@ -250,27 +251,28 @@ def _realtime(quick: bool, res: BenchResult) -> None:
         m = one_core(sc.arena, packets, settings=settings, pause_views_ns=pause_ns)
         if label == "defaults":
             for k in ("shed_fraction", "shed_after_first_s", "busy_fraction", "wait_p99_ms", "ticks_per_s",
-                      "paused_fraction"):
+                      "paused_fraction", "longest_step_ms"):
                 res.metrics[f"scale_realtime_{k}"] = round(float(m[k]), 4)
         rows.append(
             f"| {label} | {m['packets']} | {m['shed_fraction'] * 100:.2f} % | {m['shed_first_s']} | "
-            f"{m['shed_after_first_s'] * 100:.2f} % | {m['paused_fraction'] * 100:.1f} % | "
+            f"{m['shed_after_first_s'] * 100:.2f} % | {m['longest_step_ms']:.1f} | {m['paused_fraction'] * 100:.1f} % | "
             f"{m['all_tracked_s']:.2f} | {m['busy_fraction'] * 100:.1f} % | {m['wait_p50_ms']:.2f} / "
             f"{m['wait_p99_ms']:.2f} / {m['wait_max_ms']:.1f} | {m['ticks_per_s']:.1f} | "
             f"{m['tracked']}/{m['bodies']} |")
     res.tables["Scale: one server core, fleet20 (12 cameras x 120 Hz, 20 bodies), real time"] = "\n".join([
-        "| fusion settings | packets | shed | of them in the first second | shed after it | fused with the view "
+        "| fusion settings | packets | shed | of them in the first second | shed after it | longest step (ms) | "
+        "fused with the view "
         "updates paused | every body tracked after (s) | core busy | queueing p50 / p99 / max (ms) | output "
         "ticks/s | tracked at the end |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
         *rows,
         "",
         f"{sc.duration_s:g} s of the fleet flight; each packet's cost is its measured CPU time on this machine "
         "(decode + push), ticks at 100 Hz; shed: waited longer than 15 ms (server.shed_backlog_ms); the load relief "
         "(server.pause_views_backlog_ms, 5 ms by default) pauses the per-frame view updates while the queue is "
         "behind (server/load.py). The first "
-        "second holds the first acquisition of all 20 (one step of ~0.1 s here: the fleet parked in view) and "
-        "the backlog it leaves.",
+        "second holds the first acquisition of all 20 (the fleet parked in view: one step, the longest) and the "
+        "backlog it leaves.",
     ])
     prof = profile(sc.arena, packets[: len(packets) // 2])
     res.tables["Scale: where fleet20's fusion time goes (own time, cProfile, first half of the flight)"] = "\n".join(
