@@ -331,3 +331,15 @@ def test_seeds_and_growth_are_the_brute_force_ones(rig, seed):
             elif d.min() > 3 * max_residual_px + 1e-9:
                 assert grown[s, v] == -1
     assert (grown >= 0).sum() > (idx >= 0).sum()  # it grew
+
+
+def test_a_grown_seed_is_kept_once():
+    """_first_of_each keeps the first of identical grown seeds, in order, and every distinct one."""
+    from visionpos.fusion.matching import _first_of_each
+
+    rows = np.array([[0, 1, -1], [2, -1, 3], [0, 1, -1], [0, 1, 2], [2, -1, 3], [-1, -1, -1], [0, 1, -1]])
+    assert _first_of_each(rows).tolist() == [[0, 1, -1], [2, -1, 3], [0, 1, 2], [-1, -1, -1]]
+    rng = np.random.default_rng(5)
+    many = rng.integers(-1, 3, (500, 4))
+    want = [list(r) for i, r in enumerate(many.tolist()) if r not in many.tolist()[:i]]
+    assert _first_of_each(many).tolist() == want

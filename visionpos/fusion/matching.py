@@ -574,6 +574,8 @@ def _match_unlabeled(pts, start, R, t, f, ray_gate_px, max_residual_px):
     if S == 0:
         return np.zeros((0, 3)), np.zeros((0, V), dtype=np.int64), np.zeros(0)
     _grow_seeds(pts, start, R, t, f, max_residual_px, idx, X0)
+    idx = _first_of_each(idx)
+    S = idx.shape[0]
     obs = np.full((S, V, 2), np.nan)
     for s in range(S):
         for v in range(V):
@@ -692,6 +694,43 @@ def _grow_seeds(pts, start, R, t, f, max_residual_px, idx, X0):
                 k += 1
             if best < gate_px:
                 idx[s, v] = nn
+
+
+@njit
+def _first_of_each(idx):
+    """The rows of idx (S, V) without the later copies of a row seen before, in their order. A marker that
+    a dozen views see is seeded by up to 66 pairs of them, and most grow into the very same set of blobs:
+    their triangulations and their turns in _accept_greedy would be the same (a later copy finds every blob
+    taken, or is refused as its first copy was), so only the first is kept."""
+    S, V = idx.shape
+    h = np.empty(S, dtype=np.int64)
+    for s in range(S):
+        acc = np.int64(1469598103934665603)
+        for v in range(V):
+            acc = (acc ^ np.int64(idx[s, v] + 2)) * np.int64(1099511628211)  # FNV-1a over the row; wraps
+        h[s] = acc
+    by_hash = np.argsort(h, kind="mergesort")  # equal hashes in row order
+    keep = np.ones(S, dtype=np.bool_)
+    a = 0
+    while a < S:
+        b = a + 1
+        while b < S and h[by_hash[b]] == h[by_hash[a]]:
+            b += 1
+        for m in range(a + 1, b):  # a later row equal to an earlier kept one of its hash group is a copy
+            r = by_hash[m]
+            for k in range(a, m):
+                q = by_hash[k]
+                if keep[q]:
+                    same = True
+                    for v in range(V):
+                        if idx[r, v] != idx[q, v]:
+                            same = False
+                            break
+                    if same:
+                        keep[r] = False
+                        break
+        a = b
+    return idx[keep]
 
 
 @njit
