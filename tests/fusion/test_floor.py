@@ -9,7 +9,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from visionpos.config.arena import load_arena
-from visionpos.fusion.matching import BELOW_FLOOR_M, MERGE_MAX_PX, floor_gate, floor_merge_px, match_unlabeled
+from visionpos.fusion.acquisition import match_unlabeled
+from visionpos.fusion.matching import BELOW_FLOOR_M, MERGE_MAX_PX, floor_gate, floor_merge_px
 from visionpos.sim import parse_sim, simulate
 from visionpos.sim.capture import SPURIOUS_MIRROR
 

@@ -15,9 +15,10 @@ import pytest
 
 from visionpos.benchmarks.fusion_flights import fly
 from visionpos.fusion import layout as L
+from visionpos.fusion.adaptation import _adapt_noise
 from visionpos.fusion.body_filter import BodyFilter, FilterBank
 from visionpos.fusion.settings import KalmanSettings
-from visionpos.fusion.tracking import _adapt_noise, _kf_update, filter_update
+from visionpos.fusion.tracking import _kf_update, filter_update
 from visionpos.geometry.rotations import matrix_from_rotvec as rotvec_to_matrix
 
 MS = 1_000_000

@@ -1,11 +1,12 @@
-"""Cross-view matching, association and the fast triangulation (visionpos/fusion/matching.py)."""
+"""Cross-view matching, association and the fast triangulation (visionpos/fusion/matching.py, acquisition.py)."""
 
 import numpy as np
 import pytest
 
 from visionpos.camera.model import undistort_points
 from visionpos.config.arena import load_arena
-from visionpos.fusion.matching import Projector, associate, match_unlabeled, min_cost_assignment, triangulate
+from visionpos.fusion.acquisition import match_unlabeled
+from visionpos.fusion.matching import Projector, associate, min_cost_assignment, triangulate
 from visionpos.geometry.triangulation import triangulate_normalized
 
 
@@ -278,7 +279,7 @@ def test_seeds_and_growth_are_the_brute_force_ones(rig, seed):
     pair order), and _grow_seeds gives each seed, in each view it lacks, the nearest blob within 3 x
     max_residual_px (the lowest index among equally near ones): both against every pair and every blob tried
     here in Python."""
-    from visionpos.fusion import matching as M
+    from visionpos.fusion import acquisition as M
 
     cams, R, t, f = rig
     views = _crowded_views(rig, seed)
@@ -335,7 +336,7 @@ def test_seeds_and_growth_are_the_brute_force_ones(rig, seed):
 
 def test_a_grown_seed_is_kept_once():
     """_first_of_each keeps the first of identical grown seeds, in order, and every distinct one."""
-    from visionpos.fusion.matching import _first_of_each
+    from visionpos.fusion.acquisition import _first_of_each
 
     rows = np.array([[0, 1, -1], [2, -1, 3], [0, 1, -1], [0, 1, 2], [2, -1, 3], [-1, -1, -1], [0, 1, -1]])
     assert _first_of_each(rows).tolist() == [[0, 1, -1], [2, -1, 3], [0, 1, 2], [-1, -1, -1]]

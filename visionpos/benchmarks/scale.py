@@ -255,7 +255,8 @@ def _realtime(quick: bool, res: BenchResult) -> None:
                 res.metrics[f"scale_realtime_{k}"] = round(float(m[k]), 4)
         rows.append(
             f"| {label} | {m['packets']} | {m['shed_fraction'] * 100:.2f} % | {m['shed_first_s']} | "
-            f"{m['shed_after_first_s'] * 100:.2f} % | {m['longest_step_ms']:.1f} | {m['paused_fraction'] * 100:.1f} % | "
+            f"{m['shed_after_first_s'] * 100:.2f} % | {m['longest_step_ms']:.1f} | "
+            f"{m['paused_fraction'] * 100:.1f} % | "
             f"{m['all_tracked_s']:.2f} | {m['busy_fraction'] * 100:.1f} % | {m['wait_p50_ms']:.2f} / "
             f"{m['wait_p99_ms']:.2f} / {m['wait_max_ms']:.1f} | {m['ticks_per_s']:.1f} | "
             f"{m['tracked']}/{m['bodies']} |")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from visionpos.fusion.adaptation import report_image_nis
 from visionpos.fusion.layout import (
     ADAPT_SCALE_P,
     ADAPT_SCALE_R,
@@ -34,15 +35,14 @@ from visionpos.fusion.tracking import (
     filter_initialize,
     filter_update,
     predict_mean,
-    report_image_nis,
 )
 
 
 class FilterBank:
     """The states of n body filters, one row each, so that compiled kernels update them in place.
 
-    x (n, 18), P (n, 18, 18), R_nom (n, 3, 3); adapt (n, 6): process-noise scales
-    and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img, nis_img_r]; clock (n, 3) int64:
+    x (n, 18), P (n, 18, 18), R_nom (n, 3, 3); adapt (n, 8): process-noise scales
+    and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img, nis_img_r, nis_cruise, scale_cruise]; clock (n, 3) int64:
     [filter time ns, last image-NIS time ns, folds]; params (N_KALMAN_PARAMS,): the settings
     the kernels read, packed as fusion/settings.py's KALMAN_PARAMS declares (layout.KALMAN_* indices).
     filters[i] is the BodyFilter over row i.

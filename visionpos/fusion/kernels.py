@@ -19,6 +19,7 @@ import math
 import numpy as np
 
 from visionpos.camera.model import undistort_pixels
+from visionpos.fusion.adaptation import adapt_to_pose, report_image_nis
 from visionpos.fusion.layout import (
     CAMERA_COS_MAX,
     CAMERA_DIST,
@@ -94,13 +95,11 @@ from visionpos.fusion.matching import associate_blobs, project_points
 from visionpos.fusion.measurements import _tracked_measurements
 from visionpos.fusion.tracking import (
     _spd_inverse,
-    adapt_to_pose,
     filter_initialize,
     filter_update,
     filter_update_view,
     pose_nis,
     predict_mean,
-    report_image_nis,
 )
 from visionpos.jit import cross3, dot3, matvec3, njit
 

@@ -38,10 +38,12 @@ POSE_P, POSE_ROT = slice(0, 3), slice(3, 6)
 POSE_ROT0 = 3
 
 # ---------------------------------------------------------------- FilterBank rows (tracking.py)
-# adapt (n, 6) float: process-noise scales and NIS averages (fused pose: position, rotation; image: the
-# translation and the rotation part of the residual)
-ADAPT_SCALE_P, ADAPT_SCALE_R, ADAPT_NIS_P, ADAPT_NIS_R, ADAPT_NIS_IMG, ADAPT_NIS_IMG_R = range(6)
-N_ADAPT = 6
+# adapt (n, 8) float: process-noise scales and NIS averages (fused pose: position, rotation; image: the
+# translation and the rotation part of the residual), the position NIS's slow average and the cruise floor
+# it moves (adaptation._adapt_noise)
+(ADAPT_SCALE_P, ADAPT_SCALE_R, ADAPT_NIS_P, ADAPT_NIS_R, ADAPT_NIS_IMG, ADAPT_NIS_IMG_R, ADAPT_NIS_CRUISE,
+ ADAPT_SCALE_CRUISE) = range(8)
+N_ADAPT = 8
 # clock (n, 3) int64: filter time ns, last image-NIS time ns, folds of the rotation error since the start
 CLOCK_T_NS, CLOCK_IMG_T_NS, CLOCK_FOLDS = range(3)
 N_CLOCK = 3

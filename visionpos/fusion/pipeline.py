@@ -75,6 +75,7 @@ import numpy as np
 
 from visionpos.camera.model import Camera
 from visionpos.config.arena import ArenaConfig, ConfigError
+from visionpos.fusion.acquisition import match_unlabeled
 from visionpos.fusion.body_filter import FilterBank
 from visionpos.fusion.identity import IdentityBook
 from visionpos.fusion.imu import ImuInputs
@@ -100,7 +101,7 @@ from visionpos.fusion.layout import (
     Verdict,
     ViewSet,
 )
-from visionpos.fusion.matching import Projector, match_unlabeled
+from visionpos.fusion.matching import Projector
 from visionpos.fusion.measurements import pose_measurement_cov
 from visionpos.fusion.point_tracks import PointTracks
 from visionpos.fusion.rigidbody import BodyModel, Identification, identify, layout_ambiguities

@@ -40,6 +40,18 @@ KALMAN = section(
     Setting("max_noise_scale", "number", 1000.0, "the innovation-driven (NIS) adaptation may raise both "
             "densities by up to this factor (higher: the rates it estimates in a manoeuvre get noisy, and so does "
             "the output predicted ahead with them)", min=1.0),
+    Setting("cruise_max_noise_scale", "number", 100.0, "a floor under the position block's scale for a body that "
+            "keeps moving off its model: while its position NIS averaged over cruise_time_constant_ms stays above "
+            "cruise_nis_threshold (a flight: one manoeuvre after another) the floor rises, up to this factor, and "
+            "it falls back to 1 while the average is below (a hover, a still or smoothly moving body). The flight "
+            "then keeps its cruise noise between manoeuvres instead of lagging each onset from the hover floor. "
+            "At most max_noise_scale; 1: off (docs/benchmarks.md: realistic flights)", min=1.0),
+    Setting("cruise_nis_threshold", "number", 1.1, "the averaged position NIS per degree of freedom above which "
+            "the cruise floor rises (a still body's averages ~1.0)", min=0.1),
+    Setting("cruise_time_constant_ms", "number", 1000.0, "averaging time of the NIS that moves the cruise floor",
+            field="cruise_time_constant_s", convert=lambda ms: ms * 1e-3, min=10.0),
+    Setting("cruise_rate_per_s", "number", 20.0, "how fast the cruise floor moves: its logarithm changes by this x "
+            "(averaged NIS - cruise_nis_threshold) per second", min=0.0),
     Setting("nis_threshold", "number", 2.0, "the averaged NIS per degree of freedom above which the adaptation "
             "raises the process noise (below it the noise decays to its floor); ~1 while the model fits, so "
             "lower values react to smaller lags and smooth less (tests/fusion/test_manoeuvre.py)", min=1.0),
@@ -232,6 +244,10 @@ KALMAN_PARAMS: tuple[Param, ...] = (
     Param("KALMAN_NIS_THRESHOLD", lambda k: k.nis_threshold),
     Param("KALMAN_NIS_UNSPLIT_COV", lambda k: float(k.nis_unsplit_cov)),
     Param("KALMAN_GATE_RETEST", lambda k: float(k.gate_retest)),
+    Param("KALMAN_CRUISE_MAX_SCALE", lambda k: k.cruise_max_noise_scale),
+    Param("KALMAN_CRUISE_NIS_THRESHOLD", lambda k: k.cruise_nis_threshold),
+    Param("KALMAN_CRUISE_TAU_S", lambda k: k.cruise_time_constant_s),
+    Param("KALMAN_CRUISE_RATE", lambda k: k.cruise_rate_per_s),
 )
 
 # values of PARAM_SV_ENABLED: the single-view path off, on through occlusion, or for every frame of a

@@ -41,6 +41,13 @@ squared (NIS, separately for position and orientation): while the model fits
 the measurements NIS/dof ~ 1 and the floor `jerk_psd` / `angular_jerk_psd`
 smooths hard; a manoeuvre makes NIS grow and the process noise follows
 within a few updates (above `nis_threshold`, bounded by `max_noise_scale`).
+A flight is one manoeuvre after another, and a scale that returns to the hover
+floor between them lags each onset anew (the position predicted to the output
+ticks was 1.3x its snapshot bound on the issue-29 flights): a second, slow
+regime, the cruise floor (`cruise_*`), rises under the position scale while the
+position NIS averaged over a second stays above `cruise_nis_threshold` and falls
+back while it does not, which a still or smoothly moving body's never is.
+The adaptation's kernels are in adaptation.py.
 The fused pose's NIS is computed with its covariance as the filter takes it,
 split over the fusions that share its frames (about 0.28 per dof while the
 model fits, so lags barely show); `nis_unsplit_cov` uses the pose's own
@@ -87,12 +94,9 @@ import math
 import numpy as np
 
 from visionpos.camera.lens import pixel_from_normalized, project_with_jacobian
+from visionpos.fusion.adaptation import _adapt_noise
 from visionpos.fusion.layout import (
     ACC0,
-    ADAPT_NIS_IMG,
-    ADAPT_NIS_IMG_R,
-    ADAPT_NIS_P,
-    ADAPT_NIS_R,
     ADAPT_SCALE_P,
     ADAPT_SCALE_R,
     ANG_ACC0,
@@ -114,7 +118,6 @@ from visionpos.fusion.layout import (
     KALMAN_INIT_VEL_VAR,
     KALMAN_JERK_PSD,
     KALMAN_MAX_SCALE,
-    KALMAN_NIS_TAU_S,
     KALMAN_NIS_THRESHOLD,
     N_OUT,
     N_STATE,
@@ -144,10 +147,6 @@ from visionpos.geometry.rotations import (
     rotvec_from_matrix_compiled,
 )
 from visionpos.jit import matmul3, matvec3, njit
-
-_SCALE_DECAY_S = 0.2  # s, time constant of the process-noise scale's return to its floor
-
-
 
 
 @njit
@@ -427,7 +426,6 @@ def _output_at(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: f
 
 
 _ORTHO_EVERY = 256  # folds between re-orthonormalisations of R_nom
-_IMG_NIS_FRESH_NS = 50_000_000  # an image-space NIS older than this no longer drives the noise scale
 
 
 @njit
@@ -447,15 +445,6 @@ def _count_folds(R_nom: np.ndarray, clock: np.ndarray, folds: int) -> None:
         clock[CLOCK_FOLDS] += 1
         if clock[CLOCK_FOLDS] % _ORTHO_EVERY == 0:  # keep R_nom orthonormal against round-off
             _orthonormalize(R_nom)
-
-
-@njit
-def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: float, nis_high: float) -> float:
-    if nis > nis_high:
-        scale *= (nis / nis_high) ** (3.0 * alpha)
-    else:
-        scale *= decay
-    return min(smax, max(1.0, scale))
 
 
 _RETEST_STEP = 10.0  # the manoeuvre hypotheses' process-noise scales grow by this factor ...
@@ -540,44 +529,6 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
     _count_folds(R_nom, clock, folds)
     _adapt_noise(adapt, clock, params, t_ns, dt, nis_p, nis_r, True)
     return accepted, d2
-
-
-@njit
-def _adapt_noise(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, dt: float, nis_p: float,
-                 nis_r: float, use_image_nis: bool) -> None:
-    """The NIS-driven process-noise adaptation after one update over dt (s), in place.
-
-    The NIS per block drives the process-noise scale (gated ones too, capped, so that a
-    manoeuvre that starts outside the gate still opens it); the image-space detector
-    (report_image_nis) sees lag the fused pose can hide. NIS/dof ~ 1 says nothing about q
-    while the measurement noise dominates the innovation (a hovering body), so only a clear
-    excess (> _NIS_HIGH) raises q: innovations k x too big -> q x k^3 per averaging time
-    (CA/CV scaling laws); otherwise q decays back to its floor. use_image_nis: False for the
-    single-view updates, whose own innovation is the image-space residual with the full
-    predicted covariance (the detector's expected size leaves out the rotation uncertainty,
-    which matters while only 1-2 markers per view constrain it).
-    """
-    cap = params[KALMAN_GATE_CHI2] / 3.0
-    alpha = 1.0 - math.exp(-dt / params[KALMAN_NIS_TAU_S]) if dt > 0.0 else 0.05
-    adapt[ADAPT_NIS_P] += alpha * (min(nis_p, cap) - adapt[ADAPT_NIS_P])
-    adapt[ADAPT_NIS_R] += alpha * (min(nis_r, cap) - adapt[ADAPT_NIS_R])
-    fresh = use_image_nis and t_ns - clock[CLOCK_IMG_T_NS] < _IMG_NIS_FRESH_NS
-    nis_img = adapt[ADAPT_NIS_IMG] if fresh else 0.0  # the markers' common shift: position lag
-    nis_img_r = adapt[ADAPT_NIS_IMG_R] if fresh else 0.0  # their spread about it: orientation lag
-    decay = math.exp(-max(dt, 0.0) / _SCALE_DECAY_S)
-    max_scale, nis_high = params[KALMAN_MAX_SCALE], params[KALMAN_NIS_THRESHOLD]
-    adapt[ADAPT_SCALE_P] = _adapt_scale(adapt[ADAPT_SCALE_P], max(adapt[ADAPT_NIS_P], nis_img), alpha, decay, max_scale,
-                                        nis_high)
-    adapt[ADAPT_SCALE_R] = _adapt_scale(adapt[ADAPT_SCALE_R], max(adapt[ADAPT_NIS_R], nis_img_r), alpha, decay,
-                                        max_scale, nis_high)
-
-
-@njit
-def adapt_to_pose(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, dt: float, nis_p: float,
-                  nis_r: float) -> None:
-    """The NIS-driven adaptation after dt (s) of single-view updates, from the NIS per block of the
-    triangulated pose of the same frames (pose_nis, taken before the views), in place."""
-    _adapt_noise(adapt, clock, params, int(clock[CLOCK_T_NS]), dt, nis_p, nis_r, True)
 
 
 @njit
@@ -784,17 +735,3 @@ def filter_initialize(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np
     adapt[:] = 1.0
     clock[CLOCK_T_NS] = t_ns
     clock[CLOCK_IMG_T_NS] = 0
-
-
-@njit
-def report_image_nis(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, nis: float,
-                     nis_rot: float) -> None:
-    """Feed one body's manoeuvre detector (adapt (6,), clock (3,): its FilterBank rows)
-    with one camera frame's prediction residual at t_ns, its translation part nis and its
-    rotation part nis_rot (see BodyFilter.report_image_nis)."""
-    dt = max((t_ns - clock[CLOCK_IMG_T_NS]) * 1e-9, 0.0)
-    alpha = 1.0 - math.exp(-dt / params[KALMAN_NIS_TAU_S]) if clock[CLOCK_IMG_T_NS] != 0 else 1.0
-    cap = params[KALMAN_GATE_CHI2] / 3.0
-    adapt[ADAPT_NIS_IMG] += alpha * (min(nis, cap) - adapt[ADAPT_NIS_IMG])
-    adapt[ADAPT_NIS_IMG_R] += alpha * (min(nis_rot, cap) - adapt[ADAPT_NIS_IMG_R])
-    clock[CLOCK_IMG_T_NS] = t_ns

@@ -125,13 +125,15 @@ def warm_up_record() -> Path:
     cache holds them all), under numba's cache root and keyed like the fusion kernels' cache."""
     import hashlib
 
+    import visionpos.fusion.acquisition  # noqa: F401  (acquisition's kernels, which the pipeline calls from Python)
     import visionpos.fusion.camera_monitor  # noqa: F401  (the camera monitor's kernels, warmed up too)
     import visionpos.fusion.kernels  # noqa: F401  (the fusion path's kernels and their dependencies)
     import visionpos.geometry.resection  # noqa: F401
 
-    # the monitor calls its resection kernel through a plain function, which module_key does not follow
+    # the monitor calls its resection kernel, and the pipeline acquisition's, through plain functions, which
+    # module_key does not follow
     key = "".join(jit.module_key(m) for m in ("visionpos.fusion.kernels", "visionpos.fusion.camera_monitor",
-                                               "visionpos.geometry.resection"))
+                                               "visionpos.geometry.resection", "visionpos.fusion.acquisition"))
     return jit.cache_base() / f"fusion-warm-up-{hashlib.sha1(key.encode()).hexdigest()[:16]}.pickle"
 
 
