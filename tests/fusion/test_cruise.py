@@ -1,5 +1,5 @@
-"""The cruise floor under the position noise (fusion.kalman.cruise_*, adaptation._adapt_noise): it rises on a flight
-and stays at 1 for a still body, and the docs' word on the still body's average is what it measures."""
+"""The cruise floor under the position noise (fusion.kalman.cruise_*, adaptation.adapt_noise_scales): it rises on
+a flight and stays at 1 for a still body, and the docs' word on the still body's average is what it measures."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 
 from visionpos.benchmarks.fusion_replay import replay, static_flight
 from visionpos.fusion import layout as L
-from visionpos.fusion.adaptation import _adapt_noise
+from visionpos.fusion.adaptation import adapt_noise_scales
 from visionpos.fusion.settings import KALMAN
 from visionpos.sim import load_scenario, simulate
 
@@ -62,18 +62,18 @@ def test_a_flight_raises_the_floor_up_to_its_cap_and_off_means_none(slalom):
 
 
 def test_the_floor_moves_its_logarithm_by_the_rate_times_the_excess():
-    """One step of _adapt_noise, by hand: NIS held at 1.6 (threshold 1.1, rate 20/s, 1 s average) for 10 ms."""
+    """One step of adapt_noise_scales, by hand: NIS held at 1.6 (threshold 1.1, rate 20/s, 1 s average) for 10 ms."""
     from visionpos.fusion.settings import KALMAN_PARAMS, KalmanSettings, pack_params
 
     params = pack_params(KALMAN_PARAMS, KalmanSettings())
     adapt = np.ones(L.N_ADAPT)
     adapt[L.ADAPT_NIS_CRUISE] = 1.6
     clock = np.zeros(L.N_CLOCK, dtype=np.int64)
-    _adapt_noise(adapt, clock, params, 10_000_000, 0.01, 1.6, 1.0, False)
+    adapt_noise_scales(adapt, clock, params, 10_000_000, 0.01, 1.6, 1.0, False)
     assert adapt[L.ADAPT_SCALE_CRUISE] == pytest.approx(np.exp(0.01 * 20.0 * 0.5), rel=1e-12)
     assert adapt[L.ADAPT_SCALE_P] >= adapt[L.ADAPT_SCALE_CRUISE]
     # below the threshold it falls, never under 1
     adapt[L.ADAPT_NIS_CRUISE] = 0.6
     for _ in range(100):
-        _adapt_noise(adapt, clock, params, 10_000_000, 0.01, 0.6, 1.0, False)
+        adapt_noise_scales(adapt, clock, params, 10_000_000, 0.01, 0.6, 1.0, False)
     assert adapt[L.ADAPT_SCALE_CRUISE] == 1.0

@@ -15,7 +15,7 @@ import pytest
 
 from visionpos.benchmarks.fusion_flights import fly
 from visionpos.fusion import layout as L
-from visionpos.fusion.adaptation import _adapt_noise
+from visionpos.fusion.adaptation import adapt_noise_scales
 from visionpos.fusion.body_filter import BodyFilter, FilterBank
 from visionpos.fusion.settings import KalmanSettings
 from visionpos.fusion.tracking import _kf_update, filter_update
@@ -57,7 +57,7 @@ def test_nis_threshold_sets_where_the_noise_starts_to_rise():
         adapt, clock = bank.adapt[0], bank.clock[0]
         adapt[L.ADAPT_SCALE_P] = adapt[L.ADAPT_SCALE_R] = 10.0
         adapt[L.ADAPT_NIS_P] = adapt[L.ADAPT_NIS_R] = 1.7
-        _adapt_noise(adapt, clock, bank.params, 10 * MS, 0.01, 1.7, 1.7, False)
+        adapt_noise_scales(adapt, clock, bank.params, 10 * MS, 0.01, 1.7, 1.7, False)
         assert (adapt[L.ADAPT_SCALE_P] > 10.0) == rises and (adapt[L.ADAPT_SCALE_R] > 10.0) == rises
 
 

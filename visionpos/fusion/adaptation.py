@@ -40,6 +40,8 @@ _IMG_NIS_FRESH_NS = 50_000_000  # an image-space NIS older than this no longer d
 
 @njit
 def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: float, nis_high: float) -> float:
+    """One noise scale after one update: raised by (nis / nis_high)^(3 alpha) when the averaged NIS is above
+    nis_high, else multiplied by decay; kept within [1, smax]."""
     if nis > nis_high:
         scale *= (nis / nis_high) ** (3.0 * alpha)
     else:
@@ -48,7 +50,7 @@ def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: flo
 
 
 @njit
-def _adapt_noise(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, dt: float, nis_p: float,
+def adapt_noise_scales(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, dt: float, nis_p: float,
                  nis_r: float, use_image_nis: bool) -> None:
     """The NIS-driven process-noise adaptation after one update over dt (s), in place.
 
@@ -93,7 +95,7 @@ def adapt_to_pose(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, dt: 
                   nis_r: float) -> None:
     """The NIS-driven adaptation after dt (s) of single-view updates, from the NIS per block of the
     triangulated pose of the same frames (pose_nis, taken before the views), in place."""
-    _adapt_noise(adapt, clock, params, int(clock[CLOCK_T_NS]), dt, nis_p, nis_r, True)
+    adapt_noise_scales(adapt, clock, params, int(clock[CLOCK_T_NS]), dt, nis_p, nis_r, True)
 
 
 @njit

@@ -40,7 +40,7 @@ POSE_ROT0 = 3
 # ---------------------------------------------------------------- FilterBank rows (tracking.py)
 # adapt (n, 8) float: process-noise scales and NIS averages (fused pose: position, rotation; image: the
 # translation and the rotation part of the residual), the position NIS's slow average and the cruise floor
-# it moves (adaptation._adapt_noise)
+# it moves (adaptation.adapt_noise_scales)
 (ADAPT_SCALE_P, ADAPT_SCALE_R, ADAPT_NIS_P, ADAPT_NIS_R, ADAPT_NIS_IMG, ADAPT_NIS_IMG_R, ADAPT_NIS_CRUISE,
  ADAPT_SCALE_CRUISE) = range(8)
 N_ADAPT = 8

@@ -94,7 +94,7 @@ import math
 import numpy as np
 
 from visionpos.camera.lens import pixel_from_normalized, project_with_jacobian
-from visionpos.fusion.adaptation import _adapt_noise
+from visionpos.fusion.adaptation import adapt_noise_scales
 from visionpos.fusion.layout import (
     ACC0,
     ADAPT_SCALE_P,
@@ -527,7 +527,7 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
                                                               position, R, cov, h_vel, h_acc, nis_cov_scale, folds)
     clock[CLOCK_T_NS] = t_ns
     _count_folds(R_nom, clock, folds)
-    _adapt_noise(adapt, clock, params, t_ns, dt, nis_p, nis_r, True)
+    adapt_noise_scales(adapt, clock, params, t_ns, dt, nis_p, nis_r, True)
     return accepted, d2
 
 
@@ -590,7 +590,7 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
         return False, nis, info
     _count_folds(R_nom, clock, int(_fold(x, R_nom)))
     if adapt_noise:
-        _adapt_noise(adapt, clock, params, t_ns, max(dt_f, 0.0), nis, nis, False)
+        adapt_noise_scales(adapt, clock, params, t_ns, max(dt_f, 0.0), nis, nis, False)
     return True, nis, info
 
 
