@@ -47,10 +47,11 @@ def _world_rays(xn, R):
 
 
 @njit
-def _ray_pair(c1, d1, c2, d2, w0, dd, px1, px2, scaled, mid):
-    """Closest approach of ray c1 + s d1 and ray c2 + u d2 (unit directions (3,)); w0 = c1 - c2, dd = d1 . w0.
-    Writes the midpoint into mid (3,); returns the distance (metres, or pixels when scaled: see ray_distances),
-    inf where the closest point lies behind a camera or the rays are parallel."""
+def _ray_pair(c1, d1, c2, d2, w0, dd, px1, px2, mid):
+    """Closest approach of ray c1 + s d1 and ray c2 + u d2 (unit directions (3,)); w0 = c1 - c2, dd = d1 . w0;
+    px1, px2: the angular size of a pixel of each camera (rad, 1/f). Writes the midpoint into mid (3,) and
+    returns the distance in pixels: metres over sqrt((s px1)^2 + (u px2)^2), what one pixel of error moves the
+    closest approach at ranges s and u; inf where it lies behind a camera or the rays are parallel."""
     b = d1[0] * d2[0] + d1[1] * d2[1] + d1[2] * d2[2]
     e = d2[0] * w0[0] + d2[1] * w0[1] + d2[2] * w0[2]
     den = 1.0 - b * b
@@ -63,36 +64,8 @@ def _ray_pair(c1, d1, c2, d2, w0, dd, px1, px2, scaled, mid):
         mid[k] = 0.5 * (p1 + p2)
         ss += (p1 - p2) * (p1 - p2)
     if den > 1e-10 and s > 0 and u > 0:
-        dist = math.sqrt(ss)
-        if scaled:
-            dist /= math.sqrt((s * px1) ** 2 + (u * px2) ** 2)
-        return dist
+        return math.sqrt(ss) / math.sqrt((s * px1) ** 2 + (u * px2) ** 2)
     return math.inf
-
-
-@njit
-def ray_distances(c1: np.ndarray, d1: np.ndarray, c2: np.ndarray, d2: np.ndarray,
-                  px1: float = 0.0, px2: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Closest approach of two bundles of rays from two centres (compiled).
-
-    c1, c2: (3,) centres; d1 (N1, 3), d2 (N2, 3) unit directions. px1, px2:
-    the angular size of a pixel of each camera (rad, 1/f); when given, the
-    distance is divided by sqrt((s px1)^2 + (u px2)^2), the metres one pixel of
-    error moves the closest approach at ranges s and u along the rays, so it
-    is in pixels. Returns distance (N1, N2) in metres, or pixels when scaled
-    (inf where the closest point lies behind a camera or the rays are
-    parallel), and midpoints (N1, N2, 3).
-    """
-    N1, N2 = d1.shape[0], d2.shape[0]
-    dist = np.empty((N1, N2))
-    mid = np.empty((N1, N2, 3))
-    scaled = px1 > 0.0 or px2 > 0.0
-    w0 = c1 - c2
-    for i in range(N1):
-        dd = d1[i, 0] * w0[0] + d1[i, 1] * w0[1] + d1[i, 2] * w0[2]
-        for j in range(N2):
-            dist[i, j] = _ray_pair(c1, d1[i], c2, d2[j], w0, dd, px1, px2, scaled, mid[i, j])
-    return dist, mid
 
 
 def match_unlabeled(
@@ -161,12 +134,8 @@ def _seed_pairs(start, centres, rays, R, t, f, ray_gate_px):
     V = start.shape[0] - 1
     # seeds are few next to the pairs of rays tried (80 blobs in 12 views: 15,000 of 420,000), so they are
     # collected in arrays that double, not in an (every pair, V) table
-    cap = 64
-    seed_a = np.empty(cap, dtype=np.int64)
-    seed_i = np.empty(cap, dtype=np.int64)
-    seed_b = np.empty(cap, dtype=np.int64)
-    seed_j = np.empty(cap, dtype=np.int64)
-    X0 = np.empty((cap, 3))
+    pairs = np.empty((64, 4), dtype=np.int64)  # (view a, its blob, view b, its blob)
+    X0 = np.empty((64, 3))
     mid = np.empty(3)
     S = 0
     for a in range(V):
@@ -182,7 +151,7 @@ def _seed_pairs(start, centres, rays, R, t, f, ray_gate_px):
                 d1 = rays[start[a] + i]
                 dd = d1[0] * w0[0] + d1[1] * w0[1] + d1[2] * w0[2]
                 for j in range(start[b + 1] - start[b]):
-                    dist = _ray_pair(c1, d1, c2, rays[start[b] + j], w0, dd, px1, px2, True, mid)
+                    dist = _ray_pair(c1, d1, c2, rays[start[b] + j], w0, dd, px1, px2, mid)
                     if not dist < math.inf or mid[2] < FLOOR_Z_M - BELOW_FLOOR_M:
                         continue
                     ok = dist < ray_gate_px
@@ -193,32 +162,21 @@ def _seed_pairs(start, centres, rays, R, t, f, ray_gate_px):
                         ok = dist**2 < ray_gate_px**2 + sa * sa + sb * sb
                     if not ok:
                         continue
-                    if S == cap:
-                        cap *= 2
-                        seed_a, seed_i = _grown(seed_a, cap), _grown(seed_i, cap)
-                        seed_b, seed_j = _grown(seed_b, cap), _grown(seed_j, cap)
-                        X0 = _grown_rows(X0, cap)
-                    seed_a[S], seed_i[S], seed_b[S], seed_j[S] = a, i, b, j
+                    if S == pairs.shape[0]:
+                        pairs, X0 = _doubled(pairs), _doubled(X0)
+                    pairs[S, 0], pairs[S, 1], pairs[S, 2], pairs[S, 3] = a, i, b, j
                     X0[S] = mid
                     S += 1
     idx = np.full((S, V), -1, dtype=np.int64)
     for k in range(S):
-        idx[k, seed_a[k]], idx[k, seed_b[k]] = seed_i[k], seed_j[k]
+        idx[k, pairs[k, 0]], idx[k, pairs[k, 2]] = pairs[k, 1], pairs[k, 3]
     return idx, X0[:S].copy()
 
 
 @njit
-def _grown(a, n):
-    """a (m,) copied into a new array of n >= m entries."""
-    out = np.empty(n, dtype=a.dtype)
-    out[: a.shape[0]] = a
-    return out
-
-
-@njit
-def _grown_rows(a, n):
-    """a (m, 3) copied into a new (n, 3) array, n >= m."""
-    out = np.empty((n, 3))
+def _doubled(a):
+    """a (m, k) copied into the first rows of a new (2m, k) array of its dtype."""
+    out = np.empty((2 * a.shape[0], a.shape[1]), dtype=a.dtype)
     out[: a.shape[0]] = a
     return out
 
