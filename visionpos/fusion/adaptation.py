@@ -50,15 +50,15 @@ def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: flo
 
 
 @njit
-def adapt_noise_scales(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, dt: float, nis_p: float,
-                 nis_r: float, use_image_nis: bool) -> None:
+def adapt_noise_scales(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, dt: float,
+                       nis_p: float, nis_r: float, use_image_nis: bool) -> None:
     """The NIS-driven process-noise adaptation after one update over dt (s), in place.
 
     The NIS per block drives the process-noise scale (gated ones too, capped, so that a
     manoeuvre that starts outside the gate still opens it); the image-space detector
     (report_image_nis) sees lag the fused pose can hide. NIS/dof ~ 1 says nothing about q
     while the measurement noise dominates the innovation (a hovering body), so only a clear
-    excess (> _NIS_HIGH) raises q: innovations k x too big -> q x k^3 per averaging time
+    excess (> nis_threshold) raises q: innovations k x too big -> q x k^3 per averaging time
     (CA/CV scaling laws); otherwise q decays back to its floor. use_image_nis: False for the
     single-view updates, whose own innovation is the image-space residual with the full
     predicted covariance (the detector's expected size leaves out the rotation uncertainty,
