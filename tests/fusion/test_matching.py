@@ -306,7 +306,8 @@ def test_seeds_and_growth_are_the_brute_force_ones(rig, seed):
                         want.append((a, i, b, j))
                     elif px < gate_px + 1e-6 or 0 < (p1 + p2)[2] / 2 < 0.5:
                         want.append(None)  # on the gate, or near the floor (its merge widening): either way
-    idx, X0 = M._seed_pairs(start, centres, np.ascontiguousarray(np.vstack(rays)), R, t, f, gate_px)
+    pairs, X0 = M._seed_pairs(start, centres, np.ascontiguousarray(np.vstack(rays)), R, t, f, gate_px, 0, V)
+    idx = M._seed_table(pairs, V)
     got = [tuple(int(k) for v in range(V) if idx[s, v] >= 0 for k in (v, idx[s, v])) for s in range(len(idx))]
     definite = [w for w in want if w is not None]
     assert set(definite) <= set(got) and len(got) <= len(want)
@@ -315,7 +316,7 @@ def test_seeds_and_growth_are_the_brute_force_ones(rig, seed):
 
     max_residual_px = 2.0
     grown = idx.copy()
-    M._grow_seeds(pts, start, R, t, f, max_residual_px, grown, X0)
+    M._grow_seeds(pts, start, R, t, f, max_residual_px, grown, X0, 0, V)
     for s in range(len(idx)):
         for v in range(V):
             if idx[s, v] >= 0:

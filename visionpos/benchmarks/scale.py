@@ -44,7 +44,7 @@ TICK_NS = 10_000_000  # the server's default output rate, 100 Hz
 WARM_S = 1.5  # the measured part starts once every body is tracked, at the latest this long after the first frame
 SHED_BACKLOG_NS = int(SERVER["shed_backlog_ms"].field_default * 1e6)
 PAUSE_VIEWS_NS = int(SERVER["pause_views_backlog_ms"].field_default * 1e6)  # the load relief (server/load.py)
-STARTUP_NS = 1_000_000_000  # the first acquisition of a whole fleet is one long step (identify, first calls)
+STARTUP_NS = 1_000_000_000  # the first acquisition of a whole fleet (about 40 ms of work, in steps) and first calls
 BODIES = (1, 5, 10, 20, 50)
 # the real-time model's fusion settings: the defaults, then the two knobs of the per-body work per packet
 REALTIME_VARIANTS = (("defaults", None, PAUSE_VIEWS_NS),
@@ -271,9 +271,9 @@ def _realtime(quick: bool, res: BenchResult) -> None:
         f"{sc.duration_s:g} s of the fleet flight; each packet's cost is its measured CPU time on this machine "
         "(decode + push), ticks at 100 Hz; shed: waited longer than 15 ms (server.shed_backlog_ms); the load relief "
         "(server.pause_views_backlog_ms, 5 ms by default) pauses the per-frame view updates while the queue is "
-        "behind (server/load.py). The first "
-        "second holds the first acquisition of all 20 (the fleet parked in view: one step, the longest) and the "
-        "backlog it leaves.",
+        "behind (server/load.py). The first second holds the first acquisition of all 20 (the fleet parked in "
+        "view: about 40 ms of work, in steps of fusion.acquire_step_ms, 5 ms of estimated work, 10 ms apart) and "
+        "the backlog it leaves.",
     ])
     prof = profile(sc.arena, packets[: len(packets) // 2])
     res.tables["Scale: where fleet20's fusion time goes (own time, cProfile, first half of the flight)"] = "\n".join(

@@ -9,9 +9,9 @@ two rays of one marker pass within gate_px * sqrt((r_a/f_a)^2 + (r_b/f_b)^2) of 
 is too tight far away (a marker 8 m off misses by > 1 cm per pixel) and too loose up close. The floor's
 mirror images and merged reflections are handled as matching.py says (floor_gate, floor_merge_px).
 
-The stages are compiled loops (visionpos/jit.py); match_unlabeled is the thin wrapper that fixes the
-argument types. Normalised image coordinates; R (V, 3, 3), t (V, 3) world -> camera; f (V,) focal
-lengths in pixels.
+The stages are compiled loops (visionpos/jit.py), run by match_unlabeled_steps in steps of bounded estimated
+work (the pipeline spreads a large acquisition over several fusions; match_unlabeled runs it at once).
+Normalised image coordinates; R (V, 3, 3), t (V, 3) world -> camera; f (V,) focal lengths in pixels.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from visionpos.fusion.matching import (
     floor_gate,
     triangulate_irls,
 )
+from visionpos.fusion.steps import Steps, finish
 from visionpos.jit import njit
 
 
@@ -68,6 +69,14 @@ def _ray_pair(c1, d1, c2, d2, w0, dd, px1, px2, mid):
     return math.inf
 
 
+# estimated cost of acquisition's units of work (ns, 2-core AMD EPYC and Xeon hosts of docs/benchmarks.md) for
+# the steps' sizes: it is a budget to split the work by, never a measurement
+SEED_PAIR_NS = 25  # one pair of rays tried for a seed
+GROWTH_NS = 70  # one seed reprojected into one view and its nearest blob found
+POINT_NS = 500  # one grown seed: its copies dropped, triangulated, its worst view checked, its acceptance
+STEP_NS = 1_000_000  # match_unlabeled_steps yields after about this much work
+
+
 def match_unlabeled(
     xn: list[np.ndarray],
     R: np.ndarray,
@@ -86,20 +95,102 @@ def match_unlabeled(
     Returns points (Q, 3), blob index (Q, V) (-1 = not seen), rms (Q,) px;
     every blob is used by at most one point.
     """
+    return finish(match_unlabeled_steps(xn, R, t, f, ray_gate_px, max_residual_px, step_ns=math.inf))
+
+
+def match_unlabeled_steps(xn: list[np.ndarray], R: np.ndarray, t: np.ndarray, f: np.ndarray, ray_gate_px: float,
+                          max_residual_px: float, step_ns: float = STEP_NS) -> Steps[tuple]:
+    """match_unlabeled (same arguments and result) as a generator of steps of about step_ns of estimated work
+    each (SEED_PAIR_NS and the rest): it yields each step's estimate (ns) and returns the result. The steps cut
+    the stages along views and seeds, whose results do not depend on the cut: any step_ns gives the same
+    points bit for bit. A caller that must not hold its frames up (the pipeline: a parked fleet's first
+    acquisition is 40 ms of work) spreads the steps out; steps.finish runs them all."""
     V = len(xn)
     start = np.zeros(V + 1, dtype=np.int64)
     start[1:] = np.cumsum([len(x) for x in xn])
     pts = np.concatenate([np.asarray(x, dtype=np.float64).reshape(-1, 2) for x in xn]) if V else np.zeros((0, 2))
-    return _match_unlabeled(np.ascontiguousarray(pts), start, np.ascontiguousarray(R, dtype=np.float64),
-                            np.ascontiguousarray(t, dtype=np.float64), np.ascontiguousarray(f, dtype=np.float64),
-                            float(ray_gate_px), float(max_residual_px))
+    pts = np.ascontiguousarray(pts)
+    R = np.ascontiguousarray(R, dtype=np.float64)
+    t = np.ascontiguousarray(t, dtype=np.float64)
+    f = np.ascontiguousarray(f, dtype=np.float64)
+    ray_gate_px, max_residual_px = float(ray_gate_px), float(max_residual_px)
+    nothing = np.zeros((0, 3)), np.zeros((0, V), dtype=np.int64), np.zeros(0)
+    if V == 0:
+        return nothing
+    centres, rays = _rays(pts, start, R, t)
+    # seeds, a run of first views a at a time
+    sizes = np.diff(start)
+    later = np.cumsum(sizes[::-1])[::-1] - sizes  # blobs in the views after each
+    pairs, mids = [], []
+    a = 0
+    while a < V:
+        b, cost = a, 0.0
+        while b < V and (b == a or cost + sizes[b] * later[b] * SEED_PAIR_NS <= step_ns):
+            cost += sizes[b] * later[b] * SEED_PAIR_NS
+            b += 1
+        p, m = _seed_pairs(start, centres, rays, R, t, f, ray_gate_px, a, b)
+        pairs.append(p)
+        mids.append(m)
+        a = b
+        yield cost
+    idx, X0 = _seed_table(np.concatenate(pairs), V), np.concatenate(mids)
+    S = idx.shape[0]
+    if S == 0:
+        return nothing
+    # growth, a run of views at a time
+    per_view = S * GROWTH_NS
+    step_views = _units_per_step(per_view, step_ns, V)
+    for v in range(0, V, step_views):
+        _grow_seeds(pts, start, R, t, f, max_residual_px, idx, X0, v, min(V, v + step_views))
+        yield per_view * (min(V, v + step_views) - v)
+    idx = _first_of_each(idx)
+    yield S * POINT_NS * 0.2
+    # triangulation and the grown outliers, a block of seeds at a time
+    S = idx.shape[0]
+    obs = _observations(pts, start, idx)
+    X, rms, nv = np.empty((S, 3)), np.empty(S), np.empty(S, dtype=np.int64)
+    block = _units_per_step(POINT_NS * 0.7, step_ns, S)
+    for s0 in range(0, S, block):
+        s1 = min(S, s0 + block)
+        X[s0:s1], rms[s0:s1], nv[s0:s1] = triangulate_irls(obs[s0:s1], R, t, f, np.zeros((0, 0, 3)), False, 2)
+        _drop_grown_outliers(R, t, f, max_residual_px, idx, obs, X, rms, nv, s0, s1)
+        yield (s1 - s0) * POINT_NS * 0.7
+    out = _accept_greedy(pts.shape[0], start, R, t, f, max_residual_px, idx, obs, X, rms, nv)
+    yield S * POINT_NS * 0.5
+    return out
+
+
+def _units_per_step(unit_ns: float, step_ns: float, n: int) -> int:
+    """How many units of unit_ns estimated work make a step of step_ns (at least 1, at most all n)."""
+    return n if unit_ns * n <= step_ns else max(1, int(step_ns // unit_ns))
+
+
+def still_seen(markers: list[np.ndarray], xn: list[np.ndarray], R: np.ndarray, t: np.ndarray, f: np.ndarray,
+               gate_px: float, min_markers: int) -> np.ndarray:
+    """Whether each body is still where it was: at least min_markers of its markers (markers[b] (M_b, 3) m,
+    world) have a blob within gate_px of their projection in two views or more. Per view v its blobs xn[v]
+    (N_v, 2), normalised; R (V, 3, 3), t (V, 3), f (V,) as in match_unlabeled. Returns (B,) bool. The pipeline
+    asks it of the bodies that an acquisition in steps found in older frames."""
+    points = np.concatenate(markers) if markers else np.zeros((0, 3))
+    views = np.zeros(len(points), dtype=np.int64)
+    for v, blobs in enumerate(xn):
+        if not len(blobs):
+            continue
+        cam = points @ R[v].T + t[v]
+        ahead = cam[:, 2] > 0
+        uv = cam[:, :2] / np.where(ahead, cam[:, 2], 1.0)[:, None]
+        d2 = ((uv[:, None, :] - blobs[None, :, :]) ** 2).sum(-1).min(axis=1)
+        views += ahead & (d2 * f[v] ** 2 <= gate_px**2)
+    if not markers:
+        return np.zeros(0, dtype=bool)
+    first = np.cumsum([0] + [len(m) for m in markers[:-1]])
+    return np.add.reduceat((views >= 2).astype(np.int64), first) >= min_markers
 
 
 @njit
-def _match_unlabeled(pts, start, R, t, f, ray_gate_px, max_residual_px):
-    """Compiled core of match_unlabeled; view v's blobs are pts[start[v]:start[v + 1]] (N, 2).
-    Stages: seed pairs of rays (_seed_pairs), growth to the other views (_grow_seeds), triangulation with
-    the worst wrongly grown view dropped (_drop_grown_outliers), greedy acceptance (_accept_greedy)."""
+def _rays(pts, start, R, t):
+    """The cameras' centres (V, 3) m and each blob's unit world ray (N, 3); view v's blobs are
+    pts[start[v]:start[v + 1]] (N, 2), normalised."""
     V = start.shape[0] - 1
     centres = np.empty((V, 3))
     for v in range(V):
@@ -108,29 +199,27 @@ def _match_unlabeled(pts, start, R, t, f, ray_gate_px, max_residual_px):
     rays = np.empty((pts.shape[0], 3))
     for v in range(V):
         rays[start[v] : start[v + 1]] = _world_rays(pts[start[v] : start[v + 1]], R[v])
-    idx, X0 = _seed_pairs(start, centres, rays, R, t, f, ray_gate_px)
-    S = idx.shape[0]
-    if S == 0:
-        return np.zeros((0, 3)), np.zeros((0, V), dtype=np.int64), np.zeros(0)
-    _grow_seeds(pts, start, R, t, f, max_residual_px, idx, X0)
-    idx = _first_of_each(idx)
-    S = idx.shape[0]
+    return centres, rays
+
+
+@njit
+def _observations(pts, start, idx):
+    """Each seed's blobs (S, V, 2), normalised; NaN where idx (S, V) is -1."""
+    S, V = idx.shape
     obs = np.full((S, V, 2), np.nan)
     for s in range(S):
         for v in range(V):
             if idx[s, v] >= 0:
                 obs[s, v] = pts[start[v] + idx[s, v]]
-    X, rms, nv = triangulate_irls(obs, R, t, f, np.zeros((0, 0, 3)), False, 2)
-    _drop_grown_outliers(R, t, f, max_residual_px, idx, obs, X, rms, nv)
-    return _accept_greedy(pts.shape[0], start, R, t, f, max_residual_px, idx, obs, X, rms, nv)
+    return obs
 
 
 @njit
-def _seed_pairs(start, centres, rays, R, t, f, ray_gate_px):
+def _seed_pairs(start, centres, rays, R, t, f, ray_gate_px, a0, a1):
     """Seeds: pairs of rays of two views that pass within ray_gate_px at their ranges (widened near the floor
-    by floor_merge_px at their midpoint; none whose midpoint is under the floor: a mirror image). Returns the
-    blob index (S, V) (-1 = not in the seed) and each seed's midpoint X0 (S, 3) m, in the order of the views'
-    pairs (a < b), then a's blobs, then b's."""
+    by floor_merge_px at their midpoint; none whose midpoint is under the floor: a mirror image), for the
+    first views a0 <= a < a1. Returns (view a, its blob, view b, its blob) (S, 4) and each seed's midpoint X0
+    (S, 3) m, in the order of the views' pairs (a < b), then a's blobs, then b's."""
     V = start.shape[0] - 1
     # seeds are few next to the pairs of rays tried (80 blobs in 12 views: 15,000 of 420,000), so they are
     # collected in arrays that double, not in an (every pair, V) table
@@ -138,7 +227,7 @@ def _seed_pairs(start, centres, rays, R, t, f, ray_gate_px):
     X0 = np.empty((64, 3))
     mid = np.empty(3)
     S = 0
-    for a in range(V):
+    for a in range(a0, a1):
         if start[a + 1] == start[a]:
             continue
         for b in range(a + 1, V):
@@ -167,10 +256,16 @@ def _seed_pairs(start, centres, rays, R, t, f, ray_gate_px):
                     pairs[S, 0], pairs[S, 1], pairs[S, 2], pairs[S, 3] = a, i, b, j
                     X0[S] = mid
                     S += 1
-    idx = np.full((S, V), -1, dtype=np.int64)
-    for k in range(S):
+    return pairs[:S].copy(), X0[:S].copy()
+
+
+@njit
+def _seed_table(pairs, V):
+    """The seeds' blob index (S, V) (-1 = not in the seed) from their (view a, blob, view b, blob) (S, 4)."""
+    idx = np.full((pairs.shape[0], V), -1, dtype=np.int64)
+    for k in range(pairs.shape[0]):
         idx[k, pairs[k, 0]], idx[k, pairs[k, 2]] = pairs[k, 1], pairs[k, 3]
-    return idx, X0[:S].copy()
+    return idx
 
 
 @njit
@@ -182,16 +277,15 @@ def _doubled(a):
 
 
 @njit
-def _grow_seeds(pts, start, R, t, f, max_residual_px, idx, X0):
-    """Each seed grown (idx, in place) to the other views by reprojecting its midpoint onto the nearest
+def _grow_seeds(pts, start, R, t, f, max_residual_px, idx, X0, v0, v1):
+    """Each seed grown (idx, in place) to the other views v0 <= v < v1 by reprojecting its midpoint onto the nearest
     blob (the lowest index among equally near ones) within 3 x max_residual_px; the growth gate is looser
     than the final one: the seed midpoint is not the maximum-likelihood point. A view's blobs are searched
     in order of their x over the gate's width only (a dozen views of 80 blobs and 15,000 seeds: every blob
     of every view for every seed took 40 ms)."""
-    V = start.shape[0] - 1
     S = idx.shape[0]
     gate_px = 3.0 * max_residual_px
-    for v in range(V):
+    for v in range(v0, v1):
         n = start[v + 1] - start[v]
         if n == 0:
             continue
@@ -258,12 +352,12 @@ def _first_of_each(idx):
 
 
 @njit
-def _drop_grown_outliers(R, t, f, max_residual_px, idx, obs, X, rms, nv):
-    """A view whose own residual is over the gate was grown onto a wrong blob: each point's worst such
-    view is dropped and the point triangulated again (idx, obs, X, rms, nv in place)."""
-    S, V = idx.shape
+def _drop_grown_outliers(R, t, f, max_residual_px, idx, obs, X, rms, nv, s0, s1):
+    """A view whose own residual is over the gate was grown onto a wrong blob: each point s0 <= s < s1 has its
+    worst such view dropped and is triangulated again (idx, obs, X, rms, nv in place)."""
+    V = idx.shape[1]
     no_offsets = np.zeros((0, 0, 3))
-    for s in range(S):
+    for s in range(s0, s1):
         worst, r_worst = -1, -1.0
         for v in range(V):
             if idx[s, v] < 0:

@@ -16,7 +16,7 @@ at the reference time: motion-compensated triangulation of every tracked
 marker, a weighted Kabsch pose per body, a gated Kalman update
 (tracking.py). Leftover blobs go to acquisition: cross-view matching,
 identification of lost bodies by marker geometry (rigidbody.py) and the
-loose points.
+loose points, in steps of fusion.acquire_step_ms of work (fusion/steps.py).
 
 Occlusion: a tracked body with fewer than min_markers markers triangulated in a
 fusion is updated instead from the 2-D markers each of the fusion's frames sees
@@ -75,7 +75,7 @@ import numpy as np
 
 from visionpos.camera.model import Camera
 from visionpos.config.arena import ArenaConfig, ConfigError
-from visionpos.fusion.acquisition import match_unlabeled
+from visionpos.fusion.acquisition import match_unlabeled, match_unlabeled_steps, still_seen
 from visionpos.fusion.body_filter import FilterBank
 from visionpos.fusion.identity import IdentityBook
 from visionpos.fusion.imu import ImuInputs
@@ -104,9 +104,10 @@ from visionpos.fusion.layout import (
 from visionpos.fusion.matching import Projector
 from visionpos.fusion.measurements import pose_measurement_cov
 from visionpos.fusion.point_tracks import PointTracks
-from visionpos.fusion.rigidbody import BodyModel, Identification, identify, layout_ambiguities
+from visionpos.fusion.rigidbody import BodyModel, Identification, identify_steps, layout_ambiguities
 from visionpos.fusion.settings import FUSION_PARAMS, pack_params, parse_fusion
 from visionpos.fusion.snapshot import CameraFrame, FusionSnapshot
+from visionpos.fusion.steps import Steps, advance
 from visionpos.fusion.timealign import Group, TimeAligner, TimeAlignment
 from visionpos.fusion.tracks import Observation, Track, new_track_rows
 from visionpos.fusion.warmup import warm_up_once
@@ -114,6 +115,14 @@ from visionpos.messages import BlobFrame, BodyState, LoosePoints
 
 # the image-space manoeuvre detector samples at most this often (capture clock)
 _IMAGE_NIS_INTERVAL_NS = 2_000_000
+
+# estimated work of starting one acquired body's track, and of checking that it is still where it was found
+# (fusion/steps.py; twenty take about 7 and 2 ms)
+_START_TRACK_NS = 350_000
+_MOVED_CHECK_NS = 100_000
+# a body whose markers moved more than this in the images since the frames an acquisition in steps found it in is
+# acquired again, at once, from the newest frames (a parked body moves less: blob noise is about 0.1-0.2 px)
+_STILL_PX = 0.5
 
 # the output and lost timeouts are at least this many measured frame intervals of the slowest live camera
 # (max_prediction_ms and lost_timeout_ms are for cameras at their configured rate)
@@ -226,6 +235,10 @@ class FusionPipeline:
         self._tracking_changed()
         self.loose_points: LoosePoints | None = None
         self._last_acquire_ns = -(1 << 62)
+        # an acquisition under way (_acquire's steps, fusion/steps.py) and the reference time of its last step
+        self._acquiring: Steps[None] | None = None
+        self._acquire_began_ns = self._acquire_step_ns = 0
+        self._acquire_at_once = False  # the next acquisition in one step: bodies moved during the last one's
         self._last_img_ns = -(1 << 62)
         # a frame takes part in about (frame period / fusion spacing) fusions at most
         self._max_reuse = max(1.0, (st.window_ns / 1.2) / max(st.min_fusion_interval_ns, 1))
@@ -426,13 +439,17 @@ class FusionPipeline:
         # acquisition is for lost bodies; with all tracked it only refreshes the loose points
         lost = len(self._tracked) < self._n_rigid
         interval = st.acquire_interval_ns if lost else st.loose_points_interval_ns
-        if (lost or st.loose_points) and (ref - self._last_acquire_ns >= interval or ref < self._last_acquire_ns):
-            self._last_acquire_ns = ref
+        lost_ns = max(st.kalman.lost_timeout_ns, _LOST_PERIODS * self.aligner.slowest_period_ns())
+        if self._acquiring is not None:
+            if ref - self._acquire_step_ns >= st.acquire_interval_ns or ref < self._acquire_step_ns:
+                self._acquire_step(ref, lost_ns)
+        elif (lost or st.loose_points) and (ref - self._last_acquire_ns >= interval or ref < self._last_acquire_ns):
             cam_index, R, t, focal_px, _ = views
-            self._acquire([obs[c] for c in cams], cam_index, R, t, focal_px, ref)
+            self._acquiring = self._acquire([obs[c] for c in cams], cam_index, R, t, focal_px, ref)
+            self._acquire_began_ns = ref
+            self._acquire_step(ref, lost_ns)
         # lost-track bookkeeping on the capture clock
         track_ints = self._track_ints
-        lost_ns = max(st.kalman.lost_timeout_ns, _LOST_PERIODS * self.aligner.slowest_period_ns())
         gone = [b for b in self._tracked if ref - track_ints[b, TRACK_LAST_UPDATE_NS] > lost_ns]
         if self.identity.shared and self.points is None:
             self.identity.after_fusion(ref, self._tracked, self.bank.x, self.bank.P)
@@ -483,10 +500,23 @@ class FusionPipeline:
                 m = meas[i]
                 self.last_raw[b] = (ref, m[MEAS_POS], m[MEAS_ROT].reshape(3, 3))
 
+    def _acquire_step(self, ref: int, lost_ns: int) -> None:
+        """One step (fusion.acquire_step_ms) of the acquisition under way at the fusion at ref (ns); the rest at
+        once where it began 2/3 of the lost timeout ago (its bodies start from its frames) or the clock went back."""
+        st = self.settings
+        late = ref - self._acquire_began_ns > 2 * lost_ns // 3 or ref < self._acquire_step_ns
+        at_once, self._acquire_at_once = late or self._acquire_at_once or st.acquire_step_ns <= 0, False
+        self._acquire_step_ns = ref
+        done, _ = advance(self._acquiring, float("inf") if at_once else st.acquire_step_ns)
+        if done:  # the next one acquire_interval_ms after this one ended: its frames are new ones
+            self._acquiring = None
+            self._last_acquire_ns = ref
+
     def _acquire(self, obs: list[Observation], cam_index: np.ndarray, R: np.ndarray, t: np.ndarray,
-                 focal_px: np.ndarray, ref: int) -> None:
+                 focal_px: np.ndarray, ref: int) -> Steps[None]:
         """Match leftover blobs across views (cam_index (V,): their cameras' indices); identify lost bodies;
-        report loose points."""
+        report loose points. In steps (fusion/steps.py): a parked fleet's first acquisition is about 40 ms of
+        work, which would hold up every frame behind it; the bodies it finds start at ref, from these frames."""
         st = self.settings
         lost = [b for b in range(len(self.tracks)) if b not in self._tracked and b not in self._point_row]
         if not lost and not st.loose_points:
@@ -500,7 +530,8 @@ class FusionPipeline:
             self.loose_points = LoosePoints(ref, np.zeros((0, 3)), np.zeros(0))
             return
         xs = [o.xn[fr] for o, fr in zip(obs, free)]
-        pts, idx, rms = match_unlabeled(xs, R, t, focal_px, st.acquire_ray_gate_px, st.max_residual_px)
+        pts, idx, rms = yield from match_unlabeled_steps(xs, R, t, focal_px, st.acquire_ray_gate_px,
+                                                         st.max_residual_px)
         if not lost or len(pts) < 3:
             for b in lost:
                 self.untracked_why[b] = (f"not seen by enough cameras: {len(pts)} marker(s) seen by two cameras "
@@ -509,14 +540,24 @@ class FusionPipeline:
             return
         left = np.ones(len(pts), dtype=bool)
         ambiguous: set[int] = set()
-        found = identify(pts, self.models, st.identify_tolerance_m, st.min_markers, only=lost, ambiguous=ambiguous)
+        found = yield from identify_steps(pts, self.models, st.identify_tolerance_m, st.min_markers, only=lost,
+                                          ambiguous=ambiguous)
+        if self._acquire_step_ns != ref:
+            yield len(found) * _MOVED_CHECK_NS  # the check below, before it runs
+        moved = self._moved_since(found, ref) if self._acquire_step_ns != ref else set()
+        if moved:  # a track must not start from frames its body has left: the next acquisition, at once, retries
+            found = [ident for ident in found if ident.body not in moved]
+            self._acquire_at_once = True
         found = self.identity.acquired(found, lost)
-        for b in lost:
+        for b in set(lost) - {ident.body for ident in found}:
             self.untracked_why[b] = (
-                "identification ambiguous: its visible markers fit another body as well" if b in ambiguous
+                "it moved while acquisition ran over several frames: acquired again from the newest" if b in moved
+                else "identification ambiguous: its visible markers fit another body as well" if b in ambiguous
                 else f"{len(pts)} markers triangulated, none fits its layout within "
                      f"{st.identify_tolerance_m * 1e3:.0f} mm")
-        for ident in found:
+        for n_found, ident in enumerate(found):
+            if n_found:
+                yield _START_TRACK_NS
             b = ident.body
             tr = self.tracks[b]
             matched = ident.point_index >= 0
@@ -554,6 +595,16 @@ class FusionPipeline:
             tr.n_cameras = int(sum((o.label >= first).any() and (o.label < end).any() for o in obs))
             self._tracking_changed()
         self.loose_points = LoosePoints(ref, pts[left], rms[left])
+
+    def _moved_since(self, found: list[Identification], ref: int) -> set[int]:
+        """The bodies of `found` (identified in frames up to ref ns) that the frames taken since do not show
+        where they were (acquisition.still_seen within _STILL_PX in two of the cameras with a newer frame)."""
+        newer = [c for c in sorted(self.obs) if self.obs[c].capture_ns > ref]
+        index = np.array([self._cam_index[c] for c in newer], dtype=np.int64)
+        seen = still_seen([self.models[f.body].markers[f.point_index >= 0] @ f.R.T + f.t for f in found],
+                          [self.obs[c].xn[self._label_free[self.obs[c].label]] for c in newer], self._R[index],
+                          self._t[index], self._focal_px[index], _STILL_PX, self.settings.min_markers)
+        return {f.body for f, ok in zip(found, seen) if not ok}
 
     # ----------------------------------------------------------- point bodies
     def _track_points(self, obs: list[Observation], views: tuple, ref: int) -> None:

@@ -23,7 +23,15 @@ from itertools import permutations
 
 import numpy as np
 
+from visionpos.fusion.steps import Steps, finish
 from visionpos.geometry.alignment import kabsch_horn
+
+# estimated cost of identification's units of work (ns, the hosts of docs/benchmarks.md), for the size of
+# identify_steps' steps (fusion/steps.py): a pair of points tried for a triangle's edge, a placement fitted,
+# a candidate placement accepted or refused
+PAIR_NS = 6_000
+PLACEMENT_NS = 80_000
+CANDIDATE_NS = 20_000
 
 
 @dataclass(frozen=True)
@@ -63,8 +71,9 @@ class Identification:
 
 def _hypotheses(
     points: np.ndarray, D: np.ndarray, model: BodyModel, tol: float
-) -> list[tuple[int, float, np.ndarray, np.ndarray, np.ndarray]]:
-    """All consistent placements of one body among points.
+) -> Steps[list[tuple[int, float, np.ndarray, np.ndarray, np.ndarray]]]:
+    """All consistent placements of one body among points (K, 3) m, D (K, K) their distances, in steps of
+    one seed triangle each (fusion/steps.py).
 
     Returns (n_markers, rms, point_index (M,), R, t) tuples.
     """
@@ -79,6 +88,7 @@ def _hypotheses(
         for b in range(a + 1, M):
             for c in range(b + 1, M):
                 pij = np.argwhere(np.abs(D - Dm[a, b]) < tol)
+                fitted = 0
                 for i, j in pij:
                     if i == j:
                         continue
@@ -86,6 +96,7 @@ def _hypotheses(
                     for k in ks:
                         if k == i or k == j:
                             continue
+                        fitted += 1
                         R, t = kabsch_horn(mk[[a, b, c]], points[[i, j, k]])
                         pred = mk @ R.T + t
                         dist = np.linalg.norm(pred[:, None] - points[None], axis=-1)  # (M, K)
@@ -113,6 +124,7 @@ def _hypotheses(
                         rms = float(np.sqrt((res**2).sum(axis=1).mean()))
                         if rms < tol:
                             out.append((int(sel.sum()), rms, idx, R, t))
+                yield len(pij) * PAIR_NS + fitted * PLACEMENT_NS
     return out
 
 
@@ -124,7 +136,20 @@ def identify(
     only: list[int] | None = None,
     ambiguous: set[int] | None = None,
 ) -> list[Identification]:
-    """Find bodies among unlabeled points by their marker geometry.
+    """Find bodies among unlabeled points by their marker geometry: identify_steps run at once."""
+    return finish(identify_steps(points, models, tolerance, min_markers, only, ambiguous))
+
+
+def identify_steps(
+    points: np.ndarray,
+    models: list[BodyModel],
+    tolerance: float = 0.008,
+    min_markers: int = 3,
+    only: list[int] | None = None,
+    ambiguous: set[int] | None = None,
+) -> Steps[list[Identification]]:
+    """Find bodies among unlabeled points by their marker geometry, in steps (fusion/steps.py): a generator
+    that yields each step's estimated cost (ns) and returns the result.
 
     points: (K, 3) world points (m). models: the bodies. tolerance: max
     distance mismatch and Kabsch RMS (m). min_markers: fewest markers for a
@@ -146,10 +171,11 @@ def identify(
     for bi in wanted:
         hyps = by_layout.get(layout[bi])
         if hyps is None:
-            hyps = by_layout[layout[bi]] = _hypotheses(points, D, models[bi], tolerance)
+            hyps = by_layout[layout[bi]] = yield from _hypotheses(points, D, models[bi], tolerance)
         for n, rms, idx, R, t in hyps:
             if n >= max(3, min_markers):
                 cands.append((n, rms, bi, idx, R, t))
+    yield len(cands) * CANDIDATE_NS  # the acceptance below, before it runs
     # more markers first, then smaller residual; deterministic tie-break by body index
     cands.sort(key=lambda c: (-c[0], c[1], c[2]))
     taken: set[int] = set()
@@ -197,7 +223,7 @@ def layout_ambiguities(models: list[BodyModel], tolerance: float) -> list[str]:
             if len(b.markers) != M or np.array_equal(a.markers, b.markers):
                 continue  # the very same layout: a fleet, told apart by continuity (identity.py)
             D = np.linalg.norm(b.markers[:, None] - b.markers[None], axis=-1)
-            if any(h[0] == M for h in _hypotheses(b.markers, D, a, tolerance)):
+            if any(h[0] == M for h in finish(_hypotheses(b.markers, D, a, tolerance))):
                 problems.append(f"bodies '{a.name}' and '{b.name}' have the same marker layout: they can be swapped "
                                 "(a fleet of identical layouts lists the same markers in the same order)")
     return problems

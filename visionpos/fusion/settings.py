@@ -171,6 +171,11 @@ FUSION = section(
     Setting("loose_points", "boolean", True, "triangulate blobs that belong to no body and report them"),
     Setting("acquire_interval_ms", "number", 10.0, "while a body is lost, acquisition runs at most this "
             "often (capture clock)", field="acquire_interval_ns", convert=ms_to_ns, min=0.0),
+    Setting("acquire_step_ms", "number", 5.0, "acquisition's estimated work per fusion (fusion/steps.py): a larger "
+            "acquisition, such as a parked fleet's first, goes on in steps acquire_interval_ms apart, so that it "
+            "never holds up the frames behind it; the bodies it finds start from the frames it began on, and its "
+            "rest runs at once when it began 2/3 of lost_timeout_ms ago; 0 = always all at once",
+            field="acquire_step_ns", convert=ms_to_ns, min=0.0),
     Setting("min_fusion_interval_ms", "number", 2.0, "rate limit of motion-compensated fusions for many fast "
             "cameras: a fusion is skipped when the last one is younger than this and another camera's next "
             "frame is due within it (so it lands at the end of a burst); 0 = off",
