@@ -142,8 +142,8 @@ def test_a_parked_fleet_s_first_acquisition_goes_on_over_fusions_and_finds_every
 def test_bodies_that_move_during_the_steps_are_acquired_again_from_the_newest_frames():
     """Two quads of one layout in the thesis arena, one parked and one on a fast figure-eight, and acquisition
     cut into the smallest steps: the parked one is started from the steps' frames, the moving one is refused
-    ("it moved ...") and found by the next acquisition, at once, from the newest; no pose is ever output from
-    frames the body had left: its outputs are as close to the truth as those of an acquisition at once."""
+    ("it moved ...") and found by the next acquisition, at once (as every later one), from the newest; no pose is
+    ever output from frames the body had left: its outputs are as close to the truth as those of an acquisition at once."""
     from visionpos.config.arena import load_yaml, parse_arena, resolve_config_path
     from visionpos.sim import parse_sim, simulate
 
@@ -156,9 +156,13 @@ def test_bodies_that_move_during_the_steps_are_acquired_again_from_the_newest_fr
     sc = parse_sim(parse_arena(data, "<two of a kind>"))
     frames = sorted(simulate(sc).frames, key=lambda f: (f.recv_ns, f.camera_id))
     worst, said = {}, {}
+    moved = "it moved while acquisition ran over several frames: acquired again from the newest"
     for step_ms in (0.001, 0.0):
         pipe = FusionPipeline(sc.arena, {"acquire_step_ms": step_ms})
         said[step_ms], worst[step_ms] = set(), {"parked": 0.0, "flying": 0.0}
+        steps, orig = [], pipe._acquire_step
+        pipe._acquire_step = lambda ref, lost_ns: (orig(ref, lost_ns), steps.append(
+            (ref, pipe._acquire_began_ns == ref, pipe._acquiring is None, moved in said[step_ms])))
         for fr in frames:
             pipe.push(fr)
             said[step_ms] |= set(pipe.untracked_why.values())
@@ -169,8 +173,48 @@ def test_bodies_that_move_during_the_steps_are_acquired_again_from_the_newest_fr
                         e = float(np.linalg.norm(st.position - true_p[0]))
                         worst[step_ms][st.name] = max(worst[step_ms][st.name], e)
         assert all(st.tracked for st in pipe.tick(frames[-1].recv_ns))
-    moved = "it moved while acquisition ran over several frames: acquired again from the newest"
+        if step_ms:  # once a body was refused, every later acquisition (here: of the flying one) runs at once
+            after = [(r, b, e) for r, b, e, refused in steps if refused]
+            assert after and all(len(j) == 1 for j in _jobs(after[1:]))
     assert moved in said[0.001] and moved not in said[0.0]
     # a track's first outputs carry its unknown velocity (about 2 cm at 2 m/s, at once too), never more
     assert worst[0.001]["flying"] <= worst[0.0]["flying"] + 0.001
     assert worst[0.001]["parked"] < 0.003
+
+
+def test_a_body_tracked_before_is_acquired_again_at_once():
+    """Two quads parked in the thesis arena, acquisition cut into the smallest steps: their first acquisition
+    goes on in steps; after 0.3 s without frames (one or both lost) they are found again in one step (a body lost
+    after it was tracked is taken to fly)."""
+    from visionpos.config.arena import load_yaml, parse_arena, resolve_config_path
+    from visionpos.sim import parse_sim, simulate
+
+    data = load_yaml(resolve_config_path("thesis"))
+    quad = data["bodies"][0]
+    data["bodies"] = [dict(quad, name="a", id=1), dict(quad, name="b", id=2)]
+    data["sim"].update(duration=1.0, session="pair", sessions={"pair": {
+        "a": {"trajectory": "static", "position": [0.3, 0.0, 0.0]},
+        "b": {"trajectory": "static", "position": [-0.4, 0.2, 0.0]}}})
+    sc = parse_sim(parse_arena(data, "<two parked>"))
+    frames = sorted(simulate(sc).frames, key=lambda f: (f.recv_ns, f.camera_id))
+    cut0, cut1 = frames[0].capture_ns + 400_000_000, frames[0].capture_ns + 700_000_000
+    pipe = FusionPipeline(sc.arena, {"acquire_step_ms": 0.001})
+    steps, orig = [], pipe._acquire_step
+
+    def step(ref, lost_ns):
+        began, some_lost = pipe._acquire_began_ns == ref, len(pipe._tracked) < 2
+        orig(ref, lost_ns)
+        steps.append((ref, began, some_lost))
+
+    pipe._acquire_step = step
+    for fr in frames:
+        if not cut0 <= fr.capture_ns < cut1:
+            pipe.push(fr)
+    jobs = _jobs([(r, b, e) for r, b, e in steps])
+    lost_at = {r: lost for r, b, lost in steps if b}  # each job's first step: was a body lost
+    before = [j for j in jobs if j[0] < cut0 and lost_at[j[0]]]
+    after = [j for j in jobs if j[0] >= cut1 and lost_at[j[0]]]
+    assert max(len(j) for j in before) > 3  # the first acquisition, in steps
+    assert after and all(len(j) == 1 for j in after)
+    assert pipe._stats["lost"] >= 1 and pipe._stats["acquisitions"] == 2 + pipe._stats["lost"]
+    assert all(s.tracked for s in pipe.tick(frames[-1].recv_ns))

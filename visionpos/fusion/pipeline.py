@@ -107,7 +107,7 @@ from visionpos.fusion.point_tracks import PointTracks
 from visionpos.fusion.rigidbody import BodyModel, Identification, identify_steps, layout_ambiguities
 from visionpos.fusion.settings import FUSION_PARAMS, pack_params, parse_fusion
 from visionpos.fusion.snapshot import CameraFrame, FusionSnapshot
-from visionpos.fusion.steps import Steps, advance
+from visionpos.fusion.steps import Steps, advance, finish
 from visionpos.fusion.timealign import Group, TimeAligner, TimeAlignment
 from visionpos.fusion.tracks import Observation, Track, new_track_rows
 from visionpos.fusion.warmup import warm_up_once
@@ -116,13 +116,11 @@ from visionpos.messages import BlobFrame, BodyState, LoosePoints
 # the image-space manoeuvre detector samples at most this often (capture clock)
 _IMAGE_NIS_INTERVAL_NS = 2_000_000
 
-# estimated work of starting one acquired body's track, and of checking that it is still where it was found
-# (fusion/steps.py; twenty take about 7 and 2 ms)
-_START_TRACK_NS = 350_000
-_MOVED_CHECK_NS = 100_000
-# a body whose markers moved more than this in the images since the frames an acquisition in steps found it in is
-# acquired again, at once, from the newest frames (a parked body moves less: blob noise is about 0.1-0.2 px)
-_STILL_PX = 0.5
+# acquisition in steps (fusion/steps.py): the estimated work of starting a found body's track and of checking
+# it is still there (twenty: about 7 and 2 ms); a body that moved more than _STILL_PX in the images since its
+# frames is found again from the newest, and later acquisitions run at once (a parked one moves less: blob noise
+# is about 0.1-0.2 px)
+_START_TRACK_NS, _MOVED_CHECK_NS, _STILL_PX = 350_000, 100_000, 0.5
 
 # the output and lost timeouts are at least this many measured frame intervals of the slowest live camera
 # (max_prediction_ms and lost_timeout_ms are for cameras at their configured rate)
@@ -238,7 +236,8 @@ class FusionPipeline:
         # an acquisition under way (_acquire's steps, fusion/steps.py) and the reference time of its last step
         self._acquiring: Steps[None] | None = None
         self._acquire_began_ns = self._acquire_step_ns = 0
-        self._acquire_at_once = False  # the next acquisition in one step: bodies moved during the last one's
+        self._acquire_at_once = False  # from now on in one step: bodies moved while one went on in steps
+        self._was_tracked = np.zeros(len(self.models), dtype=bool)  # a re-acquisition runs at once
         self._last_img_ns = -(1 << 62)
         # a frame takes part in about (frame period / fusion spacing) fusions at most
         self._max_reuse = max(1.0, (st.window_ns / 1.2) / max(st.min_fusion_interval_ns, 1))
@@ -505,7 +504,7 @@ class FusionPipeline:
         once where it began 2/3 of the lost timeout ago (its bodies start from its frames) or the clock went back."""
         st = self.settings
         late = ref - self._acquire_began_ns > 2 * lost_ns // 3 or ref < self._acquire_step_ns
-        at_once, self._acquire_at_once = late or self._acquire_at_once or st.acquire_step_ns <= 0, False
+        at_once = late or self._acquire_at_once or st.acquire_step_ns <= 0
         self._acquire_step_ns = ref
         done, _ = advance(self._acquiring, float("inf") if at_once else st.acquire_step_ns)
         if done:  # the next one acquire_interval_ms after this one ended: its frames are new ones
@@ -514,9 +513,8 @@ class FusionPipeline:
 
     def _acquire(self, obs: list[Observation], cam_index: np.ndarray, R: np.ndarray, t: np.ndarray,
                  focal_px: np.ndarray, ref: int) -> Steps[None]:
-        """Match leftover blobs across views (cam_index (V,): their cameras' indices); identify lost bodies;
-        report loose points. In steps (fusion/steps.py): a parked fleet's first acquisition is about 40 ms of
-        work, which would hold up every frame behind it; the bodies it finds start at ref, from these frames."""
+        """Match leftover blobs across views (cam_index (V,): their cameras' indices); identify lost bodies; report
+        loose points. In steps (fusion/steps.py); the bodies it finds start at ref, from these frames."""
         st = self.settings
         lost = [b for b in range(len(self.tracks)) if b not in self._tracked and b not in self._point_row]
         if not lost and not st.loose_points:
@@ -530,8 +528,10 @@ class FusionPipeline:
             self.loose_points = LoosePoints(ref, np.zeros((0, 3)), np.zeros(0))
             return
         xs = [o.xn[fr] for o, fr in zip(obs, free)]
-        pts, idx, rms = yield from match_unlabeled_steps(xs, R, t, focal_px, st.acquire_ray_gate_px,
-                                                         st.max_residual_px)
+        # a body lost after it was tracked is most likely flying: it would have moved before the last step
+        again = bool(self._was_tracked[lost].any())
+        steps = match_unlabeled_steps(xs, R, t, focal_px, st.acquire_ray_gate_px, st.max_residual_px)
+        pts, idx, rms = finish(steps) if again else (yield from steps)
         if not lost or len(pts) < 3:
             for b in lost:
                 self.untracked_why[b] = (f"not seen by enough cameras: {len(pts)} marker(s) seen by two cameras "
@@ -540,12 +540,12 @@ class FusionPipeline:
             return
         left = np.ones(len(pts), dtype=bool)
         ambiguous: set[int] = set()
-        found = yield from identify_steps(pts, self.models, st.identify_tolerance_m, st.min_markers, only=lost,
-                                          ambiguous=ambiguous)
+        steps = identify_steps(pts, self.models, st.identify_tolerance_m, st.min_markers, lost, ambiguous)
+        found = finish(steps) if again else (yield from steps)
         if self._acquire_step_ns != ref:
             yield len(found) * _MOVED_CHECK_NS  # the check below, before it runs
         moved = self._moved_since(found, ref) if self._acquire_step_ns != ref else set()
-        if moved:  # a track must not start from frames its body has left: the next acquisition, at once, retries
+        if moved:  # a track must not start from frames its body has left: acquisition at once from now on
             found = [ident for ident in found if ident.body not in moved]
             self._acquire_at_once = True
         found = self.identity.acquired(found, lost)
@@ -556,9 +556,10 @@ class FusionPipeline:
                 else f"{len(pts)} markers triangulated, none fits its layout within "
                      f"{st.identify_tolerance_m * 1e3:.0f} mm")
         for n_found, ident in enumerate(found):
-            if n_found:
+            if n_found and not again:
                 yield _START_TRACK_NS
             b = ident.body
+            self._was_tracked[b] = True
             tr = self.tracks[b]
             matched = ident.point_index >= 0
             n_id = int(matched.sum())

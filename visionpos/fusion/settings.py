@@ -172,9 +172,10 @@ FUSION = section(
     Setting("acquire_interval_ms", "number", 10.0, "while a body is lost, acquisition runs at most this "
             "often (capture clock)", field="acquire_interval_ns", convert=ms_to_ns, min=0.0),
     Setting("acquire_step_ms", "number", 5.0, "acquisition's estimated work per fusion (fusion/steps.py): a larger "
-            "acquisition, such as a parked fleet's first, goes on in steps acquire_interval_ms apart, so that it "
+            "first acquisition, such as a parked fleet's, goes on in steps acquire_interval_ms apart, so that it "
             "never holds up the frames behind it; the bodies it finds start from the frames it began on, and its "
-            "rest runs at once when it began 2/3 of lost_timeout_ms ago; 0 = always all at once",
+            "rest runs at once when it began 2/3 of lost_timeout_ms ago. A body that moved since those frames, and "
+            "every acquisition after that or of a body tracked before (it flies), runs at once; 0 = always at once",
             field="acquire_step_ns", convert=ms_to_ns, min=0.0),
     Setting("min_fusion_interval_ms", "number", 2.0, "rate limit of motion-compensated fusions for many fast "
             "cameras: a fusion is skipped when the last one is younger than this and another camera's next "
