@@ -143,7 +143,7 @@ def test_bodies_that_move_during_the_steps_are_acquired_again_from_the_newest_fr
     """Two quads of one layout in the thesis arena, one parked and one on a fast figure-eight, and acquisition
     cut into the smallest steps: the parked one is started from the steps' frames, the moving one is refused
     ("it moved ...") and found by the next acquisition, at once (as every later one), from the newest; no pose is
-    ever output from frames the body had left: its outputs are as close to the truth as those of an acquisition at once."""
+    ever output from frames the body had left: its outputs are as close to the truth as an acquisition at once's."""
     from visionpos.config.arena import load_yaml, parse_arena, resolve_config_path
     from visionpos.sim import parse_sim, simulate
 
