@@ -159,7 +159,17 @@ def test_two_identical_real_sitls_are_bound_on_their_pads_fly_together_and_a_swa
         # (a pose or two of the other vehicle may reach an autopilot before the bridge hears it: EKF3 may switch
         # lanes over them, the docs say so; no failsafe, no mode change)
         assert not [t for t in v["failsafe_or_lane_switch"] if "failsafe" in t.lower()], v["failsafe_or_lane_switch"]
+        assert not [t for t in v["failsafe_during_swap"] if "failsafe" in t.lower()], v["failsafe_during_swap"]
         assert v["mode_changes_not_ours"] == []
+
+
+def test_failsafe_messages_are_counted_apart_during_the_swap_s_vision_cut():
+    swap = {"t_swap": 10_000, "t_resumed": 20_000}
+    texts = [(5_000, 4, "EKF3 lane switch 1"), (10_000, 4, "EKF3 lane switch 0"), (15_000, 6, "Arming motors"),
+             (20_000 + F._AFTER_SWAP_NS, 2, "EKF primary changed:1"), (20_001 + F._AFTER_SWAP_NS, 2, "Failsafe")]
+    outside, during = F.alarms_outside_and_during(texts, swap)
+    assert outside == ["EKF3 lane switch 1", "Failsafe"]
+    assert during == ["EKF3 lane switch 0", "EKF primary changed:1"]
 
 
 def test_the_docs_say_what_the_fleet_flight_does():

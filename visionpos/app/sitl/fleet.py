@@ -36,7 +36,7 @@ from visionpos.app.sitl.flight import FlightPlan, arm_in_guided, goto, set_advis
 from visionpos.app.sitl.gcs import COPTER_MODES, EXTNAV_TEXT, MAV_CMD_DO_SET_MODE, MAV_CMD_NAV_TAKEOFF, Gcs
 from visionpos.app.sitl.preflight import prepare_vehicle
 from visionpos.app.sitl.process import SitlProcess, free_instances
-from visionpos.app.sitl.report import flight_summary, horizontal_error_mm, say_to
+from visionpos.app.sitl.report import FAILSAFE_WORDS, flight_summary, horizontal_error_mm, say_to
 from visionpos.app.sitl.settings import SitlError, parse_sitl
 from visionpos.app.sitl.truth import LATLON_TO_M, LiveArena, TruthTrack, truth_now
 from visionpos.config.arena import ArenaConfig
@@ -48,6 +48,7 @@ CROSS_GAP_M = 0.3  # the crossing vehicles pass this far apart (north-south), at
 CROSS_OFFSET_M = 0.8  # with 3 or more vehicles the crossing is flown this far north of the row (clear of the others)
 RESUME_TIMEOUT_S = 10.0  # after the links are put back, the poses must flow again within this
 SWAP_SLACK_NS = 60_000_000  # a pose already on its way when the bridge read the other autopilot's packet
+_AFTER_SWAP_NS = 5_000_000_000  # the EKF is judged again this long after the poses resumed
 
 
 @dataclasses.dataclass(frozen=True)
@@ -315,6 +316,8 @@ def _summary(fleet: list[_Vehicle], live: LiveArena, demo: dict[str, Any], plan:
         s["binding_at_end"] = v.record.get("binding_at_end")
         if swap is not None:  # the target is judged outside the swap: the EKF is on its IMU alone during it
             o = s["ekf_horizontal_error_outside_swap_mm"] = _outside(v, swap)
+            # and so are the failsafes: a lane switch while the vision is cut is the EKF's answer to the cut
+            s["failsafe_or_lane_switch"], s["failsafe_during_swap"] = alarms_outside_and_during(v.gcs.texts, swap)
             s["ok"] = bool(s["completed"] and o["p99"] is not None and o["p99"] <= 20.0
                            and not s["failsafe_or_lane_switch"] and not s["mode_changes_not_ours"])
         vehicles[v.name] = s
@@ -329,13 +332,21 @@ def _summary(fleet: list[_Vehicle], live: LiveArena, demo: dict[str, Any], plan:
     return out
 
 
+def alarms_outside_and_during(texts: list[tuple[int, int, str]], swap: dict[str, Any]) -> tuple[list[str], list[str]]:
+    """The failsafe and lane-switch STATUSTEXTs ((ns, severity, text), report.FAILSAFE_WORDS) outside the swap's
+    vision cut (from the swap to _AFTER_SWAP_NS after the poses resumed) and during it."""
+    lo, hi = swap["t_swap"], swap["t_resumed"] + _AFTER_SWAP_NS
+    alarms = [(lo <= when <= hi, t) for when, _, t in texts if any(w in t.lower() for w in FAILSAFE_WORDS)]
+    return [t for during, t in alarms if not during], [t for during, t in alarms if during]
+
+
 def _outside(v: _Vehicle, swap: dict[str, Any]) -> dict[str, float | None]:
     """The EKF's horizontal error p99/max (mm) armed to disarmed, leaving out the swap and 5 s after the poses
     resumed (the EKF on its IMU alone meanwhile, then pulled back)."""
     a, b = v.record.get("armed_ns"), v.record.get("disarmed_ns") or time.monotonic_ns()
     if a is None:
         return {"p99": None, "max": None}
-    lo, hi = swap["t_swap"], swap["t_resumed"] + 5_000_000_000
+    lo, hi = swap["t_swap"], swap["t_resumed"] + _AFTER_SWAP_NS
     loc = np.array([r for r in v.gcs.local if a <= r[0] <= b and not lo <= r[0] <= hi], dtype=float).reshape(-1, 4)
     if not len(loc):
         return {"p99": None, "max": None}
@@ -361,8 +372,11 @@ def format_fleet(s: dict[str, Any]) -> str:
         o = v.get("ekf_horizontal_error_outside_swap_mm")
         if o is not None:  # judged outside the swap: the EKF is on its IMU alone during it
             text = text.replace("target (EKF horizontal p99 <= 20 mm", "target (EKF horizontal p99 outside the swap "
-                                "<= 20 mm") + (f"\n  EKF horizontal error outside the swap (and 5 s after): p99 "
-                                                f"{'-' if o['p99'] is None else format(o['p99'], '.1f')} mm")
+                                "<= 20 mm").replace("failsafe / lane switch messages:", "failsafe / lane switch "
+                                                    "messages outside the swap (and 5 s after):")
+            text += (f"\n  EKF horizontal error outside the swap (and 5 s after): p99 "
+                     f"{'-' if o['p99'] is None else format(o['p99'], '.1f')} mm; failsafe / lane switch messages "
+                     f"during it: {v.get('failsafe_during_swap') or 'none'}")
         lines += ["  " + x for x in text.splitlines()]
     sw = s.get("swap")
     if sw is not None:
