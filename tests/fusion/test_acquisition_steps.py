@@ -139,21 +139,16 @@ def test_a_parked_fleet_s_first_acquisition_goes_on_over_fusions_and_finds_every
             assert np.linalg.norm(s.position - true_p[0]) < 0.003
 
 
-def test_bodies_that_move_during_the_steps_are_acquired_again_from_the_newest_frames():
+def test_bodies_that_move_during_the_steps_are_acquired_again_from_the_newest_frames(two_of_a_kind):
     """Two quads of one layout in the thesis arena, one parked and one on a fast figure-eight, and acquisition
     cut into the smallest steps: the parked one is started from the steps' frames, the moving one is refused
     ("it moved ...") and found by the next acquisition, at once (as every later one), from the newest; no pose is
     ever output from frames the body had left: its outputs are as close to the truth as an acquisition at once's."""
-    from visionpos.config.arena import load_yaml, parse_arena, resolve_config_path
-    from visionpos.sim import parse_sim, simulate
+    from visionpos.sim import simulate
 
-    data = load_yaml(resolve_config_path("thesis"))
-    quad = data["bodies"][0]
-    data["bodies"] = [dict(quad, name="parked", id=1), dict(quad, name="flying", id=2)]
-    data["sim"].update(duration=0.8, session="pair", sessions={"pair": {
-        "flying": {"trajectory": "figure8", "center": [0.3, 0.0, 0.9], "size": [0.8, 0.5], "period": 2.0},
-        "parked": {"trajectory": "static", "position": [-0.4, 0.2, 0.0]}}})
-    sc = parse_sim(parse_arena(data, "<two of a kind>"))
+    sc = two_of_a_kind({"flying": {"trajectory": "figure8", "center": [0.3, 0.0, 0.9], "size": [0.8, 0.5],
+                                   "period": 2.0},
+                        "parked": {"trajectory": "static", "position": [-0.4, 0.2, 0.0]}}, 0.8, ["parked", "flying"])
     frames = sorted(simulate(sc).frames, key=lambda f: (f.recv_ns, f.camera_id))
     worst, said = {}, {}
     moved = "it moved while acquisition ran over several frames: acquired again from the newest"
@@ -182,20 +177,14 @@ def test_bodies_that_move_during_the_steps_are_acquired_again_from_the_newest_fr
     assert worst[0.001]["parked"] < 0.003
 
 
-def test_a_body_tracked_before_is_acquired_again_at_once():
+def test_a_body_tracked_before_is_acquired_again_at_once(two_of_a_kind):
     """Two quads parked in the thesis arena, acquisition cut into the smallest steps: their first acquisition
     goes on in steps; after 0.3 s without frames (one or both lost) they are found again in one step (a body lost
     after it was tracked is taken to fly)."""
-    from visionpos.config.arena import load_yaml, parse_arena, resolve_config_path
-    from visionpos.sim import parse_sim, simulate
+    from visionpos.sim import simulate
 
-    data = load_yaml(resolve_config_path("thesis"))
-    quad = data["bodies"][0]
-    data["bodies"] = [dict(quad, name="a", id=1), dict(quad, name="b", id=2)]
-    data["sim"].update(duration=1.0, session="pair", sessions={"pair": {
-        "a": {"trajectory": "static", "position": [0.3, 0.0, 0.0]},
-        "b": {"trajectory": "static", "position": [-0.4, 0.2, 0.0]}}})
-    sc = parse_sim(parse_arena(data, "<two parked>"))
+    sc = two_of_a_kind({"a": {"trajectory": "static", "position": [0.3, 0.0, 0.0]},
+                        "b": {"trajectory": "static", "position": [-0.4, 0.2, 0.0]}}, 1.0)
     frames = sorted(simulate(sc).frames, key=lambda f: (f.recv_ns, f.camera_id))
     cut0, cut1 = frames[0].capture_ns + 400_000_000, frames[0].capture_ns + 700_000_000
     pipe = FusionPipeline(sc.arena, {"acquire_step_ms": 0.001})

@@ -133,20 +133,15 @@ def test_two_tracks_of_one_layout_within_the_swap_distance_are_both_unresolved()
     assert book3.state[0] is IdentityState.AMBIGUOUS
 
 
-def test_pipeline_tracks_two_copies_of_a_layout_and_says_how_it_knows():
+def test_pipeline_tracks_two_copies_of_a_layout_and_says_how_it_knows(two_of_a_kind):
     """End to end (thesis arena): two quads with the same layout parked 0.6 m apart along x, the second then
     flying a figure-eight; both tracked under the names of the parking order, unresolved until bound."""
-    from visionpos.config.arena import load_yaml, parse_arena, resolve_config_path
     from visionpos.fusion.pipeline import FusionPipeline
-    from visionpos.sim import parse_sim, simulate
+    from visionpos.sim import simulate
 
-    data = load_yaml(resolve_config_path("thesis"))
-    quad = data["bodies"][0]
-    data["bodies"] = [dict(quad, name="left", id=1), dict(quad, name="right", id=2)]
-    data["sim"].update(duration=1.0, session="pair", sessions={"pair": {
-        "right": {"trajectory": "figure8", "center": [0.3, 0.0, 0.9], "size": [0.4, 0.3], "period": 3.0},
-        "left": {"trajectory": "static", "position": [-0.3, 0.0, 0.0]}}})
-    sc = parse_sim(parse_arena(data, "<two of a kind>"))
+    sc = two_of_a_kind({"left": {"trajectory": "static", "position": [-0.3, 0.0, 0.0]},
+                        "right": {"trajectory": "figure8", "center": [0.3, 0.0, 0.9], "size": [0.4, 0.3],
+                                  "period": 3.0}}, 1.0)
     sim = simulate(sc)
     pipe = FusionPipeline(sc.arena)
     for f in sorted(sim.frames, key=lambda f: (f.recv_ns, f.camera_id)):

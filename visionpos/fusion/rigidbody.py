@@ -128,16 +128,9 @@ def _hypotheses(
     return out
 
 
-def identify(
-    points: np.ndarray,
-    models: list[BodyModel],
-    tolerance: float = 0.008,
-    min_markers: int = 3,
-    only: list[int] | None = None,
-    ambiguous: set[int] | None = None,
-) -> list[Identification]:
-    """Find bodies among unlabeled points by their marker geometry: identify_steps run at once."""
-    return finish(identify_steps(points, models, tolerance, min_markers, only, ambiguous))
+def identify(*args, **kwargs) -> list[Identification]:
+    """Find bodies among unlabeled points by their marker geometry: identify_steps (the same arguments) at once."""
+    return finish(identify_steps(*args, **kwargs))
 
 
 def identify_steps(
