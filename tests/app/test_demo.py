@@ -145,3 +145,15 @@ def test_set_vehicles_applies_to_the_vehicles_the_demo_makes():
     assert [v.message for v in vehicles] == ["odometry"]
     assert vehicles[0].endpoint.kind == "udpin" and vehicles[0].endpoint.host == "127.0.0.1"
     assert [v.message for v in parse_vehicles(demo_arena("thesis", 10.0, None, []))] == ["vision_position_estimate"]
+
+
+def test_the_demo_signs_each_vehicle_s_link_with_its_own_key():
+    """A key per vehicle (docs/autopilot-setup.md, Endpoints): a pose that a crossed link carries to another
+    drone fails that autopilot's signature check."""
+    from bridge.config import parse_vehicles
+    from visionpos.app.demo import demo_arena
+
+    vehicles = parse_vehicles(demo_arena("pair", 10.0, None, []))
+    keys = [v.signing_key for v in vehicles]
+    assert len(vehicles) >= 2 and all(k is not None and len(k) == 32 for k in keys)
+    assert len(set(keys)) == len(keys)

@@ -82,13 +82,11 @@ def demo_arena(scenario: str, duration_s: float, seed: int | None, overrides: li
     arena = parse_arena(data, str(path))
     vehicles = data.get("vehicles") or [{"body": b.name, "sysid": b.id} for b in arena.bodies]
     vehicles = [dict(v) for v in vehicles]
-    key_file = None
     for v in vehicles:
         v["endpoint"] = f"udpin:127.0.0.1:{free_port()}"
         v.pop("autopilot_address", None)
-        if "signing" not in v:
-            key_file = key_file or _demo_mavlink_key_file()
-            v["signing"] = {"key_file": key_file}
+        if "signing" not in v:  # a key per vehicle: a pose over a crossed link fails the other autopilot's check
+            v["signing"] = {"key_file": _demo_mavlink_key_file()}
     data["vehicles"] = vehicles
     return parse_arena(apply_overrides(data, vehicle_sets) if vehicle_sets else data, str(path))
 
