@@ -100,3 +100,35 @@ def test_route_velocity_and_acceleration_are_the_derivatives():
     assert np.allclose(a, (r.kinematics(t + h)[1] - r.kinematics(t - h)[1]) / (2 * h), atol=1e-4)
     assert np.allclose(p[t <= 0], [0, 0, 0]) and np.allclose(p[t >= 2.5], [1.0, 2.0, 1.5])
     assert np.allclose(r.kinematics(np.array([1.0]))[0], [[1.0, 2.0, 0.5]])
+
+
+def test_laps_fly_the_crossings_again_before_the_landing():
+    """`laps: 3` on the fleet's drones (the 10-minute flight of issue 28 is 29 laps): the legs from the first
+    crossing to the return above the pads are flown three times, each lap the same path, a lap later; the
+    landing comes after the last."""
+    one = load_scenario("fleet", ["sim.duration=40"])
+    three = load_scenario("fleet", [f"sim.sessions.fleet.quad{k}.laps=3" for k in range(1, 11)]
+                          + ["sim.duration=90"])
+    t_one, p_one, _, v_one = _truth(one)
+    t_three, p_three, _, _ = _truth(three)
+    moving = np.linalg.norm(v_one, axis=2).max(axis=0) > 0.05
+    first, last = np.flatnonzero(moving)[[0, -1]]  # take-off of the first drone, landing of the last
+    # the lap: from the first drone's first sideways move to its return above its pad, read off the truth
+    sideways = np.flatnonzero(np.abs(v_one[0, :, :2]).max(axis=1) > 0.01)
+    lap = slice(sideways[0], sideways[-1] + 1)
+    n = lap.stop - lap.start
+    assert np.allclose(p_three[:, lap], p_one[:, lap], atol=1e-9)
+
+    def shift_of(k):  # where, after lap k - 1, the same path starts again (samples), searched
+        for s in range(k * n, k * (n + 200)):
+            if np.allclose(p_three[:, lap.start + s: lap.stop + s], p_one[:, lap], atol=1e-9):
+                return s
+        return None
+
+    period = shift_of(1)
+    assert period is not None and shift_of(2) == 2 * period
+    # landed later by two laps, on the same pads
+    assert np.allclose(p_three[:, -1], p_one[:, -1])
+    landed_three = np.flatnonzero(np.linalg.norm(p_three[:, 1:] - p_three[:, :-1], axis=2).max(axis=0) > 0)[-1]
+    assert landed_three > last + 2 * n
+    assert first < lap.start

@@ -42,15 +42,23 @@ LIVE_POLL_S = 0.5  # an injected swap: two drones of different cells that fly ap
 
 
 def measure(duration_s: float | None = None, scenario: str = "fleet", loss_at_s: tuple[float, ...] = (),
-            swap_at_s: float | None = None, use_accel: bool = True, swap: tuple[str, str] = SWAP) -> dict:
+            swap_at_s: float | None = None, use_accel: bool = True, swap: tuple[str, str] = SWAP,
+            laps: int = 1) -> dict:
     """The figures (module docstring). loss_at_s: scenario times at which quad3's track is taken away for LOSS_S
     (the bridge sees it untracked, then reacquired); swap_at_s: from then on the states of the SWAP bodies are
     exchanged while the identity book still says continuous (a swap the tracker did not notice); swap: which
-    two bodies."""
+    two bodies; laps: the fleet's legs flown this many times (sim/fleet.py), to the last landing unless
+    duration_s says otherwise."""
     from visionpos.benchmarks.fusion_replay import replay
     from visionpos.sim import load_scenario, simulate
+    from visionpos.sim.fleet import fleet_schedule
 
-    sc = load_scenario(scenario, [f"sim.duration={duration_s}"] if duration_s else [])
+    sets = [f"sim.duration={duration_s}"] if duration_s else []
+    if laps > 1:
+        one = load_scenario(scenario, ["sim.duration=0.1"])
+        sets = [f"sim.sessions.{one.session}.{b.name}.laps={laps}" for b in one.bodies] + (sets or [
+            f"sim.duration={fleet_schedule(len(one.bodies), laps)['landed'] + 0.5}"])
+    sc = load_scenario(scenario, sets)
     sim = simulate(sc)
     names = [b.name for b in sc.bodies]
     vehicles = [f"v{k}" for k in range(len(names))]  # vehicle k flies drone k
@@ -294,9 +302,13 @@ def _main(argv: list[str]) -> None:
             print(f"{name}: bound {out['bound_s'].get(name, 0.0):.1f} s; at the end {b.get('identity_binding')} "
                   f"({b.get('identity_reason')})")
         return
-    # python -m visionpos.benchmarks.fleet_binding [--no-accel] [--fleet20] [DURATION [SWAP_AT [LOSS_AT ...]]] (0: none)
+    # python -m visionpos.benchmarks.fleet_binding [--no-accel] [--fleet20] [--laps=N]
+    #     [DURATION [SWAP_AT [LOSS_AT ...]]] (0: none)
+    # --laps=N: the fleet's crossings flown N times (29 laps of the fleet: 10 minutes)
+    laps = next((int(f.split("=", 1)[1]) for f in flags if f.startswith("--laps=")), 1)
     out = measure(args[0] if args and args[0] else None, "fleet20" if "--fleet20" in flags else "fleet",
-                  tuple(args[2:]), args[1] if len(args) > 1 and args[1] else None, use_accel="--no-accel" not in flags)
+                  tuple(args[2:]), args[1] if len(args) > 1 and args[1] else None, use_accel="--no-accel" not in flags,
+                  laps=laps)
     print(f"poses to vehicles {out['poses']}, to the wrong vehicle {out['wrong_vehicle']}; "
           f"ambiguities {out['ambiguities']}")
     for r in out["rows"]:

@@ -16,7 +16,8 @@ the arena's origin):
      same time, so it passes the second;
   4. the whole fleet gathers in a tight grid (HUDDLE_SPACING_M) around the origin and hovers there;
   5. back above the parking spots, and landing one after the other.
-Everything is a function of (slot, count, height): the same plan for every seed.
+With `laps` > 1 the legs 2-5 are flown that many times before the landing (a long flight of crossings).
+Everything is a function of (slot, count, height, laps): the same plan for every seed.
 """
 
 from __future__ import annotations
@@ -117,24 +118,26 @@ def _waypoints(slot: int, count: int, height: float) -> dict[str, np.ndarray]:
     }
 
 
-def fleet_schedule(count: int) -> dict[str, float]:
+def fleet_schedule(count: int, laps: int = 1) -> dict[str, float]:
     """When the fleet's phases end (s from the start): 'takeoff' (the last drone at height), each leg of
-    _LEGS by name, 'landed' (the last drone on the floor)."""
+    _LEGS by name (of the last lap), 'landed' (the last drone on the floor)."""
     t = FIRST_TAKEOFF_S + TAKEOFF_STAGGER_S * (count - 1) + CLIMB_S
     out = {"takeoff": t}
-    for name, dur in _LEGS:
-        t += PAUSE_S + dur
-        out[name] = t
+    for _ in range(laps):
+        for name, dur in _LEGS:
+            t += PAUSE_S + dur
+            out[name] = t
     out["landed"] = t + PAUSE_S + TAKEOFF_STAGGER_S * (count - 1) + CLIMB_S
     return out
 
 
-def fleet_route(slot: int, count: int, height: float = 1.0, yaw_deg: float = 0.0) -> Route:
-    """The route of drone `slot` (0-based) of a fleet of `count` (module docstring), at `height` m."""
+def fleet_route(slot: int, count: int, height: float = 1.0, yaw_deg: float = 0.0, laps: int = 1) -> Route:
+    """The route of drone `slot` (0-based) of a fleet of `count` (module docstring), at `height` m, its legs
+    flown `laps` times."""
     if not 0 <= slot < count:
         raise ValueError(f"slot {slot} is not in 0..{count - 1}")
     wp = _waypoints(slot, count, height)
-    sched = fleet_schedule(count)
+    sched = fleet_schedule(count, laps)
     up_at = FIRST_TAKEOFF_S + TAKEOFF_STAGGER_S * slot
     times, points = [0.0, up_at, up_at + CLIMB_S], [wp["park"], wp["park"], wp["above_park"]]
     # hold above the parking spot until the last drone is up, then fly the legs together
@@ -142,7 +145,7 @@ def fleet_route(slot: int, count: int, height: float = 1.0, yaw_deg: float = 0.0
     if t > times[-1]:  # the last drone flies on at once
         times.append(t)
         points.append(wp["above_park"])
-    for name, dur in _LEGS:
+    for name, dur in _LEGS * laps:
         times += [t + PAUSE_S, t + PAUSE_S + dur]
         points += [points[-1], wp[name]]
         t += PAUSE_S + dur

@@ -678,7 +678,8 @@ def _fleet_from(s: Section, center: np.ndarray, rng: np.random.Generator) -> Tra
     slot = s.integer("slot", min=0, max=99)
     if slot >= count:
         raise s.error("slot", f"slot {slot} is not in 0..{count - 1} (count {count})")
-    return fleet_route(slot, count, s.number("height", 1.0, min=0.3, max=3.0), s.number("yaw_deg", 0.0))
+    return fleet_route(slot, count, s.number("height", 1.0, min=0.3, max=3.0), s.number("yaw_deg", 0.0),
+                       s.integer("laps", 1, min=1, max=1000))
 
 
 # each kind's builder and the keys it reads (beside trajectory and center)
@@ -691,5 +692,5 @@ _FROM_CONFIG: dict[str, tuple[Callable[[Section, np.ndarray, np.random.Generator
     "dash": (_dash_from, {"waypoints", "peak_speed", "max_accel", "ramp", "peak_yaw_rate_deg", "pause"}),
     "wand_wave": (_wand_wave_from, {"extent", "max_angle_deg"}),
     "static": (_static_from, {"position", "yaw_deg", "quaternion_xyzw"}),
-    "fleet": (_fleet_from, {"slot", "count", "height", "yaw_deg"}),
+    "fleet": (_fleet_from, {"slot", "count", "height", "yaw_deg", "laps"}),
 }
