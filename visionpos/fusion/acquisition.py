@@ -73,7 +73,9 @@ def _ray_pair(c1, d1, c2, d2, w0, dd, px1, px2, mid):
 # the steps' sizes: it is a budget to split the work by, never a measurement
 SEED_PAIR_NS = 25  # one pair of rays tried for a seed
 GROWTH_NS = 70  # one seed reprojected into one view and its nearest blob found
-POINT_NS = 500  # one grown seed: its copies dropped, triangulated, its worst view checked, its acceptance
+DEDUPE_NS = 100  # one grown seed compared with the others for copies
+POINT_NS = 350  # one distinct grown seed triangulated and its worst view checked
+ACCEPT_NS = 250  # one distinct grown seed through the greedy acceptance
 STEP_NS = 1_000_000  # match_unlabeled_steps yields after about this much work
 
 
@@ -144,19 +146,19 @@ def match_unlabeled_steps(xn: list[np.ndarray], R: np.ndarray, t: np.ndarray, f:
         _grow_seeds(pts, start, R, t, f, max_residual_px, idx, X0, v, min(V, v + step_views))
         yield per_view * (min(V, v + step_views) - v)
     idx = _first_of_each(idx)
-    yield S * POINT_NS * 0.2
+    yield S * DEDUPE_NS
     # triangulation and the grown outliers, a block of seeds at a time
     S = idx.shape[0]
     obs = _observations(pts, start, idx)
     X, rms, nv = np.empty((S, 3)), np.empty(S), np.empty(S, dtype=np.int64)
-    block = _units_per_step(POINT_NS * 0.7, step_ns, S)
+    block = _units_per_step(POINT_NS, step_ns, S)
     for s0 in range(0, S, block):
         s1 = min(S, s0 + block)
         X[s0:s1], rms[s0:s1], nv[s0:s1] = triangulate_irls(obs[s0:s1], R, t, f, np.zeros((0, 0, 3)), False, 2)
         _drop_grown_outliers(R, t, f, max_residual_px, idx, obs, X, rms, nv, s0, s1)
-        yield (s1 - s0) * POINT_NS * 0.7
+        yield (s1 - s0) * POINT_NS
     out = _accept_greedy(pts.shape[0], start, R, t, f, max_residual_px, idx, obs, X, rms, nv)
-    yield S * POINT_NS * 0.5
+    yield S * ACCEPT_NS
     return out
 
 
