@@ -43,7 +43,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
 from bridge.config import VehicleConfig
-from bridge.estimator_delay import DelayAdvice, advised_delay
+from bridge.estimator_delay import DelayAdvice, advised_delay, ardupilot_transfer_ms
 from bridge.imu_clock import ImuClockMap
 from bridge.imu_samples import AccelSamples
 from bridge.px4_status import ev_fusion_state
@@ -630,7 +630,9 @@ class Backchannel:
         # each pose's delay: its own stamp -> send, plus the link's share of the median (the same for all)
         link_ns = d_ns - float(np.median(sends[:, 0]))
         est = self.cfg.autopilot if self.cfg.autopilot != "auto" else self.autopilot
-        self.advice = advised_delay(est, (sends[:, 0] + link_ns) * 1e-6)
+        cfg = self.cfg
+        self.advice = advised_delay(est, (sends[:, 0] + link_ns) * 1e-6, transfer_ms=ardupilot_transfer_ms(
+            cfg.message, cfg.signing_key is not None, cfg.autopilot_baud))
         if self._delay_said is None or abs(self.delay_ms - self._delay_said) >= DELAY_RESET_MS:
             self._delay_said = self.delay_ms
             log.warning("vehicle %s: %s", self.cfg.name, self.delay_advice())

@@ -71,8 +71,12 @@ VEHICLE = section(
     Setting("message", "text", "vision_position_estimate", "MAVLink message carrying the pose", choices=MESSAGES),
     Setting("vision_speed", "boolean", False, "also send VISION_SPEED_ESTIMATE (vision_position_estimate only)"),
     Setting("rate_hz", "number", 50.0, "poses per second", min=0.1, max=400.0),
-    Setting("rate_tolerance_ms", "number", 0.1, "a pose may go out this much before its slot (capture stamps "
-            "jitter around the frame spacing); at most half a period", min=0.0),
+    Setting("rate_tolerance_ms", "number", 0.1, "a pose's state may be moved this much past its newest frame "
+            "to reach its stamp (capture times jitter by microseconds); at most half a period", min=0.0),
+    Setting("stamp_age_ms", "number", None, "each pose is stamped this long before the output tick that sends "
+            "it, so the stamp -> arrival delay the autopilot sees is steady", min=0.0, max=1000.0,
+            default_doc="auto: the 90th percentile of the newest frame's age at the first 500 ticks the body "
+            "is tracked, then kept"),
     Setting("max_age_ms", "number", 200.0, "a pose older than this is not sent", min=1.0),
     Setting("yaw_offset_deg", "number", 0.0, "compass heading of world +x (degrees clockwise from north)",
             min=-360, max=360),
@@ -124,6 +128,10 @@ VEHICLE = section(
     Setting("vision_gap_s", "number", 0.5, "no pose sent to the vehicle for this long (s) after poses went: a "
             "vision gap, said loudly (log, status line, health, STATUSTEXT to the autopilot) until a pose goes "
             "again", min=0.05, max=60.0),
+    Setting("autopilot_baud", "integer", None, "the serial speed (bit/s) of the autopilot port this link ends "
+            "on: ArduPilot moves each pose's arrival back by the time its bytes take at that speed, which the delay "
+            "advice takes off (also behind a UDP-to-serial companion; SITL applies its SERIALn_BAUD to UDP too)",
+            min=1200, max=100_000_000, default_doc="the endpoint's baud for serial:, else none known"),
     Setting("autopilot", "text", "auto", "the autopilot's estimator, for the pose message's frame and "
             "estimator_type and the delay advice: auto (from its HEARTBEAT), ardupilot or px4",
             choices=("auto", "ardupilot", "px4")),
@@ -239,6 +247,8 @@ class VehicleConfig:
     vision_speed: bool = VEHICLE["vision_speed"].field_default
     rate_hz: float = VEHICLE["rate_hz"].field_default
     rate_tolerance_ms: float = VEHICLE["rate_tolerance_ms"].field_default
+    stamp_age_ms: float | None = None  # None: automatic (bridge/stamp_grid.py)
+    autopilot_baud: int | None = None  # None: not known (the delay advice then takes no transfer time off)
     max_age_ms: float = VEHICLE["max_age_ms"].field_default
     yaw_offset_deg: float = VEHICLE["yaw_offset_deg"].field_default
     pivot_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -272,13 +282,6 @@ class VehicleConfig:
     def period_ns(self) -> int:
         """Spacing of the sent poses' stamps: 1/rate_hz."""
         return int(round(1e9 / self.rate_hz))
-
-    @property
-    def min_interval_ns(self) -> int:
-        """Capture time after the last sent stamp from which the next pose goes out: 1/rate_hz
-        less the tolerance (camera capture times jitter by microseconds around an exact
-        2-frame spacing); the pose is then stamped on the grid (vehicle_link.VehicleLink._next_stamp)."""
-        return int(round(1e9 / self.rate_hz - self.rate_tolerance_ms * 1e6))
 
 
 @dataclass(frozen=True)
@@ -369,6 +372,7 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                 vision_speed=V.read(v, "vision_speed"),
                 rate_hz=rate,
                 rate_tolerance_ms=V.read(v, "rate_tolerance_ms", max=0.5 * 1000.0 / rate),
+                stamp_age_ms=V.read(v, "stamp_age_ms"),
                 max_age_ms=V.read(v, "max_age_ms"),
                 yaw_offset_deg=V.read(v, "yaw_offset_deg"),
                 pivot_offset=tuple(float(x) for x in V.read(v, "pivot_offset")),
@@ -395,6 +399,8 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                 set_delay=V.read(v, "set_delay"),
                 vision_gap_s=V.read(v, "vision_gap_s"),
                 autopilot=V.read(v, "autopilot"),
+                autopilot_baud=(V.read(v, "autopilot_baud") if "autopilot_baud" in v.data
+                                else endpoint.baud if endpoint.kind == "serial" else None),
                 position_only=point,
                 pad=None if (pad := V.read(v, "pad")) is None else (float(pad[0]), float(pad[1])),
             )

@@ -10,6 +10,13 @@ The two estimators use the pose's stamp differently, so the same measured delays
   argument, VISO_DELAY_MS. Its smallest is taken afresh every JITTER_WINDOW (100) messages (the minimum of
   the last window replaces it), so the advice is that: the median, over consecutive windows of 100 poses in
   arrival order, of each window's smallest delay (a single early outlier moves one window, not the advice).
+  Two more terms from the source: the arrival GCS_MAVLINK takes is UARTDriver::receive_time_constraint_us,
+  the read time less the message's bytes (PAYLOAD_SIZE: its length, 12 framing bytes, 13 of signature when
+  signing) at 10 bits each at the port's baud, which SITL applies to its UDP ports as well (so the advice
+  takes that transfer time off: ardupilot_transfer_ms); and the corrected time is floored to whole ms (half
+  a ms early on average) while a pose is fused at the first EKF step (12.5 ms at a 400 Hz loop) at or after
+  its time less half of 12 ms (a quarter ms late on average): EKF3_STAMP_MS. Against SITL, before these
+  terms, the EKF wanted 0.9-3.9 ms (mean 2.2, 6 flights) less than the smallest stamp-to-arrival delay.
   The median delay over-delays every pose by (median - minimum): against SITL 16 ms instead of 7 ms put the EKF
   11-13 ms ahead of the truth (issue 31); so did a low percentile (p2) where the host's load spread the
   delays: p2 9-14 ms put the EKF 4-6 ms ahead in 3 flights, 5-8 ms 0.3-1.4 ms in 3.
@@ -52,6 +59,11 @@ EKF3_HALF_STEP_MS = 6.0  # writeExtNavData also moves each pose back by half an 
 EKF3_DEFAULT_LARGEST_DELAY_MS = 60  # EK3_HGT_DELAY's default, the largest of EKF3's delays unless one is raised
 EKF3_MAX_DELAY_MS = 250  # the delay parameters' range, and what EKF3 takes of VISO_DELAY_MS for its buffer
 EKF3_HORIZON_PARAM = "EK3_BCN_DELAY"  # used only for range beacons: it sizes the buffer and moves no sensor
+MAVLINK2_FRAMING_BYTES = 12  # MAVLINK_NUM_NON_PAYLOAD_BYTES
+MAVLINK2_SIGNATURE_BYTES = 13
+MESSAGE_PAYLOAD_BYTES = {"vision_position_estimate": 117, "odometry": 232}  # MAVLINK_MSG_ID_*_LEN
+EKF3_STAMP_MS = -0.25  # the corrected stamp floored to whole ms (-0.5) and fused at the first 12.5 ms EKF step
+# at or after it less half of 12 (+0.25): on average
 EKF2_HORIZON_MARGIN_MS = 25.0  # EKF2_DELAY_MAX over the oldest a pose gets (a sample stamped on arrival: the setting)
 
 
@@ -65,6 +77,15 @@ class DelayAdvice:
     horizon_param: str | None = None  # EK3_BCN_DELAY, EKF2_DELAY_MAX; both need a reboot
     horizon_ms: int | None = None
     horizon_why: str = ""
+
+
+def ardupilot_transfer_ms(message: str, signed: bool, baud: int | None) -> float:
+    """How far ArduPilot moves a pose's arrival back (ms): its bytes (payload, framing, signature) at 10 bits
+    each at the port's baud; 0 when the baud is not known."""
+    if not baud:
+        return 0.0
+    n = MESSAGE_PAYLOAD_BYTES[message] + MAVLINK2_FRAMING_BYTES + (MAVLINK2_SIGNATURE_BYTES if signed else 0)
+    return n * 10.0 / baud * 1e3
 
 
 def jitter_corrected_delay_ms(stamp_to_arrival_ms: np.ndarray) -> float:
@@ -102,11 +123,12 @@ def ekf3_largest_delay_for(oldest_ms: float) -> int:
 
 
 def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_timesync_converged: bool = False,
-                  ) -> DelayAdvice | None:
+                  transfer_ms: float = 0.0) -> DelayAdvice | None:
     """The delay parameter to set for `autopilot` ('ardupilot', 'px4'; any other is taken as ArduPilot, the
     estimator that reads the stamps as ArduPilot does) from the poses' stamp-to-arrival delays (N,) ms on the
     autopilot's side; None without delays. px4_timesync_converged: PX4 maps time_usec with a converged TIMESYNC
-    (its samples then carry their own instant)."""
+    (its samples then carry their own instant). transfer_ms: ArduPilot's move of each arrival back
+    (ardupilot_transfer_ms)."""
     d = np.asarray(stamp_to_arrival_ms, dtype=np.float64)
     d = d[np.isfinite(d)]
     if not len(d):
@@ -121,9 +143,10 @@ def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_ti
         return DelayAdvice("EKF2_EV_DELAY", v, "the median stamp-to-arrival delay (PX4 stamps each pose on arrival)",
                            "EKF2_DELAY_MAX", int(math.ceil(v + EKF2_HORIZON_MARGIN_MS)),
                            "EKF2_EV_DELAY plus a margin: a shorter horizon carries less IMU noise to the output")
-    v = int(round(max(0.0, jitter_corrected_delay_ms(d))))
+    v = int(round(max(0.0, jitter_corrected_delay_ms(d) - transfer_ms + EKF3_STAMP_MS)))
     why = (f"the smallest stamp-to-arrival delay (ArduPilot's jitter correction gives every pose the smallest "
-           f"delay of its last {JITTER_WINDOW} messages: the median of such minima)")
+           f"delay of its last {JITTER_WINDOW} messages: the median of such minima)"
+           + (f", less the {transfer_ms:.1f} ms its port's baud takes off each arrival" if transfer_ms else ""))
     late = float(np.percentile(d, HORIZON_PERCENTILE))
     oldest = late + EKF3_HALF_STEP_MS
     horizon = ekf3_history_param_ms(oldest, max(EKF3_DEFAULT_LARGEST_DELAY_MS, v))

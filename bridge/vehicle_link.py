@@ -57,6 +57,7 @@ from bridge.crossed_link import CrossedLink
 from bridge.estimator_delay import jitter_corrected_delay_ms
 from bridge.link_stats import LatencyRing, fmt_addr, percentiles_ms
 from bridge.signing import MAVLINK2_MAGIC, SignatureCheck, SigningClock
+from bridge.stamp_grid import StampGrid
 from bridge.transport import Link, LinkDown, make_link
 from bridge.vision_gap import GapEvent, VisionGap
 from visionpos.logutil import RateLimitedLog
@@ -77,7 +78,8 @@ COUNTERS = (
     "heartbeats",
     "origin_sent",
     "superseded",  # a newer state replaced one the sender had not taken yet
-    "rate_limited",  # no new frame since the last sent stamp's next grid point
+    "rate_limited",  # no stamp due yet: the next grid point is less than the stamp age before the tick
+    "frame_too_old",  # a stamp was due but the tick's newest frame is older than the next grid point
     "frozen",  # capture_ns not newer than the last sent: never resent
     "not_tracked",
     "dropped_stale",  # older than max_age_ms when the sender took it
@@ -150,7 +152,8 @@ class VehicleLink:
         self._slot_ns = 0
         self._busy = False
         self._last_capture: int | None = None
-        self._last_stamp: int | None = None
+        self.stamps = StampGrid(cfg.period_ns, int(cfg.rate_tolerance_ms * 1e6),
+                                None if cfg.stamp_age_ms is None else int(round(cfg.stamp_age_ms * 1e6)))
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._wake_r, self._wake_w = os.pipe()
@@ -502,13 +505,14 @@ class VehicleLink:
             c["not_tracked"] += 1
             self.not_sent_why = "the body is not tracked"
             return
+        self.stamps.observe(st.time_ns, st.capture_ns)
         last = self._last_capture
         if last is not None and st.capture_ns <= last:
             c["frozen"] += 1
             return
-        stamp = self._next_stamp(st.capture_ns)
+        stamp = self.stamps.due(st.time_ns, st.capture_ns)
         if stamp is None:
-            c["rate_limited"] += 1
+            c["rate_limited" if self.stamps.why == "rate" else "frame_too_old"] += 1
             return
         if now - st.capture_ns > self.cfg.max_age_ms * 1e6:
             c["dropped_stale"] += 1
@@ -561,7 +565,7 @@ class VehicleLink:
                     c["sent_speed"] += 1
         if ok:
             self._last_capture = st.capture_ns
-            self._last_stamp = stamp
+            self.stamps.sent(stamp, st.time_ns)
             c["sent"] += 1
             t = self.clock_ns()
             event = self.gap.on_sent(t)
@@ -572,27 +576,6 @@ class VehicleLink:
             self.lat_capture.add(t - st.capture_ns)
             self.lat_stamp.add(t - stamp)
             self.lat_bridge.add(t - offered_ns)
-
-    def _next_stamp(self, capture_ns: int) -> int | None:
-        """The time (server clock) a pose whose newest frame was captured at capture_ns is
-        sent for, or None: too soon after the last one.
-
-        Stamps follow a grid of 1/rate_hz from the last sent stamp, so the autopilot gets
-        evenly spaced poses (EKF3 drops any closer than 20 ms) wherever the captures fall
-        between output ticks: with several asynchronous cameras the newest capture moves by
-        uneven steps from tick to tick, and stamping the capture time itself then skips
-        ticks (40-50 Hz instead of 50). The pose is moved to its stamp with its velocities
-        (convert_state): back by at most one period, or forward by at most rate_tolerance_ms
-        for a capture that falls that little short of the grid point (camera clocks jitter
-        by microseconds). After a gap of a period or more the grid restarts at the capture.
-        """
-        last = self._last_stamp
-        if last is None:
-            return capture_ns
-        nxt = last + self.cfg.period_ns
-        if capture_ns - last < self.cfg.min_interval_ns:
-            return None
-        return nxt if capture_ns - nxt < self.cfg.period_ns else capture_ns
 
     def _send(self, msg) -> bool:
         self._last_write_ok = False
@@ -694,6 +677,7 @@ class VehicleLink:
             latency_stamp_ms_jitter_min=jitter_corrected_delay_ms(ls * 1e-6) if len(ls) else math.nan,
             latency_stamp_ms_p50=ls_p[0],
             latency_stamp_ms_p99=ls_p[1],
+            stamp_age_ms=(self.stamps.age_ns * 1e-6 if self.stamps.age_ns is not None else math.nan),
             latency_bridge_ms_p50=lb_p[0],
             latency_bridge_ms_p99=lb_p[1],
             latency_samples=len(lc),

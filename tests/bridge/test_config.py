@@ -31,7 +31,16 @@ def test_defaults():
     (v,) = vehicles({"body": "body2", "endpoint": "udpin:0.0.0.0:14561", "autopilot_address": "10.0.0.2:14550"})
     assert (v.name, v.sysid, v.message, v.rate_hz, v.time_base, v.timesync) == (
         "body2", 2, "vision_position_estimate", 50.0, "boot", True)
-    assert v.min_interval_ns == 19_900_000 and v.signing_key is None and v.origin is None
+    assert v.rate_tolerance_ms == 0.1 and v.stamp_age_ms is None and v.signing_key is None and v.origin is None
+    assert v.autopilot_baud is None  # a UDP link: the autopilot port's speed is not known
+
+
+def test_the_autopilot_baud_is_the_serial_endpoints_unless_given():
+    (v,) = vehicles({"body": "body2", "endpoint": "serial:/dev/ttyUSB0:57600"})
+    assert v.autopilot_baud == 57600
+    (v,) = vehicles({"body": "body2", "endpoint": "udpin:0.0.0.0:14561", "autopilot_address": "10.0.0.2:14550",
+                     "autopilot_baud": 921600, "stamp_age_ms": 12})
+    assert (v.autopilot_baud, v.stamp_age_ms) == (921600, 12.0)
 
 
 @pytest.mark.parametrize("vehicle, key, text", [

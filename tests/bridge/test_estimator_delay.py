@@ -119,3 +119,17 @@ def test_the_docs_say_how_the_horizon_is_advised():
     assert "`delay.horizon_param` and `delay.horizon_ms`" in doc
     assert "`EKF2_EV_DELAY` advised + 25 ms" in doc and ed.EKF2_HORIZON_MARGIN_MS == 25.0
     assert "sized for poses up to 40 ms + the link's delay old" in doc and preflight.EXPECTED_LATE_MS == 40.0
+
+
+def test_ardupilot_takes_the_ports_transfer_time_off_each_arrival():
+    from bridge.estimator_delay import ardupilot_transfer_ms
+
+    # 117 payload + 12 framing + 13 signature bytes, 10 bits each, at 921600 bit/s: 1420 / 921600 s
+    assert ardupilot_transfer_ms("vision_position_estimate", True, 921_600) == pytest.approx(1.5408, abs=1e-4)
+    # ODOMETRY, unsigned, on a 57600 radio: 244 bytes -> 42.36 ms
+    assert ardupilot_transfer_ms("odometry", False, 57_600) == pytest.approx(42.361, abs=1e-3)
+    assert ardupilot_transfer_ms("odometry", True, None) == 0.0
+    # a steady 20 ms less 1.54 and the quarter ms of EKF3's stamp flooring and step: 18.21 -> 18
+    a = advised_delay("ardupilot", np.full(300, 20.0), transfer_ms=1.5408)
+    assert a.value_ms == 18 and "baud" in a.why
+    assert advised_delay("px4", np.full(300, 20.0), transfer_ms=1.5408).value_ms == 20  # EKF2: no such move

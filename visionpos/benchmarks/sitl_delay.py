@@ -25,7 +25,8 @@ and TIMESYNC). "Poses behind SITL's truth" (the poses' rates against SIM_STATE's
 shown for diagnosis.
 
 Also per D: VISO_DELAY_MS as the flight set it (the back-channel's advice: the smallest stamp-to-arrival delay of
-the first 100 poses, as ArduPilot's jitter correction takes it, plus the relay; EKF3's IMU history sized at boot
+the newest 200 poses once the bridge's stamp age has settled, as ArduPilot's jitter correction takes it, plus
+the relay's measured hold, less SITL's transfer time at SERIAL1_BAUD; EKF3's IMU history sized at boot
 for the relay, bridge/estimator_delay.py), how far the EKF runs ahead of the truth with it
 (visionpos.app.sitl.report.ekf_lead_ms: the time shift fitted on the square's legs; goal within 2 ms), the EKF's
 horizontal error p99 against SITL's truth, whether the flight completed, and the real-time fractions of `sitl`
@@ -73,6 +74,9 @@ def run(quick: bool = False) -> BenchResult:
             f"sitl_delay_frames_not_fused_fraction_{tag}": s["real_time"]["frames_not_fused_fraction"],
         }
         res.metrics.update({k: float(v) for k, v in m.items() if v is not None})
+        if s.get("stamp_age_ms"):
+            res.notes.append(f"D = {d:g} ms: the bridge's stamp age when VISO_DELAY_MS was set, and at landing: "
+                             + ", ".join("-" if a is None else f"{a:.2f} ms" for a in s["stamp_age_ms"]))
         if s.get("error"):
             res.notes.append(f"D = {d:g} ms: flight failed: {s['error']}")
         if s["real_time"]["frames_late_fraction"] > 0.02 or s["real_time"]["frames_not_fused_fraction"] > 0.05:

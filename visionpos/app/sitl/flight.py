@@ -12,7 +12,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from bridge.estimator_delay import advised_delay
+from bridge.estimator_delay import advised_delay, ardupilot_transfer_ms
 from visionpos.app.sitl.delay import delay_record, fmt_ms
 from visionpos.app.sitl.gcs import (
     COPTER_MODES,
@@ -22,6 +22,7 @@ from visionpos.app.sitl.gcs import (
     MAV_CMD_NAV_TAKEOFF,
     Gcs,
 )
+from visionpos.app.sitl.preflight import SERIAL1_BAUD_BPS
 from visionpos.app.sitl.settings import SitlError, SitlSettings
 from visionpos.app.sitl.truth import LATE_NS, LiveArena, truth_now, until_settled
 from visionpos.geometry.frames import ned_to_world
@@ -56,8 +57,9 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
     record["extnav_ns"] = time.monotonic_ns()
     link = ctx.bridge.vehicle(body)
     if cfg.viso_delay_ms is None:
-        await set_advised_delay(gcs, link, plan, say)
+        await set_advised_delay(gcs, link, plan, say, relay)
     record["viso_delay_ms"] = gcs.params.get("VISO_DELAY_MS")
+    record["stamp_age_ms"] = [_stamp_age_ms(link)]  # the bridge's stamp age when the delay was set, then landed
     await arm_in_guided(gcs, live, left())
     record["armed_ns"] = time.monotonic_ns()
     say("armed in GUIDED")
@@ -92,6 +94,7 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
             say(f"  corner N {dx:+.1f} E {dy:+.1f} m reached")
             await asyncio.sleep(1.0)
     record["land_ns"] = time.monotonic_ns()
+    record["stamp_age_ms"].append(_stamp_age_ms(link))
     await gcs.command_async(MAV_CMD_DO_SET_MODE, 1, COPTER_MODES["LAND"], what="LAND mode")
     await Gcs.until(lambda: not gcs.armed, min(40.0, left()), "landing and disarm")
     record["disarmed_ns"] = time.monotonic_ns()
@@ -99,19 +102,36 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
     say("landed and disarmed")
 
 
+def _stamp_age_ms(link: Any) -> float | None:
+    age = link.stamps.age_ns
+    return None if age is None else age * 1e-6
+
+
 YAW_SWING_PERIOD_S = 2.0
+ADVICE_POSES = 200  # the newest poses the advice is taken from: two of ArduPilot's jitter windows
+ADVICE_HOLD_NS = 4_000_000_000  # the relay's hold: its median over this long
 
 
-async def set_advised_delay(gcs: Gcs, link: Any, plan: FlightPlan, say: Callable[[str], None]) -> None:
-    """VISO_DELAY_MS set to the bridge's advice (bridge/estimator_delay.py) from a couple of seconds of poses: each
-    pose's stamp -> arrival, its stamp -> send plus the relay's hold (loopback adds nothing)."""
-    await asyncio.sleep(2.0)
-    advice = advised_delay("ardupilot", link.lat_stamp.values() * 1e-6 + (plan.link_delay_ms or 0.0))
+async def set_advised_delay(gcs: Gcs, link: Any, plan: FlightPlan, say: Callable[[str], None],
+                            relay: Any = None) -> None:
+    """VISO_DELAY_MS set to the bridge's advice (bridge/estimator_delay.py) from the newest ADVICE_POSES poses, once
+    the bridge's stamp age has settled (bridge/stamp_grid.py) and that many went out at it: each pose's stamp ->
+    arrival, its stamp -> send plus the relay's measured hold (loopback adds nothing), less the time SITL takes
+    off each arrival for its bytes at SERIAL1_BAUD."""
+    await Gcs.until(lambda: link.stamps.settled, 30.0, "the bridge's stamp age (its first 5 s of tracking)")
+    await asyncio.sleep(ADVICE_POSES / link.cfg.rate_hz)  # poses sent at the settled age only
+    cfg = link.cfg
+    transfer = ardupilot_transfer_ms(cfg.message, cfg.signing_key is not None,
+                                     cfg.autopilot_baud or SERIAL1_BAUD_BPS)
+    recent = link.lat_stamp.values()[-ADVICE_POSES:]  # the stamp age the bridge settled on, not its first guess
+    held = relay.hold_ms_median("to_autopilot", time.monotonic_ns() - ADVICE_HOLD_NS) if relay is not None else None
+    added = held if held is not None else (plan.link_delay_ms or 0.0)  # the relay's hold as measured
+    advice = advised_delay("ardupilot", recent * 1e-6 + added, transfer_ms=transfer)
     delay_ms = advice.value_ms if advice is not None else 10
     await gcs.set_params_async({"VISO_DELAY_MS": delay_ms})
     say(f"EKF3 uses the vision; VISO_DELAY_MS = {delay_ms}: "
         + (advice.why if advice is not None else "no pose timed yet")
-        + (f", with the relay's {plan.link_delay_ms:g} ms" if plan.link_delay_ms else ""))
+        + (f", with the relay's {added:.2f} ms" if plan.link_delay_ms else ""))
     if advice is not None and advice.horizon_param is not None:
         booted = gcs.params.get(advice.horizon_param)
         say(f"  the poses need {advice.horizon_param}={advice.horizon_ms} ({advice.horizon_why}); SITL booted with "

@@ -56,13 +56,16 @@ def boot_history_params(link_delay_ms: float | None) -> dict[str, float]:
     return {} if need is None else {EKF3_HORIZON_PARAM: float(need)}
 
 
+SERIAL1_BAUD_BPS = 921_600  # the vision port's speed: SITL takes each pose's bytes' time at it off its arrival
+
+
 def vision_parameters(cfg: SitlSettings, message: str, vision_speed: bool,
                       link_delay_ms: float | None = None) -> dict[str, float]:
     """The vision-only parameters of docs/autopilot-setup.md (GPS and compass off, external nav on),
     VISO_DELAY_MS for the boot (boot_viso_delay_ms) and EKF3's history (boot_history_params)."""
     vel = 6.0 if (message == "odometry" or vision_speed) else 0.0
     return {
-        "VISO_TYPE": 1, "SERIAL1_PROTOCOL": 2, "SERIAL1_BAUD": 921,
+        "VISO_TYPE": 1, "SERIAL1_PROTOCOL": 2, "SERIAL1_BAUD": SERIAL1_BAUD_BPS // 1000,
         "EK3_SRC1_POSXY": 6, "EK3_SRC1_POSZ": 6, "EK3_SRC1_VELXY": vel, "EK3_SRC1_VELZ": vel, "EK3_SRC1_YAW": 6,
         "GPS1_TYPE": 0, "COMPASS_USE": 0, "COMPASS_USE2": 0, "COMPASS_USE3": 0, "COMPASS_ENABLE": 0,
         "VISO_DELAY_MS": boot_viso_delay_ms(cfg, link_delay_ms), **boot_history_params(link_delay_ms),

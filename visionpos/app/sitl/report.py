@@ -88,7 +88,7 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
     a = record.get("armed_ns")
     b = record.get("disarmed_ns") or time.monotonic_ns()
     out: dict[str, Any] = {"completed": bool(record.get("completed")), "error": record.get("error"), "wall_s": wall_s,
-                           "viso_delay_ms": record.get("viso_delay_ms")}
+                           "viso_delay_ms": record.get("viso_delay_ms"), "stamp_age_ms": record.get("stamp_age_ms")}
     if a is not None:
         loc = np.array([r for r in gcs.local if a <= r[0] <= b], dtype=float).reshape(-1, 4)
         if len(loc):
