@@ -73,6 +73,20 @@ class StampGrid:
         elif self._n_ages % AGE_EVERY == 0:
             self.age_ns = int(np.percentile(self._ages[: self._n_ages], AGE_PERCENTILE))
 
+    def due_on_captures(self, capture_ns: int) -> int | None:
+        """The stamp for PX4 (EKF2, stamping on arrival without a converged TIMESYNC): the grid follows the
+        captures, a pose going out once a frame reached the next grid point (less forward_ns), stamped there
+        (or at its capture after a gap of a period): the stamping before the steady age, which PX4 SIH flew
+        closer to the truth with (docs/autopilot-setup.md, Rate)."""
+        if self.last_ns is None:
+            return int(capture_ns)
+        first = self.last_ns + self.period_ns
+        if capture_ns < first - self.forward_ns:
+            self.why = "rate"
+            return None
+        self._frame_limited = True  # no tick phase to judge
+        return first if capture_ns - first < self.period_ns else int(capture_ns)
+
     def due(self, tick_ns: int, capture_ns: int) -> int | None:
         """The stamp the state of the tick at tick_ns (its newest frame captured at capture_ns) goes out for:
         the latest grid point at least the age before the tick and at most forward_ns after the frame; None

@@ -510,7 +510,8 @@ class VehicleLink:
         if last is not None and st.capture_ns <= last:
             c["frozen"] += 1
             return
-        stamp = self.stamps.due(st.time_ns, st.capture_ns)
+        stamp = (self.stamps.due_on_captures(st.capture_ns) if self.estimator() == "px4"
+                 else self.stamps.due(st.time_ns, st.capture_ns))
         if stamp is None:
             c["rate_limited" if self.stamps.why == "rate" else "frame_too_old"] += 1
             return

@@ -111,3 +111,18 @@ def test_the_docs_say_how_the_stamp_age_is_chosen():
     assert "after 25 poses that all went out more than 1 ms after their due time, one step is longer by that less " \
            "0.5 ms" in text
     assert (g.PHASES_KEPT, g.SLACK_MAX_NS, g.SLACK_KEPT_NS) == (25, 1 * MS, MS // 2)
+
+
+def test_for_px4_the_grid_follows_the_captures():
+    # the newest capture at 100 Hz ticks moving by 6 and 14 ms in turn: stamps 20 ms apart from the first
+    # capture, one per frame that reached the next grid point (less 0.1 ms), and after a gap the capture itself
+    grid = StampGrid(PERIOD, 100_000)
+    caps = [k * 10 * MS - (4 * MS if k % 2 else 0) for k in range(20)] + [300 * MS, 310 * MS, 320 * MS]
+    sent = []
+    for c in caps:
+        s = grid.due_on_captures(c)
+        if s is not None:
+            grid.sent(s, c)
+            sent.append(s)
+    # captures 0, 6, 20, 26, 40, ...: 20 reaches 20, 40 reaches 40, ...; 300 is a period past 200: itself
+    assert sent == [20 * MS * i for i in range(10)] + [300 * MS, 320 * MS]
