@@ -1,9 +1,9 @@
 """Where each pose sent to an autopilot is stamped: on an even grid, a steady age behind the tick that sends it.
 
-Both estimators want the stamp -> arrival delay steady, not just small:
-- ArduPilot maps every stamp with the smallest stamp -> arrival delay of its last 100 poses (JitterCorrection,
-  bridge/estimator_delay.py), so a delay that wanders moves EKF3's time alignment with that smallest one;
-- PX4, its TIMESYNC not converged, stamps each pose on arrival, so each pose's own delay is its timing error.
+ArduPilot maps every stamp with the smallest stamp -> arrival delay of its last 100 poses (JitterCorrection,
+bridge/estimator_delay.py), so a delay that wanders moves EKF3's time alignment with that smallest one: it wants
+the delay steady, not just small. (PX4's links keep the captures' grid, due_on_captures: against PX4 SIH the
+steady age did worse, for a reason not found.)
 
 Stamped on the captures' grid (a pose going out at the first tick whose newest frame reached the next grid point)
 the delay at send was 5 to 25 ms: where a grid point falls between the 100 Hz ticks, and how old the newest frame
