@@ -49,6 +49,9 @@ import dataclasses
 import math
 
 import numpy as np
+from pymavlink.dialects.v20 import common as mavlink2
+
+from bridge.signing import SIGNATURE_BLOCK_LEN
 
 JITTER_WINDOW = 100  # JitterCorrection's convergence_loops (libraries/AP_RTC/JitterCorrection.h default)
 PX4_PERCENTILE = 50.0
@@ -59,9 +62,10 @@ EKF3_HALF_STEP_MS = 6.0  # writeExtNavData also moves each pose back by half an 
 EKF3_DEFAULT_LARGEST_DELAY_MS = 60  # EK3_HGT_DELAY's default, the largest of EKF3's delays unless one is raised
 EKF3_MAX_DELAY_MS = 250  # the delay parameters' range, and what EKF3 takes of VISO_DELAY_MS for its buffer
 EKF3_HORIZON_PARAM = "EK3_BCN_DELAY"  # used only for range beacons: it sizes the buffer and moves no sensor
-MAVLINK2_FRAMING_BYTES = 12  # MAVLINK_NUM_NON_PAYLOAD_BYTES
-MAVLINK2_SIGNATURE_BYTES = 13
-MESSAGE_PAYLOAD_BYTES = {"vision_position_estimate": 117, "odometry": 232}  # MAVLINK_MSG_ID_*_LEN
+MAVLINK2_FRAMING_BYTES = mavlink2.HEADER_LEN_V2 + 2  # MAVLINK_NUM_NON_PAYLOAD_BYTES: header and checksum
+# MAVLINK_MSG_ID_*_LEN: the full payload, as PAYLOAD_SIZE counts it (MAVLink2's trailing-zero cut left aside)
+MESSAGE_PAYLOAD_BYTES = {"vision_position_estimate": mavlink2.MAVLink_vision_position_estimate_message.unpacker.size,
+                         "odometry": mavlink2.MAVLink_odometry_message.unpacker.size}
 EKF3_STAMP_MS = -0.25  # the corrected stamp floored to whole ms (-0.5) and fused at the first 12.5 ms EKF step
 # at or after it less half of 12 (+0.25): on average
 EKF2_HORIZON_MARGIN_MS = 25.0  # EKF2_DELAY_MAX over the oldest a pose gets (a sample stamped on arrival: the setting)
@@ -84,7 +88,7 @@ def ardupilot_transfer_ms(message: str, signed: bool, baud: int | None) -> float
     each at the port's baud; 0 when the baud is not known."""
     if not baud:
         return 0.0
-    n = MESSAGE_PAYLOAD_BYTES[message] + MAVLINK2_FRAMING_BYTES + (MAVLINK2_SIGNATURE_BYTES if signed else 0)
+    n = MESSAGE_PAYLOAD_BYTES[message] + MAVLINK2_FRAMING_BYTES + (SIGNATURE_BLOCK_LEN if signed else 0)
     return n * 10.0 / baud * 1e3
 
 
