@@ -12,7 +12,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from bridge.estimator_delay import advised_delay, ardupilot_transfer_ms
+from bridge.estimator_delay import JITTER_WINDOW, advised_delay, ardupilot_transfer_ms
 from visionpos.app.sitl.delay import delay_record, fmt_ms
 from visionpos.app.sitl.gcs import (
     COPTER_MODES,
@@ -108,7 +108,7 @@ def _stamp_age_ms(link: Any) -> float | None:
 
 
 YAW_SWING_PERIOD_S = 2.0
-ADVICE_POSES = 200  # the newest poses the advice is taken from: two of ArduPilot's jitter windows
+ADVICE_POSES = 2 * JITTER_WINDOW  # the newest poses the advice is taken from: two of ArduPilot's jitter windows
 ADVICE_HOLD_NS = 4_000_000_000  # the relay's hold: its median over this long
 
 
