@@ -43,10 +43,11 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
 from bridge.config import VehicleConfig
-from bridge.estimator_delay import DelayAdvice, advised_delay, ardupilot_transfer_ms
+from bridge.estimator_delay import DelayAdvice, advice_text, advised_delay, ardupilot_transfer_ms
 from bridge.imu_clock import ImuClockMap
 from bridge.imu_samples import AccelSamples
 from bridge.px4_status import ev_fusion_state
+from bridge.px4_timesync import Px4TimesyncTracker, median_round_trip_ns, px4_link_advice
 from bridge.telemetry import IMU_MESSAGES, Ring, geodetic_offset_m, gyro_filter_lag_ns, imu_sample, sample_at
 from visionpos.analysis.autopilot import (
     body_rates_from_attitudes,
@@ -175,6 +176,7 @@ class Backchannel:
         self.delay_window_ns: tuple[int, int] | None = None  # server clock: the optical span of the last figure
         self.delay_reason = "no gyro from the autopilot yet"
         self._delays: collections.deque[float] = collections.deque(maxlen=5)
+        self.px4_timesync = Px4TimesyncTracker()  # PX4's TIMESYNC requests we answered, as PX4 would use them
         self._delay_said: float | None = None  # the delay last logged
         self._next_delay = 0
         self.gyro_filter_hz: float | None = None  # ArduPilot's INS_GYRO_FILTER, once it has answered
@@ -289,6 +291,14 @@ class Backchannel:
                                 m.param_value)
                 self.delay_param_confirmed = self._delay_param_value
 
+    def on_timesync_request(self) -> None:
+        """We answered one of the autopilot's TIMESYNC requests (bridge/px4_timesync.py)."""
+        self.px4_timesync.answered(self.timesync_rtt_ns())
+
+    def timesync_rtt_ns(self) -> float | None:
+        """The median round trip of our 20 newest TIMESYNC requests (ns); None before 3 answers."""
+        return median_round_trip_ns([r[2] for r in list(self.timesync.d)[-20:]])  # list() copies under the GIL
+
     def on_timesync_reply(self, ts1: int, tc1: int, recv_ns: int) -> bool:
         """An answer to one of our TIMESYNC requests (ts1 as we sent it); False if it is not one of ours."""
         s1 = self._ts_pending.pop(ts1, None)
@@ -331,6 +341,7 @@ class Backchannel:
             r.clear()
         self._ts_pending.clear()
         self._delays.clear()
+        self.px4_timesync.reset()
         self.clock_lag_ns = None
         self.imu_clock.reset()
         self.delay_ms = None
@@ -581,7 +592,13 @@ class Backchannel:
         return self.identity_tripped and self.cfg.identity_check == "stop"
 
     def measure_delay(self) -> float | None:
-        """Update the measured delay (ms) from the newest DELAY_WINDOW_NS of gyro and optical rate."""
+        """Update the measured delay (ms) from the newest DELAY_WINDOW_NS of gyro and optical rate (and, for PX4,
+        the advice from the link's timing alone: bridge/px4_timesync.py)."""
+        est = self.cfg.autopilot if self.cfg.autopilot != "auto" else self.autopilot
+        if est == "px4" and self.sends.n:
+            _, sends = self.sends.since(self.sends.last_t() - DELAY_WINDOW_NS)
+            self.advice = px4_link_advice(sends[:, 0], self.timesync_rtt_ns(), self.px4_timesync.converged) \
+                or self.advice
         gyro_t, gyro_v = (self.gyro.since(self.gyro.last_t() - DELAY_WINDOW_NS) if self.gyro.n
                           else (np.zeros(0, np.int64), np.zeros((0, 3))))
         if len(gyro_t) < 4 or gyro_t[-1] - gyro_t[0] < DELAY_MIN_SPAN_NS:
@@ -629,10 +646,10 @@ class Backchannel:
         self.delay_ms = d_ns * 1e-6  # each estimate spans DELAY_WINDOW_NS already; the newest follows changes
         # each pose's delay: its own stamp -> send, plus the link's share of the median (the same for all)
         link_ns = d_ns - float(np.median(sends[:, 0]))
-        est = self.cfg.autopilot if self.cfg.autopilot != "auto" else self.autopilot
         cfg = self.cfg
-        self.advice = advised_delay(est, (sends[:, 0] + link_ns) * 1e-6, transfer_ms=ardupilot_transfer_ms(
-            cfg.message, cfg.signing_key is not None, cfg.autopilot_baud))
+        if est != "px4":
+            self.advice = advised_delay(est, (sends[:, 0] + link_ns) * 1e-6, transfer_ms=ardupilot_transfer_ms(
+                cfg.message, cfg.signing_key is not None, cfg.autopilot_baud))
         if self._delay_said is None or abs(self.delay_ms - self._delay_said) >= DELAY_RESET_MS:
             self._delay_said = self.delay_ms
             log.warning("vehicle %s: %s", self.cfg.name, self.delay_advice())
@@ -738,18 +755,8 @@ class Backchannel:
         return False
 
     def delay_advice(self) -> str:
-        if self.delay_ms is None or self.advice is None:
-            return f"delay not measured ({self.delay_reason})"
-        a = self.advice
-        text = (f"measured capture->autopilot delay {self.delay_ms:.1f} ms (median): set {a.param}={a.value_ms}, "
-                f"{a.why}")
-        if a.param == "EKF2_EV_DELAY":
-            text += "; 0 once PX4's TIMESYNC has converged (timesync_status)"
-        if a.horizon_param is not None:
-            text += f"; {a.horizon_param}={a.horizon_ms}: {a.horizon_why}"
-        if self.delay_param_confirmed is not None:
-            text += " (set on the autopilot)"
-        return text
+        return advice_text(self.advice, self.delay_ms, self.delay_reason, self.cfg.answer_timesync and
+                           self.cfg.timesync, self.delay_param_confirmed is not None)
 
     def snapshot(self, now: int) -> dict:
         ekf, ekf_detail = self.ekf_state(now)

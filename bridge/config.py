@@ -86,6 +86,8 @@ VEHICLE = section(
             choices=TIME_BASES),
     Setting("heartbeat_hz", "number", 1.0, "heartbeats per second", min=0.1, max=50.0),
     Setting("timesync", "boolean", True, "estimate the autopilot's boot clock with TIMESYNC"),
+    Setting("answer_timesync", "boolean", True, "with timesync, also answer the autopilot's TIMESYNC requests "
+            "(PX4 stamps the poses with their time_usec once its estimate has converged, else on arrival)"),
     Setting("quality", "integer", 100, "ODOMETRY quality (-1 = invalid, 0..100)", min=-1, max=100),
     Setting("origin", "section", None, "set the autopilot's GPS global origin", spec=ORIGIN,
             default_doc="(not sent)"),
@@ -255,6 +257,7 @@ class VehicleConfig:
     time_base: str = VEHICLE["time_base"].field_default
     heartbeat_hz: float = VEHICLE["heartbeat_hz"].field_default
     timesync: bool = VEHICLE["timesync"].field_default
+    answer_timesync: bool = VEHICLE["answer_timesync"].field_default
     quality: int = VEHICLE["quality"].field_default
     origin: Origin | None = None
     set_home: bool = VEHICLE["set_home"].field_default
@@ -379,6 +382,7 @@ def parse_vehicles(arena: ArenaConfig) -> list[VehicleConfig]:
                 time_base=V.read(v, "time_base"),
                 heartbeat_hz=V.read(v, "heartbeat_hz"),
                 timesync=V.read(v, "timesync"),
+                answer_timesync=V.read(v, "answer_timesync"),
                 quality=V.read(v, "quality"),
                 origin=origin,
                 set_home=V.read(v, "set_home"),

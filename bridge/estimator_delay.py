@@ -163,3 +163,22 @@ def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_ti
                        f"{EKF3_HORIZON_PARAM} (used only for range beacons) sizes it: set it and reboot"
                        + ("" if ekf3_largest_delay_for(oldest) <= EKF3_MAX_DELAY_MS else
                           f"; even its largest, {EKF3_MAX_DELAY_MS} ms, is short: this link is too slow"))
+
+
+def advice_text(advice: DelayAdvice | None, measured_ms: float | None, reason: str, answers_px4_timesync: bool,
+                set_on_autopilot: bool) -> str:
+    """The advice in one line, as the log and the health say it: the measured delay (or why there is none), the
+    parameter to set and why, for PX4 what its TIMESYNC changes (answers_px4_timesync: the link answers PX4's
+    requests), the horizon where it matters."""
+    if advice is None:
+        return f"delay not measured ({reason})"
+    a = advice
+    text = (f"measured capture->autopilot delay {measured_ms:.1f} ms (median)" if measured_ms is not None
+            else f"delay not measured ({reason})") + f": set {a.param}={a.value_ms}, {a.why}"
+    if a.param == "EKF2_EV_DELAY" and a.value_ms > 0:
+        text += ("; 0 once PX4's TIMESYNC has converged (about 50 s of our answers at round trips under 10 ms; "
+                 "its timesync_status shows it)" if answers_px4_timesync else
+                 "; PX4's TIMESYNC requests are not answered on this link (answer_timesync), so it stays so")
+    if a.horizon_param is not None:
+        text += f"; {a.horizon_param}={a.horizon_ms}: {a.horizon_why}"
+    return text + (" (set on the autopilot)" if set_on_autopilot else "")

@@ -416,9 +416,10 @@ class VehicleLink:
                 c["rx_accepted"] += 1
                 if m.get_type() == "TIMESYNC":
                     if m.tc1 == 0:
-                        if self.cfg.timesync:
+                        if self.cfg.timesync and self.cfg.answer_timesync:
                             c["timesync_answered"] += 1  # before sending: the reply can arrive before we return
                             self._send(self.mav.timesync_encode(self.now_base_ns(), m.ts1))
+                            self.bc.on_timesync_request()
                     else:
                         self.bc.on_timesync_reply(m.ts1, m.tc1, now)
                     continue

@@ -340,3 +340,28 @@ def test_ekf_lead_is_the_time_shift_of_the_ekf_against_the_truth():
     for k in range(200):
         still.add(t0 + k * dt_ns, _sim_state(0.0, 0.0, 1.0, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
     assert ekf_lead_ms(t0 + np.arange(10, 190) * dt_ns, np.zeros((180, 3)), still) is None
+
+
+def test_ekf_lead_standard_error_is_nil_for_an_exact_shift_and_covers_a_wandering_error():
+    """The circle of the test above over 8 s, the 'EKF' 12 ms ahead: exact, the blocks agree (standard error
+    ~0); with an error that wanders from one second to the next (10 mm, as SIH's IMU makes EKF2's), the fit
+    moves and the standard error grows to cover it; in 2 seconds (2 blocks), none."""
+    from visionpos.app.sitl.report import ekf_lead_ms, ekf_lead_standard_error_ms
+
+    track = S.TruthTrack(HOME)
+    t0, dt_ns = 10_000_000_000, 10_000_000
+    circle = lambda t: np.array([np.cos(t), np.sin(t), -1.0])  # noqa: E731  NED, 1 m up
+    for k in range(1000):
+        t = k * dt_ns * 1e-9
+        n, e, _ = circle(t)
+        track.add(t0 + k * dt_ns, _sim_state(n, e, 1.0, (-np.sin(t), np.cos(t), 0.0), (1.0, 0.0, 0.0, 0.0)))
+    times = t0 + np.arange(100, 900) * dt_ns + 4_000_000
+    t = (times - t0) * 1e-9
+    exact = np.array([circle(x + 0.012) for x in t])
+    assert ekf_lead_standard_error_ms(times, exact, track) == pytest.approx(0.0, abs=0.1)
+    wander = np.random.default_rng(3).normal(0.0, 0.010, (9, 2))[((times - times[0]) // 1_000_000_000)]
+    noisy = exact + np.c_[wander, np.zeros(len(t))]
+    lead, _ = ekf_lead_ms(times, noisy, track)
+    se = ekf_lead_standard_error_ms(times, noisy, track)
+    assert abs(lead - 12.0) > 0.5 and se > 0.5 and abs(lead - 12.0) < 3 * se
+    assert ekf_lead_standard_error_ms(times[:200], exact[:200], track) is None  # two blocks

@@ -254,6 +254,56 @@ def test_ardupilot_delay_waits_for_its_gyro_filter():
     assert bc2.delay_ms is not None
 
 
+def _px4_link(rtt_ms, send_minus_stamp_ms):
+    """A PX4 back-channel on a simulated clock that has sent poses (send - stamp as given, cycling) and had
+    TIMESYNC answers over a link of round trip rtt_ms; no attitude or gyro at all (the vehicle never turned)."""
+    now = [0]
+    bc = Backchannel(_cfg(autopilot="px4"), lambda: now[0], mavlink2.MAVLink(None, 1, 197), lambda m: True,
+                     lambda *a: None)
+    for i in range(100):
+        t = i * 20_000_000
+        now[0] = t
+        bc.on_sent(t, t - int(send_minus_stamp_ms[i % len(send_minus_stamp_ms)] * 1e6))
+        if i % 10 == 0:
+            bc._ts_pending[t] = t  # as service() records a request it sent
+            bc.on_timesync_reply(t, 5_000_000_000 + t, t + int(rtt_ms * 1e6))
+    return bc
+
+
+def test_px4_advice_is_stamp_to_send_plus_half_the_round_trip_with_no_rotation():
+    # median send - stamp 14 ms, round trip 4 ms: PX4 stamps on arrival 14 + 2 ms after the pose's instant
+    bc = _px4_link(4.0, [10.0, 12.0, 14.0, 16.0, 18.0])
+    bc.measure_delay()
+    assert bc.delay_ms is None and bc.advice.param == "EKF2_EV_DELAY" and bc.advice.value_ms == 16
+    text = bc.delay_advice()
+    assert text.startswith("delay not measured") and "set EKF2_EV_DELAY=16" in text
+    assert "0 once PX4's TIMESYNC has converged" in text
+
+
+def test_px4_advice_is_0_once_its_timesync_has_converged_on_our_answers():
+    bc = _px4_link(4.0, [14.0])
+    for _ in range(499):  # PX4's CONVERGENCE_WINDOW is 500 round trips under 10 ms (Timesync.hpp)
+        bc.on_timesync_request()
+    bc.measure_delay()
+    assert bc.advice.value_ms == 16
+    bc.on_timesync_request()
+    bc.measure_delay()
+    assert bc.advice.value_ms == 0 and "TIMESYNC converged" in bc.advice.why
+    # a link whose round trip PX4 refuses (over 10 ms) never converges: the arrival's delay, 14 + 6 ms
+    slow = _px4_link(12.0, [14.0])
+    for _ in range(600):
+        slow.on_timesync_request()
+    slow.measure_delay()
+    assert slow.advice.value_ms == 20
+
+
+def test_px4_advice_says_when_its_timesync_requests_are_not_answered():
+    bc = _px4_link(4.0, [14.0])
+    bc.cfg = _cfg(autopilot="px4", answer_timesync=False)
+    bc.measure_delay()
+    assert "not answered on this link (answer_timesync)" in bc.delay_advice()
+
+
 def test_silent_autopilot_leaves_every_check_unknown():
     now = [0]
     bc = Backchannel(_cfg(), lambda: now[0], mavlink2.MAVLink(None, 1, 197), lambda m: True, lambda *a: None)

@@ -200,6 +200,24 @@ def test_stale_state_dropped():
         ap.close()
 
 
+def test_answer_timesync_false_leaves_the_autopilots_requests_unanswered_but_ours_still_go():
+    """PX4 stamps every pose on arrival while its TIMESYNC requests go unanswered (docs/autopilot-setup.md, 3.);
+    the back-channel's own requests, which time the link, go on."""
+    bridge, ap = start_pair(answer_timesync=False, ap_kw={"timesync_hz": 20})
+    try:
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and ap.timesync_requests_answered < 3:
+            time.sleep(0.05)
+        # ours, answered by the autopilot: over a second, in which it sent some 20 requests of its own
+        assert ap.timesync_requests_answered >= 3 and len(ap._ts_sent) >= 10
+        assert ap.report()["timesync_replies"] == 0
+        v = bridge.stats()["vehicles"]["body1"]
+        assert v["timesync_answered"] == 0 and v["timesync_rtt_ms"] is not None
+    finally:
+        bridge.close()
+        ap.close()
+
+
 def test_reset_counter_only_on_discontinuity():
     bridge, ap = start_pair()
     try:

@@ -33,6 +33,12 @@ POSCTL, AUTO, OFFBOARD = 3, 4, 6  # PX4 main modes (custom_mode = main << 16, su
 AUTO_LAND = 6  # sub mode of AUTO
 ESTIMATOR_POS_HORIZ_REL = 8
 MANUAL_HZ, GCS_HEARTBEAT_HZ, SETPOINT_HZ = 10.0, 1.0, 20.0
+# SIH's display link streams HIL_STATE_QUATERNION at 25 Hz (px4-rc.mavlink): the cameras would render the body
+# from a truth up to 40 ms old, carried forward on its velocity. SIH steps its physics at 250 Hz (sih.cpp), so the
+# truth is asked for at that rate (SET_MESSAGE_INTERVAL on the display link itself), until it comes at least at
+# TRUTH_MIN_HZ.
+TRUTH_HZ, TRUTH_MIN_HZ = 250.0, 200.0
+SIH_ACC_NOISE_M_S2, SIH_GYR_NOISE_RAD_S = 1.0, 0.1  # EKF2's IMU noise for SIH's vibrating IMU (px4_parameters)
 
 
 def is_px4_dir(p: Path) -> bool:
@@ -103,13 +109,19 @@ def px4_parameters(message: str, ev_delay_ms: float, pos_noise_m: float, yaw_noi
       unused airspeed's and GPS's delays go to 0) just past the vision's delay, and the output
       predictor's time constants at their minimum (EKF2_TAU_POS, EKF2_TAU_VEL 0.1 s): the output is the
       delayed state carried forward on the IMU, and the less of the (vibrating) IMU it carries, the closer
-      it stays to the vision (PX4 SIH hover: EKF horizontal p99 116 mm with the defaults, 31 mm with these)."""
+      it stays to the vision (PX4 SIH hover: EKF horizontal p99 116 mm with the defaults, 31 mm with these).
+    - The IMU noise EKF2 predicts with at SIH's (EKF2_ACC_NOISE 1.0 m/s^2, EKF2_GYR_NOISE 0.1 rad/s, both their
+      maxima): SIH adds 0.5/1.7/1.4 m/s^2 and 0.14/0.07/0.03 rad/s of white noise in flight (sih.cpp), where the
+      defaults (0.35, 0.015) suit a well-damped IMU. Told the IMU is better than it is, EKF2 corrects its tilt and
+      velocity too little from the vision: horizontal p99 29-32 mm with the defaults (3 flights), 21-23 mm with
+      these in 6 flights of 7, the seventh 32 mm from its 1 s vision cut (issue 31)."""
     return {
         "EKF2_EV_CTRL": 15.0 if message == "odometry" else 11.0, "EKF2_HGT_REF": 3.0, "EKF2_GPS_CTRL": 0.0,
         "SYS_HAS_GPS": 0.0, "SENS_EN_GPSSIM": 0.0, "EKF2_MAG_TYPE": 5.0, "SYS_HAS_MAG": 0.0,
         "EKF2_BARO_CTRL": 0.0, "EKF2_RNG_CTRL": 0.0, "EKF2_EV_DELAY": float(ev_delay_ms),
         "EKF2_DELAY_MAX": float(ev_delay_ms) + EKF2_HORIZON_MARGIN_MS, "EKF2_ASP_DELAY": 0.0, "EKF2_GPS_DELAY": 0.0,
         "EKF2_TAU_POS": 0.1, "EKF2_TAU_VEL": 0.1,
+        "EKF2_ACC_NOISE": SIH_ACC_NOISE_M_S2, "EKF2_GYR_NOISE": SIH_GYR_NOISE_RAD_S,
         "EKF2_EV_NOISE_MD": 0.0, "EKF2_EVP_NOISE": float(pos_noise_m), "EKF2_EVA_NOISE": float(yaw_noise_rad),
         "MAV_SYS_ID": float(sysid),
     }
@@ -122,12 +134,13 @@ def px4_env(params: dict[str, float]) -> dict[str, str]:
 
 
 def px4_ports(instance: int) -> dict[str, int]:
-    return {"gcs": 18570 + instance, "onboard": 14580 + instance, "truth": 19410 + instance}
+    return {"gcs": 18570 + instance, "onboard": 14580 + instance, "truth": 19410 + instance,
+            "display": 19450 + instance}
 
 
 def free_px4_instance() -> int:
     for i in range(1, 10):  # above 9 PX4's Onboard link sends to 14549 for every instance
-        ports = [*px4_ports(i).values(), 14540 + i, 19450 + i, 14280 + i, 13030 + i]
+        ports = [*px4_ports(i).values(), 14540 + i, 14280 + i, 13030 + i]
         if all(_udp_free(p) for p in ports):
             return i
     raise SitlError("no free PX4 SITL instance: the UDP ports of instances 1-9 are taken")
@@ -241,8 +254,34 @@ class Px4Gcs(Gcs):
         super()._handle(m, now)
 
     def request_streams(self) -> None:
-        for msg_id, rate in ((32, 50.0), (30, 50.0), (230, 2.0)):  # LOCAL_POSITION_NED, ATTITUDE, ESTIMATOR_STATUS
+        # LOCAL_POSITION_NED asked for faster than EKF2 publishes: PX4 then sends each estimate as it comes, not
+        # the newest one at 50 Hz (up to 20 ms old on arrival: the EKF would read as trailing the truth)
+        for msg_id, rate in ((32, TRUTH_HZ), (30, 50.0), (230, 2.0)):  # LOCAL_POSITION_NED, ATTITUDE, ESTIMATOR_STATUS
             self.conn.mav.command_long_send(self.target, 1, 511, 0, msg_id, 1e6 / rate, 0, 0, 0, 0, 0)
+        self._ask_truth_rate()
+
+    def _ask_truth_rate(self) -> None:
+        """HIL_STATE_QUATERNION (115) at TRUTH_HZ on the display link: the command goes to that link's own port."""
+        from pymavlink.dialects.v20 import common as mavlink2
+
+        sock, port = self._truth_sock, self.ports.get("display")
+        if sock is None or port is None or not self.target:
+            return
+        mav = mavlink2.MAVLink(None, srcSystem=255, srcComponent=190)
+        msg = mav.command_long_encode(self.target, 1, 511, 0, 115, 1e6 / TRUTH_HZ, 0, 0, 0, 0, 0)
+        try:
+            sock.sendto(msg.pack(mav), ("127.0.0.1", port))
+        except OSError:
+            pass
+
+    def truth_rate_hz(self) -> float:
+        """HIL_STATE_QUATERNION per second over the newest second of the truth (0 before two samples)."""
+        t, _ = self.truth.snapshot()
+        if len(t) < 2:
+            return 0.0
+        recent = t[t >= t[-1] - 1_000_000_000]
+        span = (recent[-1] - recent[0]) * 1e-9
+        return (len(recent) - 1) / span if span > 0 else 0.0
 
     def _keepalive(self) -> None:
         next_hb = next_manual = next_sp = 0.0
@@ -252,6 +291,8 @@ class Px4Gcs(Gcs):
                 if now >= next_hb:
                     next_hb = now + 1.0 / GCS_HEARTBEAT_HZ
                     self.conn.mav.heartbeat_send(6, 8, 0, 0, 4)  # MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, ACTIVE
+                    if self.truth_rate_hz() < TRUTH_MIN_HZ:
+                        self._ask_truth_rate()
                 if self.manual and now >= next_manual and self.target:
                     next_manual = now + 1.0 / MANUAL_HZ
                     self.conn.mav.manual_control_send(self.target, 0, 0, 500, 0, 0)  # centred: hold

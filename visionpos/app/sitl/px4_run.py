@@ -45,8 +45,8 @@ SETTLE_RADIUS_M = 0.08
 
 def px4_arena(arena: ArenaConfig, instance: int, onboard_port: int | None = None) -> ArenaConfig:
     """The arena with its first vehicle only, as PX4's instance: sysid instance+1, the Onboard link (udpout,
-    unsigned: PX4 does not sign with our key; onboard_port: a relay's in its place), `autopilot: px4`, no origin
-    (EKF2 flies the local frame)."""
+    unsigned: PX4 does not sign with our key; onboard_port: a relay's in its place), `autopilot: px4`, PX4's
+    TIMESYNC requests not answered, no origin (EKF2 flies the local frame)."""
     from visionpos.config.arena import ConfigError, parse_arena
 
     data = arena.to_dict()
@@ -57,7 +57,10 @@ def px4_arena(arena: ArenaConfig, instance: int, onboard_port: int | None = None
     for k in ("signing", "origin", "autopilot_address"):
         v.pop(k, None)
     port = onboard_port if onboard_port is not None else px4_ports(instance)["onboard"]
-    v.update(sysid=instance + 1, endpoint=f"udpout:127.0.0.1:{port}", autopilot="px4")
+    # answer_timesync off: SIH's clock runs about 1 % slow of ours and unevenly with the host's load, so PX4's
+    # TIMESYNC, converged after about 50 s, then mapped time_usec up to tens of ms off (its timesync_status, issue
+    # 31). Unanswered, PX4 stamps every pose on arrival for the whole flight, which EKF2_EV_DELAY is advised for.
+    v.update(sysid=instance + 1, endpoint=f"udpout:127.0.0.1:{port}", autopilot="px4", answer_timesync=False)
     data["vehicles"] = [v]
     return parse_arena(data, arena.source)
 

@@ -31,6 +31,7 @@ def say_to(out: TextIO | None) -> Callable[[str], None]:
 
 LEAD_MIN_SPEED_M_S = 0.1  # samples slower than this carry no timing information
 LEAD_MIN_SAMPLES = 50
+LEAD_SE_BLOCK_NS = 1_000_000_000
 YAW_LEAD_MIN_RATE_RAD_S = 0.2
 YAW_RATE_STEP_NS = 5_000_000  # the true yaw rate: central difference over twice this
 
@@ -49,6 +50,24 @@ def ekf_lead_ms(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> tup
         return None
     e, v = e[moving] - e[moving].mean(axis=0), v[moving] - v[moving].mean(axis=0)
     return float((e * v).sum() / (v * v).sum() * 1e3), n
+
+
+def ekf_lead_standard_error_ms(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack,
+                               block_ns: int = LEAD_SE_BLOCK_NS) -> float | None:
+    """The standard error (ms) of ekf_lead_ms on the same samples, by the jackknife over blocks of block_ns: the
+    EKF's error wanders over about a second (SIH's IMU), so neighbouring samples are not independent and the
+    blocks are. None with fewer than 3 blocks that hold a fit."""
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    block = (t_ns - t_ns[0]) // block_ns if len(t_ns) else t_ns
+    leads = []
+    for b in np.unique(block):
+        fit = ekf_lead_ms(t_ns[block != b], ekf_ned[block != b], truth)
+        if fit is not None:
+            leads.append(fit[0])
+    if len(leads) < 3:
+        return None
+    a = np.array(leads)
+    return float(np.sqrt((len(a) - 1) / len(a) * ((a - a.mean()) ** 2).sum()))
 
 
 def ekf_yaw_lead_ms(att: np.ndarray, truth: TruthTrack) -> tuple[float, int] | None:
@@ -95,9 +114,16 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
             p, _, _, _ = truth.sample(loc[:, 0].astype(np.int64))
             out["ekf_horizontal_error_mm"] = _pcts(horizontal_error_mm(loc, truth))
             out["ekf_vertical_error_mm"] = _pcts(np.abs(loc[:, 3] - world_to_ned(p)[:, 2]) * 1e3)
-            lead = ekf_lead_ms(loc[:, 0], loc[:, 1:4], truth)
+            # the lead is the vision's timing: fitted where the EKF has it (a cut's dead reckoning, and the second
+            # after it, left out: the drift's error follows the drift's velocity, whatever the delay)
+            seen = loc
+            if "cut" in record:
+                c0, c1, _ = record["cut"]
+                seen = loc[(loc[:, 0] < c0) | (loc[:, 0] > c1 + 1_000_000_000)]
+            lead = ekf_lead_ms(seen[:, 0], seen[:, 1:4], truth)
             if lead is not None:
                 out["ekf_lead_ms"], out["ekf_lead_samples"] = lead
+                out["ekf_lead_se_ms"] = ekf_lead_standard_error_ms(seen[:, 0], seen[:, 1:4], truth)
         att = np.array([r for r in gcs.attitude if a <= r[0] <= b], dtype=float).reshape(-1, 4)
         if len(att):
             _, _, _, rot = truth.sample(att[:, 0].astype(np.int64))
@@ -122,6 +148,10 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
             after = loc[(loc[:, 0] >= c1 + 1_000_000_000) & (loc[:, 0] <= c1 + 3_000_000_000)] if len(loc) else loc
             if len(after):
                 out["cut"]["ekf_horizontal_error_1_to_3_s_after_mm"] = _pcts(horizontal_error_mm(after, truth))
+            # the tracking alone: the cut's dead reckoning on the IMU (and the second after it) left out
+            outside = loc[(loc[:, 0] < c0) | (loc[:, 0] > c1 + 1_000_000_000)] if len(loc) else loc
+            if len(outside):
+                out["ekf_horizontal_error_outside_cut_mm"] = _pcts(horizontal_error_mm(outside, truth))
     texts = [t for _, _, t in gcs.texts]
     out["statustext"] = texts
     out["failsafe_or_lane_switch"] = [t for t in texts if any(w in t.lower() for w in FAILSAFE_WORDS)]
@@ -155,8 +185,10 @@ def format_flight(s: dict[str, Any]) -> str:
         + (f": {s['error']}" if s.get("error") else ""),
         f"  EKF position vs SITL truth (armed to disarmed): horizontal p50 {f(h.get('p50'))} mm, p99 {f(h.get('p99'))}"
         f" mm, max {f(h.get('max'))} mm; vertical p99 {f(v.get('p99'))} mm",
-        f"  EKF ahead of the truth by {f(s.get('ekf_lead_ms'))} ms (fitted on the {s.get('ekf_lead_samples') or 0} "
-        f"samples moving faster than {LEAD_MIN_SPEED_M_S:g} m/s; negative: behind)"
+        f"  EKF ahead of the truth by {f(s.get('ekf_lead_ms'))} ms"
+        + ("" if s.get("ekf_lead_se_ms") is None else f" +- {s['ekf_lead_se_ms']:.1f} (standard error)")
+        + f" (fitted on the {s.get('ekf_lead_samples') or 0} samples moving faster than {LEAD_MIN_SPEED_M_S:g} m/s"
+        f"{', the cut and its second after left out' if 'cut' in s else ''}; negative: behind)"
         + ("" if s.get("ekf_yaw_lead_ms") is None else
            f"; its reported yaw {s['ekf_yaw_lead_ms']:.1f} ms ahead of the true yaw while turning (how much sooner its "
            "telemetry arrives than the truth: the transport's share)"),
