@@ -346,7 +346,11 @@ def test_the_flight_summary_says_the_yaw_lead_and_the_measured_delay_beside_its_
             "21.06 ms") in text
     del s["ekf_yaw_lead_ms"], s["send_minus_stamp_ms_p50"]
     text = format_flight(s)
-    assert "reported yaw" not in text and "its floor" not in text
+    assert "reported yaw" not in text and "its floor" not in text and "PX4's log" not in text
+    s["px4_log"] = {"output_lead_ms": -11.46, "output_lead_se_ms": 4.57}
+    assert "PX4's log: EKF2's output -11.46 +- 4.57 ms ahead of SIH's truth (both on PX4's clock)" in format_flight(s)
+    s["px4_log"] = {"error": "pyulog is not installed"}
+    assert "PX4's log: pyulog is not installed" in format_flight(s)
     from pathlib import Path
     doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
     assert '"its reported yaw Y ms ahead of the true yaw while turning"' in doc
@@ -373,3 +377,26 @@ def test_the_flight_summary_gives_the_p99_outside_the_cut_beside_the_whole_fligh
     out = flight_summary(gcs, truth, {}, record, S.FlightPlan(cut_s=1.0), 10.0)
     assert out["ekf_horizontal_error_mm"]["p99"] == pytest.approx(100.0, abs=0.01)
     assert out["ekf_horizontal_error_outside_cut_mm"]["max"] == pytest.approx(5.0, abs=0.01)
+
+
+def test_px4_log_output_lead_is_the_shift_against_the_truth_and_leaves_a_cut_out():
+    """PX4's log on its own clock, made up here: SIH circling at 1 m/s; EKF2's output 4 ms behind the truth, and
+    0.2 m off in a 1 s vision gap (no pose fused) and the second after it (the dead reckoning), which the fit must
+    leave out."""
+    import numpy as np
+
+    from visionpos.app.sitl.px4_log import output_lead, read_px4_log
+
+    circle = lambda t: np.column_stack([np.cos(t), np.sin(t)])  # noqa: E731  N, E m
+    speed = lambda t: np.column_stack([-np.sin(t), np.cos(t)])  # noqa: E731
+    truth_t = np.arange(0, 20_000_000, 4_000)  # us: 250 Hz over 20 s
+    ev_t = np.arange(1_000_000, 19_000_000, 20_000)
+    fused = ~((ev_t > 8_000_000) & (ev_t < 9_000_000))  # the cut
+    out_t = np.arange(1_000_000, 19_000_000, 8_000)
+    out_xy = circle(out_t * 1e-6 - 0.004)
+    out_xy[(out_t > 8_000_000) & (out_t < 10_000_000), 0] += 0.2
+    got = output_lead(ev_t, fused, out_t, out_xy, truth_t, circle(truth_t * 1e-6), speed(truth_t * 1e-6))
+    assert got["output_lead_ms"] == pytest.approx(-4.0, abs=0.05)
+    # left out: from the last pose fused before the gap (8.00 s) to a second after the first one after it (9.00 s)
+    assert got["output_samples"] == len(out_t) - np.sum((out_t > 8_000_000) & (out_t < 10_000_000))
+    assert "no ULog" in read_px4_log("/nonexistent")["error"]

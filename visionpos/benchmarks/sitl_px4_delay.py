@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 
 from visionpos.benchmarks import BenchResult
+from visionpos.benchmarks.sitl_px4 import log_cell
 
 DELAYS_MS = (20.0, 50.0)
 
@@ -30,7 +31,8 @@ def run(quick: bool = False) -> BenchResult:
     res = BenchResult(notes=[f"PX4 build: {build}"])
     fmt = (lambda x, spec=".1f": "-" if x is None else format(x, spec))  # noqa: E731
     rows = ["| added link delay ms (each way) | EKF2_EV_DELAY ms | EKF ahead of truth ms (+- standard error) | "
-            "advised ms | EKF horizontal p99 mm | flight |", "|---|---|---|---|---|---|"]
+            "the same from PX4's log | advised ms | EKF horizontal p99 mm | flight |",
+            "|---|---|---|---|---|---|---|"]
     leads = []
     for d in DELAYS_MS:
         plan = FlightPlan(altitude_m=1.0, side_m=1.0, hold_s=8.0, square=True, cut_s=0.0, timeout_s=200.0,
@@ -44,7 +46,7 @@ def run(quick: bool = False) -> BenchResult:
             if s is None:
                 continue
             rows.append(f"| {d:.0f} | {fmt(s.get('viso_delay_ms'), '.0f')} | {fmt(s.get('ekf_lead_ms'))} +- "
-                        f"{fmt(s.get('ekf_lead_se_ms'))} | "
+                        f"{fmt(s.get('ekf_lead_se_ms'))} | {log_cell(s)} | "
                         f"{fmt(s.get('delay_advised_ms'), '.0f')} | "
                         f"{fmt((s.get('ekf_horizontal_error_mm') or {}).get('p99'))} | "
                         f"{'completed' if s['completed'] else 'NOT completed'} |")
@@ -61,6 +63,9 @@ def run(quick: bool = False) -> BenchResult:
         res.metrics[f"sitl_px4_delay_ekf_lead_ms_{tag}"] = float(lead) if lead is not None else math.nan
         if second.get("ekf_lead_se_ms") is not None:
             res.metrics[f"sitl_px4_delay_ekf_lead_se_ms_{tag}"] = float(second["ekf_lead_se_ms"])
+        for k in ("output_lead_ms", "output_lead_se_ms"):
+            if (second.get("px4_log") or {}).get(k) is not None:
+                res.metrics[f"sitl_px4_delay_ekf2_{k}_{tag}"] = float(second["px4_log"][k])
         res.metrics[f"sitl_px4_delay_flight_completed_{tag}"] = 1.0 if second["completed"] else 0.0
     res.metrics["sitl_px4_delay_ekf_lead_ms_abs_max"] = max(leads) if not any(math.isnan(x) for x in leads) \
         else math.nan

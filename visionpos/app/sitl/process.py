@@ -74,7 +74,11 @@ class ChildProcess:
                 proc.kill()
                 proc.wait(3.0)
         self._log.close()
+        self.before_removal()
         shutil.rmtree(self.folder, ignore_errors=True)
+
+    def before_removal(self) -> None:
+        """Read what the stopped process left in its folder (nothing here)."""
 
     def __enter__(self):
         return self

@@ -163,10 +163,17 @@ class Px4Process(ChildProcess):
     def __init__(self, build: Path, instance: int, params: dict[str, float], home: tuple[float, ...],
                  model: str = "sihsim_quadx"):
         self.instance = instance
+        self.log_timing: dict[str, Any] = {"error": "PX4 has not stopped yet"}
         env = dict(os.environ, PX4_SIM_MODEL=model, PX4_HOME_LAT=f"{home[0]:.7f}", PX4_HOME_LON=f"{home[1]:.7f}",
                    PX4_HOME_ALT=f"{home[2]:.2f}", **px4_env(params))
         self._start([str(build / "bin" / "px4"), "-i", str(instance), "-d", str(build / "etc")], "visionpos-px4-",
                     "px4.log", env)
+
+    def before_removal(self) -> None:
+        """EKF2's own timing from PX4's flight log (px4_log.py), once PX4 has stopped writing it."""
+        from visionpos.app.sitl.px4_log import read_px4_log
+
+        self.log_timing = read_px4_log(self.folder)
 
     def close(self) -> None:
         super().close()

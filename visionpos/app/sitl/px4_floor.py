@@ -121,6 +121,7 @@ def run_px4_truth_vision(arena: ArenaConfig, build: Path, plan: FlightPlan, out:
     summary["vision"] = {"poses_sent": vision.sent if vision is not None else 0, "source": "SIH's true state"}
     summary["real_time"] = {"frames_made": 0, "frames_late_fraction": 0.0, "frames_not_fused_fraction": 0.0}
     summary["delay_param"] = "EKF2_EV_DELAY"
+    summary["px4_log"] = proc.log_timing
     return summary
 
 

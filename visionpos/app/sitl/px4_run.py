@@ -113,6 +113,7 @@ def _run_px4(arena: ArenaConfig, sec: Any, build: Path, plan: FlightPlan, out: T
     summary["real_time"] = {"frames_made": live.frames_made, "frames_late_fraction": live.frames_late / made,
                             "frames_not_fused_fraction": (summary["vision"]["frames_not_fused"] or 0) / made}
     summary["delay_param"] = "EKF2_EV_DELAY"
+    summary["px4_log"] = proc.log_timing
     summary["delay_advised_ms"] = record.get("advised_ms")
     summary["delay_measured_ms"] = record.get("measured_ms")
     summary["send_minus_stamp_ms_p50"] = record.get("send_minus_stamp_ms_p50")

@@ -36,38 +36,53 @@ YAW_LEAD_MIN_RATE_RAD_S = 0.2
 YAW_RATE_STEP_NS = 5_000_000  # the true yaw rate: central difference over twice this
 
 
-def ekf_lead_ms(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> tuple[float, int] | None:
-    """How far ahead of the truth the EKF's horizontal position runs (ms; negative: behind), and the samples the
-    fit used: the shift tau with ekf(t) = truth(t + tau), fitted on e = v * tau + c (per axis, least squares)
-    over the samples moving faster than LEAD_MIN_SPEED_M_S. t_ns (T,): arrival times on the server clock, as the
-    truth's own (both cross loopback, so the transport cancels); ekf_ned (T, 3) m. None with too little motion."""
-    p, v, _, _ = truth.sample(t_ns.astype(np.int64))
-    e = (ekf_ned - world_to_ned(p))[:, :2]
-    v = world_to_ned(v)[:, :2]
-    moving = np.hypot(v[:, 0], v[:, 1]) > LEAD_MIN_SPEED_M_S
+def time_shift_fit(t_ns: np.ndarray, err: np.ndarray, vel: np.ndarray, min_speed_m_s: float = LEAD_MIN_SPEED_M_S,
+                   block_ns: int = LEAD_SE_BLOCK_NS) -> tuple[float, float | None, int] | None:
+    """The time shift tau (ms) with err = vel * tau + c, fitted by least squares over both horizontal axes on the
+    samples moving faster than min_speed_m_s; its standard error (ms) by the jackknife over blocks of block_ns (an
+    EKF's error wanders over about a second, so neighbouring samples are not independent and the blocks are;
+    None under 3 blocks); and the samples used. t_ns (T,); err, vel (T, 2) m and m/s. None under LEAD_MIN_SAMPLES
+    moving samples."""
+    t_ns, err, vel = np.asarray(t_ns, dtype=np.int64), np.asarray(err, dtype=float), np.asarray(vel, dtype=float)
+    moving = np.hypot(vel[:, 0], vel[:, 1]) > min_speed_m_s
     n = int(moving.sum())
     if n < LEAD_MIN_SAMPLES:
         return None
-    e, v = e[moving] - e[moving].mean(axis=0), v[moving] - v[moving].mean(axis=0)
-    return float((e * v).sum() / (v * v).sum() * 1e3), n
+    t, e, v = t_ns[moving], err[moving], vel[moving]
+
+    def fit(keep: np.ndarray) -> float | None:
+        if keep.sum() < LEAD_MIN_SAMPLES:
+            return None
+        ek, vk = e[keep] - e[keep].mean(axis=0), v[keep] - v[keep].mean(axis=0)
+        return float((ek * vk).sum() / (vk * vk).sum() * 1e3)
+
+    block = (t - t[0]) // block_ns
+    leads = [x for b in np.unique(block) if (x := fit(block != b)) is not None]
+    se = None
+    if len(leads) >= 3:
+        a = np.array(leads)
+        se = float(np.sqrt((len(a) - 1) / len(a) * ((a - a.mean()) ** 2).sum()))
+    return fit(np.ones(n, dtype=bool)), se, n
 
 
-def ekf_lead_standard_error_ms(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack,
-                               block_ns: int = LEAD_SE_BLOCK_NS) -> float | None:
-    """The standard error (ms) of ekf_lead_ms on the same samples, by the jackknife over blocks of block_ns: the
-    EKF's error wanders over about a second (SIH's IMU), so neighbouring samples are not independent and the
-    blocks are. None with fewer than 3 blocks that hold a fit."""
-    t_ns = np.asarray(t_ns, dtype=np.int64)
-    block = (t_ns - t_ns[0]) // block_ns if len(t_ns) else t_ns
-    leads = []
-    for b in np.unique(block):
-        fit = ekf_lead_ms(t_ns[block != b], ekf_ned[block != b], truth)
-        if fit is not None:
-            leads.append(fit[0])
-    if len(leads) < 3:
-        return None
-    a = np.array(leads)
-    return float(np.sqrt((len(a) - 1) / len(a) * ((a - a.mean()) ** 2).sum()))
+def _ekf_error_and_velocity(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> tuple[np.ndarray, ...]:
+    p, v, _, _ = truth.sample(np.asarray(t_ns).astype(np.int64))
+    return (ekf_ned - world_to_ned(p))[:, :2], world_to_ned(v)[:, :2]
+
+
+def ekf_lead_ms(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> tuple[float, int] | None:
+    """How far ahead of the truth the EKF's horizontal position runs (ms; negative: behind), and the samples the
+    fit used: the shift tau with ekf(t) = truth(t + tau) (time_shift_fit). t_ns (T,): arrival times on the server
+    clock, as the truth's own (both cross loopback, so the transport cancels); ekf_ned (T, 3) m. None with too
+    little motion."""
+    fit = time_shift_fit(t_ns, *_ekf_error_and_velocity(t_ns, ekf_ned, truth))
+    return None if fit is None else (fit[0], fit[2])
+
+
+def ekf_lead_standard_error_ms(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> float | None:
+    """The standard error (ms) of ekf_lead_ms on the same samples (time_shift_fit's jackknife over 1 s blocks)."""
+    fit = time_shift_fit(t_ns, *_ekf_error_and_velocity(t_ns, ekf_ned, truth))
+    return None if fit is None else fit[1]
 
 
 def ekf_yaw_lead_ms(att: np.ndarray, truth: TruthTrack) -> tuple[float, int] | None:
@@ -206,6 +221,11 @@ def format_flight(s: dict[str, Any]) -> str:
         e = c.get("ekf_horizontal_error_1_to_3_s_after_mm") or {}
         lines.append(f"  vision cut {c['seconds']:g} s: true drift from the hold point max "
                      f"{f(c['max_drift_from_hold_mm'])} mm; EKF error 1-3 s after: p99 {f(e.get('p99'))} mm")
+    if "px4_log" in s:
+        g = s["px4_log"]
+        lines.append("  PX4's log: " + (g["error"] if "error" in g else
+                     f"EKF2's output {fmt_ms(g.get('output_lead_ms'))} +- {fmt_ms(g.get('output_lead_se_ms'))} ms "
+                     "ahead of SIH's truth (both on PX4's clock)"))
     if "link_relay" in s:
         r = s["link_relay"]
         lines.append(f"  link delay {r['added_ms']:g} ms each way (a relay; held {fmt_ms(r['hold_ms_p50'])} ms p50)"

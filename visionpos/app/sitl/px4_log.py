@@ -1,0 +1,63 @@
+"""EKF2's output against SIH's truth from PX4's own flight log (ULog), both on PX4's clock: `vehicle_local_position`
+(what PX4 flies on and sends as LOCAL_POSITION_NED) against `vehicle_local_position_groundtruth`, as
+report.ekf_lead_ms does on the host, here without the telemetry's transport in either. A check on the host's
+figure, which compares two MAVLink streams as they arrive.
+
+A vision gap (no pose fused, `estimator_aid_src_ev_pos`, for over GAP_NS: a cut) and the second after it are left
+out of the fit. EKF2's vision innovations are not used to time the vision: EKF2's state follows the vision it
+fuses, so a pose placed late moves the state with it, and the innovations against the true velocity read
+1.5-2.8 ms whether EKF2_EV_DELAY was 35 or 43 ms (issue 31). Reading the log needs pyulog (PX4's ULog parser; the
+`px4log` extra); without it, and without a log, the figure is missing and `error` says why.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from visionpos.app.sitl.report import time_shift_fit
+
+GAP_NS = 500_000_000
+AFTER_GAP_NS = 1_000_000_000
+
+
+def output_lead(ev_t_us: np.ndarray, ev_fused: np.ndarray, out_t_us: np.ndarray, out_xy: np.ndarray,
+                truth_t_us: np.ndarray, truth_xy: np.ndarray, truth_vel: np.ndarray) -> dict[str, Any]:
+    """EKF2's output lead (time_shift_fit: ms, its standard error, samples) from the log's arrays, times in us on
+    PX4's clock: the vision samples (N,) and whether each was fused (N,); the output (M,) and its NE position
+    (M, 2) m; the truth (K,), its NE position (K, 2) m and velocity (K, 2) m/s. {} with too little motion."""
+    ev_t, out_t, tt = (np.asarray(x, dtype=np.int64) * 1000 for x in (ev_t_us, out_t_us, truth_t_us))
+
+    def at(t: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.interp(t, tt, y[:, k]) for k in range(2)])
+
+    ft = ev_t[np.asarray(ev_fused, dtype=bool)]
+    keep = (out_t >= max(tt[0], ft[0] if len(ft) else tt[-1])) & (out_t <= tt[-1])
+    for a, b in zip(ft[:-1], ft[1:]):
+        if b - a > GAP_NS:
+            keep &= ~((out_t > a) & (out_t < b + AFTER_GAP_NS))
+    fit = time_shift_fit(out_t[keep], np.asarray(out_xy)[keep] - at(out_t[keep], truth_xy),
+                         at(out_t[keep], truth_vel))
+    return {} if fit is None else dict(zip(("output_lead_ms", "output_lead_se_ms", "output_samples"), fit))
+
+
+def read_px4_log(folder: str | Path) -> dict[str, Any]:
+    """output_lead from the newest ULog under a PX4 working folder (log/<date>/*.ulg), or {'error': why}."""
+    logs = sorted(Path(folder).glob("log/*/*.ulg"), key=lambda p: p.stat().st_mtime)
+    if not logs:
+        return {"error": f"no ULog under {folder}/log"}
+    try:
+        from pyulog import ULog
+    except ImportError:
+        return {"error": "pyulog is not installed (the px4log extra): PX4's log not read"}
+    names = ["estimator_aid_src_ev_pos", "vehicle_local_position", "vehicle_local_position_groundtruth"]
+    try:
+        u = ULog(str(logs[-1]), names)
+        d = {x.name: x.data for x in u.data_list if x.multi_id == 0}
+        ev, lp, gt = (d[n] for n in names)
+    except Exception as e:  # a log cut short (PX4 killed while writing) or without those topics
+        return {"error": f"{logs[-1].name}: {type(e).__name__}: {e}"}
+    return output_lead(ev["timestamp_sample"], ev["fused"], lp["timestamp_sample"], np.column_stack([lp["x"], lp["y"]]),
+                       gt["timestamp"], np.column_stack([gt["x"], gt["y"]]), np.column_stack([gt["vx"], gt["vy"]]))
