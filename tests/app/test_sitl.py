@@ -318,11 +318,9 @@ def test_yaw_lead_is_the_time_shift_of_the_reported_yaw_against_the_true_yaw():
     assert ekf_yaw_lead_ms(still, flat) is None
 
 
-def test_ekf_lead_is_the_time_shift_of_the_ekf_against_the_truth():
-    """A circle of radius 1 m at 1 rad/s (1 m/s); the 'EKF' reports the position the circle has 12 ms later, plus
-    a 3 mm offset: the fit must give +12 ms (ahead), and -12 ms for a position 12 ms old; a hover, no figure."""
-    from visionpos.app.sitl.report import ekf_lead_ms
-
+def _circle_track():
+    """SIM_STATE of a circle of radius 1 m at 1 rad/s (1 m/s), 1 m up, 10 s at 100 Hz; the 8 s of sample times
+    inside it, and the circle itself (NED m at t s)."""
     track = S.TruthTrack(HOME)
     t0, dt_ns = 10_000_000_000, 10_000_000
     circle = lambda t: np.array([np.cos(t), np.sin(t), -1.0])  # noqa: E731  NED, 1 m up
@@ -331,11 +329,20 @@ def test_ekf_lead_is_the_time_shift_of_the_ekf_against_the_truth():
         n, e, _ = circle(t)
         track.add(t0 + k * dt_ns, _sim_state(n, e, 1.0, (-np.sin(t), np.cos(t), 0.0), (1.0, 0.0, 0.0, 0.0)))
     times = t0 + np.arange(100, 900) * dt_ns + 4_000_000
-    t = (times - t0) * 1e-9
+    return track, times, (times - t0) * 1e-9, circle
+
+
+def test_ekf_lead_is_the_time_shift_of_the_ekf_against_the_truth():
+    """A circle of radius 1 m at 1 rad/s (1 m/s); the 'EKF' reports the position the circle has 12 ms later, plus
+    a 3 mm offset: the fit must give +12 ms (ahead), and -12 ms for a position 12 ms old; a hover, no figure."""
+    from visionpos.app.sitl.report import ekf_lead_ms
+
+    track, times, t, circle = _circle_track()
     for shift_s in (0.012, -0.012):
         ekf = np.array([circle(x + shift_s) for x in t]) + [0.003, -0.003, 0.0]
         lead, n = ekf_lead_ms(times, ekf, track)
         assert n == len(times) and lead == pytest.approx(shift_s * 1e3, abs=0.5)
+    t0, dt_ns = 10_000_000_000, 10_000_000
     still = S.TruthTrack(HOME)
     for k in range(200):
         still.add(t0 + k * dt_ns, _sim_state(0.0, 0.0, 1.0, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
@@ -348,15 +355,7 @@ def test_ekf_lead_standard_error_is_nil_for_an_exact_shift_and_covers_a_wanderin
     moves and the standard error grows to cover it; in 2 seconds (2 blocks), none."""
     from visionpos.app.sitl.report import ekf_lead_ms, ekf_lead_standard_error_ms
 
-    track = S.TruthTrack(HOME)
-    t0, dt_ns = 10_000_000_000, 10_000_000
-    circle = lambda t: np.array([np.cos(t), np.sin(t), -1.0])  # noqa: E731  NED, 1 m up
-    for k in range(1000):
-        t = k * dt_ns * 1e-9
-        n, e, _ = circle(t)
-        track.add(t0 + k * dt_ns, _sim_state(n, e, 1.0, (-np.sin(t), np.cos(t), 0.0), (1.0, 0.0, 0.0, 0.0)))
-    times = t0 + np.arange(100, 900) * dt_ns + 4_000_000
-    t = (times - t0) * 1e-9
+    track, times, t, circle = _circle_track()
     exact = np.array([circle(x + 0.012) for x in t])
     assert ekf_lead_standard_error_ms(times, exact, track) == pytest.approx(0.0, abs=0.1)
     wander = np.random.default_rng(3).normal(0.0, 0.010, (9, 2))[((times - times[0]) // 1_000_000_000)]
