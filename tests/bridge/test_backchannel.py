@@ -720,3 +720,13 @@ def test_imu_from_truth_reads_gravity_at_rest():
     gyro, acc = imu_from_truth(tr)
     assert gyro[0] == pytest.approx([0, 0, 0], abs=1e-9)
     assert acc[0] == pytest.approx([0, 0, -9.80665], abs=1e-9)  # FRD: specific force points up = -z
+
+
+def test_px4_link_advice_needs_10_poses_and_a_round_trip():
+    """docs/autopilot-setup.md, 3.: the PX4 advice is there once 10 poses and 3 TIMESYNC answers are in."""
+    from bridge.px4_timesync import median_round_trip_ns, px4_link_advice
+
+    assert px4_link_advice(np.full(9, 14e6), 4e6, False) is None
+    assert px4_link_advice(np.full(10, 14e6), 4e6, False).value_ms == 16
+    assert px4_link_advice(np.full(10, 14e6), None, False) is None
+    assert median_round_trip_ns([4e6, 4e6]) is None and median_round_trip_ns([3e6, 4e6, 9e6]) == 4e6
