@@ -755,8 +755,8 @@ class Backchannel:
         return False
 
     def delay_advice(self) -> str:
-        return advice_text(self.advice, self.delay_ms, self.delay_reason, self.cfg.answer_timesync and
-                           self.cfg.timesync, self.delay_param_confirmed is not None)
+        return advice_text(self.advice, self.delay_ms, self.delay_reason, self.cfg.answers_timesync,
+                           self.delay_param_confirmed is not None)
 
     def snapshot(self, now: int) -> dict:
         ekf, ekf_detail = self.ekf_state(now)

@@ -282,6 +282,11 @@ class VehicleConfig:
     pad: tuple[float, float] | None = None  # its parking pad (x, y m, world): bound there before it moves
 
     @property
+    def answers_timesync(self) -> bool:
+        """Whether the autopilot's TIMESYNC requests are answered on this link (timesync and answer_timesync)."""
+        return self.timesync and self.answer_timesync
+
+    @property
     def period_ns(self) -> int:
         """Spacing of the sent poses' stamps: 1/rate_hz."""
         return int(round(1e9 / self.rate_hz))

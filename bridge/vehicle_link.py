@@ -416,7 +416,7 @@ class VehicleLink:
                 c["rx_accepted"] += 1
                 if m.get_type() == "TIMESYNC":
                     if m.tc1 == 0:
-                        if self.cfg.timesync and self.cfg.answer_timesync:
+                        if self.cfg.answers_timesync:
                             c["timesync_answered"] += 1  # before sending: the reply can arrive before we return
                             self._send(self.mav.timesync_encode(self.now_base_ns(), m.ts1))
                             self.bc.on_timesync_request()

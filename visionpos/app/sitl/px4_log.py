@@ -17,10 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from visionpos.app.sitl.report import time_shift_fit
+from visionpos.app.sitl.report import CUT_SETTLE_NS, time_shift_fit
 
 GAP_NS = 500_000_000
-AFTER_GAP_NS = 1_000_000_000
 
 
 def output_lead(ev_t_us: np.ndarray, ev_fused: np.ndarray, out_t_us: np.ndarray, out_xy: np.ndarray,
@@ -37,7 +36,7 @@ def output_lead(ev_t_us: np.ndarray, ev_fused: np.ndarray, out_t_us: np.ndarray,
     keep = (out_t >= max(tt[0], ft[0] if len(ft) else tt[-1])) & (out_t <= tt[-1])
     for a, b in zip(ft[:-1], ft[1:]):
         if b - a > GAP_NS:
-            keep &= ~((out_t > a) & (out_t < b + AFTER_GAP_NS))
+            keep &= ~((out_t > a) & (out_t < b + CUT_SETTLE_NS))
     fit = time_shift_fit(out_t[keep], np.asarray(out_xy)[keep] - at(out_t[keep], truth_xy),
                          at(out_t[keep], truth_vel))
     return {} if fit is None else dict(zip(("output_lead_ms", "output_lead_se_ms", "output_samples"), fit))

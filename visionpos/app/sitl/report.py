@@ -32,6 +32,7 @@ def say_to(out: TextIO | None) -> Callable[[str], None]:
 LEAD_MIN_SPEED_M_S = 0.1  # samples slower than this carry no timing information
 LEAD_MIN_SAMPLES = 50
 LEAD_SE_BLOCK_NS = 1_000_000_000
+CUT_SETTLE_NS = 1_000_000_000  # after a vision cut, the EKF's pull back to the vision: left out with the cut
 YAW_LEAD_MIN_RATE_RAD_S = 0.2
 YAW_RATE_STEP_NS = 5_000_000  # the true yaw rate: central difference over twice this
 
@@ -70,19 +71,33 @@ def _ekf_error_and_velocity(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthT
     return (ekf_ned - world_to_ned(p))[:, :2], world_to_ned(v)[:, :2]
 
 
+def ekf_lead_fit(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> tuple[float, float | None, int] | None:
+    """How far ahead of the truth the EKF's horizontal position runs (ms; negative: behind), its standard error
+    and the samples the fit used: the shift tau with ekf(t) = truth(t + tau) (time_shift_fit). t_ns (T,): arrival
+    times on the server clock, as the truth's own (both cross loopback, so the transport cancels); ekf_ned (T, 3)
+    m. None with too little motion."""
+    return time_shift_fit(t_ns, *_ekf_error_and_velocity(t_ns, ekf_ned, truth))
+
+
 def ekf_lead_ms(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> tuple[float, int] | None:
-    """How far ahead of the truth the EKF's horizontal position runs (ms; negative: behind), and the samples the
-    fit used: the shift tau with ekf(t) = truth(t + tau) (time_shift_fit). t_ns (T,): arrival times on the server
-    clock, as the truth's own (both cross loopback, so the transport cancels); ekf_ned (T, 3) m. None with too
-    little motion."""
-    fit = time_shift_fit(t_ns, *_ekf_error_and_velocity(t_ns, ekf_ned, truth))
+    """ekf_lead_fit's lead (ms) and samples."""
+    fit = ekf_lead_fit(t_ns, ekf_ned, truth)
     return None if fit is None else (fit[0], fit[2])
 
 
 def ekf_lead_standard_error_ms(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> float | None:
-    """The standard error (ms) of ekf_lead_ms on the same samples (time_shift_fit's jackknife over 1 s blocks)."""
-    fit = time_shift_fit(t_ns, *_ekf_error_and_velocity(t_ns, ekf_ned, truth))
+    """ekf_lead_fit's standard error (ms): time_shift_fit's jackknife over 1 s blocks."""
+    fit = ekf_lead_fit(t_ns, ekf_ned, truth)
     return None if fit is None else fit[1]
+
+
+def outside_cut(rows: np.ndarray, record: dict[str, Any]) -> np.ndarray:
+    """The rows (T, ...; server ns in column 0) outside the flight's vision cut and the CUT_SETTLE_NS after it
+    (all of them without a cut)."""
+    if "cut" not in record or not len(rows):
+        return rows
+    c0, c1, _ = record["cut"]
+    return rows[(rows[:, 0] < c0) | (rows[:, 0] > c1 + CUT_SETTLE_NS)]
 
 
 def ekf_yaw_lead_ms(att: np.ndarray, truth: TruthTrack) -> tuple[float, int] | None:
@@ -131,14 +146,10 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
             out["ekf_vertical_error_mm"] = _pcts(np.abs(loc[:, 3] - world_to_ned(p)[:, 2]) * 1e3)
             # the lead is the vision's timing: fitted where the EKF has it (a cut's dead reckoning, and the second
             # after it, left out: the drift's error follows the drift's velocity, whatever the delay)
-            seen = loc
-            if "cut" in record:
-                c0, c1, _ = record["cut"]
-                seen = loc[(loc[:, 0] < c0) | (loc[:, 0] > c1 + 1_000_000_000)]
-            lead = ekf_lead_ms(seen[:, 0], seen[:, 1:4], truth)
+            seen = outside_cut(loc, record)
+            lead = ekf_lead_fit(seen[:, 0], seen[:, 1:4], truth)
             if lead is not None:
-                out["ekf_lead_ms"], out["ekf_lead_samples"] = lead
-                out["ekf_lead_se_ms"] = ekf_lead_standard_error_ms(seen[:, 0], seen[:, 1:4], truth)
+                out["ekf_lead_ms"], out["ekf_lead_se_ms"], out["ekf_lead_samples"] = lead
         att = np.array([r for r in gcs.attitude if a <= r[0] <= b], dtype=float).reshape(-1, 4)
         if len(att):
             _, _, _, rot = truth.sample(att[:, 0].astype(np.int64))
@@ -164,7 +175,7 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
             if len(after):
                 out["cut"]["ekf_horizontal_error_1_to_3_s_after_mm"] = _pcts(horizontal_error_mm(after, truth))
             # the tracking alone: the cut's dead reckoning on the IMU (and the second after it) left out
-            outside = loc[(loc[:, 0] < c0) | (loc[:, 0] > c1 + 1_000_000_000)] if len(loc) else loc
+            outside = outside_cut(loc, record)
             if len(outside):
                 out["ekf_horizontal_error_outside_cut_mm"] = _pcts(horizontal_error_mm(outside, truth))
     texts = [t for _, _, t in gcs.texts]
