@@ -1,5 +1,6 @@
-"""The cruise floor under the position noise (fusion.kalman.cruise_*, adaptation.adapt_noise_scales): it rises on
-a flight and stays at 1 for a still body, and the docs' word on the still body's average is what it measures."""
+"""The cruise floors under the position and the rotation noise (fusion.kalman.cruise_*,
+adaptation.adapt_noise_scales): they rise on a flight and stay at 1 for a still body, and the docs' word on the still
+body's average is what it measures."""
 
 from __future__ import annotations
 
@@ -13,8 +14,9 @@ from visionpos.fusion.settings import KALMAN
 from visionpos.sim import load_scenario, simulate
 
 
-def _cruise(sc, sim, settings=None):
-    """(the cruise floor, its NIS average) of body 0 at each output tick after the first second."""
+def _cruise(sc, sim, settings=None, floor_col=L.ADAPT_SCALE_CRUISE, nis_col=L.ADAPT_NIS_CRUISE):
+    """(a cruise floor, its NIS average) of body 0 at each output tick after the first second (default: the
+    position's)."""
     floor, nis, pipe = [], [], {}
 
     def at_frame(p):
@@ -23,8 +25,8 @@ def _cruise(sc, sim, settings=None):
     def at_tick(t_ns, states):
         if "p" in pipe and t_ns > sc.start_ns + 1_000_000_000 and states[0].tracked:
             adapt = pipe["p"].bank.adapt[0]
-            floor.append(adapt[L.ADAPT_SCALE_CRUISE])
-            nis.append(adapt[L.ADAPT_NIS_CRUISE])
+            floor.append(adapt[floor_col])
+            nis.append(adapt[nis_col])
 
     replay(sc.arena, sim.frames, settings, raw_cb=at_frame, tick_cb=at_tick)
     return np.array(floor), np.array(nis)
@@ -50,6 +52,27 @@ def test_a_still_body_keeps_the_hover_floor_and_its_average_is_about_one(still):
     text = KALMAN["cruise_nis_threshold"].doc
     assert "a still body's averages ~1.0" in text
     assert 0.9 < np.median(nis) < 1.1
+    floor_r, nis_r = _cruise(*still, {"time_alignment": "motion_compensated"}, L.ADAPT_SCALE_CRUISE_R,
+                             L.ADAPT_NIS_CRUISE_R)
+    assert floor_r.max() < 1.5 and np.median(nis_r) < 1.1  # the rotation's too
+
+
+@pytest.fixture(scope="module")
+def flicks():
+    sc = load_scenario("thesis", None, session="dash_sharp", duration=4.0, seed=1)
+    return sc, simulate(sc)
+
+
+def test_attitude_flicks_raise_the_rotation_floor_up_to_its_own_cap(flicks):
+    rot = (L.ADAPT_SCALE_CRUISE_R, L.ADAPT_NIS_CRUISE_R)
+    floor, nis = _cruise(*flicks, None, *rot)
+    assert np.median(nis) > 1.15 and floor.max() > 5.0
+    assert floor.max() <= 10.0  # cruise_max_rotation_noise_scale's default, as docs/configuration.md says
+    assert KALMAN["cruise_max_rotation_noise_scale"].default == 10.0
+    raised, _ = _cruise(*flicks, {"kalman": {"cruise_max_rotation_noise_scale": 30.0}}, *rot)
+    assert raised.max() > 10.0 + 1e-9 and raised.max() <= 30.0
+    off, _ = _cruise(*flicks, {"kalman": {"cruise_max_rotation_noise_scale": 1.0}}, *rot)
+    assert np.all(off == 1.0)
 
 
 def test_a_flight_raises_the_floor_up_to_its_cap_and_off_means_none(slalom):
@@ -77,3 +100,21 @@ def test_the_floor_moves_its_logarithm_by_the_rate_times_the_excess():
     for _ in range(100):
         adapt_noise_scales(adapt, clock, params, 10_000_000, 0.01, 0.6, 1.0, False)
     assert adapt[L.ADAPT_SCALE_CRUISE] == 1.0
+
+
+def test_the_rotation_floor_follows_the_rotation_nis_alone():
+    """The rotation's floor by hand: its average held at 1.6 moves it as the position's would, up to its own cap
+    (10), while the position's floor, fed a NIS of 1.0, stays at 1."""
+    from visionpos.fusion.settings import KALMAN_PARAMS, KalmanSettings, pack_params
+
+    params = pack_params(KALMAN_PARAMS, KalmanSettings())
+    adapt = np.ones(L.N_ADAPT)
+    adapt[L.ADAPT_NIS_CRUISE_R] = 1.6
+    clock = np.zeros(L.N_CLOCK, dtype=np.int64)
+    adapt_noise_scales(adapt, clock, params, 10_000_000, 0.01, 1.0, 1.6, False)
+    assert adapt[L.ADAPT_SCALE_CRUISE_R] == pytest.approx(np.exp(0.01 * 20.0 * 0.5), rel=1e-12)
+    assert adapt[L.ADAPT_SCALE_R] >= adapt[L.ADAPT_SCALE_CRUISE_R]
+    assert adapt[L.ADAPT_SCALE_CRUISE] == 1.0
+    for _ in range(2000):  # 20 s held high: at the cap
+        adapt_noise_scales(adapt, clock, params, 10_000_000, 0.01, 1.0, 1.6, False)
+    assert adapt[L.ADAPT_SCALE_CRUISE_R] == pytest.approx(10.0)

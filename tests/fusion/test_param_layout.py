@@ -64,9 +64,10 @@ _KALMAN_CHANGES = {
     "KALMAN_CRUISE_NIS_THRESHOLD": ({"cruise_nis_threshold": 1.3}, 1.3),
     "KALMAN_CRUISE_TAU_S": ({"cruise_time_constant_s": 0.5}, 0.5),
     "KALMAN_CRUISE_RATE": ({"cruise_rate_per_s": 5.0}, 5.0),
+    "KALMAN_CRUISE_MAX_SCALE_R": ({"cruise_max_rotation_noise_scale": 4.0}, 4.0),
 }
 _KALMAN_DEFAULT = [0.1, 1.0, 100.0, 1000.0, 0.015, 40.0, 4.0, 100.0, 36.0, 900.0, 2.0, 0.0, 1.0,
-                   100.0, 1.1, 1.0, 20.0]
+                   100.0, 1.1, 1.0, 20.0, 10.0]
 
 _FUSION_CHANGES = {
     "PARAM_MAX_RESIDUAL_PX": ({"max_residual_px": 1.5}, 1.5),

@@ -1,8 +1,8 @@
 """The process-noise adaptation of the body filter (tracking.py): the NIS-driven scales of its position and
-rotation noise, the image-space manoeuvre detector that feeds them, and the cruise floor under the position
-scale. Why each exists is in tracking.py's docstring; the settings are fusion.kalman's (fusion/settings.py).
+rotation noise, the image-space manoeuvre detector that feeds them, and the cruise floors under both
+scales. Why each exists is in tracking.py's docstring; the settings are fusion.kalman's (fusion/settings.py).
 
-adapt (8,) and clock (3,) are one body's FilterBank rows (layout.ADAPT_*, layout.CLOCK_*); params its
+adapt (10,) and clock (3,) are one body's FilterBank rows (layout.ADAPT_*, layout.CLOCK_*); params its
 packed settings (layout.KALMAN_*). Times are int64 ns on the capture clock, dt in s.
 """
 
@@ -14,16 +14,19 @@ import numpy as np
 
 from visionpos.fusion.layout import (
     ADAPT_NIS_CRUISE,
+    ADAPT_NIS_CRUISE_R,
     ADAPT_NIS_IMG,
     ADAPT_NIS_IMG_R,
     ADAPT_NIS_P,
     ADAPT_NIS_R,
     ADAPT_SCALE_CRUISE,
+    ADAPT_SCALE_CRUISE_R,
     ADAPT_SCALE_P,
     ADAPT_SCALE_R,
     CLOCK_IMG_T_NS,
     CLOCK_T_NS,
     KALMAN_CRUISE_MAX_SCALE,
+    KALMAN_CRUISE_MAX_SCALE_R,
     KALMAN_CRUISE_NIS_THRESHOLD,
     KALMAN_CRUISE_RATE,
     KALMAN_CRUISE_TAU_S,
@@ -50,6 +53,19 @@ def _adapt_scale(scale: float, nis: float, alpha: float, decay: float, smax: flo
 
 
 @njit
+def _cruise_floor(adapt: np.ndarray, nis_col: int, floor_col: int, nis: float, a_c: float, dt: float, cap: float,
+                  cruise_max: float, params: np.ndarray) -> float:
+    """One block's cruise floor after dt (s), in place (adapt[nis_col]: its slow NIS average, adapt[floor_col]:
+    the floor): the average follows nis (capped) by a_c; the floor's logarithm moves by the cruise rate x (average -
+    threshold) x dt, within [0, log cruise_max]. Returns the floor."""
+    adapt[nis_col] += a_c * (min(nis, cap) - adapt[nis_col])
+    log_floor = math.log(adapt[floor_col]) + max(dt, 0.0) * params[KALMAN_CRUISE_RATE] * (
+        adapt[nis_col] - params[KALMAN_CRUISE_NIS_THRESHOLD])
+    adapt[floor_col] = min(math.exp(max(log_floor, 0.0)), cruise_max)
+    return adapt[floor_col]
+
+
+@njit
 def adapt_noise_scales(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, dt: float,
                        nis_p: float, nis_r: float, use_image_nis: bool) -> None:
     """The NIS-driven process-noise adaptation after one update over dt (s), in place.
@@ -62,10 +78,11 @@ def adapt_noise_scales(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray,
     (CA/CV scaling laws); otherwise q decays back to its floor. use_image_nis: False for the
     single-view updates, whose own innovation is the image-space residual with the full
     predicted covariance (the detector's expected size leaves out the rotation uncertainty,
-    which matters while only 1-2 markers per view constrain it). The cruise floor
-    (fusion.kalman.cruise_*) is the slow regime under those bursts: the position NIS averaged
-    over about a second moves the logarithm of a floor under the position scale, up while the
-    average exceeds its threshold and down while it does not.
+    which matters while only 1-2 markers per view constrain it). The cruise floors
+    (fusion.kalman.cruise_*) are the slow regime under those bursts: each block's NIS averaged
+    over about a second moves the logarithm of a floor under its scale, up while the average
+    exceeds its threshold and down while it does not (the rotation's capped lower: between
+    flicks its rate, predicted on to the output ticks, must stay smooth).
     """
     cap = params[KALMAN_GATE_CHI2] / 3.0
     alpha = 1.0 - math.exp(-dt / params[KALMAN_NIS_TAU_S]) if dt > 0.0 else 0.05
@@ -80,14 +97,19 @@ def adapt_noise_scales(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray,
                                         nis_high)
     adapt[ADAPT_SCALE_R] = _adapt_scale(adapt[ADAPT_SCALE_R], max(adapt[ADAPT_NIS_R], nis_img_r), alpha, decay,
                                         max_scale, nis_high)
-    cruise_max = min(params[KALMAN_CRUISE_MAX_SCALE], max_scale)  # never above the adaptation's own cap
-    if cruise_max > 1.0:  # the cruise floor (fusion.kalman.cruise_*): the slow regime under the fast bursts
-        a_c = 1.0 - math.exp(-dt / params[KALMAN_CRUISE_TAU_S]) if dt > 0.0 else 0.0
-        adapt[ADAPT_NIS_CRUISE] += a_c * (min(max(nis_p, nis_img), cap) - adapt[ADAPT_NIS_CRUISE])
-        log_floor = math.log(adapt[ADAPT_SCALE_CRUISE]) + max(dt, 0.0) * params[KALMAN_CRUISE_RATE] * (
-            adapt[ADAPT_NIS_CRUISE] - params[KALMAN_CRUISE_NIS_THRESHOLD])
-        adapt[ADAPT_SCALE_CRUISE] = min(math.exp(max(log_floor, 0.0)), cruise_max)
-        adapt[ADAPT_SCALE_P] = max(adapt[ADAPT_SCALE_P], adapt[ADAPT_SCALE_CRUISE])
+    # the cruise floors (fusion.kalman.cruise_*): the slow regime under the fast bursts, never above the
+    # adaptation's own cap
+    a_c = 1.0 - math.exp(-dt / params[KALMAN_CRUISE_TAU_S]) if dt > 0.0 else 0.0
+    cruise_max = min(params[KALMAN_CRUISE_MAX_SCALE], max_scale)
+    if cruise_max > 1.0:
+        adapt[ADAPT_SCALE_P] = max(adapt[ADAPT_SCALE_P], _cruise_floor(adapt, ADAPT_NIS_CRUISE, ADAPT_SCALE_CRUISE,
+                                                                       max(nis_p, nis_img), a_c, dt, cap, cruise_max,
+                                                                       params))
+    cruise_max_r = min(params[KALMAN_CRUISE_MAX_SCALE_R], max_scale)
+    if cruise_max_r > 1.0:
+        adapt[ADAPT_SCALE_R] = max(adapt[ADAPT_SCALE_R], _cruise_floor(adapt, ADAPT_NIS_CRUISE_R, ADAPT_SCALE_CRUISE_R,
+                                                                       max(nis_r, nis_img_r), a_c, dt, cap,
+                                                                       cruise_max_r, params))
 
 
 @njit
@@ -101,7 +123,7 @@ def adapt_to_pose(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, dt: 
 @njit
 def report_image_nis(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, nis: float,
                      nis_rot: float) -> None:
-    """Feed one body's manoeuvre detector (adapt (8,), clock (3,): its FilterBank rows)
+    """Feed one body's manoeuvre detector (adapt (10,), clock (3,): its FilterBank rows)
     with one camera frame's prediction residual at t_ns, its translation part nis and its
     rotation part nis_rot (see BodyFilter.report_image_nis)."""
     dt = max((t_ns - clock[CLOCK_IMG_T_NS]) * 1e-9, 0.0)

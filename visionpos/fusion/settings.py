@@ -46,6 +46,12 @@ KALMAN = section(
             "it falls back to 1 while the average is below (a hover, a still or smoothly moving body). The flight "
             "then keeps its cruise noise between manoeuvres instead of lagging each onset from the hover floor. "
             "At most max_noise_scale; 1: off (docs/benchmarks.md: realistic flights)", min=1.0),
+    Setting("cruise_max_rotation_noise_scale", "number", 10.0, "the same slow regime for the rotation block: "
+            "its NIS (the fused pose's, the image residual's spread) averaged over cruise_time_constant_ms moves a "
+            "floor under the rotation scale, up to this factor (same threshold and rate). A flight of attitude "
+            "flicks then meets each onset from its cruise noise, not the hover floor; a higher cap makes the "
+            "rate predicted to the output ticks noisier between flicks. At most max_noise_scale; 1: off "
+            "(docs/benchmarks.md: realistic flights)", min=1.0),
     Setting("cruise_nis_threshold", "number", 1.1, "the averaged position NIS per degree of freedom above which "
             "the cruise floor rises (a still body's averages ~1.0)", min=0.1),
     Setting("cruise_time_constant_ms", "number", 1000.0, "averaging time of the NIS that moves the cruise floor",
@@ -254,6 +260,7 @@ KALMAN_PARAMS: tuple[Param, ...] = (
     Param("KALMAN_CRUISE_NIS_THRESHOLD", lambda k: k.cruise_nis_threshold),
     Param("KALMAN_CRUISE_TAU_S", lambda k: k.cruise_time_constant_s),
     Param("KALMAN_CRUISE_RATE", lambda k: k.cruise_rate_per_s),
+    Param("KALMAN_CRUISE_MAX_SCALE_R", lambda k: k.cruise_max_rotation_noise_scale),
 )
 
 # values of PARAM_SV_ENABLED: the single-view path off, on through occlusion, or for every frame of a

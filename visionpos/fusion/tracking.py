@@ -47,6 +47,11 @@ ticks was 1.3x its snapshot bound on the issue-29 flights): a second, slow
 regime, the cruise floor (`cruise_*`), rises under the position scale while the
 position NIS averaged over a second stays above `cruise_nis_threshold` and falls
 back while it does not, which a still or smoothly moving body's never is.
+The rotation block has its own (`cruise_max_rotation_noise_scale`, capped at 10):
+a flight of attitude flicks otherwise met each flick at the hover floor, and
+the rate predicted on to the output ticks lagged it (dash_sharp: rotation at
+the ticks 2.06x its snapshot bound, 1.73x with it); a higher cap makes that
+rate noisy between flicks (the dash's ticks got worse above about 10).
 The adaptation's kernels are in adaptation.py.
 The fused pose's NIS is computed with its covariance as the filter takes it,
 split over the fusions that share its frames (about 0.28 per dof while the
