@@ -209,3 +209,33 @@ def test_the_server_hands_its_outputs_imu_sources_to_the_pipeline():
     server = FusionServer(arena, sinks=[ImuSink()], port=0)
     server.tick(10_000_000)
     assert server.pipeline.stats()["imu"]["quad"]["samples"] == 1
+
+
+def test_the_compiled_sample_update_matches_filterpy_and_a_refused_one_changes_nothing():
+    """imu_update (a compiled kernel) against filterpy's KalmanFilter.update with H picking the acceleration and
+    rate rows and R = diag(var), on a random state; over the gate, x and P stay as they were."""
+    from filterpy.kalman import KalmanFilter
+
+    from visionpos.fusion.imu import IMU_ROWS, imu_update
+
+    rng = np.random.default_rng(7)
+    A = rng.normal(size=(18, 18))
+    P = A @ A.T * 0.01 + np.eye(18) * 1e-3
+    x = rng.normal(size=18)
+    var = np.array([0.05**2] * 3 + [0.003**2] * 3)
+    z = x[IMU_ROWS] + rng.normal(scale=0.05, size=6)
+    kf = KalmanFilter(dim_x=18, dim_z=6)
+    kf.x, kf.P, kf.R = x.copy(), P.copy(), np.diag(var)
+    kf.H = np.zeros((6, 18))
+    kf.H[np.arange(6), IMU_ROWS] = 1.0
+    kf.update(z)
+    x1, P1 = x.copy(), P.copy()
+    ok, d2 = imu_update(x1, P1, z, var, 0.0)
+    y = z - x[IMU_ROWS]
+    assert ok and d2 == pytest.approx(float(y @ np.linalg.solve(kf.S, y)), rel=1e-9)
+    assert np.allclose(x1, kf.x, rtol=1e-9, atol=1e-12)
+    assert np.allclose(P1, kf.P, rtol=1e-7, atol=1e-12)
+    x2, P2 = x.copy(), P.copy()
+    ok, d2 = imu_update(x2, P2, z + 10.0, var, 60.0)
+    assert not ok and d2 > 60.0
+    assert np.array_equal(x2, x) and np.array_equal(P2, P)

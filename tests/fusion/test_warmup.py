@@ -54,6 +54,15 @@ def test_warm_up_compiles_every_kernel_the_fusion_uses():
     assert st["lost"] >= 1 and st["acquisitions"] >= 2 and st["measurements"] > 100
     after = signatures()
     assert after == before, {k: (before.get(k), v) for k, v in after.items() if before.get(k) != v}
+    # the vehicle's IMU in the filter too (fusion.imu): samples, outputs and two bias windows
+    from visionpos.benchmarks.fusion_flights import IMU_FAKE, imu_feeder
+
+    feed, _, _ = imu_feeder(sc, "quad", 1, IMU_FAKE)
+    rep = replay(sc.arena, sim.frames, {"imu": {"enabled": True}}, feed_cb=feed)
+    imu = rep.pipeline.imu.bodies[0]
+    assert imu.stats["used"] > 300 and imu.bias_fits >= 1 and not imu.dropped
+    after = signatures()
+    assert after == before, {k: (before.get(k), v) for k, v in after.items() if before.get(k) != v}
 
 
 def _wait(condition, timeout_s=20.0):

@@ -463,6 +463,7 @@ def _output_overrides(pose_port: int, natnet_cmd: int, natnet_data: int, foxglov
 
 
 ALL_OUTPUTS = ("pose_stream", "natnet", "vrpn", "foxglove")
+IMU_ARM = "imu"  # bench_outputs' third arm: all outputs and the vehicle's IMU in the filter
 ONE_PER_TICK = ("pose_stream", "natnet", "vrpn")  # clients that get a frame per output tick (Foxglove: rate_hz)
 
 
@@ -521,6 +522,7 @@ def _demo_run(arena, duration_s: float) -> dict[str, Any]:
     got["output_rate_hz"] = summary["output_rate_hz"]
     got["mavlink_hz"] = min(b.get("mavlink_rate_hz") or 0.0 for b in summary["bodies"])
     got["tracked_fraction"] = min(b["tracked_fraction"] for b in summary["bodies"])
+    got["frames_shed"] = summary["server"].get("frames_shed") or 0
     return got
 
 
@@ -540,14 +542,16 @@ def bench_outputs(quick: bool) -> tuple[dict[str, float], list[dict], str]:
     missing = _foxglove_missing()
     outputs_on = tuple(o for o in ALL_OUTPUTS if o != "foxglove" or not missing)
     # the demo serves the output sections its arena has: none in the runs without
-    arenas = {False: demo_arena("thesis", duration_s, 1, []),
-              True: demo_arena("thesis", duration_s, 1, [o for o in _output_overrides(*ports)
-                                                         if o.split(".")[0] in outputs_on])}
-    runs: dict[bool, list[dict]] = {False: [], True: []}
+    overrides = [o for o in _output_overrides(*ports) if o.split(".")[0] in outputs_on]
+    # and all of them with the vehicle's IMU in the filter (fusion.imu.enabled: the fake autopilot streams it at
+    # the vehicle's imu_rate_hz, 200 Hz)
+    arenas = {False: demo_arena("thesis", duration_s, 1, []), True: demo_arena("thesis", duration_s, 1, overrides),
+              IMU_ARM: demo_arena("thesis", duration_s, 1, overrides + ["fusion.imu.enabled=true"])}
+    runs: dict[Any, list[dict]] = {arm: [] for arm in arenas}
     for _ in range(pairs):
-        for outputs in (False, True):
-            runs[outputs].append(_demo_run(arenas[outputs], duration_s))
-    off, on = runs[False], runs[True]
+        for arm in arenas:
+            runs[arm].append(_demo_run(arenas[arm], duration_s))
+    off, on, imu = runs[False], runs[True], runs[IMU_ARM]
     cost_off = float(np.median([r["cpu_us_per_packet"] for r in off]))
     cost_on = float(np.median([r["cpu_us_per_packet"] for r in on]))
     side_off = float(np.median([r["side_cpu_us_per_packet"] for r in off]))
@@ -566,6 +570,16 @@ def bench_outputs(quick: bool) -> tuple[dict[str, float], list[dict], str]:
         "bridge_outputs_mavlink_hz_off": float(np.median([r["mavlink_hz"] for r in off])),
         "bridge_outputs_mavlink_hz_on": float(np.median([r["mavlink_hz"] for r in on])),
     }
+    metrics.update({
+        "bridge_outputs_imu_tick_hz": float(np.median([r["ticks_hz"] for r in imu])),
+        "bridge_outputs_imu_output_rate_hz": float(np.median([r["output_rate_hz"] for r in imu])),
+        "bridge_outputs_imu_loop_cpu_us_per_packet": float(np.median([r["cpu_us_per_packet"] for r in imu])),
+        "bridge_outputs_imu_frames_shed_max": float(max(r["frames_shed"] for r in imu)),
+        "bridge_outputs_imu_client_rate_ratio_min": float(np.median(
+            [min(r["clients_hz"][k] for k in ONE_PER_TICK) / r["ticks_hz"] for r in imu])),
+    })
+    metrics["bridge_outputs_imu_output_rate_ratio"] = (metrics["bridge_outputs_imu_output_rate_hz"]
+                                                       / metrics["bridge_outputs_output_rate_hz_off"])
     for ratio, hz in (("output_rate_ratio", "output_rate_hz"), ("mavlink_rate_ratio", "mavlink_hz")):
         metrics[f"bridge_outputs_{ratio}"] = metrics[f"bridge_outputs_{hz}_on"] / metrics[f"bridge_outputs_{hz}_off"]
     for k in outputs_on:
@@ -579,7 +593,7 @@ def bench_outputs(quick: bool) -> tuple[dict[str, float], list[dict], str]:
         # what the client got of what the server sent, poses, same window (rate_hz caps both, not a tick each)
         metrics["bridge_outputs_foxglove_delivery_ratio"] = float(np.median(
             [r["clients_hz"]["foxglove"] / r["foxglove_sent_hz"] for r in on]))
-    rows = [dict(r, outputs=o) for o in (False, True) for r in runs[o]]
+    rows = [dict(r, outputs=o) for o in (False, True, IMU_ARM) for r in runs[o]]
     return metrics, rows, missing
 
 
@@ -594,7 +608,8 @@ def _report_outputs(res: BenchResult, quick: bool) -> None:
         c = r["clients_hz"]
         cell = lambda k: f"{c[k]:.1f}" if k in c else "-"  # noqa: E731
         fox = f"{r['foxglove_sent_hz']:.1f} / {c['foxglove']:.1f}" if "foxglove" in c else "-"
-        lines.append(f"| {'all' if r['outputs'] else 'none'} | {r['cpu_us_per_packet']:.1f} "
+        arm = {False: "none", True: "all", IMU_ARM: "all, IMU at 200 Hz"}[r["outputs"]]
+        lines.append(f"| {arm} | {r['cpu_us_per_packet']:.1f} "
                      f"| {r['side_cpu_us_per_packet']:.1f} | {r['output_rate_hz']:.1f} | {r['mavlink_hz']:.1f} "
                      f"| {cell('pose_stream')} | {cell('natnet')} | {cell('vrpn')} | {fox} | {cell('foxglove_all')} "
                      f"| {r['tracked_fraction']:.4f} |")
@@ -618,6 +633,13 @@ def _report_outputs(res: BenchResult, quick: bool) -> None:
         "window, divided by the station packets the server received; in the demo the loop also runs the four "
         "simulated stations' sends, the same in both runs. Output ticks/s and MAVLink poses/s (at the fake "
         "autopilot) are over the whole run; client rates over the measuring window." + fox_note
+        + f" With the vehicle's IMU in the filter as well (fusion.imu.enabled; the fake autopilot, in the demo's "
+        f"process, streams it at 200 Hz): {m['bridge_outputs_imu_output_rate_hz']:.1f} output ticks/s "
+        f"({m['bridge_outputs_imu_output_rate_ratio']:.3f} of the run without outputs), the slowest client "
+        f"{m['bridge_outputs_imu_client_rate_ratio_min']:.3f} of the ticks, "
+        f"{m['bridge_outputs_imu_loop_cpu_us_per_packet']:.1f} µs loop CPU per station packet (the fake "
+        f"autopilot's IMU included), at most {m['bridge_outputs_imu_frames_shed_max']:.0f} frames not fused in a "
+        "run."
     )
 
 

@@ -407,6 +407,51 @@ def run(quick: bool, res: BenchResult) -> None:
     run_imu(quick, res, optical)
 
 
+IMU_COST_RUNS = 3
+
+
+def imu_cpu_cost(quick: bool) -> dict[str, float]:
+    """What the IMU costs the fusion thread: CPU time (time.thread_time) of the slalom replayed with IMU_FAKE
+    fed less without it, per sample the filter used (best of IMU_COST_RUNS each), and the longest bias-window
+    fit (ImuInput._fit_window, ms): metrics cpu_us_per_sample, bias_fit_ms."""
+    import time
+
+    from visionpos.benchmarks.fusion_replay import replay
+    from visionpos.fusion.imu import ImuInput
+    from visionpos.sim import load_scenario, simulate
+
+    sc = load_scenario("thesis", None, session="slalom", duration=3.0 if quick else 6.0, seed=1)
+    sim = simulate(sc)
+    name = sc.arena.bodies[0].name
+    fits_ms: list[float] = []
+    fit_window = ImuInput._fit_window
+
+    def timed_fit(self):
+        t0 = time.thread_time_ns()
+        fit_window(self)
+        fits_ms.append((time.thread_time_ns() - t0) / 1e6)
+
+    def cpu_s(with_imu: bool) -> tuple[float, int]:
+        feed, settings = None, {}
+        if with_imu:
+            feed, _, _ = imu_feeder(sc, name, 1, IMU_FAKE)
+            settings = {"imu": {"enabled": True}}
+        t0 = time.thread_time()
+        rep = replay(sc.arena, sim.frames, settings, feed_cb=feed)
+        return time.thread_time() - t0, rep.pipeline.imu.bodies[0].stats["used"] if with_imu else 0
+
+    off, on, used = [], [], 0
+    ImuInput._fit_window = timed_fit
+    try:
+        for _ in range(IMU_COST_RUNS):
+            off.append(cpu_s(False)[0])
+            t_on, used = cpu_s(True)
+            on.append(t_on)
+    finally:
+        ImuInput._fit_window = fit_window
+    return {"cpu_us_per_sample": (min(on) - min(off)) / max(used, 1) * 1e6, "bias_fit_ms": max(fits_ms)}
+
+
 def run_imu(quick: bool, res: BenchResult, optical: dict[str, dict[str, float]]) -> None:
     """The flights with the fake autopilot's IMU in the prediction (fusion.imu, IMU_FAKE at the vehicles' default
     imu_rate_hz, 200 Hz, and at 50 Hz, the default telemetry_rate_hz) against without (`optical`: run's metrics
@@ -437,6 +482,8 @@ def run_imu(quick: bool, res: BenchResult, optical: dict[str, dict[str, float]])
                 f"{m['gyro_bias_err_rad_s']:.4f} / {m['gyro_bias_rad_s']:.4f} | {m['imu_refused']:.0f}")
     raw_jit, out_jit = static_imu_jitter(static_flight(quick), IMU_FAKE)
     res.metrics["fusion_imu_static_jitter_filtered_over_raw"] = out_jit / raw_jit
+    cost = imu_cpu_cost(quick)
+    res.metrics.update({f"fusion_imu_{k}": v for k, v in cost.items()})
     tbl += [
         "",
         f"The fake autopilot's IMU (bridge/fake_autopilot.py imu_reading): accelerometer noise "
@@ -445,7 +492,10 @@ def run_imu(quick: bool, res: BenchResult, optical: dict[str, dict[str, float]])
         f"rad/s, each sample arriving {IMU_FAKE['delay_ms']:.0f} ms after its time (delay-corrected). Bias error: the "
         "estimate at the flight's end against the drawn bias (the worst seed). Newest information: the tick less "
         "the newest frame's capture or IMU sample in its output, mean. The static body with the IMU at "
-        f"{IMU_FAKE['rate_hz']:.0f} Hz: output jitter / raw {out_jit / raw_jit:.2f}.",
+        f"{IMU_FAKE['rate_hz']:.0f} Hz: output jitter / raw {out_jit / raw_jit:.2f}. Cost on the fusion thread "
+        f"(CPU time, the slalom replayed with the IMU at {IMU_FAKE['rate_hz']:.0f} Hz less without, best of "
+        f"{IMU_COST_RUNS}): {cost['cpu_us_per_sample']:.0f} µs per sample, everything included; of it the bias "
+        f"window's fit, once per window: {cost['bias_fit_ms']:.2f} ms (the longest).",
     ]
     res.tables[
         f"Fusion: the vehicle's IMU in the prediction (fusion.imu; thesis arena, {len(seeds)} seed(s) x {dur:.0f} s "

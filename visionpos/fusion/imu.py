@@ -45,6 +45,7 @@ from visionpos.fusion.layout import (
     ADAPT_SCALE_R,
     ANG_ACC0,
     CLOCK_T_NS,
+    N_STATE,
     OUT_POS,
     OUT_POSE_COV,
     OUT_QUAT_XYZW,
@@ -53,9 +54,18 @@ from visionpos.fusion.layout import (
     OUT_VEL_COV,
     RATE0,
 )
-from visionpos.fusion.tracking import _add_process_noise, _count_folds, _fold, _kf_predict, _output_at
+from visionpos.fusion.tracking import (
+    _add_process_noise,
+    _count_folds,
+    _fold,
+    _kalman_gain,
+    _kf_predict,
+    _output_at,
+    _spd_inverse,
+)
 from visionpos.geometry.frames import GRAVITY_M_S2
 from visionpos.geometry.rotations import matrix_from_rotvec_compiled, rotvec_from_matrix_compiled
+from visionpos.jit import matmul3, njit
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +73,48 @@ GRAVITY_WORLD = np.array([0.0, 0.0, -GRAVITY_M_S2])  # m/s^2, world frame z up
 IMU_ROWS = np.r_[ACC0:ACC0 + 3, RATE0:RATE0 + 3]  # the state rows a sample measures: a (3), w (3)
 _BIAS_SMOOTHING = 0.3  # weight of each new window's bias fit in the running estimate (the first: 1)
 _MAX_PENDING = 4096  # samples held for the filter at most (a stream far ahead of the cameras)
+_AT_ORIGIN = np.zeros(3)  # the lever arm of an IMU at the body origin
+
+
+@njit
+def _measure_into(z: np.ndarray, R: np.ndarray, accel_body: np.ndarray, gyro_body: np.ndarray,
+                  accel_bias: np.ndarray, gyro_bias: np.ndarray, lever_arm_body: np.ndarray, rate_world: np.ndarray,
+                  ang_acc_world: np.ndarray) -> None:
+    """imu_measurement into z (6,); lever_arm_body (3,) zeros: the IMU at the body origin."""
+    r = np.empty(3)
+    for i in range(3):
+        z[i] = GRAVITY_WORLD[i]
+        z[3 + i] = 0.0
+        r[i] = 0.0
+        for k in range(3):
+            z[i] += R[i, k] * (accel_body[k] - accel_bias[k])
+            z[3 + i] += R[i, k] * (gyro_body[k] - gyro_bias[k])
+            r[i] += R[i, k] * lever_arm_body[k]
+    # dw/dt x r + w x (w x r): what the IMU off the origin reads on top of the origin's acceleration
+    wr = np.empty(3)
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        wr[i] = rate_world[j] * r[k] - rate_world[k] * r[j]
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        z[i] -= (ang_acc_world[j] * r[k] - ang_acc_world[k] * r[j]) + (rate_world[j] * wr[k] - rate_world[k] * wr[j])
+
+
+def warm_up_imu_kernels(bank) -> None:
+    """Compile the kernels ImuInput calls (or load them from numba's cache) for the argument types the live path
+    gives them: a row of FilterBank `bank` copied, as an output tick's copy is (fusion/warmup.py calls this;
+    tests/fusion/test_warmup.py checks that a flight with the IMU compiles nothing more)."""
+    x, P, R_nom, clock = bank.x[0].copy(), bank.P[0].copy(), np.eye(3), bank.clock[0].copy()
+    a, w = np.ascontiguousarray(-GRAVITY_WORLD), np.zeros(3)
+    imu_step(x, P, R_nom, clock, int(clock[CLOCK_T_NS]) + 5_000_000, 100.0, 3.0, 100.0, a, w, np.zeros(3),
+             np.zeros(3), _AT_ORIGIN, np.ones(6), 60.0)
+    _fold(x, R_nom)  # output_at's, on its copy
+    _add_process_noise(P, 0.001, 1.0, 0.0, 0.0)  # before_fusion's
+    # and the bias window's fits, as ImuInput._fit_window calls them: a still body, 10 samples, 4 poses
+    t = np.arange(10) * 0.005
+    ot = t[1:9:2] + 0.001
+    fit_accel_bias(t, np.tile(a, (10, 1)), np.tile(np.eye(3), (10, 1, 1)), ot, np.zeros((4, 3)))
+    fit_gyro_bias(t, np.zeros((10, 3)), ot, np.tile(np.eye(3), (4, 1, 1)))
 
 
 def imu_measurement(R: np.ndarray, accel_body: np.ndarray, gyro_body: np.ndarray, accel_bias: np.ndarray,
@@ -72,33 +124,136 @@ def imu_measurement(R: np.ndarray, accel_body: np.ndarray, gyro_body: np.ndarray
     R (3, 3) body->world; accel_body (3,) specific force m/s^2 and gyro_body (3,) rad/s in the body frame;
     the biases (3,) in the same units. An IMU lever_arm_body (3,) m from the body origin reads the origin's
     acceleration plus dw/dt x r + w x (w x r): taken off with the filter's rate_world and ang_acc_world (3,)."""
+    f64 = lambda v: np.ascontiguousarray(v, dtype=np.float64)  # noqa: E731
     z = np.empty(6)
-    z[:3] = R @ (accel_body - accel_bias) + GRAVITY_WORLD
-    z[3:] = R @ (gyro_body - gyro_bias)
-    if lever_arm_body is not None:
-        r = R @ lever_arm_body
-        z[:3] -= np.cross(ang_acc_world, r) + np.cross(rate_world, np.cross(rate_world, r))
+    zero = np.zeros(3)
+    _measure_into(z, f64(R), f64(accel_body), f64(gyro_body), f64(accel_bias), f64(gyro_bias),
+                  zero if lever_arm_body is None else f64(lever_arm_body),
+                  zero if rate_world is None else f64(rate_world),
+                  zero if ang_acc_world is None else f64(ang_acc_world))
     return z
 
 
+@njit
 def imu_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, var: np.ndarray, gate_chi2: float) -> tuple[bool, float]:
     """Fuse one sample's measurement z (6,) of the acceleration and rate states (IMU_ROWS) into x (18,) and
     P (18, 18) in place (Joseph form); var (6,) the measurement variances. gate_chi2 <= 0: no gate.
     Returns (accepted, squared Mahalanobis distance of the innovation); refused: x, P unchanged."""
-    y = z - x[IMU_ROWS]
-    PHt = P[:, IMU_ROWS]
-    S = PHt[IMU_ROWS] + np.diag(var)
-    Sinv = np.linalg.inv(S)
-    d2 = float(y @ Sinv @ y)
+    y = np.empty(6)
+    S = np.empty((6, 6))
+    PHt = np.empty((N_STATE, 6))  # P H^T: H picks the rows IMU_ROWS
+    for j in range(6):
+        y[j] = z[j] - x[IMU_ROWS[j]]
+        for i in range(N_STATE):
+            PHt[i, j] = P[i, IMU_ROWS[j]]
+    for i in range(6):
+        for j in range(6):
+            S[i, j] = PHt[IMU_ROWS[i], j]
+        S[i, i] += var[i]
+    Sinv = _spd_inverse(S)
+    d2 = 0.0
+    for i in range(6):
+        for j in range(6):
+            d2 += y[i] * Sinv[i, j] * y[j]
     if gate_chi2 > 0.0 and d2 > gate_chi2:
         return False, d2
-    K = PHt @ Sinv
-    x += K @ y
-    A = np.eye(P.shape[0])
-    A[:, IMU_ROWS] -= K
-    Pn = A @ P @ A.T + (K * var) @ K.T
-    P[:, :] = 0.5 * (Pn + Pn.T)
+    K = _kalman_gain(PHt, Sinv)
+    for i in range(N_STATE):
+        for j in range(6):
+            x[i] += K[i, j] * y[j]
+    # Joseph form: A P A^T + K diag(var) K^T with A = I - K H
+    AP = P.copy()
+    for i in range(N_STATE):
+        for j in range(N_STATE):
+            acc = 0.0
+            for m in range(6):
+                acc += K[i, m] * P[IMU_ROWS[m], j]
+            AP[i, j] -= acc
+    for i in range(N_STATE):
+        for j in range(i + 1):
+            acc = AP[i, j]
+            for m in range(6):
+                acc += -AP[i, IMU_ROWS[m]] * K[j, m] + K[i, m] * var[m] * K[j, m]
+            P[i, j] = acc
+    for i in range(N_STATE):  # the lower triangle, mirrored: P stays symmetric
+        for j in range(i):
+            P[j, i] = P[i, j]
     return True, d2
+
+
+@njit
+def imu_step(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, clock: np.ndarray, t_ns: int, qj: float, qw: float,
+             qaj: float, accel_body: np.ndarray, gyro_body: np.ndarray, accel_bias: np.ndarray,
+             gyro_bias: np.ndarray, lever_arm_body: np.ndarray, var: np.ndarray,
+             gate_chi2: float) -> tuple[bool, float]:
+    """One sample into a filter row (x (18,), P (18, 18), R_nom (3, 3), clock (3,): in place): predicted to t_ns
+    (int ns) with the process noise between samples (qj, qw, qaj as tracking._kf_predict's), the sample's
+    measurement (imu_measurement, the IMU lever_arm_body (3,) m, zeros: at the origin) fused (imu_update) and,
+    accepted, the rotation error folded. Returns imu_update's (accepted, squared Mahalanobis distance)."""
+    dt = (t_ns - clock[CLOCK_T_NS]) * 1e-9
+    if dt != 0.0:
+        _count_folds(R_nom, clock, int(_kf_predict(x, P, R_nom, dt, qj, qw, qaj)))
+        clock[CLOCK_T_NS] = t_ns
+    z = np.empty(6)
+    _measure_into(z, R_nom, accel_body, gyro_body, accel_bias, gyro_bias, lever_arm_body, x[RATE0:RATE0 + 3],
+                  x[ANG_ACC0:ANG_ACC0 + 3])
+    ok, d2 = imu_update(x, P, z, var, gate_chi2)
+    if ok:
+        _count_folds(R_nom, clock, int(_fold(x, R_nom)))
+    return ok, d2
+
+
+@njit
+def _integrate_accel(t_s: np.ndarray, a_w: np.ndarray, R: np.ndarray) -> tuple:
+    """fit_accel_bias's integrals at each sample time t_s (N,) s of the world acceleration a_w (N, 3) m/s^2 and of
+    the rotations R (N, 3, 3): D (N, 3) and VD (N, 3), the double and single integrals of a_w, and M, VM
+    (N, 3, 3) those of R. Between samples a and R are linear (trapezoid: holding each sample until the next would
+    lag by half a sample, centimetres over a window in a manoeuvre)."""
+    n = len(t_s)
+    D, VD = np.zeros((n, 3)), np.zeros((n, 3))
+    M, VM = np.zeros((n, 3, 3)), np.zeros((n, 3, 3))
+    for i in range(1, n):
+        h = t_s[i] - t_s[i - 1]
+        c = h * h / 6.0
+        for r in range(3):
+            D[i, r] = D[i - 1, r] + VD[i - 1, r] * h + (2.0 * a_w[i - 1, r] + a_w[i, r]) * c
+            VD[i, r] = VD[i - 1, r] + (a_w[i - 1, r] + a_w[i, r]) * (0.5 * h)
+            for q in range(3):
+                M[i, r, q] = M[i - 1, r, q] + VM[i - 1, r, q] * h + (2.0 * R[i - 1, r, q] + R[i, r, q]) * c
+                VM[i, r, q] = VM[i - 1, r, q] + (R[i - 1, r, q] + R[i, r, q]) * (0.5 * h)
+    return D, VD, M, VM
+
+
+@njit
+def _gyro_rows(t_s: np.ndarray, gyro_body: np.ndarray, obs_t_s: np.ndarray, obs_R: np.ndarray) -> tuple:
+    """fit_gyro_bias's least-squares system: rows (K, 3, 6) and right-hand sides (K, 3), one per optical rotation
+    obs_R (K, 3, 3) at obs_t_s (K,) s, from the rates gyro_body (N, 3) rad/s at t_s (N,) s (see fit_gyro_bias).
+    Between samples the rate is linear: each step turns by the mean of its ends (holding a sample until the next
+    lags by half a sample, milliradians over a window in a flick)."""
+    n = len(t_s)
+    Q, S = np.zeros((n, 3, 3)), np.zeros((n, 3, 3))
+    Q[0] = np.eye(3)
+    for i in range(1, n):
+        h = t_s[i] - t_s[i - 1]
+        S[i] = S[i - 1] + (Q[i - 1] + matmul3(Q[i - 1], matrix_from_rotvec_compiled(gyro_body[i - 1] * h))) * (0.5 * h)
+        Q[i] = matmul3(Q[i - 1], matrix_from_rotvec_compiled((gyro_body[i - 1] + gyro_body[i]) * (0.5 * h)))
+    K = len(obs_t_s)
+    Qs, Ss = np.empty((K, 3, 3)), np.empty((K, 3, 3))
+    for j in range(K):  # Q and S at each observation's time
+        i = min(max(np.searchsorted(t_s, obs_t_s[j], side="right") - 1, 0), n - 2)
+        h = obs_t_s[j] - t_s[i]
+        w = gyro_body[i] + (gyro_body[i + 1] - gyro_body[i]) * (0.5 * h / (t_s[i + 1] - t_s[i]))
+        Qs[j] = matmul3(Q[i], matrix_from_rotvec_compiled(w * h))
+        Ss[j] = S[i] + (Q[i] + Qs[j]) * (0.5 * h)
+    R0 = matmul3(obs_R[0], Qs[0].T.copy())  # the optical rotation at t0, brought back from the first by the rates
+    rows = np.zeros((K, 3, 6))
+    rhs = np.zeros((K, 3))
+    for j in range(K):
+        QjT = Qs[j].T.copy()
+        rows[j, :, :3] = QjT
+        rows[j, :, 3:] = -matmul3(QjT, Ss[j])
+        rhs[j] = rotvec_from_matrix_compiled(matmul3(matmul3(QjT, R0.T.copy()), obs_R[j]))
+    return rows, rhs
 
 
 def fit_accel_bias(t_s: np.ndarray, accel_body: np.ndarray, R: np.ndarray, obs_t_s: np.ndarray,
@@ -114,16 +269,8 @@ def fit_accel_bias(t_s: np.ndarray, accel_body: np.ndarray, R: np.ndarray, obs_t
         return None
     a_w = np.einsum("nij,nj->ni", R, accel_body) + GRAVITY_WORLD
     n = len(t_s)
-    # D, M and their first integrals at each sample time; between samples a and R linear (trapezoid: holding
-    # each sample until the next would lag by half a sample, centimetres over a window in a manoeuvre)
-    D, VD = np.zeros((n, 3)), np.zeros((n, 3))
-    M, VM = np.zeros((n, 3, 3)), np.zeros((n, 3, 3))
-    for i in range(1, n):
-        h = t_s[i] - t_s[i - 1]
-        D[i] = D[i - 1] + VD[i - 1] * h + (2.0 * a_w[i - 1] + a_w[i]) * (h * h / 6.0)
-        VD[i] = VD[i - 1] + (a_w[i - 1] + a_w[i]) * (0.5 * h)
-        M[i] = M[i - 1] + VM[i - 1] * h + (2.0 * R[i - 1] + R[i]) * (h * h / 6.0)
-        VM[i] = VM[i - 1] + (R[i - 1] + R[i]) * (0.5 * h)
+    D, VD, M, VM = _integrate_accel(np.ascontiguousarray(t_s, dtype=np.float64), a_w,
+                                    np.ascontiguousarray(R, dtype=np.float64))
     k = np.clip(np.searchsorted(t_s, obs_t_s, side="right") - 1, 0, n - 2)
     h = obs_t_s - t_s[k]  # into the interval [t_k, t_k+1]
     c2, c3 = 0.5 * h * h, h**3 / (6.0 * (t_s[k + 1] - t_s[k]))
@@ -152,31 +299,8 @@ def fit_gyro_bias(t_s: np.ndarray, gyro_body: np.ndarray, obs_t_s: np.ndarray,
     R0 the first optical rotation. None with fewer than 4 rotations."""
     if len(obs_t_s) < 4 or len(t_s) < 2:
         return None
-    n = len(t_s)
-    # between samples the rate is linear: each step turns by the mean of its ends (holding a sample until the
-    # next lags by half a sample, milliradians over a window in a flick)
-    Q, S = np.zeros((n, 3, 3)), np.zeros((n, 3, 3))
-    Q[0] = np.eye(3)
-    for i in range(1, n):
-        h = t_s[i] - t_s[i - 1]
-        S[i] = S[i - 1] + (Q[i - 1] + Q[i - 1] @ matrix_from_rotvec_compiled(gyro_body[i - 1] * h)) * (0.5 * h)
-        Q[i] = Q[i - 1] @ matrix_from_rotvec_compiled((gyro_body[i - 1] + gyro_body[i]) * (0.5 * h))
-    k = np.clip(np.searchsorted(t_s, obs_t_s, side="right") - 1, 0, n - 2)
-
-    def at(j: int) -> tuple[np.ndarray, np.ndarray]:  # Q and S at the j-th observation's time
-        i, h = k[j], obs_t_s[j] - t_s[k[j]]
-        w = gyro_body[i] + (gyro_body[i + 1] - gyro_body[i]) * (0.5 * h / (t_s[i + 1] - t_s[i]))
-        Qj = Q[i] @ matrix_from_rotvec_compiled(w * h)
-        return Qj, S[i] + (Q[i] + Qj) * (0.5 * h)
-
-    R0 = obs_R[0] @ at(0)[0].T  # the optical rotation at t0, brought back from the first observation by the rates
-    rows = np.zeros((len(obs_t_s), 3, 6))
-    rhs = np.zeros((len(obs_t_s), 3))
-    for j in range(len(obs_t_s)):
-        Qj, Sj = at(j)
-        rows[j, :, :3] = Qj.T
-        rows[j, :, 3:] = -Qj.T @ Sj
-        rhs[j] = rotvec_from_matrix_compiled(np.ascontiguousarray((R0 @ Qj).T @ obs_R[j]))
+    f64 = lambda v: np.ascontiguousarray(v, dtype=np.float64)  # noqa: E731
+    rows, rhs = _gyro_rows(f64(t_s), f64(gyro_body), f64(obs_t_s), f64(obs_R))
     A, y = rows.reshape(-1, 6), rhs.reshape(-1)
     sol = np.linalg.lstsq(A, y, rcond=None)[0]
     return sol[3:], float(np.sqrt(np.mean((A @ sol - y) ** 2) * 3.0))
@@ -209,8 +333,8 @@ class ImuInput:
     def push(self, t_ns: int, accel_body: np.ndarray, gyro_body: np.ndarray) -> bool:
         """Queue one sample (body frame: specific force m/s^2, rate rad/s); False if refused (not finite, not
         after the last one, or this body's input was dropped): nothing changes then."""
-        a = np.asarray(accel_body, dtype=np.float64).reshape(3)
-        w = np.asarray(gyro_body, dtype=np.float64).reshape(3)
+        a = np.ascontiguousarray(accel_body, dtype=np.float64).reshape(3)
+        w = np.ascontiguousarray(gyro_body, dtype=np.float64).reshape(3)
         if self.dropped or not (np.isfinite(a).all() and np.isfinite(w).all()):
             self.stats["invalid"] += 1
             return False
@@ -229,22 +353,14 @@ class ImuInput:
         return not self.dropped and self.last_t_ns is not None and t_ns - self.last_t_ns <= self.s.max_age_ns
 
     # ----------------------------------------------------------- the filter
-    def _predict(self, x, P, R_nom, clock, scale_p: float, scale_r: float, kalman, t_ns: int) -> None:
-        """Predict x, P, R_nom, clock (a filter row or a copy) to t_ns with the process noise between samples."""
-        dt = (t_ns - int(clock[CLOCK_T_NS])) * 1e-9
-        qj = max(self.s.jerk_psd, kalman.jerk_psd * scale_p)
-        qw = max(self.s.angular_accel_psd, kalman.angular_accel_psd * scale_r)
-        if dt != 0.0:
-            _count_folds(R_nom, clock, int(_kf_predict(x, P, R_nom, dt, qj, qw, kalman.angular_jerk_psd * scale_r)))
-            clock[CLOCK_T_NS] = t_ns
-
     def _step(self, x, P, R_nom, clock, scale_p: float, scale_r: float, kalman, t_ns: int, a: np.ndarray,
               w: np.ndarray, record: bool) -> None:
-        """Predict x, P, R_nom, clock (a filter row or a copy) to t_ns, then fuse the sample (a, w)."""
-        self._predict(x, P, R_nom, clock, scale_p, scale_r, kalman, t_ns)
-        z = imu_measurement(R_nom, a, w, self.accel_bias, self.gyro_bias, self.lever_arm_m, x[RATE0:RATE0 + 3],
-                            x[ANG_ACC0:ANG_ACC0 + 3])
-        ok, _ = imu_update(x, P, z, self._var, self.s.gate_chi2)
+        """Predict x, P, R_nom, clock (a filter row or a copy) to t_ns with the process noise between samples,
+        then fuse the sample (a, w) (imu_step); record: count it and keep it for the bias window."""
+        ok, _ = imu_step(x, P, R_nom, clock, t_ns, max(self.s.jerk_psd, kalman.jerk_psd * scale_p),
+                         max(self.s.angular_accel_psd, kalman.angular_accel_psd * scale_r),
+                         kalman.angular_jerk_psd * scale_r, a, w, self.accel_bias, self.gyro_bias,
+                         _AT_ORIGIN if self.lever_arm_m is None else self.lever_arm_m, self._var, self.s.gate_chi2)
         if not record:
             return
         if not ok:
@@ -255,7 +371,6 @@ class ImuInput:
             return
         self.refused_in_row = 0
         self.stats["used"] += 1
-        _count_folds(R_nom, clock, int(_fold(x, R_nom)))
         if self._win_start_ns is None:
             self._win_start_ns = t_ns
         self._win_imu.append((t_ns * 1e-9, a, w, R_nom.copy()))

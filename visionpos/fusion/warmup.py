@@ -113,8 +113,10 @@ def warm_up_kernels(arena: ArenaConfig, settings: dict[str, Any] | None = None) 
                 pipe.push(BlobFrame(c.id, k, 1_000_000_000 + k * 10_000_000 + i * 1_000_000, blobs))
             pipe.tick(1_000_000_000 + k * 10_000_000 + 9_000_000)
         from visionpos.fusion.camera_monitor import warm_up_monitor_kernels
+        from visionpos.fusion.imu import warm_up_imu_kernels
 
         warm_up_monitor_kernels(arena, markers)
+        warm_up_imu_kernels(pipe.bank)
     finally:
         done.set()
 
@@ -127,13 +129,15 @@ def warm_up_record() -> Path:
 
     import visionpos.fusion.acquisition  # noqa: F401  (acquisition's kernels, which the pipeline calls from Python)
     import visionpos.fusion.camera_monitor  # noqa: F401  (the camera monitor's kernels, warmed up too)
+    import visionpos.fusion.imu  # noqa: F401  (the IMU sample's kernel, warmed up too)
     import visionpos.fusion.kernels  # noqa: F401  (the fusion path's kernels and their dependencies)
     import visionpos.geometry.resection  # noqa: F401
 
     # the monitor calls its resection kernel, and the pipeline acquisition's, through plain functions, which
     # module_key does not follow
     key = "".join(jit.module_key(m) for m in ("visionpos.fusion.kernels", "visionpos.fusion.camera_monitor",
-                                               "visionpos.geometry.resection", "visionpos.fusion.acquisition"))
+                                               "visionpos.geometry.resection", "visionpos.fusion.acquisition",
+                                               "visionpos.fusion.imu"))
     return jit.cache_base() / f"fusion-warm-up-{hashlib.sha1(key.encode()).hexdigest()[:16]}.pickle"
 
 
