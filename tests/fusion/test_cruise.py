@@ -84,37 +84,32 @@ def test_a_flight_raises_the_floor_up_to_its_cap_and_off_means_none(slalom):
     assert np.all(off == 1.0)
 
 
-def test_the_floor_moves_its_logarithm_by_the_rate_times_the_excess():
-    """One step of adapt_noise_scales, by hand: NIS held at 1.6 (threshold 1.1, rate 20/s, 1 s average) for 10 ms."""
+@pytest.mark.parametrize("block", ["position", "rotation"])
+def test_a_floor_moves_its_logarithm_by_the_rate_times_the_excess_and_only_its_own(block):
+    """adapt_noise_scales by hand: the block's NIS held at 1.6 (threshold 1.1, rate 20/s, 1 s average) for 10 ms
+    raises its floor by exp(0.01 x 20 x 0.5), the other block's (its NIS at 1.0) stays at 1; held 20 s the floor
+    is at its cap (100 for the position, 10 for the rotation), and below the threshold it falls back to 1."""
     from visionpos.fusion.settings import KALMAN_PARAMS, KalmanSettings, pack_params
 
+    position = block == "position"
+    nis_col, floor_col, scale_col, other_floor, cap = (
+        (L.ADAPT_NIS_CRUISE, L.ADAPT_SCALE_CRUISE, L.ADAPT_SCALE_P, L.ADAPT_SCALE_CRUISE_R, 100.0) if position else
+        (L.ADAPT_NIS_CRUISE_R, L.ADAPT_SCALE_CRUISE_R, L.ADAPT_SCALE_R, L.ADAPT_SCALE_CRUISE, 10.0))
     params = pack_params(KALMAN_PARAMS, KalmanSettings())
     adapt = np.ones(L.N_ADAPT)
-    adapt[L.ADAPT_NIS_CRUISE] = 1.6
+    adapt[nis_col] = 1.6
     clock = np.zeros(L.N_CLOCK, dtype=np.int64)
-    adapt_noise_scales(adapt, clock, params, 10_000_000, 0.01, 1.6, 1.0, False)
-    assert adapt[L.ADAPT_SCALE_CRUISE] == pytest.approx(np.exp(0.01 * 20.0 * 0.5), rel=1e-12)
-    assert adapt[L.ADAPT_SCALE_P] >= adapt[L.ADAPT_SCALE_CRUISE]
-    # below the threshold it falls, never under 1
-    adapt[L.ADAPT_NIS_CRUISE] = 0.6
-    for _ in range(100):
-        adapt_noise_scales(adapt, clock, params, 10_000_000, 0.01, 0.6, 1.0, False)
-    assert adapt[L.ADAPT_SCALE_CRUISE] == 1.0
 
+    def step(nis):
+        adapt_noise_scales(adapt, clock, params, 10_000_000, 0.01, *((nis, 1.0) if position else (1.0, nis)), False)
 
-def test_the_rotation_floor_follows_the_rotation_nis_alone():
-    """The rotation's floor by hand: its average held at 1.6 moves it as the position's would, up to its own cap
-    (10), while the position's floor, fed a NIS of 1.0, stays at 1."""
-    from visionpos.fusion.settings import KALMAN_PARAMS, KalmanSettings, pack_params
-
-    params = pack_params(KALMAN_PARAMS, KalmanSettings())
-    adapt = np.ones(L.N_ADAPT)
-    adapt[L.ADAPT_NIS_CRUISE_R] = 1.6
-    clock = np.zeros(L.N_CLOCK, dtype=np.int64)
-    adapt_noise_scales(adapt, clock, params, 10_000_000, 0.01, 1.0, 1.6, False)
-    assert adapt[L.ADAPT_SCALE_CRUISE_R] == pytest.approx(np.exp(0.01 * 20.0 * 0.5), rel=1e-12)
-    assert adapt[L.ADAPT_SCALE_R] >= adapt[L.ADAPT_SCALE_CRUISE_R]
-    assert adapt[L.ADAPT_SCALE_CRUISE] == 1.0
-    for _ in range(2000):  # 20 s held high: at the cap
-        adapt_noise_scales(adapt, clock, params, 10_000_000, 0.01, 1.0, 1.6, False)
-    assert adapt[L.ADAPT_SCALE_CRUISE_R] == pytest.approx(10.0)
+    step(1.6)
+    assert adapt[floor_col] == pytest.approx(np.exp(0.01 * 20.0 * 0.5), rel=1e-12)
+    assert adapt[scale_col] >= adapt[floor_col] and adapt[other_floor] == 1.0
+    for _ in range(2000):
+        step(1.6)
+    assert adapt[floor_col] == pytest.approx(cap)
+    adapt[nis_col] = 0.6
+    for _ in range(2000):
+        step(0.6)
+    assert adapt[floor_col] == 1.0
