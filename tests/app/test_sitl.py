@@ -335,32 +335,31 @@ def _circle_track():
 def test_ekf_lead_is_the_time_shift_of_the_ekf_against_the_truth():
     """A circle of radius 1 m at 1 rad/s (1 m/s); the 'EKF' reports the position the circle has 12 ms later, plus
     a 3 mm offset: the fit must give +12 ms (ahead), and -12 ms for a position 12 ms old; a hover, no figure."""
-    from visionpos.app.sitl.report import ekf_lead_ms
+    from visionpos.app.sitl.report import ekf_lead_fit
 
     track, times, t, circle = _circle_track()
     for shift_s in (0.012, -0.012):
         ekf = np.array([circle(x + shift_s) for x in t]) + [0.003, -0.003, 0.0]
-        lead, n = ekf_lead_ms(times, ekf, track)
+        lead, _, n = ekf_lead_fit(times, ekf, track)
         assert n == len(times) and lead == pytest.approx(shift_s * 1e3, abs=0.5)
     t0, dt_ns = 10_000_000_000, 10_000_000
     still = S.TruthTrack(HOME)
     for k in range(200):
         still.add(t0 + k * dt_ns, _sim_state(0.0, 0.0, 1.0, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
-    assert ekf_lead_ms(t0 + np.arange(10, 190) * dt_ns, np.zeros((180, 3)), still) is None
+    assert ekf_lead_fit(t0 + np.arange(10, 190) * dt_ns, np.zeros((180, 3)), still) is None
 
 
 def test_ekf_lead_standard_error_is_nil_for_an_exact_shift_and_covers_a_wandering_error():
     """The circle of the test above over 8 s, the 'EKF' 12 ms ahead: exact, the blocks agree (standard error
     ~0); with an error that wanders from one second to the next (10 mm, as SIH's IMU makes EKF2's), the fit
     moves and the standard error grows to cover it; in 2 seconds (2 blocks), none."""
-    from visionpos.app.sitl.report import ekf_lead_ms, ekf_lead_standard_error_ms
+    from visionpos.app.sitl.report import ekf_lead_fit
 
     track, times, t, circle = _circle_track()
     exact = np.array([circle(x + 0.012) for x in t])
-    assert ekf_lead_standard_error_ms(times, exact, track) == pytest.approx(0.0, abs=0.1)
+    assert ekf_lead_fit(times, exact, track)[1] == pytest.approx(0.0, abs=0.1)
     wander = np.random.default_rng(3).normal(0.0, 0.010, (9, 2))[((times - times[0]) // 1_000_000_000)]
     noisy = exact + np.c_[wander, np.zeros(len(t))]
-    lead, _ = ekf_lead_ms(times, noisy, track)
-    se = ekf_lead_standard_error_ms(times, noisy, track)
+    lead, se, _ = ekf_lead_fit(times, noisy, track)
     assert abs(lead - 12.0) > 0.5 and se > 0.5 and abs(lead - 12.0) < 3 * se
-    assert ekf_lead_standard_error_ms(times[:200], exact[:200], track) is None  # two blocks
+    assert ekf_lead_fit(times[:200], exact[:200], track)[1] is None  # two blocks

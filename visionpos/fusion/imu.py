@@ -76,6 +76,11 @@ _MAX_PENDING = 4096  # samples held for the filter at most (a stream far ahead o
 _AT_ORIGIN = np.zeros(3)  # the lever arm of an IMU at the body origin
 
 
+def _f64(a) -> np.ndarray:
+    """a as the contiguous float64 array the compiled kernels take (one argument type: one compilation)."""
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
 @njit
 def _measure_into(z: np.ndarray, R: np.ndarray, accel_body: np.ndarray, gyro_body: np.ndarray,
                   accel_bias: np.ndarray, gyro_bias: np.ndarray, lever_arm_body: np.ndarray, rate_world: np.ndarray,
@@ -105,7 +110,7 @@ def warm_up_imu_kernels(bank) -> None:
     gives them: a row of FilterBank `bank` copied, as an output tick's copy is (fusion/warmup.py calls this;
     tests/fusion/test_warmup.py checks that a flight with the IMU compiles nothing more)."""
     x, P, R_nom, clock = bank.x[0].copy(), bank.P[0].copy(), np.eye(3), bank.clock[0].copy()
-    a, w = np.ascontiguousarray(-GRAVITY_WORLD), np.zeros(3)
+    a, w = -GRAVITY_WORLD, np.zeros(3)
     imu_step(x, P, R_nom, clock, int(clock[CLOCK_T_NS]) + 5_000_000, 100.0, 3.0, 100.0, a, w, np.zeros(3),
              np.zeros(3), _AT_ORIGIN, np.ones(6), 60.0)
     _fold(x, R_nom)  # output_at's, on its copy
@@ -124,13 +129,9 @@ def imu_measurement(R: np.ndarray, accel_body: np.ndarray, gyro_body: np.ndarray
     R (3, 3) body->world; accel_body (3,) specific force m/s^2 and gyro_body (3,) rad/s in the body frame;
     the biases (3,) in the same units. An IMU lever_arm_body (3,) m from the body origin reads the origin's
     acceleration plus dw/dt x r + w x (w x r): taken off with the filter's rate_world and ang_acc_world (3,)."""
-    f64 = lambda v: np.ascontiguousarray(v, dtype=np.float64)  # noqa: E731
     z = np.empty(6)
-    zero = np.zeros(3)
-    _measure_into(z, f64(R), f64(accel_body), f64(gyro_body), f64(accel_bias), f64(gyro_bias),
-                  zero if lever_arm_body is None else f64(lever_arm_body),
-                  zero if rate_world is None else f64(rate_world),
-                  zero if ang_acc_world is None else f64(ang_acc_world))
+    _measure_into(z, _f64(R), _f64(accel_body), _f64(gyro_body), _f64(accel_bias), _f64(gyro_bias),
+                  *(_AT_ORIGIN if v is None else _f64(v) for v in (lever_arm_body, rate_world, ang_acc_world)))
     return z
 
 
@@ -269,8 +270,7 @@ def fit_accel_bias(t_s: np.ndarray, accel_body: np.ndarray, R: np.ndarray, obs_t
         return None
     a_w = np.einsum("nij,nj->ni", R, accel_body) + GRAVITY_WORLD
     n = len(t_s)
-    D, VD, M, VM = _integrate_accel(np.ascontiguousarray(t_s, dtype=np.float64), a_w,
-                                    np.ascontiguousarray(R, dtype=np.float64))
+    D, VD, M, VM = _integrate_accel(_f64(t_s), a_w, _f64(R))
     k = np.clip(np.searchsorted(t_s, obs_t_s, side="right") - 1, 0, n - 2)
     h = obs_t_s - t_s[k]  # into the interval [t_k, t_k+1]
     c2, c3 = 0.5 * h * h, h**3 / (6.0 * (t_s[k + 1] - t_s[k]))
@@ -299,8 +299,7 @@ def fit_gyro_bias(t_s: np.ndarray, gyro_body: np.ndarray, obs_t_s: np.ndarray,
     R0 the first optical rotation. None with fewer than 4 rotations."""
     if len(obs_t_s) < 4 or len(t_s) < 2:
         return None
-    f64 = lambda v: np.ascontiguousarray(v, dtype=np.float64)  # noqa: E731
-    rows, rhs = _gyro_rows(f64(t_s), f64(gyro_body), f64(obs_t_s), f64(obs_R))
+    rows, rhs = _gyro_rows(_f64(t_s), _f64(gyro_body), _f64(obs_t_s), _f64(obs_R))
     A, y = rows.reshape(-1, 6), rhs.reshape(-1)
     sol = np.linalg.lstsq(A, y, rcond=None)[0]
     return sol[3:], float(np.sqrt(np.mean((A @ sol - y) ** 2) * 3.0))
@@ -333,8 +332,8 @@ class ImuInput:
     def push(self, t_ns: int, accel_body: np.ndarray, gyro_body: np.ndarray) -> bool:
         """Queue one sample (body frame: specific force m/s^2, rate rad/s); False if refused (not finite, not
         after the last one, or this body's input was dropped): nothing changes then."""
-        a = np.ascontiguousarray(accel_body, dtype=np.float64).reshape(3)
-        w = np.ascontiguousarray(gyro_body, dtype=np.float64).reshape(3)
+        a = _f64(accel_body).reshape(3)
+        w = _f64(gyro_body).reshape(3)
         if self.dropped or not (np.isfinite(a).all() and np.isfinite(w).all()):
             self.stats["invalid"] += 1
             return False

@@ -79,18 +79,6 @@ def ekf_lead_fit(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> tu
     return time_shift_fit(t_ns, *_ekf_error_and_velocity(t_ns, ekf_ned, truth))
 
 
-def ekf_lead_ms(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> tuple[float, int] | None:
-    """ekf_lead_fit's lead (ms) and samples."""
-    fit = ekf_lead_fit(t_ns, ekf_ned, truth)
-    return None if fit is None else (fit[0], fit[2])
-
-
-def ekf_lead_standard_error_ms(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> float | None:
-    """ekf_lead_fit's standard error (ms): time_shift_fit's jackknife over 1 s blocks."""
-    fit = ekf_lead_fit(t_ns, ekf_ned, truth)
-    return None if fit is None else fit[1]
-
-
 def outside_cut(rows: np.ndarray, record: dict[str, Any]) -> np.ndarray:
     """The rows (T, ...; server ns in column 0) outside the flight's vision cut and the CUT_SETTLE_NS after it
     (all of them without a cut)."""
@@ -148,6 +136,8 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
             # after it, left out: the drift's error follows the drift's velocity, whatever the delay)
             seen = outside_cut(loc, record)
             lead = ekf_lead_fit(seen[:, 0], seen[:, 1:4], truth)
+            if "cut" in record and len(seen):  # the tracking alone: its error without the cut's dead reckoning
+                out["ekf_horizontal_error_outside_cut_mm"] = _pcts(horizontal_error_mm(seen, truth))
             if lead is not None:
                 out["ekf_lead_ms"], out["ekf_lead_se_ms"], out["ekf_lead_samples"] = lead
         att = np.array([r for r in gcs.attitude if a <= r[0] <= b], dtype=float).reshape(-1, 4)
@@ -174,10 +164,6 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
             after = loc[(loc[:, 0] >= c1 + 1_000_000_000) & (loc[:, 0] <= c1 + 3_000_000_000)] if len(loc) else loc
             if len(after):
                 out["cut"]["ekf_horizontal_error_1_to_3_s_after_mm"] = _pcts(horizontal_error_mm(after, truth))
-            # the tracking alone: the cut's dead reckoning on the IMU (and the second after it) left out
-            outside = outside_cut(loc, record)
-            if len(outside):
-                out["ekf_horizontal_error_outside_cut_mm"] = _pcts(horizontal_error_mm(outside, truth))
     texts = [t for _, _, t in gcs.texts]
     out["statustext"] = texts
     out["failsafe_or_lane_switch"] = [t for t in texts if any(w in t.lower() for w in FAILSAFE_WORDS)]
