@@ -24,8 +24,12 @@ The two estimators use the pose's stamp differently, so the same measured delays
   estimate has converged, else with the arrival time (../shared/sitl-px4/README.md); EKF2 then moves every
   sample back by EKF2_EV_DELAY (EstimatorInterface::setExtVisionData, src/modules/ekf2/EKF/
   estimator_interface.cpp: time_us - ev_delay_ms * 1000 - half an EKF step), no jitter correction. Stamped on
-  arrival, each sample's error is its own delay less the setting: the median of the delays makes the errors
-  balance (PX4_PERCENTILE). Stamped with a converged TIMESYNC, the stamp is the pose's instant: 0.
+  arrival, each sample's error is its own delay less the setting, and EKF2's state, linear in what it fuses,
+  follows their mean: the mean of the delays makes the errors balance. Against PX4 SIH (issue 31, a 26 s
+  circle at 1.05 m/s, both read from PX4's own log) EKF2's output led SIH's truth by 1.8 times the setting less
+  the poses' mean delay (5 flights, the setting 7 ms under to 3 ms over: 1.79 x - 0.1 ms); the median (1-3 ms
+  under the mean on a loaded host, the delays' tail being long) put it 2-5 ms behind. Stamped with a converged
+  TIMESYNC, the stamp is the pose's instant: 0.
 
 Each estimator also keeps only so much IMU history (its delayed horizon), and a pose older than that is fused
 as if it were as old as the horizon, i.e. newer than it is: the EKF then trails the truth whatever the delay
@@ -38,9 +42,12 @@ setting. So the advice also names the horizon the poses need (DelayAdvice.horizo
   (SITL, issue 31) the default buffer (62.5 ms) was short of that (about 80 ms): the EKF trailed the truth by
   15-20 ms with VISO_DELAY_MS as advised, 2 ms once the buffer was sized for it. EK3_BCN_DELAY, a delay EKF3
   uses only for range beacons, sizes the buffer without moving any sensor in time (reboot to apply).
-- EKF2's horizon is EKF2_DELAY_MAX (read at start; EKF2 raises it to its largest sensor delay): the delay
-  setting plus a margin (EKF2_HORIZON_MARGIN_MS) holds a sample stamped on arrival; with a converged TIMESYNC
-  the poses reach back to the delays' p99.
+- EKF2 keeps ceil(EKF2_DELAY_MAX / EKF2_PREDICT_US) IMU steps (EstimatorInterface::initialise_interface; read
+  at start, raised to its largest sensor delay), and a step is the whole IMU samples nearest EKF2_PREDICT_US:
+  8 ms from PX4 SIH's 250 Hz IMU. So the history reaches back (steps - 1) x 8 ms, not EKF2_DELAY_MAX: 24 ms
+  for 40. A sample older than that is fused at the oldest step (newer than it is; past 100 ms, dropped).
+  ekf2_horizon_ms: the setting for a sample stamped on arrival (the delay setting and half a step back), or,
+  with a converged TIMESYNC, the delays' p99, plus one step of margin.
 """
 
 from __future__ import annotations
@@ -54,7 +61,6 @@ from pymavlink.dialects.v20 import common as mavlink2
 from bridge.signing import SIGNATURE_BLOCK_LEN
 
 JITTER_WINDOW = 100  # JitterCorrection's convergence_loops (libraries/AP_RTC/JitterCorrection.h default)
-PX4_PERCENTILE = 50.0
 PARAMS = {"ardupilot": "VISO_DELAY_MS", "px4": "EKF2_EV_DELAY"}
 HORIZON_PERCENTILE = 99.0  # the poses' horizon covers this share of their delays
 EKF3_SLOT_MS = 12  # EKF_TARGET_DT_MS: one buffer sample per this much of the largest delay, each at least this long
@@ -68,7 +74,8 @@ MESSAGE_PAYLOAD_BYTES = {"vision_position_estimate": mavlink2.MAVLink_vision_pos
                          "odometry": mavlink2.MAVLink_odometry_message.unpacker.size}
 EKF3_STAMP_MS = -0.25  # the corrected stamp floored to whole ms (-0.5) and fused at the first 12.5 ms EKF step
 # at or after it less half of 12 (+0.25): on average
-EKF2_HORIZON_MARGIN_MS = 25.0  # EKF2_DELAY_MAX over the oldest a pose gets (a sample stamped on arrival: the setting)
+EKF2_PREDICT_MS = 10.0  # EKF2_PREDICT_US's default: EKF2 keeps ceil(EKF2_DELAY_MAX / this) IMU steps
+EKF2_STEP_MIN_MS = 8.0  # the shortest such step of common IMU rates: two 4 ms samples (PX4 SIH's 250 Hz IMU)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,6 +133,14 @@ def ekf3_largest_delay_for(oldest_ms: float) -> int:
     return EKF3_SLOT_MS * max(1, math.ceil(oldest_ms / EKF3_SLOT_MS))
 
 
+def ekf2_horizon_ms(oldest_ms: float) -> int:
+    """EKF2_DELAY_MAX (ms) whose IMU history holds a sample oldest_ms old on EKF2's clock: ceil(setting /
+    EKF2_PREDICT_MS) steps reach back one fewer steps of as little as EKF2_STEP_MIN_MS; one more step is the
+    margin."""
+    steps = math.ceil(max(0.0, oldest_ms) / EKF2_STEP_MIN_MS) + 2
+    return int(steps * EKF2_PREDICT_MS)
+
+
 def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_timesync_converged: bool = False,
                   transfer_ms: float = 0.0) -> DelayAdvice | None:
     """The delay parameter to set for `autopilot` ('ardupilot', 'px4'; any other is taken as ArduPilot, the
@@ -141,12 +156,16 @@ def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_ti
         if px4_timesync_converged:
             late = float(np.percentile(d, HORIZON_PERCENTILE))
             return DelayAdvice("EKF2_EV_DELAY", 0, "PX4 stamps the poses with their own time (TIMESYNC converged)",
-                               "EKF2_DELAY_MAX", int(math.ceil(late + EKF2_HORIZON_MARGIN_MS)),
-                               f"the poses reach back {late:.0f} ms (p{HORIZON_PERCENTILE:g}), plus a margin")
-        v = int(round(max(0.0, float(np.percentile(d, PX4_PERCENTILE)))))
-        return DelayAdvice("EKF2_EV_DELAY", v, "the median stamp-to-arrival delay (PX4 stamps each pose on arrival)",
-                           "EKF2_DELAY_MAX", int(math.ceil(v + EKF2_HORIZON_MARGIN_MS)),
-                           "EKF2_EV_DELAY plus a margin: a shorter horizon carries less IMU noise to the output")
+                               "EKF2_DELAY_MAX", ekf2_horizon_ms(late),
+                               f"the poses reach back {late:.0f} ms (p{HORIZON_PERCENTILE:g}); EKF2's IMU steps "
+                               f"can be {EKF2_STEP_MIN_MS:g} ms, and one more is the margin")
+        v = int(round(max(0.0, float(d.mean()))))
+        return DelayAdvice("EKF2_EV_DELAY", v, "the mean stamp-to-arrival delay (PX4 stamps each pose on arrival, "
+                           "and EKF2 follows the mean of their timing errors)",
+                           "EKF2_DELAY_MAX", ekf2_horizon_ms(v + EKF2_STEP_MIN_MS / 2),
+                           f"EKF2_EV_DELAY and half a step, in EKF2's IMU steps of as little as "
+                           f"{EKF2_STEP_MIN_MS:g} ms, and one more: a shorter horizon carries less IMU noise to the "
+                           "output")
     v = int(round(max(0.0, jitter_corrected_delay_ms(d) - transfer_ms + EKF3_STAMP_MS)))
     why = (f"the smallest stamp-to-arrival delay (ArduPilot's jitter correction gives every pose the smallest "
            f"delay of its last {JITTER_WINDOW} messages: the median of such minima)"

@@ -57,7 +57,8 @@ def delay_advice(stats: dict) -> str:
     if not np.isfinite(p50):
         return f"{stats['body']} (sysid {stats['sysid']}): no pose sent yet"
     age = stats["latency_stamp_ms_p50"]
-    d, low = int(round(age)), int(round(stats.get("latency_stamp_ms_jitter_min", age)))  # estimator_delay.py: why
+    # estimator_delay.py: why each
+    d, low = (int(round(stats.get(k, age))) for k in ("latency_stamp_ms_mean", "latency_stamp_ms_jitter_min"))
     if stats.get("delay_ms") is not None:
         return (f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms; "
                 f"{stats['delay_advice']}")
@@ -65,6 +66,6 @@ def delay_advice(stats: dict) -> str:
         f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms; "
         f"pose stamp->send p50 {age:.1f} ms (bridge adds p50 {stats['latency_bridge_ms_p50']:.2f} ms) -> "
         f"ArduPilot VISO_DELAY_MS={low} (the smallest of each 100 poses + link latency); PX4 EKF2_EV_DELAY={d} "
-        "without TIMESYNC, "
+        "(the mean + link latency) without TIMESYNC, "
         f"~0 with TIMESYNC converged"
     )

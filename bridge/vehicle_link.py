@@ -678,6 +678,7 @@ class VehicleLink:
             latency_stamp_ms_p2=ls_p[2],
             latency_stamp_ms_jitter_min=jitter_corrected_delay_ms(ls * 1e-6) if len(ls) else math.nan,
             latency_stamp_ms_p50=ls_p[0],
+            latency_stamp_ms_mean=float(ls.mean()) * 1e-6 if len(ls) else math.nan,
             latency_stamp_ms_p99=ls_p[1],
             stamp_age_ms=(self.stamps.age_ns * 1e-6 if self.stamps.age_ns is not None else math.nan),
             latency_bridge_ms_p50=lb_p[0],

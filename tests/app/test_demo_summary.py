@@ -146,6 +146,8 @@ def test_the_autopilot_tally_equals_the_figures_of_every_kept_message():
     want = M.percentiles_ms(recv_ns - stamps_ns, (50, 99))
     for k in ("p50", "p99"):
         assert abs(lat[k] - want[k]) <= 2 * HIST_BIN_NS * 1e-6
+    # each sample at its bin's centre: the mean within half a bin
+    assert abs(lat["mean"] - np.mean(recv_ns - stamps_ns) * 1e-6) <= 0.5 * HIST_BIN_NS * 1e-6
 
 
 def test_the_demo_keeps_a_bounded_message_log():
@@ -171,13 +173,13 @@ def test_the_summary_says_when_the_fusion_ran_interpreted(kernels, says):
 
     s = {"scenario": "thesis", "session": "flight", "seed": 1, "duration_s": 10.0, "ticks": 1000,
          "stations": [{"camera_id": 1, "fps": 100.0}], "bodies": [],
-         "latency_ms": {"p50": 7.0, "p99": 9.0}, "latency_to_autopilot_ms": {"p2": 6.25, "p50": 8.0},
+         "latency_ms": {"p50": 7.0, "p99": 9.0}, "latency_to_autopilot_ms": {"p2": 6.25, "p50": 8.0, "mean": 8.5},
          "server": {"frames_accepted": 1000, "frames_shed": 0, "malformed": 0}, "late_ticks": 0,
          "wall_s": 10.5, "simulate_s": 0.2, "kernels": kernels}
     text = format_summary(s)
-    # the delay each estimator wants (bridge/estimator_delay.py): ArduPilot the smallest, PX4 the median
-    assert "2nd percentile 6.25 ms (ArduPilot's VISO_DELAY_MS: near the smallest" in text
-    assert "PX4's EKF2_EV_DELAY: about the median" in text
+    # the delay each estimator wants (bridge/estimator_delay.py): ArduPilot the smallest, PX4 the mean
+    assert "2nd percentile 6.25 ms, mean 8.50 ms (ArduPilot's VISO_DELAY_MS: near the smallest" in text
+    assert "PX4's EKF2_EV_DELAY: the mean" in text
     if says is None:
         assert "interpreted" not in text
     else:

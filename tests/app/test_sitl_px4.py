@@ -30,7 +30,9 @@ def test_px4_parameters_and_their_environment():
     assert P.px4_ports(7) == {"gcs": 18577, "onboard": 14587, "truth": 19417, "display": 19457}
     # the height from the vision alone, and a short horizon with a tight output predictor (docs: the PX4 table)
     assert (p["EKF2_BARO_CTRL"], p["EKF2_RNG_CTRL"], p["EKF2_ASP_DELAY"], p["EKF2_GPS_DELAY"]) == (0, 0, 0, 0)
-    assert p["EKF2_DELAY_MAX"] == 16 + 25 and p["EKF2_TAU_POS"] == p["EKF2_TAU_VEL"] == 0.1
+    # a history for 16 + 4 ms (half an 8 ms step): 3 steps, + 2 = 50 ms; with 10 ms of room for the advice, 60
+    assert p["EKF2_DELAY_MAX"] == 50 and p["EKF2_TAU_POS"] == p["EKF2_TAU_VEL"] == 0.1
+    assert P.px4_parameters("vision_position_estimate", 16, 0.01, 0.02, 3, headroom_ms=10.0)["EKF2_DELAY_MAX"] == 60
 
 
 def test_every_parameter_the_px4_flight_sets_is_in_the_docs_with_its_value():

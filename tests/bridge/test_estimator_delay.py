@@ -1,5 +1,7 @@
 """The delay advice per estimator, on made-up delays whose statistics are worked out by hand."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -35,10 +37,13 @@ def test_jitter_corrected_delay_is_the_median_of_each_100_poses_smallest():
     assert jitter_corrected_delay_ms(np.sort(d)) == 20.0
 
 
-def test_px4_on_arrival_wants_the_median_and_with_timesync_zero():
+def test_px4_on_arrival_wants_the_mean_and_with_timesync_zero():
+    # _delays(): 96 from 10.0 to 29.0 (sum 96 * 19.5 = 1872) and 6, 6, 60, 60 (132): mean 2004 / 100 = 20.04
     a = advised_delay("px4", _delays())
     assert (a.param, a.value_ms) == ("EKF2_EV_DELAY", 20)
-    assert "arrival" in a.why
+    assert "mean" in a.why and "arrival" in a.why
+    # a long tail (90 poses at 15 ms, 10 at 45 after stalls): the median 15, the mean 18, which EKF2 follows
+    assert advised_delay("px4", np.r_[np.full(90, 15.0), np.full(10, 45.0)]).value_ms == 18
     b = advised_delay("px4", _delays(), px4_timesync_converged=True)
     assert (b.param, b.value_ms) == ("EKF2_EV_DELAY", 0)
 
@@ -97,11 +102,28 @@ def test_ardupilot_names_the_buffer_when_poses_outlive_ekf3s_default_history():
     assert b.horizon_ms == 250 and "too slow" in b.horizon_why
 
 
-def test_px4_horizon_is_the_delay_setting_plus_a_margin_or_the_p99_with_timesync():
+def test_px4_horizon_holds_the_setting_in_eight_ms_steps_or_the_p99_with_timesync():
+    # stamped on arrival at 20 ms, moved back half an 8 ms step: 24 ms, 3 steps; + the newest and the margin:
+    # 5 steps of EKF2_PREDICT_US (10 ms)
     a = advised_delay("px4", _delays())
-    assert (a.horizon_param, a.horizon_ms) == ("EKF2_DELAY_MAX", 20 + 25)
+    assert (a.horizon_param, a.horizon_ms) == ("EKF2_DELAY_MAX", 50)
+    # TIMESYNC: the delays' p99, 60 ms (see _delays): 8 steps of 8 ms, + 2: 100 ms
     b = advised_delay("px4", _delays(), px4_timesync_converged=True)
-    assert (b.horizon_param, b.horizon_ms) == ("EKF2_DELAY_MAX", 60 + 25)
+    assert (b.horizon_param, b.horizon_ms) == ("EKF2_DELAY_MAX", 100)
+
+
+@pytest.mark.parametrize("oldest_ms", [0.0, 3.0, 8.0, 19.0, 24.0, 24.5, 54.0, 69.0, 150.0])
+def test_ekf2s_history_reaches_the_oldest_pose_with_a_step_to_spare(oldest_ms):
+    """EKF2 keeps ceil(EKF2_DELAY_MAX / 10 ms) IMU steps (EstimatorInterface::initialise_interface); with SIH's
+    250 Hz IMU a step is two 4 ms samples, so the history reaches (steps - 1) x 8 ms back. The advised setting
+    reaches the pose and a step more; 10 ms less would not."""
+    from bridge.estimator_delay import ekf2_horizon_ms
+
+    def reach(setting_ms):
+        return (math.ceil(setting_ms / 10.0) - 1) * 8.0
+
+    h = ekf2_horizon_ms(oldest_ms)
+    assert h % 10 == 0 and reach(h) >= oldest_ms + 8.0 > reach(h - 10)
 
 
 def test_the_docs_say_how_the_horizon_is_advised():
@@ -117,7 +139,9 @@ def test_the_docs_say_how_the_horizon_is_advised():
     assert "p99 + 6 ms" in doc and ed.HORIZON_PERCENTILE == 99.0 and ed.EKF3_HALF_STEP_MS == 6.0
     assert "(at most 250)" in doc and ed.EKF3_MAX_DELAY_MS == 250 and ed.EKF3_HORIZON_PARAM == "EK3_BCN_DELAY"
     assert "`delay.horizon_param` and `delay.horizon_ms`" in doc
-    assert "`EKF2_EV_DELAY` advised + 25 ms" in doc and ed.EKF2_HORIZON_MARGIN_MS == 25.0
+    assert "10 ms x (ceil(age / 8 ms) + 2)" in doc and (ed.EKF2_PREDICT_MS, ed.EKF2_STEP_MIN_MS) == (10.0, 8.0)
+    assert "50 ms for an `EKF2_EV_DELAY` of 16-20 ms" in doc
+    assert ed.ekf2_horizon_ms(16 + 4) == ed.ekf2_horizon_ms(20 + 4) == 50 < ed.ekf2_horizon_ms(21 + 4)
     assert "sized for poses up to 40 ms + the link's delay old" in doc and preflight.EXPECTED_LATE_MS == 40.0
 
 

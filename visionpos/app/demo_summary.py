@@ -14,6 +14,7 @@ bins, so they agree to within a bin (10 µs).
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any, Callable
 
@@ -259,7 +260,10 @@ class AutopilotPoses:
 def latency_percentiles_ms(tallies: list[AutopilotPoses], qs: tuple[float, ...]) -> dict[str, float]:
     """{'p50': ms, ...}: the stamp-to-arrival latency percentiles over every autopilot's poses together."""
     hist = sum((t.latency_hist for t in tallies), np.zeros(HIST_BINS, np.int64))
-    return {f"p{q:g}": v * 1e-6 for q, v in zip(qs, _hist_percentiles_ns(hist, qs))}
+    out = {f"p{q:g}": v * 1e-6 for q, v in zip(qs, _hist_percentiles_ns(hist, qs))}
+    n = int(hist.sum())
+    out["mean"] = float((hist * (np.arange(HIST_BINS) + 0.5)).sum() / n * HIST_BIN_NS * 1e-6) if n else math.nan
+    return out
 
 
 def _plural(n: int, word: str) -> str:
@@ -304,9 +308,10 @@ def format_summary(s: dict[str, Any]) -> str:
         f"latency from camera exposure to MAVLink send, all bodies: median {fmt(lat['p50'])} ms, "
         f"99th percentile {fmt(lat['p99'])} ms; from a pose's timestamp to its arrival at the autopilot: "
         f"median {fmt(s['latency_to_autopilot_ms']['p50'])} ms, 2nd percentile "
-        f"{fmt(s['latency_to_autopilot_ms'].get('p2'))} ms (ArduPilot's VISO_DELAY_MS: near the smallest, its "
-        "jitter correction takes each pose at the smallest delay of its last 100; PX4's EKF2_EV_DELAY: about the "
-        "median, it stamps poses on arrival without TIMESYNC; docs/autopilot-setup.md section 3)",
+        f"{fmt(s['latency_to_autopilot_ms'].get('p2'))} ms, mean {fmt(s['latency_to_autopilot_ms'].get('mean'))} ms "
+        "(ArduPilot's VISO_DELAY_MS: near the smallest, its jitter correction takes each pose at the smallest delay "
+        "of its last 100; PX4's EKF2_EV_DELAY: the mean, it stamps poses on arrival without TIMESYNC and follows "
+        "the mean of their timing errors; docs/autopilot-setup.md section 3)",
         f"server: accepted {server['frames_accepted']} camera frames"
         + (f" ({shed} not fused: they queued too long)" if shed else "")
         + f", {_plural(server['malformed'] or 0, 'malformed packet')}, "

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from visionpos.app.sitl import FlightPlan, find_sitl_binary, format_flight, run_sitl, sitl_arena
+from visionpos.app.sitl.flight import CIRCLE_PERIOD_S, CIRCLE_RADIUS_M
 from visionpos.app.sitl.px4 import check_build_kind, find_px4_dir
 from visionpos.app.sitl.px4_run import run_px4
 from visionpos.app.sitl.settings import SitlError
@@ -41,6 +42,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--yaw-swing", type=float, default=None, metavar="RAD_S",
                    help="swing the yaw rate +-RAD_S (2 s period) during the hold: the rotation the delay measurement "
                         "correlates (default 1 with --link-delay-ms, else 0)")
+    p.add_argument("--circle", type=float, default=0.0, metavar="S",
+                   help=f"after the square, fly S seconds round a {CIRCLE_RADIUS_M:g} m circle ({CIRCLE_PERIOD_S:g} s "
+                        "a turn) and fit the EKF's lead on it alone: the precise check of the delay setting (e.g. 30)")
     p.add_argument("--vehicles", type=int, default=1, metavar="N",
                    help="fly the arena's first N vehicles together, one ArduPilot SITL each, from a row on the floor: "
                         "take-off, a hover, a crossing and back, land (bodies of distinct layouts: the pair scenario)")
@@ -71,8 +75,12 @@ def run(args: argparse.Namespace) -> int:
     swing = args.yaw_swing if args.yaw_swing is not None else (1.0 if args.link_delay_ms is not None else 0.0)
     if not 0 <= swing <= 3:
         raise UsageError(f"--yaw-swing {swing}: give 0 to 3 rad/s")
+    if not 0 <= args.circle <= 120:
+        raise UsageError(f"--circle {args.circle}: give 0 to 120 s")
+    if args.circle > 0 and args.vehicles != 1:
+        raise UsageError("--circle: one vehicle only (the fleet flight has its own crossing)")
     plan = FlightPlan(args.altitude, args.side, args.hold, not args.no_square, args.cut, args.timeout,
-                      args.link_delay_ms, swing)
+                      args.link_delay_ms, swing, args.circle)
     sets = list(args.set) + ([f"vehicles.0.message={args.message}"] if args.message else [])
     if args.defaults:  # the flag is the arena key, relative to here
         sets.append(f"sitl.defaults={Path(args.defaults).resolve()}")

@@ -88,6 +88,21 @@ class SitlClock:
         return out
 
 
+def clock_rate(pairs: np.ndarray, window_ns: int, min_span_ns: int) -> float | None:
+    """The other clock's seconds per ours over the newest window_ns of TIMESYNC pairs (N, 2: our send ns, its
+    receive ns), by least squares (each pair's one-way jitter is noise about the line); None while they span
+    under min_span_ns."""
+    if len(pairs) < 3:
+        return None
+    pairs = pairs[pairs[:, 0] >= pairs[-1, 0] - window_ns]
+    ours = (pairs[:, 0] - pairs[0, 0]).astype(np.float64)
+    theirs = (pairs[:, 1] - pairs[0, 1]).astype(np.float64)
+    if ours[-1] < min_span_ns:
+        return None
+    ours -= ours.mean()
+    return float((ours * (theirs - theirs.mean())).sum() / (ours * ours).sum())
+
+
 class IntakeProbe:
     """TIMESYNC requests into SITL's vision port (SERIAL1) from the relay's own socket, every
     SitlClock.TIMESYNC_EVERY_NS on a thread of its own, signed with the vehicle's key (SITL takes only signed

@@ -41,10 +41,21 @@ class FlightPlan:
     # yaw rate swung sinusoidally (rad/s amplitude, YAW_SWING_PERIOD_S) during the hold: the rotation the
     # back-channel's gyro/optical correlation needs to measure the delay (0: hold still)
     yaw_swing_rad_s: float = 0.0
+    # a horizontal circle (CIRCLE_RADIUS_M, CIRCLE_PERIOD_S) flown this long after the square, about the square's
+    # centre: a steady speed turning through every direction, what the EKF's lead is fitted on (0: none)
+    circle_s: float = 0.0
 
     def yaw_rate_at(self, t_s: float) -> float:
         """The swing's yaw rate (rad/s) t_s into the hold."""
         return self.yaw_swing_rad_s * math.sin(2 * math.pi * t_s / YAW_SWING_PERIOD_S)
+
+
+def circle_at(t_s: float) -> tuple[float, float, float, float]:
+    """The circle's setpoint t_s after its start: north and east from its centre (m), and their rates (m/s).
+    It starts CIRCLE_RADIUS_M north of the centre, turning towards the east."""
+    w = 2 * math.pi / CIRCLE_PERIOD_S
+    r = CIRCLE_RADIUS_M
+    return r * math.cos(w * t_s), r * math.sin(w * t_s), -r * w * math.sin(w * t_s), r * w * math.cos(w * t_s)
 
 
 async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSettings, body: str,
@@ -93,6 +104,12 @@ async def fly(ctx: Any, gcs: Gcs, live: LiveArena, plan: FlightPlan, cfg: SitlSe
             await goto(gcs, x0 + dx, y0 + dy, -plan.altitude_m, min(20.0, left()))
             say(f"  corner N {dx:+.1f} E {dy:+.1f} m reached")
             await asyncio.sleep(1.0)
+    if plan.circle_s > 0:
+        c = (x0 + plan.side_m / 2, y0 + plan.side_m / 2)
+        await goto(gcs, c[0] + CIRCLE_RADIUS_M, c[1], -plan.altitude_m, min(20.0, left()))
+        await fly_circle(lambda n, e, vn, ve: gcs.conn.mav.set_position_target_local_ned_send(
+            0, gcs.target, 1, 1, 0b0000_1111_1100_0000, n, e, -plan.altitude_m, vn, ve, 0, 0, 0, 0, 0, 0),
+            c, plan.circle_s, record, say)
     record["land_ns"] = time.monotonic_ns()
     record["stamp_age_ms"].append(_stamp_age_ms(link))
     await gcs.command_async(MAV_CMD_DO_SET_MODE, 1, COPTER_MODES["LAND"], what="LAND mode")
@@ -108,6 +125,10 @@ def _stamp_age_ms(link: Any) -> float | None:
 
 
 YAW_SWING_PERIOD_S = 2.0
+# 0.5 m at 3 s a turn: 1.05 m/s, 2.2 m/s^2 inward; a 2 ms lead is then 2.1 mm across the track. The first turn
+# (the vehicle catching up with the setpoint) is left out of the fit.
+CIRCLE_RADIUS_M, CIRCLE_PERIOD_S = 0.5, 3.0
+CIRCLE_SPEED_M_S = 2 * math.pi * CIRCLE_RADIUS_M / CIRCLE_PERIOD_S
 ADVICE_POSES = 2 * JITTER_WINDOW  # the newest poses the advice is taken from: two of ArduPilot's jitter windows
 ADVICE_HOLD_NS = 4_000_000_000  # the relay's hold: its median over this long
 
@@ -170,6 +191,20 @@ async def _hold(gcs: Gcs, plan: FlightPlan, north: float, east: float, duration_
         gcs.conn.mav.set_position_target_local_ned_send(0, gcs.target, 1, 1, 0b0000_0101_1111_1000, north, east,
                                                         -plan.altitude_m, 0, 0, 0, 0, 0, 0, 0, rate)
         await asyncio.sleep(0.05)
+
+
+async def fly_circle(send: Callable[[float, float, float, float], None], centre: tuple[float, float],
+                     duration_s: float, record: dict[str, Any], say: Callable[[str], None]) -> None:
+    """Sweep the setpoint round the circle (circle_at) about centre (N, E m) for duration_s, each 50 ms through
+    send(north, east, v_north, v_east): position with the velocity as feed-forward. record["circle"]: the span
+    (server ns) after the first turn."""
+    say(f"circling: radius {CIRCLE_RADIUS_M:g} m, {CIRCLE_PERIOD_S:g} s a turn, for {duration_s:g} s")
+    t0 = time.monotonic_ns()
+    while (t := (time.monotonic_ns() - t0) * 1e-9) < duration_s:
+        dn, de, vn, ve = circle_at(t)
+        send(centre[0] + dn, centre[1] + de, vn, ve)
+        await asyncio.sleep(0.05)
+    record["circle"] = (t0 + int(CIRCLE_PERIOD_S * 1e9), time.monotonic_ns())
 
 
 async def goto(gcs: Gcs, north: float, east: float, down: float, timeout_s: float) -> None:

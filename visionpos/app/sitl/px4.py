@@ -18,7 +18,10 @@ import types
 from pathlib import Path
 from typing import Any
 
-from bridge.estimator_delay import EKF2_HORIZON_MARGIN_MS
+import numpy as np
+
+from bridge.estimator_delay import EKF2_STEP_MIN_MS, ekf2_horizon_ms
+from visionpos.app.sitl.clock import clock_rate
 from visionpos.app.sitl.gcs import Gcs
 from visionpos.app.sitl.process import ChildProcess
 from visionpos.app.sitl.settings import SHARED_SITL_DIR, SITL, SitlError
@@ -33,6 +36,11 @@ POSCTL, AUTO, OFFBOARD = 3, 4, 6  # PX4 main modes (custom_mode = main << 16, su
 AUTO_LAND = 6  # sub mode of AUTO
 ESTIMATOR_POS_HORIZ_REL = 8
 MANUAL_HZ, GCS_HEARTBEAT_HZ, SETPOINT_HZ = 10.0, 1.0, 20.0
+# PX4's lockstep clock against ours: a line through the newest 10 s of TIMESYNC answers (4 a second: a loopback's
+# 0.1-1 ms of one-way jitter puts the slope within about 1e-4), once they span 5 s; a rate outside the bounds is
+# not a clock (PX4 restarted)
+CLOCK_RATE_WINDOW_NS, CLOCK_RATE_MIN_SPAN_NS, CLOCK_RATE_PAIRS = 10_000_000_000, 5_000_000_000, 64
+CLOCK_RATE_BOUNDS = (0.5, 1.5)
 # SIH's display link streams HIL_STATE_QUATERNION at 25 Hz (px4-rc.mavlink): the cameras would render the body
 # from a truth up to 40 ms old, carried forward on its velocity. SIH steps its physics at 250 Hz (sih.cpp), so the
 # truth is asked for at that rate (SET_MESSAGE_INTERVAL on the display link itself), until it comes at least at
@@ -98,7 +106,7 @@ def default_px4_dir() -> Path | None:
 
 
 def px4_parameters(message: str, ev_delay_ms: float, pos_noise_m: float, yaw_noise_rad: float,
-                   sysid: int) -> dict[str, float]:
+                   sysid: int, headroom_ms: float = 0.0) -> dict[str, float]:
     """EKF2 for vision only (docs/autopilot-setup.md, PX4): EV position, height and yaw (and velocity with
     ODOMETRY), height reference vision, GPS and magnetometer off and not required, the message covariance with the
     noise floors lowered to motion-capture accuracy, the delay; MAV_SYS_ID the vehicle's sysid.
@@ -106,7 +114,8 @@ def px4_parameters(message: str, ev_delay_ms: float, pos_noise_m: float, yaw_noi
       before the vision comes, and the vision's height then gets a bias following that sensor (PX4 SIH: the
       EKF 10-25 cm from the vision's height while fusing it).
     - The delayed horizon (EKF2_DELAY_MAX, default 200 ms; EKF2 raises it to the largest sensor delay, so the
-      unused airspeed's and GPS's delays go to 0) just past the vision's delay, and the output
+      unused airspeed's and GPS's delays go to 0) just past the vision's delay (ekf2_horizon_ms; headroom_ms
+      more where the delay is to be set again in flight), and the output
       predictor's time constants at their minimum (EKF2_TAU_POS, EKF2_TAU_VEL 0.1 s): the output is the
       delayed state carried forward on the IMU, and the less of the (vibrating) IMU it carries, the closer
       it stays to the vision (PX4 SIH hover: EKF horizontal p99 116 mm with the defaults, 31 mm with these).
@@ -119,7 +128,8 @@ def px4_parameters(message: str, ev_delay_ms: float, pos_noise_m: float, yaw_noi
         "EKF2_EV_CTRL": 15.0 if message == "odometry" else 11.0, "EKF2_HGT_REF": 3.0, "EKF2_GPS_CTRL": 0.0,
         "SYS_HAS_GPS": 0.0, "SENS_EN_GPSSIM": 0.0, "EKF2_MAG_TYPE": 5.0, "SYS_HAS_MAG": 0.0,
         "EKF2_BARO_CTRL": 0.0, "EKF2_RNG_CTRL": 0.0, "EKF2_EV_DELAY": float(ev_delay_ms),
-        "EKF2_DELAY_MAX": float(ev_delay_ms) + EKF2_HORIZON_MARGIN_MS, "EKF2_ASP_DELAY": 0.0, "EKF2_GPS_DELAY": 0.0,
+        "EKF2_DELAY_MAX": float(ekf2_horizon_ms(ev_delay_ms + headroom_ms + EKF2_STEP_MIN_MS / 2)),
+        "EKF2_ASP_DELAY": 0.0, "EKF2_GPS_DELAY": 0.0,
         "EKF2_TAU_POS": 0.1, "EKF2_TAU_VEL": 0.1,
         "EKF2_ACC_NOISE": SIH_ACC_NOISE_M_S2, "EKF2_GYR_NOISE": SIH_GYR_NOISE_RAD_S,
         "EKF2_EV_NOISE_MD": 0.0, "EKF2_EVP_NOISE": float(pos_noise_m), "EKF2_EVA_NOISE": float(yaw_noise_rad),
@@ -197,7 +207,7 @@ class Px4Gcs(Gcs):
     LOCAL_POSITION_NED, ATTITUDE, heartbeats and modes), plus ESTIMATOR_STATUS into `ekf`, SIH's true state (the
     display link's HIL_STATE_QUATERNION) into the TruthTrack, and a keep-alive thread: the GCS HEARTBEAT PX4 needs
     to arm, MANUAL_CONTROL (centred sticks) while `manual`, and the offboard `setpoint` (N, E, D m; with
-    `yaw_rate` rad/s where set) while set."""
+    `yaw_rate` rad/s and the `velocity` feed-forward where set) while set."""
 
     param_bytewise = True  # PX4 puts an integer parameter's bytes in PARAM_VALUE's float
 
@@ -209,9 +219,11 @@ class Px4Gcs(Gcs):
         self.manual = False
         self.setpoint: tuple[float, float, float] | None = None
         self.yaw_rate: float | None = None  # rad/s with the setpoint (a yaw swing); None: PX4 holds its heading
+        self.velocity: tuple[float, float, float] | None = None  # N, E, D m/s feed-forward with the setpoint
         self._keep = threading.Event()
         self._threads: list[threading.Thread] = []
         self._truth_sock: socket.socket | None = None
+        self.clock_rates: list[tuple[int, float]] = []
 
     def connect(self, timeout_s: float = 30.0, proc: Any = None) -> None:
         from pymavlink import mavutil
@@ -253,6 +265,10 @@ class Px4Gcs(Gcs):
 
     def _handle(self, m: Any, now: int) -> None:
         kind = m.get_type()
+        if kind == "TIMESYNC" and m.tc1 > 0:
+            super()._handle(m, now)
+            self._follow_clock()
+            return
         if kind == "HEARTBEAT" and self.target == 0 and m.get_srcComponent() == 1 and m.autopilot != 8:
             self.target = m.get_srcSystem()  # 8: MAV_AUTOPILOT_INVALID (a companion, not the autopilot)
         if kind == "ESTIMATOR_STATUS":
@@ -290,6 +306,15 @@ class Px4Gcs(Gcs):
         span = (recent[-1] - recent[0]) * 1e-9
         return (len(recent) - 1) / span if span > 0 else 0.0
 
+    def _follow_clock(self) -> None:
+        """PX4's clock rate against ours (clock_rate over CLOCK_RATE_WINDOW_NS of the GCS link's TIMESYNC
+        answers) into the TruthTrack, and each estimate into `clock_rates` (our ns, rate)."""
+        rate = clock_rate(np.array(self.clock.timesync[-CLOCK_RATE_PAIRS:], dtype=np.int64).reshape(-1, 2),
+                          CLOCK_RATE_WINDOW_NS, CLOCK_RATE_MIN_SPAN_NS)
+        if rate is not None and CLOCK_RATE_BOUNDS[0] < rate < CLOCK_RATE_BOUNDS[1]:
+            self.truth.rate = rate
+            self.clock_rates.append((time.monotonic_ns(), rate))
+
     def _keepalive(self) -> None:
         next_hb = next_manual = next_sp = 0.0
         while not self._keep.is_set():
@@ -303,12 +328,13 @@ class Px4Gcs(Gcs):
                 if self.manual and now >= next_manual and self.target:
                     next_manual = now + 1.0 / MANUAL_HZ
                     self.conn.mav.manual_control_send(self.target, 0, 0, 500, 0, 0)  # centred: hold
-                sp, rate = self.setpoint, self.yaw_rate
+                sp, rate, vel = self.setpoint, self.yaw_rate, self.velocity
                 if sp is not None and now >= next_sp and self.target:
                     next_sp = now + 1.0 / SETPOINT_HZ
                     mask = 0b0000_1111_1111_1000 if rate is None else 0b0000_0101_1111_1000  # position (+ yaw rate)
+                    mask &= ~0b111_000 if vel is not None else ~0  # + the velocity feed-forward
                     self.conn.mav.set_position_target_local_ned_send(0, self.target, 1, 1, mask, *sp,
-                                                                     0, 0, 0, 0, 0, 0, 0, rate or 0.0)
+                                                                     *(vel or (0, 0, 0)), 0, 0, 0, 0, rate or 0.0)
             except OSError:
                 return
             time.sleep(0.01)

@@ -21,7 +21,7 @@ import numpy as np
 
 from visionpos.app.sitl.flight import FlightPlan
 from visionpos.app.sitl.px4 import Px4Gcs, Px4Process, free_px4_instance, px4_parameters, px4_ports
-from visionpos.app.sitl.px4_run import OUR_MODES, fly_px4
+from visionpos.app.sitl.px4_run import OUR_MODES, clock_rate_summary, fly_px4
 from visionpos.app.sitl.report import flight_summary, say_to
 from visionpos.app.sitl.settings import SITL, SitlError
 from visionpos.app.sitl.truth import TruthTrack, truth_now
@@ -122,6 +122,7 @@ def run_px4_truth_vision(arena: ArenaConfig, build: Path, plan: FlightPlan, out:
     summary["real_time"] = {"frames_made": 0, "frames_late_fraction": 0.0, "frames_not_fused_fraction": 0.0}
     summary["delay_param"] = "EKF2_EV_DELAY"
     summary["px4_log"] = proc.log_timing
+    summary["px4_clock_rate"] = clock_rate_summary(gcs)
     return summary
 
 

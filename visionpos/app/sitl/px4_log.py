@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from visionpos.app.sitl.flight import CIRCLE_PERIOD_S, CIRCLE_SPEED_M_S
 from visionpos.app.sitl.report import CUT_SETTLE_NS, time_shift_fit
 
 GAP_NS = 500_000_000
@@ -42,6 +43,46 @@ def output_lead(ev_t_us: np.ndarray, ev_fused: np.ndarray, out_t_us: np.ndarray,
     return {} if fit is None else dict(zip(("output_lead_ms", "output_lead_se_ms", "output_samples"), fit))
 
 
+def circle_span(t_ns: np.ndarray, vel: np.ndarray) -> tuple[int, int] | None:
+    """The flight's circle (flight.py) on the truth's clock: the longest stretch of t_ns (N,) with the speed of
+    vel (N, 2) m/s over half the circle's (dips shorter than half a turn bridged: PX4 tracks the circle
+    unevenly), less its first turn; None under two turns."""
+    period_ns = int(CIRCLE_PERIOD_S * 1e9)
+    fast = np.flatnonzero(np.hypot(vel[:, 0], vel[:, 1]) > 0.5 * CIRCLE_SPEED_M_S)
+    if not len(fast):
+        return None
+    runs = np.split(fast, np.flatnonzero(np.diff(t_ns[fast]) > period_ns // 2) + 1)
+    run = max(runs, key=lambda r: t_ns[r[-1]] - t_ns[r[0]])
+    a, b = int(t_ns[run[0]]) + period_ns, int(t_ns[run[-1]])
+    return (a, b) if b - a >= period_ns else None
+
+
+def circle_leads(ev_t_us: np.ndarray, ev_xy: np.ndarray, out_t_us: np.ndarray, out_xy: np.ndarray,
+                 truth_t_us: np.ndarray, truth_xy: np.ndarray, truth_vel: np.ndarray) -> dict[str, Any]:
+    """On the circle (circle_span), each turn's drift taken out (time_shift_fit's detrend): how far EKF2's output
+    runs ahead of SIH's truth (ms, standard error, samples), and how old the vision samples are on arrival: the
+    shift of their position against the truth at their arrival stamp, negated (ms, standard error), on PX4's clock.
+    Arrays as output_lead's, ev_xy (N, 2) the samples' NE position; {} without a circle."""
+    tt = np.asarray(truth_t_us, dtype=np.int64) * 1000
+    span = circle_span(tt, np.asarray(truth_vel))
+    if span is None:
+        return {}
+
+    def fit(t_us: np.ndarray, xy: np.ndarray) -> tuple[float, float | None, int] | None:
+        t = np.asarray(t_us, dtype=np.int64) * 1000
+        k = (t >= span[0]) & (t <= span[1])
+        at = [np.column_stack([np.interp(t[k], tt, y[:, j]) for j in range(2)]) for y in (truth_xy, truth_vel)]
+        return time_shift_fit(t[k], np.asarray(xy)[k] - at[0], at[1], detrend_ns=int(CIRCLE_PERIOD_S * 1e9))
+
+    out: dict[str, Any] = {"circle_s": (span[1] - span[0]) * 1e-9}
+    lead, age = fit(out_t_us, out_xy), fit(ev_t_us, ev_xy)
+    if lead is not None:
+        out["output_lead_circle_ms"], out["output_lead_circle_se_ms"], out["output_circle_samples"] = lead
+    if age is not None:
+        out["vision_delay_circle_ms"], out["vision_delay_circle_se_ms"] = -age[0], age[1]
+    return out
+
+
 def read_px4_log(folder: str | Path) -> dict[str, Any]:
     """output_lead from the newest ULog under a PX4 working folder (log/<date>/*.ulg), or {'error': why}."""
     logs = sorted(Path(folder).glob("log/*/*.ulg"), key=lambda p: p.stat().st_mtime)
@@ -51,12 +92,16 @@ def read_px4_log(folder: str | Path) -> dict[str, Any]:
         from pyulog import ULog
     except ImportError:
         return {"error": "pyulog is not installed (the px4log extra): PX4's log not read"}
-    names = ["estimator_aid_src_ev_pos", "vehicle_local_position", "vehicle_local_position_groundtruth"]
+    names = ["estimator_aid_src_ev_pos", "vehicle_local_position", "vehicle_local_position_groundtruth",
+             "vehicle_visual_odometry"]
     try:
         u = ULog(str(logs[-1]), names)
         d = {x.name: x.data for x in u.data_list if x.multi_id == 0}
-        ev, lp, gt = (d[n] for n in names)
+        ev, lp, gt, vo = (d[n] for n in names)
     except Exception as e:  # a log cut short (PX4 killed while writing) or without those topics
         return {"error": f"{logs[-1].name}: {type(e).__name__}: {e}"}
-    return output_lead(ev["timestamp_sample"], ev["fused"], lp["timestamp_sample"], np.column_stack([lp["x"], lp["y"]]),
-                       gt["timestamp"], np.column_stack([gt["x"], gt["y"]]), np.column_stack([gt["vx"], gt["vy"]]))
+    out_xy, truth = np.column_stack([lp["x"], lp["y"]]), (gt["timestamp_sample"], np.column_stack([gt["x"], gt["y"]]),
+                                                          np.column_stack([gt["vx"], gt["vy"]]))
+    return {**output_lead(ev["timestamp_sample"], ev["fused"], lp["timestamp_sample"], out_xy, *truth),
+            **circle_leads(vo["timestamp_sample"], np.column_stack([vo["position[0]"], vo["position[1]"]]),
+                           lp["timestamp_sample"], out_xy, *truth)}

@@ -10,7 +10,7 @@ from typing import Any, Callable, TextIO
 import numpy as np
 
 from visionpos.app.sitl.delay import fmt_ms
-from visionpos.app.sitl.flight import FlightPlan
+from visionpos.app.sitl.flight import CIRCLE_PERIOD_S, FlightPlan
 from visionpos.app.sitl.gcs import COPTER_MODES, MODE_NAMES, Gcs
 from visionpos.app.sitl.truth import LATE_NS, TruthTrack
 from visionpos.geometry.frames import euler_ned_frd, ned_to_world, world_to_ned
@@ -37,14 +37,32 @@ YAW_LEAD_MIN_RATE_RAD_S = 0.2
 YAW_RATE_STEP_NS = 5_000_000  # the true yaw rate: central difference over twice this
 
 
+def minus_moving_mean(t_ns: np.ndarray, y: np.ndarray, window_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """y (T, k) less its mean over the samples within window_ns / 2 either side of each (t_ns (T,) ascending),
+    and the mask (T,) of the samples whose whole window lies inside the record (the others' means are one-sided).
+    Over one period of a periodic motion this takes out what drifts slower than the motion and keeps the motion."""
+    t = np.asarray(t_ns, dtype=np.int64)
+    c = np.vstack([np.zeros((1, y.shape[1])), np.cumsum(y, axis=0)])
+    lo = np.searchsorted(t, t - window_ns // 2, "left")
+    hi = np.searchsorted(t, t + window_ns // 2, "right")
+    whole = (t - window_ns // 2 >= t[0]) & (t + window_ns // 2 <= t[-1]) if len(t) else np.zeros(0, bool)
+    return y - (c[hi] - c[lo]) / (hi - lo)[:, None], whole
+
+
 def time_shift_fit(t_ns: np.ndarray, err: np.ndarray, vel: np.ndarray, min_speed_m_s: float = LEAD_MIN_SPEED_M_S,
-                   block_ns: int = LEAD_SE_BLOCK_NS) -> tuple[float, float | None, int] | None:
+                   block_ns: int = LEAD_SE_BLOCK_NS, detrend_ns: int | None = None
+                   ) -> tuple[float, float | None, int] | None:
     """The time shift tau (ms) with err = vel * tau + c, fitted by least squares over both horizontal axes on the
     samples moving faster than min_speed_m_s; its standard error (ms) by the jackknife over blocks of block_ns (an
     EKF's error wanders over about a second, so neighbouring samples are not independent and the blocks are;
-    None under 3 blocks); and the samples used. t_ns (T,); err, vel (T, 2) m and m/s. None under LEAD_MIN_SAMPLES
-    moving samples."""
+    None under 3 blocks); and the samples used. t_ns (T,); err, vel (T, 2) m and m/s. With detrend_ns (one period
+    of a periodic flight), err and vel each less their moving mean over it first (minus_moving_mean): c then
+    drifts, and the samples within half a period of either end are left out. None under LEAD_MIN_SAMPLES moving
+    samples."""
     t_ns, err, vel = np.asarray(t_ns, dtype=np.int64), np.asarray(err, dtype=float), np.asarray(vel, dtype=float)
+    if detrend_ns is not None and len(t_ns):
+        (err, whole), (vel, _) = (minus_moving_mean(t_ns, x, detrend_ns) for x in (err, vel))
+        t_ns, err, vel = t_ns[whole], err[whole], vel[whole]
     moving = np.hypot(vel[:, 0], vel[:, 1]) > min_speed_m_s
     n = int(moving.sum())
     if n < LEAD_MIN_SAMPLES:
@@ -71,12 +89,13 @@ def _ekf_error_and_velocity(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthT
     return (ekf_ned - world_to_ned(p))[:, :2], world_to_ned(v)[:, :2]
 
 
-def ekf_lead_fit(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack) -> tuple[float, float | None, int] | None:
+def ekf_lead_fit(t_ns: np.ndarray, ekf_ned: np.ndarray, truth: TruthTrack, detrend_ns: int | None = None
+                 ) -> tuple[float, float | None, int] | None:
     """How far ahead of the truth the EKF's horizontal position runs (ms; negative: behind), its standard error
-    and the samples the fit used: the shift tau with ekf(t) = truth(t + tau) (time_shift_fit). t_ns (T,): arrival
-    times on the server clock, as the truth's own (both cross loopback, so the transport cancels); ekf_ned (T, 3)
-    m. None with too little motion."""
-    return time_shift_fit(t_ns, *_ekf_error_and_velocity(t_ns, ekf_ned, truth))
+    and the samples the fit used: the shift tau with ekf(t) = truth(t + tau) (time_shift_fit, detrend_ns passed
+    on). t_ns (T,): arrival times on the server clock, as the truth's own (both cross loopback, so the transport
+    cancels); ekf_ned (T, 3) m. None with too little motion."""
+    return time_shift_fit(t_ns, *_ekf_error_and_velocity(t_ns, ekf_ned, truth), detrend_ns=detrend_ns)
 
 
 def outside_cut(rows: np.ndarray, record: dict[str, Any]) -> np.ndarray:
@@ -140,6 +159,12 @@ def flight_summary(gcs: Gcs, truth: TruthTrack, demo: dict[str, Any], record: di
                 out["ekf_horizontal_error_outside_cut_mm"] = _pcts(horizontal_error_mm(seen, truth))
             if lead is not None:
                 out["ekf_lead_ms"], out["ekf_lead_se_ms"], out["ekf_lead_samples"] = lead
+            if "circle" in record:  # the steady circle alone, each turn's slow drift taken out
+                c0, c1 = record["circle"]
+                on = loc[(loc[:, 0] >= c0) & (loc[:, 0] <= c1)]
+                lead = ekf_lead_fit(on[:, 0], on[:, 1:4], truth, detrend_ns=int(CIRCLE_PERIOD_S * 1e9))
+                if lead is not None:
+                    out["ekf_lead_circle_ms"], out["ekf_lead_circle_se_ms"], out["ekf_lead_circle_samples"] = lead
         att = np.array([r for r in gcs.attitude if a <= r[0] <= b], dtype=float).reshape(-1, 4)
         if len(att):
             _, _, _, rot = truth.sample(att[:, 0].astype(np.int64))
@@ -204,6 +229,10 @@ def format_flight(s: dict[str, Any]) -> str:
         + ("" if s.get("ekf_yaw_lead_ms") is None else
            f"; its reported yaw {s['ekf_yaw_lead_ms']:.1f} ms ahead of the true yaw while turning (how much sooner its "
            "telemetry arrives than the truth: the transport's share)"),
+        *([] if s.get("ekf_lead_circle_ms") is None else [
+            f"  on the circle: EKF ahead of the truth by {s['ekf_lead_circle_ms']:.1f} ms"
+            + ("" if s.get("ekf_lead_circle_se_ms") is None else f" +- {s['ekf_lead_circle_se_ms']:.1f}")
+            + f" ({s['ekf_lead_circle_samples']} samples after the first turn, each turn's drift taken out)"]),
         f"  EKF yaw vs truth: p50 {f(y.get('p50'), '.2f')} deg, p99 {f(y.get('p99'), '.2f')} deg, "
         f"max {f(y.get('max'), '.2f')} deg",
         f"  vision (fusion output) vs truth: RMS {f(vis.get('position_rmse_mm'), '.2f')} mm, max "

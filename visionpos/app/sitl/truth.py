@@ -56,10 +56,15 @@ class TruthTrack:
         self._x = np.zeros((0, 13))  # world position (3), velocity (3), quaternion xyzw (4), body rate FLU (3)
         self._ned_prev: np.ndarray | None = None
         self._v_prev = np.zeros(3)
+        # the simulation's seconds per ours: PX4 SIH's lockstep clock falls behind ours while the host is loaded,
+        # and its velocities and rates are per its own second (set by Px4Gcs from TIMESYNC; 1: the same clock)
+        self.rate = 1.0
 
     def add(self, recv_ns: int, m: Any) -> None:
-        """One SIM_STATE message (pymavlink) received at recv_ns (server clock)."""
-        v_ned = np.array([m.vn, m.ve, m.vd], dtype=float)
+        """One SIM_STATE message (pymavlink) received at recv_ns (server clock): its velocities and rates taken to
+        our clock by self.rate."""
+        k = self.rate
+        v_ned = np.array([m.vn, m.ve, m.vd], dtype=float) * k
         meas = np.array([(m.lat_int - self.lat0_e7) * LATLON_TO_M,
                          (m.lon_int - self.lon0_e7) * LATLON_TO_M * self.lon_scale, -(m.alt - self.alt0)])
         if self._ned_prev is None or self.n == 0:
@@ -71,7 +76,7 @@ class TruthTrack:
         self._ned_prev, self._v_prev = ned, v_ned
         q = quat_ned_frd_to_world_body(np.array([m.q2, m.q3, m.q4, m.q1], dtype=float))
         row = np.concatenate([ned_to_world(ned), ned_to_world(v_ned), q,
-                              frd_to_flu(np.array([m.xgyro, m.ygyro, m.zgyro], dtype=float))])
+                              frd_to_flu(np.array([m.xgyro, m.ygyro, m.zgyro], dtype=float)) * k])
         with self._lock:
             if self.n == self._cap:
                 self._cap = max(1024, 2 * self._cap)
