@@ -229,3 +229,21 @@ def test_sitl_cli_checks_the_circle(capsys):
     assert "--circle 200.0: give 0 to 120 s" in capsys.readouterr().err
     assert main(["sitl", "--circle", "10", "--vehicles", "2"]) == 2
     assert "--circle: one vehicle only" in capsys.readouterr().err
+
+
+def test_the_docs_say_what_the_px4_flight_does_with_the_circle_and_the_delay():
+    """docs/autopilot-setup.md section 0 and 3: the circle, the room EKF2's history is booted with, the advice set
+    in flight; the figures are the code's."""
+    from pathlib import Path
+
+    from visionpos.app.sitl import px4_run
+    from visionpos.app.sitl.flight import CIRCLE_SPEED_M_S
+
+    doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
+    assert "with `--circle S` flies S seconds round a 0.5 m circle (3 s a turn, 1.05 m/s)" in doc
+    assert (CIRCLE_RADIUS_M, CIRCLE_PERIOD_S, round(CIRCLE_SPEED_M_S, 2)) == (0.5, 3.0, 1.05)
+    assert "`EKF2_DELAY_MAX` sized (section 3) for `EKF2_EV_DELAY` + 10 ms" in doc
+    assert px4_run.ADVICE_HEADROOM_MS == 10.0 and px4_run.FIRST_EV_DELAY_MS == 15.0
+    assert "Otherwise PX4 starts with 15 ms (plus the link delay), and the flight sets the value the bridge " \
+           "advises" in doc
+    assert "the bridge advises the **mean** stamp-to-arrival delay" in doc
