@@ -5,7 +5,7 @@ With plan.link_delay_ms, a DelayRelay sits between the bridge and the Onboard po
 
 EKF2_EV_DELAY is sitl.viso_delay_ms when given, for the whole flight. Else PX4 boots with FIRST_EV_DELAY_MS plus
 the link delay (its horizon, EKF2_DELAY_MAX, is sized from it at start), and the flight sets the bridge's advice
-(PX4 in SITL stamps the poses on arrival: the median stamp-to-arrival delay, bridge/estimator_delay.py) once
+(PX4 in SITL stamps the poses on arrival: the mean stamp-to-arrival delay, bridge/estimator_delay.py) once
 airborne and again before the circle (set_advised_ev_delay).
 """
 
