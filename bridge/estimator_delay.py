@@ -27,9 +27,9 @@ The two estimators use the pose's stamp differently, so the same measured delays
   arrival, each sample's error is its own delay less the setting, and EKF2's state, linear in what it fuses,
   follows their mean: the mean of the delays makes the errors balance. Against PX4 SIH (issue 31, a 26 s
   circle at 1.05 m/s, both read from PX4's own log) EKF2's output led SIH's truth by 1.8 times the setting less
-  the poses' mean delay (5 flights, the setting 7 ms under to 3 ms over: 1.79 x - 0.1 ms); the median (1-3 ms
-  under the mean on a loaded host, the delays' tail being long) put it 2-5 ms behind. Stamped with a converged
-  TIMESYNC, the stamp is the pose's instant: 0.
+  the poses' mean delay (5 flights, the setting 7 ms under to 3 ms over: 1.79 x - 0.1 ms; 3 more, set 3.6-8.7 ms
+  over in flight, read well under that line); the median (1-3 ms under the mean on a loaded host, the delays'
+  tail being long) put it 2-5 ms behind. Stamped with a converged TIMESYNC, the stamp is the pose's instant: 0.
 
 Each estimator also keeps only so much IMU history (its delayed horizon), and a pose older than that is fused
 as if it were as old as the horizon, i.e. newer than it is: the EKF then trails the truth whatever the delay
