@@ -141,6 +141,12 @@ def ekf2_horizon_ms(oldest_ms: float) -> int:
     return int(steps * EKF2_PREDICT_MS)
 
 
+def ekf2_arrival_horizon_ms(ev_delay_ms: float) -> int:
+    """ekf2_horizon_ms for a sample stamped on arrival with EKF2_EV_DELAY ev_delay_ms: EKF2 moves it back that
+    and half a step."""
+    return ekf2_horizon_ms(ev_delay_ms + EKF2_STEP_MIN_MS / 2)
+
+
 def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_timesync_converged: bool = False,
                   transfer_ms: float = 0.0) -> DelayAdvice | None:
     """The delay parameter to set for `autopilot` ('ardupilot', 'px4'; any other is taken as ArduPilot, the
@@ -162,7 +168,7 @@ def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_ti
         v = int(round(max(0.0, float(d.mean()))))
         return DelayAdvice("EKF2_EV_DELAY", v, "the mean stamp-to-arrival delay (PX4 stamps each pose on arrival, "
                            "and EKF2 follows the mean of their timing errors)",
-                           "EKF2_DELAY_MAX", ekf2_horizon_ms(v + EKF2_STEP_MIN_MS / 2),
+                           "EKF2_DELAY_MAX", ekf2_arrival_horizon_ms(v),
                            f"EKF2_EV_DELAY and half a step, in EKF2's IMU steps of as little as "
                            f"{EKF2_STEP_MIN_MS:g} ms, and one more: a shorter horizon carries less IMU noise to the "
                            "output")

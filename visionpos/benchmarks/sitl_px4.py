@@ -53,14 +53,17 @@ def _flight_metrics(prefix: str, s: dict) -> dict[str, float]:
     return {k: float(v) for k, v in m.items() if v is not None}
 
 
+def _fmt(x: float | None, spec: str = ".1f") -> str:
+    return "-" if x is None else format(x, spec)
+
+
 def lead_row(label: str, s: dict) -> str:
     """One table row of a flight's timing on the circle: EKF2_EV_DELAY, the poses' mean delay on PX4's clock, their
     mean stamp-to-arrival here, EKF2's lead from PX4's log and from the host (+- standard errors)."""
-    fmt = (lambda x, spec=".1f": "-" if x is None else format(x, spec))  # noqa: E731
     g = s.get("px4_log") or {}
-    pm = (lambda a, b: f"{fmt(a)} +- {fmt(b)}" if a is not None else "-")  # noqa: E731
-    return (f"| {label} | {fmt(s.get('viso_delay_ms'), '.0f')} | {fmt(g.get('vision_delay_circle_ms'))} | "
-            f"{fmt(s.get('circle_stamp_to_arrival_ms'))} | "
+    pm = (lambda a, b: f"{_fmt(a)} +- {_fmt(b)}" if a is not None else "-")  # noqa: E731
+    return (f"| {label} | {_fmt(s.get('viso_delay_ms'), '.0f')} | {_fmt(g.get('vision_delay_circle_ms'))} | "
+            f"{_fmt(s.get('circle_stamp_to_arrival_ms'))} | "
             f"{pm(g.get('output_lead_circle_ms'), g.get('output_lead_circle_se_ms'))} | "
             f"{pm(s.get('ekf_lead_circle_ms'), s.get('ekf_lead_circle_se_ms'))} | "
             f"{'completed' if s['completed'] else 'NOT completed'} |")
@@ -69,14 +72,6 @@ def lead_row(label: str, s: dict) -> str:
 LEAD_HEADER = ("| flight | EKF2_EV_DELAY on the circle ms | the poses' mean delay, PX4's log ms | their mean "
                "stamp-to-arrival here ms | EKF2 ahead of SIH's truth, PX4's log ms | the same from the host ms | "
                "flight |\n|---|---|---|---|---|---|---|")
-
-
-def log_cell(s: dict) -> str:
-    """PX4's log's output lead with its standard error, or why it is missing."""
-    g = s.get("px4_log") or {}
-    if "output_lead_ms" not in g:
-        return g.get("error", "-")
-    return f"{g['output_lead_ms']:.1f} +- {g['output_lead_se_ms'] or math.nan:.1f}"
 
 
 def run(quick: bool = False) -> BenchResult:
@@ -109,17 +104,16 @@ def run(quick: bool = False) -> BenchResult:
     res.metrics["sitl_px4_frames_not_fused_fraction"] = rt["frames_not_fused_fraction"]
     if ours.get("delay_advised_ms") is not None:
         res.metrics["sitl_px4_ev_delay_advised_at_landing_ms"] = float(ours["delay_advised_ms"])
-    fmt = (lambda x, spec=".1f": "-" if x is None else format(x, spec))  # noqa: E731
     rows = ["| vision | flight | EKF horizontal p50 / p99 / max mm | p99 outside the cut mm | vertical p99 mm | "
             "1 s cut: drift mm | failsafes |", "|---|---|---|---|---|---|---|"]
     for label, s in ((f"visionpos, EKF2_EV_DELAY {ours.get('first_viso_delay_ms')} ms, then as advised", ours),
                      ("SIH's true state, on arrival, EKF2_EV_DELAY 1 ms", floor)):
         h = s.get("ekf_horizontal_error_mm") or {}
-        rows.append(f"| {label} | {'completed' if s['completed'] else 'NOT completed'} | {fmt(h.get('p50'))} / "
-                    f"{fmt(h.get('p99'))} / {fmt(h.get('max'))} | "
-                    f"{fmt((s.get('ekf_horizontal_error_outside_cut_mm') or {}).get('p99'))} | "
-                    f"{fmt((s.get('ekf_vertical_error_mm') or {}).get('p99'))} | "
-                    f"{fmt((s.get('cut') or {}).get('max_drift_from_hold_mm'))} | "
+        rows.append(f"| {label} | {'completed' if s['completed'] else 'NOT completed'} | {_fmt(h.get('p50'))} / "
+                    f"{_fmt(h.get('p99'))} / {_fmt(h.get('max'))} | "
+                    f"{_fmt((s.get('ekf_horizontal_error_outside_cut_mm') or {}).get('p99'))} | "
+                    f"{_fmt((s.get('ekf_vertical_error_mm') or {}).get('p99'))} | "
+                    f"{_fmt((s.get('cut') or {}).get('max_drift_from_hold_mm'))} | "
                     f"{len(s['failsafe_or_lane_switch']) + len(s['mode_changes_not_ours'])} |")
     res.tables["PX4 SIH closed loop: visionpos's vision against SIH's own truth as the vision"] = "\n".join(rows)
     res.tables["PX4 SIH on the circle: EKF2's timing"] = "\n".join(

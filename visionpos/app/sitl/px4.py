@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from bridge.estimator_delay import EKF2_STEP_MIN_MS, ekf2_horizon_ms
+from bridge.estimator_delay import ekf2_arrival_horizon_ms
 from visionpos.app.sitl.clock import clock_rate
 from visionpos.app.sitl.gcs import Gcs
 from visionpos.app.sitl.process import ChildProcess
@@ -114,7 +114,7 @@ def px4_parameters(message: str, ev_delay_ms: float, pos_noise_m: float, yaw_noi
       before the vision comes, and the vision's height then gets a bias following that sensor (PX4 SIH: the
       EKF 10-25 cm from the vision's height while fusing it).
     - The delayed horizon (EKF2_DELAY_MAX, default 200 ms; EKF2 raises it to the largest sensor delay, so the
-      unused airspeed's and GPS's delays go to 0) just past the vision's delay (ekf2_horizon_ms; headroom_ms
+      unused airspeed's and GPS's delays go to 0) just past the vision's delay (ekf2_arrival_horizon_ms; headroom_ms
       more where the delay is to be set again in flight), and the output
       predictor's time constants at their minimum (EKF2_TAU_POS, EKF2_TAU_VEL 0.1 s): the output is the
       delayed state carried forward on the IMU, and the less of the (vibrating) IMU it carries, the closer
@@ -128,7 +128,7 @@ def px4_parameters(message: str, ev_delay_ms: float, pos_noise_m: float, yaw_noi
         "EKF2_EV_CTRL": 15.0 if message == "odometry" else 11.0, "EKF2_HGT_REF": 3.0, "EKF2_GPS_CTRL": 0.0,
         "SYS_HAS_GPS": 0.0, "SENS_EN_GPSSIM": 0.0, "EKF2_MAG_TYPE": 5.0, "SYS_HAS_MAG": 0.0,
         "EKF2_BARO_CTRL": 0.0, "EKF2_RNG_CTRL": 0.0, "EKF2_EV_DELAY": float(ev_delay_ms),
-        "EKF2_DELAY_MAX": float(ekf2_horizon_ms(ev_delay_ms + headroom_ms + EKF2_STEP_MIN_MS / 2)),
+        "EKF2_DELAY_MAX": float(ekf2_arrival_horizon_ms(ev_delay_ms + headroom_ms)),
         "EKF2_ASP_DELAY": 0.0, "EKF2_GPS_DELAY": 0.0,
         "EKF2_TAU_POS": 0.1, "EKF2_TAU_VEL": 0.1,
         "EKF2_ACC_NOISE": SIH_ACC_NOISE_M_S2, "EKF2_GYR_NOISE": SIH_GYR_NOISE_RAD_S,

@@ -23,23 +23,27 @@ from visionpos.app.sitl.report import CUT_SETTLE_NS, time_shift_fit
 GAP_NS = 500_000_000
 
 
+def _shift_against_truth(t_ns: np.ndarray, xy: np.ndarray, keep: np.ndarray, truth_t_ns: np.ndarray,
+                         truth_xy: np.ndarray, truth_vel: np.ndarray, detrend_ns: int | None = None
+                         ) -> tuple[float, float | None, int] | None:
+    """time_shift_fit of the kept rows of xy (N, 2) m at t_ns (N,) against the truth interpolated there."""
+    t = t_ns[keep]
+    at = [np.column_stack([np.interp(t, truth_t_ns, y[:, j]) for j in range(2)]) for y in (truth_xy, truth_vel)]
+    return time_shift_fit(t, np.asarray(xy)[keep] - at[0], at[1], detrend_ns=detrend_ns)
+
+
 def output_lead(ev_t_us: np.ndarray, ev_fused: np.ndarray, out_t_us: np.ndarray, out_xy: np.ndarray,
                 truth_t_us: np.ndarray, truth_xy: np.ndarray, truth_vel: np.ndarray) -> dict[str, Any]:
     """EKF2's output lead (time_shift_fit: ms, its standard error, samples) from the log's arrays, times in us on
     PX4's clock: the vision samples (N,) and whether each was fused (N,); the output (M,) and its NE position
     (M, 2) m; the truth (K,), its NE position (K, 2) m and velocity (K, 2) m/s. {} with too little motion."""
     ev_t, out_t, tt = (np.asarray(x, dtype=np.int64) * 1000 for x in (ev_t_us, out_t_us, truth_t_us))
-
-    def at(t: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return np.column_stack([np.interp(t, tt, y[:, k]) for k in range(2)])
-
     ft = ev_t[np.asarray(ev_fused, dtype=bool)]
     keep = (out_t >= max(tt[0], ft[0] if len(ft) else tt[-1])) & (out_t <= tt[-1])
     for a, b in zip(ft[:-1], ft[1:]):
         if b - a > GAP_NS:
             keep &= ~((out_t > a) & (out_t < b + CUT_SETTLE_NS))
-    fit = time_shift_fit(out_t[keep], np.asarray(out_xy)[keep] - at(out_t[keep], truth_xy),
-                         at(out_t[keep], truth_vel))
+    fit = _shift_against_truth(out_t, out_xy, keep, tt, truth_xy, truth_vel)
     return {} if fit is None else dict(zip(("output_lead_ms", "output_lead_se_ms", "output_samples"), fit))
 
 
@@ -70,9 +74,8 @@ def circle_leads(ev_t_us: np.ndarray, ev_xy: np.ndarray, out_t_us: np.ndarray, o
 
     def fit(t_us: np.ndarray, xy: np.ndarray) -> tuple[float, float | None, int] | None:
         t = np.asarray(t_us, dtype=np.int64) * 1000
-        k = (t >= span[0]) & (t <= span[1])
-        at = [np.column_stack([np.interp(t[k], tt, y[:, j]) for j in range(2)]) for y in (truth_xy, truth_vel)]
-        return time_shift_fit(t[k], np.asarray(xy)[k] - at[0], at[1], detrend_ns=int(CIRCLE_PERIOD_S * 1e9))
+        return _shift_against_truth(t, xy, (t >= span[0]) & (t <= span[1]), tt, truth_xy, truth_vel,
+                                    detrend_ns=int(CIRCLE_PERIOD_S * 1e9))
 
     out: dict[str, Any] = {"circle_s": (span[1] - span[0]) * 1e-9}
     lead, age = fit(out_t_us, out_xy), fit(ev_t_us, ev_xy)
@@ -84,7 +87,8 @@ def circle_leads(ev_t_us: np.ndarray, ev_xy: np.ndarray, out_t_us: np.ndarray, o
 
 
 def read_px4_log(folder: str | Path) -> dict[str, Any]:
-    """output_lead from the newest ULog under a PX4 working folder (log/<date>/*.ulg), or {'error': why}."""
+    """output_lead and circle_leads from the newest ULog under a PX4 working folder (log/<date>/*.ulg), or
+    {'error': why}."""
     logs = sorted(Path(folder).glob("log/*/*.ulg"), key=lambda p: p.stat().st_mtime)
     if not logs:
         return {"error": f"no ULog under {folder}/log"}

@@ -144,7 +144,7 @@ def clock_rate_summary(gcs: Px4Gcs) -> dict[str, Any]:
 def stamp_to_arrival_mean_ms(bc: Any, start_ns: int, end_ns: int) -> float | None:
     """The mean stamp-to-arrival delay (ms) of the poses sent from start_ns to end_ns (server clock): each one's
     send less stamp, plus half the link's TIMESYNC round trip: what the advice would read over that span."""
-    rows = np.array([r[1] for r in list(bc.sends.d) if start_ns <= r[0] <= end_ns], dtype=np.float64)
+    rows = _send_minus_stamp_ns(bc, start_ns, end_ns)
     rtt = bc.timesync_rtt_ns()
     return float(rows.mean() + 0.5 * (rtt or 0.0)) * 1e-6 if len(rows) else None
 
@@ -153,10 +153,16 @@ def measured_floor(bc: Any) -> dict[str, Any]:
     """The back-channel's measured capture-to-PX4 delay (ms) and, over the poses of its window, the median of
     their send less stamp: with the relay's hold, a floor the measured delay cannot physically be under (PX4
     cannot take a pose in before the relay passes it on)."""
-    win = getattr(bc, "delay_window_ns", None)
-    rows = [r[1] for r in list(bc.sends.d) if win is None or win[0] <= r[0] <= win[1]]
+    win = getattr(bc, "delay_window_ns", None) or (None, None)
+    rows = _send_minus_stamp_ns(bc, *win)
     return {"measured_ms": bc.delay_ms,
-            "send_minus_stamp_ms_p50": float(np.median(rows)) * 1e-6 if rows else None}
+            "send_minus_stamp_ms_p50": float(np.median(rows)) * 1e-6 if len(rows) else None}
+
+
+def _send_minus_stamp_ns(bc: Any, start_ns: int | None, end_ns: int | None) -> np.ndarray:
+    """The send less stamp (ns) of the poses the back-channel saw sent from start_ns to end_ns (None: all)."""
+    return np.array([r[1] for r in list(bc.sends.d)
+                     if start_ns is None or start_ns <= r[0] <= end_ns], dtype=np.float64)
 
 
 def _fly_live(arena: ArenaConfig, gcs: Px4Gcs, live: LiveArena, plan: FlightPlan, body: str,
