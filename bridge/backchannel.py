@@ -516,18 +516,23 @@ class Backchannel:
         """The autopilot's recent attitude samples on the server clock, safe to call from another thread: times
         (N,) int64 ns and (N, 5) roll, pitch rad, p, q, r rad/s FRD; None before the clocks can be mapped."""
         rows = list(self.att.d)  # list() copies under the GIL while the sender thread appends
-        lag = self.clock_lag_ns
-        offsets = list(self.clock_offsets.d)
-        if lag is None and not offsets:
-            return None
-        off = lag if lag is not None else float(max(r[1] for r in offsets))
-        if not rows:
-            return np.zeros(0, np.int64), np.zeros((0, 5))
-        a = np.array(rows, dtype=np.float64)
-        return (a[:, 0] - off).astype(np.int64), a[:, 1:]
+        a = np.array(rows, dtype=np.float64).reshape(-1, 6)
+        t = self.ap_to_server_ns(a[:, 0])
+        return None if t is None else (t, a[:, 1:])
 
-    def _clock_map_ns(self) -> float | None:
-        return self.clock_lag_ns if self.clock_lag_ns is not None else self.coarse_offset_ns()
+    def ap_to_server_ns(self, t_ap_ns: np.ndarray) -> np.ndarray | None:
+        """Times (N,) ns on the autopilot's clock moved onto the server clock, (N,) int64: by the delay
+        measurement's lag carried by the clocks' drift (bridge/imu_clock.py), or before it is measured by the
+        fastest recent message's offset (coarse_offset_ns); None while neither is known. Safe to call from
+        another thread."""
+        t = np.asarray(t_ap_ns, dtype=np.float64)
+        lag = self.clock_lag_ns
+        if lag is not None:
+            return np.rint(t - self.imu_clock.lags_ns(t, lag)).astype(np.int64)
+        offsets = list(self.clock_offsets.d)  # list() copies under the GIL while the link's thread appends
+        if not offsets:
+            return None
+        return np.rint(t - float(max(r[1] for r in offsets))).astype(np.int64)
 
     def check_identity(self, now: int) -> str:
         """Run the identity test on the newest window; returns the state ('unknown', 'consistent',
@@ -538,13 +543,12 @@ class Backchannel:
         if self.identity_tripped:
             return self.identity
         newest = self.att.last_t()
-        off = self._clock_map_ns()
-        if newest is None or off is None or now - (newest - off) > TELEMETRY_STALE_NS:
+        ta, va = self.att.since(newest - IDENTITY_WINDOW_NS) if newest is not None else (None, None)
+        t_srv = self.ap_to_server_ns(ta) if newest is not None else None
+        if t_srv is None or now - t_srv[-1] > TELEMETRY_STALE_NS:
             self.identity = "unknown"
             self.identity_reason = "no attitude from the autopilot" + (" lately" if newest is not None else " yet")
             return self.identity
-        ta, va = self.att.since(newest - IDENTITY_WINDOW_NS)
-        t_srv = ta - int(round(off))
         to, vo = self.opt.since(int(t_srv[0]) - MAX_PAIR_GAP_NS)
         ok, vi = sample_at(t_srv, to, vo[:, :5], MAX_PAIR_GAP_NS)
         vi = vi[ok]
@@ -618,6 +622,9 @@ class Backchannel:
         if len(to) < 20 or float(np.std(rates, axis=0).max()) < DELAY_MIN_RATE_STD:
             self.delay_reason = "the vehicle turns too little to correlate its rates (needs some rotation)"
             return self.delay_ms
+        # the instant the correlation stands for (where the vehicle turned most); the clocks drift apart
+        at_ns = weighted_time_ns(to, rates)
+        gyro_t, off = self.imu_clock.stamps_at(gyro_t, off, self.clock_offsets.last_t(), at_ns)
         fine = estimate_lag(to, rates, gyro_t, gyro_v, off, DELAY_SEARCH_NS, step_ns=4e6)
         if fine is None or fine.correlation < DELAY_MIN_CORRELATION:
             self.delay_reason = ("the autopilot's gyro and the optical rates do not correlate"
@@ -630,8 +637,6 @@ class Backchannel:
                                  "rates it reports)")
             return self.delay_ms
         self.clock_lag_ns = fine.lag_ns - gyro_lag_ns  # the motion's instant, not the filtered gyro's
-        # the instant the correlation stands for (where the vehicle turned most): the clocks drift apart
-        at_ns = weighted_time_ns(to, rates)
         self.imu_clock.mark_lag(at_ns)
         self.delay_correlation = fine.correlation
         ts_t, ts = self.timesync.since(int(to[0]) - DELAY_WINDOW_NS)

@@ -174,16 +174,6 @@ def accel_costs(grid_ns: np.ndarray, optical: list[np.ndarray], imu: list[tuple[
     return (r * r).sum(axis=(2, 3)), 3 * len(at), float(m.max())
 
 
-def _clock_map_ns(bc) -> float | None:
-    """A back-channel's autopilot-less-server clock offset, ns (None: not known yet), read from another thread
-    as BackChannel.attitude_on_server_clock reads it (the offsets copied first)."""
-    lag = bc.clock_lag_ns
-    if lag is not None:
-        return lag
-    offsets = list(bc.clock_offsets.d)  # list() copies under the GIL while the link's thread appends
-    return float(max(r[1] for r in offsets)) if offsets else None
-
-
 @dataclass
 class VehicleIdentity:
     """What the bridge says of one fleet vehicle: state (bound, unresolved, unknown, stopped), reason in words,
@@ -281,9 +271,9 @@ class FleetBinding:
     def accel_telemetry(self, links: dict) -> dict[str, tuple[np.ndarray, np.ndarray] | None]:
         """{vehicle: its accelerometer on the server clock (bridge/imu_samples.py), None before its clock is
         mapped} from the bridge's links {vehicle name: VehicleLink}, mapped as its attitude is. Runs on the
-        publishing thread while each link's thread appends: the clock offsets are copied before they are read
-        (iterating the deque itself raised "deque mutated during iteration" in a live fleet demo)."""
-        return {v: links[v].bc.accel.on_server_clock(_clock_map_ns(links[v].bc)) for v in self.vehicles}
+        publishing thread while each link's thread appends: the samples and the clock offsets are copied before
+        they are read (iterating the deque itself raised "deque mutated during iteration" in a live fleet demo)."""
+        return {v: links[v].bc.accel.on_server_clock(links[v].bc.ap_to_server_ns) for v in self.vehicles}
 
     def due(self, now_ns: int) -> bool:
         return now_ns >= self._next_ns

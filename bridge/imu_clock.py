@@ -1,4 +1,5 @@
-"""The IMU's clock map: the autopilot's clock less the capture clock at each IMU sample (bridge/imu_feed.py).
+"""The autopilot's clock map: the autopilot's clock less the capture clock at any instant, for the IMU's samples
+(bridge/imu_feed.py), the identity check and the fleet binding (Backchannel.ap_to_server_ns).
 
 Two sources. The delay measurement (Backchannel.measure_delay) correlates the autopilot's gyro with the optical
 rates: the clock lag of one physical instant, but only once the vehicle has turned, and for an instant seconds back.
@@ -6,9 +7,16 @@ TIMESYNC's answers give the clocks' offset at any time (the request's one-way sh
 The map is the measured lag carried forward by TIMESYNC's drift since the instant it stands for, or, before the
 vehicle has turned (on the ground, through a take-off's climb), TIMESYNC's offset alone where its round trips are
 short. On ArduPilot SITL the two agreed within 1-4 ms.
+
+The drift needs only steady round trips, not short ones: a link's constant one-way delays cancel in the offset's
+change. So over a slow link (a relay, a telemetry radio) the drift comes from the answers near the fastest round
+trip, while TIMESYNC's offset alone is not trusted. PX4 SIH's lockstep clock drifts 13 ms a second against ours:
+a lag held constant for a minute of hover is most of a second off when the vehicle moves again.
 """
 
 from __future__ import annotations
+
+import numpy as np
 
 from bridge.telemetry import Ring
 from visionpos.analysis.autopilot import theil_sen_line
@@ -18,6 +26,8 @@ from visionpos.analysis.autopilot import theil_sen_line
 IMU_TIMESYNC_MAX_RTT_NS = 10_000_000
 IMU_TIMESYNC_WINDOW_NS = 10_000_000_000
 IMU_TIMESYNC_STALE_NS = 3_000_000_000
+# over a slower link, the answers this close to the window's fastest round trip give the drift
+IMU_TIMESYNC_BAND_NS = 10_000_000
 
 
 class ImuClockMap:
@@ -25,25 +35,32 @@ class ImuClockMap:
 
     def __init__(self) -> None:
         self.line: tuple[float, float, float] | None = None  # theil_sen_line: server ns t0, offset ns at t0, slope
+        self.absolute = False  # the line's offset itself is known (short round trips), not only its drift
         self.newest_ns = 0.0  # server time of the newest answer the line was fitted to
         self.lag_ts_offset_ns: float | None = None  # TIMESYNC's offset at the measured lag's instant
 
     def reset(self) -> None:
         self.line = self.lag_ts_offset_ns = None
+        self.absolute = False
 
     def fit(self, timesync: Ring) -> None:
-        """Refit the line to the recent answers (Ring of server send time s1: (tc1 - s1, round trip) ns) with
-        short round trips: each one's offset tc1 - s1 - rtt / 2 at s1 + rtt / 2; robust (theil_sen_at), as the
-        clocks drift."""
+        """Refit the line to the recent answers (Ring of server send time s1: (tc1 - s1, round trip) ns): each
+        one's offset tc1 - s1 - rtt / 2 at s1 + rtt / 2, from the answers with round trips under
+        IMU_TIMESYNC_MAX_RTT_NS, or where there are none, within IMU_TIMESYNC_BAND_NS of the fastest (then only
+        its drift is used); robust (theil_sen_line), as a late answer now and then is no drift."""
         t, v = timesync.since(timesync.last_t() - IMU_TIMESYNC_WINDOW_NS)
-        ok = v[:, 1] <= IMU_TIMESYNC_MAX_RTT_NS
-        mid = t[ok] + 0.5 * v[ok, 1]
-        self.line = theil_sen_line(mid, v[ok, 0] - 0.5 * v[ok, 1])
+        rtt = v[:, 1]
+        fastest = float(rtt.min()) if len(rtt) else 0.0
+        self.absolute = fastest <= IMU_TIMESYNC_MAX_RTT_NS
+        ok = rtt <= (IMU_TIMESYNC_MAX_RTT_NS if self.absolute else fastest + IMU_TIMESYNC_BAND_NS)
+        mid = t[ok] + 0.5 * rtt[ok]
+        self.line = theil_sen_line(mid, v[ok, 0] - 0.5 * rtt[ok])
         if self.line is not None:
             self.newest_ns = float(mid[-1])
 
     def offset_at(self, t_ns: float) -> float | None:
-        """TIMESYNC's autopilot-less-server offset (ns) at server time t_ns; None without a recent line."""
+        """TIMESYNC's autopilot-less-server offset (ns) at server time t_ns; None without a recent line. Where
+        the line is not `absolute`, only differences of it mean anything."""
         line = self.line
         if line is None or t_ns - self.newest_ns > IMU_TIMESYNC_STALE_NS:
             return None
@@ -53,6 +70,20 @@ class ImuClockMap:
         """A delay measurement's lag now stands for server time at_ns."""
         self.lag_ts_offset_ns = self.offset_at(at_ns)
 
+    def stamps_at(self, t_ap_ns: np.ndarray, off_ns: float, off_at_ns: float, at_ns: float
+                  ) -> tuple[np.ndarray, float]:
+        """Autopilot-clock stamps (N,) ns moved by TIMESYNC's drift onto the autopilot's clock as it ran at server
+        time at_ns, and an offset off_ns (autopilot less server, ns, at server time off_at_ns) carried back to
+        at_ns; both as they are without a line. For the gyro/optical correlation: PX4 SIH's clock runs 1.3 %
+        slow, a quarter second over its 20 s window."""
+        line = self.line
+        if line is None:
+            return t_ap_ns, off_ns
+        drift = line[2]
+        off_ns -= drift * (off_at_ns - at_ns)
+        # stamp = t + off(at) + drift (t - at) for the server time t of each sample: solved for t - at
+        return t_ap_ns - drift * (t_ap_ns - off_ns - at_ns) / (1.0 + drift), off_ns
+
     def lag_ns(self, t_ap_ns: int, clock_lag_ns: float | None) -> float | None:
         """The clock lag (ns) for a sample stamped t_ap_ns on the autopilot's clock: the measured clock_lag_ns
         carried by TIMESYNC's drift since mark_lag, or TIMESYNC's offset alone while none is measured; None while
@@ -61,7 +92,18 @@ class ImuClockMap:
         ts = None if line is None else self.offset_at(t_ap_ns - (clock_lag_ns if clock_lag_ns is not None
                                                                   else line[1]))
         if clock_lag_ns is None:
-            return ts
-        if ts is None or self.lag_ts_offset_ns is None:
+            return ts if self.absolute else None
+        mark = self.lag_ts_offset_ns
+        if ts is None or mark is None:
             return clock_lag_ns
-        return clock_lag_ns + (ts - self.lag_ts_offset_ns)
+        return clock_lag_ns + (ts - mark)
+
+    def lags_ns(self, t_ap_ns: np.ndarray, clock_lag_ns: float) -> np.ndarray:
+        """lag_ns for many samples (N,) stamped on the autopilot's clock, with a measured clock_lag_ns: (N,) ns.
+        Safe from another thread (the line and the mark are read once)."""
+        line, mark = self.line, self.lag_ts_offset_ns
+        t_srv = np.asarray(t_ap_ns, dtype=np.float64) - clock_lag_ns
+        if line is None or mark is None or not len(t_srv) or float(t_srv.max()) - self.newest_ns > \
+                IMU_TIMESYNC_STALE_NS:
+            return np.full(len(t_srv), clock_lag_ns)
+        return clock_lag_ns + (line[1] + line[2] * (t_srv - line[0]) - mark)

@@ -3,14 +3,16 @@
 The back-channel (bridge/backchannel.py) asks for the vehicle's IMU (ArduPilot's RAW_IMU, PX4's HIGHRES_IMU;
 SCALED_IMU is read too) and keeps its gyro; each accepted IMU message also goes here (AccelSamples.add), where its
 specific force is kept in m/s^2 FRD on the autopilot's clock. `on_server_clock` maps the samples onto the server
-clock as the attitude is mapped (Backchannel.attitude_on_server_clock: the lag the gyro's correlation measured,
-else the fastest message's offset).
+clock as the attitude is mapped (Backchannel.ap_to_server_ns: the lag the gyro's correlation measured, carried by
+the clocks' drift, else the fastest message's offset).
 
 Units: HIGHRES_IMU carries m/s^2; ArduPilot's RAW_IMU and SCALED_IMU carry milli-g (MAVLink: "mG"). PX4's
 RAW_IMU carries raw sensor counts and is not read (as for its gyro).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 
@@ -38,13 +40,11 @@ class AccelSamples(Ring):
             self.clear()
         super().add(int(t_ap_ns), a)
 
-    def on_server_clock(self, clock_map_ns: float | None) -> tuple[np.ndarray, np.ndarray] | None:
+    def on_server_clock(self, to_server_ns: Callable[[np.ndarray], np.ndarray | None]
+                        ) -> tuple[np.ndarray, np.ndarray] | None:
         """Times (N,) int64 ns on the server clock and (N, 3) m/s^2 FRD, safe to call from another thread;
-        clock_map_ns: the autopilot time less the server time of one instant (None: not known yet, None back)."""
-        rows = list(self.d)  # list() copies under the GIL while the receiving thread appends
-        if clock_map_ns is None:
-            return None
-        if not rows:
-            return np.zeros(0, np.int64), np.zeros((0, 3))
-        a = np.array(rows, dtype=np.float64)
-        return (a[:, 0] - clock_map_ns).astype(np.int64), a[:, 1:]
+        to_server_ns: autopilot-clock times (N,) ns -> server-clock times (N,) int64 ns, None while the clocks are
+        not mapped (then None back)."""
+        a = np.array(list(self.d), dtype=np.float64).reshape(-1, 4)  # list() copies under the GIL as it appends
+        t = to_server_ns(a[:, 0])
+        return None if t is None else (t, a[:, 1:])
