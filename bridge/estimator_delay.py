@@ -26,10 +26,12 @@ The two estimators use the pose's stamp differently, so the same measured delays
   estimator_interface.cpp: time_us - ev_delay_ms * 1000 - half an EKF step), no jitter correction. Stamped on
   arrival, each sample's error is its own delay less the setting, and EKF2's state, linear in what it fuses,
   follows their mean: the mean of the delays makes the errors balance. Against PX4 SIH (issue 31, a 26 s
-  circle at 1.05 m/s, both read from PX4's own log) EKF2's output led SIH's truth by 1.8 times the setting less
-  the poses' mean delay (5 flights, the setting 7 ms under to 3 ms over: 1.79 x - 0.1 ms; 3 more, set 3.6-8.7 ms
-  over in flight, read well under that line); the median (1-3 ms under the mean on a loaded host, the delays'
-  tail being long) put it 2-5 ms behind. Stamped with a converged TIMESYNC, the stamp is the pose's instant: 0.
+  circle at 1.05 m/s, both read from PX4's own log) EKF2's output led SIH's truth by 1.24 (+-0.11) times the
+  setting less the poses' mean delay, less 4.1 (+-0.7) ms, with 3.7 ms of scatter between flights (26 flights,
+  the setting 26 ms under to 9 ms over); the median (1-3 ms under the mean on a loaded host, the delays' tail
+  being long) sits further behind. The 4 ms are not explained: EKF2's rate limit (a sample under an EKF step
+  after the last one kept is dropped) keeps the poses that follow late ones less often, but that moves the mean
+  by under 1.5 ms. Stamped with a converged TIMESYNC, the stamp is the pose's instant: 0.
 
 Each estimator also keeps only so much IMU history (its delayed horizon), and a pose older than that is fused
 as if it were as old as the horizon, i.e. newer than it is: the EKF then trails the truth whatever the delay
