@@ -87,7 +87,8 @@ MOTION_RATE_RAD_S = 0.2  # ... or a body rate over this: the vehicle moves (a ta
 EKF_STATUS_STALE_NS = 5_000_000_000
 PARAM_RETRY_NS = 2_000_000_000
 ORIGIN_SILENT_GRACE_NS = 2_000_000_000  # with an origin to confirm, wait this long for a silent autopilot
-DELAY_RESET_MS = 5.0  # re-set the parameter when the measurement moves this far
+DELAY_RESET_MS = 5.0  # re-set the parameter when the measurement moves this far ...
+PX4_DELAY_RESET_MS = 1.0  # ... PX4's when its advice does: EKF2 reads it per sample and leads 1.24 ms per ms off
 
 # EKF_STATUS_REPORT flags (ArduPilot's EKF_STATUS_FLAGS)
 EKF_ATTITUDE = 1
@@ -521,18 +522,15 @@ class Backchannel:
         return None if t is None else (t, a[:, 1:])
 
     def ap_to_server_ns(self, t_ap_ns: np.ndarray) -> np.ndarray | None:
-        """Times (N,) ns on the autopilot's clock moved onto the server clock, (N,) int64: by the delay
-        measurement's lag carried by the clocks' drift (bridge/imu_clock.py), or before it is measured by the
-        fastest recent message's offset (coarse_offset_ns); None while neither is known. Safe to call from
-        another thread."""
-        t = np.asarray(t_ap_ns, dtype=np.float64)
-        lag = self.clock_lag_ns
-        if lag is not None:
-            return np.rint(t - self.imu_clock.lags_ns(t, lag)).astype(np.int64)
-        offsets = list(self.clock_offsets.d)  # list() copies under the GIL while the link's thread appends
-        if not offsets:
+        """Times (N,) ns on the autopilot's clock on the server clock, (N,) int64, from any thread: less the delay
+        measurement's lag carried by the clocks' drift (bridge/imu_clock.py), or until it is measured the fastest
+        recent message's offset (coarse_offset_ns); None while neither is known."""
+        t, lag = np.asarray(t_ap_ns, dtype=np.float64), self.clock_lag_ns
+        offsets = list(self.clock_offsets.d) if lag is None else None  # list() copies under the GIL
+        if lag is None and not offsets:
             return None
-        return np.rint(t - float(max(r[1] for r in offsets))).astype(np.int64)
+        lags = self.imu_clock.lags_ns(t, lag) if lag is not None else float(max(r[1] for r in offsets))
+        return np.rint(t - lags).astype(np.int64)
 
     def check_identity(self, now: int) -> str:
         """Run the identity test on the newest window; returns the state ('unknown', 'consistent',
@@ -676,22 +674,24 @@ class Backchannel:
             "EKF2_EV_DELAY" if self.autopilot == "px4" else "VISO_DELAY_MS")
 
     def _maybe_set_delay(self, now: int) -> None:
-        if not self.cfg.set_delay or self.delay_ms is None or len(self._delays) < 3 or self.autopilot is None:
+        advice = self.advice
+        if not self.cfg.set_delay or advice is None or self.autopilot is None:
             return
-        if self.advice is None:
+        px4 = advice.param == "EKF2_EV_DELAY"  # PX4's from the link's timing; ArduPilot's needs 3 measurements
+        if not px4 and (self.delay_ms is None or len(self._delays) < 3):
             return
-        value = float(self.advice.value_ms)
-        if self._delay_param_value is None or abs(value - self._delay_param_value) >= DELAY_RESET_MS:
+        value = float(advice.value_ms)
+        if self._delay_param_value is None or \
+                abs(value - self._delay_param_value) >= (PX4_DELAY_RESET_MS if px4 else DELAY_RESET_MS):
             self._delay_param_value = value
             self.delay_param_confirmed = None
             self._next_param = now
         if self.delay_param_confirmed == self._delay_param_value or now < self._next_param:
             return
         self._next_param = now + PARAM_RETRY_NS
-        px4 = self._delay_param_name() == "EKF2_EV_DELAY"
         ptype = mavlink2.MAV_PARAM_TYPE_REAL32 if px4 else mavlink2.MAV_PARAM_TYPE_INT16
-        self.send(self.mav.param_set_encode(self.cfg.sysid, MAV_COMP_ID_AUTOPILOT1,
-                                            self._delay_param_name().encode(), value, ptype))
+        self.send(self.mav.param_set_encode(self.cfg.sysid, MAV_COMP_ID_AUTOPILOT1, advice.param.encode(), value,
+                                            ptype))
 
     # ------------------------------------------------------------ reporting
     def ekf_state(self, now: int) -> tuple[str, str]:

@@ -23,6 +23,7 @@ from scipy.spatial.transform import Rotation
 from bridge import Bridge
 from bridge.backchannel import DELAY_WINDOW_NS, Backchannel
 from bridge.config import parse_vehicles
+from bridge.estimator_delay import DelayAdvice
 from bridge.fake_autopilot import (
     EXT_NAV_TEXT,
     POSE_TYPES,
@@ -790,3 +791,29 @@ def test_px4_link_advice_needs_10_poses_and_a_round_trip():
     assert px4_link_advice(np.full(10, 14e6), 4e6, False).value_ms == 16
     assert px4_link_advice(np.full(10, 14e6), None, False) is None
     assert median_round_trip_ns([4e6, 4e6]) is None and median_round_trip_ns([3e6, 4e6, 9e6]) == 4e6
+
+
+@pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
+def test_set_delay_follows_px4s_advice_by_the_millisecond_and_ardupilots_by_five(autopilot):
+    """EKF2 reads EKF2_EV_DELAY for each sample and leads by about 1.2 ms for each ms it is off, so with set_delay
+    the bridge writes PX4's again when the advice moves by 1 ms; ArduPilot's VISO_DELAY_MS at 5 ms."""
+    out = []
+    bc = Backchannel(_cfg(set_delay=True), lambda: 0, mavlink2.MAVLink(None, 1, 197), lambda m: out.append(m) or True,
+                     lambda *a: None)
+    bc.autopilot = autopilot
+    param = "EKF2_EV_DELAY" if autopilot == "px4" else "VISO_DELAY_MS"
+    if autopilot == "ardupilot":  # its advice comes from the gyro's correlation: three measurements first
+        bc.delay_ms = 10.0
+        bc._delays.extend([10.0, 10.0, 10.0])
+    written = []
+    for k, value_ms in enumerate((20, 22, 23, 26, 27)):
+        bc.advice = DelayAdvice(param, value_ms, "a test")
+        bc._maybe_set_delay(k * 10_000_000_000)  # far apart: no retry pending
+        sets = [m for m in out if m.get_type() == "PARAM_SET"]
+        if sets and (not written or sets[-1].param_value != written[-1]):
+            written.append(sets[-1].param_value)
+            bc.handle(mavlink2.MAVLink_param_value_message(param.encode(), sets[-1].param_value, 9, 900, 0), 1, 0)
+    assert written == ([20, 22, 23, 26, 27] if autopilot == "px4" else [20, 26])
+    assert all(m.param_id == param for m in out if m.get_type() == "PARAM_SET")
+    assert ("PX4's `EKF2_EV_DELAY` when its advice moves by 1 ms, as EKF2 reads it for each sample and leads by "
+            "1.2 ms for each ms it is off") in _doc()
