@@ -622,7 +622,7 @@ class Backchannel:
             return self.delay_ms
         # the instant the correlation stands for (where the vehicle turned most); the clocks drift apart
         at_ns = weighted_time_ns(to, rates)
-        gyro_t, off = self.imu_clock.stamps_at(gyro_t, off, self.clock_offsets.last_t(), at_ns)
+        gyro_t, off = self.imu_clock.stamps_at(self.timesync, gyro_t, off, self.clock_offsets.last_t(), at_ns)
         fine = estimate_lag(to, rates, gyro_t, gyro_v, off, DELAY_SEARCH_NS, step_ns=4e6)
         if fine is None or fine.correlation < DELAY_MIN_CORRELATION:
             self.delay_reason = ("the autopilot's gyro and the optical rates do not correlate"

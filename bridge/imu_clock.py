@@ -70,19 +70,25 @@ class ImuClockMap:
         """A delay measurement's lag now stands for server time at_ns."""
         self.lag_ts_offset_ns = self.offset_at(at_ns)
 
-    def stamps_at(self, t_ap_ns: np.ndarray, off_ns: float, off_at_ns: float, at_ns: float
+    def stamps_at(self, timesync: Ring, t_ap_ns: np.ndarray, off_ns: float, off_at_ns: float, at_ns: float
                   ) -> tuple[np.ndarray, float]:
         """Autopilot-clock stamps (N,) ns moved by TIMESYNC's drift onto the autopilot's clock as it ran at server
         time at_ns, and an offset off_ns (autopilot less server, ns, at server time off_at_ns) carried back to
         at_ns; both as they are without a line. For the gyro/optical correlation: PX4 SIH's clock runs 1.3 %
-        slow, a quarter second over its 20 s window."""
-        line = self.line
-        if line is None:
+        slow, a quarter second over its 20 s window, and its rate wanders with the host's load, so the offset
+        is followed answer by answer (a running median of 5 through them), not along one line."""
+        if self.line is None:
             return t_ap_ns, off_ns
-        drift = line[2]
-        off_ns -= drift * (off_at_ns - at_ns)
-        # stamp = t + off(at) + drift (t - at) for the server time t of each sample: solved for t - at
-        return t_ap_ns - drift * (t_ap_ns - off_ns - at_ns) / (1.0 + drift), off_ns
+        t, v = timesync.since(min(float(t_ap_ns[0]) - off_ns, at_ns) - IMU_TIMESYNC_WINDOW_NS)
+        rtt = v[:, 1]
+        ok = rtt <= (IMU_TIMESYNC_MAX_RTT_NS if self.absolute else float(rtt.min()) + IMU_TIMESYNC_BAND_NS)
+        mid, o = t[ok] + 0.5 * rtt[ok], v[ok, 0] - 0.5 * rtt[ok]
+        if len(o) < 5:
+            return t_ap_ns, off_ns
+        o = np.median(np.lib.stride_tricks.sliding_window_view(np.pad(o, 2, mode="edge"), 5), axis=1)
+        o_at = float(np.interp(at_ns, mid, o))
+        off_ns -= float(np.interp(off_at_ns, mid, o)) - o_at
+        return t_ap_ns - (np.interp(t_ap_ns - off_ns, mid, o) - o_at), off_ns
 
     def lag_ns(self, t_ap_ns: int, clock_lag_ns: float | None) -> float | None:
         """The clock lag (ns) for a sample stamped t_ap_ns on the autopilot's clock: the measured clock_lag_ns

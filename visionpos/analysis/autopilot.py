@@ -164,7 +164,7 @@ def body_rates_from_attitudes(t_ns: np.ndarray, quaternions: np.ndarray, span: i
 
 
 def vision_delay_ns(send_minus_stamp_ns: np.ndarray, timesync_s1_ns: np.ndarray, timesync_tc1_ns: np.ndarray,
-                    clock_lag_ns: float, at_ns: float | None = None) -> float:
+                    clock_lag_ns: float, at_ns: float | None = None, local_ns: float = 3e9) -> float:
     """Capture-to-autopilot delay (ns) on the autopilot's clock.
 
     send_minus_stamp_ns (N,): for each sent pose, its send time less its stamp (server clock);
@@ -175,10 +175,14 @@ def vision_delay_ns(send_minus_stamp_ns: np.ndarray, timesync_s1_ns: np.ndarray,
     cancels: delay = median(send - stamp) + (tc1 - s1) - clock_lag, with tc1 - s1 taken at at_ns
     (server clock: the instant clock_lag stands for, `weighted_time_ns`) on a robust line through
     the answers, as the two clocks drift apart (a simulator behind real time, a crystal's ppm: 0.1 ms/s
-    is 1 ms over 10 s), or their median without at_ns or with fewer than 3 answers.
+    is 1 ms over 10 s), or their median without at_ns or with fewer than 3 answers. The line goes through the
+    answers within local_ns of at_ns where there are 3 or more: a clock whose rate wanders (PX4 SIH's lockstep
+    clock, 1.15-1.6 % slow as the host's load comes and goes) bends away from one line over half a minute.
     """
     s1 = np.asarray(timesync_s1_ns, dtype=np.float64)
     fwd = np.asarray(timesync_tc1_ns, dtype=np.float64) - s1
+    if at_ns is not None and np.count_nonzero(near := np.abs(s1 - at_ns) <= local_ns) >= 3:
+        s1, fwd = s1[near], fwd[near]
     f = np.median(fwd) if at_ns is None else theil_sen_at(s1, fwd, at_ns)
     return float(np.median(send_minus_stamp_ns) + f - clock_lag_ns)
 
