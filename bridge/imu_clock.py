@@ -30,6 +30,19 @@ IMU_TIMESYNC_STALE_NS = 3_000_000_000
 IMU_TIMESYNC_BAND_NS = 10_000_000
 
 
+def _offsets(timesync: Ring, since_ns: float) -> tuple[np.ndarray, np.ndarray, bool]:
+    """TIMESYNC's answers since server time since_ns (Ring of send time s1: (tc1 - s1, round trip) ns) as
+    offsets: (M,) times s1 + rtt / 2, (M,) autopilot-less-server offsets tc1 - s1 - rtt / 2, and whether they are
+    absolute: those with round trips under IMU_TIMESYNC_MAX_RTT_NS, or where there are none, those within
+    IMU_TIMESYNC_BAND_NS of the fastest (then only their changes mean anything)."""
+    t, v = timesync.since(int(since_ns))
+    rtt = v[:, 1]
+    fastest = float(rtt.min()) if len(rtt) else 0.0
+    absolute = fastest <= IMU_TIMESYNC_MAX_RTT_NS
+    ok = rtt <= (IMU_TIMESYNC_MAX_RTT_NS if absolute else fastest + IMU_TIMESYNC_BAND_NS)
+    return t[ok] + 0.5 * rtt[ok], v[ok, 0] - 0.5 * rtt[ok], absolute
+
+
 class ImuClockMap:
     """TIMESYNC's clock offset as a line, and its value where the delay measurement's lag stands for."""
 
@@ -48,13 +61,8 @@ class ImuClockMap:
         one's offset tc1 - s1 - rtt / 2 at s1 + rtt / 2, from the answers with round trips under
         IMU_TIMESYNC_MAX_RTT_NS, or where there are none, within IMU_TIMESYNC_BAND_NS of the fastest (then only
         its drift is used); robust (theil_sen_line), as a late answer now and then is no drift."""
-        t, v = timesync.since(timesync.last_t() - IMU_TIMESYNC_WINDOW_NS)
-        rtt = v[:, 1]
-        fastest = float(rtt.min()) if len(rtt) else 0.0
-        self.absolute = fastest <= IMU_TIMESYNC_MAX_RTT_NS
-        ok = rtt <= (IMU_TIMESYNC_MAX_RTT_NS if self.absolute else fastest + IMU_TIMESYNC_BAND_NS)
-        mid = t[ok] + 0.5 * rtt[ok]
-        self.line = theil_sen_line(mid, v[ok, 0] - 0.5 * rtt[ok])
+        mid, offset, self.absolute = _offsets(timesync, timesync.last_t() - IMU_TIMESYNC_WINDOW_NS)
+        self.line = theil_sen_line(mid, offset)
         if self.line is not None:
             self.newest_ns = float(mid[-1])
 
@@ -79,10 +87,7 @@ class ImuClockMap:
         is followed answer by answer (a running median of 5 through them), not along one line."""
         if self.line is None:
             return t_ap_ns, off_ns
-        t, v = timesync.since(min(float(t_ap_ns[0]) - off_ns, at_ns) - IMU_TIMESYNC_WINDOW_NS)
-        rtt = v[:, 1]
-        ok = rtt <= (IMU_TIMESYNC_MAX_RTT_NS if self.absolute else float(rtt.min()) + IMU_TIMESYNC_BAND_NS)
-        mid, o = t[ok] + 0.5 * rtt[ok], v[ok, 0] - 0.5 * rtt[ok]
+        mid, o, _ = _offsets(timesync, min(float(t_ap_ns[0]) - off_ns, at_ns) - IMU_TIMESYNC_WINDOW_NS)
         if len(o) < 5:
             return t_ap_ns, off_ns
         o = np.median(np.lib.stride_tricks.sliding_window_view(np.pad(o, 2, mode="edge"), 5), axis=1)
