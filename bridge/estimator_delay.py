@@ -26,9 +26,10 @@ The two estimators use the pose's stamp differently, so the same measured delays
   estimator_interface.cpp: time_us - ev_delay_ms * 1000 - half an EKF step), no jitter correction. Stamped on
   arrival, each sample's error is its own delay less the setting, and EKF2's state, linear in what it fuses,
   follows their mean: the mean of the delays makes the errors balance. Against PX4 SIH (issue 31, a 26 s
-  circle at 1.05 m/s, both read from PX4's own log) EKF2's output led SIH's truth by 1.24 (+-0.11) times the
-  setting less the poses' mean delay, less 4.1 (+-0.7) ms, with 3.7 ms of scatter between flights (26 flights,
-  the setting 26 ms under to 9 ms over); the median (1-3 ms under the mean on a loaded host, the delays' tail
+  circle at 1.05 m/s, both read from PX4's own log) EKF2's output led SIH's truth by 1.35 (+-0.15) times the
+  setting less the poses' mean delay, less 4.3 (+-0.7) ms, with 3.5 ms of scatter between flights (26 flights on
+  the captures' grid, the setting 9 ms under to 11 ms over; 8 with the steady stamp age: -2.6 +- 0.7 ms at the
+  mean); the median (1-3 ms under the mean on a loaded host, the delays' tail
   being long) sits further behind. The 4 ms are not explained: EKF2's rate limit (a sample under an EKF step
   after the last one kept is dropped) keeps the poses that follow late ones less often, but that moves the mean
   by under 1.5 ms. Stamped with a converged TIMESYNC, the stamp is the pose's instant: 0.

@@ -808,7 +808,7 @@ def test_px4_link_advice_needs_10_poses_and_a_round_trip():
 
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
 def test_set_delay_follows_px4s_advice_by_the_millisecond_and_ardupilots_by_five(autopilot):
-    """EKF2 reads EKF2_EV_DELAY for each sample and leads by about 1.2 ms for each ms it is off, so with set_delay
+    """EKF2 reads EKF2_EV_DELAY for each sample and leads by about 1.3 ms for each ms it is off, so with set_delay
     the bridge writes PX4's again when the advice moves by 1 ms; ArduPilot's VISO_DELAY_MS at 5 ms."""
     out = []
     bc = Backchannel(_cfg(set_delay=True), lambda: 0, mavlink2.MAVLink(None, 1, 197), lambda m: out.append(m) or True,
@@ -829,4 +829,4 @@ def test_set_delay_follows_px4s_advice_by_the_millisecond_and_ardupilots_by_five
     assert written == ([20, 22, 23, 26, 27] if autopilot == "px4" else [20, 26])
     assert all(m.param_id == param for m in out if m.get_type() == "PARAM_SET")
     assert ("PX4's `EKF2_EV_DELAY` when its advice moves by 1 ms, as EKF2 reads it for each sample and leads by "
-            "1.2 ms for each ms it is off") in _doc()
+            "1.3 ms for each ms it is off") in _doc()
