@@ -508,10 +508,9 @@ class Backchannel:
 
     def coarse_offset_ns(self) -> float | None:
         """Autopilot clock less server clock, from the fastest recent message back (the return latency
-        biases it by its minimum)."""
-        if not len(self.clock_offsets):
-            return None
-        return float(max(r[1] for r in self.clock_offsets.d))
+        biases it by its minimum); safe from another thread."""
+        offsets = list(self.clock_offsets.d)  # list() copies under the GIL while the link's thread appends
+        return float(max(r[1] for r in offsets)) if offsets else None
 
     def attitude_on_server_clock(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The autopilot's recent attitude samples on the server clock, safe to call from another thread: times
@@ -526,11 +525,8 @@ class Backchannel:
         measurement's lag carried by the clocks' drift (bridge/imu_clock.py), or until it is measured the fastest
         recent message's offset (coarse_offset_ns); None while neither is known."""
         t, lag = np.asarray(t_ap_ns, dtype=np.float64), self.clock_lag_ns
-        offsets = list(self.clock_offsets.d) if lag is None else None  # list() copies under the GIL
-        if lag is None and not offsets:
-            return None
-        lags = self.imu_clock.lags_ns(t, lag) if lag is not None else float(max(r[1] for r in offsets))
-        return np.rint(t - lags).astype(np.int64)
+        lags = self.imu_clock.lags_ns(t, lag) if lag is not None else self.coarse_offset_ns()
+        return None if lags is None else np.rint(t - lags).astype(np.int64)
 
     def check_identity(self, now: int) -> str:
         """Run the identity test on the newest window; returns the state ('unknown', 'consistent',
