@@ -328,8 +328,9 @@ class FakeAutopilot:
         self._sock = self._listen = None
 
     def boot_time_ns(self, now_ns: int | None = None) -> int:
-        """Its own clock: ns since its boot."""
-        return (self.clock_ns() if now_ns is None else now_ns) - self.boot_ns
+        """Its own clock: ns since its boot. Never negative: reboot() from another thread can move the boot past a
+        `now` its loop took just before (which once sent a negative time_boot_ms and killed the loop)."""
+        return max(0, (self.clock_ns() if now_ns is None else now_ns) - self.boot_ns)
 
     def reboot(self) -> None:
         """Restart its clock; forget the origin, home and the streams asked for (as a real reboot does)."""

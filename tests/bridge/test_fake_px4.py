@@ -159,3 +159,14 @@ def test_the_autopilot_setting_decides_before_any_heartbeat():
             assert link.estimator() == (expected or "px4")
         finally:
             link.close()
+
+
+def test_the_fake_autopilots_clock_never_reads_before_its_boot():
+    """reboot() runs on the test's thread while the fake's loop may hold a `now` taken just before it: that moment,
+    before the new boot, reads 0 (a negative time_boot_ms cannot be packed and killed the loop, so a reboot test
+    saw one vehicle never reboot)."""
+    ap = FakeAutopilot("udpin:127.0.0.1:0", sysid=1)
+    ap.reboot()
+    assert ap.boot_time_ns(ap.boot_ns - 5_000_000) == 0
+    assert ap.boot_time_ns(ap.boot_ns + 7) == 7
+    ap.mav.attitude_encode(ap.boot_time_ns(ap.boot_ns - 5_000_000) // 1_000_000, 0, 0, 0, 0, 0, 0).pack(ap.mav)
