@@ -47,7 +47,7 @@ from bridge.estimator_delay import DelayAdvice, advice_text, advised_delay, ardu
 from bridge.imu_clock import ImuClockMap
 from bridge.imu_samples import AccelSamples
 from bridge.px4_status import ev_fusion_state
-from bridge.px4_timesync import Px4TimesyncTracker, median_round_trip_ns, px4_link_advice
+from bridge.px4_timesync import Px4TimesyncTracker, fastest_round_trip_ns, median_round_trip_ns, px4_link_advice
 from bridge.telemetry import IMU_MESSAGES, Ring, geodetic_offset_m, gyro_filter_lag_ns, imu_sample, sample_at
 from visionpos.analysis.autopilot import (
     body_rates_from_attitudes,
@@ -296,9 +296,10 @@ class Backchannel:
         """We answered one of the autopilot's TIMESYNC requests (bridge/px4_timesync.py)."""
         self.px4_timesync.answered(self.timesync_rtt_ns())
 
-    def timesync_rtt_ns(self) -> float | None:
-        """The median round trip of our 20 newest TIMESYNC requests (ns); None before 3 answers."""
-        return median_round_trip_ns([r[2] for r in list(self.timesync.d)[-20:]])  # list() copies under the GIL
+    def timesync_rtt_ns(self, fastest: bool = False) -> float | None:
+        """The median (or fastest) round trip of our 20 newest TIMESYNC requests (ns); None before 3 answers."""
+        rtts = [r[2] for r in list(self.timesync.d)[-20:]]  # list() copies under the GIL
+        return fastest_round_trip_ns(rtts) if fastest else median_round_trip_ns(rtts)
 
     def on_timesync_reply(self, ts1: int, tc1: int, recv_ns: int) -> bool:
         """An answer to one of our TIMESYNC requests (ts1 as we sent it); False if it is not one of ours."""
@@ -595,7 +596,7 @@ class Backchannel:
         est = self.cfg.autopilot if self.cfg.autopilot != "auto" else self.autopilot
         if est == "px4" and self.sends.n:
             _, sends = self.sends.since(self.sends.last_t() - DELAY_WINDOW_NS)
-            self.advice = px4_link_advice(sends[:, 0], self.timesync_rtt_ns(), self.px4_timesync.converged) \
+            self.advice = px4_link_advice(sends[:, 0], self.timesync_rtt_ns(True), self.px4_timesync.converged) \
                 or self.advice
         gyro_t, gyro_v = (self.gyro.since(self.gyro.last_t() - DELAY_WINDOW_NS) if self.gyro.n
                           else (np.zeros(0, np.int64), np.zeros((0, 3))))

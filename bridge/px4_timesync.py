@@ -42,11 +42,19 @@ def median_round_trip_ns(round_trips_ns: list[float]) -> float | None:
     return float(np.median(round_trips_ns)) if len(round_trips_ns) >= MIN_ANSWERS else None
 
 
+def fastest_round_trip_ns(round_trips_ns: list[float]) -> float | None:
+    """The fastest of the recent TIMESYNC round trips (ns), None before MIN_ANSWERS: the link's bare transit, half
+    of it a pose's one way. The median also holds PX4's time to answer and either side's scheduling: through a
+    relay adding 50 ms each way it read 105 ms where the fastest read 101.3, and the poses' delays in PX4's log
+    matched the fastest within 1 ms (issue 31)."""
+    return float(np.min(round_trips_ns)) if len(round_trips_ns) >= MIN_ANSWERS else None
+
+
 def px4_link_advice(send_minus_stamp_ns: np.ndarray, rtt_ns: float | None, converged: bool) -> DelayAdvice | None:
     """EKF2_EV_DELAY from the link's timing alone: stamped on arrival, a pose is its stamp-to-send time (N,) ns
-    plus the link's one way, half the round trip rtt_ns, old when PX4 stamps it; converged, its own instant (0).
-    No rotation or clock map is needed (PX4 SIH's clock runs about 1 % slow of ours, unevenly). None before
-    MIN_POSES poses and a round trip."""
+    plus the link's one way, half the round trip rtt_ns (fastest_round_trip_ns), old when PX4 stamps it;
+    converged, its own instant (0). No rotation or clock map is needed (PX4 SIH's clock runs about 1 % slow of
+    ours, unevenly). None before MIN_POSES poses and a round trip."""
     d = np.asarray(send_minus_stamp_ns, dtype=np.float64)
     if len(d) < MIN_POSES or rtt_ns is None:
         return None

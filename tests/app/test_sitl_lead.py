@@ -185,6 +185,48 @@ def test_ev_delay_follows_the_advice_in_flight_within_the_booted_horizon(advised
     assert len(gcs.set) == int(sets)
 
 
+def test_ev_delay_follows_each_renewed_advice_while_circling(monkeypatch):
+    """docs/autopilot-setup.md section 0: the flight sets the advice each time it is renewed while circling."""
+    from pathlib import Path
+
+    from bridge.backchannel import DELAY_EVERY_NS
+    from bridge.estimator_delay import DelayAdvice
+    from visionpos.app.sitl import px4_run
+    assert px4_run.ADVICE_EVERY_S == DELAY_EVERY_NS * 1e-9 == 5.0
+    monkeypatch.setattr(px4_run, "ADVICE_EVERY_S", 0.01)
+    advices = iter([17, 17, 19, 19, 18] + [18] * 1000)
+    gcs, said = _StubGcs(60), []
+    record = {"viso_delay_ms": 17, "circle_ev_delays_ms": [17]}
+
+    async def circle():
+        task = asyncio.create_task(px4_run._follow_advice(
+            gcs, lambda: DelayAdvice("EKF2_EV_DELAY", next(advices), "mean", "EKF2_DELAY_MAX", 50, "why"), record,
+            said.append))
+        await asyncio.sleep(0.3)
+        task.cancel()
+
+    asyncio.run(circle())
+    assert gcs.set[:2] == [{"EKF2_EV_DELAY": 19.0}, {"EKF2_EV_DELAY": 18.0}] and len(gcs.set) == 2
+    assert record["circle_ev_delays_ms"] == [17, 19, 18] and record["viso_delay_ms"] == 18
+    doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
+    assert "again before the circle and each time the back-channel renews it while circling (every 5 s)" in doc
+
+    # PX4 does not echo one: said, kept, and the next advice still goes
+    class _Refuses(_StubGcs):
+        async def set_params_async(self, values):
+            if not self.set:
+                self.set.append(None)
+                raise S.SitlError("no PARAM_VALUE")
+            self.set.append(values)
+
+    advices = iter([19, 20] + [20] * 1000)
+    gcs, said = _Refuses(60), []
+    record = {"viso_delay_ms": 17, "circle_ev_delays_ms": [17]}
+    asyncio.run(circle())
+    assert gcs.set[:2] == [None, {"EKF2_EV_DELAY": 20.0}] and record["circle_ev_delays_ms"] == [17, 20]
+    assert any("not changed in flight: no PARAM_VALUE" in x for x in said)
+
+
 def test_the_px4_keepalive_streams_the_velocity_feed_forward():
     """Px4Gcs's offboard setpoint with the circle's velocity: SET_POSITION_TARGET_LOCAL_NED's type mask takes
     position and velocity (bits 3-5 clear), the rest ignored; without it, position only."""

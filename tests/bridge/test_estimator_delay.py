@@ -37,20 +37,28 @@ def test_jitter_corrected_delay_is_the_median_of_each_100_poses_smallest():
     assert jitter_corrected_delay_ms(np.sort(d)) == 20.0
 
 
-def test_px4_on_arrival_wants_the_mean_and_with_timesync_zero():
-    # _delays(): 96 from 10.0 to 29.0 (sum 96 * 19.5 = 1872) and 6, 6, 60, 60 (132): mean 2004 / 100 = 20.04
+def test_px4_on_arrival_wants_the_mean_and_what_ekf2_trails_by_and_with_timesync_zero():
+    # _delays(): 96 from 10.0 to 29.0 (sum 96 * 19.5 = 1872) and 6, 6, 60, 60 (132): mean 2004 / 100 = 20.04;
+    # EKF2 on the mean trails as if 1.35 ms older (docs/autopilot-setup.md, 3.): 21.39 -> 21
+    from pathlib import Path
+
+    from bridge.estimator_delay import EKF2_ARRIVAL_TRAIL_MS
+    assert EKF2_ARRIVAL_TRAIL_MS == 1.35
+    doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
+    assert "the bridge advises the **mean** stamp-to-arrival delay, **plus 1.35 ms** that EKF2 was measured to " \
+           "trail by" in doc
     a = advised_delay("px4", _delays())
-    assert (a.param, a.value_ms) == ("EKF2_EV_DELAY", 20)
-    assert "mean" in a.why and "arrival" in a.why
-    # a long tail (90 poses at 15 ms, 10 at 45 after stalls): the median 15, the mean 18, which EKF2 follows
-    assert advised_delay("px4", np.r_[np.full(90, 15.0), np.full(10, 45.0)]).value_ms == 18
+    assert (a.param, a.value_ms) == ("EKF2_EV_DELAY", 21)
+    assert "mean" in a.why and "arrival" in a.why and "1.35 ms" in a.why
+    # a long tail (90 poses at 15 ms, 10 at 45 after stalls): the median 15, the mean 18, which EKF2 follows: 19.35
+    assert advised_delay("px4", np.r_[np.full(90, 15.0), np.full(10, 45.0)]).value_ms == 19
     b = advised_delay("px4", _delays(), px4_timesync_converged=True)
     assert (b.param, b.value_ms) == ("EKF2_EV_DELAY", 0)
 
 
 def test_constant_delay_gives_that_delay_to_both_and_nothing_without_delays():
-    for ap in ("ardupilot", "px4"):
-        assert advised_delay(ap, np.full(50, 7.4)).value_ms == 7
+    assert advised_delay("ardupilot", np.full(50, 7.4)).value_ms == 7
+    assert advised_delay("px4", np.full(50, 7.4)).value_ms == 9  # 7.4 + 1.35 = 8.75
     assert advised_delay("ardupilot", np.array([])) is None
     assert advised_delay("px4", np.array([np.nan])) is None
     assert advised_delay(None, np.full(5, 3.0)).param == "VISO_DELAY_MS"
@@ -59,7 +67,7 @@ def test_constant_delay_gives_that_delay_to_both_and_nothing_without_delays():
 @pytest.mark.parametrize("shift", [0.0, 20.0, 50.0])
 def test_an_added_link_delay_moves_both_by_as_much(shift):
     assert advised_delay("ardupilot", _delays() + shift).value_ms == 6 + shift
-    assert advised_delay("px4", _delays() + shift).value_ms == 20 + shift
+    assert advised_delay("px4", _delays() + shift).value_ms == 21 + shift
 
 
 # ------------------------------------------------------------------ PX4's ESTIMATOR_STATUS in words
@@ -103,10 +111,10 @@ def test_ardupilot_names_the_buffer_when_poses_outlive_ekf3s_default_history():
 
 
 def test_px4_horizon_holds_the_setting_in_eight_ms_steps_or_the_p99_with_timesync():
-    # stamped on arrival at 20 ms, moved back half an 8 ms step: 24 ms, 3 steps; + the newest and the margin:
-    # 5 steps of EKF2_PREDICT_US (10 ms)
+    # EKF2_EV_DELAY 21 ms, moved back half an 8 ms step: 25 ms, 4 steps; + the newest and the margin: 6 steps of
+    # EKF2_PREDICT_US (10 ms)
     a = advised_delay("px4", _delays())
-    assert (a.horizon_param, a.horizon_ms) == ("EKF2_DELAY_MAX", 50)
+    assert (a.horizon_param, a.horizon_ms) == ("EKF2_DELAY_MAX", 60)
     # TIMESYNC: the delays' p99, 60 ms (see _delays): 8 steps of 8 ms, + 2: 100 ms
     b = advised_delay("px4", _delays(), px4_timesync_converged=True)
     assert (b.horizon_param, b.horizon_ms) == ("EKF2_DELAY_MAX", 100)
@@ -157,4 +165,4 @@ def test_ardupilot_takes_the_ports_transfer_time_off_each_arrival():
     # a steady 20 ms less 1.54 and the quarter ms of EKF3's stamp flooring and step: 18.21 -> 18
     a = advised_delay("ardupilot", np.full(300, 20.0), transfer_ms=1.5408)
     assert a.value_ms == 18 and "baud" in a.why
-    assert advised_delay("px4", np.full(300, 20.0), transfer_ms=1.5408).value_ms == 20  # EKF2: no such move
+    assert advised_delay("px4", np.full(300, 20.0), transfer_ms=1.5408).value_ms == 21  # no such move: 20 + 1.35

@@ -12,8 +12,9 @@ reckoning on SIH's vibrating IMU, which differs from one flight to the next by m
 
 The EKF's lead is measured on the circle (each turn's drift taken out: report.time_shift_fit), from PX4's own log
 (EKF2's output against SIH's truth, both on PX4's clock: px4_log.py), which the goal reads, and from the host
-(LOCAL_POSITION_NED against the truth as both arrive here), beside the poses' mean delay on PX4's clock (the log)
-and their mean stamp-to-arrival over the circle (the bridge's side, what its advice reads).
+(LOCAL_POSITION_NED against the truth as both arrive here), beside the poses' mean delay on PX4's clock (the log,
+which keeps about 33 of the 50 poses a second) and their mean stamp-to-arrival over the circle (the bridge's side,
+every pose: what its advice reads).
 Skipped, with the reason in the notes, where no PX4 build is found ($VISIONPOS_PX4_SITL or
 ../shared/sitl-px4/build beside the checkout).
 """
@@ -58,20 +59,23 @@ def _fmt(x: float | None, spec: str = ".1f") -> str:
 
 
 def lead_row(label: str, s: dict) -> str:
-    """One table row of a flight's timing on the circle: EKF2_EV_DELAY, the poses' mean delay on PX4's clock, their
-    mean stamp-to-arrival here, EKF2's lead from PX4's log and from the host (+- standard errors)."""
+    """One table row of a flight's timing on the circle: EKF2_EV_DELAY (the values it took there), the poses' mean
+    delay on PX4's clock, their mean stamp-to-arrival here, EKF2's lead from PX4's log and from the host (+- standard
+    errors)."""
     g = s.get("px4_log") or {}
     pm = (lambda a, b: f"{_fmt(a)} +- {_fmt(b)}" if a is not None else "-")  # noqa: E731
-    return (f"| {label} | {_fmt(s.get('viso_delay_ms'), '.0f')} | {_fmt(g.get('vision_delay_circle_ms'))} | "
+    on = sorted(set(s.get("circle_ev_delays_ms") or [])) or [s.get("viso_delay_ms")]
+    setting = _fmt(on[0], ".0f") + (f"-{on[-1]:.0f}" if len(on) > 1 else "")
+    return (f"| {label} | {setting} | {_fmt(g.get('vision_delay_circle_ms'))} | "
             f"{_fmt(s.get('circle_stamp_to_arrival_ms'))} | "
             f"{pm(g.get('output_lead_circle_ms'), g.get('output_lead_circle_se_ms'))} | "
             f"{pm(s.get('ekf_lead_circle_ms'), s.get('ekf_lead_circle_se_ms'))} | "
             f"{'completed' if s['completed'] else 'NOT completed'} |")
 
 
-LEAD_HEADER = ("| flight | EKF2_EV_DELAY on the circle ms | the poses' mean delay, PX4's log ms | their mean "
-               "stamp-to-arrival here ms | EKF2 ahead of SIH's truth, PX4's log ms | the same from the host ms | "
-               "flight |\n|---|---|---|---|---|---|---|")
+LEAD_HEADER = ("| flight | EKF2_EV_DELAY on the circle ms | the poses' mean delay, PX4's log (a 33 Hz subset) ms | "
+               "their mean stamp-to-arrival here (every pose) ms | EKF2 ahead of SIH's truth, PX4's log ms | the same "
+               "from the host ms | flight |\n|---|---|---|---|---|---|---|")
 
 
 def run(quick: bool = False) -> BenchResult:

@@ -6,7 +6,7 @@ With plan.link_delay_ms, a DelayRelay sits between the bridge and the Onboard po
 EKF2_EV_DELAY is sitl.viso_delay_ms when given, for the whole flight. Else PX4 boots with FIRST_EV_DELAY_MS plus
 the link delay (its horizon, EKF2_DELAY_MAX, is sized from it at start), and the flight sets the bridge's advice
 (PX4 in SITL stamps the poses on arrival: the mean stamp-to-arrival delay, bridge/estimator_delay.py) once
-airborne and again before the circle (set_advised_ev_delay).
+airborne, again before the circle and each time the advice is renewed while circling (set_advised_ev_delay).
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ FIRST_EV_DELAY_MS = 15.0  # the bridge's stamp -> send median on the reference V
 # EKF2's horizon is sized at start: room for an advice this much over the first value (issue 31: 16-23 ms advised
 # on this 2-core host after 15)
 ADVICE_HEADROOM_MS = 10.0
+ADVICE_EVERY_S = 5.0  # the back-channel renews its advice this often (backchannel.DELAY_EVERY_NS)
 OUR_MODES = {POSCTL << 16, OFFBOARD << 16, (AUTO << 16) | (AUTO_LAND << 24)}
 # SIH's vibrating IMU keeps its hover wandering a few cm even on an exact vision (visionpos/app/sitl/px4_floor.py:
 # EKF horizontal p99 33 mm): a waypoint counts as reached within 8 cm (ArduPilot's flight: 5 cm)
@@ -123,6 +124,7 @@ def _run_px4(arena: ArenaConfig, sec: Any, build: Path, plan: FlightPlan, out: T
     summary["px4_clock_rate"] = clock_rate_summary(gcs)
     summary["delay_advised_ms"] = record.get("advised_ms")
     summary["circle_stamp_to_arrival_ms"] = record.get("circle_stamp_to_arrival_ms")
+    summary["circle_ev_delays_ms"] = record.get("circle_ev_delays_ms")
     summary["first_viso_delay_ms"] = record["first_viso_delay_ms"]
     summary["delay_measured_ms"] = record.get("measured_ms")
     summary["send_minus_stamp_ms_p50"] = record.get("send_minus_stamp_ms_p50")
@@ -143,9 +145,9 @@ def clock_rate_summary(gcs: Px4Gcs) -> dict[str, Any]:
 
 def stamp_to_arrival_mean_ms(bc: Any, start_ns: int, end_ns: int) -> float | None:
     """The mean stamp-to-arrival delay (ms) of the poses sent from start_ns to end_ns (server clock): each one's
-    send less stamp, plus half the link's TIMESYNC round trip: what the advice would read over that span."""
+    send less stamp, plus half the link's fastest TIMESYNC round trip: what the advice would read over that span."""
     rows = _send_minus_stamp_ns(bc, start_ns, end_ns)
-    rtt = bc.timesync_rtt_ns()
+    rtt = bc.timesync_rtt_ns(fastest=True)
     return float(rows.mean() + 0.5 * (rtt or 0.0)) * 1e-6 if len(rows) else None
 
 
@@ -238,12 +240,29 @@ async def set_advised_ev_delay(gcs: Px4Gcs, advice: Any, record: dict[str, Any],
     record.setdefault("ev_delay_set_ns", []).append(time.monotonic_ns())
 
 
+async def _follow_advice(gcs: Px4Gcs, advice: Callable[[], Any], record: dict[str, Any],
+                         say: Callable[[str], None]) -> None:
+    """While circling: EKF2_EV_DELAY set to the advice each time the back-channel renews it (as `set_delay: true`
+    does; the circle's load on the host moved the delays by up to 5 ms from the advice set before it, issue 31);
+    record["circle_ev_delays_ms"] gets each value."""
+    while True:
+        await asyncio.sleep(ADVICE_EVERY_S)
+        before = record["viso_delay_ms"]
+        try:
+            await set_advised_ev_delay(gcs, advice(), record, say)
+        except SitlError as e:  # PX4 did not echo it: the flight goes on with the value it has
+            say(f"EKF2_EV_DELAY not changed in flight: {e}")
+        if record["viso_delay_ms"] != before:
+            record["circle_ev_delays_ms"].append(record["viso_delay_ms"])
+
+
 async def fly_px4(gcs: Px4Gcs, plan: FlightPlan, record: dict[str, Any], say: Callable[[str], None],
                   live: Any, sending: Callable[[], bool], advice: Callable[[], Any], follow_advice: bool = False
                   ) -> None:
     """EKF2 on the vision, arm in Position mode, Offboard take-off, hold (cut), square, circle, AUTO.LAND, disarm.
     live.cut(start_ns, end_ns) hides the vehicle; sending(): poses go; advice(): the bridge's delay advice;
-    follow_advice: EKF2_EV_DELAY set to it once airborne and again before the circle (set_advised_ev_delay)."""
+    follow_advice: EKF2_EV_DELAY set to it once airborne, again before the circle and while circling
+    (set_advised_ev_delay, _follow_advice)."""
     await wait_ev_fused(gcs, 60.0, sending)
     record["extnav_ns"] = time.monotonic_ns()
     say("EKF2 fuses the vision")
@@ -282,10 +301,15 @@ async def fly_px4(gcs: Px4Gcs, plan: FlightPlan, record: dict[str, Any], say: Ca
         def send(n: float, e: float, vn: float, ve: float) -> None:
             gcs.setpoint, gcs.velocity = (n, e, -plan.altitude_m), (vn, ve, 0.0)
 
+        record["circle_ev_delays_ms"] = [record["viso_delay_ms"]]
+        follow = asyncio.create_task(_follow_advice(gcs, advice, record, say)) if follow_advice else None
         try:
             await fly_circle(send, c, plan.circle_s, record, say)
         finally:
             gcs.velocity = None
+            if follow is not None:
+                follow.cancel()
+                await asyncio.gather(follow, return_exceptions=True)
         await _reach(gcs, c[0] + CIRCLE_RADIUS_M, c[1], -plan.altitude_m, 20.0)
     adv = advice()
     if adv is not None:
