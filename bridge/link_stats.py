@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from bridge.estimator_delay import EKF2_ARRIVAL_TRAIL_MS
+
 LATENCY_SAMPLES = 4096
 
 
@@ -58,7 +60,8 @@ def delay_advice(stats: dict) -> str:
         return f"{stats['body']} (sysid {stats['sysid']}): no pose sent yet"
     age = stats["latency_stamp_ms_p50"]
     # estimator_delay.py: why each
-    d, low = (int(round(stats.get(k, age))) for k in ("latency_stamp_ms_mean", "latency_stamp_ms_jitter_min"))
+    d, low = (int(round(stats.get(k, age) + extra)) for k, extra in (("latency_stamp_ms_mean", EKF2_ARRIVAL_TRAIL_MS),
+                                                                       ("latency_stamp_ms_jitter_min", 0.0)))
     if stats.get("delay_ms") is not None:
         return (f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms; "
                 f"{stats['delay_advice']}")
@@ -66,6 +69,6 @@ def delay_advice(stats: dict) -> str:
         f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms; "
         f"pose stamp->send p50 {age:.1f} ms (bridge adds p50 {stats['latency_bridge_ms_p50']:.2f} ms) -> "
         f"ArduPilot VISO_DELAY_MS={low} (the smallest of each 100 poses + link latency); PX4 EKF2_EV_DELAY={d} "
-        "(the mean + link latency) without TIMESYNC, "
+        f"(the mean + {EKF2_ARRIVAL_TRAIL_MS:g} ms + link latency) without TIMESYNC, "
         f"~0 with TIMESYNC converged"
     )

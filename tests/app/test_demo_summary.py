@@ -179,7 +179,7 @@ def test_the_summary_says_when_the_fusion_ran_interpreted(kernels, says):
     text = format_summary(s)
     # the delay each estimator wants (bridge/estimator_delay.py): ArduPilot the smallest, PX4 the mean
     assert "2nd percentile 6.25 ms, mean 8.50 ms (ArduPilot's VISO_DELAY_MS: near the smallest" in text
-    assert "PX4's EKF2_EV_DELAY: the mean" in text
+    assert "PX4's EKF2_EV_DELAY: the mean and 1.35 ms" in text
     if says is None:
         assert "interpreted" not in text
     else:

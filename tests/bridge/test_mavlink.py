@@ -511,6 +511,23 @@ def test_latency_percentiles_are_numpys():
     assert all(np.isnan(percentiles_ms(np.zeros(0, np.int64), (50, 99))))
 
 
+def test_the_latency_line_advises_ardupilot_the_smallest_and_px4_the_mean_and_what_ekf2_trails_by():
+    """docs/autopilot-setup.md, 3.: before the back-channel measures, the report line's two settings."""
+    from pathlib import Path
+
+    from bridge.link_stats import delay_advice
+
+    stats = {"body": "b", "sysid": 1, "latency_capture_ms_p50": 12.0, "latency_capture_ms_p99": 31.0,
+             "latency_stamp_ms_p50": 11.0, "latency_stamp_ms_mean": 13.0, "latency_stamp_ms_jitter_min": 10.0,
+             "latency_bridge_ms_p50": 0.1}
+    line = delay_advice(stats)
+    assert "ArduPilot VISO_DELAY_MS=10 (the smallest of each 100 poses + link latency)" in line
+    assert "PX4 EKF2_EV_DELAY=14 (the mean + 1.35 ms + link latency) without TIMESYNC" in line  # 13 + 1.35
+    doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
+    assert "PX4 EKF2_EV_DELAY=M (the mean + 1.35 ms + link latency) without TIMESYNC, ~0 with TIMESYNC " \
+           "converged`" in doc
+
+
 def test_several_vehicles_share_one_reset_counter():
     """With several vehicles every pose carries one counter, the sum of every body's and every link's resets: a
     pose that reaches another autopilot over a crossed link (before the bridge hears that autopilot) carries the
