@@ -1,35 +1,30 @@
 """What the autopilot sends back on a vehicle link, and what the bridge concludes from it.
 
-A Backchannel belongs to one VehicleLink and runs on its sender thread; it has
-no socket of its own (it sends through the link's encoder). The link hands it
-only packets that passed the link's checks (the vehicle's sysid, a verified
-signature on a signed link, the configured or learned peer), and it keeps only
-those from the autopilot component (1).
+A Backchannel belongs to one VehicleLink and runs on its sender thread; it has no socket of its own (it sends through
+the link's encoder). The link hands it only packets that passed the link's checks (the vehicle's sysid, a verified
+signature on a signed link, the configured or learned peer), and it keeps only those from the autopilot component (1).
 
 From them it keeps:
 - the autopilot's type (HEARTBEAT) and reboots (its boot clock going back);
-- its attitude and body rates (ATTITUDE / ATTITUDE_QUATERNION) and its gyro
-  (HIGHRES_IMU, RAW_IMU or SCALED_IMU), asked for with SET_MESSAGE_INTERVAL;
+- its attitude and body rates (ATTITUDE / ATTITUDE_QUATERNION) and its gyro (HIGHRES_IMU, RAW_IMU or SCALED_IMU),
+  asked for with SET_MESSAGE_INTERVAL;
 - the EKF's view (EKF_STATUS_REPORT flags and test ratios, STATUSTEXT);
 - GPS_GLOBAL_ORIGIN (the origin confirmed), COMMAND_ACK, PARAM_VALUE;
 - TIMESYNC answers to its own requests (the autopilot's receive time).
 
 And it decides (pure math in visionpos.analysis.autopilot):
-- identity: roll, pitch and body rates against the optical body's, over a 1 s
-  window; a mismatch latches (the poses are someone else's until restarted);
-- the measured capture-to-autopilot delay (gyro against optical rate). ArduPilot's
-  reported gyro (RAW_IMU, ATTITUDE's rates) has been through its INS_GYRO_FILTER
-  low-pass (a 2-pole Butterworth, 20 Hz on a copter): it trails the motion by the
-  filter's group delay, sqrt(2) / (2 pi fc), 11.3 ms at 20 Hz, while its EKF runs
-  on the unfiltered IMU. The correlation's lag is corrected by it, so the delay is
-  measured against the motion itself; INS_GYRO_FILTER is read from the autopilot
-  (PARAM_REQUEST_READ) and the delay stays unknown until it has answered. TIMESYNC's
-  forward latency is taken at the instant the correlation stands for (where the
-  vehicle turned most), on a line through the answers: the two clocks drift apart.
+- identity: roll, pitch and body rates against the optical body's, over a 1 s window; a mismatch latches (the poses
+  are someone else's until restarted);
+- the measured capture-to-autopilot delay (gyro against optical rate). ArduPilot's reported gyro (RAW_IMU, ATTITUDE's
+  rates) has been through its INS_GYRO_FILTER low-pass (a 2-pole Butterworth, 20 Hz on a copter): it trails the motion
+  by the filter's group delay, sqrt(2) / (2 pi fc), 11.3 ms at 20 Hz, while its EKF runs on the unfiltered IMU. The
+  correlation's lag is corrected by it, so the delay is measured against the motion itself; INS_GYRO_FILTER is read
+  from the autopilot (PARAM_REQUEST_READ) and the delay stays unknown until it has answered. TIMESYNC's forward
+  latency is taken at the instant the correlation stands for (where the vehicle turned most), on a line through the
+  answers: the two clocks drift apart. A delay under the poses' age when sent is a clock map gone wrong: not reported.
 
-Every check is "unknown" while its data is missing: nothing here ever holds a
-pose back for want of telemetry. Only a positive finding does (a mismatch,
-or an autopilot that is talking but has not yet confirmed the origin).
+Every check is "unknown" while its data is missing: nothing here ever holds a pose back for want of telemetry. Only a
+positive finding does (a mismatch, or an autopilot that is talking but has not yet confirmed the origin).
 """
 
 from __future__ import annotations
@@ -77,6 +72,7 @@ DELAY_EVERY_NS = 5_000_000_000
 DELAY_SEARCH_NS = 250e6  # around the coarse clock offset (covers the return link's latency)
 DELAY_MIN_CORRELATION = 0.8
 DELAY_MIN_RATE_STD = 0.05  # rad/s of optical rate: less, and there is nothing to correlate
+DELAY_FLOOR_SLACK_NS = 2e6  # a delay this far under the poses' age when sent is a wrong clock map, not a link
 TIMESYNC_EVERY_NS = 500_000_000
 STREAM_RETRY_NS = 3_000_000_000
 SILENT_WARN_NS = 10_000_000_000
@@ -641,11 +637,17 @@ class Backchannel:
                 "waiting for poses to be sent"
             return self.delay_ms
         d_ns = vision_delay_ns(sends[:, 0], ts_t, ts_t + ts[:, 0], self.clock_lag_ns, at_ns=at_ns)
+        sent_ns = float(np.median(sends[:, 0]))  # no pose arrives younger than it left
+        if d_ns < sent_ns - DELAY_FLOOR_SLACK_NS:
+            self.delay_ms, self.delay_reason = None, (
+                f"the gyro correlation and TIMESYNC gave {d_ns * 1e-6:.1f} ms, under the poses' age when sent "
+                f"({sent_ns * 1e-6:.1f} ms): the clock map is off (a clock drifting unevenly); no delay reported")
+            return None
         self.delay_window_ns = (int(to[0]), int(to[-1]))
         self._delays.append(d_ns * 1e-6)
         self.delay_ms = d_ns * 1e-6  # each estimate spans DELAY_WINDOW_NS already; the newest follows changes
         # each pose's delay: its own stamp -> send, plus the link's share of the median (the same for all)
-        link_ns = d_ns - float(np.median(sends[:, 0]))
+        link_ns = d_ns - sent_ns
         cfg = self.cfg
         if est != "px4":
             self.advice = advised_delay(est, (sends[:, 0] + link_ns) * 1e-6, transfer_ms=ardupilot_transfer_ms(

@@ -798,6 +798,19 @@ def test_imu_from_truth_reads_gravity_at_rest():
     assert acc[0] == pytest.approx([0, 0, -9.80665], abs=1e-9)  # FRD: specific force points up = -z
 
 
+def test_a_delay_under_the_poses_age_when_sent_is_not_reported():
+    """docs/autopilot-setup.md, What visionpos reads back: a figure more than 2 ms under the poses' age when sent
+    (here 2 ms) is a clock map gone wrong. TIMESYNC's answers made to read 8 ms early: the delay would read
+    2 + (2 - 10) = -6 ms."""
+    bc, _ = _fly(FIG8, FIG8, 30.0, delay_ms=-10.0, return_ms=12.0)
+    assert bc.delay_ms is None and bc.clock_lag_ns is not None
+    assert "under the poses' age when sent (2.0 ms)" in bc.delay_reason and "no delay reported" in bc.delay_reason
+    assert "A figure more than 2 ms under the poses' own age when sent is not reported" in _doc()
+    # the same flight with an honest link is measured (4 ms: 2 ms old when sent, 2 ms forward)
+    ok, _ = _fly(FIG8, FIG8, 30.0)
+    assert ok.delay_ms == pytest.approx(4.0, abs=1.5)
+
+
 def test_px4_link_advice_needs_10_poses_and_a_round_trip():
     """docs/autopilot-setup.md, 3.: the PX4 advice is there once 10 poses and 3 TIMESYNC answers are in."""
     from bridge.px4_timesync import fastest_round_trip_ns, median_round_trip_ns, px4_link_advice
