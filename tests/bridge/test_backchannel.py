@@ -736,7 +736,9 @@ def test_autopilot_reboot_mid_flight(caplog):
     bridge = _pairs([{}, {"origin": ORIGIN}], aps)
     try:
         _stream(bridge, [FIG8, AGGRESSIVE], t0, 3.0)
-        assert all(v.bc.identity == "consistent" for v in bridge.vehicles)
+        consistent = lambda: all(v.bc.identity == "consistent" for v in bridge.vehicles)  # noqa: E731
+        _stream(bridge, [FIG8, AGGRESSIVE], t0, 5.0, until=consistent)  # more time on a loaded host
+        assert consistent()
         with caplog.at_level(logging.WARNING, logger="visionpos.bridge"):
             for ap in aps:
                 ap.reboot()
@@ -751,7 +753,9 @@ def test_autopilot_reboot_mid_flight(caplog):
         # with an origin: set again, confirmed, and the poses flow again
         assert aps[1].origin is not None and v2.bc.origin_confirmed
         assert sum(m.recv_ns > t_reboot + 2e9 for m in aps[1].messages(VPE)) > 50
-        # the streams were asked for again and the checks came back
+        # the streams were asked for again and the checks came back (a host loaded by the whole suite once needed
+        # more than the 4 s above)
+        _stream(bridge, [FIG8, AGGRESSIVE], t0, 6.0, until=lambda: v1.bc.identity == "consistent")
         assert 30 in aps[0].intervals_ns and v1.bc.identity == "consistent"
     finally:
         bridge.close()
