@@ -60,8 +60,8 @@ def delay_advice(stats: dict) -> str:
         return f"{stats['body']} (sysid {stats['sysid']}): no pose sent yet"
     age = stats["latency_stamp_ms_p50"]
     # estimator_delay.py: why each
-    d, low = (int(round(stats.get(k, age) + extra)) for k, extra in (("latency_stamp_ms_mean", EKF2_ARRIVAL_TRAIL_MS),
-                                                                       ("latency_stamp_ms_jitter_min", 0.0)))
+    d = int(round(stats.get("latency_stamp_ms_mean", age) + EKF2_ARRIVAL_TRAIL_MS))
+    low = int(round(stats.get("latency_stamp_ms_jitter_min", age)))
     if stats.get("delay_ms") is not None:
         return (f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms; "
                 f"{stats['delay_advice']}")

@@ -20,6 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from bridge.estimator_delay import EKF2_ARRIVAL_TRAIL_MS
 from bridge.fake_autopilot import decode_pose
 from visionpos.analysis import metrics as M
 from visionpos.geometry.frames import ned_to_world
@@ -310,8 +311,9 @@ def format_summary(s: dict[str, Any]) -> str:
         f"median {fmt(s['latency_to_autopilot_ms']['p50'])} ms, 2nd percentile "
         f"{fmt(s['latency_to_autopilot_ms'].get('p2'))} ms, mean {fmt(s['latency_to_autopilot_ms'].get('mean'))} ms "
         "(ArduPilot's VISO_DELAY_MS: near the smallest, its jitter correction takes each pose at the smallest delay "
-        "of its last 100; PX4's EKF2_EV_DELAY: the mean and 1.35 ms, it stamps poses on arrival without TIMESYNC, "
-        "follows the mean of their timing errors and trails by a little more; docs/autopilot-setup.md section 3)",
+        f"of its last 100; PX4's EKF2_EV_DELAY: the mean and {EKF2_ARRIVAL_TRAIL_MS:g} ms, it stamps poses on arrival "
+        "without TIMESYNC, follows the mean of their timing errors and trails by a little more; "
+        "docs/autopilot-setup.md section 3)",
         f"server: accepted {server['frames_accepted']} camera frames"
         + (f" ({shed} not fused: they queued too long)" if shed else "")
         + f", {_plural(server['malformed'] or 0, 'malformed packet')}, "
