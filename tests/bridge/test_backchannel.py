@@ -516,8 +516,8 @@ def test_measured_delay_matches_the_added_link_delay_live(monkeypatch):
         # EKF3's IMU history: EK3_HGT_DELAY's default 60 ms holds poses up to 60 ms old (p99 + half a 12 ms step,
         # from the fake's arrivals); older ones need a buffer named in whole 12 ms slots. A direct link's p99
         # is usually well inside, but a loaded host's stalls can push it past: judged on each vehicle's own p99
-        for i in range(3):
-            late = aps[i].true_delay_ms(window_s=DELAY_WINDOW_NS * 1e-9, percentile=99.0) + 6.0
+        lates = [ap.true_delay_ms(window_s=DELAY_WINDOW_NS * 1e-9, percentile=99.0) + 6.0 for ap in aps]
+        for i, late in enumerate(lates):
             h = bridge.vehicles[i].health()["delay"]
             if late < 55.0:
                 assert h["horizon_param"] is None, (i, h, late)
@@ -525,7 +525,8 @@ def test_measured_delay_matches_the_added_link_delay_live(monkeypatch):
                 assert h["horizon_param"] == "EK3_BCN_DELAY" and h["horizon_ms"] % 12 == 0, (i, h)
                 assert late - 5.0 <= h["horizon_ms"] <= late + 12.0 + 5.0, (i, h, late)
                 assert "EK3_BCN_DELAY=" in bridge.vehicles[i].bc.delay_advice()
-        assert aps[2].true_delay_ms(window_s=DELAY_WINDOW_NS * 1e-9, percentile=99.0) > 65.0  # 60 ms added
+        assert lates[2] > 65.0  # 60 ms added: the branch with a horizon to advise was exercised (a quiet host's
+        # own p99 can be 3 ms: the pose's age the horizon must hold is that plus half a 12 ms step, as above)
         assert "VISO_DELAY_MS=" in bridge.latency_report() and "smallest" in bridge.latency_report()
     finally:
         bridge.close()

@@ -101,7 +101,8 @@ def test_a_floor_moves_its_logarithm_by_the_rate_times_the_excess_and_only_its_o
     clock = np.zeros(L.N_CLOCK, dtype=np.int64)
 
     def step(nis):
-        adapt_noise_scales(adapt, clock, params, 10_000_000, 0.01, *((nis, 1.0) if position else (1.0, nis)), False)
+        adapt_noise_scales(adapt, clock, params, 10_000_000, 0.01, *((nis, 1.0) if position else (1.0, nis)), False,
+                           np.zeros(L.N_STATE), np.zeros((L.N_STATE, L.N_STATE)), np.eye(3))  # at rest: no floor
 
     step(1.6)
     assert adapt[floor_col] == pytest.approx(np.exp(0.01 * 20.0 * 0.5), rel=1e-12)

@@ -23,9 +23,14 @@ from visionpos.geometry.rotations import matrix_from_rotvec as rotvec_to_matrix
 
 MS = 1_000_000
 _SHARP = ["sim.sessions.dash.quad.ramp=0.15", "sim.sessions.dash.quad.max_accel=5"]
-# the filter these tests were written against: the motion-compensated pose, the constant-rate model, no retest
+# the filter these tests were written against: the motion-compensated pose, the constant-rate model, no retest,
+# no multirotor floors
 _POSE = {"single_view": {"mode": "occlusion"}}
-_OLD = {"angular_jerk_psd": 0.0, "max_noise_scale": 1e4, "gate_retest": False}
+_OLD = {"angular_jerk_psd": 0.0, "max_noise_scale": 1e4, "gate_retest": False, "tilt_jerk_ms": 0.0,
+        "angular_accel_hold_ms": 0.0}
+# the same as KalmanSettings' fields (the two floors' in s)
+_OLD_FIELDS = {**{k: v for k, v in _OLD.items() if not k.endswith("_ms")}, "tilt_jerk_s": 0.0,
+               "angular_accel_hold_s": 0.0}
 
 
 def _cov() -> np.ndarray:
@@ -56,8 +61,10 @@ def test_nis_threshold_sets_where_the_noise_starts_to_rise():
         bank = FilterBank(1, KalmanSettings(nis_threshold=threshold))
         adapt, clock = bank.adapt[0], bank.clock[0]
         adapt[L.ADAPT_SCALE_P] = adapt[L.ADAPT_SCALE_R] = 10.0
+        adapt[L.ADAPT_NIS_SCALE_P] = adapt[L.ADAPT_NIS_SCALE_R] = 10.0  # the NIS-driven parts (under the floors)
         adapt[L.ADAPT_NIS_P] = adapt[L.ADAPT_NIS_R] = 1.7
-        adapt_noise_scales(adapt, clock, bank.params, 10 * MS, 0.01, 1.7, 1.7, False)
+        adapt_noise_scales(adapt, clock, bank.params, 10 * MS, 0.01, 1.7, 1.7, False, bank.x[0], bank.P[0],
+                           bank.R_nom[0])
         assert (adapt[L.ADAPT_SCALE_P] > 10.0) == rises and (adapt[L.ADAPT_SCALE_R] > 10.0) == rises
 
 
@@ -80,8 +87,8 @@ def test_retest_takes_a_sudden_turn_under_raised_rotation_noise():
     # noise; the retest admits it with the rotation noise raised, the position noise left alone
     turn = rotvec_to_matrix(np.radians([0.0, 0.0, 3.0]))
     p = np.array([0.0, 0.0, 1.0])
-    assert not _pose_update(_hovering(KalmanSettings(**_OLD)), 1000 * MS, p, turn)
-    f = _hovering(KalmanSettings(**{**_OLD, "gate_retest": True}))
+    assert not _pose_update(_hovering(KalmanSettings(**_OLD_FIELDS)), 1000 * MS, p, turn)
+    f = _hovering(KalmanSettings(**{**_OLD_FIELDS, "gate_retest": True}))
     scale_p, scale_r = f.scale_p, f.scale_r
     assert _pose_update(f, 1000 * MS, p, turn)
     assert f.scale_p == scale_p and f.scale_r >= 10.0 * scale_r
@@ -91,7 +98,8 @@ def test_retest_takes_a_sudden_turn_under_raised_rotation_noise():
 def test_retest_still_refuses_outliers(p, turn_deg):
     # 5 cm or 17 deg within 10 ms of a hover: refused, and the filter left as without the retest
     R = rotvec_to_matrix(np.radians([0.0, 0.0, turn_deg]))
-    plain, f = _hovering(KalmanSettings(**_OLD)), _hovering(KalmanSettings(**{**_OLD, "gate_retest": True}))
+    plain = _hovering(KalmanSettings(**_OLD_FIELDS))
+    f = _hovering(KalmanSettings(**{**_OLD_FIELDS, "gate_retest": True}))
     assert not _pose_update(plain, 1000 * MS, np.array(p), R)
     assert not _pose_update(f, 1000 * MS, np.array(p), R)
     assert np.array_equal(f.x, plain.x) and np.array_equal(f.P, plain.P) and np.array_equal(f.R_nom, plain.R_nom)

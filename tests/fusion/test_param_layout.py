@@ -65,9 +65,11 @@ _KALMAN_CHANGES = {
     "KALMAN_CRUISE_TAU_S": ({"cruise_time_constant_s": 0.5}, 0.5),
     "KALMAN_CRUISE_RATE": ({"cruise_rate_per_s": 5.0}, 5.0),
     "KALMAN_CRUISE_MAX_SCALE_R": ({"cruise_max_rotation_noise_scale": 4.0}, 4.0),
+    "KALMAN_TILT_JERK_S": ({"tilt_jerk_s": 0.05}, 0.05),
+    "KALMAN_ANG_ACC_HOLD_S": ({"angular_accel_hold_s": 0.4}, 0.4),
 }
 _KALMAN_DEFAULT = [0.1, 1.0, 100.0, 1000.0, 0.015, 40.0, 4.0, 100.0, 36.0, 900.0, 2.0, 0.0, 1.0,
-                   100.0, 1.1, 1.0, 20.0, 10.0]
+                   100.0, 1.1, 1.0, 20.0, 10.0, 0.03, 0.15]
 
 _FUSION_CHANGES = {
     "PARAM_MAX_RESIDUAL_PX": ({"max_residual_px": 1.5}, 1.5),

@@ -532,7 +532,8 @@ def _fuse_tracked(marker_xn: np.ndarray, marker_ok: np.ndarray, capture_ns: np.n
                 sv_verdict = _single_views(b, local[s], rows[s], marker_xn, marker_ok, capture_ns, views, params,
                                            bank, tracks, False)[0]
             if sv_verdict == VERDICT_VIEWS or sv_verdict == VERDICT_VIEWS_UNCONSTRAINED:  # the views were taken
-                adapt_to_pose(adapt[b], clock[b], kalman, (clock[b, CLOCK_T_NS] - t_before) * 1e-9, nis_p, nis_r)
+                adapt_to_pose(adapt[b], clock[b], kalman, (clock[b, CLOCK_T_NS] - t_before) * 1e-9, nis_p, nis_r,
+                              x[b], P[b], R_nom[b])
         if sv_verdict == VERDICT_TOO_FEW or sv_verdict == VERDICT_VIEWS_GATED:
             # mode occlusion; or no frame with an unambiguous marker, the pose outside the gate, or the gate
             # refused every view (a manoeuvre the model lags): the pose (and its retest under manoeuvre hypotheses)

@@ -38,12 +38,13 @@ POSE_P, POSE_ROT = slice(0, 3), slice(3, 6)
 POSE_ROT0 = 3
 
 # ---------------------------------------------------------------- FilterBank rows (tracking.py)
-# adapt (n, 10) float: process-noise scales and NIS averages (fused pose: position, rotation; image: the
+# adapt (n, 12) float: process-noise scales and NIS averages (fused pose: position, rotation; image: the
 # translation and the rotation part of the residual), the position NIS's slow average and the cruise floor
-# it moves, and the same two for the rotation (adaptation.adapt_noise_scales)
+# it moves, the same two for the rotation, and the NIS-driven part of each scale while a model floor
+# (fusion.kalman.tilt_jerk_ms, angular_accel_hold_ms) lies under it (adaptation.adapt_noise_scales)
 (ADAPT_SCALE_P, ADAPT_SCALE_R, ADAPT_NIS_P, ADAPT_NIS_R, ADAPT_NIS_IMG, ADAPT_NIS_IMG_R, ADAPT_NIS_CRUISE,
- ADAPT_SCALE_CRUISE, ADAPT_NIS_CRUISE_R, ADAPT_SCALE_CRUISE_R) = range(10)
-N_ADAPT = 10
+ ADAPT_SCALE_CRUISE, ADAPT_NIS_CRUISE_R, ADAPT_SCALE_CRUISE_R, ADAPT_NIS_SCALE_P, ADAPT_NIS_SCALE_R) = range(12)
+N_ADAPT = 12
 # clock (n, 3) int64: filter time ns, last image-NIS time ns, folds of the rotation error since the start
 CLOCK_T_NS, CLOCK_IMG_T_NS, CLOCK_FOLDS = range(3)
 N_CLOCK = 3

@@ -52,6 +52,16 @@ KALMAN = section(
             "flicks then meets each onset from its cruise noise, not the hover floor; a higher cap makes the "
             "rate predicted to the output ticks noisier between flicks. At most max_noise_scale; 1: off "
             "(docs/benchmarks.md: realistic flights)", min=1.0),
+    Setting("tilt_jerk_ms", "number", 30.0, "a multirotor accelerates by tilting its thrust, so its jerk is about "
+            "g x its tilt rate |w x z_body| (z up in the body frame): the position's jerk density is kept at least "
+            "(g |w x z_body|)^2 x this time, from the filter's own rate, which the cameras measure before the "
+            "position shows the change; the NIS-driven scale stays above it as a net. 0: off (bodies that are not "
+            "multirotors: a wand, a ground robot)", field="tilt_jerk_s", convert=lambda ms: ms * 1e-3, min=0.0),
+    Setting("angular_accel_hold_ms", "number", 150.0, "a multirotor's angular acceleration comes in torque pulses "
+            "that end or reverse without warning: the angular-jerk density is kept at least |dw/dt|^2 / this "
+            "time (a change of |dw/dt| expected within it), from the filter's own estimate; the NIS-driven scale "
+            "stays above it as a net. 0: off", field="angular_accel_hold_s", convert=lambda ms: ms * 1e-3,
+            min=0.0),
     Setting("cruise_nis_threshold", "number", 1.1, "the averaged position NIS per degree of freedom above which "
             "the cruise floor rises (a still body's averages ~1.0)", min=0.1),
     Setting("cruise_time_constant_ms", "number", 1000.0, "averaging time of the NIS that moves the cruise floor",
@@ -261,6 +271,8 @@ KALMAN_PARAMS: tuple[Param, ...] = (
     Param("KALMAN_CRUISE_TAU_S", lambda k: k.cruise_time_constant_s),
     Param("KALMAN_CRUISE_RATE", lambda k: k.cruise_rate_per_s),
     Param("KALMAN_CRUISE_MAX_SCALE_R", lambda k: k.cruise_max_rotation_noise_scale),
+    Param("KALMAN_TILT_JERK_S", lambda k: k.tilt_jerk_s),
+    Param("KALMAN_ANG_ACC_HOLD_S", lambda k: k.angular_accel_hold_s),
 )
 
 # values of PARAM_SV_ENABLED: the single-view path off, on through occlusion, or for every frame of a

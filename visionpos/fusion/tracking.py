@@ -52,6 +52,18 @@ a flight of attitude flicks otherwise met each flick at the hover floor, and
 the rate predicted on to the output ticks lagged it (dash_sharp: rotation at
 the ticks 2.06x its snapshot bound, 1.73x with it); a higher cap makes that
 rate noisy between flicks (the dash's ticks got worse above about 10).
+Under both scales lie two floors from what a multirotor is (tilt_jerk_ms,
+angular_accel_hold_ms): it accelerates by tilting its thrust, so its jerk is
+about g x its tilt rate |w x z_body|, and the cameras see the tilt rate in the
+attitude before the position shows the change. The NIS sees a lag only after
+it has built up; the tilt rate says when the acceleration is changing and by
+how much, so the position noise is high through a tilt and at its floor while
+the tilt holds (the position at the output ticks: 1.23 -> 1.07x its bound on
+dash_sharp). The angular acceleration of a multirotor comes in torque pulses
+that end or reverse without warning, so the angular-jerk density is kept at
+least |dw/dt|^2 / angular_accel_hold_s. With a floor on, the NIS-driven scale
+evolves in its own column and the scale is the larger (the net for a body that
+accelerates without tilting).
 The adaptation's kernels are in adaptation.py.
 The fused pose's NIS is computed with its covariance as the filter takes it,
 split over the fusions that share its frames (about 0.28 per dof while the
@@ -102,6 +114,8 @@ from visionpos.camera.lens import pixel_from_normalized, project_with_jacobian
 from visionpos.fusion.adaptation import adapt_noise_scales
 from visionpos.fusion.layout import (
     ACC0,
+    ADAPT_NIS_SCALE_P,
+    ADAPT_NIS_SCALE_R,
     ADAPT_SCALE_P,
     ADAPT_SCALE_R,
     ANG_ACC0,
@@ -492,6 +506,7 @@ def _manoeuvre_retest(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np
                                                 nis_cov_scale)
         if ok:
             adapt[ADAPT_SCALE_P], adapt[ADAPT_SCALE_R] = sp, sr
+            adapt[ADAPT_NIS_SCALE_P], adapt[ADAPT_NIS_SCALE_R] = sp, sr  # with a multirotor floor: its NIS part
             return f, ok, d2, np_, nr
         if factor >= _RETEST_MAX_FACTOR or ((not raise_p or sp >= smax) and (not raise_r or sr >= smax)):
             break
@@ -532,7 +547,7 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
                                                               position, R, cov, h_vel, h_acc, nis_cov_scale, folds)
     clock[CLOCK_T_NS] = t_ns
     _count_folds(R_nom, clock, folds)
-    adapt_noise_scales(adapt, clock, params, t_ns, dt, nis_p, nis_r, True)
+    adapt_noise_scales(adapt, clock, params, t_ns, dt, nis_p, nis_r, True, x, P, R_nom)
     return accepted, d2
 
 
@@ -595,7 +610,7 @@ def filter_update_view(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: n
         return False, nis, info
     _count_folds(R_nom, clock, int(_fold(x, R_nom)))
     if adapt_noise:
-        adapt_noise_scales(adapt, clock, params, t_ns, max(dt_f, 0.0), nis, nis, False)
+        adapt_noise_scales(adapt, clock, params, t_ns, max(dt_f, 0.0), nis, nis, False, x, P, R_nom)
     return True, nis, info
 
 
