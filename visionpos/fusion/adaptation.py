@@ -1,8 +1,9 @@
 """The process-noise adaptation of the body filter (tracking.py): the NIS-driven scales of its position and
-rotation noise, the image-space manoeuvre detector that feeds them, and the cruise floors under both
-scales. Why each exists is in tracking.py's docstring; the settings are fusion.kalman's (fusion/settings.py).
+rotation noise, the image-space manoeuvre detector that feeds them, and the cruise and multirotor floors
+under both scales. Why each exists is in tracking.py's docstring; the settings are fusion.kalman's
+(fusion/settings.py).
 
-adapt (10,) and clock (3,) are one body's FilterBank rows (layout.ADAPT_*, layout.CLOCK_*); params its
+adapt (12,) and clock (3,) are one body's FilterBank rows (layout.ADAPT_*, layout.CLOCK_*); params its
 packed settings (layout.KALMAN_*). Times are int64 ns on the capture clock, dt in s.
 """
 
@@ -150,14 +151,12 @@ def adapt_noise_scales(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray,
     a_c = 1.0 - math.exp(-dt / params[KALMAN_CRUISE_TAU_S]) if dt > 0.0 else 0.0
     cruise_max = min(params[KALMAN_CRUISE_MAX_SCALE], max_scale)
     if cruise_max > 1.0:
-        adapt[col_p] = max(adapt[col_p], _cruise_floor(adapt, ADAPT_NIS_CRUISE, ADAPT_SCALE_CRUISE,
-                                                                       max(nis_p, nis_img), a_c, dt, cap, cruise_max,
-                                                                       params))
+        adapt[col_p] = max(adapt[col_p], _cruise_floor(adapt, ADAPT_NIS_CRUISE, ADAPT_SCALE_CRUISE, max(nis_p, nis_img),
+                                                       a_c, dt, cap, cruise_max, params))
     cruise_max_r = min(params[KALMAN_CRUISE_MAX_SCALE_R], max_scale)
     if cruise_max_r > 1.0:
         adapt[col_r] = max(adapt[col_r], _cruise_floor(adapt, ADAPT_NIS_CRUISE_R, ADAPT_SCALE_CRUISE_R,
-                                                                       max(nis_r, nis_img_r), a_c, dt, cap,
-                                                                       cruise_max_r, params))
+                                                       max(nis_r, nis_img_r), a_c, dt, cap, cruise_max_r, params))
     if tilt_on:
         adapt[ADAPT_SCALE_P] = max(adapt[col_p], tilt_jerk_scale(x, P, R_nom, params))
     if accel_on:
@@ -176,7 +175,7 @@ def adapt_to_pose(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, dt: 
 @njit
 def report_image_nis(adapt: np.ndarray, clock: np.ndarray, params: np.ndarray, t_ns: int, nis: float,
                      nis_rot: float) -> None:
-    """Feed one body's manoeuvre detector (adapt (10,), clock (3,): its FilterBank rows)
+    """Feed one body's manoeuvre detector (adapt (12,), clock (3,): its FilterBank rows)
     with one camera frame's prediction residual at t_ns, its translation part nis and its
     rotation part nis_rot (see BodyFilter.report_image_nis)."""
     dt = max((t_ns - clock[CLOCK_IMG_T_NS]) * 1e-9, 0.0)

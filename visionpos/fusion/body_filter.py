@@ -41,9 +41,9 @@ from visionpos.fusion.tracking import (
 class FilterBank:
     """The states of n body filters, one row each, so that compiled kernels update them in place.
 
-    x (n, 18), P (n, 18, 18), R_nom (n, 3, 3); adapt (n, 10): process-noise scales
+    x (n, 18), P (n, 18, 18), R_nom (n, 3, 3); adapt (n, 12): process-noise scales
     and NIS averages [scale_p, scale_r, nis_p, nis_r, nis_img, nis_img_r, nis_cruise, scale_cruise, nis_cruise_r,
-    scale_cruise_r]; clock (n, 3) int64:
+    scale_cruise_r, nis_scale_p, nis_scale_r]; clock (n, 3) int64:
     [filter time ns, last image-NIS time ns, folds]; params (N_KALMAN_PARAMS,): the settings
     the kernels read, packed as fusion/settings.py's KALMAN_PARAMS declares (layout.KALMAN_* indices).
     filters[i] is the BodyFilter over row i.

@@ -523,7 +523,7 @@ def filter_update(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, adapt: np.nda
                   gate: bool, h_vel: float, h_acc: float, nis_cov_scale: float = 1.0) -> tuple[bool, float]:
     """Predict one body filter to t_ns (int ns) and fuse a pose measurement, in place (compiled).
 
-    x (18,), P (18, 18), R_nom (3, 3), adapt (6,), clock (3,): the body's rows of a
+    x (18,), P (18, 18), R_nom (3, 3), adapt (12,), clock (3,): the body's rows of a
     FilterBank; params (N_KALMAN_PARAMS,) its settings (FilterBank.params). position (3,), R (3, 3) body->world,
     cov (6, 6) over [p, world rotation vector]; gate: apply the innovation gate; h_vel (s),
     h_acc (s^2): the velocity (rate) and acceleration columns of H (_kf_update; 0 for a pose
