@@ -24,10 +24,10 @@ from visionpos.geometry.rotations import matrix_from_rotvec as rotvec_to_matrix
 MS = 1_000_000
 _SHARP = ["sim.sessions.dash.quad.ramp=0.15", "sim.sessions.dash.quad.max_accel=5"]
 # the filter these tests were written against: the motion-compensated pose, the constant-rate model, no retest,
-# no multirotor floors
+# no multirotor floors (and the NIS threshold before them)
 _POSE = {"single_view": {"mode": "occlusion"}}
 _OLD = {"angular_jerk_psd": 0.0, "max_noise_scale": 1e4, "gate_retest": False, "tilt_jerk_ms": 0.0,
-        "angular_accel_hold_ms": 0.0}
+        "angular_accel_hold_ms": 0.0, "nis_threshold": 2.0}
 # the same as KalmanSettings' fields (the two floors' in s)
 _OLD_FIELDS = {**{k: v for k, v in _OLD.items() if not k.endswith("_ms")}, "tilt_jerk_s": 0.0,
                "angular_accel_hold_s": 0.0}

@@ -68,7 +68,7 @@ _KALMAN_CHANGES = {
     "KALMAN_TILT_JERK_S": ({"tilt_jerk_s": 0.05}, 0.05),
     "KALMAN_ANG_ACC_HOLD_S": ({"angular_accel_hold_s": 0.4}, 0.4),
 }
-_KALMAN_DEFAULT = [0.1, 1.0, 100.0, 1000.0, 0.015, 40.0, 4.0, 100.0, 36.0, 900.0, 2.0, 0.0, 1.0,
+_KALMAN_DEFAULT = [0.1, 1.0, 100.0, 1000.0, 0.015, 40.0, 4.0, 100.0, 36.0, 900.0, 3.0, 0.0, 1.0,
                    100.0, 1.1, 1.0, 20.0, 10.0, 0.03, 0.15]
 
 _FUSION_CHANGES = {

@@ -68,9 +68,11 @@ KALMAN = section(
             field="cruise_time_constant_s", convert=lambda ms: ms * 1e-3, min=10.0),
     Setting("cruise_rate_per_s", "number", 20.0, "how fast the cruise floor moves: its logarithm changes by this x "
             "(averaged NIS - cruise_nis_threshold) per second", min=0.0),
-    Setting("nis_threshold", "number", 2.0, "the averaged NIS per degree of freedom above which the adaptation "
+    Setting("nis_threshold", "number", 3.0, "the averaged NIS per degree of freedom above which the adaptation "
             "raises the process noise (below it the noise decays to its floor); ~1 while the model fits, so "
-            "lower values react to smaller lags and smooth less (tests/fusion/test_manoeuvre.py)", min=1.0),
+            "lower values react to smaller lags and smooth less (tests/fusion/test_manoeuvre.py). 3 (2 before "
+            "the multirotor floors): the floors carry a multirotor's manoeuvres and this is the net for the lags "
+            "they do not explain", min=1.0),
     Setting("nis_unsplit_cov", "boolean", False, "the fused pose's NIS that drives the adaptation uses the "
             "pose's own covariance, not the one split over the fusions that share its frames (the filter's "
             "update still uses the split one): its mean is then ~1 per dof while the model fits (0.28 split, "
