@@ -55,8 +55,9 @@ KALMAN = section(
     Setting("tilt_jerk_ms", "number", 30.0, "a multirotor accelerates by tilting its thrust, so its jerk is about "
             "g x its tilt rate |w x z_body| (z up in the body frame): the position's jerk density is kept at least "
             "(g |w x z_body|)^2 x this time, from the filter's own rate, which the cameras measure before the "
-            "position shows the change; the NIS-driven scale stays above it as a net. 0: off (bodies that are not "
-            "multirotors: a wand, a ground robot)", field="tilt_jerk_s", convert=lambda ms: ms * 1e-3, min=0.0),
+            "position shows the change; the NIS-driven scale stays above it as a net, which is all a body that "
+            "accelerates without tilting (a wand, a ground robot) raises. 0: off", field="tilt_jerk_s",
+            convert=lambda ms: ms * 1e-3, min=0.0),
     Setting("angular_accel_hold_ms", "number", 150.0, "a multirotor's angular acceleration comes in torque pulses "
             "that end or reverse without warning: the angular-jerk density is kept at least |dw/dt|^2 / this "
             "time (a change of |dw/dt| expected within it), from the filter's own estimate; the NIS-driven scale "

@@ -58,7 +58,7 @@ about g x its tilt rate |w x z_body|, and the cameras see the tilt rate in the
 attitude before the position shows the change. The NIS sees a lag only after
 it has built up; the tilt rate says when the acceleration is changing and by
 how much, so the position noise is high through a tilt and at its floor while
-the tilt holds (the position at the output ticks: 1.23 -> 1.07x its bound on
+the tilt holds (the position at the output ticks: 1.23 -> 1.03x its bound on
 dash_sharp). The angular acceleration of a multirotor comes in torque pulses
 that end or reverse without warning, so the angular-jerk density is kept at
 least |dw/dt|^2 / angular_accel_hold_s. With a floor on, the NIS-driven scale
