@@ -5,6 +5,7 @@ what they do on the flights, and a body that accelerates without tilting still f
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -30,10 +31,12 @@ def _state(rate=(0.0, 0.0, 0.0), ang_acc=(0.0, 0.0, 0.0)) -> np.ndarray:
     return x
 
 
-def test_the_defaults_are_what_the_settings_say():
+def test_the_defaults_are_what_the_settings_and_the_architecture_say():
     assert KALMAN["tilt_jerk_ms"].default == 30.0 and KALMAN["angular_accel_hold_ms"].default == 150.0
     assert "(g |w x z_body|)^2 x this time" in KALMAN["tilt_jerk_ms"].doc
     assert "|dw/dt|^2 / this time" in KALMAN["angular_accel_hold_ms"].doc
+    doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "architecture.md").read_text().split())
+    assert "(g |w x z_body|)^2 x `tilt_jerk_ms` (30)" in doc and "|dw/dt|^2 / `angular_accel_hold_ms` (150)" in doc
 
 
 def test_the_tilt_floor_by_hand():
