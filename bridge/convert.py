@@ -38,13 +38,18 @@ UT3 = np.triu_indices(3)
 
 
 def back_propagate(position: np.ndarray, quaternion: np.ndarray, velocity: np.ndarray,
-                   angular_velocity: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Move a state valid at t back by dt_s seconds with constant velocities.
+                   angular_velocity: np.ndarray, dt_s: float,
+                   acceleration: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Move a state valid at t back by dt_s seconds with constant velocities (and a constant acceleration where
+    given: the filter's model).
 
     position, velocity: (3,) world; quaternion: (4,) xyzw body->world;
-    angular_velocity: (3,) rad/s body. Returns (position (3,), quaternion (4,)) at t - dt_s.
+    angular_velocity: (3,) rad/s body; acceleration: (3,) m/s^2 world. Returns (position (3,), quaternion (4,))
+    at t - dt_s.
     """
     p = np.asarray(position, float) - np.asarray(velocity, float) * dt_s
+    if acceleration is not None:
+        p = p + 0.5 * dt_s * dt_s * acceleration
     q = quat_multiply(np.asarray(quaternion, float), quat_from_rotvec(-np.asarray(angular_velocity, float) * dt_s))
     return p, q / np.sqrt(q @ q)
 
@@ -82,6 +87,12 @@ class MavlinkState:
     velocity_cov_frd: np.ndarray | None
 
 
+def _acceleration(state: BodyState) -> np.ndarray:
+    """The state's world acceleration (3,) m/s^2; zero where unknown (NaN: a point body, a state without one)."""
+    a = np.asarray(state.acceleration, float)
+    return a if np.isfinite(a).all() else np.zeros(3)
+
+
 def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: float,
                   at_ns: int | None = None) -> MavlinkState:
     """BodyState -> NED / FRD quantities at time at_ns (default: the state's capture time).
@@ -93,12 +104,15 @@ def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: fl
     """
     dt = (state.time_ns - (state.capture_ns if at_ns is None else at_ns)) * 1e-9
     w_body = np.asarray(state.angular_velocity, float)
-    p_w, q_w = back_propagate(state.position, state.quaternion, state.velocity, w_body, dt)
+    a_w = _acceleration(state)
+    p_w, q_w = back_propagate(state.position, state.quaternion, state.velocity, w_body, dt, a_w)
     R_wb = matrix_from_quat(q_w)
     o = np.asarray(pivot_offset, float)
     lever = R_wb @ o  # world-frame lever arm body origin -> reference point
     p_ref = p_w + lever
-    v_ref = np.asarray(state.velocity, float) + R_wb @ cross3(w_body, o)
+    # the velocity at at_ns, as the position: ODOMETRY states both at its stamp (on a 1.05 m/s circle the
+    # velocity of the send time, 15 ms later, is 3 cm/s off, which PX4's EKF2 fuses at 1 cm/s and leads by)
+    v_ref = np.asarray(state.velocity, float) - a_w * dt + R_wb @ cross3(w_body, o)
 
     Y = yaw_matrix_ned(yaw_offset_rad)
     J = Y @ FLU_FRD  # world z-up -> offset NED, for vectors and small rotations
@@ -136,7 +150,8 @@ def convert_position_only(state: BodyState, yaw_offset_rad: float, at_ns: int | 
     moved back with the velocity, the velocity and their covariances; the attitude, the body-frame velocity and
     the rates NaN (unknown), the pose covariance's rotation rows and columns NaN."""
     dt = (state.time_ns - (state.capture_ns if at_ns is None else at_ns)) * 1e-9
-    v_w = np.asarray(state.velocity, float)
+    a_w = _acceleration(state)
+    v_w = np.asarray(state.velocity, float) - a_w * dt
     Y = yaw_matrix_ned(yaw_offset_rad)
     J = Y @ FLU_FRD  # world z-up -> offset NED
     nan3 = np.full(3, np.nan)
@@ -147,7 +162,8 @@ def convert_position_only(state: BodyState, yaw_offset_rad: float, at_ns: int | 
         pose_cov[:3, :3] = J @ C[:3, :3] @ J.T
     Cv = np.asarray(state.velocity_covariance, float)
     vcov_ned = J @ Cv @ J.T if Cv.shape == (3, 3) and np.isfinite(Cv).all() else None
-    return MavlinkState(Y @ world_to_ned(np.asarray(state.position, float) - v_w * dt), np.full(4, np.nan),
+    p_w = np.asarray(state.position, float) - (v_w + 0.5 * a_w * dt) * dt  # v_w is the velocity at at_ns
+    return MavlinkState(Y @ world_to_ned(p_w), np.full(4, np.nan),
                         nan3, Y @ world_to_ned(v_w), nan3.copy(), nan3.copy(), pose_cov, vcov_ned, None)
 
 

@@ -62,7 +62,8 @@ class BodyState:
     velocity: (3,) m/s world. angular_velocity: (3,) rad/s, body frame.
     covariance: (6, 6) over [x, y, z, rx, ry, rz] (m^2, rad^2); the rotation
     part is of a small world-frame rotation vector error.
-    velocity_covariance: (3, 3) m^2/s^2.
+    velocity_covariance: (3, 3) m^2/s^2. acceleration: (3,) m/s^2 world, the filter's (NaN where it has
+    none: a point body, the default).
     time_ns: the instant the state is valid for (predicted to send time).
     capture_ns: capture time of the newest camera frame that contributed.
     update_kind: which measurement last kept the body tracked: "pose" (triangulated, or the
@@ -88,6 +89,7 @@ class BodyState:
     residual_mm: float = float("nan")
     reset_counter: int = 0
     update_kind: str = ""
+    acceleration: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
 
 
 @dataclass(frozen=True, slots=True)

@@ -65,6 +65,26 @@ def test_back_propagation_to_capture_time():
     np.testing.assert_allclose(c.euler[2], -(-0.5 * 0.02), atol=1e-12)  # world yaw -0.01 rad -> NED yaw +0.01
 
 
+def test_velocity_and_position_moved_to_the_stamp_on_the_filters_acceleration():
+    """A state 20 ms after its stamp, at 1 m/s along x and accelerating 2 m/s^2 along y (a turn): at the stamp
+    the velocity was (1, -0.04, 0) and the position 0.4 mm less along y than the constant velocity says; a state
+    without an acceleration (a point body, a recording) keeps the constant velocity."""
+    import dataclasses
+
+    from bridge.convert import convert_position_only
+
+    st = dataclasses.replace(body_state(position=(1, 2, 3), velocity=(1, 0, 0), dt_ns=20_000_000),
+                             acceleration=np.array([0.0, 2.0, 0.0]))
+    c = conv(st)
+    np.testing.assert_allclose(c.velocity_ned, [1, 0.04, 0], atol=1e-12)  # world y -> NED -y
+    np.testing.assert_allclose(c.position_ned, [0.98, -(2 + 0.0004), -3], atol=1e-12)
+    p = convert_position_only(st, 0.0)
+    np.testing.assert_allclose(p.velocity_ned, c.velocity_ned, atol=1e-12)
+    np.testing.assert_allclose(p.position_ned, c.position_ned, atol=1e-12)
+    plain = conv(body_state(position=(1, 2, 3), velocity=(1, 0, 0), dt_ns=20_000_000))
+    np.testing.assert_allclose(plain.velocity_ned, [1, 0, 0], atol=1e-12)
+
+
 def test_pivot_and_yaw_offset():
     # reference point 0.1 m ahead of the marker centroid; vehicle faces world +y
     c = conv(body_state(position=(1, 2, 3), quaternion=YAW_LEFT_90), pivot=(0.1, 0, 0))

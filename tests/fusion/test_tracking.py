@@ -88,7 +88,7 @@ def test_predict_and_update_match_filterpy():
         R_nom = rotvec_to_matrix(ref.x[9:12, 0]) @ R_nom
         ref.x[9:12] = 0.0
         x_before = f.x.copy()
-        p, q, v, w_body, cov, vcov = f.output_at(t + 7_000_000)
+        p, q, v, w_body, cov, vcov, acc = f.output_at(t + 7_000_000)
         assert np.array_equal(f.x, x_before)
         h = 0.007
         F = np.eye(18)
@@ -108,6 +108,7 @@ def test_predict_and_update_match_filterpy():
         assert np.allclose(cov, ref.P[np.ix_(pose, pose)], rtol=1e-9, atol=1e-15)
         assert np.allclose(vcov, ref.P[3:6, 3:6], rtol=1e-9, atol=1e-15)
         assert np.allclose(p, ref.x[0:3, 0]) and np.allclose(v, ref.x[3:6, 0])
+        assert np.allclose(acc, ref.x[6:9, 0])  # filterpy's acceleration state, predicted
         R_out = Rotation.from_rotvec(ref.x[9:12, 0]).as_matrix() @ R_nom
         assert np.allclose(Rotation.from_quat(q).as_matrix(), R_out, atol=1e-12) and q[3] >= 0
         assert np.allclose(w_body, R_out.T @ ref.x[12:15, 0], atol=1e-12)

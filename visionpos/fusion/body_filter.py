@@ -17,6 +17,7 @@ from visionpos.fusion.layout import (
     N_ADAPT,
     N_CLOCK,
     N_STATE,
+    OUT_ACC,
     OUT_POS,
     OUT_POSE_COV,
     OUT_QUAT_XYZW,
@@ -161,13 +162,13 @@ class BodyFilter:
         p, R, v = predict_mean(self.x, self.R_nom, dt)
         return p, R, v, self.x[X_RATE] + self.x[X_ANG_ACC] * dt
 
-    def output_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def output_at(self, t_ns: int) -> tuple[np.ndarray, ...]:
         """Non-mutating prediction for the outputs: position (3,), quaternion xyzw (4,),
         velocity (3,), body-frame angular rate (3,), pose covariance (6, 6) over
-        [p, world rotation vector] and velocity covariance (3, 3)."""
+        [p, world rotation vector], velocity covariance (3, 3) and world acceleration (3,) m/s^2."""
         a = self._adapt
         o = _output_at(self._x, self._P, self._R_nom, (int(t_ns) - int(self._clock[CLOCK_T_NS])) * 1e-9,
                        self.s.jerk_psd * a[ADAPT_SCALE_P], self.s.angular_accel_psd * a[ADAPT_SCALE_R],
                        self.s.angular_jerk_psd * a[ADAPT_SCALE_R])
         return (o[OUT_POS], o[OUT_QUAT_XYZW], o[OUT_VEL], o[OUT_RATE_BODY], o[OUT_POSE_COV].reshape(6, 6),
-                o[OUT_VEL_COV].reshape(3, 3))
+                o[OUT_VEL_COV].reshape(3, 3), o[OUT_ACC])

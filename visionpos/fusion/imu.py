@@ -46,6 +46,7 @@ from visionpos.fusion.layout import (
     ANG_ACC0,
     CLOCK_T_NS,
     N_STATE,
+    OUT_ACC,
     OUT_POS,
     OUT_POSE_COV,
     OUT_QUAT_XYZW,
@@ -411,7 +412,7 @@ class ImuInput:
         o = _output_at(x, P, R_nom, (t_ns - int(clock[CLOCK_T_NS])) * 1e-9, kalman.jerk_psd * adapt[ADAPT_SCALE_P],
                        kalman.angular_accel_psd * adapt[ADAPT_SCALE_R], kalman.angular_jerk_psd * adapt[ADAPT_SCALE_R])
         return (o[OUT_POS], o[OUT_QUAT_XYZW], o[OUT_VEL], o[OUT_RATE_BODY], o[OUT_POSE_COV].reshape(6, 6),
-                o[OUT_VEL_COV].reshape(3, 3))
+                o[OUT_VEL_COV].reshape(3, 3), o[OUT_ACC])
 
     # ------------------------------------------------------------- the biases
     def observe_pose(self, t_ns: int, position: np.ndarray, R: np.ndarray) -> None:

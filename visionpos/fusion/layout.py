@@ -50,11 +50,12 @@ CLOCK_T_NS, CLOCK_IMG_T_NS, CLOCK_FOLDS = range(3)
 N_CLOCK = 3
 # params (N_KALMAN_PARAMS,) float: the KalmanSettings the kernels read; the KALMAN_* indices below
 
-# ---------------------------------------------------------------- filter output row (58,) (tracking._output_at)
+# ---------------------------------------------------------------- filter output row (61,) (tracking._output_at)
 OUT_POS, OUT_QUAT_XYZW, OUT_VEL, OUT_RATE_BODY = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13)
 OUT_QUAT0, OUT_RATE_BODY0, OUT_POSE_COV0, OUT_VEL_COV0 = 3, 10, 13, 49  # first index, for loops
 OUT_POSE_COV, OUT_VEL_COV = slice(13, 49), slice(49, 58)  # (6, 6) and (3, 3), row-major
-N_OUT = 58
+OUT_ACC = slice(58, 61)  # world acceleration m/s^2
+N_OUT = 61
 
 # ---------------------------------------------------------------- packed body states (B, 30) (kernels._pack_states)
 STATE_X = slice(0, N_STATE)  # the filter state x

@@ -721,8 +721,8 @@ class FusionPipeline:
             row = self._track_ints[b].tolist()  # Python ints, read once
             age = now_ns - row[TRACK_LAST_UPDATE_NS]
             if row[TRACK_TRACKED] and age <= max_prediction_ns and age <= lost_ns:
-                p, q, v, w_body, cov, vcov = (tr.filter.output_at(now_ns) if self.imu is None or not self.imu.live
-                                              else self.imu.output_at(b, tr.filter, now_ns))
+                p, q, v, w_body, cov, vcov, acc = (tr.filter.output_at(now_ns) if self.imu is None or not self.imu.live
+                                                   else self.imu.output_at(b, tr.filter, now_ns))
                 out.append(
                     BodyState(
                         name=model.name,
@@ -740,7 +740,7 @@ class FusionPipeline:
                         n_cameras=row[TRACK_N_CAMERAS],
                         residual_mm=float(self._track_floats[b, TRACK_RESIDUAL_MM]),
                         reset_counter=row[TRACK_RESETS],
-                        update_kind=_UPDATE_NAMES[row[TRACK_UPDATE_KIND]],
+                        update_kind=_UPDATE_NAMES[row[TRACK_UPDATE_KIND]], acceleration=acc,
                     )
                 )
             else:

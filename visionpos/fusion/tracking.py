@@ -140,6 +140,7 @@ from visionpos.fusion.layout import (
     KALMAN_NIS_THRESHOLD,
     N_OUT,
     N_STATE,
+    OUT_ACC,
     OUT_POS,
     OUT_POSE_COV0,
     OUT_QUAT0,
@@ -425,7 +426,8 @@ def _output_at(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: f
                qaj: float) -> np.ndarray:
     """Prediction by dt for the outputs, packed in one array (N_OUT,) (columns OUT_*): position (3,),
     quaternion xyzw (4,), velocity (3,), body-frame angular rate (3,), pose covariance (6, 6) over
-    [p, rotation vector] and velocity covariance (3, 3), row-major (see BodyFilter.output_at)."""
+    [p, rotation vector], velocity covariance (3, 3), row-major, and world acceleration (3,) (see
+    BodyFilter.output_at)."""
     Pn = _predicted_cov(P, dt, qj, qw, qaj)
     w = x[X_RATE] + x[X_ANG_ACC] * dt
     p, R, v = predict_mean(x, R_nom, dt)
@@ -441,6 +443,7 @@ def _output_at(x: np.ndarray, P: np.ndarray, R_nom: np.ndarray, dt: float, qj: f
     for i in range(3):
         for j in range(3):
             out[OUT_VEL_COV0 + 3 * i + j] = Pn[VEL0 + i, VEL0 + j]
+    out[OUT_ACC] = x[X_ACC]  # the constant-acceleration model's: unchanged by the prediction
     return out
 
 
