@@ -84,7 +84,7 @@ EKF_STATUS_STALE_NS = 5_000_000_000
 PARAM_RETRY_NS = 2_000_000_000
 ORIGIN_SILENT_GRACE_NS = 2_000_000_000  # with an origin to confirm, wait this long for a silent autopilot
 DELAY_RESET_MS = 5.0  # re-set the parameter when the measurement moves this far ...
-PX4_DELAY_RESET_MS = 1.0  # ... PX4's when its advice does: EKF2 reads it per sample and leads ~1.8 ms per ms off
+PX4_DELAY_RESET_MS = 0.1  # ... PX4's when its advice does: EKF2 reads it per sample and leads ~1.8 ms per ms off
 
 # EKF_STATUS_REPORT flags (ArduPilot's EKF_STATUS_FLAGS)
 EKF_ATTITUDE = 1
@@ -593,7 +593,8 @@ class Backchannel:
         if est == "px4" and self.sends.n:
             _, sends = self.sends.since(self.sends.last_t() - DELAY_WINDOW_NS)
             rtt = self.timesync_rtt_ns(fastest=True)
-            self.advice = px4_link_advice(sends[:, 0], rtt, self.px4_timesync.converged) or self.advice
+            self.advice = px4_link_advice(sends[:, 0], rtt, self.px4_timesync.converged, self.cfg.message) \
+                or self.advice
         gyro_t, gyro_v = (self.gyro.since(self.gyro.last_t() - DELAY_WINDOW_NS) if self.gyro.n
                           else (np.zeros(0, np.int64), np.zeros((0, 3))))
         if len(gyro_t) < 4 or gyro_t[-1] - gyro_t[0] < DELAY_MIN_SPAN_NS:

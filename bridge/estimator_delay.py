@@ -29,8 +29,12 @@ The two estimators use the pose's stamp differently, so the same measured delays
   flights (13 direct, 2 through 20 and 50 ms added each way), EKF2's output led SIH's truth by 1.81 (+-0.25) times
   the setting less the mean of the poses' stamp-to-arrival delays on the bridge's side, less 2.44 (+-0.67) ms, with
   2.1 ms of scatter from flight to flight: at the mean it trails, and it is on the truth 1.35 ms over the mean
-  (EKF2_ARRIVAL_TRAIL_MS), which the advice adds. Why is not found: EKF2's rate limit (a sample under an EKF step
-  after the last one kept is dropped) keeps the poses that follow late ones less often, but moves the mean by under
+  (EKF2_ARRIVAL_TRAIL_MS), which the advice adds. On ODOMETRY, whose velocity EKF2 fuses too (7 flights: 4 direct,
+  3 through 20 and 50 ms), it led by 1.80 times the same difference plus 0.54 ms, 1.2 ms of scatter: on the truth
+  0.3 ms under the mean. EKF2_EV_DELAY is a float of one decimal, and the advice is given to 0.1 ms: rounded to whole
+  ms it would be up to 0.5 ms off, 0.9 ms of lead. Why it trails on position alone is not found: EKF2's rate
+  limit (a sample under an EKF step after the last one kept is dropped) keeps the poses that follow late ones less
+  often, but moves the mean by under
   1.5 ms; and with SIH's truth as the vision, its delays steady, EKF2 did not trail (+1.0 ms at 0.2 ms over). The
   mean on the bridge's side, which holds every pose: PX4's log keeps vehicle_visual_odometry at about 33 Hz, a
   subset of 50 Hz poses, and where the delays follow a pattern (the output ticks against the cameras' capture grid:
@@ -70,7 +74,11 @@ from bridge.signing import SIGNATURE_BLOCK_LEN
 JITTER_WINDOW = 100  # JitterCorrection's convergence_loops (libraries/AP_RTC/JitterCorrection.h default)
 PARAMS = {"ardupilot": "VISO_DELAY_MS", "px4": "EKF2_EV_DELAY"}
 HORIZON_PERCENTILE = 99.0  # the poses' horizon covers this share of their delays
-EKF2_ARRIVAL_TRAIL_MS = 1.35  # EKF2 on the mean trails as if the poses were this much older (PX4 SIH, 15 flights)
+# EKF2 on the mean trails as if the poses were this much older, by the message it fuses (PX4 SIH, fitted on the
+# lead against the setting less the mean: VISION_POSITION_ESTIMATE 15 flights; ODOMETRY, whose velocity it fuses
+# too, 7 flights, where it leads a little instead)
+EKF2_ARRIVAL_TRAIL_MS = {"vision_position_estimate": 1.35, "odometry": -0.3}
+EKF2_DELAY_RESOLUTION_MS = 0.1  # EKF2_EV_DELAY is a float of one decimal; EKF2 leads ~1.8 ms per ms it is off
 EKF3_SLOT_MS = 12  # EKF_TARGET_DT_MS: one buffer sample per this much of the largest delay, each at least this long
 EKF3_HALF_STEP_MS = 6.0  # writeExtNavData also moves each pose back by half an EKF step
 EKF3_DEFAULT_LARGEST_DELAY_MS = 60  # EK3_HGT_DELAY's default, the largest of EKF3's delays unless one is raised
@@ -89,7 +97,7 @@ EKF2_STEP_MIN_MS = 8.0  # the shortest such step of common IMU rates: two 4 ms s
 @dataclasses.dataclass(frozen=True)
 class DelayAdvice:
     param: str  # the autopilot parameter (VISO_DELAY_MS, EKF2_EV_DELAY)
-    value_ms: int  # what to set it to (whole ms: both parameters are)
+    value_ms: float  # what to set it to (VISO_DELAY_MS whole ms, an INT16; EKF2_EV_DELAY to 0.1 ms, a float)
     why: str  # one phrase: which statistic of the delays, and why
     # the estimator's horizon the poses need, where its default falls short (ArduPilot: None when
     # EK3_HGT_DELAY's default buffer holds them; PX4: always, EKF2_DELAY_MAX's default being far too long)
@@ -156,12 +164,12 @@ def ekf2_arrival_horizon_ms(ev_delay_ms: float) -> int:
 
 
 def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_timesync_converged: bool = False,
-                  transfer_ms: float = 0.0) -> DelayAdvice | None:
+                  transfer_ms: float = 0.0, message: str = "vision_position_estimate") -> DelayAdvice | None:
     """The delay parameter to set for `autopilot` ('ardupilot', 'px4'; any other is taken as ArduPilot, the
     estimator that reads the stamps as ArduPilot does) from the poses' stamp-to-arrival delays (N,) ms on the
     autopilot's side; None without delays. px4_timesync_converged: PX4 maps time_usec with a converged TIMESYNC
     (its samples then carry their own instant). transfer_ms: ArduPilot's move of each arrival back
-    (ardupilot_transfer_ms)."""
+    (ardupilot_transfer_ms). message: the pose message sent (PX4's EKF2 trails by its own amount on each)."""
     d = np.asarray(stamp_to_arrival_ms, dtype=np.float64)
     d = d[np.isfinite(d)]
     if not len(d):
@@ -173,10 +181,11 @@ def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_ti
                                "EKF2_DELAY_MAX", ekf2_horizon_ms(late),
                                f"the poses reach back {late:.0f} ms (p{HORIZON_PERCENTILE:g}); EKF2's IMU steps "
                                f"can be {EKF2_STEP_MIN_MS:g} ms, and one more is the margin")
-        v = int(round(max(0.0, float(d.mean()) + EKF2_ARRIVAL_TRAIL_MS)))
-        return DelayAdvice("EKF2_EV_DELAY", v, f"the mean stamp-to-arrival delay and {EKF2_ARRIVAL_TRAIL_MS:g} ms "
-                           "(PX4 stamps each pose on arrival, and EKF2 follows the mean of their timing errors, "
-                           "trailing by a little more: measured against PX4 SIH)",
+        trail = EKF2_ARRIVAL_TRAIL_MS[message]
+        v = round(max(0.0, float(d.mean()) + trail), 1)  # EKF2_DELAY_RESOLUTION_MS
+        return DelayAdvice("EKF2_EV_DELAY", v, f"the mean stamp-to-arrival delay and {trail:+g} ms (PX4 stamps each "
+                           f"pose on arrival, and EKF2 follows the mean of their timing errors, on {message.upper()} "
+                           "by this much more: measured against PX4 SIH)",
                            "EKF2_DELAY_MAX", ekf2_arrival_horizon_ms(v),
                            f"EKF2_EV_DELAY and half a step, in EKF2's IMU steps of as little as "
                            f"{EKF2_STEP_MIN_MS:g} ms, and one more: a shorter horizon carries less IMU noise to the "

@@ -50,12 +50,14 @@ def fastest_round_trip_ns(round_trips_ns: list[float]) -> float | None:
     return float(np.min(round_trips_ns)) if len(round_trips_ns) >= MIN_ANSWERS else None
 
 
-def px4_link_advice(send_minus_stamp_ns: np.ndarray, rtt_ns: float | None, converged: bool) -> DelayAdvice | None:
+def px4_link_advice(send_minus_stamp_ns: np.ndarray, rtt_ns: float | None, converged: bool,
+                    message: str = "vision_position_estimate") -> DelayAdvice | None:
     """EKF2_EV_DELAY from the link's timing alone: stamped on arrival, a pose is its stamp-to-send time (N,) ns
     plus the link's one way, half the round trip rtt_ns (fastest_round_trip_ns), old when PX4 stamps it;
     converged, its own instant (0). No rotation or clock map is needed (PX4 SIH's clock runs about 1 % slow of
-    ours, unevenly). None before MIN_POSES poses and a round trip."""
+    ours, unevenly). message: the pose message, whose own trail EKF2 has (EKF2_ARRIVAL_TRAIL_MS). None before
+    MIN_POSES poses and a round trip."""
     d = np.asarray(send_minus_stamp_ns, dtype=np.float64)
     if len(d) < MIN_POSES or rtt_ns is None:
         return None
-    return advised_delay("px4", (d + 0.5 * rtt_ns) * 1e-6, converged)
+    return advised_delay("px4", (d + 0.5 * rtt_ns) * 1e-6, converged, message=message)

@@ -347,12 +347,12 @@ def _px4_link(rtt_ms, send_minus_stamp_ms):
 
 def test_px4_advice_is_stamp_to_send_plus_half_the_round_trip_with_no_rotation():
     # mean send - stamp 14 ms; round trips 4, 8 and 6 ms: the fastest, 4 (the median 6 would say 14 + 3). PX4
-    # stamps on arrival 14 + 2 ms after the pose's instant; EKF2 wants 1.35 ms more: 17.35 -> 17 (the median: 18)
+    # stamps on arrival 14 + 2 ms after the pose's instant; EKF2 wants 1.35 ms more: 17.35 -> 17.4 (the median: 18)
     bc = _px4_link([4.0, 8.0, 6.0], [10.0, 12.0, 14.0, 16.0, 18.0])
     bc.measure_delay()
-    assert bc.delay_ms is None and bc.advice.param == "EKF2_EV_DELAY" and bc.advice.value_ms == 17
+    assert bc.delay_ms is None and bc.advice.param == "EKF2_EV_DELAY" and bc.advice.value_ms == 17.4
     text = bc.delay_advice()
-    assert text.startswith("delay not measured") and "set EKF2_EV_DELAY=17" in text
+    assert text.startswith("delay not measured") and "set EKF2_EV_DELAY=17.4" in text
     assert "0 once PX4's TIMESYNC has converged" in text
 
 
@@ -361,7 +361,7 @@ def test_px4_advice_is_0_once_its_timesync_has_converged_on_our_answers():
     for _ in range(499):  # PX4's CONVERGENCE_WINDOW is 500 round trips under 10 ms (Timesync.hpp)
         bc.on_timesync_request()
     bc.measure_delay()
-    assert bc.advice.value_ms == 17  # 14 + 2 + 1.35
+    assert bc.advice.value_ms == 17.4  # 14 + 2 + 1.35
     bc.on_timesync_request()
     bc.measure_delay()
     assert bc.advice.value_ms == 0 and "TIMESYNC converged" in bc.advice.why
@@ -370,7 +370,7 @@ def test_px4_advice_is_0_once_its_timesync_has_converged_on_our_answers():
     for _ in range(600):
         slow.on_timesync_request()
     slow.measure_delay()
-    assert slow.advice.value_ms == 21
+    assert slow.advice.value_ms == 21.4
 
 
 def test_px4_advice_says_when_its_timesync_requests_are_not_answered():
@@ -821,7 +821,8 @@ def test_px4_link_advice_needs_10_poses_and_a_round_trip():
     from bridge.px4_timesync import fastest_round_trip_ns, median_round_trip_ns, px4_link_advice
 
     assert px4_link_advice(np.full(9, 14e6), 4e6, False) is None
-    assert px4_link_advice(np.full(10, 14e6), 4e6, False).value_ms == 17  # 14 + 2 + 1.35
+    assert px4_link_advice(np.full(10, 14e6), 4e6, False).value_ms == 17.4  # 14 + 2 + 1.35, to 0.1 ms
+    assert px4_link_advice(np.full(10, 14e6), 4e6, False, "odometry").value_ms == 15.7  # 14 + 2 - 0.3
     assert px4_link_advice(np.full(10, 14e6), None, False) is None
     assert median_round_trip_ns([4e6, 4e6]) is None and median_round_trip_ns([3e6, 4e6, 9e6]) == 4e6
     # the advice takes half the fastest round trip: the link's bare transit (docs/autopilot-setup.md, 3.)

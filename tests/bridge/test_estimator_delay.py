@@ -39,26 +39,29 @@ def test_jitter_corrected_delay_is_the_median_of_each_100_poses_smallest():
 
 def test_px4_on_arrival_wants_the_mean_and_what_ekf2_trails_by_and_with_timesync_zero():
     # _delays(): 96 from 10.0 to 29.0 (sum 96 * 19.5 = 1872) and 6, 6, 60, 60 (132): mean 2004 / 100 = 20.04;
-    # EKF2 on the mean trails as if 1.35 ms older (docs/autopilot-setup.md, 3.): 21.39 -> 21
+    # EKF2 on the mean trails as if 1.35 ms older on VISION_POSITION_ESTIMATE and leads as if 0.3 ms younger on
+    # ODOMETRY (docs/autopilot-setup.md, 3.); to 0.1 ms, EKF2_EV_DELAY being a float: 21.39 -> 21.4, 19.74 -> 19.7
     from pathlib import Path
 
     from bridge.estimator_delay import EKF2_ARRIVAL_TRAIL_MS
-    assert EKF2_ARRIVAL_TRAIL_MS == 1.35
+    assert EKF2_ARRIVAL_TRAIL_MS == {"vision_position_estimate": 1.35, "odometry": -0.3}
     doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
-    assert "the bridge advises the **mean** stamp-to-arrival delay, **plus 1.35 ms** that EKF2 was measured to " \
-           "trail by" in doc
+    assert "the bridge advises the **mean** stamp-to-arrival delay, **plus 1.35 ms** on VISION_POSITION_ESTIMATE " \
+           "and **less 0.3 ms** on ODOMETRY" in doc
     a = advised_delay("px4", _delays())
-    assert (a.param, a.value_ms) == ("EKF2_EV_DELAY", 21)
-    assert "mean" in a.why and "arrival" in a.why and "1.35 ms" in a.why
+    assert (a.param, a.value_ms) == ("EKF2_EV_DELAY", 21.4)
+    assert "mean" in a.why and "arrival" in a.why and "+1.35 ms" in a.why
+    o = advised_delay("px4", _delays(), message="odometry")
+    assert o.value_ms == 19.7 and "-0.3 ms" in o.why and "ODOMETRY" in o.why
     # a long tail (90 poses at 15 ms, 10 at 45 after stalls): the median 15, the mean 18, which EKF2 follows: 19.35
-    assert advised_delay("px4", np.r_[np.full(90, 15.0), np.full(10, 45.0)]).value_ms == 19
+    assert advised_delay("px4", np.r_[np.full(90, 15.0), np.full(10, 45.0)]).value_ms == 19.4
     b = advised_delay("px4", _delays(), px4_timesync_converged=True)
     assert (b.param, b.value_ms) == ("EKF2_EV_DELAY", 0)
 
 
 def test_constant_delay_gives_that_delay_to_both_and_nothing_without_delays():
     assert advised_delay("ardupilot", np.full(50, 7.4)).value_ms == 7
-    assert advised_delay("px4", np.full(50, 7.4)).value_ms == 9  # 7.4 + 1.35 = 8.75
+    assert advised_delay("px4", np.full(50, 7.42)).value_ms == 8.8  # 7.42 + 1.35 = 8.77, to 0.1 ms
     assert advised_delay("ardupilot", np.array([])) is None
     assert advised_delay("px4", np.array([np.nan])) is None
     assert advised_delay(None, np.full(5, 3.0)).param == "VISO_DELAY_MS"
@@ -67,7 +70,7 @@ def test_constant_delay_gives_that_delay_to_both_and_nothing_without_delays():
 @pytest.mark.parametrize("shift", [0.0, 20.0, 50.0])
 def test_an_added_link_delay_moves_both_by_as_much(shift):
     assert advised_delay("ardupilot", _delays() + shift).value_ms == 6 + shift
-    assert advised_delay("px4", _delays() + shift).value_ms == 21 + shift
+    assert advised_delay("px4", _delays() + shift).value_ms == pytest.approx(21.4 + shift)
 
 
 # ------------------------------------------------------------------ PX4's ESTIMATOR_STATUS in words
@@ -165,4 +168,4 @@ def test_ardupilot_takes_the_ports_transfer_time_off_each_arrival():
     # a steady 20 ms less 1.54 and the quarter ms of EKF3's stamp flooring and step: 18.21 -> 18
     a = advised_delay("ardupilot", np.full(300, 20.0), transfer_ms=1.5408)
     assert a.value_ms == 18 and "baud" in a.why
-    assert advised_delay("px4", np.full(300, 20.0), transfer_ms=1.5408).value_ms == 21  # no such move: 20 + 1.35
+    assert advised_delay("px4", np.full(300, 20.0), transfer_ms=1.5408).value_ms == 21.4  # no such move: 20 + 1.35

@@ -311,8 +311,10 @@ def format_summary(s: dict[str, Any]) -> str:
         f"median {fmt(s['latency_to_autopilot_ms']['p50'])} ms, 2nd percentile "
         f"{fmt(s['latency_to_autopilot_ms'].get('p2'))} ms, mean {fmt(s['latency_to_autopilot_ms'].get('mean'))} ms "
         "(ArduPilot's VISO_DELAY_MS: near the smallest, its jitter correction takes each pose at the smallest delay "
-        f"of its last 100; PX4's EKF2_EV_DELAY: the mean and {EKF2_ARRIVAL_TRAIL_MS:g} ms, it stamps poses on arrival "
-        "without TIMESYNC, follows the mean of their timing errors and trails by a little more; "
+        "of its last 100; PX4's EKF2_EV_DELAY: the mean and "
+        f"{EKF2_ARRIVAL_TRAIL_MS['vision_position_estimate']:g} ms on VISION_POSITION_ESTIMATE, "
+        f"{EKF2_ARRIVAL_TRAIL_MS['odometry']:+g} ms on ODOMETRY, it stamps poses on arrival "
+        "without TIMESYNC and follows the mean of their timing errors, by that much more; "
         "docs/autopilot-setup.md section 3)",
         f"server: accepted {server['frames_accepted']} camera frames"
         + (f" ({shed} not fused: they queued too long)" if shed else "")
