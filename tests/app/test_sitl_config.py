@@ -50,6 +50,34 @@ def test_cli_message_flag_is_the_vehicle_override(monkeypatch):
         p.parse_args(["--message", "att_pos_mocap"])
 
 
+def test_px4_flies_odometry_unless_told(monkeypatch):
+    """`--autopilot px4` sends ODOMETRY (EKF2 fuses its velocity too) unless --message or --set
+    vehicles.0.message says otherwise; ArduPilot keeps the arena's message."""
+    from visionpos.cli import sitl as cli
+
+    p = argparse.ArgumentParser()
+    cli.add_arguments(p)
+    seen = {}
+
+    def fake_arena(scenario, sets, max_s):
+        seen["sets"] = sets
+        raise SystemExit(0)
+
+    monkeypatch.setattr(cli, "sitl_arena", fake_arena)
+
+    def messages(*argv):
+        with pytest.raises(SystemExit):
+            cli.run(p.parse_args(list(argv)))
+        return [s for s in seen["sets"] if s.startswith("vehicles.0.message")]
+
+    assert messages("--autopilot", "px4") == ["vehicles.0.message=odometry"]
+    assert messages("--autopilot", "px4", "--message", "vision_position_estimate") == [
+        "vehicles.0.message=vision_position_estimate"]
+    assert messages("--autopilot", "px4", "--set", "vehicles.0.message=vision_position_estimate") == [
+        "vehicles.0.message=vision_position_estimate"]
+    assert messages() == []
+
+
 def test_defaults_found_beside_the_binary_and_in_its_ardupilot_tree(tmp_path, monkeypatch):
     monkeypatch.setattr(sitl_settings, "SHARED_SITL_DIR", tmp_path / "shared")
     beside = _binary(tmp_path / "a")

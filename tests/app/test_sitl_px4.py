@@ -272,16 +272,11 @@ def test_link_delay_relay_in_front_of_px4s_onboard_port():
         ap.close()
 
 
-def test_truth_vision_sends_the_true_pose_in_ned_and_nothing_in_a_cut():
-    """px4_floor.TruthVision: SIH's truth (here a vehicle still at N 1, E 2, 1.5 m up, heading east) as
-    VISION_POSITION_ESTIMATE in NED with FRD yaw; nothing while cut."""
+def _truth_at_n1_e2_heading_east(vn_m_s: float = 0.0):
+    """A TruthTrack of SIH's truth: a vehicle at N 1, E 2, 1.5 m up, heading east, moving north at vn_m_s."""
     import math
-    import socket
     import types
 
-    from pymavlink.dialects.v20 import common as mavlink2
-
-    from visionpos.app.sitl.px4_floor import TruthVision
     from visionpos.app.sitl.truth import LATLON_TO_M
 
     track = S.TruthTrack(HOME)
@@ -289,21 +284,40 @@ def test_truth_vision_sends_the_true_pose_in_ned_and_nothing_in_a_cut():
     yaw = math.pi / 2
     state = types.SimpleNamespace(lat_int=lat_e7 + int(round(1.0 / LATLON_TO_M)),
                                   lon_int=lon_e7 + int(round(2.0 / (LATLON_TO_M * math.cos(math.radians(HOME[0]))))),
-                                  alt=HOME[2] + 1.5, vn=0.0, ve=0.0, vd=0.0, q1=math.cos(yaw / 2), q2=0.0, q3=0.0,
+                                  alt=HOME[2] + 1.5, vn=vn_m_s, ve=0.0, vd=0.0, q1=math.cos(yaw / 2), q2=0.0, q3=0.0,
                                   q4=math.sin(yaw / 2), xgyro=0.0, ygyro=0.0, zgyro=0.0)
     now = time.monotonic_ns()
     for k in range(5):
         track.add(now + k * 1_000_000, state)
+    return track
+
+
+def _first_message(sock, kind: str):
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    rx = mavlink2.MAVLink(None)
+    m = None
+    while m is None:
+        m = next((x for x in rx.parse_buffer(sock.recv(65535)) or [] if x.get_type() == kind), None)
+    return m
+
+
+def test_truth_vision_sends_the_true_pose_in_ned_and_nothing_in_a_cut():
+    """px4_floor.TruthVision: SIH's truth (here a vehicle still at N 1, E 2, 1.5 m up, heading east) as
+    VISION_POSITION_ESTIMATE in NED with FRD yaw; nothing while cut."""
+    import math
+    import socket
+
+    from visionpos.app.sitl.px4_floor import TruthVision
+
+    track = _truth_at_n1_e2_heading_east()
+    yaw = math.pi / 2
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("127.0.0.1", 0))
     sock.settimeout(1.0)
     vision = TruthVision(track, sock.getsockname()[1], rate_hz=50.0).start()
-    rx = mavlink2.MAVLink(None)
     try:
-        m = None
-        while m is None:
-            m = next((x for x in rx.parse_buffer(sock.recv(65535)) or [] if x.get_type() == "VISION_POSITION_ESTIMATE"),
-                     None)
+        m = _first_message(sock, "VISION_POSITION_ESTIMATE")
         assert (m.x, m.y, m.z) == pytest.approx((1.0, 2.0, -1.5), abs=0.011)  # 1e-7 deg lat/lon: 1.1 cm
         assert m.yaw == pytest.approx(yaw, abs=1e-4) and abs(m.roll) < 1e-4 and abs(m.pitch) < 1e-4
         assert vision.sending()
@@ -313,6 +327,32 @@ def test_truth_vision_sends_the_true_pose_in_ned_and_nothing_in_a_cut():
         sent = vision.sent
         time.sleep(0.3)
         assert vision.sent == sent and not vision.sending()
+    finally:
+        vision.close()
+        sock.close()
+
+
+def test_truth_vision_odometry_is_the_bridges_frames_with_the_true_velocity_and_no_covariance():
+    """TruthVision(message="odometry"), the floor beside an ODOMETRY flight: LOCAL_NED (as the bridge sends PX4),
+    q body FRD -> NED, the velocity in the body frame (moving north while heading east: 1 m/s to the body's left,
+    FRD y = -1), estimator_type VISION, the covariances unknown (NaN first: EKF2 takes its floors)."""
+    import math
+    import socket
+
+    from visionpos.app.sitl.px4_floor import TruthVision
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(1.0)
+    vision = TruthVision(_truth_at_n1_e2_heading_east(vn_m_s=1.0), sock.getsockname()[1], rate_hz=50.0,
+                         message="odometry").start()
+    try:
+        m = _first_message(sock, "ODOMETRY")
+        assert (m.frame_id, m.child_frame_id, m.estimator_type) == (1, 12, 2)
+        assert list(m.q) == pytest.approx([math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)], abs=1e-4)
+        assert (m.vx, m.vy, m.vz) == pytest.approx((0.0, -1.0, 0.0), abs=1e-3)
+        assert m.y == pytest.approx(2.0, abs=0.011) and m.z == pytest.approx(-1.5, abs=0.011)
+        assert math.isnan(m.pose_covariance[0]) and math.isnan(m.velocity_covariance[0])
     finally:
         vision.close()
         sock.close()

@@ -1,10 +1,10 @@
 """Benchmark group `sitl_px4_delay`: PX4 SIH with its vision link slowed by a relay (D = 20 and 50 ms each way,
-`visionpos sitl --autopilot px4 --link-delay-ms D`), EKF2_EV_DELAY booted at 15 ms + D and set in flight to the
-bridge's advice (the mean stamp-to-arrival delay: PX4 in SITL stamps the poses on arrival). Each flight: Offboard
-take-off to 1 m, an 8 s hold turning about the vertical at +-1 rad/s, a 1 m square, 30 s round a 0.5 m circle,
-AUTO.LAND. The goal: with the advised value, EKF2's output runs within 2 ms of SIH's truth on the circle (PX4's
-log: sitl_px4.py says how it is read). D = 0 is in `sitl_px4`. Skipped, with the reason in the notes, where no
-PX4 build is found.
+`visionpos sitl --autopilot px4 --link-delay-ms D`, ODOMETRY as that command sends), EKF2_EV_DELAY booted at 15 ms +
+D and set in flight to the bridge's advice (the mean stamp-to-arrival delay: PX4 in SITL stamps the poses on
+arrival). Each flight: Offboard take-off to 1 m, an 8 s hold turning about the vertical at +-1 rad/s, a 1 m square,
+30 s round a 0.5 m circle, AUTO.LAND. The goal: with the advised value, EKF2's output runs within 2 ms of SIH's
+truth on the circle (PX4's log: sitl_px4.py says how it is read). D = 0 is in `sitl_px4`. Skipped, with the reason
+in the notes, where no PX4 build is found.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ DELAYS_MS = (20.0, 50.0)
 
 def run(quick: bool = False) -> BenchResult:
     from visionpos.app.sitl import FlightPlan, sitl_arena
-    from visionpos.app.sitl.px4 import PX4_ENV, default_px4_dir
+    from visionpos.app.sitl.px4 import PX4_ENV, PX4_MESSAGE, default_px4_dir
     from visionpos.app.sitl.px4_run import run_px4
 
     build = default_px4_dir()
@@ -32,7 +32,8 @@ def run(quick: bool = False) -> BenchResult:
     for d in DELAYS_MS:
         plan = FlightPlan(altitude_m=1.0, side_m=1.0, hold_s=8.0, square=True, cut_s=0.0, timeout_s=220.0,
                           link_delay_ms=d, yaw_swing_rad_s=1.0, circle_s=30.0)
-        s = run_px4(sitl_arena("thesis", [], plan.timeout_s + 60.0), build, plan, None)
+        s = run_px4(sitl_arena("thesis", [f"vehicles.0.message={PX4_MESSAGE}"], plan.timeout_s + 60.0), build, plan,
+                    None)
         tag = f"added_{d:.0f}"
         rows.append(lead_row(f"{d:.0f} ms added each way", s))
         g = s.get("px4_log") or {}

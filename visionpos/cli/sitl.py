@@ -9,7 +9,7 @@ from pathlib import Path
 
 from visionpos.app.sitl import FlightPlan, find_sitl_binary, format_flight, run_sitl, sitl_arena
 from visionpos.app.sitl.flight import CIRCLE_PERIOD_S, CIRCLE_RADIUS_M
-from visionpos.app.sitl.px4 import check_build_kind, find_px4_dir
+from visionpos.app.sitl.px4 import PX4_MESSAGE, check_build_kind, find_px4_dir
 from visionpos.app.sitl.px4_run import run_px4
 from visionpos.app.sitl.settings import SitlError
 from visionpos.errors import UsageError
@@ -27,8 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="arena: thesis (default), pair (default with --vehicles 2), arena8 or a YAML path")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
     p.add_argument("--message", choices=("vision_position_estimate", "odometry"), default=None,
-                   help="the pose message to the autopilot (default: the arena's vehicles[0].message, "
-                        "vision_position_estimate); the same as --set vehicles.0.message=...")
+                   help="the pose message to the autopilot (default: odometry with --autopilot px4, which EKF2 "
+                        "fuses with its velocity; else the arena's vehicles[0].message, vision_position_estimate); "
+                        "the same as --set vehicles.0.message=...")
     p.add_argument("--altitude", type=float, default=1.0, help="take-off height (m; default 1)")
     p.add_argument("--side", type=float, default=1.0, help="side of the square flown (m; default 1)")
     p.add_argument("--no-square", action="store_true", help="take off, hold and land only")
@@ -82,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
     plan = FlightPlan(args.altitude, args.side, args.hold, not args.no_square, args.cut, args.timeout,
                       args.link_delay_ms, swing, args.circle)
     sets = list(args.set) + ([f"vehicles.0.message={args.message}"] if args.message else [])
+    if args.autopilot == "px4" and not any(s.split("=", 1)[0].strip() == "vehicles.0.message" for s in sets):
+        sets.append(f"vehicles.0.message={PX4_MESSAGE}")
     if args.defaults:  # the flag is the arena key, relative to here
         sets.append(f"sitl.defaults={Path(args.defaults).resolve()}")
     scenario = args.scenario or ("pair" if args.vehicles > 1 else "thesis")

@@ -47,6 +47,14 @@ CLOCK_RATE_BOUNDS = (0.5, 1.5)
 # TRUTH_MIN_HZ.
 TRUTH_HZ, TRUTH_MIN_HZ = 250.0, 200.0
 SIH_ACC_NOISE_M_S2, SIH_GYR_NOISE_RAD_S = 1.0, 0.1  # EKF2's IMU noise for SIH's vibrating IMU (px4_parameters)
+# EKF2's own floor on the vision velocity's noise (m/s; ev_vel.h): above it the ODOMETRY's covariance rules
+EV_VEL_NOISE_FLOOR_M_S = 0.01
+# What `visionpos sitl --autopilot px4` and its benches send unless told: EKF2 fuses ODOMETRY's velocity too
+# (EKF2_EV_CTRL 15). Its position noise cannot go under 1 cm (ev_pos_control.cpp), ten times a motion-capture
+# system's, so on position alone it leans on the IMU; a velocity good to ~1 cm/s holds it (PX4 SIH, one flight
+# each: EKF horizontal p99 23-25 mm on VISION_POSITION_ESTIMATE, 19 mm on ODOMETRY, 15.5 with EKF2_EVV_NOISE at
+# its floor).
+PX4_MESSAGE = "odometry"
 
 
 def is_px4_dir(p: Path) -> bool:
@@ -133,6 +141,7 @@ def px4_parameters(message: str, ev_delay_ms: float, pos_noise_m: float, yaw_noi
         "EKF2_TAU_POS": 0.1, "EKF2_TAU_VEL": 0.1,
         "EKF2_ACC_NOISE": SIH_ACC_NOISE_M_S2, "EKF2_GYR_NOISE": SIH_GYR_NOISE_RAD_S,
         "EKF2_EV_NOISE_MD": 0.0, "EKF2_EVP_NOISE": float(pos_noise_m), "EKF2_EVA_NOISE": float(yaw_noise_rad),
+        "EKF2_EVV_NOISE": EV_VEL_NOISE_FLOOR_M_S,
         "MAV_SYS_ID": float(sysid),
     }
 
