@@ -20,27 +20,27 @@ The two estimators use the pose's stamp differently, so the same measured delays
   The median delay over-delays every pose by (median - minimum): against SITL 16 ms instead of 7 ms put the EKF
   11-13 ms ahead of the truth (issue 31); so did a low percentile (p2) where the host's load spread the
   delays: p2 9-14 ms put the EKF 4-6 ms ahead in 3 flights, 5-8 ms 0.3-1.4 ms in 3.
-- PX4 (EKF2). mavlink_receiver stamps the sample with the synchronised `time_usec` only while its TIMESYNC
-  estimate has converged, else with the arrival time (../shared/sitl-px4/README.md); EKF2 then moves every
-  sample back by EKF2_EV_DELAY (EstimatorInterface::setExtVisionData, src/modules/ekf2/EKF/
-  estimator_interface.cpp: time_us - ev_delay_ms * 1000 - half an EKF step), no jitter correction. Stamped on
-  arrival, each sample's error is its own delay less the setting, and EKF2's state, linear in what it fuses, follows
-  their mean. Against PX4 SIH (issue 31, a 26 s circle at 1.05 m/s, EKF2's lead read from PX4's own log), over 15
-  flights (13 direct, 2 through 20 and 50 ms added each way), EKF2's output led SIH's truth by 1.81 (+-0.25) times
-  the setting less the mean of the poses' stamp-to-arrival delays on the bridge's side, less 2.44 (+-0.67) ms, with
-  2.1 ms of scatter from flight to flight: at the mean it trails, and it is on the truth 1.35 ms over the mean
-  (EKF2_ARRIVAL_TRAIL_MS), which the advice adds. On ODOMETRY, whose velocity EKF2 fuses too (7 flights: 4 direct,
-  3 through 20 and 50 ms), it led by 1.80 times the same difference plus 0.54 ms, 1.2 ms of scatter: on the truth
-  0.3 ms under the mean. EKF2_EV_DELAY is a float of one decimal, and the advice is given to 0.1 ms: rounded to whole
-  ms it would be up to 0.5 ms off, 0.9 ms of lead. Why it trails on position alone is not found: EKF2's rate
-  limit (a sample under an EKF step after the last one kept is dropped) keeps the poses that follow late ones less
-  often, but moves the mean by under
-  1.5 ms; and with SIH's truth as the vision, its delays steady, EKF2 did not trail (+1.0 ms at 0.2 ms over). The
-  mean on the bridge's side, which holds every pose: PX4's log keeps vehicle_visual_odometry at about 33 Hz, a
-  subset of 50 Hz poses, and where the delays follow a pattern (the output ticks against the cameras' capture grid:
-  two modes 8 ms apart) the subset can miss one mode (in one flight the log's 70th percentile read 10.6 ms against
-  the bridge's 20.3). Fitted on the log's subsets (34 flights) the 70th percentile had looked right; flown, it put
-  EKF2 up to 8 ms ahead. Stamped with a converged TIMESYNC, the stamp is the pose's instant: 0.
+- PX4 (EKF2). mavlink_receiver stamps the sample with the synchronised `time_usec` only while its TIMESYNC estimate
+  has converged, else with the arrival time (../shared/sitl-px4/README.md); EKF2 then moves every sample back by
+  EKF2_EV_DELAY (EstimatorInterface::setExtVisionData, src/modules/ekf2/EKF/ estimator_interface.cpp: time_us -
+  ev_delay_ms * 1000 - half an EKF step), no jitter correction. Stamped on arrival, each sample's error is its own
+  delay less the setting, and EKF2's state, linear in what it fuses, follows their mean. Against PX4 SIH (issue 31, a
+  26 s circle at 1.05 m/s, EKF2's lead read from PX4's own log), over 15 flights (13 direct, 2 through 20 and 50 ms
+  added each way), EKF2's output led SIH's truth by 1.81 (+-0.25) times the setting less the mean of the poses'
+  stamp-to-arrival delays on the bridge's side, less 2.44 (+-0.67) ms, with 2.1 ms of scatter from flight to flight:
+  at the mean it trails, and it is on the truth 1.35 ms over the mean (EKF2_ARRIVAL_TRAIL_MS), which the advice adds.
+  On ODOMETRY, whose velocity EKF2 fuses too (9 flights: 4 direct, 5 through 20 and 50 ms added), it led by 1.12 times
+  the same difference, less 0.034 times the mean delay, plus 0.69 ms, 1.35 ms of scatter: on the truth at the mean
+  less 0.62 ms plus 3.0 % of it (0.3 ms under at 10 ms, 1.35 over at 65). EKF2_EV_DELAY is a float of one decimal, and
+  the advice is given to 0.1 ms: rounded to whole ms it would be up to 0.5 ms off, 0.6-0.9 ms of lead. Why it trails
+  on position alone is not found: EKF2's rate limit (a sample under an EKF step after the last one kept is dropped)
+  keeps the poses that follow late ones less often, but moves the mean by under 1.5 ms; and with SIH's truth as the
+  vision, its delays steady, EKF2 did not trail (+1.0 ms at 0.2 ms over). The mean on the bridge's side, which holds
+  every pose: PX4's log keeps vehicle_visual_odometry at about 33 Hz, a subset of 50 Hz poses, and where the delays
+  follow a pattern (the output ticks against the cameras' capture grid: two modes 8 ms apart) the subset can miss one
+  mode (in one flight the log's 70th percentile read 10.6 ms against the bridge's 20.3). Fitted on the log's subsets
+  (34 flights) the 70th percentile had looked right; flown, it put EKF2 up to 8 ms ahead. Stamped with a converged
+  TIMESYNC, the stamp is the pose's instant: 0.
 
 Each estimator also keeps only so much IMU history (its delayed horizon), and a pose older than that is fused
 as if it were as old as the horizon, i.e. newer than it is: the EKF then trails the truth whatever the delay
@@ -74,10 +74,11 @@ from bridge.signing import SIGNATURE_BLOCK_LEN
 JITTER_WINDOW = 100  # JitterCorrection's convergence_loops (libraries/AP_RTC/JitterCorrection.h default)
 PARAMS = {"ardupilot": "VISO_DELAY_MS", "px4": "EKF2_EV_DELAY"}
 HORIZON_PERCENTILE = 99.0  # the poses' horizon covers this share of their delays
-# EKF2 on the mean trails as if the poses were this much older, by the message it fuses (PX4 SIH, fitted on the
-# lead against the setting less the mean: VISION_POSITION_ESTIMATE 15 flights; ODOMETRY, whose velocity it fuses
-# too, 7 flights, where it leads a little instead)
-EKF2_ARRIVAL_TRAIL_MS = {"vision_position_estimate": 1.35, "odometry": -0.3}
+# EKF2 on the mean trails as if the poses were this much older, by the message it fuses: (ms, and ms per ms of the
+# mean delay). PX4 SIH, fitted on the lead against the setting less the mean: VISION_POSITION_ESTIMATE 15 flights;
+# ODOMETRY, whose velocity it fuses too, 9 flights at 0, 20 and 50 ms added, where it leads a little on a direct
+# link and trails more the longer the delay
+EKF2_ARRIVAL_TRAIL_MS = {"vision_position_estimate": (1.35, 0.0), "odometry": (-0.62, 0.030)}
 EKF2_DELAY_RESOLUTION_MS = 0.1  # EKF2_EV_DELAY is a float of one decimal; EKF2 leads ~1.8 ms per ms it is off
 EKF3_SLOT_MS = 12  # EKF_TARGET_DT_MS: one buffer sample per this much of the largest delay, each at least this long
 EKF3_HALF_STEP_MS = 6.0  # writeExtNavData also moves each pose back by half an EKF step
@@ -163,6 +164,12 @@ def ekf2_arrival_horizon_ms(ev_delay_ms: float) -> int:
     return ekf2_horizon_ms(ev_delay_ms + EKF2_STEP_MIN_MS / 2)
 
 
+def ekf2_arrival_trail_ms(message: str, mean_delay_ms: float) -> float:
+    """What EKF2 trails by (ms) over the mean stamp-to-arrival delay mean_delay_ms of poses sent as message."""
+    ms, per_ms = EKF2_ARRIVAL_TRAIL_MS[message]
+    return ms + per_ms * mean_delay_ms
+
+
 def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_timesync_converged: bool = False,
                   transfer_ms: float = 0.0, message: str = "vision_position_estimate") -> DelayAdvice | None:
     """The delay parameter to set for `autopilot` ('ardupilot', 'px4'; any other is taken as ArduPilot, the
@@ -181,11 +188,12 @@ def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_ti
                                "EKF2_DELAY_MAX", ekf2_horizon_ms(late),
                                f"the poses reach back {late:.0f} ms (p{HORIZON_PERCENTILE:g}); EKF2's IMU steps "
                                f"can be {EKF2_STEP_MIN_MS:g} ms, and one more is the margin")
-        trail = EKF2_ARRIVAL_TRAIL_MS[message]
-        v = round(max(0.0, float(d.mean()) + trail), 1)  # EKF2_DELAY_RESOLUTION_MS
-        return DelayAdvice("EKF2_EV_DELAY", v, f"the mean stamp-to-arrival delay and {trail:+g} ms (PX4 stamps each "
-                           f"pose on arrival, and EKF2 follows the mean of their timing errors, on {message.upper()} "
-                           "by this much more: measured against PX4 SIH)",
+        mean = float(d.mean())
+        trail = ekf2_arrival_trail_ms(message, mean)
+        v = round(max(0.0, mean + trail), 1)  # EKF2_DELAY_RESOLUTION_MS
+        return DelayAdvice("EKF2_EV_DELAY", v, f"the mean stamp-to-arrival delay and {trail:+.2f} ms (PX4 stamps "
+                           "each pose on arrival, and EKF2 follows the mean of their timing errors, on "
+                           f"{message.upper()} by this much more: measured against PX4 SIH)",
                            "EKF2_DELAY_MAX", ekf2_arrival_horizon_ms(v),
                            f"EKF2_EV_DELAY and half a step, in EKF2's IMU steps of as little as "
                            f"{EKF2_STEP_MIN_MS:g} ms, and one more: a shorter horizon carries less IMU noise to the "

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bridge.estimator_delay import EKF2_ARRIVAL_TRAIL_MS
+from bridge.estimator_delay import ekf2_arrival_trail_ms
 
 LATENCY_SAMPLES = 4096
 
@@ -60,8 +60,9 @@ def delay_advice(stats: dict) -> str:
         return f"{stats['body']} (sysid {stats['sysid']}): no pose sent yet"
     age = stats["latency_stamp_ms_p50"]
     # estimator_delay.py: why each
-    trail = EKF2_ARRIVAL_TRAIL_MS[stats.get("message", "vision_position_estimate")]
-    d = round(stats.get("latency_stamp_ms_mean", age) + trail, 1)
+    mean = stats.get("latency_stamp_ms_mean", age)
+    trail = ekf2_arrival_trail_ms(stats.get("message", "vision_position_estimate"), mean)
+    d = round(mean + trail, 1)
     low = int(round(stats.get("latency_stamp_ms_jitter_min", age)))
     if stats.get("delay_ms") is not None:
         return (f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms; "
@@ -70,6 +71,6 @@ def delay_advice(stats: dict) -> str:
         f"{stats['body']} (sysid {stats['sysid']}): capture->send latency p50 {p50:.1f} ms, p99 {p99:.1f} ms; "
         f"pose stamp->send p50 {age:.1f} ms (bridge adds p50 {stats['latency_bridge_ms_p50']:.2f} ms) -> "
         f"ArduPilot VISO_DELAY_MS={low} (the smallest of each 100 poses + link latency); PX4 EKF2_EV_DELAY={d} "
-        f"(the mean {trail:+g} ms + link latency) without TIMESYNC, "
+        f"(the mean {trail:+.2f} ms + link latency) without TIMESYNC, "
         f"~0 with TIMESYNC converged"
     )
