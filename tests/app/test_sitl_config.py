@@ -30,7 +30,8 @@ def test_set_vehicles_message_odometry_works_without_a_vehicles_section():
     assert parse_vehicles(S.sitl_arena("thesis", [], 60.0))[0].message == "vision_position_estimate"
 
 
-def test_cli_message_flag_is_the_vehicle_override(monkeypatch):
+def _cli_sets(monkeypatch):
+    """`visionpos sitl`'s parser, and a function from its arguments to the overrides it gives the arena."""
     from visionpos.cli import sitl as cli
 
     p = argparse.ArgumentParser()
@@ -42,10 +43,20 @@ def test_cli_message_flag_is_the_vehicle_override(monkeypatch):
         raise SystemExit(0)
 
     monkeypatch.setattr(cli, "sitl_arena", fake_arena)
-    with pytest.raises(SystemExit):
-        cli.run(p.parse_args(["--message", "odometry", "--defaults", "x.parm"]))
-    assert "vehicles.0.message=odometry" in seen["sets"]
-    assert any(s.startswith("sitl.defaults=/") and s.endswith("/x.parm") for s in seen["sets"])
+
+    def sets(*argv):
+        with pytest.raises(SystemExit):
+            cli.run(p.parse_args(list(argv)))
+        return seen["sets"]
+
+    return p, sets
+
+
+def test_cli_message_flag_is_the_vehicle_override(monkeypatch):
+    p, sets = _cli_sets(monkeypatch)
+    got = sets("--message", "odometry", "--defaults", "x.parm")
+    assert "vehicles.0.message=odometry" in got
+    assert any(s.startswith("sitl.defaults=/") and s.endswith("/x.parm") for s in got)
     with pytest.raises(SystemExit):
         p.parse_args(["--message", "att_pos_mocap"])
 
@@ -53,22 +64,10 @@ def test_cli_message_flag_is_the_vehicle_override(monkeypatch):
 def test_px4_flies_odometry_unless_told(monkeypatch):
     """`--autopilot px4` sends ODOMETRY (EKF2 fuses its velocity too) unless --message or --set
     vehicles.0.message says otherwise; ArduPilot keeps the arena's message."""
-    from visionpos.cli import sitl as cli
-
-    p = argparse.ArgumentParser()
-    cli.add_arguments(p)
-    seen = {}
-
-    def fake_arena(scenario, sets, max_s):
-        seen["sets"] = sets
-        raise SystemExit(0)
-
-    monkeypatch.setattr(cli, "sitl_arena", fake_arena)
+    _, sets = _cli_sets(monkeypatch)
 
     def messages(*argv):
-        with pytest.raises(SystemExit):
-            cli.run(p.parse_args(list(argv)))
-        return [s for s in seen["sets"] if s.startswith("vehicles.0.message")]
+        return [s for s in sets(*argv) if s.startswith("vehicles.0.message")]
 
     assert messages("--autopilot", "px4") == ["vehicles.0.message=odometry"]
     assert messages("--autopilot", "px4", "--message", "vision_position_estimate") == [
