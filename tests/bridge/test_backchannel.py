@@ -832,9 +832,10 @@ def test_px4_link_advice_needs_10_poses_and_a_round_trip():
 
 
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
-def test_set_delay_follows_px4s_advice_by_the_millisecond_and_ardupilots_by_five(autopilot):
-    """EKF2 reads EKF2_EV_DELAY for each sample and leads by about 1.8 ms for each ms it is off, so with set_delay
-    the bridge writes PX4's again when the advice moves by 1 ms; ArduPilot's VISO_DELAY_MS at 5 ms."""
+def test_set_delay_follows_px4s_advice_by_a_tenth_of_a_millisecond_and_ardupilots_by_five(autopilot):
+    """EKF2 reads EKF2_EV_DELAY (a float of one decimal) for each sample and leads by 1.1-1.8 ms for each ms it is
+    off, so with set_delay the bridge writes PX4's again when the advice moves by 0.1 ms; ArduPilot's VISO_DELAY_MS
+    at 5 ms."""
     out = []
     bc = Backchannel(_cfg(set_delay=True), lambda: 0, mavlink2.MAVLink(None, 1, 197), lambda m: out.append(m) or True,
                      lambda *a: None)
@@ -843,15 +844,16 @@ def test_set_delay_follows_px4s_advice_by_the_millisecond_and_ardupilots_by_five
     if autopilot == "ardupilot":  # its advice comes from the gyro's correlation: three measurements first
         bc.delay_ms = 10.0
         bc._delays.extend([10.0, 10.0, 10.0])
+    advised = (20.0, 20.05, 20.1, 20.3, 20.35) if autopilot == "px4" else (20, 22, 23, 26, 27)
     written = []
-    for k, value_ms in enumerate((20, 22, 23, 26, 27)):
+    for k, value_ms in enumerate(advised):
         bc.advice = DelayAdvice(param, value_ms, "a test")
         bc._maybe_set_delay(k * 10_000_000_000)  # far apart: no retry pending
         sets = [m for m in out if m.get_type() == "PARAM_SET"]
         if sets and (not written or sets[-1].param_value != written[-1]):
             written.append(sets[-1].param_value)
             bc.handle(mavlink2.MAVLink_param_value_message(param.encode(), sets[-1].param_value, 9, 900, 0), 1, 0)
-    assert written == ([20, 22, 23, 26, 27] if autopilot == "px4" else [20, 26])
+    assert written == pytest.approx([20, 20.1, 20.3] if autopilot == "px4" else [20, 26], abs=1e-5)
     assert all(m.param_id == param for m in out if m.get_type() == "PARAM_SET")
-    assert ("PX4's `EKF2_EV_DELAY` when its advice moves by 1 ms, as EKF2 reads it for each sample and leads by "
-            "about 1.8 ms for each ms it is off") in _doc()
+    assert ("PX4's `EKF2_EV_DELAY` when its advice moves by 0.1 ms, as EKF2 reads it for each sample and leads by "
+            "1.1-1.8 ms for each ms it is off") in _doc()
