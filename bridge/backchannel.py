@@ -84,7 +84,7 @@ EKF_STATUS_STALE_NS = 5_000_000_000
 PARAM_RETRY_NS = 2_000_000_000
 ORIGIN_SILENT_GRACE_NS = 2_000_000_000  # with an origin to confirm, wait this long for a silent autopilot
 DELAY_RESET_MS = 5.0  # re-set the parameter when the measurement moves this far ...
-PX4_DELAY_RESET_MS = 0.1  # ... PX4's when its advice does: EKF2 reads it per sample and leads ~1.8 ms per ms off
+PX4_DELAY_RESET_MS = 0.1  # ... PX4's when its advice does: EKF2 reads it per sample and leads 1.1-1.8 ms per ms off
 
 # EKF_STATUS_REPORT flags (ArduPilot's EKF_STATUS_FLAGS)
 EKF_ATTITUDE = 1

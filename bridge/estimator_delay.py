@@ -79,7 +79,7 @@ HORIZON_PERCENTILE = 99.0  # the poses' horizon covers this share of their delay
 # ODOMETRY, whose velocity it fuses too, 9 flights at 0, 20 and 50 ms added, where it leads a little on a direct
 # link and trails more the longer the delay
 EKF2_ARRIVAL_TRAIL_MS = {"vision_position_estimate": (1.35, 0.0), "odometry": (-0.62, 0.030)}
-EKF2_DELAY_RESOLUTION_MS = 0.1  # EKF2_EV_DELAY is a float of one decimal; EKF2 leads ~1.8 ms per ms it is off
+EKF2_DELAY_RESOLUTION_MS = 0.1  # EKF2_EV_DELAY is a float of one decimal; EKF2 leads 1.1-1.8 ms per ms it is off
 EKF3_SLOT_MS = 12  # EKF_TARGET_DT_MS: one buffer sample per this much of the largest delay, each at least this long
 EKF3_HALF_STEP_MS = 6.0  # writeExtNavData also moves each pose back by half an EKF step
 EKF3_DEFAULT_LARGEST_DELAY_MS = 60  # EK3_HGT_DELAY's default, the largest of EKF3's delays unless one is raised
