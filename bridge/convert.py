@@ -187,13 +187,17 @@ def vision_speed_fields(c: MavlinkState, usec: int, reset_counter: int) -> dict:
     return dict(usec=usec, x=x, y=y, z=z, covariance=cov, reset_counter=reset_counter)
 
 
+MAV_FRAME_LOCAL_NED = 1
 MAV_FRAME_LOCAL_FRD = 20
 MAV_FRAME_BODY_FRD = 12
 MAV_ESTIMATOR_TYPE_VISION = 2
 
 
-def odometry_fields(c: MavlinkState, usec: int, reset_counter: int, quality: int) -> dict:
-    """Fields of ODOMETRY: pose in LOCAL_FRD (our NED), velocities in BODY_FRD, q w-first. Without an attitude
+def odometry_fields(c: MavlinkState, usec: int, reset_counter: int, quality: int,
+                    frame_id: int = MAV_FRAME_LOCAL_FRD) -> dict:
+    """Fields of ODOMETRY: pose in frame_id (our NED: LOCAL_FRD, which ArduPilot takes; PX4 reads LOCAL_FRD as a
+    frame of unknown heading and never aligns its yaw, so it is sent LOCAL_NED, our NED being north-aligned through
+    yaw_offset_deg), velocities in BODY_FRD, q w-first. Without an attitude
     (a point body) q is NaN first (MAVLink: unknown), the body-frame velocities and rates NaN with an unknown
     velocity covariance, and the pose covariance's rotation entries NaN."""
     pose_cov = nan_covariance(21) if c.pose_cov is None else mavlink_upper_triangle(c.pose_cov).tolist()
@@ -201,7 +205,7 @@ def odometry_fields(c: MavlinkState, usec: int, reset_counter: int, quality: int
         x, y, z = (float(a) for a in c.position_ned)
         nan = float("nan")
         return dict(
-            time_usec=usec, frame_id=MAV_FRAME_LOCAL_FRD, child_frame_id=MAV_FRAME_BODY_FRD,
+            time_usec=usec, frame_id=frame_id, child_frame_id=MAV_FRAME_BODY_FRD,
             x=x, y=y, z=z, q=[nan, 0.0, 0.0, 0.0], vx=nan, vy=nan, vz=nan, rollspeed=nan, pitchspeed=nan, yawspeed=nan,
             pose_covariance=pose_cov, velocity_covariance=nan_covariance(21),
             reset_counter=reset_counter, estimator_type=MAV_ESTIMATOR_TYPE_VISION, quality=quality,
@@ -219,7 +223,7 @@ def odometry_fields(c: MavlinkState, usec: int, reset_counter: int, quality: int
     vx, vy, vz = (float(a) for a in c.velocity_frd)
     wr, wp, wy = (float(a) for a in c.angular_velocity_frd)
     return dict(
-        time_usec=usec, frame_id=MAV_FRAME_LOCAL_FRD, child_frame_id=MAV_FRAME_BODY_FRD,
+        time_usec=usec, frame_id=frame_id, child_frame_id=MAV_FRAME_BODY_FRD,
         x=x, y=y, z=z, q=[qw, qx, qy, qz], vx=vx, vy=vy, vz=vz,
         rollspeed=wr, pitchspeed=wp, yawspeed=wy,
         pose_covariance=pose_cov, velocity_covariance=vel_cov,

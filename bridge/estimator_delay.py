@@ -22,7 +22,7 @@ The two estimators use the pose's stamp differently, so the same measured delays
   delays: p2 9-14 ms put the EKF 4-6 ms ahead in 3 flights, 5-8 ms 0.3-1.4 ms in 3.
 - PX4 (EKF2). mavlink_receiver stamps the sample with the synchronised `time_usec` only while its TIMESYNC estimate
   has converged, else with the arrival time (../shared/sitl-px4/README.md); EKF2 then moves every sample back by
-  EKF2_EV_DELAY (EstimatorInterface::setExtVisionData, src/modules/ekf2/EKF/ estimator_interface.cpp: time_us -
+  EKF2_EV_DELAY (EstimatorInterface::setExtVisionData, src/modules/ekf2/EKF/estimator_interface.cpp: time_us -
   ev_delay_ms * 1000 - half an EKF step), no jitter correction. Stamped on arrival, each sample's error is its own
   delay less the setting, and EKF2's state, linear in what it fuses, follows their mean. Against PX4 SIH (issue 31, a
   26 s circle at 1.05 m/s, EKF2's lead read from PX4's own log), over 15 flights (13 direct, 2 through 20 and 50 ms
@@ -79,7 +79,6 @@ HORIZON_PERCENTILE = 99.0  # the poses' horizon covers this share of their delay
 # ODOMETRY, whose velocity it fuses too, 9 flights at 0, 20 and 50 ms added, where it leads a little on a direct
 # link and trails more the longer the delay
 EKF2_ARRIVAL_TRAIL_MS = {"vision_position_estimate": (1.35, 0.0), "odometry": (-0.62, 0.030)}
-EKF2_DELAY_RESOLUTION_MS = 0.1  # EKF2_EV_DELAY is a float of one decimal; EKF2 leads 1.1-1.8 ms per ms it is off
 EKF3_SLOT_MS = 12  # EKF_TARGET_DT_MS: one buffer sample per this much of the largest delay, each at least this long
 EKF3_HALF_STEP_MS = 6.0  # writeExtNavData also moves each pose back by half an EKF step
 EKF3_DEFAULT_LARGEST_DELAY_MS = 60  # EK3_HGT_DELAY's default, the largest of EKF3's delays unless one is raised
@@ -190,7 +189,7 @@ def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_ti
                                f"can be {EKF2_STEP_MIN_MS:g} ms, and one more is the margin")
         mean = float(d.mean())
         trail = ekf2_arrival_trail_ms(message, mean)
-        v = round(max(0.0, mean + trail), 1)  # EKF2_DELAY_RESOLUTION_MS
+        v = round(max(0.0, mean + trail), 1)  # EKF2_EV_DELAY: a float of one decimal
         return DelayAdvice("EKF2_EV_DELAY", v, f"the mean stamp-to-arrival delay and {trail:+.2f} ms (PX4 stamps "
                            "each pose on arrival, and EKF2 follows the mean of their timing errors, on "
                            f"{message.upper()} by this much more: measured against PX4 SIH)",

@@ -47,6 +47,8 @@ from pymavlink.dialects.v20 import common as mavlink2
 from bridge.backchannel import MAV_CMD_DO_SET_HOME, MAV_COMP_ID_AUTOPILOT1, Backchannel
 from bridge.config import VehicleConfig, pivot_array
 from bridge.convert import (
+    MAV_FRAME_LOCAL_FRD,
+    MAV_FRAME_LOCAL_NED,
     convert_position_only,
     convert_state,
     odometry_fields,
@@ -552,12 +554,9 @@ class VehicleLink:
         shared = self.reset_shared
         reset = (shared if shared is not None else int(st.reset_counter) + self.local_resets) % 256
         if self.cfg.message == "odometry":
-            fields = odometry_fields(conv, usec, reset, self.cfg.quality)
-            if self.estimator() == "px4":
-                # PX4 reads LOCAL_FRD as a frame of unknown heading (its yaw never aligns: no arming); our NED is
-                # north-aligned (yaw_offset_deg), which LOCAL_NED says. ArduPilot takes LOCAL_FRD only.
-                fields["frame_id"] = mavlink2.MAV_FRAME_LOCAL_NED
-            ok = self._send(self.mav.odometry_encode(**fields))
+            # PX4 never aligns its yaw to LOCAL_FRD (no arming); ArduPilot takes LOCAL_FRD only
+            frame = MAV_FRAME_LOCAL_NED if self.estimator() == "px4" else MAV_FRAME_LOCAL_FRD
+            ok = self._send(self.mav.odometry_encode(**odometry_fields(conv, usec, reset, self.cfg.quality, frame)))
             t_write = self._write_ns
         else:
             ok = self._send(self.mav.vision_position_estimate_encode(**vision_position_fields(conv, usec, reset)))

@@ -22,7 +22,7 @@ from typing import Any, TextIO
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bridge.convert import MavlinkState, odometry_fields
+from bridge.convert import MAV_FRAME_LOCAL_NED, MavlinkState, odometry_fields
 from visionpos.app.sitl.flight import FlightPlan
 from visionpos.app.sitl.px4 import Px4Gcs, Px4Process, free_px4_instance, px4_parameters, px4_ports
 from visionpos.app.sitl.px4_run import OUR_MODES, clock_rate_summary, fly_px4
@@ -33,7 +33,6 @@ from visionpos.config.arena import ArenaConfig
 from visionpos.geometry.frames import euler_ned_frd, quat_world_body_to_ned_frd, world_to_ned
 
 TRUTH_VISION_HZ = 50.0
-MAV_FRAME_LOCAL_NED = 1
 TRUTH_EV_DELAY_MS = 1  # the truth's own transit: display link out, our send back, both on loopback
 
 
@@ -84,10 +83,9 @@ class TruthVision:
             pos, vel, _, rot = self.truth.sample(np.array([now], dtype=np.int64))
             ned = world_to_ned(pos[0])
             if self.odometry:
-                fields = odometry_fields(_truth_state(ned, world_to_ned(vel[0]), rot.as_quat()[0]), now // 1000, 0,
-                                         100)
-                fields["frame_id"] = MAV_FRAME_LOCAL_NED  # north-aligned, as the bridge sends PX4
-                msg = self.mav.odometry_encode(**fields)
+                state = _truth_state(ned, world_to_ned(vel[0]), rot.as_quat()[0])
+                # LOCAL_NED, as the bridge sends PX4
+                msg = self.mav.odometry_encode(**odometry_fields(state, now // 1000, 0, 100, MAV_FRAME_LOCAL_NED))
             else:
                 roll, pitch, yaw = euler_ned_frd(rot.as_quat()[0])
                 msg = self.mav.vision_position_estimate_encode(now // 1000, *ned, roll, pitch, yaw, [nan] * 21, 0)
