@@ -29,22 +29,22 @@ The two estimators use the pose's stamp differently, so the same measured delays
   added each way), EKF2's output led SIH's truth by 1.81 (+-0.25) times the setting less the mean of the poses'
   stamp-to-arrival delays on the bridge's side, less 2.44 (+-0.67) ms, with 2.1 ms of scatter from flight to flight:
   at the mean it trails, and it is on the truth 1.35 ms over the mean (EKF2_ARRIVAL_TRAIL_MS), which the advice adds.
-  On ODOMETRY, whose velocity EKF2 fuses too (22 flights: 6 direct at a mean of 13.6-15.6 ms, 7 through 20 ms and 9
-  through 50 ms added, circles of 26-86 s), EKF2's output was on the truth at the mean less 0.2 ms on the direct link
-  (+-0.33 ms, the flights' standard error) and over it by 2.1 ms through either relay (+-0.35, +-0.46): the advice
-  takes a line between the two (less 1.78 ms plus 11.2 % of the mean) up to 2.08 ms. Each flight scatters about 1 ms
-  about that (EKF2's lead wanders over tens of seconds: two 86 s circles through 20 ms, set 0.5 and 1.2 ms over their
-  mean, read -1.9 and +1.7 ms), and the delays are right: each flight's mean delay on PX4's clock (its fused samples'
-  positions against SIH's truth, in its log) matched the bridge's within 0.6 ms. What moves it from the direct link to
-  the relay is not found: not the delays' spread (alike) and not clearly the horizon (two direct flights with
-  EKF2_DELAY_MAX 120, as through 50 ms: +2.7 and +0.7). EKF2_EV_DELAY is a float of one decimal, and the advice is
-  given to 0.1 ms: rounded to whole ms it would be up to 0.5 ms off, 0.6-0.9 ms of lead. Why it trails on position
-  alone is not found: EKF2's rate limit (a sample under an EKF step after the last one kept is dropped) keeps the
-  poses that follow late ones less often, but moves the mean by under 1.5 ms; and with SIH's truth as the vision, its
-  delays steady, EKF2 did not trail (+1.0 ms at 0.2 ms over). The mean on the bridge's side, which holds every pose:
-  PX4's log keeps vehicle_visual_odometry at about 33 Hz, a subset of 50 Hz poses, and where the delays follow a
-  pattern (the output ticks against the cameras' capture grid: two modes 8 ms apart) the subset can miss one mode (in
-  one flight the log's 70th percentile read 10.6 ms against the bridge's 20.3). Fitted on the log's subsets
+  On ODOMETRY, whose velocity EKF2 fuses too (29 flights: 7 direct at means of 10-16 ms, 10 through 20 ms and 12
+  through 50 ms added, circles of 26-86 s), EKF2's output was on the truth at 0.05 ms over the mean on the direct link
+  (+-0.38 ms, the flights' standard error) and 1.93 ms over it through either relay (+-0.23): the advice takes the
+  first up to a 14 ms mean, the second from 34 ms, a line between. Each flight scatters about 1 ms about that (EKF2's
+  lead wanders over tens of seconds: two 86 s circles through 20 ms, set 0.5 and 1.2 ms over their mean, read -1.9 and
+  +1.7 ms), and the delays are right: each flight's mean delay on PX4's clock (its fused samples' positions against
+  SIH's truth, in its log) matched the bridge's within 0.6 ms. What moves it from the direct link to the relay is not
+  found: not the delays' spread (alike) and not clearly the horizon (two direct flights with EKF2_DELAY_MAX 120, as
+  through 50 ms: +2.7 and +0.7). EKF2_EV_DELAY is a float of one decimal, and the advice is given to 0.1 ms: rounded
+  to whole ms it would be up to 0.5 ms off, 0.6-0.9 ms of lead. Why it trails on position alone is not found: EKF2's
+  rate limit (a sample under an EKF step after the last one kept is dropped) keeps the poses that follow late ones
+  less often, but moves the mean by under 1.5 ms; and with SIH's truth as the vision, its delays steady, EKF2 did not
+  trail (+1.0 ms at 0.2 ms over). The mean on the bridge's side, which holds every pose: PX4's log keeps
+  vehicle_visual_odometry at about 33 Hz, a subset of 50 Hz poses, and where the delays follow a pattern (the output
+  ticks against the cameras' capture grid: two modes 8 ms apart) the subset can miss one mode (in one flight the log's
+  70th percentile read 10.6 ms against the bridge's 20.3). Fitted on the log's subsets
   (34 flights) the 70th percentile had looked right; flown, it put EKF2 up to 8 ms ahead. Stamped with a converged
   TIMESYNC, the stamp is the pose's instant: 0.
 
@@ -81,10 +81,10 @@ JITTER_WINDOW = 100  # JitterCorrection's convergence_loops (libraries/AP_RTC/Ji
 PARAMS = {"ardupilot": "VISO_DELAY_MS", "px4": "EKF2_EV_DELAY"}
 HORIZON_PERCENTILE = 99.0  # the poses' horizon covers this share of their delays
 # EKF2 on the mean trails as if the poses were this much older, by the message it fuses: (ms, ms per ms of the mean
-# delay, at most ms). PX4 SIH, fitted on the lead against the setting less the mean: VISION_POSITION_ESTIMATE 15
-# flights; ODOMETRY, whose velocity it fuses too, 22 flights at 0, 20 and 50 ms added: -0.2 ms on a direct link (a
-# 14 ms mean), +2.1 through 20 or 50 ms added, a line between them
-EKF2_ARRIVAL_TRAIL_MS = {"vision_position_estimate": (1.35, 0.0, 1.35), "odometry": (-1.78, 0.112, 2.08)}
+# delay, at least ms, at most ms). PX4 SIH, fitted on the lead against the setting less the mean:
+# VISION_POSITION_ESTIMATE 15 flights; ODOMETRY, whose velocity it fuses too, 29 flights: +0.05 ms on a direct link
+# (means of 10-16 ms), +1.93 through 20 or 50 ms added, a line between the two clusters' means (14 and 34 ms)
+EKF2_ARRIVAL_TRAIL_MS = {"vision_position_estimate": (1.35, 0.0, 1.35, 1.35), "odometry": (-1.26, 0.094, 0.05, 1.93)}
 EKF3_SLOT_MS = 12  # EKF_TARGET_DT_MS: one buffer sample per this much of the largest delay, each at least this long
 EKF3_HALF_STEP_MS = 6.0  # writeExtNavData also moves each pose back by half an EKF step
 EKF3_DEFAULT_LARGEST_DELAY_MS = 60  # EK3_HGT_DELAY's default, the largest of EKF3's delays unless one is raised
@@ -171,8 +171,8 @@ def ekf2_arrival_horizon_ms(ev_delay_ms: float) -> int:
 
 def ekf2_arrival_trail_ms(message: str, mean_delay_ms: float) -> float:
     """What EKF2 trails by (ms) over the mean stamp-to-arrival delay mean_delay_ms of poses sent as message."""
-    ms, per_ms, most = EKF2_ARRIVAL_TRAIL_MS[message]
-    return min(most, ms + per_ms * mean_delay_ms)
+    ms, per_ms, least, most = EKF2_ARRIVAL_TRAIL_MS[message]
+    return min(most, max(least, ms + per_ms * mean_delay_ms))
 
 
 def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_timesync_converged: bool = False,

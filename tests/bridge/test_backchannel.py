@@ -822,7 +822,7 @@ def test_px4_link_advice_needs_10_poses_and_a_round_trip():
 
     assert px4_link_advice(np.full(9, 14e6), 4e6, False) is None
     assert px4_link_advice(np.full(10, 14e6), 4e6, False).value_ms == 17.4  # 14 + 2 + 1.35, to 0.1 ms
-    assert px4_link_advice(np.full(10, 14e6), 4e6, False, "odometry").value_ms == 16.0  # 16 - 1.78 + 1.792
+    assert px4_link_advice(np.full(10, 14e6), 4e6, False, "odometry").value_ms == 16.2  # 16 - 1.26 + 1.504
     assert px4_link_advice(np.full(10, 14e6), None, False) is None
     assert median_round_trip_ns([4e6, 4e6]) is None and median_round_trip_ns([3e6, 4e6, 9e6]) == 4e6
     # the advice takes half the fastest round trip: the link's bare transit (docs/autopilot-setup.md, 3.)

@@ -39,25 +39,27 @@ def test_jitter_corrected_delay_is_the_median_of_each_100_poses_smallest():
 
 def test_px4_on_arrival_wants_the_mean_and_what_ekf2_trails_by_and_with_timesync_zero():
     # _delays(): 96 from 10.0 to 29.0 (sum 96 * 19.5 = 1872) and 6, 6, 60, 60 (132): mean 2004 / 100 = 20.04;
-    # EKF2 on the mean trails as if 1.35 ms older on VISION_POSITION_ESTIMATE, and on ODOMETRY as if 1.78 ms
-    # younger plus 11.2 % of the mean, at most 2.08 ms older (docs/autopilot-setup.md, 3.); to 0.1 ms, EKF2_EV_DELAY
-    # being a float: 21.39 -> 21.4; 20.04 - 1.78 + 2.24448 = 20.50448 -> 20.5
+    # EKF2 on the mean trails as if 1.35 ms older on VISION_POSITION_ESTIMATE, and on ODOMETRY as if 1.26 ms
+    # younger plus 9.4 % of the mean, at least 0.05 ms and at most 1.93 ms older (docs/autopilot-setup.md, 3.); to
+    # 0.1 ms, EKF2_EV_DELAY being a float: 21.39 -> 21.4; 20.04 - 1.26 + 1.88376 = 20.66376 -> 20.7
     from pathlib import Path
 
     from bridge.estimator_delay import EKF2_ARRIVAL_TRAIL_MS
-    assert EKF2_ARRIVAL_TRAIL_MS == {"vision_position_estimate": (1.35, 0.0, 1.35), "odometry": (-1.78, 0.112, 2.08)}
+    assert EKF2_ARRIVAL_TRAIL_MS == {"vision_position_estimate": (1.35, 0.0, 1.35, 1.35),
+                                     "odometry": (-1.26, 0.094, 0.05, 1.93)}
     doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
-    assert "the bridge advises the **mean** stamp-to-arrival delay, **plus 1.35 ms** on VISION_POSITION_ESTIMATE " \
-           "and **less 1.78 ms plus 11.2 % of the mean, at most 2.08 ms over it,** on ODOMETRY" in doc
+    assert "the bridge advises the **mean** stamp-to-arrival delay, **plus 1.35 ms** on VISION_POSITION_ESTIMATE, " \
+           "and on ODOMETRY **0.05 ms** on a direct link, **1.93 ms** through a slow one" in doc
     a = advised_delay("px4", _delays())
     assert (a.param, a.value_ms) == ("EKF2_EV_DELAY", 21.4)
     assert "mean" in a.why and "arrival" in a.why and "+1.35 ms" in a.why
     o = advised_delay("px4", _delays(), message="odometry")
-    assert o.value_ms == 20.5 and "+0.46 ms" in o.why and "ODOMETRY" in o.why
-    # through a slow link EKF2 on ODOMETRY trails more, at most 2.08 ms: at a mean of 65 ms (-1.78 + 7.28 = 5.5 over
-    # the most) 67.08 -> 67.1; on a direct link less: at 13 ms, 13 - 1.78 + 1.456 = 12.676 -> 12.7
-    assert advised_delay("px4", np.full(50, 65.0), message="odometry").value_ms == 67.1
-    assert advised_delay("px4", np.full(50, 13.0), message="odometry").value_ms == 12.7
+    assert o.value_ms == 20.7 and "+0.62 ms" in o.why and "ODOMETRY" in o.why
+    # through a slow link EKF2 on ODOMETRY trails more, at most 1.93 ms: at a mean of 65 ms (-1.26 + 6.11 = 4.85 over
+    # the most) 66.93 -> 66.9; on a direct link at least 0.05 ms: at 10.02 ms (-1.26 + 0.94 = -0.32 under the
+    # least) 10.07 -> 10.1
+    assert advised_delay("px4", np.full(50, 65.0), message="odometry").value_ms == 66.9
+    assert advised_delay("px4", np.full(50, 10.02), message="odometry").value_ms == 10.1
     # a long tail (90 poses at 15 ms, 10 at 45 after stalls): the median 15, the mean 18, which EKF2 follows: 19.35
     assert advised_delay("px4", np.r_[np.full(90, 15.0), np.full(10, 45.0)]).value_ms == 19.4
     b = advised_delay("px4", _delays(), px4_timesync_converged=True)

@@ -524,7 +524,7 @@ def test_the_latency_line_advises_ardupilot_the_smallest_and_px4_the_mean_and_wh
     assert "ArduPilot VISO_DELAY_MS=10 (the smallest of each 100 poses + link latency)" in line
     assert "PX4 EKF2_EV_DELAY=14.3 (the mean +1.35 ms + link latency) without TIMESYNC" in line  # 13 + 1.35
     line = delay_advice({**stats, "message": "odometry", "latency_stamp_ms_mean": 20.0})
-    assert "PX4 EKF2_EV_DELAY=20.5 (the mean +0.46 ms + link latency) without TIMESYNC" in line  # 20 - 1.78 + 2.24
+    assert "PX4 EKF2_EV_DELAY=20.6 (the mean +0.62 ms + link latency) without TIMESYNC" in line  # 20 - 1.26 + 1.88
     doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "autopilot-setup.md").read_text().split())
     assert "PX4 EKF2_EV_DELAY=M (the mean +1.35 ms + link latency) without TIMESYNC, ~0 with TIMESYNC " \
            "converged`" in doc

@@ -13,11 +13,12 @@ EKF2's dead reckoning on SIH's vibrating IMU, which differs from one flight to t
 does).
 
 The EKF's lead is measured on the circle (each turn's drift taken out: report.time_shift_fit), from PX4's own log
-(EKF2's output against SIH's truth, both on PX4's clock: px4_log.py), which the goal reads, and from the host
-(LOCAL_POSITION_NED against the truth as both arrive here), beside the poses' mean delay on PX4's clock (the log,
-which keeps about 33 of the 50 poses a second) and their mean stamp-to-arrival over the circle (the bridge's side,
-every pose: what its advice reads). Skipped, with the reason in the notes, where no PX4 build is found
-($VISIONPOS_PX4_SITL or ../shared/sitl-px4/build beside the checkout).
+(EKF2's output against SIH's truth, both on PX4's clock: px4_log.py), and from the host (LOCAL_POSITION_NED against
+the truth as both arrive here), beside the poses' mean delay on PX4's clock (the log, which keeps about 33 of the 50
+poses a second) and their mean stamp-to-arrival over the circle (the bridge's side, every pose: what its advice
+reads). The lead's goal reads sitl_px4_delay's three direct flights (one flight scatters about 1 ms:
+docs/autopilot-setup.md, 3.); this flight's is reported. Skipped, with the reason in the notes, where no PX4 build is
+found ($VISIONPOS_PX4_SITL or ../shared/sitl-px4/build beside the checkout).
 """
 
 from __future__ import annotations

@@ -1,13 +1,13 @@
-"""Benchmark group `sitl_px4_delay`: PX4 SIH with its vision link slowed by a relay (D = 20 and 50 ms each way,
-`visionpos sitl --autopilot px4 --link-delay-ms D`, ODOMETRY as that command sends), EKF2_EV_DELAY booted at 15 ms +
-D and set in flight to the bridge's advice (the mean stamp-to-arrival delay: PX4 in SITL stamps the poses on
-arrival). Each flight: Offboard take-off to 1 m, an 8 s hold turning about the vertical at +-1 rad/s, a 1 m square,
+"""Benchmark group `sitl_px4_delay`: PX4 SIH with its vision link direct (D = 0) or slowed by a relay (D = 20 and 50
+ms each way, `visionpos sitl --autopilot px4 --link-delay-ms D`, ODOMETRY as that command sends), EKF2_EV_DELAY booted
+at 15 ms + D and set in flight to the bridge's advice (the mean stamp-to-arrival delay: PX4 in SITL stamps the poses
+on arrival). Each flight: Offboard take-off to 1 m, an 8 s hold turning about the vertical at +-1 rad/s, a 1 m square,
 30 s round a 0.5 m circle, AUTO.LAND. FLIGHTS_PER_DELAY flights per D: EKF2's lead on the circle scatters from
 flight to flight by about 1.2 ms with the same delays and setting, and wanders within a flight over tens of seconds
 (docs/autopilot-setup.md, 3.), so one flight cannot tell a wrong setting from that scatter. The goal: with the advised
 value, the mean of EKF2's lead over a D's flights within 2 ms of SIH's truth (PX4's log: sitl_px4.py says how it is
-read); each flight's own lead is in the table and in sitl_px4_delay_ekf_lead_single_flight_ms_abs_max. D = 0 is in
-`sitl_px4`. Skipped, with the reason in the notes, where no PX4 build is found.
+read); each flight's own lead is in the table and in sitl_px4_delay_ekf_lead_single_flight_ms_abs_max. Skipped, with
+the reason in the notes, where no PX4 build is found.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 from visionpos.benchmarks import BenchResult
 from visionpos.benchmarks.sitl_px4 import LEAD_HEADER, lead_row
 
-DELAYS_MS = (20.0, 50.0)
+DELAYS_MS = (0.0, 20.0, 50.0)
 FLIGHTS_PER_DELAY = 3
 
 
@@ -33,6 +33,10 @@ def lead_summary(leads: list[float | None]) -> dict[str, float]:
             "se": float(got.std(ddof=1) / math.sqrt(len(got))) if whole and len(got) >= 2 else math.nan,
             "worst_abs": float(np.abs(got).max()) if whole else math.nan,
             "within_2ms": float((np.abs(got) <= 2.0).sum()), "flights": float(len(got))}
+
+
+def _link(added_ms: float) -> str:
+    return f"{added_ms:.0f} ms added each way" if added_ms else "direct link"
 
 
 def run(quick: bool = False) -> BenchResult:
@@ -51,11 +55,11 @@ def run(quick: bool = False) -> BenchResult:
         leads = []
         for k in range(FLIGHTS_PER_DELAY):
             plan = FlightPlan(altitude_m=1.0, side_m=1.0, hold_s=8.0, square=True, cut_s=0.0, timeout_s=220.0,
-                              link_delay_ms=d, yaw_swing_rad_s=1.0, circle_s=30.0)
+                              link_delay_ms=d or None, yaw_swing_rad_s=1.0, circle_s=30.0)  # 0: no relay
             s = run_px4(sitl_arena("thesis", [f"vehicles.0.message={PX4_MESSAGE}"], plan.timeout_s + 60.0), build,
                         plan, None)
             tag = f"added_{d:.0f}_flight{k + 1}"
-            rows.append(lead_row(f"{d:.0f} ms added each way, flight {k + 1}", s))
+            rows.append(lead_row(f"{_link(d)}, flight {k + 1}", s))
             g = s.get("px4_log") or {}
             for name, v in (("ev_delay_ms", s.get("viso_delay_ms")),
                             ("ekf2_output_lead_circle_ms", g.get("output_lead_circle_ms")),
@@ -76,7 +80,7 @@ def run(quick: bool = False) -> BenchResult:
         res.metrics[f"sitl_px4_delay_ekf2_output_lead_circle_ms_mean_{tag}"] = sm["mean"]
         res.metrics[f"sitl_px4_delay_ekf2_output_lead_circle_ms_mean_se_{tag}"] = sm["se"]
         res.metrics[f"sitl_px4_delay_flights_within_2ms_{tag}"] = sm["within_2ms"]
-        rows.append(f"| {d:.0f} ms added each way, mean of {sm['flights']:.0f} flights | | | | "
+        rows.append(f"| {_link(d)}, mean of {sm['flights']:.0f} flights | | | | "
                     f"{sm['mean']:.1f} +- {sm['se']:.1f} | | {sm['within_2ms']:.0f} within 2 ms |")
         means.append(abs(sm["mean"]))
         worst.append(sm["worst_abs"])
