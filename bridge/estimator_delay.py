@@ -71,6 +71,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import NamedTuple
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
@@ -80,11 +81,22 @@ from bridge.signing import SIGNATURE_BLOCK_LEN
 JITTER_WINDOW = 100  # JitterCorrection's convergence_loops (libraries/AP_RTC/JitterCorrection.h default)
 PARAMS = {"ardupilot": "VISO_DELAY_MS", "px4": "EKF2_EV_DELAY"}
 HORIZON_PERCENTILE = 99.0  # the poses' horizon covers this share of their delays
-# EKF2 on the mean trails as if the poses were this much older, by the message it fuses: (ms, ms per ms of the mean
-# delay, at least ms, at most ms). PX4 SIH, fitted on the lead against the setting less the mean:
-# VISION_POSITION_ESTIMATE 15 flights; ODOMETRY, whose velocity it fuses too, 29 flights: +0.05 ms on a direct link
-# (means of 10-16 ms), +1.93 through 20 or 50 ms added, a line between the two clusters' means (14 and 34 ms)
-EKF2_ARRIVAL_TRAIL_MS = {"vision_position_estimate": (1.35, 0.0, 1.35, 1.35), "odometry": (-1.26, 0.094, 0.05, 1.93)}
+
+
+class Ekf2Trail(NamedTuple):
+    """What EKF2 on the mean trails by (ms): ms_at_zero + per_ms x the mean delay, held within [least_ms, most_ms]."""
+    ms_at_zero: float
+    per_ms: float
+    least_ms: float
+    most_ms: float
+
+
+# EKF2 on the mean trails as if the poses were this much older, by the message it fuses. PX4 SIH, fitted on the lead
+# against the setting less the mean: VISION_POSITION_ESTIMATE 15 flights; ODOMETRY, whose velocity it fuses too,
+# 29 flights: +0.05 ms on a direct link (means of 10-16 ms), +1.93 through 20 or 50 ms added, a line between the two
+# clusters' means (14 and 34 ms)
+EKF2_ARRIVAL_TRAIL_MS = {"vision_position_estimate": Ekf2Trail(1.35, 0.0, 1.35, 1.35),
+                         "odometry": Ekf2Trail(-1.26, 0.094, 0.05, 1.93)}
 EKF3_SLOT_MS = 12  # EKF_TARGET_DT_MS: one buffer sample per this much of the largest delay, each at least this long
 EKF3_HALF_STEP_MS = 6.0  # writeExtNavData also moves each pose back by half an EKF step
 EKF3_DEFAULT_LARGEST_DELAY_MS = 60  # EK3_HGT_DELAY's default, the largest of EKF3's delays unless one is raised
@@ -171,8 +183,8 @@ def ekf2_arrival_horizon_ms(ev_delay_ms: float) -> int:
 
 def ekf2_arrival_trail_ms(message: str, mean_delay_ms: float) -> float:
     """What EKF2 trails by (ms) over the mean stamp-to-arrival delay mean_delay_ms of poses sent as message."""
-    ms, per_ms, least, most = EKF2_ARRIVAL_TRAIL_MS[message]
-    return min(most, max(least, ms + per_ms * mean_delay_ms))
+    t = EKF2_ARRIVAL_TRAIL_MS[message]
+    return min(t.most_ms, max(t.least_ms, t.ms_at_zero + t.per_ms * mean_delay_ms))
 
 
 def advised_delay(autopilot: str | None, stamp_to_arrival_ms: np.ndarray, px4_timesync_converged: bool = False,

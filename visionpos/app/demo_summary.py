@@ -312,9 +312,9 @@ def format_summary(s: dict[str, Any]) -> str:
         f"{fmt(s['latency_to_autopilot_ms'].get('p2'))} ms, mean {fmt(s['latency_to_autopilot_ms'].get('mean'))} ms "
         "(ArduPilot's VISO_DELAY_MS: near the smallest, its jitter correction takes each pose at the smallest delay "
         "of its last 100; PX4's EKF2_EV_DELAY: the mean and "
-        f"{EKF2_ARRIVAL_TRAIL_MS['vision_position_estimate'][0]:g} ms on VISION_POSITION_ESTIMATE, "
-        f"{EKF2_ARRIVAL_TRAIL_MS['odometry'][2]:+g} ms on a direct link to "
-        f"{EKF2_ARRIVAL_TRAIL_MS['odometry'][3]:+g} ms through a slow one on ODOMETRY, it stamps poses on arrival "
+        f"{EKF2_ARRIVAL_TRAIL_MS['vision_position_estimate'].ms_at_zero:g} ms on VISION_POSITION_ESTIMATE, "
+        f"{EKF2_ARRIVAL_TRAIL_MS['odometry'].least_ms:+g} ms on a direct link to "
+        f"{EKF2_ARRIVAL_TRAIL_MS['odometry'].most_ms:+g} ms through a slow one on ODOMETRY, it stamps poses on arrival "
         "without TIMESYNC and follows the mean of their timing errors, by that much more; "
         "docs/autopilot-setup.md section 3)",
         f"server: accepted {server['frames_accepted']} camera frames"

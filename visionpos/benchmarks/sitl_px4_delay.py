@@ -87,5 +87,5 @@ def run(quick: bool = False) -> BenchResult:
     # NaN where a delay lacks a lead: the goal then fails
     res.metrics["sitl_px4_delay_ekf_lead_ms_abs_max"] = float(np.max(means))
     res.metrics["sitl_px4_delay_ekf_lead_single_flight_ms_abs_max"] = float(np.max(worst))
-    res.tables["PX4 SIH through a slowed link on the circle: EKF2's timing"] = "\n".join(rows)
+    res.tables["PX4 SIH, direct and through a slowed link, on the circle: EKF2's timing"] = "\n".join(rows)
     return res
