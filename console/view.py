@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from visionpos.fusion.layout import ADAPT_NIS_P, ADAPT_NIS_R
-from visionpos.fusion.snapshot import CameraFrame
+from visionpos.fusion.snapshot import CameraFrame, FusionSnapshot
 
 # a leftover blob that stays within one cell this long, seen in most updates, looks like a reflection
 STATIC_BLOB_S = 5.0
@@ -149,12 +149,13 @@ class ConsoleView:
 
     # ---------------------------------------------------------------- per camera
 
-    def _views(self, now_ns: int, watch: bool, rays: frozenset[int]) -> list[tuple[int, int | None, _CameraView]]:
-        """(camera, capture_ns or None, its view) per camera. A camera's view is built only when something it
-        shows changed since its last build (its frame, the frame's labels, its rays) or a watch wants a frame it
-        has not seen; otherwise the last one is reused (a camera slower than the updates, a stalled one, a
-        paused replay cost nothing)."""
-        frames = self.source.pipeline.snapshot().cameras
+    def _views(self, now_ns: int, watch: bool, rays: frozenset[int], snap: FusionSnapshot | None = None
+               ) -> list[tuple[int, int | None, _CameraView]]:
+        """(camera, capture_ns or None, its view) per camera, from snap (the pipeline's snapshot; None: take one).
+        A camera's view is built only when something it shows changed since its last build (its frame, the
+        frame's labels, its rays) or a watch wants a frame it has not seen; otherwise the last one is reused (a
+        camera slower than the updates, a stalled one, a paused replay cost nothing)."""
+        frames = (snap or self.source.pipeline.snapshot()).cameras
         out: list[tuple[int, int | None, _CameraView]] = []
         build: list[tuple[int, CameraFrame, np.ndarray, tuple]] = []
         for cid in self.cameras:
@@ -206,13 +207,14 @@ class ConsoleView:
                 self._watch(cid, o, px, label, pred, now_ns)
         return out
 
-    def camera_states(self, now_ns: int, watch: bool = False, rays: frozenset[int] = frozenset()
-                      ) -> list[dict[str, Any]]:
+    def camera_states(self, now_ns: int, watch: bool = False, rays: frozenset[int] = frozenset(),
+                      snap: FusionSnapshot | None = None) -> list[dict[str, Any]]:
         """Per camera: blobs [u, v, body (-1 = left over)] and the filter's predicted markers [u, v, body] at
         the frame's capture time, pixels in tenths (integers encode fastest), the frame's age; for the
         cameras in `rays` also each blob's undistorted coordinates [x, y] x 1e5 (its ray). watch: also
         update the residual and static-blob watches (twice a second is plenty)."""
-        return [{"id": cid, **v.data, "age_ms": _age_ms(now_ns, t)} for cid, t, v in self._views(now_ns, watch, rays)]
+        return [{"id": cid, **v.data, "age_ms": _age_ms(now_ns, t)}
+                for cid, t, v in self._views(now_ns, watch, rays, snap)]
 
     def _watch(self, cid: int, o: CameraFrame, px: np.ndarray, label: list[int], pred: list[tuple[float, float, int]],
                now_ns: int) -> None:
@@ -274,8 +276,10 @@ class ConsoleView:
 
     # ---------------------------------------------------------------- whole state
 
-    def bodies(self) -> list[dict[str, Any]]:
-        snap = self.source.pipeline.snapshot()
+    def bodies(self, snap: FusionSnapshot | None = None) -> list[dict[str, Any]]:
+        """Per body: name, id, tracked and its pose, or why it is not tracked; snap: the pipeline's snapshot (None:
+        take one)."""
+        snap = snap or self.source.pipeline.snapshot()
         out = []
         for i, s in enumerate(self.source.last_states or []):
             d: dict[str, Any] = {"name": s.name, "id": s.body_id, "tracked": bool(s.tracked)}
@@ -302,8 +306,8 @@ class ConsoleView:
         except (AttributeError, IndexError, TypeError):
             return None
 
-    def loose_markers(self) -> list[list[float | None]]:
-        lp = self.source.pipeline.snapshot().loose_points
+    def loose_markers(self, snap: FusionSnapshot | None = None) -> list[list[float | None]]:
+        lp = (snap or self.source.pipeline.snapshot()).loose_points
         if lp is None:
             return []
         return [_rounded(p, 4) for p in np.asarray(lp.points).reshape(-1, 3).tolist()]
@@ -312,11 +316,12 @@ class ConsoleView:
               cameras: bool = True) -> dict[str, Any]:
         """The live message: bodies, loose markers and, with cameras, every camera's blobs and predictions
         (camera_states)."""
-        out = {"type": "state", "t_ns": int(now_ns), "bodies": self.bodies(), "markers": self.loose_markers()}
+        snap = self.source.pipeline.snapshot()  # one per update: its parts below read the same frames
+        out = {"type": "state", "t_ns": int(now_ns), "bodies": self.bodies(snap), "markers": self.loose_markers(snap)}
         if cameras:
-            out["cameras"] = self.camera_states(now_ns, watch, rays)
+            out["cameras"] = self.camera_states(now_ns, watch, rays, snap)
         elif watch:
-            self._views(now_ns, True, frozenset())
+            self._views(now_ns, True, frozenset(), snap)
         return out
 
     def state_json(self, now_ns: int, watch: bool = False, rays: frozenset[int] = frozenset(),

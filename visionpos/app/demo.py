@@ -424,6 +424,8 @@ class DemoContext:
     key: bytes | None
     duration_s: float
     outputs: list[Sink] = dataclasses.field(default_factory=list)  # build_outputs' sinks (the bridge's among them)
+    # body -> what its fake autopilot got so far (demo_summary.AutopilotPoses; .n counts the pose messages)
+    autopilot_poses: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass
@@ -592,7 +594,8 @@ async def _stream(run: _Run, live: LiveSource | None, during: Callable[[DemoCont
     status = asyncio.create_task(_status_loop(run, status_out))
     if during is not None:
         tasks.append(asyncio.create_task(during(DemoContext(run.arena, run.server, run.stations, run.bridge,
-                                                            run.key, duration_s, run.outputs))))
+                                                            run.key, duration_s, run.outputs,
+                                                            run.autopilot_poses))))
     await asyncio.gather(*tasks)
     if live is not None and live.stopped_ns is not None:
         run.t_stop = min(run.t_stop, live.stopped_ns)
