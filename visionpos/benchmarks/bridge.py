@@ -476,10 +476,10 @@ IMU_ARM = "imu"  # bench_outputs' third arm: all outputs and the vehicle's IMU i
 ONE_PER_TICK = ("pose_stream", "natnet", "vrpn")  # clients that get a frame per output tick (Foxglove: rate_hz)
 
 
-def _switch_outputs(server, all_sinks: list, network: list, taps: tuple, on: bool) -> None:
-    """The network outputs into (on) or out of the server's ticks, news and packet taps, between two of its
-    ticks (the loop is one thread); their sockets and threads stay open, idle while out."""
-    server.sinks = list(all_sinks) if on else [s for s in all_sinks if s not in network]
+def _switch_outputs(server, all_sinks: list, outputs: list, taps: tuple, on: bool) -> None:
+    """The sinks `outputs` into (on) or out of the server's ticks and news, and the packet taps, between two of
+    its ticks (the loop is one thread); their sockets and threads stay open, idle while out."""
+    server.sinks = list(all_sinks) if on else [s for s in all_sinks if s not in outputs]
     server.ingest.taps = taps if on else ()
 
 
@@ -492,6 +492,7 @@ def _demo_run(arena, duration_s: float, windows: int | None) -> tuple[list[dict[
     client's frames/s. Returns the windows and the run's figures (output rate, tracked fraction, frames shed)."""
     from bridge.foxglove_live import FoxgloveServer
     from bridge.natnet import NatNetServer
+    from bridge.outputs import OffLoopOutputs
     from bridge.pose_stream import PoseStream
     from bridge.vrpn import VrpnServer
     from visionpos.app.demo import run_demo
@@ -503,7 +504,9 @@ def _demo_run(arena, duration_s: float, windows: int | None) -> tuple[list[dict[
         server = ctx.server
         t_end = time.monotonic() + ctx.duration_s - OUTPUT_TAIL_S
         network = network_of(ctx.outputs)
+        # the server holds the network outputs behind one off-loop dispatcher (app/outputs.py): it is what goes
         all_sinks, taps = list(server.sinks), server.ingest.taps
+        dispatch = [s for s in all_sinks if isinstance(s, OffLoopOutputs)]
         pose, natnet, vrpn, fox = (next((o for o in network if isinstance(o, cls)), None)
                                    for cls in (PoseStream, NatNetServer, VrpnServer, FoxgloveServer))
         # the clients in a process of their own, as they would be: they must not share this one's GIL
@@ -530,8 +533,7 @@ def _demo_run(arena, duration_s: float, windows: int | None) -> tuple[list[dict[
                          "side_cpu_us_per_packet": side_s / n * 1e6, "ticks_hz": (b["ticks"] - a["ticks"]) / dt,
                          "mavlink_hz": min(((b["mavlink"][k] - a["mavlink"].get(k, 0)) / dt for k in b["mavlink"]),
                                            default=0.0),
-                         "clients_hz": ({k: (fr1[k] - fr0[k]) / (fr1["t"] - fr0["t"]) for k in fr1 if k != "t"}
-                                        if on else {}),
+                         "clients_hz": {k: (fr1[k] - fr0[k]) / (fr1["t"] - fr0["t"]) for k in fr1 if k != "t"},
                          "foxglove_sent_hz": (b["fox"] - a["fox"]) / dt})
 
         try:
@@ -539,11 +541,11 @@ def _demo_run(arena, duration_s: float, windows: int | None) -> tuple[list[dict[
             if windows is None:
                 await window(True, max(0.5, t_end - time.monotonic()))
             for i in range(windows or 0):
-                _switch_outputs(server, all_sinks, network, taps, on=i % 2 == 1)
+                _switch_outputs(server, all_sinks, dispatch, taps, on=i % 2 == 1)
                 await asyncio.sleep(OUTPUT_SWITCH_S)
                 await window(i % 2 == 1, OUTPUT_WINDOW_S)
         finally:
-            _switch_outputs(server, all_sinks, network, taps, on=True)
+            _switch_outputs(server, all_sinks, dispatch, taps, on=True)
             clients.stdin.close()
             await clients.wait()
 
@@ -567,16 +569,11 @@ def _slowest_client_ratio(rows: list[dict]) -> float:
     return min(float(np.median([r["clients_hz"][k] for r in rows])) for k in ONE_PER_TICK) / ticks_hz
 
 
-def bench_outputs(quick: bool) -> tuple[dict[str, float], list[dict], str]:
-    """The thesis arena's demo with all the outputs (pose stream, NatNet, VRPN and, when installed, Foxglove),
-    one client each, in windows alternately without and with them; then runs with the vehicle's IMU in the
-    filter too. Returns the metrics, the windows and runs, and what kept Foxglove out."""
-    from visionpos.app.demo import demo_arena
+def all_outputs() -> tuple[list[str], tuple[str, ...], str]:
+    """`--set` overrides that give the demo every output on free loopback ports, those outputs, and what kept
+    Foxglove out ("" when it is in)."""
     from visionpos.app.ports import free_port
 
-    windows = OUTPUT_WINDOWS_QUICK if quick else OUTPUT_WINDOWS_FULL
-    duration_s = OUTPUT_SETTLE_S + windows * (OUTPUT_WINDOW_S + OUTPUT_SWITCH_S + 0.1) + 2.0
-    imu_s = OUTPUT_DURATION_S_QUICK if quick else OUTPUT_DURATION_S_FULL
     ports: list[int] = []
     while len(ports) < 4:  # pose stream, NatNet command and data, Foxglove: four different ports
         p = free_port()
@@ -584,7 +581,19 @@ def bench_outputs(quick: bool) -> tuple[dict[str, float], list[dict], str]:
             ports.append(p)
     missing = _foxglove_missing()
     outputs_on = tuple(o for o in ALL_OUTPUTS if o != "foxglove" or not missing)
-    overrides = [o for o in _output_overrides(*ports) if o.split(".")[0] in outputs_on]
+    return [o for o in _output_overrides(*ports) if o.split(".")[0] in outputs_on], outputs_on, missing
+
+
+def bench_outputs(quick: bool) -> tuple[dict[str, float], list[dict], str]:
+    """The thesis arena's demo with all the outputs (pose stream, NatNet, VRPN and, when installed, Foxglove),
+    one client each, in windows alternately without and with them; then runs with the vehicle's IMU in the
+    filter too. Returns the metrics, the windows and runs, and what kept Foxglove out."""
+    from visionpos.app.demo import demo_arena
+
+    windows = OUTPUT_WINDOWS_QUICK if quick else OUTPUT_WINDOWS_FULL
+    duration_s = OUTPUT_SETTLE_S + windows * (OUTPUT_WINDOW_S + OUTPUT_SWITCH_S + 0.1) + 2.0
+    imu_s = OUTPUT_DURATION_S_QUICK if quick else OUTPUT_DURATION_S_FULL
+    overrides, outputs_on, missing = all_outputs()
     _demo_run(demo_arena("thesis", OUTPUT_DURATION_S_QUICK, 1, overrides), OUTPUT_DURATION_S_QUICK, None)  # warm-up
     rows, _ = _demo_run(demo_arena("thesis", duration_s, 1, overrides), duration_s, windows)
     # all of them with the vehicle's IMU in the filter (fusion.imu.enabled: the fake autopilot streams it at the
