@@ -93,6 +93,14 @@ def _acceleration(state: BodyState) -> np.ndarray:
     return a if np.isfinite(a).all() else np.zeros(3)
 
 
+def pose_at(state: BodyState, at_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """The state's pose at at_ns (server clock, ns), moved from its time_ns with the filter's own model (its
+    velocity, body angular velocity and world acceleration): (position (3,) m world, quaternion (4,) xyzw
+    body->world). Every output that stamps a pose with a capture time (MAVLink, VRPN, NatNet) sends this."""
+    return back_propagate(state.position, state.quaternion, state.velocity, state.angular_velocity,
+                          (state.time_ns - at_ns) * 1e-9, _acceleration(state))
+
+
 def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: float,
                   at_ns: int | None = None) -> MavlinkState:
     """BodyState -> NED / FRD quantities at time at_ns (default: the state's capture time).
@@ -102,10 +110,11 @@ def convert_state(state: BodyState, pivot_offset: np.ndarray, yaw_offset_rad: fl
     shifted to the vehicle reference point (pivot_offset (3,) m, body FLU) and
     turned into NED / FRD.
     """
-    dt = (state.time_ns - (state.capture_ns if at_ns is None else at_ns)) * 1e-9
+    at = state.capture_ns if at_ns is None else at_ns
+    dt = (state.time_ns - at) * 1e-9
     w_body = np.asarray(state.angular_velocity, float)
     a_w = _acceleration(state)
-    p_w, q_w = back_propagate(state.position, state.quaternion, state.velocity, w_body, dt, a_w)
+    p_w, q_w = pose_at(state, at)
     R_wb = matrix_from_quat(q_w)
     o = np.asarray(pivot_offset, float)
     lever = R_wb @ o  # world-frame lever arm body origin -> reference point

@@ -30,6 +30,7 @@ import numpy as np
 
 import visionpos
 from bridge import natnet_packets as nn
+from bridge.convert import pose_at
 from bridge.transport import RateGrid
 from visionpos.config.arena import ArenaConfig, BodyConfig
 from visionpos.config.schema import register_section
@@ -303,26 +304,29 @@ class NatNetServer(Sink):
     # ---- frames ----------------------------------------------------------------------------------
 
     def build_frame(self, states: list[BodyState], loose: LoosePoints | None, ready_ns: int) -> nn.Frame:
-        """States (world z-up) -> one frame in the streamed axes. An untracked body (or one with a
-        non-finite pose) is sent as not valid at the origin with identity orientation, never stale."""
+        """States (world z-up) -> one frame in the streamed axes. Every pose is moved to the frame's
+        CameraMidExposureTimestamp, the newest capture time among the states (bridge.convert.pose_at), as
+        Motive's poses are at their frame's mid-exposure and clients stamp them so. An untracked body (or one
+        with a non-finite pose) is sent as not valid at the origin with identity orientation, never stale."""
         up = self.cfg.up_axis
         bodies, sets, labeled = [], [], []
-        capture = 0
+        capture = max((int(st.capture_ns) for st in states), default=0)
         zero, ident = np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0])
         for st in states:
-            capture = max(capture, int(st.capture_ns))
             ok = bool(st.tracked) and bool(np.all(np.isfinite(st.position)) and np.all(np.isfinite(st.quaternion)))
+            if ok:
+                position, quaternion = pose_at(st, capture)
+                ok = bool(np.all(np.isfinite(position)) and np.all(np.isfinite(quaternion)))
             if not ok:
                 bodies.append((st.body_id, zero, ident, 0.0, False))
                 if self.cfg.markers and st.body_id in self.models:
                     sets.append((st.name, np.zeros((0, 3))))
                 continue
             err = float(st.residual_mm) * 1e-3 if math.isfinite(st.residual_mm) else 0.0
-            bodies.append((st.body_id, to_stream_axes(st.position, up), quat_to_stream_axes(st.quaternion, up),
-                           err, True))
+            bodies.append((st.body_id, to_stream_axes(position, up), quat_to_stream_axes(quaternion, up), err, True))
             m = self._body_markers.get(st.body_id)
             if self.cfg.markers and m is not None:
-                world = np.asarray(st.position, float) + m @ matrix_from_quat(np.asarray(st.quaternion, float)).T
+                world = position + m @ matrix_from_quat(quaternion).T
                 pts = to_stream_axes(world, up)
                 sets.append((st.name, pts))
                 flags = nn.MARKER_MODEL_SOLVED | nn.MARKER_HAS_MODEL

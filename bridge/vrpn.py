@@ -43,7 +43,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from bridge.convert import back_propagate
+from bridge.convert import pose_at
 from bridge.transport import RateGrid, pack_datagrams
 from visionpos.config.arena import ArenaConfig, ConfigError
 from visionpos.config.schema import register_section
@@ -179,12 +179,8 @@ def report_pose(st: BodyState) -> tuple[np.ndarray, np.ndarray]:
     """A state's pose at its capture time: (position (3,) m world, quaternion (4,) xyzw body->world).
 
     The filter's state is valid at time_ns (the send time); the report is stamped with the
-    capture time, so the pose is moved back by time_ns - capture_ns with the state's velocities."""
-    dt_s = (st.time_ns - st.capture_ns) * 1e-9
-    if dt_s == 0.0:
-        q = np.asarray(st.quaternion, float)
-        return np.asarray(st.position, float), q / np.sqrt(q @ q)
-    return back_propagate(st.position, st.quaternion, st.velocity, st.angular_velocity, dt_s)
+    capture time, so the pose is moved back to it (bridge.convert.pose_at, as MAVLink's)."""
+    return pose_at(st, st.capture_ns)
 
 
 def encode_reports(st: BodyState, sender: int, wall_ns: int, seq: int) -> tuple[bytes, bytes] | None:

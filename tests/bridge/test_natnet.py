@@ -394,3 +394,42 @@ def test_free_ports_are_distinct_and_bindable():
     finally:
         for s in socks:
             s.close()
+
+
+def test_every_pose_and_its_markers_are_at_the_frames_mid_exposure_time():
+    """Clients stamp NatNet poses with CameraMidExposureTimestamp (Motive's poses are at their frame's
+    mid-exposure): each state, valid at its output tick, is moved back to the newest capture time among the
+    states with its own velocity, body angular velocity and acceleration (written out here with scipy)."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    c = 5_000_000_000
+    tick = c + 6_000_000
+    a = dataclasses.replace(
+        body_state("cf1", 7, capture_ns=c, dt_ns=tick - c, position=(1.0, -0.5, 0.8),
+                   quaternion=Rotation.from_euler("zyx", [0.4, 0.2, -0.1]).as_quat(), velocity=(2.0, -1.0, 0.5),
+                   angular_velocity=(0.3, -2.0, 1.0)),
+        acceleration=np.array([1.0, 0.0, -2.0]))
+    b = body_state("drone_b", 12, capture_ns=c - 3_000_000, dt_ns=tick - c + 3_000_000, position=(-2.0, 3.5, 1.1),
+                   quaternion=Rotation.from_euler("zyx", [-1.2, 0.0, 0.4]).as_quat(), velocity=(0.0, 1.0, 0.0),
+                   angular_velocity=(0.0, 0.0, 0.5))  # no acceleration (NaN): moved at constant velocity
+    srv = server(transmission="unicast", markers=True)
+    try:
+        f = srv.build_frame([a, b], None, tick)
+    finally:
+        srv.close()
+    assert f.mid_exposure_ticks == c and f.data_ready_ticks == tick
+    dt = (tick - c) * 1e-9  # both move back by 6 ms: to the frame's mid-exposure, not each to its own capture
+    moved = {
+        7: (np.array([1.0, -0.5, 0.8]) - np.array([2.0, -1.0, 0.5]) * dt + 0.5 * np.array([1.0, 0.0, -2.0]) * dt**2,
+            Rotation.from_quat(a.quaternion) * Rotation.from_rotvec(-np.array([0.3, -2.0, 1.0]) * dt)),
+        12: (np.array([-2.0, 3.5, 1.1]) - np.array([0.0, 1.0, 0.0]) * dt,
+             Rotation.from_quat(b.quaternion) * Rotation.from_rotvec(-np.array([0.0, 0.0, 0.5]) * dt)),
+    }
+    got = {i: (p, q, ok) for i, p, q, e, ok in f.bodies}
+    for body_id, (p, R) in moved.items():
+        assert got[body_id][2] is True
+        check_pose(got[body_id][0], got[body_id][1], SimpleNamespace(position=p, quaternion=R.as_quat()))
+    # cf1's first model marker, solved at the same instant, in the streamed axes
+    marker = next(pt for lid, pt, *_ in f.labeled if lid == (7 << 16) | 1)
+    np.testing.assert_allclose(marker, Y_UP @ (moved[7][0] + moved[7][1].apply(MARKERS[0][0])), atol=1e-9)

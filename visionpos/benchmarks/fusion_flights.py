@@ -8,13 +8,15 @@ FusionPipeline as the server runs it, against four goals per flight:
 - position RMSE <= 1.2 x and rotation RMSE <= 1.0 x the body's single-snapshot
   Cramer-Rao bound along the path. Judged on the pose at its newest frame's
   capture time, the instant the snapshot bound speaks of, made the way the
-  MAVLink bridge makes what it sends: the output tick's state moved back to
-  that time (bridge.convert.back_propagate; the bridge stamps each pose with
-  its capture time, or a point of its 1/rate_hz grid just before it, so the
-  autopilot's EKF, told the latency, fuses it at that instant). The outputs predicted on to the tick (6-8 ms past
-  the newest capture here: 4 ms of transport and the tick's phase; what NatNet,
-  VRPN and the pose stream send) are reported beside it: their excess is the
-  price of extrapolating the motion, which no causal estimator avoids. The bound
+  MAVLink bridge, VRPN and NatNet make what they send: the output tick's state
+  moved back to that time (bridge.convert.pose_at; the bridge stamps each pose
+  with its capture time, or a point of its 1/rate_hz grid just before it, so the
+  autopilot's EKF, told the latency, fuses it at that instant; VRPN's report
+  time and NatNet's CameraMidExposureTimestamp are that capture time). The
+  outputs predicted on to the tick (6-8 ms past the newest capture here: 4 ms of
+  transport and the tick's phase; what the pose stream sends, its time_ns the
+  tick) are reported beside it: their excess is the price of extrapolating the
+  motion, which no causal estimator avoids. The bound
   is evaluated at the true pose of every 5th output tick (enough for a smooth
   path) with the cameras that see each marker then (simulator truth); the RMSE
   is a root mean square over ticks, so the bound it is held against is the root
@@ -36,7 +38,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bridge.config import IMU_RATE_WITH_FUSION_HZ
-from bridge.convert import back_propagate
+from bridge.convert import pose_at
 from visionpos.benchmarks import BenchResult
 
 # (session of the thesis arena, what it flies). Issue 15's envelope is 2 m/s and 180 deg/s: slalom and dash fly
@@ -234,13 +236,12 @@ def fly(session: str, duration_s: float, seed: int, settings: dict | None = None
         if after_frame is not None:
             after_frame(pipe)
 
-    sent: list[tuple] = []  # per tracked tick: (tick ns, capture ns, position, quaternion) as the bridge sends it
+    sent: list[tuple] = []  # per tracked tick: (tick ns, capture ns, position, quaternion) as MAVLink sends it
 
     def at_capture(tick_ns, states):
         st = states[0]
         if st.tracked:
-            p, q = back_propagate(st.position, st.quaternion, st.velocity, st.angular_velocity,
-                                  (tick_ns - st.capture_ns) * 1e-9)
+            p, q = pose_at(st, st.capture_ns)
             sent.append((tick_ns, st.capture_ns, p, q))
 
     feed, age_ns = None, []
@@ -444,9 +445,10 @@ def run(quick: bool, res: BenchResult) -> None:
         "the frames costs. A reference, not a bound: a filter told more (its angular acceleration too) could do "
         "better.",
         "",
-        "Errors: the pose the MAVLink bridge sends, stamped with its newest frame's capture time (the output "
-        "tick's state moved back to it), against the truth then; at the output ticks: the state predicted to the "
-        "tick (6-8 ms past the newest capture: what NatNet, VRPN and the pose stream send). "
+        "Errors: the pose MAVLink, VRPN and NatNet send, stamped with its newest frame's capture time (the output "
+        "tick's state moved back to it with the filter's velocities and acceleration), against the truth then; at "
+        "the output ticks: the state predicted to the tick (6-8 ms past the newest capture: what the pose stream "
+        "sends, its time_ns the tick). "
         "Bound: the single-snapshot Cramer-Rao bound of the pose (0.2 px centroid noise, the cameras that see each "
         "marker) at the true pose of every 5th output tick, root mean square over the path. Longest stall: the "
         "longest time without an accepted filter measurement while 2 or more cameras see 3 or more markers, in "
