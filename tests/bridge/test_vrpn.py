@@ -3,6 +3,7 @@ crazyswarm2's motion_capture_tracking uses) and with raw sockets for the handsha
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import socket
@@ -211,11 +212,14 @@ def test_tcp_client_gets_descriptions_and_reports_stamped_with_capture_time(asks
         s.sendall(hello)
         time.sleep(0.2)
         s.sendall(message(0, 7, b""))  # ping from cf2
-        # cf1 captured 3 ms before mono0, predicted 7 ms ahead: the report is moved back to the capture
+        # cf1 captured 3 ms before mono0, predicted 7 ms ahead: the report is moved back to the capture with its
+        # velocity and acceleration (the filter's model, as MAVLink's)
         capture = mono0 - 3_000_000
-        st = body_state("cf1", 1, capture_ns=capture, dt_ns=7_000_000, position=(1.0, 2.0, 3.0),
-                        velocity=(0.5, -1.0, 2.0), angular_velocity=(0.0, 0.0, 0.0),
-                        quaternion=(0.0, 0.0, math.sin(0.25), math.cos(0.25)))
+        st = dataclasses.replace(
+            body_state("cf1", 1, capture_ns=capture, dt_ns=7_000_000, position=(1.0, 2.0, 3.0),
+                       velocity=(0.5, -1.0, 2.0), angular_velocity=(0.0, 0.0, 0.0),
+                       quaternion=(0.0, 0.0, math.sin(0.25), math.cos(0.25))),
+            acceleration=np.array([2.0, 0.0, -4.0]))
         lost = body_state("cf2", 2, capture_ns=capture, position=(9.0, 9.0, 9.0), tracked=False)
         time.sleep(0.1)
         server.publish([st, lost])
@@ -237,7 +241,8 @@ def test_tcp_client_gets_descriptions_and_reports_stamped_with_capture_time(asks
     assert (sec, usec) == (1_700_000_000, 123_456 - 3_000)
     sensor, _, x, y, z, qx, qy, qz, qw = struct.unpack("!ii3d4d", payload)
     assert sensor == 0
-    assert (x, y, z) == pytest.approx((1.0 - 0.5 * 0.007, 2.0 + 1.0 * 0.007, 3.0 - 2.0 * 0.007), abs=1e-12)
+    assert (x, y, z) == pytest.approx((1.0 - 0.5 * 0.007 + 0.5 * 2.0 * 0.007**2, 2.0 + 1.0 * 0.007,
+                                       3.0 - 2.0 * 0.007 - 0.5 * 4.0 * 0.007**2), abs=1e-12)
     assert (qx, qy, qz, qw) == pytest.approx((0.0, 0.0, math.sin(0.25), math.cos(0.25)), abs=1e-12)
     vels = [m for m in msgs if m[1] == by_name["vrpn_Tracker Velocity"]]
     if asks_velocity:
