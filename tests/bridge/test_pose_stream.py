@@ -256,3 +256,24 @@ def test_json_fast_path_reads_as_the_reference_encoding():
         assert json.loads(line) == json.loads(json.dumps(state_to_json(st, 1234)))
     lost = states()[1]  # residual NaN
     assert json.loads(_json_line(lost, 5))["residual_mm"] is None
+
+
+def test_a_record_moved_back_as_the_docs_say_is_the_pose_vrpn_and_natnet_send():
+    """docs/pose-stream.md: the line's pose, moved back by time_ns - capture_ns with its velocity and body angular
+    velocity (the rotation multiplied on the right), is the capture-time pose the other outputs send
+    (bridge.convert.pose_at), but for the filter's acceleration, which the line does not carry."""
+    from scipy.spatial.transform import Rotation
+
+    from bridge.convert import pose_at
+    from bridge.pose_stream import encode_json
+
+    st = body_state("cf1", 7, capture_ns=10_000_000_000, dt_ns=6_000_000, position=(1.0, -0.5, 0.8),
+                    quaternion=Rotation.from_euler("zyx", [0.4, 0.2, -0.1]).as_quat(), velocity=(2.0, -1.0, 0.5),
+                    angular_velocity=(0.3, -2.0, 1.0))
+    line = json.loads(encode_json([st], st.time_ns)[0].decode().splitlines()[0])
+    dt = (line["time_ns"] - line["capture_ns"]) / 1e9
+    p = np.array(line["position"]) - np.array(line["velocity"]) * dt
+    q = (Rotation.from_quat(line["quaternion"]) * Rotation.from_rotvec(-np.array(line["angular_velocity"]) * dt))
+    p_sent, q_sent = pose_at(st, st.capture_ns)  # no acceleration here: the two agree to the line's rounding
+    np.testing.assert_allclose(p, p_sent, atol=2e-6)
+    assert (q * Rotation.from_quat(q_sent).inv()).magnitude() < 1e-6
