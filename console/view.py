@@ -155,7 +155,7 @@ class ConsoleView:
         A camera's view is built only when something it shows changed since its last build (its frame, the
         frame's labels, its rays) or a watch wants a frame it has not seen; otherwise the last one is reused (a
         camera slower than the updates, a stalled one, a paused replay cost nothing)."""
-        frames = (snap or self.source.pipeline.snapshot()).cameras
+        frames = (snap if snap is not None else self.source.pipeline.snapshot()).cameras
         out: list[tuple[int, int | None, _CameraView]] = []
         build: list[tuple[int, CameraFrame, np.ndarray, tuple]] = []
         for cid in self.cameras:
@@ -279,7 +279,7 @@ class ConsoleView:
     def bodies(self, snap: FusionSnapshot | None = None) -> list[dict[str, Any]]:
         """Per body: name, id, tracked and its pose, or why it is not tracked; snap: the pipeline's snapshot (None:
         take one)."""
-        snap = snap or self.source.pipeline.snapshot()
+        snap = snap if snap is not None else self.source.pipeline.snapshot()
         out = []
         for i, s in enumerate(self.source.last_states or []):
             d: dict[str, Any] = {"name": s.name, "id": s.body_id, "tracked": bool(s.tracked)}
@@ -307,7 +307,7 @@ class ConsoleView:
             return None
 
     def loose_markers(self, snap: FusionSnapshot | None = None) -> list[list[float | None]]:
-        lp = (snap or self.source.pipeline.snapshot()).loose_points
+        lp = (snap if snap is not None else self.source.pipeline.snapshot()).loose_points
         if lp is None:
             return []
         return [_rounded(p, 4) for p in np.asarray(lp.points).reshape(-1, 3).tolist()]
