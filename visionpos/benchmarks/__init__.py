@@ -43,6 +43,12 @@ class BenchResult:
     notes: list[str] = field(default_factory=list)
 
 
+def windows_between(on: list[bool]) -> list[int]:
+    """Indices of the windows that are on (a console client connected, the outputs in) with a window off on each
+    side: what the live benches that alternate windows in one run hold against their neighbours."""
+    return [k for k in range(1, len(on) - 1) if on[k] and not on[k - 1] and not on[k + 1]]
+
+
 @dataclass(frozen=True)
 class Goal:
     """A target from the issues: metric `op` target, where op is "<=" or ">=";

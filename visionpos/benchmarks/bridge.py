@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
-from visionpos.benchmarks import BenchResult
+from visionpos.benchmarks import BenchResult, windows_between
 
 N_VEHICLES = 3
 
@@ -559,8 +559,8 @@ def _demo_run(arena, duration_s: float, windows: int | None) -> tuple[list[dict[
 def neighbour_ratios(rows: list[dict[str, Any]], key: str) -> dict[int, float]:
     """Window index -> rows[key] of that window with the outputs over the mean of its two neighbours without (a
     window without a neighbour on each side is not judged)."""
-    return {k: rows[k][key] / ((rows[k - 1][key] + rows[k + 1][key]) / 2) for k in range(1, len(rows) - 1)
-            if rows[k]["outputs"] and not rows[k - 1]["outputs"] and not rows[k + 1]["outputs"]}
+    return {k: rows[k][key] / ((rows[k - 1][key] + rows[k + 1][key]) / 2)
+            for k in windows_between([r["outputs"] is True for r in rows])}
 
 
 def _slowest_client_ratio(rows: list[dict]) -> float:

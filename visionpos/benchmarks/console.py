@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from visionpos.benchmarks import BenchResult
+from visionpos.benchmarks import BenchResult, windows_between
 
 # just above the 30 updates/s the goal asks for, so that the client's count over a window (+- one update) clears
 # it; the camera views ride on the console's default camera_view_rate_hz (10) of them
@@ -132,9 +132,7 @@ def window_ratios(rows: list[dict[str, Any]]) -> tuple[list[float], list[float],
     neighbours' mean less their console's own work), that cost without the console (µs/packet), and the idle
     console's own share of it."""
     ratios, off, idle = [], [], []
-    for k in range(1, len(rows) - 1):
-        if not rows[k]["client"] or rows[k - 1]["client"] or rows[k + 1]["client"]:
-            continue
+    for k in windows_between([r["client"] for r in rows]):
         base = (rows[k - 1]["cpu_us_per_packet"] + rows[k + 1]["cpu_us_per_packet"]) / 2
         own_idle = (rows[k - 1]["console_us_per_packet"] + rows[k + 1]["console_us_per_packet"]) / 2
         ratios.append(rows[k]["cpu_us_per_packet"] / (base - own_idle))
